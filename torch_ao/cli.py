@@ -1,0 +1,44 @@
+"""The ``torch-ao`` command line: one subcommand per module in :mod:`torch_ao.commands`."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Subcommand modules, each with ``register(subparsers)`` that adds its parser and sets ``func``.
+_COMMANDS = ("ao", "render", "fit", "bench")
+
+
+class CommandError(Exception):
+    """A user error: printed as one line, exit status 2, no traceback."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torch-ao", description="Differentiable screen-space ambient occlusion.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in _COMMANDS:
+        try:
+            module = importlib.import_module(f"torch_ao.commands.{name}")
+        except ModuleNotFoundError as err:
+            if err.name == f"torch_ao.commands.{name}":
+                continue  # not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (CommandError, ValueError, TypeError, FileNotFoundError, ImportError) as err:
+        print(f"torch-ao {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"torch-ao {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,170 @@
+"""The ``.npz`` G-buffer file format (read and written with ``allow_pickle=False``).
+
+Keys (arrays are top-down: row 0 is the top of the image; ``...`` is an optional batch axis B):
+
+=================  ==================  =====================================================
+key                shape               meaning
+=================  ==================  =====================================================
+``depth``          ``(...,H,W)``       positive view-axis depth; ``inf``/``0``/``nan`` = background
+``normal``         ``(...,H,W,3)``     unit view-space normals (OpenGL axes, facing the camera)
+``light``          ``(...,H,W,3)``     direct light leaving each pixel
+``mask``           ``(...,H,W)``       bool, False = background
+``object_id``      ``(...,H,W)``       integer object ids
+``intrinsics``     ``(3,3)``/``(B,3,3)`` pinhole ``K`` in pixels (pixel centres at integers)
+``fov_y_degrees``  scalar or ``(B,)``  used when ``intrinsics`` is absent (centred camera)
+``ao``             ``(...,H,W)``       reference visibility (1 = unoccluded)
+``ao_stderr``      ``(...,H,W)``       its per-pixel Monte Carlo standard error
+``max_distance``   scalar              the reference's maximum ray distance (``inf`` allowed)
+``visibility``     ``(...,H,W)``       a method's output visibility
+``indirect``       ``(...,H,W,3)``     a method's indirect light
+=================  ==================  =====================================================
+
+Other image-like keys (``(...,H,W)`` or ``(...,H,W,C)``) are kept and returned as ``(B,C,H,W)`` tensors.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .camera import PinholeCamera
+from .gbuffer import GBuffer
+
+__all__ = ["load_gbuffer", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image"]
+
+_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "intrinsics", "fov_y_degrees")
+
+
+def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """All arrays of an ``.npz`` file, refusing pickled objects, with a clear error for bad files."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no such file: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except ValueError as err:  # raised by numpy for object arrays when allow_pickle=False
+        raise ValueError(f"path: {path} holds pickled objects, which are refused ({err})") from None
+    except (zipfile.BadZipFile, OSError, EOFError) as err:
+        raise ValueError(f"path: {path} is not a valid .npz file ({err})") from None
+
+
+def numpy_to_image(array: np.ndarray, name: str, channels_last: bool) -> torch.Tensor:
+    """``(...,H,W)`` or ``(...,H,W,C)`` array -> ``(B,C,H,W)`` tensor."""
+    a = np.asarray(array)
+    if channels_last:
+        if a.ndim not in (3, 4):
+            raise ValueError(f"{name}: expected shape (H,W,C) or (B,H,W,C), got {a.shape}")
+        t = torch.from_numpy(np.ascontiguousarray(a))
+        t = t.unsqueeze(0) if t.dim() == 3 else t
+        return t.permute(0, 3, 1, 2).contiguous()
+    if a.ndim not in (2, 3):
+        raise ValueError(f"{name}: expected shape (H,W) or (B,H,W), got {a.shape}")
+    t = torch.from_numpy(np.ascontiguousarray(a))
+    t = t.unsqueeze(0) if t.dim() == 2 else t
+    return t.unsqueeze(1)
+
+
+def image_to_numpy(t: torch.Tensor) -> np.ndarray:
+    """``(B,C,H,W)`` tensor -> ``(B,H,W)`` (C = 1) or ``(B,H,W,C)`` array."""
+    a = t.detach().cpu()
+    if a.dtype in (torch.float16, torch.bfloat16):
+        a = a.float()
+    a = a.numpy()
+    return a[:, 0] if a.shape[1] == 1 else np.moveaxis(a, 1, -1)
+
+
+def _camera_from_arrays(arrays: dict, height: int, width: int, batch: int) -> PinholeCamera:
+    if "intrinsics" in arrays:
+        K = torch.from_numpy(np.asarray(arrays["intrinsics"], dtype=np.float64))
+        if K.shape not in ((3, 3), (batch, 3, 3), (1, 3, 3)):
+            raise ValueError(f"intrinsics: expected shape (3,3) or ({batch},3,3), got {tuple(K.shape)}")
+        return PinholeCamera(K.float(), height, width)
+    if "fov_y_degrees" in arrays:
+        fov = np.asarray(arrays["fov_y_degrees"], dtype=np.float64).reshape(-1)
+        return PinholeCamera.from_fov(torch.from_numpy(fov).float(), height, width, batch_size=batch)
+    raise ValueError("camera: the file needs 'intrinsics' (3,3) or 'fov_y_degrees'")
+
+
+def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = None) -> tuple[GBuffer, dict[str, torch.Tensor]]:
+    """Load a G-buffer file. Returns the :class:`GBuffer` and the other arrays.
+
+    Image-like extras (``ao``, ``ao_stderr``, ``visibility``, ``indirect``...) come back as
+    ``(B,C,H,W)`` tensors; scalars such as ``max_distance`` as 0-d tensors.
+    """
+    arrays = read_npz(path)
+    if "depth" not in arrays:
+        raise ValueError(f"path: {path} has no 'depth' array (keys: {sorted(arrays)})")
+    depth = numpy_to_image(arrays["depth"], "depth", channels_last=False)
+    if not np.issubdtype(arrays["depth"].dtype, np.floating):
+        raise TypeError(f"depth: expected a floating-point array, got {arrays['depth'].dtype}")
+    B, _, H, W = depth.shape
+    image_args = {}
+    for key, arg, chl in (("normal", "normals", True), ("light", "light", True), ("mask", "mask", False), ("object_id", "object_id", False)):
+        if key in arrays:
+            image_args[arg] = numpy_to_image(arrays[key], key, channels_last=chl)
+    camera = _camera_from_arrays(arrays, H, W, B)
+    to = dict(device=device)
+    gb = GBuffer(
+        depth=depth.to(**to),
+        camera=camera.to(device=device),
+        **{k: v.to(**to) for k, v in image_args.items()},
+    )
+    extras: dict[str, torch.Tensor] = {}
+    for key, value in arrays.items():
+        if key in _GBUFFER_KEYS:
+            continue
+        a = np.asarray(value)
+        if a.ndim >= 2 and a.shape[-2:] == (H, W):
+            extras[key] = numpy_to_image(a, key, channels_last=False).to(**to)
+        elif a.ndim >= 3 and a.shape[-3:-1] == (H, W):
+            extras[key] = numpy_to_image(a, key, channels_last=True).to(**to)
+        else:
+            extras[key] = torch.from_numpy(a).to(**to)
+    for key in ("ao", "ao_stderr"):
+        if key in extras and extras[key].is_floating_point():
+            bad = ~torch.isfinite(extras[key]) & gb.valid
+            if bool(bad.any()):
+                raise ValueError(f"{key}: {int(bad.sum())} non-finite values on valid pixels in {path}")
+    return gb, extras
+
+
+def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) -> Path:
+    """Write a G-buffer and/or images to ``path`` atomically (a temporary file, then a rename).
+
+    ``arrays`` values may be ``(B,C,H,W)`` tensors (stored top-down as ``(B,H,W[,C])``),
+    numpy arrays or scalars.
+    """
+    path = Path(path)
+    out: dict[str, np.ndarray] = {}
+    if gbuffer is not None:
+        depth = torch.where(gbuffer.valid, gbuffer.depth, torch.full_like(gbuffer.depth, float("inf")))
+        out["depth"] = image_to_numpy(depth)
+        if gbuffer.normals is not None:
+            out["normal"] = image_to_numpy(gbuffer.normals)
+        if gbuffer.light is not None:
+            out["light"] = image_to_numpy(gbuffer.light)
+        if gbuffer.mask is not None:
+            out["mask"] = image_to_numpy(gbuffer.mask)
+        if gbuffer.object_id is not None:
+            out["object_id"] = image_to_numpy(gbuffer.object_id)
+        out["intrinsics"] = gbuffer.camera.intrinsics.detach().cpu().numpy()
+    for key, value in arrays.items():
+        if isinstance(value, torch.Tensor):
+            out[key] = image_to_numpy(value) if value.dim() == 4 else value.detach().cpu().numpy()
+        else:
+            out[key] = np.asarray(value)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, **out)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
