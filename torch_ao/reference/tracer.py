@@ -1,0 +1,341 @@
+"""Batched ray intersection with a :class:`~torch_ao.reference.scene.Scene`, in torch (CPU or CUDA).
+
+Rays are ``origins (N,3)``, unit ``directions (N,3)`` and ``tmax (N,)`` (or a float; ``inf`` allowed);
+a ray hits at distance ``t`` with ``0 < t < tmax``. Primitives of one kind are intersected together
+over all rays of a chunk (``(N, P)`` tensors, no Python loop over rays); the loop is over the few
+primitive kinds. Triangle meshes go to Embree (:mod:`.embree`, optional ``embreex``) or, for small
+meshes, to a chunked pure-torch Moller-Trumbore test.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .scene import Box, Cylinder, Mesh, Plane, Scene, Sphere
+
+__all__ = ["Tracer", "Hit", "TORCH_MAX_TRIANGLES"]
+
+#: Largest total triangle count the pure-torch mesh path accepts when Embree is unavailable.
+TORCH_MAX_TRIANGLES = 20_000
+
+_INF = float("inf")
+
+
+@dataclass
+class Hit:
+    """Closest hits of ``N`` rays: ``t (N,)`` (``inf`` = miss), ``obj (N,)`` long object index into
+    ``scene.objects`` (``-1`` = miss) and unit world ``normal (N,3)`` (arbitrary side; zeros on misses)."""
+
+    t: torch.Tensor
+    obj: torch.Tensor
+    normal: torch.Tensor
+
+    @property
+    def hit(self) -> torch.Tensor:
+        return self.obj >= 0
+
+
+def _t(x, device, dtype):
+    return torch.as_tensor(x, dtype=dtype, device=device)
+
+
+class _Group:
+    """Primitives of one kind. ``closest`` -> ``(t (N,), idx (N,))``; ``normal`` of winners."""
+
+    obj: torch.Tensor  # (P,) object index of each primitive
+
+    def closest(self, o, d, tmax):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def occluded(self, o, d, tmax):
+        return self.closest(o, d, tmax)[0] < tmax
+
+
+def _reduce(t: torch.Tensor, tmax) -> tuple[torch.Tensor, torch.Tensor]:
+    """``t (N,P)`` with ``inf`` for misses -> closest ``(t, idx)`` below ``tmax``."""
+    tbest, idx = t.min(dim=1)
+    tmax = tmax if isinstance(tmax, float) else tmax
+    tbest = torch.where(tbest < tmax, tbest, torch.full_like(tbest, _INF))
+    return tbest, idx
+
+
+class _Planes(_Group):
+    def __init__(self, planes, obj, device, dtype):
+        self.n = _t([p.normal for p in planes], device, dtype)  # (P,3)
+        self.off = (_t([p.point for p in planes], torch.device("cpu"), torch.float64)
+                    * _t([p.normal for p in planes], torch.device("cpu"), torch.float64)).sum(1).to(device, dtype)
+        self.obj = obj
+
+    def closest(self, o, d, tmax):
+        denom = d @ self.n.T
+        t = (self.off - o @ self.n.T).div_(denom)
+        t = torch.where(t > 0, t, _INF)
+        return _reduce(t, tmax)
+
+    def normal(self, p, idx):
+        return self.n[idx]
+
+
+class _Spheres(_Group):
+    def __init__(self, spheres, obj, device, dtype):
+        self.c = _t([s.center for s in spheres], device, dtype)
+        self.r2 = _t([s.radius ** 2 for s in spheres], device, dtype)
+        self.obj = obj
+
+    def closest(self, o, d, tmax):
+        oc = o[:, None, :] - self.c  # (N,P,3)
+        b = (oc * d[:, None, :]).sum(-1)  # d . (o - c)
+        perp = oc - b[..., None] * d[:, None, :]  # closest approach vector, numerically stable
+        disc = self.r2 - (perp * perp).sum(-1)
+        sq = disc.clamp_min(0).sqrt_()
+        t0 = -b - sq
+        t = torch.where(t0 > 0, t0, sq - b)
+        t = torch.where((disc >= 0) & (t > 0), t, _INF)
+        return _reduce(t, tmax)
+
+    def normal(self, p, idx):
+        return p - self.c[idx]
+
+
+class _Boxes(_Group):
+    def __init__(self, boxes, obj, device, dtype):
+        R = torch.stack([b.rotation for b in boxes])  # (P,3,3) columns = local axes
+        c = torch.tensor([b.center for b in boxes], dtype=torch.float64)
+        self.P = len(boxes)
+        self.R = R.to(device, dtype)
+        self.Rcat = R.permute(1, 0, 2).reshape(3, 3 * self.P).to(device, dtype)  # o @ Rcat = local coords
+        self.c = c.to(device, dtype)
+        self.cl = torch.einsum("pi,pij->pj", c, R).reshape(-1).to(device, dtype)  # (3P,)
+        self.h = _t([b.half_extents for b in boxes], device, dtype).reshape(-1)  # (3P,)
+        self.obj = obj
+
+    def closest(self, o, d, tmax):
+        N = o.shape[0]
+        ol = (o @ self.Rcat).sub_(self.cl)  # (N,3P)
+        inv = (d @ self.Rcat).reciprocal_()
+        t1 = (-self.h - ol).mul_(inv)
+        t2 = (self.h - ol).mul_(inv)
+        tn = torch.fmin(t1, t2).view(N, self.P, 3).amax(-1)
+        tf = torch.fmax(t1, t2).view(N, self.P, 3).amin(-1)
+        t = torch.where(tn > 0, tn, tf)
+        t = torch.where((tn <= tf) & (t > 0), t, _INF)
+        return _reduce(t, tmax)
+
+    def normal(self, p, idx):
+        R = self.R[idx]  # (M,3,3)
+        pl = torch.einsum("mi,mij->mj", p - self.c[idx], R)
+        h = self.h.view(-1, 3)[idx]
+        axis = (pl.abs() / h).argmax(-1)
+        nl = torch.zeros_like(pl).scatter_(1, axis[:, None], 1.0) * torch.sign(pl)
+        return torch.einsum("mij,mj->mi", R, nl)
+
+
+class _Cylinders(_Group):
+    def __init__(self, cyls, obj, device, dtype):
+        self.c = _t([c.center for c in cyls], device, dtype)
+        self.a = _t([c.axis for c in cyls], device, dtype)
+        self.r2 = _t([c.radius ** 2 for c in cyls], device, dtype)
+        self.r = _t([c.radius for c in cyls], device, dtype)
+        self.h = _t([c.half_height for c in cyls], device, dtype)
+        self.obj = obj
+
+    def closest(self, o, d, tmax):
+        oc = o[:, None, :] - self.c  # (N,P,3)
+        oa = (oc * self.a).sum(-1)  # (N,P)
+        da = d @ self.a.T
+        op = oc - oa[..., None] * self.a
+        dp = d[:, None, :] - da[..., None] * self.a
+        A = (dp * dp).sum(-1)
+        B = (op * dp).sum(-1)
+        C = (op * op).sum(-1) - self.r2
+        disc = B * B - A * C
+        sq = disc.clamp_min(0).sqrt_()
+        parallel = A < 1e-12
+        Asafe = torch.where(parallel, torch.ones_like(A), A)
+        c_near = torch.where(parallel, torch.where(C < 0, -_INF, _INF), (-B - sq) / Asafe)
+        c_far = torch.where(parallel, torch.where(C < 0, _INF, -_INF), (-B + sq) / Asafe)
+        miss = (disc < 0) & ~parallel
+        inv = da.reciprocal()
+        s1 = (-self.h - oa) * inv
+        s2 = (self.h - oa) * inv
+        tn = torch.maximum(c_near, torch.fmin(s1, s2))
+        tf = torch.minimum(c_far, torch.fmax(s1, s2))
+        t = torch.where(tn > 0, tn, tf)
+        t = torch.where(~miss & (tn <= tf) & (t > 0), t, _INF)
+        return _reduce(t, tmax)
+
+    def normal(self, p, idx):
+        a = self.a[idx]
+        q = p - self.c[idx]
+        qa = (q * a).sum(-1, keepdim=True)
+        radial = q - qa * a
+        side = (radial.norm(dim=-1) / self.r[idx] - 1) > (qa.abs()[:, 0] / self.h[idx] - 1)
+        return torch.where(side[:, None], radial, a * torch.sign(qa))
+
+
+class _TorchTriangles(_Group):
+    """Moller-Trumbore over ``(N, T)`` blocks, after culling rays that miss each mesh's bounds."""
+
+    def __init__(self, meshes, obj_of_mesh, device, dtype, block: int = 1 << 22):
+        self.meshes = []
+        tri_all, tri_obj = [], []
+        for m, oi in zip(meshes, obj_of_mesh):
+            tri = m.triangles  # (T,3,3) float64
+            start = sum(x.shape[0] for x in tri_all)
+            tri_all.append(tri)
+            tri_obj.append(torch.full((tri.shape[0],), int(oi), dtype=torch.long))
+            lo, hi = m.bounds()
+            pad = 1e-6 * float((hi - lo).max()) + 1e-9
+            self.meshes.append((start, tri.shape[0], (lo - pad).to(device, dtype), (hi + pad).to(device, dtype)))
+        tri = torch.cat(tri_all)
+        self.v0 = tri[:, 0].to(device, dtype)
+        self.e1 = (tri[:, 1] - tri[:, 0]).to(device, dtype)
+        self.e2 = (tri[:, 2] - tri[:, 0]).to(device, dtype)
+        self.obj = torch.cat(tri_obj).to(device)
+        self.block = block
+
+    def closest(self, o, d, tmax):
+        N = o.shape[0]
+        tbest = torch.full((N,), _INF, dtype=o.dtype, device=o.device)
+        ibest = torch.zeros(N, dtype=torch.long, device=o.device)
+        for start, count, lo, hi in self.meshes:
+            inv = d.reciprocal()
+            t1, t2 = (lo - o) * inv, (hi - o) * inv
+            tn = torch.fmin(t1, t2).amax(-1)
+            tf = torch.fmax(t1, t2).amin(-1)
+            sel = ((tn <= tf) & (tf > 0) & (tn < (tmax if isinstance(tmax, float) else tmax))).nonzero()[:, 0]
+            if sel.numel() == 0:
+                continue
+            os_, ds_ = o[sel], d[sel]
+            tsel = tbest[sel]
+            isel = ibest[sel]
+            step = max(1, self.block // max(1, sel.numel()))
+            for k in range(start, start + count, step):
+                e = min(k + step, start + count)
+                t = self._mt(os_, ds_, self.v0[k:e], self.e1[k:e], self.e2[k:e])
+                tk, ik = t.min(dim=1)
+                better = tk < tsel
+                tsel = torch.where(better, tk, tsel)
+                isel = torch.where(better, ik + k, isel)
+            tbest[sel] = tsel
+            ibest[sel] = isel
+        tbest = torch.where(tbest < tmax, tbest, _INF)
+        return tbest, ibest
+
+    @staticmethod
+    def _mt(o, d, v0, e1, e2):
+        """``(N, T)`` hit distances (``inf`` = miss); two-sided."""
+        pvec = torch.linalg.cross(d[:, None, :], e2[None], dim=-1)  # (N,T,3)
+        det = (pvec * e1).sum(-1)
+        inv_det = det.reciprocal()
+        tvec = o[:, None, :] - v0
+        u = (tvec * pvec).sum(-1) * inv_det
+        qvec = torch.linalg.cross(tvec, e1[None].expand_as(tvec), dim=-1)
+        v = (qvec * d[:, None, :]).sum(-1) * inv_det
+        t = (qvec * e2).sum(-1) * inv_det
+        ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (det.abs() > 0)
+        return torch.where(ok, t, _INF)
+
+    def normal(self, p, idx):
+        return torch.linalg.cross(self.e1[idx], self.e2[idx], dim=-1)
+
+
+class Tracer:
+    """Intersects rays with a scene on ``device`` in ``dtype``.
+
+    Args:
+        scene: the :class:`Scene`.
+        mesh_backend: ``"auto"`` (Embree when ``embreex`` imports, else torch for meshes up to
+            :data:`TORCH_MAX_TRIANGLES` triangles, else an error naming the package), ``"embree"``
+            or ``"torch"``.
+    """
+
+    def __init__(self, scene: Scene, device=None, dtype: torch.dtype = torch.float32, mesh_backend: str = "auto"):
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene: expected a torch_ao.reference.Scene, got {type(scene).__name__}")
+        if mesh_backend not in ("auto", "embree", "torch"):
+            raise ValueError(f"mesh_backend: expected 'auto', 'embree' or 'torch', got {mesh_backend!r}")
+        self.scene = scene
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.dtype = dtype
+        self.scale = scene.scale
+        objs = scene.objects
+        self.albedo = _t([o.albedo for o in objs], self.device, dtype)  # (O,3)
+        self.object_id = torch.tensor([o.object_id for o in objs], dtype=torch.long, device=self.device)
+        self.groups: list[_Group] = []
+        for kind, cls in ((Plane, _Planes), (Sphere, _Spheres), (Box, _Boxes), (Cylinder, _Cylinders)):
+            idx = [i for i, o in enumerate(objs) if type(o) is kind]
+            if idx:
+                self.groups.append(cls([objs[i] for i in idx], torch.tensor(idx, device=self.device), self.device, dtype))
+        mesh_idx = [i for i, o in enumerate(objs) if isinstance(o, Mesh)]
+        self.mesh_backend = None
+        if mesh_idx:
+            meshes = [objs[i] for i in mesh_idx]
+            self.mesh_backend = _choose_backend(mesh_backend, sum(m.faces.shape[0] for m in meshes))
+            if self.mesh_backend == "embree":
+                from .embree import EmbreeTriangles
+
+                self.groups.append(EmbreeTriangles(meshes, mesh_idx, self.device, dtype))
+            else:
+                self.groups.append(_TorchTriangles(meshes, mesh_idx, self.device, dtype))
+
+    def intersect(self, o: torch.Tensor, d: torch.Tensor, tmax=_INF) -> Hit:
+        """Closest hits of rays ``o, d (N,3)`` within ``tmax`` (float or ``(N,)``)."""
+        N = o.shape[0]
+        tbest = torch.full((N,), _INF, dtype=o.dtype, device=o.device)
+        gbest = torch.full((N,), -1, dtype=torch.long, device=o.device)
+        ibest = torch.zeros(N, dtype=torch.long, device=o.device)
+        for g, group in enumerate(self.groups):
+            t, idx = group.closest(o, d, tmax)
+            better = t < tbest
+            tbest = torch.where(better, t, tbest)
+            gbest = torch.where(better, g, gbest)
+            ibest = torch.where(better, idx, ibest)
+        obj = torch.full((N,), -1, dtype=torch.long, device=o.device)
+        normal = torch.zeros_like(o)
+        p = o + tbest.clamp_max(torch.finfo(o.dtype).max)[:, None] * d
+        for g, group in enumerate(self.groups):
+            sel = (gbest == g).nonzero()[:, 0]
+            if sel.numel() == 0:
+                continue
+            idx = ibest[sel]
+            obj[sel] = group.obj[idx]
+            normal[sel] = torch.nn.functional.normalize(group.normal(p[sel], idx), dim=-1, eps=1e-30)
+        return Hit(tbest, obj, normal)
+
+    def occluded(self, o: torch.Tensor, d: torch.Tensor, tmax=_INF) -> torch.Tensor:
+        """``(N,)`` bool: does the ray hit anything with ``0 < t < tmax``."""
+        hit = torch.zeros(o.shape[0], dtype=torch.bool, device=o.device)
+        for group in self.groups:
+            hit |= group.occluded(o, d, tmax)
+        return hit
+
+    def offset(self, p: torch.Tensor, n: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
+        """Origins ``p + eps * n`` against self-intersection; ``n`` on the side rays leave from.
+
+        ``eps = rel * (1e-2 * scene.scale + max|p| + distance)``: relative to the scene size, the
+        point's magnitude (float rounding of ``p``) and the primary ray's length.
+        """
+        mag = p.abs().amax(-1)
+        if distance is not None:
+            mag = mag + distance
+        eps = rel * (1e-2 * self.scale + mag)
+        return p + eps[:, None] * n
+
+
+def _choose_backend(requested: str, triangles: int) -> str:
+    if requested == "torch":
+        return "torch"
+    from .embree import embree_available
+
+    if embree_available():
+        return "embree"
+    if requested == "embree":
+        raise ImportError("mesh_backend='embree' needs embreex: pip install torch-ao[mesh] (or pip install embreex)")
+    if triangles > TORCH_MAX_TRIANGLES:
+        raise ImportError(
+            f"meshes: {triangles} triangles is too many for the pure-torch tracer (limit {TORCH_MAX_TRIANGLES}); "
+            "install Embree: pip install torch-ao[mesh] (or pip install embreex), or pass mesh_backend='torch' to force it"
+        )
+    return "torch"
