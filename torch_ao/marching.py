@@ -452,11 +452,11 @@ def march(
     """
     q = frame.queries
     n = len(q)
-    if n == 0:
-        return method.finish({}, q, pattern.num_slices)
-    size = n if chunk_size is None else max(1, int(chunk_size))
+    size = max(n, 1) if chunk_size is None else max(1, int(chunk_size))
     outputs: list[dict[str, torch.Tensor]] = []
-    for start in range(0, n, size):
+    # An empty query list (an all-background frame) still walks once, on empty tensors, so that
+    # outputs stay connected to the parameters (with zero gradient).
+    for start in range(0, max(n, 1), size):
         qc = q if size >= n else q.subset(slice(start, start + size))
         if recompute and torch.is_grad_enabled():
             outputs.append(checkpoint(_walk, frame, qc, pattern, method, use_reentrant=False))
