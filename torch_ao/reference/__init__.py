@@ -1,0 +1,16 @@
+"""Ray-traced references: scenes, a batched torch tracer (optional Embree for meshes), G-buffers,
+ground-truth AO with standard errors and one-bounce indirect light for the same views."""
+from .embree import embree_available
+from .render import Reference, default_views, render_reference
+from .scene import Box, Cylinder, Light, LookAt, Mesh, Plane, Scene, Sphere, rotation_from_axis_angle, rotation_y
+from .scenes import SCENES, get_scene, icosphere, list_scenes, torus
+from .tracer import TORCH_MAX_TRIANGLES, Hit, Tracer
+from .views import Views, look_at, look_at_matrix
+
+__all__ = [
+    "Scene", "Plane", "Sphere", "Box", "Cylinder", "Mesh", "Light", "LookAt", "rotation_y", "rotation_from_axis_angle",
+    "SCENES", "get_scene", "list_scenes", "icosphere", "torus",
+    "Tracer", "Hit", "TORCH_MAX_TRIANGLES", "embree_available",
+    "Views", "look_at", "look_at_matrix",
+    "Reference", "render_reference", "default_views",
+]
