@@ -40,6 +40,11 @@ def _check_intrinsics(K: torch.Tensor) -> torch.Tensor:
     return K
 
 
+def _check_size(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """A batch of pinhole cameras sharing one image size.
@@ -55,11 +60,9 @@ class PinholeCamera:
     width: int
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "intrinsics", _check_intrinsics(self.intrinsics))
         for name in ("height", "width"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+            _check_size(name, getattr(self, name))
+        object.__setattr__(self, "intrinsics", _check_intrinsics(self.intrinsics))
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -77,6 +80,8 @@ class PinholeCamera:
 
         ``fov_y_degrees`` may be a float or a ``(B,)`` tensor (one per view).
         """
+        _check_size("height", height)
+        _check_size("width", width)
         fov = torch.as_tensor(fov_y_degrees, dtype=dtype, device=device).reshape(-1)
         if not bool(torch.isfinite(fov).all()) or bool(((fov <= 0) | (fov >= 180)).any()):
             raise ValueError(f"fov_y_degrees: expected values in (0, 180), got {fov.tolist()}")

@@ -307,7 +307,8 @@ class SlicePattern(SamplingPattern):
         step_power: 1 = linear, 2 = quadratic (denser near the pixel), etc.
         min_step_px: the first sample is at least this many pixels away.
         jitter, seed: per-pixel noise.
-        fetch: ``"nearest"`` or ``"bilinear"`` depth fetch; border: ``"clamp"`` or ``"drop"``.
+        fetch: ``"nearest"`` texel, or ``"bilinear"`` (perspective-correct: interpolates 1/depth, so
+            planes are reproduced exactly); border: ``"clamp"`` to the edge or ``"drop"`` off-screen samples.
         azimuth: ``"view"`` spaces slices evenly around the view vector (exact slice integral);
             ``"screen"`` evenly in screen angle (XeGTAO/HDRP; biased off-centre).
         max_radius_px: optional clamp of the screen radius.
@@ -409,7 +410,8 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
         index = base[:, None] + rows * W + cols  # (N,4)
         weights = torch.stack(((1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv), -1)
         valid = frame.valid[index].all(-1)
-        depth = (frame.safe_depth[index] * weights).sum(-1)
+        # Interpolate 1/depth: it is affine in screen space across a plane, so planes are exact.
+        depth = 1.0 / (weights / frame.safe_depth[index]).sum(-1)
         b = q.batch
         su_c = su.clamp(0, W - 1)
         sv_c = sv.clamp(0, H - 1)
