@@ -120,6 +120,16 @@ class GBuffer:
                 raise ValueError("object_id: ids must be >= 0")
             self.object_id = self.object_id.long()
 
+    def to(self, device=None, dtype: torch.dtype | None = None) -> "GBuffer":
+        """A copy on ``device`` (and with float buffers in ``dtype``)."""
+        def move(x, floating=True):
+            if x is None:
+                return None
+            return x.to(device=device, dtype=dtype if floating and x.is_floating_point() else None)
+
+        return GBuffer(move(self.depth), self.camera.to(device=device, dtype=dtype), normals=move(self.normals),
+                       light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False))
+
     # ------------------------------------------------------------------ derived buffers
     @property
     def shape(self) -> tuple[int, int, int, int]:

@@ -1,0 +1,37 @@
+"""Writing images for people to look at (PNG through matplotlib, an optional dependency)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["save_png", "to_display"]
+
+
+def to_display(image: torch.Tensor | np.ndarray) -> np.ndarray:
+    """``(B,C,H,W)``/``(C,H,W)``/``(H,W)`` -> ``(H, B*W, 3)`` float array in [0, 1] (batch side by side)."""
+    a = image.detach().float().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[None, None]
+    elif a.ndim == 3:
+        a = a[None]
+    if a.shape[1] == 1:
+        a = np.repeat(a, 3, axis=1)
+    a = np.concatenate(list(np.moveaxis(a[:, :3], 1, -1)), axis=1)
+    return np.clip(np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+
+
+def save_png(path: str | Path, image) -> Path:
+    """Save an image (see :func:`to_display`) as PNG. Needs matplotlib (``pip install torch-ao[plot]``)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise ImportError("--png needs matplotlib: pip install 'torch-ao[plot]'") from err
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    plt.imsave(path, to_display(image))
+    return path
