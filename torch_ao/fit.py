@@ -1,0 +1,309 @@
+"""Fitting an AO module's float parameters to ray-traced reference visibility.
+
+The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
+
+* a loss on valid pixels only (L1 or MSE, optionally weighted by ``1/(stderr^2 + eps)``),
+* a temperature schedule for soft-mask modules (geometric from ``temperature_start`` to
+  ``temperature_end``; the module is put in ``mode="soft"`` while fitting),
+* gradient clipping, projection onto each parameter's valid range, early stopping,
+* atomic checkpoints (parameters, optimizer state, step, RNG state, history) every
+  ``checkpoint_every`` steps; the same call with the same ``checkpoint`` path resumes and ends
+  with the same result as an uninterrupted run.
+
+Evaluation is always in **hard** mode (what an engine ships) with :func:`evaluate`.
+"""
+from __future__ import annotations
+
+import math
+import os
+import random
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from .gbuffer import GBuffer
+from .metrics import error_metrics
+
+__all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode"]
+
+#: Lower bounds applied after every optimizer step (parameters outside them are meaningless).
+PARAMETER_MINIMUM = {"thickness": 0.0, "radius": 1e-3, "falloff_range": 0.0, "final_power": 0.05, "albedo": 0.0}
+
+
+@dataclass
+class FitView:
+    """One reference view: its G-buffer, reference visibility ``(B,1,H,W)`` and optional stderr."""
+
+    gbuffer: GBuffer
+    reference: torch.Tensor
+    stderr: torch.Tensor | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.gbuffer, GBuffer):
+            raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(self.gbuffer).__name__}")
+        shape = tuple(self.gbuffer.depth.shape)
+        for key in ("reference", "stderr"):
+            x = getattr(self, key)
+            if x is None:
+                continue
+            if not isinstance(x, torch.Tensor) or tuple(x.shape) != shape:
+                got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+                raise ValueError(f"{key}: expected shape {shape} (that of depth), got {got}")
+            bad = ~torch.isfinite(x) & self.gbuffer.valid
+            if bool(bad.any()):
+                raise ValueError(f"{key}: {int(bad.sum())} non-finite values on valid pixels of view {self.name or '?'}")
+
+
+def load_views(paths: Iterable[str | os.PathLike], device=None) -> list[FitView]:
+    """Reference views from G-buffer files that hold an ``ao`` array (and optionally ``ao_stderr``)."""
+    from .io import load_gbuffer
+
+    views = []
+    for path in paths:
+        gb, extras = load_gbuffer(path, device=device)
+        if "ao" not in extras:
+            raise ValueError(f"reference: {path} has no 'ao' array; render one with `torch-ao render`")
+        views.append(FitView(gb, extras["ao"].to(gb.depth.dtype), extras.get("ao_stderr"), name=str(path)))
+    return views
+
+
+@dataclass
+class FitConfig:
+    """Settings of :func:`fit` (all serialisable, so a checkpoint can check it resumes the same run)."""
+
+    params: Sequence[str] = ("thickness",)
+    steps: int = 100
+    lr: float = 0.05
+    loss: str = "l1"  # "l1" | "mse"
+    weight_by_stderr: bool = False
+    batch_views: int = 0  # views per step (0 = all)
+    temperature_start: float = 0.3
+    temperature_end: float = 0.02
+    clip_grad: float = 1.0
+    patience: int = 0  # early stop after this many steps without improvement (0 = never)
+    min_delta: float = 1e-6
+    seed: int = 0
+    checkpoint_every: int = 10
+
+    def __post_init__(self) -> None:
+        self.params = tuple(self.params)
+        if self.loss not in ("l1", "mse"):
+            raise ValueError(f"loss: expected 'l1' or 'mse', got {self.loss!r}")
+        if self.steps < 0 or self.lr <= 0:
+            raise ValueError(f"steps/lr: expected steps >= 0 and lr > 0, got {self.steps}, {self.lr}")
+        if not (self.temperature_start > 0 and self.temperature_end > 0):
+            raise ValueError("temperature_start/temperature_end: expected > 0")
+
+
+@dataclass
+class FitResult:
+    parameters: dict[str, list | float]
+    history: list[dict] = field(default_factory=list)
+    steps_done: int = 0
+    stopped_early: bool = False
+    seconds: float = 0.0
+
+
+def set_mode(module: nn.Module, mode: str | None, temperature: float | None = None) -> None:
+    """Put soft-mask modules (those with ``mode``/``temperature`` attributes) in ``mode``."""
+    for m in module.modules():
+        if mode is not None and hasattr(m, "mode"):
+            m.mode = mode
+        if temperature is not None and hasattr(m, "temperature"):
+            value = getattr(m, "temperature")
+            if isinstance(value, torch.Tensor):
+                with torch.no_grad():
+                    value.fill_(temperature)
+            else:
+                m.temperature = temperature
+
+
+def _named_fit_parameters(module: nn.Module, names: Sequence[str]) -> dict[str, nn.Parameter]:
+    available = dict(module.named_parameters())
+    chosen = {}
+    for name in names:
+        if name not in available:
+            raise ValueError(f"params: {name!r} is not a float parameter of {type(module).__name__}; "
+                             f"available: {', '.join(sorted(available)) or 'none'}")
+        chosen[name] = available[name]
+    return chosen
+
+
+def _loss(pred: torch.Tensor, view: FitView, kind: str, weight_by_stderr: bool) -> torch.Tensor:
+    valid = view.gbuffer.valid
+    diff = (pred - view.reference)[valid]
+    per_pixel = diff.abs() if kind == "l1" else diff.square()
+    if weight_by_stderr and view.stderr is not None:
+        w = 1.0 / (view.stderr[valid].square() + 1e-4)
+        return (per_pixel * w).sum() / w.sum().clamp_min(1e-12)
+    return per_pixel.mean() if per_pixel.numel() else pred.sum() * 0.0
+
+
+def _temperature(cfg: FitConfig, step: int) -> float:
+    if cfg.steps <= 1:
+        return cfg.temperature_end
+    t = step / (cfg.steps - 1)
+    return math.exp((1 - t) * math.log(cfg.temperature_start) + t * math.log(cfg.temperature_end))
+
+
+def _rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state()[1].tolist(), "numpy_pos": int(np.random.get_state()[2]),
+            "python": list(random.getstate()[1]), "python_pos": random.getstate()[2]}
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(("MT19937", np.array(state["numpy"], dtype=np.uint32), state["numpy_pos"], 0, 0.0))
+    random.setstate((3, tuple(state["python"]), state["python_pos"]))
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """``torch.save`` to a temporary file in the same folder, then an atomic rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def load_checkpoint(path: Path) -> dict:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupted or foreign file
+        raise ValueError(f"checkpoint: cannot read {path} ({err})") from None
+
+
+def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = None, *,
+        checkpoint: str | os.PathLike | None = None, progress: bool = True) -> FitResult:
+    """Fit ``config.params`` of ``module`` to the reference visibility of ``views``.
+
+    Args:
+        module: any AO module returning :class:`~torch_ao.methods.AOOutput` (or a visibility tensor).
+        views: training views (see :class:`FitView`, :func:`load_views`).
+        config: :class:`FitConfig`.
+        checkpoint: file to write checkpoints to and resume from.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        :class:`FitResult` with the fitted parameter values, the loss history and timings.
+        The module holds the *best* parameters seen (lowest training loss) at the end.
+    """
+    cfg = config or FitConfig()
+    if not views:
+        raise ValueError("views: expected at least one reference view")
+    params = _named_fit_parameters(module, cfg.params)
+    for name, p in module.named_parameters():
+        p.requires_grad_(name in params)
+    optimizer = torch.optim.Adam(list(params.values()), lr=cfg.lr)
+    state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False}
+    ckpt_path = Path(checkpoint) if checkpoint is not None else None
+    fingerprint = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if k != "checkpoint_every"}
+    if ckpt_path is not None and ckpt_path.exists():
+        saved = load_checkpoint(ckpt_path)
+        if saved.get("config") != fingerprint:
+            raise ValueError(f"checkpoint: {ckpt_path} was written with other settings; remove it or use another path")
+        module.load_state_dict(saved["module"])
+        optimizer.load_state_dict(saved["optimizer"])
+        _set_rng_state(saved["rng"])
+        state = saved["state"]
+    else:
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        random.seed(cfg.seed)
+
+    def snapshot():
+        return {"config": fingerprint, "module": module.state_dict(), "optimizer": optimizer.state_dict(),
+                "rng": _rng_state(), "state": state}
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.steps, initial=state["step"], desc="fit", unit="step", leave=False)
+    start = time.perf_counter()
+    try:
+        while state["step"] < cfg.steps and not state["stopped_early"]:
+            step = state["step"]
+            temperature = _temperature(cfg, step)
+            set_mode(module, "soft", temperature)
+            order = torch.randperm(len(views)).tolist()
+            batch = order[: cfg.batch_views] if cfg.batch_views else order
+            optimizer.zero_grad(set_to_none=True)
+            total = 0.0
+            for i in batch:
+                out = module(views[i].gbuffer)
+                vis = out.visibility if hasattr(out, "visibility") else out
+                loss = _loss(vis, views[i], cfg.loss, cfg.weight_by_stderr) / len(batch)
+                loss.backward()
+                total += float(loss.detach())
+            grads = [p.grad for p in params.values() if p.grad is not None]
+            if grads and not all(bool(torch.isfinite(g).all()) for g in grads):
+                raise FloatingPointError(f"fit: non-finite gradient at step {step}; lower lr or temperature_end")
+            if cfg.clip_grad > 0:
+                torch.nn.utils.clip_grad_norm_(list(params.values()), cfg.clip_grad)
+            optimizer.step()
+            with torch.no_grad():
+                for name, p in params.items():
+                    key = name.rsplit(".", 1)[-1]
+                    if key in PARAMETER_MINIMUM:
+                        p.clamp_(min=PARAMETER_MINIMUM[key])
+            record = {"step": step, "loss": total, "temperature": temperature,
+                      **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}}
+            state["history"].append(record)
+            if total < state["best_loss"] - cfg.min_delta:
+                state["best_loss"], state["bad_steps"] = total, 0
+                state["best"] = {n: p.detach().clone() for n, p in params.items()}
+            else:
+                state["bad_steps"] += 1
+                if cfg.patience and state["bad_steps"] >= cfg.patience:
+                    state["stopped_early"] = True
+            state["step"] = step + 1
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{total:.4f}")
+            if ckpt_path is not None and (state["step"] % cfg.checkpoint_every == 0 or state["step"] == cfg.steps):
+                save_checkpoint(ckpt_path, snapshot())
+    finally:
+        if bar is not None:
+            bar.close()
+    if ckpt_path is not None:
+        save_checkpoint(ckpt_path, snapshot())
+    if state["best"] is not None:
+        with torch.no_grad():
+            for name, p in params.items():
+                p.copy_(state["best"][name])
+    set_mode(module, "hard")
+    values = {n: (p.detach().cpu().item() if p.numel() == 1 else p.detach().cpu().flatten().tolist()) for n, p in params.items()}
+    return FitResult(values, state["history"], state["step"], state["stopped_early"], time.perf_counter() - start)
+
+
+@torch.no_grad()
+def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = "hard", repeats: int = 1) -> dict[str, float]:
+    """Error of ``module`` (in ``mode``, hard by default) against the views' references, and run time.
+
+    Returns mean ``mae``, ``rmse``, ``psnr``, ``ssim`` over views and ``seconds`` (median forward time per view).
+    """
+    if mode is not None:
+        set_mode(module, mode)
+    rows, times = [], []
+    for view in views:
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            out = module(view.gbuffer)
+            times.append(time.perf_counter() - t0)
+        vis = out.visibility if hasattr(out, "visibility") else out
+        rows.append(error_metrics(vis, view.reference, view.gbuffer.valid))
+    result = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+    result["seconds"] = float(np.median(times))
+    return result
