@@ -172,7 +172,7 @@ def large_depth_range(rng=None) -> Scene:
     p = _P(rng)
     near = p.u(0.2, 0.5, 0.3)
     objs = [_floor(p),
-            Sphere(center=(0.1, 1.45 - near, 2.0 - near - 0.12), radius=0.1, albedo=p.albedo((0.9, 0.4, 0.2))),
+            Sphere(center=(0.3 * near, 1.5 - 0.35 * near, 2.0 - near), radius=0.25 * near, albedo=p.albedo((0.9, 0.4, 0.2))),
             Box(center=(0.8, 0.5, -8.0), half_extents=(0.5, 0.5, 0.5), albedo=p.albedo((0.5, 0.7, 0.5))),
             Box(center=(-15.0, 10.0, -150.0), half_extents=(8.0, 10.0, 8.0), albedo=p.albedo((0.6, 0.6, 0.7))),
             Sphere(center=(40.0, 30.0, -600.0), radius=30.0, albedo=p.albedo((0.7, 0.7, 0.5))),
