@@ -1,0 +1,135 @@
+"""The fitting loop's mechanics on a toy module with a known optimum: recovery, projection,
+early stopping, bad input, and kill-and-resume with a real SIGKILL of a subprocess."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+import torch
+from torch import nn
+
+from torch_ao.examples import plane_gbuffer
+from torch_ao.fit import FitConfig, FitView, evaluate, fit
+from torch_ao.methods.base import AOOutput
+
+
+class Toy(nn.Module):
+    """visibility = exp(-thickness * (depth - 3)^2 / 4): smooth, with the optimum known by construction."""
+
+    def __init__(self, thickness=1.0):
+        super().__init__()
+        self.thickness = nn.Parameter(torch.tensor(float(thickness)))
+        self.mode, self.temperature = "hard", 0.1
+
+    def forward(self, gb):
+        return AOOutput(torch.exp(-self.thickness * (gb.safe_depth - 3).square() / 4))
+
+
+def views(n=3):
+    out = []
+    for i in range(n):
+        gb = plane_gbuffer(12, 16, tilt_degrees=40 + 10 * i)
+        with torch.no_grad():
+            ref = Toy(0.3)(gb).visibility
+        out.append(FitView(gb, ref, name=f"v{i}"))
+    return out
+
+
+def test_fit_recovers_a_known_thickness_and_evaluates_in_hard_mode():
+    toy = Toy(1.5)
+    before = evaluate(toy, views())
+    result = fit(toy, views(), FitConfig(steps=150, lr=0.05), progress=False)
+    after = evaluate(toy, views())
+    assert result.parameters["thickness"] == pytest.approx(0.3, abs=0.02)
+    assert after["mae"] < before["mae"] / 10 and after["psnr"] > before["psnr"]
+    assert toy.mode == "hard"
+    assert [r["step"] for r in result.history] == list(range(150))
+
+
+def test_projection_keeps_thickness_non_negative_and_early_stopping():
+    toy = Toy(0.01)
+    vs = views(1)
+    vs[0].reference = torch.ones_like(vs[0].reference)  # best thickness would be negative
+    result = fit(toy, vs, FitConfig(steps=200, lr=0.1, patience=5), progress=False)
+    assert toy.thickness.item() == 0.0
+    assert result.stopped_early and result.steps_done < 200
+
+
+def test_bad_input_gets_clear_errors():
+    gb = plane_gbuffer(12, 16)
+    with pytest.raises(ValueError, match="reference: expected shape"):
+        FitView(gb, torch.ones(1, 1, 5, 5))
+    bad = torch.ones(1, 1, 12, 16)
+    bad[0, 0, 3, 3] = float("nan")
+    with pytest.raises(ValueError, match="reference: 1 non-finite"):
+        FitView(gb, bad)
+    with pytest.raises(ValueError, match="params: 'radius' is not a float parameter"):
+        fit(Toy(), views(1), FitConfig(params=("radius",), steps=1), progress=False)
+    with pytest.raises(ValueError, match="views"):
+        fit(Toy(), [], FitConfig(steps=1), progress=False)
+    with pytest.raises(ValueError, match="loss"):
+        FitConfig(loss="huber")
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import json, sys, time, torch
+    sys.path.insert(0, {tests!r})
+    from test_fit_loop import Toy, views
+    from torch_ao.fit import FitConfig, fit
+
+    class Slow(Toy):
+        def forward(self, gb):
+            time.sleep({sleep})
+            return super().forward(gb)
+
+    toy = Slow(1.5)
+    cfg = FitConfig(steps=40, lr=0.05, batch_views=1, checkpoint_every=1, seed=7)
+    result = fit(toy, views(), cfg, checkpoint=sys.argv[1], progress=False)
+    print(json.dumps({{"thickness": toy.thickness.item(), "losses": [r["loss"] for r in result.history]}}))
+    """
+)
+
+
+def _run(script, ckpt, timeout=120):
+    return subprocess.run([sys.executable, str(script), str(ckpt)], capture_output=True, text=True, timeout=timeout)
+
+
+def test_killed_fit_resumes_to_the_same_result(tmp_path):
+    tests = os.path.dirname(os.path.abspath(__file__))
+    fast = tmp_path / "fast.py"
+    fast.write_text(SCRIPT.format(tests=tests, sleep=0.0))
+    slow = tmp_path / "slow.py"
+    slow.write_text(SCRIPT.format(tests=tests, sleep=0.05))
+    straight = _run(fast, tmp_path / "straight.pt")
+    assert straight.returncode == 0, straight.stderr
+    expected = json.loads(straight.stdout.strip().splitlines()[-1])
+
+    ckpt = tmp_path / "killed.pt"
+    proc = subprocess.Popen([sys.executable, str(slow), str(ckpt)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.time() + 60
+    while not ckpt.exists() and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.6)  # let it get some steps further, then kill it mid-step
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    saved = torch.load(ckpt, weights_only=True)
+    assert 0 < saved["state"]["step"] < 40  # it really was interrupted part-way
+    resumed = _run(fast, ckpt)
+    assert resumed.returncode == 0, resumed.stderr
+    got = json.loads(resumed.stdout.strip().splitlines()[-1])
+    assert got["thickness"] == expected["thickness"]
+    assert got["losses"] == expected["losses"]
+    assert not list(tmp_path.glob("*.tmp"))  # no partial checkpoint left behind
+
+
+def test_checkpoint_from_other_settings_is_refused(tmp_path):
+    ckpt = tmp_path / "c.pt"
+    fit(Toy(), views(1), FitConfig(steps=2), checkpoint=ckpt, progress=False)
+    with pytest.raises(ValueError, match="other settings"):
+        fit(Toy(), views(1), FitConfig(steps=3), checkpoint=ckpt, progress=False)
