@@ -104,20 +104,24 @@ class _Boxes(_Group):
         c = torch.tensor([b.center for b in boxes], dtype=torch.float64)
         self.P = len(boxes)
         self.R = R.to(device, dtype)
-        self.Rcat = R.permute(1, 0, 2).reshape(3, 3 * self.P).to(device, dtype)  # o @ Rcat = local coords
+        # axis-major: column k*P + p is local axis k of box p, so o @ Rcat gives (N, 3P) local coords
+        self.Rcat = R.permute(1, 2, 0).reshape(3, 3 * self.P).to(device, dtype)
         self.c = c.to(device, dtype)
-        self.cl = torch.einsum("pi,pij->pj", c, R).reshape(-1).to(device, dtype)  # (3P,)
-        self.h = _t([b.half_extents for b in boxes], device, dtype).reshape(-1)  # (3P,)
+        self.cl = torch.einsum("pi,pij->jp", c, R).reshape(-1).to(device, dtype)  # (3P,)
+        self.h = _t([b.half_extents for b in boxes], device, dtype)  # (P,3)
+        self.hcat = self.h.T.reshape(-1)  # (3P,) axis-major
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        N = o.shape[0]
+        P = self.P
         ol = (o @ self.Rcat).sub_(self.cl)  # (N,3P)
         inv = (d @ self.Rcat).reciprocal_()
-        t1 = (-self.h - ol).mul_(inv)
-        t2 = (self.h - ol).mul_(inv)
-        tn = torch.fmin(t1, t2).view(N, self.P, 3).amax(-1)
-        tf = torch.fmax(t1, t2).view(N, self.P, 3).amin(-1)
+        t1 = (-self.hcat - ol).mul_(inv)
+        t2 = (self.hcat - ol).mul_(inv)
+        # NaN only when a direction component is exactly 0 with the origin exactly on that slab: a miss
+        lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        tn = torch.maximum(torch.maximum(lo[:, :P], lo[:, P:2 * P]), lo[:, 2 * P:])
+        tf = torch.minimum(torch.minimum(hi[:, :P], hi[:, P:2 * P]), hi[:, 2 * P:])
         t = torch.where(tn > 0, tn, tf)
         t = torch.where((tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
@@ -125,7 +129,7 @@ class _Boxes(_Group):
     def normal(self, p, idx):
         R = self.R[idx]  # (M,3,3)
         pl = torch.einsum("mi,mij->mj", p - self.c[idx], R)
-        h = self.h.view(-1, 3)[idx]
+        h = self.h[idx]
         axis = (pl.abs() / h).argmax(-1)
         nl = torch.zeros_like(pl).scatter_(1, axis[:, None], 1.0) * torch.sign(pl)
         return torch.einsum("mij,mj->mi", R, nl)
@@ -260,6 +264,7 @@ class Tracer:
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
         self.scale = scene.scale
+        self.block = 1 << 14 if self.device.type == "cpu" else 1 << 20
         objs = scene.objects
         self.albedo = _t([o.albedo for o in objs], self.device, dtype)  # (O,3)
         self.object_id = torch.tensor([o.object_id for o in objs], dtype=torch.long, device=self.device)
@@ -280,8 +285,16 @@ class Tracer:
             else:
                 self.groups.append(_TorchTriangles(meshes, mesh_idx, self.device, dtype))
 
+    #: rays intersected at once inside a call: 2**14 on CPU (blocks stay in cache, about 2x faster
+    #: than 2**18), 2**20 on GPUs
+    block = 1 << 14
+
     def intersect(self, o: torch.Tensor, d: torch.Tensor, tmax=_INF) -> Hit:
         """Closest hits of rays ``o, d (N,3)`` within ``tmax`` (float or ``(N,)``)."""
+        if o.shape[0] > self.block:
+            parts = [self.intersect(o[s:s + self.block], d[s:s + self.block], _slice(tmax, s, self.block))
+                     for s in range(0, o.shape[0], self.block)]
+            return Hit(torch.cat([h.t for h in parts]), torch.cat([h.obj for h in parts]), torch.cat([h.normal for h in parts]))
         N = o.shape[0]
         tbest = torch.full((N,), _INF, dtype=o.dtype, device=o.device)
         gbest = torch.full((N,), -1, dtype=torch.long, device=o.device)
@@ -306,6 +319,9 @@ class Tracer:
 
     def occluded(self, o: torch.Tensor, d: torch.Tensor, tmax=_INF) -> torch.Tensor:
         """``(N,)`` bool: does the ray hit anything with ``0 < t < tmax``."""
+        if o.shape[0] > self.block:
+            return torch.cat([self.occluded(o[s:s + self.block], d[s:s + self.block], _slice(tmax, s, self.block))
+                              for s in range(0, o.shape[0], self.block)])
         hit = torch.zeros(o.shape[0], dtype=torch.bool, device=o.device)
         for group in self.groups:
             hit |= group.occluded(o, d, tmax)
@@ -322,6 +338,10 @@ class Tracer:
             mag = mag + distance
         eps = rel * (1e-2 * self.scale + mag)
         return p + eps[:, None] * n
+
+
+def _slice(tmax, start: int, size: int):
+    return tmax[start:start + size] if isinstance(tmax, torch.Tensor) and tmax.dim() > 0 else tmax
 
 
 def _choose_backend(requested: str, triangles: int) -> str:
