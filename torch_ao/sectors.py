@@ -1,0 +1,308 @@
+"""Visibility-bitmask sectors: hard 32-bit masks (bit for bit as the shaders) and soft, differentiable coverage.
+
+A slice's hemisphere is split into ``SECTORS = 32`` equal sectors. One step occludes the interval
+``[min, max]`` of ``[0, 1]`` (front and back angle mapped across the hemisphere). In sector units
+``s = 32 * min`` (start) and ``w = 32 * (max - min)`` (width); the shaders (seed 000 ``UpdatePartitions``,
+seed 001 ``updateSectors``) set
+
+    start = uint(s)                      # floor, s >= 0
+    count = ceil(w) | round(w) | floor(w)
+    bits  = (0xFFFFFFFF >> (32 - count)) << start      (count > 0, truncated to 32 bits)
+
+so sector ``k`` is on iff ``floor(s) <= k`` and ``n = k - floor(s) < count``. For an integer ``n``:
+``n < ceil(w)  <=>  n < w``, ``n < round(w) <=> n + 1/2 < w`` (ties aside), ``n < floor(w) <=> n + 1 <= w``.
+So with ``delta = 0, 1/2, 1``: sector ``k`` is on iff ``s < k + 1`` and ``w - (k - floor(s)) - delta > 0``.
+
+Hard masks (:func:`hard_mask`, :func:`popcount32`) use torch integer ops on ``int64`` tensors holding
+32-bit values. Soft coverage (:func:`soft_coverage`) replaces each test by a logistic of temperature
+``tau`` (in sector units) and ``floor(s)`` by the smooth staircase ``sum_m sigmoid((s - m) / tau)``; a
+gate ``tanh(w / tau)`` makes zero-width intervals cover nothing. As ``tau -> 0`` it converges to the hard
+rule. The union over steps ``1 - prod_j (1 - c_j)`` and each step's newly covered fraction
+``c_j prod_{i<j} (1 - c_i)`` are computed by :class:`SectorUnion`, a custom autograd function that keeps
+only the per-step ``(s, w)`` and recomputes coverage in backward (memory ``O(N * steps)``, not
+``O(N * steps * 32)``).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = [
+    "SECTORS",
+    "ROUNDINGS",
+    "MODES",
+    "sector_interval",
+    "hard_count",
+    "hard_mask",
+    "popcount32",
+    "mask_bits",
+    "bits_to_mask",
+    "hard_coverage",
+    "soft_floor",
+    "soft_coverage",
+    "SectorUnion",
+    "sector_union",
+]
+
+SECTORS = 32
+ROUNDINGS = ("ceil", "round", "floor")
+MODES = ("hard", "soft", "straight_through")
+_DELTA = {"ceil": 0.0, "round": 0.5, "floor": 1.0}
+_FULL = 0xFFFFFFFF
+
+
+def _check_rounding(rounding: str) -> float:
+    if rounding not in _DELTA:
+        raise ValueError(f"rounding: expected one of {ROUNDINGS}, got {rounding!r}")
+    return _DELTA[rounding]
+
+
+def sector_interval(min_h: torch.Tensor, max_h: torch.Tensor, sectors: int = SECTORS) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(s, w) = (sectors * min, sectors * (max - min))`` in sector units, as the shaders compute them."""
+    return min_h * sectors, (max_h - min_h) * sectors
+
+
+def hard_count(w: torch.Tensor, rounding: str = "ceil") -> torch.Tensor:
+    """Number of sectors ``ceil(w)``, ``round(w)`` (ties to even, as HLSL ``round``) or ``floor(w)``,
+    as ``int64`` clamped to ``[0, 32]`` (``w`` is a width in sector units)."""
+    _check_rounding(rounding)
+    fn = {"ceil": torch.ceil, "round": torch.round, "floor": torch.floor}[rounding]
+    return fn(w.detach()).clamp(0, SECTORS).to(torch.int64)
+
+
+def hard_mask(s: torch.Tensor, w: torch.Tensor, rounding: str = "ceil") -> torch.Tensor:
+    """32-bit sector mask (in an ``int64`` tensor) of the interval starting at ``s`` with width ``w``.
+
+    Exactly ``UpdatePartitions`` / ``updateSectors``: ``start = uint(s)``; ``count`` by ``rounding``;
+    ``(0xFFFFFFFF >> (32 - count)) << start`` if ``count > 0``, truncated to 32 bits.
+    """
+    start = torch.floor(s.detach()).clamp(0, 63).to(torch.int64)
+    count = hard_count(w, rounding)
+    full = torch.full_like(count, _FULL)
+    run = torch.where(count > 0, full >> (SECTORS - count).clamp(0, SECTORS), torch.zeros_like(count))
+    return (run << start) & _FULL
+
+
+def popcount32(x: torch.Tensor) -> torch.Tensor:
+    """Number of set bits of 32-bit values held in an integer tensor (the shaders' ``bitCount``)."""
+    v = x.to(torch.int64) & _FULL
+    v = v - ((v >> 1) & 0x55555555)
+    v = (v & 0x33333333) + ((v >> 2) & 0x33333333)
+    v = (v + (v >> 4)) & 0x0F0F0F0F
+    return ((v * 0x01010101) & _FULL) >> 24
+
+
+_SHIFTS: dict[torch.device, torch.Tensor] = {}
+
+
+def _shifts(device) -> torch.Tensor:
+    t = _SHIFTS.get(device)
+    if t is None:
+        t = _SHIFTS[device] = torch.arange(SECTORS, dtype=torch.int64, device=device)
+    return t
+
+
+def mask_bits(mask: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """``(..., 32)`` bits (0/1 in ``dtype``) of 32-bit masks ``(...)``; bit ``k`` is sector ``k``."""
+    return ((mask[..., None] >> _shifts(mask.device)) & 1).to(dtype)
+
+
+def bits_to_mask(bits: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`mask_bits`: ``(..., 32)`` 0/1 values -> ``int64`` masks ``(...)``."""
+    return ((bits > 0.5).to(torch.int64) << _shifts(bits.device)).sum(-1)
+
+
+def _sectors(like: torch.Tensor, lo: int = 0, hi: int = SECTORS) -> torch.Tensor:
+    return torch.arange(lo, hi, dtype=like.dtype, device=like.device)
+
+
+def hard_coverage(s: torch.Tensor, w: torch.Tensor, rounding: str = "ceil", lo: int = 0, hi: int = SECTORS) -> torch.Tensor:
+    """Float 0/1 coverage ``(..., hi - lo)`` of sectors ``lo..hi-1``; equal to :func:`mask_bits` of
+    :func:`hard_mask` (the same integer rule, evaluated per sector)."""
+    k = _sectors(s, lo, hi)
+    start = torch.floor(s.detach())[..., None]
+    count = hard_count(w, rounding).to(s.dtype)[..., None]
+    n = k - start
+    return ((n >= 0) & (n < count)).to(s.dtype)
+
+
+def soft_floor(s: torch.Tensor, tau: float) -> torch.Tensor:
+    """Smooth ``floor(s)`` on ``[0, 32]``: ``sum_{m=1..32} sigmoid((s - m) / tau)``."""
+    m = _sectors(s, 1, SECTORS + 1)
+    return torch.sigmoid((s[..., None] - m) / tau).sum(-1)
+
+
+def _soft_floor_and_slope(s: torch.Tensor, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
+    m = _sectors(s, 1, SECTORS + 1)
+    x = (s[..., None] - m) / tau
+    p = torch.sigmoid(x)
+    return p.sum(-1), (p * torch.sigmoid(-x)).sum(-1) / tau
+
+
+def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = "ceil", lo: int = 0,
+                  hi: int = SECTORS, floor_s: torch.Tensor | None = None) -> torch.Tensor:
+    """Soft coverage ``(..., hi - lo)`` in ``[0, 1]`` of sectors ``lo..hi-1`` (differentiable by autograd).
+
+    ``sigmoid((k + 1 - s) / tau) * sigmoid((w - (k - F(s)) - delta) / tau) * tanh(w / tau)`` with
+    ``F`` = :func:`soft_floor`; zero width covers nothing; ``tau -> 0`` gives the hard rule.
+    """
+    delta = _check_rounding(rounding)
+    if not tau > 0:
+        raise ValueError(f"tau: expected > 0, got {tau}")
+    k = _sectors(s, lo, hi)
+    F = soft_floor(s, tau) if floor_s is None else floor_s
+    w = w.clamp_min(0)
+    a = torch.sigmoid((k + 1 - s[..., None]) / tau)
+    b = torch.sigmoid((w[..., None] - k + F[..., None] - delta) / tau)
+    return a * b * torch.tanh(w / tau)[..., None]
+
+
+def _coverage_and_grads(s, w, F, dF, tau, delta, k):
+    """Soft coverage ``c`` ``(..., K)`` and its partial derivatives ``dc/ds``, ``dc/dw`` (analytic)."""
+    s1, w1 = s[..., None], w[..., None]
+    xa = (k + 1 - s1) / tau
+    xb = (w1 - k + F[..., None] - delta) / tau
+    a, b = torch.sigmoid(xa), torch.sigmoid(xb)
+    da = a * torch.sigmoid(-xa) / tau  # d a / d xa * (1/tau)
+    db = b * torch.sigmoid(-xb) / tau
+    g = torch.tanh(w1 / tau)
+    dg = (1 - g * g) / tau
+    c = a * b * g
+    dc_ds = g * (b * -da + a * db * dF[..., None])
+    dc_dw = a * (db * g + b * dg)
+    return c, dc_ds, dc_dw
+
+
+# ---------------------------------------------------------------------------------------------
+# Union over steps (custom autograd)
+# ---------------------------------------------------------------------------------------------
+_ELEMENT_BUDGET = 1 << 22  # elements per (N, J, K) temporary in backward (16 MiB in float32)
+
+
+def _sector_chunk(n: int, j: int) -> int:
+    return int(max(1, min(SECTORS, _ELEMENT_BUDGET // max(1, n * j))))
+
+
+class SectorUnion(torch.autograd.Function):
+    """Union over the steps of one slice, per sector, with newly covered fractions.
+
+    Inputs: ``s, w`` ``(N, J)`` interval starts and widths in sector units (step order matters for
+    "newly"); ``weights`` ``(N, 32)`` per-sector weights for ``newly`` (or ``None``: no newly output);
+    ``p0`` ``(N, 32)`` initial per-sector visibility (or ``None`` = 1); ``tau``, ``rounding``,
+    ``hard_forward`` (straight-through: hard coverage in forward, soft gradients in backward).
+
+    Outputs: ``visible`` ``(N, 32)`` = ``p0 * prod_j (1 - c_j)``, and ``newly`` ``(N, J)`` =
+    ``sum_k weights_k c_jk p0_k prod_{i<j} (1 - c_ik)`` (empty ``(N, 0)`` without weights).
+
+    Backward recomputes coverage in chunks of sectors and runs a reverse linear scan
+    (``S_{J-1} = G_v``, ``S_m = G_{m+1} (1 - a_{m+1}) + a_{m+1} S_{m+1}``, ``dL/da_m = P_m (S_m - G_m)``),
+    never dividing by ``1 - c``.
+    """
+
+    @staticmethod
+    def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
+        N, J = s.shape
+        delta = _DELTA[rounding]
+        w = w.clamp_min(0)
+        visible = torch.ones(N, SECTORS, dtype=s.dtype, device=s.device) if p0 is None else p0.clone()
+        want_newly = weights is not None
+        newly = s.new_zeros(N, J) if want_newly else s.new_zeros(N, 0)
+        k = _sectors(s)
+        if not hard_forward:
+            m = _sectors(s, 1, SECTORS + 1)
+        for j in range(J):
+            sj, wj = s[:, j], w[:, j]
+            if hard_forward:
+                c = hard_coverage(sj, wj, rounding)
+            else:
+                F = torch.sigmoid((sj[:, None] - m) / tau).sum(-1)
+                c = torch.sigmoid((k + 1 - sj[:, None]) / tau)
+                c = c * torch.sigmoid((wj[:, None] - k + F[:, None] - delta) / tau)
+                c = c * torch.tanh(wj / tau)[:, None]
+            g = c * visible
+            if want_newly:
+                newly[:, j] = (g * weights).sum(-1)
+            visible = visible - g  # == visible * (1 - c), exact in [0, visible]
+        ctx.save_for_backward(s, w, weights, p0)
+        ctx.tau, ctx.delta = tau, delta
+        return visible, newly
+
+    @staticmethod
+    def backward(ctx, grad_visible, grad_newly):
+        s, w, weights, p0 = ctx.saved_tensors
+        tau, delta = ctx.tau, ctx.delta
+        N, J = s.shape
+        want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
+        need_w = ctx.needs_input_grad[2] and want_newly
+        need_p0 = p0 is not None and ctx.needs_input_grad[3]
+        gs = torch.zeros_like(s)
+        gw = torch.zeros_like(w)
+        gweights = torch.zeros_like(weights) if need_w else None
+        gp0 = torch.zeros_like(p0) if need_p0 else None
+        if grad_visible is None:
+            grad_visible = s.new_zeros(N, SECTORS)
+        F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
+        kc = _sector_chunk(N, J)
+        for lo in range(0, SECTORS, kc):
+            hi = min(SECTORS, lo + kc)
+            k = _sectors(s, lo, hi)
+            c, dc_ds, dc_dw = _coverage_and_grads(s, w, F, dF, tau, delta, k)  # (N, J, K)
+            a = 1 - c
+            init = s.new_ones(N, 1, hi - lo) if p0 is None else p0[:, None, lo:hi]
+            # Exclusive prefix products P_j = p0 * prod_{i<j} a_i, and P_J.
+            P = torch.cat((init, init * torch.cumprod(a, 1)), 1)  # (N, J+1, K)
+            if want_newly:
+                G = grad_newly[:, :, None] * weights[:, None, lo:hi]  # (N, J, K)
+                if need_w:
+                    gweights[:, lo:hi] = (grad_newly[:, :, None] * c * P[:, :J]).sum(1)
+            else:
+                G = None
+            S = grad_visible[:, lo:hi]  # S_{J-1}
+            ga = torch.empty_like(c)
+            for m in range(J - 1, -1, -1):
+                Gm = G[:, m] if G is not None else 0.0
+                ga[:, m] = P[:, m] * (S - Gm)  # P includes p0: d/da_m has the same form with or without it
+                S = (Gm * (1 - a[:, m]) if G is not None else 0.0) + a[:, m] * S
+            if need_p0:
+                gp0[:, lo:hi] = S  # S_{-1}
+            gc = -ga
+            gs += (gc * dc_ds).sum(-1)
+            gw += (gc * dc_dw).sum(-1)
+        return gs, gw, gweights, gp0, None, None, None
+
+
+def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", rounding: str = "ceil",
+                 tau: float = 0.1, weights: torch.Tensor | None = None,
+                 p0: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sector visibility ``(N, 32)`` after the ``J`` steps ``(s, w)`` ``(N, J)`` of a slice, and the
+    weighted newly-occluded fraction of each step ``(N, J)`` (``(N, 0)`` when ``weights`` is None).
+
+    ``mode``: ``"hard"`` (exact integer masks, zero gradient), ``"soft"`` (temperature ``tau`` in
+    sector units) or ``"straight_through"`` (hard values, soft gradients). ``p0`` is an initial
+    per-sector visibility (the GLSL seed keeps its mask across slices).
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    _check_rounding(rounding)
+    if mode == "hard":
+        return _hard_union(s, w, rounding, weights, p0)
+    if not (isinstance(tau, (int, float)) and tau > 0 and math.isfinite(tau)):
+        raise ValueError(f"tau: expected a positive finite float, got {tau!r}")
+    return SectorUnion.apply(s, w, weights, p0, float(tau), rounding, mode == "straight_through")
+
+
+def _hard_union(s, w, rounding, weights, p0):
+    """Integer-mask union (bit for bit as the shaders); returns float visibility bits and newly."""
+    N, J = s.shape
+    occ = torch.zeros(N, dtype=torch.int64, device=s.device) if p0 is None else bits_to_mask(1 - p0)
+    newly = s.new_zeros(N, J) if weights is not None else s.new_zeros(N, 0)
+    cols = []
+    for j in range(J):
+        m = hard_mask(s[:, j], w[:, j], rounding)
+        if weights is not None:
+            cols.append((mask_bits(m & ~occ, s.dtype) * weights).sum(-1))
+        occ = occ | m
+    if cols:
+        newly = torch.stack(cols, 1)
+    return 1 - mask_bits(occ, s.dtype), newly
