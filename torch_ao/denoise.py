@@ -1,0 +1,179 @@
+"""Edge-aware denoising of AO outputs: a joint bilateral filter guided by depth and normals, and an
+optional temporal blend.
+
+The spatial filter is kornia's :func:`~kornia.filters.joint_bilateral_blur` with a *normalised*
+guide, so its range sigmas do not depend on the scene's units:
+
+* depth enters as ``log(depth) / sigma_depth``: a difference of ``sigma_depth`` in log depth is a
+  relative depth change of about ``sigma_depth`` (``0.05`` = 5 %), at any distance and any scale;
+* normals (unit vectors) enter as ``normal / sigma_normal``.
+
+The guide's channels are combined with the l2 distance and ``sigma_color = 1``, so a neighbour's
+range weight is ``exp(-(dlogz^2 / sigma_depth^2 + |dn|^2 / sigma_normal^2) / 2)``.
+
+Background pixels are excluded, not mixed in: the filter runs on ``[value * valid, valid]`` with one
+kernel and divides, so a valid pixel averages only valid neighbours; background keeps its input value
+(visibility 1, indirect 0). The temporal blend is an exponential moving average
+``alpha * current + (1 - alpha) * history`` on pixels valid in both frames (no reprojection: the
+caller supplies a history already aligned with the current view, or a static camera).
+
+Everything is differentiable (gradients flow to the AO outputs and to the guide).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from kornia.filters import joint_bilateral_blur
+
+from .gbuffer import GBuffer
+
+__all__ = ["Denoiser", "DenoiseOutput", "denoise", "spatial_filter", "temporal_blend", "denoise_guide"]
+
+GUIDES = ("depth", "normal", "depth+normal")
+
+
+@dataclass
+class DenoiseOutput:
+    """Filtered ``visibility (B,1,H,W)`` and, when given, ``indirect (B,3,H,W)``."""
+
+    visibility: torch.Tensor
+    indirect: torch.Tensor | None = None
+
+
+def _check_options(kernel_size: int, sigma_space: float, sigma_depth: float, sigma_normal: float, guide: str) -> None:
+    if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size: expected an odd integer >= 1, got {kernel_size!r}")
+    for name, value in (("sigma_space", sigma_space), ("sigma_depth", sigma_depth), ("sigma_normal", sigma_normal)):
+        if not (isinstance(value, (int, float)) and value > 0):
+            raise ValueError(f"{name}: expected a number > 0, got {value!r}")
+    if guide not in GUIDES:
+        raise ValueError(f"guide: expected one of {GUIDES}, got {guide!r}")
+
+
+def denoise_guide(gbuffer: GBuffer, *, guide: str = "depth+normal", sigma_depth: float = 0.05,
+                  sigma_normal: float = 0.3, normals: torch.Tensor | None = None) -> torch.Tensor:
+    """The normalised guide image ``(B, C, H, W)`` (``C`` = 1, 3 or 4): ``log(depth)/sigma_depth`` and/or
+    ``normal/sigma_normal``; zero on background (background is excluded by the mask anyway)."""
+    valid = gbuffer.valid
+    parts = []
+    if "depth" in guide:
+        parts.append(torch.where(valid, torch.log(gbuffer.safe_depth), 0.0) / sigma_depth)
+    if "normal" in guide:
+        n = gbuffer.view_normals() if normals is None else normals
+        parts.append(torch.where(valid, n.to(gbuffer.depth.dtype), 0.0) / sigma_normal)
+    return torch.cat(parts, 1)
+
+
+def spatial_filter(values: torch.Tensor, valid: torch.Tensor, guide: torch.Tensor, *, kernel_size: int = 5,
+                   sigma_space: float = 1.5, fill: float = 0.0) -> torch.Tensor:
+    """Joint bilateral filter of ``values (B,C,H,W)`` over ``valid (B,1,H,W)`` pixels only, guided by
+    ``guide (B,G,H,W)`` (range sigma 1: normalise the guide first). Invalid pixels get ``fill``."""
+    if values.dim() != 4 or valid.shape != (values.shape[0], 1, *values.shape[2:]):
+        raise ValueError(f"values/valid: expected (B,C,H,W) and (B,1,H,W), got {tuple(values.shape)} and {tuple(valid.shape)}")
+    m = valid.to(values.dtype)
+    stacked = torch.cat((torch.where(valid, values, 0.0), m), 1)
+    k = min(kernel_size, 2 * (min(values.shape[-2:]) // 2) - 1) if min(values.shape[-2:]) > 1 else 1
+    if k <= 1:
+        return torch.where(valid, values, fill)
+    out = joint_bilateral_blur(stacked, guide.to(values.dtype), (k, k), 1.0, (sigma_space, sigma_space),
+                               border_type="reflect", color_distance_type="l2")
+    num, den = out[:, :-1], out[:, -1:]
+    # A valid pixel always weighs itself (weight 1 in the range kernel), so den > 0 there.
+    return torch.where(valid, num / den.clamp_min(1e-12), fill)
+
+
+def temporal_blend(current: torch.Tensor, history: torch.Tensor | None, valid: torch.Tensor,
+                   history_valid: torch.Tensor | None = None, alpha: float = 0.1) -> torch.Tensor:
+    """``alpha * current + (1 - alpha) * history`` where both frames are valid; ``current`` elsewhere."""
+    if history is None:
+        return current
+    if not 0 < alpha <= 1:
+        raise ValueError(f"alpha: expected a value in (0, 1], got {alpha!r}")
+    if history.shape != current.shape:
+        raise ValueError(f"history: expected shape {tuple(current.shape)}, got {tuple(history.shape)}")
+    both = valid if history_valid is None else valid & history_valid
+    return torch.where(both, alpha * current + (1 - alpha) * history.to(current), current)
+
+
+def denoise(visibility: torch.Tensor, gbuffer: GBuffer, *, indirect: torch.Tensor | None = None,
+            kernel_size: int = 5, sigma_space: float = 1.5, sigma_depth: float = 0.05, sigma_normal: float = 0.3,
+            guide: str = "depth+normal", history: DenoiseOutput | None = None,
+            history_valid: torch.Tensor | None = None, alpha: float = 0.1) -> DenoiseOutput:
+    """Edge-aware spatial filter of ``visibility`` (and ``indirect``), then an optional temporal blend.
+
+    Args:
+        visibility: ``(B,1,H,W)``; indirect: optional ``(B,3,H,W)``.
+        gbuffer: the frame's G-buffer (its depth and normals guide the filter; its ``valid`` mask
+            says which pixels are filtered and which are left as they are).
+        kernel_size: odd window width in pixels; sigma_space: spatial Gaussian sigma in pixels.
+        sigma_depth: range sigma in log depth (relative depth change); sigma_normal: range sigma of
+            the normal difference.
+        guide: ``"depth"``, ``"normal"`` or ``"depth+normal"``.
+        history: the previous (denoised) output, aligned with this frame, for the temporal blend.
+        history_valid: ``(B,1,H,W)`` pixels where ``history`` is meaningful (default: all).
+        alpha: weight of the current frame in the blend.
+    """
+    _check_options(kernel_size, sigma_space, sigma_depth, sigma_normal, guide)
+    if visibility.dim() != 4 or visibility.shape[1] != 1 or visibility.shape[-2:] != gbuffer.depth.shape[-2:]:
+        raise ValueError(f"visibility: expected shape {tuple(gbuffer.depth.shape)}, got {tuple(visibility.shape)}")
+    valid = gbuffer.valid
+    g = denoise_guide(gbuffer, guide=guide, sigma_depth=sigma_depth, sigma_normal=sigma_normal)
+    channels = [visibility] if indirect is None else [visibility, indirect.to(visibility.dtype)]
+    filtered = spatial_filter(torch.cat(channels, 1), valid, g, kernel_size=kernel_size, sigma_space=sigma_space)
+    vis = torch.where(valid, filtered[:, :1], visibility)
+    ind = None if indirect is None else torch.where(valid, filtered[:, 1:], indirect.to(vis.dtype))
+    if history is not None:
+        vis = temporal_blend(vis, history.visibility, valid, history_valid, alpha)
+        if ind is not None and history.indirect is not None:
+            ind = temporal_blend(ind, history.indirect, valid, history_valid, alpha)
+    return DenoiseOutput(vis, ind)
+
+
+class Denoiser(nn.Module):
+    """:func:`denoise` as a module; with ``temporal=True`` it keeps the previous output as history
+    (detached, so gradients do not run back through past frames) and blends each new frame into it.
+
+    Call ``reset()`` on a camera cut. The history is dropped automatically when the frame size or
+    batch changes.
+    """
+
+    def __init__(self, *, kernel_size: int = 5, sigma_space: float = 1.5, sigma_depth: float = 0.05,
+                 sigma_normal: float = 0.3, guide: str = "depth+normal", temporal: bool = False,
+                 alpha: float = 0.1) -> None:
+        super().__init__()
+        _check_options(kernel_size, sigma_space, sigma_depth, sigma_normal, guide)
+        if not 0 < alpha <= 1:
+            raise ValueError(f"alpha: expected a value in (0, 1], got {alpha!r}")
+        self.kernel_size, self.sigma_space = kernel_size, float(sigma_space)
+        self.sigma_depth, self.sigma_normal, self.guide = float(sigma_depth), float(sigma_normal), guide
+        self.temporal, self.alpha = temporal, float(alpha)
+        self._history: DenoiseOutput | None = None
+        self._history_valid: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        """Forget the temporal history."""
+        self._history, self._history_valid = None, None
+
+    def forward(self, visibility, gbuffer: GBuffer, indirect: torch.Tensor | None = None) -> DenoiseOutput:
+        """Filter ``visibility`` (a tensor, or an :class:`~torch_ao.methods.AOOutput` whose ``visibility``
+        and ``indirect`` are used) guided by ``gbuffer``."""
+        if hasattr(visibility, "visibility"):
+            indirect = visibility.indirect if indirect is None else indirect
+            visibility = visibility.visibility
+        history = self._history if self.temporal else None
+        if history is not None and history.visibility.shape != visibility.shape:
+            history = None
+        out = denoise(visibility, gbuffer, indirect=indirect, kernel_size=self.kernel_size,
+                      sigma_space=self.sigma_space, sigma_depth=self.sigma_depth, sigma_normal=self.sigma_normal,
+                      guide=self.guide, history=history, history_valid=self._history_valid, alpha=self.alpha)
+        if self.temporal:
+            self._history = DenoiseOutput(out.visibility.detach(),
+                                          None if out.indirect is None else out.indirect.detach())
+            self._history_valid = gbuffer.valid
+        return out
+
+    def extra_repr(self) -> str:
+        return (f"kernel_size={self.kernel_size}, sigma_space={self.sigma_space}, sigma_depth={self.sigma_depth}, "
+                f"sigma_normal={self.sigma_normal}, guide={self.guide!r}, temporal={self.temporal}, alpha={self.alpha}")
