@@ -111,7 +111,7 @@ def camera(fov: float = 60.0, principal=(0.5, 0.5), dtype=torch.float64) -> GBuf
 
 
 FRAMES = {
-    "scene": scene,
+    "scene": lambda dtype=torch.float64: scene(12, 16, dtype),
     "depth_range": depth_range,
     "grazing": grazing,
     "perpendicular_normals": perpendicular_normals,

@@ -67,7 +67,10 @@ def interleaved_gradient_noise(u: torch.Tensor, v: torch.Tensor, seed: int = 0) 
 def fast_acos(x: torch.Tensor) -> torch.Tensor:
     """HDRP/XeGTAO's polynomial ``acos`` (max error ~1e-2 rad): ``(pi/2 - 0.156583|x|) sqrt(1-|x|)``."""
     ax = x.abs()
-    res = (-0.156583 * ax + math.pi / 2) * torch.sqrt((1 - ax).clamp_min(0))
+    inside = ax < 1
+    # sqrt'(0) is infinite: evaluate it on a safe value at |x| >= 1, where the result is exactly 0/pi.
+    root = torch.where(inside, torch.sqrt(torch.where(inside, 1 - ax, torch.ones_like(ax))), torch.zeros_like(ax))
+    res = (-0.156583 * ax + math.pi / 2) * root
     return torch.where(x >= 0, res, math.pi - res)
 
 
