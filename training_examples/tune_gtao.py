@@ -1,0 +1,170 @@
+"""Tune GTAO's (or HBAO's) heuristics against ray-traced references by gradient descent.
+
+What it does
+    Renders (once, then loads from the cache) randomised views of the built-in scenes with their
+    ray-traced reference AO (cosine-weighted, maximum distance ``R``), then fits the horizon method's
+    heuristic parameters with :func:`torch_ao.fit.fit` -- the same loop that fits bitmask thickness:
+
+    * ``--variant exact`` (default): radius (reported as a multiplier of ``R``), falloff range (a
+      fraction of the radius, XeGTAO's ``FalloffRange``) and the final power (``FinalValuePower``);
+    * ``--variant ue4``: radius, UE4's thickness heuristic and the final power;
+    * ``--variant hdrp``: radius and the final power;
+    * ``--method hbao``: every float parameter HBAO exposes (see ``--params``).
+
+    It then prints, on held-out views (seeds never used for fitting, evaluated in hard mode), the
+    error of the default parameters, of the values XeGTAO's grid auto-tune reported (radius x1.457,
+    falloff 0.615, final power 2.2) and of the fitted values, and writes them to ``OUT/gtao.json``.
+    XeGTAO tuned against its own ray-traced reference in its own units, so its numbers are a point
+    of comparison, not a target.
+
+How to run
+    python training_examples/tune_gtao.py                       # about 2-4 minutes on 2 CPU cores
+    python training_examples/tune_gtao.py --variant ue4 --steps 80
+    python training_examples/tune_gtao.py --method hbao
+    Re-running the same command resumes an interrupted fit from ``OUT/checkpoint.pt``.
+
+How to adapt
+    * Your own G-buffers with references: ``--reference a.npz b.npz ... --holdout c.npz``
+      (files written by ``torch-ao render`` or ``torch_ao.save_npz`` with an ``ao`` array).
+    * Another quality: ``--preset ultra`` (or ``--slices/--steps-per-side``); fit at the quality you ship.
+    * Other parameters: ``--params radius,power``; initial values: ``--init radius=1.2,falloff=0.3``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from torch_ao.datasets import TRAIN_SCENES, reference_views
+from torch_ao.fit import FitConfig, evaluate, fit, load_views
+from torch_ao.methods import get_method
+
+#: XeGTAO's auto-tuned defaults (XeGTAO.h: XE_GTAO_DEFAULT_RADIUS_MULTIPLIER, _FALLOFF_RANGE, _FINAL_VALUE_POWER).
+XEGTAO = {"radius_multiplier": 1.457, "falloff": 0.615, "power": 2.2}
+#: Parameters fitted by default, per method/variant.
+DEFAULT_PARAMS = {("gtao", "exact"): "radius,falloff,power", ("gtao", "ue4"): "radius,thickness,power",
+                  ("gtao", "hdrp"): "radius,power"}
+#: Upper bounds of parameters that have one (fit.py only projects onto lower bounds).
+MAXIMUM = {"falloff": 1.0, "thickness": 1.0, "albedo": 1.0}
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--method", default="gtao", choices=("gtao", "hbao"))
+    p.add_argument("--variant", default="exact", choices=("exact", "hdrp", "ue4"), help="GTAO variant")
+    p.add_argument("--params", default=None, help="comma-separated parameters to fit (default: per variant)")
+    p.add_argument("--init", default="", help="initial values, e.g. radius=1.0,falloff=0.3 (radius in units of R)")
+    p.add_argument("--preset", default="high", help="quality preset (slices x steps per side)")
+    p.add_argument("--reference", nargs="+", metavar="FILE.npz", help="your own training G-buffers with an 'ao' reference")
+    p.add_argument("--holdout", nargs="+", metavar="FILE.npz", help="your own held-out references")
+    p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes")
+    p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
+    p.add_argument("--holdout-views", type=int, default=1, help="held-out views per scene")
+    p.add_argument("--size", default="96x64", help="render size WxH")
+    p.add_argument("--spp", type=int, default=128, help="reference rays per pixel")
+    p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R")
+    p.add_argument("--steps", type=int, default=60, help="optimizer steps")
+    p.add_argument("--lr", type=float, default=0.03)
+    p.add_argument("--batch-views", type=int, default=4, help="views per step (0 = all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
+    p.add_argument("--out", default="runs/tune_gtao", help="output folder")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--tiny", action="store_true", help="smoke-test settings: 2 scenes, 32x24, 16 spp, 8 steps")
+    args = p.parse_args(argv)
+    if args.tiny:
+        args.scenes, args.train_views, args.size, args.spp, args.steps = "sphere_on_plane,room_corner", 1, "32x24", 16, 8
+        args.preset = "medium"
+    return args
+
+
+def build_views(args):
+    device = torch.device(args.device)
+    if args.reference:
+        train = load_views(args.reference, device=device)
+        held = load_views(args.holdout, device=device) if args.holdout else train
+        return train, held
+    w, h = (int(x) for x in args.size.lower().split("x"))
+    scenes = [s for s in args.scenes.split(",") if s]
+    common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
+                  device=device, progress=not args.no_progress)
+    train = reference_views(scenes, list(range(1, args.train_views + 1)), **common)
+    held = reference_views(scenes, list(range(1000, 1000 + args.holdout_views)), **common)
+    return train, held
+
+
+def make(args, **values):
+    cls = get_method(args.method)
+    kwargs = dict(preset=args.preset, radius=args.max_distance)
+    if args.method == "gtao":
+        kwargs["variant"] = args.variant
+    kwargs.update(values)
+    return cls(**kwargs).to(args.device)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    torch.manual_seed(args.seed)
+    R = args.max_distance
+    params = (args.params or DEFAULT_PARAMS.get((args.method, args.variant))
+              or ",".join(n for n, _ in make(args).named_parameters() if n != "albedo"))
+    params = tuple(s.strip() for s in params.split(",") if s.strip())
+    init = {}
+    if args.method == "gtao" and args.variant == "exact" and "falloff" in params:
+        init["falloff"] = 0.25  # with falloff = 0 the radius cut is a step: no gradient to radius or falloff
+    for item in filter(None, args.init.split(",")):
+        key, value = item.split("=")
+        init[key.strip()] = float(value) * (R if key.strip() == "radius" else 1.0)
+
+    train, held = build_views(args)
+    print(f"{args.method} ({args.variant if args.method == 'gtao' else 'default'}), preset {args.preset}: fitting "
+          f"{', '.join(params)} on {len(train)} views, {len(held)} held-out views, R = {R:g}")
+
+    rows = {"default": (make(args), {})}
+    if args.method == "gtao" and args.variant == "exact":
+        xe = dict(radius=XEGTAO["radius_multiplier"] * R, falloff=XEGTAO["falloff"], power=XEGTAO["power"])
+        rows["XeGTAO auto-tune"] = (make(args, **xe), xe)
+    module = make(args, **init)
+    rows["fit start"] = (make(args, **init), init)
+    results = {name: {"values": {k: float(v) for k, v in vals.items()}, **evaluate(m, held)} for name, (m, vals) in rows.items()}
+
+    out = Path(args.out)
+    cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed)
+    fitted = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
+    with torch.no_grad():  # fit.py projects onto lower bounds only
+        for name, value in module.named_parameters():
+            if name in MAXIMUM:
+                value.clamp_(max=MAXIMUM[name])
+    values = {n: float(p.detach()) for n, p in module.named_parameters() if n in params}
+    results["fitted"] = {"values": values, **evaluate(module, held)}
+
+    print("\nparameter          " + "".join(f"{n:>18}" for n in results))
+    names = sorted({k for r in results.values() for k in r["values"]} | set(params))
+    for key in names:
+        cells = []
+        for name, r in results.items():
+            v = r["values"].get(key, float(getattr(rows[name][0] if name in rows else module, key).detach()))
+            cells.append(f"{(v / R if key == 'radius' else v):18.3f}")
+        print(f"{key + (' (x R)' if key == 'radius' else ''):<19}" + "".join(cells))
+    print(f"\n{'held-out views, hard mode':<26}{'MAE':>8}{'RMSE':>8}{'PSNR':>8}{'SSIM':>8}{'ms':>8}")
+    for name, r in results.items():
+        print(f"{name:<26}{r['mae']:8.4f}{r['rmse']:8.4f}{r['psnr']:8.2f}{r['ssim']:8.4f}{r['seconds'] * 1e3:8.1f}")
+
+    payload = {"method": args.method, "variant": args.variant, "preset": args.preset, "max_distance": R,
+               "params": list(params), "steps": fitted.steps_done, "fit_seconds": fitted.seconds,
+               "radius_multiplier": values.get("radius", float(module.radius)) / R,
+               "xegtao": XEGTAO, "results": results, "history": fitted.history}
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / "gtao.json.tmp"
+    tmp.write_text(json.dumps(payload, indent=2))
+    os.replace(tmp, out / "gtao.json")
+    print(f"\nwrote {out / 'gtao.json'}")
+    return payload
+
+
+if __name__ == "__main__":
+    main()
