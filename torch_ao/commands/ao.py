@@ -46,6 +46,10 @@ def register(sub) -> None:
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--out", required=False, default="ao.npz", help="output .npz (visibility, and what else was asked)")
     p.add_argument("--png", help="also write a PNG of the visibility")
+    p.add_argument("--auto", action="store_true", help="choose --method and --preset by the bench recommendation: the "
+                   "cheapest whose MAE is within --tolerance of the best (from --report, else a quick sweep on GBUFFER's 'ao')")
+    p.add_argument("--tolerance", type=float, help="with --auto: allowed MAE above the best (default: the report's, else 0.01)")
+    p.add_argument("--report", help="with --auto: a `torch-ao bench` report.json (or its folder)")
     p.set_defaults(func=run)
 
 
@@ -76,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise CommandError("--device: CUDA is not available on this machine")
+    if args.auto or args.report or args.tolerance is not None:
+        from ..bench_auto import apply_auto
+
+        apply_auto(args)
     if args.gbuffer:
         gbuffer, _ = load_gbuffer(args.gbuffer, device=device)
     else:
