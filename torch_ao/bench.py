@@ -269,6 +269,14 @@ def run_bench(views: Sequence[FitView], methods: Mapping[str, MethodFactory], pr
                     bar.set_postfix_str(f"{view.name} {name} {preset}")
                     module = make_method(factory, preset, radius=r, params=(params or {}).get(name)).to(device)
                     slices, steps = getattr(module, "slices", PRESETS[preset][0]), getattr(module, "steps", PRESETS[preset][1])
+                    try:
+                        with torch.no_grad():
+                            module(gb)
+                    except ValueError as err:  # e.g. indirect light on a G-buffer without light
+                        if log is not None:
+                            log(f"note: {name} {preset} skipped on {view.name}: {err}")
+                        bar.update(1)
+                        continue
                     for den in variants:
                         run = _pipeline(module, denoiser if den else None)
                         with torch.no_grad():
@@ -410,7 +418,11 @@ def background_scaling(methods: Mapping[str, MethodFactory], preset: str = "high
     from .examples import plane_gbuffer
 
     device = torch.device(device)
-    gb = (gbuffer if gbuffer is not None else plane_gbuffer(height, width)).to(device)
+    gb = gbuffer if gbuffer is not None else plane_gbuffer(height, width)
+    if gb.light is None:  # a constant light, so that methods computing indirect light run too
+        gb = GBuffer(depth=gb.depth, camera=gb.camera, normals=gb.normals, light=torch.full_like(gb.depth, 0.5).expand(-1, 3, -1, -1),
+                     mask=gb.mask, object_id=gb.object_id)
+    gb = gb.to(device)
     frames = background_frames(gb)
     rows = []
     for name, factory in tqdm(list(methods.items()), desc="background", disable=not progress, leave=False):

@@ -26,6 +26,9 @@ def _atomic_write(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w", newline="") as f:
             f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -62,6 +65,16 @@ def _fmt(x, digits=4) -> str:
     return str(x)
 
 
+def _ms(x) -> str:
+    return _fmt(float(x), 2 if float(x) < 100 else 1)
+
+
+def _metrics(r: dict) -> list[str]:
+    g = lambda k: float(r.get(k, math.nan))  # noqa: E731
+    return [_fmt(g("mae")), _fmt(g("rmse")), _fmt(g("psnr"), 2), _fmt(g("ssim"), 3), _ms(g("forward_ms")),
+            _ms(g("forward_cpu_ms")), _ms(g("forward_backward_ms"))]
+
+
 def _size(r: dict) -> str:
     if r.get("slices") is not None and r.get("steps") is not None:
         return f"{r['slices']}x{r['steps']}"
@@ -91,7 +104,7 @@ def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: 
                "(all threads; steadier than wall time on a shared machine).", ""]
     if recommendations:
         md += [f"## Recommendation (cheapest forward time with MAE within {tolerance:g} of the best)", ""]
-        lines = [(s, r["method"], r["preset"], _fmt(r["denoise"]), r["mae"], r["forward_ms"],
+        lines = [(s, r["method"], r["preset"], _fmt(r["denoise"]), r["mae"], _ms(r["forward_ms"]),
                   f"{r['best']['method']} {r['best']['preset']}{' +denoise' if r['best']['denoise'] else ''}",
                   r["best"]["mae"]) for s, r in recommendations.items()]
         md += _table(("scene", "method", "preset", "denoise", "MAE", "forward ms", "best", "best MAE"), lines)
@@ -100,24 +113,23 @@ def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: 
     if rows:
         md += ["## Error against run time", ""]
         lines = [(r["scene"], r["method"], r["preset"], _size(r), _fmt(bool(r.get("denoise", False))),
-                  *(float(r.get(k, math.nan)) for k in ("mae", "rmse", "psnr", "ssim", "forward_ms", "forward_cpu_ms",
-                                                        "forward_backward_ms"))) for r in _sorted(rows)]
+                  *_metrics(r)) for r in _sorted(rows)]
         md += _table(("scene", "method", "preset", "slices x steps", "denoise", "MAE", "RMSE", "PSNR", "SSIM",
                       "forward ms", "forward CPU ms", "fwd+bwd ms"), lines) + [""]
         agg = aggregate_rows(rows)
         if agg and len({r["scene"] for r in rows}) > 1:
             md += ["### Mean over scenes", ""]
             lines = [(r["method"], r["preset"], _fmt(bool(r["denoise"])),
-                      *(float(r.get(k, math.nan)) for k in ("mae", "rmse", "psnr", "ssim", "forward_ms", "forward_cpu_ms",
-                                                            "forward_backward_ms"))) for r in _sorted(agg)]
+                      *_metrics(r)) for r in _sorted(agg)]
             md += _table(("method", "preset", "denoise", "MAE", "RMSE", "PSNR", "SSIM", "forward ms", "forward CPU ms",
                           "fwd+bwd ms"), lines) + [""]
     if background:
         md += ["## Background costs nothing", "",
                "Forward time on a full frame, the same frame with its right half background, and all background; "
                "`walked` is the number of pixels the marching core walks (`Frame.queries`).", ""]
-        lines = [(b["method"], b["preset"], b["frame"], f"{b['valid_fraction']:.2f}", str(b["walked_pixels"]),
-                  b["forward_ms"], f"{b['time_ratio']:.2f}", b.get("forward_cpu_ms", math.nan),
+        lines = [(f"{b['method']}", f"{b['preset']}", f"{b['frame']} {b['width']}x{b['height']}",
+                  f"{b['valid_fraction']:.2f}", str(b["walked_pixels"]),
+                  _ms(b["forward_ms"]), f"{b['time_ratio']:.2f}", _ms(b.get("forward_cpu_ms", math.nan)),
                   f"{b.get('cpu_ratio', math.nan):.2f}") for b in background]
         md += _table(("method", "preset", "frame", "valid fraction", "walked", "forward ms", "time / full",
                       "forward CPU ms", "CPU time / full"), lines) + [""]
@@ -157,6 +169,10 @@ def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: 
                 label="Pareto front")
         ax.scatter([p[0] for p in front], [p[1] for p in front], s=70, facecolors="none", edgecolors="k", lw=1, zorder=5)
     ax.set_xscale("log")
+    from matplotlib.ticker import FuncFormatter
+
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+    ax.xaxis.set_minor_formatter(FuncFormatter(lambda x, _: f"{x:g}" if f"{x:g}"[0] in "25" else ""))
     ax.set_xlabel(f"{cost.replace('_ms', '').replace('_', '+')} time (ms, median)")
     ax.set_ylabel(metric.upper() + " vs reference")
     ax.set_title(title, fontsize=10)

@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
                      progress=progress)
     background = None
     if not args.no_background:
-        background = background_scaling(methods, "high" if "high" in PRESETS else presets[-1], height=96, width=128,
+        background = background_scaling(methods, "high" if "high" in PRESETS else presets[-1], height=192, width=256,
                                         repeats=repeats, warmup=args.warmup, device=device,
                                         radius=args.radius or args.max_distance, progress=progress)
     env = environment(device)
