@@ -1,0 +1,300 @@
+"""The ``"ssilvb_glsl"`` variant: seed 001's GLSL SSILVB shader, reproduced as written.
+
+The walk (:class:`GLSLPattern`) and the per-step work (:class:`GLSLAccumulator`) follow the shader
+operation by operation, in the input's float precision (float32 gives the shader's numbers; see
+``tests/test_glsl_parity.py`` for a per-pixel comparison with the shader on Mesa's llvmpipe).
+Quirks of the shader, all kept on purpose (a user porting it gets the same numbers):
+
+* **Loop bounds**: ``slice < sliceCount + 0.5`` and ``currentSample < sampleCount + 0.5`` run
+  ``sliceCount + 1`` slices and ``sampleCount + 1`` steps, but the sums are divided by ``sliceCount``:
+  visibility can exceed 1 (up to ``(sliceCount + 1) / sliceCount``), and so can the light weights.
+* **Slice rotation** ``2 pi / (sliceCount - 1)`` over the *full* circle, starting at ``pi``:
+  with ``sliceCount + 1`` slices the first and last coincide (``sliceCount >= 2`` is required;
+  ``sliceCount = 1`` divides by zero in the shader).
+* **One side per slice**: samples go to ``fragUV - step * scale * omega * aspect`` only.
+* **Occlusion mask not reset across slices**: ``occlusion`` is declared once outside the slice loop,
+  so each slice's visibility counts every sector occluded by any earlier slice (in that slice's own
+  sector frame), and its "newly occluded" test too.
+* **Light weight** ``1 - newly/32``: the shader weights each sample's light by the share of sectors
+  it does *not* newly occlude (the paper uses ``newly/32``); kept as written, looks unintended.
+* **projNormal** uses the *unnormalised* ``axis = cross(direction, camera)`` (length
+  ``sqrt(1 - dot(direction, camera)^2)``), so the normal is not exactly projected onto the slice.
+* **Screen radius**: ``sampleScale = -radius * P[0][0] / position.z`` is in NDC units, applied to UVs
+  with ``aspect = screenSize.yx / screenSize.x``: the march reaches ``2 H / W`` times the projected
+  radius, isotropically in pixels.
+* **Jitter** ``IGN(gl_FragCoord) - 0.5`` (GL's bottom-left origin) is shared by the slice angle and
+  every step (``sampleStep = (j + jitter) / sampleCount + 0.01``), so the first step can land behind the
+  pixel (negative step) or on the centre texel. A centre-texel sample has ``sampleDistance = 0``: the
+  shader divides 0 by 0; here such a sample occludes nothing and adds no light (what llvmpipe does).
+* **Texel fetch**: nearest texel ``floor(uv * size)`` with clamp-to-edge, computed from the float UVs
+  as the shader forms them, so the texel choices match.
+* **Driver numerics** (``glsl_numerics=``): GLSL leaves ``acos`` precision and ``mediump`` evaluation
+  to the driver. Mesa's GLSL compiler emits a polynomial ``acos`` (error ~1.6e-4 rad): ``"mesa"``
+  reproduces it (bit-exact masks against softpipe). llvmpipe also evaluates ``mediump`` in 16 bits:
+  ``randf`` (``int`` arguments, ``mediump`` by default in a fragment shader) in float16, which
+  ``"mesa_mediump"`` reproduces, and the ``uint`` masks (also ``mediump``!) in 16 bits, which no option
+  reproduces: on such a driver the shader as written keeps only 16 of its 32 sectors (it should declare
+  ``precision highp int;``). ``"ieee"`` (default) uses exact ``acos`` and the input precision.
+* **Angles**: ``acos`` of the 3D cosines ``dot(normalize(delta - t * camera), camera)``; bit masks are
+  evaluated in 32 bits (``uint``); ``hitThickness`` may be any of the module's thickness forms.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from ..marching import Frame, Queries, Sample, SamplingPattern, SliceGeometry
+from ..sectors import SECTORS, hard_mask, popcount32, sector_union
+from .bitmask_common import ThicknessLookup, safe_acos
+
+__all__ = ["GLSLPattern", "GLSLAccumulator", "glsl_jitter", "glsl_constants", "mesa_acos", "GLSL_NUMERICS"]
+
+#: ``"ieee"``: every operation in the input precision with exact ``acos``; ``"mesa"``: Mesa's GLSL
+#: ``acos`` polynomial (softpipe, and desktop-like full precision elsewhere); ``"mesa_mediump"``: also
+#: llvmpipe's float16 evaluation of the ``mediump`` ``randf`` (llvmpipe's 16-bit ``mediump`` uints are
+#: *not* reproduced: masks are always 32-bit).
+GLSL_NUMERICS = ("ieee", "mesa", "mesa_mediump")
+
+
+def mesa_acos(x: torch.Tensor) -> torch.Tensor:
+    """Mesa's GLSL ``acos`` (``pi/2 - asin``, with the polynomial ``asin`` Mesa's GLSL compiler emits:
+    ``sign(x) (pi/2 - sqrt(1 - |x|) (pi/2 + |x| (pi/4 - 1 + |x| (0.08132463 - 0.02363318 |x|))))``;
+    max error about 1.6e-4 rad). Matches llvmpipe's ``acos`` to 1-2 ulp. Inputs are clamped to [-1, 1]
+    (NaN beyond is handled by the caller); the gradient is made finite at ``|x| = 1``."""
+    dt = x.dtype
+    c = lambda v: torch.tensor(v, dtype=dt, device=x.device)  # noqa: E731
+    half_pi, quarter_pi_m1 = c(math.pi / 2), c(math.pi / 4 - 1)
+
+    def f(v):
+        ax = v.abs()
+        poly = half_pi + ax * (quarter_pi_m1 + ax * (c(0.08132463) + ax * c(-0.02363318)))
+        return half_pi - torch.sign(v) * (half_pi - torch.sqrt(c(1.0) - ax) * poly)
+
+    value = f(x.clamp(-1.0, 1.0))
+    if not x.requires_grad:
+        return value
+    eps = 1e-6 if dt == torch.float64 else 1e-4
+    soft = f(x.clamp(-1 + eps, 1 - eps))
+    return value.detach() + (soft - soft.detach())
+
+
+def glsl_constants(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The shader's ``pi``, ``twoPi``, ``halfPi`` (from the literal ``3.14159265359``) in ``dtype``."""
+    pi = torch.tensor(3.14159265359, dtype=dtype)
+    return pi, 2.0 * pi, 0.5 * pi
+
+
+def _mod1(x: torch.Tensor) -> torch.Tensor:
+    return x - torch.floor(x)
+
+
+def glsl_jitter(q: Queries, height: int, enabled: bool = True, numerics: str = "ieee") -> torch.Tensor:
+    """``randf(int(gl_FragCoord.x), int(gl_FragCoord.y)) - 0.5`` ``(N,)``; GL's row 0 is the bottom row.
+    Without jitter (the test's jitter-free shader copy) it is 0.
+
+    ``randf`` takes ``int`` arguments, whose default precision in a GLSL ES fragment shader is
+    ``mediump``, so the whole expression is ``mediump``: with ``numerics="mesa_mediump"`` it is evaluated
+    in float16 as llvmpipe does; otherwise in the input precision (as desktop GPUs and softpipe do)."""
+    if not enabled:
+        return torch.zeros_like(q.u)
+    dt = torch.float16 if numerics == "mesa_mediump" else q.u.dtype
+    x = q.u.detach().to(dt)
+    y = ((height - 1) - q.v.detach()).to(dt)
+    inner = _mod1(torch.tensor(0.06711056, dtype=dt) * x + torch.tensor(0.00583715, dtype=dt) * y)
+    return _mod1(torch.tensor(52.9829189, dtype=dt) * inner).to(q.u.dtype) - 0.5
+
+
+def _slice_direction(q: Queries, s: int, slice_count: int, jitter: torch.Tensor) -> torch.Tensor:
+    pi, two_pi, _ = glsl_constants(q.u.dtype)
+    rotation = two_pi / (slice_count - 1.0)
+    phi = rotation * (s + jitter) + pi
+    return torch.cos(phi), torch.sin(phi)
+
+
+class GLSLPattern(SamplingPattern):
+    """Seed 001's walk: ``sliceCount + 1`` slices, one side each, ``sampleCount + 1`` nearest-texel steps.
+
+    Args:
+        slices, steps: the shader's ``sliceCount`` (>= 2) and ``sampleCount`` (>= 1).
+        radius: ``sampleRadius`` (world units; a float or 0-d tensor).
+        jitter: ``False`` reproduces the jitter-free shader copy (``jitter = 0``).
+        frame: the frame being walked (image size, ``P[0][0] = 2 fx / W``); may be ``None`` to validate.
+    """
+
+    sides = (-1,)
+    fetch = "nearest"
+    border = "clamp"
+
+    def __init__(self, slices: int, steps: int, radius, *, jitter: bool = True, frame: Frame | None = None,
+                 numerics: str = "ieee") -> None:
+        if isinstance(slices, bool) or not isinstance(slices, int) or slices < 2:
+            raise ValueError(f"slices: the 'ssilvb_glsl' variant needs sliceCount >= 2 (the shader rotates by "
+                             f"2 pi / (sliceCount - 1)), got {slices!r}")
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ValueError(f"steps: expected an integer >= 1, got {steps!r}")
+        self.slice_count, self.sample_count = slices, steps
+        self.num_slices = slices + 1
+        self.radius, self.jitter, self.frame = radius, jitter, frame
+        if numerics not in GLSL_NUMERICS:
+            raise ValueError(f"glsl_numerics: expected one of {GLSL_NUMERICS}, got {numerics!r}")
+        self.numerics = numerics
+
+    def slice_tangent(self, frame: Frame, q: Queries, s: int) -> torch.Tensor:
+        jitter = glsl_jitter(q, frame.shape[1], self.jitter, self.numerics)
+        ox, oy = _slice_direction(q, s, self.slice_count, jitter)
+        direction = torch.stack((ox, oy, torch.zeros_like(ox)), -1)
+        V = q.view
+        ortho = direction - (direction * V).sum(-1, keepdim=True) * V
+        return F.normalize(ortho, dim=-1, eps=1e-12)
+
+    def step_offsets(self, q: Queries, geom: SliceGeometry, side: int) -> list[torch.Tensor]:
+        frame = self.frame
+        B, H, W = frame.shape
+        dt = q.u.dtype
+        jitter = glsl_jitter(q, H, self.jitter, self.numerics)
+        ox, oy = _slice_direction(q, geom.index, self.slice_count, jitter)
+        p00 = (2 * frame.fx / W).to(dt)[q.batch]  # projection[0][0] as camera.opengl_projection() builds it
+        radius = torch.as_tensor(self.radius, dtype=dt, device=q.u.device)
+        scale = (-radius * p00) / -q.depth  # position.z = -depth
+        frag_u = (q.u + 0.5) / W
+        y_gl = (H - 1) - q.v
+        frag_v = (y_gl + 0.5) / H
+        aspect_x = torch.tensor(H, dtype=dt) / torch.tensor(W, dtype=dt)  # screenSize.yx / screenSize.x
+        count = torch.tensor(float(self.sample_count), dtype=dt)
+        offsets = []
+        for j in range(self.sample_count + 1):
+            step = (j + jitter) / count + torch.tensor(0.01, dtype=dt)
+            f = step * scale
+            uv_u = frag_u - (f * ox) * aspect_x
+            uv_v = frag_v - (f * oy) * 1.0
+            # GL nearest texel with clamp-to-edge; the offsets are whole texels, so the walk's
+            # nearest fetch lands exactly on them (texel row ty counts from the bottom).
+            tx = torch.floor(uv_u * W).detach().clamp(0, W - 1)
+            ty = torch.floor(uv_v * H).detach().clamp(0, H - 1)
+            offsets.append(torch.stack((tx - q.u, ((H - 1) - ty) - q.v), -1))
+        return offsets
+
+
+class GLSLAccumulator:
+    """Seed 001's per-step work (hard: 32-bit masks; soft/straight-through: :func:`sector_union`)."""
+
+    def __init__(self, *, mode: str, rounding: str, tau: float, thickness: ThicknessLookup, indirect: bool,
+                 slice_count: int, frame: Frame, jitter: bool = True, numerics: str = "ieee") -> None:
+        self.mode, self.rounding, self.tau, self.thickness = mode, rounding, tau, thickness
+        self.indirect, self.slice_count = indirect, slice_count
+        self.height = frame.shape[1]
+        self.jitter_enabled = jitter
+        self.numerics = numerics
+
+    def begin_slice(self, q: Queries, geom: SliceGeometry):
+        pi, _, half_pi = glsl_constants(q.u.dtype)
+        if geom.index == 0:
+            n = len(q)
+            self.carry = {
+                "occlusion": torch.zeros(n, dtype=torch.int64, device=q.u.device) if self.mode == "hard"
+                else torch.ones(n, SECTORS, dtype=q.u.dtype, device=q.u.device),
+                "visibility": q.u.new_zeros(n),
+                "lighting": q.u.new_zeros(n, 3),
+            }
+        camera = q.view
+        normal = F.normalize(q.normal, dim=-1)
+        direction = self._direction(q, geom)
+        ortho = direction - (direction * camera).sum(-1, keepdim=True) * camera
+        axis = torch.cross(direction, camera, dim=-1)  # not normalised (as written)
+        proj = normal - axis * (normal * axis).sum(-1, keepdim=True)
+        proj_length = proj.norm(dim=-1)
+        sign_n = torch.sign((ortho * proj).sum(-1))
+        cos_n = ((proj * camera).sum(-1) / proj_length).clamp(0.0, 1.0)
+        n_angle = sign_n * self._acos(cos_n)
+        return {"n": n_angle, "pi": pi, "half_pi": half_pi, "normal": normal, "s": [], "w": [], "light": []}
+
+    def _acos(self, x: torch.Tensor) -> torch.Tensor:
+        if self.numerics in ("mesa", "mesa_mediump"):
+            return mesa_acos(x)
+        return safe_acos(x)
+
+    def _horizon(self, cosine: torch.Tensor, n, pi, half_pi) -> torch.Tensor:
+        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of a cosine rounded beyond +-1 is
+        NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
+        value = ((self._acos(cosine) + n + half_pi) / pi).clamp(0.0, 1.0)
+        return torch.where(cosine.detach().abs() > 1, torch.zeros_like(value), value)
+
+    def _direction(self, q: Queries, geom: SliceGeometry) -> torch.Tensor:
+        jitter = glsl_jitter(q, self.height, self.jitter_enabled, self.numerics)
+        ox, oy = _slice_direction(q, geom.index, self.slice_count, jitter)
+        return torch.stack((ox, oy, torch.zeros_like(ox)), -1)
+
+    def step(self, state, q: Queries, geom: SliceGeometry, sample: Sample):
+        camera = q.view
+        delta = sample.delta
+        length = delta.norm(dim=-1, keepdim=True)
+        horizon = delta / length
+        t = self.thickness(sample)
+        t = t[:, None] if t.dim() == 1 else t
+        front = (horizon * camera).sum(-1)
+        back = (F.normalize(delta - camera * t, dim=-1) * camera).sum(-1)
+        pi, half_pi, n = state["pi"], state["half_pi"], state["n"]
+        x = self._horizon(front, n, pi, half_pi)
+        y = self._horizon(back, n, pi, half_pi)
+        # A sample on the centre texel has sampleDistance = 0: the shader's front horizon is 0/0 = NaN,
+        # and clamp(NaN, 0, 1) gives 0 on llvmpipe, so x = 0. Its back direction is -camera, so y = 1
+        # when the thickness is > 0 (exactly; a driver may round the cosine below -1 and get NaN -> 0),
+        # and NaN -> 0 when it is 0. With y = 1 the whole half circle is occluded.
+        centre = sample.distance_px == 0
+        if bool(centre.any()):
+            x = torch.where(centre, torch.zeros_like(x), x)
+            t_pos = (t[:, 0] if t.dim() == 2 else t.expand_as(x)) > 0
+            y = torch.where(centre, t_pos.to(y.dtype), y)
+        s = x * float(SECTORS)
+        w = (y - x) * float(SECTORS)
+        light = None
+        if self.indirect:
+            sample_normal = F.normalize(sample.gather("normals"), dim=-1)
+            light = sample.gather("light")
+            c1 = (state["normal"] * horizon).sum(-1).clamp(0.0, 1.0)
+            c2 = (sample_normal * -horizon).sum(-1).clamp(0.0, 1.0) * sample.valid.to(delta.dtype)
+            light = (light * c1[:, None]) * c2[:, None]
+        if self.mode == "hard":
+            mask = hard_mask(s, w, self.rounding)
+            occ = self.carry["occlusion"]
+            if light is not None:
+                newly = popcount32(mask & ~occ).to(delta.dtype)
+                weight = 1.0 - newly / float(SECTORS)
+                self.carry["lighting"] = self.carry["lighting"] + weight[:, None] * light
+            self.carry["occlusion"] = occ | mask
+        else:
+            state["s"].append(s)
+            state["w"].append(w)
+            if light is not None:
+                state["light"].append(light)
+        return state
+
+    def end_slice(self, state, q: Queries, geom: SliceGeometry) -> dict[str, torch.Tensor]:
+        carry = self.carry
+        if self.mode == "hard":
+            covered = popcount32(carry["occlusion"]).to(q.u.dtype)
+        else:
+            S, W = torch.stack(state["s"], 1), torch.stack(state["w"], 1)
+            uniform = S.new_full((1, SECTORS), 1.0 / SECTORS).expand(S.shape[0], SECTORS)
+            visible, newly = sector_union(S, W, mode=self.mode, rounding=self.rounding, tau=self.tau,
+                                          weights=uniform if self.indirect else None, p0=carry["occlusion"])
+            carry["occlusion"] = visible
+            if self.indirect:
+                carry["lighting"] = carry["lighting"] + ((1.0 - newly)[:, :, None] * torch.stack(state["light"], 1)).sum(1)
+            covered = (1 - visible).sum(-1)
+        carry["visibility"] = carry["visibility"] + (1.0 - covered / float(SECTORS))
+        if geom.index < self.slice_count:  # not the last slice: totals come out once, in shader order
+            return {}
+        out = {"visibility": carry["visibility"][:, None]}
+        if self.indirect:
+            out["indirect"] = carry["lighting"]
+        return out
+
+    def finish(self, sums, q: Queries, num_slices: int) -> dict[str, torch.Tensor]:
+        count = float(self.slice_count)
+        out = {"visibility": sums["visibility"] / count}
+        if self.indirect:
+            out["indirect"] = sums["indirect"] / count
+        return out
