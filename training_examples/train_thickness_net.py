@@ -213,11 +213,20 @@ def weights_checksum(model: nn.Module) -> str:
 # ---------------------------------------------------------------------------------------------
 # Training and evaluation
 # ---------------------------------------------------------------------------------------------
-def view_loss(ao: nn.Module, net: nn.Module, view: FitView, radius: float) -> torch.Tensor:
-    ao.thickness = net(features(view.gbuffer, radius)).to(view.gbuffer.depth.dtype)
-    vis = ao(view.gbuffer).visibility
-    valid = view.gbuffer.valid
-    return (vis - view.reference)[valid].abs().mean()
+def batch_loss(ao: nn.Module, net: nn.Module, views: list[FitView], radius: float) -> torch.Tensor:
+    """Mean over ``views`` of the L1 error on valid pixels of soft bitmask AO with the net's thickness maps.
+
+    The net runs once on the stacked features of all views (DDP wants one forward per backward);
+    the AO module then runs per view with that view's map set as its ``thickness``.
+    """
+    x = torch.cat([features(v.gbuffer, radius) for v in views])
+    maps = net(x).split([v.gbuffer.depth.shape[0] for v in views])
+    losses = []
+    for view, t in zip(views, maps):
+        ao.thickness = t.to(view.gbuffer.depth.dtype)
+        vis = ao(view.gbuffer).visibility
+        losses.append((vis - view.reference)[view.gbuffer.valid].abs().mean())
+    return torch.stack(losses).mean()
 
 
 @torch.no_grad()
@@ -256,11 +265,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", default="runs/thickness_net", help="output folder")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (for tests of resuming)")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
-    p.add_argument("--tiny", action="store_true", help="smoke test: 2 scenes, 32x24, 16 spp, low preset, 2 epochs")
+    p.add_argument("--tiny", action="store_true", help="smoke test (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, low preset, 2 epochs")
     args = p.parse_args(argv)
     if args.tiny:
-        args.scenes, args.size, args.spp, args.preset = "fence,floating", "32x24", 16, "low"
-        args.views_per_scene, args.seed_pool, args.epochs, args.batch = 2, 2, 2, 1
+        for key, value in dict(scenes="fence,floating", size="32x24", spp=16, preset="low", views_per_scene=2, seed_pool=2, epochs=2,
+                   batch=1).items():
+            if getattr(args, key) == p.get_default(key):  # options the user changed are kept
+                setattr(args, key, value)
     return args
 
 
@@ -300,7 +311,7 @@ def main(argv=None) -> dict | None:
     say(f"training ThicknessNet ({sum(p.numel() for p in net.parameters())} weights) on {world} process(es), "
         f"{device.type}: {args.epochs} epochs x {per_epoch} steps x {args.batch} views/rank, {args.size}, preset {args.preset}")
 
-    seen = 0
+    seen = []
     t_start = time.perf_counter()
     stop = total if args.max_steps is None else min(total, args.max_steps)
     while step < stop:
@@ -310,18 +321,19 @@ def main(argv=None) -> dict | None:
         ao.tau = math.exp(math.log(tau0) + (math.log(tau1) - math.log(tau0)) * step / max(1, total - 1))
         ao.mode = "soft"
         optimizer.zero_grad(set_to_none=True)
-        loss = sum(view_loss(ao, model, v, R) for v in views) / len(views)
+        loss = batch_loss(ao, model, views, R)
         loss.backward()  # DDP averages the gradients over ranks here
         optimizer.step()
-        seen += len(views)
+        seen += [v.name for v in views]
         mean_loss = loss.detach().clone()
         if world > 1:
             dist.all_reduce(mean_loss)
             mean_loss /= world
         history.append({"step": step, "epoch": epoch, "loss": float(mean_loss), "tau": ao.tau})
-        say(f"step {step + 1}/{total}  epoch {epoch}  loss {float(mean_loss):.4f}  tau {ao.tau:.3f}", flush=True)
+        if step % max(1, total // 20) == 0 or step == total - 1:
+            say(f"step {step + 1}/{total}  epoch {epoch}  loss {float(mean_loss):.4f}  tau {ao.tau:.3f}", flush=True)
         step += 1
-        if step % args.checkpoint_every == 0 or step == total:
+        if step % args.checkpoint_every == 0 or step == stop:
             states = [None] * world
             if world > 1:
                 dist.all_gather_object(states, rng_state())

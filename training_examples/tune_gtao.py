@@ -74,11 +74,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", default="runs/tune_gtao", help="output folder")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--tiny", action="store_true", help="smoke-test settings: 2 scenes, 32x24, 16 spp, 8 steps")
+    p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 8 steps")
     args = p.parse_args(argv)
     if args.tiny:
-        args.scenes, args.train_views, args.size, args.spp, args.steps = "sphere_on_plane,room_corner", 1, "32x24", 16, 8
-        args.preset = "medium"
+        for key, value in dict(scenes="sphere_on_plane,room_corner", train_views=1, size="32x24", spp=16, steps=8, preset="medium").items():
+            if getattr(args, key) == p.get_default(key):  # options the user changed are kept
+                setattr(args, key, value)
     return args
 
 
