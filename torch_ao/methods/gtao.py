@@ -6,9 +6,9 @@ the projected normal, then the cosine-weighted arc integral):
 ``variant="exact"`` (default, the clean one)
     Horizons are in-plane angles from ``atan2`` (the core's :meth:`Sample.angle`), slices are uniform
     around the view vector (``azimuth="view"``), exact trigonometry. A sample occludes when its 3D
-    distance is below ``radius``; ``falloff`` > 0 replaces that hard cut by a linear ramp over the last
-    ``falloff * radius`` (XeGTAO style: the sample's angle is blended toward the hemisphere boundary).
-    With ``falloff=0`` and dense sampling this converges to ray-traced cosine-weighted AO with maximum
+    distance is below ``radius``; ``falloff_range`` > 0 replaces that hard cut by a linear ramp over the last
+    ``falloff_range * radius`` (XeGTAO style: the sample's angle is blended toward the hemisphere boundary).
+    With ``falloff_range=0`` and dense sampling this converges to ray-traced cosine-weighted AO with maximum
     distance ``radius`` wherever the occluders are on screen and inside the walk (``search_scale``).
 ``variant="hdrp"`` (seed 000, Unity HDRP ``GTAO.compute``)
     3D horizon cosines ``dot(delta, V) / |delta|``, HDRP's ``UpdateHorizon`` falloff
@@ -20,7 +20,7 @@ the projected normal, then the cosine-weighted arc integral):
 ``variant="ue4"`` (seed 004, UE4 ``PostProcessAmbientOcclusion.usf``)
     ``SearchForLargestAngleDual``: ``Ang = dot(delta, V) * rsqrt(|delta|^2 + 1e-4)``,
     ``Ang = lerp(Ang, Best, saturate(|delta|^2 * 2 / R^2))``, thickness heuristic
-    ``Best = Ang > Best ? Ang : lerp(Ang, Best, thickness)``, ``acosFast``; UE4's
+    ``Best = Ang > Best ? Ang : lerp(Ang, Best, thickness_heuristic)``, ``acosFast``; UE4's
     ``ComputeInnerIntegral`` (``Gamma = acosFast(cos) - pi/2``, ``SinGamma = 2 cos``, ``|n_p| + 1e-6``);
     steps at ``max(R_px / (steps + 1) * (j + offset), j + 1)`` pixels.
 
@@ -35,7 +35,7 @@ Normalisation (``normalize``):
 * ``"ue4"``: ``"none"`` times ``2/pi``, as UE4's ``GTAOCombinedPSandCS`` does (a plane facing the camera
   gives ``2/pi``).
 
-Then, in this order: ``visibility ** power`` (XeGTAO's final power), Jimenez's multi-bounce fit with
+Then, in this order: ``visibility ** final_power`` (XeGTAO's final power), Jimenez's multi-bounce fit with
 ``albedo`` when ``multibounce=True``, clamp to [0, 1] (only ``"none"``/multi-bounce can leave it, by
 at most float noise for ``"none"`` with HDRP's ``saturate`` and ~1e-4 for the fit).
 
@@ -54,7 +54,8 @@ from ..gbuffer import GBuffer
 from ..marching import Frame, SlicePattern, fast_acos
 from .base import AOOutput, ScreenSpaceAO, make_parameter
 
-__all__ = ["GTAO", "gtao", "ShaderStepPattern", "arc_integral", "bent_vector", "multibounce", "run_functional"]
+__all__ = ["GTAO", "gtao", "ShaderStepPattern", "arc_integral", "bent_vector", "multibounce", "run_functional",
+           "with_base_signature"]
 
 HALF_PI = 0.5 * math.pi
 VARIANTS = ("exact", "hdrp", "ue4")
@@ -68,6 +69,24 @@ def check_choice(name: str, value, choices) -> str:
     if value not in choices:
         raise ValueError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
     return value
+
+
+def with_base_signature(cls):
+    """Class decorator: ``inspect.signature(cls.__init__)`` lists the subclass's own keyword arguments
+    and then those of :class:`ScreenSpaceAO` that it forwards through ``**kwargs`` (the CLI builds
+    modules from that signature), except the names in ``cls.unused_base_arguments``."""
+    import inspect
+
+    skip = set(getattr(cls, "unused_base_arguments", ()))
+    own = inspect.signature(cls.__init__)
+    params = [p for p in own.parameters.values() if p.kind != p.VAR_KEYWORD]
+    names = {p.name for p in params}
+    for p in inspect.signature(ScreenSpaceAO.__init__).parameters.values():
+        if p.name not in names and p.name not in skip and p.kind == p.KEYWORD_ONLY:
+            params.append(p)
+            names.add(p.name)
+    cls.__init__.__signature__ = own.replace(parameters=params)
+    return cls
 
 
 def run_functional(cls, gbuffer: GBuffer, tensors: dict, **options) -> AOOutput:
@@ -158,8 +177,8 @@ class GTAOAccumulator:
         self.variant = module.variant
         dtype = frame.dtype
         self.radius = module.radius.to(dtype)
-        self.falloff = module.falloff.to(dtype)
-        self.thickness = module.thickness.to(dtype)
+        self.falloff = module.falloff_range.to(dtype)
+        self.thickness = module.thickness_heuristic.to(dtype)
 
     # --------------------------------------------------------------- per step
     def begin_slice(self, q, geom):
@@ -259,7 +278,7 @@ class GTAOAccumulator:
             if m.normalize == "ue4":
                 vis = vis * (2.0 / math.pi)
         vis = vis.clamp(0.0, 1.0)
-        vis = safe_pow(vis, m.power.to(vis.dtype))
+        vis = safe_pow(vis, m.final_power.to(vis.dtype))
         if m.multibounce:
             vis = multibounce(vis, m.albedo.to(vis.dtype))
         out = {"visibility": vis.clamp(0.0, 1.0)}
@@ -279,16 +298,18 @@ _VARIANT_DEFAULTS = {
 }
 
 
+@with_base_signature
 class GTAO(ScreenSpaceAO):
     """Ground-truth ambient occlusion; see the module docstring for the variants.
 
     Args:
         variant: ``"exact"`` (default), ``"hdrp"`` (seed 000) or ``"ue4"`` (seed 004).
         radius: world-space radius (parameter).
-        falloff: ``"exact"`` only: fraction of ``radius`` over which occluders fade out linearly
+        falloff_range: ``"exact"`` only: fraction of ``radius`` over which occluders fade out linearly
             (0 = hard cut at ``radius``; XeGTAO uses 0.615). Parameter, in [0, 1].
-        thickness: ``"ue4"`` only: the thickness-heuristic blend (1 = plain maximum). Parameter.
-        power: final power of the visibility (parameter, > 0).
+        thickness_heuristic: ``"ue4"`` only: the thickness-heuristic blend (1 = plain maximum; UE4's
+            ``r.GTAO.ThicknessBlend``). Parameter, in [0, 1].
+        final_power: final power of the visibility (parameter, > 0).
         multibounce, albedo: apply Jimenez's multi-bounce fit with this albedo (parameter).
         bent_normals: also output bent normals.
         normalize: ``"exact"``, ``"none"`` or ``"ue4"``; default per variant (exact / none / ue4).
@@ -305,8 +326,8 @@ class GTAO(ScreenSpaceAO):
         Other arguments: see :class:`~torch_ao.methods.base.ScreenSpaceAO`.
     """
 
-    def __init__(self, *, variant: str = "exact", radius: float = 1.0, falloff: float = 0.0, thickness: float = 1.0,
-                 power: float = 1.0, multibounce: bool = False, albedo: float = 0.5, bent_normals: bool = False,
+    def __init__(self, *, variant: str = "exact", radius: float = 1.0, falloff_range: float = 0.0,
+                 thickness_heuristic: float = 1.0, final_power: float = 1.0, multibounce: bool = False, albedo: float = 0.5, bent_normals: bool = False,
                  normalize: str | None = None, projected_normal_weight: bool = True,
                  max_radius_px: float | None = None, search_scale: float = 1.0, fetch: str | None = None, border: str | None = None,
                  azimuth: str | None = None, trainable: bool = True, **kwargs) -> None:
@@ -324,19 +345,19 @@ class GTAO(ScreenSpaceAO):
         super().__init__(radius=radius, fetch=d_fetch if fetch is None else fetch,
                          border=d_border if border is None else border,
                          azimuth=d_azimuth if azimuth is None else azimuth, trainable=trainable, **kwargs)
-        make_parameter(self, "falloff", falloff, trainable=trainable, minimum=0.0)
-        make_parameter(self, "thickness", thickness, trainable=trainable, minimum=0.0)
-        make_parameter(self, "power", power, trainable=trainable, minimum=0.0)
+        make_parameter(self, "falloff_range", falloff_range, trainable=trainable, minimum=0.0)
+        make_parameter(self, "thickness_heuristic", thickness_heuristic, trainable=trainable, minimum=0.0)
+        make_parameter(self, "final_power", final_power, trainable=trainable, minimum=0.0)
         make_parameter(self, "albedo", albedo, trainable=trainable, minimum=0.0)
-        for name in ("falloff", "thickness", "power", "albedo"):
+        for name in ("falloff_range", "thickness_heuristic", "final_power", "albedo"):
             t = getattr(self, name)
             if t.dim() != 0:
                 raise ValueError(f"{name}: expected a scalar, got shape {tuple(t.shape)}")
-        for name in ("falloff", "thickness", "albedo"):
+        for name in ("falloff_range", "thickness_heuristic", "albedo"):
             if float(getattr(self, name).detach()) > 1:
                 raise ValueError(f"{name}: expected a value in [0, 1], got {float(getattr(self, name).detach())}")
-        if not float(self.power.detach()) > 0:
-            raise ValueError(f"power: expected > 0, got {float(self.power.detach())}")
+        if not float(self.final_power.detach()) > 0:
+            raise ValueError(f"final_power: expected > 0, got {float(self.final_power.detach())}")
 
     def pattern_for(self, frame):
         common = dict(step_power=self.step_power, min_step_px=self.min_step_px, jitter=self.jitter, seed=self.seed,
@@ -353,7 +374,9 @@ class GTAO(ScreenSpaceAO):
         return f"variant={self.variant!r}, normalize={self.normalize!r}, " + super().extra_repr()
 
 
-def gtao(gbuffer: GBuffer, *, radius=1.0, falloff=0.0, thickness=1.0, power=1.0, albedo=0.5, **options) -> AOOutput:
+def gtao(gbuffer: GBuffer, *, radius=1.0, falloff_range=0.0, thickness_heuristic=1.0, final_power=1.0, albedo=0.5,
+         **options) -> AOOutput:
     """Functional :class:`GTAO`: float arguments may be tensors (gradients flow to them)."""
-    return run_functional(GTAO, gbuffer, dict(radius=radius, falloff=falloff, thickness=thickness, power=power,
+    return run_functional(GTAO, gbuffer, dict(radius=radius, falloff_range=falloff_range,
+                                              thickness_heuristic=thickness_heuristic, final_power=final_power,
                                               albedo=albedo), **options)

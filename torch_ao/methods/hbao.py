@@ -39,7 +39,7 @@ import torch
 from ..gbuffer import GBuffer
 from ..marching import SlicePattern
 from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional
+from .gtao import check_choice, run_functional, with_base_signature
 
 __all__ = ["HBAO", "hbao"]
 
@@ -92,6 +92,7 @@ class HBAOAccumulator:
         return {"visibility": (1 - sums["ao"] / num_slices).clamp(0.0, 1.0)}
 
 
+@with_base_signature
 class HBAO(ScreenSpaceAO):
     """Horizon-based AO (seed 004); see the module docstring.
 

@@ -33,7 +33,7 @@ import torch
 from ..gbuffer import GBuffer
 from ..marching import BORDER_MODES, FETCH_MODES, SamplingPattern, tangent_from_screen_angle
 from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional
+from .gtao import check_choice, run_functional, with_base_signature
 
 __all__ = ["PSSAO", "pssao", "PSSAOPattern"]
 
@@ -102,6 +102,7 @@ class PSSAOAccumulator:
         return {"visibility": 1 - occ}
 
 
+@with_base_signature
 class PSSAO(ScreenSpaceAO):
     """Planar SSAO (seed 003); see the module docstring.
 
@@ -115,11 +116,12 @@ class PSSAO(ScreenSpaceAO):
     """
 
     default_slices_steps = (8, 8)
+    unused_base_arguments = ("jitter", "azimuth", "step_power", "min_step_px")
 
     def __init__(self, *, distance_bias: float = 1.0, normalize: str = "samples", fetch: str = "nearest",
                  border: str = "drop", trainable: bool = True, **kwargs) -> None:
         self.normalize = check_choice("normalize", normalize, ("samples", "directions"))
-        for name in ("jitter", "azimuth", "step_power", "min_step_px"):
+        for name in self.unused_base_arguments:
             if name in kwargs:
                 raise ValueError(f"{name}: not used by PSSAO (its walk is fixed by the gist)")
         super().__init__(fetch=fetch, border=border, jitter=False, trainable=trainable, **kwargs)

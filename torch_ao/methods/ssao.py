@@ -33,7 +33,7 @@ from ..gbuffer import GBuffer
 from ..marching import (BORDER_MODES, FETCH_MODES, SamplingPattern, interleaved_gradient_noise,
                         tangent_from_view_azimuth)
 from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional
+from .gtao import check_choice, run_functional, with_base_signature
 
 __all__ = ["SSAO", "ssao", "hemisphere_kernel", "HemispherePattern"]
 
@@ -126,6 +126,7 @@ class SSAOAccumulator:
         return {"visibility": 1 - sums["occ"] / self.m.samples}
 
 
+@with_base_signature
 class SSAO(ScreenSpaceAO):
     """Crytek-style SSAO with a normal-oriented hemisphere kernel; see the module docstring.
 
@@ -139,9 +140,11 @@ class SSAO(ScreenSpaceAO):
         fetch, border: default bilinear / drop.
     """
 
+    unused_base_arguments = ("azimuth", "step_power", "min_step_px")
+
     def __init__(self, *, samples: int | None = None, radius: float = 1.0, bias: float = 0.025, softness: float = 0.0,
                  trainable: bool = True, **kwargs) -> None:
-        for name in ("azimuth", "step_power", "min_step_px"):
+        for name in self.unused_base_arguments:
             if name in kwargs:
                 raise ValueError(f"{name}: not used by SSAO (it samples a hemisphere kernel, not slices)")
         if not (isinstance(softness, (int, float)) and softness >= 0):

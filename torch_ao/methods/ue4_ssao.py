@@ -12,7 +12,7 @@ offsets ``+o`` and ``-o`` (the core's two sides of one slice at the same step), 
 combined over the steps of a direction as ``acc = lerp(acc, (max(acc.x, x), 1), Weight)`` (starting at
 ``(0, 0)``), and over directions as ``AO = (1e-4 + sum_i (1 - acc_i.x)^2 acc_i.y) / (1e-4 + sum_i acc_i.y)``.
 That ``AO`` is the visibility (1 = unoccluded; a pair spanning a straight angle gives ``x = 0``), finally
-``1 - (1 - AO^power) * intensity`` as UE4's user adjustment, clamped to [0, 1] (``acc.x`` can exceed
+``1 - (1 - AO^final_power) * intensity`` as UE4's user adjustment, clamped to [0, 1] (``acc.x`` can exceed
 1 when small weights amplify ``x``, and the square then leaves [0, 1] for ``acc.x > 2``).
 
 The halo weight ``Weight`` is what the seed calls the halo fix; the per-side ``WeightLeft/Right``
@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from ..gbuffer import GBuffer
 from ..marching import SlicePattern, tangent_from_screen_angle
 from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional, safe_pow
+from .gtao import check_choice, run_functional, with_base_signature, safe_pow
 
 __all__ = ["UE4SSAO", "ue4_ssao", "WedgePattern", "SAMPLE_SETS"]
 
@@ -120,11 +120,12 @@ class WedgeAccumulator:
     def finish(self, sums, q, num_slices):
         m = self.m
         ao = (1e-4 + sums["num"]) / (1e-4 + sums["den"])
-        ao = safe_pow(ao.clamp(0.0, 1.0), m.power.to(ao.dtype))
+        ao = safe_pow(ao.clamp(0.0, 1.0), m.final_power.to(ao.dtype))
         vis = 1 - (1 - ao) * m.intensity.to(ao.dtype)
         return {"visibility": vis.clamp(0.0, 1.0)}
 
 
+@with_base_signature
 class UE4SSAO(ScreenSpaceAO):
     """UE4's normal-less SSAO (seed 004); see the module docstring for the exact formula.
 
@@ -134,7 +135,7 @@ class UE4SSAO(ScreenSpaceAO):
             a 200 cm radius, hence the default 0.4).
         flat_surface_bias: the flat-surface bias in world units (parameter; UE4 hard-codes 5 cm for a
             200 cm radius, hence the default 0.025).
-        power, intensity: UE4's final ``1 - (1 - AO^power) * intensity`` (parameters; UE4's editor
+        final_power, intensity: UE4's final ``1 - (1 - AO^final_power) * intensity`` (parameters; UE4's editor
             defaults are 2 and 0.5, these default to 1 and 1 so the output is the raw visibility).
         sample_set: ``"ue4_3"`` (default), ``"ue4_6"`` or ``"uniform"`` (``slices`` evenly spaced).
         accurate_angle: ``acos(cos)/pi`` instead of UE4's linear approximation with contrast 0.9.
@@ -144,9 +145,10 @@ class UE4SSAO(ScreenSpaceAO):
     """
 
     default_slices_steps = (3, 3)
+    unused_base_arguments = ("step_power", "min_step_px")
 
     def __init__(self, *, radius: float = 1.0, fade_distance: float = 0.4, flat_surface_bias: float = 0.025,
-                 power: float = 1.0, intensity: float = 1.0, sample_set: str = "ue4_3", accurate_angle: bool = False,
+                 final_power: float = 1.0, intensity: float = 1.0, sample_set: str = "ue4_3", accurate_angle: bool = False,
                  flat_softness: float = 0.0, fetch: str = "nearest", border: str = "clamp", azimuth: str = "screen",
                  trainable: bool = True, **kwargs) -> None:
         self.sample_set = check_choice("sample_set", sample_set, ("ue4_3", "ue4_6", "uniform"))
@@ -154,20 +156,23 @@ class UE4SSAO(ScreenSpaceAO):
         if not (isinstance(flat_softness, (int, float)) and flat_softness >= 0):
             raise ValueError(f"flat_softness: expected a number >= 0, got {flat_softness!r}")
         self.flat_softness = float(flat_softness)
+        for name in self.unused_base_arguments:
+            if name in kwargs:
+                raise ValueError(f"{name}: not used by UE4 SSAO (steps are at (j + 1) / steps of each offset)")
         if azimuth != "screen":
             raise ValueError(f"azimuth: UE4 SSAO rotates screen-space offsets; expected 'screen', got {azimuth!r}")
         super().__init__(radius=radius, fetch=fetch, border=border, azimuth=azimuth, trainable=trainable, **kwargs)
         make_parameter(self, "fade_distance", fade_distance, trainable=trainable, minimum=0.0)
         make_parameter(self, "flat_surface_bias", flat_surface_bias, trainable=trainable)
-        make_parameter(self, "power", power, trainable=trainable, minimum=0.0)
+        make_parameter(self, "final_power", final_power, trainable=trainable, minimum=0.0)
         make_parameter(self, "intensity", intensity, trainable=trainable, minimum=0.0)
-        for name in ("fade_distance", "flat_surface_bias", "power", "intensity"):
+        for name in ("fade_distance", "flat_surface_bias", "final_power", "intensity"):
             if getattr(self, name).dim() != 0:
                 raise ValueError(f"{name}: expected a scalar, got shape {tuple(getattr(self, name).shape)}")
         if not float(self.fade_distance.detach()) > 0:
             raise ValueError("fade_distance: expected > 0")
-        if not float(self.power.detach()) > 0:
-            raise ValueError("power: expected > 0")
+        if not float(self.final_power.detach()) > 0:
+            raise ValueError("final_power: expected > 0")
         if self.sample_set != "uniform":
             self.slices = len(SAMPLE_SETS[self.sample_set])
 
@@ -183,9 +188,9 @@ class UE4SSAO(ScreenSpaceAO):
         return f"sample_set={self.sample_set!r}, " + super().extra_repr()
 
 
-def ue4_ssao(gbuffer: GBuffer, *, radius=1.0, fade_distance=0.4, flat_surface_bias=0.025, power=1.0, intensity=1.0,
-             **options) -> AOOutput:
+def ue4_ssao(gbuffer: GBuffer, *, radius=1.0, fade_distance=0.4, flat_surface_bias=0.025, final_power=1.0,
+             intensity=1.0, **options) -> AOOutput:
     """Functional :class:`UE4SSAO`: float arguments may be tensors (gradients flow to them)."""
     return run_functional(UE4SSAO, gbuffer, dict(radius=radius, fade_distance=fade_distance,
-                                                 flat_surface_bias=flat_surface_bias, power=power,
+                                                 flat_surface_bias=flat_surface_bias, final_power=final_power,
                                                  intensity=intensity), **options)
