@@ -147,7 +147,7 @@ def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
+    fig, ax = plt.subplots(figsize=(8.0, 4.4), dpi=100)
     methods = sorted({r["method"] for r in rows})
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, m in enumerate(methods):
@@ -177,7 +177,7 @@ def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: 
     ax.set_ylabel(metric.upper() + " vs reference")
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=6, ncol=2)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
