@@ -101,6 +101,7 @@ def main(argv=None) -> dict:
           f"evaluating on {len(held)} held-out views, R = {args.max_distance:g}")
 
     rows = {f"start ({args.init:g})": evaluate(bitmask(args, args.init), held)}
+    train_before = evaluate(bitmask(args, args.init), train)
     for t in ENGINE_DEFAULTS:
         rows[f"engine default {t:g}"] = evaluate(bitmask(args, t), held)
 
@@ -121,7 +122,7 @@ def main(argv=None) -> dict:
                "radius": args.max_distance, "steps": result.steps_done, "fit_seconds": result.seconds,
                "train_views": [v.name for v in train], "holdout_views": [v.name for v in held],
                "holdout": rows, "holdout_before": rows[f"start ({args.init:g})"], "holdout_after": after,
-               "train_after": train_after, "history": result.history}
+               "train_before": train_before, "train_after": train_after, "history": result.history}
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "thickness.json.tmp"
     tmp.write_text(json.dumps(payload, indent=2))

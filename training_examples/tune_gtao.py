@@ -27,28 +27,35 @@ How to adapt
     * Your own G-buffers with references: ``--reference a.npz b.npz ... --holdout c.npz``
       (files written by ``torch-ao render`` or ``torch_ao.save_npz`` with an ``ao`` array).
     * Another quality: ``--preset ultra`` (or ``--slices/--steps-per-side``); fit at the quality you ship.
-    * Other parameters: ``--params radius,power``; initial values: ``--init radius=1.2,falloff=0.3``.
+    * Other parameters: ``--params radius,final_power``; initial values: ``--init radius=1.2,falloff_range=0.3``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 from pathlib import Path
 
 import torch
 
 from torch_ao.datasets import TRAIN_SCENES, reference_views
+from torch_ao import fit as fit_module
 from torch_ao.fit import FitConfig, evaluate, fit, load_views
 from torch_ao.methods import get_method
 
 #: XeGTAO's auto-tuned defaults (XeGTAO.h: XE_GTAO_DEFAULT_RADIUS_MULTIPLIER, _FALLOFF_RANGE, _FINAL_VALUE_POWER).
-XEGTAO = {"radius_multiplier": 1.457, "falloff": 0.615, "power": 2.2}
+XEGTAO = {"radius_multiplier": 1.457, "falloff_range": 0.615, "final_power": 2.2}
 #: Parameters fitted by default, per method/variant.
-DEFAULT_PARAMS = {("gtao", "exact"): "radius,falloff,power", ("gtao", "ue4"): "radius,thickness,power",
-                  ("gtao", "hdrp"): "radius,power"}
+DEFAULT_PARAMS = {("gtao", "exact"): "radius,falloff_range,final_power",
+                  ("gtao", "ue4"): "radius,thickness_heuristic,final_power", ("gtao", "hdrp"): "radius,final_power"}
 #: Upper bounds of parameters that have one (fit.py only projects onto lower bounds).
-MAXIMUM = {"falloff": 1.0, "thickness": 1.0, "albedo": 1.0}
+MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
+# The fitting loop projects parameters onto its lower bounds after every step; add HBAO's and UE4's
+# (a setting of this process only). A falloff range of exactly 0 is GTAO's hard cut at the radius,
+# where neither radius nor falloff gets a gradient, so keep it slightly above 0.
+for _name, _low in {"falloff_range": 0.01, "angle_bias": 0.0, "thickness_heuristic": 0.0}.items():
+    fit_module.PARAMETER_MINIMUM[_name] = max(fit_module.PARAMETER_MINIMUM.get(_name, 0.0), _low)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -56,7 +63,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--method", default="gtao", choices=("gtao", "hbao"))
     p.add_argument("--variant", default="exact", choices=("exact", "hdrp", "ue4"), help="GTAO variant")
     p.add_argument("--params", default=None, help="comma-separated parameters to fit (default: per variant)")
-    p.add_argument("--init", default="", help="initial values, e.g. radius=1.0,falloff=0.3 (radius in units of R)")
+    p.add_argument("--init", default="", help="initial values, e.g. radius=1.0,falloff_range=0.3 (radius in units of R)")
     p.add_argument("--preset", default="high", help="quality preset (slices x steps per side)")
     p.add_argument("--reference", nargs="+", metavar="FILE.npz", help="your own training G-buffers with an 'ao' reference")
     p.add_argument("--holdout", nargs="+", metavar="FILE.npz", help="your own held-out references")
@@ -115,8 +122,8 @@ def main(argv=None) -> dict:
               or ",".join(n for n, _ in make(args).named_parameters() if n != "albedo"))
     params = tuple(s.strip() for s in params.split(",") if s.strip())
     init = {}
-    if args.method == "gtao" and args.variant == "exact" and "falloff" in params:
-        init["falloff"] = 0.25  # with falloff = 0 the radius cut is a step: no gradient to radius or falloff
+    if args.method == "gtao" and args.variant == "exact" and "falloff_range" in params:
+        init["falloff_range"] = 0.25  # falloff 0 is a hard cut at the radius: no gradient to radius or falloff
     for item in filter(None, args.init.split(",")):
         key, value = item.split("=")
         init[key.strip()] = float(value) * (R if key.strip() == "radius" else 1.0)
@@ -127,7 +134,7 @@ def main(argv=None) -> dict:
 
     rows = {"default": (make(args), {})}
     if args.method == "gtao" and args.variant == "exact":
-        xe = dict(radius=XEGTAO["radius_multiplier"] * R, falloff=XEGTAO["falloff"], power=XEGTAO["power"])
+        xe = dict(radius=XEGTAO["radius_multiplier"] * R, falloff_range=XEGTAO["falloff_range"], final_power=XEGTAO["final_power"])
         rows["XeGTAO auto-tune"] = (make(args, **xe), xe)
     module = make(args, **init)
     rows["fit start"] = (make(args, **init), init)
@@ -157,7 +164,7 @@ def main(argv=None) -> dict:
 
     payload = {"method": args.method, "variant": args.variant, "preset": args.preset, "max_distance": R,
                "params": list(params), "steps": fitted.steps_done, "fit_seconds": fitted.seconds,
-               "radius_multiplier": values.get("radius", float(module.radius)) / R,
+               "radius_multiplier": values.get("radius", float(module.radius.detach())) / R,
                "xegtao": XEGTAO, "results": results, "history": fitted.history}
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "gtao.json.tmp"
