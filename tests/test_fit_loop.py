@@ -23,7 +23,7 @@ class Toy(nn.Module):
     def __init__(self, thickness=1.0):
         super().__init__()
         self.thickness = nn.Parameter(torch.tensor(float(thickness)))
-        self.mode, self.temperature = "hard", 0.1
+        self.mode, self.tau = "hard", 0.1
 
     def forward(self, gb):
         return AOOutput(torch.exp(-self.thickness * (gb.safe_depth - 3).square() / 4))

@@ -93,7 +93,7 @@ def test_full_matrix(config, frame):
 
 STIFF = [
     {"radius": 1e-4}, {"radius": 1e6}, {"thickness": 0.0}, {"thickness": 1e-6}, {"thickness": 1e3}, {"thickness": 1e6},
-    {"falloff": 0.0}, {"falloff": 1.0}, *({"temperature": t} for t in (1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6)),
+    {"falloff": 0.0}, {"falloff": 1.0}, *({"tau": t} for t in (1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6)),
 ]
 
 

@@ -112,17 +112,13 @@ class FitResult:
 
 
 def set_mode(module: nn.Module, mode: str | None, temperature: float | None = None) -> None:
-    """Put soft-mask modules (those with ``mode``/``temperature`` attributes) in ``mode``."""
+    """Put soft-mask modules (those with a ``mode`` attribute, e.g. ``BitmaskAO``) in ``mode``, with
+    soft-mask temperature ``tau = temperature`` (in sectors)."""
     for m in module.modules():
         if mode is not None and hasattr(m, "mode"):
             m.mode = mode
-        if temperature is not None and hasattr(m, "temperature"):
-            value = getattr(m, "temperature")
-            if isinstance(value, torch.Tensor):
-                with torch.no_grad():
-                    value.fill_(temperature)
-            else:
-                m.temperature = temperature
+        if temperature is not None and hasattr(m, "tau"):
+            m.tau = float(temperature)
 
 
 def _named_fit_parameters(module: nn.Module, names: Sequence[str]) -> dict[str, nn.Parameter]:

@@ -13,7 +13,7 @@ from ..io import load_gbuffer, save_npz
 from ..methods import METHODS, PRESETS, get_method
 
 # Flags that map one-to-one onto constructor arguments (only passed when given).
-_FLOAT_FLAGS = ("radius", "thickness", "temperature", "falloff", "falloff_range", "final_power", "bias", "albedo",
+_FLOAT_FLAGS = ("radius", "thickness", "tau", "falloff", "falloff_range", "final_power", "bias", "albedo",
                 "thickness_heuristic", "step_power", "min_step_px")
 _CHOICE_FLAGS = {
     "variant": None, "mode": ("hard", "soft", "straight_through"), "rounding": ("ceil", "round", "floor"),
