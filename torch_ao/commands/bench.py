@@ -46,8 +46,9 @@ def register(sub) -> None:
     p.add_argument("--spp", type=int, help=f"reference samples per pixel (default {DEFAULT.spp})")
     p.add_argument("--max-distance", type=float, default=1.0, help="reference AO ray length R for built-in scenes")
     p.add_argument("--radius", type=float, help="methods' world radius (default: each reference's max distance, else 1)")
-    p.add_argument("--params", metavar="JSON", help="per-method constructor arguments, e.g. fitted values: "
-                   "a JSON file or string {\"bitmask\": {\"thickness\": 0.3}}")
+    p.add_argument("--params", metavar="JSON", action="append", help="per-method constructor arguments replacing the "
+                   "defaults, e.g. fitted values: a `torch-ao fit` params.json, or a JSON file or string "
+                   "{\"bitmask\": {\"thickness\": 0.3}} (repeatable)")
     p.add_argument("--repeats", type=int, help=f"timed runs per measurement (default {DEFAULT.repeats})")
     p.add_argument("--warmup", type=int, default=1, help="untimed runs before timing")
     p.add_argument("--no-denoise", action="store_true", help="skip the runs followed by the denoiser")
@@ -64,17 +65,23 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _params(text: str | None) -> dict:
-    if not text:
-        return {}
-    path = Path(text)
-    try:
-        data = json.loads(path.read_text() if path.is_file() else text)
-    except json.JSONDecodeError as err:
-        raise CommandError(f"--params: not a JSON file or string ({err})") from None
-    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
-        raise CommandError("--params: expected {method: {parameter: value}}")
-    return data
+def _params(texts: list[str] | None) -> dict:
+    """``{method: {parameter: value}}`` from JSON files or strings, either in that form or a
+    ``torch-ao fit`` ``params.json`` (``{"method": ..., "parameters": {...}}``)."""
+    out: dict = {}
+    for text in texts or []:
+        path = Path(text)
+        try:
+            data = json.loads(path.read_text() if path.is_file() else text)
+        except json.JSONDecodeError as err:
+            raise CommandError(f"--params: {text!r} is not a JSON file or string ({err})") from None
+        if isinstance(data, dict) and "method" in data and isinstance(data.get("parameters"), dict):
+            data = {data["method"]: data["parameters"]}
+        if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
+            raise CommandError("--params: expected {method: {parameter: value}} or a `torch-ao fit` params.json")
+        for method, values in data.items():
+            out.setdefault(method, {}).update(values)
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -123,9 +130,9 @@ def run(args: argparse.Namespace) -> int:
                      progress=progress)
     background = None
     if not args.no_background:
-        background = background_scaling(methods, "high" if "high" in PRESETS else presets[-1], height=192, width=256,
-                                        repeats=repeats, warmup=args.warmup, device=device,
-                                        radius=args.radius or args.max_distance, progress=progress)
+        background = background_scaling(methods, "high", height=192, width=256, repeats=max(5, repeats),
+                                        warmup=args.warmup, device=device, radius=args.radius or args.max_distance,
+                                        progress=progress)
     env = environment(device)
     command = "torch-ao " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv and "torch-ao" in sys.argv[0] else None
     settings = {"scenes": scenes, "references": [str(p) for p in args.reference], "presets": presets,
