@@ -48,7 +48,7 @@ def register(sub) -> None:
     p.add_argument("--png", help="also write a PNG of the visibility")
     p.add_argument("--auto", action="store_true", help="choose --method and --preset by the bench recommendation: the "
                    "cheapest whose MAE is within --tolerance of the best (from --report, else a quick sweep on GBUFFER's 'ao')")
-    p.add_argument("--tolerance", type=float, help="with --auto: allowed MAE above the best (default: the report's, else 0.01)")
+    p.add_argument("--tolerance", type=float, help="with --auto: allowed MAE above the best; when not given, the report's, else 0.01")
     p.add_argument("--report", help="with --auto: a `torch-ao bench` report.json (or its folder)")
     p.set_defaults(func=run)
 

@@ -18,6 +18,15 @@ def _csv(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows defaults, except empty ones and those the help text already states."""
+
+    def _get_help_string(self, action):
+        if action.default in (None, False, []) or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 def register(sub) -> None:
     from ..bench import DEFAULT, QUICK
     from ..methods import METHODS, PRESETS
@@ -30,7 +39,7 @@ def register(sub) -> None:
         "warm-up) and measure MAE/RMSE/PSNR/SSIM against the reference on valid pixels. Writes bench.csv, "
         "bench.md, report.json (with the per-scene recommendation that `torch-ao ao --auto --report` applies) "
         "and plots of error against run time into --out.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_HelpFormatter,
     )
     p.add_argument("--quick", action="store_true",
                    help=f"a small sweep that finishes in minutes on a 2-core CPU: scenes {','.join(QUICK.scenes)}, "
