@@ -35,6 +35,12 @@ def _one_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture(autouse=True)
+def _no_grad():
+    with torch.no_grad():  # forward-only checks: no autograd graph (a dense walk's graph is gigabytes)
+        yield
+
+
 def wall_visibility(d: torch.Tensor, R: float) -> torch.Tensor:
     k = (d / R).clamp(max=1.0)
     return 1 - (torch.acos(k) - k * torch.sqrt(1 - k * k)) / math.pi
