@@ -82,11 +82,13 @@ class BitmaskAccumulator:
 
     def __init__(self, *, variant: str, mode: str, rounding: str, tau: float, weighting: str,
                  thickness: ThicknessLookup, indirect: bool, bent_normals: bool,
-                 ambient: torch.Tensor | Callable | None, ambient_directions: int) -> None:
+                 ambient: torch.Tensor | Callable | None, ambient_directions: int,
+                 sector_epsilon: float = 0.0) -> None:
         self.variant, self.mode, self.rounding, self.tau = variant, mode, rounding, tau
         self.weighting, self.thickness = weighting, thickness
         self.indirect, self.bent_normals = indirect, bent_normals
         self.ambient, self.ambient_directions = ambient, ambient_directions
+        self.sector_epsilon = float(sector_epsilon)
 
     # ------------------------------------------------------------------ slice
     def begin_slice(self, q: Queries, geom: SliceGeometry):
@@ -119,7 +121,10 @@ class BitmaskAccumulator:
             xb = _saturate((side * sample.angle(t) - gamma + _HALF_PI) / math.pi)
             lo, hi = (xf, xb) if side > 0 else (xb, xf)
         state["s"].append(lo * SECTORS)
-        state["w"].append((hi - lo) * SECTORS)
+        width = (hi - lo) * SECTORS
+        if self.sector_epsilon > 0:
+            width = (width - self.sector_epsilon).clamp_min(0)
+        state["w"].append(width)
         if self.indirect:
             ldir = sample.delta / sample.distance.clamp_min(1e-30)[:, None]
             sender = _saturate((sample.gather("normals") * -ldir).sum(-1))
@@ -190,19 +195,28 @@ class BitmaskAO(ScreenSpaceAO):
         indirect, bent_normals: compute these outputs (``indirect`` needs ``gbuffer.light``).
         ambient: ``None``, an RGB colour or a callable ``(M,3) -> (M,3)`` of view-space directions.
         ambient_directions: sub-regions per slice for a callable ambient (divides 32).
+        sector_epsilon: width (in sectors) removed from every interval before rounding, so that the
+            float noise of samples lying exactly in the tangent plane does not occlude a whole sector with
+            ``ceil`` (a flat plane gives exactly 1). Default 0.01 for ``"default"``, 0 for the seeds' variants.
         glsl_numerics: ``"ssilvb_glsl"`` only: ``"ieee"`` (exact ``acos``, input precision), ``"mesa"``
             (Mesa's polynomial ``acos``; matches Mesa softpipe) or ``"mesa_mediump"`` (also llvmpipe's
             float16 ``mediump`` jitter). See :mod:`torch_ao.methods.bitmask_glsl`.
         **kwargs: :class:`~torch_ao.methods.base.ScreenSpaceAO` options (``slices``, ``steps``,
             ``preset``, ``radius``, ``fetch``, ``border``, ``azimuth``, ``jitter``, ``seed``,
-            ``chunk_size``, ``recompute``, ``trainable``...). ``azimuth`` defaults to ``"view"`` for
+            ``chunk_size``, ``recompute``, ``trainable``...). In soft/straight-through mode, unless
+            given, ``chunk_size=16384`` and ``recompute=True`` bound the memory of forward+backward.
+            ``azimuth`` defaults to ``"view"`` for
             ``"default"`` and ``"screen"`` for ``"hdrp"``.
     """
+
+    #: pixels per chunk in soft/straight-through mode when ``chunk_size`` is not given
+    default_soft_chunk = 16384
 
     def __init__(self, *, variant: str = "default", mode: str = "hard", tau: float = 0.25, rounding: str = "ceil",
                  weighting: str = "uniform", thickness=0.5, thickness_growth: float | None = None,
                  indirect: bool = False, bent_normals: bool = False, ambient=None, ambient_directions: int = 8,
-                 azimuth: str | None = None, glsl_numerics: str = "ieee", **kwargs) -> None:
+                 azimuth: str | None = None, glsl_numerics: str = "ieee",
+                 sector_epsilon: float | None = None, **kwargs) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
         if mode not in MODES:
@@ -228,8 +242,18 @@ class BitmaskAO(ScreenSpaceAO):
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
         super().__init__(azimuth=azimuth, **kwargs)
         self.mode, self.tau, self.rounding, self.weighting = mode, float(tau), rounding, weighting
+        if mode != "hard" and kwargs.get("chunk_size") is None and "recompute" not in kwargs:
+            # Soft masks are for gradients: bound the memory of forward+backward by walking chunks of
+            # pixels and recomputing each chunk's walk in backward (the sector union itself already
+            # keeps only O(steps) per pixel). Pass chunk_size/recompute explicitly to override.
+            self.chunk_size, self.recompute = self.default_soft_chunk, True
         self.want_indirect, self.want_bent = bool(indirect), bool(bent_normals)
         self.ambient_directions = ambient_directions
+        if sector_epsilon is None:
+            sector_epsilon = 0.01 if variant == "default" else 0.0
+        if isinstance(sector_epsilon, bool) or not isinstance(sector_epsilon, (int, float)) or not 0 <= sector_epsilon < 1:
+            raise ValueError(f"sector_epsilon: expected a float in [0, 1), got {sector_epsilon!r}")
+        self.sector_epsilon = float(sector_epsilon)
         trainable = kwargs.get("trainable", True)
         make_parameter(self, "thickness", thickness, trainable=trainable, minimum=0.0)
         if self.thickness.dim() not in (0, 1, 4) or (self.thickness.dim() == 4 and self.thickness.shape[1] != 1):
@@ -296,7 +320,8 @@ class BitmaskAO(ScreenSpaceAO):
         return BitmaskAccumulator(variant=self.variant, mode=self.mode, rounding=self.rounding, tau=self.tau,
                                   weighting=self.weighting, thickness=self._lookup(), indirect=self.want_indirect,
                                   bent_normals=self.want_bent, ambient=ambient,
-                                  ambient_directions=self.ambient_directions)
+                                  ambient_directions=self.ambient_directions,
+                                  sector_epsilon=self.sector_epsilon)
 
     def extra_repr(self) -> str:
         return (f"variant={self.variant!r}, mode={self.mode!r}, tau={self.tau}, rounding={self.rounding!r}, "

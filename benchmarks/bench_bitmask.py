@@ -1,0 +1,114 @@
+"""Memory and time of BitmaskAO / SSILVB forward(+backward) on CPU (or CUDA if asked).
+
+Each case runs in its own subprocess, so peak memory is honest: the peak resident set size
+(``ru_maxrss``) of the child minus its resident size just before the timed call (after imports and
+building the G-buffer). On CUDA, ``torch.cuda.max_memory_allocated`` is reported instead.
+
+    python benchmarks/bench_bitmask.py                 # 640x360 table + 1280x720 soft fwd+bwd
+    python benchmarks/bench_bitmask.py --quick         # 320x180 only
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+
+
+def child(args: dict) -> dict:
+    import os
+    import resource
+
+    import torch
+
+    from torch_ao.examples import floor_wall_gbuffer
+    from torch_ao.gbuffer import GBuffer
+    from torch_ao.methods.bitmask import BitmaskAO
+
+    torch.set_num_threads(args.get("threads", 1))
+    H, W = args["height"], args["width"]
+    gb, _ = floor_wall_gbuffer(H, W, wall_distance=1.0, light_direction=(0.3, 0.8, 0.5))
+    device = args.get("device", "cpu")
+    grad = args["backward"]
+    depth = gb.depth.to(device).requires_grad_(grad)
+    normals = gb.normals.to(device).requires_grad_(grad)
+    light = gb.light.to(device).requires_grad_(grad)
+    gbuf = GBuffer(depth, gb.camera.to(device), normals=normals, light=light)
+    extra = {} if args.get("chunk_size") is None else {"chunk_size": args["chunk_size"], "recompute": True}
+    module = BitmaskAO(mode=args["mode"], slices=4, steps=8, radius=1.0, thickness=0.5,
+                       indirect=args["indirect"], **extra).to(device)
+
+    def rss_now_kb() -> int:
+        with open(f"/proc/{os.getpid()}/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // 1024
+
+    baseline = rss_now_kb()
+    if device != "cpu":
+        torch.cuda.reset_peak_memory_stats()
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    ctx = torch.enable_grad() if grad else torch.no_grad()
+    with ctx:
+        out = module(gbuf)
+        if grad:
+            loss = out.visibility.sum() + (out.indirect.sum() if out.indirect is not None else 0)
+            loss.backward()
+    if device != "cpu":
+        torch.cuda.synchronize()
+    seconds = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    result = {"seconds": seconds, "peak_mb": (peak - baseline) / 1024.0, "baseline_mb": baseline / 1024.0}
+    if device != "cpu":
+        result["peak_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    result["finite"] = bool(torch.isfinite(out.visibility).all()) and (not grad or bool(torch.isfinite(depth.grad).all()))
+    return result
+
+
+def run_case(**args) -> dict:
+    cmd = [sys.executable, __file__, "--child", json.dumps(args)]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="320x180 only")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--chunk-size", type=int, default=None)
+    parser.add_argument("--no-720p", action="store_true")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads in each case (default 1)")
+    a = parser.parse_args()
+    if a.child:
+        print(json.dumps(child(json.loads(a.child))))
+        return
+    H, W = (180, 320) if a.quick else (360, 640)
+    common = dict(height=H, width=W, device=a.device, chunk_size=a.chunk_size, threads=a.threads)
+    rows = [
+        ("hard forward, AO only", dict(mode="hard", backward=False, indirect=False)),
+        ("hard forward, AO + indirect", dict(mode="hard", backward=False, indirect=True)),
+        ("soft forward, AO only", dict(mode="soft", backward=False, indirect=False)),
+        ("soft forward+backward, AO only", dict(mode="soft", backward=True, indirect=False)),
+        ("soft forward+backward, AO + indirect", dict(mode="soft", backward=True, indirect=True)),
+        ("straight-through forward+backward, AO only", dict(mode="straight_through", backward=True, indirect=False)),
+    ]
+    print(f"BitmaskAO, {W}x{H}, 4 slices x 8 steps per side, device={a.device}, torch threads={a.threads}")
+    print(f"{'case':46s} {'time s':>8s} {'peak MB':>9s}")
+    results = {}
+    for name, args in rows:
+        r = run_case(**common, **args)
+        results[name] = r
+        print(f"{name:46s} {r['seconds']:8.2f} {r['peak_mb']:9.0f}{'' if r['finite'] else '  NON-FINITE'}", flush=True)
+    hard = results["hard forward, AO only"]["seconds"]
+    soft = results["soft forward+backward, AO only"]["seconds"]
+    print(f"soft forward+backward / hard forward = {soft / hard:.2f}x")
+    print(f"AO+indirect / AO-only (hard forward) = {results['hard forward, AO + indirect']['seconds'] / hard:.2f}x")
+    if not a.quick and not a.no_720p:
+        r = run_case(height=720, width=1280, device=a.device, chunk_size=a.chunk_size, threads=a.threads, mode="soft",
+                     backward=True, indirect=False)
+        print(f"{'1280x720 soft forward+backward, AO only':46s} {r['seconds']:8.2f} {r['peak_mb']:9.0f}")
+
+
+if __name__ == "__main__":
+    main()
