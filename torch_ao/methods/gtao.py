@@ -305,6 +305,8 @@ class GTAO(ScreenSpaceAO):
     Args:
         variant: ``"exact"`` (default), ``"hdrp"`` (seed 000) or ``"ue4"`` (seed 004).
         radius: world-space radius (parameter).
+        Parameters a variant does not use (``falloff_range`` outside ``"exact"``, ``thickness_heuristic``
+        outside ``"ue4"``, ``albedo`` without ``multibounce``) are kept as frozen buffers.
         falloff_range: ``"exact"`` only: fraction of ``radius`` over which occluders fade out linearly
             (0 = hard cut at ``radius``; XeGTAO uses 0.615). Parameter, in [0, 1].
         thickness_heuristic: ``"ue4"`` only: the thickness-heuristic blend (1 = plain maximum; UE4's
@@ -345,10 +347,13 @@ class GTAO(ScreenSpaceAO):
         super().__init__(radius=radius, fetch=d_fetch if fetch is None else fetch,
                          border=d_border if border is None else border,
                          azimuth=d_azimuth if azimuth is None else azimuth, trainable=trainable, **kwargs)
-        make_parameter(self, "falloff_range", falloff_range, trainable=trainable, minimum=0.0)
-        make_parameter(self, "thickness_heuristic", thickness_heuristic, trainable=trainable, minimum=0.0)
+        # Parameters the chosen variant/options do not use are registered frozen (as buffers), so
+        # that ``parameters()`` lists exactly what shapes the result.
+        make_parameter(self, "falloff_range", falloff_range, trainable=trainable and variant == "exact", minimum=0.0)
+        make_parameter(self, "thickness_heuristic", thickness_heuristic, trainable=trainable and variant == "ue4",
+                       minimum=0.0)
         make_parameter(self, "final_power", final_power, trainable=trainable, minimum=0.0)
-        make_parameter(self, "albedo", albedo, trainable=trainable, minimum=0.0)
+        make_parameter(self, "albedo", albedo, trainable=trainable and self.multibounce, minimum=0.0)
         for name in ("falloff_range", "thickness_heuristic", "final_power", "albedo"):
             t = getattr(self, name)
             if t.dim() != 0:

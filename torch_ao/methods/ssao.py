@@ -112,7 +112,7 @@ class SSAOAccumulator:
         if m.softness > 0:
             occluded = torch.sigmoid(diff / m.softness)
         else:
-            occluded = (diff >= 0).to(dtype)
+            occluded = (diff >= 0).to(dtype) + 0 * diff  # a step: zero (not missing) gradient to depth and bias
         R = m.radius.to(dtype)
         x = (R / (q.depth - z_b).abs().clamp_min(1e-12 * R.detach().clamp_min(1e-30))).clamp(0.0, 1.0)
         range_check = x * x * (3 - 2 * x)

@@ -104,7 +104,8 @@ class WedgeAccumulator:
             flat = torch.sigmoid((bias - (left + right)) / m.flat_softness)
             norm_angle = norm_angle + flat * (1 - norm_angle)
         else:
-            norm_angle = torch.where(left + right < bias, torch.ones_like(norm_angle), norm_angle)
+            # A step: zero (not missing) gradient to the bias.
+            norm_angle = torch.where(left + right < bias, torch.ones_like(norm_angle), norm_angle) + 0 * bias
         D = m.fade_distance.to(dtype).clamp_min(1e-30)
         weight = (1 - left / D).clamp(0.0, 1.0) * (1 - right / D).clamp(0.0, 1.0)
         weight = torch.where(vl & vr, weight, torch.zeros_like(weight))
