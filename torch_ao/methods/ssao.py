@@ -65,7 +65,18 @@ class HemispherePattern(SamplingPattern):
         return tangent_from_view_azimuth(q, torch.zeros_like(q.u))  # any; SSAO ignores the slice frame
 
     def points(self, q, k: int) -> torch.Tensor:
-        """``(N,3)`` view-space kernel point ``k`` of every query pixel."""
+        """``(N,3)`` view-space kernel point ``k`` of every query pixel (cached per query list, so the
+        walk's offsets and the accumulator's comparisons share one computation)."""
+        cache = getattr(self, "_cache", None)
+        if cache is None or cache[0] is not q:
+            t, b = self._frame_axes(q)
+            kernel = self.m.kernel.to(q.depth.dtype) * self.m.radius.to(q.depth.dtype)  # (K,3)
+            pts = q.position[:, None] + kernel[None, :, 0:1] * t[:, None] + kernel[None, :, 1:2] * b[:, None] \
+                + kernel[None, :, 2:3] * q.normal[:, None]  # (N,K,3)
+            self._cache = cache = (q, pts)
+        return cache[1][:, k]
+
+    def _frame_axes(self, q):
         n = q.normal
         if self.m.jitter:
             alpha = 2 * math.pi * interleaved_gradient_noise(q.u, q.v, self.m.seed).to(q.u.dtype)
@@ -78,21 +89,18 @@ class HemispherePattern(SamplingPattern):
         t_alt = alt - n * (alt * n).sum(-1, keepdim=True)
         t = torch.where(t.norm(dim=-1, keepdim=True) > 1e-3, t, t_alt)
         t = F.normalize(t, dim=-1, eps=1e-12)
-        b = torch.cross(n, t, dim=-1)
-        kx, ky, kz = (self.m.kernel[k].to(q.depth.dtype) * self.m.radius.to(q.depth.dtype)).unbind(-1)
-        return q.position + kx * t + ky * b + kz * n
+        return t, torch.cross(n, t, dim=-1)
 
     def step_offsets(self, q, geom, side):
         f = self.frame
-        b = q.batch
-        out = []
-        for k in range(self.m.samples):
-            S = self.points(q, k)
-            d = (-S[:, 2]).clamp_min(1e-6 * q.depth.detach())  # behind the camera: invalid in the accumulator
-            u = S[:, 0] / d * f.fx[b] + f.cx[b]
-            v = -S[:, 1] / d * f.fy[b] + f.cy[b]
-            out.append(torch.stack((u - q.u, v - q.v), -1))
-        return out
+        b = q.batch[:, None]
+        self.points(q, 0)
+        S = self._cache[1]  # (N,K,3)
+        d = (-S[..., 2]).clamp_min(1e-6 * q.depth.detach()[:, None])  # behind the camera: invalid in the accumulator
+        u = S[..., 0] / d * f.fx[b] + f.cx[b]
+        v = -S[..., 1] / d * f.fy[b] + f.cy[b]
+        offsets = torch.stack((u - q.u[:, None], v - q.v[:, None]), -1)  # (N,K,2)
+        return list(offsets.unbind(1))
 
 
 class SSAOAccumulator:
@@ -167,10 +175,14 @@ class SSAO(ScreenSpaceAO):
             check_choice("fetch", self.fetch, FETCH_MODES)
             check_choice("border", self.border, BORDER_MODES)
             return None
-        return HemispherePattern(self, frame)
+        self._pattern = (frame, HemispherePattern(self, frame))
+        return self._pattern[1]
 
     def accumulator(self, frame):
-        return SSAOAccumulator(self, HemispherePattern(self, frame))
+        cached = getattr(self, "_pattern", None)
+        pattern = cached[1] if cached is not None and cached[0] is frame else HemispherePattern(self, frame)
+        self._pattern = None
+        return SSAOAccumulator(self, pattern)
 
     def extra_repr(self) -> str:
         return f"samples={self.samples}, fetch={self.fetch!r}, border={self.border!r}"
