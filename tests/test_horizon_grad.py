@@ -270,3 +270,18 @@ def test_bad_arguments_raise_clear_errors(make, match):
 def test_forward_needs_a_gbuffer(cls):
     with pytest.raises(TypeError, match="gbuffer"):
         cls()(torch.ones(1, 1, 4, 4))
+
+
+@pytest.mark.parametrize("cls,options", ALL, ids=ALL_IDS)
+def test_chunked_recomputed_walk_equals_the_whole_frame(cls, options):
+    gb = crease_gbuffer(12, 14)
+    results = []
+    for mem in ({}, dict(chunk_size=37, recompute=True)):
+        module = cls(slices=2, steps=3, **options, **mem) if cls is not SSAO else cls(**options, **mem)
+        depth = gb.depth.clone().requires_grad_(True)
+        out = module(GBuffer(depth=depth, camera=gb.camera, normals=gb.normals))
+        loss = out.visibility.sum() + (out.bent_normal.sum() if out.bent_normal is not None else 0)
+        loss.backward()
+        results.append((out.visibility.detach(), depth.grad))
+    assert torch.allclose(results[0][0], results[1][0], atol=1e-6)
+    assert torch.allclose(results[0][1], results[1][1], atol=1e-5)

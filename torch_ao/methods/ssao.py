@@ -62,6 +62,9 @@ class HemispherePattern(SamplingPattern):
         self.num_slices, self.fetch, self.border = 1, module.fetch, module.border
 
     def slice_tangent(self, frame, q, s):
+        # The walk starts here: drop points cached by an earlier walk (a recomputation in backward
+        # must rebuild them inside its own graph).
+        self._cache = None
         return tangent_from_view_azimuth(q, torch.zeros_like(q.u))  # any; SSAO ignores the slice frame
 
     def points(self, q, k: int) -> torch.Tensor:
