@@ -138,7 +138,8 @@ class UE4SSAO(ScreenSpaceAO):
             200 cm radius, hence the default 0.025).
         final_power, intensity: UE4's final ``1 - (1 - AO^final_power) * intensity`` (parameters; UE4's editor
             defaults are 2 and 0.5, these default to 1 and 1 so the output is the raw visibility).
-        sample_set: ``"ue4_3"`` (default), ``"ue4_6"`` or ``"uniform"`` (``slices`` evenly spaced).
+        sample_set: ``"ue4_3"`` (default), ``"ue4_6"`` or ``"uniform"`` (``slices`` evenly spaced). With a
+            UE4 set, ``slices`` is the set's size (3 or 6) whatever ``slices``/``preset`` say.
         accurate_angle: ``acos(cos)/pi`` instead of UE4's linear approximation with contrast 0.9.
         flat_softness: > 0 makes the flat-surface test a logistic blend of this width (world units).
         steps: pairs per direction (UE4 ``SAMPLE_STEPS``: 1-3). fetch/border/azimuth default
