@@ -128,7 +128,7 @@ def test_train_thickness_net_single_process(tmp_path, cache):
 def test_train_thickness_net_resumes_after_sigkill(tmp_path, cache):
     """Kill the training with SIGKILL once a checkpoint exists; the same command finishes it with the
     same weights as an uninterrupted run."""
-    common = ["--tiny", "--epochs", "4", "--checkpoint-every", "1", "--no-eval"]
+    common = ["--tiny", "--epochs", "3", "--checkpoint-every", "1", "--no-eval"]
     run("train_thickness_net.py", *common, "--out", tmp_path / "full", cache=cache)
     full = json.loads((tmp_path / "full" / "rank0.json").read_text())
 
