@@ -204,13 +204,13 @@ class BitmaskAO(ScreenSpaceAO):
         **kwargs: :class:`~torch_ao.methods.base.ScreenSpaceAO` options (``slices``, ``steps``,
             ``preset``, ``radius``, ``fetch``, ``border``, ``azimuth``, ``jitter``, ``seed``,
             ``chunk_size``, ``recompute``, ``trainable``...). In soft/straight-through mode, unless
-            given, ``chunk_size=16384`` and ``recompute=True`` bound the memory of forward+backward.
+            given, ``chunk_size=8192`` and ``recompute=True`` bound the memory of forward+backward.
             ``azimuth`` defaults to ``"view"`` for
             ``"default"`` and ``"screen"`` for ``"hdrp"``.
     """
 
     #: pixels per chunk in soft/straight-through mode when ``chunk_size`` is not given
-    default_soft_chunk = 16384
+    default_soft_chunk = 8192
 
     def __init__(self, *, variant: str = "default", mode: str = "hard", tau: float = 0.25, rounding: str = "ceil",
                  weighting: str = "uniform", thickness=0.5, thickness_growth: float | None = None,
