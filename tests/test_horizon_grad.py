@@ -285,3 +285,17 @@ def test_chunked_recomputed_walk_equals_the_whole_frame(cls, options):
         results.append((out.visibility.detach(), depth.grad))
     assert torch.allclose(results[0][0], results[1][0], atol=1e-6)
     assert torch.allclose(results[0][1], results[1][1], atol=1e-5)
+
+
+@pytest.mark.parametrize("variant", ["hdrp", "ue4"])
+def test_fast_acos_at_plus_minus_one_has_finite_gradients(variant):
+    from torch_ao.methods.gtao import fast_acos
+
+    x = torch.tensor([1.0, -1.0, 0.5], requires_grad=True)
+    (fast_acos(x) * torch.tensor([0.0, 1.0, 1.0])).sum().backward()
+    assert bool(torch.isfinite(x.grad).all())
+    # A plane facing the camera through the centre pixel: V = n exactly, so cos(n) = 1 there.
+    gb = plane_gbuffer(9, 9, tilt_degrees=0.0, dtype=torch.float64)
+    depth, normals = gb.depth.clone().requires_grad_(True), gb.normals.clone().requires_grad_(True)
+    GTAO(variant=variant, slices=2, steps=2, jitter=False)(GBuffer(depth, gb.camera, normals=normals)).visibility.sum().backward()
+    assert bool(torch.isfinite(depth.grad).all()) and bool(torch.isfinite(normals.grad).all())

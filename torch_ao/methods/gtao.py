@@ -51,7 +51,7 @@ import torch
 import torch.nn.functional as F
 
 from ..gbuffer import GBuffer
-from ..marching import Frame, SlicePattern, fast_acos
+from ..marching import Frame, SlicePattern
 from .base import AOOutput, ScreenSpaceAO, make_parameter
 
 __all__ = ["GTAO", "gtao", "ShaderStepPattern", "arc_integral", "bent_vector", "multibounce", "run_functional",
@@ -131,6 +131,17 @@ def multibounce(visibility: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
     c = 2.7552 * albedo + 0.6903
     x = visibility
     return torch.maximum(x, ((x * a + b) * x + c) * x)
+
+
+def fast_acos(x: torch.Tensor) -> torch.Tensor:
+    """HDRP's ``GTAOFastAcos`` / UE4's ``acosFast`` (same values as :func:`torch_ao.marching.fast_acos`),
+    with a finite gradient at ``|x| = 1`` (the ``sqrt`` is differentiated as 0 there, not infinity)."""
+    ax = x.abs()
+    y = (1 - ax).clamp_min(0)
+    pos = y > 0
+    root = torch.where(pos, torch.sqrt(torch.where(pos, y, torch.ones_like(y))), torch.zeros_like(y))
+    res = (-0.156583 * ax + HALF_PI) * root
+    return torch.where(x >= 0, res, math.pi - res)
 
 
 def safe_pow(x: torch.Tensor, power: torch.Tensor) -> torch.Tensor:
