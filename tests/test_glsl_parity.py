@@ -17,7 +17,6 @@ subprocess (``GALLIUM_DRIVER`` selects it at EGL initialisation).
 """
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
