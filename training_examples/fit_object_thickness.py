@@ -16,7 +16,7 @@ What it does
     engine wrote, or with one fixed scene layout).
 
 How to run
-    python training_examples/fit_object_thickness.py                 # about 4-8 minutes on 2 CPU cores
+    python training_examples/fit_object_thickness.py                 # about 6 minutes of CPU time on 2 cores
     python training_examples/fit_object_thickness.py --scenes fence,poles,floating --steps 60
     Re-running the same command resumes from ``OUT/checkpoint-*.pt``. Results: ``OUT/object_thickness.json``.
 
@@ -57,7 +57,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes")
     p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
     p.add_argument("--holdout-views", type=int, default=1, help="held-out views per scene")
-    p.add_argument("--size", default="96x64", help="render size WxH")
+    p.add_argument("--size", default="64x48", help="render size WxH")
     p.add_argument("--spp", type=int, default=128, help="reference rays per pixel")
     p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R (also the method's radius)")
     p.add_argument("--preset", default="medium", help="quality preset (slices x steps per side)")

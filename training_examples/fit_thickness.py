@@ -10,7 +10,7 @@ What it does
     thickness, and writes them to ``OUT/thickness.json``.
 
 How to run
-    python training_examples/fit_thickness.py                    # about 3-6 minutes on 2 CPU cores
+    python training_examples/fit_thickness.py                    # about 5 minutes of CPU time on 2 cores
     python training_examples/fit_thickness.py --steps 100 --size 160x96 --spp 256
     Re-running the same command resumes an interrupted fit from ``OUT/checkpoint.pt``
     (delete the folder, or pass another ``--out``, to start over).

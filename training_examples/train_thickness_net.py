@@ -22,7 +22,7 @@ What it does
       a checksum of its final weights).
 
 How to run
-    python training_examples/train_thickness_net.py                # about 5 minutes on 2 CPU cores
+    python training_examples/train_thickness_net.py                # about 3 minutes of CPU time on 2 cores
     torchrun --standalone --nproc_per_node=2 training_examples/train_thickness_net.py
     python training_examples/train_thickness_net.py --tiny          # a smoke test (under a minute)
     Outputs in ``--out``: ``thickness_net.pt`` (state dict, load with ``weights_only=True``),

@@ -18,7 +18,7 @@ What it does
     of comparison, not a target.
 
 How to run
-    python training_examples/tune_gtao.py                       # about 2-4 minutes on 2 CPU cores
+    python training_examples/tune_gtao.py                       # about 3 minutes of CPU time on 2 cores
     python training_examples/tune_gtao.py --variant ue4 --steps 80
     python training_examples/tune_gtao.py --method hbao
     Re-running the same command resumes an interrupted fit from ``OUT/checkpoint.pt``.
