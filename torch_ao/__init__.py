@@ -1,14 +1,27 @@
 """torch_ao: differentiable, batched screen-space ambient occlusion for PyTorch."""
+from . import sectors
 from .camera import PinholeCamera
+from .denoise import Denoiser, denoise
+from .fit import FitConfig, FitView, evaluate, fit, load_views
 from .gbuffer import GBuffer, normals_from_depth
 from .io import load_gbuffer, save_npz
 from .marching import Frame, SlicePattern, march
 from .methods import METHODS, PRESETS, AOOutput, ScreenSpaceAO, get_method
+from .methods.bitmask import SSILVB, BitmaskAO, bitmask_ao, ssilvb
+from .methods.gtao import GTAO, gtao
+from .methods.hbao import HBAO, hbao
+from .methods.pssao import PSSAO, pssao
+from .methods.ssao import SSAO, ssao
+from .methods.ue4_ssao import UE4SSAO, ue4_ssao
+from .metrics import error_metrics
 
 __version__ = "0.1.0"
 
 __all__ = [
     "PinholeCamera", "GBuffer", "normals_from_depth", "load_gbuffer", "save_npz",
-    "Frame", "SlicePattern", "march",
+    "Frame", "SlicePattern", "march", "sectors",
     "METHODS", "PRESETS", "AOOutput", "ScreenSpaceAO", "get_method",
+    "SSAO", "ssao", "HBAO", "hbao", "UE4SSAO", "ue4_ssao", "GTAO", "gtao", "PSSAO", "pssao",
+    "BitmaskAO", "bitmask_ao", "SSILVB", "ssilvb",
+    "Denoiser", "denoise", "FitConfig", "FitView", "fit", "evaluate", "load_views", "error_metrics",
 ]
