@@ -13,12 +13,16 @@ from ..io import load_gbuffer, save_npz
 from ..methods import METHODS, PRESETS, get_method
 
 # Flags that map one-to-one onto constructor arguments (only passed when given).
-_FLOAT_FLAGS = ("radius", "thickness", "tau", "falloff", "falloff_range", "final_power", "bias", "albedo",
-                "thickness_heuristic", "step_power", "min_step_px")
+_FLOAT_FLAGS = ("radius", "thickness", "tau", "falloff_range", "final_power", "bias", "albedo",
+                "thickness_heuristic", "thickness_growth", "step_power", "min_step_px", "angle_bias", "fade_distance",
+                "flat_surface_bias", "intensity", "distance_bias", "search_scale", "softness")
 _CHOICE_FLAGS = {
     "variant": None, "mode": ("hard", "soft", "straight_through"), "rounding": ("ceil", "round", "floor"),
     "weighting": ("uniform", "cosine"), "fetch": ("nearest", "bilinear"), "border": ("clamp", "drop"),
     "azimuth": ("view", "screen"), "normals": ("improved", "kornia"),
+    "falloff": ("linear", "quadratic"), "accumulate": ("incremental", "max"), "elevation": ("image", "view"),
+    "normalize": ("exact", "none", "ue4", "samples", "directions"), "sample_set": ("ue4_3", "ue4_6", "uniform"),
+    "glsl_numerics": ("ieee", "mesa", "mesa_mediump"),
 }
 
 
@@ -42,6 +46,7 @@ def register(sub) -> None:
     p.add_argument("--no-jitter", action="store_true", help="no per-pixel noise (exact, repeatable comparisons)")
     p.add_argument("--seed", type=int, help="noise seed")
     p.add_argument("--indirect", action="store_true", help="also compute indirect light (methods that support it)")
+    p.add_argument("--no-indirect", action="store_true", help="ssilvb: visibility only")
     p.add_argument("--bent-normals", action="store_true", help="also compute bent normals (methods that support it)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--out", required=False, default="ao.npz", help="output .npz (visibility, and what else was asked)")
@@ -53,18 +58,34 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _constructor_arguments(cls) -> set[str]:
+    """Keyword arguments a class accepts, following ``**kwargs`` up the class hierarchy."""
+    names: set[str] = set()
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None:
+            continue
+        params = inspect.signature(init).parameters.values()
+        names |= {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.name != "self"}
+        if not any(p.kind == p.VAR_KEYWORD for p in params):
+            break
+    return names
+
+
 def build_method(name: str, args: argparse.Namespace) -> torch.nn.Module:
     """The module ``name`` with the constructor arguments given on the command line."""
     if name not in METHODS:
         raise CommandError(f"--method: unknown method {name!r}; expected one of {', '.join(sorted(METHODS))}")
     cls = get_method(name)
-    accepted = inspect.signature(cls.__init__).parameters
+    accepted = _constructor_arguments(cls)
     kwargs = {}
     given = {k: getattr(args, k, None) for k in ("preset", "slices", "steps", "seed", *_FLOAT_FLAGS, *_CHOICE_FLAGS)}
     if getattr(args, "no_jitter", False):
         given["jitter"] = False
     if getattr(args, "indirect", False):
         given["indirect"] = True
+    if getattr(args, "no_indirect", False):
+        given["indirect"] = False
     if getattr(args, "bent_normals", False):
         given["bent_normals"] = True
     for key, value in given.items():
