@@ -170,16 +170,18 @@ def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = 
 def _coverage_and_grads(s, w, F, dF, tau, delta, k):
     """Soft coverage ``c`` ``(..., K)`` and its partial derivatives ``dc/ds``, ``dc/dw`` (analytic)."""
     s1, w1 = s[..., None], w[..., None]
-    xa = ((k + 1 - s1) / tau).clamp(-_CLAMP, _CLAMP)  # no subnormals; the clamped tails are < 1e-13
-    xb = ((w1 - k + F[..., None] - delta) / tau).clamp(-_CLAMP, _CLAMP)
-    a, b = torch.sigmoid(xa), torch.sigmoid(xb)
-    da = a * torch.sigmoid(-xa) / tau  # d a / d xa * (1/tau)
-    db = b * torch.sigmoid(-xb) / tau
-    g = torch.tanh(w1 / tau)
-    dg = (1 - g * g) / tau
-    c = a * b * g
-    dc_ds = g * (b * -da + a * db * dF[..., None])
-    dc_dw = a * (db * g + b * dg)
+    inv_tau = 1.0 / tau
+    # Logistic arguments clamped (no subnormals; the clamped tails are < 1e-13); sigma' = sigma (1 - sigma).
+    a = (k + 1 - s1).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+    b = (w1 - k + F[..., None] - delta).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+    da = a * (1 - a) * inv_tau
+    db = b * (1 - b) * inv_tau
+    g = torch.tanh(w1 * inv_tau)
+    dg = (1 - g * g) * inv_tau
+    ab = a * b
+    c = ab * g
+    dc_ds = g * (a * db * dF[..., None] - b * da)
+    dc_dw = ab * dg + a * db * g
     return c, dc_ds, dc_dw
 
 
@@ -275,32 +277,37 @@ class SectorUnion(torch.autograd.Function):
         if grad_visible is None:
             grad_visible = s.new_zeros(N, SECTORS)
         F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
+        # Step-major layout (J, N, K): the reverse scan below then reads contiguous rows.
+        sT, wT, FT, dFT = s.t().contiguous(), w.t().contiguous(), F.t().contiguous(), dF.t().contiguous()
+        gnT = grad_newly.t().contiguous() if want_newly else None
         kc = _sector_chunk(N, J)
         for lo in range(0, SECTORS, kc):
             hi = min(SECTORS, lo + kc)
             k = _sectors(s, lo, hi)
-            c, dc_ds, dc_dw = _coverage_and_grads(s, w, F, dF, tau, delta, k)  # (N, J, K)
+            c, dc_ds, dc_dw = _coverage_and_grads(sT, wT, FT, dFT, tau, delta, k)  # (J, N, K)
             a = 1 - c
-            init = s.new_ones(N, 1, hi - lo) if p0 is None else p0[:, None, lo:hi]
+            init = s.new_ones(1, N, hi - lo) if p0 is None else p0[None, :, lo:hi]
             # Exclusive prefix products P_j = p0 * prod_{i<j} a_i, and P_J.
-            P = torch.cat((init, init * torch.cumprod(a, 1)), 1)  # (N, J+1, K)
+            P = torch.cat((init, init * torch.cumprod(a, 0)), 0)  # (J+1, N, K)
             if want_newly:
-                G = grad_newly[:, :, None] * weights[:, None, lo:hi]  # (N, J, K)
+                G = gnT[:, :, None] * weights[None, :, lo:hi]  # (J, N, K)
                 if need_w:
-                    gweights[:, lo:hi] = (grad_newly[:, :, None] * c * P[:, :J]).sum(1)
+                    gweights[:, lo:hi] = (gnT[:, :, None] * c * P[:J]).sum(0)
             else:
                 G = None
             S = grad_visible[:, lo:hi]  # S_{J-1}
             ga = torch.empty_like(c)
             for m in range(J - 1, -1, -1):
-                Gm = G[:, m] if G is not None else 0.0
-                ga[:, m] = P[:, m] * (S - Gm)  # P includes p0: d/da_m has the same form with or without it
-                S = (Gm * (1 - a[:, m]) if G is not None else 0.0) + a[:, m] * S
+                if G is None:
+                    torch.mul(P[m], S, out=ga[m])  # P includes p0: d/da_m has the same form with or without it
+                    S = a[m] * S
+                else:
+                    torch.mul(P[m], S - G[m], out=ga[m])
+                    S = G[m] * c[m] + a[m] * S
             if need_p0:
                 gp0[:, lo:hi] = S  # S_{-1}
-            gc = -ga
-            gs += (gc * dc_ds).sum(-1)
-            gw += (gc * dc_dw).sum(-1)
+            gs -= (ga * dc_ds).sum(-1).t()
+            gw -= (ga * dc_dw).sum(-1).t()
         return gs, gw, gweights, gp0, None, None, None
 
 
