@@ -11,15 +11,6 @@ from torch_ao.denoise import Denoiser, denoise
 from torch_ao.examples import plane_gbuffer
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a loaded 2-core machine, two OpenMP threads per process thrash."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _mae(a, b, valid):
     return float((a - b)[valid].abs().mean())
 

@@ -20,14 +20,6 @@ from torch_ao.examples import example_gbuffer
 H, W = 16, 24
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture
 def probe(monkeypatch):
     """Records the buffers each Frame is given, the buffers samples gather, normals reconstructions,
