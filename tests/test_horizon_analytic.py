@@ -27,14 +27,6 @@ from torch_ao.methods.ssao import SSAO
 from torch_ao.methods.ue4_ssao import UE4SSAO
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)  # the walk is many small ops: threads only add contention
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(autouse=True)
 def _no_grad():
     with torch.no_grad():  # forward-only checks: no autograd graph (a dense walk's graph is gigabytes)

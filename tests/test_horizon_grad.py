@@ -15,14 +15,6 @@ from torch_ao.methods.ssao import SSAO, ssao
 from torch_ao.methods.ue4_ssao import UE4SSAO, ue4_ssao
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 # Smooth settings for derivative checks: bilinear fetch, no jitter, and each method's continuous
 # options (GTAO exact with a falloff ramp instead of the hard cut, HBAO's incremental sum, soft
 # comparisons for SSAO and UE4's flat-surface test). Hard thresholds are piecewise constant: their
