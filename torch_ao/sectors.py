@@ -270,45 +270,42 @@ class SectorUnion(torch.autograd.Function):
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
         need_w = ctx.needs_input_grad[2] and want_newly
         need_p0 = p0 is not None and ctx.needs_input_grad[3]
-        gs = torch.zeros_like(s)
-        gw = torch.zeros_like(w)
-        gweights = torch.zeros_like(weights) if need_w else None
-        gp0 = torch.zeros_like(p0) if need_p0 else None
-        if grad_visible is None:
-            grad_visible = s.new_zeros(N, SECTORS)
+        inv_tau = 1.0 / tau
         F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
-        # Step-major layout (J, N, K): the reverse scan below then reads contiguous rows.
-        sT, wT, FT, dFT = s.t().contiguous(), w.t().contiguous(), F.t().contiguous(), dF.t().contiguous()
-        gnT = grad_newly.t().contiguous() if want_newly else None
-        kc = _sector_chunk(N, J)
-        for lo in range(0, SECTORS, kc):
-            hi = min(SECTORS, lo + kc)
-            k = _sectors(s, lo, hi)
-            c, dc_ds, dc_dw = _coverage_and_grads(sT, wT, FT, dFT, tau, delta, k)  # (J, N, K)
-            a = 1 - c
-            init = s.new_ones(1, N, hi - lo) if p0 is None else p0[None, :, lo:hi]
-            # Exclusive prefix products P_j = p0 * prod_{i<j} a_i, and P_J.
-            P = torch.cat((init, init * torch.cumprod(a, 0)), 0)  # (J+1, N, K)
-            if want_newly:
-                G = gnT[:, :, None] * weights[None, :, lo:hi]  # (J, N, K)
-                if need_w:
-                    gweights[:, lo:hi] = (gnT[:, :, None] * c * P[:J]).sum(0)
-            else:
-                G = None
-            S = grad_visible[:, lo:hi]  # S_{J-1}
-            ga = torch.empty_like(c)
-            for m in range(J - 1, -1, -1):
-                if G is None:
-                    torch.mul(P[m], S, out=ga[m])  # P includes p0: d/da_m has the same form with or without it
-                    S = a[m] * S
-                else:
-                    torch.mul(P[m], S - G[m], out=ga[m])
-                    S = G[m] * c[m] + a[m] * S
-            if need_p0:
-                gp0[:, lo:hi] = S  # S_{-1}
-            gs -= (ga * dc_ds).sum(-1).t()
-            gw -= (ga * dc_dw).sum(-1).t()
-        return gs, gw, gweights, gp0, None, None, None
+        gate = torch.tanh(w * inv_tau)  # (N, J)
+        dgate = (1 - gate * gate) * inv_tau
+        F1 = F - delta + 1
+        k1 = _sectors(s) + 1
+        # Forward sweep, one (N, 32) step at a time, in place. With c = a b g (a = sigmoid((k+1-s)/tau),
+        # b = sigmoid((w+F-delta-k)/tau), g = tanh(w/tau)) and sigma' = sigma (1 - sigma) / tau:
+        #   dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau,   dc/dw = a b g' + c (1 - b) / tau.
+        C = s.new_empty(J, N, SECTORS)  # c_j
+        D = s.new_empty(J, 2, N, SECTORS)  # P_j dc_j/ds, P_j dc_j/dw
+        gweights = s.new_zeros(N, SECTORS) if need_w else None
+        P = s.new_ones(N, SECTORS) if p0 is None else p0.clone()
+        for j in range(J):
+            a = torch.sub(k1, s[:, j, None]).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+            b = torch.sub(w[:, j, None] + F1[:, j, None], k1).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+            ab = a * b
+            c = torch.mul(ab, gate[:, j, None], out=C[j])
+            G = c * P  # newly covered share P_j c_j
+            nb = b.neg_().add_(1)  # 1 - b
+            torch.mul(ab, P, out=D[j, 1]).mul_(dgate[:, j, None]).addcmul_(G, nb, value=inv_tau)
+            torch.mul(G, nb.mul_(dF[:, j, None]).add_(a).sub_(1), out=D[j, 0]).mul_(inv_tau)
+            if need_w:
+                gweights.addcmul_(grad_newly[:, j, None], G)
+            P.sub_(G)
+            P.masked_fill_(P < _TINY, 0.0)  # as the soft forward
+        # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - G_m, S_{m-1} = S_m - c_m D_m.
+        S = s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible
+        gsw = s.new_empty(J, 2, N)
+        for m in range(J - 1, -1, -1):
+            Dm = torch.addcmul(S, grad_newly[:, m, None], weights, value=-1) if want_newly else S
+            torch.sum(D[m] * Dm, -1, out=gsw[m])
+            S = torch.addcmul(S, C[m], Dm, value=-1)
+        gs = gsw[:, 0].t().neg()
+        gw = gsw[:, 1].t().neg()
+        return gs, gw, gweights, S if need_p0 else None, None, None, None
 
 
 def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", rounding: str = "ceil",
