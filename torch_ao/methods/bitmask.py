@@ -211,6 +211,9 @@ class BitmaskAO(ScreenSpaceAO):
 
     #: pixels per chunk in soft/straight-through mode when ``chunk_size`` is not given
     default_soft_chunk = 8192
+    #: frames of at most this many pixels (``B*H*W``) are walked in one piece without recomputation
+    #: (about 30 KB per pixel of autograd state, i.e. < 0.5 GB) when ``chunk_size``/``recompute`` are not given
+    small_frame_pixels = 16384
 
     def __init__(self, *, variant: str = "default", mode: str = "hard", tau: float = 0.25, rounding: str = "ceil",
                  weighting: str = "uniform", thickness=0.5, thickness_growth: float | None = None,
@@ -242,10 +245,12 @@ class BitmaskAO(ScreenSpaceAO):
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
         super().__init__(azimuth=azimuth, **kwargs)
         self.mode, self.tau, self.rounding, self.weighting = mode, float(tau), rounding, weighting
-        if mode != "hard" and kwargs.get("chunk_size") is None and "recompute" not in kwargs:
+        self._auto_chunk = mode != "hard" and kwargs.get("chunk_size") is None and "recompute" not in kwargs
+        if self._auto_chunk:
             # Soft masks are for gradients: bound the memory of forward+backward by walking chunks of
             # pixels and recomputing each chunk's walk in backward (the sector union itself already
-            # keeps only O(steps) per pixel). Pass chunk_size/recompute explicitly to override.
+            # keeps only O(steps) per pixel). Small frames (``small_frame_pixels``) skip both, since
+            # recomputing doubles the forward. Pass chunk_size/recompute explicitly to override.
             self.chunk_size, self.recompute = self.default_soft_chunk, True
         self.want_indirect, self.want_bent = bool(indirect), bool(bent_normals)
         self.ambient_directions = ambient_directions
@@ -273,6 +278,17 @@ class BitmaskAO(ScreenSpaceAO):
             self.register_buffer("ambient_colour", colour.clone())
             self.ambient = None
         self._ambient_constant = ambient is not None and not callable(ambient)
+
+    def forward(self, gbuffer: GBuffer) -> AOOutput:
+        if getattr(self, "_auto_chunk", False) and torch.is_grad_enabled() and isinstance(gbuffer, GBuffer) \
+                and gbuffer.depth.numel() <= self.small_frame_pixels:
+            chunking = self.chunk_size, self.recompute
+            self.chunk_size, self.recompute = None, False
+            try:
+                return super().forward(gbuffer)
+            finally:
+                self.chunk_size, self.recompute = chunking
+        return super().forward(gbuffer)
 
     # ------------------------------------------------------------------ hooks
     def pattern_for(self, frame: Frame | None):
