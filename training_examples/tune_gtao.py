@@ -18,7 +18,7 @@ What it does
     of comparison, not a target.
 
 How to run
-    python training_examples/tune_gtao.py                       # about 3 minutes of CPU time on 2 cores
+    python training_examples/tune_gtao.py                       # about 5 minutes of CPU time on 2 cores
     python training_examples/tune_gtao.py --variant ue4 --steps 80
     python training_examples/tune_gtao.py --method hbao
     Re-running the same command resumes an interrupted fit from ``OUT/checkpoint.pt``.
@@ -32,6 +32,7 @@ How to adapt
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -40,7 +41,6 @@ from pathlib import Path
 import torch
 
 from torch_ao.datasets import TRAIN_SCENES, reference_views
-from torch_ao import fit as fit_module
 from torch_ao.fit import FitConfig, evaluate, fit, load_views
 from torch_ao.methods import get_method
 
@@ -54,6 +54,7 @@ MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "ang
 # The fitting loop projects parameters onto its lower bounds after every step; add HBAO's and UE4's
 # (a setting of this process only). A falloff range of exactly 0 is GTAO's hard cut at the radius,
 # where neither radius nor falloff gets a gradient, so keep it slightly above 0.
+fit_module = importlib.import_module("torch_ao.fit")  # the module (torch_ao.fit may name the function)
 for _name, _low in {"falloff_range": 0.01, "angle_bias": 0.0, "thickness_heuristic": 0.0}.items():
     fit_module.PARAMETER_MINIMUM[_name] = max(fit_module.PARAMETER_MINIMUM.get(_name, 0.0), _low)
 
@@ -73,7 +74,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--size", default="96x64", help="render size WxH")
     p.add_argument("--spp", type=int, default=128, help="reference rays per pixel")
     p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R")
-    p.add_argument("--steps", type=int, default=60, help="optimizer steps")
+    p.add_argument("--steps", type=int, default=30, help="optimizer steps")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
     p.add_argument("--seed", type=int, default=0)
