@@ -1,12 +1,11 @@
 """torch-ao bench: report files of a tiny sweep, the recommendation, --auto."""
 import csv
 import json
-import math
 
 import pytest
 import torch
 
-from test_bench_helpers import TinyAO, importable_methods
+from test_bench_helpers import TinyAO
 from torch_ao.bench import (COLUMNS, aggregate_rows, load_bench_views, make_method, pareto_front, recommend,
                             reference_path, run_bench)
 from torch_ao.bench_report import load_report, write_report

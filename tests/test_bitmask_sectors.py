@@ -1,5 +1,4 @@
 """Sector masks: hard integer rule (bit for bit), soft coverage, the custom-autograd union."""
-import math
 
 import pytest
 import torch

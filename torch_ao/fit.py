@@ -32,8 +32,11 @@ from .metrics import error_metrics
 
 __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode"]
 
-#: Lower bounds applied after every optimizer step (parameters outside them are meaningless).
-PARAMETER_MINIMUM = {"thickness": 0.0, "radius": 1e-3, "falloff_range": 0.0, "final_power": 0.05, "albedo": 0.0}
+#: Bounds applied after every optimizer step (parameters outside them are meaningless). A falloff
+#: range of exactly 0 is GTAO's hard cut, where neither radius nor falloff has a gradient.
+PARAMETER_MINIMUM = {"thickness": 0.0, "radius": 1e-3, "falloff_range": 1e-2, "final_power": 0.05, "albedo": 0.0,
+                     "angle_bias": 0.0, "thickness_heuristic": 0.0}
+PARAMETER_MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
 
 
 @dataclass
@@ -84,8 +87,8 @@ class FitConfig:
     loss: str = "l1"  # "l1" | "mse"
     weight_by_stderr: bool = False
     batch_views: int = 0  # views per step (0 = all)
-    temperature_start: float = 0.3
-    temperature_end: float = 0.02
+    temperature_start: float = 0.5
+    temperature_end: float = 0.05
     clip_grad: float = 1.0
     patience: int = 0  # early stop after this many steps without improvement (0 = never)
     min_delta: float = 1e-6
@@ -193,7 +196,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
 
     Returns:
         :class:`FitResult` with the fitted parameter values, the loss history and timings.
-        The module holds the *best* parameters seen (lowest training loss) at the end.
+        The module holds the *best* parameters seen (lowest training loss over all views) at the
+        end, or the last ones when each step sees only a batch of the views.
     """
     cfg = config or FitConfig()
     if not views:
@@ -252,18 +256,19 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             with torch.no_grad():
                 for name, p in params.items():
                     key = name.rsplit(".", 1)[-1]
-                    if key in PARAMETER_MINIMUM:
-                        p.clamp_(min=PARAMETER_MINIMUM[key])
+                    p.clamp_(min=PARAMETER_MINIMUM.get(key), max=PARAMETER_MAXIMUM.get(key))
             record = {"step": step, "loss": total, "temperature": temperature,
                       **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}}
             state["history"].append(record)
-            if total < state["best_loss"] - cfg.min_delta:
+            improved = total < state["best_loss"] - cfg.min_delta
+            if improved:
                 state["best_loss"], state["bad_steps"] = total, 0
-                state["best"] = {n: p.detach().clone() for n, p in params.items()}
             else:
                 state["bad_steps"] += 1
-                if cfg.patience and state["bad_steps"] >= cfg.patience:
-                    state["stopped_early"] = True
+                state["stopped_early"] = bool(cfg.patience) and state["bad_steps"] >= cfg.patience
+            # With partial batches a step's loss depends on its batch: keep the last parameters instead.
+            if improved or (cfg.batch_views and cfg.batch_views < len(views)):
+                state["best"] = {n: p.detach().clone() for n, p in params.items()}
             state["step"] = step + 1
             if bar is not None:
                 bar.update(1)

@@ -32,9 +32,7 @@ How to adapt
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import math
 import os
 from pathlib import Path
 
@@ -49,14 +47,6 @@ XEGTAO = {"radius_multiplier": 1.457, "falloff_range": 0.615, "final_power": 2.2
 #: Parameters fitted by default, per method/variant.
 DEFAULT_PARAMS = {("gtao", "exact"): "radius,falloff_range,final_power",
                   ("gtao", "ue4"): "radius,thickness_heuristic,final_power", ("gtao", "hdrp"): "radius,final_power"}
-#: Upper bounds of parameters that have one (fit.py only projects onto lower bounds).
-MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
-# The fitting loop projects parameters onto its lower bounds after every step; add HBAO's and UE4's
-# (a setting of this process only). A falloff range of exactly 0 is GTAO's hard cut at the radius,
-# where neither radius nor falloff gets a gradient, so keep it slightly above 0.
-fit_module = importlib.import_module("torch_ao.fit")  # the module (torch_ao.fit may name the function)
-for _name, _low in {"falloff_range": 0.01, "angle_bias": 0.0, "thickness_heuristic": 0.0}.items():
-    fit_module.PARAMETER_MINIMUM[_name] = max(fit_module.PARAMETER_MINIMUM.get(_name, 0.0), _low)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -144,10 +134,6 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed)
     fitted = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
-    with torch.no_grad():  # fit.py projects onto lower bounds only
-        for name, value in module.named_parameters():
-            if name in MAXIMUM:
-                value.clamp_(max=MAXIMUM[name])
     values = {n: float(p.detach()) for n, p in module.named_parameters() if n in params}
     results["fitted"] = {"values": values, **evaluate(module, held)}
 

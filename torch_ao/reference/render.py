@@ -209,7 +209,6 @@ def render_reference(
     d = torch.nn.functional.normalize(dworld, dim=1).permute(0, 2, 3, 1).reshape(-1, 3).to(dtype)
     o = eye[:, None, :].expand(B, H * W, 3).reshape(-1, 3).to(dtype)
     npix = B * H * W
-    n_ao = None
     total = npix  # rays for the progress bar, refined below
     bar = _progress(progress, total)
     t_prim = torch.empty(npix, dtype=dtype, device=device)
