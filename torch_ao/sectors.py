@@ -215,6 +215,58 @@ def _sector_chunk(n: int, j: int) -> int:
     return int(max(1, min(SECTORS, _ELEMENT_BUDGET // max(1, n * j))))
 
 
+def _soft_sweep(s, w, weights, p0, tau, delta, tables):
+    """The soft union's forward sweep, one ``(N, 32)`` step at a time, in place.
+
+    Returns ``visible``, ``newly`` and, when ``tables``, the backward tables ``C`` ``(J, N, 32)``
+    (``c_j``), ``D`` ``(J, 2, N, 32)`` (``P_j dc_j/ds``, ``P_j dc_j/dw``) and ``Gn`` ``(J, N, 32)``
+    (``P_j c_j``, only when ``weights`` is given). With ``c = a b g`` (``a = sigmoid((k+1-s)/tau)``,
+    ``b = sigmoid((w+F-delta-k)/tau)``, ``g = tanh(w/tau)``) and ``sigma' = sigma (1 - sigma) / tau``:
+    ``dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau``, ``dc/dw = a b g' + c (1 - b) / tau``.
+    """
+    N, J = s.shape
+    inv_tau = 1.0 / tau
+    k1 = _sectors(s) + 1
+    want_newly = weights is not None
+    newly = s.new_zeros(N, J) if want_newly else s.new_zeros(N, 0)
+    P = s.new_ones(N, SECTORS) if p0 is None else p0.clone()
+    if tables:
+        F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
+        C = s.new_empty(J, N, SECTORS)
+        D = s.new_empty(J, 2, N, SECTORS)
+        Gn = s.new_empty(J, N, SECTORS) if want_newly else None
+    else:
+        F = _soft_floor_fast(s, tau)
+    gate = torch.tanh(w * inv_tau)  # (N, J)
+    # Logistic arguments in units of tau: a = sigmoid(k1 / tau - s / tau), b = sigmoid((w + F - delta + 1) / tau - k1 / tau).
+    k1 = k1 * inv_tau
+    s_tau = s * inv_tau
+    b_tau = (w + F - delta + 1) * inv_tau
+    if tables:
+        dgate = (1 - gate * gate) * inv_tau
+    for j in range(J):
+        # Logistic arguments clamped to +-_CLAMP (beyond, sigma is within 1e-13 of 0/1) so that no
+        # subnormal floats appear (they are ~100x slower on CPUs).
+        a = torch.sub(k1, s_tau[:, j, None]).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+        b = torch.sub(b_tau[:, j, None], k1).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+        if tables:
+            ab = a * b
+            c = torch.mul(ab, gate[:, j, None], out=C[j])
+            G = torch.mul(c, P, out=Gn[j]) if want_newly else c * P  # newly covered share P_j c_j
+            nb = b.neg_().add_(1)  # 1 - b
+            torch.mul(ab, P, out=D[j, 1]).mul_(dgate[:, j, None]).addcmul_(G, nb, value=inv_tau)
+            torch.mul(G, nb.mul_(dF[:, j, None]).add_(a).sub_(1), out=D[j, 0]).mul_(inv_tau)
+        else:
+            G = a.mul_(b).mul_(gate[:, j, None]).mul_(P)
+        if want_newly:
+            newly[:, j] = (G * weights).sum(-1)
+        P.sub_(G)  # == P (1 - c), exact in [0, P]
+        torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
+    if tables:
+        return P, newly, C, D, Gn
+    return P, newly, None, None, None
+
+
 class SectorUnion(torch.autograd.Function):
     """Union over the steps of one slice, per sector, with newly covered fractions.
 
@@ -226,9 +278,12 @@ class SectorUnion(torch.autograd.Function):
     Outputs: ``visible`` ``(N, 32)`` = ``p0 * prod_j (1 - c_j)``, and ``newly`` ``(N, J)`` =
     ``sum_k weights_k c_jk p0_k prod_{i<j} (1 - c_ik)`` (empty ``(N, 0)`` without weights).
 
-    Backward recomputes coverage in chunks of sectors and runs a reverse linear scan
-    (``S_{J-1} = G_v``, ``S_m = G_{m+1} (1 - a_{m+1}) + a_{m+1} S_{m+1}``, ``dL/da_m = P_m (S_m - G_m)``),
-    never dividing by ``1 - c``.
+    When a gradient is needed, the forward sweep (one ``(N, 32)`` step at a time, in place) also
+    computes each step's ``c_j``, ``P_j dc_j/ds`` and ``P_j dc_j/dw`` (``P_j = p0 prod_{i<j} (1 - c_i)``;
+    and ``P_j c_j`` for the weights' gradient) and saves them: ``3 J`` rows of ``(N, 32)`` per slice,
+    which ``recompute=True`` walks keep for one chunk at a time. Backward is then a reverse linear scan
+    (``S_{J-1} = G_v``, ``D_m = S_m - G_m``, ``dL/dc_m = -P_m D_m``, ``S_{m-1} = S_m - c_m D_m``), never
+    dividing by ``1 - c``.
     """
 
     @staticmethod
@@ -236,76 +291,48 @@ class SectorUnion(torch.autograd.Function):
         N, J = s.shape
         delta = _DELTA[rounding]
         w = w.clamp_min(0)
-        visible = torch.ones(N, SECTORS, dtype=s.dtype, device=s.device) if p0 is None else p0.clone()
-        want_newly = weights is not None
-        newly = s.new_zeros(N, J) if want_newly else s.new_zeros(N, 0)
-        k1 = _sectors(s) + 1
-        inv_tau = 1.0 / tau
-        for j in range(J):
-            sj, wj = s[:, j], w[:, j]
-            if hard_forward:
-                c = hard_coverage(sj, wj, rounding)
-            else:
-                F = _soft_floor_fast(sj, tau)
-                # a = sigmoid((k + 1 - s) / tau), b = sigmoid((w + F - delta - k) / tau): in place, with the
-                # arguments clamped to +-_CLAMP (beyond, the logistic is within 1e-13 of 0/1) so that no
-                # subnormal floats appear (they are ~100x slower on CPUs).
-                c = torch.sub(k1, sj[:, None]).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-                b = torch.sub((wj + F - delta + 1)[:, None], k1).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-                c.mul_(b).mul_(torch.tanh(wj * inv_tau)[:, None])
-            g = c.mul_(visible)  # newly covered share of each sector
-            if want_newly:
-                newly[:, j] = (g * weights).sum(-1)
-            visible = visible - g  # == visible * (1 - c), exact in [0, visible]
-            visible = visible.masked_fill_(visible < _TINY, 0.0) if not hard_forward else visible
-        ctx.save_for_backward(s, w, weights, p0)
-        ctx.tau, ctx.delta = tau, delta
+        tables = any(ctx.needs_input_grad[:4])
+        if hard_forward:
+            visible, newly = _hard_sweep(s, w, weights, p0, rounding)
+            if tables:
+                _, _, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, True)
+        else:
+            visible, newly, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, tables)
+        if tables:
+            ctx.save_for_backward(weights, C, D, Gn if ctx.needs_input_grad[2] else None)
         return visible, newly
 
     @staticmethod
     def backward(ctx, grad_visible, grad_newly):
-        s, w, weights, p0 = ctx.saved_tensors
-        tau, delta = ctx.tau, ctx.delta
-        N, J = s.shape
+        weights, C, D, Gn = ctx.saved_tensors
+        J, N, _ = C.shape
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
-        need_w = ctx.needs_input_grad[2] and want_newly
-        need_p0 = p0 is not None and ctx.needs_input_grad[3]
-        inv_tau = 1.0 / tau
-        F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
-        gate = torch.tanh(w * inv_tau)  # (N, J)
-        dgate = (1 - gate * gate) * inv_tau
-        F1 = F - delta + 1
-        k1 = _sectors(s) + 1
-        # Forward sweep, one (N, 32) step at a time, in place. With c = a b g (a = sigmoid((k+1-s)/tau),
-        # b = sigmoid((w+F-delta-k)/tau), g = tanh(w/tau)) and sigma' = sigma (1 - sigma) / tau:
-        #   dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau,   dc/dw = a b g' + c (1 - b) / tau.
-        C = s.new_empty(J, N, SECTORS)  # c_j
-        D = s.new_empty(J, 2, N, SECTORS)  # P_j dc_j/ds, P_j dc_j/dw
-        gweights = s.new_zeros(N, SECTORS) if need_w else None
-        P = s.new_ones(N, SECTORS) if p0 is None else p0.clone()
-        for j in range(J):
-            a = torch.sub(k1, s[:, j, None]).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-            b = torch.sub(w[:, j, None] + F1[:, j, None], k1).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-            ab = a * b
-            c = torch.mul(ab, gate[:, j, None], out=C[j])
-            G = c * P  # newly covered share P_j c_j
-            nb = b.neg_().add_(1)  # 1 - b
-            torch.mul(ab, P, out=D[j, 1]).mul_(dgate[:, j, None]).addcmul_(G, nb, value=inv_tau)
-            torch.mul(G, nb.mul_(dF[:, j, None]).add_(a).sub_(1), out=D[j, 0]).mul_(inv_tau)
-            if need_w:
-                gweights.addcmul_(grad_newly[:, j, None], G)
-            P.sub_(G)
-            P.masked_fill_(P < _TINY, 0.0)  # as the soft forward
+        gweights = None
+        if Gn is not None and want_newly:
+            gweights = (grad_newly.t()[:, :, None] * Gn).sum(0)
         # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - G_m, S_{m-1} = S_m - c_m D_m.
-        S = s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible
-        gsw = s.new_empty(J, 2, N)
+        S = C.new_zeros(N, SECTORS) if grad_visible is None else grad_visible
+        gsw = C.new_empty(J, 2, N)
         for m in range(J - 1, -1, -1):
             Dm = torch.addcmul(S, grad_newly[:, m, None], weights, value=-1) if want_newly else S
             torch.sum(D[m] * Dm, -1, out=gsw[m])
             S = torch.addcmul(S, C[m], Dm, value=-1)
         gs = gsw[:, 0].t().neg()
         gw = gsw[:, 1].t().neg()
-        return gs, gw, gweights, S if need_p0 else None, None, None, None
+        return gs, gw, gweights, S if ctx.needs_input_grad[3] else None, None, None, None
+
+
+def _hard_sweep(s, w, weights, p0, rounding):
+    """Straight-through forward: the hard per-sector rule on floats (``visible``, ``newly``)."""
+    N, J = s.shape
+    visible = torch.ones(N, SECTORS, dtype=s.dtype, device=s.device) if p0 is None else p0.clone()
+    newly = s.new_zeros(N, J) if weights is not None else s.new_zeros(N, 0)
+    for j in range(J):
+        g = hard_coverage(s[:, j], w[:, j], rounding).mul_(visible)
+        if weights is not None:
+            newly[:, j] = (g * weights).sum(-1)
+        visible = visible - g
+    return visible, newly
 
 
 def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", rounding: str = "ceil",
