@@ -39,7 +39,9 @@ def register(sub) -> None:
     p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R (also the method's radius)")
     p.add_argument("--steps", type=int, default=60, help="optimizer steps")
     p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate")
-    p.add_argument("--batch-views", type=int, default=4, help="training views per step (0 = all)")
+    p.add_argument("--batch-views", type=int, default=0, help="training views per step (0 = all)")
+    p.add_argument("--weighting", choices=("uniform", "cosine"), default="cosine",
+                   help="sector weighting of the fitted bitmask method (cosine matches the cosine-weighted reference)")
     p.add_argument("--loss", choices=("l1", "mse"), default="l1")
     p.add_argument("--init", type=float, default=1.0, help="initial thickness")
     p.add_argument("--seed", type=int, default=0)
@@ -101,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     train, held = _views(args)
     print(f"fitting {args.method} {', '.join(params)} on {len(train)} views, evaluating on {len(held)} held-out views")
 
-    init = {"thickness": args.init} if "thickness" in params or args.method in ("bitmask", "ssilvb") else {}
+    bitmask = args.method in ("bitmask", "ssilvb")
+    init = {"thickness": args.init, "weighting": args.weighting} if bitmask else {}
     module = _build(args.method, args, **init)
     before = evaluate(module, held)
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views, seed=args.seed)
@@ -109,12 +112,14 @@ def run(args: argparse.Namespace) -> int:
     after = evaluate(module, held, repeats=3)
 
     rows = []
-    if args.method in ("bitmask", "ssilvb"):
+    if bitmask:
         for t in (0.25, 0.5, 1.0):
-            rows.append((f"{args.method} thickness={t:g} (engine default)", evaluate(_build(args.method, args, thickness=t), held, repeats=3)))
+            engine = _build(args.method, args, thickness=t, weighting="uniform")
+            rows.append((f"{args.method} thickness={t:g} (engine default: uniform sectors)", evaluate(engine, held, repeats=3)))
     rows.append(("gtao (default parameters)", evaluate(_build("gtao", args), held, repeats=3)))
     fitted = ", ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in result.parameters.items())
-    rows.append((f"{args.method} fitted ({fitted})", after))
+    label = f"{args.method} fitted ({fitted}" + (f", {args.weighting} sectors)" if bitmask else ")")
+    rows.append((label, after))
     table = _table(rows)
     print(table)
     out.mkdir(parents=True, exist_ok=True)
