@@ -133,20 +133,26 @@ def soft_floor(s: torch.Tensor, tau: float) -> torch.Tensor:
     return torch.sigmoid((s[..., None] - m) / tau).sum(-1)
 
 
+def _soft_floor_window(s: torch.Tensor, tau: float, slope: bool = False):
+    """Smooth floor ``F(s)`` (and, with ``slope``, ``F'(s)``), summed over a window of ``W`` consecutive
+    integers ``lo .. lo + W - 1`` inside ``[1, 32]`` that contains every integer within ``_CLAMP * tau``
+    of ``s``; the integers ``1 .. lo - 1`` count fully (their logistic is within ``sigmoid(-_CLAMP)`` of
+    1) and those above the window not at all. Costs ``O(N * W)``, not ``O(N * 32)``."""
+    reach = int(math.ceil(_CLAMP * tau)) + 1
+    width = min(2 * reach, SECTORS)
+    inv_tau = 1.0 / tau
+    lo = (torch.floor(s.detach()) - (reach - 1)).clamp_(1, SECTORS - width + 1)  # (...)
+    offsets = torch.arange(width, dtype=s.dtype, device=s.device) * inv_tau
+    x = torch.sub(((s - lo) * inv_tau)[..., None], offsets).clamp_(-_CLAMP, _CLAMP).sigmoid_()  # (..., W)
+    F = x.sum(-1).add_(lo - 1)
+    if not slope:
+        return F
+    return F, torch.sub(1, x).mul_(x).sum(-1).mul_(inv_tau)
+
+
 def _soft_floor_and_slope(s: torch.Tensor, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Smooth floor ``F(s)`` and its derivative, summed over the integers near ``s`` only."""
-    reach = int(math.ceil(_CLAMP * tau)) + 1
-    if 2 * reach + 1 >= SECTORS:
-        m = _sectors(s, 1, SECTORS + 1)
-        below = torch.zeros_like(s)
-    else:
-        base = torch.floor(s.detach())
-        m = base[..., None] + torch.arange(-reach + 1, reach + 1, dtype=s.dtype, device=s.device)
-        below = (base - reach).clamp(0, SECTORS)
-    x = ((s[..., None] - m) / tau).clamp(-_CLAMP, _CLAMP)
-    inside = (m >= 1) & (m <= SECTORS)
-    p = torch.where(inside, torch.sigmoid(x), torch.zeros_like(x))
-    return p.sum(-1) + below, (p * torch.sigmoid(-x)).sum(-1) / tau
+    return _soft_floor_window(s, tau, slope=True)
 
 
 def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = "ceil", lo: int = 0,
@@ -192,17 +198,7 @@ _TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnorm
 def _soft_floor_fast(s: torch.Tensor, tau: float) -> torch.Tensor:
     """:func:`soft_floor` summed only over the integers within ``_CLAMP * tau`` of ``s`` (the others
     contribute 0 or 1 up to ``sigmoid(-_CLAMP)``), so it costs ``O(N * window)``, not ``O(N * 32)``."""
-    reach = int(math.ceil(_CLAMP * tau)) + 1
-    if 2 * reach + 1 >= SECTORS:
-        return soft_floor(s, tau)
-    base = torch.floor(s.detach())
-    offsets = torch.arange(-reach + 1, reach + 1, dtype=s.dtype, device=s.device)
-    m = base[..., None] + offsets  # candidate integers near s
-    inside = (m >= 1) & (m <= SECTORS)
-    x = ((s[..., None] - m) / tau).clamp(-_CLAMP, _CLAMP)
-    near = torch.where(inside, torch.sigmoid(x), torch.zeros_like(x)).sum(-1)
-    below = (base - reach).clamp(0, SECTORS)  # the integers 1 .. base - reach count fully
-    return near + below
+    return _soft_floor_window(s, tau)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -232,9 +228,9 @@ def _soft_sweep(s, w, weights, p0, tau, delta, tables):
     P = s.new_ones(N, SECTORS) if p0 is None else p0.clone()
     if tables:
         F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
-        C = s.new_empty(J, N, SECTORS)
-        D = s.new_empty(J, 2, N, SECTORS)
-        Gn = s.new_empty(J, N, SECTORS) if want_newly else None
+        # Per-step rows, not (J, N, 32) blocks: blocks that large are fresh mmap'd pages on every call
+        # (page faults cost about as much as the sweep), while rows are recycled by the allocator.
+        C, D, Gn = [], [], [] if want_newly else None
     else:
         F = _soft_floor_fast(s, tau)
     gate = torch.tanh(w * inv_tau)  # (N, J)
@@ -251,11 +247,16 @@ def _soft_sweep(s, w, weights, p0, tau, delta, tables):
         b = torch.sub(b_tau[:, j, None], k1).clamp_(-_CLAMP, _CLAMP).sigmoid_()
         if tables:
             ab = a * b
-            c = torch.mul(ab, gate[:, j, None], out=C[j])
-            G = torch.mul(c, P, out=Gn[j]) if want_newly else c * P  # newly covered share P_j c_j
+            c = ab * gate[:, j, None]
+            G = c * P  # newly covered share P_j c_j
             nb = b.neg_().add_(1)  # 1 - b
-            torch.mul(ab, P, out=D[j, 1]).mul_(dgate[:, j, None]).addcmul_(G, nb, value=inv_tau)
-            torch.mul(G, nb.mul_(dF[:, j, None]).add_(a).sub_(1), out=D[j, 0]).mul_(inv_tau)
+            Dj = s.new_empty(2, N, SECTORS)
+            torch.mul(ab, P, out=Dj[1]).mul_(dgate[:, j, None]).addcmul_(G, nb, value=inv_tau)
+            torch.mul(G, nb.mul_(dF[:, j, None]).add_(a).sub_(1), out=Dj[0]).mul_(inv_tau)
+            C.append(c)
+            D.append(Dj)
+            if want_newly:
+                Gn.append(G)
         else:
             G = a.mul_(b).mul_(gate[:, j, None]).mul_(P)
         if want_newly:
@@ -299,20 +300,26 @@ class SectorUnion(torch.autograd.Function):
         else:
             visible, newly, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, tables)
         if tables:
-            ctx.save_for_backward(weights, C, D, Gn if ctx.needs_input_grad[2] else None)
+            keep_gn = weights is not None and ctx.needs_input_grad[2]
+            ctx.J, ctx.N, ctx.keep_gn, ctx.options = J, N, keep_gn, dict(dtype=s.dtype, device=s.device)
+            ctx.save_for_backward(weights, *C, *D, *(Gn if keep_gn else ()))
         return visible, newly
 
     @staticmethod
     def backward(ctx, grad_visible, grad_newly):
-        weights, C, D, Gn = ctx.saved_tensors
-        J, N, _ = C.shape
+        saved = ctx.saved_tensors
+        J = ctx.J
+        weights, C, D, Gn = saved[0], saved[1:J + 1], saved[J + 1:2 * J + 1], saved[2 * J + 1:]
+        N = ctx.N
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
         gweights = None
-        if Gn is not None and want_newly:
-            gweights = (grad_newly.t()[:, :, None] * Gn).sum(0)
+        if ctx.keep_gn and want_newly:
+            gweights = torch.zeros_like(weights)
+            for j in range(J):
+                gweights.addcmul_(grad_newly[:, j, None], Gn[j])
         # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - G_m, S_{m-1} = S_m - c_m D_m.
-        S = C.new_zeros(N, SECTORS) if grad_visible is None else grad_visible
-        gsw = C.new_empty(J, 2, N)
+        S = torch.zeros(N, SECTORS, **ctx.options) if grad_visible is None else grad_visible
+        gsw = torch.empty(J, 2, N, **ctx.options)
         for m in range(J - 1, -1, -1):
             Dm = torch.addcmul(S, grad_newly[:, m, None], weights, value=-1) if want_newly else S
             torch.sum(D[m] * Dm, -1, out=gsw[m])
@@ -352,6 +359,12 @@ def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", roundi
         return _hard_union(s, w, rounding, weights, p0)
     if not (isinstance(tau, (int, float)) and tau > 0 and math.isfinite(tau)):
         raise ValueError(f"tau: expected a positive finite float, got {tau!r}")
+    needs_grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (s, w, weights, p0))
+    if not needs_grad:  # no graph: the plain sweep, without the backward tables
+        if mode == "straight_through":
+            return _hard_sweep(s, w.clamp_min(0), weights, p0, rounding)
+        return _soft_sweep(s, w.clamp_min(0), weights, p0, float(tau), _DELTA[rounding], False)[:2]
     return SectorUnion.apply(s, w, weights, p0, float(tau), rounding, mode == "straight_through")
 
 
