@@ -18,9 +18,10 @@ Hard masks (:func:`hard_mask`, :func:`popcount32`) use torch integer ops on ``in
 ``tau`` (in sector units) and ``floor(s)`` by the smooth staircase ``sum_m sigmoid((s - m) / tau)``; a
 gate ``tanh(w / tau)`` makes zero-width intervals cover nothing. As ``tau -> 0`` it converges to the hard
 rule. The union over steps ``1 - prod_j (1 - c_j)`` and each step's newly covered fraction
-``c_j prod_{i<j} (1 - c_i)`` are computed by :class:`SectorUnion`, a custom autograd function that keeps
-only the per-step ``(s, w)`` and recomputes coverage in backward (memory ``O(N * steps)``, not
-``O(N * steps * 32)``).
+``c_j prod_{i<j} (1 - c_i)`` are computed by :class:`SectorUnion`, a custom autograd function: one
+in-place ``(N, 32)`` pass per step (no ``(N, steps, 32)`` autograd graph); when a gradient is needed it
+keeps, per step, the coverage and its analytic derivatives times the prefix visibility (three ``(N, 32)``
+rows) for a linear reverse scan in backward; under ``no_grad`` it keeps nothing.
 """
 from __future__ import annotations
 
@@ -173,24 +174,6 @@ def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = 
     return a * b * torch.tanh(w / tau)[..., None]
 
 
-def _coverage_and_grads(s, w, F, dF, tau, delta, k):
-    """Soft coverage ``c`` ``(..., K)`` and its partial derivatives ``dc/ds``, ``dc/dw`` (analytic)."""
-    s1, w1 = s[..., None], w[..., None]
-    inv_tau = 1.0 / tau
-    # Logistic arguments clamped (no subnormals; the clamped tails are < 1e-13); sigma' = sigma (1 - sigma).
-    a = (k + 1 - s1).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-    b = (w1 - k + F[..., None] - delta).mul_(inv_tau).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-    da = a * (1 - a) * inv_tau
-    db = b * (1 - b) * inv_tau
-    g = torch.tanh(w1 * inv_tau)
-    dg = (1 - g * g) * inv_tau
-    ab = a * b
-    c = ab * g
-    dc_ds = g * (a * db * dF[..., None] - b * da)
-    dc_dw = ab * dg + a * db * g
-    return c, dc_ds, dc_dw
-
-
 _CLAMP = 30.0  # logistic arguments are clamped to +-30 (sigmoid(-30) ~ 9e-14)
 _TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnormals)
 
@@ -204,13 +187,6 @@ def _soft_floor_fast(s: torch.Tensor, tau: float) -> torch.Tensor:
 # ---------------------------------------------------------------------------------------------
 # Union over steps (custom autograd)
 # ---------------------------------------------------------------------------------------------
-_ELEMENT_BUDGET = 1 << 22  # elements per (N, J, K) temporary in backward (16 MiB in float32)
-
-
-def _sector_chunk(n: int, j: int) -> int:
-    return int(max(1, min(SECTORS, _ELEMENT_BUDGET // max(1, n * j))))
-
-
 def _soft_sweep(s, w, weights, p0, tau, delta, tables):
     """The soft union's forward sweep, one ``(N, 32)`` step at a time, in place.
 
