@@ -49,3 +49,16 @@ def reference_view(scene: str, seed: int | None, *, height: int, width: int, spp
 def reference_views(scenes: Sequence[str], seeds: Sequence[int | None], **kwargs) -> list[FitView]:
     """:func:`reference_view` for every scene and seed (scene-major order)."""
     return [reference_view(scene, seed, **kwargs) for scene in scenes for seed in seeds]
+
+
+#: Seeds of held-out views: never used for training views (those are 1, 2, ...).
+HOLDOUT_SEED = 1000
+
+
+def train_and_holdout_views(scenes: Sequence[str], train_views: int, holdout_views: int = 1,
+                            **kwargs) -> tuple[list[FitView], list[FitView]]:
+    """Randomised training views (seeds ``1..train_views``) and held-out views (seeds from
+    :data:`HOLDOUT_SEED`) of the built-in ``scenes``; ``kwargs`` as :func:`reference_view`."""
+    train = reference_views(scenes, list(range(1, train_views + 1)), **kwargs)
+    held = reference_views(scenes, list(range(HOLDOUT_SEED, HOLDOUT_SEED + holdout_views)), **kwargs)
+    return train, held

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import torch
 
-from torch_ao.datasets import TRAIN_SCENES, reference_views
+from torch_ao.datasets import HOLDOUT_SEED, TRAIN_SCENES, train_and_holdout_views
 from torch_ao.fit import FitConfig, FitView, evaluate, fit, load_views
 from torch_ao.methods import get_method
 from torch_ao.reference import Box, Cylinder, Mesh, Plane, Sphere, get_scene
@@ -122,8 +122,9 @@ def build_views(args):
     scenes = [s for s in args.scenes.split(",") if s]
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   device=device, progress=not args.no_progress)
-    train_seeds, held_seeds = list(range(1, args.train_views + 1)), list(range(1000, 1000 + args.holdout_views))
-    train, held = reference_views(scenes, train_seeds, **common), reference_views(scenes, held_seeds, **common)
+    train_seeds = list(range(1, args.train_views + 1))
+    held_seeds = list(range(HOLDOUT_SEED, HOLDOUT_SEED + args.holdout_views))
+    train, held = train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
     if args.group == "class":
         pairs = [(s, k) for s in scenes for k in train_seeds], [(s, k) for s in scenes for k in held_seeds]
         train = [by_class(v, s, k, args.thin) for v, (s, k) in zip(train, pairs[0])]

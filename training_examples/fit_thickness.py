@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from torch_ao.datasets import TRAIN_SCENES, reference_views
+from torch_ao.datasets import TRAIN_SCENES, train_and_holdout_views
 from torch_ao.fit import FitConfig, evaluate, fit, load_views
 from torch_ao.methods import get_method
 
@@ -84,9 +84,7 @@ def build_views(args):
     scenes = [s for s in args.scenes.split(",") if s]
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   device=device, progress=not args.no_progress)
-    train = reference_views(scenes, list(range(1, args.train_views + 1)), **common)
-    held = reference_views(scenes, list(range(1000, 1000 + args.holdout_views)), **common)
-    return train, held
+    return train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
 
 
 def bitmask(args, thickness):

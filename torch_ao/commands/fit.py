@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from ..cli import CommandError
-from ..datasets import TRAIN_SCENES, default_cache_dir, reference_views
+from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
 from ..fit import FitConfig, evaluate, fit, load_views, set_mode
 from ..methods import METHODS, get_method
 
@@ -83,9 +83,7 @@ def _views(args) -> tuple[list, list]:
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   progress=not args.no_progress, device=device)
     print(f"references: {len(scenes)} scenes x ({args.train_views} training + 1 held-out) views at {w}x{h}, {args.spp} spp")
-    train = reference_views(scenes, list(range(1, args.train_views + 1)), **common)
-    held = reference_views(scenes, [1000], **common)
-    return train, held
+    return train_and_holdout_views(scenes, args.train_views, 1, **common)
 
 
 def _build(name: str, args, **kwargs):
