@@ -30,7 +30,8 @@ from torch import nn
 from .gbuffer import GBuffer
 from .metrics import error_metrics
 
-__all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode"]
+__all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode", "rng_state",
+           "set_rng_state", "save_checkpoint", "load_checkpoint"]
 
 #: Bounds applied after every optimizer step (parameters outside them are meaningless). A falloff
 #: range of exactly 0 is GTAO's hard cut, where neither radius nor falloff has a gradient.
@@ -152,15 +153,23 @@ def _temperature(cfg: FitConfig, step: int) -> float:
     return math.exp((1 - t) * math.log(cfg.temperature_start) + t * math.log(cfg.temperature_end))
 
 
-def _rng_state() -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state()[1].tolist(), "numpy_pos": int(np.random.get_state()[2]),
-            "python": list(random.getstate()[1]), "python_pos": random.getstate()[2]}
+def rng_state() -> dict:
+    """The torch (and CUDA), numpy and Python RNG states, in a form ``torch.load(weights_only=True)`` reads."""
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state()[1].tolist(),
+             "numpy_pos": int(np.random.get_state()[2]), "python": list(random.getstate()[1]),
+             "python_pos": random.getstate()[2]}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state()
+    return state
 
 
-def _set_rng_state(state: dict) -> None:
+def set_rng_state(state: dict) -> None:
+    """Restore what :func:`rng_state` saved."""
     torch.set_rng_state(state["torch"])
     np.random.set_state(("MT19937", np.array(state["numpy"], dtype=np.uint32), state["numpy_pos"], 0, 0.0))
     random.setstate((3, tuple(state["python"]), state["python_pos"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state(state["cuda"])
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
@@ -215,7 +224,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             raise ValueError(f"checkpoint: {ckpt_path} was written with other settings; remove it or use another path")
         module.load_state_dict(saved["module"])
         optimizer.load_state_dict(saved["optimizer"])
-        _set_rng_state(saved["rng"])
+        set_rng_state(saved["rng"])
         state = saved["state"]
     else:
         torch.manual_seed(cfg.seed)
@@ -224,7 +233,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
 
     def snapshot():
         return {"config": fingerprint, "module": module.state_dict(), "optimizer": optimizer.state_dict(),
-                "rng": _rng_state(), "state": state}
+                "rng": rng_state(), "state": state}
 
     bar = None
     if progress:

@@ -48,7 +48,6 @@ import json
 import math
 import os
 import random
-import tempfile
 import time
 from pathlib import Path
 
@@ -60,7 +59,7 @@ from torch import nn
 
 from torch_ao import GBuffer
 from torch_ao.datasets import TRAIN_SCENES, reference_view
-from torch_ao.fit import FitView
+from torch_ao.fit import FitView, rng_state, save_checkpoint, set_rng_state
 from torch_ao.methods import get_method
 from torch_ao.metrics import error_metrics
 
@@ -164,35 +163,6 @@ def setup_distributed():
     if world > 1:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     return rank, world, device
-
-
-def rng_state() -> dict:
-    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state()[1].tolist(),
-             "numpy_pos": int(np.random.get_state()[2]), "python": list(random.getstate()[1]),
-             "python_pos": random.getstate()[2]}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state()
-    return state
-
-
-def set_rng_state(state: dict) -> None:
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(("MT19937", np.array(state["numpy"], dtype=np.uint32), state["numpy_pos"], 0, 0.0))
-    random.setstate((3, tuple(state["python"]), state["python_pos"]))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state(state["cuda"])
-
-
-def atomic_save(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def atomic_json(obj, path: Path) -> None:
@@ -340,8 +310,8 @@ def main(argv=None) -> dict | None:
             else:
                 states = [rng_state()]
             if rank == 0:
-                atomic_save({"config": fingerprint, "model": net.state_dict(), "optimizer": optimizer.state_dict(),
-                             "step": step, "history": history, "rng": states}, ckpt)
+                save_checkpoint(ckpt, {"config": fingerprint, "model": net.state_dict(), "optimizer": optimizer.state_dict(),
+                                       "step": step, "history": history, "rng": states})
     seconds = time.perf_counter() - t_start
 
     checksum = weights_checksum(net)
@@ -349,7 +319,7 @@ def main(argv=None) -> dict | None:
                  "backend": dist.get_backend() if world > 1 else None}, out / f"rank{rank}.json")
     result = None
     if rank == 0 and step == total:
-        atomic_save(net.state_dict(), out / "thickness_net.pt")
+        save_checkpoint(out / "thickness_net.pt", net.state_dict())
         result = {"steps": step, "world_size": world, "train_seconds": seconds, "history": history, "checksum": checksum}
         if not args.no_eval:
             result.update(evaluate(args, net, ao, device))
