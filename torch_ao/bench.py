@@ -82,16 +82,12 @@ MethodFactory = Callable[..., nn.Module]
 
 
 def available_methods(names: Iterable[str] | None = None, *, log: Callable[[str], None] | None = print) -> dict[str, MethodFactory]:
-    """``{name: class}`` of the methods that import; the others are skipped with a note."""
+    """``{name: class}`` of the named registry methods (default: all of them)."""
     out = {}
     for name in (list(METHODS) if names is None else list(names)):
         if name not in METHODS:
             raise ValueError(f"methods: unknown method {name!r}; expected some of {', '.join(METHODS)}")
-        try:
-            out[name] = get_method(name)
-        except ImportError as err:
-            if log is not None:
-                log(f"note: method {name!r} skipped (not available: {err})")
+        out[name] = get_method(name)
     return out
 
 
