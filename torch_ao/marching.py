@@ -25,6 +25,8 @@ its own side: 0 looks at the camera, ``pi`` looks away. In signed slice coordina
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -426,6 +428,29 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
     return Sample(frame, geom, side, step, q, index, weights, position, valid, distance_px)
 
 
+_FIRST_PASS = contextvars.ContextVar("torch_ao_checkpoint_first_pass", default=False)
+
+
+def in_discarded_pass() -> bool:
+    """True inside the first forward pass of a recomputed (checkpointed) walk, whose saved tensors
+    are thrown away and recomputed in backward: custom autograd functions may then save cheap
+    placeholders of the same shapes instead of computing what only their backward needs."""
+    return _FIRST_PASS.get()
+
+
+@contextlib.contextmanager
+def _discarded_pass():
+    token = _FIRST_PASS.set(True)
+    try:
+        yield
+    finally:
+        _FIRST_PASS.reset(token)
+
+
+def _checkpoint_contexts():
+    return _discarded_pass(), contextlib.nullcontext()
+
+
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
     sums: dict[str, torch.Tensor] = {}
     for s in range(pattern.num_slices):
@@ -464,7 +489,8 @@ def march(
     for start in range(0, max(n, 1), size):
         qc = q if size >= n else q.subset(slice(start, start + size))
         if recompute and torch.is_grad_enabled():
-            outputs.append(checkpoint(_walk, frame, qc, pattern, method, use_reentrant=False))
+            outputs.append(checkpoint(_walk, frame, qc, pattern, method, use_reentrant=False,
+                                      context_fn=_checkpoint_contexts))
         else:
             outputs.append(_walk(frame, qc, pattern, method))
     if len(outputs) == 1:

@@ -29,6 +29,8 @@ import math
 
 import torch
 
+from .marching import in_discarded_pass
+
 __all__ = [
     "SECTORS",
     "ROUNDINGS",
@@ -269,12 +271,20 @@ class SectorUnion(torch.autograd.Function):
         delta = _DELTA[rounding]
         w = w.clamp_min(0)
         tables = any(ctx.needs_input_grad[:4])
+        # In the discarded first pass of a checkpointed walk the tables would be thrown away:
+        # save zero-cost placeholders of the same shapes (the recomputation saves the real ones).
+        placeholders = tables and in_discarded_pass()
         if hard_forward:
             visible, newly = _hard_sweep(s, w, weights, p0, rounding)
-            if tables:
+            if tables and not placeholders:
                 _, _, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, True)
         else:
-            visible, newly, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, tables)
+            visible, newly, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, tables and not placeholders)
+        if placeholders:
+            zero = s.new_zeros(())
+            C = [zero.expand(N, SECTORS)] * J
+            D = [zero.expand(2, N, SECTORS)] * J
+            Gn = [zero.expand(N, SECTORS)] * J if weights is not None else None
         if tables:
             keep_gn = weights is not None and ctx.needs_input_grad[2]
             ctx.J, ctx.N, ctx.keep_gn, ctx.options = J, N, keep_gn, dict(dtype=s.dtype, device=s.device)
