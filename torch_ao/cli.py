@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # Subcommand modules, each with ``register(subparsers)`` that adds its parser and sets ``func``.
@@ -33,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (CommandError, ValueError, TypeError, FileNotFoundError, ImportError) as err:
+        if os.environ.get("TORCH_AO_DEBUG"):  # the full traceback, for developers
+            raise
         print(f"torch-ao {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
