@@ -125,7 +125,7 @@ def test_killed_fit_resumes_to_the_same_result(tmp_path):
     got = json.loads(resumed.stdout.strip().splitlines()[-1])
     assert got["thickness"] == expected["thickness"]
     assert got["losses"] == expected["losses"]
-    assert not list(tmp_path.glob("*.tmp"))  # no partial checkpoint left behind
+    assert not list(tmp_path.glob("*.tmp"))  # a temporary file of the killed write is cleaned up on resume
 
 
 def test_checkpoint_from_other_settings_is_refused(tmp_path):

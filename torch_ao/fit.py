@@ -31,7 +31,7 @@ from .gbuffer import GBuffer
 from .metrics import error_metrics
 
 __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode", "rng_state",
-           "set_rng_state", "save_checkpoint", "load_checkpoint"]
+           "set_rng_state", "save_checkpoint", "load_checkpoint", "remove_stale_temporaries"]
 
 #: Bounds applied after every optimizer step (parameters outside them are meaningless). A falloff
 #: range of exactly 0 is GTAO's hard cut, where neither radius nor falloff has a gradient.
@@ -185,6 +185,14 @@ def save_checkpoint(path: Path, payload: dict) -> None:
             os.unlink(tmp)
 
 
+def remove_stale_temporaries(path: Path) -> None:
+    """Delete temporary files a run killed inside :func:`save_checkpoint` left next to ``path``
+    (the checkpoint itself is always whole: it is replaced by an atomic rename)."""
+    path = Path(path)
+    for stale in path.parent.glob(path.name + ".*.tmp"):
+        stale.unlink(missing_ok=True)
+
+
 def load_checkpoint(path: Path) -> dict:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
@@ -218,6 +226,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False}
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
     fingerprint = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if k != "checkpoint_every"}
+    if ckpt_path is not None:
+        remove_stale_temporaries(ckpt_path)
     if ckpt_path is not None and ckpt_path.exists():
         saved = load_checkpoint(ckpt_path)
         if saved.get("config") != fingerprint:

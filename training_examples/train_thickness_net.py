@@ -59,7 +59,7 @@ from torch import nn
 
 from torch_ao import GBuffer
 from torch_ao.datasets import TRAIN_SCENES, reference_view
-from torch_ao.fit import FitView, rng_state, save_checkpoint, set_rng_state
+from torch_ao.fit import FitView, remove_stale_temporaries, rng_state, save_checkpoint, set_rng_state
 from torch_ao.methods import get_method
 from torch_ao.metrics import error_metrics
 
@@ -269,6 +269,8 @@ def main(argv=None) -> dict | None:
     fingerprint = {k: v for k, v in vars(args).items() if k not in ("out", "cache", "max_steps", "no_eval", "checkpoint_every", "scalar")}
     fingerprint["world_size"] = world
     step, history = 0, []
+    if rank == 0:
+        remove_stale_temporaries(ckpt)  # left by a run killed while writing its checkpoint
     if ckpt.exists():
         saved = torch.load(ckpt, map_location="cpu", weights_only=True)
         if saved["config"] != fingerprint:
