@@ -25,6 +25,7 @@ its own side: 0 looks at the camera, ``pi`` looks away. In signed slice coordina
 """
 from __future__ import annotations
 
+import abc
 import contextlib
 import contextvars
 import math
@@ -261,7 +262,7 @@ class SliceAccumulator(Protocol):
 # ---------------------------------------------------------------------------------------------
 # Sampling patterns
 # ---------------------------------------------------------------------------------------------
-class SamplingPattern:
+class SamplingPattern(abc.ABC):
     """Where the walk goes: slice tangents, sides, and the pixel offsets of the steps. Subclass to change it."""
 
     num_slices: int
@@ -269,14 +270,14 @@ class SamplingPattern:
     fetch: str = "nearest"
     border: str = "clamp"
 
+    @abc.abstractmethod
     def slice_tangent(self, frame: Frame, q: Queries, s: int) -> torch.Tensor:
         """``(N,3)`` unit slice tangent ``T`` of slice ``s``, orthogonal to ``V``."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def step_offsets(self, q: Queries, geom: "SliceGeometry", side: int) -> list[torch.Tensor]:
         """Pixel offsets ``(N,2)`` ``(du, dv)`` of the steps on ``side`` (``geom.pixels_per_unit``
         maps a world displacement along ``T`` to pixels)."""
-        raise NotImplementedError
 
 
 def tangent_from_screen_angle(q: Queries, phi: torch.Tensor) -> torch.Tensor:

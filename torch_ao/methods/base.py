@@ -11,6 +11,8 @@ light and their own normal as bent normal, with zero gradient.
 """
 from __future__ import annotations
 
+import abc
+
 from dataclasses import dataclass
 
 import torch
@@ -78,7 +80,7 @@ class AOOutput:
     ambient: torch.Tensor | None = None
 
 
-class ScreenSpaceAO(nn.Module):
+class ScreenSpaceAO(nn.Module, abc.ABC):
     """Base of the horizon and bitmask modules.
 
     Args:
@@ -125,8 +127,9 @@ class ScreenSpaceAO(nn.Module):
         """``(B,C,H,W)`` images read once at each computed pixel (default none)."""
         return {}
 
+    @abc.abstractmethod
     def accumulator(self, frame: Frame) -> SliceAccumulator:
-        raise NotImplementedError
+        """What the method keeps per step of the walk over ``frame``."""
 
     # ---------------------------------------------------------------- forward
     def forward(self, gbuffer: GBuffer) -> AOOutput:

@@ -8,6 +8,8 @@ meshes, to a chunked pure-torch Moller-Trumbore test.
 """
 from __future__ import annotations
 
+import abc
+
 from dataclasses import dataclass
 
 import torch
@@ -40,13 +42,14 @@ def _t(x, device, dtype):
     return torch.as_tensor(x, dtype=dtype, device=device)
 
 
-class _Group:
+class _Group(abc.ABC):
     """Primitives of one kind. ``closest`` -> ``(t (N,), idx (N,))``; ``normal`` of winners."""
 
     obj: torch.Tensor  # (P,) object index of each primitive
 
-    def closest(self, o, d, tmax):  # pragma: no cover - interface
-        raise NotImplementedError
+    @abc.abstractmethod
+    def closest(self, o, d, tmax):
+        """``(t (N,), idx (N,))`` of the nearest hit of each ray before ``tmax``."""
 
     def occluded(self, o, d, tmax):
         return self.closest(o, d, tmax)[0] < tmax
