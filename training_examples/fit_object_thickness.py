@@ -39,10 +39,13 @@ from pathlib import Path
 
 import torch
 
-from torch_ao.datasets import HOLDOUT_SEED, TRAIN_SCENES, train_and_holdout_views
-from torch_ao.fit import FitConfig, FitView, evaluate, fit, load_views
+from torch_ao.datasets import HOLDOUT_SEED, TRAIN_SCENES
+from torch_ao.fit import FitConfig, FitView, evaluate, fit
 from torch_ao.methods import get_method
 from torch_ao.reference import Box, Cylinder, Mesh, Plane, Sphere, get_scene
+
+from common import apply_tiny
+from common import build_views as shared_views
 
 CLASSES = ("background", "plane", "box", "thin box", "sphere", "cylinder", "thin cylinder", "mesh")
 
@@ -73,11 +76,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 6 steps")
-    args = p.parse_args(argv)
-    if args.tiny:
-        for key, value in dict(scenes="fence,floating", train_views=1, size="32x24", spp=16, steps=6, preset="low").items():
-            if getattr(args, key) == p.get_default(key):  # options the user changed are kept
-                setattr(args, key, value)
+    args = apply_tiny(p, p.parse_args(argv), scenes="fence,floating", train_views=1, size="32x24", spp=16, steps=6,
+                      preset="low")
     if args.group is None:
         args.group = "id" if args.reference else "class"
     return args
@@ -110,22 +110,17 @@ def by_class(view: FitView, scene: str, seed: int, thin: float) -> FitView:
 
 
 def build_views(args):
-    device = torch.device(args.device)
+    """The shared views (see common.py), each object id mapped to its class with ``--group class``."""
+    train, held = shared_views(args)
     if args.reference:
-        train = load_views(args.reference, device=device)
-        held = load_views(args.holdout, device=device) if args.holdout else train
         for v in train + held:
             if v.gbuffer.object_id is None:
                 raise SystemExit(f"error: --reference: {v.name} has no object_id array")
         return train, held
-    w, h = (int(x) for x in args.size.lower().split("x"))
-    scenes = [s for s in args.scenes.split(",") if s]
-    common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
-                  device=device, progress=not args.no_progress)
-    train_seeds = list(range(1, args.train_views + 1))
-    held_seeds = list(range(HOLDOUT_SEED, HOLDOUT_SEED + args.holdout_views))
-    train, held = train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
     if args.group == "class":
+        scenes = [s for s in args.scenes.split(",") if s]
+        train_seeds = list(range(1, args.train_views + 1))
+        held_seeds = list(range(HOLDOUT_SEED, HOLDOUT_SEED + args.holdout_views))
         pairs = [(s, k) for s in scenes for k in train_seeds], [(s, k) for s in scenes for k in held_seeds]
         train = [by_class(v, s, k, args.thin) for v, (s, k) in zip(train, pairs[0])]
         held = [by_class(v, s, k, args.thin) for v, (s, k) in zip(held, pairs[1])]

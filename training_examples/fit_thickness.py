@@ -36,9 +36,11 @@ from pathlib import Path
 
 import torch
 
-from torch_ao.datasets import TRAIN_SCENES, train_and_holdout_views
-from torch_ao.fit import FitConfig, evaluate, fit, load_views
+from torch_ao.datasets import TRAIN_SCENES
+from torch_ao.fit import FitConfig, evaluate, fit
 from torch_ao.methods import get_method
+
+from common import apply_tiny, build_views
 
 ENGINE_DEFAULTS = (0.25, 0.5, 1.0)
 
@@ -66,25 +68,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 6 steps")
-    args = p.parse_args(argv)
-    if args.tiny:
-        for key, value in dict(scenes="fence,room_corner", train_views=1, size="32x24", spp=16, steps=6, preset="low").items():
-            if getattr(args, key) == p.get_default(key):  # options the user changed are kept
-                setattr(args, key, value)
-    return args
-
-
-def build_views(args):
-    device = torch.device(args.device)
-    if args.reference:
-        train = load_views(args.reference, device=device)
-        held = load_views(args.holdout, device=device) if args.holdout else train
-        return train, held
-    w, h = (int(x) for x in args.size.lower().split("x"))
-    scenes = [s for s in args.scenes.split(",") if s]
-    common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
-                  device=device, progress=not args.no_progress)
-    return train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
+    return apply_tiny(p, p.parse_args(argv), scenes="fence,room_corner", train_views=1, size="32x24", spp=16, steps=6, preset="low")
 
 
 def bitmask(args, thickness):

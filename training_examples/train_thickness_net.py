@@ -63,6 +63,8 @@ from torch_ao.fit import FitView, remove_stale_temporaries, rng_state, save_chec
 from torch_ao.methods import get_method
 from torch_ao.metrics import error_metrics
 
+from common import apply_tiny
+
 
 # ---------------------------------------------------------------------------------------------
 # Model
@@ -236,13 +238,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (for tests of resuming)")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
     p.add_argument("--tiny", action="store_true", help="smoke test (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, low preset, 2 epochs")
-    args = p.parse_args(argv)
-    if args.tiny:
-        for key, value in dict(scenes="fence,floating", size="32x24", spp=16, preset="low", views_per_scene=2, seed_pool=2, epochs=2,
-                   batch=1).items():
-            if getattr(args, key) == p.get_default(key):  # options the user changed are kept
-                setattr(args, key, value)
-    return args
+    return apply_tiny(p, p.parse_args(argv), scenes="fence,floating", size="32x24", spp=16, preset="low",
+                      views_per_scene=2, seed_pool=2, epochs=2, batch=1)
 
 
 def main(argv=None) -> dict | None:
