@@ -7,10 +7,10 @@ import csv
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
+from .io import write_text_atomic
 from .bench import COLUMNS, aggregate_rows, pareto_front, recommend
 from .methods import PRESETS
 
@@ -18,21 +18,6 @@ __all__ = ["write_report", "write_csv", "markdown_report", "plot_error_vs_time",
 
 REPORT_VERSION = 1
 _PRESET_ORDER = {p: i for i, p in enumerate(PRESETS)}
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _sorted(rows: Sequence[dict]) -> list[dict]:
@@ -51,7 +36,7 @@ def write_csv(path: str | os.PathLike, rows: Sequence[dict]) -> Path:
     for r in _sorted(rows):
         w.writerow({k: (int(v) if isinstance(v, bool) else v) for k, v in r.items()})
     path = Path(path)
-    _atomic_write(path, buf.getvalue())
+    write_text_atomic(path, buf.getvalue())
     return path
 
 
@@ -213,12 +198,12 @@ def write_report(out_dir: str | os.PathLike, rows: Sequence[dict], *, tolerance:
             files[p.stem] = p
     md = markdown_report(rows, rec, background=background, env=env, command=command,
                          plots=[str(p) for p in plot_paths], tolerance=tolerance)
-    _atomic_write(out / "bench.md", md)
+    write_text_atomic(out / "bench.md", md)
     files["md"] = out / "bench.md"
     payload = {"version": REPORT_VERSION, "command": command, "environment": env or {}, "settings": settings or {},
                "tolerance": tolerance, "metric": "mae", "cost": "forward_ms", "recommendations": rec,
                "recommendations_with_denoiser": rec_any, "rows": _sorted(rows), "background": list(background or [])}
-    _atomic_write(out / "report.json", json.dumps(payload, indent=1, default=_json_default, allow_nan=True))
+    write_text_atomic(out / "report.json", json.dumps(payload, indent=1, default=_json_default, allow_nan=True))
     files["json"] = out / "report.json"
     return files
 

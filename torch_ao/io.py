@@ -34,7 +34,7 @@ import torch
 from .camera import PinholeCamera
 from .gbuffer import GBuffer
 
-__all__ = ["load_gbuffer", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image"]
+__all__ = ["load_gbuffer", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image", "write_text_atomic", "save_json"]
 
 _GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "intrinsics", "fov_y_degrees")
 
@@ -170,3 +170,29 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` through a temporary file and a rename: readers (and a run killed
+    mid-write) never see a partial file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def save_json(path: str | os.PathLike, obj, **dumps_options) -> Path:
+    """``json.dumps(obj, indent=2, **dumps_options)`` written atomically (:func:`write_text_atomic`)."""
+    import json
+
+    return write_text_atomic(path, json.dumps(obj, **({"indent": 2} | dumps_options)))

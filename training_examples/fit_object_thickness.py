@@ -33,14 +33,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 from pathlib import Path
 
 import torch
 
 from torch_ao.datasets import HOLDOUT_SEED, TRAIN_SCENES
 from torch_ao.fit import FitConfig, FitView, evaluate, fit
+from torch_ao.io import save_json
 from torch_ao.methods import get_method
 from torch_ao.reference import Box, Cylinder, Mesh, Plane, Sphere, get_scene
 
@@ -172,10 +171,7 @@ def main(argv=None) -> dict:
                "scalar": t_scalar, "init": args.init, "preset": args.preset, "weighting": args.weighting,
                "radius": args.max_distance, "holdout": rows, "steps": [res_scalar.steps_done, res_table.steps_done],
                "fit_seconds": res_scalar.seconds + res_table.seconds}
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "object_thickness.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, out / "object_thickness.json")
+    save_json(out / "object_thickness.json", payload)
     print(f"\nwrote {out / 'object_thickness.json'}")
     return payload
 

@@ -30,14 +30,13 @@ How to adapt
 from __future__ import annotations
 
 import argparse
-import json
-import os
 from pathlib import Path
 
 import torch
 
 from torch_ao.datasets import TRAIN_SCENES
 from torch_ao.fit import FitConfig, evaluate, fit
+from torch_ao.io import save_json
 from torch_ao.methods import get_method
 
 from common import apply_tiny, build_views
@@ -105,10 +104,7 @@ def main(argv=None) -> dict:
                "train_views": [v.name for v in train], "holdout_views": [v.name for v in held],
                "holdout": rows, "holdout_before": rows[f"start ({args.init:g})"], "holdout_after": after,
                "train_before": train_before, "train_after": train_after, "history": result.history}
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "thickness.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, out / "thickness.json")
+    save_json(out / "thickness.json", payload)
     print(f"\nwrote {out / 'thickness.json'}")
     return payload
 

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import math
 import os
 import random
@@ -60,6 +59,7 @@ from torch import nn
 from torch_ao import GBuffer
 from torch_ao.datasets import TRAIN_SCENES, reference_view
 from torch_ao.fit import FitView, remove_stale_temporaries, rng_state, save_checkpoint, set_rng_state
+from torch_ao.io import save_json
 from torch_ao.methods import get_method
 from torch_ao.metrics import error_metrics
 
@@ -165,13 +165,6 @@ def setup_distributed():
     if world > 1:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     return rank, world, device
-
-
-def atomic_json(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2))
-    os.replace(tmp, path)
 
 
 def weights_checksum(model: nn.Module) -> str:
@@ -314,15 +307,15 @@ def main(argv=None) -> dict | None:
     seconds = time.perf_counter() - t_start
 
     checksum = weights_checksum(net)
-    atomic_json({"rank": rank, "world_size": world, "steps": step, "views_seen": seen, "checksum": checksum,
-                 "backend": dist.get_backend() if world > 1 else None}, out / f"rank{rank}.json")
+    save_json(out / f"rank{rank}.json", {"rank": rank, "world_size": world, "steps": step, "views_seen": seen, "checksum": checksum,
+                 "backend": dist.get_backend() if world > 1 else None})
     result = None
     if rank == 0 and step == total:
         save_checkpoint(out / "thickness_net.pt", net.state_dict())
         result = {"steps": step, "world_size": world, "train_seconds": seconds, "history": history, "checksum": checksum}
         if not args.no_eval:
             result.update(evaluate(args, net, ao, device))
-        atomic_json(result, out / "result.json")
+        save_json(out / "result.json", result)
         say(f"wrote {out / 'thickness_net.pt'}, {out / 'result.json'}")
     if world > 1:
         dist.barrier()

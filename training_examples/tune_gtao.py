@@ -32,14 +32,13 @@ How to adapt
 from __future__ import annotations
 
 import argparse
-import json
-import os
 from pathlib import Path
 
 import torch
 
 from torch_ao.datasets import TRAIN_SCENES
 from torch_ao.fit import FitConfig, evaluate, fit
+from torch_ao.io import save_json
 from torch_ao.methods import get_method
 
 from common import apply_tiny, build_views
@@ -135,10 +134,7 @@ def main(argv=None) -> dict:
                "params": list(params), "steps": fitted.steps_done, "fit_seconds": fitted.seconds,
                "radius_multiplier": values.get("radius", float(module.radius.detach())) / R,
                "xegtao": XEGTAO, "results": results, "history": fitted.history}
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "gtao.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, out / "gtao.json")
+    save_json(out / "gtao.json", payload)
     print(f"\nwrote {out / 'gtao.json'}")
     return payload
 

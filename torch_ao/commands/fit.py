@@ -7,7 +7,6 @@ defaults (thickness 0.25, 0.5, 1.0), GTAO with default parameters and the fitted
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
@@ -15,6 +14,7 @@ import torch
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
 from ..fit import FitConfig, evaluate, fit, load_views, set_mode
+from ..io import save_json, write_text_atomic
 from ..methods import METHODS, get_method
 
 
@@ -121,13 +121,11 @@ def run(args: argparse.Namespace) -> int:
     table = _table(rows)
     print(table)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "report.md").write_text(f"Held-out views: {len(held)}; training views: {len(train)}; steps: {result.steps_done}\n\n{table}\n")
+    write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: {result.steps_done}\n\n{table}\n")
     payload = {"method": args.method, "preset": args.preset, "radius": args.max_distance, "parameters": result.parameters,
                "before": before, "after": after, "steps": result.steps_done, "fit_seconds": result.seconds,
                "history": [{k: v for k, v in r.items()} for r in result.history]}
-    tmp = out / "params.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=2))
-    tmp.replace(out / "params.json")
+    save_json(out / "params.json", payload)
     _comparison_png(out / "comparison.png", held[0], _build(args.method, args, **init), module)
     print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
     return 0
