@@ -97,8 +97,12 @@ def _plain_union(s, w, weights, p0, tau, rounding):
     return P, torch.stack(newly, 1)
 
 
+@pytest.mark.parametrize("block", [1, 4, None])
 @pytest.mark.parametrize("rounding", ROUNDINGS)
-def test_union_matches_plain_autograd_and_gradcheck(rounding):
+def test_union_matches_plain_autograd_and_gradcheck(rounding, block, monkeypatch):
+    # block: rows per block of the backward's table rebuild (None: the default, one block here)
+    if block is not None:
+        monkeypatch.setattr(SectorUnion, "BACKWARD_BLOCK", block)
     g = torch.Generator().manual_seed(3)
     N, J = 6, 5
     lo = torch.rand(N, J, generator=g, dtype=torch.float64)

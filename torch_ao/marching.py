@@ -26,8 +26,6 @@ its own side: 0 looks at the camera, ``pi`` looks away. In signed slice coordina
 from __future__ import annotations
 
 import abc
-import contextlib
-import contextvars
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -102,6 +100,14 @@ class Queries:
             self.index[sl], self.batch[sl], self.u[sl], self.v[sl], self.position[sl], self.normal[sl],
             self.view[sl], self.depth[sl], {k: x[sl] for k, x in self.values.items()},
         )
+
+    def repeat(self, times: int) -> "Queries":
+        """The rows repeated ``times`` times, block-major: row ``j * N + i`` is query ``i``."""
+        if times == 1:
+            return self
+        r = lambda x: x.repeat(times, *([1] * (x.dim() - 1)))  # noqa: E731
+        return Queries(r(self.index), r(self.batch), r(self.u), r(self.v), r(self.position), r(self.normal),
+                       r(self.view), r(self.depth), {k: r(x) for k, x in self.values.items()})
 
 
 class Frame:
@@ -191,12 +197,24 @@ class SliceGeometry:
     normal_length: torch.Tensor  # (N,) length of the projected normal
     pixels_per_unit: torch.Tensor  # (N,2) screen motion (du, dv) in pixels per world unit along +T
 
+    def repeat(self, times: int) -> "SliceGeometry":
+        """The rows repeated ``times`` times, block-major (as :meth:`Queries.repeat`)."""
+        if times == 1:
+            return self
+        r = lambda x: x.repeat(times, *([1] * (x.dim() - 1)))  # noqa: E731
+        return SliceGeometry(self.index, r(self.tangent), r(self.axis), r(self.normal_angle), r(self.normal_length),
+                             r(self.pixels_per_unit))
+
 
 class Sample:
     """One step of the walk on one side of a slice, for every query pixel (``N`` rows).
 
+    With an accumulator that sets ``batch_steps = True``, one ``Sample`` holds all ``steps`` steps of
+    a side at once: its rows (and those of the queries and geometry passed with it) are block-major,
+    row ``j * N + i`` being step ``j`` of query ``i``; ``step`` is then ``None``.
+
     Attributes:
-        side: ``+1`` or ``-1``; step: the step number.
+        side: ``+1`` or ``-1``; step: the step number; steps: how many steps the rows hold (1 or all).
         position: ``(N,3)`` sample's view-space position; ``delta = position - P``.
         valid: ``(N,)`` bool; invalid samples (background, dropped at the border, or on the centre
             texel) have a safe ``delta`` pointing away from the camera, so they never occlude.
@@ -206,8 +224,8 @@ class Sample:
 
     def __init__(self, frame: Frame, geom: SliceGeometry, side: int, step: int, queries: Queries,
                  index: torch.Tensor, weights: torch.Tensor | None, position: torch.Tensor,
-                 valid: torch.Tensor, distance_px: torch.Tensor) -> None:
-        self.side, self.step = side, step
+                 valid: torch.Tensor, distance_px: torch.Tensor, steps: int = 1) -> None:
+        self.side, self.step, self.steps = side, step, steps
         self._frame, self._index, self._weights, self._view = frame, index, weights, queries.view
         delta = position - queries.position
         # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
@@ -244,7 +262,12 @@ class Sample:
 
 
 class SliceAccumulator(Protocol):
-    """What a method keeps while the core walks. ``state`` is any object the method chooses."""
+    """What a method keeps while the core walks. ``state`` is any object the method chooses.
+
+    An accumulator with a true ``batch_steps`` attribute gets one :meth:`step` call per side holding
+    every step of that side (see :class:`Sample`): far fewer, larger tensor ops, which matters most
+    when autograd records them.
+    """
 
     def begin_slice(self, queries: Queries, geom: SliceGeometry): ...
 
@@ -393,8 +416,9 @@ def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -
 
 
 def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: SamplingPattern,
-                 side: int, step: int, offset: torch.Tensor) -> Sample:
-    """The sample at pixel ``offset`` ``(N,2)`` from each query pixel, on ``side``."""
+                 side: int, step: int | None, offset: torch.Tensor, steps: int = 1) -> Sample:
+    """The sample at pixel ``offset`` ``(N,2)`` from each query pixel, on ``side`` (``steps`` > 1: the
+    rows of ``q``, ``geom`` and ``offset`` hold that many steps, block-major)."""
     B, H, W = frame.shape
     su, sv = q.u + offset[:, 0], q.v + offset[:, 1]
     base = q.batch * (H * W)
@@ -426,30 +450,7 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
     if pattern.border == "drop":
         valid = valid & inside
     distance_px = offset.norm(dim=-1)
-    return Sample(frame, geom, side, step, q, index, weights, position, valid, distance_px)
-
-
-_FIRST_PASS = contextvars.ContextVar("torch_ao_checkpoint_first_pass", default=False)
-
-
-def in_discarded_pass() -> bool:
-    """True inside the first forward pass of a recomputed (checkpointed) walk, whose saved tensors
-    are thrown away and recomputed in backward: custom autograd functions may then save cheap
-    placeholders of the same shapes instead of computing what only their backward needs."""
-    return _FIRST_PASS.get()
-
-
-@contextlib.contextmanager
-def _discarded_pass():
-    token = _FIRST_PASS.set(True)
-    try:
-        yield
-    finally:
-        _FIRST_PASS.reset(token)
-
-
-def _checkpoint_contexts():
-    return _discarded_pass(), contextlib.nullcontext()
+    return Sample(frame, geom, side, step, q, index, weights, position, valid, distance_px, steps)
 
 
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
@@ -458,7 +459,15 @@ def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccum
         geom = slice_geometry(frame, q, pattern, s)
         state = method.begin_slice(q, geom)
         for side in pattern.sides:
-            for j, offset in enumerate(pattern.step_offsets(q, geom, side)):
+            offsets = pattern.step_offsets(q, geom, side)
+            if getattr(method, "batch_steps", False):
+                if offsets:
+                    J = len(offsets)
+                    qj, gj = q.repeat(J), geom.repeat(J)
+                    sample = fetch_sample(frame, qj, gj, pattern, side, None, torch.cat(offsets, 0), J)
+                    state = method.step(state, qj, gj, sample)
+                continue
+            for j, offset in enumerate(offsets):
                 state = method.step(state, q, geom, fetch_sample(frame, q, geom, pattern, side, j, offset))
         for name, value in method.end_slice(state, q, geom).items():
             sums[name] = value if name not in sums else sums[name] + value
@@ -490,8 +499,7 @@ def march(
     for start in range(0, max(n, 1), size):
         qc = q if size >= n else q.subset(slice(start, start + size))
         if recompute and torch.is_grad_enabled():
-            outputs.append(checkpoint(_walk, frame, qc, pattern, method, use_reentrant=False,
-                                      context_fn=_checkpoint_contexts))
+            outputs.append(checkpoint(_walk, frame, qc, pattern, method, use_reentrant=False))
         else:
             outputs.append(_walk(frame, qc, pattern, method))
     if len(outputs) == 1:

@@ -19,9 +19,9 @@ Hard masks (:func:`hard_mask`, :func:`popcount32`) use torch integer ops on ``in
 gate ``tanh(w / tau)`` makes zero-width intervals cover nothing. As ``tau -> 0`` it converges to the hard
 rule. The union over steps ``1 - prod_j (1 - c_j)`` and each step's newly covered fraction
 ``c_j prod_{i<j} (1 - c_i)`` are computed by :class:`SectorUnion`, a custom autograd function: one
-in-place ``(N, 32)`` pass per step (no ``(N, steps, 32)`` autograd graph); when a gradient is needed it
-keeps, per step, the coverage and its analytic derivatives times the prefix visibility (three ``(N, 32)``
-rows) for a linear reverse scan in backward; under ``no_grad`` it keeps nothing.
+in-place ``(N, 32)`` pass per step (no ``(N, steps, 32)`` autograd graph) that keeps only its ``(N, steps)``
+inputs; backward rebuilds the coverage and its analytic derivatives block by block for a linear
+reverse scan.
 """
 from __future__ import annotations
 
@@ -29,7 +29,6 @@ import math
 
 import torch
 
-from .marching import in_discarded_pass
 
 __all__ = [
     "SECTORS",
@@ -257,62 +256,57 @@ class SectorUnion(torch.autograd.Function):
     Outputs: ``visible`` ``(N, 32)`` = ``p0 * prod_j (1 - c_j)``, and ``newly`` ``(N, J)`` =
     ``sum_k weights_k c_jk p0_k prod_{i<j} (1 - c_ik)`` (empty ``(N, 0)`` without weights).
 
-    When a gradient is needed, the forward sweep (one ``(N, 32)`` step at a time, in place) also
-    computes each step's ``c_j``, ``P_j dc_j/ds`` and ``P_j dc_j/dw`` (``P_j = p0 prod_{i<j} (1 - c_i)``;
-    and ``P_j c_j`` for the weights' gradient) and saves them: ``3 J`` rows of ``(N, 32)`` per slice,
-    which ``recompute=True`` walks keep for one chunk at a time. Backward is then a reverse linear scan
+    Forward keeps only its inputs (``O(N J)``). Backward rebuilds, for blocks of ``BACKWARD_BLOCK``
+    rows at a time, each step's ``c_j``, ``P_j dc_j/ds`` and ``P_j dc_j/dw`` (``P_j = p0 prod_{i<j} (1 - c_i)``;
+    and ``P_j c_j`` for the weights' gradient) in one forward sweep, then runs a reverse linear scan
     (``S_{J-1} = G_v``, ``D_m = S_m - G_m``, ``dL/dc_m = -P_m D_m``, ``S_{m-1} = S_m - c_m D_m``), never
-    dividing by ``1 - c``.
+    dividing by ``1 - c``. So neither memory nor time is spent on tables in the forward pass (which a
+    recomputed walk runs twice), and the tables only ever exist for one block.
     """
+
+    #: rows per block of the backward's table rebuild (its transient memory: ``3 J`` rows of 32 per row)
+    BACKWARD_BLOCK = 4096
 
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
-        N, J = s.shape
-        delta = _DELTA[rounding]
         w = w.clamp_min(0)
-        tables = any(ctx.needs_input_grad[:4])
-        # In the discarded first pass of a checkpointed walk the tables would be thrown away:
-        # save zero-cost placeholders of the same shapes (the recomputation saves the real ones).
-        placeholders = tables and in_discarded_pass()
         if hard_forward:
             visible, newly = _hard_sweep(s, w, weights, p0, rounding)
-            if tables and not placeholders:
-                _, _, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, True)
         else:
-            visible, newly, C, D, Gn = _soft_sweep(s, w, weights, p0, tau, delta, tables and not placeholders)
-        if placeholders:
-            zero = s.new_zeros(())
-            C = [zero.expand(N, SECTORS)] * J
-            D = [zero.expand(2, N, SECTORS)] * J
-            Gn = [zero.expand(N, SECTORS)] * J if weights is not None else None
-        if tables:
-            keep_gn = weights is not None and ctx.needs_input_grad[2]
-            ctx.J, ctx.N, ctx.keep_gn, ctx.options = J, N, keep_gn, dict(dtype=s.dtype, device=s.device)
-            ctx.save_for_backward(weights, *C, *D, *(Gn if keep_gn else ()))
+            visible, newly = _soft_sweep(s, w, weights, p0, tau, _DELTA[rounding], False)[:2]
+        ctx.tau, ctx.delta = tau, _DELTA[rounding]
+        ctx.save_for_backward(s, w, weights, p0)
         return visible, newly
 
     @staticmethod
     def backward(ctx, grad_visible, grad_newly):
-        saved = ctx.saved_tensors
-        J = ctx.J
-        weights, C, D, Gn = saved[0], saved[1:J + 1], saved[J + 1:2 * J + 1], saved[2 * J + 1:]
-        N = ctx.N
+        s, w, weights, p0 = ctx.saved_tensors
+        N, J = s.shape
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
-        gweights = None
-        if ctx.keep_gn and want_newly:
-            gweights = torch.zeros_like(weights)
-            for j in range(J):
-                gweights.addcmul_(grad_newly[:, j, None], Gn[j])
-        # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - G_m, S_{m-1} = S_m - c_m D_m.
-        S = torch.zeros(N, SECTORS, **ctx.options) if grad_visible is None else grad_visible
-        gsw = torch.empty(J, 2, N, **ctx.options)
-        for m in range(J - 1, -1, -1):
-            Dm = torch.addcmul(S, grad_newly[:, m, None], weights, value=-1) if want_newly else S
-            torch.sum(D[m] * Dm, -1, out=gsw[m])
-            S = torch.addcmul(S, C[m], Dm, value=-1)
-        gs = gsw[:, 0].t().neg()
-        gw = gsw[:, 1].t().neg()
-        return gs, gw, gweights, S if ctx.needs_input_grad[3] else None, None, None, None
+        keep_gn = want_newly and ctx.needs_input_grad[2]
+        gs, gw = torch.empty_like(s), torch.empty_like(s)
+        gweights = torch.zeros_like(weights) if keep_gn else None
+        gp0 = torch.empty(N, SECTORS, dtype=s.dtype, device=s.device) if ctx.needs_input_grad[3] else None
+        for start in range(0, N, SectorUnion.BACKWARD_BLOCK):
+            r = slice(start, start + SectorUnion.BACKWARD_BLOCK)
+            wr = None if weights is None else weights[r]
+            _, _, C, D, Gn = _soft_sweep(s[r], w[r], wr, None if p0 is None else p0[r], ctx.tau, ctx.delta, True)
+            gnr = grad_newly[r] if want_newly else None
+            if keep_gn:
+                for j in range(J):
+                    gweights[r].addcmul_(gnr[:, j, None], Gn[j])
+            # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - G_m, S_{m-1} = S_m - c_m D_m.
+            S = torch.zeros_like(C[0]) if grad_visible is None else grad_visible[r]
+            gsw = torch.empty(J, 2, C[0].shape[0], dtype=s.dtype, device=s.device)
+            for m in range(J - 1, -1, -1):
+                Dm = torch.addcmul(S, gnr[:, m, None], wr, value=-1) if want_newly else S
+                torch.sum(D[m] * Dm, -1, out=gsw[m])
+                S = torch.addcmul(S, C[m], Dm, value=-1)
+            gs[r] = gsw[:, 0].t().neg()
+            gw[r] = gsw[:, 1].t().neg()
+            if gp0 is not None:
+                gp0[r] = S
+        return gs, gw, gweights, gp0, None, None, None
 
 
 def _hard_sweep(s, w, weights, p0, rounding):

@@ -78,7 +78,12 @@ def _saturate(x: torch.Tensor) -> torch.Tensor:
 
 
 class BitmaskAccumulator:
-    """The per-step work of the ``"default"`` and ``"hdrp"`` variants (a :class:`SliceAccumulator`)."""
+    """The per-step work of the ``"default"`` and ``"hdrp"`` variants (a :class:`SliceAccumulator`).
+
+    It takes each side's steps in one call (``batch_steps``): state lists hold ``(steps, N)`` blocks.
+    """
+
+    batch_steps = True
 
     def __init__(self, *, variant: str, mode: str, rounding: str, tau: float, weighting: str,
                  thickness: ThicknessLookup, indirect: bool, bent_normals: bool,
@@ -107,9 +112,11 @@ class BitmaskAccumulator:
         return {"s": [], "w": [], "light": [], "gamma": gamma, "tangent": tangent, "weights": weights}
 
     def step(self, state, q: Queries, geom: SliceGeometry, sample: Sample):
+        J = sample.steps
+        n = len(q) // J
         t = self.thickness(sample)
         side = sample.side
-        gamma = state["gamma"]
+        gamma = state["gamma"].repeat(J)
         if self.variant == "hdrp":
             front = _safe_fast_acos(sample.cos_view(0.0))
             back = _safe_fast_acos(sample.cos_view(t))
@@ -120,23 +127,23 @@ class BitmaskAccumulator:
             xf = _saturate((side * sample.angle(0.0) - gamma + _HALF_PI) / math.pi)
             xb = _saturate((side * sample.angle(t) - gamma + _HALF_PI) / math.pi)
             lo, hi = (xf, xb) if side > 0 else (xb, xf)
-        state["s"].append(lo * SECTORS)
+        state["s"].append((lo * SECTORS).view(J, n))
         width = (hi - lo) * SECTORS
         if self.sector_epsilon > 0:
             width = (width - self.sector_epsilon).clamp_min(0)
-        state["w"].append(width)
+        state["w"].append(width.view(J, n))
         if self.indirect:
             ldir = sample.delta / sample.distance.clamp_min(1e-30)[:, None]
             sender = _saturate((sample.gather("normals") * -ldir).sum(-1))
             factor = sender * sample.valid.to(sender.dtype)
             if self.weighting == "uniform":
                 factor = factor * _saturate((q.normal * ldir).sum(-1))
-            state["light"].append(sample.gather("light") * factor[:, None])
+            state["light"].append((sample.gather("light") * factor[:, None]).view(J, n, 3))
         return state
 
     def end_slice(self, state, q: Queries, geom: SliceGeometry) -> dict[str, torch.Tensor]:
-        S = torch.stack(state["s"], 1)
-        W = torch.stack(state["w"], 1)
+        S = torch.cat(state["s"], 0).t()  # (N, steps on both sides)
+        W = torch.cat(state["w"], 0).t()
         omega = state["weights"]
         visible, newly = sector_union(S, W, mode=self.mode, rounding=self.rounding, tau=self.tau,
                                       weights=omega if self.indirect else None)
@@ -144,7 +151,7 @@ class BitmaskAccumulator:
         if self.weighting == "cosine":
             out["vis_den"] = omega.sum(-1, keepdim=True)
         if self.indirect:
-            out["indirect"] = (newly[:, :, None] * torch.stack(state["light"], 1)).sum(1)
+            out["indirect"] = (newly.t()[:, :, None] * torch.cat(state["light"], 0)).sum(0)
         if self.bent_normals or callable(self.ambient):
             wv = visible * omega
             phi = sector_centres(state["gamma"])
