@@ -25,3 +25,31 @@ def test_recomputed_chunks_match_the_whole_frame(cls, mode):
     assert whole[1].abs().sum() > 0 and whole[2].abs() > 0
     for a, b in zip(whole, chunked):
         assert torch.allclose(a, b, atol=1e-12, rtol=1e-10)
+
+
+def test_auto_chunking_follows_the_mode_at_call_time():
+    module = BitmaskAO(mode="hard")
+    big, small = 640 * 360, BitmaskAO.small_frame_pixels
+    assert module.auto_chunking(big) == (BitmaskAO.default_chunk, False)
+    module.mode = "soft"  # as fit's set_mode does after construction
+    assert module.auto_chunking(big) == (BitmaskAO.default_soft_chunk, True)
+    assert module.auto_chunking(small) == (None, False)
+    with torch.no_grad():
+        assert module.auto_chunking(big) == (BitmaskAO.default_chunk, False)
+    # the user's own settings are kept
+    explicit = BitmaskAO(mode="soft", chunk_size=100, recompute=False)
+    gb, _ = floor_wall_gbuffer(8, 8)
+    explicit(gb)
+    assert (explicit.chunk_size, explicit.recompute, explicit._auto_chunk) == (100, False, False)
+
+
+@pytest.mark.parametrize("indirect", [False, True])
+def test_hard_chunks_match_the_whole_frame(indirect, monkeypatch):
+    gb, _ = floor_wall_gbuffer(24, 32, light_direction=(0.3, 0.8, 0.5))
+    whole = BitmaskAO(mode="hard", indirect=indirect, chunk_size=None)(gb)
+    monkeypatch.setattr(BitmaskAO, "default_chunk", 100)  # the automatic chunking, in 8 chunks
+    chunked = BitmaskAO(mode="hard", indirect=indirect)(gb)
+    assert torch.equal(whole.visibility, chunked.visibility)
+    assert whole.visibility.min() < 0.9
+    if indirect:
+        assert torch.allclose(whole.indirect, chunked.indirect, atol=1e-7) and whole.indirect.max() > 0
