@@ -6,7 +6,8 @@ import torch
 
 from torch_ao.examples import floor_wall_gbuffer, plane_gbuffer
 from torch_ao.gbuffer import GBuffer
-from torch_ao.marching import Frame, SlicePattern, fast_acos, interleaved_gradient_noise, march
+from torch_ao.marching import (Frame, PerspectiveBilinearDepth, SlicePattern, fast_acos, interleaved_gradient_noise,
+                               march)
 
 
 class Recorder:
@@ -136,3 +137,62 @@ def test_pattern_rejects_bad_options(kwargs, match):
     args = dict(slices=2, steps=2, radius=1.0) | kwargs
     with pytest.raises(ValueError, match=match):
         SlicePattern(args.pop("slices"), args.pop("steps"), args.pop("radius"), **args)
+
+
+def _plain_perspective_bilinear(safe_depth, index, fu, fv):
+    w = torch.stack(((1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv), -1)
+    return 1.0 / (w / safe_depth[index]).sum(-1)
+
+
+def test_perspective_bilinear_depth_matches_autograd_and_finite_differences():
+    g = torch.Generator().manual_seed(5)
+    depth = (0.5 + 3 * torch.rand(12, generator=g, dtype=torch.float64)).requires_grad_()
+    index = torch.randint(0, 12, (7, 4), generator=g)
+    index[0] = 3  # all four taps on one texel: the depth itself
+    fu = torch.rand(7, generator=g, dtype=torch.float64).requires_grad_()
+    fv = torch.rand(7, generator=g, dtype=torch.float64).requires_grad_()
+    ours = PerspectiveBilinearDepth.apply(depth, index, fu, fv)
+    plain = _plain_perspective_bilinear(depth, index, fu, fv)
+    assert torch.allclose(ours, plain, rtol=1e-14) and torch.allclose(ours[0], depth[3])
+    weights = torch.randn(7, dtype=torch.float64, generator=g)
+    for a, b in zip(torch.autograd.grad((ours * weights).sum(), (depth, fu, fv)),
+                    torch.autograd.grad((plain * weights).sum(), (depth, fu, fv))):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-14)
+    assert torch.autograd.gradcheck(lambda d, u, v: PerspectiveBilinearDepth.apply(d, index, u, v), (depth, fu, fv))
+
+
+def test_perspective_bilinear_depth_is_exact_on_a_plane():
+    # 1/depth is affine in screen space across a plane, so any interpolation of it between texels
+    # is the plane's own depth there.
+    a, b, c = 0.3, -0.2, 0.5  # 1/z = a u + b v + c on a 4x4 grid
+    u, v = torch.meshgrid(torch.arange(4.0, dtype=torch.float64), torch.arange(4.0, dtype=torch.float64), indexing="xy")
+    depth = (1.0 / (a * u + b * v + c + 2.0)).reshape(-1)
+    fu, fv = torch.tensor([0.25, 0.7], dtype=torch.float64), torch.tensor([0.5, 0.1], dtype=torch.float64)
+    u0, v0 = torch.tensor([1, 2]), torch.tensor([0, 2])
+    index = torch.stack((v0 * 4 + u0, v0 * 4 + u0 + 1, (v0 + 1) * 4 + u0, (v0 + 1) * 4 + u0 + 1), -1)
+    expected = 1.0 / (a * (u0 + fu) + b * (v0 + fv) + c + 2.0)
+    assert torch.allclose(PerspectiveBilinearDepth.apply(depth, index, fu, fv), expected, rtol=1e-13)
+
+
+class BatchedRecorder(Recorder):
+    batch_steps = True
+
+
+@pytest.mark.parametrize("fetch", ["nearest", "bilinear"])
+def test_batched_steps_see_the_same_samples_block_major(fetch):
+    gb, _ = floor_wall_gbuffer(12, 16)
+    frame = Frame(gb)
+    pattern = SlicePattern(2, 3, 0.8, fetch=fetch, border="drop")
+    one, batched = Recorder(), BatchedRecorder()
+    march(frame, pattern, one)
+    march(frame, pattern, batched)
+    n = len(frame.queries)
+    assert len(one.samples) == 2 * 2 * 3 and len(batched.samples) == 2 * 2
+    for k, (_, sample) in enumerate(batched.samples):
+        assert sample.steps == 3 and sample.step is None and sample.position.shape == (3 * n, 3)
+        for j in range(3):
+            ref = one.samples[3 * k + j][1]
+            assert ref.side == sample.side and ref.step == j
+            rows = slice(j * n, (j + 1) * n)
+            for name in ("position", "valid", "along_view", "along_tangent", "distance"):
+                assert torch.equal(getattr(sample, name)[rows], getattr(ref, name)), name

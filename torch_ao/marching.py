@@ -26,6 +26,7 @@ its own side: 0 looks at the camera, ``pi`` looks away. In signed slice coordina
 from __future__ import annotations
 
 import abc
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -223,21 +224,30 @@ class Sample:
     """
 
     def __init__(self, frame: Frame, geom: SliceGeometry, side: int, step: int, queries: Queries,
-                 index: torch.Tensor, weights: torch.Tensor | None, position: torch.Tensor,
-                 valid: torch.Tensor, distance_px: torch.Tensor, steps: int = 1) -> None:
+                 index: torch.Tensor, fraction: tuple[torch.Tensor, torch.Tensor] | None, position: torch.Tensor,
+                 valid: torch.Tensor, offset: torch.Tensor, steps: int = 1) -> None:
         self.side, self.step, self.steps = side, step, steps
-        self._frame, self._index, self._weights, self._view = frame, index, weights, queries.view
+        # fraction: the bilinear fetch's (fu, fv); its tap weights are only built when a buffer is gathered.
+        self._frame, self._index, self._fraction, self._view = frame, index, fraction, queries.view
         delta = position - queries.position
         # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
-        valid = valid & (delta.square().sum(-1) > 1e-20 * queries.depth.detach().square())
+        valid = valid & (delta.detach().square().sum(-1) > 1e-20 * queries.depth.detach().square())
         away = -queries.view  # a safe offset that looks away from the camera
         self.valid = valid
         self.position = torch.where(valid[:, None], position, queries.position + away)
         self.delta = torch.where(valid[:, None], delta, away)
         self.along_view = (self.delta * queries.view).sum(-1)
         self.along_tangent = side * (self.delta * geom.tangent).sum(-1)
-        self.distance = self.delta.norm(dim=-1)
-        self.distance_px = distance_px
+        self._offset = offset
+
+    # Computed on first use only: most methods need neither, and autograd would keep their inputs.
+    @functools.cached_property
+    def distance(self) -> torch.Tensor:
+        return self.delta.norm(dim=-1)
+
+    @functools.cached_property
+    def distance_px(self) -> torch.Tensor:
+        return self._offset.norm(dim=-1)
 
     def angle(self, view_offset: torch.Tensor | float = 0.0) -> torch.Tensor:
         """Angle ``(N,)`` in ``[-pi, pi]`` from V toward this side of ``delta - view_offset * V``,
@@ -254,11 +264,11 @@ class Sample:
         """Value ``(N, C)`` of the frame buffer ``name`` at this sample (nearest or bilinear,
         as the walk fetches depth; integer buffers are always nearest)."""
         buf = self._frame.buffers[name]
-        if self._weights is None or not buf.is_floating_point():
-            idx = self._index if self._weights is None else self._index[:, 0]
+        if self._fraction is None or not buf.is_floating_point():
+            idx = self._index if self._fraction is None else self._index[:, 0]
             return buf[idx]
         taps = buf[self._index.reshape(-1)].reshape(*self._index.shape, buf.shape[1])  # (N,4,C)
-        return (taps * self._weights[..., None].to(buf.dtype)).sum(1)
+        return (taps * _bilinear_weights(*self._fraction)[..., None].to(buf.dtype)).sum(1)
 
 
 class SliceAccumulator(Protocol):
@@ -415,6 +425,48 @@ def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -
     return SliceGeometry(s, T, axis, normal_angle, normal_length, torch.stack((du, dv), -1))
 
 
+def _bilinear_weights(fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
+    """``(N,4)`` weights of the taps ``(u0,v0), (u0+1,v0), (u0,v0+1), (u0+1,v0+1)``."""
+    return torch.stack(((1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv), -1)
+
+
+class PerspectiveBilinearDepth(torch.autograd.Function):
+    """Perspective-correct bilinear depth ``1 / sum_k w_k(fu, fv) / z_k`` ``(N,)`` at four taps.
+
+    Interpolating ``1/depth`` (affine in screen space across a plane) reproduces planes exactly.
+    Inputs: ``safe_depth`` ``(P,)`` positive depths of the frame, ``index`` ``(N,4)`` taps into it,
+    ``fu, fv`` ``(N,)`` fractional offsets in ``[0,1)``. A custom function because the walk fetches
+    ``slices x sides x steps`` samples per pixel: plain autograd would keep the 64-bit tap indices, the
+    gathered depths, the weights and their quotients for every sample (about 90 bytes each); this keeps
+    32-bit indices, ``fu``, ``fv`` and the result (28 bytes) and gathers the depths again in backward.
+    """
+
+    @staticmethod
+    def forward(ctx, safe_depth, index, fu, fv):
+        inv = safe_depth[index].reciprocal()
+        depth = (_bilinear_weights(fu, fv) * inv).sum(-1).reciprocal()
+        small = safe_depth.shape[0] < 2**31  # every tap indexes safe_depth
+        ctx.save_for_backward(safe_depth, index.to(torch.int32) if small else index, fu, fv, depth)
+        return depth
+
+    @staticmethod
+    def backward(ctx, grad):
+        safe_depth, index, fu, fv, depth = ctx.saved_tensors
+        index = index.long()
+        inv = safe_depth[index].reciprocal()  # (N,4)
+        # depth = 1 / S with S = sum_k w_k / z_k: d depth = -depth^2 dS.
+        g = grad * depth.square()
+        grad_depth = grad_fu = grad_fv = None
+        if ctx.needs_input_grad[0]:
+            contrib = (g[:, None] * _bilinear_weights(fu, fv) * inv.square()).reshape(-1)
+            grad_depth = torch.zeros_like(safe_depth).index_add_(0, index.reshape(-1), contrib)
+        if ctx.needs_input_grad[2]:
+            grad_fu = -g * ((1 - fv) * (inv[:, 1] - inv[:, 0]) + fv * (inv[:, 3] - inv[:, 2]))
+        if ctx.needs_input_grad[3]:
+            grad_fv = -g * ((1 - fu) * (inv[:, 2] - inv[:, 0]) + fu * (inv[:, 3] - inv[:, 1]))
+        return grad_depth, None, grad_fu, grad_fv
+
+
 def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: SamplingPattern,
                  side: int, step: int | None, offset: torch.Tensor, steps: int = 1) -> Sample:
     """The sample at pixel ``offset`` ``(N,2)`` from each query pixel, on ``side`` (``steps`` > 1: the
@@ -429,7 +481,7 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
         index = base + iv * W + iu
         valid = frame.valid[index]
         position = frame.positions[index]
-        weights = None
+        fraction = None
     else:
         u0, v0 = torch.floor(su), torch.floor(sv)
         fu, fv = su - u0, sv - v0
@@ -438,10 +490,9 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
         cols = torch.stack((u0, u0 + 1, u0, u0 + 1), -1).clamp(0, W - 1)
         rows = torch.stack((v0, v0, v0 + 1, v0 + 1), -1).clamp(0, H - 1)
         index = base[:, None] + rows * W + cols  # (N,4)
-        weights = torch.stack(((1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv), -1)
+        fraction = (fu, fv)
         valid = frame.valid[index].all(-1)
-        # Interpolate 1/depth: it is affine in screen space across a plane, so planes are exact.
-        depth = 1.0 / (weights / frame.safe_depth[index]).sum(-1)
+        depth = PerspectiveBilinearDepth.apply(frame.safe_depth, index, fu, fv)
         b = q.batch
         su_c = su.clamp(0, W - 1)
         sv_c = sv.clamp(0, H - 1)
@@ -449,8 +500,7 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
                                 -(sv_c - frame.cy[b]) / frame.fy[b] * depth, -depth), -1)
     if pattern.border == "drop":
         valid = valid & inside
-    distance_px = offset.norm(dim=-1)
-    return Sample(frame, geom, side, step, q, index, weights, position, valid, distance_px, steps)
+    return Sample(frame, geom, side, step, q, index, fraction, position, valid, offset, steps)
 
 
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
