@@ -36,6 +36,8 @@ def test_auto_chunking_follows_the_mode_at_call_time():
     assert module.auto_chunking(small) == (None, False)
     with torch.no_grad():
         assert module.auto_chunking(big) == (BitmaskAO.default_chunk, False)
+    # indirect light keeps more per step: half the chunk
+    assert SSILVB(mode="soft").auto_chunking(big) == (BitmaskAO.default_soft_chunk // 2, True)
     # the user's own settings are kept
     explicit = BitmaskAO(mode="soft", chunk_size=100, recompute=False)
     gb, _ = floor_wall_gbuffer(8, 8)

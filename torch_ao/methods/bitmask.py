@@ -212,7 +212,8 @@ class BitmaskAO(ScreenSpaceAO):
             ``preset``, ``radius``, ``fetch``, ``border``, ``azimuth``, ``jitter``, ``seed``,
             ``chunk_size``, ``recompute``, ``trainable``...). Unless ``chunk_size``/``recompute`` are
             given, each call picks them (see :meth:`auto_chunking`): walks with a soft gradient use
-            ``chunk_size=8192`` and ``recompute=True`` (the memory bound of forward+backward), other
+            ``chunk_size=16384`` (8192 with ``indirect``) and ``recompute=True`` (the memory bound of
+            forward+backward), other
             walks cache-sized chunks of 16384 pixels. ``azimuth`` defaults to ``"view"`` for
             ``"default"`` and ``"screen"`` for ``"hdrp"``.
     """
@@ -221,7 +222,9 @@ class BitmaskAO(ScreenSpaceAO):
     #: stay in the CPU caches are faster than one piece: 1.7 s instead of 2.2 s for a hard 640x360 frame)
     default_chunk = 16384
     #: pixels per recomputed chunk of a walk with a soft gradient when ``chunk_size`` is not given
-    default_soft_chunk = 8192
+    #: (halved when indirect light is asked for, whose per-step light doubles the graph): about 1 GB
+    #: peak for forward+backward on a 640x360 frame, 4 slices x 8 steps
+    default_soft_chunk = 16384
     #: frames of at most this many pixels (``B*H*W``) are walked in one piece without recomputation
     #: (about 15 KB per pixel of autograd state, i.e. < 0.25 GB) when ``chunk_size``/``recompute`` are not given
     small_frame_pixels = 16384
@@ -289,14 +292,15 @@ class BitmaskAO(ScreenSpaceAO):
         """``(chunk_size, recompute)`` for a frame of ``pixels`` (``B*H*W``) when the user gave neither.
 
         A soft gradient (soft/straight-through mode with autograd on) bounds the memory of
-        forward+backward by recomputing chunks of ``default_soft_chunk`` pixels in backward, except on
-        frames of at most ``small_frame_pixels`` (walked in one piece: recomputing doubles the walk).
+        forward+backward by recomputing chunks of ``default_soft_chunk`` pixels (half that with
+        ``indirect``) in backward, except on frames of at most ``small_frame_pixels`` (walked in one
+        piece: recomputing doubles the walk).
         Anything else walks cache-sized chunks of ``default_chunk`` pixels.
         """
         if self.mode != "hard" and torch.is_grad_enabled():
             if pixels <= self.small_frame_pixels:
                 return None, False
-            return self.default_soft_chunk, True
+            return self.default_soft_chunk // (2 if self.want_indirect else 1), True
         return self.default_chunk, False
 
     def forward(self, gbuffer: GBuffer) -> AOOutput:
