@@ -106,7 +106,7 @@ class Queries:
         """The rows repeated ``times`` times, block-major: row ``j * N + i`` is query ``i``."""
         if times == 1:
             return self
-        r = lambda x: x.repeat(times, *([1] * (x.dim() - 1)))  # noqa: E731
+        r = functools.partial(_repeat_rows, times=times)
         return Queries(r(self.index), r(self.batch), r(self.u), r(self.v), r(self.position), r(self.normal),
                        r(self.view), r(self.depth), {k: r(x) for k, x in self.values.items()})
 
@@ -178,6 +178,11 @@ class Frame:
         return out.view(B, H, W, C).permute(0, 3, 1, 2)
 
 
+def _repeat_rows(x: torch.Tensor, times: int) -> torch.Tensor:
+    """``x`` ``(N, ...)`` stacked ``times`` times along the rows: ``(times * N, ...)``."""
+    return x.repeat(times, *([1] * (x.dim() - 1)))
+
+
 def _flat(x: torch.Tensor) -> torch.Tensor:
     """``(B,C,H,W)`` -> ``(B*H*W, C)``."""
     B, C, H, W = x.shape
@@ -202,7 +207,7 @@ class SliceGeometry:
         """The rows repeated ``times`` times, block-major (as :meth:`Queries.repeat`)."""
         if times == 1:
             return self
-        r = lambda x: x.repeat(times, *([1] * (x.dim() - 1)))  # noqa: E731
+        r = functools.partial(_repeat_rows, times=times)
         return SliceGeometry(self.index, r(self.tangent), r(self.axis), r(self.normal_angle), r(self.normal_length),
                              r(self.pixels_per_unit))
 
@@ -505,6 +510,7 @@ def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: Samplin
 
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
     sums: dict[str, torch.Tensor] = {}
+    repeated: dict[int, Queries] = {}  # the queries stacked per step count, built once per walk
     for s in range(pattern.num_slices):
         geom = slice_geometry(frame, q, pattern, s)
         state = method.begin_slice(q, geom)
@@ -513,7 +519,9 @@ def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccum
             if getattr(method, "batch_steps", False):
                 if offsets:
                     J = len(offsets)
-                    qj, gj = q.repeat(J), geom.repeat(J)
+                    if J not in repeated:
+                        repeated[J] = q.repeat(J)
+                    qj, gj = repeated[J], geom.repeat(J)
                     sample = fetch_sample(frame, qj, gj, pattern, side, None, torch.cat(offsets, 0), J)
                     state = method.step(state, qj, gj, sample)
                 continue

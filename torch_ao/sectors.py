@@ -152,11 +152,6 @@ def _soft_floor_window(s: torch.Tensor, tau: float, slope: bool = False):
     return F, torch.sub(1, x).mul_(x).sum(-1).mul_(inv_tau)
 
 
-def _soft_floor_and_slope(s: torch.Tensor, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Smooth floor ``F(s)`` and its derivative, summed over the integers near ``s`` only."""
-    return _soft_floor_window(s, tau, slope=True)
-
-
 def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = "ceil", lo: int = 0,
                   hi: int = SECTORS, floor_s: torch.Tensor | None = None) -> torch.Tensor:
     """Soft coverage ``(..., hi - lo)`` in ``[0, 1]`` of sectors ``lo..hi-1`` (differentiable by autograd).
@@ -179,12 +174,6 @@ _CLAMP = 30.0  # logistic arguments are clamped to +-30 (sigmoid(-30) ~ 9e-14)
 _TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnormals)
 
 
-def _soft_floor_fast(s: torch.Tensor, tau: float) -> torch.Tensor:
-    """:func:`soft_floor` summed only over the integers within ``_CLAMP * tau`` of ``s`` (the others
-    contribute 0 or 1 up to ``sigmoid(-_CLAMP)``), so it costs ``O(N * window)``, not ``O(N * 32)``."""
-    return _soft_floor_window(s, tau)
-
-
 # ---------------------------------------------------------------------------------------------
 # Union over steps (custom autograd)
 # ---------------------------------------------------------------------------------------------
@@ -204,12 +193,12 @@ def _soft_sweep(s, w, weights, p0, tau, delta, tables):
     newly = s.new_zeros(N, J) if want_newly else s.new_zeros(N, 0)
     P = s.new_ones(N, SECTORS) if p0 is None else p0.clone()
     if tables:
-        F, dF = _soft_floor_and_slope(s, tau)  # (N, J)
+        F, dF = _soft_floor_window(s, tau, slope=True)  # (N, J)
         # Per-step rows, not (J, N, 32) blocks: blocks that large are fresh mmap'd pages on every call
         # (page faults cost about as much as the sweep), while rows are recycled by the allocator.
         C, D, Gn = [], [], [] if want_newly else None
     else:
-        F = _soft_floor_fast(s, tau)
+        F = _soft_floor_window(s, tau)
     gate = torch.tanh(w * inv_tau)  # (N, J)
     # Logistic arguments in units of tau: a = sigmoid(k1 / tau - s / tau), b = sigmoid((w + F - delta + 1) / tau - k1 / tau).
     k1 = k1 * inv_tau

@@ -127,6 +127,11 @@ class ScreenSpaceAO(nn.Module, abc.ABC):
         """``(B,C,H,W)`` images read once at each computed pixel (default none)."""
         return {}
 
+    def chunking(self, gbuffer: GBuffer) -> tuple[int | None, bool]:
+        """``(chunk_size, recompute)`` passed to :func:`~torch_ao.marching.march` for this call
+        (default: the constructor's)."""
+        return self.chunk_size, self.recompute
+
     @abc.abstractmethod
     def accumulator(self, frame: Frame) -> SliceAccumulator:
         """What the method keeps per step of the walk over ``frame``."""
@@ -138,8 +143,9 @@ class ScreenSpaceAO(nn.Module, abc.ABC):
         normals = gbuffer.view_normals(self.normals_method)
         frame = Frame(gbuffer, normals=normals, buffers=self.frame_buffers(gbuffer, normals),
                       query_values=self.query_values(gbuffer))
-        out = march(frame, self.pattern_for(frame), self.accumulator(frame), chunk_size=self.chunk_size,
-                    recompute=self.recompute)
+        chunk_size, recompute = self.chunking(gbuffer)
+        out = march(frame, self.pattern_for(frame), self.accumulator(frame), chunk_size=chunk_size,
+                    recompute=recompute)
         return AOOutput(
             visibility=frame.scatter(out["visibility"], 1.0),
             indirect=frame.scatter(out["indirect"], 0.0) if "indirect" in out else None,

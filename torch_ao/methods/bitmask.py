@@ -213,8 +213,8 @@ class BitmaskAO(ScreenSpaceAO):
             ``chunk_size``, ``recompute``, ``trainable``...). Unless ``chunk_size``/``recompute`` are
             given, each call picks them (see :meth:`auto_chunking`): walks with a soft gradient use
             ``chunk_size=16384`` (8192 with ``indirect``) and ``recompute=True`` (the memory bound of
-            forward+backward), other
-            walks cache-sized chunks of 16384 pixels. ``azimuth`` defaults to ``"view"`` for
+            forward+backward), other walks cache-sized chunks of 16384 pixels. ``azimuth`` defaults to
+            ``"view"`` for
             ``"default"`` and ``"screen"`` for ``"hdrp"``.
     """
 
@@ -294,8 +294,8 @@ class BitmaskAO(ScreenSpaceAO):
         A soft gradient (soft/straight-through mode with autograd on) bounds the memory of
         forward+backward by recomputing chunks of ``default_soft_chunk`` pixels (half that with
         ``indirect``) in backward, except on frames of at most ``small_frame_pixels`` (walked in one
-        piece: recomputing doubles the walk).
-        Anything else walks cache-sized chunks of ``default_chunk`` pixels.
+        piece: recomputing doubles the walk). Anything else walks cache-sized chunks of
+        ``default_chunk`` pixels.
         """
         if self.mode != "hard" and torch.is_grad_enabled():
             if pixels <= self.small_frame_pixels:
@@ -303,15 +303,10 @@ class BitmaskAO(ScreenSpaceAO):
             return self.default_soft_chunk // (2 if self.want_indirect else 1), True
         return self.default_chunk, False
 
-    def forward(self, gbuffer: GBuffer) -> AOOutput:
-        if not (getattr(self, "_auto_chunk", False) and isinstance(gbuffer, GBuffer)):
-            return super().forward(gbuffer)
-        chunking = self.chunk_size, self.recompute
-        self.chunk_size, self.recompute = self.auto_chunking(gbuffer.depth.numel())
-        try:
-            return super().forward(gbuffer)
-        finally:
-            self.chunk_size, self.recompute = chunking
+    def chunking(self, gbuffer: GBuffer) -> tuple[int | None, bool]:
+        if self._auto_chunk:
+            return self.auto_chunking(gbuffer.depth.numel())
+        return super().chunking(gbuffer)
 
     # ------------------------------------------------------------------ hooks
     def pattern_for(self, frame: Frame | None):
