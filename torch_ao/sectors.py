@@ -177,61 +177,164 @@ _TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnorm
 # ---------------------------------------------------------------------------------------------
 # Union over steps (custom autograd)
 # ---------------------------------------------------------------------------------------------
-def _soft_sweep(s, w, weights, p0, tau, delta, tables):
-    """The soft union's forward sweep, one ``(N, 32)`` step at a time, in place.
+# Both sweeps work on blocks of ``B`` rows in a sector-major layout: per block the step inputs are
+# ``(J, B)`` and the per-sector tensors ``(32, B)`` (sums over sectors are then row adds), held in
+# scratch buffers allocated once per call and reused by every block and step (fresh ``(N, 32)``
+# tensors per step cost page faults and cache misses). The logistics of ``GROUP`` steps are
+# evaluated together (fewer, larger ops); the visibility update is one ``(32, B)`` op per step. The
+# views of the buffers are built once per block size (:class:`_Plan`), not per step.
+#
+# The smooth floor needs no logistics of its own: its terms are the complements of ``a``,
+# ``F(s) = sum_{m=1..32} sigmoid((s - m) / tau) = 32 - sum_k a_k`` and ``F'(s) = sum_k a_k (1 - a_k) / tau``
+# (with the clamped arguments; a term beyond the clamp is within sigmoid(-30) of 0 or 1).
 
-    Returns ``visible``, ``newly`` and, when ``tables``, the backward tables ``C`` ``(J, N, 32)``
-    (``c_j``), ``D`` ``(J, 2, N, 32)`` (``P_j dc_j/ds``, ``P_j dc_j/dw``) and ``Gn`` ``(J, N, 32)``
-    (``P_j c_j``, only when ``weights`` is given). With ``c = a b g`` (``a = sigmoid((k+1-s)/tau)``,
-    ``b = sigmoid((w+F-delta-k)/tau)``, ``g = tanh(w/tau)``) and ``sigma' = sigma (1 - sigma) / tau``:
-    ``dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau``, ``dc/dw = a b g' + c (1 - b) / tau``.
-    """
-    N, J = s.shape
+
+class _Plan:
+    """Scratch buffers and their views for blocks of ``B`` rows, ``J`` steps in groups of ``Q``.
+
+    ``store``: the backward's tables ``(J, 3, 32, B)`` (``a_j``, ``b_j``, ``H_j = a_j b_j P_j``) and the
+    reverse scan's buffers; ``newly``: the weights ``(32, B)`` and the per-step ``(J, B)`` sums."""
+
+    def __init__(self, like, B, J, Q, store, newly, keep_gn=False, slope=False, sums=False):
+        e = lambda *shape: like.new_empty(shape)  # noqa: E731
+        self.B = B
+        self.xa, self.wd, self.gate = e(J, 1, B), e(J, B), e(J, 1, B)
+        self.P = e(SECTORS, B)
+        self.wt = e(SECTORS, B) if newly else None
+        self.newly = e(J, B) if newly else None  # forward: newly; backward: grad_newly
+        gs = [slice(j0, min(j0 + Q, J)) for j0 in range(0, J, Q)]
+        self.groups = gs
+        if store:
+            self.store = e(J, 3, SECTORS, B)
+            A = [self.store[g, 0] for g in gs]
+            Bt = [self.store[g, 1] for g in gs]
+            self.H = list(self.store[:, 2].unbind(0))
+            self.AB = [self.store[j, :2] for j in range(J)]
+        else:  # one group's a and b at a time
+            A1, B1 = e(Q, SECTORS, B), e(Q, SECTORS, B)
+            A = [A1[:g.stop - g.start] for g in gs]
+            Bt = [B1[:g.stop - g.start] for g in gs]
+            self.G = e(Q, SECTORS, B) if newly else None
+        T = e(Q, SECTORS, B)
+        fs, xb = e(Q, B), e(Q, 1, B)
+        self.dF = e(J, B) if slope else None
+        tmp = e(Q, SECTORS, B) if (store and slope) or newly else None
+        self.steps = []  # per group: (g, xa, wd, gate, A, B, fs, xb, xb2d, T, T rows, G, G rows, dF, tmp)
+        for g, a, b in zip(gs, A, Bt):
+            q = g.stop - g.start
+            G = self.G[:q] if not store and newly else None
+            self.steps.append((g, self.xa[g], self.wd[g], self.gate[g], a, b, fs[:q], xb[:q], xb[:q, 0],
+                               T[:q], list(T[:q].unbind(0)), G, None if G is None else list(G.unbind(0)),
+                               None if self.dF is None else self.dF[g], None if tmp is None else tmp[:q],
+                               list(self.gate[g].unbind(0))))
+        if store:  # reverse scan
+            self.C = T  # c = a b g of a group
+            self.D = e(SECTORS, B) if newly else self.P
+            self.Z = e(Q, 3, SECTORS, B) if sums else None
+            self.sums = e(J, 3, B) if sums else None
+            self.gwt = e(SECTORS, B) if keep_gn else None
+            self.coef = e(J, B) if keep_gn else None
+
+
+def _expm1_tanh(x):
+    """``tanh(x)`` for ``x >= 0``, in place: ``-expm1(-2x) / (2 + expm1(-2x))`` (within 2 ulp; faster)."""
+    t = x.mul_(-2).expm1_()
+    return t.div_(t.add(2)).neg_()
+
+
+def _load(plan, s, w, p0, r, tau, delta):
+    """Copies a block's inputs into ``plan``: ``xa = -s / tau`` (``a = sigmoid(K + xa)``, ``K = (k + 1) / tau``),
+    ``wd = w + 33 - delta``, the gate ``tanh(w / tau)`` and ``P = p0``."""
     inv_tau = 1.0 / tau
-    k1 = _sectors(s) + 1
-    want_newly = weights is not None
-    newly = s.new_zeros(N, J) if want_newly else s.new_zeros(N, 0)
-    P = s.new_ones(N, SECTORS) if p0 is None else p0.clone()
-    if tables:
-        F, dF = _soft_floor_window(s, tau, slope=True)  # (N, J)
-        # Per-step rows, not (J, N, 32) blocks: blocks that large are fresh mmap'd pages on every call
-        # (page faults cost about as much as the sweep), while rows are recycled by the allocator.
-        C, D, Gn = [], [], [] if want_newly else None
+    torch.mul(s[r].t(), -inv_tau, out=plan.xa[:, 0])
+    torch.add(w[r].t(), SECTORS + 1 - delta, out=plan.wd)
+    _expm1_tanh(torch.mul(w[r].t(), inv_tau, out=plan.gate[:, 0]))
+    if p0 is None:
+        plan.P.fill_(1)
     else:
-        F = _soft_floor_window(s, tau)
-    gate = torch.tanh(w * inv_tau)  # (N, J)
-    # Logistic arguments in units of tau: a = sigmoid(k1 / tau - s / tau), b = sigmoid((w + F - delta + 1) / tau - k1 / tau).
-    k1 = k1 * inv_tau
-    s_tau = s * inv_tau
-    b_tau = (w + F - delta + 1) * inv_tau
-    if tables:
-        dgate = (1 - gate * gate) * inv_tau
-    for j in range(J):
+        plan.P.copy_(p0[r].t())
+
+
+def _sweep(plan, K, tau, store=False, newly=False):
+    """The forward sweep of one block, in place.
+
+    Per group of steps: ``a = sigmoid(K + xa)`` ``(q, 32, B)``, ``F = 32 - sum_k a``,
+    ``b = sigmoid((w + F - delta + 1) / tau - K)``, then per step ``P <- P - c_j P`` (``c = a b g``) and the
+    flush of tiny values. ``plan.P``: ``p0``, replaced by the final visibility (unless ``store``);
+    with ``newly``, ``plan.newly`` ``(J, B)`` receives ``sum_k weights_k c_jk P_jk``. With ``store``,
+    step ``j`` keeps ``a_j``, ``b_j`` and ``H_j = a_j b_j P_j`` in ``plan.store``, ``plan.dF`` (if any)
+    receives ``F'(s)`` and the last update is skipped (``P`` is scratch then)."""
+    inv_tau = 1.0 / tau
+    P = plan.P
+    last = len(plan.steps) - 1
+    for n, (g, xa, wd, gate, A, Bt, fs, xb, xb2d, T, Ts, G, Gs, dF, tmp, gates) in enumerate(plan.steps):
         # Logistic arguments clamped to +-_CLAMP (beyond, sigma is within 1e-13 of 0/1) so that no
         # subnormal floats appear (they are ~100x slower on CPUs).
-        a = torch.sub(k1, s_tau[:, j, None]).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-        b = torch.sub(b_tau[:, j, None], k1).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-        if tables:
-            ab = a * b
-            c = ab * gate[:, j, None]
-            G = c * P  # newly covered share P_j c_j
-            nb = b.neg_().add_(1)  # 1 - b
-            Dj = s.new_empty(2, N, SECTORS)
-            torch.mul(ab, P, out=Dj[1]).mul_(dgate[:, j, None]).addcmul_(G, nb, value=inv_tau)
-            torch.mul(G, nb.mul_(dF[:, j, None]).add_(a).sub_(1), out=Dj[0]).mul_(inv_tau)
-            C.append(c)
-            D.append(Dj)
-            if want_newly:
-                Gn.append(G)
+        torch.add(K, xa, out=A).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+        torch.sum(A, 1, out=fs)  # 32 - F(s)
+        torch.sub(wd, fs, out=xb2d).mul_(inv_tau)
+        torch.sub(xb, K, out=Bt).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+        torch.mul(A, Bt, out=T)  # a b
+        if store:
+            if dF is not None:  # F'(s) tau = sum_k a_k (1 - a_k)
+                torch.sum(torch.sub(1, A, out=tmp).mul_(A), 1, out=dF)
+            H = plan.H
+            for i, j in enumerate(range(g.start, g.stop)):
+                torch.mul(Ts[i], P, out=H[j])  # a b P_j
+                if n == last and j == g.stop - 1:
+                    break
+                P.addcmul_(H[j], gates[i], value=-1)  # P_j (1 - c_j), in [0, P_j]
+                torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
         else:
-            G = a.mul_(b).mul_(gate[:, j, None]).mul_(P)
+            T.mul_(gate)  # c = a b g
+            for i in range(len(Ts)):
+                if newly:
+                    P.sub_(torch.mul(Ts[i], P, out=Gs[i]))  # newly covered share c_j P_j
+                else:
+                    P.addcmul_(Ts[i], P, value=-1)  # P_j (1 - c_j), in [0, P_j]
+                torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
+            if newly:
+                torch.sum(G.mul_(plan.wt), 1, out=plan.newly[g])
+    if plan.dF is not None:
+        plan.dF.mul_(inv_tau)
+
+
+def _sector_offsets(s, tau):
+    return ((_sectors(s) + 1) * (1.0 / tau))[:, None]  # (32, 1)
+
+
+def _plans(N, block, make):
+    """``(rows, plan)`` per block of ``block`` rows (one plan per distinct block size)."""
+    plans = {}
+    for start in range(0, N, block):
+        B = min(block, N - start)
+        if B not in plans:
+            plans[B] = make(B)
+        yield slice(start, start + B), plans[B]
+
+
+def _soft_sweep(s, w, weights, p0, tau, delta, block=None, group=None):
+    """The soft union's forward (no tables): ``visible`` ``(N, 32)`` and ``newly`` ``(N, J)`` (``(N, 0)``
+    without ``weights``) for widths ``w >= 0``, in blocks of ``block`` rows and groups of ``group`` steps
+    (defaults :attr:`SectorUnion.FORWARD_BLOCK`, :attr:`SectorUnion.GROUP`). With ``c = a b g``
+    (``a = sigmoid((k+1-s)/tau)``, ``b = sigmoid((w+F-delta-k)/tau)``, ``g = tanh(w/tau)``):
+    ``G_j = c_j P_j``, ``P_{j+1} = P_j - G_j``."""
+    N, J = s.shape
+    block = block or SectorUnion.FORWARD_BLOCK
+    group = group or SectorUnion.GROUP
+    want_newly = weights is not None
+    K = _sector_offsets(s, tau)
+    visible = s.new_empty(N, SECTORS)
+    newly = s.new_empty(N, J) if want_newly else s.new_zeros(N, 0)
+    for r, plan in _plans(N, block, lambda B: _Plan(s, B, J, group, False, want_newly)):
+        _load(plan, s, w, p0, r, tau, delta)
         if want_newly:
-            newly[:, j] = (G * weights).sum(-1)
-        P.sub_(G)  # == P (1 - c), exact in [0, P]
-        torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
-    if tables:
-        return P, newly, C, D, Gn
-    return P, newly, None, None, None
+            plan.wt.copy_(weights[r].t())
+        _sweep(plan, K, tau, newly=want_newly)
+        visible[r] = plan.P.t()
+        if want_newly:
+            newly[r] = plan.newly.t()
+    return visible, newly
 
 
 class SectorUnion(torch.autograd.Function):
@@ -246,15 +349,22 @@ class SectorUnion(torch.autograd.Function):
     ``sum_k weights_k c_jk p0_k prod_{i<j} (1 - c_ik)`` (empty ``(N, 0)`` without weights).
 
     Forward keeps only its inputs (``O(N J)``). Backward rebuilds, for blocks of ``BACKWARD_BLOCK``
-    rows at a time, each step's ``c_j``, ``P_j dc_j/ds`` and ``P_j dc_j/dw`` (``P_j = p0 prod_{i<j} (1 - c_i)``;
-    and ``P_j c_j`` for the weights' gradient) in one forward sweep, then runs a reverse linear scan
-    (``S_{J-1} = G_v``, ``D_m = S_m - G_m``, ``dL/dc_m = -P_m D_m``, ``S_{m-1} = S_m - c_m D_m``), never
-    dividing by ``1 - c``. So neither memory nor time is spent on tables in the forward pass (which a
-    recomputed walk runs twice), and the tables only ever exist for one block.
+    rows at a time, each step's ``a_j``, ``b_j`` and ``H_j = a_j b_j P_j`` (``c_j = a_j b_j g_j``,
+    ``P_j = p0 prod_{i<j} (1 - c_i)``) in one forward sweep, then runs a reverse linear scan
+    (``S_{J-1} = G_v``, ``D_m = S_m - gn_m weights``, ``dL/dc_m = -P_m D_m``, ``S_{m-1} = S_m - c_m D_m``),
+    never dividing by ``1 - c``. With ``dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau`` and
+    ``dc/dw = a b g' + c (1 - b) / tau``, each step's gradients come from three sums over sectors of
+    ``Y = H_m D_m``: ``sum Y``, ``sum Y a`` and ``sum Y b``. So neither memory nor time is spent on tables
+    in the forward pass (which a recomputed walk runs twice), and the tables only ever exist for one block.
     """
 
-    #: rows per block of the backward's table rebuild (its transient memory: ``3 J`` rows of 32 per row)
-    BACKWARD_BLOCK = 4096
+    #: rows per block of the forward sweep (scratch: about ``4 GROUP + 5`` rows of 32 per row)
+    FORWARD_BLOCK = 2048
+    #: rows per block of the backward's table rebuild (its transient memory: ``3 J + 5 GROUP + 4``
+    #: rows of 32 per row)
+    BACKWARD_BLOCK = 1024
+    #: steps whose logistics are evaluated together
+    GROUP = 4
 
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
@@ -262,7 +372,7 @@ class SectorUnion(torch.autograd.Function):
         if hard_forward:
             visible, newly = _hard_sweep(s, w, weights, p0, rounding)
         else:
-            visible, newly = _soft_sweep(s, w, weights, p0, tau, _DELTA[rounding], False)[:2]
+            visible, newly = _soft_sweep(s, w, weights, p0, tau, _DELTA[rounding])
         ctx.tau, ctx.delta = tau, _DELTA[rounding]
         ctx.save_for_backward(s, w, weights, p0)
         return visible, newly
@@ -271,30 +381,69 @@ class SectorUnion(torch.autograd.Function):
     def backward(ctx, grad_visible, grad_newly):
         s, w, weights, p0 = ctx.saved_tensors
         N, J = s.shape
+        tau = ctx.tau
+        inv_tau = 1.0 / tau
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
         keep_gn = want_newly and ctx.needs_input_grad[2]
-        gs, gw = torch.empty_like(s), torch.empty_like(s)
-        gweights = torch.zeros_like(weights) if keep_gn else None
-        gp0 = torch.empty(N, SECTORS, dtype=s.dtype, device=s.device) if ctx.needs_input_grad[3] else None
-        for start in range(0, N, SectorUnion.BACKWARD_BLOCK):
-            r = slice(start, start + SectorUnion.BACKWARD_BLOCK)
-            wr = None if weights is None else weights[r]
-            _, _, C, D, Gn = _soft_sweep(s[r], w[r], wr, None if p0 is None else p0[r], ctx.tau, ctx.delta, True)
-            gnr = grad_newly[r] if want_newly else None
+        want_s, want_w, want_p0 = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[3]
+        want_sw = want_s or want_w
+        if not (want_sw or keep_gn or want_p0):
+            return None, None, None, None, None, None, None
+        gs = s.new_empty(N, J) if want_s else None
+        gw = s.new_empty(N, J) if want_w else None
+        gweights = s.new_empty(N, SECTORS) if keep_gn else None
+        gp0 = s.new_empty(N, SECTORS) if want_p0 else None
+        group = SectorUnion.GROUP
+        K = _sector_offsets(s, tau)
+        make = lambda B: _Plan(s, B, J, group, True, want_newly, keep_gn, want_s, want_sw)  # noqa: E731
+        for r, plan in _plans(N, SectorUnion.BACKWARD_BLOCK, make):
+            _load(plan, s, w, p0, r, tau, ctx.delta)
+            _sweep(plan, K, tau, store=True)
+            # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - gn_m weights, S_{m-1} = S_m - c_m D_m.
+            S = plan.P  # scratch now
+            if grad_visible is None:
+                S.zero_()
+            else:
+                S.copy_(grad_visible[r].t())
+            D = plan.D
+            if want_newly:
+                wtT = plan.wt.copy_(weights[r].t())
+                gnT = plan.newly.copy_(grad_newly[r].t())
             if keep_gn:
-                for j in range(J):
-                    gweights[r].addcmul_(gnr[:, j, None], Gn[j])
-            # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - G_m, S_{m-1} = S_m - c_m D_m.
-            S = torch.zeros_like(C[0]) if grad_visible is None else grad_visible[r]
-            gsw = torch.empty(J, 2, C[0].shape[0], dtype=s.dtype, device=s.device)
-            for m in range(J - 1, -1, -1):
-                Dm = torch.addcmul(S, gnr[:, m, None], wr, value=-1) if want_newly else S
-                torch.sum(D[m] * Dm, -1, out=gsw[m])
-                S = torch.addcmul(S, C[m], Dm, value=-1)
-            gs[r] = gsw[:, 0].t().neg()
-            gw[r] = gsw[:, 1].t().neg()
-            if gp0 is not None:
-                gp0[r] = S
+                coef = torch.mul(gnT, plan.gate[:, 0], out=plan.coef)  # gn_j g_j
+                gwt = plan.gwt.zero_()
+            for g, xa, wd, gate, A, Bt, fs, xb, xb2d, T, Ts, G, Gs, dF, tmp, gates in reversed(plan.steps):
+                C = torch.mul(A, Bt, out=T).mul_(gate)  # c = a b g
+                q = g.stop - g.start
+                Z = plan.Z[:q] if want_sw else None
+                for i in range(q - 1, -1, -1):
+                    m = g.start + i
+                    H = plan.H[m]
+                    if want_newly:
+                        torch.addcmul(S, wtT, gnT[m], value=-1, out=D)
+                    if keep_gn:
+                        gwt.addcmul_(H, coef[m])
+                    if want_sw:
+                        Y = torch.mul(H, D, out=Z[i, 0])  # Y = a b P D
+                        torch.mul(Y, plan.AB[m], out=Z[i, 1:])  # Y a, Y b
+                    if m > 0 or want_p0:
+                        S.addcmul_(Ts[i], D, value=-1)
+                if want_sw:
+                    torch.sum(Z, 2, out=plan.sums[g])
+            if want_sw:
+                s1, sa, sb = plan.sums.unbind(1)  # (J, B)
+                g = plan.gate[:, 0]
+                s1_b = torch.sub(s1, sb)  # sum Y (1 - b)
+                if want_w:
+                    # gw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau
+                    gw[r] = torch.mul(g, g).sub_(1).mul_(s1).sub_(s1_b.mul(g)).mul_(inv_tau).t()
+                if want_s:
+                    # gs = -g / tau (F' sum Y (1 - b) - sum Y (1 - a))
+                    gs[r] = s1_b.mul_(plan.dF).sub_(s1).add_(sa).mul_(g).mul_(-inv_tau).t()
+            if keep_gn:
+                gweights[r] = gwt.t()
+            if want_p0:
+                gp0[r] = S.t()
         return gs, gw, gweights, gp0, None, None, None
 
 
@@ -333,7 +482,7 @@ def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", roundi
     if not needs_grad:  # no graph: the plain sweep, without the backward tables
         if mode == "straight_through":
             return _hard_sweep(s, w.clamp_min(0), weights, p0, rounding)
-        return _soft_sweep(s, w.clamp_min(0), weights, p0, float(tau), _DELTA[rounding], False)[:2]
+        return _soft_sweep(s, w.clamp_min(0), weights, p0, float(tau), _DELTA[rounding])
     return SectorUnion.apply(s, w, weights, p0, float(tau), rounding, mode == "straight_through")
 
 
