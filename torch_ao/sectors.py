@@ -215,7 +215,7 @@ class _Plan:
             A = [A1[:g.stop - g.start] for g in gs]
             Bt = [B1[:g.stop - g.start] for g in gs]
             self.G = e(Q, SECTORS, B) if newly else None
-        T = e(Q, SECTORS, B)
+        T = e(Q, SECTORS, B) if store else B1  # a b (store), c = a b g (forward)
         fs, xb = e(Q, B), e(Q, 1, B)
         self.dF = e(J, B) if slope else None
         tmp = e(Q, SECTORS, B) if (store and slope) or newly else None
@@ -228,12 +228,21 @@ class _Plan:
                                None if self.dF is None else self.dF[g], None if tmp is None else tmp[:q],
                                list(self.gate[g].unbind(0))))
         if store:  # reverse scan
-            self.C = T  # c = a b g of a group
-            self.D = e(SECTORS, B) if newly else self.P
+            self.Sh = e(Q + 1, SECTORS, B)  # S_{m0} .. S_{m1} of a group
+            self.D = e(Q, SECTORS, B) if newly else None
             self.Z = e(Q, 3, SECTORS, B) if sums else None
             self.sums = e(J, 3, B) if sums else None
             self.gwt = e(SECTORS, B) if keep_gn else None
             self.coef = e(J, B) if keep_gn else None
+            self.scan = []  # per group, last first
+            for g, st in reversed(list(zip(gs, self.steps))):
+                q = g.stop - g.start
+                D = self.Sh[1:q + 1] if self.D is None else self.D[:q]
+                Z = None if self.Z is None else self.Z[:q]
+                self.scan.append((g, q, st[4], st[5], st[3], st[9], list(st[9].unbind(0)), self.store[g, 2],
+                                  self.store[g, :2], list(self.Sh[:q + 1].unbind(0)), D, list(D.unbind(0)),
+                                  Z, None if Z is None else Z[:, 0], None if Z is None else Z[:, :1],
+                                  None if Z is None else Z[:, 1:], None if self.sums is None else self.sums[g]))
 
 
 def _expm1_tanh(x):
@@ -274,8 +283,8 @@ def _sweep(plan, K, tau, store=False, newly=False):
         torch.sum(A, 1, out=fs)  # 32 - F(s)
         torch.sub(wd, fs, out=xb2d).mul_(inv_tau)
         torch.sub(xb, K, out=Bt).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-        torch.mul(A, Bt, out=T)  # a b
         if store:
+            torch.mul(A, Bt, out=T)  # a b
             if dF is not None:  # F'(s) tau = sum_k a_k (1 - a_k)
                 torch.sum(torch.sub(1, A, out=tmp).mul_(A), 1, out=dF)
             H = plan.H
@@ -286,7 +295,7 @@ def _sweep(plan, K, tau, store=False, newly=False):
                 P.addcmul_(H[j], gates[i], value=-1)  # P_j (1 - c_j), in [0, P_j]
                 torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
         else:
-            T.mul_(gate)  # c = a b g
+            Bt.mul_(A).mul_(gate)  # c = a b g (T is Bt)
             for i in range(len(Ts)):
                 if newly:
                     P.sub_(torch.mul(Ts[i], P, out=Gs[i]))  # newly covered share c_j P_j
@@ -297,6 +306,44 @@ def _sweep(plan, K, tau, store=False, newly=False):
                 torch.sum(G.mul_(plan.wt), 1, out=plan.newly[g])
     if plan.dF is not None:
         plan.dF.mul_(inv_tau)
+
+
+def _scan(plan, grad_visible, grad_newly, weights, r, want_newly, keep_gn, want_sw, want_p0):
+    """The backward's reverse linear scan over one block's tables (``plan.store``), group by group:
+    ``S_J = G_v``, ``D_m = S_{m+1} - gn_m weights``, ``dL/dc_m = -P_m D_m``, ``S_m = S_{m+1} - c_m D_m``,
+    then, per group, ``Y = H_m D_m`` and the sums ``plan.sums[m]`` = (``sum Y``, ``sum Y a``, ``sum Y b``)
+    over sectors; ``plan.gwt`` ``(32, B)`` receives ``sum_m gn_m g_m H_m`` (the weights' gradient).
+    Returns ``S_0`` (the gradient of ``p0``)."""
+    top = plan.scan[0][9][-1]  # S_J
+    if grad_visible is None:
+        top.zero_()
+    else:
+        top.copy_(grad_visible[r].t())
+    if want_newly:
+        wtT = plan.wt.copy_(weights[r].t())
+        gnT = plan.newly.copy_(grad_newly[r].t())
+        gn = list(gnT.unbind(0))
+    if keep_gn:
+        coef = list(torch.mul(gnT, plan.gate[:, 0], out=plan.coef).unbind(0))  # gn_j g_j
+        gwt = plan.gwt.zero_()
+    for n, (g, q, A, Bt, gate, C, Cs, H, AB, Sh, D, Ds, Z, Y, Y1, Z12, sums) in enumerate(plan.scan):
+        if n:
+            Sh[q].copy_(S)
+        torch.mul(A, Bt, out=C).mul_(gate)  # c = a b g
+        for i in range(q - 1, -1, -1):
+            m = g.start + i
+            if want_newly:
+                torch.addcmul(Sh[i + 1], wtT, gn[m], value=-1, out=Ds[i])
+            if keep_gn:
+                gwt.addcmul_(H[i], coef[m])
+            if m > 0 or want_p0:
+                torch.addcmul(Sh[i + 1], Cs[i], Ds[i], value=-1, out=Sh[i])
+        S = Sh[0]
+        if want_sw:
+            torch.mul(H, D, out=Y)  # Y = a b P D
+            torch.mul(Y1, AB, out=Z12)  # Y a, Y b
+            torch.sum(Z, 2, out=sums)
+    return S
 
 
 def _sector_offsets(s, tau):
@@ -399,37 +446,7 @@ class SectorUnion(torch.autograd.Function):
         for r, plan in _plans(N, SectorUnion.BACKWARD_BLOCK, make):
             _load(plan, s, w, p0, r, tau, ctx.delta)
             _sweep(plan, K, tau, store=True)
-            # Reverse linear scan: S_{J-1} = G_v, D_m = S_m - gn_m weights, S_{m-1} = S_m - c_m D_m.
-            S = plan.P  # scratch now
-            if grad_visible is None:
-                S.zero_()
-            else:
-                S.copy_(grad_visible[r].t())
-            D = plan.D
-            if want_newly:
-                wtT = plan.wt.copy_(weights[r].t())
-                gnT = plan.newly.copy_(grad_newly[r].t())
-            if keep_gn:
-                coef = torch.mul(gnT, plan.gate[:, 0], out=plan.coef)  # gn_j g_j
-                gwt = plan.gwt.zero_()
-            for g, xa, wd, gate, A, Bt, fs, xb, xb2d, T, Ts, G, Gs, dF, tmp, gates in reversed(plan.steps):
-                C = torch.mul(A, Bt, out=T).mul_(gate)  # c = a b g
-                q = g.stop - g.start
-                Z = plan.Z[:q] if want_sw else None
-                for i in range(q - 1, -1, -1):
-                    m = g.start + i
-                    H = plan.H[m]
-                    if want_newly:
-                        torch.addcmul(S, wtT, gnT[m], value=-1, out=D)
-                    if keep_gn:
-                        gwt.addcmul_(H, coef[m])
-                    if want_sw:
-                        Y = torch.mul(H, D, out=Z[i, 0])  # Y = a b P D
-                        torch.mul(Y, plan.AB[m], out=Z[i, 1:])  # Y a, Y b
-                    if m > 0 or want_p0:
-                        S.addcmul_(Ts[i], D, value=-1)
-                if want_sw:
-                    torch.sum(Z, 2, out=plan.sums[g])
+            S = _scan(plan, grad_visible, grad_newly, weights, r, want_newly, keep_gn, want_sw, want_p0)
             if want_sw:
                 s1, sa, sb = plan.sums.unbind(1)  # (J, B)
                 g = plan.gate[:, 0]
@@ -441,7 +458,7 @@ class SectorUnion(torch.autograd.Function):
                     # gs = -g / tau (F' sum Y (1 - b) - sum Y (1 - a))
                     gs[r] = s1_b.mul_(plan.dF).sub_(s1).add_(sa).mul_(g).mul_(-inv_tau).t()
             if keep_gn:
-                gweights[r] = gwt.t()
+                gweights[r] = plan.gwt.t()
             if want_p0:
                 gp0[r] = S.t()
         return gs, gw, gweights, gp0, None, None, None
