@@ -28,16 +28,20 @@ def test_recomputed_chunks_match_the_whole_frame(cls, mode):
 
 
 def test_auto_chunking_follows_the_mode_at_call_time():
-    module = BitmaskAO(mode="hard")
-    big, small = 640 * 360, BitmaskAO.small_frame_pixels
-    assert module.auto_chunking(big) == (BitmaskAO.default_chunk, False)
+    module = BitmaskAO(mode="hard", slices=4, steps=8)
+    vga, hd, small = 640 * 360, 1280 * 720, BitmaskAO.default_chunk
+    assert module.auto_chunking(vga) == (BitmaskAO.default_chunk, False)
     module.mode = "soft"  # as fit's set_mode does after construction
-    assert module.auto_chunking(big) == (BitmaskAO.default_soft_chunk, True)
+    # 640x360 at 4 x 8: the whole graph (about 0.7 GB) fits the budget, the walk runs once
+    assert module.graph_bytes(vga) <= BitmaskAO.graph_budget
+    assert module.auto_chunking(vga) == (BitmaskAO.default_chunk, False)
+    # 1280x720 does not: recomputed chunks bound the memory
+    assert module.auto_chunking(hd) == (BitmaskAO.default_soft_chunk, True)
     assert module.auto_chunking(small) == (None, False)
     with torch.no_grad():
-        assert module.auto_chunking(big) == (BitmaskAO.default_chunk, False)
-    # indirect light keeps more per step: half the chunk
-    assert SSILVB(mode="soft").auto_chunking(big) == (BitmaskAO.default_soft_chunk // 2, True)
+        assert module.auto_chunking(hd) == (BitmaskAO.default_chunk, False)
+    # indirect light keeps more per step: recomputed, half the chunk
+    assert SSILVB(mode="soft", slices=4, steps=8).auto_chunking(vga) == (BitmaskAO.default_soft_chunk // 2, True)
     # the user's own settings are kept
     explicit = BitmaskAO(mode="soft", chunk_size=100, recompute=False)
     gb, _ = floor_wall_gbuffer(8, 8)
@@ -55,3 +59,28 @@ def test_hard_chunks_match_the_whole_frame(indirect, monkeypatch):
     assert whole.visibility.min() < 0.9
     if indirect:
         assert torch.allclose(whole.indirect, chunked.indirect, atol=1e-7) and whole.indirect.max() > 0
+
+
+def _saved_bytes_per_sample(module, gb) -> float:
+    """Bytes of the distinct storages autograd saves for a forward, per pixel x slice x side x step."""
+    saved = {}
+
+    def pack(t):
+        saved[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        module(gb)
+    pixels = gb.depth.numel()
+    return sum(saved.values()) / (pixels * module.slices * 2 * module.steps)
+
+
+@pytest.mark.parametrize("indirect", [False, True])
+def test_graph_estimate_bounds_what_autograd_keeps(indirect):
+    gb, _ = floor_wall_gbuffer(48, 64, light_direction=(0.3, 0.8, 0.5))
+    depth = gb.depth.clone().requires_grad_(True)
+    gb = GBuffer(depth, gb.camera, normals=gb.normals.clone().requires_grad_(True), light=gb.light.clone().requires_grad_(True))
+    module = BitmaskAO(mode="soft", slices=4, steps=8, indirect=indirect, chunk_size=None, recompute=False)
+    per_sample = _saved_bytes_per_sample(module, gb)
+    estimate = module.graph_bytes_per_sample_indirect if indirect else module.graph_bytes_per_sample
+    assert 0.5 * estimate < per_sample <= estimate

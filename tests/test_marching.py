@@ -196,3 +196,35 @@ def test_batched_steps_see_the_same_samples_block_major(fetch):
             rows = slice(j * n, (j + 1) * n)
             for name in ("position", "valid", "along_view", "along_tangent", "distance"):
                 assert torch.equal(getattr(sample, name)[rows], getattr(ref, name)), name
+
+
+def _walk_gradients(monkeypatch, fused: bool, fetch: str, border: str, batch: int):
+    """Gradients of a weighted sum of every sample's along_view/along_tangent (batched steps) to the
+    depth and the radius, with the fused :class:`SampleAlong` or plain autograd."""
+    import torch_ao.marching as marching
+
+    monkeypatch.setattr(marching.Footprint, "fusable", lambda self, frame: fused)
+    gb, _ = floor_wall_gbuffer(10, 14, dtype=torch.float64)
+    torch.manual_seed(3)
+    depth = torch.cat([gb.depth * (1 + 0.02 * torch.rand_like(gb.depth)) for _ in range(batch)]).requires_grad_(True)
+    radius = torch.tensor(0.9, dtype=torch.float64, requires_grad=True)
+    frame = Frame(GBuffer(depth, gb.camera, normals=torch.cat([gb.normals] * batch)))
+    rec = BatchedRecorder()
+    march(frame, SlicePattern(2, 3, radius, fetch=fetch, border=border, step_power=1.5), rec)
+    loss = 0
+    for k, (_, sample) in enumerate(rec.samples):
+        w = torch.linspace(-1, 1, sample.along_view.shape[0], dtype=torch.float64)
+        loss = loss + (w * sample.along_view).sum() + ((k + 1) * w.flip(0) * sample.along_tangent).sum()
+    assert all((type(s.along_view.grad_fn).__name__ == "SampleAlongBackward") == fused for _, s in rec.samples)
+    g_depth, g_radius = torch.autograd.grad(loss, (depth, radius), allow_unused=True)
+    return g_depth, torch.zeros(()) if g_radius is None else g_radius  # nearest texels do not move with the radius
+
+
+@pytest.mark.parametrize("fetch,border,batch", [("bilinear", "drop", 1), ("bilinear", "clamp", 2),
+                                                ("nearest", "clamp", 1), ("nearest", "drop", 2)])
+def test_fused_sample_gradients_match_plain_autograd(monkeypatch, fetch, border, batch):
+    fused = _walk_gradients(monkeypatch, True, fetch, border, batch)
+    plain = _walk_gradients(monkeypatch, False, fetch, border, batch)
+    assert fused[0].abs().max() > 0 and (fetch == "nearest" or fused[1] != 0)
+    for a, b in zip(fused, plain):
+        assert torch.allclose(a.double(), b.double(), rtol=1e-10, atol=1e-12)

@@ -166,6 +166,13 @@ class Frame:
             values={k: _flat(x)[index] for k, x in (query_values or {}).items()},
         )
 
+    def intrinsics(self, batch: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``(fx, fy, cx, cy)`` of each row's image ``batch`` ``(N,)``: 0-d tensors for a single image
+        (broadcast, no gather), else ``(N,)``."""
+        if self.shape[0] == 1:
+            return self.fx[0], self.fy[0], self.cx[0], self.cy[0]
+        return self.fx[batch], self.fy[batch], self.cx[batch], self.cy[batch]
+
     def scatter(self, values: torch.Tensor, fill: float | torch.Tensor) -> torch.Tensor:
         """Place per-query rows ``(N, C)`` into a ``(B, C, H, W)`` image, ``fill`` elsewhere."""
         B, H, W = self.shape
@@ -220,32 +227,60 @@ class Sample:
     row ``j * N + i`` being step ``j`` of query ``i``; ``step`` is then ``None``.
 
     Attributes:
-        side: ``+1`` or ``-1``; step: the step number; steps: how many steps the rows hold (1 or all).
+        side: ``+1`` or ``-1``; step: the step number; steps: how many steps the rows hold (1 or all);
+            dtype: the floating type of the walk.
         position: ``(N,3)`` sample's view-space position; ``delta = position - P``.
         valid: ``(N,)`` bool; invalid samples (background, dropped at the border, or on the centre
             texel) have a safe ``delta`` pointing away from the camera, so they never occlude.
         along_view, along_tangent: ``delta . V`` and ``delta . (side T)``, ``(N,)``.
         distance: ``|delta|`` ``(N,)``; distance_px: the screen distance in pixels ``(N,)``.
+
+    When autograd records the walk, ``along_view``/``along_tangent`` come from :class:`SampleAlong`
+    (fused, a few floats per sample), and ``position``/``delta`` are only recorded if a method asks.
     """
 
-    def __init__(self, frame: Frame, geom: SliceGeometry, side: int, step: int, queries: Queries,
-                 index: torch.Tensor, fraction: tuple[torch.Tensor, torch.Tensor] | None, position: torch.Tensor,
-                 valid: torch.Tensor, offset: torch.Tensor, steps: int = 1) -> None:
+    def __init__(self, frame: Frame, geom: SliceGeometry, side: int, step: int | None, queries: Queries,
+                 footprint: "Footprint", valid: torch.Tensor, offset: torch.Tensor, steps: int = 1,
+                 base: tuple[Queries, SliceGeometry] | None = None) -> None:
         self.side, self.step, self.steps = side, step, steps
-        # fraction: the bilinear fetch's (fu, fv); its tap weights are only built when a buffer is gathered.
-        self._frame, self._index, self._fraction, self._view = frame, index, fraction, queries.view
-        delta = position - queries.position
-        # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
-        valid = valid & (delta.detach().square().sum(-1) > 1e-20 * queries.depth.detach().square())
-        away = -queries.view  # a safe offset that looks away from the camera
-        self.valid = valid
-        self.position = torch.where(valid[:, None], position, queries.position + away)
-        self.delta = torch.where(valid[:, None], delta, away)
-        self.along_view = (self.delta * queries.view).sum(-1)
-        self.along_tangent = side * (self.delta * geom.tangent).sum(-1)
+        self.dtype = queries.position.dtype
+        self._frame, self._footprint, self._queries, self._geom = frame, footprint, queries, geom
+        self._index = footprint.index
+        self._fraction = None if footprint.fu is None else (footprint.fu, footprint.fv)
+        self._view = queries.view
         self._offset = offset
+        self._raw_position = None  # the fetched position, when it was computed without a graph
+        with torch.no_grad():
+            position = footprint.position(frame)
+            delta = position - queries.position
+            # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
+            self.valid = valid = valid & (delta.square().sum(-1) > 1e-20 * queries.depth.square())
+            away = -queries.view  # a safe offset that looks away from the camera
+            delta = torch.where(valid[:, None], delta, away)
+            along = _along(delta, queries.view, geom.tangent, side)
+        base_q, base_g = (queries, geom) if base is None else base
+        inputs = footprint.inputs(frame) + (base_q.position, base_q.view, base_g.tangent)
+        if not (torch.is_grad_enabled() and any(t.requires_grad for t in inputs)):
+            # No graph: keep the values computed above.
+            self._raw_position = position
+            self.__dict__["delta"] = delta
+            self.along_view, self.along_tangent = along
+        elif footprint.fusable(frame):
+            self.along_view, self.along_tangent = SampleAlong.apply(
+                frame, footprint, valid, side, steps, base_q.batch, along, *inputs)
+        else:
+            self.along_view, self.along_tangent = _along(self.delta, queries.view, geom.tangent, side)
 
     # Computed on first use only: most methods need neither, and autograd would keep their inputs.
+    @functools.cached_property
+    def position(self) -> torch.Tensor:
+        raw = self._footprint.position(self._frame) if self._raw_position is None else self._raw_position
+        return torch.where(self.valid[:, None], raw, self._queries.position - self._queries.view)
+
+    @functools.cached_property
+    def delta(self) -> torch.Tensor:
+        return torch.where(self.valid[:, None], self.position - self._queries.position, -self._queries.view)
+
     @functools.cached_property
     def distance(self) -> torch.Tensor:
         return self.delta.norm(dim=-1)
@@ -274,6 +309,11 @@ class Sample:
             return buf[idx]
         taps = buf[self._index.reshape(-1)].reshape(*self._index.shape, buf.shape[1])  # (N,4,C)
         return (taps * _bilinear_weights(*self._fraction)[..., None].to(buf.dtype)).sum(1)
+
+
+def _along(delta: torch.Tensor, view: torch.Tensor, tangent: torch.Tensor, side: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(delta . V, side * delta . T)`` ``(N,)``."""
+    return (delta * view).sum(-1), side * (delta * tangent).sum(-1)
 
 
 class SliceAccumulator(Protocol):
@@ -448,8 +488,7 @@ class PerspectiveBilinearDepth(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, safe_depth, index, fu, fv):
-        inv = safe_depth[index].reciprocal()
-        depth = (_bilinear_weights(fu, fv) * inv).sum(-1).reciprocal()
+        depth = _bilinear_depth(safe_depth, index, fu, fv)
         small = safe_depth.shape[0] < 2**31  # every tap indexes safe_depth
         ctx.save_for_backward(safe_depth, index.to(torch.int32) if small else index, fu, fv, depth)
         return depth
@@ -457,55 +496,195 @@ class PerspectiveBilinearDepth(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         safe_depth, index, fu, fv, depth = ctx.saved_tensors
-        index = index.long()
-        inv = safe_depth[index].reciprocal()  # (N,4)
-        # depth = 1 / S with S = sum_k w_k / z_k: d depth = -depth^2 dS.
-        g = grad * depth.square()
-        grad_depth = grad_fu = grad_fv = None
-        if ctx.needs_input_grad[0]:
-            contrib = (g[:, None] * _bilinear_weights(fu, fv) * inv.square()).reshape(-1)
-            grad_depth = torch.zeros_like(safe_depth).index_add_(0, index.reshape(-1), contrib)
-        if ctx.needs_input_grad[2]:
-            grad_fu = -g * ((1 - fv) * (inv[:, 1] - inv[:, 0]) + fv * (inv[:, 3] - inv[:, 2]))
-        if ctx.needs_input_grad[3]:
-            grad_fv = -g * ((1 - fu) * (inv[:, 2] - inv[:, 0]) + fu * (inv[:, 3] - inv[:, 1]))
+        grad_depth, grad_fu, grad_fv = _bilinear_depth_backward(safe_depth, index.long(), fu, fv, depth, grad,
+                                                                ctx.needs_input_grad[0])
         return grad_depth, None, grad_fu, grad_fv
 
 
-def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: SamplingPattern,
-                 side: int, step: int | None, offset: torch.Tensor, steps: int = 1) -> Sample:
-    """The sample at pixel ``offset`` ``(N,2)`` from each query pixel, on ``side`` (``steps`` > 1: the
-    rows of ``q``, ``geom`` and ``offset`` hold that many steps, block-major)."""
-    B, H, W = frame.shape
-    su, sv = q.u + offset[:, 0], q.v + offset[:, 1]
-    base = q.batch * (H * W)
-    if pattern.fetch == "nearest":
-        iu, iv = torch.floor(su + 0.5).long(), torch.floor(sv + 0.5).long()
-        inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
-        iu, iv = iu.clamp(0, W - 1), iv.clamp(0, H - 1)
-        index = base + iv * W + iu
-        valid = frame.valid[index]
-        position = frame.positions[index]
-        fraction = None
-    else:
+@dataclass
+class Footprint:
+    """Where a sample reads the frame: the nearest texel (``index`` ``(N,)``) or four bilinear taps
+    (``index`` ``(N,4)``, fractions ``fu``, ``fv``) at screen position ``(su, sv)`` ``(N,)``;
+    ``batch`` ``(N,)`` is each row's image."""
+
+    batch: torch.Tensor
+    su: torch.Tensor
+    sv: torch.Tensor
+    index: torch.Tensor
+    fu: torch.Tensor | None = None
+    fv: torch.Tensor | None = None
+
+    @staticmethod
+    def at(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor, fetch: str) -> tuple["Footprint", torch.Tensor]:
+        """The footprint of screen positions ``(su, sv)`` and whether each lies inside the frame."""
+        B, H, W = frame.shape
+        base = batch * (H * W)
+        if fetch == "nearest":
+            iu, iv = torch.floor(su + 0.5).long(), torch.floor(sv + 0.5).long()
+            inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
+            index = base + iv.clamp(0, H - 1) * W + iu.clamp(0, W - 1)
+            return Footprint(batch, su, sv, index), inside
+        index, fu, fv = _bilinear_taps(frame, batch, su, sv)
         u0, v0 = torch.floor(su), torch.floor(sv)
-        fu, fv = su - u0, sv - v0
-        u0, v0 = u0.long(), v0.long()
         inside = (u0 >= 0) & (u0 + 1 < W) & (v0 >= 0) & (v0 + 1 < H)
-        cols = torch.stack((u0, u0 + 1, u0, u0 + 1), -1).clamp(0, W - 1)
-        rows = torch.stack((v0, v0, v0 + 1, v0 + 1), -1).clamp(0, H - 1)
-        index = base[:, None] + rows * W + cols  # (N,4)
-        fraction = (fu, fv)
-        valid = frame.valid[index].all(-1)
-        depth = PerspectiveBilinearDepth.apply(frame.safe_depth, index, fu, fv)
-        b = q.batch
-        su_c = su.clamp(0, W - 1)
-        sv_c = sv.clamp(0, H - 1)
-        position = torch.stack(((su_c - frame.cx[b]) / frame.fx[b] * depth,
-                                -(sv_c - frame.cy[b]) / frame.fy[b] * depth, -depth), -1)
+        return Footprint(batch, su, sv, index, fu, fv), inside
+
+    def valid(self, frame: Frame) -> torch.Tensor:
+        v = frame.valid[self.index]
+        return v if self.fu is None else v.all(-1)
+
+    def inputs(self, frame: Frame) -> tuple[torch.Tensor, ...]:
+        """The differentiable tensors the position depends on (the frame's positions or depths, ``su``, ``sv``)."""
+        if self.fu is None:
+            return (frame.positions, self.su, self.sv)
+        return (frame.safe_depth, self.su, self.sv)
+
+    def fusable(self, frame: Frame) -> bool:
+        """Whether :class:`SampleAlong` can differentiate the position (camera intrinsics without gradient)."""
+        return not any(t.requires_grad for t in (frame.fx, frame.fy, frame.cx, frame.cy))
+
+    def position(self, frame: Frame) -> torch.Tensor:
+        """``(N,3)`` view-space position: the texel's, or the perspective-correct bilinear depth
+        unprojected at ``(su, sv)`` clamped to the frame."""
+        if self.fu is None:
+            return frame.positions[self.index]
+        depth = PerspectiveBilinearDepth.apply(frame.safe_depth, self.index, self.fu, self.fv)
+        return _unproject(frame, self.batch, self.su, self.sv, depth)
+
+
+def _bilinear_taps(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor):
+    """Four taps ``(N,4)`` (``(u0,v0), (u0+1,v0), (u0,v0+1), (u0+1,v0+1)``, clamped to the frame) around
+    screen positions ``(su, sv)`` ``(N,)`` and the fractions ``fu, fv`` ``(N,)``."""
+    B, H, W = frame.shape
+    u0, v0 = torch.floor(su), torch.floor(sv)
+    fu, fv = su - u0, sv - v0
+    u0, v0 = u0.long(), v0.long()
+    c0, c1 = u0.clamp(0, W - 1), u0.add_(1).clamp_(0, W - 1)
+    r0, r1 = v0.clamp(0, H - 1).mul_(W), v0.add_(1).clamp_(0, H - 1).mul_(W)
+    if B > 1:
+        base = batch * (H * W)
+        r0, r1 = r0.add_(base), r1.add_(base)
+    return torch.stack((r0 + c0, r0 + c1, r1 + c0, r1 + c1), -1), fu, fv
+
+
+def _unproject(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """``(N,3)`` view-space points at screen ``(su, sv)`` (clamped to the frame) and ``depth``."""
+    B, H, W = frame.shape
+    fx, fy, cx, cy = frame.intrinsics(batch)
+    su_c, sv_c = su.clamp(0, W - 1), sv.clamp(0, H - 1)
+    return torch.stack(((su_c - cx) / fx * depth, -(sv_c - cy) / fy * depth, -depth), -1)
+
+
+class SampleAlong(torch.autograd.Function):
+    """Gradients of ``(delta . V, side * delta . T)`` of ``steps`` block-major steps, fused.
+
+    Inputs: the frame, the samples' :class:`Footprint` (``steps * N`` rows), ``valid`` (rows), ``side``,
+    ``steps``, ``batch`` ``(N,)``, the two outputs' values (computed without a graph); then the
+    footprint's differentiable inputs (``frame.positions`` ``(P,3)`` for nearest fetch or
+    ``frame.safe_depth`` ``(P,)`` for bilinear, ``su``, ``sv``) and the queries' ``P``, ``V``, ``T``
+    ``(N,3)`` (not repeated per step). Plain autograd would keep the position, ``delta``, the repeated
+    ``V`` and ``T`` and the fetch's intermediates for every sample (about 90 bytes); this keeps ``su``,
+    ``sv`` and ``valid`` per sample and rebuilds the footprint, position and ``delta`` in backward.
+    """
+
+    @staticmethod
+    def forward(ctx, frame, footprint, valid, side, steps, batch, along, source, su, sv, P, V, T):
+        ctx.frame, ctx.side, ctx.steps, ctx.nearest = frame, side, steps, footprint.fu is None
+        ctx.save_for_backward(source, su, sv, valid, batch, P, V, T, footprint.index if ctx.nearest else None)
+        return along
+
+    @staticmethod
+    def backward(ctx, g_view, g_tangent):
+        source, su, sv, valid, batch, P, V, T, index = ctx.saved_tensors
+        frame, side, J = ctx.frame, ctx.side, ctx.steps
+        N = P.shape[0]
+        g_view = torch.zeros(J * N, dtype=P.dtype, device=P.device) if g_view is None else g_view
+        g_tangent = torch.zeros_like(g_view) if g_tangent is None else g_tangent
+        with torch.no_grad():
+            # delta_j = position_j - P where valid (m = 1), else -V; along_view = delta . V, along_tangent = side delta . T.
+            # Rows are block-major (J, N): per-query vectors broadcast over the steps, nothing is repeated.
+            m = valid.to(P.dtype)
+            gv, gt = g_view * m, (side * g_tangent) * m  # (rows,) gradients reaching valid samples
+            grads = [None] * 13
+            if ctx.nearest:
+                position = source[index]
+                if ctx.needs_input_grad[7]:
+                    g_pos = gv.view(J, N, 1) * V + gt.view(J, N, 1) * T
+                    grads[7] = torch.zeros_like(source).index_add_(0, index, g_pos.view(J * N, 3))
+                px, py, pz = position.unbind(-1)
+            else:
+                B, H, W = frame.shape
+                batch_rows = batch.repeat(J) if B > 1 else batch  # (a single image needs no per-row batch)
+                taps, fu, fv = _bilinear_taps(frame, batch_rows, su, sv)
+                weights = _bilinear_weights(fu, fv)
+                inv = source[taps].reciprocal()  # (rows,4)
+                depth = (weights * inv).sum(-1).reciprocal()
+                fx, fy, cx, cy = frame.intrinsics(batch_rows)
+                # position = depth * (xh, yh, -1) with xh = (clamp(su) - cx) / fx, yh = -(clamp(sv) - cy) / fy
+                su_c, sv_c = su.clamp(0, W - 1), sv.clamp(0, H - 1)
+                xh, yh = (su_c - cx) / fx, (sv_c - cy) / -fy
+                g_x = (gv.view(J, N) * V[:, 0] + gt.view(J, N) * T[:, 0]).view(-1)
+                g_y = (gv.view(J, N) * V[:, 1] + gt.view(J, N) * T[:, 1]).view(-1)
+                g_z = (gv.view(J, N) * V[:, 2] + gt.view(J, N) * T[:, 2]).view(-1)
+                # depth = 1 / S with S = sum_k w_k / z_k (perspective-correct bilinear): d depth = -depth^2 dS
+                g_s = (g_x * xh + g_y * yh - g_z) * depth.square()
+                if ctx.needs_input_grad[7]:
+                    contrib = (g_s[:, None] * weights * inv.square()).view(-1)
+                    grads[7] = torch.zeros_like(source).index_add_(0, taps.view(-1), contrib)
+                g_fu = g_s * ((1 - fv) * (inv[:, 1] - inv[:, 0]) + fv * (inv[:, 3] - inv[:, 2]))
+                g_fv = g_s * ((1 - fu) * (inv[:, 2] - inv[:, 0]) + fu * (inv[:, 3] - inv[:, 1]))
+                # fu = su - floor(su); clamp passes the gradient inside [0, W - 1]
+                grads[8] = torch.where(su_c == su, g_x * depth / fx, 0.0) - g_fu
+                grads[9] = torch.where(sv_c == sv, g_y * depth / -fy, 0.0) - g_fv
+                px, py, pz = xh * depth, yh * depth, -depth
+            # sums over the steps: of the gradients, and of the gradients times the position
+            sums = torch.stack((gv, gt, g_view - gv, side * g_tangent - gt,
+                                gv * px, gv * py, gv * pz, gt * px, gt * py, gt * pz), 0).view(10, J, N).sum(1)
+            a, b, c, e = sums[:4, :, None]  # (N,1) each
+            Sv, St = sums[4:7].t(), sums[7:].t()  # (N,3): sum_j g_j position_j
+            if ctx.needs_input_grad[10]:
+                grads[10] = -(a * V + b * T)
+            if ctx.needs_input_grad[11]:
+                grads[11] = Sv - a * P - 2 * c * V - e * T
+            if ctx.needs_input_grad[12]:
+                grads[12] = St - b * P - e * V
+        return tuple(grads)
+
+
+def _bilinear_depth(safe_depth: torch.Tensor, index: torch.Tensor, fu: torch.Tensor, fv: torch.Tensor,
+                    inverse: torch.Tensor | None = None) -> torch.Tensor:
+    """Perspective-correct bilinear depth ``1 / sum_k w_k / z_k`` ``(N,)`` (see :class:`PerspectiveBilinearDepth`);
+    ``inverse`` = ``1 / safe_depth[index]`` if already gathered."""
+    if inverse is None:
+        inverse = safe_depth[index].reciprocal()
+    return (_bilinear_weights(fu, fv) * inverse).sum(-1).reciprocal()
+
+
+def _bilinear_depth_backward(safe_depth, index, fu, fv, depth, grad, need_depth: bool, inverse=None):
+    """Gradients of :func:`_bilinear_depth` to ``safe_depth`` (``None`` unless ``need_depth``), ``fu`` and ``fv``."""
+    inv = safe_depth[index].reciprocal() if inverse is None else inverse  # (N,4)
+    # depth = 1 / S with S = sum_k w_k / z_k: d depth = -depth^2 dS.
+    g = grad * depth.square()
+    grad_depth = None
+    if need_depth:
+        contrib = (g[:, None] * _bilinear_weights(fu, fv) * inv.square()).reshape(-1)
+        grad_depth = torch.zeros_like(safe_depth).index_add_(0, index.reshape(-1), contrib)
+    grad_fu = -g * ((1 - fv) * (inv[:, 1] - inv[:, 0]) + fv * (inv[:, 3] - inv[:, 2]))
+    grad_fv = -g * ((1 - fu) * (inv[:, 2] - inv[:, 0]) + fu * (inv[:, 3] - inv[:, 1]))
+    return grad_depth, grad_fu, grad_fv
+
+
+def fetch_sample(frame: Frame, q: Queries, geom: SliceGeometry, pattern: SamplingPattern,
+                 side: int, step: int | None, offset: torch.Tensor, steps: int = 1,
+                 base: tuple[Queries, SliceGeometry] | None = None) -> Sample:
+    """The sample at pixel ``offset`` ``(N,2)`` from each query pixel, on ``side`` (``steps`` > 1: the
+    rows of ``q``, ``geom`` and ``offset`` hold that many steps, block-major, and ``base`` gives the
+    queries and geometry of one step)."""
+    footprint, inside = Footprint.at(frame, q.batch, q.u + offset[:, 0], q.v + offset[:, 1], pattern.fetch)
+    valid = footprint.valid(frame)
     if pattern.border == "drop":
         valid = valid & inside
-    return Sample(frame, geom, side, step, q, index, fraction, position, valid, offset, steps)
+    return Sample(frame, geom, side, step, q, footprint, valid, offset, steps, base)
 
 
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
@@ -522,7 +701,7 @@ def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccum
                     if J not in repeated:
                         repeated[J] = q.repeat(J)
                     qj, gj = repeated[J], geom.repeat(J)
-                    sample = fetch_sample(frame, qj, gj, pattern, side, None, torch.cat(offsets, 0), J)
+                    sample = fetch_sample(frame, qj, gj, pattern, side, None, torch.cat(offsets, 0), J, (q, geom))
                     state = method.step(state, qj, gj, sample)
                 continue
             for j, offset in enumerate(offsets):

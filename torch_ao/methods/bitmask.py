@@ -77,6 +77,81 @@ def _saturate(x: torch.Tensor) -> torch.Tensor:
     return x.clamp(0.0, 1.0)
 
 
+def _interval_from_unit(lo: torch.Tensor, hi: torch.Tensor, epsilon: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Interval ``[lo, hi]`` of ``[0, 1]`` -> start and width in sector units (``epsilon`` sectors narrower)."""
+    width = (hi - lo) * SECTORS
+    if epsilon > 0:
+        width = (width - epsilon).clamp_min(0)
+    return lo * SECTORS, width
+
+
+def _unit_angles(along_view, along_tangent, thickness, gamma, side):
+    """Front and back angles (``atan2`` in the slice plane) and their unclamped positions across the
+    hemisphere ``(side * theta - gamma + pi/2) / pi``; rows block-major over ``gamma``'s ``(N,)``."""
+    front = torch.atan2(along_tangent, along_view - 0.0)
+    back = torch.atan2(along_tangent, along_view - thickness)
+    J = along_view.shape[0] // max(gamma.shape[0], 1)
+    g = gamma.repeat(J)
+    return (side * front - g + _HALF_PI) / math.pi, (side * back - g + _HALF_PI) / math.pi
+
+
+def _sector_interval(along_view, along_tangent, thickness, gamma, side: int, epsilon: float):
+    """The default variant's occluded interval ``(start, width)`` in sector units ``(rows,)``: from the
+    front angle to the back angle (the sample pushed ``thickness`` away along the view vector)."""
+    xf, xb = (_saturate(x) for x in _unit_angles(along_view, along_tangent, thickness, gamma, side))
+    lo, hi = (xf, xb) if side > 0 else (xb, xf)
+    return _interval_from_unit(lo, hi, epsilon)
+
+
+class SectorInterval(torch.autograd.Function):
+    """:func:`_sector_interval` with a hand-written backward that keeps only its inputs.
+
+    Inputs: ``along_view``, ``along_tangent`` ``(rows,)`` (rows = steps x N, block-major),
+    ``thickness`` (0-d or ``(rows,)``), ``gamma`` ``(N,)`` the projected normal's angle, ``side``,
+    ``epsilon``. Outputs ``start``, ``width`` ``(rows,)``. Autograd through the ``atan2``s and clamps
+    would keep about a dozen tensors per sample; the angles are recomputed in backward instead.
+    """
+
+    @staticmethod
+    def forward(ctx, along_view, along_tangent, thickness, gamma, side, epsilon):
+        ctx.side, ctx.epsilon = side, epsilon
+        ctx.save_for_backward(along_view, along_tangent, thickness, gamma)
+        return _sector_interval(along_view, along_tangent, thickness, gamma, side, epsilon)
+
+    @staticmethod
+    def backward(ctx, g_start, g_width):
+        av, at, t, gamma = ctx.saved_tensors
+        side, eps = ctx.side, ctx.epsilon
+        N = gamma.shape[0]
+        J = av.shape[0] // max(N, 1)
+        with torch.no_grad():
+            rf, rb = _unit_angles(av, at, t, gamma, side)
+            zero = torch.zeros_like(av)
+            g_start = zero if g_start is None else g_start
+            g_width = zero if g_width is None else g_width
+            if eps > 0:  # clamp_min(0) of the narrowed width passes gradient where width - eps >= 0
+                xf, xb = rf.clamp(0.0, 1.0), rb.clamp(0.0, 1.0)
+                lo, hi = (xf, xb) if side > 0 else (xb, xf)
+                g_width = torch.where((hi - lo) * SECTORS - eps >= 0, g_width, zero)
+            g_lo = (g_start - g_width) * SECTORS
+            g_hi = g_width * SECTORS
+            g_f, g_b = (g_lo, g_hi) if side > 0 else (g_hi, g_lo)
+            # clamp(r, 0, 1) passes gradient inside [0, 1] (ends included, as torch.clamp); r = (side theta - gamma + pi/2) / pi
+            g_f = torch.where((rf >= 0) & (rf <= 1), g_f, zero) / math.pi
+            g_b = torch.where((rb >= 0) & (rb <= 1), g_b, zero) / math.pi
+            # theta = atan2(y, x): d theta = (x dy - y dx) / (x^2 + y^2)
+            xb_ = av - t
+            inv_f = (av * av + at * at).reciprocal() * (side * g_f)
+            inv_b = (xb_ * xb_ + at * at).reciprocal() * (side * g_b)
+            g_av = -(at * inv_f + at * inv_b)
+            g_at = av * inv_f + xb_ * inv_b
+            g_t = at * inv_b
+            if t.dim() == 0:
+                g_t = g_t.sum()
+            g_gamma = -(g_f + g_b).view(J, N).sum(0)
+        return g_av, g_at, g_t, g_gamma, None, None
+
+
 class BitmaskAccumulator:
     """The per-step work of the ``"default"`` and ``"hdrp"`` variants (a :class:`SliceAccumulator`).
 
@@ -116,21 +191,22 @@ class BitmaskAccumulator:
         n = len(q) // J
         t = self.thickness(sample)
         side = sample.side
-        gamma = state["gamma"].repeat(J)
         if self.variant == "hdrp":
+            gamma = state["gamma"].repeat(J)
             front = _safe_fast_acos(sample.cos_view(0.0))
             back = _safe_fast_acos(sample.cos_view(t))
             xf = _saturate(((side * -front) - gamma + _HALF_PI) / math.pi)
             xb = _saturate(((side * -back) - gamma + _HALF_PI) / math.pi)
             lo, hi = (xb, xf) if side > 0 else (xf, xb)
+            start, width = _interval_from_unit(lo, hi, self.sector_epsilon)
         else:
-            xf = _saturate((side * sample.angle(0.0) - gamma + _HALF_PI) / math.pi)
-            xb = _saturate((side * sample.angle(t) - gamma + _HALF_PI) / math.pi)
-            lo, hi = (xf, xb) if side > 0 else (xb, xf)
-        state["s"].append((lo * SECTORS).view(J, n))
-        width = (hi - lo) * SECTORS
-        if self.sector_epsilon > 0:
-            width = (width - self.sector_epsilon).clamp_min(0)
+            gamma = state["gamma"]
+            args = (sample.along_view, sample.along_tangent, t, gamma, side, self.sector_epsilon)
+            if torch.is_grad_enabled() and any(x.requires_grad for x in args[:4]):
+                start, width = SectorInterval.apply(*args)
+            else:
+                start, width = _sector_interval(*args)
+        state["s"].append(start.view(J, n))
         state["w"].append(width.view(J, n))
         if self.indirect:
             ldir = sample.delta / sample.distance.clamp_min(1e-30)[:, None]
@@ -211,23 +287,26 @@ class BitmaskAO(ScreenSpaceAO):
         **kwargs: :class:`~torch_ao.methods.base.ScreenSpaceAO` options (``slices``, ``steps``,
             ``preset``, ``radius``, ``fetch``, ``border``, ``azimuth``, ``jitter``, ``seed``,
             ``chunk_size``, ``recompute``, ``trainable``...). Unless ``chunk_size``/``recompute`` are
-            given, each call picks them (see :meth:`auto_chunking`): walks with a soft gradient use
-            ``chunk_size=16384`` (8192 with ``indirect``) and ``recompute=True`` (the memory bound of
-            forward+backward), other walks cache-sized chunks of 16384 pixels. ``azimuth`` defaults to
-            ``"view"`` for
-            ``"default"`` and ``"screen"`` for ``"hdrp"``.
+            given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
+            pixels, recomputed in backward only when a soft gradient's graph would exceed
+            ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"`` and
+            ``"screen"`` for ``"hdrp"``.
     """
 
-    #: pixels per chunk of a walk without a soft gradient when ``chunk_size`` is not given (chunks that
-    #: stay in the CPU caches are faster than one piece: 1.7 s instead of 2.2 s for a hard 640x360 frame)
+    #: pixels per chunk of a walk when ``chunk_size`` is not given (chunks that stay in the CPU caches
+    #: are faster than one piece: 1.7 s instead of 2.2 s for a hard 640x360 frame)
     default_chunk = 16384
-    #: pixels per recomputed chunk of a walk with a soft gradient when ``chunk_size`` is not given
-    #: (halved when indirect light is asked for, whose per-step light doubles the graph): about 1 GB
-    #: peak for forward+backward on a 640x360 frame, 4 slices x 8 steps
+    #: pixels per recomputed chunk of a walk with a soft gradient whose graph would exceed ``graph_budget``
+    #: (halved when indirect light is asked for)
     default_soft_chunk = 16384
-    #: frames of at most this many pixels (``B*H*W``) are walked in one piece without recomputation
-    #: (about 15 KB per pixel of autograd state, i.e. < 0.25 GB) when ``chunk_size``/``recompute`` are not given
-    small_frame_pixels = 16384
+    #: a walk with a soft gradient keeps its whole autograd graph (no recomputation, so the walk runs
+    #: once) when its estimate is at most this many bytes; above it, chunks are recomputed in backward
+    graph_budget = 1 << 30
+    #: estimated autograd bytes kept per sample (pixel x slice x side x step) by a soft walk, measured by
+    #: summing the graph's saved tensors (tests/test_bitmask_recompute.py): about 45 for visibility, and
+    #: about 330 more with indirect light (its light and normal gathers)
+    graph_bytes_per_sample = 48
+    graph_bytes_per_sample_indirect = 400
 
     def __init__(self, *, variant: str = "default", mode: str = "hard", tau: float = 0.25, rounding: str = "ceil",
                  weighting: str = "uniform", thickness=0.5, thickness_growth: float | None = None,
@@ -288,20 +367,24 @@ class BitmaskAO(ScreenSpaceAO):
             self.ambient = None
         self._ambient_constant = ambient is not None and not callable(ambient)
 
+    def graph_bytes(self, pixels: int) -> int:
+        """Estimated autograd memory (bytes) of a soft walk over ``pixels`` query pixels kept whole."""
+        per_sample = self.graph_bytes_per_sample_indirect if self.want_indirect else self.graph_bytes_per_sample
+        return pixels * self.slices * 2 * self.steps * per_sample
+
     def auto_chunking(self, pixels: int) -> tuple[int | None, bool]:
         """``(chunk_size, recompute)`` for a frame of ``pixels`` (``B*H*W``) when the user gave neither.
 
-        A soft gradient (soft/straight-through mode with autograd on) bounds the memory of
-        forward+backward by recomputing chunks of ``default_soft_chunk`` pixels (half that with
-        ``indirect``) in backward, except on frames of at most ``small_frame_pixels`` (walked in one
-        piece: recomputing doubles the walk). Anything else walks cache-sized chunks of
-        ``default_chunk`` pixels.
+        Walks go in cache-sized chunks of ``default_chunk`` pixels. With a soft gradient (soft or
+        straight-through mode, autograd on), the whole graph is kept if :meth:`graph_bytes` is at most
+        ``graph_budget`` (the walk runs once); otherwise each chunk of ``default_soft_chunk`` pixels
+        (half that with ``indirect``) is recomputed in backward, which bounds the memory of
+        forward+backward by one chunk whatever the frame size.
         """
-        if self.mode != "hard" and torch.is_grad_enabled():
-            if pixels <= self.small_frame_pixels:
-                return None, False
+        chunk = self.default_chunk if pixels > self.default_chunk else None
+        if self.mode != "hard" and torch.is_grad_enabled() and self.graph_bytes(pixels) > self.graph_budget:
             return self.default_soft_chunk // (2 if self.want_indirect else 1), True
-        return self.default_chunk, False
+        return chunk, False
 
     def chunking(self, gbuffer: GBuffer) -> tuple[int | None, bool]:
         if self._auto_chunk:

@@ -35,14 +35,14 @@ class ThicknessLookup:
 
     def __call__(self, sample: Sample) -> torch.Tensor:
         if self.kind == "scalar":
-            t = self.value.to(sample.delta.dtype)
+            t = self.value.to(sample.dtype)
         elif self.kind == "map":
             t = sample.gather("thickness")[:, 0]
         else:
             ids = sample.gather("object_id")[:, 0].long().clamp(0, self.value.shape[0] - 1)
-            t = self.value.to(sample.delta.dtype)[ids]
+            t = self.value.to(sample.dtype)[ids]
         if self.growth is not None:
-            t = t * (1 + self.growth.to(sample.delta.dtype) * sample.distance)
+            t = t * (1 + self.growth.to(sample.dtype) * sample.distance)
         return t
 
 
