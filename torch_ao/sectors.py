@@ -172,6 +172,7 @@ def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = 
 
 _CLAMP = 30.0  # logistic arguments are clamped to +-30 (sigmoid(-30) ~ 9e-14)
 _TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnormals)
+_WINDOW_MAX = 8  # F(s) from its own window of logistics up to this width (tau <= 0.1), else from a
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,69 +181,84 @@ _TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnorm
 # Both sweeps work on blocks of ``B`` rows in a sector-major layout: per block the step inputs are
 # ``(J, B)`` and the per-sector tensors ``(32, B)`` (sums over sectors are then row adds), held in
 # scratch buffers allocated once per call and reused by every block and step (fresh ``(N, 32)``
-# tensors per step cost page faults and cache misses). The logistics of ``GROUP`` steps are
+# tensors per step cost page faults and cache misses). The logistics of a group of steps are
 # evaluated together (fewer, larger ops); the visibility update is one ``(32, B)`` op per step. The
 # views of the buffers are built once per block size (:class:`_Plan`), not per step.
 #
 # The smooth floor needs no logistics of its own: its terms are the complements of ``a``,
-# ``F(s) = sum_{m=1..32} sigmoid((s - m) / tau) = 32 - sum_k a_k`` and ``F'(s) = sum_k a_k (1 - a_k) / tau``
+# ``F(s) = sum_{m=1..32} sigmoid((s - m) / tau) = sum_k (1 - a_k)`` and ``F'(s) = sum_k a_k (1 - a_k) / tau``
 # (with the clamped arguments; a term beyond the clamp is within sigmoid(-30) of 0 or 1).
 
 
+class _Group:
+    """Views of one group of ``q`` consecutive steps ``g`` (``slice``) of a :class:`_Plan`."""
+
+    def __init__(self, plan, g, A, Bt, C, T, fs, xb, tmp):
+        q = g.stop - g.start
+        self.g, self.q, self.A, self.B, self.C, self.T = g, q, A, Bt, C, T
+        self.C_rows, self.T_rows = list(C.unbind(0)), list(T.unbind(0))
+        self.xa, self.wd, self.gate = plan.xa[g], plan.wd[g], plan.gate[g]
+        self.fs, self.xb = fs, xb
+        self.tmp = tmp
+        self.dF = None if plan.dF is None else plan.dF[g]
+        self.F = None if plan.F is None else plan.F[g]  # F(s) from the window (else from a)
+
+
 class _Plan:
-    """Scratch buffers and their views for blocks of ``B`` rows, ``J`` steps in groups of ``Q``.
+    """Scratch buffers and their views for blocks of ``B`` rows and ``J`` steps in groups of ``Q``.
 
-    ``store``: the backward's tables ``(J, 3, 32, B)`` (``a_j``, ``b_j``, ``H_j = a_j b_j P_j``) and the
-    reverse scan's buffers; ``newly``: the weights ``(32, B)`` and the per-step ``(J, B)`` sums."""
+    Forward (``store=False``): one group's ``a`` and ``b`` (then ``c = a b g``) at a time, with
+    ``newly`` the weights ``(32, B)``, the group's newly covered shares ``c_j P_j`` and the ``(J, B)``
+    sums. Backward (``store=True``): the tables ``(J, 4, 32, B)`` (``a_j``, ``b_j``, ``H_j = a_j b_j P_j``,
+    ``c_j``) and the reverse scan's buffers (``sums``: the three sums over sectors per step;
+    ``keep_gn``: the weights' gradient; ``slope``: ``F'(s)``)."""
 
-    def __init__(self, like, B, J, Q, store, newly, keep_gn=False, slope=False, sums=False):
+    def __init__(self, like, B, J, Q, tau, store, newly, keep_gn=False, slope=False, sums=False):
         e = lambda *shape: like.new_empty(shape)  # noqa: E731
-        self.B = B
+        width = _floor_width(tau)
+        self.window = width <= _WINDOW_MAX  # F(s) and F'(s) from their own (narrow) window of logistics
+        self.F = e(J, B) if self.window else None
+        self.Fx = e((2 if slope else 1) * width * J * B) if self.window else None
         self.xa, self.wd, self.gate = e(J, 1, B), e(J, B), e(J, 1, B)
         self.P = e(SECTORS, B)
         self.wt = e(SECTORS, B) if newly else None
         self.newly = e(J, B) if newly else None  # forward: newly; backward: grad_newly
-        gs = [slice(j0, min(j0 + Q, J)) for j0 in range(0, J, Q)]
-        self.groups = gs
-        if store:
-            self.store = e(J, 3, SECTORS, B)
-            A = [self.store[g, 0] for g in gs]
-            Bt = [self.store[g, 1] for g in gs]
-            self.H = list(self.store[:, 2].unbind(0))
-            self.AB = [self.store[j, :2] for j in range(J)]
-        else:  # one group's a and b at a time
-            A1, B1 = e(Q, SECTORS, B), e(Q, SECTORS, B)
-            A = [A1[:g.stop - g.start] for g in gs]
-            Bt = [B1[:g.stop - g.start] for g in gs]
-            self.G = e(Q, SECTORS, B) if newly else None
-        T = e(Q, SECTORS, B) if store else B1  # a b (store), c = a b g (forward)
-        fs, xb = e(Q, B), e(Q, 1, B)
         self.dF = e(J, B) if slope else None
-        tmp = e(Q, SECTORS, B) if (store and slope) or newly else None
-        self.steps = []  # per group: (g, xa, wd, gate, A, B, fs, xb, xb2d, T, T rows, G, G rows, dF, tmp)
-        for g, a, b in zip(gs, A, Bt):
-            q = g.stop - g.start
-            G = self.G[:q] if not store and newly else None
-            self.steps.append((g, self.xa[g], self.wd[g], self.gate[g], a, b, fs[:q], xb[:q], xb[:q, 0],
-                               T[:q], list(T[:q].unbind(0)), G, None if G is None else list(G.unbind(0)),
-                               None if self.dF is None else self.dF[g], None if tmp is None else tmp[:q],
-                               list(self.gate[g].unbind(0))))
-        if store:  # reverse scan
+        T, fs, xb = e(Q, SECTORS, B), e(Q, B), e(Q, 1, B)
+        groups = [slice(j0, min(j0 + Q, J)) for j0 in range(0, J, Q)]
+        self.groups = []
+        if store:
+            self.store = e(J, 4, SECTORS, B)
+            self.H = list(self.store[:, 2].unbind(0))
+            for g in groups:
+                q = g.stop - g.start
+                # F'(s) uses the group's c rows as scratch before c is written
+                self.groups.append(_Group(self, g, self.store[g, 0], self.store[g, 1], self.store[g, 3], T[:q],
+                                          fs[:q], xb[:q], self.store[g, 3]))
             self.Sh = e(Q + 1, SECTORS, B)  # S_{m0} .. S_{m1} of a group
-            self.D = e(Q, SECTORS, B) if newly else None
-            self.Z = e(Q, 3, SECTORS, B) if sums else None
+            D = e(Q, SECTORS, B) if newly else None
+            Z = e(Q, 3, SECTORS, B) if sums else None
             self.sums = e(J, 3, B) if sums else None
             self.gwt = e(SECTORS, B) if keep_gn else None
             self.coef = e(J, B) if keep_gn else None
-            self.scan = []  # per group, last first
-            for g, st in reversed(list(zip(gs, self.steps))):
+            for grp in self.groups:  # the reverse scan's views
+                q, g = grp.q, grp.g
+                grp.H, grp.AB = self.store[g, 2], self.store[g, :2]
+                grp.S_rows = list(self.Sh[:q + 1].unbind(0))
+                grp.D = self.Sh[1:q + 1] if D is None else D[:q]  # D_m = S_{m+1} without newly
+                grp.D_rows = list(grp.D.unbind(0))
+                if Z is not None:
+                    grp.Z, grp.Y, grp.Y1, grp.Z12 = Z[:q], Z[:q, 0], Z[:q, :1], Z[:q, 1:]
+                    grp.sums = self.sums[g]
+        else:
+            A, Bt = e(Q, SECTORS, B), e(Q, SECTORS, B)
+            G = e(Q, SECTORS, B) if newly else None
+            for g in groups:
                 q = g.stop - g.start
-                D = self.Sh[1:q + 1] if self.D is None else self.D[:q]
-                Z = None if self.Z is None else self.Z[:q]
-                self.scan.append((g, q, st[4], st[5], st[3], st[9], list(st[9].unbind(0)), self.store[g, 2],
-                                  self.store[g, :2], list(self.Sh[:q + 1].unbind(0)), D, list(D.unbind(0)),
-                                  Z, None if Z is None else Z[:, 0], None if Z is None else Z[:, :1],
-                                  None if Z is None else Z[:, 1:], None if self.sums is None else self.sums[g]))
+                grp = _Group(self, g, A[:q], Bt[:q], Bt[:q], T[:q], fs[:q], xb[:q], None)
+                if newly:
+                    grp.G, grp.G_rows = G[:q], list(G[:q].unbind(0))
+                self.groups.append(grp)
 
 
 def _expm1_tanh(x):
@@ -253,10 +269,12 @@ def _expm1_tanh(x):
 
 def _load(plan, s, w, p0, r, tau, delta):
     """Copies a block's inputs into ``plan``: ``xa = -s / tau`` (``a = sigmoid(K + xa)``, ``K = (k + 1) / tau``),
-    ``wd = w + 33 - delta``, the gate ``tanh(w / tau)`` and ``P = p0``."""
+    ``wd = w - delta + 1``, the gate ``tanh(w / tau)`` and ``P = p0``."""
     inv_tau = 1.0 / tau
     torch.mul(s[r].t(), -inv_tau, out=plan.xa[:, 0])
-    torch.add(w[r].t(), SECTORS + 1 - delta, out=plan.wd)
+    if plan.window:
+        _floor_window_into(s[r].t().contiguous(), tau, plan.Fx, plan.F, plan.dF)
+    torch.add(w[r].t(), 1 - delta, out=plan.wd)
     _expm1_tanh(torch.mul(w[r].t(), inv_tau, out=plan.gate[:, 0]))
     if p0 is None:
         plan.P.fill_(1)
@@ -264,46 +282,76 @@ def _load(plan, s, w, p0, r, tau, delta):
         plan.P.copy_(p0[r].t())
 
 
-def _sweep(plan, K, tau, store=False, newly=False):
-    """The forward sweep of one block, in place.
+def _floor_width(tau: float) -> int:
+    return min(2 * (int(math.ceil(_CLAMP * tau)) + 1), SECTORS)
 
-    Per group of steps: ``a = sigmoid(K + xa)`` ``(q, 32, B)``, ``F = 32 - sum_k a``,
-    ``b = sigmoid((w + F - delta + 1) / tau - K)``, then per step ``P <- P - c_j P`` (``c = a b g``) and the
-    flush of tiny values. ``plan.P``: ``p0``, replaced by the final visibility (unless ``store``);
-    with ``newly``, ``plan.newly`` ``(J, B)`` receives ``sum_k weights_k c_jk P_jk``. With ``store``,
-    step ``j`` keeps ``a_j``, ``b_j`` and ``H_j = a_j b_j P_j`` in ``plan.store``, ``plan.dF`` (if any)
-    receives ``F'(s)`` and the last update is skipped (``P`` is scratch then)."""
+
+def _floor_window_into(sT, tau, x_buf, F, dF):
+    """:func:`_soft_floor_window` of the contiguous ``sT`` into ``F`` (and ``F' tau`` into ``dF``), its
+    ``W`` logistic terms laid out ``(W, M)`` in the flat buffer ``x_buf`` (``2 W M`` entries with ``dF``)."""
+    reach = int(math.ceil(_CLAMP * tau)) + 1
+    width = _floor_width(tau)
+    inv_tau = 1.0 / tau
+    flat = sT.reshape(-1)
+    M = flat.numel()
+    lo = torch.floor(flat).sub_(reach - 1).clamp_(1, SECTORS - width + 1)
+    z = torch.sub(flat, lo).mul_(inv_tau)
+    offsets = torch.arange(width, dtype=sT.dtype, device=sT.device).mul_(inv_tau)[:, None]
+    x = torch.sub(z, offsets, out=x_buf[:width * M].view(width, M)).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+    torch.sum(x, 0, out=F.view(M)).add_(lo.sub_(1))
+    if dF is not None:
+        y = torch.sub(1, x, out=x_buf[width * M:2 * width * M].view(width, M)).mul_(x)
+        torch.sum(y, 0, out=dF.view(M))
+
+
+def _logistics(grp, K, inv_tau):
+    """A group's ``a = sigmoid(K + xa)`` ``(q, 32, B)``, ``F = sum_k (1 - a_k)`` (and ``F'``) and
+    ``b = sigmoid((w + F - delta + 1) / tau - K)``, arguments clamped to +-_CLAMP (beyond, sigma is
+    within 1e-13 of 0/1) so that no subnormal floats appear (they are ~100x slower on CPUs)."""
+    A, Bt = grp.A, grp.B
+    torch.add(K, grp.xa, out=A).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+    F = grp.F
+    if F is None:
+        # F as a sum of the complements (not 32 - sum a: that loses the precision of a small F);
+        # b's buffer is the scratch
+        na = torch.sub(1, A, out=Bt)
+        F = torch.sum(na, 1, out=grp.fs)
+        if grp.dF is not None:  # F'(s) tau = sum_k a_k (1 - a_k)
+            torch.sum(na.mul_(A), 1, out=grp.dF)
+    torch.add(grp.wd, F, out=grp.xb[:, 0]).mul_(inv_tau)
+    torch.sub(grp.xb, K, out=Bt).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+
+
+def _sweep(plan, K, tau, store=False, newly=False):
+    """The forward sweep of one block, in place: per group of steps :func:`_logistics` and
+    ``c = a b g``, then per step ``P <- P - c_j P`` and the flush of tiny values.
+
+    ``plan.P``: ``p0``, replaced by the final visibility (unless ``store``); with ``newly``,
+    ``plan.newly`` ``(J, B)`` receives ``sum_k weights_k c_jk P_jk``. With ``store``, step ``j`` keeps
+    ``a_j``, ``b_j``, ``H_j = a_j b_j P_j`` and ``c_j`` in ``plan.store``, ``plan.dF`` (if any) receives
+    ``F'(s)`` and the last update is skipped (``P`` is scratch then)."""
     inv_tau = 1.0 / tau
     P = plan.P
-    last = len(plan.steps) - 1
-    for n, (g, xa, wd, gate, A, Bt, fs, xb, xb2d, T, Ts, G, Gs, dF, tmp, gates) in enumerate(plan.steps):
-        # Logistic arguments clamped to +-_CLAMP (beyond, sigma is within 1e-13 of 0/1) so that no
-        # subnormal floats appear (they are ~100x slower on CPUs).
-        torch.add(K, xa, out=A).clamp_(-_CLAMP, _CLAMP).sigmoid_()
-        torch.sum(A, 1, out=fs)  # 32 - F(s)
-        torch.sub(wd, fs, out=xb2d).mul_(inv_tau)
-        torch.sub(xb, K, out=Bt).clamp_(-_CLAMP, _CLAMP).sigmoid_()
+    for grp in plan.groups:
+        _logistics(grp, K, inv_tau)
         if store:
-            torch.mul(A, Bt, out=T)  # a b
-            if dF is not None:  # F'(s) tau = sum_k a_k (1 - a_k)
-                torch.sum(torch.sub(1, A, out=tmp).mul_(A), 1, out=dF)
-            H = plan.H
-            for i, j in enumerate(range(g.start, g.stop)):
-                torch.mul(Ts[i], P, out=H[j])  # a b P_j
-                if n == last and j == g.stop - 1:
-                    break
-                P.addcmul_(H[j], gates[i], value=-1)  # P_j (1 - c_j), in [0, P_j]
-                torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
+            torch.mul(grp.A, grp.B, out=grp.T)  # a b
+            torch.mul(grp.T, grp.gate, out=grp.C)  # c = a b g
         else:
-            Bt.mul_(A).mul_(gate)  # c = a b g (T is Bt)
-            for i in range(len(Ts)):
-                if newly:
-                    P.sub_(torch.mul(Ts[i], P, out=Gs[i]))  # newly covered share c_j P_j
-                else:
-                    P.addcmul_(Ts[i], P, value=-1)  # P_j (1 - c_j), in [0, P_j]
-                torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
+            grp.C.mul_(grp.A).mul_(grp.gate)  # c = a b g (C is B's buffer)
+        for i in range(grp.q):
+            j = grp.g.start + i
+            if store:
+                torch.mul(grp.T_rows[i], P, out=plan.H[j])  # a b P_j
+                if j == len(plan.H) - 1:
+                    break
             if newly:
-                torch.sum(G.mul_(plan.wt), 1, out=plan.newly[g])
+                P.sub_(torch.mul(grp.C_rows[i], P, out=grp.G_rows[i]))  # newly covered share c_j P_j
+            else:
+                P.addcmul_(grp.C_rows[i], P, value=-1)  # P_j (1 - c_j), in [0, P_j]
+            torch.nn.functional.threshold_(P, _TINY, 0.0)  # flush tiny values (no subnormals)
+        if newly:
+            torch.sum(grp.G.mul_(plan.wt), 1, out=plan.newly[grp.g])
     if plan.dF is not None:
         plan.dF.mul_(inv_tau)
 
@@ -314,35 +362,37 @@ def _scan(plan, grad_visible, grad_newly, weights, r, want_newly, keep_gn, want_
     then, per group, ``Y = H_m D_m`` and the sums ``plan.sums[m]`` = (``sum Y``, ``sum Y a``, ``sum Y b``)
     over sectors; ``plan.gwt`` ``(32, B)`` receives ``sum_m gn_m g_m H_m`` (the weights' gradient).
     Returns ``S_0`` (the gradient of ``p0``)."""
-    top = plan.scan[0][9][-1]  # S_J
+    groups = plan.groups[::-1]
+    top = groups[0].S_rows[-1]  # S_J
     if grad_visible is None:
         top.zero_()
     else:
         top.copy_(grad_visible[r].t())
     if want_newly:
         wtT = plan.wt.copy_(weights[r].t())
-        gnT = plan.newly.copy_(grad_newly[r].t())
-        gn = list(gnT.unbind(0))
+        gn = list(plan.newly.copy_(grad_newly[r].t()).unbind(0))
     if keep_gn:
-        coef = list(torch.mul(gnT, plan.gate[:, 0], out=plan.coef).unbind(0))  # gn_j g_j
+        coef = list(torch.mul(plan.newly, plan.gate[:, 0], out=plan.coef).unbind(0))  # gn_j g_j
         gwt = plan.gwt.zero_()
-    for n, (g, q, A, Bt, gate, C, Cs, H, AB, Sh, D, Ds, Z, Y, Y1, Z12, sums) in enumerate(plan.scan):
-        if n:
-            Sh[q].copy_(S)
-        torch.mul(A, Bt, out=C).mul_(gate)  # c = a b g
-        for i in range(q - 1, -1, -1):
-            m = g.start + i
+        H = plan.H
+    S = top
+    for grp in groups:
+        Sh, Ds = grp.S_rows, grp.D_rows
+        if S is not Sh[-1]:
+            Sh[-1].copy_(S)
+        for i in range(grp.q - 1, -1, -1):
+            m = grp.g.start + i
             if want_newly:
                 torch.addcmul(Sh[i + 1], wtT, gn[m], value=-1, out=Ds[i])
             if keep_gn:
-                gwt.addcmul_(H[i], coef[m])
+                gwt.addcmul_(H[m], coef[m])
             if m > 0 or want_p0:
-                torch.addcmul(Sh[i + 1], Cs[i], Ds[i], value=-1, out=Sh[i])
+                torch.addcmul(Sh[i + 1], grp.C_rows[i], Ds[i], value=-1, out=Sh[i])
         S = Sh[0]
         if want_sw:
-            torch.mul(H, D, out=Y)  # Y = a b P D
-            torch.mul(Y1, AB, out=Z12)  # Y a, Y b
-            torch.sum(Z, 2, out=sums)
+            torch.mul(grp.H, grp.D, out=grp.Y)  # Y = a b P D
+            torch.mul(grp.Y1, grp.AB, out=grp.Z12)  # Y a, Y b
+            torch.sum(grp.Z, 2, out=grp.sums)
     return S
 
 
@@ -363,17 +413,17 @@ def _plans(N, block, make):
 def _soft_sweep(s, w, weights, p0, tau, delta, block=None, group=None):
     """The soft union's forward (no tables): ``visible`` ``(N, 32)`` and ``newly`` ``(N, J)`` (``(N, 0)``
     without ``weights``) for widths ``w >= 0``, in blocks of ``block`` rows and groups of ``group`` steps
-    (defaults :attr:`SectorUnion.FORWARD_BLOCK`, :attr:`SectorUnion.GROUP`). With ``c = a b g``
+    (defaults :attr:`SectorUnion.FORWARD_BLOCK`, :attr:`SectorUnion.FORWARD_GROUP`). With ``c = a b g``
     (``a = sigmoid((k+1-s)/tau)``, ``b = sigmoid((w+F-delta-k)/tau)``, ``g = tanh(w/tau)``):
     ``G_j = c_j P_j``, ``P_{j+1} = P_j - G_j``."""
     N, J = s.shape
     block = block or SectorUnion.FORWARD_BLOCK
-    group = group or SectorUnion.GROUP
+    group = group or SectorUnion.FORWARD_GROUP
     want_newly = weights is not None
     K = _sector_offsets(s, tau)
     visible = s.new_empty(N, SECTORS)
     newly = s.new_empty(N, J) if want_newly else s.new_zeros(N, 0)
-    for r, plan in _plans(N, block, lambda B: _Plan(s, B, J, group, False, want_newly)):
+    for r, plan in _plans(N, block, lambda B: _Plan(s, B, J, min(group, J), tau, False, want_newly)):
         _load(plan, s, w, p0, r, tau, delta)
         if want_newly:
             plan.wt.copy_(weights[r].t())
@@ -396,22 +446,25 @@ class SectorUnion(torch.autograd.Function):
     ``sum_k weights_k c_jk p0_k prod_{i<j} (1 - c_ik)`` (empty ``(N, 0)`` without weights).
 
     Forward keeps only its inputs (``O(N J)``). Backward rebuilds, for blocks of ``BACKWARD_BLOCK``
-    rows at a time, each step's ``a_j``, ``b_j`` and ``H_j = a_j b_j P_j`` (``c_j = a_j b_j g_j``,
-    ``P_j = p0 prod_{i<j} (1 - c_i)``) in one forward sweep, then runs a reverse linear scan
-    (``S_{J-1} = G_v``, ``D_m = S_m - gn_m weights``, ``dL/dc_m = -P_m D_m``, ``S_{m-1} = S_m - c_m D_m``),
+    rows at a time, each step's ``a_j``, ``b_j``, ``H_j = a_j b_j P_j`` and ``c_j = a_j b_j g_j``
+    (``P_j = p0 prod_{i<j} (1 - c_i)``) in one forward sweep, then runs a reverse linear scan
+    (``S_J = G_v``, ``D_m = S_{m+1} - gn_m weights``, ``dL/dc_m = -P_m D_m``, ``S_m = S_{m+1} - c_m D_m``),
     never dividing by ``1 - c``. With ``dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau`` and
     ``dc/dw = a b g' + c (1 - b) / tau``, each step's gradients come from three sums over sectors of
     ``Y = H_m D_m``: ``sum Y``, ``sum Y a`` and ``sum Y b``. So neither memory nor time is spent on tables
     in the forward pass (which a recomputed walk runs twice), and the tables only ever exist for one block.
+    The gradients of ``s`` and ``w`` come back as transposed views of ``(J, N)`` tensors.
     """
 
-    #: rows per block of the forward sweep (scratch: about ``4 GROUP + 5`` rows of 32 per row)
+    #: rows per block of the forward sweep (scratch: about ``4 FORWARD_GROUP + 4`` rows of 32 per row)
     FORWARD_BLOCK = 2048
-    #: rows per block of the backward's table rebuild (its transient memory: ``3 J + 5 GROUP + 4``
-    #: rows of 32 per row)
+    #: steps per group (logistics evaluated together) in the forward sweep
+    FORWARD_GROUP = 4
+    #: rows per block of the backward (its transient memory: ``4 J + 6 BACKWARD_GROUP + 4`` rows of 32
+    #: per row)
     BACKWARD_BLOCK = 1024
-    #: steps whose logistics are evaluated together
-    GROUP = 4
+    #: steps per group in the backward
+    BACKWARD_GROUP = 4
 
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
@@ -436,13 +489,13 @@ class SectorUnion(torch.autograd.Function):
         want_sw = want_s or want_w
         if not (want_sw or keep_gn or want_p0):
             return None, None, None, None, None, None, None
-        gs = s.new_empty(N, J) if want_s else None
-        gw = s.new_empty(N, J) if want_w else None
+        gsT = s.new_empty(J, N) if want_s else None
+        gwT = s.new_empty(J, N) if want_w else None
         gweights = s.new_empty(N, SECTORS) if keep_gn else None
         gp0 = s.new_empty(N, SECTORS) if want_p0 else None
-        group = SectorUnion.GROUP
+        group = min(SectorUnion.BACKWARD_GROUP, J)
         K = _sector_offsets(s, tau)
-        make = lambda B: _Plan(s, B, J, group, True, want_newly, keep_gn, want_s, want_sw)  # noqa: E731
+        make = lambda B: _Plan(s, B, J, group, tau, True, want_newly, keep_gn, want_s, want_sw)  # noqa: E731
         for r, plan in _plans(N, SectorUnion.BACKWARD_BLOCK, make):
             _load(plan, s, w, p0, r, tau, ctx.delta)
             _sweep(plan, K, tau, store=True)
@@ -453,15 +506,16 @@ class SectorUnion(torch.autograd.Function):
                 s1_b = torch.sub(s1, sb)  # sum Y (1 - b)
                 if want_w:
                     # gw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau
-                    gw[r] = torch.mul(g, g).sub_(1).mul_(s1).sub_(s1_b.mul(g)).mul_(inv_tau).t()
+                    torch.mul(g, g, out=gwT[:, r]).sub_(1).mul_(s1).sub_(s1_b.mul(g)).mul_(inv_tau)
                 if want_s:
                     # gs = -g / tau (F' sum Y (1 - b) - sum Y (1 - a))
-                    gs[r] = s1_b.mul_(plan.dF).sub_(s1).add_(sa).mul_(g).mul_(-inv_tau).t()
+                    torch.mul(s1_b, plan.dF, out=gsT[:, r]).sub_(s1).add_(sa).mul_(g).mul_(-inv_tau)
             if keep_gn:
                 gweights[r] = plan.gwt.t()
             if want_p0:
                 gp0[r] = S.t()
-        return gs, gw, gweights, gp0, None, None, None
+        return (None if gsT is None else gsT.t(), None if gwT is None else gwT.t(), gweights, gp0,
+                None, None, None)
 
 
 def _hard_sweep(s, w, weights, p0, rounding):
