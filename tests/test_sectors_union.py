@@ -1,0 +1,158 @@
+"""SectorUnion's blocked sweeps: block and group sizes, both smooth-floor paths, gradient combinations,
+input layouts and float32 accuracy (the plain-autograd reference is :func:`soft_coverage`)."""
+import itertools
+
+import pytest
+import torch
+
+from torch_ao.sectors import SectorUnion, _expm1_tanh, sector_interval, sector_union, soft_coverage
+
+
+def _plain(s, w, weights, p0, tau, rounding):
+    c = soft_coverage(s, w, tau, rounding)
+    P = torch.ones_like(c[:, 0]) if p0 is None else p0.clone()
+    newly = []
+    for j in range(s.shape[1]):
+        g = c[:, j] * P
+        if weights is not None:
+            newly.append((g * weights).sum(-1))
+        P = P * (1 - c[:, j])
+    return P, (torch.stack(newly, 1) if weights is not None else s.new_zeros(s.shape[0], 0))
+
+
+def _inputs(N, J, seed, dtype=torch.float64, spread=0.4, zero_widths=True):
+    g = torch.Generator().manual_seed(seed)
+    lo = torch.rand(N, J, generator=g, dtype=dtype)
+    hi = (lo + spread * torch.rand(N, J, generator=g, dtype=dtype)).clamp(max=1)
+    s, w = sector_interval(lo, hi)
+    if zero_widths:  # (not for gradcheck: finite differences cross the clamp of w at 0)
+        w[::3, 1] = 0
+    weights = torch.rand(N, 32, generator=g, dtype=dtype)
+    p0 = torch.rand(N, 32, generator=g, dtype=dtype)
+    return s, w, weights, p0
+
+
+def _union_and_grads(s, w, weights, p0, tau, rounding, gv, gn):
+    leaves = [x.clone().requires_grad_() for x in (s, w, weights, p0)]
+    vis, newly = SectorUnion.apply(*leaves, tau, rounding, False)
+    grads = torch.autograd.grad((vis * gv).sum() + (newly * gn).sum(), leaves)
+    return (vis.detach(), newly.detach()) + grads
+
+
+@pytest.mark.parametrize("tau", [0.05, 0.4])  # smooth floor from its own window / from the complements of a
+def test_union_matches_plain_autograd_both_floor_paths(tau):
+    s, w, weights, p0 = _inputs(9, 7, 1)
+    gv = torch.randn(9, 32, dtype=torch.float64)
+    gn = torch.randn(9, 7, dtype=torch.float64)
+    got = _union_and_grads(s, w, weights, p0, tau, "round", gv, gn)
+    leaves = [x.clone().requires_grad_() for x in (s, w, weights, p0)]
+    vis, newly = _plain(*leaves, tau, "round")
+    ref = (vis, newly) + torch.autograd.grad((vis * gv).sum() + (newly * gn).sum(), leaves)
+    for a, b in zip(got, ref):
+        assert torch.allclose(a, b.detach(), rtol=1e-9, atol=1e-10), (a - b).abs().max()
+    leaves = [x.requires_grad_() for x in _inputs(6, 5, 7, zero_widths=False)]
+    assert torch.autograd.gradcheck(lambda *x: SectorUnion.apply(*x, tau, "floor", False), leaves)
+
+
+@pytest.mark.parametrize("tau", [0.05, 0.25])
+def test_union_block_and_group_sizes_agree(tau, monkeypatch):
+    # N = 37 and J = 11 are not multiples of the block and group sizes (partial last block and group)
+    s, w, weights, p0 = _inputs(37, 11, 2)
+    gv = torch.randn(37, 32, dtype=torch.float64)
+    gn = torch.randn(37, 11, dtype=torch.float64)
+    outs = []
+    for fb, fg, bb, bg in [(4096, 4, 4096, 4), (5, 3, 8, 2), (1, 1, 1, 1), (16, 16, 7, 11), (37, 4, 36, 5)]:
+        monkeypatch.setattr(SectorUnion, "FORWARD_BLOCK", fb)
+        monkeypatch.setattr(SectorUnion, "FORWARD_GROUP", fg)
+        monkeypatch.setattr(SectorUnion, "BACKWARD_BLOCK", bb)
+        monkeypatch.setattr(SectorUnion, "BACKWARD_GROUP", bg)
+        outs.append(_union_and_grads(s, w, weights, p0, tau, "ceil", gv, gn))
+    for other in outs[1:]:
+        for a, b in zip(outs[0], other):
+            assert torch.allclose(a, b, rtol=1e-10, atol=1e-12), (a - b).abs().max()
+
+
+def test_union_gradient_combinations():
+    """Every combination of optional inputs, inputs needing gradients and missing output gradients."""
+    N, J, tau = 5, 6, 0.3
+    S, W, WT, P0 = _inputs(N, J, 3)
+    g = torch.Generator().manual_seed(4)
+    GV = torch.randn(N, 32, generator=g, dtype=torch.float64)
+    GN = torch.randn(N, J, generator=g, dtype=torch.float64)
+    checked = 0
+    for rs, rw, has_wt, rwt, has_p0, rp0, use_gv, use_gn in itertools.product([0, 1], repeat=8):
+        if (rwt and not has_wt) or (rp0 and not has_p0) or (use_gn and not has_wt) or not (use_gv or use_gn):
+            continue
+        s, w = S.clone().requires_grad_(bool(rs)), W.clone().requires_grad_(bool(rw))
+        wt = WT.clone().requires_grad_(bool(rwt)) if has_wt else None
+        p0 = P0.clone().requires_grad_(bool(rp0)) if has_p0 else None
+        leaves = [x for x in (s, w, wt, p0) if x is not None and x.requires_grad]
+        if not leaves:
+            continue
+        vis, newly = SectorUnion.apply(s, w, wt, p0, tau, "ceil", False)
+        vis_ref, newly_ref = _plain(s, w, wt, p0, tau, "ceil")
+        assert torch.allclose(vis, vis_ref) and torch.allclose(newly, newly_ref)
+        outs, refs, grads = [], [], []
+        if use_gv:
+            outs.append(vis), refs.append(vis_ref), grads.append(GV)
+        if use_gn:
+            outs.append(newly), refs.append(newly_ref), grads.append(GN)
+        got = torch.autograd.grad(outs, leaves, grads, allow_unused=True)
+        refs = [r if r.requires_grad else r.detach().requires_grad_() for r in refs]
+        want = torch.autograd.grad(refs, leaves, grads, allow_unused=True)
+        for a, b in zip(got, want):
+            a = torch.zeros_like(b) if a is None else a
+            b = torch.zeros_like(a) if b is None else b
+            assert torch.allclose(a, b, atol=1e-10)
+        checked += 1
+    assert checked == 76
+
+
+def test_union_transposed_inputs_and_no_grad_path():
+    # the walk passes (N, J) views of (J, N) tensors
+    s, w, weights, p0 = _inputs(20, 9, 5, dtype=torch.float32)
+    sT, wT = s.t().contiguous().t(), w.t().contiguous().t()
+    assert not sT.is_contiguous()
+    with torch.no_grad():
+        vis, newly = sector_union(s, w, mode="soft", tau=0.2, weights=weights, p0=p0)
+    vis2, newly2 = SectorUnion.apply(sT.requires_grad_(), wT.requires_grad_(), weights, p0, 0.2, "ceil", False)
+    assert torch.equal(vis, vis2.detach()) and torch.equal(newly, newly2.detach())
+    gs, gw = torch.autograd.grad(vis2.sum() + newly2.sum(), (sT, wT))
+    s2, w2 = s.clone().requires_grad_(), w.clone().requires_grad_()
+    v3, n3 = SectorUnion.apply(s2, w2, weights, p0, 0.2, "ceil", False)
+    gs_ref, gw_ref = torch.autograd.grad(v3.sum() + n3.sum(), (s2, w2))
+    assert torch.equal(gs, gs_ref) and torch.equal(gw, gw_ref)
+
+
+@pytest.mark.parametrize("tau", [0.01, 0.15, 0.25])
+def test_union_float32_accuracy(tau):
+    """float32 against the same union in float64: the smooth floor must keep the precision of a small
+    F(s) (a floor formed as 32 - sum a, or from arguments (k + 1) / tau - s / tau, is ~10x worse here)."""
+    N, J = 2048, 16
+    g = torch.Generator().manual_seed(6)
+    s = torch.rand(N, J, generator=g) * 28
+    s[::5, 2] = torch.rand(N, generator=g)[::5] * 0.5  # small F(s)
+    w = torch.rand(N, J, generator=g) * 4
+    weights = torch.rand(N, 32, generator=g)
+    gv, gn = torch.randn(N, 32, generator=g), torch.randn(N, J, generator=g)
+    leaves32 = [x.clone().requires_grad_() for x in (s, w, weights)]
+    leaves64 = [x.double().requires_grad_() for x in (s, w, weights)]
+    res = []
+    for leaves, dt in ((leaves32, torch.float32), (leaves64, torch.float64)):
+        vis, newly = SectorUnion.apply(*leaves, None, tau, "round", False)
+        grads = torch.autograd.grad((vis * gv.to(dt)).sum() + (newly * gn.to(dt)).sum(), leaves)
+        res.append([x.detach().double() for x in (vis, newly) + grads])
+    bound = 2e-6 / tau  # float32 rounding amplified by 1 / tau
+    for a, b in zip(*res):
+        assert float((a - b).abs().max() / b.abs().max()) < bound
+
+
+def test_expm1_tanh():
+    x = torch.cat([torch.logspace(-12, 2, 20001, dtype=torch.float64), torch.zeros(1, dtype=torch.float64)])
+    for dtype in (torch.float32, torch.float64):
+        xx = x.to(dtype)
+        ref = torch.tanh(xx.double())
+        got = _expm1_tanh(xx.clone()).double()
+        assert got[-1] == 0
+        rel = ((got - ref).abs() / ref.clamp_min(1e-300)).max()
+        assert rel < 3 * torch.finfo(dtype).eps
