@@ -19,9 +19,9 @@ Hard masks (:func:`hard_mask`, :func:`popcount32`) use torch integer ops on ``in
 gate ``tanh(w / tau)`` makes zero-width intervals cover nothing. As ``tau -> 0`` it converges to the hard
 rule. The union over steps ``1 - prod_j (1 - c_j)`` and each step's newly covered fraction
 ``c_j prod_{i<j} (1 - c_i)`` are computed by :class:`SectorUnion`, a custom autograd function: one
-in-place ``(N, 32)`` pass per step (no ``(N, steps, 32)`` autograd graph) that keeps only its ``(N, steps)``
-inputs; backward rebuilds the coverage and its analytic derivatives block by block for a linear
-reverse scan.
+blocked, in-place sweep (no ``(N, steps, 32)`` autograd graph) that keeps only its ``(N, steps)``
+inputs; backward rebuilds the coverage and the tables of its analytic derivatives block by block for
+a linear reverse scan.
 """
 from __future__ import annotations
 
@@ -185,21 +185,23 @@ _WINDOW_MAX = 8  # F(s) from its own window of logistics up to this width (tau <
 # evaluated together (fewer, larger ops); the visibility update is one ``(32, B)`` op per step. The
 # views of the buffers are built once per block size (:class:`_Plan`), not per step.
 #
-# The smooth floor needs no logistics of its own: its terms are the complements of ``a``,
+# For tau > 0.1 the smooth floor needs no logistics of its own: its terms are the complements of ``a``,
 # ``F(s) = sum_{m=1..32} sigmoid((s - m) / tau) = sum_k (1 - a_k)`` and ``F'(s) = sum_k a_k (1 - a_k) / tau``
-# (with the clamped arguments; a term beyond the clamp is within sigmoid(-30) of 0 or 1).
+# (with the clamped arguments; a term beyond the clamp is within sigmoid(-30) of 0 or 1). For smaller
+# tau its window of logistics is narrow (``W <= 8``) and keeps ``F`` accurate where ``a``'s arguments
+# ``(k + 1) / tau - s / tau`` are not (``(s - lo) / tau`` as in :func:`_soft_floor_window`).
 
 
 class _Group:
     """Views of one group of ``q`` consecutive steps ``g`` (``slice``) of a :class:`_Plan`."""
 
-    def __init__(self, plan, g, A, Bt, C, T, fs, xb, tmp):
+    def __init__(self, plan, g, A, Bt, C, T, fs, xb):
         q = g.stop - g.start
         self.g, self.q, self.A, self.B, self.C, self.T = g, q, A, Bt, C, T
-        self.C_rows, self.T_rows = list(C.unbind(0)), list(T.unbind(0))
+        self.C_rows = list(C.unbind(0))
+        self.T_rows = None if T is None else list(T.unbind(0))
         self.xa, self.wd, self.gate = plan.xa[g], plan.wd[g], plan.gate[g]
         self.fs, self.xb = fs, xb
-        self.tmp = tmp
         self.dF = None if plan.dF is None else plan.dF[g]
         self.F = None if plan.F is None else plan.F[g]  # F(s) from the window (else from a)
 
@@ -224,7 +226,8 @@ class _Plan:
         self.wt = e(SECTORS, B) if newly else None
         self.newly = e(J, B) if newly else None  # forward: newly; backward: grad_newly
         self.dF = e(J, B) if slope else None
-        T, fs, xb = e(Q, SECTORS, B), e(Q, B), e(Q, 1, B)
+        T = e(Q, SECTORS, B) if store else None  # a b of a group
+        fs, xb = e(Q, B), e(Q, 1, B)
         groups = [slice(j0, min(j0 + Q, J)) for j0 in range(0, J, Q)]
         self.groups = []
         if store:
@@ -232,9 +235,8 @@ class _Plan:
             self.H = list(self.store[:, 2].unbind(0))
             for g in groups:
                 q = g.stop - g.start
-                # F'(s) uses the group's c rows as scratch before c is written
                 self.groups.append(_Group(self, g, self.store[g, 0], self.store[g, 1], self.store[g, 3], T[:q],
-                                          fs[:q], xb[:q], self.store[g, 3]))
+                                          fs[:q], xb[:q]))
             self.Sh = e(Q + 1, SECTORS, B)  # S_{m0} .. S_{m1} of a group
             D = e(Q, SECTORS, B) if newly else None
             Z = e(Q, 3, SECTORS, B) if sums else None
@@ -255,7 +257,7 @@ class _Plan:
             G = e(Q, SECTORS, B) if newly else None
             for g in groups:
                 q = g.stop - g.start
-                grp = _Group(self, g, A[:q], Bt[:q], Bt[:q], T[:q], fs[:q], xb[:q], None)
+                grp = _Group(self, g, A[:q], Bt[:q], Bt[:q], None, fs[:q], xb[:q])
                 if newly:
                     grp.G, grp.G_rows = G[:q], list(G[:q].unbind(0))
                 self.groups.append(grp)
@@ -456,7 +458,8 @@ class SectorUnion(torch.autograd.Function):
     The gradients of ``s`` and ``w`` come back as transposed views of ``(J, N)`` tensors.
     """
 
-    #: rows per block of the forward sweep (scratch: about ``4 FORWARD_GROUP + 4`` rows of 32 per row)
+    #: rows per block of the forward sweep (scratch: ``2 FORWARD_GROUP + 1`` rows of 32 per row, and
+    #: ``FORWARD_GROUP + 1`` more with weights)
     FORWARD_BLOCK = 2048
     #: steps per group (logistics evaluated together) in the forward sweep
     FORWARD_GROUP = 4
