@@ -156,3 +156,19 @@ def test_expm1_tanh():
         assert got[-1] == 0
         rel = ((got - ref).abs() / ref.clamp_min(1e-300)).max()
         assert rel < 3 * torch.finfo(dtype).eps
+
+
+@pytest.mark.parametrize("N, J", [(0, 4), (5, 0), (0, 0)])
+def test_union_empty_shapes(N, J):
+    s, w = torch.rand(N, J, requires_grad=True), torch.rand(N, J, requires_grad=True)
+    weights, p0 = torch.rand(N, 32, requires_grad=True), torch.rand(N, 32, requires_grad=True)
+    vis, newly = sector_union(s, w, mode="soft", tau=0.25, weights=weights, p0=p0)
+    assert vis.shape == (N, 32) and newly.shape == (N, J)
+    if J == 0:
+        assert torch.equal(vis, p0)
+    grads = torch.autograd.grad(vis.sum() + newly.sum(), (s, w, weights, p0), allow_unused=True)
+    for g, x in zip(grads, (s, w, weights, p0)):
+        assert g is None or g.shape == x.shape
+    assert grads[3] is not None
+    if J == 0:  # visible = p0
+        assert torch.equal(grads[3], torch.ones(N, 32))

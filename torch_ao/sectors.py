@@ -425,7 +425,7 @@ def _soft_sweep(s, w, weights, p0, tau, delta, block=None, group=None):
     K = _sector_offsets(s, tau)
     visible = s.new_empty(N, SECTORS)
     newly = s.new_empty(N, J) if want_newly else s.new_zeros(N, 0)
-    for r, plan in _plans(N, block, lambda B: _Plan(s, B, J, min(group, J), tau, False, want_newly)):
+    for r, plan in _plans(N, block, lambda B: _Plan(s, B, J, max(1, min(group, J)), tau, False, want_newly)):
         _load(plan, s, w, p0, r, tau, delta)
         if want_newly:
             plan.wt.copy_(weights[r].t())
@@ -492,11 +492,15 @@ class SectorUnion(torch.autograd.Function):
         want_sw = want_s or want_w
         if not (want_sw or keep_gn or want_p0):
             return None, None, None, None, None, None, None
+        if J == 0:  # visible = p0
+            gp0 = (s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible.clone()) if want_p0 else None
+            return (s.new_zeros(N, 0) if want_s else None, s.new_zeros(N, 0) if want_w else None, None, gp0,
+                    None, None, None)
         gsT = s.new_empty(J, N) if want_s else None
         gwT = s.new_empty(J, N) if want_w else None
         gweights = s.new_empty(N, SECTORS) if keep_gn else None
         gp0 = s.new_empty(N, SECTORS) if want_p0 else None
-        group = min(SectorUnion.BACKWARD_GROUP, J)
+        group = max(1, min(SectorUnion.BACKWARD_GROUP, J))
         K = _sector_offsets(s, tau)
         make = lambda B: _Plan(s, B, J, group, tau, True, want_newly, keep_gn, want_s, want_sw)  # noqa: E731
         for r, plan in _plans(N, SectorUnion.BACKWARD_BLOCK, make):
