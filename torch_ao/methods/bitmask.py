@@ -88,11 +88,14 @@ def _interval_from_unit(lo: torch.Tensor, hi: torch.Tensor, epsilon: float) -> t
 def _unit_angles(along_view, along_tangent, thickness, gamma, side):
     """Front and back angles (``atan2`` in the slice plane) and their unclamped positions across the
     hemisphere ``(side * theta - gamma + pi/2) / pi``; rows block-major over ``gamma``'s ``(N,)``."""
-    front = torch.atan2(along_tangent, along_view - 0.0)
-    back = torch.atan2(along_tangent, along_view - thickness)
     J = along_view.shape[0] // max(gamma.shape[0], 1)
-    g = gamma.repeat(J)
-    return (side * front - g + _HALF_PI) / math.pi, (side * back - g + _HALF_PI) / math.pi
+    shift = (_HALF_PI - gamma) / math.pi  # (N,)
+    scale = side / math.pi
+
+    def unit(theta):
+        return torch.addcmul(shift, theta.view(J, gamma.shape[0]), theta.new_tensor(scale)).view(-1)
+
+    return unit(torch.atan2(along_tangent, along_view)), unit(torch.atan2(along_tangent, along_view - thickness))
 
 
 def _sector_interval(along_view, along_tangent, thickness, gamma, side: int, epsilon: float):
@@ -129,26 +132,26 @@ class SectorInterval(torch.autograd.Function):
             zero = torch.zeros_like(av)
             g_start = zero if g_start is None else g_start
             g_width = zero if g_width is None else g_width
+            xf, xb = rf.clamp(0.0, 1.0), rb.clamp(0.0, 1.0)
             if eps > 0:  # clamp_min(0) of the narrowed width passes gradient where width - eps >= 0
-                xf, xb = rf.clamp(0.0, 1.0), rb.clamp(0.0, 1.0)
                 lo, hi = (xf, xb) if side > 0 else (xb, xf)
                 g_width = torch.where((hi - lo) * SECTORS - eps >= 0, g_width, zero)
             g_lo = (g_start - g_width) * SECTORS
             g_hi = g_width * SECTORS
             g_f, g_b = (g_lo, g_hi) if side > 0 else (g_hi, g_lo)
             # clamp(r, 0, 1) passes gradient inside [0, 1] (ends included, as torch.clamp); r = (side theta - gamma + pi/2) / pi
-            g_f = torch.where((rf >= 0) & (rf <= 1), g_f, zero) / math.pi
-            g_b = torch.where((rb >= 0) & (rb <= 1), g_b, zero) / math.pi
+            g_f = torch.where(xf == rf, g_f, zero)
+            g_b = torch.where(xb == rb, g_b, zero)
+            g_gamma = (g_f + g_b).view(J, N).sum(0).mul_(-1 / math.pi)
             # theta = atan2(y, x): d theta = (x dy - y dx) / (x^2 + y^2)
-            xb_ = av - t
-            inv_f = (av * av + at * at).reciprocal() * (side * g_f)
-            inv_b = (xb_ * xb_ + at * at).reciprocal() * (side * g_b)
-            g_av = -(at * inv_f + at * inv_b)
-            g_at = av * inv_f + xb_ * inv_b
+            back_view = av - t
+            inv_f = torch.addcmul(at * at, av, av).reciprocal_().mul_(g_f).mul_(side / math.pi)
+            inv_b = torch.addcmul(at * at, back_view, back_view).reciprocal_().mul_(g_b).mul_(side / math.pi)
+            g_at = torch.addcmul(av * inv_f, back_view, inv_b)
             g_t = at * inv_b
+            g_av = (inv_f + inv_b).mul_(at).neg_()
             if t.dim() == 0:
                 g_t = g_t.sum()
-            g_gamma = -(g_f + g_b).view(J, N).sum(0)
         return g_av, g_at, g_t, g_gamma, None, None
 
 
