@@ -4,7 +4,12 @@ Forward: ``sector_union(..., mode="soft", tau=0.25)`` under ``no_grad``; forward
 ``SectorUnion.apply`` then ``backward``, on ``s = rand(N, J) * 28``, ``w = rand(N, J) * 4``, with and
 without per-sector weights (the ``newly`` output). Prints the median (and the minimum) of ``--repeat`` runs in ms.
 
-    python benchmarks/bench_sectors.py [--rows 16384] [--steps 16] [--threads 1] [--repeat 15]
+A 30 MB tensor is allocated and freed first (``--cold-allocator`` skips it): glibc then serves the
+union's scratch buffers from its heap, as in a real frame where large tensors come and go; in a fresh
+process it may instead map (and page-fault) them anew on every call, a cost of the allocator's state
+rather than of the union.
+
+    python benchmarks/bench_sectors.py [--rows 16384] [--steps 16] [--threads 1] [--repeat 15] [--cold-allocator]
 """
 from __future__ import annotations
 
@@ -36,8 +41,11 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--tau", type=float, default=0.25)
     ap.add_argument("--dtype", default="float32", choices=("float32", "float64"))
+    ap.add_argument("--cold-allocator", action="store_true", help="skip the allocator warm-up")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if not args.cold_allocator:
+        torch.empty(30 * 2**20 // 4).fill_(0)  # raises glibc's mmap threshold (see the module docstring)
     dtype = getattr(torch, args.dtype)
     g = torch.Generator().manual_seed(0)
     N, J, tau = args.rows, args.steps, args.tau
