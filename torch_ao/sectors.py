@@ -471,11 +471,10 @@ class SectorUnion(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
-        w = w.clamp_min(0)
         if hard_forward:
-            visible, newly = _hard_sweep(s, w, weights, p0, rounding)
+            visible, newly = _hard_sweep(s, w.clamp_min(0), weights, p0, rounding)
         else:
-            visible, newly = _soft_sweep(s, w, weights, p0, tau, _DELTA[rounding])
+            visible, newly = _live_union(s, w, weights, p0, tau, _DELTA[rounding])
         ctx.tau, ctx.delta = tau, _DELTA[rounding]
         ctx.save_for_backward(s, w, weights, p0)
         return visible, newly
@@ -483,46 +482,147 @@ class SectorUnion(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_visible, grad_newly):
         s, w, weights, p0 = ctx.saved_tensors
-        N, J = s.shape
-        tau = ctx.tau
-        inv_tau = 1.0 / tau
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
         keep_gn = want_newly and ctx.needs_input_grad[2]
         want_s, want_w, want_p0 = ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.needs_input_grad[3]
-        want_sw = want_s or want_w
-        if not (want_sw or keep_gn or want_p0):
+        if not (want_s or want_w or keep_gn or want_p0):
             return None, None, None, None, None, None, None
-        if J == 0:  # visible = p0
-            gp0 = (s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible.clone()) if want_p0 else None
-            return (s.new_zeros(N, 0) if want_s else None, s.new_zeros(N, 0) if want_w else None, None, gp0,
-                    None, None, None)
-        gsT = s.new_empty(J, N) if want_s else None
-        gwT = s.new_empty(J, N) if want_w else None
-        gweights = s.new_empty(N, SECTORS) if keep_gn else None
-        gp0 = s.new_empty(N, SECTORS) if want_p0 else None
-        group = max(1, min(SectorUnion.BACKWARD_GROUP, J))
-        K = _sector_offsets(s, tau)
-        make = lambda B: _Plan(s, B, J, group, tau, True, want_newly, keep_gn, want_s, want_sw)  # noqa: E731
-        for r, plan in _plans(N, SectorUnion.BACKWARD_BLOCK, make):
-            _load(plan, s, w, p0, r, tau, ctx.delta)
-            _sweep(plan, K, tau, store=True)
-            S = _scan(plan, grad_visible, grad_newly, weights, r, want_newly, keep_gn, want_sw, want_p0)
-            if want_sw:
-                s1, sa, sb = plan.sums.unbind(1)  # (J, B)
-                g = plan.gate[:, 0]
-                s1_b = torch.sub(s1, sb)  # sum Y (1 - b)
-                if want_w:
-                    # gw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau
-                    torch.mul(g, g, out=gwT[:, r]).sub_(1).mul_(s1).sub_(s1_b.mul(g)).mul_(inv_tau)
-                if want_s:
-                    # gs = -g / tau (F' sum Y (1 - b) - sum Y (1 - a))
-                    torch.mul(s1_b, plan.dF, out=gsT[:, r]).sub_(s1).add_(sa).mul_(g).mul_(-inv_tau)
-            if keep_gn:
-                gweights[r] = plan.gwt.t()
-            if want_p0:
-                gp0[r] = S.t()
-        return (None if gsT is None else gsT.t(), None if gwT is None else gwT.t(), gweights, gp0,
-                None, None, None)
+        layout = _LiveSteps(w)
+        if layout.dense:
+            grads = _union_backward(s, w, weights, p0, grad_visible, grad_newly, ctx.tau, ctx.delta,
+                                    want_s, want_w, keep_gn, want_p0)
+        else:
+            grads = layout.backward(s, w, weights, p0, grad_visible, grad_newly, ctx.tau, ctx.delta,
+                                    want_s, want_w, keep_gn, want_p0)
+        return (*grads, None, None, None)
+
+
+def _union_backward(s, w, weights, p0, grad_visible, grad_newly, tau, delta, want_s, want_w, keep_gn, want_p0):
+    """:class:`SectorUnion`'s backward for widths ``w >= 0``: ``(gs, gw, gweights, gp0)`` (``None`` where
+    not wanted)."""
+    N, J = s.shape
+    inv_tau = 1.0 / tau
+    want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
+    want_sw = want_s or want_w
+    if J == 0:  # visible = p0
+        gp0 = (s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible.clone()) if want_p0 else None
+        gweights = s.new_zeros(N, SECTORS) if keep_gn else None
+        return s.new_zeros(N, 0) if want_s else None, s.new_zeros(N, 0) if want_w else None, gweights, gp0
+    gsT = s.new_empty(J, N) if want_s else None
+    gwT = s.new_empty(J, N) if want_w else None
+    gweights = s.new_empty(N, SECTORS) if keep_gn else None
+    gp0 = s.new_empty(N, SECTORS) if want_p0 else None
+    group = max(1, min(SectorUnion.BACKWARD_GROUP, J))
+    K = _sector_offsets(s, tau)
+    make = lambda B: _Plan(s, B, J, group, tau, True, want_newly, keep_gn, want_s, want_sw)  # noqa: E731
+    for r, plan in _plans(N, SectorUnion.BACKWARD_BLOCK, make):
+        _load(plan, s, w, p0, r, tau, delta)
+        _sweep(plan, K, tau, store=True)
+        S = _scan(plan, grad_visible, grad_newly, weights, r, want_newly, keep_gn, want_sw, want_p0)
+        if want_sw:
+            s1, sa, sb = plan.sums.unbind(1)  # (J, B)
+            g = plan.gate[:, 0]
+            s1_b = torch.sub(s1, sb)  # sum Y (1 - b)
+            if want_w:
+                # gw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau
+                torch.mul(g, g, out=gwT[:, r]).sub_(1).mul_(s1).sub_(s1_b.mul(g)).mul_(inv_tau)
+            if want_s:
+                # gs = -g / tau (F' sum Y (1 - b) - sum Y (1 - a))
+                torch.mul(s1_b, plan.dF, out=gsT[:, r]).sub_(s1).add_(sa).mul_(g).mul_(-inv_tau)
+        if keep_gn:
+            gweights[r] = plan.gwt.t()
+        if want_p0:
+            gp0[r] = S.t()
+    return None if gsT is None else gsT.t(), None if gwT is None else gwT.t(), gweights, gp0
+
+
+class _LiveSteps:
+    """Where a union's live steps are: those with a width ``w >= 0``. A negative width covers nothing
+    (it is clamped to 0, where the gate ``tanh(w / tau)`` is 0) and gets no gradient, so only live steps
+    are swept: rows are sorted by their number of live steps (most first) and each row's live steps are
+    moved to the front, in order ("newly" depends on it); rows with the same count form one dense
+    segment. On typical frames most samples occlude nothing (their intervals are narrowed below zero by
+    ``sector_epsilon``), so the sweeps shrink several-fold.
+
+    ``dense``: every step is live (use the plain sweeps). Otherwise ``rows`` ``(N,)`` is the row order,
+    ``steps`` ``(N, J)`` each sorted row's step order and ``segments`` a list of ``(start, stop, count)``
+    ranges of sorted rows with ``count > 0`` live steps.
+    """
+
+    def __init__(self, w: torch.Tensor) -> None:
+        live = w >= 0
+        self.dense = bool(live.all())
+        if self.dense:
+            return
+        counts = live.sum(1)
+        self.rows = torch.argsort(counts, descending=True, stable=True)
+        dead_first = live.logical_not_()[self.rows].to(torch.int8)
+        self.steps = torch.argsort(dead_first, dim=1, stable=True)  # live steps first, in order
+        values, lengths = torch.unique_consecutive(counts[self.rows], return_counts=True)
+        self.segments, start = [], 0
+        for count, length in zip(values.tolist(), lengths.tolist()):
+            if count > 0:
+                self.segments.append((start, start + length, count))
+            start += length
+
+    def take(self, x: torch.Tensor | None, start: int, stop: int, count: int | None = None):
+        """Rows ``start:stop`` of the sorted layout of ``x`` ``(N, ...)`` (with ``count``: the first
+        ``count`` live steps of ``x`` ``(N, J)``)."""
+        if x is None:
+            return None
+        rows = self.rows[start:stop]
+        if count is None:
+            return x[rows]
+        return x[rows].gather(1, self.steps[start:stop, :count])
+
+    def put(self, out: torch.Tensor, value: torch.Tensor, start: int, stop: int, steps: bool) -> None:
+        """Writes sorted rows ``start:stop`` (their live steps when ``steps``) back into ``out``."""
+        rows = self.rows[start:stop]
+        if steps:
+            out[rows[:, None], self.steps[start:stop, :value.shape[1]]] = value
+        else:
+            out[rows] = value
+
+    def forward(self, s, w, weights, p0, tau, delta):
+        N, J = s.shape
+        visible = torch.ones(N, SECTORS, dtype=s.dtype, device=s.device) if p0 is None else p0.clone()
+        newly = s.new_zeros(N, J) if weights is not None else s.new_zeros(N, 0)
+        for start, stop, count in self.segments:
+            vis, new = _soft_sweep(self.take(s, start, stop, count), self.take(w, start, stop, count),
+                                   self.take(weights, start, stop), self.take(p0, start, stop), tau, delta)
+            self.put(visible, vis, start, stop, False)
+            if weights is not None:
+                self.put(newly, new, start, stop, True)
+        return visible, newly
+
+    def backward(self, s, w, weights, p0, grad_visible, grad_newly, tau, delta, want_s, want_w, keep_gn, want_p0):
+        N, J = s.shape
+        gs = s.new_zeros(N, J) if want_s else None
+        gw = s.new_zeros(N, J) if want_w else None
+        gweights = s.new_zeros(N, SECTORS) if keep_gn else None
+        gp0 = None
+        if want_p0:  # rows without live steps pass grad_visible through
+            gp0 = s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible.clone()
+        want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
+        for start, stop, count in self.segments:
+            grads = _union_backward(
+                self.take(s, start, stop, count), self.take(w, start, stop, count),
+                self.take(weights, start, stop), self.take(p0, start, stop), self.take(grad_visible, start, stop),
+                self.take(grad_newly, start, stop, count) if want_newly else None, tau, delta,
+                want_s, want_w, keep_gn, want_p0)
+            for out, value, steps in ((gs, grads[0], True), (gw, grads[1], True), (gweights, grads[2], False),
+                                      (gp0, grads[3], False)):
+                if out is not None:
+                    self.put(out, value, start, stop, steps)
+        return gs, gw, gweights, gp0
+
+
+def _live_union(s, w, weights, p0, tau, delta):
+    """The soft union's forward over live steps only (``w >= 0``; see :class:`_LiveSteps`)."""
+    layout = _LiveSteps(w)
+    if layout.dense:
+        return _soft_sweep(s, w, weights, p0, tau, delta)
+    return layout.forward(s, w, weights, p0, tau, delta)
 
 
 def _hard_sweep(s, w, weights, p0, rounding):
@@ -560,7 +660,7 @@ def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", roundi
     if not needs_grad:  # no graph: the plain sweep, without the backward tables
         if mode == "straight_through":
             return _hard_sweep(s, w.clamp_min(0), weights, p0, rounding)
-        return _soft_sweep(s, w.clamp_min(0), weights, p0, float(tau), _DELTA[rounding])
+        return _live_union(s, w, weights, p0, float(tau), _DELTA[rounding])
     return SectorUnion.apply(s, w, weights, p0, float(tau), rounding, mode == "straight_through")
 
 

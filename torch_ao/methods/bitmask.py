@@ -78,10 +78,11 @@ def _saturate(x: torch.Tensor) -> torch.Tensor:
 
 
 def _interval_from_unit(lo: torch.Tensor, hi: torch.Tensor, epsilon: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Interval ``[lo, hi]`` of ``[0, 1]`` -> start and width in sector units (``epsilon`` sectors narrower)."""
+    """Interval ``[lo, hi]`` of ``[0, 1]`` -> start and width in sector units, ``epsilon`` sectors narrower.
+    The width may come out negative: the sector union reads that as empty (and without gradient)."""
     width = (hi - lo) * SECTORS
     if epsilon > 0:
-        width = (width - epsilon).clamp_min(0)
+        width = width - epsilon
     return lo * SECTORS, width
 
 
@@ -111,8 +112,9 @@ class SectorInterval(torch.autograd.Function):
 
     Inputs: ``along_view``, ``along_tangent`` ``(rows,)`` (rows = steps x N, block-major),
     ``thickness`` (0-d or ``(rows,)``), ``gamma`` ``(N,)`` the projected normal's angle, ``side``,
-    ``epsilon``. Outputs ``start``, ``width`` ``(rows,)``. Autograd through the ``atan2``s and clamps
-    would keep about a dozen tensors per sample; the angles are recomputed in backward instead.
+    ``epsilon``. Outputs ``start``, ``width`` ``(rows,)`` (a negative width: an empty interval). Autograd
+    through the ``atan2``s and clamps would keep about a dozen tensors per sample; the angles are
+    recomputed in backward instead.
     """
 
     @staticmethod
@@ -124,7 +126,7 @@ class SectorInterval(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_start, g_width):
         av, at, t, gamma = ctx.saved_tensors
-        side, eps = ctx.side, ctx.epsilon
+        side = ctx.side
         N = gamma.shape[0]
         J = av.shape[0] // max(N, 1)
         with torch.no_grad():
@@ -133,9 +135,6 @@ class SectorInterval(torch.autograd.Function):
             g_start = zero if g_start is None else g_start
             g_width = zero if g_width is None else g_width
             xf, xb = rf.clamp(0.0, 1.0), rb.clamp(0.0, 1.0)
-            if eps > 0:  # clamp_min(0) of the narrowed width passes gradient where width - eps >= 0
-                lo, hi = (xf, xb) if side > 0 else (xb, xf)
-                g_width = torch.where((hi - lo) * SECTORS - eps >= 0, g_width, zero)
             g_lo = (g_start - g_width) * SECTORS
             g_hi = g_width * SECTORS
             g_f, g_b = (g_lo, g_hi) if side > 0 else (g_hi, g_lo)
