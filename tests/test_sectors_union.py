@@ -172,3 +172,46 @@ def test_union_empty_shapes(N, J):
     assert grads[3] is not None
     if J == 0:  # visible = p0
         assert torch.equal(grads[3], torch.ones(N, 32))
+
+
+def _sparse_inputs(N, J, seed, live_fraction):
+    """Inputs where only some steps are live: the others have negative widths (empty intervals)."""
+    s, w, weights, p0 = _inputs(N, J, seed)
+    g = torch.Generator().manual_seed(seed + 100)
+    dead = torch.rand(N, J, generator=g, dtype=torch.float64) > live_fraction
+    dead[: N // 4] = True  # rows without any live step
+    dead[N // 4: N // 4 + 3] = False  # and rows with every step live
+    return s, torch.where(dead, -0.5 - torch.rand(N, J, generator=g, dtype=torch.float64), w), weights, p0
+
+
+@pytest.mark.parametrize("merge_rows", [0, 1500, 10 ** 9])  # exact segments, the default, one padded segment
+@pytest.mark.parametrize("with_weights", [False, True])
+def test_union_sweeps_live_steps_only(merge_rows, with_weights, monkeypatch):
+    import torch_ao.sectors as sectors
+
+    monkeypatch.setattr(sectors._LiveSteps, "MERGE_ROWS", merge_rows)
+    s, w, weights, p0 = _sparse_inputs(40, 9, 3, live_fraction=0.3)
+    weights = weights if with_weights else None
+    layout = sectors._LiveSteps(w)
+    assert not layout.dense and len(layout.rows) < 40
+    if merge_rows == 10 ** 9:
+        assert len(layout.segments) == 1
+    gv = torch.randn(40, 32, dtype=torch.float64)
+    gn = torch.randn(40, 9, dtype=torch.float64)
+    leaves = [None if x is None else x.clone().requires_grad_() for x in (s, w, weights, p0)]
+    vis, newly = SectorUnion.apply(*leaves, 0.25, "ceil", False)
+    loss = (vis * gv).sum() + ((newly * gn).sum() if with_weights else 0)
+    got = [vis, newly] + list(torch.autograd.grad(loss, [x for x in leaves if x is not None]))
+    # plain autograd of the same union with the widths clamped at zero: dead steps cover nothing and
+    # (the clamp's derivative) get no gradient
+    leaves = [None if x is None else x.clone().requires_grad_() for x in (s, w, weights, p0)]
+    vis, newly = _plain(leaves[0], leaves[1].clamp_min(0), leaves[2], leaves[3], 0.25, "ceil")
+    loss = (vis * gv).sum() + ((newly * gn).sum() if with_weights else 0)
+    ref = [vis, newly] + list(torch.autograd.grad(loss, [x for x in leaves if x is not None]))
+    for a, b in zip(got, ref):
+        assert torch.allclose(a.detach(), b.detach(), rtol=1e-9, atol=1e-10), (a - b).abs().max()
+    gw = got[3]
+    assert torch.all(gw[w < 0] == 0) and gw[w >= 0].abs().max() > 0
+    # the no-grad path (no SectorUnion) gives the same values
+    vis0, newly0 = sector_union(s, w, mode="soft", tau=0.25, weights=weights, p0=p0)
+    assert torch.allclose(vis0, got[0].detach(), rtol=0, atol=1e-12)

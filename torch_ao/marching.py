@@ -621,22 +621,26 @@ class SampleAlong(torch.autograd.Function):
         g_tangent = torch.zeros_like(g_view) if g_tangent is None else g_tangent
         with torch.no_grad():
             # delta_j = position_j - P where valid (m = 1), else -V; along_view = delta . V, along_tangent = side delta . T.
-            # Rows are block-major (J, N): per-query vectors broadcast over the steps, nothing is repeated.
+            # Rows are block-major (J, N); only rows with a gradient are worked on (see GradientRows).
+            rows = GradientRows(J, N, g_view, g_tangent)
+            g_view, g_tangent, su, sv, valid = map(rows.take, (g_view, g_tangent, su, sv, valid))
             m = valid.to(P.dtype)
-            gv = g_view * m  # (rows,) gradients reaching valid samples
+            gv = g_view * m  # gradients reaching valid samples
             gt = g_tangent * (m if side > 0 else -m)
-            a, b = gv.view(J, N).sum(0)[:, None], gt.view(J, N).sum(0)[:, None]  # (N,1)
-            c = g_view.view(J, N).sum(0)[:, None] - a  # ... and invalid ones
-            e = side * g_tangent.view(J, N).sum(0)[:, None] - b
+            a, b = rows.per_query(gv)[:, None], rows.per_query(gt)[:, None]  # (N,1)
+            c = rows.per_query(g_view)[:, None] - a  # ... and invalid ones
+            e = side * rows.per_query(g_tangent)[:, None] - b
+            Vr, Tr = rows.per_row(V), rows.per_row(T)
             grads = [None] * 13
             if ctx.nearest:
-                px, py, pz = source[index].unbind(-1)
+                index = rows.take(index)
+                px, py, pz = _take(source, index).unbind(-1)
                 if ctx.needs_input_grad[7]:
-                    g_pos = gv.view(J, N, 1) * V + gt.view(J, N, 1) * T
-                    grads[7] = torch.zeros_like(source).index_add_(0, index, g_pos.view(J * N, 3))
+                    g_pos = gv[:, None] * Vr + gt[:, None] * Tr
+                    grads[7] = torch.zeros_like(source).index_add_(0, index, g_pos)
             else:
                 B, H, W = frame.shape
-                batch_rows = batch.repeat(J) if B > 1 else batch  # (a single image needs no per-row batch)
+                batch_rows = rows.per_row(batch) if B > 1 else batch  # (a single image needs no per-row batch)
                 taps, fu, fv = _bilinear_taps(frame, batch_rows, su, sv)
                 inverse = _take(source, taps)  # (rows,4) inverse depths
                 depth = _bilerp(inverse.unbind(-1), fu, fv).reciprocal()
@@ -644,20 +648,19 @@ class SampleAlong(torch.autograd.Function):
                 # position = depth * (xh, yh, -1) with xh = (clamp(su) - cx) / fx, yh = -(clamp(sv) - cy) / fy
                 su_c, sv_c = su.clamp(0, W - 1), sv.clamp(0, H - 1)
                 xh, yh = (su_c - cx) / fx, (sv_c - cy) / -fy
-                gvv, gtv = gv.view(J, N), gt.view(J, N)
-                g_x = (gvv * V[:, 0] + gtv * T[:, 0]).view(-1)
-                g_y = (gvv * V[:, 1] + gtv * T[:, 1]).view(-1)
-                g_z = (gvv * V[:, 2] + gtv * T[:, 2]).view(-1)
+                g_x = torch.addcmul(gv * Vr[:, 0], gt, Tr[:, 0])
+                g_y = torch.addcmul(gv * Vr[:, 1], gt, Tr[:, 1])
+                g_z = torch.addcmul(gv * Vr[:, 2], gt, Tr[:, 2])
                 g_inverse, g_fu, g_fv = _bilerp_depth_backward(inverse, fu, fv, depth, g_x * xh + g_y * yh - g_z)
                 if ctx.needs_input_grad[7]:
                     grads[7] = torch.zeros_like(source).index_add_(0, taps.view(-1), g_inverse.view(-1))
                 # fu = su - floor(su); clamp passes the gradient inside [0, W - 1]
-                grads[8] = torch.where(su_c == su, g_x * (depth / fx), 0.0).add_(g_fu)
-                grads[9] = torch.where(sv_c == sv, g_y * (depth / -fy), 0.0).add_(g_fv)
+                grads[8] = rows.put(torch.where(su_c == su, g_x * (depth / fx), 0.0).add_(g_fu))
+                grads[9] = rows.put(torch.where(sv_c == sv, g_y * (depth / -fy), 0.0).add_(g_fv))
                 px, py, pz = xh * depth, yh * depth, -depth
             # sums over the steps of the gradients times the position
-            Sv = torch.stack([(gv * p).view(J, N).sum(0) for p in (px, py, pz)], -1)  # (N,3)
-            St = torch.stack([(gt * p).view(J, N).sum(0) for p in (px, py, pz)], -1)
+            Sv = torch.stack([rows.per_query(gv * p) for p in (px, py, pz)], -1)  # (N,3)
+            St = torch.stack([rows.per_query(gt * p) for p in (px, py, pz)], -1)
             if ctx.needs_input_grad[10]:
                 grads[10] = -(a * V + b * T)
             if ctx.needs_input_grad[11]:
@@ -665,6 +668,39 @@ class SampleAlong(torch.autograd.Function):
             if ctx.needs_input_grad[12]:
                 grads[12] = St - b * P - e * V
         return tuple(grads)
+
+
+class GradientRows:
+    """The rows ``(J * N,)`` (block-major over ``J`` steps of ``N`` queries) a backward works on: all of
+    them, or, when at most half have a nonzero gradient in any of ``grads`` (samples that occlude
+    nothing get none), only those. ``take``/``per_row`` select them, ``put`` scatters results back (zeros
+    elsewhere), ``per_query`` sums them per query ``(N, ...)``."""
+
+    def __init__(self, J: int, N: int, *grads: torch.Tensor) -> None:
+        self.J, self.N = J, N
+        nonzero = grads[0] != 0
+        for g in grads[1:]:
+            nonzero |= g != 0
+        self.index = nonzero.nonzero()[:, 0] if 2 * int(nonzero.sum()) <= J * N else None
+        self.query = None if self.index is None else self.index.remainder(N)
+
+    def take(self, x: torch.Tensor) -> torch.Tensor:
+        return x if self.index is None else x.index_select(0, self.index)
+
+    def put(self, x: torch.Tensor) -> torch.Tensor:
+        if self.index is None:
+            return x
+        return x.new_zeros(self.J * self.N, *x.shape[1:]).index_copy_(0, self.index, x)
+
+    def per_row(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-query ``x`` ``(N, ...)`` for each row."""
+        return _repeat_rows(x, self.J) if self.index is None else x.index_select(0, self.query)
+
+    def per_query(self, x: torch.Tensor) -> torch.Tensor:
+        """Sum of per-row ``x`` over each query's rows ``(N, ...)``."""
+        if self.index is None:
+            return x.view(self.J, self.N, *x.shape[1:]).sum(0)
+        return x.new_zeros(self.N, *x.shape[1:]).index_add_(0, self.query, x)
 
 
 def _bilerp_depth_backward(inverse: torch.Tensor, fu: torch.Tensor, fv: torch.Tensor, depth: torch.Tensor,

@@ -544,36 +544,52 @@ class _LiveSteps:
     segment. On typical frames most samples occlude nothing (their intervals are narrowed below zero by
     ``sector_epsilon``), so the sweeps shrink several-fold.
 
-    ``dense``: every step is live (use the plain sweeps). Otherwise ``rows`` ``(N,)`` is the row order,
-    ``steps`` ``(N, J)`` each sorted row's step order and ``segments`` a list of ``(start, stop, count)``
-    ranges of sorted rows with ``count > 0`` live steps.
+    ``dense``: every step is live (use the plain sweeps). Otherwise ``rows`` ``(L,)`` are the rows with a
+    live step, sorted, ``steps`` ``(L, J)`` each sorted row's step order and ``segments`` a list of ``(start, stop, count)``
+    ranges of sorted rows swept together over their first ``count`` steps. Ranges of rows with fewer
+    live steps are merged into the one before (their extra steps are dead: no coverage, no gradient)
+    while the padding costs less than a segment's per-step overhead: ``rows * extra < MERGE_ROWS * count``.
     """
+
+    #: padding (row-steps) worth one step of fixed per-operation overhead when merging segments
+    MERGE_ROWS = 1500
 
     def __init__(self, w: torch.Tensor) -> None:
         live = w >= 0
         self.dense = bool(live.all())
         if self.dense:
             return
+        J = w.shape[1]
         counts = live.sum(1)
-        self.rows = torch.argsort(counts, descending=True, stable=True)
-        dead_first = live.logical_not_()[self.rows].to(torch.int8)
-        self.steps = torch.argsort(dead_first, dim=1, stable=True)  # live steps first, in order
-        values, lengths = torch.unique_consecutive(counts[self.rows], return_counts=True)
+        rows = counts.nonzero()[:, 0]
+        counts = counts.index_select(0, rows)
+        order = torch.argsort(counts, descending=True, stable=True)
+        self.rows, counts = rows.index_select(0, order), counts.index_select(0, order)
+        # Each row's live steps first, in order (then its dead ones): step j goes to the number of live
+        # steps before it, or past all live steps by the number of dead ones before it.
+        lv = live.index_select(0, self.rows).to(torch.float32)  # (L, J)
+        before = lv @ torch.ones(J, J, dtype=lv.dtype, device=lv.device).triu()  # live steps up to j
+        j1 = torch.arange(1, J + 1, dtype=lv.dtype, device=lv.device)
+        dest = torch.where(lv > 0, before - 1, (j1 - before).add_(counts[:, None] - 1)).long()
+        steps = torch.arange(J, device=w.device).expand(len(self.rows), J)
+        self.steps = torch.empty_like(dest).scatter_(1, dest, steps)
+        values, lengths = torch.unique_consecutive(counts, return_counts=True)
         self.segments, start = [], 0
         for count, length in zip(values.tolist(), lengths.tolist()):
-            if count > 0:
+            top = self.segments[-1] if self.segments else None
+            if top is not None and length * (top[2] - count) < self.MERGE_ROWS * count:
+                self.segments[-1] = (top[0], start + length, top[2])
+            else:
                 self.segments.append((start, start + length, count))
             start += length
 
     def take(self, x: torch.Tensor | None, start: int, stop: int, count: int | None = None):
         """Rows ``start:stop`` of the sorted layout of ``x`` ``(N, ...)`` (with ``count``: the first
-        ``count`` live steps of ``x`` ``(N, J)``)."""
+        ``count`` steps, live ones first, of ``x`` ``(N, J)``)."""
         if x is None:
             return None
-        rows = self.rows[start:stop]
-        if count is None:
-            return x[rows]
-        return x[rows].gather(1, self.steps[start:stop, :count])
+        x = x.index_select(0, self.rows[start:stop])
+        return x if count is None else x.gather(1, self.steps[start:stop, :count])
 
     def put(self, out: torch.Tensor, value: torch.Tensor, start: int, stop: int, steps: bool) -> None:
         """Writes sorted rows ``start:stop`` (their live steps when ``steps``) back into ``out``."""
@@ -585,10 +601,12 @@ class _LiveSteps:
 
     def forward(self, s, w, weights, p0, tau, delta):
         N, J = s.shape
+        s, w = s.contiguous(), w.contiguous()  # (the walk passes transposed views: row gathers are slow)
         visible = torch.ones(N, SECTORS, dtype=s.dtype, device=s.device) if p0 is None else p0.clone()
         newly = s.new_zeros(N, J) if weights is not None else s.new_zeros(N, 0)
         for start, stop, count in self.segments:
-            vis, new = _soft_sweep(self.take(s, start, stop, count), self.take(w, start, stop, count),
+            ws = self.take(w, start, stop, count).clamp_min_(0)  # merged rows' extra (dead) steps: zero width
+            vis, new = _soft_sweep(self.take(s, start, stop, count), ws,
                                    self.take(weights, start, stop), self.take(p0, start, stop), tau, delta)
             self.put(visible, vis, start, stop, False)
             if weights is not None:
@@ -597,6 +615,7 @@ class _LiveSteps:
 
     def backward(self, s, w, weights, p0, grad_visible, grad_newly, tau, delta, want_s, want_w, keep_gn, want_p0):
         N, J = s.shape
+        s, w = s.contiguous(), w.contiguous()
         gs = s.new_zeros(N, J) if want_s else None
         gw = s.new_zeros(N, J) if want_w else None
         gweights = s.new_zeros(N, SECTORS) if keep_gn else None
@@ -605,11 +624,14 @@ class _LiveSteps:
             gp0 = s.new_zeros(N, SECTORS) if grad_visible is None else grad_visible.clone()
         want_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
         for start, stop, count in self.segments:
+            ws = self.take(w, start, stop, count)
             grads = _union_backward(
-                self.take(s, start, stop, count), self.take(w, start, stop, count),
+                self.take(s, start, stop, count), ws.clamp_min(0),
                 self.take(weights, start, stop), self.take(p0, start, stop), self.take(grad_visible, start, stop),
                 self.take(grad_newly, start, stop, count) if want_newly else None, tau, delta,
                 want_s, want_w, keep_gn, want_p0)
+            if want_w:  # a dead step (negative width) gets no gradient
+                grads = (grads[0], grads[1].masked_fill_(ws < 0, 0.0), *grads[2:])
             for out, value, steps in ((gs, grads[0], True), (gw, grads[1], True), (gweights, grads[2], False),
                                       (gp0, grads[3], False)):
                 if out is not None:

@@ -51,7 +51,7 @@ import torch
 import torch.nn.functional as F
 
 from ..gbuffer import GBuffer
-from ..marching import Frame, Queries, Sample, SliceGeometry, fast_acos
+from ..marching import Frame, GradientRows, Queries, Sample, SliceGeometry, fast_acos
 from ..sectors import MODES, ROUNDINGS, SECTORS, sector_union
 from .base import AOOutput, ScreenSpaceAO, make_parameter
 from .bitmask_common import ThicknessLookup, cosine_sector_weights, sector_centres
@@ -130,27 +130,30 @@ class SectorInterval(torch.autograd.Function):
         N = gamma.shape[0]
         J = av.shape[0] // max(N, 1)
         with torch.no_grad():
-            rf, rb = _unit_angles(av, at, t, gamma, side)
             zero = torch.zeros_like(av)
             g_start = zero if g_start is None else g_start
             g_width = zero if g_width is None else g_width
-            xf, xb = rf.clamp(0.0, 1.0), rb.clamp(0.0, 1.0)
+            rows = GradientRows(J, N, g_start, g_width)  # (empty intervals have none)
+            av, at, g_start, g_width = map(rows.take, (av, at, g_start, g_width))
+            t_rows = t if t.dim() == 0 else rows.take(t)
+            shift = rows.per_row((_HALF_PI - gamma) / math.pi)
+            back_view = av - t_rows
+            rf = torch.addcmul(shift, torch.atan2(at, av), av.new_tensor(side / math.pi))
+            rb = torch.addcmul(shift, torch.atan2(at, back_view), av.new_tensor(side / math.pi))
             g_lo = (g_start - g_width) * SECTORS
             g_hi = g_width * SECTORS
             g_f, g_b = (g_lo, g_hi) if side > 0 else (g_hi, g_lo)
             # clamp(r, 0, 1) passes gradient inside [0, 1] (ends included, as torch.clamp); r = (side theta - gamma + pi/2) / pi
-            g_f = torch.where(xf == rf, g_f, zero)
-            g_b = torch.where(xb == rb, g_b, zero)
-            g_gamma = (g_f + g_b).view(J, N).sum(0).mul_(-1 / math.pi)
+            g_f = torch.where(rf.clamp(0.0, 1.0) == rf, g_f, 0.0)
+            g_b = torch.where(rb.clamp(0.0, 1.0) == rb, g_b, 0.0)
+            g_gamma = rows.per_query(g_f + g_b).mul_(-1 / math.pi)
             # theta = atan2(y, x): d theta = (x dy - y dx) / (x^2 + y^2)
-            back_view = av - t
             inv_f = torch.addcmul(at * at, av, av).reciprocal_().mul_(g_f).mul_(side / math.pi)
             inv_b = torch.addcmul(at * at, back_view, back_view).reciprocal_().mul_(g_b).mul_(side / math.pi)
-            g_at = torch.addcmul(av * inv_f, back_view, inv_b)
+            g_at = rows.put(torch.addcmul(av * inv_f, back_view, inv_b))
             g_t = at * inv_b
-            g_av = (inv_f + inv_b).mul_(at).neg_()
-            if t.dim() == 0:
-                g_t = g_t.sum()
+            g_t = g_t.sum() if t.dim() == 0 else rows.put(g_t)
+            g_av = rows.put((inv_f + inv_b).mul_(at).neg_())
         return g_av, g_at, g_t, g_gamma, None, None
 
 
