@@ -7,6 +7,11 @@ building the G-buffer). On CUDA, ``torch.cuda.max_memory_allocated`` is reported
     python benchmarks/bench_bitmask.py                 # 640x360 table + 1280x720 soft fwd+bwd
     python benchmarks/bench_bitmask.py --quick         # 320x180 only
     python benchmarks/bench_bitmask.py --size 160x90 --repeat 5   # any size (no 1280x720 row); warm, min of 4
+    python benchmarks/bench_bitmask.py --scene stairs --no-720p   # a reference scene's ray-traced G-buffer
+
+The default frame is a floor meeting a wall (``torch_ao.examples.floor_wall_gbuffer``). The "dense" rows
+use ``thickness=1000, sector_epsilon=0``: every sample's interval is non-empty, the worst case for the
+soft union (which sweeps only the steps that occlude something).
 """
 from __future__ import annotations
 
@@ -15,6 +20,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 
 def child(args: dict) -> dict:
@@ -29,7 +35,10 @@ def child(args: dict) -> dict:
 
     torch.set_num_threads(args.get("threads", 1))
     H, W = args["height"], args["width"]
-    gb, _ = floor_wall_gbuffer(H, W, wall_distance=1.0, light_direction=(0.3, 0.8, 0.5))
+    if args.get("gbuffer"):
+        gb = torch.load(args["gbuffer"], weights_only=False)
+    else:
+        gb, _ = floor_wall_gbuffer(H, W, wall_distance=1.0, light_direction=(0.3, 0.8, 0.5))
     device = args.get("device", "cpu")
     grad = args["backward"]
     depth = gb.depth.to(device).requires_grad_(grad)
@@ -37,8 +46,10 @@ def child(args: dict) -> dict:
     light = gb.light.to(device).requires_grad_(grad)
     gbuf = GBuffer(depth, gb.camera.to(device), normals=normals, light=light)
     extra = {} if args.get("chunk_size") is None else {"chunk_size": args["chunk_size"], "recompute": True}
-    module = BitmaskAO(mode=args["mode"], slices=4, steps=8, radius=1.0, thickness=0.5,
-                       indirect=args["indirect"], **extra).to(device)
+    if args.get("dense"):
+        extra.update(thickness=1000.0, sector_epsilon=0.0)
+    module = BitmaskAO(mode=args["mode"], slices=4, steps=8, radius=1.0, **{"thickness": 0.5, **extra},
+                       indirect=args["indirect"]).to(device)
 
     def rss_now_kb() -> int:
         with open(f"/proc/{os.getpid()}/statm") as f:
@@ -67,7 +78,9 @@ def child(args: dict) -> dict:
     result = {"seconds": seconds, "peak_mb": (peak - baseline) / 1024.0, "baseline_mb": baseline / 1024.0}
     if device != "cpu":
         result["peak_mb"] = torch.cuda.max_memory_allocated() / 2**20
-    result["finite"] = bool(torch.isfinite(out.visibility).all()) and (not grad or bool(torch.isfinite(depth.grad).all()))
+    valid = gbuf.valid
+    result["finite"] = bool(torch.isfinite(out.visibility[valid.expand_as(out.visibility)]).all()) and (
+        not grad or bool(torch.isfinite(depth.grad).all()))
     return result
 
 
@@ -88,6 +101,8 @@ def main() -> None:
                         help="calls per case; >1: time the fastest call after the first (warm-up)")
     parser.add_argument("--size", default=None, help="WIDTHxHEIGHT instead of 640x360 (skips the 1280x720 row)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads in each case (default 1)")
+    parser.add_argument("--scene", default=None, help="a reference scene (torch_ao.reference.list_scenes()) instead "
+                        "of the floor/wall frame: its G-buffer ray traced at the benchmark size")
     a = parser.parse_args()
     if a.child:
         print(json.dumps(child(json.loads(a.child))))
@@ -96,6 +111,19 @@ def main() -> None:
     if a.size:
         W, H = (int(v) for v in a.size.lower().split("x"))
     common = dict(height=H, width=W, device=a.device, chunk_size=a.chunk_size, threads=a.threads, repeat=a.repeat)
+    frame = "a floor meeting a wall"
+    if a.scene:
+        import tempfile
+
+        import torch
+
+        from torch_ao.reference import get_scene, render_reference
+
+        ref = render_reference(get_scene(a.scene), height=H, width=W, spp=2, max_distance=1.0, progress=False,
+                               uniform=False)
+        common["gbuffer"] = str(Path(tempfile.mkdtemp()) / f"{a.scene}.pt")
+        torch.save(ref.gbuffer, common["gbuffer"])
+        frame = f"scene {a.scene!r}"
     rows = [
         ("hard forward, AO only", dict(mode="hard", backward=False, indirect=False)),
         ("hard forward, AO + indirect", dict(mode="hard", backward=False, indirect=True)),
@@ -103,8 +131,10 @@ def main() -> None:
         ("soft forward+backward, AO only", dict(mode="soft", backward=True, indirect=False)),
         ("soft forward+backward, AO + indirect", dict(mode="soft", backward=True, indirect=True)),
         ("straight-through forward+backward, AO only", dict(mode="straight_through", backward=True, indirect=False)),
+        ("dense: hard forward, AO only", dict(mode="hard", backward=False, indirect=False, dense=True)),
+        ("dense: soft forward+backward, AO only", dict(mode="soft", backward=True, indirect=False, dense=True)),
     ]
-    print(f"BitmaskAO, {W}x{H}, 4 slices x 8 steps per side, device={a.device}, torch threads={a.threads}")
+    print(f"BitmaskAO, {W}x{H} ({frame}), 4 slices x 8 steps per side, device={a.device}, torch threads={a.threads}")
     print(f"{'case':46s} {'time s':>8s} {'peak MB':>9s}")
     results = {}
     for name, args in rows:
@@ -114,8 +144,10 @@ def main() -> None:
     hard = results["hard forward, AO only"]["seconds"]
     soft = results["soft forward+backward, AO only"]["seconds"]
     print(f"soft forward+backward / hard forward = {soft / hard:.2f}x")
+    dense = results["dense: soft forward+backward, AO only"]["seconds"] / results["dense: hard forward, AO only"]["seconds"]
+    print(f"dense: soft forward+backward / hard forward = {dense:.2f}x")
     print(f"AO+indirect / AO-only (hard forward) = {results['hard forward, AO + indirect']['seconds'] / hard:.2f}x")
-    if not a.quick and not a.no_720p and not a.size:
+    if not a.quick and not a.no_720p and not a.size and not a.scene:
         r = run_case(height=720, width=1280, device=a.device, chunk_size=a.chunk_size, threads=a.threads, mode="soft",
                      backward=True, indirect=False)
         print(f"{'1280x720 soft forward+backward, AO only':46s} {r['seconds']:8.2f} {r['peak_mb']:9.0f}")

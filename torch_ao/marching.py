@@ -192,9 +192,9 @@ def _repeat_rows(x: torch.Tensor, times: int) -> torch.Tensor:
 
 
 def _flat(x: torch.Tensor) -> torch.Tensor:
-    """``(B,C,H,W)`` -> ``(B*H*W, C)``."""
+    """``(B,C,H,W)`` -> contiguous ``(B*H*W, C)`` (row gathers from a strided view are many times slower)."""
     B, C, H, W = x.shape
-    return x.permute(0, 2, 3, 1).reshape(B * H * W, C)
+    return x.permute(0, 2, 3, 1).reshape(B * H * W, C).contiguous()
 
 
 # ---------------------------------------------------------------------------------------------
