@@ -80,7 +80,39 @@ def test_graph_estimate_bounds_what_autograd_keeps(indirect):
     gb, _ = floor_wall_gbuffer(48, 64, light_direction=(0.3, 0.8, 0.5))
     depth = gb.depth.clone().requires_grad_(True)
     gb = GBuffer(depth, gb.camera, normals=gb.normals.clone().requires_grad_(True), light=gb.light.clone().requires_grad_(True))
-    module = BitmaskAO(mode="soft", slices=4, steps=8, indirect=indirect, chunk_size=None, recompute=False)
+    # every step live (thick occluders, no narrowing): the most indirect light keeps
+    dense = dict(thickness=1000.0, sector_epsilon=0.0) if indirect else {}
+    module = BitmaskAO(mode="soft", slices=4, steps=8, indirect=indirect, chunk_size=None, recompute=False, **dense)
     per_sample = _saved_bytes_per_sample(module, gb)
     estimate = module.graph_bytes_per_sample_indirect if indirect else module.graph_bytes_per_sample
     assert 0.5 * estimate < per_sample <= estimate
+
+
+@pytest.mark.parametrize("weighting", ["uniform", "cosine"])
+def test_indirect_light_gathered_for_live_steps_only_changes_nothing(weighting, monkeypatch):
+    import torch_ao.methods.bitmask as bitmask
+
+    gb, _ = floor_wall_gbuffer(24, 32, dtype=torch.float64, light_direction=(0.3, 0.8, 0.5))
+    results, gathered = [], []
+    original = bitmask._light_rows
+
+    def spy(width):
+        rows = original(width)
+        gathered.append((len(rows), width.shape[0]))
+        return rows
+
+    monkeypatch.setattr(bitmask, "_light_rows", spy)
+    for every_row in (False, True):
+        if every_row:  # gather light for every step, empty intervals included
+            monkeypatch.setattr(bitmask, "_light_rows", lambda width: torch.arange(width.shape[0]))
+        depth, light = gb.depth.clone().requires_grad_(True), gb.light.clone().requires_grad_(True)
+        normals = gb.normals.clone().requires_grad_(True)
+        module = SSILVB(mode="soft", slices=2, steps=4, weighting=weighting, thickness=0.4).double()
+        out = module(GBuffer(depth, gb.camera, normals=normals, light=light))
+        loss = (out.indirect * torch.linspace(0, 1, out.indirect.numel(), dtype=torch.float64).view_as(out.indirect)).sum()
+        results.append([out.indirect.detach()] + list(torch.autograd.grad(loss, (depth, normals, light, module.thickness))))
+    live_only, every = results
+    assert every[0].abs().max() > 0
+    assert 0 < sum(m for m, _ in gathered) < 0.5 * sum(n for _, n in gathered)  # most steps occlude nothing
+    for a, b in zip(live_only, every):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-14)

@@ -186,6 +186,11 @@ class Frame:
         return out.view(B, H, W, C).permute(0, 3, 1, 2)
 
 
+def _take_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Rows ``index`` of ``x`` ``(N, ...)``."""
+    return x.index_select(0, index)
+
+
 def _repeat_rows(x: torch.Tensor, times: int) -> torch.Tensor:
     """``x`` ``(N, ...)`` stacked ``times`` times along the rows: ``(times * N, ...)``."""
     return x.repeat(times, *([1] * (x.dim() - 1)))
@@ -251,26 +256,52 @@ class Sample:
         self._view = queries.view
         self._offset = offset
         self._raw_position = None  # the fetched position, when it was computed without a graph
+        self._base = (queries, geom) if base is None else base
         with torch.no_grad():
             position = footprint.position(frame)
             delta = position - queries.position
             # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
             self.valid = valid = valid & (delta.square().sum(-1) > 1e-20 * queries.depth.square())
-            away = -queries.view  # a safe offset that looks away from the camera
-            delta = torch.where(valid[:, None], delta, away)
-            along = _along(delta, queries.view, geom.tangent, side)
-        base_q, base_g = (queries, geom) if base is None else base
-        inputs = footprint.inputs(frame) + (base_q.position, base_q.view, base_g.tangent)
-        if not (torch.is_grad_enabled() and any(t.requires_grad for t in inputs)):
-            # No graph: keep the values computed above.
+            self._delta_values = torch.where(valid[:, None], delta, -queries.view)  # away from the camera
+        base_q, base_g = self._base
+        self._inputs = footprint.inputs(frame) + (base_q.position, base_q.view, base_g.tangent)
+        self._graph = torch.is_grad_enabled() and any(t.requires_grad for t in self._inputs)
+        if not self._graph:  # keep the values computed above
             self._raw_position = position
-            self.__dict__["delta"] = delta
-            self.along_view, self.along_tangent = along
-        elif footprint.fusable(frame):
-            self.along_view, self.along_tangent = SampleAlong.apply(
-                frame, footprint, valid, side, steps, base_q.batch, along, *inputs)
-        else:
-            self.along_view, self.along_tangent = _along(self.delta, queries.view, geom.tangent, side)
+            self.__dict__["delta"] = self._delta_values
+
+    @functools.cached_property
+    def along_view(self) -> torch.Tensor:
+        return self._along[0]
+
+    @functools.cached_property
+    def along_tangent(self) -> torch.Tensor:
+        return self._along[1]
+
+    @functools.cached_property
+    def _along(self) -> tuple[torch.Tensor, torch.Tensor]:
+        q, geom = self._queries, self._geom
+        if not self._graph:
+            return _along(self._delta_values, q.view, geom.tangent, self.side)
+        if self._footprint.fusable(self._frame):
+            with torch.no_grad():
+                values = _along(self._delta_values, q.view, geom.tangent, self.side)
+            return SampleAlong.apply(self._frame, self._footprint, self.valid, self.side, self.steps,
+                                     self._base[0].batch, values, *self._inputs)
+        return _along(self.delta, q.view, geom.tangent, self.side)
+
+    def rows(self, index: torch.Tensor) -> "Sample":
+        """The sample restricted to rows ``index`` ``(M,)`` (one flat step: ``steps = 1``)."""
+        take = functools.partial(_take_rows, index=index)
+        f = self._footprint
+        footprint = Footprint(take(f.batch), take(f.su), take(f.sv), take(f.index),
+                              None if f.fu is None else take(f.fu), None if f.fv is None else take(f.fv))
+        q, g = self._queries, self._geom
+        queries = Queries(take(q.index), take(q.batch), take(q.u), take(q.v), take(q.position), take(q.normal),
+                          take(q.view), take(q.depth), {k: take(x) for k, x in q.values.items()})
+        geom = SliceGeometry(g.index, take(g.tangent), take(g.axis), take(g.normal_angle), take(g.normal_length),
+                             take(g.pixels_per_unit))
+        return Sample(self._frame, geom, self.side, None, queries, footprint, take(self.valid), take(self._offset))
 
     # Computed on first use only: most methods need neither, and autograd would keep their inputs.
     @functools.cached_property

@@ -157,6 +157,12 @@ class SectorInterval(torch.autograd.Function):
         return g_av, g_at, g_t, g_gamma, None, None
 
 
+def _light_rows(width: torch.Tensor) -> torch.Tensor:
+    """Rows ``(M,)`` of the steps whose interval is not empty (``width >= 0``): only those can newly
+    occlude sectors, so only they gather light."""
+    return (width.detach() >= 0).nonzero()[:, 0]
+
+
 class BitmaskAccumulator:
     """The per-step work of the ``"default"`` and ``"hdrp"`` variants (a :class:`SliceAccumulator`).
 
@@ -214,12 +220,17 @@ class BitmaskAccumulator:
         state["s"].append(start.view(J, n))
         state["w"].append(width.view(J, n))
         if self.indirect:
-            ldir = sample.delta / sample.distance.clamp_min(1e-30)[:, None]
-            sender = _saturate((sample.gather("normals") * -ldir).sum(-1))
-            factor = sender * sample.valid.to(sender.dtype)
+            # Only a step whose interval is not empty can newly occlude sectors and send light: the
+            # others (most samples) are never gathered.
+            live = _light_rows(width)
+            part = sample.rows(live)
+            ldir = part.delta / part.distance.clamp_min(1e-30)[:, None]
+            sender = _saturate((part.gather("normals") * -ldir).sum(-1))
+            factor = sender * part.valid.to(sender.dtype)
             if self.weighting == "uniform":
-                factor = factor * _saturate((q.normal * ldir).sum(-1))
-            state["light"].append((sample.gather("light") * factor[:, None]).view(J, n, 3))
+                factor = factor * _saturate((q.normal.index_select(0, live) * ldir).sum(-1))
+            light = part.gather("light") * factor[:, None]
+            state["light"].append(light.new_zeros(J * n, 3).index_copy(0, live, light).view(J, n, 3))
         return state
 
     def end_slice(self, state, q: Queries, geom: SliceGeometry) -> dict[str, torch.Tensor]:
@@ -308,8 +319,9 @@ class BitmaskAO(ScreenSpaceAO):
     #: once) when its estimate is at most this many bytes; above it, chunks are recomputed in backward
     graph_budget = 1 << 30
     #: estimated autograd bytes kept per sample (pixel x slice x side x step) by a soft walk, measured by
-    #: summing the graph's saved tensors (tests/test_bitmask_recompute.py): about 45 for visibility, and
-    #: about 330 more with indirect light (its light and normal gathers)
+    #: summing the graph's saved tensors (tests/test_bitmask_recompute.py): about 47 for visibility, and
+    #: up to about 330 more with indirect light (its light and normal gathers, for the samples whose
+    #: interval is not empty: all of them at worst)
     graph_bytes_per_sample = 48
     graph_bytes_per_sample_indirect = 400
 
