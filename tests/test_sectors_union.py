@@ -215,3 +215,15 @@ def test_union_sweeps_live_steps_only(merge_rows, with_weights, monkeypatch):
     # the no-grad path (no SectorUnion) gives the same values
     vis0, newly0 = sector_union(s, w, mode="soft", tau=0.25, weights=weights, p0=p0)
     assert torch.allclose(vis0, got[0].detach(), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("with_weights", [False, True])
+def test_straight_through_forward_over_live_steps_is_the_hard_rule(with_weights):
+    from torch_ao.sectors import _hard_sweep
+
+    s, w, weights, p0 = _sparse_inputs(40, 9, 4, live_fraction=0.3)
+    weights = weights if with_weights else None
+    vis, newly = sector_union(s, w, mode="straight_through", rounding="round", weights=weights, p0=p0)
+    ref_vis, ref_newly = _hard_sweep(s, w.clamp_min(0), weights, p0, "round")
+    assert torch.equal(vis, ref_vis) and torch.equal(newly, ref_newly)
+    assert (ref_vis != p0).any()

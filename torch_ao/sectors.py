@@ -471,10 +471,7 @@ class SectorUnion(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
-        if hard_forward:
-            visible, newly = _hard_sweep(s, w.clamp_min(0), weights, p0, rounding)
-        else:
-            visible, newly = _live_union(s, w, weights, p0, tau, _DELTA[rounding])
+        visible, newly = _live_union(s, w, weights, p0, tau, _DELTA[rounding], rounding if hard_forward else None)
         ctx.tau, ctx.delta = tau, _DELTA[rounding]
         ctx.save_for_backward(s, w, weights, p0)
         return visible, newly
@@ -599,15 +596,16 @@ class _LiveSteps:
         else:
             out[rows] = value
 
-    def forward(self, s, w, weights, p0, tau, delta):
+    def forward(self, s, w, weights, p0, sweep):
+        """``sweep(s, w, weights, p0) -> (visible, newly)`` over the live segments (widths >= 0)."""
         N, J = s.shape
         s, w = s.contiguous(), w.contiguous()  # (the walk passes transposed views: row gathers are slow)
         visible = torch.ones(N, SECTORS, dtype=s.dtype, device=s.device) if p0 is None else p0.clone()
         newly = s.new_zeros(N, J) if weights is not None else s.new_zeros(N, 0)
         for start, stop, count in self.segments:
             ws = self.take(w, start, stop, count).clamp_min_(0)  # merged rows' extra (dead) steps: zero width
-            vis, new = _soft_sweep(self.take(s, start, stop, count), ws,
-                                   self.take(weights, start, stop), self.take(p0, start, stop), tau, delta)
+            vis, new = sweep(self.take(s, start, stop, count), ws, self.take(weights, start, stop),
+                             self.take(p0, start, stop))
             self.put(visible, vis, start, stop, False)
             if weights is not None:
                 self.put(newly, new, start, stop, True)
@@ -639,12 +637,17 @@ class _LiveSteps:
         return gs, gw, gweights, gp0
 
 
-def _live_union(s, w, weights, p0, tau, delta):
-    """The soft union's forward over live steps only (``w >= 0``; see :class:`_LiveSteps`)."""
+def _live_union(s, w, weights, p0, tau, delta, rounding=None):
+    """The soft union's forward (or, with ``rounding``, the straight-through one: hard coverage) over live
+    steps only (``w >= 0``; see :class:`_LiveSteps`)."""
+    if rounding is None:
+        sweep = lambda s, w, weights, p0: _soft_sweep(s, w, weights, p0, tau, delta)  # noqa: E731
+    else:
+        sweep = lambda s, w, weights, p0: _hard_sweep(s, w, weights, p0, rounding)  # noqa: E731
     layout = _LiveSteps(w)
     if layout.dense:
-        return _soft_sweep(s, w, weights, p0, tau, delta)
-    return layout.forward(s, w, weights, p0, tau, delta)
+        return sweep(s, w, weights, p0)
+    return layout.forward(s, w, weights, p0, sweep)
 
 
 def _hard_sweep(s, w, weights, p0, rounding):
@@ -680,9 +683,8 @@ def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", roundi
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (s, w, weights, p0))
     if not needs_grad:  # no graph: the plain sweep, without the backward tables
-        if mode == "straight_through":
-            return _hard_sweep(s, w.clamp_min(0), weights, p0, rounding)
-        return _live_union(s, w, weights, p0, float(tau), _DELTA[rounding])
+        return _live_union(s, w, weights, p0, float(tau), _DELTA[rounding],
+                           rounding if mode == "straight_through" else None)
     return SectorUnion.apply(s, w, weights, p0, float(tau), rounding, mode == "straight_through")
 
 
