@@ -542,8 +542,8 @@ class _LiveSteps:
     ``sector_epsilon``), so the sweeps shrink several-fold.
 
     ``dense``: every step is live (use the plain sweeps). Otherwise ``rows`` ``(L,)`` are the rows with a
-    live step, sorted, ``steps`` ``(L, J)`` each sorted row's step order and ``segments`` a list of ``(start, stop, count)``
-    ranges of sorted rows swept together over their first ``count`` steps. Ranges of rows with fewer
+    live step, sorted, ``steps`` ``(L, J)`` each sorted row's step order and ``segments`` a list of
+    ``(start, stop, count)`` ranges of sorted rows swept together over their first ``count`` steps. Ranges of rows with fewer
     live steps are merged into the one before (their extra steps are dead: no coverage, no gradient)
     while the padding costs less than a segment's per-step overhead: ``rows * extra < MERGE_ROWS * count``.
     """
