@@ -135,23 +135,6 @@ def soft_floor(s: torch.Tensor, tau: float) -> torch.Tensor:
     return torch.sigmoid((s[..., None] - m) / tau).sum(-1)
 
 
-def _soft_floor_window(s: torch.Tensor, tau: float, slope: bool = False):
-    """Smooth floor ``F(s)`` (and, with ``slope``, ``F'(s)``), summed over a window of ``W`` consecutive
-    integers ``lo .. lo + W - 1`` inside ``[1, 32]`` that contains every integer within ``_CLAMP * tau``
-    of ``s``; the integers ``1 .. lo - 1`` count fully (their logistic is within ``sigmoid(-_CLAMP)`` of
-    1) and those above the window not at all. Costs ``O(N * W)``, not ``O(N * 32)``."""
-    reach = int(math.ceil(_CLAMP * tau)) + 1
-    width = min(2 * reach, SECTORS)
-    inv_tau = 1.0 / tau
-    lo = (torch.floor(s.detach()) - (reach - 1)).clamp_(1, SECTORS - width + 1)  # (...)
-    offsets = torch.arange(width, dtype=s.dtype, device=s.device) * inv_tau
-    x = torch.sub(((s - lo) * inv_tau)[..., None], offsets).clamp_(-_CLAMP, _CLAMP).sigmoid_()  # (..., W)
-    F = x.sum(-1).add_(lo - 1)
-    if not slope:
-        return F
-    return F, torch.sub(1, x).mul_(x).sum(-1).mul_(inv_tau)
-
-
 def soft_coverage(s: torch.Tensor, w: torch.Tensor, tau: float, rounding: str = "ceil", lo: int = 0,
                   hi: int = SECTORS, floor_s: torch.Tensor | None = None) -> torch.Tensor:
     """Soft coverage ``(..., hi - lo)`` in ``[0, 1]`` of sectors ``lo..hi-1`` (differentiable by autograd).
@@ -189,7 +172,7 @@ _WINDOW_MAX = 8  # F(s) from its own window of logistics up to this width (tau <
 # ``F(s) = sum_{m=1..32} sigmoid((s - m) / tau) = sum_k (1 - a_k)`` and ``F'(s) = sum_k a_k (1 - a_k) / tau``
 # (with the clamped arguments; a term beyond the clamp is within sigmoid(-30) of 0 or 1). For smaller
 # tau its window of logistics is narrow (``W <= 8``) and keeps ``F`` accurate where ``a``'s arguments
-# ``(k + 1) / tau - s / tau`` are not (``(s - lo) / tau`` as in :func:`_soft_floor_window`).
+# ``(k + 1) / tau - s / tau`` are not (``(s - lo) / tau`` in :func:`_floor_window_into`).
 
 
 class _Group:
@@ -284,14 +267,22 @@ def _load(plan, s, w, p0, r, tau, delta):
         plan.P.copy_(p0[r].t())
 
 
+def _floor_reach(tau: float) -> int:
+    return int(math.ceil(_CLAMP * tau)) + 1
+
+
 def _floor_width(tau: float) -> int:
-    return min(2 * (int(math.ceil(_CLAMP * tau)) + 1), SECTORS)
+    return min(2 * _floor_reach(tau), SECTORS)
 
 
 def _floor_window_into(sT, tau, x_buf, F, dF):
-    """:func:`_soft_floor_window` of the contiguous ``sT`` into ``F`` (and ``F' tau`` into ``dF``), its
-    ``W`` logistic terms laid out ``(W, M)`` in the flat buffer ``x_buf`` (``2 W M`` entries with ``dF``)."""
-    reach = int(math.ceil(_CLAMP * tau)) + 1
+    """Smooth floor ``F(s)`` of the contiguous ``sT`` into ``F`` (and ``F' tau`` into ``dF``), summed over
+    a window of ``W`` consecutive integers ``lo .. lo + W - 1`` inside ``[1, 32]`` that contains every
+    integer within ``_CLAMP * tau`` of ``s``: the integers ``1 .. lo - 1`` count fully (their logistic is
+    within ``sigmoid(-_CLAMP)`` of 1) and those above the window not at all, so it costs ``O(W)`` per
+    entry, not ``O(32)``. The ``W`` logistic terms are laid out ``(W, M)`` in the flat buffer ``x_buf``
+    (``2 W M`` entries with ``dF``)."""
+    reach = _floor_reach(tau)
     width = _floor_width(tau)
     inv_tau = 1.0 / tau
     flat = sT.reshape(-1)
