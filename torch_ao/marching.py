@@ -96,19 +96,17 @@ class Queries:
     def __len__(self) -> int:
         return self.index.shape[0]
 
+    def map_rows(self, fn) -> "Queries":
+        """The queries with ``fn`` applied to every per-row tensor (a slice, a gather, a repeat...)."""
+        return Queries(fn(self.index), fn(self.batch), fn(self.u), fn(self.v), fn(self.position), fn(self.normal),
+                       fn(self.view), fn(self.depth), {k: fn(x) for k, x in self.values.items()})
+
     def subset(self, sl: slice) -> "Queries":
-        return Queries(
-            self.index[sl], self.batch[sl], self.u[sl], self.v[sl], self.position[sl], self.normal[sl],
-            self.view[sl], self.depth[sl], {k: x[sl] for k, x in self.values.items()},
-        )
+        return self.map_rows(lambda x: x[sl])
 
     def repeat(self, times: int) -> "Queries":
         """The rows repeated ``times`` times, block-major: row ``j * N + i`` is query ``i``."""
-        if times == 1:
-            return self
-        r = functools.partial(_repeat_rows, times=times)
-        return Queries(r(self.index), r(self.batch), r(self.u), r(self.v), r(self.position), r(self.normal),
-                       r(self.view), r(self.depth), {k: r(x) for k, x in self.values.items()})
+        return self if times == 1 else self.map_rows(functools.partial(_repeat_rows, times=times))
 
 
 class Frame:
@@ -186,11 +184,6 @@ class Frame:
         return out.view(B, H, W, C).permute(0, 3, 1, 2)
 
 
-def _take_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Rows ``index`` of ``x`` ``(N, ...)``."""
-    return x.index_select(0, index)
-
-
 def _repeat_rows(x: torch.Tensor, times: int) -> torch.Tensor:
     """``x`` ``(N, ...)`` stacked ``times`` times along the rows: ``(times * N, ...)``."""
     return x.repeat(times, *([1] * (x.dim() - 1)))
@@ -216,13 +209,14 @@ class SliceGeometry:
     normal_length: torch.Tensor  # (N,) length of the projected normal
     pixels_per_unit: torch.Tensor  # (N,2) screen motion (du, dv) in pixels per world unit along +T
 
+    def map_rows(self, fn) -> "SliceGeometry":
+        """The geometry with ``fn`` applied to every per-row tensor."""
+        return SliceGeometry(self.index, fn(self.tangent), fn(self.axis), fn(self.normal_angle), fn(self.normal_length),
+                             fn(self.pixels_per_unit))
+
     def repeat(self, times: int) -> "SliceGeometry":
         """The rows repeated ``times`` times, block-major (as :meth:`Queries.repeat`)."""
-        if times == 1:
-            return self
-        r = functools.partial(_repeat_rows, times=times)
-        return SliceGeometry(self.index, r(self.tangent), r(self.axis), r(self.normal_angle), r(self.normal_length),
-                             r(self.pixels_per_unit))
+        return self if times == 1 else self.map_rows(functools.partial(_repeat_rows, times=times))
 
 
 class Sample:
@@ -251,9 +245,6 @@ class Sample:
         self.side, self.step, self.steps = side, step, steps
         self.dtype = queries.position.dtype
         self._frame, self._footprint, self._queries, self._geom = frame, footprint, queries, geom
-        self._index = footprint.index
-        self._fraction = None if footprint.fu is None else (footprint.fu, footprint.fv)
-        self._view = queries.view
         self._offset = offset
         self._raw_position = None  # the fetched position, when it was computed without a graph
         self._base = (queries, geom) if base is None else base
@@ -292,16 +283,9 @@ class Sample:
 
     def rows(self, index: torch.Tensor) -> "Sample":
         """The sample restricted to rows ``index`` ``(M,)`` (one flat step: ``steps = 1``)."""
-        take = functools.partial(_take_rows, index=index)
-        f = self._footprint
-        footprint = Footprint(take(f.batch), take(f.su), take(f.sv), take(f.index),
-                              None if f.fu is None else take(f.fu), None if f.fv is None else take(f.fv))
-        q, g = self._queries, self._geom
-        queries = Queries(take(q.index), take(q.batch), take(q.u), take(q.v), take(q.position), take(q.normal),
-                          take(q.view), take(q.depth), {k: take(x) for k, x in q.values.items()})
-        geom = SliceGeometry(g.index, take(g.tangent), take(g.axis), take(g.normal_angle), take(g.normal_length),
-                             take(g.pixels_per_unit))
-        return Sample(self._frame, geom, self.side, None, queries, footprint, take(self.valid), take(self._offset))
+        take = functools.partial(_take, index=index)
+        return Sample(self._frame, self._geom.map_rows(take), self.side, None, self._queries.map_rows(take),
+                      self._footprint.map_rows(take), take(self.valid), take(self._offset))
 
     # Computed on first use only: most methods need neither, and autograd would keep their inputs.
     @functools.cached_property
@@ -329,17 +313,19 @@ class Sample:
     def cos_view(self, view_offset: torch.Tensor | float = 0.0) -> torch.Tensor:
         """``dot(normalize(delta - view_offset * V), V)`` ``(N,)``: the seeds' horizon cosine (3D, not projected)."""
         off = torch.as_tensor(view_offset, dtype=self.delta.dtype, device=self.delta.device)
-        d = self.delta - (off[:, None] if off.dim() == 1 else off) * self._view
-        return (d * self._view).sum(-1) / d.norm(dim=-1).clamp_min(1e-30)
+        view = self._queries.view
+        d = self.delta - (off[:, None] if off.dim() == 1 else off) * view
+        return (d * view).sum(-1) / d.norm(dim=-1).clamp_min(1e-30)
 
     def gather(self, name: str) -> torch.Tensor:
         """Value ``(N, C)`` of the frame buffer ``name`` at this sample (nearest or bilinear,
         as the walk fetches depth; integer buffers are always nearest)."""
         buf = self._frame.buffers[name]
-        if self._fraction is None or not buf.is_floating_point():
-            return _take(buf, self._index if self._fraction is None else self._index[:, 0])
-        fu, fv = (f.to(buf.dtype)[:, None] for f in self._fraction)
-        return _bilerp(_take(buf, self._index).unbind(1), fu, fv)  # (N,C)
+        f = self._footprint
+        if f.fu is None or not buf.is_floating_point():
+            return _take(buf, f.index if f.fu is None else f.index[:, 0])
+        fu, fv = f.fu.to(buf.dtype)[:, None], f.fv.to(buf.dtype)[:, None]
+        return _bilerp(_take(buf, f.index).unbind(1), fu, fv)  # (N,C)
 
 
 def _along(delta: torch.Tensor, view: torch.Tensor, tangent: torch.Tensor, side: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -574,6 +560,11 @@ class Footprint:
         inside = (u0 >= 0) & (u0 + 1 < W) & (v0 >= 0) & (v0 + 1 < H)
         return Footprint(batch, su, sv, index, fu, fv), inside
 
+    def map_rows(self, fn) -> "Footprint":
+        """The footprint with ``fn`` applied to every per-row tensor."""
+        return Footprint(fn(self.batch), fn(self.su), fn(self.sv), fn(self.index),
+                         None if self.fu is None else fn(self.fu), None if self.fv is None else fn(self.fv))
+
     def valid(self, frame: Frame) -> torch.Tensor:
         v = _take(frame.valid, self.index)
         return v if self.fu is None else v.all(-1)
@@ -631,7 +622,7 @@ class SampleAlong(torch.autograd.Function):
     Inputs: the frame, the samples' :class:`Footprint` (``steps * N`` rows), ``valid`` (rows), ``side``,
     ``steps``, ``batch`` ``(N,)``, the two outputs' values (computed without a graph); then the
     footprint's differentiable inputs (``frame.positions`` ``(P,3)`` for nearest fetch or
-    ``frame.safe_depth`` ``(P,)`` for bilinear, ``su``, ``sv``) and the queries' ``P``, ``V``, ``T``
+    ``frame.inverse_depth`` ``(P,)`` for bilinear, ``su``, ``sv``) and the queries' ``P``, ``V``, ``T``
     ``(N,3)`` (not repeated per step). Plain autograd would keep the position, ``delta``, the repeated
     ``V`` and ``T`` and the fetch's intermediates for every sample (about 90 bytes); this keeps ``su``,
     ``sv`` and ``valid`` per sample and rebuilds the footprint, position and ``delta`` in backward.
@@ -716,7 +707,7 @@ class GradientRows:
         self.query = None if self.index is None else self.index.remainder(N)
 
     def take(self, x: torch.Tensor) -> torch.Tensor:
-        return x if self.index is None else x.index_select(0, self.index)
+        return x if self.index is None else _take(x, self.index)
 
     def put(self, x: torch.Tensor) -> torch.Tensor:
         if self.index is None:
@@ -725,7 +716,7 @@ class GradientRows:
 
     def per_row(self, x: torch.Tensor) -> torch.Tensor:
         """Per-query ``x`` ``(N, ...)`` for each row."""
-        return _repeat_rows(x, self.J) if self.index is None else x.index_select(0, self.query)
+        return _repeat_rows(x, self.J) if self.index is None else _take(x, self.query)
 
     def per_query(self, x: torch.Tensor) -> torch.Tensor:
         """Sum of per-row ``x`` over each query's rows ``(N, ...)``."""
