@@ -86,17 +86,28 @@ def _interval_from_unit(lo: torch.Tensor, hi: torch.Tensor, epsilon: float) -> t
     return lo * SECTORS, width
 
 
+def _hemisphere_shift(gamma: torch.Tensor) -> torch.Tensor:
+    """``(pi/2 - gamma) / pi``: where angle 0 (the view vector) lies across the hemisphere around the
+    projected normal at angle ``gamma``."""
+    return (_HALF_PI - gamma) / math.pi
+
+
+def _unit_positions(along_view, along_tangent, back_view, shift, side):
+    """Unclamped positions ``shift + side * theta / pi`` across the hemisphere of the front angle
+    ``atan2(along_tangent, along_view)`` and the back angle ``atan2(along_tangent, back_view)``;
+    ``shift`` broadcasts against the angles' shape."""
+    scale = along_view.new_tensor(side / math.pi)
+    return (torch.addcmul(shift, torch.atan2(along_tangent, along_view), scale),
+            torch.addcmul(shift, torch.atan2(along_tangent, back_view), scale))
+
+
 def _unit_angles(along_view, along_tangent, thickness, gamma, side):
-    """Front and back angles (``atan2`` in the slice plane) and their unclamped positions across the
-    hemisphere ``(side * theta - gamma + pi/2) / pi``; rows block-major over ``gamma``'s ``(N,)``."""
-    J = along_view.shape[0] // max(gamma.shape[0], 1)
-    shift = (_HALF_PI - gamma) / math.pi  # (N,)
-    scale = side / math.pi
-
-    def unit(theta):
-        return torch.addcmul(shift, theta.view(J, gamma.shape[0]), theta.new_tensor(scale)).view(-1)
-
-    return unit(torch.atan2(along_tangent, along_view)), unit(torch.atan2(along_tangent, along_view - thickness))
+    """:func:`_unit_positions` of samples whose rows are block-major over ``gamma``'s ``(N,)``."""
+    N = gamma.shape[0]
+    J = along_view.shape[0] // max(N, 1)
+    front, back = _unit_positions(along_view.view(J, N), along_tangent.view(J, N),
+                                  (along_view - thickness).view(J, N), _hemisphere_shift(gamma), side)
+    return front.view(-1), back.view(-1)
 
 
 def _sector_interval(along_view, along_tangent, thickness, gamma, side: int, epsilon: float):
@@ -136,10 +147,8 @@ class SectorInterval(torch.autograd.Function):
             rows = GradientRows(J, N, g_start, g_width)  # (empty intervals have none)
             av, at, g_start, g_width = map(rows.take, (av, at, g_start, g_width))
             t_rows = t if t.dim() == 0 else rows.take(t)
-            shift = rows.per_row((_HALF_PI - gamma) / math.pi)
             back_view = av - t_rows
-            rf = torch.addcmul(shift, torch.atan2(at, av), av.new_tensor(side / math.pi))
-            rb = torch.addcmul(shift, torch.atan2(at, back_view), av.new_tensor(side / math.pi))
+            rf, rb = _unit_positions(av, at, back_view, rows.per_row(_hemisphere_shift(gamma)), side)
             g_lo = (g_start - g_width) * SECTORS
             g_hi = g_width * SECTORS
             g_f, g_b = (g_lo, g_hi) if side > 0 else (g_hi, g_lo)
