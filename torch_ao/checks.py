@@ -1,0 +1,59 @@
+"""Small validation helpers: each raises ``ValueError`` naming the argument and what was expected.
+
+Use these instead of writing ``isinstance`` chains inline, so that every module refuses bad input
+with the same wording (``"<name>: expected <what>, got <value>"``).
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, TypeVar
+
+__all__ = ["check_int", "check_float", "check_choice", "check_bool"]
+
+T = TypeVar("T")
+
+
+def _fail(name: str, expected: str, value) -> ValueError:
+    return ValueError(f"{name}: expected {expected}, got {value!r}")
+
+
+def check_int(name: str, value, minimum: int | None = None, maximum: int | None = None) -> int:
+    """``value`` as an ``int`` (``bool`` refused) within ``[minimum, maximum]`` (either bound optional)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise _fail(name, "an integer", value)
+    if minimum is not None and value < minimum:
+        raise _fail(name, f"an integer >= {minimum}", value)
+    if maximum is not None and value > maximum:
+        raise _fail(name, f"an integer <= {maximum}", value)
+    return value
+
+
+def check_float(name: str, value, minimum: float | None = None, maximum: float | None = None, *,
+                open_minimum: bool = False, open_maximum: bool = False, finite: bool = True) -> float:
+    """``value`` as a ``float`` (``bool`` refused), finite unless ``finite=False``, within the bounds
+    (closed unless ``open_minimum``/``open_maximum``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _fail(name, "a number", value)
+    value = float(value)
+    if math.isnan(value) or (finite and math.isinf(value)):
+        raise _fail(name, "a finite number", value)
+    if minimum is not None and (value <= minimum if open_minimum else value < minimum):
+        raise _fail(name, f"a number {'>' if open_minimum else '>='} {minimum}", value)
+    if maximum is not None and (value >= maximum if open_maximum else value > maximum):
+        raise _fail(name, f"a number {'<' if open_maximum else '<='} {maximum}", value)
+    return value
+
+
+def check_choice(name: str, value: T, choices: Iterable[T]) -> T:
+    """``value`` if it is one of ``choices``."""
+    choices = tuple(choices)
+    if value not in choices:
+        raise _fail(name, f"one of {choices}", value)
+    return value
+
+
+def check_bool(name: str, value) -> bool:
+    """``value`` if it is a ``bool``."""
+    if not isinstance(value, bool):
+        raise _fail(name, "True or False", value)
+    return value
