@@ -37,3 +37,23 @@ def test_check_choice_and_bool():
     assert check_bool("jitter", False) is False
     with pytest.raises(ValueError, match="jitter: expected True or False, got 1"):
         check_bool("jitter", 1)
+
+
+def test_option_checks_and_describes_itself():
+    from torch_ao.options import Option, options_by_name
+
+    tau = Option("tau", 0.25, "temperature of the soft sector masks", unit="sectors", minimum=0, open_minimum=True)
+    assert tau.check(0.5) == 0.5
+    with pytest.raises(ValueError, match="tau: expected a number > 0"):
+        tau.check(0.0)
+    assert tau.describe() == ("temperature of the soft sector masks. Unit: sectors. Range: (0, inf). "
+                              "Default: 0.25.")
+    fetch = Option("fetch", "nearest", "depth fetch", kind=str, choices=("nearest", "bilinear"))
+    with pytest.raises(ValueError, match="fetch: expected one of"):
+        fetch.check("cubic")
+    steps = Option("steps", 3, "samples per side", kind=int, minimum=1)
+    with pytest.raises(ValueError, match="steps: expected an integer >= 1"):
+        steps.check(0)
+    assert set(options_by_name((tau, fetch), (tau, steps))) == {"tau", "fetch", "steps"}
+    with pytest.raises(ValueError, match="described twice"):
+        options_by_name((tau,), (Option("tau", 1.0, "other"),))
