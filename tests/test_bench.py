@@ -6,9 +6,8 @@ import pytest
 import torch
 
 from test_bench_helpers import TinyAO
-from torch_ao.bench import (COLUMNS, aggregate_rows, load_bench_views, make_method, pareto_front, recommend,
-                            reference_path, run_bench)
-from torch_ao.bench_report import load_report, write_report
+from torch_ao.bench import COLUMNS, aggregate_rows, load_report, make_method, pareto_front, recommend, run_bench, write_report
+from torch_ao.views import load_bench_views, reference_path
 from torch_ao.cli import main
 
 H, W, SPP = 24, 32, 8
@@ -122,7 +121,7 @@ def test_bench_cli_errors(tmp_path, capsys):
 
 
 def test_auto_from_report_and_errors(views, tmp_path, cache):
-    from torch_ao.bench_auto import auto_choice
+    from torch_ao.bench import auto_choice
 
     rows = [_row("sphere_on_plane", "gtao", "low", 0.08, 1.0), _row("sphere_on_plane", "gtao", "high", 0.05, 4.0),
             _row("other", "gtao", "low", 0.2, 1.0), _row("other", "gtao", "high", 0.02, 3.0)]
@@ -151,7 +150,7 @@ def test_auto_from_report_and_errors(views, tmp_path, cache):
 
 def test_auto_quick_sweep_on_reference_file(cache, monkeypatch):
     """Without a report, --auto sweeps the file's own reference (here with the tiny methods)."""
-    import torch_ao.bench_auto as ba
+    import torch_ao.bench.auto as ba
 
     monkeypatch.setattr(ba, "available_methods", lambda names=None, log=None: _tiny_methods())
     ref = reference_path(cache, "sphere_on_plane", H, W, SPP, 1.0)

@@ -12,11 +12,11 @@ from .auto import AUTO_PRESETS, auto_choice
 from .background import background_frames, background_scaling
 from .files import REPORT_VERSION, load_report, markdown_report, plot_error_vs_time, write_csv, write_report
 from .recommend import DEFAULT_TOLERANCE, aggregate_rows, pareto_front, recommend
-from .sweep import (COLUMNS, DEFAULT, QUICK, BenchSettings, MethodFactory, accepted_arguments, available_methods,
+from .sweep import (COLUMNS, DEFAULT, QUICK, SIZE_OPTIONS, BenchSettings, MethodFactory, accepted_arguments, available_methods,
                     environment, make_method, run_bench, time_call, time_calls)
 
 __all__ = ["AUTO_PRESETS", "auto_choice", "background_frames", "background_scaling", "REPORT_VERSION", "load_report",
            "markdown_report", "plot_error_vs_time", "write_csv", "write_report", "DEFAULT_TOLERANCE",
-           "aggregate_rows", "pareto_front", "recommend", "COLUMNS", "DEFAULT", "QUICK", "BenchSettings",
+           "aggregate_rows", "pareto_front", "recommend", "COLUMNS", "DEFAULT", "QUICK", "SIZE_OPTIONS", "BenchSettings",
            "MethodFactory", "accepted_arguments", "available_methods", "environment", "make_method", "run_bench",
            "time_call", "time_calls"]

@@ -21,9 +21,10 @@ from ..fit import set_mode
 from ..gbuffer import GBuffer
 from ..methods import METHODS, PRESETS, get_method
 from ..metrics import error_metrics
+from ..options import Option
 from ..views import FitView
 
-__all__ = ["BenchSettings", "QUICK", "DEFAULT", "COLUMNS", "MethodFactory", "available_methods", "accepted_arguments",
+__all__ = ["SIZE_OPTIONS", "BenchSettings", "QUICK", "DEFAULT", "COLUMNS", "MethodFactory", "available_methods", "accepted_arguments",
            "make_method", "time_call", "time_calls", "run_bench", "environment"]
 
 #: Columns of a result row (CSV order).
@@ -32,9 +33,19 @@ COLUMNS = ("scene", "method", "preset", "slices", "steps", "denoise", "mae", "rm
            "radius", "device", "threads", "repeats")
 
 
+#: The size of a sweep's references and timings; :class:`BenchSettings` checks its values with these.
+SIZE_OPTIONS = (
+    Option("height", 144, "reference height of the built-in scenes", int, unit="pixels", minimum=1),
+    Option("width", 256, "reference width of the built-in scenes", int, unit="pixels", minimum=1),
+    Option("spp", 256, "reference AO rays per pixel (the renderer needs at least 2)", int, unit="rays", minimum=2),
+    Option("repeats", 5, "timed runs per measurement (the median is reported)", int, minimum=1),
+    Option("warmup", 1, "untimed runs before timing", int, minimum=0),
+)
+
+
 @dataclass
 class BenchSettings:
-    """A sweep's size. ``QUICK`` finishes in a few minutes on a 2-core CPU."""
+    """A sweep's size (see :data:`SIZE_OPTIONS`). ``QUICK`` finishes in a few minutes on a 2-core CPU."""
 
     scenes: tuple[str, ...]
     presets: tuple[str, ...]
@@ -44,9 +55,13 @@ class BenchSettings:
     repeats: int
     warmup: int = 1
 
+    def __post_init__(self) -> None:
+        for opt in SIZE_OPTIONS:
+            opt.check(getattr(self, opt.name))
+
 
 DEFAULT = BenchSettings(("sphere_on_plane", "room_corner", "fence", "stairs", "floating", "poles"),
-                        ("low", "medium", "high", "ultra"), 144, 256, 256, 5)
+                        ("low", "medium", "high", "ultra"), **{o.name: o.default for o in SIZE_OPTIONS})
 QUICK = BenchSettings(("sphere_on_plane", "room_corner", "fence"), ("low", "medium", "high"), 72, 96, 64, 3)
 
 
