@@ -169,3 +169,34 @@ def test_ao_cli_auto(cache, tmp_path, capsys):
     assert rc == 0 and (tmp_path / "o.npz").is_file()
     assert main(["ao", "--auto", "--out", str(tmp_path / "x.npz")]) == 2
     assert "needs either a bench report" in capsys.readouterr().err
+
+
+def test_default_cache_dir_rule(monkeypatch, tmp_path):
+    from torch_ao.views import default_cache_dir
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("TORCH_AO_CACHE", raising=False)
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    assert default_cache_dir() == tmp_path / "home" / ".cache" / "torch_ao"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_cache_dir() == tmp_path / "xdg" / "torch_ao"
+    monkeypatch.setenv("TORCH_AO_CACHE", "~/mine")
+    assert default_cache_dir() == tmp_path / "home" / "mine"
+    import torch_ao.datasets
+
+    assert torch_ao.datasets.default_cache_dir is default_cache_dir  # one rule
+    assert reference_path(None, "fence", 72, 96, 64, 1.0) == tmp_path / "home" / "mine" / "references" / \
+        "fence_96x72_spp64_R1_seed0.npz"
+    assert reference_path("c", "fence", 72, 96, 64, float("inf"), 3, layout=3).name == "fence_s3_96x72_spp64_Rinf_seed3.npz"
+
+
+def test_fit_views_and_bench_views_share_the_cache(cache, views):
+    """The training examples' default-layout view is the same file the bench rendered (not a second render)."""
+    from torch_ao.datasets import reference_view
+
+    path = reference_path(cache, "sphere_on_plane", H, W, SPP, 1.0)
+    mtime = path.stat().st_mtime_ns
+    v = reference_view("sphere_on_plane", None, height=H, width=W, spp=SPP, max_distance=1.0, cache_dir=cache)
+    assert path.stat().st_mtime_ns == mtime and len(list((cache / "references").iterdir())) == 1
+    assert v.name == "sphere_on_plane/default" and torch.equal(v.reference, views[0].reference)
+    assert v.max_distance == 1.0 and torch.equal(v.gbuffer.depth, views[0].gbuffer.depth)
