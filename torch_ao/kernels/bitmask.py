@@ -1,0 +1,77 @@
+"""The hard bitmask AO kernel: ``BitmaskAO(variant="default", mode="hard")`` in one fused pass.
+
+It walks exactly what the tensor path walks (the same slice directions around the view vector, jitter,
+step placement, fetch, border and sector rule; see :mod:`torch_ao.methods.bitmask`) and returns the
+same visibility: bit for bit where both evaluate the same float operations in the same order (the
+C++ source follows torch's kernels operation by operation; docs/performance.md gives the measured
+agreement).
+"""
+from __future__ import annotations
+
+import torch
+
+from ..gbuffer import GBuffer
+from ..sectors import ROUNDINGS
+from .build import cpu_kernels
+
+__all__ = ["bitmask_hard", "kernel_covers"]
+
+
+def _channels_last(x: torch.Tensor) -> torch.Tensor:
+    """``(B,C,H,W)`` -> contiguous ``(B,H,W,C)`` float32."""
+    return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
+
+
+def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
+                 thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
+                 seed: int = 0, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
+                 sector_epsilon: float = 0.01) -> torch.Tensor:
+    """Hard bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background pixels 1).
+
+    Args:
+        gbuffer: a float32 CPU G-buffer; normals: its ``(B,3,H,W)`` unit view-space normals (as the
+            module uses them, e.g. ``gbuffer.view_normals()``).
+        slices, steps: directions per pixel (uniform around the view vector) and samples per side.
+        radius, thickness: world units (scalars); step_power, min_step_px (pixels), jitter, seed, fetch
+            (``"bilinear"``/``"nearest"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon
+            (sectors): as :class:`~torch_ao.BitmaskAO`.
+
+    Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
+    """
+    ops = cpu_kernels()
+    depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
+    cam = gbuffer.camera
+    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
+    return ops.bitmask_hard(
+        _channels_last(gbuffer.positions()), _channels_last(normals), depth.reciprocal(), depth,
+        gbuffer.valid[:, 0].contiguous(), intrinsics, int(slices), int(steps), float(radius), float(thickness),
+        float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
+        ROUNDINGS.index(rounding), float(sector_epsilon))
+
+
+def kernel_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`bitmask_hard` computes ``module(gbuffer)`` (a ``BitmaskAO``), else why not."""
+    if getattr(module, "variant", None) != "default":
+        return "only variant='default'"
+    if module.mode != "hard" and not (module.mode == "straight_through" and not _needs_grad(module, gbuffer)):
+        return f"mode={module.mode!r} (the kernel is hard mode only)"
+    if module.weighting != "uniform":
+        return "weighting='cosine'"
+    if module.want_indirect or module.want_bent or module.ambient is not None or module._ambient_constant:
+        return "indirect light, bent normals or ambient"
+    if module.azimuth != "view":
+        return "azimuth='screen'"
+    if module.thickness.dim() != 0 or module.thickness_growth is not None:
+        return "a per-object or per-pixel thickness, or thickness_growth"
+    if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
+        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+    if _needs_grad(module, gbuffer):
+        return "a gradient is asked for"
+    return None
+
+
+def _needs_grad(module, gbuffer: GBuffer) -> bool:
+    if not torch.is_grad_enabled():
+        return False
+    tensors = [gbuffer.depth, gbuffer.normals, module.radius, module.thickness]
+    return any(t is not None and t.requires_grad for t in tensors)

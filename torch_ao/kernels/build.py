@@ -1,0 +1,46 @@
+"""Building the C++ kernels on first use (``torch.utils.cpp_extension``), cached per CPU capability."""
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import torch
+
+__all__ = ["KernelUnavailable", "cpu_kernels"]
+
+_SOURCE = Path(__file__).with_name("bitmask_cpu.cpp")
+
+#: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
+#: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
+_CAPABILITY_FLAGS = {
+    "AVX512": ["-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512dq", "-mfma", "-DCPU_CAPABILITY=AVX512",
+               "-DCPU_CAPABILITY_AVX512"],
+    "AVX2": ["-mavx2", "-mfma", "-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2"],
+}
+
+
+class KernelUnavailable(RuntimeError):
+    """A kernel cannot run here (no C++ compiler, a failed build, an unsupported device)."""
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_kernels():
+    """The ``torch.ops.torch_ao_kernels`` namespace, building the C++ source on first use.
+
+    Raises :class:`KernelUnavailable` when it cannot be built (the message says why). The build
+    (about a minute, once per source version and CPU capability) is cached in
+    ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``).
+    """
+    from torch.utils import cpp_extension
+
+    capability = torch.backends.cpu.get_cpu_capability()
+    flags = ["-O3", "-ffp-contract=off", "-fno-math-errno"] + _CAPABILITY_FLAGS.get(capability, [])
+    name = f"torch_ao_kernels_{capability.lower()}"
+    try:
+        cpp_extension.load(name=name, sources=[str(_SOURCE)], extra_cflags=flags, is_python_module=False,
+                           verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE")))
+    except Exception as exc:  # no compiler, missing headers, a failed build...
+        raise KernelUnavailable(f"the C++ kernels could not be built ({type(exc).__name__}: "
+                                f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc
+    return torch.ops.torch_ao_kernels
