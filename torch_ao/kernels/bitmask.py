@@ -40,11 +40,13 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     """
     ops = cpu_kernels()
     depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
+    valid = gbuffer.valid[:, 0].contiguous()
+    # the kernel reads a texel's validity from its inverse depth: NaN where invalid
+    inverse = torch.where(valid, depth.reciprocal(), torch.nan)
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
     return ops.bitmask_hard(
-        _channels_last(gbuffer.positions()), _channels_last(normals), depth.reciprocal(), depth,
-        gbuffer.valid[:, 0].contiguous(), intrinsics, int(slices), int(steps), float(radius), float(thickness),
+        _channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics, int(slices), int(steps), float(radius), float(thickness),
         float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
         ROUNDINGS.index(rounding), float(sector_epsilon))
 

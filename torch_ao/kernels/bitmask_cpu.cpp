@@ -20,6 +20,7 @@
 namespace {
 
 using Vec = at::vec::Vectorized<float>;
+using Int = at::vec::Vectorized<int32_t>;
 constexpr int L = Vec::size();
 
 struct Settings {
@@ -53,6 +54,8 @@ inline float ign(float u, float v, int64_t seed) {
 }
 
 inline Vec load_lanes(const float* lanes) { return Vec::loadu(lanes); }
+inline Int to_int(const Vec& x) { return at::vec::convert_to_int_of_same_size<float>(x); }
+inline Int operator~(const Int& x) { return x ^ Int(-1); }
 
 void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W, const float* positions,
               const float* normals, const float* inverse_depth, const float* depth, const bool* valid,
@@ -65,6 +68,8 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
   const float* pos = positions + 3 * plane;
   const float slice_step = float(M_PI / double(cfg.slices));
   const Vec half_pi = Vec(float(M_PI / 2)), pi = Vec(float(M_PI)), sectors = Vec(32.0f);
+  const Int zero_i = Int(0), one_i = Int(1), three_i = Int(3), all_i = Int(32), Wi = Int(int32_t(W));
+  const Int Wlast = Int(int32_t(W - 1)), Hlast = Int(int32_t(H - 1));
   const Vec Wf = Vec(float(W)), Hf = Vec(float(H)), Wmax = Vec(float(W - 1)), Hmax = Vec(float(H - 1));
   for (int64_t u0 = 0; u0 < W; u0 += L) {
     const int n = int(std::min<int64_t>(L, W - u0));
@@ -128,7 +133,7 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
       const Vec len = norm2(du, dv);
       const Vec unit_u = du / at::vec::clamp_min(len, Vec(1e-12f)), unit_v = dv / at::vec::clamp_min(len, Vec(1e-12f));
       const Vec span = at::vec::clamp_min(Vec(cfg.radius) * len - Vec(cfg.min_step_px), Vec(0.0f));
-      alignas(64) uint32_t occ[L] = {};
+      Int occ = zero_i;
       for (int side = 1; side >= -1; side -= 2) {
         const Vec sgn = Vec(float(side)), scale = Vec(float(side / M_PI));
         const Vec su_dir = unit_u * sgn, sv_dir = unit_v * sgn;
@@ -142,52 +147,36 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
           const Vec dist = Vec(cfg.min_step_px) + span * frac;
           const Vec su = u + dist * su_dir, sv = v + dist * sv_dir;
           Vec pos_s[3], sample_ok;
-          alignas(64) float taps[4][L], tap_pos[3][L], fl[2][L];
-          alignas(64) float tap_ok[L];
           if (cfg.bilinear) {
             const Vec fu0 = su.floor(), fv0 = sv.floor();
             const Vec fu = su - fu0, fv = sv - fv0;
-            fu0.store(fl[0]);
-            fv0.store(fl[1]);
-            for (int l = 0; l < L; ++l) {
-              const int32_t iu = int32_t(std::min(std::max(fl[0][l], -1.0f), float(W)));
-              const int32_t iv = int32_t(std::min(std::max(fl[1][l], -1.0f), float(H)));
-              const int64_t c0 = std::clamp<int32_t>(iu, 0, W - 1), c1 = std::clamp<int32_t>(iu + 1, 0, W - 1);
-              const int64_t r0 = std::clamp<int32_t>(iv, 0, H - 1) * W, r1 = std::clamp<int32_t>(iv + 1, 0, H - 1) * W;
-              taps[0][l] = inv[r0 + c0];
-              taps[1][l] = inv[r0 + c1];
-              taps[2][l] = inv[r1 + c0];
-              taps[3][l] = inv[r1 + c1];
-              tap_ok[l] = ok[r0 + c0] && ok[r0 + c1] && ok[r1 + c0] && ok[r1 + c1] ? 1.0f : 0.0f;
-            }
-            sample_ok = Vec::loadu(tap_ok) > Vec(0.5f);
+            const Int iu = to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), iv = to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf));
+            const Int c0 = at::vec::clamp(iu, zero_i, Wlast), c1 = at::vec::clamp(iu + one_i, zero_i, Wlast);
+            const Int r0 = at::vec::clamp(iv, zero_i, Hlast) * Wi, r1 = at::vec::clamp(iv + one_i, zero_i, Hlast) * Wi;
+            // invalid texels hold NaN: a sample is valid when its four taps are
+            const Vec t0 = at::vec::gather<4>(inv, r0 + c0), t1 = at::vec::gather<4>(inv, r0 + c1);
+            const Vec t2 = at::vec::gather<4>(inv, r1 + c0), t3 = at::vec::gather<4>(inv, r1 + c1);
+            sample_ok = (t0 == t0) & (t1 == t1) & (t2 == t2) & (t3 == t3);
             if (cfg.drop) {
               sample_ok = sample_ok & (fu0 >= Vec(0.0f)) & (fu0 + Vec(1.0f) < Wf) & (fv0 >= Vec(0.0f)) &
                           (fv0 + Vec(1.0f) < Hf);
             }
-            const Vec inv_depth = lerp(lerp(Vec::loadu(taps[0]), Vec::loadu(taps[1]), fu),
-                                       lerp(Vec::loadu(taps[2]), Vec::loadu(taps[3]), fu), fv);
-            const Vec depth_s = inv_depth.reciprocal();
+            const Vec depth_s = lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv).reciprocal();
             const Vec su_c = at::vec::clamp(su, Vec(0.0f), Wmax), sv_c = at::vec::clamp(sv, Vec(0.0f), Hmax);
             pos_s[0] = ((su_c - Vec(cx)) / Vec(fx)) * depth_s;
             pos_s[1] = ((sv_c - Vec(cy)).neg() / Vec(fy)) * depth_s;
             pos_s[2] = depth_s.neg();
           } else {
             const Vec fu0 = (su + Vec(0.5f)).floor(), fv0 = (sv + Vec(0.5f)).floor();
-            fu0.store(fl[0]);
-            fv0.store(fl[1]);
-            for (int l = 0; l < L; ++l) {
-              const int64_t iu = std::clamp<int64_t>(int64_t(fl[0][l]), 0, W - 1);
-              const int64_t iv = std::clamp<int64_t>(int64_t(fl[1][l]), 0, H - 1);
-              const int64_t p = iv * W + iu;
-              for (int c = 0; c < 3; ++c) tap_pos[c][l] = pos[3 * p + c];
-              tap_ok[l] = ok[p] ? 1.0f : 0.0f;
-            }
-            sample_ok = Vec::loadu(tap_ok) > Vec(0.5f);
+            const Int iu = at::vec::clamp(to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), zero_i, Wlast);
+            const Int iv = at::vec::clamp(to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf)), zero_i, Hlast);
+            const Int texel = iv * Wi + iu, at3 = texel * three_i;
+            const Vec t = at::vec::gather<4>(inv, texel);
+            sample_ok = t == t;
             if (cfg.drop) {
               sample_ok = sample_ok & (fu0 >= Vec(0.0f)) & (fu0 < Wf) & (fv0 >= Vec(0.0f)) & (fv0 < Hf);
             }
-            for (int c = 0; c < 3; ++c) pos_s[c] = Vec::loadu(tap_pos[c]);
+            for (int c = 0; c < 3; ++c) pos_s[c] = at::vec::gather<4>(pos + c, at3);
           }
           Vec delta[3];
           for (int c = 0; c < 3; ++c) delta[c] = pos_s[c] - P[c];
@@ -202,28 +191,19 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
           const Vec lo = side > 0 ? xf : xb, hi = side > 0 ? xb : xf;
           Vec width = (hi - lo) * sectors;
           if (cfg.epsilon > 0) width = width - Vec(cfg.epsilon);
-          const Vec first = (lo * sectors).floor();
           const Vec count = cfg.rounding == 0 ? width.ceil() : cfg.rounding == 1 ? width.round() : width.floor();
-          alignas(64) float f_first[L], f_count[L];
-          first.store(f_first);
-          count.store(f_count);
-          for (int l = 0; l < L; ++l) {
-            // bits [first, first + count) of 32, as (0xFFFFFFFF >> (32 - count)) << first
-            const int64_t k0 = int64_t(std::min(std::max(f_first[l], 0.0f), 32.0f));
-            const int64_t k1 = std::min<int64_t>(k0 + int64_t(std::min(std::max(f_count[l], 0.0f), 32.0f)), 32);
-            occ[l] |= uint32_t(((uint64_t(1) << k1) - 1) & ~((uint64_t(1) << k0) - 1));
-          }
+          // bits [k0, k0 + count) of 32, as (0xFFFFFFFF >> (32 - count)) << k0 (shifts by 32 give 0)
+          const Int k0 = to_int(at::vec::clamp((lo * sectors).floor(), Vec(0.0f), sectors));
+          const Int k1 = at::vec::minimum(k0 + to_int(at::vec::clamp(count, Vec(0.0f), sectors)), all_i);
+          occ = occ | (((one_i << k1) - one_i) & ~((one_i << k0) - one_i));
         }
       }
-      alignas(64) float free_sectors[L];
-      for (int l = 0; l < L; ++l) {
-        uint32_t x = occ[l];
-        x = x - ((x >> 1) & 0x55555555u);
-        x = (x & 0x33333333u) + ((x >> 2) & 0x33333333u);
-        x = (x + (x >> 4)) & 0x0F0F0F0Fu;
-        free_sectors[l] = float(32u - ((x * 0x01010101u) >> 24));
-      }
-      visible = visible + Vec::loadu(free_sectors);
+      // 32 - popcount(occ), SWAR (arithmetic shifts are safe here: the masks clear the smeared sign bits)
+      Int x = occ - ((occ >> one_i) & Int(0x55555555));
+      x = (x & Int(0x33333333)) + ((x >> Int(2)) & Int(0x33333333));
+      x = (x + (x >> Int(4))) & Int(0x0F0F0F0F);
+      const Vec free_sectors = at::vec::convert_to_fp_of_same_size<float>(all_i - ((x * Int(0x01010101)) >> Int(24)));
+      visible = visible + free_sectors;
     }
     const Vec vis = select(live, (visible * Vec(1.0f / 32.0f)) / Vec(float(cfg.slices)), Vec(1.0f));
     alignas(64) float result[L];
