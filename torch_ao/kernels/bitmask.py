@@ -52,11 +52,14 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
-    """``None`` when :func:`bitmask_hard` computes ``module(gbuffer)`` (a ``BitmaskAO``), else why not."""
+    """``None`` when :func:`bitmask_hard` computes ``module(gbuffer)`` (a ``BitmaskAO``), else why not.
+
+    Hard masks have no gradient, so hard mode is covered with autograd on too; straight-through mode
+    (hard values, soft gradients) only when no gradient is asked for."""
     if getattr(module, "variant", None) != "default":
         return "only variant='default'"
-    if module.mode != "hard" and not (module.mode == "straight_through" and not _needs_grad(module, gbuffer)):
-        return f"mode={module.mode!r} (the kernel is hard mode only)"
+    if module.mode == "soft":
+        return "mode='soft' (the kernel computes hard masks)"
     if module.weighting != "uniform":
         return "weighting='cosine'"
     if module.want_indirect or module.want_bent or module.ambient is not None or module._ambient_constant:
@@ -67,8 +70,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return "a per-object or per-pixel thickness, or thickness_growth"
     if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
-    if _needs_grad(module, gbuffer):
-        return "a gradient is asked for"
+    if module.mode == "straight_through" and _needs_grad(module, gbuffer):
+        return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     return None
 
 

@@ -16,6 +16,14 @@
 
 #include <cmath>
 #include <cstdint>
+#include <vector>
+
+#ifdef TORCH_AO_MKL_VML
+// torch.cos/torch.sin on a build with MKL call its vector math (inside libtorch_cpu); so does this
+extern "C" void vmsCos(int n, const float* a, float* r, long long mode);
+extern "C" void vmsSin(int n, const float* a, float* r, long long mode);
+constexpr long long kVmlMode = 0x2 | 0x140000 | 0x100;  // VML_HA | VML_FTZDAZ_OFF | VML_ERRMODE_IGNORE, as ATen
+#endif
 
 namespace {
 
@@ -71,9 +79,26 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
   const Int zero_i = Int(0), one_i = Int(1), three_i = Int(3), all_i = Int(32), Wi = Int(int32_t(W));
   const Int Wlast = Int(int32_t(W - 1)), Hlast = Int(int32_t(H - 1));
   const Vec Wf = Vec(float(W)), Hf = Vec(float(H)), Wmax = Vec(float(W - 1)), Hmax = Vec(float(H - 1));
+  // cos and sin of every pixel's slice angles, one call per row (torch evaluates them over all pixels)
+  const int64_t S = cfg.slices, row_stride = (W + L - 1) / L * L;
+  std::vector<float> angle(S * row_stride), cosine(S * row_stride), sine(S * row_stride);
+  for (int64_t u = 0; u < row_stride; ++u) {
+    const float a = cfg.jitter ? ign(float(u), float(row), cfg.seed) : 0.0f;
+    for (int64_t s = 0; s < S; ++s) angle[s * row_stride + u] = (a + float(s)) * slice_step;
+  }
+#ifdef TORCH_AO_MKL_VML
+  vmsCos(int(angle.size()), angle.data(), cosine.data(), kVmlMode);
+  vmsSin(int(angle.size()), angle.data(), sine.data(), kVmlMode);
+#else
+  for (size_t i = 0; i < angle.size(); i += L) {
+    Vec x = Vec::loadu(angle.data() + i);
+    x.cos().store(cosine.data() + i);
+    x.sin().store(sine.data() + i);
+  }
+#endif
   for (int64_t u0 = 0; u0 < W; u0 += L) {
     const int n = int(std::min<int64_t>(L, W - u0));
-    alignas(64) float lane[16][L];
+    alignas(64) float lane[10][L];
     bool any = false;
     for (int l = 0; l < L; ++l) {
       const int64_t u = u0 + std::min(l, n - 1), p = row * W + u;
@@ -86,8 +111,7 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
       lane[6][l] = depth[plane + p];
       lane[7][l] = float(u0 + l);
       lane[8][l] = live ? 1.0f : 0.0f;
-      lane[9][l] = cfg.jitter ? ign(float(u0 + l), float(row), cfg.seed) : 0.0f;
-      lane[10][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
+      lane[9][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
     }
     if (!any) {
       for (int l = 0; l < n; ++l) out[plane + row * W + u0 + l] = 1.0f;
@@ -100,7 +124,7 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
     }
     const Vec d = load_lanes(lane[6]), u = load_lanes(lane[7]), v = Vec(float(row));
     const Vec live = load_lanes(lane[8]) > Vec(0.5f);
-    const Vec a = load_lanes(lane[9]), xi = load_lanes(lane[10]);
+    const Vec xi = load_lanes(lane[9]);
     // V = normalize(-P); e1 = normalize(cross(+Y, V)) = normalize((V_z, 0, -V_x)); e2 = cross(V, e1)
     {
       Vec minus[3] = {P[0].neg(), P[1].neg(), P[2].neg()};
@@ -116,8 +140,7 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
     const Vec depth_floor = Vec(1e-20f) * (d * d);
     Vec visible = Vec(0.0f);  // unoccluded sectors summed over slices (exact small integers)
     for (int64_t s = 0; s < cfg.slices; ++s) {
-      const Vec psi = (a + Vec(float(s))) * Vec(slice_step);
-      const Vec cs = psi.cos(), sn = psi.sin();
+      const Vec cs = Vec::loadu(cosine.data() + s * row_stride + u0), sn = Vec::loadu(sine.data() + s * row_stride + u0);
       Vec T[3], axis[3], np[3];
       for (int c = 0; c < 3; ++c) T[c] = cs * e1[c] + sn * e2[c];
       axis[0] = fma(T[1], V[2], (T[2] * V[1]).neg());

@@ -36,7 +36,10 @@ def cpu_kernels():
 
     capability = torch.backends.cpu.get_cpu_capability()
     flags = ["-O3", "-ffp-contract=off", "-fno-math-errno"] + _CAPABILITY_FLAGS.get(capability, [])
-    name = f"torch_ao_kernels_{capability.lower()}"
+    vml = torch.backends.mkl.is_available()  # torch.cos/sin then use MKL's vector math: the kernel too
+    if vml:
+        flags.append("-DTORCH_AO_MKL_VML")
+    name = f"torch_ao_kernels_{capability.lower()}{'_vml' if vml else ''}"
     try:
         cpp_extension.load(name=name, sources=[str(_SOURCE)], extra_cflags=flags, is_python_module=False,
                            verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE")))

@@ -1,0 +1,101 @@
+"""The C++ hard bitmask kernel against the tensor-op walk: the same visibility, bit for bit."""
+import math
+import shutil
+
+import pytest
+import torch
+
+from torch_ao.camera import PinholeCamera
+from torch_ao.examples import crease_gbuffer, example_gbuffer, floor_wall_gbuffer
+from torch_ao.gbuffer import GBuffer
+from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kernel_covers
+from torch_ao.methods.bitmask import BitmaskAO
+
+pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                                reason="the kernels need a C++ compiler")
+
+
+@pytest.fixture(scope="module")
+def built():
+    try:
+        return cpu_kernels()
+    except KernelUnavailable as exc:  # a compiler is there: a failed build is a failure
+        pytest.fail(str(exc))
+
+
+def rough_gbuffer(height=40, width=56, batch=2, seed=0) -> GBuffer:
+    """Bumpy depth with background holes, two images with different focal lengths (normals from depth)."""
+    g = torch.Generator().manual_seed(seed)
+    v, u = torch.meshgrid(torch.linspace(0, 1, height), torch.linspace(0, 1, width), indexing="ij")
+    depth = 2.0 + 0.6 * torch.sin(9 * u + 4 * v) * torch.cos(7 * v) + 0.05 * torch.rand(batch, 1, height, width, generator=g)
+    depth[:, :, :5, :9] = math.inf  # background
+    depth[1, 0, 20:26, 30:37] = 0.0
+    cam = PinholeCamera.from_fov(torch.tensor([55.0, 70.0]), height, width, batch_size=batch)
+    return GBuffer(depth=depth.to(torch.float32), camera=cam)
+
+
+def kernel_of(module: BitmaskAO, gb: GBuffer) -> torch.Tensor:
+    return bitmask_hard(gb, gb.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
+                        radius=float(module.radius), thickness=float(module.thickness), step_power=module.step_power,
+                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
+                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)
+
+
+FRAMES = {
+    "example": lambda: example_gbuffer(54, 96),
+    "floor_wall": lambda: floor_wall_gbuffer(48, 48, pitch_degrees=-50.0)[0],
+    "crease": lambda: crease_gbuffer(40, 40),
+    "rough": rough_gbuffer,
+}
+SETTINGS = [
+    dict(slices=4, steps=4),
+    dict(slices=3, steps=6, radius=0.6, thickness=0.2),
+    dict(slices=2, steps=5, jitter=False, rounding="round", step_power=2.0, min_step_px=2.0),
+    dict(slices=3, steps=3, fetch="nearest", border="clamp", rounding="floor", seed=3),
+    dict(slices=2, steps=4, border="clamp", sector_epsilon=0.0, thickness=3.0),
+]
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", range(len(SETTINGS)))
+def test_kernel_equals_the_tensor_walk_bit_for_bit(built, frame, setting):
+    gb = FRAMES[frame]()
+    module = BitmaskAO(mode="hard", **SETTINGS[setting])
+    with torch.no_grad():
+        reference = module(gb).visibility
+        out = kernel_of(module, gb)
+    assert out.shape == reference.shape and out.dtype == reference.dtype
+    assert reference.min() < 1  # something is occluded: the comparison means something
+    assert torch.equal(out, reference), (out != reference).sum()
+
+
+def test_background_is_unoccluded_and_batch_images_are_independent(built):
+    gb = rough_gbuffer()
+    module = BitmaskAO(mode="hard", slices=3, steps=4)
+    out = kernel_of(module, gb)
+    assert torch.equal(out[~gb.valid], torch.ones_like(out[~gb.valid]))
+    one = GBuffer(depth=gb.depth[1:], camera=PinholeCamera(gb.camera.intrinsics[1:], gb.camera.height, gb.camera.width))
+    assert torch.equal(kernel_of(module, one), out[1:])
+
+
+def test_flat_plane_is_unoccluded(built):
+    gb = floor_wall_gbuffer(40, 40, wall_distance=100.0)[0]  # the wall is far outside the radius
+    out = kernel_of(BitmaskAO(mode="hard", slices=4, steps=6), gb)
+    assert torch.equal(out, torch.ones_like(out))
+
+
+def test_kernel_covers_names_what_it_does_not_cover():
+    gb = example_gbuffer(8, 8)
+    assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
+    cases = {"variant": BitmaskAO(variant="hdrp"), "mode": BitmaskAO(mode="soft"),
+             "weighting": BitmaskAO(weighting="cosine"), "indirect": BitmaskAO(indirect=True),
+             "azimuth": BitmaskAO(azimuth="screen"), "thickness": BitmaskAO(thickness=torch.ones(3))}
+    for word, module in cases.items():
+        assert word in kernel_covers(module, gb), word
+    assert "float64" in kernel_covers(BitmaskAO(mode="hard"), gb.to(dtype=torch.float64))
+    # hard masks have no gradient: covered with autograd on; straight-through only without a gradient
+    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
+    assert kernel_covers(BitmaskAO(mode="hard"), graph) is None
+    assert "gradient" in kernel_covers(BitmaskAO(mode="straight_through"), graph)
+    with torch.no_grad():
+        assert kernel_covers(BitmaskAO(mode="straight_through"), graph) is None
