@@ -36,7 +36,7 @@ def rough_gbuffer(height=40, width=56, batch=2, seed=0) -> GBuffer:
 
 def kernel_of(module: BitmaskAO, gb: GBuffer) -> torch.Tensor:
     return bitmask_hard(gb, gb.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                        radius=float(module.radius), thickness=float(module.thickness), step_power=module.step_power,
+                        radius=module.radius.item(), thickness=module.thickness.item(), step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
                         border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)
 

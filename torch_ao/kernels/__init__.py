@@ -10,5 +10,6 @@ from __future__ import annotations
 
 from .build import KernelUnavailable, cpu_kernels
 from .bitmask import bitmask_hard, kernel_covers
+from .dispatch import BACKENDS, kernel_forward
 
-__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "kernel_covers"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "kernel_covers", "BACKENDS", "kernel_forward"]

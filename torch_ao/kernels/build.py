@@ -46,4 +46,14 @@ def cpu_kernels():
     except Exception as exc:  # no compiler, missing headers, a failed build...
         raise KernelUnavailable(f"the C++ kernels could not be built ({type(exc).__name__}: "
                                 f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc
+    _register_fake()
     return torch.ops.torch_ao_kernels
+
+
+def _register_fake() -> None:
+    """Shapes of the kernels' outputs for tracing (``torch.compile`` calls the op as one graph node)."""
+
+    @torch.library.register_fake("torch_ao_kernels::bitmask_hard")
+    def _(positions, *args):
+        B, H, W, _ = positions.shape
+        return positions.new_empty(B, 1, H, W)

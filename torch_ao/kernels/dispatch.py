@@ -1,0 +1,47 @@
+"""Choosing between a fused kernel and the tensor-op walk for a module's call (``backend=``)."""
+from __future__ import annotations
+
+import warnings
+
+from ..gbuffer import GBuffer
+from .bitmask import bitmask_hard, kernel_covers
+from .build import KernelUnavailable
+
+__all__ = ["BACKENDS", "kernel_forward"]
+
+#: ``"auto"``: the kernel when it covers the call, else the tensor path; ``"kernel"``: the kernel, and a
+#: ``ValueError`` for a call it does not cover; ``"torch"``: always the tensor path
+BACKENDS = ("auto", "kernel", "torch")
+
+_warned: set[str] = set()
+
+
+def _warn_once(message: str) -> None:
+    if message not in _warned:
+        _warned.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+
+def kernel_forward(module, gbuffer: GBuffer, backend: str):
+    """The kernel's visibility ``(B,1,H,W)`` for ``module(gbuffer)``, or ``None`` where the tensor path runs.
+
+    A kernel that cannot be built here (no compiler, a failed build) falls back to the tensor path with
+    one warning per process, whatever ``backend`` asks.
+    """
+    if backend == "torch":
+        return None
+    reason = kernel_covers(module, gbuffer)
+    if reason is not None:
+        if backend == "kernel":
+            raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")
+        return None
+    try:
+        return bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
+                            steps=module.steps, radius=float(module.radius.detach()),
+                            thickness=float(module.thickness.detach()), step_power=module.step_power,
+                            min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
+                            fetch=module.fetch, border=module.border, rounding=module.rounding,
+                            sector_epsilon=module.sector_epsilon)
+    except KernelUnavailable as exc:
+        _warn_once(f"torch_ao: {exc}; using the tensor-op walk instead (backend='torch' silences this)")
+        return None
