@@ -11,24 +11,10 @@ Modules, one concept each:
 * :mod:`.live_steps`, :mod:`.blocks`, :mod:`.sweeps` -- the soft union's engine: which steps are
   swept, the per-block scratch buffers, and the forward sweep and reverse scan over one block.
 """
+from . import rule, soft_union, union
 from .rule import (ROUNDINGS, SECTORS, bits_to_mask, hard_count, hard_coverage, hard_mask, mask_bits, popcount32,
                    sector_interval, soft_coverage, soft_floor)
 from .soft_union import SectorUnion
 from .union import MODES, sector_union
 
-__all__ = [
-    "SECTORS",
-    "ROUNDINGS",
-    "MODES",
-    "sector_interval",
-    "hard_count",
-    "hard_mask",
-    "popcount32",
-    "mask_bits",
-    "bits_to_mask",
-    "hard_coverage",
-    "soft_floor",
-    "soft_coverage",
-    "SectorUnion",
-    "sector_union",
-]
+__all__ = [*rule.__all__, *soft_union.__all__, *union.__all__]

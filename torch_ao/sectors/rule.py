@@ -31,7 +31,6 @@ __all__ = [
     "SECTORS",
     "ROUNDINGS",
     "sector_interval",
-    "rounding_offset",
     "hard_count",
     "hard_mask",
     "popcount32",
@@ -54,10 +53,10 @@ def rounding_offset(rounding: str) -> float:
     return _OFFSET[check_choice("rounding", rounding, ROUNDINGS)]
 
 
-def sector_interval(min_h: torch.Tensor, max_h: torch.Tensor, sectors: int = SECTORS) -> tuple[torch.Tensor, torch.Tensor]:
-    """Start and width ``(s, w) = (sectors * min, sectors * (max - min))`` in sector units of the
-    intervals ``[min_h, max_h]`` (any shape, in ``[0, 1]``), as ``UpdatePartitions`` computes them."""
-    return min_h * sectors, (max_h - min_h) * sectors
+def sector_interval(min_h: torch.Tensor, max_h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Start and width ``(s, w) = (32 min, 32 (max - min))`` in sector units of the intervals
+    ``[min_h, max_h]`` (any shape, in ``[0, 1]``), as ``UpdatePartitions`` computes them."""
+    return min_h * SECTORS, (max_h - min_h) * SECTORS
 
 
 def hard_count(w: torch.Tensor, rounding: str = "ceil") -> torch.Tensor:

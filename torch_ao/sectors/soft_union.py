@@ -92,7 +92,7 @@ class SectorUnion(torch.autograd.Function):
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
         delta = rounding_offset(rounding)
-        visible, newly = soft_union(s, w, weights, p0, tau, delta, rounding if hard_forward else None)
+        visible, newly = union_forward(s, w, weights, p0, tau, delta, rounding if hard_forward else None)
         ctx.tau, ctx.delta = tau, delta
         ctx.save_for_backward(s, w, weights, p0)
         return visible, newly
@@ -114,7 +114,7 @@ class SectorUnion(torch.autograd.Function):
         return (*grads, None, None, None)
 
 
-def soft_union(s, w, weights, p0, tau, delta, hard_rounding=None):
+def union_forward(s, w, weights, p0, tau, delta, hard_rounding=None):
     """The soft union's forward ``(visible, newly)`` (or, with ``hard_rounding``, the straight-through
     one: :func:`~.hard_union.coverage_union`) over the live steps only; no graph, no tables. Shapes as
     :class:`SectorUnion`; ``delta`` the rounding's offset (:func:`~.rule.rounding_offset`)."""

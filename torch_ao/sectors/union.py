@@ -6,7 +6,7 @@ import torch
 from ..checks import check_choice, check_float
 from .hard_union import mask_union
 from .rule import ROUNDINGS, rounding_offset
-from .soft_union import SectorUnion, soft_union
+from .soft_union import SectorUnion, union_forward
 
 __all__ = ["MODES", "sector_union"]
 
@@ -33,6 +33,6 @@ def sector_union(s: torch.Tensor, w: torch.Tensor, *, mode: str = "hard", roundi
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (s, w, weights, p0))
     if not needs_grad:  # no graph: the plain sweep, without the backward tables
-        return soft_union(s, w, weights, p0, tau, rounding_offset(rounding),
+        return union_forward(s, w, weights, p0, tau, rounding_offset(rounding),
                           rounding if mode == "straight_through" else None)
     return SectorUnion.apply(s, w, weights, p0, tau, rounding, mode == "straight_through")
