@@ -16,8 +16,9 @@ all of them, never dividing by ``1 - c``::
     S_J = gv,   D_m = S_{m+1} - gn_m weights,   S_m = S_{m+1} - c_m D_m,   dL/dp0 = S_0
     dL/dc_m = -P_m D_m,   dL/dweights = sum_m gn_m c_m P_m
 
-(``D_m`` is what a share of ``P_m`` is worth kept visible rather than covered). With ``a = sigmoid((k + 1 -
-s) / tau)``, ``b = sigmoid((w + F(s) - delta - k) / tau)``, ``g = tanh(w / tau)`` and ``H_m = a_m b_m P_m``::
+(``D_m`` is what a share of ``P_m`` is worth kept visible rather than covered). With
+``a = sigmoid((k + 1 - s) / tau)``, ``b = sigmoid((w + F(s) - delta - k) / tau)``, ``g = tanh(w / tau)``
+and ``H_m = a_m b_m P_m``::
 
     dc/ds = c ((1 - b) F'(s) - (1 - a)) / tau,        dc/dw = a b g' + c (1 - b) / tau,   g' = (1 - g^2) / tau
     dL/ds_m = -(g / tau) (F' sum_k Y (1 - b) - sum_k Y (1 - a)),     Y = H_m D_m
