@@ -102,8 +102,8 @@ class SectorUnion(torch.autograd.Function):
     def backward(ctx, grad_visible, grad_newly):
         s, w, weights, p0 = ctx.saved_tensors
         with_newly = weights is not None and grad_newly is not None and grad_newly.numel() > 0
-        need = ctx.needs_input_grad
-        wanted = Wanted(s=need[0], w=need[1], weights=with_newly and need[2], p0=need[3])
+        need_s, need_w, need_weights, need_p0 = ctx.needs_input_grad[:4]
+        wanted = Wanted(s=need_s, w=need_w, weights=with_newly and need_weights, p0=need_p0)
         if not any(wanted):
             return None, None, None, None, None, None, None
         grad_newly = grad_newly if with_newly else None
