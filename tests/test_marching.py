@@ -6,11 +6,12 @@ import torch
 
 from torch_ao.examples import floor_wall_gbuffer, plane_gbuffer
 from torch_ao.gbuffer import GBuffer
-from torch_ao.marching import (Frame, PerspectiveBilinearDepth, SlicePattern, fast_acos, interleaved_gradient_noise,
-                               march)
+from torch_ao.ops import fast_acos
+from torch_ao.walk import (Frame, PerspectiveBilinearDepth, SliceAccumulator, SlicePattern, interleaved_gradient_noise,
+                           march)
 
 
-class Recorder:
+class Recorder(SliceAccumulator):
     """Keeps every sample, and sums the exact unoccluded slice integral |n_p| (cos g + g sin g)."""
 
     def __init__(self):
@@ -201,9 +202,9 @@ def test_batched_steps_see_the_same_samples_block_major(fetch):
 def _walk_gradients(monkeypatch, fused: bool, fetch: str, border: str, batch: int, sparse: bool = False):
     """Gradients of a weighted sum of every sample's along_view/along_tangent (batched steps) to the
     depth and the radius, with the fused :class:`SampleAlong` or plain autograd."""
-    import torch_ao.marching as marching
+    import torch_ao.walk as walk
 
-    monkeypatch.setattr(marching.Footprint, "fusable", lambda self, frame: fused)
+    monkeypatch.setattr(walk.Footprint, "fusable", lambda self, frame: fused)
     gb, _ = floor_wall_gbuffer(10, 14, dtype=torch.float64)
     torch.manual_seed(3)
     depth = torch.cat([gb.depth * (1 + 0.02 * torch.rand_like(gb.depth)) for _ in range(batch)]).requires_grad_(True)

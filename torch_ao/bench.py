@@ -28,7 +28,7 @@ from torch import nn
 
 from .fit import FitView, load_views, set_mode
 from .gbuffer import GBuffer
-from .marching import Frame
+from .walk import Frame
 from .methods import METHODS, PRESETS, get_method
 from .metrics import error_metrics
 
