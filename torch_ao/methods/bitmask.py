@@ -354,6 +354,7 @@ class BitmaskAO(ScreenSpaceAO):
         if azimuth is None:
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
         super().__init__(azimuth=azimuth, **kwargs)
+        self.pattern_for(None)  # validate the variant's walk now (the base no longer calls it)
         self.mode, self.tau, self.rounding, self.weighting = mode, float(tau), rounding, weighting
         # Chosen per call (the mode may change after construction, e.g. fit's set_mode).
         self._auto_chunk = kwargs.get("chunk_size") is None and "recompute" not in kwargs
