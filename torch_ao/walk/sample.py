@@ -120,7 +120,7 @@ class Sample:
         return torch.atan2(self.along_tangent, self.along_view - view_offset)
 
     def cos_view(self, view_offset: torch.Tensor | float = 0.0) -> torch.Tensor:
-        """``dot(normalize(delta - view_offset * V), V)`` ``(N,)``: the seeds' horizon cosine (3D, not projected)."""
+        """``dot(normalize(delta - view_offset * V), V)`` ``(N,)``: the shaders' horizon cosine (3D, not projected)."""
         off = torch.as_tensor(view_offset, dtype=self.delta.dtype, device=self.delta.device)
         view = self._queries.view
         d = self.delta - (off[:, None] if off.dim() == 1 else off) * view
