@@ -25,9 +25,10 @@ def fast_acos(x: torch.Tensor) -> torch.Tensor:
 
 
 def clamped_gradient(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) -> torch.Tensor:
-    """``fn(x)`` ``(...)`` with the gradient ``fn`` has at ``x`` clamped to ``[-1 + eps, 1 - eps]`` (the
-    straight-through trick): for functions like ``acos`` whose slope is infinite at ``+-1``, a large but
-    finite gradient there. ``eps`` is 1e-6 in float64, 1e-4 otherwise. Without autograd: ``fn(x)``."""
+    """``fn(x)`` ``(...)`` with the gradient of ``fn(clamp(x, -1 + eps, 1 - eps))`` (the straight-through
+    trick): ``fn``'s own slope inside, zero beyond ``1 - eps`` in magnitude, so functions like ``acos``
+    whose slope is infinite at ``+-1`` get finite gradients. ``eps`` is 1e-6 in float64, 1e-4 otherwise.
+    Without autograd: ``fn(x)``."""
     value = fn(x)
     if not x.requires_grad:
         return value
