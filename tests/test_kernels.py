@@ -87,7 +87,7 @@ def test_flat_plane_is_unoccluded(built):
 def test_kernel_covers_names_what_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
-    cases = {"variant": BitmaskAO(variant="hdrp"), "mode": BitmaskAO(mode="soft"),
+    cases = {"variant": BitmaskAO(variant="hdrp", azimuth="view"), "mode": BitmaskAO(mode="soft"),
              "weighting": BitmaskAO(weighting="cosine"), "indirect": BitmaskAO(indirect=True),
              "azimuth": BitmaskAO(azimuth="screen"), "thickness": BitmaskAO(thickness=torch.ones(3))}
     for word, module in cases.items():
@@ -99,3 +99,65 @@ def test_kernel_covers_names_what_it_does_not_cover():
     assert "gradient" in kernel_covers(BitmaskAO(mode="straight_through"), graph)
     with torch.no_grad():
         assert kernel_covers(BitmaskAO(mode="straight_through"), graph) is None
+
+
+# ------------------------------------------------------------------------------- dispatch
+def test_auto_backend_runs_the_kernel_with_the_tensor_paths_numbers(built, monkeypatch):
+    import torch_ao.kernels.dispatch as dispatch
+
+    calls = []
+    real = dispatch.bitmask_hard
+    monkeypatch.setattr(dispatch, "bitmask_hard", lambda *a, **k: calls.append(1) or real(*a, **k))
+    gb = rough_gbuffer()
+    auto = BitmaskAO(slices=3, steps=4)(gb)  # autograd on, trainable parameters: hard masks have no gradient
+    assert calls == [1] and auto.indirect is None and auto.bent_normal is None
+    assert torch.equal(auto.visibility, BitmaskAO(slices=3, steps=4, backend="torch")(gb).visibility)
+    BitmaskAO(slices=3, steps=4, mode="soft")(gb)  # not covered: the tensor path
+    assert calls == [1]
+
+
+def test_torch_backend_never_calls_the_kernel(monkeypatch):
+    import torch_ao.kernels.dispatch as dispatch
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the kernel was called")
+
+    monkeypatch.setattr(dispatch, "bitmask_hard", refuse)
+    out = BitmaskAO(slices=2, steps=3, backend="torch")(example_gbuffer(16, 24)).visibility
+    assert out.shape == (1, 1, 16, 24) and out.min() < 1
+
+
+def test_kernel_backend_refuses_a_call_it_does_not_cover():
+    from torch_ao.methods.gtao import GTAO
+
+    gb = example_gbuffer(8, 8)
+    with pytest.raises(ValueError, match="backend.*mode='soft'"):
+        BitmaskAO(mode="soft", backend="kernel")(gb)
+    with pytest.raises(ValueError, match="backend.*no kernel for GTAO"):
+        GTAO(backend="kernel")(gb)
+    with pytest.raises(ValueError, match="backend: expected one of"):
+        BitmaskAO(backend="cuda")
+
+
+def test_a_kernel_that_cannot_be_built_falls_back_with_one_warning(monkeypatch):
+    import warnings
+
+    import torch_ao.kernels.dispatch as dispatch
+
+    def unavailable(*args, **kwargs):
+        raise KernelUnavailable("the C++ kernels could not be built (no compiler)")
+
+    monkeypatch.setattr(dispatch, "bitmask_hard", unavailable)
+    monkeypatch.setattr(dispatch, "_warned", set())
+    gb = example_gbuffer(16, 24)
+    expected = BitmaskAO(slices=2, steps=3, backend="torch")(gb).visibility
+    for backend in ("auto", "kernel"):  # never an error, whatever was asked
+        with pytest.warns(RuntimeWarning, match="no compiler.*tensor-op walk"):
+            out = BitmaskAO(slices=2, steps=3, backend=backend)(gb).visibility
+        assert torch.equal(out, expected)
+        monkeypatch.setattr(dispatch, "_warned", set())
+    with pytest.warns(RuntimeWarning):
+        BitmaskAO(slices=2, steps=3)(gb)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert torch.equal(BitmaskAO(slices=2, steps=3)(gb).visibility, expected)  # warned once

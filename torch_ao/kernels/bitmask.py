@@ -51,23 +51,44 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         ROUNDINGS.index(rounding), float(sector_epsilon))
 
 
+#: options of a module the kernel reproduces: ``None`` for any value, else the values it covers
+_COVERED = {
+    # the walk's and every module's options
+    "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
+    "jitter": None, "seed": None, "fetch": None, "border": None, "azimuth": ("view",), "normals": None,
+    "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
+    # the bitmask family's
+    "variant": ("default",), "mode": ("hard", "straight_through"), "tau": None, "rounding": None,
+    "weighting": ("uniform",), "thickness": None, "thickness_growth": (None,), "indirect": (False,),
+    "bent_normals": (False,), "ambient": (None,), "ambient_directions": None, "sector_epsilon": None,
+    "glsl_numerics": None,
+}
+
+
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_hard` computes ``module(gbuffer)`` (a ``BitmaskAO``), else why not.
 
-    Hard masks have no gradient, so hard mode is covered with autograd on too; straight-through mode
-    (hard values, soft gradients) only when no gradient is asked for."""
-    if getattr(module, "variant", None) != "default":
-        return "only variant='default'"
-    if module.mode == "soft":
-        return "mode='soft' (the kernel computes hard masks)"
-    if module.weighting != "uniform":
-        return "weighting='cosine'"
-    if module.want_indirect or module.want_bent or module.ambient is not None or module._ambient_constant:
-        return "indirect light, bent normals or ambient"
-    if module.azimuth != "view":
-        return "azimuth='screen'"
-    if module.thickness.dim() != 0 or module.thickness_growth is not None:
-        return "a per-object or per-pixel thickness, or thickness_growth"
+    Every option of the module must be one the kernel knows, at a value it reproduces (an option it
+    does not know, e.g. one added to the module later, sends the call to the tensor path). Hard masks
+    have no gradient, so hard mode is covered with autograd on too; straight-through mode (hard values,
+    soft gradients) only when no gradient is asked for.
+    """
+    values = dict(getattr(module, "values", {}))
+    for name in ("variant", "mode", "weighting", "azimuth", "thickness_growth", "ambient"):
+        values[name] = getattr(module, name, "?")  # the bitmask family keeps these as attributes
+    values["indirect"] = getattr(module, "want_indirect", "?")
+    values["bent_normals"] = getattr(module, "want_bent", "?")
+    if getattr(module, "_ambient_constant", False):
+        values["ambient"] = "a colour"
+    for name, value in values.items():
+        if name not in _COVERED:
+            return f"option {name!r} (unknown to the kernel)"
+        allowed = _COVERED[name]
+        if allowed is not None and not any(value is a or (isinstance(value, str) and value == a) for a in allowed):
+            return f"{name}={value!r}"
+    thickness = getattr(module, "thickness", None)
+    if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0:
+        return "a per-object or per-pixel thickness"
     if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):

@@ -25,12 +25,17 @@ def _warn_once(message: str) -> None:
 def kernel_forward(module, gbuffer: GBuffer, backend: str):
     """The kernel's visibility ``(B,1,H,W)`` for ``module(gbuffer)``, or ``None`` where the tensor path runs.
 
+    A kernel exists for ``BitmaskAO`` (and subclasses) in the settings :func:`kernel_covers` accepts.
+
     A kernel that cannot be built here (no compiler, a failed build) falls back to the tensor path with
     one warning per process, whatever ``backend`` asks.
     """
     if backend == "torch":
         return None
-    reason = kernel_covers(module, gbuffer)
+    if not any(klass.__name__ == "BitmaskAO" for klass in type(module).__mro__):
+        reason = f"no kernel for {type(module).__name__}"
+    else:
+        reason = kernel_covers(module, gbuffer)
     if reason is not None:
         if backend == "kernel":
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from ..gbuffer import GBuffer
+from ..kernels import kernel_forward
 from ..options import Option, options_by_name
 from ..walk import Frame, SamplingPattern, SliceAccumulator, march
 from .common import MODULE_OPTIONS, PRESETS, RADIUS, Sampling, declare_signature, make_parameter, register_parameters, resolve_preset
@@ -71,6 +72,7 @@ class ScreenSpaceAO(nn.Module):
         self.sampling = Sampling.from_values(v, self.default_slices_steps)
         self.normals_method, self.chunk_size, self.recompute = v["normals"], v["chunk_size"], v["recompute"]
         self.trainable = v["trainable"]
+        self.backend = v["backend"]
         if "radius" in v:
             register_parameters(self, self.options(), v, ("radius",), trainable=self.trainable)
 
@@ -131,6 +133,9 @@ class ScreenSpaceAO(nn.Module):
     def forward(self, gbuffer: GBuffer) -> AOOutput:
         if not isinstance(gbuffer, GBuffer):
             raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(gbuffer).__name__}")
+        visibility = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
+        if visibility is not None:
+            return AOOutput(visibility=visibility)
         normals = gbuffer.view_normals(self.normals_method)
         frame = Frame(gbuffer, normals=normals, buffers=self.frame_buffers(gbuffer, normals))
         out = self.walk(frame, *self.chunking(gbuffer))

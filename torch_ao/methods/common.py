@@ -47,6 +47,9 @@ MODULE_OPTIONS = (
     Option("recompute", False, "With autograd, recompute each chunk's walk in backward instead of keeping its "
            "graph (with chunk_size: forward+backward memory of one chunk)", kind=bool),
     Option("trainable", True, "Register the fitted options as nn.Parameters (False: frozen buffers)", kind=bool),
+    Option("backend", "auto", "Where the walk runs: auto (a fused kernel when one covers the call, else tensor "
+           "ops), kernel (the kernel; an error for a call it does not cover), torch (tensor ops)", kind=str,
+           choices=("auto", "kernel", "torch")),
 )
 
 
