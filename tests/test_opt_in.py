@@ -123,7 +123,7 @@ def test_normals_from_depth_only_when_missing(probe):
 def test_background_walks_nothing(name, probe):
     cls = _all_methods()[name]
     frames = background_frames(_gbuffer())
-    module = cls(preset="low")
+    module = cls(preset="low", backend="torch")  # the tensor walk (the probe counts its pixels)
     # All background: no query pixel, nothing walked, visibility 1 everywhere.
     assert len(walk_package.Frame(frames["empty"]).queries) == 0
     probe["reset"]()

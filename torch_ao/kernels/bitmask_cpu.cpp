@@ -14,6 +14,7 @@
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -252,8 +253,12 @@ at::Tensor bitmask_hard(const at::Tensor& positions, const at::Tensor& normals, 
   const float *inv = inverse_depth.data_ptr<float>(), *d = depth.data_ptr<float>(), *K = intrinsics.data_ptr<float>();
   const bool* ok = valid.data_ptr<bool>();
   float* o = out.data_ptr<float>();
-  at::parallel_for(0, B * H, 1, [&](int64_t begin, int64_t end) {
-    for (int64_t r = begin; r < end; ++r) walk_row(cfg, r / H, r % H, H, W, P, Nr, inv, d, ok, K, o);
+  // rows handed out a few at a time to whichever thread is free (even split fails when a core is busy)
+  const int64_t rows = B * H, chunk = 4;
+  std::atomic<int64_t> next{0};
+  at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t, int64_t) {
+    for (int64_t r0 = next.fetch_add(chunk); r0 < rows; r0 = next.fetch_add(chunk))
+      for (int64_t r = r0; r < std::min(rows, r0 + chunk); ++r) walk_row(cfg, r / H, r % H, H, W, P, Nr, inv, d, ok, K, o);
   });
   return out;
 }
