@@ -43,9 +43,22 @@ CANDIDATES = ("torch", "kernel", "pointwise", "pointwise-compiled", "numba")
 
 # ------------------------------------------------------------------------------- pointwise torch
 def _ign(u: torch.Tensor, v: torch.Tensor, seed: int) -> torch.Tensor:
-    from torch_ao.marching import interleaved_gradient_noise
+    from torch_ao.walk import interleaved_gradient_noise
 
     return interleaved_gradient_noise(u, v, seed).to(torch.float32)
+
+
+def slice_frame(c, sn, e1x, e1z, e2x, e2y, e2z, Vx, Vy, Vz, Nx, Ny, Nz, Px, Py, depth, fx, fy):
+    """One slice's tangent ``T`` (from its angle's ``cos``, ``sin`` and the basis ``e1``, ``e2`` around V),
+    the projected normal's components along ``T`` and ``V``, and the screen motion ``(du, dv)`` per world
+    unit along ``T``. Only arithmetic operators: it runs on tensors (pointwise) and, jitted, on floats (numba)."""
+    Tx, Ty, Tz = c * e1x + sn * e2x, sn * e2y, c * e1z + sn * e2z
+    ax, ay, az = Ty * Vz - Tz * Vy, Tz * Vx - Tx * Vz, Tx * Vy - Ty * Vx
+    nd = Nx * ax + Ny * ay + Nz * az
+    qx, qy, qz = Nx - ax * nd, Ny - ay * nd, Nz - az * nd
+    du = fx * (Tx + Px * Tz / depth) / depth
+    dv = -fy * (Ty + Py * Tz / depth) / depth
+    return Tx, Ty, Tz, qx * Tx + qy * Ty + qz * Tz, qx * Vx + qy * Vy + qz * Vz, du, dv
 
 
 def pointwise_walk(P, N, inv, depth, valid, K, slices: int, steps: int, radius: float, thickness: float,
@@ -69,15 +82,9 @@ def pointwise_walk(P, N, inv, depth, valid, K, slices: int, steps: int, radius: 
     visible = torch.zeros(B, H, W, dtype=torch.int32)
     for s in range(slices):
         psi = (a + s) * (math.pi / slices)
-        c, sn = torch.cos(psi), torch.sin(psi)
-        Tx, Ty, Tz = c * e1x + sn * e2x, sn * e2y, c * e1z + sn * e2z
-        ax, ay, az = Ty * Vz - Tz * Vy, Tz * Vx - Tx * Vz, Tx * Vy - Ty * Vx
-        nd = Nx * ax + Ny * ay + Nz * az
-        npx, npy, npz = Nx - ax * nd, Ny - ay * nd, Nz - az * nd
-        gamma = torch.atan2(npx * Tx + npy * Ty + npz * Tz, npx * Vx + npy * Vy + npz * Vz)
-        shift = (math.pi / 2 - gamma) / math.pi
-        du = fx * (Tx + Px * Tz / depth) / depth
-        dv = -fy * (Ty + Py * Tz / depth) / depth
+        Tx, Ty, Tz, along_t, along_v, du, dv = slice_frame(torch.cos(psi), torch.sin(psi), e1x, e1z, e2x, e2y, e2z,
+                                                           Vx, Vy, Vz, Nx, Ny, Nz, Px, Py, depth, fx, fy)
+        shift = (math.pi / 2 - torch.atan2(along_t, along_v)) / math.pi
         length = torch.sqrt(du * du + dv * dv)
         uu, uv = du / length.clamp_min(1e-12), dv / length.clamp_min(1e-12)
         span = (radius * length - 1.0).clamp_min(0)
@@ -124,6 +131,7 @@ def numba_walk():
     import numpy as np
 
     f32 = np.float32
+    frame = numba.njit(slice_frame)
 
     @numba.njit(parallel=True, cache=True)
     def walk(P, Nrm, inv, depth, valid, K, slices, steps, radius, thickness, epsilon, noise, out):
@@ -148,15 +156,9 @@ def numba_walk():
                 visible = 0
                 for s in range(slices):
                     psi = (a + f32(s)) * (pi / f32(slices))
-                    c, sn = math.cos(psi), math.sin(psi)
-                    tx, ty, tz = c * e1x + sn * e2x, sn * e2y, c * e1z + sn * e2z
-                    ax, ay, az = ty * vz - tz * vy, tz * vx - tx * vz, tx * vy - ty * vx
-                    nd = nx * ax + ny * ay + nz * az
-                    qx, qy, qz = nx - ax * nd, ny - ay * nd, nz - az * nd
-                    gamma = math.atan2(qx * tx + qy * ty + qz * tz, qx * vx + qy * vy + qz * vz)
-                    shift = (pi / f32(2) - gamma) / pi
-                    du = fx * (tx + px * tz / d) / d
-                    dv = -fy * (ty + py * tz / d) / d
+                    tx, ty, tz, along_t, along_v, du, dv = frame(math.cos(psi), math.sin(psi), e1x, e1z, e2x, e2y, e2z,
+                                                                 vx, vy, vz, nx, ny, nz, px, py, d, fx, fy)
+                    shift = (pi / f32(2) - math.atan2(along_t, along_v)) / pi
                     length = math.sqrt(du * du + dv * dv)
                     uu, uv = du / max(length, f32(1e-12)), dv / max(length, f32(1e-12))
                     span = max(radius * length - f32(1), f32(0))
