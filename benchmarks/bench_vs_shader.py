@@ -26,6 +26,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "glsl"))
+sys.path.insert(0, str(ROOT))  # this checkout's torch_ao, not an installed copy
 
 
 class ShaderRun:

@@ -46,6 +46,7 @@ FRAMES = {
     "floor_wall": lambda: floor_wall_gbuffer(48, 48, pitch_degrees=-50.0)[0],
     "crease": lambda: crease_gbuffer(40, 40),
     "rough": rough_gbuffer,
+    "tiny": lambda: example_gbuffer(6, 11),  # narrower than one vector of pixels
 }
 SETTINGS = [
     dict(slices=4, steps=4),
