@@ -35,13 +35,16 @@ def cpu_kernels():
     from torch.utils import cpp_extension
 
     capability = torch.backends.cpu.get_cpu_capability()
-    flags = ["-O3", "-ffp-contract=off", "-fno-math-errno"] + _CAPABILITY_FLAGS.get(capability, [])
+    # -fopenmp: ATen's parallel_for is a header template, threaded only where the including code is
+    # built with OpenMP (as Inductor builds its kernels); without it the walk runs on one thread
+    flags = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fopenmp"] + _CAPABILITY_FLAGS.get(capability, [])
     vml = torch.backends.mkl.is_available()  # torch.cos/sin then use MKL's vector math: the kernel too
     if vml:
         flags.append("-DTORCH_AO_MKL_VML")
     name = f"torch_ao_kernels_{capability.lower()}{'_vml' if vml else ''}"
     try:
-        cpp_extension.load(name=name, sources=[str(_SOURCE)], extra_cflags=flags, is_python_module=False,
+        cpp_extension.load(name=name, sources=[str(_SOURCE)], extra_cflags=flags, extra_ldflags=["-fopenmp"],
+                           is_python_module=False,
                            verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE")))
     except Exception as exc:  # no compiler, missing headers, a failed build...
         raise KernelUnavailable(f"the C++ kernels could not be built ({type(exc).__name__}: "
