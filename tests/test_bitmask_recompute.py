@@ -90,7 +90,7 @@ def test_graph_estimate_bounds_what_autograd_keeps(indirect):
 
 @pytest.mark.parametrize("weighting", ["uniform", "cosine"])
 def test_indirect_light_gathered_for_live_steps_only_changes_nothing(weighting, monkeypatch):
-    import torch_ao.methods.bitmask as bitmask
+    import torch_ao.methods.bitmask_common as bitmask
 
     gb, _ = floor_wall_gbuffer(24, 32, dtype=torch.float64, light_direction=(0.3, 0.8, 0.5))
     results, gathered = [], []

@@ -1,7 +1,7 @@
 """G-buffer: validated screen-space inputs, and normals reconstructed from depth.
 
 A :class:`GBuffer` holds ``depth (B,1,H,W)`` and optionally ``normals (B,3,H,W)``, ``light (B,3,H,W)``,
-``mask (B,1,H,W)`` and ``object_id (B,1,H,W)`` with a :class:`~torch_ao.camera.PinholeCamera`.
+``mask (B,1,H,W)``, ``object_id (B,1,H,W)`` and ``backface_depth (B,1,H,W)`` with a :class:`~torch_ao.camera.PinholeCamera`.
 Background pixels (``inf``, ``0`` or ``nan`` depth, or ``mask`` False) are never NaN downstream:
 :attr:`GBuffer.safe_depth` replaces them with 1 so every derived quantity is finite, and methods
 mask them out with :attr:`GBuffer.valid`.
@@ -48,6 +48,9 @@ class GBuffer:
         light: optional ``(B,3,H,W)`` direct light (radiance leaving each pixel), for indirect light.
         mask: optional ``(B,1,H,W)`` bool, False marks background.
         object_id: optional ``(B,1,H,W)`` integer ids (for per-object parameters).
+        backface_depth: optional ``(B,1,H,W)`` depth (world units) where each pixel's camera ray leaves
+            the object it first hit (a front-face-culled depth pass; ``inf`` = no exit); ``>= depth`` on
+            valid pixels. Read by :class:`~torch_ao.thickness.BackfaceThickness`.
     """
 
     depth: torch.Tensor
@@ -56,6 +59,7 @@ class GBuffer:
     light: torch.Tensor | None = None
     mask: torch.Tensor | None = None
     object_id: torch.Tensor | None = None
+    backface_depth: torch.Tensor | None = None
     _valid: torch.Tensor = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -119,6 +123,15 @@ class GBuffer:
             if bool((self.object_id < 0).any()):
                 raise ValueError("object_id: ids must be >= 0")
             self.object_id = self.object_id.long()
+        if self.backface_depth is not None:
+            _check_tensor("backface_depth", self.backface_depth, 1, self.depth)
+            if self.backface_depth.dtype not in _FLOAT_TYPES:
+                raise TypeError(f"backface_depth: expected a floating-point tensor, got {self.backface_depth.dtype}")
+            self.backface_depth = self.backface_depth.to(dtype)
+            with torch.no_grad():
+                bad = valid & ~(self.backface_depth >= self.depth)  # NaN fails too
+            if bool(bad.any()):
+                raise ValueError(f"backface_depth: expected values >= depth on valid pixels, {int(bad.sum())} are not")
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> "GBuffer":
         """A copy on ``device`` (and with float buffers in ``dtype``)."""
@@ -128,7 +141,8 @@ class GBuffer:
             return x.to(device=device, dtype=dtype if floating and x.is_floating_point() else None)
 
         return GBuffer(move(self.depth), self.camera.to(device=device, dtype=dtype), normals=move(self.normals),
-                       light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False))
+                       light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False),
+                       backface_depth=move(self.backface_depth))
 
     # ------------------------------------------------------------------ derived buffers
     @property

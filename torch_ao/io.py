@@ -10,6 +10,7 @@ key                shape               meaning
 ``light``          ``(...,H,W,3)``     direct light leaving each pixel
 ``mask``           ``(...,H,W)``       bool, False = background
 ``object_id``      ``(...,H,W)``       integer object ids
+``backface_depth`` ``(...,H,W)``       depth where the camera ray leaves the first-hit object (``inf`` = none)
 ``intrinsics``     ``(3,3)``/``(B,3,3)`` pinhole ``K`` in pixels (pixel centres at integers)
 ``fov_y_degrees``  scalar or ``(B,)``  used when ``intrinsics`` is absent (centred camera)
 ``ao``             ``(...,H,W)``       reference visibility (1 = unoccluded)
@@ -36,7 +37,7 @@ from .gbuffer import GBuffer
 
 __all__ = ["load_gbuffer", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image", "write_text_atomic", "save_json"]
 
-_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "intrinsics", "fov_y_degrees")
+_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "backface_depth", "intrinsics", "fov_y_degrees")
 
 
 def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -106,7 +107,8 @@ def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = No
         raise TypeError(f"depth: expected a floating-point array, got {arrays['depth'].dtype}")
     B, _, H, W = depth.shape
     image_args = {}
-    for key, arg, chl in (("normal", "normals", True), ("light", "light", True), ("mask", "mask", False), ("object_id", "object_id", False)):
+    for key, arg, chl in (("normal", "normals", True), ("light", "light", True), ("mask", "mask", False), ("object_id", "object_id", False),
+                          ("backface_depth", "backface_depth", False)):
         if key in arrays:
             image_args[arg] = numpy_to_image(arrays[key], key, channels_last=chl)
     camera = _camera_from_arrays(arrays, H, W, B)
@@ -154,6 +156,8 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
             out["mask"] = image_to_numpy(gbuffer.mask)
         if gbuffer.object_id is not None:
             out["object_id"] = image_to_numpy(gbuffer.object_id)
+        if gbuffer.backface_depth is not None:
+            out["backface_depth"] = image_to_numpy(gbuffer.backface_depth)
         out["intrinsics"] = gbuffer.camera.intrinsics.detach().cpu().numpy()
     for key, value in arrays.items():
         if isinstance(value, torch.Tensor):

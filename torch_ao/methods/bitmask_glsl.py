@@ -1,4 +1,4 @@
-"""The ``"ssilvb_glsl"`` variant: seed 001's GLSL SSILVB shader, reproduced as written.
+"""The ``"ssilvb_glsl"`` variant: the SSILVB GLSL article's shader, reproduced as written.
 
 The walk (:class:`GLSLPattern`) and the per-step work (:class:`GLSLAccumulator`) follow the shader
 operation by operation, in the input's float precision (float32 gives the shader's numbers; see
@@ -47,7 +47,8 @@ import torch.nn.functional as F
 
 from ..marching import Frame, Queries, Sample, SamplingPattern, SliceGeometry
 from ..sectors import SECTORS, hard_mask, popcount32, sector_union
-from .bitmask_common import ThicknessLookup, safe_acos
+from ..thickness import BoundThickness
+from .bitmask_common import safe_acos
 
 __all__ = ["GLSLPattern", "GLSLAccumulator", "glsl_jitter", "glsl_constants", "mesa_acos", "GLSL_NUMERICS"]
 
@@ -114,7 +115,7 @@ def _slice_direction(q: Queries, s: int, slice_count: int, jitter: torch.Tensor)
 
 
 class GLSLPattern(SamplingPattern):
-    """Seed 001's walk: ``sliceCount + 1`` slices, one side each, ``sampleCount + 1`` nearest-texel steps.
+    """The shader's walk: ``sliceCount + 1`` slices, one side each, ``sampleCount + 1`` nearest-texel steps.
 
     Args:
         slices, steps: the shader's ``sliceCount`` (>= 2) and ``sampleCount`` (>= 1).
@@ -178,9 +179,9 @@ class GLSLPattern(SamplingPattern):
 
 
 class GLSLAccumulator:
-    """Seed 001's per-step work (hard: 32-bit masks; soft/straight-through: :func:`sector_union`)."""
+    """The shader's per-step work (hard: 32-bit masks; soft/straight-through: :func:`sector_union`)."""
 
-    def __init__(self, *, mode: str, rounding: str, tau: float, thickness: ThicknessLookup, indirect: bool,
+    def __init__(self, *, mode: str, rounding: str, tau: float, thickness: BoundThickness, indirect: bool,
                  slice_count: int, frame: Frame, jitter: bool = True, numerics: str = "ieee") -> None:
         self.mode, self.rounding, self.tau, self.thickness = mode, rounding, tau, thickness
         self.indirect, self.slice_count = indirect, slice_count
