@@ -20,7 +20,7 @@ from typing import Callable
 
 import torch
 
-__all__ = ["THICKNESS_DIRECTIONS", "back_point", "clip_to_sphere", "union_measure"]
+__all__ = ["THICKNESS_DIRECTIONS", "back_point", "clip_to_sphere", "sphere_stretch", "union_measure"]
 
 #: ``"view"``: the back point is ``F - t V`` (the centre pixel's view vector: the bitmask paper and both
 #: published shaders); ``"depth"``: ``F`` pushed along its own camera ray to depth ``depth_F + t`` (what a
@@ -68,6 +68,19 @@ def clip_to_sphere(fv: torch.Tensor, ft: torch.Tensor, bv: torch.Tensor, bt: tor
     u0 = torch.where(hit, u0, torch.zeros_like(u0))
     u1 = torch.where(hit, u1, torch.ones_like(u1))
     return fv + u0 * ev, ft + u0 * et, fv + u1 * ev, ft + u1 * et, inside
+
+
+def sphere_stretch(distance: torch.Tensor, radius, cap: float = 10.0) -> torch.Tensor:
+    """``(N,)`` factor by which the screen extent of the sphere ``|x - P| <= R`` along a slice exceeds the
+    projection of ``R`` along the slice tangent at ``P`` (``distance = |P|``, the pixel's distance to the
+    camera): ``1 / sqrt(1 - (R / |P|)^2)``, at most ``cap``.
+
+    A point ``P + a V + b T`` lies on the camera ray of ``P + T b |P| / (|P| - a)``; over the circle
+    ``a^2 + b^2 = R^2`` the largest ``b |P| / (|P| - a)`` is ``R / sqrt(1 - R^2 / |P|^2)`` (the tangent from
+    the camera). Occluders nearer the camera than ``P`` (``a > 0``) within ``R`` reach that far on screen.
+    """
+    ratio = (torch.as_tensor(radius, dtype=distance.dtype, device=distance.device) / distance).square()
+    return (1 - ratio).clamp_min(1 / (cap * cap)).rsqrt()
 
 
 def union_measure(start: torch.Tensor, width: torch.Tensor, size: float,

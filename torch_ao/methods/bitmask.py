@@ -59,8 +59,10 @@ import torch
 
 from ..checks import check_int
 from ..gbuffer import GBuffer
-from ..intervals import THICKNESS_DIRECTIONS, back_point, clip_to_sphere
-from ..marching import Frame, GradientRows, fast_acos
+from dataclasses import replace
+
+from ..intervals import THICKNESS_DIRECTIONS, back_point, clip_to_sphere, sphere_stretch
+from ..marching import Frame, GradientRows, SamplingPattern, fast_acos
 from ..options import Option, options_by_name
 from ..sectors import MODES, ROUNDINGS, SECTORS
 from ..thickness import BoundThickness, Thickness, as_thickness, matching
@@ -72,6 +74,7 @@ __all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTING
 VARIANTS = ("default", "exact", "hdrp", "ssilvb_glsl")
 WEIGHTINGS = ("uniform", "cosine")
 UNIONS = ("sectors", "exact")
+SAMPLE_EXTENTS = ("radius", "sphere")
 _HALF_PI = math.pi / 2
 
 #: The bitmask family's options (beyond :class:`~torch_ao.methods.base.ScreenSpaceAO`'s sampling options).
@@ -97,6 +100,10 @@ OPTIONS = (
            "pixel's view vector (the paper, both shaders) or along its own camera ray to depth + thickness (a "
            "depth buffer of thick surfaces, a back-face layer); None: depth for variant exact, else view",
            str, choices=THICKNESS_DIRECTIONS),
+    Option("sample_extent", None, "how far the steps reach on screen: the radius projected along the slice "
+           "tangent at the pixel (every method's walk), or the screen extent of the radius' sphere around the "
+           "pixel, which also reaches occluders nearer the camera; None: sphere for variant exact, else radius",
+           str, choices=SAMPLE_EXTENTS),
     Option("thickness", 0.5, "how deep each occluder reaches behind its visible surface (a scalar; tables, maps "
            "and models from Python)", float, unit="world units", minimum=0.0, fitted=True),
     Option("thickness_growth", None, "thickness times 1 + growth * |sample - pixel| (None: no growth)", float,
@@ -114,10 +121,10 @@ OPTIONS = (
 _OPTIONS = options_by_name(OPTIONS)
 #: per variant, the defaults of the options whose default is ``None``
 _VARIANT_DEFAULTS = {
-    "default": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sector_epsilon=0.01),
-    "exact": dict(weighting="cosine", union="exact", clip_to_radius=True, thickness_direction="depth", sector_epsilon=0.0),
-    "hdrp": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sector_epsilon=0.0),
-    "ssilvb_glsl": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sector_epsilon=0.0),
+    "default": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.01),
+    "exact": dict(weighting="cosine", union="exact", clip_to_radius=True, thickness_direction="depth", sample_extent="sphere", sector_epsilon=0.0),
+    "hdrp": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.0),
+    "ssilvb_glsl": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.0),
 }
 
 
@@ -289,8 +296,21 @@ class HDRPAccumulator(SectorAccumulator):
                         -side, self.sector_epsilon)
 
 
-#: the accumulator of each variant but the GLSL one (whose walk differs too, see :mod:`.bitmask_glsl`)
-_ACCUMULATORS = {"default": DefaultAccumulator, "exact": DefaultAccumulator, "hdrp": HDRPAccumulator}
+class SphereExtent(SamplingPattern):
+    """``pattern``'s walk with its steps spread over the screen extent of the sphere of radius ``radius``
+    around the pixel (:func:`~torch_ao.intervals.sphere_stretch`) instead of the projection of the radius
+    along the slice tangent, which misses occluders within the radius that are nearer the camera."""
+
+    def __init__(self, pattern: SamplingPattern, radius) -> None:
+        self.pattern, self.radius = pattern, radius
+        self.num_slices, self.sides, self.fetch, self.border = pattern.num_slices, pattern.sides, pattern.fetch, pattern.border
+
+    def slice_tangent(self, frame, q, s):
+        return self.pattern.slice_tangent(frame, q, s)
+
+    def step_offsets(self, q, geom, side):
+        stretch = sphere_stretch(q.position.norm(dim=-1), self.radius)
+        return self.pattern.step_offsets(q, replace(geom, pixels_per_unit=geom.pixels_per_unit * stretch[:, None]), side)
 
 
 class BitmaskAO(ScreenSpaceAO):
@@ -311,6 +331,8 @@ class BitmaskAO(ScreenSpaceAO):
         clip_to_radius: clip each occluder segment to the sphere of radius ``radius`` around the pixel.
         thickness_direction: ``"view"`` (back point ``thickness`` behind the sample along the pixel's
             view vector) or ``"depth"`` (along the sample's camera ray, at depth + ``thickness``).
+        sample_extent: ``"radius"`` (steps up to the radius projected along the slice tangent) or
+            ``"sphere"`` (up to the screen extent of the radius' sphere, :class:`SphereExtent`).
         thickness: a float, a ``(K,)`` per-object table (uses ``gbuffer.object_id``), a ``(B,1,H,W)`` map,
             or a :class:`~torch_ao.thickness.Thickness` model; its parameters are registered on this
             module under the model's names (``thickness``, ``thickness_slope``, ``thickness_scale``...),
@@ -355,12 +377,12 @@ class BitmaskAO(ScreenSpaceAO):
 
     def __init__(self, *, variant: str = "default", mode: str = "hard", tau: float = 0.25, rounding: str = "ceil",
                  weighting: str | None = None, union: str | None = None, clip_to_radius: bool | None = None,
-                 thickness_direction: str | None = None, thickness=0.5, thickness_growth: float | None = None,
+                 thickness_direction: str | None = None, sample_extent: str | None = None, thickness=0.5, thickness_growth: float | None = None,
                  indirect: bool = False, bent_normals: bool = False, ambient=None, ambient_directions: int = 8,
                  azimuth: str | None = None, glsl_numerics: str = "ieee",
                  sector_epsilon: float | None = None, **kwargs) -> None:
         given = dict(variant=variant, mode=mode, tau=tau, rounding=rounding, weighting=weighting, union=union,
-                     clip_to_radius=clip_to_radius, thickness_direction=thickness_direction,
+                     clip_to_radius=clip_to_radius, thickness_direction=thickness_direction, sample_extent=sample_extent,
                      sector_epsilon=sector_epsilon, indirect=indirect, bent_normals=bent_normals,
                      ambient_directions=ambient_directions, glsl_numerics=glsl_numerics)
         for name, value in given.items():
@@ -371,6 +393,7 @@ class BitmaskAO(ScreenSpaceAO):
         resolved = {k: defaults[k] if given[k] is None else given[k] for k in defaults}
         _check_variant_options(variant, given, resolved, bent_normals or ambient is not None, indirect)
         self.variant, self.glsl_numerics = variant, glsl_numerics
+        self.sample_extent = resolved["sample_extent"]
         if azimuth is None:
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
         super().__init__(azimuth=azimuth, **kwargs)
@@ -440,7 +463,8 @@ class BitmaskAO(ScreenSpaceAO):
 
             return GLSLPattern(self.slices, self.steps, self.radius, jitter=self.jitter, frame=frame,
                                numerics=self.glsl_numerics)
-        return super().pattern_for(frame)
+        pattern = super().pattern_for(frame)
+        return SphereExtent(pattern, self.radius) if getattr(self, "sample_extent", "radius") == "sphere" else pattern
 
     def bound_thickness(self) -> BoundThickness:
         """The thickness model with this module's current parameters (a ``thickness`` reassigned with
@@ -488,7 +512,7 @@ def _check_variant_options(variant: str, given: dict, resolved: dict, bent_or_am
         if bent_or_ambient:
             raise ValueError("bent_normals/ambient: not part of the 'ssilvb_glsl' shader; use variant='default'")
     if variant in ("hdrp", "ssilvb_glsl"):
-        for name in ("clip_to_radius", "thickness_direction") + (("union",) if variant == "ssilvb_glsl" else ()):
+        for name in ("clip_to_radius", "thickness_direction", "sample_extent") + (("union",) if variant == "ssilvb_glsl" else ()):
             if resolved[name] != _VARIANT_DEFAULTS[variant][name]:
                 raise ValueError(f"{name}: not an option of the {variant!r} variant (its shader's rule); "
                                  f"use variant='default' or 'exact'")

@@ -55,8 +55,8 @@ def sector_centres(gamma: torch.Tensor) -> torch.Tensor:
 
 def cosine_sector_weights(gamma: torch.Tensor, normal_length: torch.Tensor) -> torch.Tensor:
     """``(N, 32)`` each sector's exact share of the cosine-weighted slice:
-    ``|n_p| int_sector cos(theta - gamma) |sin theta| dtheta`` (sums to ``|n_p|`` over the hemisphere;
-    averaged over slices uniform around ``V`` this is the cosine-weighted hemisphere measure)."""
+    ``|n_p| int_sector cos(theta - gamma) |sin theta| dtheta`` (summed over slices uniform around ``V``
+    and normalised, this is the cosine-weighted hemisphere measure)."""
     k = torch.arange(SECTORS + 1, dtype=gamma.dtype, device=gamma.device)
     edges = gamma[:, None] - math.pi / 2 + math.pi * k / SECTORS
     H = arc_integral(edges, gamma[:, None])
@@ -155,8 +155,8 @@ class SectorAccumulator:
         omega = state["weights"]
         if self.union == "exact":
             if self.weighting == "cosine":
-                total = state["length"][:, None]
                 measure = _cosine_measure(state["gamma"], state["length"])
+                total = measure(S.new_full((S.shape[0], 1), float(SECTORS)))
                 out = {"vis_num": total - union_measure(S, W, SECTORS, measure), "vis_den": total}
             else:
                 out = {"vis_num": 1 - union_measure(S, W, SECTORS) / SECTORS}
