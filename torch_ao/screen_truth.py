@@ -1,0 +1,336 @@
+"""The screen-space ground truth: what a depth buffer of a given thickness occludes, by brute force.
+
+For every valid pixel ``P`` (view-space position, unit normal ``n`` facing the camera) this traces many
+rays ``P + t w`` over the hemisphere around ``n`` and tests points along each ray against the depth
+buffer itself, treated as surfaces of thickness ``T``: a point at view-space depth ``-z`` that projects
+to screen position ``(u, v)`` is inside the occluder when
+
+    ``front(u, v) <= -z <= front(u, v) + T(u, v)``
+
+with ``front`` the depth buffer and ``T`` the thickness at ``(u, v)`` (both fetched the way the
+screen-space methods fetch: perspective-correct bilinear, or the nearest texel). A ray is blocked when
+any of its points ``t in (0, R]`` is inside. Then
+
+* cosine-weighted visibility ``(1/pi) int_H V cos(w, n) dw`` (cosine-distributed rays), and
+* uniform-weighted visibility ``(1/(2 pi)) int_H V dw`` (uniformly distributed rays),
+
+each with its per-pixel Monte Carlo standard error (independent groups of stratified samples, as the
+ray tracer of :mod:`torch_ao.reference` reports it).
+
+What counts as an occluder, and what does not:
+
+* Points that project outside the frame (for bilinear fetch: outside the pixel centres' rectangle
+  ``[0, W-1] x [0, H-1]``, as the methods' ``border="drop"``), or behind the camera, occlude nothing:
+  **rays leaving the screen are unoccluded**.
+* Background texels (and, with bilinear fetch, any footprint touching one) occlude nothing.
+* The thickness is measured along the view axis at the sample, ``depth + T``. (Bitmask AO pushes each
+  sample along the *centre pixel's* view vector instead; the two agree to first order away from the
+  image border.)
+
+It converges, as rays and steps grow, to the visibility of the depth buffer's surfaces of that
+thickness: the quantity every screen-space method approximates for the same thickness model. The
+ray-traced reference minus this is what the screen cannot know (hidden and off-screen geometry, the
+true thickness); a method minus this is what the method adds (its bias and noise). See
+:func:`split_error`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Union
+
+import torch
+import torch.nn.functional as F
+
+from .checks import check_bool, check_choice, check_float, check_int
+from .gbuffer import GBuffer
+from .metrics import error_metrics
+from .reference import sampling
+from .reference.render import _group_stats
+
+__all__ = ["ScreenTruth", "screen_space_truth", "thickness_map", "ErrorSplit", "split_error", "ray_steps"]
+
+Thickness = Union[float, torch.Tensor, Callable[[GBuffer], torch.Tensor]]
+_COSINE_STREAM, _UNIFORM_STREAM, _STEP_STREAM = 32, 48, 64
+_BIG = 1e30  # stands in for an infinite thickness inside interpolation (inf * 0 would be NaN)
+
+
+@dataclass
+class ScreenTruth:
+    """A screen-space ground truth. Images ``(B,1,H,W)``; background pixels have visibility 1, error 0.
+
+    ``visibility``/``stderr``: cosine-weighted; ``uniform``/``uniform_stderr``: uniform-weighted (``None``
+    unless asked for). ``steps`` ``(B,1,H,W)`` int: the points tested per ray at each pixel.
+    """
+
+    visibility: torch.Tensor
+    stderr: torch.Tensor
+    uniform: torch.Tensor | None
+    uniform_stderr: torch.Tensor | None
+    steps: torch.Tensor
+    radius: float
+    rays: int
+    seed: int
+
+
+def thickness_map(gbuffer: GBuffer, thickness: Thickness = math.inf,
+                  backface_depth: torch.Tensor | None = None) -> float | torch.Tensor:
+    """The thickness ``T`` of every texel, in world units: a float, or a ``(B,1,H,W)`` map.
+
+    Args:
+        gbuffer: the views.
+        thickness: a number (``inf``: the horizon assumption, everything behind a surface is solid),
+            a 0-d tensor, a ``(K,)`` table indexed by ``gbuffer.object_id`` (per object), a ``(B,1,H,W)``
+            map, or a callable ``gbuffer -> (B,1,H,W)`` map (a new thickness model plugs in here).
+        backface_depth: optional ``(B,1,H,W)`` depth of the back surface along each camera ray (a
+            front-face-culled depth pass, or the tracer's exit depth); overrides ``thickness``:
+            ``T = backface_depth - depth`` (``inf``/``nan`` back faces are infinitely thick).
+    """
+    B, _, H, W = gbuffer.depth.shape
+    depth = gbuffer.depth
+    if backface_depth is not None:
+        if not isinstance(backface_depth, torch.Tensor) or tuple(backface_depth.shape) != (B, 1, H, W):
+            raise ValueError(f"backface_depth: expected a tensor of shape {(B, 1, H, W)}, "
+                             f"got {getattr(backface_depth, 'shape', type(backface_depth).__name__)}")
+        back = torch.nan_to_num(backface_depth.to(depth), nan=math.inf)
+        t = torch.where(gbuffer.valid, (back - gbuffer.safe_depth).clamp_min(0), torch.zeros_like(depth))
+        return _finite_map("backface_depth", t)
+    if callable(thickness) and not isinstance(thickness, torch.Tensor):
+        t = thickness(gbuffer)
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != (B, 1, H, W):
+            raise ValueError(f"thickness: a callable must return a (B,1,H,W) = {(B, 1, H, W)} tensor, "
+                             f"got {getattr(t, 'shape', type(t).__name__)}")
+        return _finite_map("thickness", t.to(depth))
+    if isinstance(thickness, torch.Tensor):
+        t = thickness.detach().to(depth)
+        if t.dim() == 0:
+            return check_float("thickness", float(t), 0.0, finite=False)
+        if t.dim() == 1:
+            if gbuffer.object_id is None:
+                raise ValueError("thickness: a (K,) per-object table needs gbuffer.object_id")
+            ids = gbuffer.object_id.clamp_max(t.shape[0] - 1)
+            return _finite_map("thickness", t[ids])
+        if tuple(t.shape) != (B, 1, H, W):
+            raise ValueError(f"thickness: expected a number, a (K,) table or a {(B, 1, H, W)} map, got {tuple(t.shape)}")
+        return _finite_map("thickness", t)
+    return check_float("thickness", thickness, 0.0, finite=False)
+
+
+def _finite_map(name: str, t: torch.Tensor) -> torch.Tensor:
+    if bool(torch.isnan(t).any()) or bool((t < 0).any()):
+        raise ValueError(f"{name}: expected thicknesses >= 0 (no NaN)")
+    return t.clamp_max(_BIG)
+
+
+def ray_steps(depth: torch.Tensor, fx: torch.Tensor, radius: float, step_px: float, min_steps: int,
+              max_steps: int) -> torch.Tensor:
+    """Points per ray ``(N,)`` int for pixels at ``depth (N,)`` with focal length ``fx (N,)`` (pixels):
+    about one every ``step_px`` pixels of the radius' projected length ``R fx / depth``, within
+    ``[min_steps, max_steps]``."""
+    n = torch.ceil(radius * fx / (depth * step_px))
+    return n.clamp(min_steps, max_steps).long()
+
+
+@torch.no_grad()
+def screen_space_truth(
+    gbuffer: GBuffer,
+    radius: float = 1.0,
+    thickness: Thickness = math.inf,
+    *,
+    backface_depth: torch.Tensor | None = None,
+    rays: int = 1024,
+    min_steps: int = 32,
+    max_steps: int = 256,
+    step_px: float = 0.5,
+    uniform: bool = False,
+    fetch: str = "bilinear",
+    seed: int = 0,
+    chunk_points: int = 1 << 21,
+) -> ScreenTruth:
+    """Brute-force visibility of the depth buffer's surfaces of thickness ``thickness`` within ``radius``.
+
+    Args:
+        gbuffer: the views (depth, camera; normals given or reconstructed from depth).
+        radius: ``R``, the ray length in world units (> 0, finite).
+        thickness, backface_depth: the thickness model, see :func:`thickness_map`.
+        rays: rays per pixel for each weighting (>= 2, with a divisor in [2, 16] for the standard error).
+        min_steps, max_steps, step_px: points tested per ray, equally spaced in ``t`` with one random
+            offset ``u`` per ray (``t_k = R (k + u) / (n - 1 + u)``, ``k < n``: the last at ``R``): ``n`` = one per ``step_px`` pixels of the radius'
+            projected length, within ``[min_steps, max_steps]`` (raise ``min_steps`` for thin occluders:
+            a slab of thickness ``T`` is found surely once ``R / n`` is well below ``T``).
+        uniform: also estimate uniform-weighted visibility (another ``rays`` rays per pixel).
+        fetch: ``"bilinear"`` (perspective-correct, as the methods' default) or ``"nearest"``.
+        seed: the random numbers are a hash of ``(seed, pixel, ray)``: reproducible whatever the chunking.
+        chunk_points: ray points tested at once (memory: about 60 bytes each).
+    Returns:
+        a :class:`ScreenTruth` of ``(B,1,H,W)`` images.
+    """
+    radius = check_float("radius", radius, 0.0, open_minimum=True)
+    rays = check_int("rays", rays, 2)
+    groups = sampling.choose_groups(rays)
+    min_steps = check_int("min_steps", min_steps, 1)
+    max_steps = check_int("max_steps", max_steps, min_steps)
+    step_px = check_float("step_px", step_px, 0.0, open_minimum=True)
+    check_bool("uniform", uniform)
+    check_choice("fetch", fetch, ("bilinear", "nearest"))
+    seed = check_int("seed", seed, 0)
+    chunk_points = check_int("chunk_points", chunk_points, 1)
+    T = thickness_map(gbuffer, thickness, backface_depth)
+
+    B, _, H, W = gbuffer.depth.shape
+    dtype = torch.float32
+    device = gbuffer.depth.device
+    valid = gbuffer.valid
+    depth = gbuffer.safe_depth.to(dtype)
+    # Channels sampled at each ray point: inverse depth (interpolated for perspective-correct depth),
+    # validity (1 where every tap is valid) and, for a map, the thickness.
+    inv = torch.where(valid, depth.reciprocal(), torch.zeros_like(depth))
+    planes = [inv, valid.to(dtype)]
+    if isinstance(T, torch.Tensor):
+        planes.append(T.to(dtype))
+    image = torch.cat(planes, 1)
+    scalar_T = None if isinstance(T, torch.Tensor) else min(float(T), _BIG)
+
+    camera = gbuffer.camera.to(dtype=dtype)
+    pos = gbuffer.positions().to(dtype)
+    nrm = gbuffer.view_normals().to(dtype)
+    key_all = torch.arange(B * H * W, device=device).view(B, H, W)
+
+    cos_out = torch.ones(B, H * W, dtype=dtype, device=device)
+    cos_se = torch.zeros_like(cos_out)
+    uni_out = torch.ones_like(cos_out) if uniform else None
+    uni_se = torch.zeros_like(cos_out) if uniform else None
+    steps_img = torch.zeros(B, H * W, dtype=torch.long, device=device)
+    for b in range(B):
+        idx = valid[b, 0].reshape(-1).nonzero()[:, 0]
+        if idx.numel() == 0:
+            continue
+        P = pos[b].reshape(3, -1)[:, idx].T  # (N,3)
+        n = nrm[b].reshape(3, -1)[:, idx].T
+        fx, fy, cx, cy = (float(v[b]) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+        nsteps = ray_steps(-P[:, 2], torch.full_like(P[:, 2], max(fx, fy)), radius, step_px, min_steps, max_steps)
+        steps_img[b, idx] = nsteps
+        # Pixels sorted by step count, so a chunk marches (nearly) the steps each of its pixels needs.
+        order = torch.argsort(nsteps, stable=True)
+        proj = (fx, fy, cx, cy, W, H)
+        start, total = 0, order.numel()
+        while start < total:
+            m = _chunk_pixels(nsteps, order, start, rays, chunk_points)
+            sel = order[start:start + m]
+            start += m
+            s_max = int(nsteps[sel].max())
+            key = key_all[b].reshape(-1)[idx[sel]]
+            for stream, out, se in ((_COSINE_STREAM, cos_out, cos_se), (_UNIFORM_STREAM, uni_out, uni_se)):
+                if out is None:
+                    continue
+                u1, u2 = sampling.stratified_square(key, rays, groups, seed, stream, dtype)
+                local = (sampling.cosine_hemisphere if stream == _COSINE_STREAM else sampling.uniform_hemisphere)(u1, u2)
+                t_axis, b_axis = sampling.frame(n[sel])
+                w = (local[..., :1] * t_axis[:, None] + local[..., 1:2] * b_axis[:, None]
+                     + local[..., 2:] * n[sel][:, None])  # (m, rays, 3)
+                jitter = sampling.uniform(key[:, None] * rays + torch.arange(rays, device=device), seed,
+                                          stream + _STEP_STREAM, dtype)
+                open_ = _unblocked(image[b:b + 1], P[sel], n[sel], w, jitter, nsteps[sel], s_max, radius,
+                                   scalar_T, proj, fetch)
+                mean, err = _group_stats(open_.to(dtype), groups)
+                out[b, idx[sel]], se[b, idx[sel]] = mean, err
+
+    def img(x):
+        return None if x is None else x.view(B, 1, H, W)
+
+    return ScreenTruth(img(cos_out), img(cos_se), img(uni_out), img(uni_se), img(steps_img), radius, rays, seed)
+
+
+def _chunk_pixels(nsteps, order, start, rays, chunk_points) -> int:
+    """How many pixels from ``order[start:]`` (ascending step counts) fit ``chunk_points`` points."""
+    total = order.numel()
+    m = max(1, chunk_points // (rays * int(nsteps[order[start]])))
+    while m > 1:
+        last = int(nsteps[order[min(start + m, total) - 1]])
+        if m * rays * last <= chunk_points:
+            break
+        m = max(1, chunk_points // (rays * last))
+    return m
+
+
+def _unblocked(image, P, n, w, jitter, nsteps, s_max, radius, scalar_T, proj, fetch) -> torch.Tensor:
+    """``(m, rays)`` bool: True where no point of the ray ``P + t w`` lies inside the occluders.
+
+    ``image`` ``(1,C,H,W)`` the sampled channels, ``P``/``n`` ``(m,3)``, ``w`` ``(m,rays,3)`` unit
+    directions, ``jitter`` ``(m,rays)`` step offsets in [0,1), ``nsteps`` ``(m,)`` points per ray
+    (``<= s_max``; the steps beyond a pixel's own count are masked out).
+    """
+    fx, fy, cx, cy, W, H = proj
+    m, r = w.shape[:2]
+    k = torch.arange(s_max, device=P.device, dtype=P.dtype)
+    ns = nsteps.to(P.dtype)[:, None, None]
+    # Spacing R / (n - 1 + u) from u times it: the last point is exactly at R, so an infinitely thick
+    # occluder reached within R is always found.
+    j = jitter[..., None]
+    t = (k + j) * (radius / (ns - 1 + j))  # (m, rays, s)
+    live = k < ns
+    # Origin offset along the normal against self-intersection on float noise (as the ray tracer does).
+    origin = P + n * (1e-5 * -P[:, 2:3])
+    x = origin[:, 0, None, None] + t * w[..., 0, None]
+    y = origin[:, 1, None, None] + t * w[..., 1, None]
+    z = origin[:, 2, None, None] + t * w[..., 2, None]
+    dz = -z
+    ahead = dz > 0
+    rz = torch.where(ahead, dz, torch.ones_like(dz)).reciprocal()
+    u = x * rz * fx + cx
+    v = -y * rz * fy + cy
+    inside = ahead & live & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    # grid_sample with align_corners=True puts pixel centre 0 at -1 and W-1 at +1.
+    grid = torch.stack((u * (2 / max(W - 1, 1)) - 1, v * (2 / max(H - 1, 1)) - 1), -1).view(1, m * r, -1, 2)
+    mode = "bilinear" if fetch == "bilinear" else "nearest"
+    sampled = F.grid_sample(image, grid, mode=mode, padding_mode="border", align_corners=True)[0]
+    sampled = sampled.view(image.shape[1], m, r, -1)
+    inv_front, ok = sampled[0], sampled[1] > 1 - 1e-4
+    front = torch.where(ok, inv_front, torch.ones_like(inv_front)).reciprocal()
+    thick = sampled[2] if scalar_T is None else scalar_T
+    hit = inside & ok & (dz >= front) & (dz <= front + thick)
+    return ~hit.any(-1)
+
+
+# ------------------------------------------------------------------------------------------ error split
+@dataclass
+class ErrorSplit:
+    """The error of one method on one view, split in two (metrics dicts of :func:`error_metrics`).
+
+    ``screen``: the screen-space truth against the ray-traced reference (what the screen cannot know:
+    hidden and off-screen geometry, the thickness model). ``estimator``: the method against the
+    screen-space truth (what the method adds: bias and noise). ``total``: the method against the
+    reference. ``truth_stderr``: the truth's mean per-pixel standard error (the noise floor of
+    ``estimator``).
+    """
+
+    screen: dict
+    estimator: dict
+    total: dict
+    truth_stderr: float
+
+
+def split_error(method: torch.Tensor, truth: ScreenTruth | torch.Tensor, reference: torch.Tensor,
+                valid: torch.Tensor | None = None) -> list[ErrorSplit]:
+    """One :class:`ErrorSplit` per view of ``(B,1,H,W)`` images: the method's visibility, the
+    screen-space truth (a :class:`ScreenTruth` or its visibility) and the ray-traced reference AO,
+    on ``valid`` pixels ``(B,1,H,W)`` bool (default all)."""
+    t = truth.visibility if isinstance(truth, ScreenTruth) else truth
+    se = truth.stderr if isinstance(truth, ScreenTruth) else torch.zeros_like(t)
+    for name, x in (("truth", t), ("reference", reference)):
+        if not isinstance(x, torch.Tensor) or x.shape != method.shape:
+            raise ValueError(f"{name}: expected shape {tuple(method.shape)} (that of the method), got "
+                             f"{getattr(x, 'shape', type(x).__name__)}")
+    if valid is None:
+        valid = torch.ones_like(method, dtype=torch.bool)
+    out = []
+    for b in range(method.shape[0]):
+        sl = slice(b, b + 1)
+        v = valid[sl]
+        out.append(ErrorSplit(
+            screen=error_metrics(t[sl], reference[sl], v),
+            estimator=error_metrics(method[sl], t[sl], v),
+            total=error_metrics(method[sl], reference[sl], v),
+            truth_stderr=float(se[sl][v].mean()) if bool(v.any()) else 0.0,
+        ))
+    return out
