@@ -6,7 +6,7 @@ tested against the depth buffer as surfaces of that thickness, the back face at 
 Each configuration of bitmask AO then runs in hard mode at every preset; the table gives its MAE and
 mean signed error (bias) against both. Renders are cached in ``--cache``.
 
-    python benchmarks/bitmask_convergence.py                       # fence and stairs, 160x90, R = 0.5
+    python benchmarks/bitmask_convergence.py                       # fence and stairs, 128x72, R = 0.5
     python benchmarks/bitmask_convergence.py --size 320x180 --scenes fence,stairs,poles --thickness 0.1
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ def views(scene: str, size: tuple[int, int], radius: float, thickness: float, ra
         return torch.load(path, weights_only=False)
     ref = render_reference(get_scene(scene), height=H, width=W, spp=512, max_distance=radius, progress=False,
                            uniform=False)
-    truth = screen_space_truth(ref.gbuffer, radius, thickness, rays=rays, min_steps=64)
+    truth = screen_space_truth(ref.gbuffer, radius, thickness, rays=rays)
     out = (ref.gbuffer, ref.ao, truth.visibility, truth.stderr)
     cache.mkdir(parents=True, exist_ok=True)
     torch.save(out, path)
@@ -49,10 +49,10 @@ def views(scene: str, size: tuple[int, int], radius: float, thickness: float, ra
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", default="fence,stairs")
-    p.add_argument("--size", default="160x90")
+    p.add_argument("--size", default="128x72")
     p.add_argument("--radius", type=float, default=0.5)
     p.add_argument("--thickness", type=float, default=0.25)
-    p.add_argument("--rays", type=int, default=2048, help="rays per pixel of the screen-space truth")
+    p.add_argument("--rays", type=int, default=1024, help="rays per pixel of the screen-space truth")
     p.add_argument("--presets", default=",".join(PRESETS))
     p.add_argument("--configs", default=",".join(str(i) for i in range(len(CONFIGS))),
                    help="indices into the configurations (0..%d)" % (len(CONFIGS) - 1))

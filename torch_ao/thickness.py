@@ -98,25 +98,13 @@ class Thickness:
         return type(self).__name__ + ("" if self.growth is None else f"(growth={float(self.growth):g})")
 
 
-class ScalarThickness(Thickness):
-    """One thickness ``thickness`` (world units, 0-d) for every occluder: the paper's."""
+class _TensorThickness(Thickness):
+    """A model whose one parameter ``thickness`` is a tensor of ``dims`` dimensions (``expected`` says which)."""
 
-    def __init__(self, thickness: float | torch.Tensor = 0.5, **kwargs) -> None:
-        super().__init__(**kwargs)
-        self.initial = torch.as_tensor(thickness)
+    dims: int
+    expected: str
 
-    def own_parameters(self):
-        return {"thickness": Parameter(self.initial)}
-
-    def at(self, sample, params):
-        return params["thickness"].to(sample.dtype)
-
-
-class ObjectThickness(Thickness):
-    """A thickness per object: a ``(K,)`` table indexed by ``gbuffer.object_id`` at the sample (ids beyond
-    the table use its last entry)."""
-
-    def __init__(self, thickness: torch.Tensor, **kwargs) -> None:
+    def __init__(self, thickness, **kwargs) -> None:
         super().__init__(**kwargs)
         self.initial = torch.as_tensor(thickness)
 
@@ -124,10 +112,29 @@ class ObjectThickness(Thickness):
         return {"thickness": Parameter(self.initial)}
 
     def check(self, name, value):
-        if name == "thickness" and value.dim() != 1:
-            raise ValueError(f"thickness: expected a (K,) per-object table, got shape {tuple(value.shape)}")
         if name != "thickness":
-            super().check(name, value)
+            return super().check(name, value)
+        if value.dim() != self.dims or (self.dims == 4 and value.shape[1] != 1):
+            raise ValueError(f"thickness: expected {self.expected}, got shape {tuple(value.shape)}")
+
+
+class ScalarThickness(_TensorThickness):
+    """One thickness ``thickness`` (world units, 0-d) for every occluder: the paper's."""
+
+    dims, expected = 0, "a scalar"
+
+    def __init__(self, thickness: float | torch.Tensor = 0.5, **kwargs) -> None:
+        super().__init__(thickness, **kwargs)
+
+    def at(self, sample, params):
+        return params["thickness"].to(sample.dtype)
+
+
+class ObjectThickness(_TensorThickness):
+    """A thickness per object: a ``(K,)`` table indexed by ``gbuffer.object_id`` at the sample (ids beyond
+    the table use its last entry)."""
+
+    dims, expected = 1, "a (K,) per-object table"
 
     def buffers(self, gbuffer, params):
         if gbuffer.object_id is None:
@@ -140,21 +147,10 @@ class ObjectThickness(Thickness):
         return table.to(sample.dtype)[ids]
 
 
-class MapThickness(Thickness):
+class MapThickness(_TensorThickness):
     """A per-pixel thickness map ``(B,1,H,W)`` (or batch 1), read at the sample: the *occluder's* thickness."""
 
-    def __init__(self, thickness: torch.Tensor, **kwargs) -> None:
-        super().__init__(**kwargs)
-        self.initial = torch.as_tensor(thickness)
-
-    def own_parameters(self):
-        return {"thickness": Parameter(self.initial)}
-
-    def check(self, name, value):
-        if name == "thickness" and (value.dim() != 4 or value.shape[1] != 1):
-            raise ValueError(f"thickness: expected a (B,1,H,W) map, got shape {tuple(value.shape)}")
-        if name != "thickness":
-            super().check(name, value)
+    dims, expected = 4, "a (B,1,H,W) map"
 
     def buffers(self, gbuffer, params):
         B, _, H, W = gbuffer.depth.shape
@@ -239,7 +235,7 @@ def matching(model: Thickness, value: torch.Tensor) -> Thickness:
     """``model``, or the tensor model matching ``value``'s shape when ``model`` is one of the three tensor
     forms and the module's ``thickness`` was reassigned with another shape (e.g. a map set per frame)."""
     cls = _BY_DIM.get(value.dim())
-    if type(model) in _BY_DIM.values() and cls is not None and type(model) is not cls:
+    if isinstance(model, _TensorThickness) and cls is not None and type(model) is not cls:
         return cls(value, growth=model.growth)
     return model
 
