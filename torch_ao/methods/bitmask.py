@@ -57,7 +57,6 @@ import math
 
 import torch
 
-from ..checks import check_int
 from ..gbuffer import GBuffer
 from dataclasses import replace
 
@@ -65,7 +64,7 @@ from ..intervals import THICKNESS_DIRECTIONS, back_point, clip_to_sphere, sphere
 from ..marching import Frame, GradientRows, SamplingPattern, fast_acos
 from ..options import Option, options_by_name
 from ..sectors import MODES, ROUNDINGS, SECTORS
-from ..thickness import BoundThickness, Thickness, as_thickness, matching
+from ..thickness import BoundThickness, as_thickness, matching
 from .base import AOOutput, ScreenSpaceAO, make_parameter
 from .bitmask_common import SectorAccumulator
 
