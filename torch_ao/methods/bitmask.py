@@ -18,7 +18,9 @@ Variants (``variant=``), one accumulator each:
     ``"default"``'s geometry made to converge (see docs/bitmask.md, "Convergence"): the exact measure
     of the union of the steps' intervals instead of 32 sectors (``union="exact"``), each occluder
     segment clipped to the radius (``clip_to_radius=True``), the back point along the sample's own
-    camera ray (``thickness_direction="depth"``), cosine weighting. Visibility only.
+    camera ray (``thickness_direction="depth"``), the steps over the sphere's screen extent
+    (``sample_extent="sphere"``) from a quarter pixel out (``min_step_px=0.25``), cosine weighting.
+    Visibility only.
 ``"hdrp"``
     The bitmask blog's HLSL on HDRP's GTAO: both sides into one bitfield; the 3D cosines
     ``dot(normalize(delta - t V), V)`` through the polynomial ``fast_acos``;
@@ -74,6 +76,8 @@ VARIANTS = ("default", "exact", "hdrp", "ssilvb_glsl")
 WEIGHTINGS = ("uniform", "cosine")
 UNIONS = ("sectors", "exact")
 SAMPLE_EXTENTS = ("radius", "sphere")
+#: the ``"exact"`` variant's default ``min_step_px`` (pixels): where its first step lies
+EXACT_MIN_STEP_PX = 0.25
 _HALF_PI = math.pi / 2
 
 #: The bitmask family's options (beyond :class:`~torch_ao.methods.base.ScreenSpaceAO`'s sampling options).
@@ -352,7 +356,8 @@ class BitmaskAO(ScreenSpaceAO):
             given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
             pixels, recomputed in backward only when a soft gradient's graph would exceed
             ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"``/``"exact"`` and
-            ``"screen"`` for ``"hdrp"``.
+            ``"screen"`` for ``"hdrp"``; ``min_step_px`` to 0.25 for ``"exact"`` (:data:`EXACT_MIN_STEP_PX`),
+            1 otherwise.
     """
 
     #: pixels per chunk of a walk when ``chunk_size`` is not given (chunks that stay in the CPU caches
@@ -395,6 +400,10 @@ class BitmaskAO(ScreenSpaceAO):
         self.sample_extent = resolved["sample_extent"]
         if azimuth is None:
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
+        if variant == "exact":
+            # The walk's first step 1 px out misses occluders within the first pixel (creases): a quarter
+            # pixel halves the remaining bias against the screen-space truth on stairs (docs/bitmask.md).
+            kwargs.setdefault("min_step_px", EXACT_MIN_STEP_PX)
         super().__init__(azimuth=azimuth, **kwargs)
         self.mode, self.tau, self.rounding = mode, float(tau), rounding
         self.weighting, self.union = resolved["weighting"], resolved["union"]
