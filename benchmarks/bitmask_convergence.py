@@ -34,7 +34,8 @@ CONFIGS = {
     "+ union=exact": dict(weighting="cosine", union="exact"),
     "+ clip_to_radius": dict(weighting="cosine", union="exact", clip_to_radius=True),
     "+ sample_extent=sphere": dict(weighting="cosine", union="exact", clip_to_radius=True, sample_extent="sphere"),
-    "variant=exact (+ thickness_direction=depth)": dict(variant="exact"),
+    "variant=exact (+ thickness_direction=depth, min_step_px=0.25)": dict(variant="exact"),
+    "variant=exact, fetch=nearest": dict(variant="exact", fetch="nearest"),
 }
 
 
