@@ -35,7 +35,6 @@ CONFIGS = {
     "+ clip_to_radius": dict(weighting="cosine", union="exact", clip_to_radius=True),
     "+ sample_extent=sphere": dict(weighting="cosine", union="exact", clip_to_radius=True, sample_extent="sphere"),
     "variant=exact (+ thickness_direction=depth, min_step_px=0.25)": dict(variant="exact"),
-    "variant=exact, fetch=nearest": dict(variant="exact", fetch="nearest"),
 }
 
 
