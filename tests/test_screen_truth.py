@@ -241,3 +241,20 @@ def test_zero_thickness_occludes_nothing(wall):
     assert float(screen_space_truth(gb, R, 0.0, rays=64).visibility.min()) == 1.0
     thin = screen_space_truth(gb, R, 1e-4, rays=64).visibility
     assert float((1 - thin).mean()) < 2e-3
+
+
+def test_screen_bound_counts_occluders_beyond_the_radius(plank):
+    # Floor pixels 0.85-1 behind the plank's plane, just right of its edge: the plank (thickness 0.3) is farther
+    # than R = 0.5, but within the radius projected on screen.
+    gb, _, _, R = plank
+    D = PLANK["D"]
+    pos = gb.positions().double()[0].permute(1, 2, 0)
+    far = (gb.object_id[0, 0] == 1) & (pos[..., 0] > 0) & (pos[..., 0] < 0.3) & (-pos[..., 2] > D + 0.85) & (-pos[..., 2] < D + 1.0)
+    assert int(far.sum()) >= 8
+    where = far[None, None]
+    kwargs = dict(rays=256, where=where, fetch="edge_aware", edge_ratio=1.02)  # no skirt at the plank's edge
+    sphere = screen_space_truth(gb, 0.5, 0.3, **kwargs)
+    screen = screen_space_truth(gb, 0.5, 0.3, bound="screen", **kwargs)
+    assert float(sphere.visibility[0, 0][far].mean()) > 0.99
+    assert float(screen.visibility[0, 0][far].mean()) < 0.98
+    assert float(screen_space_truth(plane_gbuffer(16, 20), 0.5, rays=16, bound="screen").visibility.min()) == 1.0

@@ -51,11 +51,13 @@ from .metrics import error_metrics
 from .reference import sampling
 from .reference.render import _group_stats
 
-__all__ = ["FETCHES", "ScreenTruth", "screen_space_truth", "thickness_map", "ErrorSplit", "split_error", "ray_steps"]
+__all__ = ["FETCHES", "SCREEN_REACH", "ScreenTruth", "screen_space_truth", "thickness_map", "ErrorSplit", "split_error", "ray_steps"]
 
 Thickness = Union[float, torch.Tensor, Callable[[GBuffer], torch.Tensor]]
 _COSINE_STREAM, _UNIFORM_STREAM, _STEP_STREAM = 32, 48, 64
 FETCHES = ("bilinear", "nearest", "edge_aware")
+#: How far rays go (in units of ``R``) with ``bound="screen"``.
+SCREEN_REACH = 4.0
 _BIG = 1e30  # stands in for an infinite thickness inside interpolation (inf * 0 would be NaN)
 
 
@@ -152,6 +154,7 @@ def screen_space_truth(
     seed: int = 0,
     chunk_points: int = 1 << 21,
     where: torch.Tensor | None = None,
+    bound: str = "sphere",
 ) -> ScreenTruth:
     """Brute-force visibility of the depth buffer's surfaces of thickness ``thickness`` within ``radius``.
 
@@ -173,6 +176,10 @@ def screen_space_truth(
         edge_ratio: ``max/min`` depth of a 2x2 cell above which ``"edge_aware"`` treats it as an edge (> 1).
         seed: the random numbers are a hash of ``(seed, pixel, ray)``: reproducible whatever the chunking.
         chunk_points: ray points tested at once (memory: about 60 bytes each).
+        bound: which ray points count: ``"sphere"`` (the definition: within distance ``R`` of the pixel) or
+            ``"screen"`` (a diagnostic: every point up to ``SCREEN_REACH * R`` along the ray that projects within
+            ``R fx / depth`` pixels of the pixel, whatever its distance: what a screen-space walk over the
+            projected radius sees when it counts each sample's occluder whole).
         where: optional ``(B,1,H,W)`` bool: estimate only these pixels (the others read as background:
             visibility 1, error 0); every valid pixel still occludes.
     Returns:
@@ -186,6 +193,8 @@ def screen_space_truth(
     step_px = check_float("step_px", step_px, 0.0, open_minimum=True)
     check_bool("uniform", uniform)
     check_choice("fetch", fetch, FETCHES)
+    check_choice("bound", bound, ("sphere", "screen"))
+    length = radius * (SCREEN_REACH if bound == "screen" else 1.0)
     edge_ratio = check_float("edge_ratio", edge_ratio, 1.0, open_minimum=True)
     seed = check_int("seed", seed, 0)
     chunk_points = check_int("chunk_points", chunk_points, 1)
@@ -228,7 +237,9 @@ def screen_space_truth(
         P = pos[b].reshape(3, -1)[:, idx].T  # (N,3)
         n = nrm[b].reshape(3, -1)[:, idx].T
         fx, fy, cx, cy = (float(v[b]) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
-        nsteps = ray_steps(-P[:, 2], torch.full_like(P[:, 2], max(fx, fy)), radius, step_px, min_steps, max_steps)
+        focal = torch.full_like(P[:, 2], max(fx, fy))
+        nsteps = ray_steps(-P[:, 2], focal, length, step_px, min_steps, max_steps)
+        disc = radius * focal / -P[:, 2] if bound == "screen" else None  # (N,) pixels
         steps_img[b, idx] = nsteps
         # Pixels sorted by step count, so a chunk marches (nearly) the steps each of its pixels needs.
         order = torch.argsort(nsteps, stable=True)
@@ -251,7 +262,8 @@ def screen_space_truth(
                 jitter = sampling.uniform(key[:, None] * rays + torch.arange(rays, device=device), seed,
                                           stream + _STEP_STREAM, dtype)
                 surfaces = (image[b:b + 1], None if cells is None else cells[b:b + 1], fetch, scalar_T)
-                open_ = _unblocked(surfaces, P[sel], n[sel], w, jitter, nsteps[sel], s_max, radius, proj)
+                open_ = _unblocked(surfaces, P[sel], n[sel], w, jitter, nsteps[sel], s_max, length, proj,
+                                   None if disc is None else disc[sel])
                 mean, err = _group_stats(open_.to(dtype), groups)
                 out[b, idx[sel]], se[b, idx[sel]] = mean, err
 
@@ -301,14 +313,15 @@ def _fetch(surfaces, grid: torch.Tensor, size: tuple[int, int]):
     return torch.where(smooth, sample(image, flat, "bilinear"), sample(image, flat, "nearest")), ~smooth
 
 
-def _unblocked(surfaces, P, n, w, jitter, nsteps, s_max, radius, proj) -> torch.Tensor:
+def _unblocked(surfaces, P, n, w, jitter, nsteps, s_max, radius, proj, disc=None) -> torch.Tensor:
     """``(m, rays)`` bool: True where no point of the ray ``P + t w`` lies inside the occluders.
 
     ``surfaces`` = ``(image, cells, fetch, scalar_T)``: ``image`` ``(1,C,H,W)`` the sampled channels
     (inverse depth, ``-_BIG`` on background; then the thickness map if any), ``cells`` the
     :func:`_continuous_cells` of ``"edge_aware"`` fetch; ``P``/``n`` ``(m,3)``, ``w`` ``(m,rays,3)`` unit
     directions, ``jitter`` ``(m,rays)`` step offsets in [0,1), ``nsteps`` ``(m,)`` points per ray
-    (``<= s_max``; the steps beyond a pixel's own count are masked out).
+    (``<= s_max``; the steps beyond a pixel's own count are masked out); ``radius`` the ray length;
+    ``disc`` ``(m,)`` optional: only points within this many pixels of the pixel count.
     """
     fx, fy, cx, cy, W, H = proj
     k = torch.arange(s_max, device=P.device, dtype=P.dtype)
@@ -329,17 +342,21 @@ def _unblocked(surfaces, P, n, w, jitter, nsteps, s_max, radius, proj) -> torch.
     torch.addcmul(o[:, 0, None, None], t, w[..., 0, None], out=gx).mul_(rz).mul_(ax).add_(bx)
     torch.addcmul(o[:, 1, None, None], t, w[..., 1, None], out=gy).mul_(rz).mul_(-ay).add_(by)
     inside = (dz > 0) & (gx.abs() <= 1) & (gy.abs() <= 1)
+    own_gx = (o[:, 0] / -o[:, 2] * ax + bx)[:, None, None]  # the pixel itself, in grid coordinates
+    own_gy = (o[:, 1] / o[:, 2] * ay + by)[:, None, None]
     if int(nsteps.min()) < s_max:
         inside &= k < ns
+    if disc is not None:
+        du = (gx - own_gx) * ((W - 1) / 2)
+        dv = (gy - own_gy) * ((H - 1) / 2)
+        inside &= du.square_() + dv.square_() <= disc.square()[:, None, None]
     sampled, nearest = _fetch(surfaces, grid, (H, W))
     if nearest is not None:
         # The pixel's own texel never occludes through a nearest fetch (as in the methods' walk): its flat
         # tile would hide every ray that leaves a slanted surface away from the camera.
         def texel(g, size):
             return torch.round((g + 1) * ((size - 1) / 2))
-        own_u = texel(o[:, 0] / -o[:, 2] * ax + bx, W)[:, None, None]
-        own_v = texel(o[:, 1] / o[:, 2] * ay + by, H)[:, None, None]
-        own = (texel(gx, W) == own_u) & (texel(gy, H) == own_v)
+        own = (texel(gx, W) == texel(own_gx, W)) & (texel(gy, H) == texel(own_gy, H))
         inside &= ~own if nearest is True else ~(own & nearest)
     inv = sampled[0]  # <= 0 wherever a background texel takes part
     # Behind the front surface: dz >= 1/inv; in front of the back one: dz - T <= 1/inv (inv > 0).
