@@ -94,17 +94,17 @@ def default_pipelines(methods=METHODS, presets=tuple(PRESETS), radius: float = 0
     out = []
     for name in methods:
         for preset in presets:
-            for d in denoise:
-                module = make_method(get_method(name), preset, radius=radius)
-                out.append(Pipeline(name, module, Denoiser() if d else None, preset))
+            module = make_method(get_method(name), preset, radius=radius)
+            out += [Pipeline(name, module, Denoiser() if d else None, preset) for d in denoise]
     return out
 
 
 class Truths:
     """Screen-space truths of each view (by name), computed once per thickness."""
 
-    def __init__(self, radius: float, rays: int, log=print, **kwargs):
+    def __init__(self, radius: float, rays: int, log=print, cache_dir: str | Path | None = None, **kwargs):
         self.radius, self.rays, self.log, self.kwargs = radius, rays, log, kwargs
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._cache: dict = {}
         self.seconds = 0.0
 
@@ -116,16 +116,30 @@ class Truths:
 
     def get(self, view: FitView, thickness) -> ScreenTruth:
         key = (view.name, self._key(thickness))
-        if key not in self._cache:
-            t0 = time.perf_counter()
-            # Thin occluders need points closer than the thickness along each ray.
-            thin = not isinstance(thickness, torch.Tensor) and float(thickness) < 0.2
-            kwargs = {**(dict(min_steps=64) if thin else {}), **self.kwargs}
-            self._cache[key] = screen_space_truth(view.gbuffer, self.radius, thickness, rays=self.rays, **kwargs)
-            dt = time.perf_counter() - t0
-            self.seconds += dt
-            self.log(f"  truth {view.name} thickness={_fmt_t(thickness)}: {dt:.1f} s")
-        return self._cache[key]
+        if key in self._cache:
+            return self._cache[key]
+        # Thin occluders need points closer than the thickness along each ray.
+        thin = not isinstance(thickness, torch.Tensor) and float(thickness) < 0.2
+        kwargs = {**(dict(min_steps=64) if thin else {}), **self.kwargs}
+        shape = "x".join(map(str, view.gbuffer.depth.shape[-2:]))
+        path = None
+        if self.cache_dir is not None and not isinstance(thickness, torch.Tensor):
+            opts = "-".join(f"{k}{v}" for k, v in sorted(kwargs.items()))
+            path = self.cache_dir / (f"truth-{view.name.replace('/', '-')}-{shape}-R{self.radius:g}-t{_fmt_t(thickness)}"
+                                     f"-rays{self.rays}-{opts}.pt")
+        if path is not None and path.exists():
+            self._cache[key] = ScreenTruth(**torch.load(path, weights_only=True))
+            return self._cache[key]
+        t0 = time.perf_counter()
+        truth = screen_space_truth(view.gbuffer, self.radius, thickness, rays=self.rays, **kwargs)
+        dt = time.perf_counter() - t0
+        self.seconds += dt
+        self.log(f"  truth {view.name} thickness={_fmt_t(thickness)}: {dt:.1f} s")
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            torch.save(dict(vars(truth)), path)
+        self._cache[key] = truth
+        return truth
 
 
 def _fmt_t(t) -> str:
@@ -144,15 +158,20 @@ def pipeline_rows(pipelines: list[Pipeline], views: list[FitView], truths: Truth
     truth of the pipeline's thickness (``truth_*``), the truth against the reference (``screen_*``), the
     truth's mean standard error and the run time."""
     rows = []
+    outputs: dict = {}  # a module shared by several pipelines (without and with a denoiser) runs once per view
     for p in pipelines:
         p.module.eval()
         for view in views:
             gb, valid = view.gbuffer, view.gbuffer.valid
-            t0 = time.perf_counter()
-            vis = p.module(gb).visibility
+            key = (id(p.module), view.name)
+            if key not in outputs:
+                t0 = time.perf_counter()
+                outputs[key] = (p.module(gb).visibility, (time.perf_counter() - t0) * 1e3)
+            vis, ms = outputs[key]
             if p.denoiser is not None:
+                t0 = time.perf_counter()
                 vis = p.denoiser(vis, gb).visibility
-            ms = (time.perf_counter() - t0) * 1e3
+                ms += (time.perf_counter() - t0) * 1e3
             truth = truths.get(view, p.truth_thickness())
             row = {"pipeline": p.name, "preset": p.preset, "denoise": p.denoiser is not None, "scene": view.name,
                    "thickness": _fmt_t(p.truth_thickness()), "ms": ms,
@@ -332,6 +351,8 @@ def main(argv=None) -> int:
     ap.add_argument("--png", default="docs/accuracy.png", help="plot of error against preset")
     ap.add_argument("--cache-dir", default=None, help="reference cache (default: torch_ao's cache)")
     ap.add_argument("--rays", type=int, default=None, help="rays per pixel of the screen-space truth")
+    ap.add_argument("--step-px", type=float, default=0.5, help="screen-space truth: one point per this many pixels")
+    ap.add_argument("--truth-cache", default=None, help="folder to keep screen-space truths in (reused by reruns)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-convergence", action="store_true", help="skip the bitmask convergence study")
     ap.add_argument("--only-convergence", action="store_true", help="only the bitmask convergence study")
@@ -345,7 +366,7 @@ def main(argv=None) -> int:
     scenes = s.convergence_scenes if args.only_convergence else s.scenes
     print(f"references ({len(scenes)} scenes, {s.width}x{s.height}, {s.spp} rays, R = {s.radius})")
     views = load_views(s, scenes, args.cache_dir)
-    truths = Truths(s.radius, s.rays)
+    truths = Truths(s.radius, s.rays, cache_dir=args.truth_cache, step_px=args.step_px)
 
     md = [f"# Accuracy: every method against the ray-traced reference and the screen-space truth", "",
           f"Generated by `{command.strip()}` ({time.strftime('%Y-%m-%d')}, torch {torch.__version__}, "
