@@ -78,6 +78,7 @@ class Pipeline:
     denoiser: Denoiser | None = None
     preset: str = ""
     thickness: object = None
+    truth_options: dict = field(default_factory=dict)
 
     def truth_thickness(self):
         if self.thickness is not None:
@@ -112,15 +113,16 @@ class Truths:
     def _key(thickness):
         if isinstance(thickness, torch.Tensor):
             return ("tensor", tuple(thickness.shape), float(thickness.double().sum()), float(thickness.double().square().sum()))
-        return float(thickness)
+        return repr(thickness) if callable(thickness) else float(thickness)
 
-    def get(self, view: FitView, thickness) -> ScreenTruth:
-        key = (view.name, self._key(thickness))
+    def get(self, view: FitView, thickness, options: dict | None = None) -> ScreenTruth:
+        options = dict(options or {})
+        key = (view.name, self._key(thickness), tuple(sorted(options.items())))
         if key in self._cache:
             return self._cache[key]
         # Thin occluders need points closer than the thickness along each ray.
-        thin = not isinstance(thickness, torch.Tensor) and float(thickness) < 0.2
-        kwargs = {**(dict(min_steps=64) if thin else {}), **self.kwargs}
+        thin = not isinstance(thickness, torch.Tensor) and float(getattr(thickness, "thickness", thickness)) < 0.2
+        kwargs = {**(dict(min_steps=64) if thin else {}), **self.kwargs, **options}
         shape = "x".join(map(str, view.gbuffer.depth.shape[-2:]))
         path = None
         if self.cache_dir is not None and not isinstance(thickness, torch.Tensor):
@@ -142,9 +144,26 @@ class Truths:
         return truth
 
 
+class AlongCameraRay:
+    """A thickness model for the truth: ``thickness`` measured along each texel's camera ray instead of the
+    view axis (depth thickness ``thickness * depth / distance``), close to bitmask AO's push of each sample
+    along the view vector."""
+
+    def __init__(self, thickness: float):
+        self.thickness = float(thickness)
+
+    def __call__(self, gbuffer):
+        return self.thickness * gbuffer.safe_depth / gbuffer.positions().norm(dim=1, keepdim=True)
+
+    def __repr__(self) -> str:
+        return f"ray{self.thickness:g}"
+
+
 def _fmt_t(t) -> str:
     if isinstance(t, torch.Tensor):
         return f"tensor{tuple(t.shape)}"
+    if callable(t):
+        return repr(t)
     return "inf" if math.isinf(float(t)) else f"{float(t):g}"
 
 
@@ -172,8 +191,8 @@ def pipeline_rows(pipelines: list[Pipeline], views: list[FitView], truths: Truth
                 t0 = time.perf_counter()
                 vis = p.denoiser(vis, gb).visibility
                 ms += (time.perf_counter() - t0) * 1e3
-            truth = truths.get(view, p.truth_thickness())
-            row = {"pipeline": p.name, "preset": p.preset, "denoise": p.denoiser is not None, "scene": view.name,
+            truth = truths.get(view, p.truth_thickness(), p.truth_options)
+            row = {"pipeline": p.name, "preset": p.preset, "truth_options": dict(p.truth_options), "denoise": p.denoiser is not None, "scene": view.name,
                    "thickness": _fmt_t(p.truth_thickness()), "ms": ms,
                    "truth_stderr": float(truth.stderr[valid].mean())}
             for prefix, target in (("ref", view.reference), ("truth", truth.visibility)):
@@ -213,19 +232,30 @@ CONVERGENCE_CONFIGS = {
 }
 
 
+#: Other truths the plain bitmask AO ("ceil, no jitter") is compared with: label -> (thickness model of T, options).
+TRUTH_VARIANTS = {
+    "vs truth with thickness along the camera ray": (AlongCameraRay, {}),
+    "vs truth counting every point within the projected radius": (float, {"bound": "screen"}),
+}
+
+
 def convergence_rows(views: list[FitView], truths: Truths, presets, thicknesses=(0.05, 0.5), configs=None,
-                     radius: float = 0.5, log=print) -> list[dict]:
+                     radius: float = 0.5, variants=None, log=print) -> list[dict]:
     """Bitmask AO (cosine weighting, hard) of each config at each preset and thickness against the truth
-    of that thickness (and against the reference)."""
+    of that thickness (and against the reference); with ``variants`` (see :data:`TRUTH_VARIANTS`) the first
+    config also against those truths."""
     from torch_ao import BitmaskAO
 
     configs = CONVERGENCE_CONFIGS if configs is None else configs
     pipes = []
     for t in thicknesses:
-        for label, opts in configs.items():
+        for i, (label, opts) in enumerate(configs.items()):
             for preset in presets:
                 module = BitmaskAO(preset=preset, radius=radius, thickness=t, weighting="cosine", mode="hard", **opts)
                 pipes.append(Pipeline(label, module, None, preset, t))
+                if i == 0:
+                    for vlabel, (model, options) in (variants or {}).items():
+                        pipes.append(Pipeline(f"{label}, {vlabel}", module, None, preset, model(t), options))
     return pipeline_rows(pipes, views, truths, log=log)
 
 
@@ -356,6 +386,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-convergence", action="store_true", help="skip the bitmask convergence study")
     ap.add_argument("--only-convergence", action="store_true", help="only the bitmask convergence study")
+    ap.add_argument("--truth-variants", action="store_true",
+                    help="convergence study: also compare with the truth variants (thickness along the camera ray, "
+                         "every point within the projected radius: 4x longer rays)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     s = QUICK if args.quick else FULL
@@ -407,7 +440,8 @@ def main(argv=None) -> int:
     if not args.no_convergence:
         print("convergence of bitmask AO")
         cviews = [v for v in views if v.name.split("/")[0] in s.convergence_scenes]
-        crows = convergence_rows(cviews, truths, s.convergence_presets, radius=s.radius)
+        crows = convergence_rows(cviews, truths, s.convergence_presets, radius=s.radius,
+                                 variants=TRUTH_VARIANTS if args.truth_variants else None)
         cpng = Path(args.png).with_name(Path(args.png).stem + "_convergence.png")
         convergence_plot(crows, s.convergence_presets, cpng)
         md += ["## Convergence of bitmask AO", "",
