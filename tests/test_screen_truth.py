@@ -117,6 +117,8 @@ def test_split_error_adds_up_per_view(wall):
         assert s.screen["mae"] == pytest.approx(0.01, abs=1e-6)
         assert s.estimator["mae"] == pytest.approx(0.02, abs=1e-6)
         assert s.total["mae"] == pytest.approx(0.03, abs=1e-6)
+        assert s.estimator["bias"] == pytest.approx(0.02, abs=1e-6) and s.screen["bias"] == pytest.approx(0.01, abs=1e-6)
+        assert s.total["psnr"] == pytest.approx(-20 * math.log10(0.03), abs=1e-3)
         assert s.truth_stderr == pytest.approx(0.002)
     with pytest.raises(ValueError, match="reference"):
         split_error(method2, st, ref)
@@ -258,3 +260,33 @@ def test_screen_bound_counts_occluders_beyond_the_radius(plank):
     assert float(sphere.visibility[0, 0][far].mean()) > 0.99
     assert float(screen.visibility[0, 0][far].mean()) < 0.98
     assert float(screen_space_truth(plane_gbuffer(16, 20), 0.5, rays=16, bound="screen").visibility.min()) == 1.0
+
+
+def test_report_rows_split_each_pipeline_error(wall):
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    from torch_ao import Denoiser, GTAO, BitmaskAO, error_metrics
+    from torch_ao.fit import FitView
+
+    spec = importlib.util.spec_from_file_location("accuracy_report", Path(__file__).parents[1] / "benchmarks" / "accuracy_report.py")
+    report = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("accuracy_report", report)  # dataclasses look their module up there
+    spec.loader.exec_module(report)
+    gb, vis, mask, d, R = wall
+    reference = torch.where(gb.valid, torch.nan_to_num(vis.float(), nan=1.0)[None, None], torch.ones_like(gb.depth))
+    view = FitView(gb, reference, name="wall")
+    truths = report.Truths(R, 16, log=lambda *_: None)
+    gtao = GTAO(preset="low", radius=R)
+    pipes = [report.Pipeline("gtao", gtao, None, "low"), report.Pipeline("gtao", gtao, Denoiser(), "low"),
+             report.Pipeline("bitmask", BitmaskAO(preset="low", radius=R, thickness=0.25), None, "low")]
+    rows = report.pipeline_rows(pipes, [view], truths, log=lambda *_: None)
+    assert [r["thickness"] for r in rows] == ["inf", "inf", "0.25"]
+    with torch.no_grad():
+        out = gtao(gb).visibility
+    truth = truths.get(view, math.inf)
+    assert rows[0]["ref_mae"] == pytest.approx(error_metrics(out, reference, gb.valid)["mae"])
+    assert rows[0]["truth_mae"] == pytest.approx(error_metrics(out, truth.visibility, gb.valid)["mae"])
+    assert rows[0]["screen_mae"] == pytest.approx(error_metrics(truth.visibility, reference, gb.valid)["mae"])
+    assert rows[1]["ref_mae"] != rows[0]["ref_mae"]  # the denoised row

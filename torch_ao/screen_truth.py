@@ -372,7 +372,8 @@ def _unblocked(surfaces, P, n, w, jitter, nsteps, s_max, radius, proj, disc=None
 # ------------------------------------------------------------------------------------------ error split
 @dataclass
 class ErrorSplit:
-    """The error of one method on one view, split in two (metrics dicts of :func:`error_metrics`).
+    """The error of one method on one view, split in two (metrics dicts of :func:`error_metrics` with
+    ``bias``, the mean signed error, added).
 
     ``screen``: the screen-space truth against the ray-traced reference (what the screen cannot know:
     hidden and off-screen geometry, the thickness model). ``estimator``: the method against the
@@ -405,9 +406,15 @@ def split_error(method: torch.Tensor, truth: ScreenTruth | torch.Tensor, referen
         sl = slice(b, b + 1)
         v = valid[sl]
         out.append(ErrorSplit(
-            screen=error_metrics(t[sl], reference[sl], v),
-            estimator=error_metrics(method[sl], t[sl], v),
-            total=error_metrics(method[sl], reference[sl], v),
+            screen=_metrics(t[sl], reference[sl], v),
+            estimator=_metrics(method[sl], t[sl], v),
+            total=_metrics(method[sl], reference[sl], v),
             truth_stderr=float(se[sl][v].mean()) if bool(v.any()) else 0.0,
         ))
     return out
+
+
+def _metrics(prediction, target, valid) -> dict:
+    """:func:`error_metrics` plus ``bias``, the mean signed error (negative: too much occlusion)."""
+    bias = float((prediction - target)[valid].mean()) if bool(valid.any()) else 0.0
+    return {**error_metrics(prediction, target, valid), "bias": bias}
