@@ -22,6 +22,7 @@ pipelines are added as rows the same way as the defaults (:func:`default_pipelin
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import platform
 import shlex
@@ -301,11 +302,13 @@ def screen_table(rows) -> list[str]:
 
 
 def convergence_table(rows, presets) -> list[str]:
-    """Per (scene, thickness, config): MAE and mean signed error against the truth at each preset."""
+    """Per (scene, thickness, config): MAE and mean signed error against the truth at each preset, and
+    PSNR against the ray-traced reference."""
     lines = ["| scene | thickness | config | " + " | ".join(presets) + " |", "| --- | --- | --- |" + " ---: |" * len(presets)]
     for (scene, t, label), rs in _group(rows, ("scene", "thickness", "pipeline")).items():
         by = {r["preset"]: r for r in rs}
-        cells = [f"{by[p]['truth_mae']:.4f} ({by[p]['truth_bias']:+.4f})" if p in by else "" for p in presets]
+        cells = [f"{by[p]['truth_mae']:.4f} ({by[p]['truth_bias']:+.4f}) / {by[p]['ref_psnr']:.1f}" if p in by else ""
+                 for p in presets]
         lines.append(f"| {scene} | {t} | {label} | " + " | ".join(cells) + " |")
     return lines
 
@@ -425,8 +428,12 @@ def main(argv=None) -> int:
     ap.add_argument("--step-px", type=float, default=0.5, help="screen-space truth: one point per this many pixels")
     ap.add_argument("--truth-cache", default=None, help="folder to keep screen-space truths in (reused by reruns)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rows-json", default=None, help="also write every row to this JSON file")
     ap.add_argument("--no-convergence", action="store_true", help="skip the bitmask convergence study")
     ap.add_argument("--only-convergence", action="store_true", help="only the bitmask convergence study")
+    ap.add_argument("--configs", default=None,
+                    help="convergence study: the configurations to run, labels separated by ';' (default: all of "
+                         + "; ".join(CONVERGENCE_CONFIGS) + ")")
     ap.add_argument("--truth-variants", action="store_true",
                     help="convergence study: also compare with the truth variants (thickness along the camera ray, "
                          "every point within the projected radius: 4x longer rays)")
@@ -481,13 +488,21 @@ def main(argv=None) -> int:
     if not args.no_convergence:
         print("convergence of bitmask AO")
         cviews = [v for v in views if v.name.split("/")[0] in s.convergence_scenes]
-        crows = convergence_rows(cviews, truths, s.convergence_presets, radius=s.radius,
+        configs = None
+        if args.configs:
+            labels = [c.strip() for c in args.configs.split(";")]
+            unknown = [c for c in labels if c not in CONVERGENCE_CONFIGS]
+            if unknown:
+                ap.error(f"--configs: unknown {unknown}; expected some of {list(CONVERGENCE_CONFIGS)}")
+            configs = {c: CONVERGENCE_CONFIGS[c] for c in labels}
+        crows = convergence_rows(cviews, truths, s.convergence_presets, configs=configs, radius=s.radius,
                                  variants=TRUTH_VARIANTS if args.truth_variants else None)
         cpng = Path(args.png).with_name(Path(args.png).stem + "_convergence.png")
         convergence_plot(crows, s.convergence_presets, cpng)
         md += ["## Convergence of bitmask AO", "",
                "Bitmask AO with cosine sectors and a fixed thickness against the screen-space truth of the same "
-               "thickness: MAE (mean signed error in brackets; negative = too much occlusion) at each preset. "
+               "thickness: MAE (mean signed error in brackets; negative = too much occlusion) at each preset, "
+               "then the PSNR (dB) against the ray-traced reference. "
                "An estimator that converges has an error that falls with the preset down to the truth's noise "
                f"(its mean per-pixel standard error is listed below).", ""]
         md += convergence_table(crows, s.convergence_presets) + [""]
@@ -497,6 +512,8 @@ def main(argv=None) -> int:
             f"{k[0]} t={k[1]}: {_mean(v, 'truth_stderr'):.4f}" for k, v in sorted(noise.items())), ""]
     md += [TRUTH_SECTION, ""]
     md += [f"Total time {time.perf_counter() - start:.0f} s (screen-space truths {truths.seconds:.0f} s).", ""]
+    if args.rows_json:
+        Path(args.rows_json).write_text(json.dumps({"rows": rows, "convergence": crows}, indent=1))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(md) + "\n")

@@ -164,9 +164,10 @@ def screen_space_truth(
         thickness, backface_depth: the thickness model, see :func:`thickness_map`.
         rays: rays per pixel for each weighting (>= 2, with a divisor in [2, 16] for the standard error).
         min_steps, max_steps, step_px: points tested per ray, equally spaced in ``t`` with one random
-            offset ``u`` per ray (``t_k = R (k + u) / (n - 1 + u)``, ``k < n``: the last at ``R``): ``n`` = one per ``step_px`` pixels of the radius'
-            projected length, within ``[min_steps, max_steps]`` (raise ``min_steps`` for thin occluders:
-            a slab of thickness ``T`` is found surely once ``R / n`` is well below ``T``).
+            offset ``u`` per ray (``t_k = R (k + u) / (n - 1 + u)``, ``k < n``: the last at ``R``), ``n`` = one
+            per ``step_px`` pixels of the radius' projected length ``R f / depth``, within
+            ``[min_steps, max_steps]`` (raise ``min_steps`` for thin occluders: a slab of thickness ``T`` is
+            found surely once ``R / n`` is well below ``T``).
         uniform: also estimate uniform-weighted visibility (another ``rays`` rays per pixel).
         fetch: how the depth buffer becomes surfaces: ``"bilinear"`` (perspective-correct, as the
             methods' default fetch: across a depth edge it interpolates a "skirt" joining the near and far
@@ -175,7 +176,7 @@ def screen_space_truth(
             other, the nearest texel in the others: no skirts).
         edge_ratio: ``max/min`` depth of a 2x2 cell above which ``"edge_aware"`` treats it as an edge (> 1).
         seed: the random numbers are a hash of ``(seed, pixel, ray)``: reproducible whatever the chunking.
-        chunk_points: ray points tested at once (memory: about 60 bytes each).
+        chunk_points: ray points tested at once (memory: about 100 bytes each).
         bound: which ray points count: ``"sphere"`` (the definition: within distance ``R`` of the pixel) or
             ``"screen"`` (a diagnostic: every point up to ``SCREEN_REACH * R`` along the ray that projects within
             ``R fx / depth`` pixels of the pixel, whatever its distance: what a screen-space walk over the
