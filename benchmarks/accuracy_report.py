@@ -434,6 +434,7 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", default=None,
                     help="convergence study: the configurations to run, labels separated by ';' (default: all of "
                          + "; ".join(CONVERGENCE_CONFIGS) + ")")
+    ap.add_argument("--thicknesses", default="0.05,0.5", help="convergence study: bitmask thicknesses (comma-separated)")
     ap.add_argument("--truth-variants", action="store_true",
                     help="convergence study: also compare with the truth variants (thickness along the camera ray, "
                          "every point within the projected radius: 4x longer rays)")
@@ -495,7 +496,8 @@ def main(argv=None) -> int:
             if unknown:
                 ap.error(f"--configs: unknown {unknown}; expected some of {list(CONVERGENCE_CONFIGS)}")
             configs = {c: CONVERGENCE_CONFIGS[c] for c in labels}
-        crows = convergence_rows(cviews, truths, s.convergence_presets, configs=configs, radius=s.radius,
+        thicknesses = tuple(float(t) for t in args.thicknesses.split(","))
+        crows = convergence_rows(cviews, truths, s.convergence_presets, thicknesses, configs=configs, radius=s.radius,
                                  variants=TRUTH_VARIANTS if args.truth_variants else None)
         cpng = Path(args.png).with_name(Path(args.png).stem + "_convergence.png")
         convergence_plot(crows, s.convergence_presets, cpng)
