@@ -408,6 +408,46 @@ the method adds) and of the method against the reference (`total`).
 
 
 # ------------------------------------------------------------------------------------------ main
+def method_sections(rows, srows, presets, png: Path) -> list[str]:
+    """The report's sections on the screen-space truth against the reference and on every method."""
+    png.parent.mkdir(parents=True, exist_ok=True)
+    plot(rows, presets, png)
+    md = []
+    md += ["## What the screen cannot know: the screen-space truth against the reference", "",
+           "Per view: the error of the screen-space truth (the best any screen-space estimator of that thickness "
+           "model can do on this depth buffer) against the ray-traced reference. It comes from geometry the depth "
+           "buffer does not hold (hidden surfaces, occluders off screen, rays leaving the screen) and from the "
+           "thickness model (the scene's real objects are neither infinitely thick nor 0.5 thick).", ""]
+    md += screen_table(srows) + [""]
+    md += ["## Every method at every preset (mean over scenes)", "",
+           "`ref`: against the ray-traced reference; `truth`: against the screen-space truth of the method's "
+           "thickness, i.e. the estimator's own error (bias and noise); `truth bias`: mean signed error "
+           "(negative = too much occlusion). `ms`: one forward call (and the denoiser), 1 thread, on a shared "
+           "machine (indicative only).", ""]
+    md += method_table(rows, presets) + [""]
+    md += [f"![PSNR against preset]({png.name})", ""]
+    for preset in ("high", "extreme", "reference"):
+        if preset in presets:
+            md += [f"### Per scene at `{preset}`: PSNR against the reference / against the truth", ""]
+            md += scene_table(rows, preset) + [""]
+    return md
+
+
+def render_json(args, command: str) -> int:
+    """Tables and plot of the method sweep from the rows of earlier runs (e.g. scenes run in parallel)."""
+    rows, srows = [], []
+    for f in args.render_json:
+        data = json.loads(Path(f).read_text())
+        rows += data["rows"]
+        srows += data["screen"]
+    presets = [p for p in PRESETS if any(r["preset"] == p for r in rows)]
+    md = [f"Rendered by `{command.strip()}` from {', '.join(args.render_json)}.", ""]
+    md += method_sections(rows, srows, presets, Path(args.png))
+    Path(args.out).write_text("\n".join(md) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
 def load_views(s: Settings, scenes, cache_dir, log=print) -> list[FitView]:
     views = []
     for scene in scenes:
@@ -431,6 +471,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rows-json", default=None, help="also write every row to this JSON file")
     ap.add_argument("--no-convergence", action="store_true", help="skip the bitmask convergence study")
     ap.add_argument("--only-convergence", action="store_true", help="only the bitmask convergence study")
+    ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: " + ",".join(SCENES) + ")")
+    ap.add_argument("--presets", default=None, help="comma-separated presets of the method sweep (default: all)")
+    ap.add_argument("--render-json", nargs="+", default=None,
+                    help="only render the method tables and plot from the --rows-json files of earlier runs")
     ap.add_argument("--configs", default=None,
                     help="convergence study: the configurations to run, labels separated by ';' (default: all of "
                          + "; ".join(CONVERGENCE_CONFIGS) + ")")
@@ -443,8 +487,14 @@ def main(argv=None) -> int:
     s = QUICK if args.quick else FULL
     if args.rays is not None:
         s.rays = args.rays
+    if args.scenes:
+        s.scenes = tuple(x.strip() for x in args.scenes.split(","))
+    if args.presets:
+        s.presets = tuple(x.strip() for x in args.presets.split(","))
     start = time.perf_counter()
     command = "python benchmarks/accuracy_report.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    if args.render_json:
+        return render_json(args, command)
     scenes = s.convergence_scenes if args.only_convergence else s.scenes
     print(f"references ({len(scenes)} scenes, {s.width}x{s.height}, {s.spp} rays, R = {s.radius})")
     views = load_views(s, scenes, args.cache_dir)
@@ -459,32 +509,13 @@ def main(argv=None) -> int:
           f"{s.rays} cosine-distributed rays per pixel, bilinear fetch as the methods' default, see "
           f"[the method](#the-screen-space-truth)) uses the thickness of the method it is compared with: "
           f"the horizon methods' infinite thickness, bitmask AO's 0.5.", ""]
-    rows = []
+    rows, srows = [], []
     if not args.only_convergence:
         print("screen-space truth against the reference")
         srows = screen_rows(views, truths, (math.inf, 0.5))
         print("methods")
         rows = pipeline_rows(default_pipelines(presets=s.presets, radius=s.radius), views, truths)
-        png = Path(args.png)
-        png.parent.mkdir(parents=True, exist_ok=True)
-        plot(rows, s.presets, png)
-        md += ["## What the screen cannot know: the screen-space truth against the reference", "",
-               "Per view: the error of the screen-space truth (the best any screen-space estimator of that thickness "
-               "model can do on this depth buffer) against the ray-traced reference. It comes from geometry the depth "
-               "buffer does not hold (hidden surfaces, occluders off screen, rays leaving the screen) and from the "
-               "thickness model (the scene's real objects are neither infinitely thick nor 0.5 thick).", ""]
-        md += screen_table(srows) + [""]
-        md += ["## Every method at every preset (mean over scenes)", "",
-               "`ref`: against the ray-traced reference; `truth`: against the screen-space truth of the method's "
-               "thickness, i.e. the estimator's own error (bias and noise); `truth bias`: mean signed error "
-               "(negative = too much occlusion). `ms`: one forward call (and the denoiser), 1 thread, on a shared "
-               "machine (indicative only).", ""]
-        md += method_table(rows, s.presets) + [""]
-        md += [f"![PSNR against preset]({png.name})", ""]
-        for preset in ("high", "reference"):
-            if preset in s.presets:
-                md += [f"### Per scene at `{preset}`: PSNR against the reference / against the truth", ""]
-                md += scene_table(rows, preset) + [""]
+        md += method_sections(rows, srows, s.presets, Path(args.png))
     crows = []
     if not args.no_convergence:
         print("convergence of bitmask AO")
@@ -515,7 +546,7 @@ def main(argv=None) -> int:
     md += [TRUTH_SECTION, ""]
     md += [f"Total time {time.perf_counter() - start:.0f} s (screen-space truths {truths.seconds:.0f} s).", ""]
     if args.rows_json:
-        Path(args.rows_json).write_text(json.dumps({"rows": rows, "convergence": crows}, indent=1))
+        Path(args.rows_json).write_text(json.dumps({"rows": rows, "screen": srows, "convergence": crows}, indent=1))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(md) + "\n")
