@@ -1,5 +1,7 @@
 """Bitmask AO converges: with the thickness fixed, its error against the screen-space truth does not grow
-from the ``low`` to the ``reference`` preset (beyond Monte Carlo noise), on the fence and stairs scenes."""
+from the ``low`` to the ``reference`` preset (beyond Monte Carlo noise), on the fence and stairs scenes;
+against the ray-traced reference, ``reference`` is no worse than ``high`` or than the screen-space truth
+itself (what the screen cannot know: on the fence, 0.065 of MAE, see docs/bitmask.md "Convergence")."""
 import pytest
 import torch
 
@@ -31,4 +33,6 @@ def test_exact_variant_error_does_not_grow_with_the_preset(scene):
     for a, b in zip(names, names[1:]):
         assert to_truth[b] <= to_truth[a] + NOISE, (a, b)
     assert to_truth["reference"] < 0.5 * to_truth["low"]
-    assert to_ref["reference"] <= to_ref["high"] + NOISE
+    screen = float((truth.visibility - ref.ao)[valid].abs().mean())
+    print(f" the screen-space truth against the ray-traced reference: {screen:.4f}")
+    assert to_ref["reference"] <= max(to_ref["high"], screen) + NOISE
