@@ -17,7 +17,7 @@ Conversions, in this order (:func:`apply_engine_options`):
    same positive number in both conventions; nothing else changes (row 0 is the top in both).
 4. ``far``: depth at or above ``far`` is background (``inf``); Blender writes ``1e10`` there, so the
    default ``1e9`` catches it.
-5. No depth channel but positions: ``depth = -position.z``.
+5. No depth channel but positions: the G-buffer's depth is ``-position.z`` (``far`` applies to it).
 """
 from __future__ import annotations
 
@@ -180,24 +180,35 @@ def _existing(path) -> Path:
     return path
 
 
-def _match(channels: dict[str, np.ndarray], name: str, components: int) -> list[str] | None:
-    """Channel names (one per component) for ``name`` (a channel or a layer), or None."""
-    lower = {k.lower(): k for k in channels}
+_VECTOR_LAYERS = {a.lower() for n, aliases in CHANNEL_ALIASES.values() if n == 3 for a in aliases}
 
-    def find(suffix: str) -> list[str]:
-        s = suffix.lower()
-        return [k for lk, k in lower.items() if lk == s or lk.endswith("." + s)] if s else []
+
+def _match(channels: dict[str, np.ndarray], name: str, components: int) -> list[str] | None:
+    """Channel names (one per component) for ``name`` (a channel or a layer), or None. ``name=""``
+    takes unlayered channels (``R``, ``Z``...: a file holding one buffer)."""
+    def find(full: str) -> list[str]:
+        f = full.lower()
+        if not name:
+            return [k for k in channels if k.lower() == f]
+        hits = []
+        for k in channels:
+            lk = k.lower()
+            if lk == f or lk.endswith("." + f):
+                before = lk[: -len(f) - 1].rsplit(".", 1)[-1] if lk != f else ""
+                if "." not in f and before in _VECTOR_LAYERS:
+                    continue  # "Z" is not "Normal.Z"
+                hits.append(k)
+        return hits
 
     if components == 1:
         for c in _SCALAR_COMPONENTS:
-            full = f"{name}.{c}" if name and c else (name or c)
-            hits = find(full)
+            if not name and not c:
+                continue
+            hits = find(f"{name}.{c}" if name and c else (name or c))
             if len(hits) > 1:
                 raise ValueError(f"channels: {name!r} matches several channels {sorted(hits)}; name one with --channels")
             if hits:
                 return hits
-        if not name and len(channels) == 1:
-            return list(channels)
         return None
     for letters in _COMPONENTS:
         hits = [find(f"{name}.{c}" if name else c) for c in letters]
@@ -227,6 +238,8 @@ def _select(channels: dict[str, np.ndarray], options: EngineOptions, path: Path)
             else:
                 names = (spec,)
         hits = None
+        if target == "depth" and target not in given:
+            names = (*names, "")  # a file holding only depth (Unity writes one file per buffer): R, Z, ...
         for name in names:
             hits = _match(source, name, components)
             if hits:
@@ -289,12 +302,17 @@ def read_engine_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarr
 
 # ---------------------------------------------------------------------------------------- conversions
 def _size_of(arrays: dict[str, np.ndarray]) -> tuple[int, int]:
+    """``(H, W)`` shared by every image of ``arrays`` (scalar ``(...,H,W)``, vector ``(...,H,W,3)``)."""
+    def size(name):
+        a = arrays[name]
+        return tuple(a.shape[-3:-1] if CHANNEL_ALIASES[name][0] == 3 else a.shape[-2:])
+
     key = "depth" if "depth" in arrays else "position"
-    shape = arrays[key].shape[:2]
-    for name in ("depth", "normal", "position", "light", "albedo", "object_id", "mask"):
-        if name in arrays and arrays[name].shape[:2] != shape:
-            raise ValueError(f"{name}: {arrays[name].shape[1]}x{arrays[name].shape[0]} pixels, but {key} is "
-                             f"{shape[1]}x{shape[0]}")
+    shape = size(key)
+    for name in CHANNEL_ALIASES:
+        if name in arrays and size(name) != shape:
+            got = size(name)
+            raise ValueError(f"{name}: {got[1]}x{got[0]} pixels, but {key} is {shape[1]}x{shape[0]}")
     return shape
 
 
@@ -330,7 +348,7 @@ def _view_matrix(arrays: dict, opts: EngineOptions, what: str) -> np.ndarray:
 
 
 def apply_engine_options(arrays: dict[str, np.ndarray], opts: EngineOptions) -> dict[str, np.ndarray]:
-    """Convert ``.npz``-layout ``arrays`` (one view, top-down) from an engine's conventions to the
+    """Convert ``.npz``-layout ``arrays`` (top-down) from an engine's conventions to the
     library's (see the module docstring). Returns a new dict; ``view_matrix`` is consumed."""
     arrays = dict(arrays)
     H, W = _size_of(arrays)
@@ -358,11 +376,12 @@ def apply_engine_options(arrays: dict[str, np.ndarray], opts: EngineOptions) -> 
             raise ValueError(f"depth: expected a floating-point channel, got {depth.dtype}")
         if opts.depth_kind == "distance":
             depth = (depth / _ray_lengths(arrays, H, W)).astype(np.result_type(depth.dtype, np.float32))
-    elif "position" in arrays:
-        depth = -np.asarray(arrays["position"], dtype=np.float32)[..., 2]
-    if math.isfinite(opts.far):
-        depth = np.where(depth >= opts.far, np.float32(np.inf), depth).astype(depth.dtype)
-    arrays["depth"] = depth
+        if math.isfinite(opts.far):
+            depth = np.where(depth >= opts.far, np.inf, depth).astype(depth.dtype)
+        arrays["depth"] = depth
+    elif "position" in arrays and math.isfinite(opts.far):  # GBuffer derives depth = -z
+        p = arrays["position"]
+        arrays["position"] = np.where((-p[..., 2:] >= opts.far), np.nan, p).astype(p.dtype)
     if "object_id" in arrays:
         ids = np.asarray(arrays["object_id"])
         if ids.dtype.kind == "f":

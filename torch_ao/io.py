@@ -37,7 +37,9 @@ from .gbuffer import GBuffer
 
 __all__ = ["load_gbuffer", "read_gbuffer_arrays", "gbuffer_from_arrays", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image", "write_text_atomic", "save_json"]
 
-_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "position", "intrinsics", "fov_y_degrees")
+# "position" is also returned among the extras (as before it was a G-buffer key; references written by
+# ``torch-ao render`` carry it).
+_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "intrinsics", "fov_y_degrees")
 # npz key -> (GBuffer argument, channels last)
 _IMAGE_KEYS = {"normal": ("normals", True), "light": ("light", True), "mask": ("mask", False),
                "object_id": ("object_id", False), "position": ("position", True)}
@@ -115,8 +117,6 @@ def read_gbuffer_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndar
     opts = EngineOptions(**options)
     if opts.channels:
         raise ValueError("channels: .npz files have fixed keys; --channels applies to OpenEXR files")
-    if "depth" in arrays and arrays["depth"].ndim != 2 or "position" in arrays and arrays["position"].ndim != 3:
-        raise ValueError("options: engine conventions are converted for single-view files only")
     return apply_engine_options(arrays, opts)
 
 

@@ -1,0 +1,91 @@
+"""The ``position`` G-buffer key: view-space positions (OpenGL axes), validated, depth derived from them."""
+import numpy as np
+import pytest
+import torch
+
+from torch_ao import GBuffer, PinholeCamera, load_gbuffer, save_npz
+from torch_ao.examples import crease_gbuffer
+from torch_ao.io import read_npz
+
+
+@pytest.fixture
+def crease():
+    gb = crease_gbuffer(12, 16, dtype=torch.float64)
+    pos = torch.where(gb.valid, gb.positions(), torch.full_like(gb.positions(), float("nan")))
+    return gb, pos
+
+
+def test_depth_is_derived_from_positions(crease):
+    gb, pos = crease
+    from_pos = GBuffer(None, gb.camera, position=pos)
+    assert torch.equal(from_pos.valid, gb.valid)
+    assert torch.equal(from_pos.depth[gb.valid], -pos[:, 2:3][gb.valid])
+    assert torch.allclose(from_pos.depth[gb.valid], gb.depth[gb.valid], rtol=1e-12)
+    assert torch.equal(from_pos.positions()[gb.valid.expand(-1, 3, -1, -1)], pos[gb.valid.expand(-1, 3, -1, -1)])
+    # the background of positions() is finite (depth 1), like the depth path's
+    assert bool(torch.isfinite(from_pos.positions()).all())
+
+
+def test_derived_depth_carries_gradients_to_positions(crease):
+    gb, pos = crease
+    p = pos.clone().requires_grad_(True)
+    GBuffer(None, gb.camera, position=p).safe_depth.sum().backward()
+    expected = torch.zeros_like(pos)
+    expected[:, 2:3] = -gb.valid.double()
+    assert torch.equal(p.grad, expected)
+
+
+def test_given_positions_replace_unprojected_depth(crease):
+    gb, pos = crease
+    moved = pos * 1.5  # not what depth says: positions() returns the buffer anyway
+    both = GBuffer(gb.depth, gb.camera, position=moved)
+    v = gb.valid.expand(-1, 3, -1, -1)
+    assert torch.equal(both.positions()[v], moved[v])
+    assert torch.equal(both.to(dtype=torch.float32).position, moved.float())
+
+
+@pytest.mark.parametrize("case, match", [
+    ("shape", r"position: expected shape \(B,3,H,W\)"),
+    ("nan", "position: non-finite values on valid"),
+    ("behind", "position: expected z < 0"),
+    ("behind_no_depth", "position: expected z < 0"),
+    ("size", "position: batch and image size must match depth"),
+])
+def test_bad_positions(crease, case, match):
+    gb, pos = crease
+    bad, depth = pos.clone(), gb.depth
+    if case == "shape":
+        bad = bad[:, :2]
+    elif case == "nan":
+        bad[0, 0, 5, 5] = float("nan")
+    elif case in ("behind", "behind_no_depth"):
+        bad[0, 2, 5, 5] = 0.5
+        depth = None if case == "behind_no_depth" else depth
+    elif case == "size":
+        bad = bad[..., :-1]
+    with pytest.raises(ValueError, match=match):
+        GBuffer(depth, gb.camera, position=bad)
+
+
+def test_npz_position_key_round_trips_without_depth(tmp_path, crease):
+    gb, pos = crease
+    np.savez(tmp_path / "pos.npz", position=pos[0].permute(1, 2, 0).numpy(), intrinsics=gb.camera.intrinsics[0].numpy())
+    got, _ = load_gbuffer(tmp_path / "pos.npz")
+    assert torch.equal(got.valid, gb.valid)
+    assert torch.allclose(got.depth[gb.valid], gb.depth[gb.valid], rtol=1e-12)
+    save_npz(tmp_path / "again.npz", got)
+    raw = read_npz(tmp_path / "again.npz")
+    assert raw["position"].shape == (1, 12, 16, 3) and raw["depth"].shape == (1, 12, 16)
+    again, _ = load_gbuffer(tmp_path / "again.npz")
+    v = gb.valid.expand(-1, 3, -1, -1)
+    assert torch.equal(again.position[v], got.position[v])
+
+
+def test_reference_files_carry_their_positions(tmp_path):
+    from torch_ao.reference import get_scene, render_reference
+
+    ref = render_reference(get_scene("stairs"), height=10, width=14, spp=2, progress=False)
+    gb, extras = load_gbuffer(ref.save(tmp_path / "stairs.npz"))
+    v = gb.valid.expand(-1, 3, -1, -1)
+    assert gb.position is not None and "position" in extras
+    assert torch.allclose(gb.position[v], gb.camera.unproject(gb.safe_depth)[v], rtol=1e-6, atol=1e-6)
