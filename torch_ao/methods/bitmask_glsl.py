@@ -49,7 +49,7 @@ from ..marching import Frame, Queries, Sample, SamplingPattern, SliceGeometry
 from ..sectors import SECTORS, hard_mask, popcount32, sector_union
 from .bitmask_common import ThicknessLookup, safe_acos
 
-__all__ = ["GLSLPattern", "GLSLAccumulator", "glsl_jitter", "glsl_constants", "mesa_acos", "GLSL_NUMERICS"]
+__all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "glsl_constants", "mesa_acos", "GLSL_NUMERICS"]
 
 #: ``"ieee"``: every operation in the input precision with exact ``acos``; ``"mesa"``: Mesa's GLSL
 #: ``acos`` polynomial (softpipe, and desktop-like full precision elsewhere); ``"mesa_mediump"``: also
@@ -70,7 +70,7 @@ def mesa_acos(x: torch.Tensor) -> torch.Tensor:
     def f(v):
         ax = v.abs()
         poly = half_pi + ax * (quarter_pi_m1 + ax * (c(0.08132463) + ax * c(-0.02363318)))
-        return half_pi - torch.sign(v) * (half_pi - torch.sqrt(c(1.0) - ax) * poly)
+        return half_pi - torch.sign(v) * (half_pi - _EXACT.sqrt(c(1.0) - ax) * poly)
 
     value = f(x.clamp(-1.0, 1.0))
     if not x.requires_grad:
@@ -78,6 +78,42 @@ def mesa_acos(x: torch.Tensor) -> torch.Tensor:
     eps = 1e-6 if dt == torch.float64 else 1e-4
     soft = f(x.clamp(-1 + eps, 1 - eps))
     return value.detach() + (soft - soft.detach())
+
+
+class GLSLVectorOps:
+    """``dot``, ``length``, ``normalize`` and ``sqrt`` as the shader's driver evaluates them.
+
+    ``exact=True`` (``glsl_numerics="mesa"``/``"mesa_mediump"``) follows Mesa's llvmpipe bit for bit
+    (found by running the operations on it, ``tests/test_glsl_parity.py``): ``dot(a, b) =
+    (a.y b.y + a.z b.z) + a.x b.x`` in float32 without fused multiply-adds, ``length(v) =
+    sqrt(dot(v, v))`` and ``normalize(v) = v * (1 / sqrt(dot(v, v)))``, each step rounded, with the
+    correctly rounded IEEE ``sqrt`` (torch's float32 ``sqrt`` is not: it is off by one ulp on some
+    inputs, so it is taken in float64 and rounded, which is exact for square roots). Its roundings decide, e.g., whether ``dot(normalize(-c t), c)`` is ``-1`` or
+    falls just below (then ``acos`` is NaN). ``exact=False`` (``"ieee"``) uses torch's reductions.
+    Shapes: vectors ``(..., 3)`` -> ``(...)`` (``dot``, ``length``) or ``(..., 3)``."""
+
+    def __init__(self, exact: bool) -> None:
+        self.exact = exact
+
+    def dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        p = a * b
+        return (p[..., 1] + p[..., 2]) + p[..., 0] if self.exact else p.sum(-1)
+
+    def sqrt(self, x: torch.Tensor) -> torch.Tensor:
+        if self.exact and x.dtype == torch.float32:
+            return torch.sqrt(x.double()).float()
+        return torch.sqrt(x)
+
+    def length(self, v: torch.Tensor) -> torch.Tensor:
+        return self.sqrt(self.dot(v, v)) if self.exact else v.norm(dim=-1)
+
+    def normalize(self, v: torch.Tensor) -> torch.Tensor:
+        if self.exact:
+            return v * (1.0 / self.sqrt(self.dot(v, v)))[..., None]
+        return F.normalize(v, dim=-1, eps=1e-12)
+
+
+_EXACT = GLSLVectorOps(exact=True)
 
 
 def glsl_constants(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -187,6 +223,7 @@ class GLSLAccumulator:
         self.height = frame.shape[1]
         self.jitter_enabled = jitter
         self.numerics = numerics
+        self.gl = GLSLVectorOps(exact=numerics in ("mesa", "mesa_mediump"))
 
     def begin_slice(self, q: Queries, geom: SliceGeometry):
         pi, _, half_pi = glsl_constants(q.u.dtype)
@@ -198,17 +235,19 @@ class GLSLAccumulator:
                 "visibility": q.u.new_zeros(n),
                 "lighting": q.u.new_zeros(n, 3),
             }
-        camera = q.view
-        normal = F.normalize(q.normal, dim=-1)
+        gl = self.gl
+        camera = gl.normalize(-q.position) if gl.exact else q.view
+        normal = gl.normalize(q.normal)
         direction = self._direction(q, geom)
-        ortho = direction - (direction * camera).sum(-1, keepdim=True) * camera
+        ortho = direction - gl.dot(direction, camera)[:, None] * camera
         axis = torch.cross(direction, camera, dim=-1)  # not normalised (as written)
-        proj = normal - axis * (normal * axis).sum(-1, keepdim=True)
-        proj_length = proj.norm(dim=-1)
-        sign_n = torch.sign((ortho * proj).sum(-1))
-        cos_n = ((proj * camera).sum(-1) / proj_length).clamp(0.0, 1.0)
+        proj = normal - axis * gl.dot(normal, axis)[:, None]
+        proj_length = gl.length(proj)
+        sign_n = torch.sign(gl.dot(ortho, proj))
+        cos_n = (gl.dot(proj, camera) / proj_length).clamp(0.0, 1.0)
         n_angle = sign_n * self._acos(cos_n)
-        return {"n": n_angle, "pi": pi, "half_pi": half_pi, "normal": normal, "s": [], "w": [], "light": []}
+        return {"n": n_angle, "pi": pi, "half_pi": half_pi, "normal": normal, "camera": camera,
+                "s": [], "w": [], "light": []}
 
     def _acos(self, x: torch.Tensor) -> torch.Tensor:
         if self.numerics in ("mesa", "mesa_mediump"):
@@ -216,10 +255,12 @@ class GLSLAccumulator:
         return safe_acos(x)
 
     def _horizon(self, cosine: torch.Tensor, n, pi, half_pi) -> torch.Tensor:
-        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of a cosine rounded beyond +-1 is
-        NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
-        value = ((self._acos(cosine) + n + half_pi) / pi).clamp(0.0, 1.0)
-        return torch.where(cosine.detach().abs() > 1, torch.zeros_like(value), value)
+        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of NaN or of a cosine rounded
+        beyond +-1 is NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
+        c = cosine.detach()
+        bad = ~(c.abs() <= 1)
+        value = ((self._acos(torch.where(bad, torch.zeros_like(cosine), cosine)) + n + half_pi) / pi).clamp(0.0, 1.0)
+        return torch.where(bad, torch.zeros_like(value), value)
 
     def _direction(self, q: Queries, geom: SliceGeometry) -> torch.Tensor:
         jitter = glsl_jitter(q, self.height, self.jitter_enabled, self.numerics)
@@ -227,34 +268,41 @@ class GLSLAccumulator:
         return torch.stack((ox, oy, torch.zeros_like(ox)), -1)
 
     def step(self, state, q: Queries, geom: SliceGeometry, sample: Sample):
-        camera = q.view
+        gl, camera = self.gl, state["camera"]
         delta = sample.delta
-        length = delta.norm(dim=-1, keepdim=True)
-        horizon = delta / length
+        horizon = delta / gl.length(delta)[:, None]
         t = self.thickness(sample)
         t = t[:, None] if t.dim() == 1 else t
-        front = (horizon * camera).sum(-1)
-        back = (F.normalize(delta - camera * t, dim=-1) * camera).sum(-1)
+        front = gl.dot(horizon, camera)
+        back = gl.dot(gl.normalize(delta - camera * t), camera)
         pi, half_pi, n = state["pi"], state["half_pi"], state["n"]
         x = self._horizon(front, n, pi, half_pi)
         y = self._horizon(back, n, pi, half_pi)
+        # Background samples never occlude (what the shader does when its position buffer holds NaN
+        # there: NaN horizons clamp to 0, an empty run); their stand-in delta -V could otherwise round
+        # to a cosine beyond -1 and occlude everything.
+        x = torch.where(sample.valid, x, torch.ones_like(x))
+        y = torch.where(sample.valid, y, torch.ones_like(y))
         # A sample on the centre texel has sampleDistance = 0: the shader's front horizon is 0/0 = NaN,
-        # and clamp(NaN, 0, 1) gives 0 on llvmpipe, so x = 0. Its back direction is -camera, so y = 1
-        # when the thickness is > 0 (exactly; a driver may round the cosine below -1 and get NaN -> 0),
-        # and NaN -> 0 when it is 0. With y = 1 the whole half circle is occluded.
+        # and clamp(NaN, 0, 1) gives 0 on llvmpipe, so x = 0. Its back direction is -camera: y = 1 when
+        # the thickness is > 0 (the whole half circle occluded) and NaN -> 0 when it is 0. With the
+        # driver's roundings (exact ops) dot(normalize(-camera t), camera) may fall below -1: NaN -> 0.
         centre = sample.distance_px == 0
         if bool(centre.any()):
             x = torch.where(centre, torch.zeros_like(x), x)
-            t_pos = (t[:, 0] if t.dim() == 2 else t.expand_as(x)) > 0
-            y = torch.where(centre, t_pos.to(y.dtype), y)
+            if gl.exact:
+                y_centre = self._horizon(gl.dot(gl.normalize(-(camera * t)), camera), n, pi, half_pi)
+            else:
+                y_centre = ((t[:, 0] if t.dim() == 2 else t.expand_as(x)) > 0).to(y.dtype)
+            y = torch.where(centre, y_centre, y)
         s = x * float(SECTORS)
         w = (y - x) * float(SECTORS)
         light = None
         if self.indirect:
-            sample_normal = F.normalize(sample.gather("normals"), dim=-1)
+            sample_normal = gl.normalize(sample.gather("normals"))
             light = sample.gather("light")
-            c1 = (state["normal"] * horizon).sum(-1).clamp(0.0, 1.0)
-            c2 = (sample_normal * -horizon).sum(-1).clamp(0.0, 1.0) * sample.valid.to(delta.dtype)
+            c1 = gl.dot(state["normal"], horizon).clamp(0.0, 1.0)
+            c2 = gl.dot(sample_normal, -horizon).clamp(0.0, 1.0) * sample.valid.to(delta.dtype)
             light = (light * c1[:, None]) * c2[:, None]
         if self.mode == "hard":
             mask = hard_mask(s, w, self.rounding)
