@@ -193,7 +193,7 @@ class GLSLPattern(SamplingPattern):
         ox, oy = _slice_direction(q, geom.index, self.slice_count, jitter)
         p00 = (2 * frame.fx / W).to(dt)[q.batch]  # projection[0][0] as camera.opengl_projection() builds it
         radius = torch.as_tensor(self.radius, dtype=dt, device=q.u.device)
-        scale = (-radius * p00) / -q.depth  # position.z = -depth
+        scale = (-radius * p00) / q.position[:, 2]  # the centre's position.z (-depth unless a position buffer says otherwise)
         frag_u = (q.u + 0.5) / W
         y_gl = (H - 1) - q.v
         frag_v = (y_gl + 0.5) / H
