@@ -24,13 +24,21 @@ Quirks of the shader, all kept on purpose (a user porting it gets the same numbe
   radius, isotropically in pixels.
 * **Jitter** ``IGN(gl_FragCoord) - 0.5`` (GL's bottom-left origin) is shared by the slice angle and
   every step (``sampleStep = (j + jitter) / sampleCount + 0.01``), so the first step can land behind the
-  pixel (negative step) or on the centre texel. A centre-texel sample has ``sampleDistance = 0``: the
-  shader divides 0 by 0; here such a sample occludes nothing and adds no light (what llvmpipe does).
+  pixel (negative step) or on the centre texel. A centre-texel sample (common: the first step is only
+  ``0.01`` of the way, under a pixel for distant points) has ``sampleDistance = 0``: the shader divides 0
+  by 0, its front horizon is NaN (clamped to 0) and its back cosine ``dot(normalize(-camera t), camera)``
+  is ``-1`` (the whole half circle occluded) or, by the driver's rounding, just below ``-1`` (NaN: nothing
+  occluded). With ``glsl_numerics="mesa"`` that rounding is llvmpipe's, bit for bit (see
+  :class:`GLSLVectorOps`); with ``"ieee"`` the half circle is occluded whenever ``t > 0``. It adds no light.
+* **Background** samples (``inf``/``0``/``nan`` depth or ``mask`` False) occlude nothing and add no
+  light: what the shader does when its position texture holds NaN there (NaN horizons clamp to 0).
 * **Texel fetch**: nearest texel ``floor(uv * size)`` with clamp-to-edge, computed from the float UVs
   as the shader forms them, so the texel choices match.
 * **Driver numerics** (``glsl_numerics=``): GLSL leaves ``acos`` precision and ``mediump`` evaluation
   to the driver. Mesa's GLSL compiler emits a polynomial ``acos`` (error ~1.6e-4 rad): ``"mesa"``
-  reproduces it (bit-exact masks against softpipe). llvmpipe also evaluates ``mediump`` in 16 bits:
+  reproduces it, and llvmpipe's ``dot``/``normalize``/``sqrt`` roundings (:class:`GLSLVectorOps`; 99.99%
+  of pixels match llvmpipe with 32-bit ints within 1e-3, the rest differ by a sector where llvmpipe's
+  ``sin``/``cos`` or its interpolated ``fragUV`` differ from ours by an ulp). llvmpipe also evaluates ``mediump`` in 16 bits:
   ``randf`` (``int`` arguments, ``mediump`` by default in a fragment shader) in float16, which
   ``"mesa_mediump"`` reproduces, and the ``uint`` masks (also ``mediump``!) in 16 bits, which no option
   reproduces: on such a driver the shader as written keeps only 16 of its 32 sectors (it should declare
