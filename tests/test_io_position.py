@@ -89,3 +89,65 @@ def test_reference_files_carry_their_positions(tmp_path):
     v = gb.valid.expand(-1, 3, -1, -1)
     assert gb.position is not None and "position" in extras
     assert torch.allclose(gb.position[v], gb.camera.unproject(gb.safe_depth)[v], rtol=1e-6, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# The walk on a position buffer: where positions and depth agree, every method gives the same result.
+WALK_CASES = [
+    ("gtao", {}), ("hbao", {}), ("ue4_ssao", {}), ("pssao", {"walk": False}), ("ssao", {}),
+    ("bitmask", {"mode": "hard"}), ("bitmask", {"mode": "soft"}), ("ssilvb", {"mode": "hard"}),
+    ("bitmask", {"variant": "ssilvb_glsl", "glsl_numerics": "mesa"}),
+]
+
+
+def _position_twin(gb: GBuffer) -> GBuffer:
+    """The same frame given as positions only (NaN on background), depth left to GBuffer."""
+    pos = torch.where(gb.valid, gb.positions(), torch.full_like(gb.positions(), float("nan")))
+    return GBuffer(None, gb.camera, normals=gb.normals, light=gb.light, position=pos)
+
+
+@pytest.mark.parametrize("fetch", ["nearest", "bilinear"])
+@pytest.mark.parametrize("name, options", WALK_CASES, ids=[f"{n}-{'-'.join(map(str, o.values()))}" for n, o in WALK_CASES])
+def test_position_input_matches_depth_input(name, options, fetch):
+    from torch_ao import get_method
+    from torch_ao.examples import floor_wall_gbuffer
+
+    gb, _ = floor_wall_gbuffer(24, 32, light_direction=(0.3, 0.8, 0.5), dtype=torch.float64)
+    cls = get_method(name)
+    options = dict(options)
+    kwargs = dict(slices=3, steps=4, radius=1.5, jitter=False) if options.pop("walk", True) else {}
+    kwargs |= options
+    if options.get("variant") == "ssilvb_glsl":
+        kwargs.pop("fetch", None)
+    elif "fetch" in _init_names(cls):
+        kwargs["fetch"] = fetch
+    method = cls(**kwargs).double()
+    from_depth, from_position = method(gb), method(_position_twin(gb))
+    for key in ("visibility", "indirect"):
+        a, b = getattr(from_depth, key), getattr(from_position, key)
+        if a is not None:
+            assert torch.allclose(a, b, rtol=0, atol=1e-9), (key, float((a - b).abs().max()))
+
+
+def _init_names(cls) -> set[str]:
+    import inspect
+
+    names = set()
+    for klass in cls.__mro__:
+        if "__init__" in klass.__dict__:
+            names |= set(inspect.signature(klass.__dict__["__init__"]).parameters)
+    return names
+
+
+def test_soft_bitmask_gradients_flow_to_positions():
+    from torch_ao import BitmaskAO
+    from torch_ao.examples import floor_wall_gbuffer
+
+    gb, _ = floor_wall_gbuffer(16, 20, dtype=torch.float64)
+    twin = _position_twin(gb)
+    position = twin.position.clone().requires_grad_(True)
+    g = GBuffer(None, gb.camera, normals=gb.normals, position=position)
+    BitmaskAO(mode="soft", slices=2, steps=3, radius=1.5, jitter=False).double()(g).visibility.sum().backward()
+    grad = position.grad[gb.valid.expand(-1, 3, -1, -1)]
+    assert bool(torch.isfinite(grad).all()) and float(grad.abs().max()) > 0
+    assert bool((position.grad[~gb.valid.expand(-1, 3, -1, -1)] == 0).all())
