@@ -36,9 +36,10 @@ Quirks of the shader, all kept on purpose (a user porting it gets the same numbe
   as the shader forms them, so the texel choices match.
 * **Driver numerics** (``glsl_numerics=``): GLSL leaves ``acos`` precision and ``mediump`` evaluation
   to the driver. Mesa's GLSL compiler emits a polynomial ``acos`` (error ~1.6e-4 rad): ``"mesa"``
-  reproduces it, and llvmpipe's ``dot``/``normalize``/``sqrt`` roundings (:class:`GLSLVectorOps`; 99.99%
-  of pixels match llvmpipe with 32-bit ints within 1e-3, the rest differ by a sector where llvmpipe's
-  ``sin``/``cos`` or its interpolated ``fragUV`` differ from ours by an ulp). llvmpipe also evaluates ``mediump`` in 16 bits:
+  reproduces it bit for bit (:func:`mesa_asin`), with the compiler folding ``acos``'s ``pi/2`` into the
+  horizon's ``+ halfPi``, and llvmpipe's ``dot``/``normalize``/``sqrt`` roundings (:class:`GLSLVectorOps`):
+  99.995-100% of pixels match llvmpipe with 32-bit ints within 1e-3 (issue 15's fence frame: every
+  pixel bit for bit; the last few pixels elsewhere are not traced yet). llvmpipe also evaluates ``mediump`` in 16 bits:
   ``randf`` (``int`` arguments, ``mediump`` by default in a fragment shader) in float16, which
   ``"mesa_mediump"`` reproduces, and the ``uint`` masks (also ``mediump``!) in 16 bits, which no option
   reproduces: on such a driver the shader as written keeps only 16 of its 32 sectors (it should declare
@@ -57,7 +58,7 @@ from ..marching import Frame, Queries, Sample, SamplingPattern, SliceGeometry
 from ..sectors import SECTORS, hard_mask, popcount32, sector_union
 from .bitmask_common import ThicknessLookup, safe_acos
 
-__all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "glsl_constants", "mesa_acos", "GLSL_NUMERICS"]
+__all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "glsl_constants", "mesa_acos", "mesa_asin", "GLSL_NUMERICS"]
 
 #: ``"ieee"``: every operation in the input precision with exact ``acos``; ``"mesa"``: Mesa's GLSL
 #: ``acos`` polynomial (softpipe, and desktop-like full precision elsewhere); ``"mesa_mediump"``: also
@@ -66,19 +67,20 @@ __all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "gl
 GLSL_NUMERICS = ("ieee", "mesa", "mesa_mediump")
 
 
-def mesa_acos(x: torch.Tensor) -> torch.Tensor:
-    """Mesa's GLSL ``acos`` (``pi/2 - asin``, with the polynomial ``asin`` Mesa's GLSL compiler emits:
-    ``sign(x) (pi/2 - sqrt(1 - |x|) (pi/2 + |x| (pi/4 - 1 + |x| (0.08132463 - 0.02363318 |x|))))``;
-    max error about 1.6e-4 rad). Matches llvmpipe's ``acos`` to 1-2 ulp. Inputs are clamped to [-1, 1]
-    (NaN beyond is handled by the caller); the gradient is made finite at ``|x| = 1``."""
+def mesa_asin(x: torch.Tensor) -> torch.Tensor:
+    """Mesa's GLSL ``asin``: the polynomial its GLSL compiler emits,
+    ``sign(x) (pi/2 - sqrt(1 - |x|) (pi/2 + |x| (pi/4 - 1 + |x| (0.08132463 - 0.02363318 |x|))))``
+    (max error about 1.6e-4 rad), with its constant ``M_PI_4f - 1.0f`` rounded in float and a correctly
+    rounded ``sqrt``: bit for bit llvmpipe's in float32. Inputs are clamped to [-1, 1] (NaN beyond is
+    handled by the caller); the gradient is made finite at ``|x| = 1``."""
     dt = x.dtype
     c = lambda v: torch.tensor(v, dtype=dt, device=x.device)  # noqa: E731
-    half_pi, quarter_pi_m1 = c(math.pi / 2), c(math.pi / 4 - 1)
+    half_pi, quarter_pi_m1 = c(math.pi / 2), c(math.pi / 4) - 1.0
 
     def f(v):
         ax = v.abs()
         poly = half_pi + ax * (quarter_pi_m1 + ax * (c(0.08132463) + ax * c(-0.02363318)))
-        return half_pi - torch.sign(v) * (half_pi - _EXACT.sqrt(c(1.0) - ax) * poly)
+        return torch.sign(v) * (half_pi - _EXACT.sqrt(c(1.0) - ax) * poly)
 
     value = f(x.clamp(-1.0, 1.0))
     if not x.requires_grad:
@@ -86,6 +88,11 @@ def mesa_acos(x: torch.Tensor) -> torch.Tensor:
     eps = 1e-6 if dt == torch.float64 else 1e-4
     soft = f(x.clamp(-1 + eps, 1 - eps))
     return value.detach() + (soft - soft.detach())
+
+
+def mesa_acos(x: torch.Tensor) -> torch.Tensor:
+    """Mesa's GLSL ``acos``: ``pi/2 - asin(x)`` (:func:`mesa_asin`), bit for bit llvmpipe's in float32."""
+    return torch.tensor(math.pi / 2, dtype=x.dtype, device=x.device) - mesa_asin(x)
 
 
 class GLSLVectorOps:
@@ -267,7 +274,12 @@ class GLSLAccumulator:
         beyond +-1 is NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
         c = cosine.detach()
         bad = ~(c.abs() <= 1)
-        value = ((self._acos(torch.where(bad, torch.zeros_like(cosine), cosine)) + n + half_pi) / pi).clamp(0.0, 1.0)
+        cosine = torch.where(bad, torch.zeros_like(cosine), cosine)
+        if self.gl.exact:  # Mesa folds acos's pi/2 into the + halfPi: (pi - asin(c)) + n, bit for bit
+            value = ((pi - mesa_asin(cosine)) + n) / pi
+        else:
+            value = (self._acos(cosine) + n + half_pi) / pi
+        value = value.clamp(0.0, 1.0)
         return torch.where(bad, torch.zeros_like(value), value)
 
     def _direction(self, q: Queries, geom: SliceGeometry) -> torch.Tensor:
