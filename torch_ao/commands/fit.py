@@ -88,7 +88,8 @@ def _views(args) -> tuple[list, list]:
 
 def _build(name: str, args, **kwargs):
     cls = get_method(name)
-    return cls(preset=args.preset, radius=args.max_distance, **kwargs).to(args.device)
+    radius = {"radius": args.max_distance} if "radius" in cls.options() else {}  # (PSSAO walks in pixels)
+    return cls(preset=args.preset, **radius, **kwargs).to(args.device)
 
 
 def run(args: argparse.Namespace) -> int:
