@@ -151,3 +151,44 @@ def test_soft_bitmask_gradients_flow_to_positions():
     grad = position.grad[gb.valid.expand(-1, 3, -1, -1)]
     assert bool(torch.isfinite(grad).all()) and float(grad.abs().max()) > 0
     assert bool((position.grad[~gb.valid.expand(-1, 3, -1, -1)] == 0).all())
+
+
+def test_bilinear_fetch_interpolates_positions_perspective_correctly():
+    from torch_ao.walk import Frame
+    from torch_ao.walk.fetch import Footprint
+
+    H, W = 5, 6
+    g = torch.Generator().manual_seed(3)
+    P = torch.randn(1, 3, H, W, generator=g, dtype=torch.float64)
+    P[:, 2] = -(1 + 4 * torch.rand(1, H, W, generator=g, dtype=torch.float64))  # in front, off the pixel rays
+    frame = Frame(GBuffer(None, PinholeCamera.from_fov(60.0, H, W, dtype=torch.float64), position=P))
+    su = torch.tensor([0.0, 1.25, 3.5, 4.9, -2.0, 7.5], dtype=torch.float64)
+    sv = torch.tensor([0.0, 2.75, 1.5, 3.1, 1.2, 4.0], dtype=torch.float64)
+    fp, _ = Footprint.at(frame, torch.zeros(6, dtype=torch.long), su, sv, "bilinear")
+    got = fp.position(frame)
+    grid = P[0].permute(1, 2, 0)
+    for i in range(6):  # independent: the four clamped taps by hand
+        u, v = float(su[i]), float(sv[i])
+        u0, v0 = int(np.floor(u)), int(np.floor(v))
+        fu, fv = u - u0, v - v0
+        num, den = torch.zeros(3, dtype=torch.float64), 0.0
+        for du, dv, w in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+            p = grid[min(max(v0 + dv, 0), H - 1), min(max(u0 + du, 0), W - 1)]
+            num += w * p / -p[2]
+            den += w / -float(p[2])
+        assert torch.allclose(got[i], num / den, rtol=1e-12, atol=1e-12), i
+
+
+def test_soft_bitmask_on_positions_gradcheck():
+    from torch_ao import BitmaskAO
+    from torch_ao.examples import crease_gbuffer
+
+    gb = crease_gbuffer(6, 7, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)  # off the pixel rays and off the crease's symmetry (sign flips there)
+    position = _position_twin(gb).position + 0.02 * torch.rand(1, 3, 6, 7, generator=g, dtype=torch.float64)
+    ao = BitmaskAO(mode="soft", slices=2, steps=2, radius=2.0, jitter=False, fetch="bilinear", tau=0.3).double()
+
+    def f(position):
+        return ao(GBuffer(None, gb.camera, normals=gb.normals, position=position)).visibility
+
+    assert torch.autograd.gradcheck(f, (position.requires_grad_(True),), eps=1e-6, atol=1e-5)
