@@ -121,7 +121,7 @@ def test_world_space_normals_and_positions_with_a_view_matrix(tmp_path, scene):
     for got in (from_header, from_option):
         _assert_same(got, gb, atol=2e-6)
         v = got.valid.expand(-1, 3, -1, -1)
-        assert torch.allclose(got.position[v], gb.positions()[v], atol=1e-5)
+        assert torch.allclose(got.positions()[v], gb.positions()[v], atol=1e-5)
     with pytest.raises(ValueError, match="view_matrix: normal_space='world' needs"):
         load_gbuffer(tmp_path / "world_nohdr.exr", intrinsics=opts["intrinsics"], normal_space="world")
 

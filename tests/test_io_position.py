@@ -78,7 +78,7 @@ def test_npz_position_key_round_trips_without_depth(tmp_path, crease):
     assert raw["position"].shape == (1, 12, 16, 3) and raw["depth"].shape == (1, 12, 16)
     again, _ = load_gbuffer(tmp_path / "again.npz")
     v = gb.valid.expand(-1, 3, -1, -1)
-    assert torch.equal(again.position[v], got.position[v])
+    assert torch.allclose(again.positions()[v], got.position[v], rtol=1e-12)
 
 
 def test_reference_files_carry_their_positions(tmp_path):
@@ -87,8 +87,13 @@ def test_reference_files_carry_their_positions(tmp_path):
     ref = render_reference(get_scene("stairs"), height=10, width=14, spp=2, progress=False)
     gb, extras = load_gbuffer(ref.save(tmp_path / "stairs.npz"))
     v = gb.valid.expand(-1, 3, -1, -1)
-    assert gb.position is not None and "position" in extras
-    assert torch.allclose(gb.position[v], gb.camera.unproject(gb.safe_depth)[v], rtol=1e-6, atol=1e-6)
+    # the renderer's positions are its depth unprojected: loaded as depth only (the cheaper fetch), kept as an extra
+    assert gb.position is None and "position" in extras
+    assert torch.allclose(extras["position"][v], gb.camera.unproject(gb.safe_depth)[v], rtol=1e-6, atol=1e-6)
+    moved = extras["position"].clone()
+    moved[:, 0] += 1e-3  # positions that are not the unprojected depth stay in the G-buffer
+    save_npz(tmp_path / "moved.npz", gb, position=moved)
+    assert torch.equal(load_gbuffer(tmp_path / "moved.npz")[0].position[v], moved[v])
 
 
 # --------------------------------------------------------------------------------------------------

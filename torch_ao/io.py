@@ -154,6 +154,8 @@ def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike =
         camera=camera.to(device=device),
         **{k: v.to(**to) for k, v in image_args.items()},
     )
+    if depth is not None and gb.position is not None and _is_unprojected_depth(gb):
+        gb.position = None  # (references from `torch-ao render`): the depth fetch is the same and cheaper
     extras: dict[str, torch.Tensor] = {}
     for key, value in arrays.items():
         if key in _GBUFFER_KEYS:
@@ -171,6 +173,13 @@ def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike =
             if bool(bad.any()):
                 raise ValueError(f"{key}: {int(bad.sum())} non-finite values on valid pixels in {path}")
     return gb, extras
+
+
+def _is_unprojected_depth(gb: GBuffer) -> bool:
+    """Whether ``gb.position`` is its depth unprojected (to 1e-6 relative) on every valid pixel."""
+    unprojected = gb.camera.unproject(gb.safe_depth)
+    error = (gb.position - unprojected).norm(dim=1, keepdim=True)
+    return bool((error <= 1e-6 * unprojected.norm(dim=1, keepdim=True))[gb.valid].all())
 
 
 def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) -> Path:
