@@ -30,8 +30,9 @@ import numpy as np
 import torch
 
 from .checks import check_choice, check_float
+from .options import Option, options_by_name
 
-__all__ = ["EngineOptions", "CHANNEL_ALIASES", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
+__all__ = ["EngineOptions", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
            "parse_numbers", "parse_channels"]
 
 _EXR_MISSING = "reading OpenEXR files needs the OpenEXR package: pip install 'torch-ao[exr]'"
@@ -58,48 +59,64 @@ _COMPONENTS = (("X", "Y", "Z"), ("R", "G", "B"))
 _SCALAR_COMPONENTS = ("", "Z", "V", "R", "X", "Y")
 
 
+#: The options of :class:`EngineOptions`, described once for the Python API and ``torch-ao convert``.
+ENGINE_OPTIONS: tuple[Option, ...] = (
+    Option("channels", None, "which channel holds each buffer: TARGET=NAME,... with TARGET one of "
+           + ", ".join(CHANNEL_ALIASES) + "; NAME a channel (ViewLayer.Depth.Z), a layer whose .X/.Y/.Z or "
+           ".R/.G/.B are taken (ViewLayer.Normal), or FILE.exr[:NAME] in another file. Unnamed buffers are "
+           "found by the Blender, Unreal and Unity names of docs/engines.md", kind=str),
+    Option("depth_kind", "z", "what the depth channel holds: view-axis depth (z) or the distance from the "
+           "eye (distance, converted with the camera)", kind=str, choices=("z", "distance")),
+    Option("normal_space", "view", "space of the normals (world: converted with the view matrix)", kind=str,
+           choices=("view", "world")),
+    Option("position_space", "view", "space of the positions (world: converted with the view matrix)", kind=str,
+           choices=("view", "world")),
+    Option("view_matrix", None, "world-to-view matrix, 16 numbers row by row (p_view = M @ (p_world, 1)); "
+           "None: the file's worldToCamera header attribute", kind=str),
+    Option("convention", "opengl", "view-space axes of the file: opengl (-Z forward, the library's) or "
+           "directx (+Z forward: the z of normals and positions is negated)", kind=str, choices=("opengl", "directx")),
+    Option("far", 1e9, "depth at or above which a pixel is background (Cycles writes 1e10 there); inf keeps "
+           "every finite depth", unit="world units", minimum=0.0, open_minimum=True),
+    Option("fov", None, "vertical field of view of a centred camera (or give intrinsics); None: the file's",
+           unit="degrees", minimum=0.0, maximum=180.0, open_minimum=True, open_maximum=True),
+    Option("intrinsics", None, "pinhole camera fx,fy,cx,cy (pixel centres at integers, row 0 at the top); "
+           "None: the file's", kind=str, unit="pixels"),
+    Option("depth_scale", 1.0, "16-bit PNG depth: world units per step (0.001 for millimetres)",
+           unit="world units", minimum=0.0, open_minimum=True),
+)
+_OPTIONS = options_by_name(ENGINE_OPTIONS)
+
+
 @dataclass(frozen=True)
 class EngineOptions:
-    """How to read an engine's buffers (every field optional; see the module docstring for the order).
+    """How to read an engine's buffers (every field optional, described in :data:`ENGINE_OPTIONS`; see
+    the module docstring for the order of the conversions).
 
     Args:
-        channels: target -> channel name for ``depth``, ``normal``, ``position``, ``light``, ``albedo``,
-            ``object_id``, ``mask``. A name is a full channel (``ViewLayer.Depth.Z``), a layer whose
-            ``.X/.Y/.Z`` or ``.R/.G/.B`` channels are taken (``ViewLayer.Normal``), or ``FILE.exr:NAME``
-            / ``FILE.exr`` for a channel of another file (Unity writes one file per buffer); relative
-            file names are relative to the main file's folder. Unnamed targets are found by
-            :data:`CHANNEL_ALIASES`.
-        depth_kind: ``"z"`` (view-axis depth) or ``"distance"`` (from the eye).
-        normal_space, position_space: ``"view"`` or ``"world"`` (needs a view matrix).
+        channels: ``{target: name}`` for ``depth``, ``normal``, ``position``, ``light``, ``albedo``,
+            ``object_id``, ``mask``; relative file names (``FILE.exr:NAME``) are relative to the main
+            file's folder. Unnamed targets are found by :data:`CHANNEL_ALIASES`.
+        depth_kind, normal_space, position_space, convention, far, fov, depth_scale: see :data:`ENGINE_OPTIONS`.
         view_matrix: ``(4,4)`` world-to-view matrix (column vectors, ``p_view = M @ (p, 1)``) or its 16
             numbers row by row; default: the file's ``worldToCamera`` header attribute.
-        convention: ``"opengl"`` (``-Z`` forward, the library's) or ``"directx"`` (``+Z`` forward).
-        far: depth (world units) at or above which a pixel is background; ``inf`` keeps every finite depth.
-        fov: vertical field of view in degrees (centred camera); or
-        intrinsics: ``(fx, fy, cx, cy)`` in pixels, pixel centres at integers, row 0 at the top.
-        depth_scale: world units per step of a 16-bit PNG depth (``0.001`` for millimetres).
+        intrinsics: ``(fx, fy, cx, cy)`` in pixels.
     """
 
-    channels: dict | None = None
-    depth_kind: str = "z"
-    normal_space: str = "view"
-    position_space: str = "view"
-    view_matrix: tuple | np.ndarray | None = None
-    convention: str = "opengl"
-    far: float = 1e9
-    fov: float | None = None
-    intrinsics: tuple | None = None
-    depth_scale: float = 1.0
+    channels: dict | None = _OPTIONS["channels"].default
+    depth_kind: str = _OPTIONS["depth_kind"].default
+    normal_space: str = _OPTIONS["normal_space"].default
+    position_space: str = _OPTIONS["position_space"].default
+    view_matrix: tuple | np.ndarray | None = _OPTIONS["view_matrix"].default
+    convention: str = _OPTIONS["convention"].default
+    far: float = _OPTIONS["far"].default
+    fov: float | None = _OPTIONS["fov"].default
+    intrinsics: tuple | None = _OPTIONS["intrinsics"].default
+    depth_scale: float = _OPTIONS["depth_scale"].default
 
     def __post_init__(self) -> None:
-        check_choice("depth_kind", self.depth_kind, ("z", "distance"))
-        check_choice("normal_space", self.normal_space, ("view", "world"))
-        check_choice("position_space", self.position_space, ("view", "world"))
-        check_choice("convention", self.convention, ("opengl", "directx"))
-        check_float("far", self.far, 0.0, open_minimum=True, finite=False)
-        check_float("depth_scale", self.depth_scale, 0.0, open_minimum=True)
-        if self.fov is not None:
-            check_float("fov", self.fov, 0.0, 180.0, open_minimum=True, open_maximum=True)
+        for name in ("depth_kind", "normal_space", "position_space", "convention", "fov", "depth_scale"):
+            _OPTIONS[name].check(getattr(self, name))
+        check_float("far", self.far, 0.0, open_minimum=True, finite=False)  # inf allowed: no far plane
         if self.fov is not None and self.intrinsics is not None:
             raise ValueError("fov: give fov or intrinsics, not both")
         if self.intrinsics is not None:
@@ -114,10 +131,6 @@ class EngineOptions:
                 raise ValueError("view_matrix: its 3x3 part is singular")
         for target in self.channels or {}:
             check_choice("channels", target, tuple(CHANNEL_ALIASES))
-
-    @property
-    def is_default(self) -> bool:
-        return self == EngineOptions()
 
 
 def parse_numbers(name: str, text: str, count: int) -> tuple[float, ...]:

@@ -5,57 +5,38 @@ from __future__ import annotations
 import argparse
 import re
 
-from ..engine_io import CHANNEL_ALIASES, EngineOptions
+from ..engine_io import ENGINE_OPTIONS, EngineOptions
+from .options_cli import add_options, flag, given
 
 __all__ = ["register", "run", "add_engine_flags", "engine_options"]
 
-_DEFAULTS = EngineOptions()
+_FLAGS = {o.name: o for o in ENGINE_OPTIONS if o.name != "far"}
+_FAR = next(o for o in ENGINE_OPTIONS if o.name == "far")
 
 
 def add_engine_flags(p: argparse.ArgumentParser) -> None:
-    """The flags of :class:`~torch_ao.engine_io.EngineOptions` (for any command that reads engine files)."""
+    """The flags of :class:`~torch_ao.engine_io.EngineOptions` (for any command that reads engine files),
+    built from :data:`~torch_ao.engine_io.ENGINE_OPTIONS`."""
     g = p.add_argument_group("engine conventions (see docs/engines.md)")
-    g.add_argument("--channels", metavar="T=NAME,...",
-                   help="which channel holds each buffer, T one of " + ", ".join(CHANNEL_ALIASES) + "; NAME a "
-                   "channel (ViewLayer.Depth.Z), a layer whose .X/.Y/.Z or .R/.G/.B are taken (ViewLayer.Normal), "
-                   "or FILE.exr[:NAME] in another file; default: the Blender/Unreal/Unity names in docs/engines.md")
-    g.add_argument("--depth-kind", choices=("z", "distance"), default=_DEFAULTS.depth_kind,
-                   help="depth channel holds view-axis depth (z) or distance from the eye (converted with the "
-                   "camera); default %(default)s")
-    g.add_argument("--normal-space", choices=("view", "world"), default=_DEFAULTS.normal_space,
-                   help="space of the normals; world needs the view matrix; default %(default)s")
-    g.add_argument("--position-space", choices=("view", "world"), default=_DEFAULTS.position_space,
-                   help="space of the positions; world needs the view matrix; default %(default)s")
-    g.add_argument("--view-matrix", metavar="M00,M01,...,M33",
-                   help="world-to-view matrix, 16 numbers row by row (p_view = M @ (p_world, 1)); default: the "
-                   "file's worldToCamera header attribute")
-    g.add_argument("--convention", choices=("opengl", "directx"), default=_DEFAULTS.convention,
-                   help="view-space axes of the file: opengl (-Z forward, the library's) or directx (+Z forward: "
-                   "z of normals and positions is negated); default %(default)s")
-    g.add_argument("--far", type=float, default=_DEFAULTS.far,
-                   help="depth (world units) at or above which a pixel is background; default %(default)g "
-                   "(Blender writes 1e10 there); inf keeps every finite depth")
-    g.add_argument("--fov", type=float, help="vertical field of view in degrees, in (0, 180) (centred camera)")
-    g.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
-                   help="pinhole camera in pixels (pixel centres at integers, row 0 at the top)")
-    g.add_argument("--depth-scale", type=float, default=_DEFAULTS.depth_scale,
-                   help="16-bit PNG depth: world units per step (0.001 for millimetres); default %(default)g")
+    add_options(g, _FLAGS)
+    # --far takes inf (no far plane), which Option.check refuses for numbers: its own parser, same help
+    g.add_argument(flag("far"), dest="far", type=float, default=None, metavar="FAR", help=_FAR.describe())
+    # "--view-matrix -1,0,...": a comma list starting with a negative number is a value, not a flag.
+    p._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
 def engine_options(args: argparse.Namespace) -> dict:
-    """The :class:`~torch_ao.engine_io.EngineOptions` fields the command line sets (others default)."""
+    """The :class:`~torch_ao.engine_io.EngineOptions` fields given on the command line (others default)."""
     from ..engine_io import parse_channels, parse_numbers
 
-    options = {"depth_kind": args.depth_kind, "normal_space": args.normal_space,
-               "position_space": args.position_space, "convention": args.convention, "far": args.far,
-               "fov": args.fov, "depth_scale": args.depth_scale}
-    if args.channels:
-        options["channels"] = parse_channels(args.channels)
-    if args.view_matrix:
-        options["view_matrix"] = parse_numbers("view_matrix", args.view_matrix, 16)
-    if args.intrinsics:
-        options["intrinsics"] = parse_numbers("intrinsics", args.intrinsics, 4)
-    return {k: v for k, v in options.items() if v != getattr(_DEFAULTS, k)}
+    options = given(args, [*_FLAGS, "far"])
+    if "channels" in options:
+        options["channels"] = parse_channels(options["channels"])
+    if "view_matrix" in options:
+        options["view_matrix"] = parse_numbers("view_matrix", options["view_matrix"], 16)
+    if "intrinsics" in options:
+        options["intrinsics"] = parse_numbers("intrinsics", options["intrinsics"], 4)
+    return options
 
 
 def register(sub) -> None:
@@ -70,8 +51,6 @@ def register(sub) -> None:
     p.add_argument("--png", help="also write a preview PNG (depth | normals)")
     p.add_argument("--list-channels", action="store_true", help="print the channels of the OpenEXR file and exit")
     add_engine_flags(p)
-    # "--view-matrix -1,0,..." : take a comma list starting with a negative number for a value, not a flag.
-    p._negative_number_matcher = re.compile(r"^-\.?\d")
     p.set_defaults(func=run)
 
 
