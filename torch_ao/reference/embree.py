@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .tracer import _Triangles
+
 __all__ = ["embree_available", "EmbreeTriangles"]
 
 _FAR = np.float32(1e37)  # Embree's "no limit"
@@ -27,8 +29,12 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to("cpu", torch.float32).numpy())
 
 
-class EmbreeTriangles:
-    """All meshes of a scene in one Embree scene; ``closest`` returns global triangle indices."""
+class EmbreeTriangles(_Triangles):
+    """All meshes of a scene in one Embree scene; ``closest`` returns global triangle indices.
+
+    Meshes are handed to Embree indexed (float32 vertices, int32 faces) and normals are computed
+    from the same arrays, so memory is about ``12 V + 12 F`` bytes plus Embree's BVH, with no
+    per-triangle copies."""
 
     def __init__(self, meshes, obj_of_mesh, device, dtype):
         try:
@@ -38,19 +44,21 @@ class EmbreeTriangles:
             raise ImportError("meshes: the Embree backend needs embreex: pip install torch-ao[mesh] (or pip install embreex)") from None
         self._scene = rtcore_scene.EmbreeScene()
         self._keep = []
-        offsets, tris, objs = [], [], []
-        start = 0
+        offsets, verts, faces, objs = [], [], [], []
+        start = vstart = 0
         for m, oi in zip(meshes, obj_of_mesh):
-            tri = m.triangles.to(torch.float32).numpy()
-            self._keep.append(TriangleMesh(self._scene, np.ascontiguousarray(tri)))
+            v = np.ascontiguousarray(m.vertices.numpy(), dtype=np.float32)
+            f = np.ascontiguousarray(m.faces.numpy(), dtype=np.int32)
+            self._keep.append(TriangleMesh(self._scene, v, f))
             offsets.append(start)
-            start += tri.shape[0]
-            tris.append(m.triangles)
-            objs.append(torch.full((tri.shape[0],), int(oi), dtype=torch.long))
+            verts.append(m.vertices.to(dtype))
+            faces.append(torch.from_numpy(f) + vstart)
+            objs.append(torch.full((f.shape[0],), int(oi), dtype=torch.long))
+            start += f.shape[0]
+            vstart += v.shape[0]
         self._offsets = np.asarray(offsets, dtype=np.int64)
-        tri = torch.cat(tris)
-        self.e1 = (tri[:, 1] - tri[:, 0]).to(device, dtype)
-        self.e2 = (tri[:, 2] - tri[:, 0]).to(device, dtype)
+        self.vertices = torch.cat(verts).to(device)
+        self.faces = torch.cat(faces).to(device)
         self.obj = torch.cat(objs).to(device)
 
     @staticmethod
@@ -74,4 +82,5 @@ class EmbreeTriangles:
         return torch.from_numpy(np.asarray(res) >= 0).to(o.device)
 
     def normal(self, p, idx):
-        return torch.linalg.cross(self.e1[idx], self.e2[idx], dim=-1)
+        v0, v1, v2 = self.vertices[self.faces[idx]].unbind(1)
+        return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)

@@ -215,27 +215,15 @@ class Mesh(_Object):
         """
         from pathlib import Path
 
+        from .meshfile import normalize_vertices, read_trimesh
+
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"mesh: no such file: {path}")
-        try:
-            import trimesh
-        except ImportError:
-            raise ImportError("mesh: loading mesh files needs trimesh: pip install torch-ao[mesh] (or pip install trimesh)") from None
-        try:
-            tm = trimesh.load(str(path), force="mesh", process=False)
-        except Exception as err:  # trimesh raises many kinds for bad files
-            raise ValueError(f"mesh: cannot read {path} ({type(err).__name__}: {err})") from None
+        tm = read_trimesh(path, force="mesh", process=False)
         if not hasattr(tm, "faces") or len(tm.faces) == 0:
             raise ValueError(f"mesh: {path} has no triangles")
         v = torch.as_tensor(tm.vertices, dtype=torch.float64)
         if normalize:
-            lo, hi = v.min(0).values, v.max(0).values
-            scale = float((hi - lo).max())
-            if scale <= 0:
-                raise ValueError(f"mesh: {path} is degenerate (zero extent)")
-            centre = (lo + hi) / 2
-            v = (v - torch.stack([centre[0], lo[1], centre[2]])) / scale
+            v = normalize_vertices(v, path)[0]
         return cls(albedo=albedo, object_id=object_id, vertices=v, faces=torch.as_tensor(tm.faces).long(), name=path.name)
 
 

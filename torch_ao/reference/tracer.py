@@ -22,6 +22,7 @@ __all__ = ["Tracer", "Hit", "TORCH_MAX_TRIANGLES"]
 TORCH_MAX_TRIANGLES = 20_000
 
 _INF = float("inf")
+_MAX_PASSES = 64  # other objects a back-face query passes through before giving up (a sheet)
 
 
 @dataclass
@@ -54,6 +55,27 @@ class _Group(abc.ABC):
     def occluded(self, o, d, tmax):
         return self.closest(o, d, tmax)[0] < tmax
 
+    def exit(self, o, d, t, prim, obj, eps):
+        """``(M,)`` distances along rays ``o + s d`` at which each leaves the object ``obj (M,)``
+        it entered at ``t (M,)``: here the next hit of the same object (other objects in between
+        are passed through), or ``t`` itself when there is none (an open surface: a sheet).
+        ``prim`` is the primitive index in this group (unused here); ``eps (M,)`` the step
+        taken past each hit so that it is not found again. Closed forms override this."""
+        out = t.clone()
+        start = t + eps
+        active = torch.arange(o.shape[0], device=o.device)
+        for _ in range(_MAX_PASSES):
+            th, idx = self.closest(o[active] + start[active, None] * d[active], d[active], _INF)
+            found = torch.isfinite(th)
+            same = found & (self.obj[idx] == obj[active])
+            out[active[same]] = start[active[same]] + th[same]
+            other = found & ~same
+            active = active[other]
+            if active.numel() == 0:
+                break
+            start[active] = start[active] + th[other] + eps[active]
+        return out
+
 
 def _reduce(t: torch.Tensor, tmax) -> tuple[torch.Tensor, torch.Tensor]:
     """``t (N,P)`` with ``inf`` for misses -> closest ``(t, idx)`` below ``tmax``."""
@@ -79,6 +101,21 @@ class _Planes(_Group):
     def normal(self, p, idx):
         return self.n[idx]
 
+    def exit(self, o, d, t, prim, obj, eps):
+        # nothing behind an infinite plane is reachable from the camera's side: a half-space
+        return torch.full_like(t, _INF)
+
+
+def _sphere_roots(oc, d, r2):
+    """Entry and exit distances ``(t0, t1)`` of rays with unit ``d`` and ``oc = origin - centre``
+    (broadcast over leading dims, last dim 3) through spheres of squared radius ``r2``, and
+    whether the line meets the sphere."""
+    b = (oc * d).sum(-1)  # d . (o - c)
+    perp = oc - b[..., None] * d  # closest approach vector, numerically stable
+    disc = r2 - (perp * perp).sum(-1)
+    sq = disc.clamp_min(0).sqrt_()
+    return -b - sq, sq - b, disc >= 0
+
 
 class _Spheres(_Group):
     def __init__(self, spheres, obj, device, dtype):
@@ -87,18 +124,25 @@ class _Spheres(_Group):
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        oc = o[:, None, :] - self.c  # (N,P,3)
-        b = (oc * d[:, None, :]).sum(-1)  # d . (o - c)
-        perp = oc - b[..., None] * d[:, None, :]  # closest approach vector, numerically stable
-        disc = self.r2 - (perp * perp).sum(-1)
-        sq = disc.clamp_min(0).sqrt_()
-        t0 = -b - sq
-        t = torch.where(t0 > 0, t0, sq - b)
-        t = torch.where((disc >= 0) & (t > 0), t, _INF)
+        t0, t1, ok = _sphere_roots(o[:, None, :] - self.c, d[:, None, :], self.r2)
+        t = torch.where(t0 > 0, t0, t1)
+        t = torch.where(ok & (t > 0), t, _INF)
         return _reduce(t, tmax)
+
+    def exit(self, o, d, t, prim, obj, eps):
+        return _sphere_roots(o - self.c[prim], d, self.r2[prim])[1]
 
     def normal(self, p, idx):
         return p - self.c[idx]
+
+
+def _slabs(ol, inv, h, dim):
+    """Entry and exit distances ``(tn, tf)`` through boxes ``|x_k| <= h_k`` of rays with local
+    origins ``ol`` and reciprocal local directions ``inv``; the 3 axes along ``dim``. NaN only
+    when a direction component is exactly 0 with the origin exactly on that slab: a miss."""
+    t1 = (-h - ol).mul_(inv)
+    t2 = (h - ol).mul_(inv)
+    return torch.minimum(t1, t2).amax(dim), torch.maximum(t1, t2).amin(dim)
 
 
 class _Boxes(_Group):
@@ -112,22 +156,22 @@ class _Boxes(_Group):
         self.c = c.to(device, dtype)
         self.cl = torch.einsum("pi,pij->jp", c, R).reshape(-1).to(device, dtype)  # (3P,)
         self.h = _t([b.half_extents for b in boxes], device, dtype)  # (P,3)
-        self.hcat = self.h.T.reshape(-1)  # (3P,) axis-major
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        P = self.P
-        ol = (o @ self.Rcat).sub_(self.cl)  # (N,3P)
-        inv = (d @ self.Rcat).reciprocal_()
-        t1 = (-self.hcat - ol).mul_(inv)
-        t2 = (self.hcat - ol).mul_(inv)
-        # NaN only when a direction component is exactly 0 with the origin exactly on that slab: a miss
-        lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
-        tn = torch.maximum(torch.maximum(lo[:, :P], lo[:, P:2 * P]), lo[:, 2 * P:])
-        tf = torch.minimum(torch.minimum(hi[:, :P], hi[:, P:2 * P]), hi[:, 2 * P:])
+        N, P = o.shape[0], self.P
+        ol = (o @ self.Rcat).sub_(self.cl).view(N, 3, P)  # local coordinates, axis-major
+        inv = (d @ self.Rcat).reciprocal_().view(N, 3, P)
+        tn, tf = _slabs(ol, inv, self.h.T, dim=1)
         t = torch.where(tn > 0, tn, tf)
         t = torch.where((tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
+
+    def exit(self, o, d, t, prim, obj, eps):
+        R = self.R[prim]
+        ol = torch.einsum("mi,mij->mj", o - self.c[prim], R)
+        inv = torch.einsum("mi,mij->mj", d, R).reciprocal_()
+        return _slabs(ol, inv, self.h[prim], dim=-1)[1]
 
     def normal(self, p, idx):
         R = self.R[idx]  # (M,3,3)
@@ -136,6 +180,30 @@ class _Boxes(_Group):
         axis = (pl.abs() / h).argmax(-1)
         nl = torch.zeros_like(pl).scatter_(1, axis[:, None], 1.0) * torch.sign(pl)
         return torch.einsum("mij,mj->mi", R, nl)
+
+
+def _cylinder_interval(oc, d, a, r2, h):
+    """Entry and exit distances ``(tn, tf)`` and ``miss`` of rays with unit ``d`` and
+    ``oc = origin - centre`` through capped cylinders (unit axis ``a``, squared radius ``r2``,
+    half height ``h``), broadcast over leading dims (last dim 3 for vectors)."""
+    oa = (oc * a).sum(-1)
+    da = (d * a).sum(-1)
+    op = oc - oa[..., None] * a
+    dp = d - da[..., None] * a
+    A = (dp * dp).sum(-1)
+    B = (op * dp).sum(-1)
+    C = (op * op).sum(-1) - r2
+    disc = B * B - A * C
+    sq = disc.clamp_min(0).sqrt_()
+    parallel = A < 1e-12
+    Asafe = torch.where(parallel, torch.ones_like(A), A)
+    c_near = torch.where(parallel, torch.where(C < 0, -_INF, _INF), (-B - sq) / Asafe)
+    c_far = torch.where(parallel, torch.where(C < 0, _INF, -_INF), (-B + sq) / Asafe)
+    miss = (disc < 0) & ~parallel
+    inv = da.reciprocal()
+    s1 = (-h - oa) * inv
+    s2 = (h - oa) * inv
+    return torch.maximum(c_near, torch.fmin(s1, s2)), torch.minimum(c_far, torch.fmax(s1, s2)), miss
 
 
 class _Cylinders(_Group):
@@ -148,29 +216,13 @@ class _Cylinders(_Group):
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        oc = o[:, None, :] - self.c  # (N,P,3)
-        oa = (oc * self.a).sum(-1)  # (N,P)
-        da = d @ self.a.T
-        op = oc - oa[..., None] * self.a
-        dp = d[:, None, :] - da[..., None] * self.a
-        A = (dp * dp).sum(-1)
-        B = (op * dp).sum(-1)
-        C = (op * op).sum(-1) - self.r2
-        disc = B * B - A * C
-        sq = disc.clamp_min(0).sqrt_()
-        parallel = A < 1e-12
-        Asafe = torch.where(parallel, torch.ones_like(A), A)
-        c_near = torch.where(parallel, torch.where(C < 0, -_INF, _INF), (-B - sq) / Asafe)
-        c_far = torch.where(parallel, torch.where(C < 0, _INF, -_INF), (-B + sq) / Asafe)
-        miss = (disc < 0) & ~parallel
-        inv = da.reciprocal()
-        s1 = (-self.h - oa) * inv
-        s2 = (self.h - oa) * inv
-        tn = torch.maximum(c_near, torch.fmin(s1, s2))
-        tf = torch.minimum(c_far, torch.fmax(s1, s2))
+        tn, tf, miss = _cylinder_interval(o[:, None, :] - self.c, d[:, None, :], self.a, self.r2, self.h)
         t = torch.where(tn > 0, tn, tf)
         t = torch.where(~miss & (tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
+
+    def exit(self, o, d, t, prim, obj, eps):
+        return _cylinder_interval(o - self.c[prim], d, self.a[prim], self.r2[prim], self.h[prim])[1]
 
     def normal(self, p, idx):
         a = self.a[idx]
@@ -181,7 +233,11 @@ class _Cylinders(_Group):
         return torch.where(side[:, None], radial, a * torch.sign(qa))
 
 
-class _TorchTriangles(_Group):
+class _Triangles(_Group):
+    """Triangle meshes: ``closest`` returns global triangle indices; ``obj`` maps them to objects."""
+
+
+class _TorchTriangles(_Triangles):
     """Moller-Trumbore over ``(N, T)`` blocks, after culling rays that miss each mesh's bounds."""
 
     def __init__(self, meshes, obj_of_mesh, device, dtype, block: int = 1 << 22):
@@ -287,6 +343,13 @@ class Tracer:
                 self.groups.append(EmbreeTriangles(meshes, mesh_idx, self.device, dtype))
             else:
                 self.groups.append(_TorchTriangles(meshes, mesh_idx, self.device, dtype))
+        # each object's group and, for analytic objects (one primitive each), its index in the group
+        self._group_of = torch.full((len(objs),), -1, dtype=torch.long, device=self.device)
+        self._prim_of = torch.zeros(len(objs), dtype=torch.long, device=self.device)
+        for g, group in enumerate(self.groups):
+            self._group_of[group.obj] = g
+            if not isinstance(group, _Triangles):
+                self._prim_of[group.obj] = torch.arange(group.obj.numel(), device=self.device)
 
     #: rays intersected at once inside a call: 2**14 on CPU (blocks stay in cache, about 2x faster
     #: than 2**18), 2**20 on GPUs
@@ -330,17 +393,39 @@ class Tracer:
             hit |= group.occluded(o, d, tmax)
         return hit
 
-    def offset(self, p: torch.Tensor, n: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
-        """Origins ``p + eps * n`` against self-intersection; ``n`` on the side rays leave from.
+    def exit_distance(self, o: torch.Tensor, d: torch.Tensor, hit: Hit) -> torch.Tensor:
+        """``(N,)`` distance along each ray ``o + t d`` at which it leaves the object it hit first.
 
-        ``eps = rel * (1e-2 * scene.scale + max|p| + distance)``: relative to the scene size, the
-        point's magnitude (float rounding of ``p``) and the primary ray's length.
+        Spheres, boxes and cylinders: the far root (closed form). Planes: ``inf`` (nothing behind
+        an infinite plane is reachable from the camera's side, so it acts as a half-space). Meshes:
+        the next hit of the same object along the ray (other objects in between are passed
+        through); when there is none (an open surface) the entry distance (a sheet, zero
+        thickness). Misses: ``inf``.
         """
+        out = torch.full_like(hit.t, _INF)
+        group_of = torch.where(hit.hit, self._group_of[hit.obj.clamp_min(0)], -1)
+        for g, group in enumerate(self.groups):
+            sel = (group_of == g).nonzero()[:, 0]
+            if sel.numel() == 0:
+                continue
+            obj, t = hit.obj[sel], hit.t[sel]
+            eps = self._eps(o[sel] + t[:, None] * d[sel], t)
+            out[sel] = group.exit(o[sel], d[sel], t, self._prim_of[obj], obj, eps)
+        return out
+
+    def _eps(self, p: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
+        """``(N,)`` offsets against self-intersection at points ``p (N,3)``:
+        ``rel * (1e-2 * scene.scale + max|p| + distance)``, relative to the scene size, the point's
+        magnitude (float rounding of ``p``) and the primary ray's length."""
         mag = p.abs().amax(-1)
         if distance is not None:
             mag = mag + distance
-        eps = rel * (1e-2 * self.scale + mag)
-        return p + eps[:, None] * n
+        return rel * (1e-2 * self.scale + mag)
+
+    def offset(self, p: torch.Tensor, n: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
+        """Origins ``p + eps * n`` against self-intersection (``eps`` of :meth:`_eps`); ``n`` on the
+        side rays leave from."""
+        return p + self._eps(p, distance, rel)[:, None] * n
 
 
 def _slice(tmax, start: int, size: int):
