@@ -24,6 +24,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from ..checks import check_float
 from .scene import LookAt, Mesh, Plane, Scene, Vec3
 
 __all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera"]
@@ -210,16 +211,13 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
             view, source = camera, f"camera of {path.name}"
         bar.set_postfix(triangles=sum(m.faces.shape[0] for m in meshes))
     bar.close()
-    lo = torch.stack([m.bounds()[0] for m in meshes]).min(0).values
-    hi = torch.stack([m.bounds()[1] for m in meshes]).max(0).values
+    names = ", ".join(p.name for p in paths)
+    scene = Scene(meshes, name=paths[0].stem if len(paths) == 1 else "meshes")
+    lo, hi = scene.bounds()
     if view is None:
         view, source = frame_view(lo, hi), "framing the meshes"
-    objects: list = list(meshes)
     if ground_plane is not None and ground_plane is not False:
-        height = float(lo[1]) if ground_plane is True else float(ground_plane)
-        if not math.isfinite(height):
-            raise ValueError(f"ground_plane: expected a finite height, got {ground_plane!r}")
-        objects.append(Plane(point=(0.0, height, 0.0), normal=(0.0, 1.0, 0.0)))
-    names = ", ".join(p.name for p in paths)
-    return Scene(objects, view=view, name=paths[0].stem if len(paths) == 1 else "meshes",
-                 description=f"{len(meshes)} meshes from {names}; view: {source}")
+        height = float(lo[1]) if ground_plane is True else check_float("ground_plane", ground_plane)
+        scene = scene.add(Plane(point=(0.0, height, 0.0), normal=(0.0, 1.0, 0.0)))
+    scene.view, scene.description = view, f"{len(meshes)} meshes from {names}; view: {source}"
+    return scene

@@ -312,11 +312,14 @@ class Scene:
         """A new scene with ``obj`` appended (ids re-assigned for objects without one)."""
         return Scene(self.objects + [obj], self.light, self.view, self.name, self.description)
 
-    @property
-    def scale(self) -> float:
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Axis-aligned ``(lo, hi)`` float64 bounds of the bounded objects, ``None`` when there are none."""
         boxes = [b for b in (o.bounds() for o in self.objects) if b is not None]
         if not boxes:
-            return 1.0
-        lo = torch.stack([b[0] for b in boxes]).min(0).values
-        hi = torch.stack([b[1] for b in boxes]).max(0).values
-        return max(float((hi - lo).max()), 1e-3)
+            return None
+        return torch.stack([b[0] for b in boxes]).min(0).values, torch.stack([b[1] for b in boxes]).max(0).values
+
+    @property
+    def scale(self) -> float:
+        box = self.bounds()
+        return 1.0 if box is None else max(float((box[1] - box[0]).max()), 1e-3)

@@ -297,7 +297,10 @@ class _TorchTriangles(_Triangles):
         qvec = torch.linalg.cross(tvec, e1[None].expand_as(tvec), dim=-1)
         v = (qvec * d[:, None, :]).sum(-1) * inv_det
         t = (qvec * e2).sum(-1) * inv_det
-        ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (det.abs() > 0)
+        # barycentric slack of a few ulps: without it a ray through a shared edge can miss both
+        # triangles by rounding (Moller-Trumbore is not watertight)
+        tol = 64 * torch.finfo(o.dtype).eps
+        ok = (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 0) & (det.abs() > 0)
         return torch.where(ok, t, _INF)
 
     def normal(self, p, idx):
