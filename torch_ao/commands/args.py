@@ -15,18 +15,18 @@ import re
 
 __all__ = ["allow_negative_lists", "add_float_list", "parse_float_list"]
 
-# A negative number or a comma list of numbers that starts with one: "-2", "-.5", "-2,1,3", "-1e-3,0,4".
-_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
-_NEGATIVE_LIST = re.compile(rf"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?(?:,{_NUMBER})*,?$")
+# Anything that starts like a negative number ("-2", "-.5", "-2,1,3", "-2,x,1") is a value: the
+# flag's own check then says what is wrong with it, instead of argparse's "expected one argument".
+_NEGATIVE_LIST = re.compile(r"^-\.?\d")
 
 
 def allow_negative_lists(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Let ``parser`` take tokens like ``-2,1,3`` as values, not flags; returns ``parser``.
 
     Argparse decides whether a token is a flag with the parser's ``_negative_number_matcher``
-    (``-2`` and ``-0.5`` only); this replaces it with one that also matches comma lists. It only
-    matters for tokens no flag of the parser starts with, and the parser must not define flags
-    that look like negative numbers (``-1``), which argparse would then prefer.
+    (``-2`` and ``-0.5`` only); this replaces it with one that takes every token starting with
+    ``-`` and a digit (or ``-.`` and a digit) for a value. The parser must not define flags that
+    look like negative numbers (``-1``), which argparse would then prefer.
     """
     if not hasattr(parser, "_negative_number_matcher"):  # pragma: no cover - argparse internals moved
         raise RuntimeError("argparse: this Python's ArgumentParser has no _negative_number_matcher")
