@@ -13,6 +13,7 @@ import time
 import zlib
 from pathlib import Path
 
+from ..reference.tracer import MESH_BACKENDS
 from .args import add_float_list, allow_negative_lists, parse_float_list
 
 __all__ = ["register", "run", "write_png"]
@@ -60,8 +61,9 @@ def register(subparsers) -> None:
     p.add_argument("--backface", action="store_true",
                    help="also write backface_depth: the view-axis depth at which each pixel's camera ray leaves "
                         "the object it hit first (inf on background and planes; the front depth on open surfaces)")
-    p.add_argument("--mesh-backend", choices=("auto", "embree", "torch"), default="auto",
-                   help="triangle tracer: Embree when installed (auto), or the pure-torch one for small meshes")
+    p.add_argument("--mesh-backend", choices=MESH_BACKENDS, default="auto",
+                   help="triangle tracer: auto = Warp on a CUDA --device when warp-lang is installed, else Embree "
+                        "when installed, else the pure-torch one (small meshes only)")
     p.add_argument("--chunk-rays", type=int, default=1 << 18, help="rays traced at once (memory; default 262144)")
     p.add_argument("--device", default="cpu", help="torch device of the tracer (default cpu)")
     p.add_argument("--out", help="output .npz file")

@@ -30,10 +30,10 @@ def _np(x: torch.Tensor) -> np.ndarray:
 
 
 class EmbreeTriangles(_Triangles):
-    """All meshes of a scene in one Embree scene; ``closest`` returns global triangle indices.
+    """All meshes of a scene as one Embree mesh; ``closest`` returns global triangle indices.
 
-    Meshes are handed to Embree indexed (float32 vertices, int32 faces) and normals are computed
-    from the same arrays, so memory is about ``12 V + 12 F`` bytes plus Embree's BVH, with no
+    The mesh goes to Embree indexed (float32 vertices, int32 faces) and normals are computed from
+    the same indices, so memory is about ``12 V + 12 F`` bytes for Embree plus its BVH, with no
     per-triangle copies."""
 
     def __init__(self, meshes, obj_of_mesh, device, dtype):
@@ -42,24 +42,9 @@ class EmbreeTriangles(_Triangles):
             from embreex.mesh_construction import TriangleMesh
         except ImportError:
             raise ImportError("meshes: the Embree backend needs embreex: pip install torch-ao[mesh] (or pip install embreex)") from None
+        self._concatenate(meshes, obj_of_mesh, device, dtype)
         self._scene = rtcore_scene.EmbreeScene()
-        self._keep = []
-        offsets, verts, faces, objs = [], [], [], []
-        start = vstart = 0
-        for m, oi in zip(meshes, obj_of_mesh):
-            v = np.ascontiguousarray(m.vertices.numpy(), dtype=np.float32)
-            f = np.ascontiguousarray(m.faces.numpy(), dtype=np.int32)
-            self._keep.append(TriangleMesh(self._scene, v, f))
-            offsets.append(start)
-            verts.append(m.vertices.to(dtype))
-            faces.append(torch.from_numpy(f) + vstart)
-            objs.append(torch.full((f.shape[0],), int(oi), dtype=torch.long))
-            start += f.shape[0]
-            vstart += v.shape[0]
-        self._offsets = np.asarray(offsets, dtype=np.int64)
-        self.vertices = torch.cat(verts).to(device)
-        self.faces = torch.cat(faces).to(device)
-        self.obj = torch.cat(objs).to(device)
+        self._mesh = TriangleMesh(self._scene, _np(self.vertices), np.ascontiguousarray(self.faces.cpu().numpy(), dtype=np.int32))
 
     @staticmethod
     def _dists(tmax, n: int) -> np.ndarray:
@@ -69,10 +54,9 @@ class EmbreeTriangles(_Triangles):
 
     def closest(self, o, d, tmax):
         res = self._scene.run(_np(o), _np(d), dists=self._dists(tmax, o.shape[0]), output=1)
-        geom = res["geomID"]
-        hit = geom >= 0
+        hit = res["geomID"] >= 0
         t = np.where(hit, res["tfar"], np.inf).astype(np.float64)
-        idx = np.where(hit, self._offsets[np.maximum(geom, 0)] + res["primID"], 0)
+        idx = np.where(hit, res["primID"], 0).astype(np.int64)
         t = torch.from_numpy(t).to(o.device, o.dtype)
         t = torch.where(t < tmax, t, float("inf"))
         return t, torch.from_numpy(idx).to(o.device)
@@ -81,6 +65,3 @@ class EmbreeTriangles(_Triangles):
         res = self._scene.run(_np(o), _np(d), dists=self._dists(tmax, o.shape[0]), query="OCCLUDED")
         return torch.from_numpy(np.asarray(res) >= 0).to(o.device)
 
-    def normal(self, p, idx):
-        v0, v1, v2 = self.vertices[self.faces[idx]].unbind(1)
-        return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)

@@ -14,9 +14,13 @@ from dataclasses import dataclass
 
 import torch
 
+from ..checks import check_choice
 from .scene import Box, Cylinder, Mesh, Plane, Scene, Sphere
 
 __all__ = ["Tracer", "Hit", "TORCH_MAX_TRIANGLES"]
+
+#: Triangle tracers: see :class:`Tracer`.
+MESH_BACKENDS = ("auto", "embree", "warp", "torch")
 
 #: Largest total triangle count the pure-torch mesh path accepts when Embree is unavailable.
 TORCH_MAX_TRIANGLES = 20_000
@@ -236,6 +240,19 @@ class _Cylinders(_Group):
 class _Triangles(_Group):
     """Triangle meshes: ``closest`` returns global triangle indices; ``obj`` maps them to objects."""
 
+    def _concatenate(self, meshes, obj_of_mesh, device, dtype) -> None:
+        """All meshes as one indexed mesh: ``vertices (V,3)`` in ``dtype``, ``faces (F,3)`` long
+        global indices, ``obj (F,)`` each triangle's object index."""
+        starts = torch.tensor([0] + [m.vertices.shape[0] for m in meshes]).cumsum(0)
+        self.vertices = torch.cat([m.vertices for m in meshes]).to(device, dtype)
+        self.faces = torch.cat([m.faces + int(s) for m, s in zip(meshes, starts)]).to(device)
+        self.obj = torch.cat([torch.full((m.faces.shape[0],), int(oi), dtype=torch.long)
+                              for m, oi in zip(meshes, obj_of_mesh)]).to(device)
+
+    def normal(self, p, idx):
+        v0, v1, v2 = self.vertices[self.faces[idx]].unbind(1)
+        return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)
+
 
 class _TorchTriangles(_Triangles):
     """Moller-Trumbore over ``(N, T)`` blocks, after culling rays that miss each mesh's bounds."""
@@ -312,16 +329,18 @@ class Tracer:
 
     Args:
         scene: the :class:`Scene`.
-        mesh_backend: ``"auto"`` (Embree when ``embreex`` imports, else torch for meshes up to
-            :data:`TORCH_MAX_TRIANGLES` triangles, else an error naming the package), ``"embree"``
-            or ``"torch"``.
+        mesh_backend: ``"auto"`` (on a CUDA device Warp when ``warp-lang`` imports; else Embree
+            when ``embreex`` imports; else torch for meshes up to :data:`TORCH_MAX_TRIANGLES`
+            triangles, else an error naming the package), ``"embree"`` (CPU; rays on another device
+            are copied), ``"warp"`` (NVIDIA Warp's BVH, CPU or CUDA, in place on torch tensors) or
+            ``"torch"``. On the CPU Embree is 3-4x faster than Warp for AO rays (Warp's CPU kernels
+            run on one thread; ``python benchmarks/bench_tracer.py``).
     """
 
     def __init__(self, scene: Scene, device=None, dtype: torch.dtype = torch.float32, mesh_backend: str = "auto"):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene: expected a torch_ao.reference.Scene, got {type(scene).__name__}")
-        if mesh_backend not in ("auto", "embree", "torch"):
-            raise ValueError(f"mesh_backend: expected 'auto', 'embree' or 'torch', got {mesh_backend!r}")
+        check_choice("mesh_backend", mesh_backend, MESH_BACKENDS)
         self.scene = scene
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
@@ -339,8 +358,12 @@ class Tracer:
         self.mesh_backend = None
         if mesh_idx:
             meshes = [objs[i] for i in mesh_idx]
-            self.mesh_backend = _choose_backend(mesh_backend, sum(m.faces.shape[0] for m in meshes))
-            if self.mesh_backend == "embree":
+            self.mesh_backend = _choose_backend(mesh_backend, sum(m.faces.shape[0] for m in meshes), self.device)
+            if self.mesh_backend == "warp":
+                from .warp_mesh import WarpTriangles
+
+                self.groups.append(WarpTriangles(meshes, mesh_idx, self.device, dtype))
+            elif self.mesh_backend == "embree":
                 from .embree import EmbreeTriangles
 
                 self.groups.append(EmbreeTriangles(meshes, mesh_idx, self.device, dtype))
@@ -435,10 +458,16 @@ def _slice(tmax, start: int, size: int):
     return tmax[start:start + size] if isinstance(tmax, torch.Tensor) and tmax.dim() > 0 else tmax
 
 
-def _choose_backend(requested: str, triangles: int) -> str:
+def _choose_backend(requested: str, triangles: int, device: torch.device) -> str:
     if requested == "torch":
         return "torch"
     from .embree import embree_available
+    from .warp_mesh import warp_available
+
+    if requested == "warp" or (requested == "auto" and device.type == "cuda" and warp_available()):
+        if not warp_available():
+            raise ImportError("mesh_backend='warp' needs warp-lang: pip install torch-ao[warp] (or pip install warp-lang)")
+        return "warp"
 
     if embree_available():
         return "embree"
