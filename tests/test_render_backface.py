@@ -69,18 +69,23 @@ def test_box_exit_depth_closed_form(kind):
         trimesh = pytest.importorskip("trimesh")
         tm = trimesh.creation.box(extents=[2 * e for e in h])
         obj = Mesh(vertices=torch.as_tensor(tm.vertices), faces=torch.as_tensor(tm.faces))
+    # a floor mesh whose plane holds the box's bottom face: the rays that leave through the bottom
+    # meet the floor at the same distance, which must not hide the box's own exit
+    floor = Mesh(vertices=torch.tensor([[-9, -h[1], -9], [9, -h[1], -9], [9, -h[1], 9], [-9, -h[1], 9]], dtype=torch.float64),
+                 faces=torch.tensor([[0, 1, 2], [0, 2, 3]]))
     for backend in (BACKENDS if kind == "box mesh" else ["torch"]):
-        ref, x, y = _render([obj], backend)
-        hit = ref.gbuffer.valid[0, 0]
+        ref, x, y = _render([obj, floor], backend)
+        hit = ref.gbuffer.object_id[0, 0] == 1
         with torch.no_grad():
             exit_ = torch.minimum(torch.full_like(x, D + h[2]), torch.minimum(h[0] / x.abs(), h[1] / y.abs()))
         tol = 1e-9 if kind == "box" else 2e-5  # Embree traces in float32
         assert hit.sum() > 300
         assert torch.allclose(ref.gbuffer.depth[0, 0][hit].double(), torch.full_like(x, D - h[2])[hit], atol=tol * 10)
         assert torch.allclose(ref.backface_depth[0, 0][hit].double(), exit_[hit], rtol=tol, atol=tol), backend
-        # some rays leave through the back face, some through the sides
+        # some rays leave through the back face, some through the sides, some through the bottom
         back = (exit_ == D + h[2]) & hit
         assert 0 < int(back.sum()) < int(hit.sum())
+        assert int(((exit_ == h[1] / y.abs()) & (y < 0) & hit).sum()) > 10
 
 
 def test_cylinder_exit_depth_closed_form():
@@ -112,7 +117,7 @@ def test_mesh_sphere_matches_the_analytic_sphere_within_tessellation(backend):
     its corners) and lies inside the sphere of radius ``r``, so a ray at distance ``b < r - s`` from
     the centre leaves the mesh between the two spheres' exits: within
     ``sqrt(r^2 - b^2) - sqrt((r - s)^2 - b^2)`` along the ray, that over ``|(x, y, -1)|`` in depth.
-    A box mesh inside the sphere mesh checks that the query passes through other objects."""
+    A box mesh inside the sphere mesh checks that other objects do not stop the exit query."""
     r = 1.2
     v, f = icosphere(4 if backend == "embree" else 3, radius=r)  # the torch path is slow on many triangles
     tri = v[f]

@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                     "(cosine and uniform weighted, with standard errors) of a built-in scene, or of mesh "
                     "files on their own, into an .npz file.")
     allow_negative_lists(p)
-    p.add_argument("scene", nargs="?", help="built-in scene name (see --list); omit it to render --mesh files alone")
+    p.add_argument("scene", nargs="?", help="built-in scene name (see --list), or a Mitsuba 3 scene file (.xml, needs "
+                                            "mitsuba); omit it to render --mesh files alone")
     p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
     add_float_list(p, "--eye", 3, "camera position in world units (default: the scene's view, a glTF "
                    "camera of the mesh files, or a view framing the meshes)")
@@ -72,8 +73,13 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _files_only(args) -> bool:
+    """No built-in scene: --mesh files alone, or SCENE is a Mitsuba 3 scene file."""
+    return not args.scene or args.scene.lower().endswith(".xml")
+
+
 def _scene(args):
-    """The scene and whether its view may be replaced by --eye (mesh files framed or a glTF camera)."""
+    """The built-in scene (with --mesh files and --ground-plane added) or a scene of files alone."""
     from ..cli import CommandError
     from ..reference import Plane, get_scene, load_mesh_file, mesh_scene
 
@@ -81,12 +87,11 @@ def _scene(args):
         ground = None
     else:
         ground = True if args.ground_plane == _AUTO else args.ground_plane
-    if not args.scene:
-        if not args.mesh:
-            raise CommandError("SCENE: name a built-in scene (torch-ao render --list shows them) or give --mesh FILE")
+    if _files_only(args):
         if args.randomize is not None:
             raise CommandError("--randomize: only for built-in scenes")
-        return mesh_scene(args.mesh, ground_plane=ground, normalize=args.mesh_normalize, progress=not args.quiet)
+        files = ([args.scene] if args.scene else []) + args.mesh
+        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=not args.quiet)
     try:
         scene = get_scene(args.scene, seed=args.randomize)
     except ValueError as err:
@@ -107,7 +112,7 @@ def _views(args, scene):
 
     v = scene.view
     eye, target, up = (parse_float_list(f"--{k}", getattr(args, k), 3, names="x,y,z") for k in ("eye", "target", "up"))
-    if not args.scene and eye is not None and target is None:
+    if _files_only(args) and eye is not None and target is None:
         # a new eye without a target looks at the meshes, not along the file's camera
         v = frame_view(*scene.bounds(), v.fov_y_degrees)
     fov = v.fov_y_degrees if args.fov is None else args.fov

@@ -184,17 +184,18 @@ def frame_view(lo: Vec3, hi: Vec3, fov_y_degrees: float = 60.0) -> LookAt:
 
 def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None = None,
                normalize: bool = False, progress: bool = False) -> Scene:
-    """A scene made of mesh files alone.
+    """A scene made of mesh files (and Mitsuba 3 scene files) alone.
 
     Args:
-        paths: one or more mesh files (:func:`load_mesh_file`); object ids 1, 2, ... in file order
-            (glTF: one per node), then the ground plane.
+        paths: one or more mesh files (:func:`load_mesh_file`) or Mitsuba 3 ``.xml`` scene files
+            (:func:`~torch_ao.reference.mitsuba_file.load_mitsuba_file`); object ids 1, 2, ... in
+            file order (glTF: one per node, Mitsuba: one per shape), then the ground plane.
         ground_plane: ``None``/``False`` for none, ``True`` for a plane ``y = min y`` of the meshes
             (they rest on it), or a height ``h`` for the plane ``y = h`` (world units).
         normalize: normalise each file (see :func:`load_mesh_file`).
         progress: a tqdm bar over the files (triangles read so far).
     Returns:
-        a :class:`Scene` whose view is the first glTF camera found, else :func:`frame_view` of the
+        a :class:`Scene` whose view is the first file camera found (glTF or Mitsuba), else :func:`frame_view` of the
         meshes; its ``description`` says which.
     """
     from tqdm.auto import tqdm
@@ -202,14 +203,21 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
     paths = [Path(p) for p in paths]
     if not paths:
         raise ValueError("paths: expected at least one mesh file")
-    meshes, view, source = [], None, ""
+    meshes, view, source = [], None, ""  # meshes: every object read (Mitsuba spheres too)
     bar = tqdm(paths, desc="load meshes", unit="file", disable=not progress, leave=False)
     for path in bar:
-        found, camera = load_mesh_file(path, normalize=normalize)
+        if path.suffix.lower() == ".xml":
+            from .mitsuba_file import load_mitsuba_file
+
+            if normalize:
+                raise ValueError(f"normalize: not for Mitsuba scene files ({path.name})")
+            found, camera = load_mitsuba_file(path)
+        else:
+            found, camera = load_mesh_file(path, normalize=normalize)
         meshes += found
         if view is None and camera is not None:
             view, source = camera, f"camera of {path.name}"
-        bar.set_postfix(triangles=sum(m.faces.shape[0] for m in meshes))
+        bar.set_postfix(triangles=sum(m.faces.shape[0] for m in meshes if isinstance(m, Mesh)))
     bar.close()
     names = ", ".join(p.name for p in paths)
     scene = Scene(meshes, name=paths[0].stem if len(paths) == 1 else "meshes")

@@ -20,7 +20,7 @@ Quantities (per pixel ``x`` with camera-facing geometric normal ``n``, hemispher
   object it hit first (the exit depth; what an engine's front-face-culled depth pass of that object
   gives), ``inf`` on background. Closed forms for spheres, boxes and cylinders; ``inf`` for planes
   (half-spaces: nothing behind them is reachable); for meshes the next hit of the same object along
-  the ray, or the front depth itself when there is none (an open surface: zero thickness).
+  the ray (other objects ignored), or the front depth itself when there is none (an open surface: zero thickness).
   See :meth:`Tracer.exit_distance`.
 
 Background pixels: depth ``inf``, ``mask`` False, ``ao = 1``, errors 0, light/indirect 0.

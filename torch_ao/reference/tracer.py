@@ -26,7 +26,6 @@ MESH_BACKENDS = ("auto", "embree", "warp", "torch")
 TORCH_MAX_TRIANGLES = 20_000
 
 _INF = float("inf")
-_MAX_PASSES = 64  # other objects a back-face query passes through before giving up (a sheet)
 
 
 @dataclass
@@ -59,26 +58,11 @@ class _Group(abc.ABC):
     def occluded(self, o, d, tmax):
         return self.closest(o, d, tmax)[0] < tmax
 
+    @abc.abstractmethod
     def exit(self, o, d, t, prim, obj, eps):
         """``(M,)`` distances along rays ``o + s d`` at which each leaves the object ``obj (M,)``
-        it entered at ``t (M,)``: here the next hit of the same object (other objects in between
-        are passed through), or ``t`` itself when there is none (an open surface: a sheet).
-        ``prim`` is the primitive index in this group (unused here); ``eps (M,)`` the step
-        taken past each hit so that it is not found again. Closed forms override this."""
-        out = t.clone()
-        start = t + eps
-        active = torch.arange(o.shape[0], device=o.device)
-        for _ in range(_MAX_PASSES):
-            th, idx = self.closest(o[active] + start[active, None] * d[active], d[active], _INF)
-            found = torch.isfinite(th)
-            same = found & (self.obj[idx] == obj[active])
-            out[active[same]] = start[active[same]] + th[same]
-            other = found & ~same
-            active = active[other]
-            if active.numel() == 0:
-                break
-            start[active] = start[active] + th[other] + eps[active]
-        return out
+        (object index) it entered at ``t (M,)``; ``prim (M,)`` is the primitive's index in this
+        group, ``eps (M,)`` a step past the entry against finding it again."""
 
 
 def _reduce(t: torch.Tensor, tmax) -> tuple[torch.Tensor, torch.Tensor]:
@@ -238,11 +222,36 @@ class _Cylinders(_Group):
 
 
 class _Triangles(_Group):
-    """Triangle meshes: ``closest`` returns global triangle indices; ``obj`` maps them to objects."""
+    """Triangle meshes: ``closest`` returns global triangle indices; ``obj`` maps them to objects.
+    Subclasses are built as ``cls(meshes, obj_of_mesh, device, dtype)`` and call :meth:`_remember`."""
+
+    def _remember(self, meshes, obj_of_mesh, device, dtype) -> None:
+        self._source = (list(meshes), [int(i) for i in obj_of_mesh], device, dtype)
+        self._single = {}  # object index -> a group of that object's mesh alone, built on demand
+
+    def exit(self, o, d, t, prim, obj, eps):
+        """The next hit of the same object along the ray, found among that object's triangles
+        alone (so faces of other objects that coincide with its own, such as a floor under a box,
+        cannot hide its exit); ``t`` itself when there is none: an open surface, a sheet."""
+        meshes, objs, device, dtype = self._source
+        out = t.clone()
+        start = t + eps
+        for k in obj.unique().tolist():
+            sel = (obj == k).nonzero()[:, 0]
+            if len(objs) == 1:
+                group = self
+            else:
+                if k not in self._single:
+                    self._single[k] = type(self)([meshes[objs.index(k)]], [k], device, dtype)
+                group = self._single[k]
+            th, _ = group.closest(o[sel] + start[sel, None] * d[sel], d[sel], _INF)
+            out[sel] = torch.where(torch.isfinite(th), start[sel] + th, t[sel])
+        return out
 
     def _concatenate(self, meshes, obj_of_mesh, device, dtype) -> None:
         """All meshes as one indexed mesh: ``vertices (V,3)`` in ``dtype``, ``faces (F,3)`` long
         global indices, ``obj (F,)`` each triangle's object index."""
+        self._remember(meshes, obj_of_mesh, device, dtype)
         starts = torch.tensor([0] + [m.vertices.shape[0] for m in meshes]).cumsum(0)
         self.vertices = torch.cat([m.vertices for m in meshes]).to(device, dtype)
         self.faces = torch.cat([m.faces + int(s) for m, s in zip(meshes, starts)]).to(device)
@@ -258,6 +267,7 @@ class _TorchTriangles(_Triangles):
     """Moller-Trumbore over ``(N, T)`` blocks, after culling rays that miss each mesh's bounds."""
 
     def __init__(self, meshes, obj_of_mesh, device, dtype, block: int = 1 << 22):
+        self._remember(meshes, obj_of_mesh, device, dtype)
         self.meshes = []
         tri_all, tri_obj = [], []
         for m, oi in zip(meshes, obj_of_mesh):
@@ -424,8 +434,8 @@ class Tracer:
 
         Spheres, boxes and cylinders: the far root (closed form). Planes: ``inf`` (nothing behind
         an infinite plane is reachable from the camera's side, so it acts as a half-space). Meshes:
-        the next hit of the same object along the ray (other objects in between are passed
-        through); when there is none (an open surface) the entry distance (a sheet, zero
+        the next hit of the same object along the ray, among its own triangles (other objects are
+        ignored); when there is none (an open surface) the entry distance (a sheet, zero
         thickness). Misses: ``inf``.
         """
         out = torch.full_like(hit.t, _INF)
