@@ -24,6 +24,7 @@ import torch
 from torch_ao.reference import Mesh, Plane, Scene, Tracer, embree_available, get_scene, icosphere, render_reference
 from torch_ao.reference import sampling
 from torch_ao.reference.render import default_views
+from torch_ao.reference.warp_mesh import warp_available
 
 
 def ao_rays(scene: Scene, n: int, device, seed: int = 0):
@@ -139,7 +140,8 @@ def main() -> None:
     for sub in (1, 5):
         v, f = icosphere(sub, 0.5, (0.0, 0.5, 0.0))
         scene = Scene([Plane(), Mesh(vertices=v, faces=f)], view=get_scene("sphere_on_plane").view)
-        backends = (["embree"] if embree_available() else []) + (["torch"] if f.shape[0] <= 2000 else [])
+        backends = (["embree"] if embree_available() else []) + (["warp"] if warp_available() else []) \
+            + (["torch"] if f.shape[0] <= 2000 else [])
         o, d = ao_rays(scene, n, dev)
         for backend in backends:
             tr = Tracer(scene, device=dev, mesh_backend=backend)
