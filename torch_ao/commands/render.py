@@ -47,8 +47,8 @@ def register(subparsers) -> None:
     p.add_argument("--mesh-normalize", action="store_true",
                    help="scale each --mesh file to unit size resting on y=0 at the origin (default: as stored)")
     p.add_argument("--ground-plane", nargs="?", const=_AUTO, type=_ground_height,
-                   metavar="HEIGHT", help="add a ground plane y=HEIGHT (world units; without HEIGHT: under the "
-                                          "lowest mesh vertex)")
+                   metavar="HEIGHT", help="add a ground plane y=HEIGHT (world units; without HEIGHT: at the lowest "
+                                          "point of the scene's bounded objects, e.g. under the meshes)")
     p.add_argument("--randomize", type=int, metavar="SEED", help="a randomised variant of the built-in scene")
     p.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
     p.add_argument("--height", type=int, default=180, help="image height in pixels (default 180)")
@@ -100,7 +100,8 @@ def _scene(args):
         for mesh in load_mesh_file(path, normalize=args.mesh_normalize)[0]:
             scene = scene.add(mesh)
     if ground is not None:
-        height = 0.0 if ground is True else ground
+        box = scene.bounds()
+        height = ground if ground is not True else (float(box[0][1]) if box is not None else 0.0)
         scene = scene.add(Plane(point=(0.0, height, 0.0), normal=(0.0, 1.0, 0.0)))
     return scene
 
