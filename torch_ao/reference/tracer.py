@@ -130,7 +130,9 @@ def _slabs(ol, inv, h, dim):
     when a direction component is exactly 0 with the origin exactly on that slab: a miss."""
     t1 = (-h - ol).mul_(inv)
     t2 = (h - ol).mul_(inv)
-    return torch.minimum(t1, t2).amax(dim), torch.maximum(t1, t2).amin(dim)
+    lx, ly, lz = torch.minimum(t1, t2).unbind(dim)  # pairwise max/min: faster than amax/amin over 3
+    hx, hy, hz = torch.maximum(t1, t2).unbind(dim)
+    return torch.maximum(torch.maximum(lx, ly), lz), torch.minimum(torch.minimum(hx, hy), hz)
 
 
 class _Boxes(_Group):
@@ -144,13 +146,14 @@ class _Boxes(_Group):
         self.c = c.to(device, dtype)
         self.cl = torch.einsum("pi,pij->jp", c, R).reshape(-1).to(device, dtype)  # (3P,)
         self.h = _t([b.half_extents for b in boxes], device, dtype)  # (P,3)
+        self.h_axis_major = self.h.T.contiguous()  # (3,P)
         self.obj = obj
 
     def closest(self, o, d, tmax):
         N, P = o.shape[0], self.P
         ol = (o @ self.Rcat).sub_(self.cl).view(N, 3, P)  # local coordinates, axis-major
         inv = (d @ self.Rcat).reciprocal_().view(N, 3, P)
-        tn, tf = _slabs(ol, inv, self.h.T, dim=1)
+        tn, tf = _slabs(ol, inv, self.h_axis_major, dim=1)
         t = torch.where(tn > 0, tn, tf)
         t = torch.where((tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
@@ -170,12 +173,11 @@ class _Boxes(_Group):
         return torch.einsum("mij,mj->mi", R, nl)
 
 
-def _cylinder_interval(oc, d, a, r2, h):
+def _cylinder_interval(oc, d, a, r2, h, da):
     """Entry and exit distances ``(tn, tf)`` and ``miss`` of rays with unit ``d`` and
     ``oc = origin - centre`` through capped cylinders (unit axis ``a``, squared radius ``r2``,
-    half height ``h``), broadcast over leading dims (last dim 3 for vectors)."""
+    half height ``h``), broadcast over leading dims (last dim 3 for vectors); ``da = d . a``."""
     oa = (oc * a).sum(-1)
-    da = (d * a).sum(-1)
     op = oc - oa[..., None] * a
     dp = d - da[..., None] * a
     A = (dp * dp).sum(-1)
@@ -204,13 +206,14 @@ class _Cylinders(_Group):
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        tn, tf, miss = _cylinder_interval(o[:, None, :] - self.c, d[:, None, :], self.a, self.r2, self.h)
+        tn, tf, miss = _cylinder_interval(o[:, None, :] - self.c, d[:, None, :], self.a, self.r2, self.h, d @ self.a.T)
         t = torch.where(tn > 0, tn, tf)
         t = torch.where(~miss & (tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
 
     def exit(self, o, d, t, prim, obj, eps):
-        return _cylinder_interval(o - self.c[prim], d, self.a[prim], self.r2[prim], self.h[prim])[1]
+        a = self.a[prim]
+        return _cylinder_interval(o - self.c[prim], d, a, self.r2[prim], self.h[prim], (d * a).sum(-1))[1]
 
     def normal(self, p, idx):
         a = self.a[idx]
