@@ -12,7 +12,7 @@ import torch
 from test_reference import _judge
 from torch_ao.cli import main
 from torch_ao.io import load_gbuffer
-from torch_ao.reference import Box, Mesh, Plane, Scene, Sphere, look_at, look_at_matrix, mesh_scene, render_reference
+from torch_ao.reference import Box, Mesh, Plane, Scene, Sphere, look_at_matrix, mesh_scene, render_reference
 
 XML = """<scene version="3.0.0">
     <sensor type="perspective">
