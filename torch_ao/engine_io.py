@@ -33,7 +33,7 @@ from .checks import check_choice, check_float
 from .options import Option, options_by_name
 
 __all__ = ["EngineOptions", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
-           "parse_numbers", "parse_channels"]
+           "parse_channels"]
 
 _EXR_MISSING = "reading OpenEXR files needs the OpenEXR package: pip install 'torch-ao[exr]'"
 
@@ -131,17 +131,6 @@ class EngineOptions:
                 raise ValueError("view_matrix: its 3x3 part is singular")
         for target in self.channels or {}:
             check_choice("channels", target, tuple(CHANNEL_ALIASES))
-
-
-def parse_numbers(name: str, text: str, count: int) -> tuple[float, ...]:
-    """``"a,b,c"`` -> ``count`` finite floats (negative values allowed), or ``ValueError`` naming ``name``."""
-    try:
-        values = tuple(float(x) for x in text.replace(" ", "").split(","))
-    except ValueError:
-        raise ValueError(f"{name}: expected {count} comma-separated numbers, got {text!r}") from None
-    if len(values) != count or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"{name}: expected {count} finite comma-separated numbers, got {text!r}")
-    return values
 
 
 def parse_channels(text: str) -> dict[str, str]:

@@ -3,9 +3,9 @@ library's ``.npz`` format, so a user can check what was read."""
 from __future__ import annotations
 
 import argparse
-import re
 
 from ..engine_io import ENGINE_OPTIONS, EngineOptions
+from .args import allow_negative_lists, parse_float_list
 from .options_cli import add_options, flag, given
 
 __all__ = ["register", "run", "add_engine_flags", "engine_options"]
@@ -21,21 +21,19 @@ def add_engine_flags(p: argparse.ArgumentParser) -> None:
     add_options(g, _FLAGS)
     # --far takes inf (no far plane), which Option.check refuses for numbers: its own parser, same help
     g.add_argument(flag("far"), dest="far", type=float, default=None, metavar="FAR", help=_FAR.describe())
-    # "--view-matrix -1,0,...": a comma list starting with a negative number is a value, not a flag.
-    p._negative_number_matcher = re.compile(r"^-\.?\d")
+    allow_negative_lists(p)  # --view-matrix -1,0,...
 
 
 def engine_options(args: argparse.Namespace) -> dict:
     """The :class:`~torch_ao.engine_io.EngineOptions` fields given on the command line (others default)."""
-    from ..engine_io import parse_channels, parse_numbers
+    from ..engine_io import parse_channels
 
     options = given(args, [*_FLAGS, "far"])
     if "channels" in options:
         options["channels"] = parse_channels(options["channels"])
-    if "view_matrix" in options:
-        options["view_matrix"] = parse_numbers("view_matrix", options["view_matrix"], 16)
-    if "intrinsics" in options:
-        options["intrinsics"] = parse_numbers("intrinsics", options["intrinsics"], 4)
+    for name, count, names in (("view_matrix", 16, "M00,M01,...,M33"), ("intrinsics", 4, "fx,fy,cx,cy")):
+        if name in options:
+            options[name] = parse_float_list(flag(name), options[name], count, names=names)
     return options
 
 
