@@ -30,7 +30,7 @@ from .denoise import Denoiser
 from .gbuffer import GBuffer
 from .methods import get_method
 
-__all__ = ["FittedPipeline", "load_fitted", "FORMAT", "DENOISER_SETTINGS"]
+__all__ = ["DenoisedAO", "FittedPipeline", "load_fitted", "bench_rows", "cli_module", "FORMAT", "DENOISER_SETTINGS"]
 
 #: Value of the file's ``format`` key (bumped when the layout changes).
 FORMAT = "torch_ao.fitted/1"
@@ -73,8 +73,28 @@ def _denoiser_settings(denoiser: Denoiser | Mapping | bool | None) -> dict | Non
     raise ValueError(f"denoiser: expected a Denoiser, a dict of its settings, True, False or None, got {denoiser!r}")
 
 
-class FittedPipeline(nn.Module):
-    """A screen-space AO method followed by an optional denoiser (what ships, and what is fitted).
+class DenoisedAO(nn.Module):
+    """``method`` followed by an optional ``denoiser``: ``forward(gbuffer)`` returns the method's
+    :class:`~torch_ao.methods.AOOutput` with ``visibility`` ``(B,1,H,W)`` (and ``indirect``
+    ``(B,3,H,W)`` when computed) filtered by the denoiser, guided by the G-buffer."""
+
+    def __init__(self, method: nn.Module, denoiser: Denoiser | Mapping | bool | None = None) -> None:
+        super().__init__()
+        self.method = method
+        settings = _denoiser_settings(denoiser)
+        self.denoiser = None if settings is None else Denoiser(**settings)
+
+    def forward(self, gbuffer: GBuffer):
+        out = self.method(gbuffer)
+        if self.denoiser is None:
+            return out
+        filtered = self.denoiser(out.visibility, gbuffer, indirect=out.indirect)
+        return replace(out, visibility=filtered.visibility, indirect=filtered.indirect)
+
+
+class FittedPipeline(DenoisedAO):
+    """A screen-space AO method, named and configured so that it can be saved and rebuilt, followed
+    by an optional denoiser (what ships, and what ``torch-ao fit`` fits).
 
     Args:
         method: registry name of the method (see :data:`torch_ao.METHODS`).
@@ -84,20 +104,15 @@ class FittedPipeline(nn.Module):
         denoiser: a :class:`~torch_ao.denoise.Denoiser`, a dict of its settings, ``True`` (default
             settings) or ``None`` (no denoiser).
 
-    ``forward(gbuffer)`` returns the method's :class:`~torch_ao.methods.AOOutput` with ``visibility``
-    ``(B,1,H,W)`` (and ``indirect`` ``(B,3,H,W)`` when computed) denoised. The method's parameters are
-    those of ``self.method`` (named ``method.<name>``; :func:`torch_ao.fit.fit` also takes the bare
-    ``<name>``).
+    The method's parameters are those of ``self.method`` (named ``method.<name>``;
+    :func:`torch_ao.fit.fit` also takes the bare ``<name>``).
     """
 
     def __init__(self, method: str, options: Mapping[str, Any] | None = None,
                  denoiser: Denoiser | Mapping | bool | None = None) -> None:
-        super().__init__()
-        self.method_name = method
-        self.options = {k: v for k, v in dict(options or {}).items()}
-        self.method = get_method(method)(**{k: _decode(v) for k, v in self.options.items()})
-        settings = _denoiser_settings(denoiser)
-        self.denoiser = None if settings is None else Denoiser(**settings)
+        self_options = dict(options or {})
+        super().__init__(get_method(method)(**{k: _decode(v) for k, v in self_options.items()}), denoiser)
+        self.method_name, self.options = method, self_options
 
     # ------------------------------------------------------------------ what is stored
     def parameter_values(self) -> dict[str, torch.Tensor]:
@@ -149,14 +164,6 @@ class FittedPipeline(nn.Module):
         except TypeError as err:  # an option the method does not take
             raise ValueError(f"{source}: cannot rebuild {data['method']!r} ({err})") from None
 
-    # ------------------------------------------------------------------ running
-    def forward(self, gbuffer: GBuffer):
-        out = self.method(gbuffer)
-        if self.denoiser is None:
-            return out
-        filtered = self.denoiser(out.visibility, gbuffer, indirect=out.indirect)
-        return replace(out, visibility=filtered.visibility, indirect=filtered.indirect)
-
     def describe(self) -> str:
         """One line: method, variant/weighting, quality, parameter values, denoiser."""
         parts = [self.method_name]
@@ -185,3 +192,57 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
         raise ValueError(f"fitted: {path} is not JSON ({err})") from None
     pipeline = FittedPipeline.from_dict(data, source=f"fitted: {path}")
     return pipeline if device is None else pipeline.to(device)
+
+
+def cli_module(args, build) -> nn.Module:
+    """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline) or
+    ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``."""
+    fitted, denoise = getattr(args, "fitted", None), bool(getattr(args, "denoise", False))
+    if fitted is None:
+        module = build(args)
+        return DenoisedAO(module, True) if denoise else module
+    clash = [f"--{k}" for k in ("preset", "slices", "steps") if getattr(args, k, None) is not None]
+    if getattr(args, "auto", False):
+        clash.append("--auto")
+    if clash:
+        raise ValueError(f"--fitted: the file fixes the method and its quality; drop {', '.join(clash)}")
+    pipeline = load_fitted(fitted)
+    if denoise and pipeline.denoiser is None:
+        pipeline.denoiser = Denoiser()
+    return pipeline
+
+
+def _preset_of(pipeline: FittedPipeline, source: str) -> str:
+    from .methods import PRESETS
+
+    preset = pipeline.options.get("preset")
+    counts = (getattr(pipeline.method, "slices", None), getattr(pipeline.method, "steps", None))
+    if preset in PRESETS and PRESETS[preset] == counts:
+        return preset
+    match = [name for name, c in PRESETS.items() if c == counts]
+    if not match:
+        raise ValueError(f"fitted: {source} uses {counts[0]} slices x {counts[1]} steps, which is no preset; "
+                         "bench rows are per preset")
+    return match[0]
+
+
+def bench_rows(paths, views, **run_bench_options) -> list[dict]:
+    """Rows of :func:`torch_ao.bench.run_bench` for fitted pipelines (``params.json`` files), one
+    method per file named ``"<method> fitted (<name>)"`` (the file stem, or its folder for
+    ``params.json``), at the file's preset, radius and parameters; with the file's denoiser when it
+    has one (rows without and with it), else without."""
+    from .bench import run_bench
+
+    rows = []
+    for path in paths:
+        path = Path(path)
+        pipeline = load_fitted(path)
+        name = path.parent.name if path.stem == "params" and path.parent.name else path.stem
+        label = f"{pipeline.method_name} fitted ({name})"
+
+        def factory(_path=path, **_ignored):  # preset, radius and mode come from the file
+            return load_fitted(_path).method
+
+        options = {**run_bench_options, "denoise": pipeline.denoiser is not None, "denoiser": pipeline.denoiser}
+        rows += run_bench(views, {label: factory}, [_preset_of(pipeline, str(path))], **options)
+    return rows

@@ -55,6 +55,10 @@ def register(sub) -> None:
                    "cheapest whose MAE is within --tolerance of the best (from --report, else a quick sweep on GBUFFER's 'ao')")
     p.add_argument("--tolerance", type=float, help="with --auto: allowed MAE above the best; when not given, the report's, else 0.01")
     p.add_argument("--report", help="with --auto: a `torch-ao bench` report.json (or its folder)")
+    p.add_argument("--fitted", metavar="PARAMS.json", help="run the pipeline a `torch-ao fit` params.json describes "
+                   "(method, options, fitted parameters, denoiser) instead of --method and its flags")
+    p.add_argument("--denoise", action="store_true", help="filter the output with the edge-aware denoiser "
+                   "(torch_ao.Denoiser, default settings)")
     p.set_defaults(func=run)
 
 
@@ -109,7 +113,11 @@ def run(args: argparse.Namespace) -> int:
         gbuffer, _ = load_gbuffer(args.gbuffer, device=device)
     else:
         gbuffer = example_gbuffer().to(device)
-    method = build_method(args.method, args).to(device)
+    from ..fitted import cli_module
+
+    method = cli_module(args, lambda a: build_method(a.method, a)).to(device)
+    if args.fitted:
+        args.method = method.method_name
     with torch.no_grad():
         method(gbuffer)  # warm-up, so the time printed is the steady state
         if device.type == "cuda":

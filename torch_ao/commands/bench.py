@@ -58,6 +58,8 @@ def register(sub) -> None:
     p.add_argument("--params", metavar="JSON", action="append", help="per-method constructor arguments replacing the "
                    "defaults, e.g. fitted values: a `torch-ao fit` params.json, or a JSON file or string "
                    "{\"bitmask\": {\"thickness\": 0.3}} (repeatable)")
+    p.add_argument("--fitted", nargs="+", default=[], metavar="PARAMS.json", help="fitted pipelines (`torch-ao fit` "
+                   "params.json files) added as rows, at their own preset, radius, parameters and denoiser")
     p.add_argument("--repeats", type=int, help=f"timed runs per measurement (default {DEFAULT.repeats})")
     p.add_argument("--warmup", type=int, default=1, help="untimed runs before timing")
     p.add_argument("--no-denoise", action="store_true", help="skip the runs followed by the denoiser")
@@ -137,6 +139,11 @@ def run(args: argparse.Namespace) -> int:
     rows = run_bench(views, methods, presets, denoise=not args.no_denoise, backward=not args.no_backward,
                      repeats=repeats, warmup=args.warmup, device=device, radius=args.radius, params=params,
                      progress=progress)
+    if args.fitted:
+        from ..fitted import bench_rows
+
+        rows += bench_rows(args.fitted, views, backward=not args.no_backward, repeats=repeats, warmup=args.warmup,
+                           device=device, progress=progress)
     background = None
     if not args.no_background:
         background = background_scaling(methods, "high", height=192, width=256, repeats=max(5, repeats),
