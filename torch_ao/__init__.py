@@ -3,6 +3,7 @@ from . import sectors
 from .camera import PinholeCamera
 from .denoise import Denoiser, denoise
 from .fit import FitConfig, FitView, evaluate, fit, load_views
+from .fitted import FittedPipeline, load_fitted
 from .gbuffer import GBuffer, normals_from_depth
 from .io import load_gbuffer, save_npz
 from .marching import Frame, SlicePattern, march
@@ -24,4 +25,5 @@ __all__ = [
     "SSAO", "ssao", "HBAO", "hbao", "UE4SSAO", "ue4_ssao", "GTAO", "gtao", "PSSAO", "pssao",
     "BitmaskAO", "bitmask_ao", "SSILVB", "ssilvb",
     "Denoiser", "denoise", "FitConfig", "FitView", "fit", "evaluate", "load_views", "error_metrics",
+    "FittedPipeline", "load_fitted",
 ]

@@ -219,17 +219,17 @@ def run(args: argparse.Namespace) -> int:
         for t in (0.25, 0.5, 1.0):
             engine = FittedPipeline(args.method, {"preset": args.preset, "radius": radius, "thickness": t,
                                                   "weighting": "uniform"}, denoiser=denoise)
-            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, repeats=3, per_view=True)
+            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True)
     if args.method != "gtao":
         gtao = FittedPipeline("gtao", {"preset": args.preset, "radius": radius}, denoiser=denoise)
-        rows[f"gtao (default parameters){denoised}"] = evaluate(gtao, held, repeats=3, per_view=True)
+        rows[f"gtao (default parameters){denoised}"] = evaluate(gtao, held, per_view=True)
     default_label = f"{args.method} default ({_describe(default, params)}){denoised}"
-    rows[default_label] = before = evaluate(default, held, repeats=3, per_view=True)
+    rows[default_label] = before = evaluate(default, held, per_view=True)
     fitted_label = f"{args.method} fitted ({_describe(module, params)}){denoised}"
-    rows[fitted_label] = after = evaluate(module, held, repeats=3, per_view=True)
+    rows[fitted_label] = after = evaluate(module, held, per_view=True)
     if denoise:
-        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, repeats=3, per_view=True)
-    train_default, train_fitted = evaluate(default, train), evaluate(module, train)
+        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, per_view=True)
+    train_start, train_best = _train_losses(result)
 
     table = _table(rows)
     scenes = _scene_table(held, rows[default_label], after,
@@ -241,13 +241,23 @@ def run(args: argparse.Namespace) -> int:
     write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: "
                       f"{result.steps_done}; R = {radius:g}; hard mode{denoised}\n\n{table}\n\nPer held-out view:\n\n{scenes}\n")
     module.save(out / "params.json", fitted=list(params), before=_summary(before), after=_summary(after),
-                train_before=train_default, train_after=train_fitted, per_view={"default": before["views"], "fitted": after["views"]},
+                train_loss_start=train_start, train_loss_fitted=train_best, per_view={"default": before["views"], "fitted": after["views"]},
                 comparison={k: _summary(v) for k, v in rows.items()}, steps_done=result.steps_done,
                 best_step=result.best_step, fit_seconds=result.seconds, history=result.history,
                 hard_history=result.hard_history, train_views=[v.name for v in train], holdout_views=[v.name for v in held])
     _comparison_png(out / "comparison.png", held[0], default, module)
     print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
     return 0
+
+
+def _train_losses(result) -> tuple[float | None, float | None]:
+    """Training loss (mean L1 over valid pixels, hard mode) of the start and of the kept parameters,
+    from the fit's own records (no extra forward passes)."""
+    records = result.hard_history or result.history
+    if not records:
+        return None, None
+    kept = next((r for r in records if r["step"] == result.best_step), records[-1])
+    return records[0]["loss"], kept["loss"]
 
 
 def _describe(pipeline: FittedPipeline, params) -> str:
