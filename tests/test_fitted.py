@@ -200,3 +200,28 @@ def test_fit_keeps_the_best_hard_mode_parameters():
     best = min(result.hard_history, key=lambda h: h["loss"])
     assert result.best_step == best["step"] and hard.thickness.item() == pytest.approx(best["thickness"][0])
     assert hard.mode == "hard"
+
+
+def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
+    """The main job at a tiny size: bitmask + denoiser, thickness and radius by default; the kept
+    parameters are never worse in hard mode on the training views than the defaults it started from,
+    and params.json rebuilds the pipeline that was scored."""
+    from torch_ao.datasets import train_and_holdout_views
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--size", "32x24", "--spp", "16",
+                 "--preset", "low", "--steps", "6", "--hard-every", "2", "--cache", str(cache), "--no-progress",
+                 "--out", str(out)]) == 0
+    data = json.loads((out / "params.json").read_text())
+    assert data["fitted"] == ["radius", "thickness"] and data["denoiser"] is not None
+    assert data["options"]["weighting"] == "cosine" and data["options"]["mode"] == "hard"
+    assert [h["step"] for h in data["hard_history"]] == [0, 2, 4, 6]
+    assert data["train_loss_fitted"] == min(h["loss"] for h in data["hard_history"]) <= data["train_loss_start"]
+    train, held = train_and_holdout_views(["fence", "stairs"], 1, 1, height=24, width=32, spp=16, max_distance=1.0,
+                                          cache_dir=cache)
+    pipeline = load_fitted(out / "params.json")
+    assert evaluate(pipeline, held)["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
+    assert evaluate(pipeline, train)["mae"] == pytest.approx(data["train_loss_fitted"], rel=1e-5)
+    assert set(data["per_view"]["fitted"]) == {v.name for v in held}
+    report = (out / "report.md").read_text()
+    assert "fence/s1000" in report and "bitmask fitted" in report
