@@ -21,14 +21,14 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
-from .gbuffer import GBuffer
 from .metrics import error_metrics
+from .views import FitView, load_views
 
 __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode", "rng_state",
            "set_rng_state", "save_checkpoint", "load_checkpoint", "remove_stale_temporaries", "fittable_parameters"]
@@ -38,44 +38,6 @@ __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views",
 PARAMETER_MINIMUM = {"thickness": 0.0, "radius": 1e-3, "falloff_range": 1e-2, "final_power": 0.05, "albedo": 0.0,
                      "angle_bias": 0.0, "thickness_heuristic": 0.0}
 PARAMETER_MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
-
-
-@dataclass
-class FitView:
-    """One reference view: its G-buffer, reference visibility ``(B,1,H,W)`` and optional stderr."""
-
-    gbuffer: GBuffer
-    reference: torch.Tensor
-    stderr: torch.Tensor | None = None
-    name: str = ""
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.gbuffer, GBuffer):
-            raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(self.gbuffer).__name__}")
-        shape = tuple(self.gbuffer.depth.shape)
-        for key in ("reference", "stderr"):
-            x = getattr(self, key)
-            if x is None:
-                continue
-            if not isinstance(x, torch.Tensor) or tuple(x.shape) != shape:
-                got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-                raise ValueError(f"{key}: expected shape {shape} (that of depth), got {got}")
-            bad = ~torch.isfinite(x) & self.gbuffer.valid
-            if bool(bad.any()):
-                raise ValueError(f"{key}: {int(bad.sum())} non-finite values on valid pixels of view {self.name or '?'}")
-
-
-def load_views(paths: Iterable[str | os.PathLike], device=None) -> list[FitView]:
-    """Reference views from G-buffer files that hold an ``ao`` array (and optionally ``ao_stderr``)."""
-    from .io import load_gbuffer
-
-    views = []
-    for path in paths:
-        gb, extras = load_gbuffer(path, device=device)
-        if "ao" not in extras:
-            raise ValueError(f"reference: {path} has no 'ao' array; render one with `torch-ao render`")
-        views.append(FitView(gb, extras["ao"].to(gb.depth.dtype), extras.get("ao_stderr"), name=str(path)))
-    return views
 
 
 @dataclass

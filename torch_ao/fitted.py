@@ -194,18 +194,19 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
     return pipeline if device is None else pipeline.to(device)
 
 
-def cli_module(args, build) -> nn.Module:
+def cli_module(args, build, method_flags=()) -> nn.Module:
     """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline) or
-    ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``."""
+    ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``.
+    ``method_flags``: names of the method flags, refused with ``--fitted`` when given."""
     fitted, denoise = getattr(args, "fitted", None), bool(getattr(args, "denoise", False))
     if fitted is None:
         module = build(args)
         return DenoisedAO(module, True) if denoise else module
-    clash = [f"--{k}" for k in ("preset", "slices", "steps") if getattr(args, k, None) is not None]
+    clash = [f"--{k.replace('_', '-')}" for k in method_flags if getattr(args, k, None) is not None]
     if getattr(args, "auto", False):
         clash.append("--auto")
     if clash:
-        raise ValueError(f"--fitted: the file fixes the method and its quality; drop {', '.join(clash)}")
+        raise ValueError(f"--fitted: the file fixes the method and its options; drop {', '.join(clash)}")
     pipeline = load_fitted(fitted)
     if denoise and pipeline.denoiser is None:
         pipeline.denoiser = Denoiser()

@@ -117,10 +117,11 @@ def reference_radius(paths, override: float | None) -> float:
 def _views(args) -> tuple[list, list, float]:
     device = torch.device(args.device)
     if args.reference:
-        radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
         train = load_views(args.reference, device=device)
-        if args.holdout:
-            return train, load_views(args.holdout, device=device), radius
+        held = load_views(args.holdout, device=device) if args.holdout else None
+        radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
+        if held is not None:
+            return train, held, radius
         if len(train) == 1:
             print("note: one reference file; held-out scores are on the training view itself")
             return train, train, radius

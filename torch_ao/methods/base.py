@@ -113,6 +113,46 @@ class ScreenSpaceAO(nn.Module, abc.ABC):
         self.chunk_size, self.recompute = chunk_size, recompute
         self.pattern_for(None)  # validate the sampling options now, not at the first call
 
+    @classmethod
+    def options(cls) -> dict:
+        """``{name: Option}`` of the keyword arguments the constructor takes, following ``**kwargs`` up
+        the class hierarchy. TEMPORARY: derived from the signatures (kind from the default or the
+        annotation, help from the class docstrings' ``Args``), until each method lists its own."""
+        import inspect
+        import re
+
+        from ..options import Option
+
+        def docs(klass) -> dict[str, str]:
+            out, text = {}, inspect.getdoc(klass) or ""
+            for m in re.finditer(r"^ {4}([\w, *]+): (.*(?:\n {8}.*)*)", text, re.M):
+                for name in m.group(1).split(","):
+                    out.setdefault(name.strip(), " ".join(m.group(2).split()))
+            return out
+
+        found: dict = {}
+        for klass in cls.__mro__:
+            init = klass.__dict__.get("__init__")
+            if init is None:
+                continue
+            params = inspect.signature(init).parameters.values()
+            helps = docs(klass)
+            for p in params:
+                if p.name == "self" or p.kind not in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) or p.name in found:
+                    continue
+                default = None if p.default is p.empty else p.default
+                annotation = str(p.annotation)
+                kind = next((k for k in (bool, int, float, str) if isinstance(default, k)), None) or next(
+                    (k for k in (bool, int, float, str) if re.match(rf"{k.__name__}\b", annotation)), object)
+                text = helps.get(p.name, p.name.replace("_", " "))
+                said = re.search(r"\bin (sector|world|pixel|radian)s?\b|\b(world)-space", text)
+                unit = {"sector": "sectors", "world": "world units", "pixel": "pixels", "radian": "radians"}[
+                    next(g for g in said.groups() if g)] if said else ""
+                found[p.name] = Option(p.name, default, text, kind, unit=unit)
+            if not any(p.kind == p.VAR_KEYWORD for p in params):
+                break
+        return found
+
     # ---------------------------------------------------------------- hooks for subclasses
     def pattern_for(self, frame: Frame | None) -> SamplingPattern:
         return SlicePattern(self.slices, self.steps, self.radius, step_power=self.step_power,
