@@ -200,6 +200,12 @@ def test_fit_keeps_the_best_hard_mode_parameters():
     best = min(result.hard_history, key=lambda h: h["loss"])
     assert result.best_step == best["step"] and hard.thickness.item() == pytest.approx(best["thickness"][0])
     assert hard.mode == "hard"
+    # stopping once two hard-mode scores in a row did not improve keeps the same parameters, in fewer steps
+    patient = Biased(0.35)
+    early = fit(patient, vs, FitConfig(steps=80, lr=0.05, hard_every=5, hard_patience=2), progress=False)
+    assert early.stopped_early and early.steps_done < 80 and early.best_step == result.best_step
+    assert patient.thickness.item() == hard.thickness.item()
+    assert [h["step"] for h in early.hard_history] == [h["step"] for h in result.hard_history][:len(early.hard_history)]
 
 
 def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
@@ -210,7 +216,7 @@ def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
 
     out, cache = tmp_path / "out", tmp_path / "cache"
     assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--size", "32x24", "--spp", "16",
-                 "--preset", "low", "--steps", "6", "--hard-every", "2", "--cache", str(cache), "--no-progress",
+                 "--preset", "low", "--steps", "6", "--hard-every", "2", "--hard-patience", "0", "--cache", str(cache), "--no-progress",
                  "--out", str(out)]) == 0
     data = json.loads((out / "params.json").read_text())
     assert data["fitted"] == ["radius", "thickness"] and data["denoiser"] is not None

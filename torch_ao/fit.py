@@ -61,6 +61,8 @@ class FitConfig:
     #: after the last) the parameters are scored in hard mode on all training views, and the best
     #: hard-mode parameters are kept (0 = keep the best soft-mode loss instead).
     hard_every: int = 10
+    #: Stop once this many hard-mode scores in a row have not improved on the best (0 = never).
+    hard_patience: int = 0
     #: Learning rate per parameter name (last part, e.g. ``{"radius": 0.01}``) replacing ``lr``.
     param_lr: dict = field(default_factory=dict)
 
@@ -72,8 +74,8 @@ class FitConfig:
             raise ValueError(f"steps/lr: expected steps >= 0 and lr > 0, got {self.steps}, {self.lr}")
         if not (self.temperature_start > 0 and self.temperature_end > 0):
             raise ValueError("temperature_start/temperature_end: expected > 0")
-        if self.hard_every < 0:
-            raise ValueError(f"hard_every: expected an integer >= 0, got {self.hard_every}")
+        if self.hard_every < 0 or self.hard_patience < 0:
+            raise ValueError(f"hard_every/hard_patience: expected integers >= 0, got {self.hard_every}, {self.hard_patience}")
         self.param_lr = {str(k): float(v) for k, v in dict(self.param_lr).items()}
         if any(not v > 0 for v in self.param_lr.values()):
             raise ValueError(f"param_lr: expected learning rates > 0, got {self.param_lr}")
@@ -259,6 +261,11 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
                               **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}})
         if loss < state["best_hard"]:
             state["best_hard"], state["best"], state["best_step"] = loss, values(), state["step"]
+            state["hard_bad"] = 0
+        else:
+            state["hard_bad"] = state.get("hard_bad", 0) + 1
+            if cfg.hard_patience and state["hard_bad"] >= cfg.hard_patience:
+                state["stopped_early"] = True
 
     bar = None
     if progress:
@@ -272,6 +279,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             step = state["step"]
             if hard and step % cfg.hard_every == 0:
                 check_hard()
+                if state["stopped_early"]:
+                    break
             temperature = _temperature(cfg, step)
             set_mode(module, "soft", temperature)
             order = torch.randperm(len(views)).tolist()

@@ -64,6 +64,8 @@ def register(sub) -> None:
     p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (times R for lengths)")
     p.add_argument("--hard-every", type=int, default=10, help="score the parameters in hard mode every N steps and "
                    "keep the best (0 = keep the best soft-mode loss)")
+    p.add_argument("--hard-patience", type=int, default=2, help="stop once this many hard-mode scores in a row have "
+                   "not improved on the best (0 = run all --steps)")
     p.add_argument("--batch-views", type=int, default=0, help="training views per step (0 = all)")
     p.add_argument("--loss", choices=("l1", "mse"), default="l1")
     p.add_argument("--seed", type=int, default=0)
@@ -183,8 +185,9 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--method: unknown method {args.method!r}; expected one of {', '.join(sorted(METHODS))}")
     if args.steps < 0:
         raise CommandError(f"--steps: expected >= 0, got {args.steps}")
-    if args.hard_every < 0:
-        raise CommandError(f"--hard-every: expected >= 0, got {args.hard_every}")
+    for name in ("hard_every", "hard_patience"):
+        if getattr(args, name) < 0:
+            raise CommandError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(args, name)}")
     init = _init_values(args.init)
     out = Path(args.out)
     denoise = not args.no_denoise
@@ -211,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
           f"evaluating on {len(held)} held-out views")
 
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
-                    seed=args.seed, hard_every=args.hard_every,
+                    seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
                     param_lr={k: args.lr * radius for k in params if k in LENGTHS})
     result = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
 
