@@ -164,18 +164,6 @@ class FittedPipeline(DenoisedAO):
         except TypeError as err:  # an option the method does not take
             raise ValueError(f"{source}: cannot rebuild {data['method']!r} ({err})") from None
 
-    def describe(self) -> str:
-        """One line: method, variant/weighting, quality, parameter values, denoiser."""
-        parts = [self.method_name]
-        for key in ("variant", "weighting"):
-            if key in self.options:
-                parts.append(f"{key}={self.options[key]}")
-        parts.append(f"{getattr(self.method, 'slices', '?')}x{getattr(self.method, 'steps', '?')}")
-        for name, value in self.parameter_values().items():
-            parts.append(f"{name}={value.item():.4g}" if value.numel() == 1 else f"{name}=<{tuple(value.shape)}>")
-        parts.append("+ denoiser" if self.denoiser is not None else "no denoiser")
-        return " ".join(parts)
-
     def extra_repr(self) -> str:
         return f"method={self.method_name!r}"
 
