@@ -72,7 +72,7 @@ def run_ssilvb(ctx, gbuffer, *, slices: int, steps: int, radius: float, thicknes
 
 def centre_texel_pixels(gbuffer, *, slices: int, steps: int, radius: float, jitter: bool, numerics: str = "mesa") -> torch.Tensor:
     """``(H, W)`` bool: pixels whose walk (as the shader forms it) fetches its own texel at some step."""
-    from torch_ao.marching import Frame, slice_geometry
+    from torch_ao.walk import Frame, slice_geometry
     from torch_ao.methods.bitmask_glsl import GLSLPattern
 
     frame = Frame(gbuffer)

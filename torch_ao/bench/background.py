@@ -8,7 +8,7 @@ from typing import Mapping
 import torch
 
 from ..gbuffer import GBuffer
-from ..marching import Frame
+from ..walk import Frame
 from .sweep import MethodFactory, make_method, time_calls
 
 __all__ = ["background_frames", "background_scaling"]

@@ -20,7 +20,7 @@ from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
 from ..fit import FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
 from ..fitted import FittedPipeline
 from ..io import read_npz, write_text_atomic
-from ..methods import METHODS, PRESETS
+from ..methods import METHODS, PRESETS, get_method
 
 #: Parameters in world units: their learning rate is ``--lr`` times R, so a fit moves them by the
 #: same fraction of R whatever the scene's scale.
@@ -171,7 +171,9 @@ def _init_values(text: str | None) -> dict[str, float]:
 
 def pipeline_options(args, radius: float, **values) -> dict:
     """Constructor options of the fitted method: preset, radius, variant, weighting (bitmask), ``values``."""
-    options = {"preset": args.preset, "radius": radius}
+    options = {"preset": args.preset}
+    if "radius" in get_method(args.method).options():  # (PSSAO walks in pixels)
+        options["radius"] = radius
     if args.variant is not None:
         options["variant"] = args.variant
     if args.method in BITMASK:

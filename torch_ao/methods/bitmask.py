@@ -51,7 +51,8 @@ import torch
 import torch.nn.functional as F
 
 from ..gbuffer import GBuffer
-from ..marching import Frame, GradientRows, Queries, Sample, SliceGeometry, fast_acos
+from ..ops import safe_fast_acos as _safe_fast_acos
+from ..walk import Frame, GradientRows, Queries, Sample, SliceAccumulator, SliceGeometry
 from ..sectors import MODES, ROUNDINGS, SECTORS, sector_union
 from .base import AOOutput, ScreenSpaceAO, make_parameter
 from .bitmask_common import ThicknessLookup, cosine_sector_weights, sector_centres
@@ -61,16 +62,6 @@ __all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTING
 VARIANTS = ("default", "hdrp", "ssilvb_glsl")
 WEIGHTINGS = ("uniform", "cosine")
 _HALF_PI = math.pi / 2
-
-
-def _safe_fast_acos(x: torch.Tensor) -> torch.Tensor:
-    """:func:`fast_acos` with a finite gradient at ``|x| = 1`` (same values)."""
-    value = fast_acos(x)
-    if not x.requires_grad:
-        return value
-    eps = 1e-6 if x.dtype == torch.float64 else 1e-4
-    soft = fast_acos(x.clamp(-1 + eps, 1 - eps))
-    return value.detach() + (soft - soft.detach())
 
 
 def _saturate(x: torch.Tensor) -> torch.Tensor:
@@ -172,7 +163,7 @@ def _light_rows(width: torch.Tensor) -> torch.Tensor:
     return (width.detach() >= 0).nonzero()[:, 0]
 
 
-class BitmaskAccumulator:
+class BitmaskAccumulator(SliceAccumulator):
     """The per-step work of the ``"default"`` and ``"hdrp"`` variants (a :class:`SliceAccumulator`).
 
     It takes each side's steps in one call (``batch_steps``): state lists hold ``(steps, N)`` blocks.
@@ -363,6 +354,7 @@ class BitmaskAO(ScreenSpaceAO):
         if azimuth is None:
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
         super().__init__(azimuth=azimuth, **kwargs)
+        self.pattern_for(None)  # validate the variant's walk now (the base no longer calls it)
         self.mode, self.tau, self.rounding, self.weighting = mode, float(tau), rounding, weighting
         # Chosen per call (the mode may change after construction, e.g. fit's set_mode).
         self._auto_chunk = kwargs.get("chunk_size") is None and "recompute" not in kwargs

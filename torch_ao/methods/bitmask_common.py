@@ -5,20 +5,12 @@ import math
 
 import torch
 
-from ..marching import Sample
+from ..ops import arc_measure as _arc_integral
+from ..ops import safe_acos
+from ..walk import Sample
 from ..sectors import SECTORS
 
 __all__ = ["ThicknessLookup", "cosine_sector_weights", "sector_centres", "safe_acos"]
-
-
-def safe_acos(x: torch.Tensor) -> torch.Tensor:
-    """``acos(clamp(x, -1, 1))`` with a finite gradient at ``|x| = 1`` (same values)."""
-    value = torch.acos(x.clamp(-1.0, 1.0))
-    if not x.requires_grad:
-        return value
-    eps = 1e-6 if x.dtype == torch.float64 else 1e-4
-    soft = torch.acos(x.clamp(-1 + eps, 1 - eps))
-    return value.detach() + (soft - soft.detach())
 
 
 class ThicknessLookup:
@@ -44,12 +36,6 @@ class ThicknessLookup:
         if self.growth is not None:
             t = t * (1 + self.growth.to(sample.dtype) * sample.distance)
         return t
-
-
-def _arc_integral(theta: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
-    """``H(theta) = int_0^theta cos(t - gamma) |sin t| dt`` (GTAO's cosine-weighted slice measure)."""
-    F = lambda t: -torch.cos(2 * t - gamma) / 4 + t * torch.sin(gamma) / 2  # noqa: E731
-    return torch.sign(theta) * (F(theta) - F(torch.zeros_like(theta)))
 
 
 def sector_centres(gamma: torch.Tensor) -> torch.Tensor:

@@ -45,7 +45,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..marching import Frame, Queries, Sample, SamplingPattern, SliceGeometry
+from ..ops import clamped_gradient
+from ..walk import Frame, Queries, Sample, SamplingPattern, SliceAccumulator, SliceGeometry
 from ..sectors import SECTORS, hard_mask, popcount32, sector_union
 from .bitmask_common import ThicknessLookup, safe_acos
 
@@ -72,12 +73,7 @@ def mesa_acos(x: torch.Tensor) -> torch.Tensor:
         poly = half_pi + ax * (quarter_pi_m1 + ax * (c(0.08132463) + ax * c(-0.02363318)))
         return half_pi - torch.sign(v) * (half_pi - torch.sqrt(c(1.0) - ax) * poly)
 
-    value = f(x.clamp(-1.0, 1.0))
-    if not x.requires_grad:
-        return value
-    eps = 1e-6 if dt == torch.float64 else 1e-4
-    soft = f(x.clamp(-1 + eps, 1 - eps))
-    return value.detach() + (soft - soft.detach())
+    return clamped_gradient(lambda v: f(v.clamp(-1.0, 1.0)), x)
 
 
 def glsl_constants(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -177,7 +173,7 @@ class GLSLPattern(SamplingPattern):
         return offsets
 
 
-class GLSLAccumulator:
+class GLSLAccumulator(SliceAccumulator):
     """Seed 001's per-step work (hard: 32-bit masks; soft/straight-through: :func:`sector_union`)."""
 
     def __init__(self, *, mode: str, rounding: str, tau: float, thickness: ThicknessLookup, indirect: bool,
