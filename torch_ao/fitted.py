@@ -161,7 +161,7 @@ class FittedPipeline(DenoisedAO):
             raise ValueError(f"{source}: 'options' and 'parameters' must be objects")
         try:
             return cls(data["method"], {**options, **parameters}, data.get("denoiser"))
-        except TypeError as err:  # an option the method does not take
+        except (TypeError, ValueError) as err:  # an option the method does not take, or a bad value
             raise ValueError(f"{source}: cannot rebuild {data['method']!r} ({err})") from None
 
     def extra_repr(self) -> str:
