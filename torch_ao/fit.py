@@ -6,6 +6,10 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
 * a temperature schedule for soft-mask modules (geometric from ``temperature_start`` to
   ``temperature_end``; the module is put in ``mode="soft"`` while fitting),
 * gradient clipping, projection onto each parameter's valid range, early stopping,
+* for modules with a hard mode, a hard-mode score of the parameters on all views at the start, every
+  ``hard_every`` steps and at the end; the best-scoring parameters are kept (the soft objective's
+  optimum is not always the shipped pipeline's), optionally stopping after ``hard_patience`` scores
+  without improvement,
 * atomic checkpoints (parameters, optimizer state, step, RNG state, history) every
   ``checkpoint_every`` steps; the same call with the same ``checkpoint`` path resumes and ends
   with the same result as an uninterrupted run.
