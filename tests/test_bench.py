@@ -6,9 +6,8 @@ import pytest
 import torch
 
 from test_bench_helpers import TinyAO
-from torch_ao.bench import (COLUMNS, aggregate_rows, load_bench_views, make_method, pareto_front, recommend,
-                            reference_path, run_bench)
-from torch_ao.bench_report import load_report, write_report
+from torch_ao.bench import COLUMNS, aggregate_rows, load_report, make_method, pareto_front, recommend, run_bench, write_report
+from torch_ao.views import load_bench_views, reference_path
 from torch_ao.cli import main
 
 H, W, SPP = 24, 32, 8
@@ -122,7 +121,7 @@ def test_bench_cli_errors(tmp_path, capsys):
 
 
 def test_auto_from_report_and_errors(views, tmp_path, cache):
-    from torch_ao.bench_auto import auto_choice
+    from torch_ao.bench import auto_choice
 
     rows = [_row("sphere_on_plane", "gtao", "low", 0.08, 1.0), _row("sphere_on_plane", "gtao", "high", 0.05, 4.0),
             _row("other", "gtao", "low", 0.2, 1.0), _row("other", "gtao", "high", 0.02, 3.0)]
@@ -151,7 +150,7 @@ def test_auto_from_report_and_errors(views, tmp_path, cache):
 
 def test_auto_quick_sweep_on_reference_file(cache, monkeypatch):
     """Without a report, --auto sweeps the file's own reference (here with the tiny methods)."""
-    import torch_ao.bench_auto as ba
+    import torch_ao.bench.auto as ba
 
     monkeypatch.setattr(ba, "available_methods", lambda names=None, log=None: _tiny_methods())
     ref = reference_path(cache, "sphere_on_plane", H, W, SPP, 1.0)
@@ -170,3 +169,34 @@ def test_ao_cli_auto(cache, tmp_path, capsys):
     assert rc == 0 and (tmp_path / "o.npz").is_file()
     assert main(["ao", "--auto", "--out", str(tmp_path / "x.npz")]) == 2
     assert "needs either a bench report" in capsys.readouterr().err
+
+
+def test_default_cache_dir_rule(monkeypatch, tmp_path):
+    from torch_ao.views import default_cache_dir
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("TORCH_AO_CACHE", raising=False)
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    assert default_cache_dir() == tmp_path / "home" / ".cache" / "torch_ao"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_cache_dir() == tmp_path / "xdg" / "torch_ao"
+    monkeypatch.setenv("TORCH_AO_CACHE", "~/mine")
+    assert default_cache_dir() == tmp_path / "home" / "mine"
+    import torch_ao.datasets
+
+    assert torch_ao.datasets.default_cache_dir is default_cache_dir  # one rule
+    assert reference_path(None, "fence", 72, 96, 64, 1.0) == tmp_path / "home" / "mine" / "references" / \
+        "fence_96x72_spp64_R1_seed0.npz"
+    assert reference_path("c", "fence", 72, 96, 64, float("inf"), 3, layout=3).name == "fence_s3_96x72_spp64_Rinf_seed3.npz"
+
+
+def test_fit_views_and_bench_views_share_the_cache(cache, views):
+    """The training examples' default-layout view is the same file the bench rendered (not a second render)."""
+    from torch_ao.datasets import reference_view
+
+    path = reference_path(cache, "sphere_on_plane", H, W, SPP, 1.0)
+    mtime = path.stat().st_mtime_ns
+    v = reference_view("sphere_on_plane", None, height=H, width=W, spp=SPP, max_distance=1.0, cache_dir=cache)
+    assert path.stat().st_mtime_ns == mtime and len(list((cache / "references").iterdir())) == 1
+    assert v.name == "sphere_on_plane/default" and torch.equal(v.reference, views[0].reference)
+    assert v.max_distance == 1.0 and torch.equal(v.gbuffer.depth, views[0].gbuffer.depth)

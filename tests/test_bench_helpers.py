@@ -4,9 +4,10 @@ import torch
 
 from torch_ao.methods import METHODS, get_method
 from torch_ao.methods.base import ScreenSpaceAO
+from torch_ao.walk import SliceAccumulator
 
 
-class _MaxHorizon:
+class _MaxHorizon(SliceAccumulator):
     def begin_slice(self, q, geom):
         return torch.full_like(q.depth, -1.0)
 

@@ -7,7 +7,7 @@ import torch
 from torch_ao.camera import PinholeCamera
 from torch_ao.examples import floor_wall_gbuffer, plane_gbuffer, planes_gbuffer
 from torch_ao.gbuffer import GBuffer
-from torch_ao.marching import Sample
+from torch_ao.walk import Sample
 from torch_ao.methods.bitmask import SSILVB, BitmaskAO, bitmask_ao, ssilvb
 
 D = torch.float64

@@ -107,3 +107,17 @@ def test_gradients_and_errors():
         denoise(x, gb, guide="colour")
     with pytest.raises(ValueError, match="visibility"):
         denoise(torch.rand(1, 2, 6, 8), gb)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"kernel_size": 0}, "kernel_size: expected an integer >= 1"),
+    ({"kernel_size": True}, "kernel_size: expected an integer"),
+    ({"kernel_size": 6}, "kernel_size: expected an odd integer"),
+    ({"sigma_space": 0.0}, "sigma_space: expected a number > 0"),
+    ({"sigma_depth": float("nan")}, "sigma_depth: expected a finite number"),
+    ({"alpha": 1.5}, "alpha: expected a number <= 1"),
+    ({"alpha": 0.0}, "alpha: expected a number > 0"),
+])
+def test_bad_options_name_the_argument(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        Denoiser(**kwargs)

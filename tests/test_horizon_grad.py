@@ -281,7 +281,7 @@ def test_chunked_recomputed_walk_equals_the_whole_frame(cls, options):
 
 @pytest.mark.parametrize("variant", ["hdrp", "ue4"])
 def test_fast_acos_at_plus_minus_one_has_finite_gradients(variant):
-    from torch_ao.methods.gtao import fast_acos
+    from torch_ao.ops import fast_acos
 
     x = torch.tensor([1.0, -1.0, 0.5], requires_grad=True)
     (fast_acos(x) * torch.tensor([0.0, 1.0, 1.0])).sum().backward()
@@ -291,3 +291,31 @@ def test_fast_acos_at_plus_minus_one_has_finite_gradients(variant):
     depth, normals = gb.depth.clone().requires_grad_(True), gb.normals.clone().requires_grad_(True)
     GTAO(variant=variant, slices=2, steps=2, jitter=False)(GBuffer(depth, gb.camera, normals=normals)).visibility.sum().backward()
     assert bool(torch.isfinite(depth.grad).all()) and bool(torch.isfinite(normals.grad).all())
+
+
+@pytest.mark.parametrize("cls", [GTAO, HBAO, UE4SSAO, PSSAO, SSAO])
+def test_options_describe_the_signature_and_unused_options_are_refused(cls):
+    import inspect
+
+    options = cls.options()
+    assert list(inspect.signature(cls).parameters) == list(options)
+    for name, opt in options.items():
+        assert opt.help and inspect.signature(cls).parameters[name].default == opt.default
+    fitted = {n for n, o in options.items() if o.fitted}
+    assert {n for n, _ in cls().named_parameters()} == fitted - _FROZEN_BY_DEFAULT.get(cls, set())
+    if cls is PSSAO:
+        for name in ("radius", "seed", "jitter", "azimuth"):
+            with pytest.raises(ValueError, match=name):
+                PSSAO(**{name: options.get(name, None) or 1})
+
+
+_FROZEN_BY_DEFAULT = {GTAO: {"thickness_heuristic", "albedo"}}  # (used by variant="ue4" / multibounce only)
+
+
+def test_sampling_configuration_validates_each_field():
+    from torch_ao.methods.common import Sampling
+
+    assert Sampling().fetch == "bilinear"
+    for field, bad in (("fetch", "cubic"), ("slices", 0), ("step_power", 0.0), ("jitter", 1), ("azimuth", "x")):
+        with pytest.raises(ValueError, match=field):
+            Sampling(**{field: bad})

@@ -6,11 +6,12 @@ import torch
 
 from torch_ao.examples import floor_wall_gbuffer, plane_gbuffer
 from torch_ao.gbuffer import GBuffer
-from torch_ao.marching import (Frame, PerspectiveBilinearDepth, SlicePattern, fast_acos, interleaved_gradient_noise,
-                               march)
+from torch_ao.ops import fast_acos
+from torch_ao.walk import (Frame, PerspectiveBilinearDepth, SliceAccumulator, SlicePattern, interleaved_gradient_noise,
+                           march)
 
 
-class Recorder:
+class Recorder(SliceAccumulator):
     """Keeps every sample, and sums the exact unoccluded slice integral |n_p| (cos g + g sin g)."""
 
     def __init__(self):
@@ -201,9 +202,9 @@ def test_batched_steps_see_the_same_samples_block_major(fetch):
 def _walk_gradients(monkeypatch, fused: bool, fetch: str, border: str, batch: int, sparse: bool = False):
     """Gradients of a weighted sum of every sample's along_view/along_tangent (batched steps) to the
     depth and the radius, with the fused :class:`SampleAlong` or plain autograd."""
-    import torch_ao.marching as marching
+    import torch_ao.walk as walk
 
-    monkeypatch.setattr(marching.Footprint, "fusable", lambda self, frame: fused)
+    monkeypatch.setattr(walk.Footprint, "fusable", lambda self, frame: fused)
     gb, _ = floor_wall_gbuffer(10, 14, dtype=torch.float64)
     torch.manual_seed(3)
     depth = torch.cat([gb.depth * (1 + 0.02 * torch.rand_like(gb.depth)) for _ in range(batch)]).requires_grad_(True)
@@ -231,3 +232,95 @@ def test_fused_sample_gradients_match_plain_autograd(monkeypatch, fetch, border,
     assert fused[0].abs().max() > 0 and (fetch == "nearest" or fused[1] != 0)
     for a, b in zip(fused, plain):
         assert torch.allclose(a.double(), b.double(), rtol=1e-10, atol=1e-12)
+
+
+class PairRecorder(SliceAccumulator):
+    """Keeps the samples of each paired step and counts the walks begun."""
+
+    paired_sides = True
+
+    def __init__(self):
+        self.pairs, self.walks = [], []
+
+    def begin_walk(self, q):
+        self.walks.append(len(q))
+
+    def begin_slice(self, q, geom):
+        return None
+
+    def step_pair(self, state, q, geom, plus, minus):
+        self.pairs.append((plus, minus))
+        return state
+
+    def end_slice(self, state, q, geom):
+        return {"one": torch.ones_like(q.depth)[:, None]}
+
+    def finish(self, sums, q, num_slices):
+        return {"visibility": sums["one"] / num_slices}
+
+
+def test_paired_sides_see_step_j_of_both_sides_and_begin_walk_runs_once_per_chunk():
+    gb, _ = floor_wall_gbuffer(12, 16, dtype=torch.float64)
+    frame = Frame(gb)
+    n = len(frame.queries)
+    pattern = SlicePattern(2, 3, 0.8, fetch="bilinear", border="drop")
+    rec, one = PairRecorder(), Recorder()
+    march(frame, pattern, rec, chunk_size=50)
+    march(frame, pattern, one)
+    chunks = [min(50, n - s) for s in range(0, n, 50)]
+    assert rec.walks == chunks
+    assert len(rec.pairs) == len(chunks) * 2 * 3
+    first = rec.pairs[: 2 * 3]  # the first chunk: slices x steps pairs
+    for k, (plus, minus) in enumerate(first):
+        assert (plus.side, minus.side) == (1, -1) and plus.step == minus.step == k % 3
+        assert torch.equal(plus.offset, -minus.offset)  # the two sides are mirror images on screen
+        ref = one.samples[(k // 3) * 6 + k % 3][1]  # slice k // 3, side +1, step k % 3 of the unpaired walk
+        assert torch.equal(plus.position, ref.position[:50])
+
+
+def test_sample_offset_and_inside_are_the_screen_position():
+    gb = plane_gbuffer(10, 12, tilt_degrees=30, dtype=torch.float64)
+    rec = Recorder()
+    march(Frame(gb), SlicePattern(2, 2, 3.0, fetch="nearest", border="clamp", jitter=False), rec)
+    _, H, W = Frame(gb).shape
+    q = Frame(gb).queries
+    for geom, s in rec.samples:
+        u, v = q.u + s.offset[:, 0], q.v + s.offset[:, 1]
+        expected = (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        assert torch.equal(s.inside, expected)
+        assert torch.allclose(s.distance_px, s.offset.norm(dim=-1))
+    assert any(not bool(s.inside.all()) for _, s in rec.samples)  # a radius of 3 leaves the image somewhere
+
+
+def test_an_accumulator_without_single_steps_is_refused_by_name():
+    class OnlyPairs(PairRecorder):
+        paired_sides = False
+
+    with pytest.raises(NotImplementedError, match="OnlyPairs"):
+        march(Frame(plane_gbuffer(6, 6)), SlicePattern(1, 1, 1.0), OnlyPairs())
+
+
+def test_clamped_gradient_keeps_values_and_bounds_the_slope_at_one():
+    from torch_ao.ops import safe_acos, safe_fast_acos
+
+    x = torch.tensor([1.0, -1.0, 1 - 1e-7, 0.3], dtype=torch.float64, requires_grad=True)
+    y = safe_fast_acos(x)
+    assert torch.equal(y.detach(), fast_acos(x.detach()))
+    (g,) = torch.autograd.grad(y.sum(), x)
+    plain = x.detach().clone().requires_grad_(True)
+    (g_plain,) = torch.autograd.grad(fast_acos(plain).sum(), plain)
+    assert g_plain[2] < -2000  # fast_acos' own slope near 1 is huge (infinite at 1, where it is taken as 0)
+    assert g[:3].tolist() == [0.0, 0.0, 0.0] and g[3] == g_plain[3]  # beyond 1 - eps: none; inside: the same
+    x2 = x.detach().clone().requires_grad_(True)
+    (ga,) = torch.autograd.grad(safe_acos(x2)[3], x2)
+    assert math.isclose(float(ga[3]), -1 / math.sqrt(1 - 0.09), rel_tol=1e-12)  # d acos = -1/sqrt(1-x^2)
+
+
+def test_projection_round_trips_through_the_camera_formulas():
+    from torch_ao.camera import pixels_to_view, view_to_pixels
+
+    u, v, d = torch.tensor([0.0, 7.5]), torch.tensor([3.0, 1.25]), torch.tensor([2.0, 0.5])
+    p = pixels_to_view(u, v, d, 50.0, 40.0, 8.0, 6.0)
+    assert torch.allclose(p[0], torch.tensor([(0 - 8) / 50 * 2, -(3 - 6) / 40 * 2, -2.0]))
+    uu, vv = view_to_pixels(p, -p[:, 2], 50.0, 40.0, 8.0, 6.0)
+    assert torch.allclose(uu, u) and torch.allclose(vv, v)

@@ -11,7 +11,9 @@ import pytest
 import torch
 
 import torch_ao.gbuffer as gbuffer_module
-import torch_ao.marching as marching
+import torch_ao.methods.ssao as ssao_module
+import torch_ao.walk as walk_package
+import torch_ao.walk.walk as walk_module
 from test_bench_helpers import TinyAO, importable_methods
 from torch_ao import GBuffer
 from torch_ao.bench import background_frames, background_scaling
@@ -25,11 +27,12 @@ def probe(monkeypatch):
     """Records the buffers each Frame is given, the buffers samples gather, normals reconstructions,
     and the number of query pixels each walk covers."""
     log = {"buffers": [], "gathered": [], "normals_from_depth": 0, "walked": []}
-    frame_init, gather, nfd, walk = marching.Frame.__init__, marching.Sample.gather, gbuffer_module.normals_from_depth, marching._walk
+    frame_init, gather, nfd = walk_package.Frame.__init__, walk_package.Sample.gather, gbuffer_module.normals_from_depth
+    chunks = walk_module.march_chunks
 
-    def frame_init_probe(self, gb, normals=None, buffers=None, query_values=None, queries_mask=None):
+    def frame_init_probe(self, gb, normals=None, buffers=None):
         log["buffers"].append(set(buffers or {}))
-        frame_init(self, gb, normals=normals, buffers=buffers, query_values=query_values, queries_mask=queries_mask)
+        frame_init(self, gb, normals=normals, buffers=buffers)
 
     def gather_probe(self, name):
         log["gathered"].append(name)
@@ -39,14 +42,17 @@ def probe(monkeypatch):
         log["normals_from_depth"] += 1
         return nfd(*args, **kwargs)
 
-    def walk_probe(frame, q, pattern, method):
-        log["walked"].append(len(q))
-        return walk(frame, q, pattern, method)
+    def chunks_probe(frame, walk, **options):
+        def counted(f, q):
+            log["walked"].append(len(q))
+            return walk(f, q)
+        return chunks(frame, counted, **options)
 
-    monkeypatch.setattr(marching.Frame, "__init__", frame_init_probe)
-    monkeypatch.setattr(marching.Sample, "gather", gather_probe)
+    monkeypatch.setattr(walk_package.Frame, "__init__", frame_init_probe)
+    monkeypatch.setattr(walk_package.Sample, "gather", gather_probe)
     monkeypatch.setattr(gbuffer_module, "normals_from_depth", nfd_probe)
-    monkeypatch.setattr(marching, "_walk", walk_probe)
+    for module in (walk_module, ssao_module):  # every caller of the chunking machinery
+        monkeypatch.setattr(module, "march_chunks", chunks_probe)
 
     def reset():
         log.update(buffers=[], gathered=[], normals_from_depth=0, walked=[])
@@ -119,7 +125,7 @@ def test_background_walks_nothing(name, probe):
     frames = background_frames(_gbuffer())
     module = cls(preset="low")
     # All background: no query pixel, nothing walked, visibility 1 everywhere.
-    assert len(marching.Frame(frames["empty"]).queries) == 0
+    assert len(walk_package.Frame(frames["empty"]).queries) == 0
     probe["reset"]()
     out = module(frames["empty"])
     assert sum(probe["walked"]) == 0
@@ -127,7 +133,7 @@ def test_background_walks_nothing(name, probe):
     # Half background: exactly half the pixels are walked; background stays 1.
     probe["reset"]()
     out = module(frames["half"])
-    assert sum(probe["walked"]) == H * W // 2 == len(marching.Frame(frames["half"]).queries)
+    assert sum(probe["walked"]) == H * W // 2 == len(walk_package.Frame(frames["half"]).queries)
     assert torch.equal(out.visibility[..., W // 2:], torch.ones(1, 1, H, W - W // 2))
     probe["reset"]()
     module(frames["full"])

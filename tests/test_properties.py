@@ -41,10 +41,12 @@ def scenes(draw):
        slices=st.integers(1, 4), steps=st.integers(1, 4), seed=st.integers(0, 1000), soft=st.booleans(),
        thickness=st.floats(0.0, 5.0), tau=st.floats(1e-4, 1.0))
 def test_random_scenes_stay_finite_and_bounded(gb, method, radius, slices, steps, seed, soft, thickness, tau):
-    kwargs = dict(radius=radius, slices=slices, steps=steps, seed=seed)
+    cls = get_method(method)
+    kwargs = {k: v for k, v in dict(radius=radius, slices=slices, steps=steps, seed=seed).items()
+              if k in cls.options()}  # (PSSAO has no radius or seed)
     if method in ("bitmask", "ssilvb"):
         kwargs |= dict(thickness=thickness, mode="soft" if soft else "hard", tau=tau)
-    module = get_method(method)(**kwargs)
+    module = cls(**kwargs)
     depth = gb.depth.clone().requires_grad_(True)
     g = type(gb)(depth, gb.camera, normals=gb.normals, light=gb.light)
     out = module(g)

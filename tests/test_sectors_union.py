@@ -5,19 +5,11 @@ import itertools
 import pytest
 import torch
 
-from torch_ao.sectors import SectorUnion, _expm1_tanh, sector_interval, sector_union, soft_coverage
-
-
-def _plain(s, w, weights, p0, tau, rounding):
-    c = soft_coverage(s, w, tau, rounding)
-    P = torch.ones_like(c[:, 0]) if p0 is None else p0.clone()
-    newly = []
-    for j in range(s.shape[1]):
-        g = c[:, j] * P
-        if weights is not None:
-            newly.append((g * weights).sum(-1))
-        P = P * (1 - c[:, j])
-    return P, (torch.stack(newly, 1) if weights is not None else s.new_zeros(s.shape[0], 0))
+from sector_reference import plain_union
+from torch_ao.sectors import SectorUnion, sector_interval, sector_union
+from torch_ao.sectors.hard_union import coverage_union
+from torch_ao.sectors.live_steps import LiveSteps
+from torch_ao.sectors.sweeps import expm1_tanh
 
 
 def _inputs(N, J, seed, dtype=torch.float64, spread=0.4, zero_widths=True):
@@ -46,7 +38,7 @@ def test_union_matches_plain_autograd_both_floor_paths(tau):
     gn = torch.randn(9, 7, dtype=torch.float64)
     got = _union_and_grads(s, w, weights, p0, tau, "round", gv, gn)
     leaves = [x.clone().requires_grad_() for x in (s, w, weights, p0)]
-    vis, newly = _plain(*leaves, tau, "round")
+    vis, newly = plain_union(*leaves, tau, "round")
     ref = (vis, newly) + torch.autograd.grad((vis * gv).sum() + (newly * gn).sum(), leaves)
     for a, b in zip(got, ref):
         assert torch.allclose(a, b.detach(), rtol=1e-9, atol=1e-10), (a - b).abs().max()
@@ -90,7 +82,7 @@ def test_union_gradient_combinations():
         if not leaves:
             continue
         vis, newly = SectorUnion.apply(s, w, wt, p0, tau, "ceil", False)
-        vis_ref, newly_ref = _plain(s, w, wt, p0, tau, "ceil")
+        vis_ref, newly_ref = plain_union(s, w, wt, p0, tau, "ceil")
         assert torch.allclose(vis, vis_ref) and torch.allclose(newly, newly_ref)
         outs, refs, grads = [], [], []
         if use_gv:
@@ -152,7 +144,7 @@ def test_expm1_tanh():
     for dtype in (torch.float32, torch.float64):
         xx = x.to(dtype)
         ref = torch.tanh(xx.double())
-        got = _expm1_tanh(xx.clone()).double()
+        got = expm1_tanh(xx.clone()).double()
         assert got[-1] == 0
         rel = ((got - ref).abs() / ref.clamp_min(1e-300)).max()
         assert rel < 3 * torch.finfo(dtype).eps
@@ -187,12 +179,10 @@ def _sparse_inputs(N, J, seed, live_fraction):
 @pytest.mark.parametrize("merge_rows", [0, 1500, 10 ** 9])  # exact segments, the default, one padded segment
 @pytest.mark.parametrize("with_weights", [False, True])
 def test_union_sweeps_live_steps_only(merge_rows, with_weights, monkeypatch):
-    import torch_ao.sectors as sectors
-
-    monkeypatch.setattr(sectors._LiveSteps, "MERGE_ROWS", merge_rows)
+    monkeypatch.setattr(LiveSteps, "MERGE_ROWS", merge_rows)
     s, w, weights, p0 = _sparse_inputs(40, 9, 3, live_fraction=0.3)
     weights = weights if with_weights else None
-    layout = sectors._LiveSteps(w)
+    layout = LiveSteps(w)
     assert not layout.dense and len(layout.rows) < 40
     if merge_rows == 10 ** 9:
         assert len(layout.segments) == 1
@@ -205,7 +195,7 @@ def test_union_sweeps_live_steps_only(merge_rows, with_weights, monkeypatch):
     # plain autograd of the same union with the widths clamped at zero: dead steps cover nothing and
     # (the clamp's derivative) get no gradient
     leaves = [None if x is None else x.clone().requires_grad_() for x in (s, w, weights, p0)]
-    vis, newly = _plain(leaves[0], leaves[1].clamp_min(0), leaves[2], leaves[3], 0.25, "ceil")
+    vis, newly = plain_union(leaves[0], leaves[1].clamp_min(0), leaves[2], leaves[3], 0.25, "ceil")
     loss = (vis * gv).sum() + ((newly * gn).sum() if with_weights else 0)
     ref = [vis, newly] + list(torch.autograd.grad(loss, [x for x in leaves if x is not None]))
     for a, b in zip(got, ref):
@@ -219,11 +209,9 @@ def test_union_sweeps_live_steps_only(merge_rows, with_weights, monkeypatch):
 
 @pytest.mark.parametrize("with_weights", [False, True])
 def test_straight_through_forward_over_live_steps_is_the_hard_rule(with_weights):
-    from torch_ao.sectors import _hard_sweep
-
     s, w, weights, p0 = _sparse_inputs(40, 9, 4, live_fraction=0.3)
     weights = weights if with_weights else None
     vis, newly = sector_union(s, w, mode="straight_through", rounding="round", weights=weights, p0=p0)
-    ref_vis, ref_newly = _hard_sweep(s, w.clamp_min(0), weights, p0, "round")
+    ref_vis, ref_newly = coverage_union(s, w.clamp_min(0), weights, p0, "round")
     assert torch.equal(vis, ref_vis) and torch.equal(newly, ref_newly)
     assert (ref_vis != p0).any()

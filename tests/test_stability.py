@@ -50,7 +50,8 @@ def _accepts(cls, name: str) -> bool:
 def build(config: str, **overrides):
     method, options, _ = CONFIGS[config]
     cls = get_method(method)
-    kwargs = {"slices": 2, "steps": 3, "radius": 1.0, "seed": 1} | options
+    common = {"slices": 2, "steps": 3, "radius": 1.0, "seed": 1}
+    kwargs = {k: v for k, v in common.items() if k in cls.options()} | options  # (PSSAO has no radius or seed)
     kwargs |= {k: v for k, v in overrides.items() if _accepts(cls, k)}
     return cls(**kwargs)
 

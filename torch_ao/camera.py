@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 
-__all__ = ["PinholeCamera"]
+__all__ = ["PinholeCamera", "pixels_to_view", "view_to_pixels"]
 
 # Flips an OpenCV camera frame (x right, y down, z forward) into OpenGL view space.
 _CV_TO_GL = (1.0, -1.0, -1.0)
@@ -178,15 +178,12 @@ class PinholeCamera:
 
         ``batch_index`` selects the camera of each point (default: broadcast over a leading B axis).
         """
-        fx, fy, cx, cy = self._per_point(batch_index, u)
-        return torch.stack(((u - cx) / fx * depth, -(v - cy) / fy * depth, -depth), dim=-1)
+        return pixels_to_view(u, v, depth, *self._per_point(batch_index, u))
 
     def view_to_pixel(self, points: torch.Tensor, batch_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Pixel ``u``, ``v`` and ``depth`` of view-space points ``(..., 3)``."""
         depth = -points[..., 2]
-        fx, fy, cx, cy = self._per_point(batch_index, depth)
-        u = points[..., 0] / depth * fx + cx
-        v = -points[..., 1] / depth * fy + cy
+        u, v = view_to_pixels(points, depth, *self._per_point(batch_index, depth))
         return u, v, depth
 
     def pixel_rays(self) -> torch.Tensor:
@@ -202,3 +199,15 @@ class PinholeCamera:
         if self.batch_size == 1:
             return tuple(p.to(like.dtype).reshape(()) for p in params)
         return tuple(p.to(like.dtype).reshape(shape) for p in params)
+
+
+def pixels_to_view(u: torch.Tensor, v: torch.Tensor, depth: torch.Tensor, fx, fy, cx, cy) -> torch.Tensor:
+    """View-space points ``(..., 3)`` at pixel coordinates ``u``, ``v`` and positive ``depth`` (equal
+    shapes ``(...)``; intrinsics in pixels, broadcastable): ``((u - cx) / fx d, -(v - cy) / fy d, -d)``."""
+    return torch.stack(((u - cx) / fx * depth, -(v - cy) / fy * depth, -depth), dim=-1)
+
+
+def view_to_pixels(points: torch.Tensor, depth: torch.Tensor, fx, fy, cx, cy) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel coordinates ``u``, ``v`` ``(...)`` of view-space ``points`` ``(..., 3)`` seen at ``depth``
+    ``(...)`` (normally ``-z``; a caller may pass a clamped one): the inverse of :func:`pixels_to_view`."""
+    return points[..., 0] / depth * fx + cx, -points[..., 1] / depth * fy + cy

@@ -7,15 +7,28 @@ import os
 import sys
 
 # Subcommand modules, each with ``register(subparsers)`` that adds its parser and sets ``func``.
-_COMMANDS = ("ao", "render", "fit", "bench")
+_COMMANDS = ("ao", "render", "fit", "bench", "convert")
 
 
 class CommandError(Exception):
     """A user error: printed as one line, exit status 2, no traceback."""
 
 
+class _UsageError(CommandError):
+    def __init__(self, prog: str, message: str) -> None:
+        super().__init__(message)
+        self.prog = prog
+
+
+class _Parser(argparse.ArgumentParser):
+    """Reports a bad flag like every other user error: one line naming it, exit status 2 (not the usage)."""
+
+    def error(self, message: str):
+        raise _UsageError(self.prog, message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torch-ao", description="Differentiable screen-space ambient occlusion.")
+    parser = _Parser(prog="torch-ao", description="Differentiable screen-space ambient occlusion.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in _COMMANDS:
         try:
@@ -30,7 +43,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as err:
+        print(f"{err.prog}: error: {err} (see {err.prog} --help)", file=sys.stderr)
+        return 2
     try:
         return int(args.func(args) or 0)
     except (CommandError, ValueError, TypeError, FileNotFoundError, ImportError) as err:

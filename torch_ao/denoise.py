@@ -28,6 +28,7 @@ from torch import nn
 from kornia.filters import joint_bilateral_blur
 
 from .gbuffer import GBuffer
+from .options import Option, options_by_name
 
 __all__ = ["Denoiser", "DenoiseOutput", "denoise", "spatial_filter", "temporal_blend", "denoise_guide"]
 
@@ -42,14 +43,24 @@ class DenoiseOutput:
     indirect: torch.Tensor | None = None
 
 
-def _check_options(kernel_size: int, sigma_space: float, sigma_depth: float, sigma_normal: float, guide: str) -> None:
-    if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
-        raise ValueError(f"kernel_size: expected an odd integer >= 1, got {kernel_size!r}")
-    for name, value in (("sigma_space", sigma_space), ("sigma_depth", sigma_depth), ("sigma_normal", sigma_normal)):
-        if not (isinstance(value, (int, float)) and value > 0):
-            raise ValueError(f"{name}: expected a number > 0, got {value!r}")
-    if guide not in GUIDES:
-        raise ValueError(f"guide: expected one of {GUIDES}, got {guide!r}")
+#: The denoiser's options (:class:`Denoiser` checks its arguments with these).
+OPTIONS = options_by_name((
+    Option("kernel_size", 5, "side of the square filter window (odd)", int, unit="pixels", minimum=1),
+    Option("sigma_space", 1.5, "spatial sigma of the Gaussian window", float, unit="pixels", minimum=0.0,
+           open_minimum=True),
+    Option("sigma_depth", 0.05, "range sigma of log depth, about a relative depth change (0.05 = 5 %)", float, minimum=0.0, open_minimum=True),
+    Option("sigma_normal", 0.3, "range sigma of the unit normals' difference", float, minimum=0.0, open_minimum=True),
+    Option("guide", "depth+normal", "what guides the filter", str, choices=GUIDES),
+    Option("alpha", 0.1, "weight of the current frame in the temporal blend", float, minimum=0.0, maximum=1.0,
+           open_minimum=True),
+))
+
+
+def _check_options(**values) -> None:
+    for name, value in values.items():
+        OPTIONS[name].check(value)
+    if values.get("kernel_size", 1) % 2 == 0:
+        raise ValueError(f"kernel_size: expected an odd integer, got {values['kernel_size']!r}")
 
 
 def denoise_guide(gbuffer: GBuffer, *, guide: str = "depth+normal", sigma_depth: float = 0.05,
@@ -89,8 +100,7 @@ def temporal_blend(current: torch.Tensor, history: torch.Tensor | None, valid: t
     """``alpha * current + (1 - alpha) * history`` where both frames are valid; ``current`` elsewhere."""
     if history is None:
         return current
-    if not 0 < alpha <= 1:
-        raise ValueError(f"alpha: expected a value in (0, 1], got {alpha!r}")
+    _check_options(alpha=alpha)
     if history.shape != current.shape:
         raise ValueError(f"history: expected shape {tuple(current.shape)}, got {tuple(history.shape)}")
     both = valid if history_valid is None else valid & history_valid
@@ -115,7 +125,8 @@ def denoise(visibility: torch.Tensor, gbuffer: GBuffer, *, indirect: torch.Tenso
         history_valid: ``(B,1,H,W)`` pixels where ``history`` is meaningful (default: all).
         alpha: weight of the current frame in the blend.
     """
-    _check_options(kernel_size, sigma_space, sigma_depth, sigma_normal, guide)
+    _check_options(kernel_size=kernel_size, sigma_space=sigma_space, sigma_depth=sigma_depth,
+                   sigma_normal=sigma_normal, guide=guide)
     if visibility.dim() != 4 or visibility.shape[1] != 1 or visibility.shape[-2:] != gbuffer.depth.shape[-2:]:
         raise ValueError(f"visibility: expected shape {tuple(gbuffer.depth.shape)}, got {tuple(visibility.shape)}")
     valid = gbuffer.valid
@@ -143,9 +154,8 @@ class Denoiser(nn.Module):
                  sigma_normal: float = 0.3, guide: str = "depth+normal", temporal: bool = False,
                  alpha: float = 0.1) -> None:
         super().__init__()
-        _check_options(kernel_size, sigma_space, sigma_depth, sigma_normal, guide)
-        if not 0 < alpha <= 1:
-            raise ValueError(f"alpha: expected a value in (0, 1], got {alpha!r}")
+        _check_options(kernel_size=kernel_size, sigma_space=sigma_space, sigma_depth=sigma_depth,
+                       sigma_normal=sigma_normal, guide=guide, alpha=alpha)
         self.kernel_size, self.sigma_space = kernel_size, float(sigma_space)
         self.sigma_depth, self.sigma_normal, self.guide = float(sigma_depth), float(sigma_normal), guide
         self.temporal, self.alpha = temporal, float(alpha)

@@ -2,28 +2,37 @@
 from __future__ import annotations
 
 import argparse
-import inspect
 import time
 
 import torch
 
+from ..bench import DEFAULT_TOLERANCE
 from ..cli import CommandError
 from ..examples import example_gbuffer
 from ..io import load_gbuffer, save_npz
-from ..methods import METHODS, PRESETS, get_method
+from ..methods import METHODS, get_method
+from ..options import Option
+from .auto import apply_auto
+from .options_cli import add_options, construct, given, method_kwargs, method_options
 
-# Flags that map one-to-one onto constructor arguments (only passed when given).
-_FLOAT_FLAGS = ("radius", "thickness", "tau", "falloff_range", "final_power", "bias", "albedo",
-                "thickness_heuristic", "thickness_growth", "step_power", "min_step_px", "angle_bias", "fade_distance",
-                "flat_surface_bias", "intensity", "distance_bias", "search_scale", "softness")
-_CHOICE_FLAGS = {
-    "variant": None, "mode": ("hard", "soft", "straight_through"), "rounding": ("ceil", "round", "floor"),
-    "weighting": ("uniform", "cosine"), "fetch": ("nearest", "bilinear"), "border": ("clamp", "drop"),
-    "azimuth": ("view", "screen"), "normals": ("improved", "kornia"),
-    "falloff": ("linear", "quadratic"), "accumulate": ("incremental", "max"), "elevation": ("image", "view"),
-    "normalize": ("exact", "none", "ue4", "samples", "directions"), "sample_set": ("ue4_3", "ue4_6", "uniform"),
-    "glsl_numerics": ("ieee", "mesa", "mesa_mediump"),
-}
+#: The flags of ``torch-ao ao`` that are not method options.
+OPTIONS = (
+    Option("method", "gtao", "the AO method", str, choices=tuple(METHODS)),
+    Option("device", "cpu", "torch device the method runs on, e.g. cpu, cuda or cuda:1", str),
+    Option("out", "ao.npz", "output .npz: the G-buffer with visibility and whatever else was asked for "
+           "(indirect, bent_normal, ambient)", str),
+    Option("png", None, "also write a PNG of the visibility to this path (needs matplotlib)", str),
+    Option("auto", False, "choose --method and --preset (and --radius when not given) by the bench recommendation: "
+           "the cheapest whose MAE is within --tolerance of the best, from --report, else from a quick sweep on "
+           "GBUFFER's own 'ao' reference", bool),
+    Option("tolerance", None, f"with --auto: allowed MAE above the best; when not given, the report's, else "
+           f"{DEFAULT_TOLERANCE:g}", float, unit="visibility (MAE)", minimum=0.0),
+    Option("report", None, "with --auto: a `torch-ao bench` report.json, or the folder holding it", str),
+    Option("fitted", None, "run the pipeline a `torch-ao fit` params.json describes (method, options, fitted "
+           "parameters, denoiser) instead of --method and the method flags", str),
+    Option("denoise", False, "filter the output with the edge-aware denoiser (torch_ao.Denoiser, default "
+           "settings); with --fitted, adds one when the file has none", bool),
+)
 
 
 def register(sub) -> None:
@@ -31,70 +40,21 @@ def register(sub) -> None:
         "ao",
         help="run an AO method on a G-buffer .npz",
         description="Compute ambient occlusion (and, for ssilvb, indirect light) for a G-buffer file. "
-        "Without GBUFFER, runs on a built-in example (a floor meeting a wall).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        "Without GBUFFER, runs on a built-in example (a floor meeting a wall). Method flags are passed to the "
+        "method's constructor only when given; a flag the chosen method does not take is an error.",
     )
-    p.add_argument("gbuffer", nargs="?", help="input .npz (keys: depth, normal, light, intrinsics or fov_y_degrees...)")
-    p.add_argument("--method", default="gtao", help=f"one of: {', '.join(sorted(METHODS))}")
-    p.add_argument("--preset", choices=sorted(PRESETS), help="quality preset (slices x steps); --slices/--steps override it")
-    p.add_argument("--slices", type=int, help="directions per pixel")
-    p.add_argument("--steps", type=int, help="samples per side of each slice")
-    for name in _FLOAT_FLAGS:
-        p.add_argument("--" + name.replace("_", "-"), dest=name, type=float, help=f"method parameter {name} (world units where lengths)")
-    for name, choices in _CHOICE_FLAGS.items():
-        p.add_argument("--" + name.replace("_", "-"), dest=name, choices=choices, help=f"method option {name}")
-    p.add_argument("--no-jitter", action="store_true", help="no per-pixel noise (exact, repeatable comparisons)")
-    p.add_argument("--seed", type=int, help="noise seed")
-    p.add_argument("--indirect", action="store_true", help="also compute indirect light (methods that support it)")
-    p.add_argument("--no-indirect", action="store_true", help="ssilvb: visibility only")
-    p.add_argument("--bent-normals", action="store_true", help="also compute bent normals (methods that support it)")
-    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
-    p.add_argument("--out", required=False, default="ao.npz", help="output .npz (visibility, and what else was asked)")
-    p.add_argument("--png", help="also write a PNG of the visibility")
-    p.add_argument("--auto", action="store_true", help="choose --method and --preset by the bench recommendation: the "
-                   "cheapest whose MAE is within --tolerance of the best (from --report, else a quick sweep on GBUFFER's 'ao')")
-    p.add_argument("--tolerance", type=float, help="with --auto: allowed MAE above the best; when not given, the report's, else 0.01")
-    p.add_argument("--report", help="with --auto: a `torch-ao bench` report.json (or its folder)")
-    p.set_defaults(func=run)
-
-
-def _constructor_arguments(cls) -> set[str]:
-    """Keyword arguments a class accepts, following ``**kwargs`` up the class hierarchy."""
-    names: set[str] = set()
-    for klass in cls.__mro__:
-        init = klass.__dict__.get("__init__")
-        if init is None:
-            continue
-        params = inspect.signature(init).parameters.values()
-        names |= {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.name != "self"}
-        if not any(p.kind == p.VAR_KEYWORD for p in params):
-            break
-    return names
+    p.add_argument("gbuffer", nargs="?", metavar="GBUFFER",
+                   help="input .npz (keys: depth, and optionally normal, light, mask, object_id, intrinsics or "
+                   "fov_y_degrees; see docs/gbuffer.md). Default: the built-in example")
+    add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
+    group = p.add_argument_group("method options (see --method; each says which methods take it when they differ)")
+    p.set_defaults(func=run, method_flags=add_options(group, method_options({m: get_method(m) for m in METHODS})))
 
 
 def build_method(name: str, args: argparse.Namespace) -> torch.nn.Module:
-    """The module ``name`` with the constructor arguments given on the command line."""
-    if name not in METHODS:
-        raise CommandError(f"--method: unknown method {name!r}; expected one of {', '.join(sorted(METHODS))}")
+    """The module ``name`` with the method flags given on the command line."""
     cls = get_method(name)
-    accepted = _constructor_arguments(cls)
-    kwargs = {}
-    given = {k: getattr(args, k, None) for k in ("preset", "slices", "steps", "seed", *_FLOAT_FLAGS, *_CHOICE_FLAGS)}
-    if getattr(args, "no_jitter", False):
-        given["jitter"] = False
-    if getattr(args, "indirect", False):
-        given["indirect"] = True
-    if getattr(args, "no_indirect", False):
-        given["indirect"] = False
-    if getattr(args, "bent_normals", False):
-        given["bent_normals"] = True
-    for key, value in given.items():
-        if value is None:
-            continue
-        if key not in accepted:
-            raise CommandError(f"--{key.replace('_', '-')}: not an option of method {name!r}")
-        kwargs[key] = value
-    return cls(**kwargs)
+    return construct(cls, method_kwargs(name, cls, given(args, args.method_flags)))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,14 +62,15 @@ def run(args: argparse.Namespace) -> int:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise CommandError("--device: CUDA is not available on this machine")
     if args.auto or args.report or args.tolerance is not None:
-        from ..bench_auto import apply_auto
-
         apply_auto(args)
     if args.gbuffer:
         gbuffer, _ = load_gbuffer(args.gbuffer, device=device)
     else:
         gbuffer = example_gbuffer().to(device)
-    method = build_method(args.method, args).to(device)
+    from ..fitted import cli_module
+
+    method = cli_module(args, lambda a: build_method(a.method, a), args.method_flags).to(device)
+    args.method = getattr(method, "method_name", args.method)
     with torch.no_grad():
         method(gbuffer)  # warm-up, so the time printed is the steady state
         if device.type == "cuda":

@@ -1,54 +1,32 @@
-"""Screen-space AO methods, one file per family, all on the shared slice-marching core."""
+"""Screen-space AO methods, one file per family, all on the shared walk (:mod:`torch_ao.walk`)."""
 from __future__ import annotations
 
-import importlib
+from .base import AOOutput, ScreenSpaceAO
+from .bitmask import SSILVB, BitmaskAO
+from .common import PRESETS, Sampling, resolve_preset
+from .gtao import GTAO
+from .hbao import HBAO
+from .pssao import PSSAO
+from .ssao import SSAO
+from .ue4_ssao import UE4SSAO
 
-from .base import PRESETS, AOOutput, ScreenSpaceAO, resolve_preset
-
-#: Method name (CLI and reports) -> (module in this package, class name). Imported on first use.
-_REGISTRY: dict[str, tuple[str, str]] = {
-    "ssao": ("ssao", "SSAO"),
-    "hbao": ("hbao", "HBAO"),
-    "ue4_ssao": ("ue4_ssao", "UE4SSAO"),
-    "gtao": ("gtao", "GTAO"),
-    "pssao": ("pssao", "PSSAO"),
-    "bitmask": ("bitmask", "BitmaskAO"),
-    "ssilvb": ("bitmask", "SSILVB"),
+#: Method name (CLI and reports) -> module class.
+METHODS: dict[str, type[ScreenSpaceAO]] = {
+    "ssao": SSAO,
+    "hbao": HBAO,
+    "ue4_ssao": UE4SSAO,
+    "gtao": GTAO,
+    "pssao": PSSAO,
+    "bitmask": BitmaskAO,
+    "ssilvb": SSILVB,
 }
-
-
-class _Methods(dict):
-    """``name -> class``, importing each method's module on first access."""
-
-    def __missing__(self, name: str):
-        if name not in _REGISTRY:
-            raise KeyError(name)
-        module, cls = _REGISTRY[name]
-        value = getattr(importlib.import_module(f"{__name__}.{module}"), cls)
-        self[name] = value
-        return value
-
-    def __contains__(self, name) -> bool:
-        return name in _REGISTRY
-
-    def __iter__(self):
-        return iter(_REGISTRY)
-
-    def __len__(self) -> int:
-        return len(_REGISTRY)
-
-    def keys(self):
-        return _REGISTRY.keys()
-
-
-METHODS = _Methods()
 
 
 def get_method(name: str) -> type[ScreenSpaceAO]:
     """The module class of method ``name`` (see ``METHODS``); a clear error for unknown names."""
-    if name not in _REGISTRY:
-        raise ValueError(f"method: unknown method {name!r}; expected one of {', '.join(sorted(_REGISTRY))}")
+    if name not in METHODS:
+        raise ValueError(f"method: unknown method {name!r}; expected one of {', '.join(sorted(METHODS))}")
     return METHODS[name]
 
 
-__all__ = ["METHODS", "PRESETS", "AOOutput", "ScreenSpaceAO", "get_method", "resolve_preset"]
+__all__ = ["METHODS", "PRESETS", "AOOutput", "ScreenSpaceAO", "Sampling", "get_method", "resolve_preset"]

@@ -1,66 +1,33 @@
-"""What every screen-space AO module shares: parameters, presets, the walk, and the output.
+"""The module every screen-space AO method is: options in, a walk over the G-buffer, an :class:`AOOutput` out.
 
-A method subclasses :class:`ScreenSpaceAO` and supplies
+A method is composed of parts rather than configured through a wide base constructor:
 
-* ``accumulator(frame)`` -> a :class:`~torch_ao.marching.SliceAccumulator` (what it keeps per step),
-* optionally ``pattern(frame)`` (where the walk goes; default :class:`~torch_ao.marching.SlicePattern`),
-* optionally ``frame_buffers(gbuffer)`` (images its samples gather, e.g. light).
+* its options (``OPTIONS``, :class:`~torch_ao.options.Option`), the walk's it takes (``SAMPLING``, from
+  :class:`~torch_ao.methods.common.Sampling`) and :data:`~torch_ao.methods.common.MODULE_OPTIONS`,
+  merged by ``options()``, validated once in the constructor (``parse_options``);
+* a :class:`~torch_ao.walk.SamplingPattern` (``pattern_for``; default :class:`~torch_ao.walk.SlicePattern`
+  from the module's :class:`~torch_ao.methods.common.Sampling`), and a
+  :class:`~torch_ao.walk.SliceAccumulator` (``accumulator``: what it keeps per step);
+* optionally ``frame_buffers(gbuffer, normals)`` (images its samples gather, e.g. light) and ``walk``
+  (a method that is not a slice walk, like SSAO, replaces the walk, keeping chunking and recompute).
 
 ``forward(gbuffer)`` returns an :class:`AOOutput`; background pixels get visibility 1, zero indirect
 light and their own normal as bent normal, with zero gradient.
 """
 from __future__ import annotations
 
-import abc
-
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
 
 from ..gbuffer import GBuffer
-from ..marching import Frame, SamplingPattern, SliceAccumulator, SlicePattern, march
+from ..options import Option, options_by_name
+from ..walk import Frame, SamplingPattern, SliceAccumulator, march
+from .common import MODULE_OPTIONS, PRESETS, RADIUS, Sampling, declare_signature, make_parameter, register_parameters, resolve_preset
 
 __all__ = ["AOOutput", "ScreenSpaceAO", "PRESETS", "resolve_preset", "make_parameter"]
-
-#: Quality presets shared by every horizon/bitmask method: (slices, steps per side).
-PRESETS: dict[str, tuple[int, int]] = {
-    "low": (1, 2),
-    "medium": (2, 2),
-    "high": (3, 3),
-    "ultra": (9, 3),
-    "extreme": (16, 8),
-    "reference": (32, 32),
-}
-
-
-def resolve_preset(preset: str | None, slices: int | None, steps: int | None, default: tuple[int, int]) -> tuple[int, int]:
-    """Slices and steps from a preset name and/or explicit counts (explicit counts win)."""
-    if preset is not None:
-        key = str(preset).lower()
-        if key not in PRESETS:
-            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
-        default = PRESETS[key]
-    return (default[0] if slices is None else slices, default[1] if steps is None else steps)
-
-
-def make_parameter(module: nn.Module, name: str, value, *, trainable: bool, minimum: float | None = None) -> None:
-    """Register a float parameter (an ``nn.Parameter`` when ``trainable``, else a buffer).
-
-    ``value`` may be a number or a tensor (a per-object table or a per-pixel map). Non-finite values
-    and values below ``minimum`` raise a ``ValueError`` naming ``name``.
-    """
-    t = torch.as_tensor(value).detach().clone()
-    if not t.is_floating_point():
-        t = t.to(torch.get_default_dtype())
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name}: expected finite values, got {t.tolist() if t.numel() < 8 else 'a tensor with non-finite entries'}")
-    if minimum is not None and bool((t < minimum).any()):
-        raise ValueError(f"{name}: expected values >= {minimum}, got {t.min().item()}")
-    if trainable:
-        setattr(module, name, nn.Parameter(t))
-    else:
-        module.register_buffer(name, t)
 
 
 @dataclass
@@ -80,72 +47,93 @@ class AOOutput:
     ambient: torch.Tensor | None = None
 
 
-class ScreenSpaceAO(nn.Module, abc.ABC):
-    """Base of the horizon and bitmask modules.
+@declare_signature
+class ScreenSpaceAO(nn.Module):
+    """Base of the horizon and bitmask modules: takes ``cls.options()`` as keyword arguments.
 
-    Args:
-        slices, steps: directions per pixel and samples per side (override ``preset``).
-        preset: ``"low"`` (1x2), ``"medium"`` (2x2), ``"high"`` (3x3), ``"ultra"`` (9x3), ``"extreme"``
-            (16x8), ``"reference"`` (32x32).
-        radius: world-space sampling radius (a trainable parameter unless ``trainable=False``).
-        step_power, min_step_px, jitter, seed, fetch, border, azimuth: see :class:`~torch_ao.marching.SlicePattern`.
-        normals: ``"improved"`` or ``"kornia"``: reconstruction used when the G-buffer has no normals.
-        chunk_size, recompute: memory controls passed to :func:`~torch_ao.marching.march`.
+    Keeps the parsed options' :class:`~torch_ao.methods.common.Sampling` as ``sampling`` (its fields
+    also read as attributes: ``slices``, ``steps``, ``fetch``...), registers ``radius`` when the method
+    lists it, and the memory controls ``chunk_size``/``recompute`` passed to :func:`~torch_ao.walk.march`.
+    A subclass registers its own fitted options after ``super().__init__`` from ``self.values``.
     """
 
+    #: The method's own options (a subclass lists its own, ``RADIUS`` included when it searches a radius).
+    OPTIONS: tuple[Option, ...] = (RADIUS,)
+    #: The walk's options this method takes (all of them by default), with its defaults.
+    SAMPLING: tuple[Option, ...] = Sampling.options_for()
+    #: (slices, steps) when neither they nor a preset are given.
     default_slices_steps: tuple[int, int] = (4, 8)
 
-    def __init__(self, *, slices: int | None = None, steps: int | None = None, preset: str | None = None,
-                 radius: float = 1.0, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
-                 seed: int = 0, fetch: str = "bilinear", border: str = "drop", azimuth: str = "view",
-                 normals: str = "improved", chunk_size: int | None = None, recompute: bool = False,
-                 trainable: bool = True) -> None:
+    def __init__(self, **options) -> None:
         super().__init__()
-        self.slices, self.steps = resolve_preset(preset, slices, steps, self.default_slices_steps)
-        make_parameter(self, "radius", radius, trainable=trainable, minimum=0.0)
-        if self.radius.dim() != 0:
-            raise ValueError(f"radius: expected a scalar, got shape {tuple(self.radius.shape)}")
-        if normals not in ("improved", "kornia"):
-            raise ValueError(f"normals: expected 'improved' or 'kornia', got {normals!r}")
-        self.step_power, self.min_step_px = step_power, min_step_px
-        self.jitter, self.seed, self.fetch, self.border, self.azimuth = jitter, seed, fetch, border, azimuth
-        self.normals_method = normals
-        self.chunk_size, self.recompute = chunk_size, recompute
-        self.pattern_for(None)  # validate the sampling options now, not at the first call
+        self.values: dict[str, Any] = type(self).parse_options(options)
+        v = self.values
+        self.sampling = Sampling.from_values(v, self.default_slices_steps)
+        self.normals_method, self.chunk_size, self.recompute = v["normals"], v["chunk_size"], v["recompute"]
+        self.trainable = v["trainable"]
+        if "radius" in v:
+            register_parameters(self, self.options(), v, ("radius",), trainable=self.trainable)
 
-    # ---------------------------------------------------------------- hooks for subclasses
+    @classmethod
+    def options(cls) -> dict[str, Option]:
+        """Every option of the method ``{name: Option}``: its own, the walk's it takes, the module's."""
+        return options_by_name(cls.OPTIONS, cls.SAMPLING, MODULE_OPTIONS)
+
+    @classmethod
+    def parse_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """``options`` checked against :meth:`options` (``ValueError`` naming a bad or unknown one), with the
+        defaults of those not given. Fitted options may be tensors; they are checked when registered."""
+        spec = cls.options()
+        for name in options:
+            if name not in spec:
+                raise ValueError(f"{name}: not an option of {cls.__name__}; expected one of {', '.join(spec)}")
+        values = {name: opt.default for name, opt in spec.items()} | dict(options)
+        for name, opt in spec.items():
+            if not opt.fitted:
+                values[name] = opt.check(values[name])
+        return values
+
+    # The configuration's fields, read as attributes (the bitmask family and tests read them so).
+    slices = property(lambda self: self.sampling.slices)
+    steps = property(lambda self: self.sampling.steps)
+    step_power = property(lambda self: self.sampling.step_power)
+    min_step_px = property(lambda self: self.sampling.min_step_px)
+    jitter = property(lambda self: self.sampling.jitter)
+    seed = property(lambda self: self.sampling.seed)
+    fetch = property(lambda self: self.sampling.fetch)
+    border = property(lambda self: self.sampling.border)
+    azimuth = property(lambda self: self.sampling.azimuth)
+
+    # ---------------------------------------------------------------- parts
     def pattern_for(self, frame: Frame | None) -> SamplingPattern:
-        return SlicePattern(self.slices, self.steps, self.radius, step_power=self.step_power,
-                            min_step_px=self.min_step_px, jitter=self.jitter, seed=self.seed, fetch=self.fetch,
-                            border=self.border, azimuth=self.azimuth)
+        """Where the walk over ``frame`` goes (default: :class:`~torch_ao.walk.SlicePattern` of ``sampling``)."""
+        return self.sampling.pattern(self.radius)
+
+    def accumulator(self, frame: Frame) -> SliceAccumulator:
+        """What the method keeps per step of the walk over ``frame``."""
+        raise NotImplementedError(f"{type(self).__name__}: a slice method returns its SliceAccumulator here")
 
     def frame_buffers(self, gbuffer: GBuffer, normals: torch.Tensor) -> dict[str, torch.Tensor]:
         """``(B,C,H,W)`` images the samples gather (default none)."""
         return {}
 
-    def query_values(self, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
-        """``(B,C,H,W)`` images read once at each computed pixel (default none)."""
-        return {}
-
     def chunking(self, gbuffer: GBuffer) -> tuple[int | None, bool]:
-        """``(chunk_size, recompute)`` passed to :func:`~torch_ao.marching.march` for this call
+        """``(chunk_size, recompute)`` passed to :func:`~torch_ao.walk.march` for this call
         (default: the constructor's)."""
         return self.chunk_size, self.recompute
 
-    @abc.abstractmethod
-    def accumulator(self, frame: Frame) -> SliceAccumulator:
-        """What the method keeps per step of the walk over ``frame``."""
+    def walk(self, frame: Frame, chunk_size: int | None, recompute: bool) -> dict[str, torch.Tensor]:
+        """Per-query outputs ``{name: (N, C)}`` (``"visibility"``, and the optional outputs asked for)."""
+        return march(frame, self.pattern_for(frame), self.accumulator(frame), chunk_size=chunk_size,
+                     recompute=recompute)
 
     # ---------------------------------------------------------------- forward
     def forward(self, gbuffer: GBuffer) -> AOOutput:
         if not isinstance(gbuffer, GBuffer):
             raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(gbuffer).__name__}")
         normals = gbuffer.view_normals(self.normals_method)
-        frame = Frame(gbuffer, normals=normals, buffers=self.frame_buffers(gbuffer, normals),
-                      query_values=self.query_values(gbuffer))
-        chunk_size, recompute = self.chunking(gbuffer)
-        out = march(frame, self.pattern_for(frame), self.accumulator(frame), chunk_size=chunk_size,
-                    recompute=recompute)
+        frame = Frame(gbuffer, normals=normals, buffers=self.frame_buffers(gbuffer, normals))
+        out = self.walk(frame, *self.chunking(gbuffer))
         return AOOutput(
             visibility=frame.scatter(out["visibility"], 1.0),
             indirect=frame.scatter(out["indirect"], 0.0) if "indirect" in out else None,

@@ -63,11 +63,13 @@ from ..gbuffer import GBuffer
 from dataclasses import replace
 
 from ..intervals import THICKNESS_DIRECTIONS, back_point, clip_to_sphere, sphere_stretch
-from ..marching import Frame, GradientRows, SamplingPattern, fast_acos
+from ..ops import safe_fast_acos as _safe_fast_acos
 from ..options import Option, options_by_name
 from ..sectors import MODES, ROUNDINGS, SECTORS
 from ..thickness import BoundThickness, as_thickness, matching
+from ..walk import Frame, GradientRows, SamplingPattern
 from .base import AOOutput, ScreenSpaceAO, make_parameter
+from .common import RADIUS
 from .bitmask_common import SectorAccumulator
 
 __all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTINGS", "UNIONS", "OPTIONS"]
@@ -129,16 +131,6 @@ _VARIANT_DEFAULTS = {
     "hdrp": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.0),
     "ssilvb_glsl": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.0),
 }
-
-
-def _safe_fast_acos(x: torch.Tensor) -> torch.Tensor:
-    """:func:`fast_acos` with a finite gradient at ``|x| = 1`` (same values)."""
-    value = fast_acos(x)
-    if not x.requires_grad:
-        return value
-    eps = 1e-6 if x.dtype == torch.float64 else 1e-4
-    soft = fast_acos(x.clamp(-1 + eps, 1 - eps))
-    return value.detach() + (soft - soft.detach())
 
 
 def _saturate(x: torch.Tensor) -> torch.Tensor:
@@ -360,6 +352,9 @@ class BitmaskAO(ScreenSpaceAO):
             1 otherwise.
     """
 
+    #: its own options and the radius (``options()`` adds the walk's and the module's: the CLI's flags)
+    OPTIONS = (RADIUS,) + OPTIONS
+
     #: pixels per chunk of a walk when ``chunk_size`` is not given (chunks that stay in the CPU caches
     #: are faster than one piece: 1.7 s instead of 2.2 s for a hard 640x360 frame)
     default_chunk = 16384
@@ -405,6 +400,7 @@ class BitmaskAO(ScreenSpaceAO):
             # pixel halves the remaining bias against the screen-space truth on stairs (docs/bitmask.md).
             kwargs.setdefault("min_step_px", EXACT_MIN_STEP_PX)
         super().__init__(azimuth=azimuth, **kwargs)
+        self.pattern_for(None)  # validate the variant's walk now (the base no longer calls it)
         self.mode, self.tau, self.rounding = mode, float(tau), rounding
         self.weighting, self.union = resolved["weighting"], resolved["union"]
         self.clip_to_radius, self.thickness_direction = resolved["clip_to_radius"], resolved["thickness_direction"]

@@ -23,27 +23,15 @@ import torch
 import torch.nn.functional as F
 
 from ..intervals import union_measure
-from ..marching import Queries, Sample, SliceGeometry
+from ..ops import arc_measure as arc_integral
+from ..ops import safe_acos
 from ..sectors import SECTORS, sector_union
 from ..thickness import BoundThickness
+from ..walk import Queries, Sample, SliceAccumulator, SliceGeometry
 
-__all__ = ["SectorAccumulator", "cosine_sector_weights", "sector_centres", "safe_acos", "arc_integral"]
-
-
-def safe_acos(x: torch.Tensor) -> torch.Tensor:
-    """``acos(clamp(x, -1, 1))`` with a finite gradient at ``|x| = 1`` (same values)."""
-    value = torch.acos(x.clamp(-1.0, 1.0))
-    if not x.requires_grad:
-        return value
-    eps = 1e-6 if x.dtype == torch.float64 else 1e-4
-    soft = torch.acos(x.clamp(-1 + eps, 1 - eps))
-    return value.detach() + (soft - soft.detach())
+__all__ = ["SectorAccumulator", "cosine_sector_weights", "sector_centres"]
 
 
-def arc_integral(theta: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
-    """``H(theta) = int_0^theta cos(t - gamma) |sin t| dt`` (GTAO's cosine-weighted slice measure)."""
-    F = lambda t: -torch.cos(2 * t - gamma) / 4 + t * torch.sin(gamma) / 2  # noqa: E731
-    return torch.sign(theta) * (F(theta) - F(torch.zeros_like(theta)))
 
 
 def sector_centres(gamma: torch.Tensor) -> torch.Tensor:
@@ -81,9 +69,9 @@ def _light_rows(width: torch.Tensor) -> torch.Tensor:
     return (width.detach() >= 0).nonzero()[:, 0]
 
 
-class SectorAccumulator:
+class SectorAccumulator(SliceAccumulator):
     """The per-step work shared by the ``"default"``, ``"exact"`` and ``"hdrp"`` variants (a
-    :class:`~torch_ao.marching.SliceAccumulator` that takes each side's steps in one call).
+    :class:`~torch_ao.walk.SliceAccumulator` that takes each side's steps in one call).
 
     Args:
         mode, rounding, tau: how :func:`~torch_ao.sectors.sector_union` turns intervals into sectors.

@@ -1,11 +1,11 @@
-"""Horizon-based ambient occlusion (HBAO, Bavoil & Sainz 2008) as described in seed 004.
+"""Horizon-based ambient occlusion (HBAO, Bavoil & Sainz 2008) as the HBAO/UE4 article describes it.
 
 ``N`` screen directions over the full circle (``slices``, one side each, rotated per pixel by
 interleaved gradient noise) with ``steps`` jittered samples each. Per direction, with ``t`` the
 elevation of the surface tangent along the direction plus ``angle_bias`` and ``h`` the horizon
 elevation of the samples within ``radius``::
 
-    AO = 1 - (1/N) sum_directions  W(r) (sin h - sin t)          (seed 004)
+    AO = 1 - (1/N) sum_directions  W(r) (sin h - sin t)          (the HBAO/UE4 article)
 
 Weights ``W(r) = max(0, 1 - r/R)`` (``falloff="linear"``) or ``max(0, 1 - r^2/R^2)``
 (``falloff="quadratic"``), ``r`` the 3D distance of the horizon sample. How the sum is formed
@@ -14,18 +14,18 @@ Weights ``W(r) = max(0, 1 - r/R)`` (``falloff="linear"``) or ``max(0, 1 - r^2/R^
 * ``"incremental"`` (default, the original HBAO's per-step form): starting at ``sin t``, each sample
   within ``R`` that rises above the running horizon adds ``W(r_i) (sin h_i - sin h_{i-1})`` and becomes
   the new horizon. Without falloff this telescopes to ``sin h - sin t``.
-* ``"max"`` (the seed's literal reading): the highest sample only, ``W(r*) (sin h* - sin t)``.
+* ``"max"`` (the article's literal reading): the highest sample only, ``W(r*) (sin h* - sin t)``.
 
-Elevations (``elevation``): ``"image"`` (default, the seed's ``tan = z / sqrt(x^2 + y^2)``: the angle
+Elevations (``elevation``): ``"image"`` (default, the article's ``tan = z / sqrt(x^2 + y^2)``: the angle
 above the view-space image plane, 3D) or ``"view"`` (in the slice plane, from the plane orthogonal
 to the view vector: rotation-invariant around V). The tangent comes from the normals (the G-buffer's,
-or those reconstructed from depth with seed 003's smaller-discontinuity rule, which is the seed's
-``minDis`` choice). The angle bias is added to the tangent *angle* (``t + angle_bias``, capped at
+or those reconstructed from depth with the PSSAO gist's smaller-discontinuity rule, which is the
+article's ``minDis`` choice). The angle bias is added to the tangent *angle* (``t + angle_bias``, capped at
 ``pi/2``); the original NVIDIA sample adds ``tan(bias)`` to ``tan t``, which differs at steep tangents.
 
 Per direction ``sin h - sin t`` can exceed 1 on tilted surfaces (up to ``1 + sin |t|``), so the
 visibility is clamped to [0, 1]. Directions are evenly spaced in screen angle (``azimuth="screen"``)
-as in the seed. The seed does not fix the depth fetch; the default is bilinear with border drop,
+as in the article. The article does not fix the depth fetch; the default is bilinear with border drop,
 because a nearest fetch puts the 1-pixel first step up to ~27 degrees off the direction, and on a
 plane tilted 70 degrees that alone darkens it to ~0.81 (``fetch="nearest", border="clamp"`` is
 available).
@@ -36,20 +36,21 @@ import math
 
 import torch
 
-from ..gbuffer import GBuffer
-from ..marching import SlicePattern
-from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional, with_base_signature
+from ..options import Option
+from ..walk import SliceAccumulator
+from .base import ScreenSpaceAO
+from .common import RADIUS, Sampling, declare_signature, functional_twin, register_parameters
 
 __all__ = ["HBAO", "hbao"]
 
 HALF_PI = 0.5 * math.pi
 
 
-class HBAOAccumulator:
+class HBAOAccumulator(SliceAccumulator):
+    """Per direction: the running horizon ``sin h`` above the tangent ``sin t`` and its weighted rise."""
+
     def __init__(self, module: "HBAO") -> None:
         self.m = module
-
     def begin_slice(self, q, geom):
         m = self.m
         bias = m.angle_bias.to(q.depth.dtype)
@@ -92,36 +93,33 @@ class HBAOAccumulator:
         return {"visibility": (1 - sums["ao"] / num_slices).clamp(0.0, 1.0)}
 
 
-@with_base_signature
+@declare_signature
 class HBAO(ScreenSpaceAO):
-    """Horizon-based AO (seed 004); see the module docstring.
+    """Horizon-based AO (the HBAO/UE4 article); see the module docstring and :meth:`options`.
+    ``slices`` are directions over the full circle, ``steps`` samples per direction."""
 
-    Args:
-        radius: world-space radius ``R`` (parameter).
-        angle_bias: tangent-angle bias in radians (parameter, >= 0; default 10 degrees).
-        falloff: ``"linear"`` (``1 - r/R``) or ``"quadratic"`` (``1 - r^2/R^2``).
-        accumulate: ``"incremental"`` (per-step, original HBAO) or ``"max"`` (highest sample only).
-        elevation: ``"image"`` (seed) or ``"view"``.
-        slices: directions over the full circle; steps: samples per direction.
-        fetch, border, azimuth: default bilinear / drop / screen.
-        Other arguments: see :class:`~torch_ao.methods.base.ScreenSpaceAO`.
-    """
+    OPTIONS = (
+        RADIUS,
+        Option("angle_bias", math.radians(10.0), "Added to the tangent angle so that flat surfaces do not "
+               "self-occlude (default 10 degrees)", unit="radians", minimum=0.0, maximum=HALF_PI,
+               open_maximum=True, fitted=True),
+        Option("falloff", "linear", "Weight of a horizon sample at distance r: linear 1 - r/R or quadratic "
+               "1 - r^2/R^2", kind=str, choices=("linear", "quadratic")),
+        Option("accumulate", "incremental", "incremental: each rise of the horizon weighted at its own distance "
+               "(the original HBAO); max: the highest sample only", kind=str, choices=("incremental", "max")),
+        Option("elevation", "image", "image: elevation above the view-space image plane (the article); view: "
+               "in the slice plane, rotation-invariant around V", kind=str, choices=("image", "view")),
+    )
+    SAMPLING = Sampling.options_for(azimuth="screen")
 
-    def __init__(self, *, radius: float = 1.0, angle_bias: float = math.radians(10.0), falloff: str = "linear",
-                 accumulate: str = "incremental", elevation: str = "image", fetch: str = "bilinear",
-                 border: str = "drop", azimuth: str = "screen", trainable: bool = True, **kwargs) -> None:
-        self.falloff = check_choice("falloff", falloff, ("linear", "quadratic"))
-        self.accumulate = check_choice("accumulate", accumulate, ("incremental", "max"))
-        self.elevation = check_choice("elevation", elevation, ("image", "view"))
-        super().__init__(radius=radius, fetch=fetch, border=border, azimuth=azimuth, trainable=trainable, **kwargs)
-        make_parameter(self, "angle_bias", angle_bias, trainable=trainable, minimum=0.0)
-        if self.angle_bias.dim() != 0 or float(self.angle_bias.detach()) >= HALF_PI:
-            raise ValueError(f"angle_bias: expected a scalar in [0, pi/2), got {self.angle_bias.detach().tolist()}")
+    def __init__(self, **options) -> None:
+        super().__init__(**options)
+        v = self.values
+        self.falloff, self.accumulate, self.elevation = v["falloff"], v["accumulate"], v["elevation"]
+        register_parameters(self, self.options(), v, ("angle_bias",), trainable=self.trainable)
 
     def pattern_for(self, frame):
-        return SlicePattern(self.slices, self.steps, self.radius, step_power=self.step_power,
-                            min_step_px=self.min_step_px, jitter=self.jitter, seed=self.seed, fetch=self.fetch,
-                            border=self.border, azimuth=self.azimuth, full_circle=True)
+        return self.sampling.pattern(self.radius, full_circle=True)
 
     def accumulator(self, frame):
         return HBAOAccumulator(self)
@@ -130,6 +128,4 @@ class HBAO(ScreenSpaceAO):
         return f"falloff={self.falloff!r}, accumulate={self.accumulate!r}, elevation={self.elevation!r}, " + super().extra_repr()
 
 
-def hbao(gbuffer: GBuffer, *, radius=1.0, angle_bias=math.radians(10.0), **options) -> AOOutput:
-    """Functional :class:`HBAO`: float arguments may be tensors (gradients flow to them)."""
-    return run_functional(HBAO, gbuffer, dict(radius=radius, angle_bias=angle_bias), **options)
+hbao = functional_twin(HBAO, "hbao")

@@ -1,4 +1,4 @@
-"""Planar screen-space AO (PSSAO), seed 003 (Codezigineer's gist), as its GLSL code computes it.
+"""Planar screen-space AO (PSSAO), the PSSAO gist (Codezigineer), as its GLSL code computes it.
 
 For every direction ``i`` of ``slices`` evenly spaced over the full circle (angle ``2 pi i / slices``,
 no jitter) and every step ``k = 0 .. steps-1``, the sample is the pixel at the integer offset
@@ -22,7 +22,7 @@ Differences from the gist, by necessity: positions come from the G-buffer's came
 ``getPos`` treats depth as distance along a half-pixel-shifted ray); normals are the G-buffer's or,
 when absent, reconstructed with the same improved rule as the gist's ``computeNormalImproved``;
 background samples occlude nothing (the gist reads whatever the depth texture holds there). The walk
-is in pixels, so ``radius`` is not used (it is kept, frozen, for a uniform interface).
+is in pixels, so there is no ``radius``.
 """
 from __future__ import annotations
 
@@ -30,10 +30,11 @@ import math
 
 import torch
 
-from ..gbuffer import GBuffer
-from ..marching import BORDER_MODES, FETCH_MODES, SamplingPattern, tangent_from_screen_angle
-from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional, with_base_signature
+from ..checks import check_choice, check_int
+from ..options import Option
+from ..walk import BORDER_MODES, FETCH_MODES, SamplingPattern, SliceAccumulator, tangent_from_screen_angle
+from .base import ScreenSpaceAO
+from .common import Sampling, declare_signature, functional_twin, register_parameters
 
 __all__ = ["PSSAO", "pssao", "PSSAOPattern"]
 
@@ -44,12 +45,8 @@ class PSSAOPattern(SamplingPattern):
     sides = (1,)
 
     def __init__(self, slices: int, steps: int, *, fetch: str = "nearest", border: str = "drop") -> None:
-        for name, value in (("slices", slices), ("steps", steps)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
-        check_choice("fetch", fetch, FETCH_MODES)
-        check_choice("border", border, BORDER_MODES)
-        self.num_slices, self.steps, self.fetch, self.border = slices, steps, fetch, border
+        self.num_slices, self.steps = check_int("slices", slices, 1), check_int("steps", steps, 1)
+        self.fetch, self.border = check_choice("fetch", fetch, FETCH_MODES), check_choice("border", border, BORDER_MODES)
 
     def angle(self, s: int) -> float:
         return s / self.num_slices * 2 * math.pi
@@ -71,18 +68,17 @@ class PSSAOPattern(SamplingPattern):
         return out
 
 
-class PSSAOAccumulator:
-    def __init__(self, module: "PSSAO", frame, pattern: PSSAOPattern) -> None:
-        self.m, self.pattern = module, pattern
-        _, self.H, self.W = frame.shape
+class PSSAOAccumulator(SliceAccumulator):
+    """Per direction: the largest sample occlusion and the number of in-image samples (``toInclude``)."""
+
+    def __init__(self, module: "PSSAO") -> None:
+        self.m = module
 
     def begin_slice(self, q, geom):
         return {"max": torch.full_like(q.depth, -100000.0), "count": torch.zeros_like(q.depth)}
 
     def step(self, state, q, geom, sample):
-        du, dv = self.pattern.pixel_offset(geom.index, sample.step)
-        u, v = q.u + du, q.v + dv
-        inside = (u >= 0) & (u <= self.W - 1) & (v >= 0) & (v <= self.H - 1)
+        inside = sample.inside
         a = (q.normal * sample.delta).sum(-1).clamp_min(0.0)
         a = a / (self.m.distance_bias.to(a.dtype) + sample.distance)
         occ = a / (1 + a)  # 1 - 1/(1 + a)
@@ -102,46 +98,37 @@ class PSSAOAccumulator:
         return {"visibility": 1 - occ}
 
 
-@with_base_signature
+@declare_signature
 class PSSAO(ScreenSpaceAO):
-    """Planar SSAO (seed 003); see the module docstring.
+    """Planar SSAO (the PSSAO gist); see the module docstring and :meth:`options`. ``slices`` are the gist's
+    ``angularSteps`` (directions over the full circle), ``steps`` its ``radiusSteps`` (including the pixel)."""
 
-    Args:
-        slices: directions over the full circle (the gist's ``angularSteps``).
-        steps: samples per direction including the pixel itself (``radiusSteps``).
-        distance_bias: the ``1.0`` in ``a /= 1.0 + distance`` (parameter, > 0).
-        normalize: ``"samples"`` (faithful) or ``"directions"``.
-        fetch, border: default nearest / drop (offsets are integers, so the fetch does not matter
-            for depth; border ``"clamp"`` would re-read edge pixels instead of skipping them).
-    """
-
+    OPTIONS = (
+        Option("distance_bias", 1.0, "The 1.0 in the gist's a /= 1.0 + distance", unit="world units", minimum=0.0,
+               open_minimum=True, fitted=True),
+        Option("normalize", "samples", "samples: divide by the in-image samples (the gist); directions: by the "
+               "directions, so the result does not shrink as steps grows", kind=str, choices=("samples", "directions")),
+    )
+    SAMPLING = Sampling.options_for(("preset", "slices", "steps", "fetch", "border"), fetch="nearest")
     default_slices_steps = (8, 8)
-    unused_base_arguments = ("jitter", "azimuth", "step_power", "min_step_px")
 
-    def __init__(self, *, distance_bias: float = 1.0, normalize: str = "samples", fetch: str = "nearest",
-                 border: str = "drop", trainable: bool = True, **kwargs) -> None:
-        self.normalize = check_choice("normalize", normalize, ("samples", "directions"))
-        for name in self.unused_base_arguments:
-            if name in kwargs:
-                raise ValueError(f"{name}: not used by PSSAO (its walk is fixed by the gist)")
-        super().__init__(fetch=fetch, border=border, jitter=False, trainable=trainable, **kwargs)
-        radius = self.radius.detach().clone()
-        del self.radius
-        self.register_buffer("radius", radius)  # unused: the walk is in pixels
-        make_parameter(self, "distance_bias", distance_bias, trainable=trainable)
-        if self.distance_bias.dim() != 0 or not float(self.distance_bias.detach()) > 0:
-            raise ValueError(f"distance_bias: expected a scalar > 0, got {self.distance_bias.detach().tolist()}")
+    @classmethod
+    def parse_options(cls, options):
+        return super().parse_options(options) | {"jitter": False}  # the gist's walk is fixed
+
+    def __init__(self, **options) -> None:
+        super().__init__(**options)
+        self.normalize = self.values["normalize"]
+        register_parameters(self, self.options(), self.values, ("distance_bias",), trainable=self.trainable)
 
     def pattern_for(self, frame):
         return PSSAOPattern(self.slices, self.steps, fetch=self.fetch, border=self.border)
 
     def accumulator(self, frame):
-        return PSSAOAccumulator(self, frame, self.pattern_for(frame))
+        return PSSAOAccumulator(self)
 
     def extra_repr(self) -> str:
         return f"normalize={self.normalize!r}, " + super().extra_repr()
 
 
-def pssao(gbuffer: GBuffer, *, distance_bias=1.0, **options) -> AOOutput:
-    """Functional :class:`PSSAO`: ``distance_bias`` may be a tensor (gradients flow to it)."""
-    return run_functional(PSSAO, gbuffer, dict(distance_bias=distance_bias), **options)
+pssao = functional_twin(PSSAO, "pssao")

@@ -1,7 +1,8 @@
-"""UE4's normal-less screen-space AO ("wedge" pairs), seed 004 / ``PostProcessAmbientOcclusion.usf``.
+"""UE4's normal-less screen-space AO ("wedge" pairs), as the HBAO/UE4 article gives ``PostProcessAmbientOcclusion.usf``.
 
 Per direction ``i`` (a slice) and step ``j`` the shader reads a symmetric pair of samples at screen
-offsets ``+o`` and ``-o`` (the core's two sides of one slice at the same step), with view-space offsets
+offsets ``+o`` and ``-o`` (the walk's two sides of one slice at the same step, taken together:
+``paired_sides``), with view-space offsets
 ``DL``, ``DR`` from the pixel and depths ``zL``, ``zR`` (the pixel's: ``zc``). ``WedgeNoNormal``::
 
     NormAngle = saturate((1 - cos(DL, DR)) * 0.5 * 0.9)        # acosApproxNormAngle, "contrast tweak" 0.9
@@ -15,8 +16,8 @@ That ``AO`` is the visibility (1 = unoccluded; a pair spanning a straight angle 
 ``1 - (1 - AO^final_power) * intensity`` as UE4's user adjustment, clamped to [0, 1] (``acc.x`` can exceed
 1 when small weights amplify ``x``, and the square then leaves [0, 1] for ``acc.x > 2``).
 
-The halo weight ``Weight`` is what the seed calls the halo fix; the per-side ``WeightLeft/Right``
-(``1 - |D| / halo``) of the seed are dead code in the shipped shader (``OPTIMIZATION_O1``) and are not
+The halo weight ``Weight`` is what the article calls the halo fix; the per-side ``WeightLeft/Right``
+(``1 - |D| / halo``) of the article are dead code in the shipped shader (``OPTIMIZATION_O1``) and are not
 used. Improvements (named options, off by default): ``accurate_angle=True`` uses ``acos(cos)/pi``;
 ``flat_softness > 0`` replaces the hard flat-surface test by a logistic blend of that width (so depth
 gets a gradient through it).
@@ -33,12 +34,12 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
-from ..gbuffer import GBuffer
-from ..marching import SlicePattern, tangent_from_screen_angle
-from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .gtao import check_choice, run_functional, with_base_signature, safe_pow
+from ..ops import safe_pow
+from ..options import Option
+from ..walk import SliceAccumulator, SlicePattern, radius_px, step_direction, tangent_from_screen_angle
+from .base import ScreenSpaceAO
+from .common import RADIUS, Sampling, declare_signature, functional_twin, register_parameters
 
 __all__ = ["UE4SSAO", "ue4_ssao", "WedgePattern", "SAMPLE_SETS"]
 
@@ -70,27 +71,28 @@ class WedgePattern(SlicePattern):
 
     def step_offsets(self, q, geom, side):
         _, length = self._direction(geom.index)
-        unit = F.normalize(geom.pixels_per_unit, dim=-1, eps=1e-12) * side
-        r_px = self.radius_px(geom) * length
+        unit = step_direction(geom, side)
+        r_px = radius_px(self.radius, geom) * length
         return [((j + 1) / self.steps * r_px)[:, None] * unit for j in range(self.steps)]
 
 
-class WedgeAccumulator:
+class WedgeAccumulator(SliceAccumulator):
+    """Per direction, UE4's ``WedgeNoNormal`` of each symmetric pair of samples (both sides of a step)."""
+
+    paired_sides = True
+
     def __init__(self, module: "UE4SSAO") -> None:
         self.m = module
 
     def begin_slice(self, q, geom):
         zero = torch.zeros_like(q.depth)
-        return {"pos": {}, "x": zero, "y": zero}
+        return {"x": zero, "y": zero}
 
-    def step(self, state, q, geom, sample):
-        if sample.side == 1:  # keep the +o sample until its -o partner arrives
-            state["pos"][sample.step] = (sample.delta, sample.position, sample.valid)
-            return state
+    def step_pair(self, state, q, geom, plus, minus):
         m = self.m
         dtype = q.depth.dtype
-        dl, pl, vl = state["pos"].pop(sample.step)
-        dr, pr, vr = sample.delta, sample.position, sample.valid
+        dl, pl, vl = plus.delta, plus.position, plus.valid
+        dr, pr, vr = minus.delta, minus.position, minus.valid
         denom = (dl.square().sum(-1) * dr.square().sum(-1)).clamp_min(1e-30).sqrt()
         cos = ((dl * dr).sum(-1) / denom).clamp(-1.0, 1.0)
         if m.accurate_angle:
@@ -126,62 +128,48 @@ class WedgeAccumulator:
         return {"visibility": vis.clamp(0.0, 1.0)}
 
 
-@with_base_signature
+@declare_signature
 class UE4SSAO(ScreenSpaceAO):
-    """UE4's normal-less SSAO (seed 004); see the module docstring for the exact formula.
+    """UE4's normal-less SSAO (the HBAO/UE4 article); see the module docstring and :meth:`options`.
+    ``steps`` is UE4's ``SAMPLE_STEPS`` (1-3: pairs per direction); directions are rotated in screen space."""
 
-    Args:
-        radius: world-space sampling radius (parameter; UE4 ``AmbientOcclusionRadius``).
-        fade_distance: ``D`` of the halo weight (parameter; UE4 ``AmbientOcclusionDistance``, 80 cm for
-            a 200 cm radius, hence the default 0.4).
-        flat_surface_bias: the flat-surface bias in world units (parameter; UE4 hard-codes 5 cm for a
-            200 cm radius, hence the default 0.025).
-        final_power, intensity: UE4's final ``1 - (1 - AO^final_power) * intensity`` (parameters; UE4's editor
-            defaults are 2 and 0.5, these default to 1 and 1 so the output is the raw visibility).
-        sample_set: ``"ue4_3"`` (default), ``"ue4_6"`` or ``"uniform"`` (``slices`` evenly spaced). With a
-            UE4 set, ``slices`` is the set's size (3 or 6) whatever ``slices``/``preset`` say.
-        accurate_angle: ``acos(cos)/pi`` instead of UE4's linear approximation with contrast 0.9.
-        flat_softness: > 0 makes the flat-surface test a logistic blend of this width (world units).
-        steps: pairs per direction (UE4 ``SAMPLE_STEPS``: 1-3). fetch/border/azimuth default
-            nearest / clamp / screen.
-    """
-
+    OPTIONS = (
+        RADIUS,
+        Option("fade_distance", 0.4, "D of the halo weight (UE4's AmbientOcclusionDistance: 80 cm for a 200 cm "
+               "radius, hence 0.4)", unit="world units", minimum=0.0, open_minimum=True, fitted=True),
+        Option("flat_surface_bias", 0.025, "Pairs this close to flat or concave-away do not occlude (UE4 hard-codes "
+               "5 cm for a 200 cm radius, hence 0.025)", unit="world units", fitted=True),
+        Option("final_power", 1.0, "UE4's 1 - (1 - AO^final_power) x intensity (the editor uses 2; 1 keeps the raw "
+               "visibility)", minimum=0.0, open_minimum=True, fitted=True),
+        Option("intensity", 1.0, "UE4's intensity in 1 - (1 - AO^final_power) x intensity (the editor uses 0.5)",
+               minimum=0.0, fitted=True),
+        Option("sample_set", "ue4_3", "ue4_3 / ue4_6: UE4's 3 or 6 spiral offsets (slices is then the set's size); "
+               "uniform: slices evenly spaced", kind=str, choices=("ue4_3", "ue4_6", "uniform")),
+        Option("accurate_angle", False, "acos(cos)/pi instead of UE4's linear approximation with contrast 0.9",
+               kind=bool),
+        Option("flat_softness", 0.0, "> 0: the flat-surface test becomes a logistic blend of this width, so depth "
+               "gets a gradient through it", unit="world units", minimum=0.0),
+    )
+    SAMPLING = Sampling.options_for(("preset", "slices", "steps", "jitter", "seed", "fetch", "border"),
+                                    fetch="nearest", border="clamp")
     default_slices_steps = (3, 3)
-    unused_base_arguments = ("step_power", "min_step_px")
 
-    def __init__(self, *, radius: float = 1.0, fade_distance: float = 0.4, flat_surface_bias: float = 0.025,
-                 final_power: float = 1.0, intensity: float = 1.0, sample_set: str = "ue4_3", accurate_angle: bool = False,
-                 flat_softness: float = 0.0, fetch: str = "nearest", border: str = "clamp", azimuth: str = "screen",
-                 trainable: bool = True, **kwargs) -> None:
-        self.sample_set = check_choice("sample_set", sample_set, ("ue4_3", "ue4_6", "uniform"))
-        self.accurate_angle = bool(accurate_angle)
-        if not (isinstance(flat_softness, (int, float)) and flat_softness >= 0):
-            raise ValueError(f"flat_softness: expected a number >= 0, got {flat_softness!r}")
-        self.flat_softness = float(flat_softness)
-        for name in self.unused_base_arguments:
-            if name in kwargs:
-                raise ValueError(f"{name}: not used by UE4 SSAO (steps are at (j + 1) / steps of each offset)")
-        if azimuth != "screen":
-            raise ValueError(f"azimuth: UE4 SSAO rotates screen-space offsets; expected 'screen', got {azimuth!r}")
-        super().__init__(radius=radius, fetch=fetch, border=border, azimuth=azimuth, trainable=trainable, **kwargs)
-        make_parameter(self, "fade_distance", fade_distance, trainable=trainable, minimum=0.0)
-        make_parameter(self, "flat_surface_bias", flat_surface_bias, trainable=trainable)
-        make_parameter(self, "final_power", final_power, trainable=trainable, minimum=0.0)
-        make_parameter(self, "intensity", intensity, trainable=trainable, minimum=0.0)
-        for name in ("fade_distance", "flat_surface_bias", "final_power", "intensity"):
-            if getattr(self, name).dim() != 0:
-                raise ValueError(f"{name}: expected a scalar, got shape {tuple(getattr(self, name).shape)}")
-        if not float(self.fade_distance.detach()) > 0:
-            raise ValueError("fade_distance: expected > 0")
-        if not float(self.final_power.detach()) > 0:
-            raise ValueError("final_power: expected > 0")
-        if self.sample_set != "uniform":
-            self.slices = len(SAMPLE_SETS[self.sample_set])
+    @classmethod
+    def parse_options(cls, options):
+        values = super().parse_options(options) | {"azimuth": "screen"}
+        if values["sample_set"] != "uniform":
+            values["slices"] = len(SAMPLE_SETS[values["sample_set"]])
+        return values
+
+    def __init__(self, **options) -> None:
+        super().__init__(**options)
+        v = self.values
+        self.sample_set, self.accurate_angle, self.flat_softness = v["sample_set"], v["accurate_angle"], float(v["flat_softness"])
+        register_parameters(self, self.options(), v, ("fade_distance", "flat_surface_bias", "final_power", "intensity"),
+                            trainable=self.trainable)
 
     def pattern_for(self, frame):
-        offsets = SAMPLE_SETS.get(getattr(self, "sample_set", "uniform"))
-        return WedgePattern(self.slices, self.steps, self.radius, offsets=offsets, jitter=self.jitter, seed=self.seed,
-                            fetch=self.fetch, border=self.border, azimuth="screen")
+        return self.sampling.pattern(self.radius, WedgePattern, offsets=SAMPLE_SETS.get(self.sample_set))
 
     def accumulator(self, frame):
         return WedgeAccumulator(self)
@@ -190,9 +178,4 @@ class UE4SSAO(ScreenSpaceAO):
         return f"sample_set={self.sample_set!r}, " + super().extra_repr()
 
 
-def ue4_ssao(gbuffer: GBuffer, *, radius=1.0, fade_distance=0.4, flat_surface_bias=0.025, final_power=1.0,
-             intensity=1.0, **options) -> AOOutput:
-    """Functional :class:`UE4SSAO`: float arguments may be tensors (gradients flow to them)."""
-    return run_functional(UE4SSAO, gbuffer, dict(radius=radius, fade_distance=fade_distance,
-                                                 flat_surface_bias=flat_surface_bias, final_power=final_power,
-                                                 intensity=intensity), **options)
+ue4_ssao = functional_twin(UE4SSAO, "ue4_ssao")

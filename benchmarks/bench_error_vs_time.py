@@ -1,7 +1,7 @@
 """The error-against-run-time report and the background study, as run for the README.
 
-    python benchmarks/bench_report.py --quick --threads 1 --out bench_quick     # the 2-core CPU run
-    python benchmarks/bench_report.py --out bench_full --device cuda            # a GPU run
+    python benchmarks/bench_error_vs_time.py --quick --threads 1 --out bench_quick     # the 2-core CPU run
+    python benchmarks/bench_error_vs_time.py --out bench_full --device cuda            # a GPU run
 
 runs ``torch-ao bench`` with the given flags, then times every available method on a full frame, the
 same frame with half its pixels background, and an all-background frame at a few sizes, and writes

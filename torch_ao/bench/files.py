@@ -10,9 +10,10 @@ import os
 from pathlib import Path
 from typing import Sequence
 
-from .io import write_text_atomic
-from .bench import COLUMNS, aggregate_rows, pareto_front, recommend
-from .methods import PRESETS
+from ..io import write_text_atomic
+from ..methods import PRESETS
+from .recommend import DEFAULT_TOLERANCE, aggregate_rows, pareto_front, recommend
+from .sweep import COLUMNS
 
 __all__ = ["write_report", "write_csv", "markdown_report", "plot_error_vs_time", "load_report", "REPORT_VERSION"]
 
@@ -26,7 +27,7 @@ def _sorted(rows: Sequence[dict]) -> list[dict]:
 
 
 def write_csv(path: str | os.PathLike, rows: Sequence[dict]) -> Path:
-    """Rows as CSV with the :data:`~torch_ao.bench.COLUMNS` (then any extra keys)."""
+    """Rows as CSV with the :data:`~torch_ao.bench.sweep.COLUMNS` (then any extra keys)."""
     import io
 
     extra = sorted({k for r in rows for k in r} - set(COLUMNS))
@@ -171,7 +172,7 @@ def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: 
     return path
 
 
-def write_report(out_dir: str | os.PathLike, rows: Sequence[dict], *, tolerance: float = 0.01,
+def write_report(out_dir: str | os.PathLike, rows: Sequence[dict], *, tolerance: float = DEFAULT_TOLERANCE,
                  background: Sequence[dict] | None = None, env: dict | None = None, command: str | None = None,
                  settings: dict | None = None, plots: bool = True) -> dict[str, Path]:
     """Write ``bench.csv``, ``bench.md``, ``report.json`` and (``plots``) the PNGs into ``out_dir``.

@@ -1,19 +1,22 @@
-"""``torch-ao ao --auto``: apply the bench recommendation (cheapest method and preset whose MAE is within a
-tolerance of the best) to a G-buffer file, from a saved report or from a quick sweep on the file's own
-``ao`` reference."""
+"""The recommendation for one G-buffer file (what ``torch-ao ao --auto`` applies): the cheapest method and
+preset whose MAE is within a tolerance of the best, from a saved report or from a quick sweep on the
+file's own ``ao`` reference."""
 from __future__ import annotations
 
-import argparse
-import math
 import os
 from pathlib import Path
 from typing import Callable
 
-from .bench import QUICK, available_methods, load_bench_views, recommend, run_bench
+from ..checks import check_float
+from ..views import load_bench_views
+from .files import load_report
+from .recommend import DEFAULT_TOLERANCE, recommend
+from .sweep import QUICK, available_methods, run_bench
 
-__all__ = ["auto_choice", "apply_auto", "DEFAULT_TOLERANCE"]
+__all__ = ["auto_choice", "AUTO_PRESETS"]
 
-DEFAULT_TOLERANCE = 0.01
+#: Presets of the quick sweep run when there is no report.
+AUTO_PRESETS = ("low", "medium", "high", "ultra")
 
 _NEITHER = ("--auto needs either a bench report (--report REPORT.json, written by `torch-ao bench --out DIR`) "
             "or a G-buffer file with an 'ao' reference array to sweep against (`torch-ao render SCENE --out FILE.npz` "
@@ -30,10 +33,8 @@ def auto_choice(path: str | os.PathLike | None = None, *, report: str | os.PathL
     Without: a quick sweep (all available methods, presets low..ultra, no denoiser, forward only) on
     ``path``'s ``ao`` reference. Raises ``ValueError`` explaining what is missing when neither is possible.
     """
-    from .bench_report import load_report
-
-    if tolerance is not None and not (tolerance >= 0 and math.isfinite(tolerance)):
-        raise ValueError(f"--tolerance: expected a finite value >= 0, got {tolerance}")
+    if tolerance is not None:
+        tolerance = check_float("tolerance", tolerance, 0.0)
     stem = Path(path).stem if path else None
     if report is not None:
         data = load_report(report)
@@ -50,7 +51,7 @@ def auto_choice(path: str | os.PathLike | None = None, *, report: str | os.PathL
     else:
         if path is None:
             raise ValueError(_NEITHER + "; the built-in example has no reference")
-        from .io import read_npz
+        from ..io import read_npz
 
         if "ao" not in read_npz(path):
             raise ValueError(f"{path} has no 'ao' reference array and no --report was given: " + _NEITHER)
@@ -59,7 +60,7 @@ def auto_choice(path: str | os.PathLike | None = None, *, report: str | os.PathL
         found = available_methods(methods, log=log)
         if not found:
             raise ValueError("--auto: no method is available to sweep")
-        presets = ["low", "medium", "high", "ultra"]
+        presets = list(AUTO_PRESETS)
         rows = run_bench(views, found, presets, denoise=False, backward=False, repeats=QUICK.repeats, device=device,
                          progress=progress, log=log)
         scene = views[0].name
@@ -81,20 +82,3 @@ def _match_scene(stem: str | None, scenes: list[str]) -> str | None:
         return stem
     prefixed = [s for s in scenes if stem.startswith(s + "_")]
     return max(prefixed, key=len) if prefixed else None
-
-
-def apply_auto(args: argparse.Namespace, log: Callable[[str], None] = print) -> dict:
-    """Set ``args.method``/``args.preset`` (and ``args.radius`` when not given) from :func:`auto_choice`."""
-    if not getattr(args, "auto", False):
-        raise ValueError("--report/--tolerance: only meaningful with --auto")
-    if args.report is None and args.gbuffer:
-        log(f"auto: no --report; running a quick sweep on {args.gbuffer}'s reference (all methods, low..ultra)")
-    choice = auto_choice(args.gbuffer, report=args.report, tolerance=args.tolerance, device=args.device,
-                         progress=True, log=None)
-    args.method, args.preset = choice["method"], choice["preset"]
-    if getattr(args, "radius", None) is None and choice["radius"] is not None:
-        args.radius = choice["radius"]
-    b = choice["best"]
-    log(f"auto: {choice['method']} preset {choice['preset']} (MAE {choice['mae']:.4f}, {choice['forward_ms']:.1f} ms; "
-        f"best {b['method']} {b['preset']} MAE {b['mae']:.4f}; tolerance {choice['tolerance']:g}) from {choice['source']}")
-    return choice

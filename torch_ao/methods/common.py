@@ -1,0 +1,198 @@
+"""What the methods share: the sampling configuration, option parsing, parameters, the functional twin.
+
+Every option of a method is described once, as a :class:`~torch_ao.options.Option`: the method's own
+in its ``OPTIONS``, the walk's in :attr:`Sampling.OPTIONS` (a method lists in ``SAMPLING`` which of them
+it takes and may change their defaults), the memory and normals controls in :data:`MODULE_OPTIONS`.
+``cls.options()`` merges them; the constructor validates with them, ``inspect.signature(cls)`` lists
+them (the CLI builds its flags from them), and fitted options become parameters.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import inspect
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+from torch import nn
+
+from ..options import Option, options_by_name
+from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, SlicePattern
+
+__all__ = ["PRESETS", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
+           "register_parameters", "functional_twin", "declare_signature"]
+
+#: Quality presets shared by every horizon/bitmask method: (slices, steps per side).
+PRESETS: dict[str, tuple[int, int]] = {
+    "low": (1, 2),
+    "medium": (2, 2),
+    "high": (3, 3),
+    "ultra": (9, 3),
+    "extreme": (16, 8),
+    "reference": (32, 32),
+}
+
+#: The world-space radius most methods search (a method that samples in pixels does not list it).
+RADIUS = Option("radius", 1.0, "Search radius: samples farther than this from the pixel do not occlude",
+                unit="world units", minimum=0.0, fitted=True)
+
+#: Options of every module, outside the walk: normals reconstruction, memory, trainability.
+MODULE_OPTIONS = (
+    Option("normals", "improved", "Normal reconstruction used when the G-buffer has no normals "
+           "(improved: the smaller-discontinuity rule; kornia: central differences)", kind=str,
+           choices=("improved", "kornia")),
+    Option("chunk_size", None, "Walk at most this many pixels at a time to bound memory (default: all at once, "
+           "or the method's automatic choice)", kind=int, unit="pixels", minimum=1),
+    Option("recompute", False, "With autograd, recompute each chunk's walk in backward instead of keeping its "
+           "graph (with chunk_size: forward+backward memory of one chunk)", kind=bool),
+    Option("trainable", True, "Register the fitted options as nn.Parameters (False: frozen buffers)", kind=bool),
+)
+
+
+def resolve_preset(preset: str | None, slices: int | None, steps: int | None, default: tuple[int, int]) -> tuple[int, int]:
+    """Slices and steps from a preset name and/or explicit counts (explicit counts win)."""
+    if preset is not None:
+        key = str(preset).lower()
+        if key not in PRESETS:
+            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
+        default = PRESETS[key]
+    return (default[0] if slices is None else slices, default[1] if steps is None else steps)
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """Where the walk goes, validated on construction (see :class:`~torch_ao.walk.SlicePattern`).
+
+    Attributes: ``slices``, ``steps`` (counts), ``step_power``, ``min_step_px`` (pixels), ``jitter``,
+    ``seed``, ``fetch``, ``border``, ``azimuth``; :attr:`OPTIONS` says what each does and why its default.
+    """
+
+    slices: int = 4
+    steps: int = 8
+    step_power: float = 1.0
+    min_step_px: float = 1.0
+    jitter: bool = True
+    seed: int = 0
+    fetch: str = "bilinear"
+    border: str = "drop"
+    azimuth: str = "view"
+
+    OPTIONS: ClassVar[tuple[Option, ...]] = (
+        Option("preset", None, f"Quality preset setting slices x steps: {', '.join(f'{k} ({a}x{b})' for k, (a, b) in PRESETS.items())} "
+               "(slices/steps given explicitly win; default: the method's own counts)", kind=str,
+               choices=tuple(PRESETS)),
+        Option("slices", None, "Directions per pixel (default: from preset, else the method's)", kind=int, minimum=1),
+        Option("steps", None, "Samples per side of each direction (default: from preset, else the method's)",
+               kind=int, minimum=1),
+        Option("step_power", 1.0, "Exponent of the step spacing: 1 evenly spaced, 2 denser near the pixel "
+               "(where occluders matter most)", minimum=0.0, open_minimum=True),
+        Option("min_step_px", 1.0, "Distance of the first step at least; 1 keeps it off the pixel's own texel",
+               unit="pixels", minimum=0.0),
+        Option("jitter", True, "Rotate the directions and offset the steps per pixel by interleaved gradient "
+               "noise (banding becomes noise that a denoiser removes)", kind=bool),
+        Option("seed", 0, "Seed of the per-pixel noise (each seed is a new, reproducible pattern)", kind=int, minimum=0),
+        Option("fetch", "bilinear", "Depth fetch: nearest texel, or perspective-correct bilinear (interpolates "
+               "1/depth, so planes are reproduced exactly: the default)", kind=str, choices=FETCH_MODES),
+        Option("border", "drop", "Samples off the image: drop them (they occlude nothing: the default, no "
+               "smeared edge) or clamp them to the edge texel", kind=str, choices=BORDER_MODES),
+        Option("azimuth", "view", "Direction spacing: evenly around the view vector (the slice integral is exact "
+               "off-centre: the default) or evenly in screen angle (the shaders)", kind=str, choices=AZIMUTHS),
+    )
+
+    def __post_init__(self) -> None:
+        spec = options_by_name(self.OPTIONS)
+        for f in dataclasses.fields(self):
+            spec[f.name].check(getattr(self, f.name))
+
+    @classmethod
+    def from_values(cls, values: dict[str, Any], default_counts: tuple[int, int]) -> "Sampling":
+        """The configuration of ``values`` (the names it lacks keep the dataclass defaults; ``preset``,
+        ``slices`` and ``steps`` resolve against ``default_counts``)."""
+        slices, steps = resolve_preset(values.get("preset"), values.get("slices"), values.get("steps"), default_counts)
+        fields = {f.name: values[f.name] for f in dataclasses.fields(cls) if f.name in values and f.name not in ("slices", "steps")}
+        return cls(slices=slices, steps=steps, **fields)
+
+    def pattern(self, radius, pattern: type[SlicePattern] = SlicePattern, **extra) -> SlicePattern:
+        """The walk this configuration describes with world ``radius``: a :class:`~torch_ao.walk.SlicePattern`
+        (or the subclass ``pattern``, given the ``extra`` arguments it takes)."""
+        return pattern(self.slices, self.steps, radius, step_power=self.step_power, min_step_px=self.min_step_px,
+                       jitter=self.jitter, seed=self.seed, fetch=self.fetch, border=self.border, azimuth=self.azimuth,
+                       **extra)
+
+    @classmethod
+    def options_for(cls, names: tuple[str, ...] | None = None, **defaults) -> tuple[Option, ...]:
+        """The configuration's options ``names`` (default all), with a method's own ``defaults``."""
+        chosen = cls.OPTIONS if names is None else tuple(o for o in cls.OPTIONS if o.name in names)
+        return tuple(dataclasses.replace(o, default=defaults[o.name]) if o.name in defaults else o for o in chosen)
+
+
+def make_parameter(module: nn.Module, name: str, value, *, trainable: bool, minimum: float | None = None) -> None:
+    """Register a float parameter (an ``nn.Parameter`` when ``trainable``, else a buffer).
+
+    ``value`` may be a number or a tensor (a per-object table or a per-pixel map). Non-finite values
+    and values below ``minimum`` raise a ``ValueError`` naming ``name``.
+    """
+    t = torch.as_tensor(value).detach().clone()
+    if not t.is_floating_point():
+        t = t.to(torch.get_default_dtype())
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: expected finite values, got {t.tolist() if t.numel() < 8 else 'a tensor with non-finite entries'}")
+    if minimum is not None and bool((t < minimum).any()):
+        raise ValueError(f"{name}: expected values >= {minimum}, got {t.min().item()}")
+    if trainable:
+        setattr(module, name, nn.Parameter(t))
+    else:
+        module.register_buffer(name, t)
+
+
+def register_parameters(module: nn.Module, options: dict[str, Option], values: dict[str, Any], names, *,
+                        trainable: bool, frozen=()) -> None:
+    """Register the scalar fitted options ``names`` (in that order) from ``values``: parameters when
+    ``trainable`` and not in ``frozen`` (those the configuration does not use), else buffers; each value
+    checked against its option's bounds (``ValueError`` naming it)."""
+    for name in names:
+        opt = options[name]
+        make_parameter(module, name, values[name], trainable=trainable and name not in frozen)
+        t = getattr(module, name)
+        if t.dim() != 0:
+            raise ValueError(f"{name}: expected a scalar, got shape {tuple(t.shape)}")
+        opt.check(float(t.detach()))
+
+
+def declare_signature(cls):
+    """Class decorator: ``inspect.signature(cls)`` lists ``cls.options()`` as keyword-only arguments
+    with their defaults (the constructor takes ``**options``; the CLI reads the signature)."""
+    params = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=opt.default)
+              for name, opt in cls.options().items()]
+    init = cls.__init__
+    if "__init__" not in cls.__dict__:  # give the class its own constructor to carry the signature
+        @functools.wraps(init)
+        def init(self, **options):
+            super(cls, self).__init__(**options)
+        cls.__init__ = init
+    cls.__init__.__signature__ = inspect.Signature([inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+                                                   + params)
+    return cls
+
+
+def functional_twin(cls, name: str):
+    """The functional form of module ``cls``: ``twin(gbuffer, **options)`` builds ``cls`` once with its
+    fitted options taken *as given* when they are tensors (not copied), so gradients flow to tensors the
+    caller passes in, and returns its :class:`~torch_ao.methods.base.AOOutput`."""
+    fitted = tuple(n for n, o in cls.options().items() if o.fitted)
+
+    def twin(gbuffer, **options):
+        tensors = {k: options[k] for k in fitted if isinstance(options.get(k), torch.Tensor)}
+        init = {k: (v.detach() if isinstance(v, torch.Tensor) else v) for k, v in options.items()}
+        module = cls(**{"trainable": False, **init})
+        for key, value in tensors.items():
+            if value.dim() != 0:
+                raise ValueError(f"{key}: expected a scalar, got shape {tuple(value.shape)}")
+            module._buffers[key] = value
+        return module(gbuffer)
+
+    twin.__name__ = twin.__qualname__ = name
+    twin.__doc__ = (f"Functional :class:`{cls.__name__}` ``(gbuffer, **options) -> AOOutput``: the options of the "
+                    f"module; {', '.join(fitted)} may be tensors (gradients flow to them).")
+    return twin

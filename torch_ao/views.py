@@ -1,0 +1,142 @@
+"""Reference views: a G-buffer with its ray-traced reference visibility, and the on-disk cache of
+renders of the built-in scenes.
+
+* :class:`FitView` is what fitting and evaluation take; :class:`BenchView` adds the reference's
+  maximum ray distance (the methods' default radius in a sweep).
+* :func:`load_views` reads reference files (``.npz`` with an ``ao`` array, e.g. from ``torch-ao render``).
+* :func:`cached_reference` renders a built-in scene once and reads it from the cache afterwards;
+  :func:`reference_path` names the file, so ``torch-ao fit``, ``torch-ao bench`` and the training
+  examples share the renders they have in common.
+
+The cache folder (:func:`default_cache_dir`) is ``$TORCH_AO_CACHE`` when set, else
+``$XDG_CACHE_HOME/torch_ao``, else ``~/.cache/torch_ao``; renders live in its ``references/`` folder.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import torch
+
+from .gbuffer import GBuffer
+
+__all__ = ["FitView", "BenchView", "load_views", "load_bench_views", "default_cache_dir", "reference_path",
+           "cached_reference"]
+
+
+@dataclass
+class FitView:
+    """One reference view: its G-buffer, reference visibility ``(B,1,H,W)`` and optional stderr."""
+
+    gbuffer: GBuffer
+    reference: torch.Tensor
+    stderr: torch.Tensor | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.gbuffer, GBuffer):
+            raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(self.gbuffer).__name__}")
+        shape = tuple(self.gbuffer.depth.shape)
+        for key in ("reference", "stderr"):
+            x = getattr(self, key)
+            if x is None:
+                continue
+            if not isinstance(x, torch.Tensor) or tuple(x.shape) != shape:
+                got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+                raise ValueError(f"{key}: expected shape {shape} (that of depth), got {got}")
+            bad = ~torch.isfinite(x) & self.gbuffer.valid
+            if bool(bad.any()):
+                raise ValueError(f"{key}: {int(bad.sum())} non-finite values on valid pixels of view {self.name or '?'}")
+
+
+@dataclass
+class BenchView(FitView):
+    """A reference view with the reference's maximum ray distance in world units (``inf`` when the
+    file does not say)."""
+
+    max_distance: float = math.inf
+
+
+def load_views(paths: Iterable[str | os.PathLike], device=None) -> list[BenchView]:
+    """Reference views from G-buffer files that hold an ``ao`` array (and optionally ``ao_stderr`` and
+    ``max_distance``), named by their path."""
+    from .io import load_gbuffer
+
+    views = []
+    for path in paths:
+        gb, extras = load_gbuffer(path, device=device)
+        if "ao" not in extras:
+            raise ValueError(f"reference: {path} has no 'ao' array; render one with `torch-ao render`")
+        md = extras.get("max_distance")
+        md = float(md) if md is not None and md.numel() == 1 else math.inf
+        views.append(BenchView(gb, extras["ao"].to(gb.depth.dtype), extras.get("ao_stderr"), name=str(path),
+                               max_distance=md))
+    return views
+
+
+def default_cache_dir() -> Path:
+    """``$TORCH_AO_CACHE``, else ``$XDG_CACHE_HOME/torch_ao``, else ``~/.cache/torch_ao`` (``~`` expanded)."""
+    if os.environ.get("TORCH_AO_CACHE"):
+        return Path(os.environ["TORCH_AO_CACHE"]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base).expanduser() / "torch_ao"
+
+
+def reference_path(cache_dir: str | os.PathLike | None, scene: str, height: int, width: int, spp: int,
+                   max_distance: float, seed: int = 0, *, layout: int | None = None) -> Path:
+    """The cache file of a built-in scene's reference.
+
+    ``references/<scene>[_s<layout>]_<W>x<H>_spp<spp>_R<max_distance>_seed<seed>.npz``: ``layout`` is
+    the scene's randomisation seed (``None``: its default layout), ``seed`` the sampling seed of the
+    renderer; ``cache_dir=None`` is :func:`default_cache_dir`.
+    """
+    cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    r = "inf" if math.isinf(max_distance) else f"{max_distance:g}"
+    tag = "" if layout is None else f"_s{layout}"
+    return cache / "references" / f"{scene}{tag}_{width}x{height}_spp{spp}_R{r}_seed{seed}.npz"
+
+
+def cached_reference(scene: str, *, height: int, width: int, spp: int, max_distance: float, seed: int = 0,
+                     layout: int | None = None, cache_dir: str | os.PathLike | None = None, progress: bool = False,
+                     log: Callable[[str], None] | None = None) -> Path:
+    """The path of the reference of built-in ``scene`` (see :func:`reference_path`), ray-traced and
+    written there first when it is not in the cache yet."""
+    path = reference_path(cache_dir, scene, height, width, spp, max_distance, seed, layout=layout)
+    if not path.exists():
+        from .reference import get_scene, render_reference
+
+        if log is not None:
+            log(f"rendering reference {scene} ({width}x{height}, {spp} spp, R={max_distance:g}) -> {path}")
+        ref = render_reference(get_scene(scene, layout), height=height, width=width, spp=spp,
+                               max_distance=max_distance, seed=seed, uniform=False, progress=progress)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ref.save(path)
+    return path
+
+
+def load_bench_views(scenes: Sequence[str] = (), files: Sequence[str | os.PathLike] = (), *, height: int = 72,
+                     width: int = 96, spp: int = 64, max_distance: float = 1.0, seed: int = 0,
+                     cache_dir: str | os.PathLike | None = None, device=None, progress: bool = True,
+                     log: Callable[[str], None] | None = print) -> list[BenchView]:
+    """Reference views of built-in ``scenes`` (default layout; :func:`cached_reference`) and of
+    reference ``files``; each named after its scene or file stem (names must differ)."""
+    views = []
+    for name in scenes:
+        path = cached_reference(name, height=height, width=width, spp=spp, max_distance=max_distance, seed=seed,
+                                cache_dir=cache_dir, progress=progress, log=log)
+        views.append(_named(path, name, device))
+    for f in files:
+        views.append(_named(f, Path(f).stem, device))
+    names = [v.name for v in views]
+    if len(set(names)) != len(names):
+        raise ValueError(f"reference: two views share a name ({', '.join(names)}); rename the files")
+    return views
+
+
+def _named(path: str | os.PathLike, name: str, device) -> BenchView:
+    view = load_views([path], device=device)[0]
+    view.name = name
+    return view

@@ -1,0 +1,275 @@
+"""The depth fetch: where a sample reads the frame (:class:`Footprint`), and its hand-written backwards.
+
+A sample reads either the nearest texel or four bilinear taps whose inverse depths are interpolated
+(perspective-correct: planes are reproduced exactly). The walk fetches ``slices x sides x steps``
+samples per pixel, so the two autograd functions here keep a few floats per sample and rebuild the
+rest in backward: :class:`PerspectiveBilinearDepth` (the depth alone) and :class:`SampleAlong` (the
+two in-slice coordinates of ``delta``, fused with the fetch).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import pixels_to_view
+from .frame import Frame, repeat_rows, take
+
+__all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps"]
+
+
+def bilerp(taps, fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
+    """Bilinear interpolation of the four taps ``(u0,v0), (u0+1,v0), (u0,v0+1), (u0+1,v0+1)``."""
+    t0, t1, t2, t3 = taps
+    return torch.lerp(torch.lerp(t0, t1, fu), torch.lerp(t2, t3, fu), fv)
+
+
+class PerspectiveBilinearDepth(torch.autograd.Function):
+    """Perspective-correct bilinear depth ``1 / sum_k w_k(fu, fv) / z_k`` ``(N,)`` at four taps.
+
+    Interpolating ``1/depth`` (affine in screen space across a plane) reproduces planes exactly. The plain
+    autograd path of the walk; the fused one (:class:`SampleAlong`) differentiates it by hand too.
+    Inputs: ``safe_depth`` ``(P,)`` positive depths of the frame, ``index`` ``(N,4)`` taps into it,
+    ``fu, fv`` ``(N,)`` fractional offsets in ``[0,1)``. A custom function because the walk fetches
+    ``slices x sides x steps`` samples per pixel: plain autograd would keep the 64-bit tap indices, the
+    gathered depths, the weights and their quotients for every sample (about 90 bytes each); this keeps
+    32-bit indices, ``fu``, ``fv`` and the result (28 bytes) and gathers the depths again in backward.
+    """
+
+    @staticmethod
+    def forward(ctx, safe_depth, index, fu, fv):
+        depth = bilerp(take(safe_depth, index).reciprocal().unbind(-1), fu, fv).reciprocal()
+        small = safe_depth.shape[0] < 2**31  # every tap indexes safe_depth
+        ctx.save_for_backward(safe_depth, index.to(torch.int32) if small else index, fu, fv, depth)
+        return depth
+
+    @staticmethod
+    def backward(ctx, grad):
+        safe_depth, index, fu, fv, depth = ctx.saved_tensors
+        inverse = take(safe_depth, index).reciprocal()
+        # d(1/z_k) = -(1/z_k)^2 dz_k
+        g_inverse, grad_fu, grad_fv = _bilerp_depth_backward(inverse, fu, fv, depth, grad)
+        grad_depth = None
+        if ctx.needs_input_grad[0]:
+            contrib = g_inverse.mul_(inverse.square_()).neg_()
+            grad_depth = torch.zeros_like(safe_depth).index_add_(0, index.reshape(-1), contrib.view(-1))
+        return grad_depth, None, grad_fu, grad_fv
+
+
+@dataclass
+class Footprint:
+    """Where a sample reads the frame: the nearest texel (``index`` ``(N,)``) or four bilinear taps
+    (``index`` ``(N,4)``, fractions ``fu``, ``fv``) at screen position ``(su, sv)`` ``(N,)``;
+    ``batch`` ``(N,)`` is each row's image."""
+
+    batch: torch.Tensor
+    su: torch.Tensor
+    sv: torch.Tensor
+    index: torch.Tensor
+    fu: torch.Tensor | None = None
+    fv: torch.Tensor | None = None
+
+    @staticmethod
+    def at(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor, fetch: str) -> tuple["Footprint", torch.Tensor]:
+        """The footprint of screen positions ``(su, sv)`` and whether each lies inside the frame."""
+        B, H, W = frame.shape
+        base = batch * (H * W)
+        if fetch == "nearest":
+            iu, iv = torch.floor(su + 0.5).long(), torch.floor(sv + 0.5).long()
+            inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
+            index = iv.clamp(0, H - 1) * W + iu.clamp(0, W - 1)
+            return Footprint(batch, su, sv, index if B == 1 else index + base), inside
+        index, fu, fv = bilinear_taps(frame, batch, su, sv)
+        u0, v0 = torch.floor(su), torch.floor(sv)
+        inside = (u0 >= 0) & (u0 + 1 < W) & (v0 >= 0) & (v0 + 1 < H)
+        return Footprint(batch, su, sv, index, fu, fv), inside
+
+    def map_rows(self, fn) -> "Footprint":
+        """The footprint with ``fn`` applied to every per-row tensor."""
+        return Footprint(fn(self.batch), fn(self.su), fn(self.sv), fn(self.index),
+                         None if self.fu is None else fn(self.fu), None if self.fv is None else fn(self.fv))
+
+    def valid(self, frame: Frame) -> torch.Tensor:
+        v = take(frame.valid, self.index)
+        return v if self.fu is None else v.all(-1)
+
+    def inputs(self, frame: Frame) -> tuple[torch.Tensor, ...]:
+        """The differentiable tensors the position depends on (the frame's positions or depths, ``su``, ``sv``)."""
+        if self.fu is None or frame.has_position:
+            return (frame.positions, self.su, self.sv)
+        return (frame.inverse_depth, self.su, self.sv)
+
+    def fusable(self, frame: Frame) -> bool:
+        """Whether :class:`SampleAlong` can differentiate the position (camera intrinsics without gradient;
+        its bilinear backward is the depth fetch's, so not for bilinear reads of a position buffer)."""
+        if self.fu is not None and frame.has_position:
+            return False
+        return not any(t.requires_grad for t in (frame.fx, frame.fy, frame.cx, frame.cy))
+
+    def position(self, frame: Frame) -> torch.Tensor:
+        """``(N,3)`` view-space position: the texel's, or the perspective-correct bilinear depth
+        unprojected at ``(su, sv)`` clamped to the frame; with a position buffer, its four taps
+        interpolated perspective-correctly (``p / depth`` and ``1 / depth`` bilinearly, then divided),
+        which equals the depth fetch where the positions are the unprojected depth."""
+        if self.fu is None:
+            return take(frame.positions, self.index)
+        if frame.has_position:
+            taps = take(frame.positions, self.index)  # (N,4,3)
+            inverse = -taps[..., 2].reciprocal()  # (N,4) 1 / depth of each tap (z < 0)
+            fu, fv = self.fu[:, None], self.fv[:, None]
+            scaled = bilerp((taps * inverse[..., None]).unbind(1), fu, fv)
+            return scaled / bilerp(inverse.unbind(-1), self.fu, self.fv)[:, None]
+        if torch.is_grad_enabled():
+            depth = PerspectiveBilinearDepth.apply(frame.safe_depth, self.index, self.fu, self.fv)
+        else:  # the same values, from the frame's inverse depths
+            depth = bilerp(take(frame.inverse_depth, self.index).unbind(-1), self.fu, self.fv).reciprocal()
+        return _unproject(frame, self.batch, self.su, self.sv, depth)
+
+
+def bilinear_taps(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor):
+    """Four taps ``(N,4)`` (``(u0,v0), (u0+1,v0), (u0,v0+1), (u0+1,v0+1)``, clamped to the frame) around
+    screen positions ``(su, sv)`` ``(N,)`` and the fractions ``fu, fv`` ``(N,)``."""
+    B, H, W = frame.shape
+    u0, v0 = torch.floor(su.detach()), torch.floor(sv.detach())  # (floor has no gradient)
+    fu, fv = su - u0, sv - v0
+    # 32-bit index arithmetic (3x faster) where it cannot overflow; the clamp to [-1, size] first is exact.
+    itype = torch.int32 if B * H * W < 2**31 - 1 else torch.int64
+    u0, v0 = u0.clamp(-1, W).to(itype), v0.clamp(-1, H).to(itype)
+    c0, c1 = u0.clamp(0, W - 1), u0.add_(1).clamp_(0, W - 1)
+    r0, r1 = v0.clamp(0, H - 1).mul_(W), v0.add_(1).clamp_(0, H - 1).mul_(W)
+    if B > 1:
+        base = batch.to(itype) * (H * W)
+        r0, r1 = r0.add_(base), r1.add_(base)
+    return torch.stack((r0 + c0, r0 + c1, r1 + c0, r1 + c1), -1), fu, fv
+
+
+def _unproject(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """``(N,3)`` view-space points at screen ``(su, sv)`` (clamped to the frame) and ``depth``."""
+    B, H, W = frame.shape
+    return pixels_to_view(su.clamp(0, W - 1), sv.clamp(0, H - 1), depth, *frame.intrinsics(batch))
+
+
+class SampleAlong(torch.autograd.Function):
+    """Gradients of ``(delta . V, side * delta . T)`` of ``steps`` block-major steps, fused.
+
+    Inputs: the frame, the samples' :class:`Footprint` (``steps * N`` rows), ``valid`` (rows), ``side``,
+    ``steps``, ``batch`` ``(N,)``, the two outputs' values (computed without a graph); then the
+    footprint's differentiable inputs (``frame.positions`` ``(P,3)`` for nearest fetch or
+    ``frame.inverse_depth`` ``(P,)`` for bilinear, ``su``, ``sv``) and the queries' ``P``, ``V``, ``T``
+    ``(N,3)`` (not repeated per step). Plain autograd would keep the position, ``delta``, the repeated
+    ``V`` and ``T`` and the fetch's intermediates for every sample (about 90 bytes); this keeps ``su``,
+    ``sv`` and ``valid`` per sample and rebuilds the footprint, position and ``delta`` in backward.
+    """
+
+    @staticmethod
+    def forward(ctx, frame, footprint, valid, side, steps, batch, along, source, su, sv, P, V, T):
+        ctx.frame, ctx.side, ctx.steps, ctx.nearest = frame, side, steps, footprint.fu is None
+        ctx.save_for_backward(source, su, sv, valid, batch, P, V, T, footprint.index if ctx.nearest else None)
+        return along
+
+    @staticmethod
+    def backward(ctx, g_view, g_tangent):
+        source, su, sv, valid, batch, P, V, T, index = ctx.saved_tensors
+        frame, side, J = ctx.frame, ctx.side, ctx.steps
+        N = P.shape[0]
+        g_view = torch.zeros(J * N, dtype=P.dtype, device=P.device) if g_view is None else g_view
+        g_tangent = torch.zeros_like(g_view) if g_tangent is None else g_tangent
+        with torch.no_grad():
+            # delta_j = position_j - P where valid (m = 1), else -V; along_view = delta . V, along_tangent = side delta . T.
+            # Rows are block-major (J, N); only rows with a gradient are worked on (see GradientRows).
+            rows = GradientRows(J, N, g_view, g_tangent)
+            g_view, g_tangent, su, sv, valid = map(rows.take, (g_view, g_tangent, su, sv, valid))
+            m = valid.to(P.dtype)
+            gv = g_view * m  # gradients reaching valid samples
+            gt = g_tangent * (m if side > 0 else -m)
+            a, b = rows.per_query(gv)[:, None], rows.per_query(gt)[:, None]  # (N,1)
+            c = rows.per_query(g_view)[:, None] - a  # ... and invalid ones
+            e = side * rows.per_query(g_tangent)[:, None] - b
+            Vr, Tr = rows.per_row(V), rows.per_row(T)
+            # forward inputs after ctx: frame, footprint, valid, side, steps, batch, along (no gradient),
+            # then source, su, sv, P, V, T
+            needs = dict(zip(("source", "su", "sv", "P", "V", "T"), ctx.needs_input_grad[7:]))
+            g_source = g_su = g_sv = g_P = g_V = g_T = None
+            if ctx.nearest:
+                index = rows.take(index)
+                px, py, pz = take(source, index).unbind(-1)
+                if needs["source"]:
+                    g_pos = gv[:, None] * Vr + gt[:, None] * Tr
+                    g_source = torch.zeros_like(source).index_add_(0, index, g_pos)
+            else:
+                B, H, W = frame.shape
+                batch_rows = rows.per_row(batch) if B > 1 else batch  # (a single image needs no per-row batch)
+                taps, fu, fv = bilinear_taps(frame, batch_rows, su, sv)
+                inverse = take(source, taps)  # (rows,4) inverse depths
+                depth = bilerp(inverse.unbind(-1), fu, fv).reciprocal()
+                fx, fy, cx, cy = frame.intrinsics(batch_rows)
+                # position = depth * (xh, yh, -1) with xh = (clamp(su) - cx) / fx, yh = -(clamp(sv) - cy) / fy
+                su_c, sv_c = su.clamp(0, W - 1), sv.clamp(0, H - 1)
+                xh, yh = (su_c - cx) / fx, (sv_c - cy) / -fy
+                g_x = torch.addcmul(gv * Vr[:, 0], gt, Tr[:, 0])
+                g_y = torch.addcmul(gv * Vr[:, 1], gt, Tr[:, 1])
+                g_z = torch.addcmul(gv * Vr[:, 2], gt, Tr[:, 2])
+                g_inverse, g_fu, g_fv = _bilerp_depth_backward(inverse, fu, fv, depth, g_x * xh + g_y * yh - g_z)
+                if needs["source"]:
+                    g_source = torch.zeros_like(source).index_add_(0, taps.view(-1), g_inverse.view(-1))
+                # fu = su - floor(su); clamp passes the gradient inside [0, W - 1]
+                g_su = rows.put(torch.where(su_c == su, g_x * (depth / fx), 0.0).add_(g_fu))
+                g_sv = rows.put(torch.where(sv_c == sv, g_y * (depth / -fy), 0.0).add_(g_fv))
+                px, py, pz = xh * depth, yh * depth, -depth
+            # sums over the steps of the gradients times the position
+            Sv = torch.stack([rows.per_query(gv * p) for p in (px, py, pz)], -1)  # (N,3)
+            St = torch.stack([rows.per_query(gt * p) for p in (px, py, pz)], -1)
+            if needs["P"]:
+                g_P = -(a * V + b * T)
+            if needs["V"]:
+                g_V = Sv - a * P - 2 * c * V - e * T
+            if needs["T"]:
+                g_T = St - b * P - e * V
+        return (None,) * 7 + (g_source, g_su, g_sv, g_P, g_V, g_T)
+
+
+class GradientRows:
+    """The rows ``(J * N,)`` (block-major over ``J`` steps of ``N`` queries) a backward works on: all of
+    them, or, when at most half have a nonzero gradient in any of ``grads`` (samples that occlude
+    nothing get none), only those. ``take``/``per_row`` select them, ``put`` scatters results back (zeros
+    elsewhere), ``per_query`` sums them per query ``(N, ...)``."""
+
+    def __init__(self, J: int, N: int, *grads: torch.Tensor) -> None:
+        self.J, self.N = J, N
+        nonzero = grads[0] != 0
+        for g in grads[1:]:
+            nonzero |= g != 0
+        self.index = nonzero.nonzero()[:, 0] if 2 * int(nonzero.sum()) <= J * N else None
+        self.query = None if self.index is None else self.index.remainder(N)
+
+    def take(self, x: torch.Tensor) -> torch.Tensor:
+        return x if self.index is None else take(x, self.index)
+
+    def put(self, x: torch.Tensor) -> torch.Tensor:
+        if self.index is None:
+            return x
+        return x.new_zeros(self.J * self.N, *x.shape[1:]).index_copy_(0, self.index, x)
+
+    def per_row(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-query ``x`` ``(N, ...)`` for each row."""
+        return repeat_rows(x, self.J) if self.index is None else take(x, self.query)
+
+    def per_query(self, x: torch.Tensor) -> torch.Tensor:
+        """Sum of per-row ``x`` over each query's rows ``(N, ...)``."""
+        if self.index is None:
+            return x.view(self.J, self.N, *x.shape[1:]).sum(0)
+        return x.new_zeros(self.N, *x.shape[1:]).index_add_(0, self.query, x)
+
+
+def _bilerp_depth_backward(inverse: torch.Tensor, fu: torch.Tensor, fv: torch.Tensor, depth: torch.Tensor,
+                           grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Gradients of ``depth = 1 / bilerp(inverse, fu, fv)`` ``(N,)`` to the tap inverse depths ``(N,4)``,
+    ``fu`` and ``fv`` given ``grad`` ``(N,)`` of ``depth``."""
+    g = -grad * depth.square()  # d depth = -depth^2 dS, S the interpolated inverse depth
+    i0, i1, i2, i3 = inverse.unbind(-1)
+    lower, upper = g * fv, g * (1 - fv)  # S = (1 - fv) top + fv bottom
+    right_up, right_low = upper * fu, lower * fu
+    g_inverse = torch.stack((upper - right_up, right_up, lower - right_low, right_low), -1)
+    g_fu = torch.lerp(i1 - i0, i3 - i2, fv).mul_(g)
+    g_fv = (torch.lerp(i2, i3, fu) - torch.lerp(i0, i1, fu)).mul_(g)
+    return g_inverse, g_fu, g_fv

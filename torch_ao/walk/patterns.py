@@ -1,0 +1,138 @@
+"""Where the walk goes: slice tangents, per-pixel noise, and the pixel offsets of the steps.
+
+:class:`SlicePattern` is the default walk of the horizon family (GTAO's Algorithm 1: ``slices``
+directions, ``steps`` samples per side, both rotated per pixel by noise). Other methods subclass it
+or :class:`~torch_ao.walk.protocol.SamplingPattern` to place their samples as their shader does.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from ..checks import check_choice, check_float, check_int
+from .frame import Queries
+from .protocol import SamplingPattern
+
+__all__ = ["SlicePattern", "FETCH_MODES", "BORDER_MODES", "AZIMUTHS", "interleaved_gradient_noise",
+           "tangent_from_screen_angle", "tangent_from_view_azimuth", "radius_px", "step_direction"]
+
+#: Depth fetch: the nearest texel, or perspective-correct bilinear (interpolates 1/depth).
+FETCH_MODES = ("nearest", "bilinear")
+#: Samples outside the image: clamped to the edge texel, or dropped (they occlude nothing).
+BORDER_MODES = ("clamp", "drop")
+#: Slice spacing: evenly around the view vector, or evenly in screen angle.
+AZIMUTHS = ("view", "screen")
+
+
+def interleaved_gradient_noise(u: torch.Tensor, v: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """Jimenez's interleaved gradient noise in ``[0, 1)`` at integer pixel coordinates.
+
+    ``frac(52.9829189 * frac(0.06711056 * x + 0.00583715 * y))``; ``seed`` shifts the pattern
+    (by 5.588238 pixels per unit, the per-frame offset of the original), so every seed is a new,
+    reproducible pattern.
+    """
+    x = u.double() + 5.588238 * seed
+    y = v.double() + 5.588238 * seed
+    return torch.frac(52.9829189 * torch.frac(0.06711056 * x + 0.00583715 * y))
+
+
+def tangent_from_screen_angle(q: Queries, phi: torch.Tensor) -> torch.Tensor:
+    """Slice tangent whose screen direction has angle ``phi`` (radians, counter-clockwise from +u,
+    image up = +v upward): ``(cos phi, sin phi, 0)`` made orthogonal to V (XeGTAO, HDRP, the GLSL seed)."""
+    d = torch.stack((torch.cos(phi), torch.sin(phi), torch.zeros_like(phi)), -1)
+    V = q.view
+    return F.normalize(d - (d * V).sum(-1, keepdim=True) * V, dim=-1, eps=1e-12)
+
+
+def tangent_from_view_azimuth(q: Queries, psi: torch.Tensor) -> torch.Tensor:
+    """Slice tangent at azimuth ``psi`` around V: uniform ``psi`` gives slices uniform around the
+    view vector, which makes the slice integral exact for off-centre pixels."""
+    V = q.view
+    # Orthonormal basis of the plane orthogonal to V, continuous away from V = +-Y (never in view).
+    e1 = F.normalize(torch.cross(V.new_tensor([0.0, 1.0, 0.0]).expand_as(V), V, dim=-1), dim=-1, eps=1e-12)
+    e2 = torch.cross(V, e1, dim=-1)
+    return torch.cos(psi)[:, None] * e1 + torch.sin(psi)[:, None] * e2
+
+
+class SlicePattern(SamplingPattern):
+    """The default walk: ``slices`` directions evenly over the half circle (both sides marched),
+    or over the full circle (one side each) with ``full_circle=True``; ``steps`` samples per side.
+
+    Step ``j`` lies at ``min_step_px + (R_px - min_step_px) * ((j + xi) / steps) ** step_power``
+    pixels, where ``R_px`` is ``radius`` (world units, scalar or ``(N,)``) projected at the pixel
+    along the slice. With ``jitter``, the slice angle and ``xi`` come from interleaved gradient
+    noise seeded by ``seed``; without, the slice angles start at 0 and ``xi = 0.5``.
+
+    Args:
+        slices, steps: counts (>= 1).
+        radius: world-space radius, a float, a 0-d tensor (e.g. an ``nn.Parameter``) or ``(N,)``.
+        step_power: 1 = linear, 2 = quadratic (denser near the pixel), etc.
+        min_step_px: the first sample is at least this many pixels away.
+        jitter, seed: per-pixel noise.
+        fetch: ``"nearest"`` texel, or ``"bilinear"`` (perspective-correct: interpolates 1/depth, so
+            planes are reproduced exactly); border: ``"clamp"`` to the edge or ``"drop"`` off-screen samples.
+        azimuth: ``"view"`` spaces slices evenly around the view vector (exact slice integral);
+            ``"screen"`` evenly in screen angle (XeGTAO/HDRP; biased off-centre).
+        max_radius_px: optional clamp of the screen radius.
+    """
+
+    def __init__(self, slices: int, steps: int, radius, *, step_power: float = 1.0, min_step_px: float = 1.0,
+                 jitter: bool = True, seed: int = 0, fetch: str = "nearest", border: str = "clamp",
+                 full_circle: bool = False, azimuth: str = "view", max_radius_px: float | None = None) -> None:
+        check_int("slices", slices, 1)
+        check_int("steps", steps, 1)
+        check_choice("fetch", fetch, FETCH_MODES)
+        check_choice("border", border, BORDER_MODES)
+        check_choice("azimuth", azimuth, AZIMUTHS)
+        check_float("step_power", step_power, 0.0, open_minimum=True)
+        self.num_slices, self.steps, self.radius = slices, steps, radius
+        self.step_power, self.min_step_px = float(step_power), float(min_step_px)
+        self.jitter, self.seed = jitter, int(seed)
+        self.fetch, self.border, self.azimuth = fetch, border, azimuth
+        self.full_circle = full_circle
+        self.sides = (1,) if full_circle else (1, -1)
+        self.max_radius_px = max_radius_px
+
+    def _noise(self, q: Queries) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-pixel ``(N,)`` noise for the slice angle and for the step offset."""
+        if not self.jitter:
+            zero = torch.zeros_like(q.u)
+            return zero, zero + 0.5
+        a = interleaved_gradient_noise(q.u, q.v, self.seed).to(q.u.dtype)
+        b = interleaved_gradient_noise(q.u + 37.0, q.v + 59.0, self.seed + 1).to(q.u.dtype)
+        return a, b
+
+    def slice_tangent(self, frame, q, s):
+        span = 2 * math.pi if self.full_circle else math.pi
+        angle = (s + self._noise(q)[0]) * (span / self.num_slices)
+        if self.azimuth == "screen":
+            return tangent_from_screen_angle(q, angle)
+        return tangent_from_view_azimuth(q, angle)
+
+    def radius_px(self, geom) -> torch.Tensor:
+        """``(N,)`` the world radius in pixels along the slice, clamped to ``max_radius_px``."""
+        r = radius_px(self.radius, geom)
+        return r if self.max_radius_px is None else r.clamp_max(self.max_radius_px)
+
+    def step_offsets(self, q, geom, side):
+        xi = self._noise(q)[1]
+        unit = step_direction(geom, side)
+        radius_px = self.radius_px(geom)
+        span = (radius_px - self.min_step_px).clamp_min(0)
+        j = torch.arange(self.steps, dtype=xi.dtype, device=xi.device)[:, None]
+        fraction = ((j + xi) / self.steps) ** self.step_power  # (steps, N): all steps in one op
+        return list(((self.min_step_px + span * fraction)[..., None] * unit).unbind(0))
+
+
+def radius_px(radius, geom) -> torch.Tensor:
+    """``(N,)`` a world-space ``radius`` (float, 0-d or ``(N,)`` tensor) in pixels along the slice of
+    ``geom``, projected at each query pixel's depth."""
+    ppu = geom.pixels_per_unit
+    return torch.as_tensor(radius, dtype=ppu.dtype, device=ppu.device) * ppu.norm(dim=-1)
+
+
+def step_direction(geom, side: int) -> torch.Tensor:
+    """``(N,2)`` unit screen direction ``(du, dv)`` of the walk on ``side`` of the slice of ``geom``."""
+    return F.normalize(geom.pixels_per_unit, dim=-1, eps=1e-12) * side
