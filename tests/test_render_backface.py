@@ -147,5 +147,5 @@ def test_backface_depth_saved(tmp_path):
     from torch_ao.io import load_gbuffer
 
     ref, _, _ = _render([Sphere(center=(0, 0, 0), radius=1.0)], H=12, W=16)
-    _, extras = load_gbuffer(ref.save(tmp_path / "s.npz"))
+    gb, _ = load_gbuffer(ref.save(tmp_path / "s.npz"))
     assert torch.allclose(gb.backface_depth.double(), ref.backface_depth.double(), equal_nan=False)
