@@ -1,6 +1,6 @@
-"""Parity of ``variant="ssilvb_glsl"`` with seed 001's GLSL shader running on a real OpenGL (Mesa).
+"""Parity of ``variant="ssilvb_glsl"`` with the SSILVB GLSL article's GLSL shader running on a real OpenGL (Mesa).
 
-The shader (tests/glsl/ssilvb.frag: seed 001 with only its two missing semicolons added, and a
+The shader (tests/glsl/ssilvb.frag: the SSILVB GLSL article with only its two missing semicolons added, and a
 jitter-free copy) runs through moderngl's EGL backend on Mesa's software rasterizers, with RGBA32F
 view-space position / normal / light textures (NEAREST, CLAMP_TO_EDGE). Each driver runs in a
 subprocess (``GALLIUM_DRIVER`` selects it at EGL initialisation).

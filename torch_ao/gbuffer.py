@@ -209,7 +209,7 @@ def normals_from_depth(
     ``method="kornia"``: kornia's ``depth_to_normals`` (central differences; smears across edges).
     ``method="improved"``: per axis, take the one-sided difference on the side whose depth is better
     predicted by extrapolating the two pixels beyond it (``1/depth`` is affine across a plane, so
-    ``l1*l2/(2*l2 - l1)`` predicts the centre exactly on planes); seed 003's ``computeNormalImproved``.
+    ``l1*l2/(2*l2 - l1)`` predicts the centre exactly on planes); the PSSAO gist's ``computeNormalImproved``.
     Background pixels get the direction toward the camera.
     """
     if method not in ("improved", "kornia"):

@@ -1,4 +1,4 @@
-"""Run seed 001's SSILVB fragment shader on an OpenGL context (moderngl, EGL; e.g. Mesa llvmpipe).
+"""Run the SSILVB GLSL article's fragment shader on an OpenGL context (moderngl, EGL; e.g. Mesa llvmpipe).
 
 ``run_ssilvb(ctx, gbuffer, ...)`` uploads view-space position, normal and light as RGBA32F textures
 (NEAREST, CLAMP_TO_EDGE, flipped so that GL's row 0 is the image's bottom row), draws a fullscreen
