@@ -1,19 +1,30 @@
 """Ray-tracer speed: rays per second (torch on analytic scenes, Embree and torch on meshes) and the
 time of full references. Run: ``python benchmarks/bench_tracer.py [--quick] [--device cuda]``.
 
+``--large [TRIANGLES]`` instead times ``torch-ao render --mesh`` on a generated closed mesh of about a
+million triangles (a torus written as binary PLY) in fresh processes, and reports their peak RSS
+against a process that only imports the same modules.
+
 AO rays are realistic: cosine-distributed from the G-buffer points of each scene's default view.
 """
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import platform
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 
 from torch_ao.reference import Mesh, Plane, Scene, Tracer, embree_available, get_scene, icosphere, render_reference
 from torch_ao.reference import sampling
 from torch_ao.reference.render import default_views
+from torch_ao.reference.warp_mesh import warp_available
 
 
 def ao_rays(scene: Scene, n: int, device, seed: int = 0):
@@ -50,11 +61,64 @@ def rays_per_second(fn, n: int, repeat: int = 3, device="cpu") -> float:
     return n / best
 
 
+def torus_mesh(triangles: int, major: float = 1.0, minor: float = 0.3):
+    """A closed torus (axis +Y, resting on y = 0) of about ``triangles`` triangles: numpy ``(V,3), (F,3)``."""
+    import numpy as np
+
+    nv = max(3, int(round(math.sqrt(triangles / 4))))
+    nu = max(3, int(round(triangles / (2 * nv))))
+    u, v = np.meshgrid(np.arange(nu) * 2 * np.pi / nu, np.arange(nv) * 2 * np.pi / nv, indexing="ij")
+    ring = major + minor * np.cos(v)
+    verts = np.stack([ring * np.cos(u), minor * np.sin(v) + minor, ring * np.sin(u)], -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+    a, b = i * nv + j, ((i + 1) % nu) * nv + j
+    c, d = ((i + 1) % nu) * nv + (j + 1) % nv, i * nv + (j + 1) % nv
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    return verts, faces
+
+
+def _child(argv: list[str]) -> tuple[float, float, int]:
+    """Run ``python argv`` with this checkout's torch_ao: ``(seconds, peak RSS in MiB, exit status)``."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    t = time.perf_counter()
+    proc = subprocess.Popen([sys.executable] + argv, env=env, stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return time.perf_counter() - t, usage.ru_maxrss / 1024, proc.returncode  # ru_maxrss is in KiB on Linux
+
+
+def large_mesh(triangles: int) -> None:
+    import trimesh
+
+    with tempfile.TemporaryDirectory() as tmp:
+        verts, faces = torus_mesh(triangles)
+        path = Path(tmp) / "torus.ply"
+        trimesh.Trimesh(verts, faces, process=False).export(path)
+        print(f"# {faces.shape[0]} triangles, {verts.shape[0]} vertices, {path.stat().st_size / 2**20:.0f} MiB PLY")
+        _, base, _ = _child(["-c", "import torch_ao.reference, torch_ao.commands.render, trimesh, embreex.rtcore_scene"])
+        print(f"imports only: peak RSS {base:.0f} MiB")
+        print("| render | time s | peak RSS MiB | over imports MiB |")
+        print("|---|---|---|---|")
+        for size, spp, extra in (("320x180", 16, ["--backface"]), ("640x360", 64, [])):
+            w, h = size.split("x")
+            dt, rss, code = _child(["-m", "torch_ao.cli", "render", "--mesh", str(path), "--ground-plane", "--quiet",
+                                    "--width", w, "--height", h, "--spp", str(spp), "--max-distance", "0.3",
+                                    "--no-uniform", "--out", str(Path(tmp) / "out.npz")] + extra)
+            if code != 0:
+                raise SystemExit(f"render failed with exit status {code}")
+            print(f"| {size}, {spp} spp cosine AO{' + backface' if extra else ''} | {dt:.1f} | {rss:.0f} | {rss - base:.0f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--large", type=int, nargs="?", const=1_000_000, metavar="TRIANGLES",
+                    help="only time torch-ao render on a generated mesh of this many triangles (default 1M), peak RSS")
     args = ap.parse_args()
+    if args.large:
+        large_mesh(args.large)
+        return
     dev = args.device
     n = 1 << (16 if args.quick else 20)
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}, device {dev}")
@@ -76,7 +140,8 @@ def main() -> None:
     for sub in (1, 5):
         v, f = icosphere(sub, 0.5, (0.0, 0.5, 0.0))
         scene = Scene([Plane(), Mesh(vertices=v, faces=f)], view=get_scene("sphere_on_plane").view)
-        backends = (["embree"] if embree_available() else []) + (["torch"] if f.shape[0] <= 2000 else [])
+        backends = (["embree"] if embree_available() else []) + (["warp"] if warp_available() else []) \
+            + (["torch"] if f.shape[0] <= 2000 else [])
         o, d = ao_rays(scene, n, dev)
         for backend in backends:
             tr = Tracer(scene, device=dev, mesh_backend=backend)

@@ -31,8 +31,9 @@ def test_hdrp_variant_on_a_plane_with_round():
     assert torch.equal(out.visibility, torch.ones_like(out.visibility))
 
 
-@pytest.mark.parametrize("size,slices,steps", [(48, 6, 10), pytest.param(96, 8, 16, marks=pytest.mark.slow)])
-def test_wall_cosine_weighting_converges_to_the_closed_form(size, slices, steps):
+def _wall_case(size: int):
+    """A floor at distance ``d`` from an infinite wall: the cosine-weighted closed form within ``R`` and the
+    floor pixels near the wall whose radius-R neighbourhood is on screen."""
     gb, dist = floor_wall_gbuffer(size, size, wall_distance=1.0, camera_height=3.0, pitch_degrees=-50.0,
                                   fov_y_degrees=70)
     R = 1.5
@@ -42,8 +43,13 @@ def test_wall_cosine_weighting_converges_to_the_closed_form(size, slices, steps)
     H, W = d.shape
     rows = torch.arange(H)[:, None].expand(H, W)
     cols = torch.arange(W)[None].expand(H, W)
-    # floor pixels near the wall whose radius-R neighbourhood is on screen
     sel = torch.isfinite(d) & (d > 0.05) & (d < 1.2) & (rows > H * 30 // 96) & (rows < H * 80 // 96) & (cols > W * 10 // 96)
+    return gb, R, ref, sel
+
+
+@pytest.mark.parametrize("size,slices,steps", [(48, 6, 10), pytest.param(96, 8, 16, marks=pytest.mark.slow)])
+def test_wall_cosine_weighting_converges_to_the_closed_form(size, slices, steps):
+    gb, R, ref, sel = _wall_case(size)
     errors = {}
     for weighting in ("cosine", "uniform"):
         out = BitmaskAO(weighting=weighting, slices=slices, steps=steps, radius=R, thickness=1e3, jitter=False)(gb)
@@ -52,6 +58,22 @@ def test_wall_cosine_weighting_converges_to_the_closed_form(size, slices, steps)
           f"uniform={errors['uniform']:.4f} over {int(sel.sum())} pixels")
     assert errors["cosine"] < 0.025
     assert errors["cosine"] < errors["uniform"]
+
+
+def test_clipping_and_the_sphere_extent_converge_to_the_wall_closed_form():
+    """The same wall (thickness 1e3). Counting occluders whole beyond R over-occludes at many steps
+    (bias < 0); clipping each segment to R alone under-occludes (the walk does not reach the wall points
+    within R nearer the camera than the pixel); the sphere's screen extent removes most of that."""
+    gb, R, ref, sel = _wall_case(48)
+    bias = {}
+    for name, kw in {"sectors": dict(), "clip": dict(union="exact", clip_to_radius=True),
+                     "sphere": dict(union="exact", clip_to_radius=True, sample_extent="sphere")}.items():
+        with torch.no_grad():
+            vis = BitmaskAO(weighting="cosine", slices=16, steps=16, radius=R, thickness=1e3, **kw)(gb).visibility[0, 0]
+        bias[name] = float((vis - ref)[sel].mean())
+    print("\nwall: mean signed error at 16 x 16 by option", bias)
+    assert bias["sectors"] < -0.005
+    assert bias["clip"] > 0.008 and 0 < bias["sphere"] < 0.6 * bias["clip"]
 
 
 def _slat_scene(gap: float):

@@ -90,7 +90,7 @@ def test_graph_estimate_bounds_what_autograd_keeps(indirect):
 
 @pytest.mark.parametrize("weighting", ["uniform", "cosine"])
 def test_indirect_light_gathered_for_live_steps_only_changes_nothing(weighting, monkeypatch):
-    import torch_ao.methods.bitmask as bitmask
+    import torch_ao.methods.bitmask_common as bitmask
 
     gb, _ = floor_wall_gbuffer(24, 32, dtype=torch.float64, light_direction=(0.3, 0.8, 0.5))
     results, gathered = [], []
@@ -116,3 +116,15 @@ def test_indirect_light_gathered_for_live_steps_only_changes_nothing(weighting, 
     assert 0 < sum(m for m, _ in gathered) < 0.5 * sum(n for _, n in gathered)  # most steps occlude nothing
     for a, b in zip(live_only, every):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-14)
+
+
+def test_graph_estimate_bounds_what_the_exact_variant_keeps():
+    gb, _ = floor_wall_gbuffer(48, 64)
+    depth = gb.depth.clone().requires_grad_(True)
+    gb = GBuffer(depth, gb.camera, normals=gb.normals.clone().requires_grad_(True))
+    module = BitmaskAO(variant="exact", slices=4, steps=8, chunk_size=None, recompute=False)
+    per_sample = _saved_bytes_per_sample(module, gb)
+    assert 0.5 * module.graph_bytes_per_sample_exact < per_sample <= module.graph_bytes_per_sample_exact
+    # recorded in hard mode too (the exact union has gradients in every mode): chunks are recomputed when large
+    assert module.auto_chunking(4 * module.graph_budget // (module.slices * 2 * module.steps * 400)) == (
+        module.default_soft_chunk, True)

@@ -83,3 +83,23 @@ def test_published_rule_is_not_monotone_when_the_interval_grows_downward():
     assert int(before) == 0b10 and int(after) == 0b01
     other_step = torch.tensor(0b01)
     assert int(popcount32(before | other_step)) == 2 and int(popcount32(after | other_step)) == 1
+
+
+@settings(max_examples=25, deadline=None)
+@given(gb=scenes(), radius=st.floats(0.01, 10.0), slices=st.integers(1, 4), steps=st.integers(1, 6),
+       seed=st.integers(0, 1000), thickness=st.floats(0.0, 5.0), slope=st.floats(0.0, 1.0),
+       linear=st.booleans(), weighting=st.sampled_from(("uniform", "cosine")))
+def test_exact_variant_stays_finite_and_bounded(gb, radius, slices, steps, seed, thickness, slope, linear, weighting):
+    from torch_ao.methods.bitmask import BitmaskAO
+    from torch_ao.thickness import LinearThickness
+
+    model = LinearThickness(thickness, slope=slope) if linear else thickness
+    module = BitmaskAO(variant="exact", weighting=weighting, radius=radius, slices=slices, steps=steps, seed=seed,
+                       thickness=model)
+    depth = gb.depth.clone().requires_grad_(True)
+    g = type(gb)(depth, gb.camera, normals=gb.normals)
+    vis = module(g).visibility
+    assert torch.isfinite(vis).all() and vis.min() >= 0 and vis.max() <= 1 + 1e-6
+    assert torch.all(vis[~g.valid] == 1)
+    grads = torch.autograd.grad(vis.sum(), [depth, module.thickness, module.radius], allow_unused=True)
+    assert all(x is None or bool(torch.isfinite(x).all()) for x in grads)

@@ -16,6 +16,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from torch_ao.fit import evaluate
+from torch_ao.fitted import load_fitted
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "training_examples"
 SCRIPTS = ("fit_thickness.py", "fit_object_thickness.py", "train_thickness_net.py", "tune_gtao.py")
@@ -29,6 +32,8 @@ def cache(tmp_path_factory) -> Path:
 
 def env(cache: Path) -> dict:
     e = dict(os.environ, TORCH_AO_CACHE=str(cache), OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
+    # the scripts' folder comes first on their import path: import this checkout's torch_ao, not an installed one
+    e["PYTHONPATH"] = os.pathsep.join(filter(None, (str(ROOT), e.get("PYTHONPATH"))))
     e.pop("WORLD_SIZE", None)
     e.pop("RANK", None)
     return e
@@ -79,6 +84,18 @@ def test_fit_thickness(tmp_path, cache):
     run("fit_thickness.py", "--tiny", "--no-progress", "--out", out, cache=cache)
     again = json.loads((out / "thickness.json").read_text())
     assert again["thickness"] == result["thickness"] and again["steps"] == result["steps"]
+    # params.json rebuilds the fitted pipeline (bitmask + denoiser): the same held-out numbers.
+    pipeline = load_fitted(out / "params.json")
+    assert pipeline.denoiser is not None and pipeline.method.thickness.item() == pytest.approx(result["thickness"])
+    assert evaluate(pipeline, tiny_holdout(cache, "fence,room_corner"))["mae"] == pytest.approx(after["mae"], rel=1e-6)
+
+
+def tiny_holdout(cache: Path, scenes: str) -> list:
+    """The held-out views the examples use with --tiny (read from the module's cache)."""
+    from torch_ao.datasets import train_and_holdout_views
+
+    return train_and_holdout_views(scenes.split(","), 1, 1, height=24, width=32, spp=16, max_distance=1.0,
+                                   cache_dir=cache)[1]
 
 
 def test_fit_object_thickness(tmp_path, cache):
@@ -96,6 +113,9 @@ def test_fit_object_thickness(tmp_path, cache):
     start = rows[next(k for k in rows if k.startswith("scalar start"))]
     assert finite(rows["per-object fitted"])
     assert rows["per-object fitted"]["mae"] <= start["mae"] + 1e-6
+    saved = json.loads((out / "params.json").read_text())
+    assert saved["parameters"]["thickness"]["values"] == pytest.approx(table)
+    assert saved["denoiser"] is not None and saved["names"] == names
 
 
 def test_tune_gtao(tmp_path, cache):
@@ -109,6 +129,10 @@ def test_tune_gtao(tmp_path, cache):
     assert 0 < rows["fitted"]["values"]["falloff_range"] <= 1 and rows["fitted"]["values"]["final_power"] > 0
     assert rows["fitted"]["mae"] <= rows["fit start"]["mae"] + 1e-6
     assert result["radius_multiplier"] == pytest.approx(rows["fitted"]["values"]["radius"] / result["max_distance"])
+    pipeline = load_fitted(out / "params.json")
+    assert pipeline.method_name == "gtao" and pipeline.method.final_power.item() == pytest.approx(rows["fitted"]["values"]["final_power"])
+    held = tiny_holdout(cache, "sphere_on_plane,room_corner")
+    assert evaluate(pipeline, held)["mae"] == pytest.approx(rows["fitted"]["mae"], rel=1e-6)
 
 
 def test_train_thickness_net_single_process(tmp_path, cache):

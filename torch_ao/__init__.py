@@ -7,6 +7,7 @@ fitting, denoising and metrics. The API to write a new method (``SliceAccumulato
 from .camera import PinholeCamera
 from .denoise import Denoiser, denoise
 from .fit import FitConfig, FitView, evaluate, fit, load_views
+from .fitted import FittedPipeline, load_fitted
 from .gbuffer import GBuffer, normals_from_depth
 from .io import load_gbuffer, save_npz
 from .methods import METHODS, PRESETS, AOOutput, ScreenSpaceAO, get_method
@@ -26,4 +27,5 @@ __all__ = [
     "SSAO", "ssao", "HBAO", "hbao", "UE4SSAO", "ue4_ssao", "GTAO", "gtao", "PSSAO", "pssao",
     "BitmaskAO", "bitmask_ao", "SSILVB", "ssilvb",
     "Denoiser", "denoise", "FitConfig", "FitView", "fit", "evaluate", "load_views", "error_metrics",
+    "FittedPipeline", "load_fitted",
 ]

@@ -6,6 +6,10 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
 * a temperature schedule for soft-mask modules (geometric from ``temperature_start`` to
   ``temperature_end``; the module is put in ``mode="soft"`` while fitting),
 * gradient clipping, projection onto each parameter's valid range, early stopping,
+* for modules with a hard mode, a hard-mode score of the parameters on all views at the start, every
+  ``hard_every`` steps and at the end; the best-scoring parameters are kept (the soft objective's
+  optimum is not always the shipped pipeline's), optionally stopping after ``hard_patience`` scores
+  without improvement,
 * atomic checkpoints (parameters, optimizer state, step, RNG state, history) every
   ``checkpoint_every`` steps; the same call with the same ``checkpoint`` path resumes and ends
   with the same result as an uninterrupted run.
@@ -31,7 +35,7 @@ from .metrics import error_metrics
 from .views import FitView, load_views
 
 __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode", "rng_state",
-           "set_rng_state", "save_checkpoint", "load_checkpoint", "remove_stale_temporaries"]
+           "set_rng_state", "save_checkpoint", "load_checkpoint", "remove_stale_temporaries", "fittable_parameters"]
 
 #: Bounds applied after every optimizer step (parameters outside them are meaningless). A falloff
 #: range of exactly 0 is GTAO's hard cut, where neither radius nor falloff has a gradient.
@@ -57,6 +61,14 @@ class FitConfig:
     min_delta: float = 1e-6
     seed: int = 0
     checkpoint_every: int = 10
+    #: Modules with a hard mode (bitmask AO): every ``hard_every`` steps (and before the first and
+    #: after the last) the parameters are scored in hard mode on all training views, and the best
+    #: hard-mode parameters are kept (0 = keep the best soft-mode loss instead).
+    hard_every: int = 10
+    #: Stop once this many hard-mode scores in a row have not improved on the best (0 = never).
+    hard_patience: int = 0
+    #: Learning rate per parameter name (last part, e.g. ``{"radius": 0.01}``) replacing ``lr``.
+    param_lr: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.params = tuple(self.params)
@@ -66,6 +78,11 @@ class FitConfig:
             raise ValueError(f"steps/lr: expected steps >= 0 and lr > 0, got {self.steps}, {self.lr}")
         if not (self.temperature_start > 0 and self.temperature_end > 0):
             raise ValueError("temperature_start/temperature_end: expected > 0")
+        if self.hard_every < 0 or self.hard_patience < 0:
+            raise ValueError(f"hard_every/hard_patience: expected integers >= 0, got {self.hard_every}, {self.hard_patience}")
+        self.param_lr = {str(k): float(v) for k, v in dict(self.param_lr).items()}
+        if any(not v > 0 for v in self.param_lr.values()):
+            raise ValueError(f"param_lr: expected learning rates > 0, got {self.param_lr}")
 
 
 @dataclass
@@ -75,6 +92,10 @@ class FitResult:
     steps_done: int = 0
     stopped_early: bool = False
     seconds: float = 0.0
+    #: Hard-mode losses on all training views: ``[{"step", "loss", <parameter values>}]``.
+    hard_history: list[dict] = field(default_factory=list)
+    #: Step whose parameters the module holds at the end (``None``: the last ones).
+    best_step: int | None = None
 
 
 def set_mode(module: nn.Module, mode: str | None, temperature: float | None = None) -> None:
@@ -88,14 +109,28 @@ def set_mode(module: nn.Module, mode: str | None, temperature: float | None = No
 
 
 def _named_fit_parameters(module: nn.Module, names: Sequence[str]) -> dict[str, nn.Parameter]:
+    """``{name: parameter}``; a name is a full parameter name or the last part of exactly one
+    (``thickness`` for a pipeline's ``method.thickness``)."""
     available = dict(module.named_parameters())
     chosen = {}
     for name in names:
-        if name not in available:
-            raise ValueError(f"params: {name!r} is not a float parameter of {type(module).__name__}; "
+        matches = [name] if name in available else [k for k in available if k.endswith("." + name)]
+        if len(matches) != 1:
+            what = "is not a float parameter" if not matches else f"names several parameters ({', '.join(matches)})"
+            raise ValueError(f"params: {name!r} {what} of {type(module).__name__}; "
                              f"available: {', '.join(sorted(available)) or 'none'}")
-        chosen[name] = available[name]
+        chosen[name] = available[matches[0]]
     return chosen
+
+
+def fittable_parameters(module: nn.Module) -> tuple[str, ...]:
+    """Names (last part) of the float parameters ``module`` registers as ``nn.Parameter``: the ones
+    that matter for its variant and options (methods register unused ones as frozen buffers)."""
+    return tuple(name.rsplit(".", 1)[-1] for name, _ in module.named_parameters())
+
+
+def _has_hard_mode(module: nn.Module) -> bool:
+    return any(hasattr(m, "mode") for m in module.modules())
 
 
 def _loss(pred: torch.Tensor, view: FitView, kind: str, weight_by_stderr: bool) -> torch.Tensor:
@@ -167,7 +202,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     """Fit ``config.params`` of ``module`` to the reference visibility of ``views``.
 
     Args:
-        module: any AO module returning :class:`~torch_ao.methods.AOOutput` (or a visibility tensor).
+        module: any AO module returning :class:`~torch_ao.methods.AOOutput` (or a visibility tensor),
+            e.g. a method or a :class:`~torch_ao.fitted.FittedPipeline` (method + denoiser).
         views: training views (see :class:`FitView`, :func:`load_views`).
         config: :class:`FitConfig`.
         checkpoint: file to write checkpoints to and resume from.
@@ -175,17 +211,24 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
 
     Returns:
         :class:`FitResult` with the fitted parameter values, the loss history and timings.
-        The module holds the *best* parameters seen (lowest training loss over all views) at the
-        end, or the last ones when each step sees only a batch of the views.
+        At the end the module holds, for a module with a hard mode (and ``hard_every > 0``), the
+        parameters with the lowest **hard-mode** loss on all views among the start, every
+        ``hard_every``-th step and the end (so the result is never worse in hard mode on the training
+        views than the start); otherwise the parameters of the lowest training loss, or the last ones
+        when each step sees only a batch of the views.
     """
     cfg = config or FitConfig()
     if not views:
         raise ValueError("views: expected at least one reference view")
     params = _named_fit_parameters(module, cfg.params)
-    for name, p in module.named_parameters():
-        p.requires_grad_(name in params)
-    optimizer = torch.optim.Adam(list(params.values()), lr=cfg.lr)
-    state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False}
+    chosen = {id(p) for p in params.values()}
+    for p in module.parameters():
+        p.requires_grad_(id(p) in chosen)
+    optimizer = torch.optim.Adam([{"params": [p], "lr": cfg.param_lr.get(name.rsplit(".", 1)[-1], cfg.lr)}
+                                  for name, p in params.items()])
+    hard = cfg.hard_every > 0 and _has_hard_mode(module)
+    state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False,
+             "hard": [], "best_hard": math.inf, "best_step": None}
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
     fingerprint = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if k != "checkpoint_every"}
     if ckpt_path is not None:
@@ -207,15 +250,41 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         return {"config": fingerprint, "module": module.state_dict(), "optimizer": optimizer.state_dict(),
                 "rng": rng_state(), "state": state}
 
+    def values() -> dict[str, torch.Tensor]:
+        return {n: p.detach().clone() for n, p in params.items()}
+
+    def check_hard() -> None:
+        """Score the current parameters in hard mode on every view; keep them if they are the best."""
+        if state["hard"] and state["hard"][-1]["step"] == state["step"]:
+            return  # already scored (a resumed, finished run)
+        set_mode(module, "hard")
+        with torch.no_grad():
+            loss = sum(float(_loss(_visibility(module(v.gbuffer)), v, cfg.loss, cfg.weight_by_stderr)) for v in views)
+        loss /= len(views)
+        state["hard"].append({"step": state["step"], "loss": loss,
+                              **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}})
+        if loss < state["best_hard"]:
+            state["best_hard"], state["best"], state["best_step"] = loss, values(), state["step"]
+            state["hard_bad"] = 0
+        else:
+            state["hard_bad"] = state.get("hard_bad", 0) + 1
+            if cfg.hard_patience and state["hard_bad"] >= cfg.hard_patience:
+                state["stopped_early"] = True
+
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=cfg.steps, initial=state["step"], desc="fit", unit="step", leave=False)
     start = time.perf_counter()
+    partial = bool(cfg.batch_views) and cfg.batch_views < len(views)
     try:
         while state["step"] < cfg.steps and not state["stopped_early"]:
             step = state["step"]
+            if hard and step % cfg.hard_every == 0:
+                check_hard()
+                if state["stopped_early"]:
+                    break
             temperature = _temperature(cfg, step)
             set_mode(module, "soft", temperature)
             order = torch.randperm(len(views)).tolist()
@@ -223,14 +292,23 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             optimizer.zero_grad(set_to_none=True)
             total = 0.0
             for i in batch:
-                out = module(views[i].gbuffer)
-                vis = out.visibility if hasattr(out, "visibility") else out
+                vis = _visibility(module(views[i].gbuffer))
                 loss = _loss(vis, views[i], cfg.loss, cfg.weight_by_stderr) / len(batch)
                 loss.backward()
                 total += float(loss.detach())
             grads = [p.grad for p in params.values() if p.grad is not None]
             if grads and not all(bool(torch.isfinite(g).all()) for g in grads):
                 raise FloatingPointError(f"fit: non-finite gradient at step {step}; lower lr or temperature_end")
+            record = {"step": step, "loss": total, "temperature": temperature,
+                      **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}}
+            improved = total < state["best_loss"] - cfg.min_delta
+            if improved:
+                state["best_loss"], state["bad_steps"] = total, 0
+                if not hard and not partial:
+                    state["best"], state["best_step"] = values(), step  # the parameters this loss belongs to
+            else:
+                state["bad_steps"] += 1
+                state["stopped_early"] = bool(cfg.patience) and state["bad_steps"] >= cfg.patience
             if cfg.clip_grad > 0:
                 torch.nn.utils.clip_grad_norm_(list(params.values()), cfg.clip_grad)
             optimizer.step()
@@ -238,24 +316,18 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
                 for name, p in params.items():
                     key = name.rsplit(".", 1)[-1]
                     p.clamp_(min=PARAMETER_MINIMUM.get(key), max=PARAMETER_MAXIMUM.get(key))
-            record = {"step": step, "loss": total, "temperature": temperature,
-                      **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}}
-            state["history"].append(record)
-            improved = total < state["best_loss"] - cfg.min_delta
-            if improved:
-                state["best_loss"], state["bad_steps"] = total, 0
-            else:
-                state["bad_steps"] += 1
-                state["stopped_early"] = bool(cfg.patience) and state["bad_steps"] >= cfg.patience
             # With partial batches a step's loss depends on its batch: keep the last parameters instead.
-            if improved or (cfg.batch_views and cfg.batch_views < len(views)):
-                state["best"] = {n: p.detach().clone() for n, p in params.items()}
+            if partial and not hard:
+                state["best"], state["best_step"] = values(), step + 1
+            state["history"].append(record)
             state["step"] = step + 1
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{total:.4f}")
             if ckpt_path is not None and (state["step"] % cfg.checkpoint_every == 0 or state["step"] == cfg.steps):
                 save_checkpoint(ckpt_path, snapshot())
+        if hard:
+            check_hard()
     finally:
         if bar is not None:
             bar.close()
@@ -266,15 +338,22 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             for name, p in params.items():
                 p.copy_(state["best"][name])
     set_mode(module, "hard")
-    values = {n: (p.detach().cpu().item() if p.numel() == 1 else p.detach().cpu().flatten().tolist()) for n, p in params.items()}
-    return FitResult(values, state["history"], state["step"], state["stopped_early"], time.perf_counter() - start)
+    values_out = {n: (p.detach().cpu().item() if p.numel() == 1 else p.detach().cpu().flatten().tolist()) for n, p in params.items()}
+    return FitResult(values_out, state["history"], state["step"], state["stopped_early"], time.perf_counter() - start,
+                     hard_history=state["hard"], best_step=state["best_step"])
+
+
+def _visibility(out) -> torch.Tensor:
+    return out.visibility if hasattr(out, "visibility") else out
 
 
 @torch.no_grad()
-def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = "hard", repeats: int = 1) -> dict[str, float]:
+def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = "hard", repeats: int = 1,
+             per_view: bool = False) -> dict:
     """Error of ``module`` (in ``mode``, hard by default) against the views' references, and run time.
 
-    Returns mean ``mae``, ``rmse``, ``psnr``, ``ssim`` over views and ``seconds`` (median forward time per view).
+    Returns mean ``mae``, ``rmse``, ``psnr``, ``ssim`` over views and ``seconds`` (median forward time
+    per view over ``repeats`` runs of each); with ``per_view``, also ``views``: ``{view name: metrics}``.
     """
     if mode is not None:
         set_mode(module, mode)
@@ -284,8 +363,9 @@ def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = 
             t0 = time.perf_counter()
             out = module(view.gbuffer)
             times.append(time.perf_counter() - t0)
-        vis = out.visibility if hasattr(out, "visibility") else out
-        rows.append(error_metrics(vis, view.reference, view.gbuffer.valid))
+        rows.append(error_metrics(_visibility(out), view.reference, view.gbuffer.valid))
     result = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
     result["seconds"] = float(np.median(times))
+    if per_view:
+        result["views"] = {view.name or str(i): row for i, (view, row) in enumerate(zip(views, rows))}
     return result

@@ -1,7 +1,8 @@
 """G-buffer: validated screen-space inputs, and normals reconstructed from depth.
 
 A :class:`GBuffer` holds ``depth (B,1,H,W)`` and optionally ``normals (B,3,H,W)``, ``light (B,3,H,W)``,
-``mask (B,1,H,W)`` and ``object_id (B,1,H,W)`` with a :class:`~torch_ao.camera.PinholeCamera`.
+``mask (B,1,H,W)``, ``object_id (B,1,H,W)``, ``backface_depth (B,1,H,W)`` and ``position (B,3,H,W)`` with a
+:class:`~torch_ao.camera.PinholeCamera`.
 Background pixels (``inf``, ``0`` or ``nan`` depth, or ``mask`` False) are never NaN downstream:
 :attr:`GBuffer.safe_depth` replaces them with 1 so every derived quantity is finite, and methods
 mask them out with :attr:`GBuffer.valid`.
@@ -19,6 +20,7 @@ from .camera import PinholeCamera
 __all__ = ["GBuffer", "normals_from_depth"]
 
 _FLOAT_TYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+_POSITION_IN_FRONT = "position: expected z < 0 (in front of the camera, OpenGL axes) on valid pixels"
 
 
 def _check_tensor(name: str, x, channels: int | None, like: torch.Tensor | None) -> None:
@@ -48,6 +50,13 @@ class GBuffer:
         light: optional ``(B,3,H,W)`` direct light (radiance leaving each pixel), for indirect light.
         mask: optional ``(B,1,H,W)`` bool, False marks background.
         object_id: optional ``(B,1,H,W)`` integer ids (for per-object parameters).
+        backface_depth: optional ``(B,1,H,W)`` depth (world units) where each pixel's camera ray leaves
+            the object it first hit (a front-face-culled depth pass; ``inf`` = no exit); ``>= depth`` on
+            valid pixels. Read by :class:`~torch_ao.thickness.BackfaceThickness`.
+        position: optional ``(B,3,H,W)`` view-space positions (OpenGL axes, world units; ``z < 0`` on
+            valid pixels, anything on background), as an engine's position buffer. When given,
+            :meth:`positions` returns it instead of unprojecting depth. ``depth=None`` derives the depth
+            as ``-position.z`` (non-finite ``z`` is background).
     """
 
     depth: torch.Tensor
@@ -56,9 +65,16 @@ class GBuffer:
     light: torch.Tensor | None = None
     mask: torch.Tensor | None = None
     object_id: torch.Tensor | None = None
+    backface_depth: torch.Tensor | None = None
+    position: torch.Tensor | None = None
     _valid: torch.Tensor = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        if self.depth is None and self.position is not None:
+            _check_tensor("position", self.position, 3, None)
+            self.depth = -self.position[:, 2:3]
+            if bool((torch.isfinite(self.depth) & (self.depth < 0)).any()):
+                raise ValueError(_POSITION_IN_FRONT)
         _check_tensor("depth", self.depth, 1, None)
         if self.depth.dtype not in _FLOAT_TYPES:
             raise TypeError(f"depth: expected a floating-point tensor, got {self.depth.dtype}")
@@ -96,7 +112,7 @@ class GBuffer:
                     raise TypeError(f"mask: expected a bool tensor, got {self.mask.dtype}")
             valid = valid & self.mask
         self._valid = valid
-        for name in ("normals", "light"):
+        for name in ("normals", "light", "position"):
             x = getattr(self, name)
             if x is None:
                 continue
@@ -112,6 +128,8 @@ class GBuffer:
             with torch.no_grad():
                 if bool(((self.normals.norm(dim=1, keepdim=True) < 1e-6) & valid).any()):
                     raise ValueError("normals: zero-length normals on valid pixels")
+        if self.position is not None and bool((~(self.position[:, 2:3] < 0) & valid).any()):
+            raise ValueError(_POSITION_IN_FRONT)
         if self.object_id is not None:
             _check_tensor("object_id", self.object_id, 1, self.depth)
             if self.object_id.is_floating_point() or self.object_id.dtype == torch.bool:
@@ -119,6 +137,15 @@ class GBuffer:
             if bool((self.object_id < 0).any()):
                 raise ValueError("object_id: ids must be >= 0")
             self.object_id = self.object_id.long()
+        if self.backface_depth is not None:
+            _check_tensor("backface_depth", self.backface_depth, 1, self.depth)
+            if self.backface_depth.dtype not in _FLOAT_TYPES:
+                raise TypeError(f"backface_depth: expected a floating-point tensor, got {self.backface_depth.dtype}")
+            self.backface_depth = self.backface_depth.to(dtype)
+            with torch.no_grad():
+                bad = valid & ~(self.backface_depth >= self.depth)  # NaN fails too
+            if bool(bad.any()):
+                raise ValueError(f"backface_depth: expected values >= depth on valid pixels, {int(bad.sum())} are not")
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> "GBuffer":
         """A copy on ``device`` (and with float buffers in ``dtype``)."""
@@ -128,7 +155,8 @@ class GBuffer:
             return x.to(device=device, dtype=dtype if floating and x.is_floating_point() else None)
 
         return GBuffer(move(self.depth), self.camera.to(device=device, dtype=dtype), normals=move(self.normals),
-                       light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False))
+                       light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False),
+                       backface_depth=move(self.backface_depth), position=move(self.position))
 
     # ------------------------------------------------------------------ derived buffers
     @property
@@ -146,8 +174,12 @@ class GBuffer:
         return torch.where(self._valid, self.depth, torch.ones_like(self.depth))
 
     def positions(self) -> torch.Tensor:
-        """``(B,3,H,W)`` view-space positions (background at depth 1)."""
-        return self.camera.unproject(self.safe_depth)
+        """``(B,3,H,W)`` view-space positions: the ``position`` buffer when given, else unprojected
+        depth (background at depth 1 either way)."""
+        unprojected = self.camera.unproject(self.safe_depth)
+        if self.position is None:
+            return unprojected
+        return torch.where(self._valid, self.position, unprojected)
 
     def view_normals(self, method: str = "improved") -> torch.Tensor:
         """``(B,3,H,W)`` unit normals facing the camera: given ones, else reconstructed from depth."""
@@ -177,7 +209,7 @@ def normals_from_depth(
     ``method="kornia"``: kornia's ``depth_to_normals`` (central differences; smears across edges).
     ``method="improved"``: per axis, take the one-sided difference on the side whose depth is better
     predicted by extrapolating the two pixels beyond it (``1/depth`` is affine across a plane, so
-    ``l1*l2/(2*l2 - l1)`` predicts the centre exactly on planes); seed 003's ``computeNormalImproved``.
+    ``l1*l2/(2*l2 - l1)`` predicts the centre exactly on planes); the PSSAO gist's ``computeNormalImproved``.
     Background pixels get the direction toward the camera.
     """
     if method not in ("improved", "kornia"):

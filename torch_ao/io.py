@@ -10,6 +10,8 @@ key                shape               meaning
 ``light``          ``(...,H,W,3)``     direct light leaving each pixel
 ``mask``           ``(...,H,W)``       bool, False = background
 ``object_id``      ``(...,H,W)``       integer object ids
+``backface_depth`` ``(...,H,W)``       depth where the camera ray leaves the first-hit object (``inf`` = none)
+``position``       ``(...,H,W,3)``     view-space positions (OpenGL axes); ``depth`` may then be absent
 ``intrinsics``     ``(3,3)``/``(B,3,3)`` pinhole ``K`` in pixels (pixel centres at integers)
 ``fov_y_degrees``  scalar or ``(B,)``  used when ``intrinsics`` is absent (centred camera)
 ``ao``             ``(...,H,W)``       reference visibility (1 = unoccluded)
@@ -34,9 +36,15 @@ import torch
 from .camera import PinholeCamera
 from .gbuffer import GBuffer
 
-__all__ = ["load_gbuffer", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image", "write_text_atomic", "save_json"]
+__all__ = ["load_gbuffer", "read_gbuffer_arrays", "gbuffer_from_arrays", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image", "write_text_atomic", "save_json"]
 
-_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "intrinsics", "fov_y_degrees")
+# "position" is also returned among the extras (as before it was a G-buffer key; references written by
+# ``torch-ao render`` carry it).
+_GBUFFER_KEYS = ("depth", "normal", "light", "mask", "object_id", "backface_depth", "intrinsics", "fov_y_degrees")
+# npz key -> (GBuffer argument, channels last)
+_IMAGE_KEYS = {"normal": ("normals", True), "light": ("light", True), "mask": ("mask", False),
+               "object_id": ("object_id", False),
+               "backface_depth": ("backface_depth", False), "position": ("position", True)}
 
 
 def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -92,30 +100,64 @@ def _camera_from_arrays(arrays: dict, height: int, width: int, batch: int) -> Pi
     raise ValueError("camera: the file needs 'intrinsics' (3,3) or 'fov_y_degrees'")
 
 
-def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = None) -> tuple[GBuffer, dict[str, torch.Tensor]]:
-    """Load a G-buffer file. Returns the :class:`GBuffer` and the other arrays.
+def read_gbuffer_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarray]:
+    """The arrays of a G-buffer file in the ``.npz`` layout and the library's conventions.
 
-    Image-like extras (``ao``, ``ao_stderr``, ``visibility``, ``indirect``...) come back as
+    ``.npz`` files are read as they are; ``.exr`` (OpenEXR) and ``.png`` (16-bit depth) files through
+    :func:`torch_ao.engine_io.read_engine_arrays`. ``options`` (:class:`torch_ao.engine_io.EngineOptions`
+    fields: ``channels``, ``depth_kind``, ``normal_space``, ``position_space``, ``view_matrix``,
+    ``convention``, ``far``, ``fov``, ``intrinsics``, ``depth_scale``) convert an engine's conventions;
+    for ``.npz`` files every option but ``channels`` applies too.
+    """
+    from .engine_io import EngineOptions, apply_engine_options, read_engine_arrays
+
+    if Path(path).suffix.lower() in (".exr", ".png"):
+        return read_engine_arrays(path, **options)
+    arrays = read_npz(path)
+    if not options:
+        return arrays
+    opts = EngineOptions(**options)
+    if opts.channels:
+        raise ValueError("channels: .npz files have fixed keys; --channels applies to OpenEXR files")
+    return apply_engine_options(arrays, opts)
+
+
+def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = None,
+                 **options) -> tuple[GBuffer, dict[str, torch.Tensor]]:
+    """Load a G-buffer file (``.npz``, ``.exr`` or 16-bit ``.png`` depth; see :func:`read_gbuffer_arrays`
+    for ``options``). Returns the :class:`GBuffer` and the other arrays.
+
+    Image-like extras (``ao``, ``ao_stderr``, ``albedo``, ``visibility``, ``indirect``...) come back as
     ``(B,C,H,W)`` tensors; scalars such as ``max_distance`` as 0-d tensors.
     """
-    arrays = read_npz(path)
-    if "depth" not in arrays:
-        raise ValueError(f"path: {path} has no 'depth' array (keys: {sorted(arrays)})")
-    depth = numpy_to_image(arrays["depth"], "depth", channels_last=False)
-    if not np.issubdtype(arrays["depth"].dtype, np.floating):
-        raise TypeError(f"depth: expected a floating-point array, got {arrays['depth'].dtype}")
-    B, _, H, W = depth.shape
+    return gbuffer_from_arrays(read_gbuffer_arrays(path, **options), path, device)
+
+
+def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike = "arrays",
+                        device: torch.device | str | None = None) -> tuple[GBuffer, dict[str, torch.Tensor]]:
+    """:func:`load_gbuffer` on arrays already read (``path`` names them in errors)."""
+    if "depth" not in arrays and "position" not in arrays:
+        raise ValueError(f"path: {path} has no 'depth' or 'position' array (keys: {sorted(arrays)})")
     image_args = {}
-    for key, arg, chl in (("normal", "normals", True), ("light", "light", True), ("mask", "mask", False), ("object_id", "object_id", False)):
+    for key, (arg, chl) in _IMAGE_KEYS.items():
         if key in arrays:
             image_args[arg] = numpy_to_image(arrays[key], key, channels_last=chl)
+    if "depth" in arrays:
+        if not np.issubdtype(arrays["depth"].dtype, np.floating):
+            raise TypeError(f"depth: expected a floating-point array, got {arrays['depth'].dtype}")
+        depth = numpy_to_image(arrays["depth"], "depth", channels_last=False)
+    else:
+        depth = None
+    B, _, H, W = (depth if depth is not None else image_args["position"]).shape
     camera = _camera_from_arrays(arrays, H, W, B)
     to = dict(device=device)
     gb = GBuffer(
-        depth=depth.to(**to),
+        depth=None if depth is None else depth.to(**to),
         camera=camera.to(device=device),
         **{k: v.to(**to) for k, v in image_args.items()},
     )
+    if depth is not None and gb.position is not None and _is_unprojected_depth(gb):
+        gb.position = None  # (references from `torch-ao render`): the depth fetch is the same and cheaper
     extras: dict[str, torch.Tensor] = {}
     for key, value in arrays.items():
         if key in _GBUFFER_KEYS:
@@ -133,6 +175,13 @@ def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = No
             if bool(bad.any()):
                 raise ValueError(f"{key}: {int(bad.sum())} non-finite values on valid pixels in {path}")
     return gb, extras
+
+
+def _is_unprojected_depth(gb: GBuffer) -> bool:
+    """Whether ``gb.position`` is its depth unprojected (to 1e-6 relative) on every valid pixel."""
+    unprojected = gb.camera.unproject(gb.safe_depth)
+    error = (gb.position - unprojected).norm(dim=1, keepdim=True)
+    return bool((error <= 1e-6 * unprojected.norm(dim=1, keepdim=True))[gb.valid].all())
 
 
 def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) -> Path:
@@ -154,6 +203,10 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
             out["mask"] = image_to_numpy(gbuffer.mask)
         if gbuffer.object_id is not None:
             out["object_id"] = image_to_numpy(gbuffer.object_id)
+        if gbuffer.backface_depth is not None:
+            out["backface_depth"] = image_to_numpy(gbuffer.backface_depth)
+        if gbuffer.position is not None:
+            out["position"] = image_to_numpy(gbuffer.position)
         out["intrinsics"] = gbuffer.camera.intrinsics.detach().cpu().numpy()
     for key, value in arrays.items():
         if isinstance(value, torch.Tensor):

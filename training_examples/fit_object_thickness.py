@@ -5,8 +5,12 @@ What it does
     thin things (fence slats, poles, chair legs) and thick ones (walls, boxes, spheres), so one
     number is a compromise. :class:`~torch_ao.methods.bitmask.BitmaskAO` also takes a ``(K,)``
     table, read at each *sample* by its ``object_id`` -- one thickness per object. This script fits
-    that table with :func:`torch_ao.fit.fit` (soft bitmask), fits a single scalar on the same views
-    for comparison, and prints the fitted table and the held-out error of both in *hard* mode.
+    that table with :func:`torch_ao.fit.fit` (soft bitmask, followed by the denoiser an engine runs
+    after it: a :class:`torch_ao.fitted.FittedPipeline`), fits a single scalar on the same views for
+    comparison, keeps for each the values best in *hard* mode on the training views, and prints the
+    fitted table and the held-out error of both in hard mode. The per-object pipeline goes to
+    ``OUT/params.json`` (its table is indexed by the ids the fit saw: object classes with ``--group
+    class``, your engine's ids with ``--group id``).
 
     Object ids of the built-in scenes (``--group class``, the default) are mapped to object
     *classes* that keep their meaning from one randomised view to the next -- what an engine's
@@ -39,8 +43,8 @@ import torch
 
 from torch_ao.datasets import HOLDOUT_SEED, TRAIN_SCENES
 from torch_ao.fit import FitConfig, FitView, evaluate, fit
+from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
-from torch_ao.methods import get_method
 from torch_ao.reference import Box, Cylinder, Mesh, Plane, Sphere, get_scene
 
 from common import apply_tiny
@@ -68,7 +72,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=30, help="optimizer steps (each fit)")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
-    p.add_argument("--tau", type=float, default=0.25, help="soft-mask temperature while fitting (sector units)")
+    p.add_argument("--no-denoise", action="store_true", help="fit and score bitmask AO alone, without the denoiser")
+    p.add_argument("--hard-every", type=int, default=5, help="score in hard mode every N steps and keep the best (0 = off)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
     p.add_argument("--out", default="runs/fit_object_thickness", help="output folder")
@@ -127,8 +132,9 @@ def build_views(args):
 
 
 def bitmask(args, thickness):
-    return get_method("bitmask")(preset=args.preset, radius=args.max_distance, weighting=args.weighting,
-                                 tau=args.tau, thickness=thickness).to(args.device)
+    """The shipped pipeline: bitmask AO (hard mode) followed by the denoiser (unless ``--no-denoise``)."""
+    options = dict(preset=args.preset, radius=args.max_distance, weighting=args.weighting, thickness=thickness)
+    return FittedPipeline("bitmask", options, denoiser=not args.no_denoise).to(args.device)
 
 
 def main(argv=None) -> dict:
@@ -146,17 +152,19 @@ def main(argv=None) -> dict:
 
     out = Path(args.out)
     rows = {f"scalar start ({args.init:g})": evaluate(bitmask(args, args.init), held)}
-    cfg = FitConfig(params=("thickness",), steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed)
+    cfg = FitConfig(params=("thickness",), steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed,
+                    hard_every=args.hard_every)
 
     scalar = bitmask(args, args.init)
     res_scalar = fit(scalar, train, cfg, checkpoint=out / "checkpoint-scalar.pt", progress=not args.no_progress)
-    t_scalar = float(scalar.thickness.detach())
+    t_scalar = float(scalar.method.thickness.detach())
     rows[f"scalar fitted ({t_scalar:.3f})"] = evaluate(scalar, held)
 
     table = bitmask(args, torch.full((K,), args.init))
     res_table = fit(table, train, cfg, checkpoint=out / "checkpoint-table.pt", progress=not args.no_progress)
-    values = table.thickness.detach().cpu().tolist()
+    values = table.method.thickness.detach().cpu().tolist()
     rows["per-object fitted"] = evaluate(table, held)
+    table.save(out / "params.json", names=names, group=args.group, holdout_after=rows["per-object fitted"])
 
     print(f"\n{'object':<16}{'thickness':>10}{'pixels':>9}")
     for i in range(K):
@@ -172,7 +180,7 @@ def main(argv=None) -> dict:
                "radius": args.max_distance, "holdout": rows, "steps": [res_scalar.steps_done, res_table.steps_done],
                "fit_seconds": res_scalar.seconds + res_table.seconds}
     save_json(out / "object_thickness.json", payload)
-    print(f"\nwrote {out / 'object_thickness.json'}")
+    print(f"\nwrote {out / 'object_thickness.json'}, {out / 'params.json'}")
     return payload
 
 

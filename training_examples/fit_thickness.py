@@ -4,10 +4,12 @@ What it does
     Renders (once, then loads from the cache) randomised views of the built-in scenes with their
     ray-traced reference AO (cosine-weighted, maximum distance ``R``), fits the single ``thickness``
     parameter of :class:`torch_ao.methods.bitmask.BitmaskAO` by gradient descent on the *soft*
-    bitmask (:func:`torch_ao.fit.fit`), and evaluates the result in *hard* mode -- the integer
-    bitmask an engine ships -- on held-out views (seeds never used for fitting). It prints the
-    held-out error of the start value, of common engine defaults (0.25, 0.5, 1.0) and of the fitted
-    thickness, and writes them to ``OUT/thickness.json``.
+    bitmask (:func:`torch_ao.fit.fit`) through the denoiser that follows it in an engine (a
+    :class:`torch_ao.fitted.FittedPipeline`), keeps the value that is best in *hard* mode -- the
+    integer bitmask an engine ships -- and evaluates it on held-out views (seeds never used for
+    fitting). It prints the held-out error of the start value, of common engine defaults (0.25,
+    0.5, 1.0) and of the fitted thickness, and writes them to ``OUT/thickness.json``; the fitted
+    pipeline goes to ``OUT/params.json`` (``torch-ao ao FRAME --fitted OUT/params.json`` applies it).
 
 How to run
     python training_examples/fit_thickness.py                    # about 5 minutes of CPU time on 2 cores
@@ -21,11 +23,13 @@ How to adapt
     * The quality you ship: ``--preset`` (``low``..``ultra``) and ``--weighting uniform`` (the
       paper's equal sectors; ``cosine`` matches the cosine-weighted reference).
     * Another scene mix: ``--scenes fence,poles`` (see ``torch-ao render --list``).
+    * More parameters fitted jointly: ``--params thickness,radius``; no denoiser: ``--no-denoise``.
     * In code, this is all there is to it::
 
-          module = BitmaskAO(preset="high", radius=R, thickness=1.0)
-          fit(module, train_views, FitConfig(params=("thickness",), steps=40))
-          evaluate(module, held_out_views)      # hard mode
+          pipeline = FittedPipeline("bitmask", {"preset": "high", "radius": R, "thickness": 1.0}, denoiser=True)
+          fit(pipeline, train_views, FitConfig(params=("thickness",), steps=40))
+          evaluate(pipeline, held_out_views)    # hard mode
+          pipeline.save("params.json")          # torch_ao.load_fitted("params.json") rebuilds it
 """
 from __future__ import annotations
 
@@ -36,8 +40,8 @@ import torch
 
 from torch_ao.datasets import TRAIN_SCENES
 from torch_ao.fit import FitConfig, evaluate, fit
+from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
-from torch_ao.methods import get_method
 
 from common import apply_tiny, build_views
 
@@ -60,25 +64,31 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=30, help="optimizer steps")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
-    p.add_argument("--tau", type=float, default=0.25, help="soft-mask temperature while fitting (sector units)")
+    p.add_argument("--params", default="thickness", help="parameters fitted jointly (thickness, radius)")
+    p.add_argument("--no-denoise", action="store_true", help="fit and score bitmask AO alone, without the denoiser")
+    p.add_argument("--hard-every", type=int, default=5, help="score in hard mode every N steps and keep the best (0 = off)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
     p.add_argument("--out", default="runs/fit_thickness", help="output folder")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 6 steps")
-    return apply_tiny(p, p.parse_args(argv), scenes="fence,room_corner", train_views=1, size="32x24", spp=16, steps=6, preset="low")
+    p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 6 steps from thickness 0.2")
+    return apply_tiny(p, p.parse_args(argv), scenes="fence,room_corner", train_views=1, size="32x24", spp=16, steps=6, preset="low",
+                      init=0.2, hard_every=2)
 
 
 def bitmask(args, thickness):
-    return get_method("bitmask")(preset=args.preset, radius=args.max_distance, weighting=args.weighting,
-                                 tau=args.tau, thickness=thickness).to(args.device)
+    """The shipped pipeline: bitmask AO (hard mode) followed by the denoiser (unless ``--no-denoise``)."""
+    options = dict(preset=args.preset, radius=args.max_distance, weighting=args.weighting, thickness=thickness)
+    return FittedPipeline("bitmask", options, denoiser=not args.no_denoise).to(args.device)
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
     train, held = build_views(args)
-    print(f"bitmask ({args.preset}, {args.weighting}): fitting one thickness on {len(train)} views, "
+    params = tuple(p.strip() for p in args.params.split(",") if p.strip())
+    print(f"bitmask ({args.preset}, {args.weighting}{'' if args.no_denoise else ', + denoiser'}): fitting "
+          f"{', '.join(params)} on {len(train)} views, "
           f"evaluating on {len(held)} held-out views, R = {args.max_distance:g}")
 
     rows = {f"start ({args.init:g})": evaluate(bitmask(args, args.init), held)}
@@ -88,24 +98,29 @@ def main(argv=None) -> dict:
 
     module = bitmask(args, args.init)
     out = Path(args.out)
-    cfg = FitConfig(params=("thickness",), steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed)
+    cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed,
+                    hard_every=args.hard_every)
     result = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
-    thickness = float(module.thickness.detach())
+    thickness = float(module.method.thickness.detach())
     rows[f"fitted ({thickness:.3f})"] = after = evaluate(module, held)
     train_after = evaluate(module, train)
 
-    print(f"\nfitted thickness: {thickness:.4f} (from {args.init:g}, {result.steps_done} steps, {result.seconds:.0f} s)")
+    print(f"\nfitted thickness: {thickness:.4f} (from {args.init:g}, {result.steps_done} steps, {result.seconds:.0f} s; "
+          f"radius {float(module.method.radius.detach()):.4f})")
     print(f"\n{'held-out views, hard mode':<26}{'MAE':>8}{'RMSE':>8}{'PSNR':>8}{'SSIM':>8}{'ms':>8}")
     for name, r in rows.items():
         print(f"{name:<26}{r['mae']:8.4f}{r['rmse']:8.4f}{r['psnr']:8.2f}{r['ssim']:8.4f}{r['seconds'] * 1e3:8.1f}")
 
+    module.save(out / "params.json", holdout_after=after)
     payload = {"thickness": thickness, "init": args.init, "preset": args.preset, "weighting": args.weighting,
+               "radius_fitted": float(module.method.radius.detach()), "params": list(params),
+               "denoiser": not args.no_denoise, "best_step": result.best_step,
                "radius": args.max_distance, "steps": result.steps_done, "fit_seconds": result.seconds,
                "train_views": [v.name for v in train], "holdout_views": [v.name for v in held],
                "holdout": rows, "holdout_before": rows[f"start ({args.init:g})"], "holdout_after": after,
                "train_before": train_before, "train_after": train_after, "history": result.history}
     save_json(out / "thickness.json", payload)
-    print(f"\nwrote {out / 'thickness.json'}")
+    print(f"\nwrote {out / 'thickness.json'}, {out / 'params.json'}")
     return payload
 
 

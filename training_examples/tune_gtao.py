@@ -3,7 +3,9 @@
 What it does
     Renders (once, then loads from the cache) randomised views of the built-in scenes with their
     ray-traced reference AO (cosine-weighted, maximum distance ``R``), then fits the horizon method's
-    heuristic parameters with :func:`torch_ao.fit.fit` -- the same loop that fits bitmask thickness:
+    heuristic parameters with :func:`torch_ao.fit.fit` -- the same loop that fits bitmask thickness,
+    through the denoiser that follows the method in an engine (a :class:`torch_ao.fitted.FittedPipeline`;
+    ``--no-denoise`` fits the method alone):
 
     * ``--variant exact`` (default): radius (reported as a multiplier of ``R``), falloff range (a
       fraction of the radius, XeGTAO's ``FalloffRange``) and the final power (``FinalValuePower``);
@@ -13,7 +15,8 @@ What it does
 
     It then prints, on held-out views (seeds never used for fitting, evaluated in hard mode), the
     error of the default parameters, of the values XeGTAO's grid auto-tune reported (radius x1.457,
-    falloff 0.615, final power 2.2) and of the fitted values, and writes them to ``OUT/gtao.json``.
+    falloff 0.615, final power 2.2) and of the fitted values, and writes them to ``OUT/gtao.json``;
+    the fitted pipeline goes to ``OUT/params.json`` (``torch-ao ao FRAME --fitted OUT/params.json``).
     XeGTAO tuned against its own ray-traced reference in its own units, so its numbers are a point
     of comparison, not a target.
 
@@ -37,9 +40,9 @@ from pathlib import Path
 import torch
 
 from torch_ao.datasets import TRAIN_SCENES
-from torch_ao.fit import FitConfig, evaluate, fit
+from torch_ao.fit import FitConfig, evaluate, fit, fittable_parameters
+from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
-from torch_ao.methods import get_method
 
 from common import apply_tiny, build_views
 
@@ -68,6 +71,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=30, help="optimizer steps")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
+    p.add_argument("--no-denoise", action="store_true", help="fit and score the method alone, without the denoiser")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
     p.add_argument("--out", default="runs/tune_gtao", help="output folder")
@@ -78,12 +82,12 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def make(args, **values):
-    cls = get_method(args.method)
+    """The shipped pipeline: the method with ``values`` followed by the denoiser (unless ``--no-denoise``)."""
     kwargs = dict(preset=args.preset, radius=args.max_distance)
     if args.method == "gtao":
         kwargs["variant"] = args.variant
     kwargs.update(values)
-    return cls(**kwargs).to(args.device)
+    return FittedPipeline(args.method, kwargs, denoiser=not args.no_denoise).to(args.device)
 
 
 def main(argv=None) -> dict:
@@ -91,7 +95,7 @@ def main(argv=None) -> dict:
     torch.manual_seed(args.seed)
     R = args.max_distance
     params = (args.params or DEFAULT_PARAMS.get((args.method, args.variant))
-              or ",".join(n for n, _ in make(args).named_parameters() if n != "albedo"))
+              or ",".join(n for n in fittable_parameters(make(args)) if n != "albedo"))
     params = tuple(s.strip() for s in params.split(",") if s.strip())
     init = {}
     if args.method == "gtao" and args.variant == "exact" and "falloff_range" in params:
@@ -115,7 +119,7 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, batch_views=args.batch_views, seed=args.seed)
     fitted = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
-    values = {n: float(p.detach()) for n, p in module.named_parameters() if n in params}
+    values = {n: float(p.detach()) for n, p in module.method.named_parameters() if n in params}
     results["fitted"] = {"values": values, **evaluate(module, held)}
 
     print("\nparameter          " + "".join(f"{n:>18}" for n in results))
@@ -123,7 +127,7 @@ def main(argv=None) -> dict:
     for key in names:
         cells = []
         for name, r in results.items():
-            v = r["values"].get(key, float(getattr(rows[name][0] if name in rows else module, key).detach()))
+            v = r["values"].get(key, float(getattr((rows[name][0] if name in rows else module).method, key).detach()))
             cells.append(f"{(v / R if key == 'radius' else v):18.3f}")
         print(f"{key + (' (x R)' if key == 'radius' else ''):<19}" + "".join(cells))
     print(f"\n{'held-out views, hard mode':<26}{'MAE':>8}{'RMSE':>8}{'PSNR':>8}{'SSIM':>8}{'ms':>8}")
@@ -132,10 +136,12 @@ def main(argv=None) -> dict:
 
     payload = {"method": args.method, "variant": args.variant, "preset": args.preset, "max_distance": R,
                "params": list(params), "steps": fitted.steps_done, "fit_seconds": fitted.seconds,
-               "radius_multiplier": values.get("radius", float(module.radius.detach())) / R,
+               "radius_multiplier": values.get("radius", float(module.method.radius.detach())) / R,
+               "denoiser": not args.no_denoise,
                "xegtao": XEGTAO, "results": results, "history": fitted.history}
     save_json(out / "gtao.json", payload)
-    print(f"\nwrote {out / 'gtao.json'}")
+    module.save(out / "params.json", holdout_after=results["fitted"])
+    print(f"\nwrote {out / 'gtao.json'}, {out / 'params.json'}")
     return payload
 
 

@@ -1,4 +1,4 @@
-"""Run seed 001's SSILVB fragment shader on an OpenGL context (moderngl, EGL; e.g. Mesa llvmpipe).
+"""Run the SSILVB GLSL article's fragment shader on an OpenGL context (moderngl, EGL; e.g. Mesa llvmpipe).
 
 ``run_ssilvb(ctx, gbuffer, ...)`` uploads view-space position, normal and light as RGBA32F textures
 (NEAREST, CLAMP_TO_EDGE, flipped so that GL's row 0 is the image's bottom row), draws a fullscreen
@@ -29,14 +29,30 @@ def _rgba(img: torch.Tensor) -> bytes:
     return np.ascontiguousarray(rgba, dtype="f4").tobytes()
 
 
+def shader_source(jitter: bool, highp_int: bool = False) -> str:
+    """The shader as published (``jitter``) or its jitter-free copy; ``highp_int`` adds
+    ``precision highp int;`` (llvmpipe otherwise evaluates the ``uint`` masks in 16 bits)."""
+    source = (HERE / SHADERS["jitter" if jitter else "nojitter"]).read_text()
+    if highp_int:
+        source = source.replace("precision highp float;\n", "precision highp float;\nprecision highp int;\n", 1)
+        assert "precision highp int;" in source
+    return source
+
+
 def run_ssilvb(ctx, gbuffer, *, slices: int, steps: int, radius: float, thickness: float, jitter: bool = True,
-               fragment_source: str | None = None, extra_uniforms: dict | None = None) -> torch.Tensor:
+               fragment_source: str | None = None, extra_uniforms: dict | None = None,
+               nan_background: bool = False) -> torch.Tensor:
+    """``nan_background``: the position texture holds NaN on background pixels (else the G-buffer's
+    stand-in positions at depth 1), so that the shader's samples there occlude nothing, as the variant's."""
     import moderngl
 
     H, W = gbuffer.depth.shape[-2:]
-    frag = fragment_source or (HERE / SHADERS["jitter" if jitter else "nojitter"]).read_text()
+    frag = fragment_source or shader_source(jitter)
     prog = ctx.program(vertex_shader=(HERE / "quad.vert").read_text(), fragment_shader=frag)
-    images = {"screenPosition": gbuffer.positions()[0], "screenNormal": gbuffer.view_normals()[0],
+    positions = gbuffer.positions()[0]
+    if nan_background:
+        positions = torch.where(gbuffer.valid[0], positions, torch.full_like(positions, float("nan")))
+    images = {"screenPosition": positions, "screenNormal": gbuffer.view_normals()[0],
               "screenLight": gbuffer.light[0]}
     textures = []
     for unit, (name, img) in enumerate(images.items()):

@@ -28,6 +28,10 @@ OPTIONS = (
     Option("tolerance", None, f"with --auto: allowed MAE above the best; when not given, the report's, else "
            f"{DEFAULT_TOLERANCE:g}", float, unit="visibility (MAE)", minimum=0.0),
     Option("report", None, "with --auto: a `torch-ao bench` report.json, or the folder holding it", str),
+    Option("fitted", None, "run the pipeline a `torch-ao fit` params.json describes (method, options, fitted "
+           "parameters, denoiser) instead of --method and the method flags", str),
+    Option("denoise", False, "filter the output with the edge-aware denoiser (torch_ao.Denoiser, default "
+           "settings); with --fitted, adds one when the file has none", bool),
 )
 
 
@@ -63,7 +67,10 @@ def run(args: argparse.Namespace) -> int:
         gbuffer, _ = load_gbuffer(args.gbuffer, device=device)
     else:
         gbuffer = example_gbuffer().to(device)
-    method = build_method(args.method, args).to(device)
+    from ..fitted import cli_module
+
+    method = cli_module(args, lambda a: build_method(a.method, a), args.method_flags).to(device)
+    args.method = getattr(method, "method_name", args.method)
     with torch.no_grad():
         method(gbuffer)  # warm-up, so the time printed is the steady state
         if device.type == "cuda":

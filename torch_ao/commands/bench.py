@@ -78,6 +78,9 @@ def register(sub) -> None:
     p.add_argument("--params", metavar="JSON", action="append",
                    help="per-method constructor arguments, e.g. fitted values: a `torch-ao fit` params.json, or a "
                    "JSON file or string {\"bitmask\": {\"thickness\": 0.3}} (repeatable; wins over method flags)")
+    p.add_argument("--fitted", nargs="+", action="extend", default=[], metavar="PARAMS.json",
+                   help="fitted pipelines (`torch-ao fit` params.json files) added as rows, each at its own preset, "
+                   "radius, parameters and denoiser")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
     sizes = p.add_argument_group("sweep size (defaults as below, or those of --quick)")
     add_options(sizes, {o.name: o for o in SIZE_OPTIONS})
@@ -147,6 +150,11 @@ def run(args: argparse.Namespace) -> int:
     rows = run_bench(views, methods, presets, denoise=args.denoise, backward=args.backward,
                      repeats=repeats, warmup=warmup, device=device, radius=args.radius, params=params,
                      progress=progress)
+    if args.fitted:
+        from ..fitted import bench_rows
+
+        rows += bench_rows(args.fitted, views, backward=args.backward, repeats=repeats, warmup=warmup, device=device,
+                           progress=progress)
     background = None
     if args.background:
         background = background_scaling(methods, "high", height=192, width=256, repeats=max(5, repeats),

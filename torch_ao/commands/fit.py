@@ -1,49 +1,73 @@
-"""``torch-ao fit``: fit an AO method's parameters to ray-traced references (the main job).
+"""``torch-ao fit``: fit an AO pipeline (method + denoiser) to ray-traced references (the main job).
 
-With no arguments: render (or load from the cache) randomised views of the built-in scene set,
-fit bitmask AO's thickness on the training views, and compare on held-out views the engine
-defaults (thickness 0.25, 0.5, 1.0), GTAO with default parameters and the fitted bitmask.
+With no arguments: render (or load from the cache) randomised views of the built-in scene set, fit
+bitmask AO's parameters (thickness and radius) followed by the denoiser on the training views, keep
+the parameters that are best in hard mode, and compare on held-out views, per scene, the defaults, the
+engine defaults (thickness 0.25, 0.5, 1.0), GTAO with default parameters and the fitted pipeline.
 """
 from __future__ import annotations
 
 import argparse
+import math
+import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
-from ..fit import FitConfig, evaluate, fit, load_views, set_mode
-from ..io import save_json, write_text_atomic
-from ..methods import METHODS, get_method
+from ..fit import FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
+from ..fitted import FittedPipeline
+from ..io import read_npz, write_text_atomic
+from ..methods import METHODS, PRESETS, get_method
+
+#: Parameters in world units: their learning rate is ``--lr`` times R, so a fit moves them by the
+#: same fraction of R whatever the scene's scale.
+LENGTHS = ("radius", "thickness", "fade_distance")
+#: Start values replacing a default where the default has no gradient (GTAO's falloff range 0 is a
+#: hard cut: neither radius nor falloff has a gradient there).
+NO_GRADIENT_START = {"falloff_range": 0.25}
+BITMASK = ("bitmask", "ssilvb")
 
 
 def register(sub) -> None:
     p = sub.add_parser(
         "fit",
-        help="fit AO parameters (bitmask thickness by default) to ray-traced references",
+        help="fit an AO pipeline's parameters (method + denoiser) to ray-traced references",
         description="Fit a method's float parameters by gradient descent against ray-traced reference AO, "
-        "then compare on held-out views. Without --reference, uses randomised views of the built-in scenes "
-        "(rendered once, then cached). Re-running the same command resumes an interrupted fit.",
+        "scoring the pipeline that ships (method in hard mode + denoiser), then compare on held-out views. "
+        "Without --reference, uses randomised views of the built-in scenes (rendered once, then cached). "
+        "Re-running the same command resumes an interrupted fit.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--reference", nargs="+", metavar="FILE.npz", help="your own G-buffers with an 'ao' reference")
+    p.add_argument("--reference", nargs="+", metavar="FILE.npz", help="your own G-buffers with an 'ao' reference "
+                   "(and 'max_distance', the method's radius R)")
     p.add_argument("--holdout", nargs="+", metavar="FILE.npz", help="held-out references (default: the last third of --reference)")
     p.add_argument("--method", default="bitmask", help=f"method to fit: one of {', '.join(sorted(METHODS))}")
-    p.add_argument("--params", default="thickness", help="comma-separated parameters to fit, e.g. thickness,radius")
-    p.add_argument("--preset", default="high", help="quality preset of the fitted method")
+    p.add_argument("--variant", default=None, help="the method's variant (default: the method's)")
+    p.add_argument("--params", default=None, help="comma-separated parameters to fit jointly, e.g. thickness,radius "
+                   "(default: every float parameter the method and variant use)")
+    p.add_argument("--init", default=None, help="start values, e.g. thickness=0.5,radius=1.2 (radius in world units; "
+                   "a bare number is the thickness; default: the method's defaults)")
+    p.add_argument("--preset", default="high", choices=sorted(PRESETS), help="quality preset of the fitted method")
+    p.add_argument("--weighting", choices=("uniform", "cosine"), default="cosine",
+                   help="sector weighting of bitmask methods (cosine matches the cosine-weighted reference)")
+    p.add_argument("--no-denoise", action="store_true", help="fit and score the method alone, without the denoiser")
+    p.add_argument("--radius", type=float, default=None, help="the method's radius R (default: the references' max_distance)")
     p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes (without --reference)")
     p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
     p.add_argument("--size", default="160x96", help="render size WxH of built-in views")
     p.add_argument("--spp", type=int, default=256, help="reference rays per pixel")
-    p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R (also the method's radius)")
+    p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R of built-in views")
     p.add_argument("--steps", type=int, default=60, help="optimizer steps")
-    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (times R for lengths)")
+    p.add_argument("--hard-every", type=int, default=10, help="score the parameters in hard mode every N steps and "
+                   "keep the best (0 = keep the best soft-mode loss)")
+    p.add_argument("--hard-patience", type=int, default=2, help="stop once this many hard-mode scores in a row have "
+                   "not improved on the best (0 = run all --steps)")
     p.add_argument("--batch-views", type=int, default=0, help="training views per step (0 = all)")
-    p.add_argument("--weighting", choices=("uniform", "cosine"), default="cosine",
-                   help="sector weighting of the fitted bitmask method (cosine matches the cosine-weighted reference)")
     p.add_argument("--loss", choices=("l1", "mse"), default="l1")
-    p.add_argument("--init", type=float, default=1.0, help="initial thickness")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cache", default=None, help=f"reference cache folder (default {default_cache_dir()})")
     p.add_argument("--out", default="fit-out", help="output folder (params.json, report.md, comparison.png, checkpoint.pt)")
@@ -62,34 +86,100 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _views(args) -> tuple[list, list]:
+def reference_radius(paths, override: float | None) -> float:
+    """R of reference files: their common ``max_distance``; files that disagree are refused (named),
+    ``override`` wins with a warning when it differs."""
+    found = {}
+    for path in paths:
+        md = read_npz(path).get("max_distance")
+        if md is not None and md.size == 1 and math.isfinite(float(md)) and float(md) > 0:
+            found[str(path)] = float(np.float32(md))  # files store float32 or float64: compare at float32
+    values = sorted(set(found.values()))
+    if override is not None:
+        if not (math.isfinite(override) and override > 0):
+            raise CommandError(f"--radius: expected a finite value > 0, got {override}")
+        if values and values != [float(np.float32(override))]:
+            warnings.warn(f"--radius {override:g} overrides the references' max_distance "
+                          f"({', '.join(f'{v:g}' for v in values)}): the method fits a different problem than the files hold",
+                          stacklevel=2)
+        return override
+    if len(values) > 1:
+        groups = {v: [p for p, x in found.items() if x == v] for v in values}
+        detail = "; ".join(f"R={v:g}: {', '.join(ps)}" for v, ps in groups.items())
+        raise CommandError(f"--reference: the files disagree on max_distance ({detail}); fit them separately or give --radius")
+    missing = [str(p) for p in paths if str(p) not in found]
+    if not values:
+        raise CommandError(f"--reference: no finite max_distance in {', '.join(missing)}; give the method's radius with --radius")
+    if missing:
+        raise CommandError(f"--reference: {', '.join(missing)} has no finite max_distance (the others have R={values[0]:g}); "
+                           "give --radius")
+    return values[0]
+
+
+def _views(args) -> tuple[list, list, float]:
     device = torch.device(args.device)
     if args.reference:
         train = load_views(args.reference, device=device)
-        if args.holdout:
-            return train, load_views(args.holdout, device=device)
+        held = load_views(args.holdout, device=device) if args.holdout else None
+        radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
+        if held is not None:
+            return train, held, radius
         if len(train) == 1:
             print("note: one reference file; held-out scores are on the training view itself")
-            return train, train
+            return train, train, radius
         n_hold = max(1, len(train) // 3)
-        return train[:-n_hold], train[-n_hold:]
+        return train[:-n_hold], train[-n_hold:], radius
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     from ..reference import SCENES
 
     unknown = [s for s in scenes if s not in SCENES]
     if unknown:
         raise CommandError(f"--scenes: unknown scene(s) {', '.join(unknown)}; see `torch-ao render --list`")
+    if not (math.isfinite(args.max_distance) and args.max_distance > 0):
+        raise CommandError(f"--max-distance: expected a finite value > 0, got {args.max_distance}")
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   progress=not args.no_progress, device=device)
     print(f"references: {len(scenes)} scenes x ({args.train_views} training + 1 held-out) views at {w}x{h}, {args.spp} spp")
-    return train_and_holdout_views(scenes, args.train_views, 1, **common)
+    train, held = train_and_holdout_views(scenes, args.train_views, 1, **common)
+    radius = args.max_distance
+    if args.radius is not None:
+        radius = reference_radius([], args.radius)
+        if radius != args.max_distance:
+            warnings.warn(f"--radius {radius:g} overrides the references' max_distance {args.max_distance:g}", stacklevel=2)
+    return train, held, radius
 
 
-def _build(name: str, args, **kwargs):
-    cls = get_method(name)
-    radius = {"radius": args.max_distance} if "radius" in cls.options() else {}  # (PSSAO walks in pixels)
-    return cls(preset=args.preset, **radius, **kwargs).to(args.device)
+def _init_values(text: str | None) -> dict[str, float]:
+    if not text:
+        return {}
+    try:
+        return {"thickness": float(text)}
+    except ValueError:
+        pass
+    values = {}
+    for item in text.split(","):
+        key, sep, value = item.partition("=")
+        try:
+            values[key.strip()] = float(value)
+        except ValueError:
+            raise CommandError(f"--init: expected name=value pairs such as thickness=0.5,radius=1.2, got {item!r}") from None
+        if not sep or not key.strip():
+            raise CommandError(f"--init: expected name=value pairs such as thickness=0.5,radius=1.2, got {item!r}")
+    return values
+
+
+def pipeline_options(args, radius: float, **values) -> dict:
+    """Constructor options of the fitted method: preset, radius, variant, weighting (bitmask), ``values``."""
+    options = {"preset": args.preset}
+    if "radius" in get_method(args.method).options():  # (PSSAO walks in pixels)
+        options["radius"] = radius
+    if args.variant is not None:
+        options["variant"] = args.variant
+    if args.method in BITMASK:
+        options["weighting"] = args.weighting
+    options.update(values)
+    return options
 
 
 def run(args: argparse.Namespace) -> int:
@@ -97,45 +187,118 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--method: unknown method {args.method!r}; expected one of {', '.join(sorted(METHODS))}")
     if args.steps < 0:
         raise CommandError(f"--steps: expected >= 0, got {args.steps}")
-    params = tuple(p.strip() for p in args.params.split(",") if p.strip())
+    for name in ("hard_every", "hard_patience"):
+        if getattr(args, name) < 0:
+            raise CommandError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(args, name)}")
+    init = _init_values(args.init)
     out = Path(args.out)
-    train, held = _views(args)
-    print(f"fitting {args.method} {', '.join(params)} on {len(train)} views, evaluating on {len(held)} held-out views")
+    denoise = not args.no_denoise
+    train, held, radius = _views(args)
 
-    bitmask = args.method in ("bitmask", "ssilvb")
-    init = {"thickness": args.init, "weighting": args.weighting} if bitmask else {}
-    module = _build(args.method, args, **init)
-    before = evaluate(module, held)
-    cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views, seed=args.seed)
+    default = FittedPipeline(args.method, pipeline_options(args, radius), denoiser=denoise).to(args.device)
+    params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params
+              else fittable_parameters(default.method))
+    if not params:
+        raise CommandError(f"--params: {args.method} has no float parameter to fit with these options")
+    for name in params:
+        if name not in fittable_parameters(default.method):
+            raise CommandError(f"--params: {name!r} is not a fitted parameter of {args.method}"
+                               f"{' (' + args.variant + ')' if args.variant else ''}; "
+                               f"available: {', '.join(fittable_parameters(default.method))}")
+    start = {k: v for k, v in NO_GRADIENT_START.items() if k in params and float(getattr(default.method, k).detach()) == 0.0}
+    start.update(init)
+    unknown = set(start) - set(params)
+    if unknown:
+        raise CommandError(f"--init: {', '.join(sorted(unknown))} not among the fitted parameters ({', '.join(params)})")
+    module = FittedPipeline(args.method, pipeline_options(args, radius, **start), denoiser=denoise).to(args.device)
+    denoised = " + denoiser" if denoise else ""
+    print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views, "
+          f"evaluating on {len(held)} held-out views")
+
+    cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
+                    seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
+                    param_lr={k: args.lr * radius for k in params if k in LENGTHS})
     result = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
-    after = evaluate(module, held, repeats=3)
 
-    rows = []
-    if bitmask:
+    rows = {}
+    if args.method in BITMASK:
         for t in (0.25, 0.5, 1.0):
-            engine = _build(args.method, args, thickness=t, weighting="uniform")
-            rows.append((f"{args.method} thickness={t:g} (engine default: uniform sectors)", evaluate(engine, held, repeats=3)))
-    rows.append(("gtao (default parameters)", evaluate(_build("gtao", args), held, repeats=3)))
-    fitted = ", ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in result.parameters.items())
-    label = f"{args.method} fitted ({fitted}" + (f", {args.weighting} sectors)" if bitmask else ")")
-    rows.append((label, after))
+            engine = FittedPipeline(args.method, {"preset": args.preset, "radius": radius, "thickness": t,
+                                                  "weighting": "uniform"}, denoiser=denoise)
+            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True)
+    if args.method != "gtao":
+        gtao = FittedPipeline("gtao", {"preset": args.preset, "radius": radius}, denoiser=denoise)
+        rows[f"gtao (default parameters){denoised}"] = evaluate(gtao, held, per_view=True)
+    default_label = f"{args.method} default ({_describe(default, params)}){denoised}"
+    rows[default_label] = before = evaluate(default, held, per_view=True)
+    fitted_label = f"{args.method} fitted ({_describe(module, params)}){denoised}"
+    rows[fitted_label] = after = evaluate(module, held, per_view=True)
+    if denoise:
+        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, per_view=True)
+    train_start, train_best = _train_losses(result)
+
     table = _table(rows)
+    scenes = _scene_table(held, rows[default_label], after,
+                          next((r for k, r in rows.items() if k.startswith("gtao (default")), None))
     print(table)
+    print()
+    print(scenes)
     out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: {result.steps_done}\n\n{table}\n")
-    payload = {"method": args.method, "preset": args.preset, "radius": args.max_distance, "parameters": result.parameters,
-               "before": before, "after": after, "steps": result.steps_done, "fit_seconds": result.seconds,
-               "history": [{k: v for k, v in r.items()} for r in result.history]}
-    save_json(out / "params.json", payload)
-    _comparison_png(out / "comparison.png", held[0], _build(args.method, args, **init), module)
+    write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: "
+                      f"{result.steps_done}; R = {radius:g}; hard mode{denoised}\n\n{table}\n\nPer held-out view:\n\n{scenes}\n")
+    module.save(out / "params.json", fitted=list(params), before=_summary(before), after=_summary(after),
+                train_loss_start=train_start, train_loss_fitted=train_best, per_view={"default": before["views"], "fitted": after["views"]},
+                comparison={k: _summary(v) for k, v in rows.items()}, steps_done=result.steps_done,
+                best_step=result.best_step, fit_seconds=result.seconds, history=result.history,
+                hard_history=result.hard_history, train_views=[v.name for v in train], holdout_views=[v.name for v in held])
+    _comparison_png(out / "comparison.png", held[0], default, module)
     print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
     return 0
 
 
+def _train_losses(result) -> tuple[float | None, float | None]:
+    """Training loss (mean L1 over valid pixels, hard mode) of the start and of the kept parameters,
+    from the fit's own records (no extra forward passes)."""
+    records = result.hard_history or result.history
+    if not records:
+        return None, None
+    kept = next((r for r in records if r["step"] == result.best_step), records[-1])
+    return records[0]["loss"], kept["loss"]
+
+
+def _describe(pipeline: FittedPipeline, params) -> str:
+    values = pipeline.parameter_values()
+    parts = []
+    for name in params:
+        v = values[name]
+        parts.append(f"{name}={v.item():.3g}" if v.numel() == 1 else f"{name}=<{v.numel()} values>")
+    if "weighting" in pipeline.options:
+        parts.append(f"{pipeline.options['weighting']} sectors")
+    return ", ".join(parts)
+
+
+def _summary(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if k != "views"}
+
+
 def _table(rows) -> str:
-    lines = ["| method | MAE | RMSE | PSNR (dB) | SSIM | time (ms) |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
-    for name, m in rows:
+    lines = ["| pipeline | MAE | RMSE | PSNR (dB) | SSIM | time (ms) |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    for name, m in rows.items():
         lines.append(f"| {name} | {m['mae']:.4f} | {m['rmse']:.4f} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['seconds'] * 1000:.1f} |")
+    return "\n".join(lines)
+
+
+def _scene_table(views, default: dict, fitted: dict, gtao: dict | None) -> str:
+    """Per held-out view: MAE and PSNR of the default and the fitted pipeline (and default GTAO)."""
+    head = "| view | default MAE | fitted MAE | default PSNR | fitted PSNR |" + (" gtao MAE | gtao PSNR |" if gtao else "")
+    lines = [head, "| --- |" + " ---: |" * (head.count("|") - 2)]
+    for v in views:
+        d, f = default["views"][v.name], fitted["views"][v.name]
+        cells = [f"{d['mae']:.4f}", f"{f['mae']:.4f}", f"{d['psnr']:.2f}", f"{f['psnr']:.2f}"]
+        if gtao:
+            g = gtao["views"][v.name]
+            cells += [f"{g['mae']:.4f}", f"{g['psnr']:.2f}"]
+        lines.append(f"| {v.name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -2,42 +2,53 @@
 
 Each slice's hemisphere (around the projected normal) is split into 32 sectors. Every sample
 occludes the sectors between its *front* direction and its *back* direction (the sample pushed
-``thickness`` away from the camera along the view vector), so light passes behind thin surfaces.
-The union over a slice's steps gives its occluded sectors; visibility is the share of unoccluded
-sectors, averaged over slices. See :mod:`torch_ao.sectors` for the masks and their soft versions.
+``thickness`` away from the camera), so light passes behind thin surfaces. The union over a slice's
+steps gives its occluded sectors; visibility is the share of unoccluded sectors, averaged over slices.
+See :mod:`torch_ao.sectors` for the masks and their soft versions, :mod:`torch_ao.thickness` for the
+thickness models, :mod:`.bitmask_common` for the slice / sample / finish loop the variants share.
 
-Variants (``variant=``):
+Variants (``variant=``), one accumulator each:
 
 ``"default"``
     Slices evenly over the half circle around the view vector (or in screen angle with
     ``azimuth="screen"``), both sides marched into one 32-sector mask per slice, exact in-plane
     angles (``atan2`` in the slice plane), signed slice coordinate ``side * theta`` mapped by
     ``(side * theta - gamma + pi/2) / pi`` (``gamma`` = projected-normal angle). Visibility in [0, 1].
+``"exact"``
+    ``"default"``'s geometry made to converge (see docs/bitmask.md, "Convergence"): the exact measure
+    of the union of the steps' intervals instead of 32 sectors (``union="exact"``), each occluder
+    segment clipped to the radius (``clip_to_radius=True``), the back point along the sample's own
+    camera ray (``thickness_direction="depth"``), the steps over the sphere's screen extent
+    (``sample_extent="sphere"``) from a quarter pixel out (``min_step_px=0.25``), cosine weighting.
+    Visibility only.
 ``"hdrp"``
-    Seed 000 (HLSL on HDRP's GTAO): both sides into one bitfield; the 3D cosines
+    The bitmask blog's HLSL on HDRP's GTAO: both sides into one bitfield; the 3D cosines
     ``dot(normalize(delta - t V), V)`` through the polynomial ``fast_acos``;
     ``N = -sign(dot(projN, T)) * fast_acos(cosN)``; ``saturate((side * -angle - N + pi/2) / pi)`` and the
     ``yx`` swap on the positive side. (HDRP's sample clamp to ``[2, size - 2]`` pixels and its
     half-resolution depth mips are not reproduced; use ``border=``/``fetch=``.)
 ``"ssilvb_glsl"``
-    Seed 001, the GLSL shader as written (see :mod:`torch_ao.methods.bitmask_glsl` for its quirks).
+    The SSILVB GLSL article's shader as written (see :mod:`torch_ao.methods.bitmask_glsl` for its quirks).
 
-Options: ``mode`` ``"hard" | "soft" | "straight_through"`` with temperature ``tau`` (sector units);
-``rounding`` ``"ceil" | "round" | "floor"``; ``weighting`` ``"uniform"`` (the paper: every sector
-1/32) or ``"cosine"`` (each sector weighted by its exact share of the cosine-weighted slice
-``|n_p| int cos(theta - gamma) |sin theta| dtheta``, normalised so an unoccluded pixel gives exactly 1;
-converges to cosine-weighted ray-traced AO). ``thickness``: a scalar, a ``(B,1,H,W)`` map (the
-*occluder's* thickness, read at the sample), or a ``(K,)`` table indexed by the G-buffer's
-``object_id`` at the sample; ``thickness_growth`` multiplies it by ``1 + growth * |sample - pixel|``.
+Options (:data:`OPTIONS` describes each: unit, range, default): ``mode`` ``"hard" | "soft" |
+"straight_through"`` with temperature ``tau`` (sector units); ``rounding`` ``"ceil" | "round" | "floor"``;
+``weighting`` ``"uniform"`` (the paper: every sector 1/32) or ``"cosine"`` (each sector weighted by its
+exact share of the cosine-weighted slice ``|n_p| int cos(theta - gamma) |sin theta| dtheta``, normalised
+so an unoccluded pixel gives exactly 1; converges to cosine-weighted ray-traced AO); ``union``,
+``clip_to_radius``, ``thickness_direction`` (the ``"exact"`` variant's improvements, each usable on its
+own with ``"default"``). ``thickness``: a float, a ``(K,)`` per-object table, a ``(B,1,H,W)`` map, or any
+:class:`~torch_ao.thickness.Thickness` model (linear in depth, a back-face layer...); ``thickness_growth``
+multiplies it by ``1 + growth * |sample - pixel|``.
 
 Outputs beyond visibility are computed only when asked (``indirect=True``, ``bent_normals=True``,
 ``ambient=``): an AO-only call never gathers the light or normal buffers.
 
 * ``indirect`` ``(B,3,H,W)``: for every step, the *newly* occluded sectors times the sample's light
   ``L``, the sender's ``saturate(N_s . -l)`` and, with uniform weighting, the receiver's
-  ``saturate(N . l)`` (seeds 000/001; ``l`` = unit direction to the sample). With cosine weighting the
-  receiver's cosine is already in the sector weights, so it is not applied twice.
-* ``ambient`` ``(B,3,H,W)``: seed 000's ``ComputeAmbient``: unoccluded sectors, grouped into
+  ``saturate(N . l)`` (the bitmask blog and the SSILVB GLSL article; ``l`` = unit direction to the
+  sample). With cosine weighting the receiver's cosine is already in the sector weights, so it is not
+  applied twice.
+* ``ambient`` ``(B,3,H,W)``: the bitmask blog's ``ComputeAmbient``: unoccluded sectors, grouped into
   ``ambient_directions`` sub-regions, times the ambient light from each sub-region's centre direction
   (a constant RGB colour, or a callable ``(M,3)`` view-space directions -> ``(M,3)``).
 * ``bent_normal`` ``(B,3,H,W)``: the normalised weighted mean direction of the unoccluded sectors.
@@ -45,23 +56,81 @@ Outputs beyond visibility are computed only when asked (``indirect=True``, ``ben
 from __future__ import annotations
 
 import math
-from typing import Callable
 
 import torch
-import torch.nn.functional as F
 
 from ..gbuffer import GBuffer
+from dataclasses import replace
+
+from ..intervals import THICKNESS_DIRECTIONS, back_point, clip_to_sphere, sphere_stretch
 from ..ops import safe_fast_acos as _safe_fast_acos
-from ..walk import Frame, GradientRows, Queries, Sample, SliceAccumulator, SliceGeometry
-from ..sectors import MODES, ROUNDINGS, SECTORS, sector_union
+from ..options import Option, options_by_name
+from ..sectors import MODES, ROUNDINGS, SECTORS
+from ..thickness import BoundThickness, as_thickness, matching
+from ..walk import Frame, GradientRows, SamplingPattern
 from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .bitmask_common import ThicknessLookup, cosine_sector_weights, sector_centres
+from .common import RADIUS
+from .bitmask_common import SectorAccumulator
 
-__all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTINGS"]
+__all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTINGS", "UNIONS", "OPTIONS"]
 
-VARIANTS = ("default", "hdrp", "ssilvb_glsl")
+VARIANTS = ("default", "exact", "hdrp", "ssilvb_glsl")
 WEIGHTINGS = ("uniform", "cosine")
+UNIONS = ("sectors", "exact")
+SAMPLE_EXTENTS = ("radius", "sphere")
+#: the ``"exact"`` variant's default ``min_step_px`` (pixels): where its first step lies
+EXACT_MIN_STEP_PX = 0.25
 _HALF_PI = math.pi / 2
+
+#: The bitmask family's options (beyond :class:`~torch_ao.methods.base.ScreenSpaceAO`'s sampling options).
+OPTIONS = (
+    Option("variant", "default", "which published rule: the clean one, its converging form, the bitmask blog's HDRP "
+           "HLSL, or the SSILVB GLSL article's shader as written", str, choices=VARIANTS),
+    Option("mode", "hard", "integer sector masks (bit for bit as the shaders, zero gradient), soft sector coverage, "
+           "or hard forward with soft gradients", str, choices=MODES),
+    Option("tau", 0.25, "temperature of the soft sector masks (smaller is closer to hard, stiffer gradients)",
+           float, unit="sectors", minimum=0.0, open_minimum=True),
+    Option("rounding", "ceil", "sector count of an interval: every sector touched, half covered, or fully covered",
+           str, choices=ROUNDINGS),
+    Option("weighting", None, "each sector 1/32 (the paper), or its exact share of the cosine-weighted slice "
+           "(converges to cosine-weighted ray-traced AO); None: cosine for variant exact, else uniform",
+           str, choices=WEIGHTINGS),
+    Option("union", None, "how a slice's intervals are combined: 32 sectors (the paper), or the exact weighted "
+           "measure of their union (no quantisation; visibility only); None: exact for variant exact, else sectors",
+           str, choices=UNIONS),
+    Option("clip_to_radius", None, "clip each occluder segment (front point to back point) to the sphere of the "
+           "radius around the pixel, as the reference counts only occluders within it; None: True for variant "
+           "exact, else False", bool),
+    Option("thickness_direction", None, "where an occluder's back point lies: thickness behind it along the "
+           "pixel's view vector (the paper, both shaders) or along its own camera ray to depth + thickness (a "
+           "depth buffer of thick surfaces, a back-face layer); None: depth for variant exact, else view",
+           str, choices=THICKNESS_DIRECTIONS),
+    Option("sample_extent", None, "how far the steps reach on screen: the radius projected along the slice "
+           "tangent at the pixel (every method's walk), or the screen extent of the radius' sphere around the "
+           "pixel, which also reaches occluders nearer the camera; None: sphere for variant exact, else radius",
+           str, choices=SAMPLE_EXTENTS),
+    Option("thickness", 0.5, "how deep each occluder reaches behind its visible surface (a scalar; tables, maps "
+           "and models from Python)", float, unit="world units", minimum=0.0, fitted=True),
+    Option("thickness_growth", None, "thickness times 1 + growth * |sample - pixel| (None: no growth)", float,
+           unit="1 / world units", minimum=0.0, fitted=True),
+    Option("sector_epsilon", None, "width removed from every interval before rounding, so float noise on flat "
+           "surfaces never occludes a sector with ceil; None: 0.01 for variant default, else 0", float,
+           unit="sectors", minimum=0.0, maximum=1.0, open_maximum=True),
+    Option("indirect", False, "also compute one-bounce indirect light (needs the G-buffer's light)", bool),
+    Option("bent_normals", False, "also compute bent normals", bool),
+    Option("ambient_directions", 8, "sub-regions per slice for a callable ambient light (divides 32)", int,
+           minimum=1, maximum=SECTORS),
+    Option("glsl_numerics", "ieee", "variant ssilvb_glsl only: exact acos, Mesa's polynomial acos, or also "
+           "llvmpipe's float16 mediump jitter", str, choices=("ieee", "mesa", "mesa_mediump")),
+)
+_OPTIONS = options_by_name(OPTIONS)
+#: per variant, the defaults of the options whose default is ``None``
+_VARIANT_DEFAULTS = {
+    "default": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.01),
+    "exact": dict(weighting="cosine", union="exact", clip_to_radius=True, thickness_direction="depth", sample_extent="sphere", sector_epsilon=0.0),
+    "hdrp": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.0),
+    "ssilvb_glsl": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.0),
+}
 
 
 def _saturate(x: torch.Tensor) -> torch.Tensor:
@@ -83,30 +152,38 @@ def _hemisphere_shift(gamma: torch.Tensor) -> torch.Tensor:
     return (_HALF_PI - gamma) / math.pi
 
 
-def _unit_positions(along_view, along_tangent, back_view, shift, side):
+def _unit_positions(along_view, along_tangent, back_view, shift, side, back_tangent=None):
     """Unclamped positions ``shift + side * theta / pi`` across the hemisphere of the front angle
-    ``atan2(along_tangent, along_view)`` and the back angle ``atan2(along_tangent, back_view)``;
-    ``shift`` broadcasts against the angles' shape."""
+    ``atan2(along_tangent, along_view)`` and the back angle ``atan2(back_tangent, back_view)``
+    (``back_tangent`` defaults to ``along_tangent``); ``shift`` broadcasts against the angles' shape."""
     scale = along_view.new_tensor(side / math.pi)
+    back_tangent = along_tangent if back_tangent is None else back_tangent
     return (torch.addcmul(shift, torch.atan2(along_tangent, along_view), scale),
-            torch.addcmul(shift, torch.atan2(along_tangent, back_view), scale))
+            torch.addcmul(shift, torch.atan2(back_tangent, back_view), scale))
 
 
-def _unit_angles(along_view, along_tangent, thickness, gamma, side):
+def _unit_angles(along_view, along_tangent, back_view, gamma, side, back_tangent=None):
     """:func:`_unit_positions` of samples whose rows are block-major over ``gamma``'s ``(N,)``."""
     N = gamma.shape[0]
     J = along_view.shape[0] // max(N, 1)
-    front, back = _unit_positions(along_view.view(J, N), along_tangent.view(J, N),
-                                  (along_view - thickness).view(J, N), _hemisphere_shift(gamma), side)
+    rows = lambda x: None if x is None else x.view(J, N)  # noqa: E731
+    front, back = _unit_positions(rows(along_view), rows(along_tangent), rows(back_view), _hemisphere_shift(gamma),
+                                  side, rows(back_tangent))
     return front.view(-1), back.view(-1)
+
+
+def _between(front: torch.Tensor, back: torch.Tensor, side: int, epsilon: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Interval ``(start, width)`` in sector units between the unit positions of the front and back
+    angles, each clamped to the hemisphere (the back angle lies beyond the front one on side ``side``)."""
+    xf, xb = _saturate(front), _saturate(back)
+    lo, hi = (xf, xb) if side > 0 else (xb, xf)
+    return _interval_from_unit(lo, hi, epsilon)
 
 
 def _sector_interval(along_view, along_tangent, thickness, gamma, side: int, epsilon: float):
     """The default variant's occluded interval ``(start, width)`` in sector units ``(rows,)``: from the
     front angle to the back angle (the sample pushed ``thickness`` away along the view vector)."""
-    xf, xb = (_saturate(x) for x in _unit_angles(along_view, along_tangent, thickness, gamma, side))
-    lo, hi = (xf, xb) if side > 0 else (xb, xf)
-    return _interval_from_unit(lo, hi, epsilon)
+    return _between(*_unit_angles(along_view, along_tangent, along_view - thickness, gamma, side), side, epsilon)
 
 
 class SectorInterval(torch.autograd.Function):
@@ -157,146 +234,111 @@ class SectorInterval(torch.autograd.Function):
         return g_av, g_at, g_t, g_gamma, None, None
 
 
-def _light_rows(width: torch.Tensor) -> torch.Tensor:
-    """Rows ``(M,)`` of the steps whose interval is not empty (``width >= 0``): only those can newly
-    occlude sectors, so only they gather light."""
-    return (width.detach() >= 0).nonzero()[:, 0]
+class DefaultAccumulator(SectorAccumulator):
+    """The ``"default"`` and ``"exact"`` variants' rule: exact in-plane angles ``atan2`` of the front and
+    back points, signed slice coordinate ``side * theta`` mapped by ``(side * theta - gamma + pi/2) / pi``.
 
-
-class BitmaskAccumulator(SliceAccumulator):
-    """The per-step work of the ``"default"`` and ``"hdrp"`` variants (a :class:`SliceAccumulator`).
-
-    It takes each side's steps in one call (``batch_steps``): state lists hold ``(steps, N)`` blocks.
+    ``thickness_direction`` and ``clip_to_radius`` (``radius``: the AO radius, world units) choose the
+    occluder segment (see :mod:`torch_ao.intervals`); with ``"view"`` and no clipping the interval has the
+    hand-written backward :class:`SectorInterval`.
     """
 
-    batch_steps = True
+    def __init__(self, *, thickness_direction: str = "view", clip_to_radius: bool = False, radius=None, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.thickness_direction, self.clip_to_radius, self.radius = thickness_direction, clip_to_radius, radius
 
-    def __init__(self, *, variant: str, mode: str, rounding: str, tau: float, weighting: str,
-                 thickness: ThicknessLookup, indirect: bool, bent_normals: bool,
-                 ambient: torch.Tensor | Callable | None, ambient_directions: int,
-                 sector_epsilon: float = 0.0) -> None:
-        self.variant, self.mode, self.rounding, self.tau = variant, mode, rounding, tau
-        self.weighting, self.thickness = weighting, thickness
-        self.indirect, self.bent_normals = indirect, bent_normals
-        self.ambient, self.ambient_directions = ambient, ambient_directions
-        self.sector_epsilon = float(sector_epsilon)
-
-    # ------------------------------------------------------------------ slice
-    def begin_slice(self, q: Queries, geom: SliceGeometry):
-        if self.variant == "hdrp":
-            n_p = q.normal - geom.axis * (q.normal * geom.axis).sum(-1, keepdim=True)
-            length = n_p.norm(dim=-1)
-            cos_n = (n_p * q.view).sum(-1) / length.clamp_min(1e-30)
-            gamma = -torch.sign((n_p * geom.tangent).sum(-1)) * _safe_fast_acos(cos_n)
-            tangent = -geom.tangent  # HDRP's signed angles grow toward -T
-        else:
-            gamma, length, tangent = geom.normal_angle, geom.normal_length, geom.tangent
-        if self.weighting == "cosine":
-            weights = cosine_sector_weights(gamma, length)
-        else:
-            weights = gamma.new_full((1, SECTORS), 1.0 / SECTORS).expand(gamma.shape[0], SECTORS)
-        return {"s": [], "w": [], "light": [], "gamma": gamma, "tangent": tangent, "weights": weights}
-
-    def step(self, state, q: Queries, geom: SliceGeometry, sample: Sample):
-        J = sample.steps
-        n = len(q) // J
-        t = self.thickness(sample)
-        side = sample.side
-        if self.variant == "hdrp":
-            gamma = state["gamma"].repeat(J)
-            front = _safe_fast_acos(sample.cos_view(0.0))
-            back = _safe_fast_acos(sample.cos_view(t))
-            xf = _saturate(((side * -front) - gamma + _HALF_PI) / math.pi)
-            xb = _saturate(((side * -back) - gamma + _HALF_PI) / math.pi)
-            lo, hi = (xb, xf) if side > 0 else (xf, xb)
-            start, width = _interval_from_unit(lo, hi, self.sector_epsilon)
-        else:
-            gamma = state["gamma"]
+    def interval(self, state, q, sample, t):
+        gamma, side = state["gamma"], sample.side
+        if self.thickness_direction == "view" and not self.clip_to_radius:
             args = (sample.along_view, sample.along_tangent, t, gamma, side, self.sector_epsilon)
             if torch.is_grad_enabled() and any(x.requires_grad for x in args[:4]):
-                start, width = SectorInterval.apply(*args)
-            else:
-                start, width = _sector_interval(*args)
-        state["s"].append(start.view(J, n))
-        state["w"].append(width.view(J, n))
-        if self.indirect:
-            # Only a step whose interval is not empty can newly occlude sectors and send light: the
-            # others (most samples) are never gathered.
-            live = _light_rows(width)
-            part = sample.rows(live)
-            ldir = part.delta / part.distance.clamp_min(1e-30)[:, None]
-            sender = _saturate((part.gather("normals") * -ldir).sum(-1))
-            factor = sender * part.valid.to(sender.dtype)
-            if self.weighting == "uniform":
-                factor = factor * _saturate((q.normal.index_select(0, live) * ldir).sum(-1))
-            light = part.gather("light") * factor[:, None]
-            state["light"].append(light.new_zeros(J * n, 3).index_copy(0, live, light).view(J, n, 3))
-        return state
+                return SectorInterval.apply(*args)
+            return _sector_interval(*args)
+        fv, ft = sample.along_view, sample.along_tangent
+        extra = {}
+        if self.thickness_direction == "depth":
+            extra = dict(pixel_distance=q.position.norm(dim=-1), sample_depth=-sample.position[:, 2])
+        bv, bt = back_point(fv, ft, t, self.thickness_direction, **extra)
+        live = sample.valid
+        if self.clip_to_radius:
+            radius = torch.as_tensor(self.radius, dtype=fv.dtype, device=fv.device)
+            fv, ft, bv, bt, inside = clip_to_sphere(fv, ft, bv, bt, radius)
+            live = live & inside
+        start, width = _between(*_unit_angles(fv, ft, bv, gamma, side, bt), side, self.sector_epsilon)
+        return start, torch.where(live, width, torch.full_like(width, -1.0))
 
-    def end_slice(self, state, q: Queries, geom: SliceGeometry) -> dict[str, torch.Tensor]:
-        S = torch.cat(state["s"], 0).t()  # (N, steps on both sides)
-        W = torch.cat(state["w"], 0).t()
-        omega = state["weights"]
-        visible, newly = sector_union(S, W, mode=self.mode, rounding=self.rounding, tau=self.tau,
-                                      weights=omega if self.indirect else None)
-        out = {"vis_num": (visible * omega).sum(-1, keepdim=True)}
-        if self.weighting == "cosine":
-            out["vis_den"] = omega.sum(-1, keepdim=True)
-        if self.indirect:
-            out["indirect"] = (newly.t()[:, :, None] * torch.cat(state["light"], 0)).sum(0)
-        if self.bent_normals or callable(self.ambient):
-            wv = visible * omega
-            phi = sector_centres(state["gamma"])
-            V, T = q.view, state["tangent"]
-            if self.bent_normals:
-                out["bent"] = (wv * torch.cos(phi)).sum(-1, keepdim=True) * V + (wv * torch.sin(phi)).sum(-1, keepdim=True) * T
-            if callable(self.ambient):
-                G = self.ambient_directions
-                group = wv.reshape(wv.shape[0], G, SECTORS // G).sum(-1)  # (N, G)
-                centre = phi.reshape(phi.shape[0], G, SECTORS // G).mean(-1)  # (N, G)
-                dirs = torch.cos(centre)[..., None] * V[:, None] + torch.sin(centre)[..., None] * T[:, None]
-                radiance = self.ambient(F.normalize(dirs, dim=-1).reshape(-1, 3)).reshape(dirs.shape)
-                out["ambient"] = (group[..., None] * radiance.to(group.dtype)).sum(1)
-        return out
 
-    def finish(self, sums, q: Queries, num_slices: int) -> dict[str, torch.Tensor]:
-        den = sums["vis_den"].clamp_min(1e-30) if self.weighting == "cosine" else sums["vis_num"].new_tensor(float(num_slices))
-        vis = sums["vis_num"] / den
-        out = {"visibility": vis}
-        if self.indirect:
-            out["indirect"] = sums["indirect"] / den
-        if self.bent_normals:
-            b = sums["bent"]
-            ok = b.norm(dim=-1, keepdim=True) > 1e-12
-            out["bent_normal"] = torch.where(ok, F.normalize(b, dim=-1, eps=1e-12), q.normal)
-        if self.ambient is not None:
-            if callable(self.ambient):
-                out["ambient"] = sums["ambient"] / den
-            else:
-                out["ambient"] = vis * self.ambient.to(vis.dtype)
-        return out
+class HDRPAccumulator(SectorAccumulator):
+    """The ``"hdrp"`` variant (the bitmask blog's HLSL on HDRP's GTAO): the 3D cosines
+    ``dot(normalize(delta - t V), V)`` through the polynomial ``fast_acos``;
+    ``N = -sign(dot(projN, T)) * fast_acos(cosN)``; ``saturate((side * -angle - N + pi/2) / pi)`` and the
+    ``yx`` swap on the positive side."""
+
+    def slice_frame(self, q, geom):
+        n_p = q.normal - geom.axis * (q.normal * geom.axis).sum(-1, keepdim=True)
+        length = n_p.norm(dim=-1)
+        cos_n = (n_p * q.view).sum(-1) / length.clamp_min(1e-30)
+        gamma = -torch.sign((n_p * geom.tangent).sum(-1)) * _safe_fast_acos(cos_n)
+        return gamma, length, -geom.tangent  # HDRP's signed angles grow toward -T
+
+    def interval(self, state, q, sample, t):
+        side = sample.side
+        gamma = state["gamma"].repeat(sample.steps)
+        front = _safe_fast_acos(sample.cos_view(0.0))
+        back = _safe_fast_acos(sample.cos_view(t))
+        # HDRP's angles grow toward -T: the front and back positions swap roles (its ``yx`` swap)
+        return _between(((side * -front) - gamma + _HALF_PI) / math.pi, ((side * -back) - gamma + _HALF_PI) / math.pi,
+                        -side, self.sector_epsilon)
+
+
+class SphereExtent(SamplingPattern):
+    """``pattern``'s walk with its steps spread over the screen extent of the sphere of radius ``radius``
+    around the pixel (:func:`~torch_ao.intervals.sphere_stretch`) instead of the projection of the radius
+    along the slice tangent, which misses occluders within the radius that are nearer the camera."""
+
+    def __init__(self, pattern: SamplingPattern, radius) -> None:
+        self.pattern, self.radius = pattern, radius
+        self.num_slices, self.sides, self.fetch, self.border = pattern.num_slices, pattern.sides, pattern.fetch, pattern.border
+
+    def slice_tangent(self, frame, q, s):
+        return self.pattern.slice_tangent(frame, q, s)
+
+    def step_offsets(self, q, geom, side):
+        stretch = sphere_stretch(q.position.norm(dim=-1), self.radius)
+        return self.pattern.step_offsets(q, replace(geom, pixels_per_unit=geom.pixels_per_unit * stretch[:, None]), side)
 
 
 class BitmaskAO(ScreenSpaceAO):
     """Visibility-bitmask AO (and, with ``indirect=True``, SSILVB indirect light) as an ``nn.Module``.
 
-    Args:
-        variant: ``"default"``, ``"hdrp"`` (seed 000) or ``"ssilvb_glsl"`` (seed 001 as written; there
-            ``slices``/``steps`` are the shader's ``sliceCount``/``sampleCount`` uniforms).
+    Args (:data:`OPTIONS` gives each option's unit, range and default):
+        variant: ``"default"``, ``"exact"`` (converges; see docs/bitmask.md), ``"hdrp"`` (the bitmask
+            blog) or ``"ssilvb_glsl"`` (the SSILVB GLSL article as written; there ``slices``/``steps`` are
+            the shader's ``sliceCount``/``sampleCount`` uniforms).
         mode: ``"hard"`` (integer bitmasks, bit for bit; zero gradient a.e.), ``"soft"`` or
-            ``"straight_through"`` (hard forward, soft gradient).
+            ``"straight_through"`` (hard forward, soft gradient). No effect with ``union="exact"``, which
+            is differentiable almost everywhere as it is.
         tau: soft temperature in sector units (``> 0``).
         rounding: ``"ceil"``, ``"round"`` or ``"floor"`` (sector count of an interval).
-        weighting: ``"uniform"`` or ``"cosine"``.
-        thickness: scalar, ``(K,)`` per-object table (uses ``gbuffer.object_id``) or ``(B,1,H,W)`` map;
-            an ``nn.Parameter`` when ``trainable``.
+        weighting: ``"uniform"`` or ``"cosine"`` (default: cosine for ``"exact"``, else uniform).
+        union: ``"sectors"`` (32 sectors) or ``"exact"`` (the exact weighted measure of the union of the
+            intervals; visibility only).
+        clip_to_radius: clip each occluder segment to the sphere of radius ``radius`` around the pixel.
+        thickness_direction: ``"view"`` (back point ``thickness`` behind the sample along the pixel's
+            view vector) or ``"depth"`` (along the sample's camera ray, at depth + ``thickness``).
+        sample_extent: ``"radius"`` (steps up to the radius projected along the slice tangent) or
+            ``"sphere"`` (up to the screen extent of the radius' sphere, :class:`SphereExtent`).
+        thickness: a float, a ``(K,)`` per-object table (uses ``gbuffer.object_id``), a ``(B,1,H,W)`` map,
+            or a :class:`~torch_ao.thickness.Thickness` model; its parameters are registered on this
+            module under the model's names (``thickness``, ``thickness_slope``, ``thickness_scale``...),
+            ``nn.Parameter``\\ s when ``trainable``.
         thickness_growth: optional scalar ``g``: thickness ``* (1 + g |sample - pixel|)``.
         indirect, bent_normals: compute these outputs (``indirect`` needs ``gbuffer.light``).
         ambient: ``None``, an RGB colour or a callable ``(M,3) -> (M,3)`` of view-space directions.
         ambient_directions: sub-regions per slice for a callable ambient (divides 32).
         sector_epsilon: width (in sectors) removed from every interval before rounding, so that the
             float noise of samples lying exactly in the tangent plane does not occlude a whole sector with
-            ``ceil`` (a flat plane gives exactly 1). Default 0.01 for ``"default"``, 0 for the seeds' variants.
+            ``ceil`` (a flat plane gives exactly 1). Default 0.01 for ``"default"``, 0 for the others.
         glsl_numerics: ``"ssilvb_glsl"`` only: ``"ieee"`` (exact ``acos``, input precision), ``"mesa"``
             (Mesa's polynomial ``acos``; matches Mesa softpipe) or ``"mesa_mediump"`` (also llvmpipe's
             float16 ``mediump`` jitter). See :mod:`torch_ao.methods.bitmask_glsl`.
@@ -305,9 +347,13 @@ class BitmaskAO(ScreenSpaceAO):
             ``chunk_size``, ``recompute``, ``trainable``...). Unless ``chunk_size``/``recompute`` are
             given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
             pixels, recomputed in backward only when a soft gradient's graph would exceed
-            ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"`` and
-            ``"screen"`` for ``"hdrp"``.
+            ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"``/``"exact"`` and
+            ``"screen"`` for ``"hdrp"``; ``min_step_px`` to 0.25 for ``"exact"`` (:data:`EXACT_MIN_STEP_PX`),
+            1 otherwise.
     """
+
+    #: its own options and the radius (``options()`` adds the walk's and the module's: the CLI's flags)
+    OPTIONS = (RADIUS,) + OPTIONS
 
     #: pixels per chunk of a walk when ``chunk_size`` is not given (chunks that stay in the CPU caches
     #: are faster than one piece: 1.7 s instead of 2.2 s for a hard 640x360 frame)
@@ -324,54 +370,51 @@ class BitmaskAO(ScreenSpaceAO):
     #: interval is not empty: all of them at worst)
     graph_bytes_per_sample = 48
     graph_bytes_per_sample_indirect = 400
+    #: ... and with the exact union, clipping or the camera-ray thickness direction (plain autograd
+    #: through the segment geometry and the sort)
+    graph_bytes_per_sample_exact = 400
 
     def __init__(self, *, variant: str = "default", mode: str = "hard", tau: float = 0.25, rounding: str = "ceil",
-                 weighting: str = "uniform", thickness=0.5, thickness_growth: float | None = None,
+                 weighting: str | None = None, union: str | None = None, clip_to_radius: bool | None = None,
+                 thickness_direction: str | None = None, sample_extent: str | None = None, thickness=0.5, thickness_growth: float | None = None,
                  indirect: bool = False, bent_normals: bool = False, ambient=None, ambient_directions: int = 8,
                  azimuth: str | None = None, glsl_numerics: str = "ieee",
                  sector_epsilon: float | None = None, **kwargs) -> None:
-        if variant not in VARIANTS:
-            raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
-        if mode not in MODES:
-            raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
-        if rounding not in ROUNDINGS:
-            raise ValueError(f"rounding: expected one of {ROUNDINGS}, got {rounding!r}")
-        if weighting not in WEIGHTINGS:
-            raise ValueError(f"weighting: expected one of {WEIGHTINGS}, got {weighting!r}")
-        if isinstance(tau, bool) or not isinstance(tau, (int, float)) or not (tau > 0 and math.isfinite(tau)):
-            raise ValueError(f"tau: expected a positive finite float, got {tau!r}")
-        if isinstance(ambient_directions, bool) or not isinstance(ambient_directions, int) or ambient_directions < 1 \
-                or SECTORS % ambient_directions:
+        given = dict(variant=variant, mode=mode, tau=tau, rounding=rounding, weighting=weighting, union=union,
+                     clip_to_radius=clip_to_radius, thickness_direction=thickness_direction, sample_extent=sample_extent,
+                     sector_epsilon=sector_epsilon, indirect=indirect, bent_normals=bent_normals,
+                     ambient_directions=ambient_directions, glsl_numerics=glsl_numerics)
+        for name, value in given.items():
+            _OPTIONS[name].check(value)
+        if SECTORS % ambient_directions:
             raise ValueError(f"ambient_directions: expected a divisor of {SECTORS}, got {ambient_directions!r}")
-        if variant == "ssilvb_glsl":
-            if weighting != "uniform":
-                raise ValueError("weighting: the 'ssilvb_glsl' variant is the shader as written (uniform sectors)")
-            if bent_normals or ambient is not None:
-                raise ValueError("bent_normals/ambient: not part of the 'ssilvb_glsl' shader; use variant='default'")
-        if glsl_numerics not in ("ieee", "mesa", "mesa_mediump"):
-            raise ValueError(f"glsl_numerics: expected 'ieee', 'mesa' or 'mesa_mediump', got {glsl_numerics!r}")
+        defaults = _VARIANT_DEFAULTS[variant]
+        resolved = {k: defaults[k] if given[k] is None else given[k] for k in defaults}
+        _check_variant_options(variant, given, resolved, bent_normals or ambient is not None, indirect)
         self.variant, self.glsl_numerics = variant, glsl_numerics
+        self.sample_extent = resolved["sample_extent"]
         if azimuth is None:
             azimuth = "screen" if variant in ("hdrp", "ssilvb_glsl") else "view"
+        if variant == "exact":
+            # The walk's first step 1 px out misses occluders within the first pixel (creases): a quarter
+            # pixel halves the remaining bias against the screen-space truth on stairs (docs/bitmask.md).
+            kwargs.setdefault("min_step_px", EXACT_MIN_STEP_PX)
         super().__init__(azimuth=azimuth, **kwargs)
         self.pattern_for(None)  # validate the variant's walk now (the base no longer calls it)
-        self.mode, self.tau, self.rounding, self.weighting = mode, float(tau), rounding, weighting
+        self.mode, self.tau, self.rounding = mode, float(tau), rounding
+        self.weighting, self.union = resolved["weighting"], resolved["union"]
+        self.clip_to_radius, self.thickness_direction = resolved["clip_to_radius"], resolved["thickness_direction"]
+        self.sector_epsilon = float(resolved["sector_epsilon"])
         # Chosen per call (the mode may change after construction, e.g. fit's set_mode).
         self._auto_chunk = kwargs.get("chunk_size") is None and "recompute" not in kwargs
         self.want_indirect, self.want_bent = bool(indirect), bool(bent_normals)
         self.ambient_directions = ambient_directions
-        if sector_epsilon is None:
-            sector_epsilon = 0.01 if variant == "default" else 0.0
-        if isinstance(sector_epsilon, bool) or not isinstance(sector_epsilon, (int, float)) or not 0 <= sector_epsilon < 1:
-            raise ValueError(f"sector_epsilon: expected a float in [0, 1), got {sector_epsilon!r}")
-        self.sector_epsilon = float(sector_epsilon)
         trainable = kwargs.get("trainable", True)
-        make_parameter(self, "thickness", thickness, trainable=trainable, minimum=0.0)
-        if self.thickness.dim() not in (0, 1, 4) or (self.thickness.dim() == 4 and self.thickness.shape[1] != 1):
-            raise ValueError(f"thickness: expected a scalar, a (K,) table or a (B,1,H,W) map, got shape {tuple(self.thickness.shape)}")
-        if thickness_growth is not None:
-            make_parameter(self, "thickness_growth", thickness_growth, trainable=trainable, minimum=0.0)
-        else:
+        self.thickness_model = as_thickness(thickness, thickness_growth)
+        for name, p in self.thickness_model.parameters().items():
+            make_parameter(self, name, p.value, trainable=trainable, minimum=p.minimum)
+            self.thickness_model.check(name, getattr(self, name))
+        if "thickness_growth" not in self.thickness_model.parameters():
             self.thickness_growth = None
         if ambient is None or callable(ambient):
             self.ambient = ambient
@@ -385,22 +428,30 @@ class BitmaskAO(ScreenSpaceAO):
             self.ambient = None
         self._ambient_constant = ambient is not None and not callable(ambient)
 
+    @property
+    def _plain_autograd(self) -> bool:
+        """Whether the interval geometry is recorded by plain autograd (the exact options), in any mode."""
+        return self.union == "exact" or self.clip_to_radius or self.thickness_direction != "view"
+
     def graph_bytes(self, pixels: int) -> int:
         """Estimated autograd memory (bytes) of a soft walk over ``pixels`` query pixels kept whole."""
         per_sample = self.graph_bytes_per_sample_indirect if self.want_indirect else self.graph_bytes_per_sample
+        if self._plain_autograd:
+            per_sample = max(per_sample, self.graph_bytes_per_sample_exact)
         return pixels * self.slices * 2 * self.steps * per_sample
 
     def auto_chunking(self, pixels: int) -> tuple[int | None, bool]:
         """``(chunk_size, recompute)`` for a frame of ``pixels`` (``B*H*W``) when the user gave neither.
 
         Walks go in cache-sized chunks of ``default_chunk`` pixels. With a soft gradient (soft or
-        straight-through mode, autograd on), the whole graph is kept if :meth:`graph_bytes` is at most
-        ``graph_budget`` (the walk runs once); otherwise each chunk of ``default_soft_chunk`` pixels
-        (half that with ``indirect``) is recomputed in backward, which bounds the memory of
-        forward+backward by one chunk whatever the frame size.
+        straight-through mode, or the exact options, autograd on), the whole graph is kept if
+        :meth:`graph_bytes` is at most ``graph_budget`` (the walk runs once); otherwise each chunk of
+        ``default_soft_chunk`` pixels (half that with ``indirect``) is recomputed in backward, which bounds
+        the memory of forward+backward by one chunk whatever the frame size.
         """
         chunk = self.default_chunk if pixels > self.default_chunk else None
-        if self.mode != "hard" and torch.is_grad_enabled() and self.graph_bytes(pixels) > self.graph_budget:
+        soft = self.mode != "hard" or self._plain_autograd
+        if soft and torch.is_grad_enabled() and self.graph_bytes(pixels) > self.graph_budget:
             return self.default_soft_chunk // (2 if self.want_indirect else 1), True
         return chunk, False
 
@@ -416,10 +467,14 @@ class BitmaskAO(ScreenSpaceAO):
 
             return GLSLPattern(self.slices, self.steps, self.radius, jitter=self.jitter, frame=frame,
                                numerics=self.glsl_numerics)
-        return super().pattern_for(frame)
+        pattern = super().pattern_for(frame)
+        return SphereExtent(pattern, self.radius) if getattr(self, "sample_extent", "radius") == "sphere" else pattern
 
-    def _thickness_kind(self) -> str:
-        return {0: "scalar", 1: "object", 4: "map"}[self.thickness.dim()]
+    def bound_thickness(self) -> BoundThickness:
+        """The thickness model with this module's current parameters (a ``thickness`` reassigned with
+        another shape, e.g. a map set per frame, switches among the scalar/table/map models)."""
+        model = matching(self.thickness_model, self.thickness)
+        return BoundThickness(model, {name: getattr(self, name) for name in model.parameters()})
 
     def frame_buffers(self, gbuffer: GBuffer, normals: torch.Tensor) -> dict[str, torch.Tensor]:
         buffers = {}
@@ -428,39 +483,46 @@ class BitmaskAO(ScreenSpaceAO):
                 raise ValueError("gbuffer.light: indirect light needs a (B,3,H,W) direct-light buffer")
             buffers["light"] = gbuffer.light
             buffers["normals"] = normals
-        kind = self._thickness_kind()
-        if kind == "map":
-            B, _, H, W = gbuffer.depth.shape
-            t = self.thickness
-            if t.shape[-2:] != (H, W) or t.shape[0] not in (1, B):
-                raise ValueError(f"thickness: map of shape {tuple(t.shape)} does not match the G-buffer (B={B}, H={H}, W={W})")
-            buffers["thickness"] = t.to(gbuffer.depth.dtype).expand(B, 1, H, W)
-        elif kind == "object":
-            if gbuffer.object_id is None:
-                raise ValueError("gbuffer.object_id: a per-object thickness table needs an object_id buffer")
-            buffers["object_id"] = gbuffer.object_id
+        buffers.update(self.bound_thickness().buffers(gbuffer))
         return buffers
 
-    def _lookup(self) -> ThicknessLookup:
-        return ThicknessLookup(self._thickness_kind(), self.thickness, self.thickness_growth)
-
     def accumulator(self, frame: Frame):
-        ambient = self.ambient_colour if self._ambient_constant else self.ambient
         if self.variant == "ssilvb_glsl":
             from .bitmask_glsl import GLSLAccumulator
 
-            return GLSLAccumulator(mode=self.mode, rounding=self.rounding, tau=self.tau, thickness=self._lookup(),
+            return GLSLAccumulator(mode=self.mode, rounding=self.rounding, tau=self.tau, thickness=self.bound_thickness(),
                                    indirect=self.want_indirect, slice_count=self.slices, frame=frame,
                                    jitter=self.jitter, numerics=self.glsl_numerics)
-        return BitmaskAccumulator(variant=self.variant, mode=self.mode, rounding=self.rounding, tau=self.tau,
-                                  weighting=self.weighting, thickness=self._lookup(), indirect=self.want_indirect,
-                                  bent_normals=self.want_bent, ambient=ambient,
-                                  ambient_directions=self.ambient_directions,
-                                  sector_epsilon=self.sector_epsilon)
+        common = dict(mode=self.mode, rounding=self.rounding, tau=self.tau, weighting=self.weighting,
+                      thickness=self.bound_thickness(), indirect=self.want_indirect, bent_normals=self.want_bent,
+                      ambient=self.ambient_colour if self._ambient_constant else self.ambient,
+                      ambient_directions=self.ambient_directions, sector_epsilon=self.sector_epsilon, union=self.union)
+        if self.variant == "hdrp":
+            return HDRPAccumulator(**common)
+        return DefaultAccumulator(thickness_direction=self.thickness_direction, clip_to_radius=self.clip_to_radius,
+                                  radius=self.radius, **common)
 
     def extra_repr(self) -> str:
         return (f"variant={self.variant!r}, mode={self.mode!r}, tau={self.tau}, rounding={self.rounding!r}, "
-                f"weighting={self.weighting!r}, " + super().extra_repr())
+                f"weighting={self.weighting!r}, union={self.union!r}, thickness={self.thickness_model.describe()}, "
+                + super().extra_repr())
+
+
+def _check_variant_options(variant: str, given: dict, resolved: dict, bent_or_ambient: bool, indirect: bool) -> None:
+    """Refuse options a variant does not have (``ValueError`` naming the option)."""
+    if variant == "ssilvb_glsl":
+        if resolved["weighting"] != "uniform":
+            raise ValueError("weighting: the 'ssilvb_glsl' variant is the shader as written (uniform sectors)")
+        if bent_or_ambient:
+            raise ValueError("bent_normals/ambient: not part of the 'ssilvb_glsl' shader; use variant='default'")
+    if variant in ("hdrp", "ssilvb_glsl"):
+        for name in ("clip_to_radius", "thickness_direction", "sample_extent") + (("union",) if variant == "ssilvb_glsl" else ()):
+            if resolved[name] != _VARIANT_DEFAULTS[variant][name]:
+                raise ValueError(f"{name}: not an option of the {variant!r} variant (its shader's rule); "
+                                 f"use variant='default' or 'exact'")
+    if resolved["union"] == "exact" and (indirect or bent_or_ambient):
+        raise ValueError("union: 'exact' computes visibility only; use union='sectors' for indirect light, "
+                         "bent normals or ambient light")
 
 
 class SSILVB(BitmaskAO):

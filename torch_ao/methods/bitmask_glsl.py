@@ -1,4 +1,4 @@
-"""The ``"ssilvb_glsl"`` variant: seed 001's GLSL SSILVB shader, reproduced as written.
+"""The ``"ssilvb_glsl"`` variant: the SSILVB GLSL article's shader, reproduced as written.
 
 The walk (:class:`GLSLPattern`) and the per-step work (:class:`GLSLAccumulator`) follow the shader
 operation by operation, in the input's float precision (float32 gives the shader's numbers; see
@@ -24,13 +24,22 @@ Quirks of the shader, all kept on purpose (a user porting it gets the same numbe
   radius, isotropically in pixels.
 * **Jitter** ``IGN(gl_FragCoord) - 0.5`` (GL's bottom-left origin) is shared by the slice angle and
   every step (``sampleStep = (j + jitter) / sampleCount + 0.01``), so the first step can land behind the
-  pixel (negative step) or on the centre texel. A centre-texel sample has ``sampleDistance = 0``: the
-  shader divides 0 by 0; here such a sample occludes nothing and adds no light (what llvmpipe does).
+  pixel (negative step) or on the centre texel. A centre-texel sample (common: the first step is only
+  ``0.01`` of the way, under a pixel for distant points) has ``sampleDistance = 0``: the shader divides 0
+  by 0, its front horizon is NaN (clamped to 0) and its back cosine ``dot(normalize(-camera t), camera)``
+  is ``-1`` (the whole half circle occluded) or, by the driver's rounding, just below ``-1`` (NaN: nothing
+  occluded). With ``glsl_numerics="mesa"`` that rounding is llvmpipe's, bit for bit (see
+  :class:`GLSLVectorOps`); with ``"ieee"`` the half circle is occluded whenever ``t > 0``. It adds no light.
+* **Background** samples (``inf``/``0``/``nan`` depth or ``mask`` False) occlude nothing and add no
+  light: what the shader does when its position texture holds NaN there (NaN horizons clamp to 0).
 * **Texel fetch**: nearest texel ``floor(uv * size)`` with clamp-to-edge, computed from the float UVs
   as the shader forms them, so the texel choices match.
 * **Driver numerics** (``glsl_numerics=``): GLSL leaves ``acos`` precision and ``mediump`` evaluation
   to the driver. Mesa's GLSL compiler emits a polynomial ``acos`` (error ~1.6e-4 rad): ``"mesa"``
-  reproduces it (bit-exact masks against softpipe). llvmpipe also evaluates ``mediump`` in 16 bits:
+  reproduces it bit for bit (:func:`mesa_asin`), with the compiler folding ``acos``'s ``pi/2`` into the
+  horizon's ``+ halfPi``, and llvmpipe's ``dot``/``normalize``/``sqrt`` roundings (:class:`GLSLVectorOps`):
+  99.995-100% of pixels match llvmpipe with 32-bit ints within 1e-3 (issue 15's fence frame: every
+  pixel bit for bit; the last few pixels elsewhere are not traced yet). llvmpipe also evaluates ``mediump`` in 16 bits:
   ``randf`` (``int`` arguments, ``mediump`` by default in a fragment shader) in float16, which
   ``"mesa_mediump"`` reproduces, and the ``uint`` masks (also ``mediump``!) in 16 bits, which no option
   reproduces: on such a driver the shader as written keeps only 16 of its 32 sectors (it should declare
@@ -48,9 +57,10 @@ import torch.nn.functional as F
 from ..ops import clamped_gradient
 from ..walk import Frame, Queries, Sample, SamplingPattern, SliceAccumulator, SliceGeometry
 from ..sectors import SECTORS, hard_mask, popcount32, sector_union
-from .bitmask_common import ThicknessLookup, safe_acos
+from ..thickness import BoundThickness
+from .bitmask_common import safe_acos
 
-__all__ = ["GLSLPattern", "GLSLAccumulator", "glsl_jitter", "glsl_constants", "mesa_acos", "GLSL_NUMERICS"]
+__all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "glsl_constants", "mesa_acos", "mesa_asin", "GLSL_NUMERICS"]
 
 #: ``"ieee"``: every operation in the input precision with exact ``acos``; ``"mesa"``: Mesa's GLSL
 #: ``acos`` polynomial (softpipe, and desktop-like full precision elsewhere); ``"mesa_mediump"``: also
@@ -59,21 +69,63 @@ __all__ = ["GLSLPattern", "GLSLAccumulator", "glsl_jitter", "glsl_constants", "m
 GLSL_NUMERICS = ("ieee", "mesa", "mesa_mediump")
 
 
-def mesa_acos(x: torch.Tensor) -> torch.Tensor:
-    """Mesa's GLSL ``acos`` (``pi/2 - asin``, with the polynomial ``asin`` Mesa's GLSL compiler emits:
-    ``sign(x) (pi/2 - sqrt(1 - |x|) (pi/2 + |x| (pi/4 - 1 + |x| (0.08132463 - 0.02363318 |x|))))``;
-    max error about 1.6e-4 rad). Matches llvmpipe's ``acos`` to 1-2 ulp. Inputs are clamped to [-1, 1]
-    (NaN beyond is handled by the caller); the gradient is made finite at ``|x| = 1``."""
+def mesa_asin(x: torch.Tensor) -> torch.Tensor:
+    """Mesa's GLSL ``asin``: the polynomial its GLSL compiler emits,
+    ``sign(x) (pi/2 - sqrt(1 - |x|) (pi/2 + |x| (pi/4 - 1 + |x| (0.08132463 - 0.02363318 |x|))))``
+    (max error about 1.6e-4 rad), with its constant ``M_PI_4f - 1.0f`` rounded in float and a correctly
+    rounded ``sqrt``: bit for bit llvmpipe's in float32. Inputs are clamped to [-1, 1] (NaN beyond is
+    handled by the caller); the gradient is made finite at ``|x| = 1``."""
     dt = x.dtype
     c = lambda v: torch.tensor(v, dtype=dt, device=x.device)  # noqa: E731
-    half_pi, quarter_pi_m1 = c(math.pi / 2), c(math.pi / 4 - 1)
+    half_pi, quarter_pi_m1 = c(math.pi / 2), c(math.pi / 4) - 1.0
 
     def f(v):
         ax = v.abs()
         poly = half_pi + ax * (quarter_pi_m1 + ax * (c(0.08132463) + ax * c(-0.02363318)))
-        return half_pi - torch.sign(v) * (half_pi - torch.sqrt(c(1.0) - ax) * poly)
+        return torch.sign(v) * (half_pi - _EXACT.sqrt(c(1.0) - ax) * poly)
 
     return clamped_gradient(lambda v: f(v.clamp(-1.0, 1.0)), x)
+
+
+def mesa_acos(x: torch.Tensor) -> torch.Tensor:
+    """Mesa's GLSL ``acos``: ``pi/2 - asin(x)`` (:func:`mesa_asin`), bit for bit llvmpipe's in float32."""
+    return torch.tensor(math.pi / 2, dtype=x.dtype, device=x.device) - mesa_asin(x)
+
+
+class GLSLVectorOps:
+    """``dot``, ``length``, ``normalize`` and ``sqrt`` as the shader's driver evaluates them.
+
+    ``exact=True`` (``glsl_numerics="mesa"``/``"mesa_mediump"``) follows Mesa's llvmpipe bit for bit
+    (found by running the operations on it, ``tests/test_glsl_parity.py``): ``dot(a, b) =
+    (a.y b.y + a.z b.z) + a.x b.x`` in float32 without fused multiply-adds, ``length(v) =
+    sqrt(dot(v, v))`` and ``normalize(v) = v * (1 / sqrt(dot(v, v)))``, each step rounded, with the
+    correctly rounded IEEE ``sqrt`` (torch's float32 ``sqrt`` is not: it is off by one ulp on some
+    inputs, so it is taken in float64 and rounded, which is exact for square roots). Its roundings decide, e.g., whether ``dot(normalize(-c t), c)`` is ``-1`` or
+    falls just below (then ``acos`` is NaN). ``exact=False`` (``"ieee"``) uses torch's reductions.
+    Shapes: vectors ``(..., 3)`` -> ``(...)`` (``dot``, ``length``) or ``(..., 3)``."""
+
+    def __init__(self, exact: bool) -> None:
+        self.exact = exact
+
+    def dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        p = a * b
+        return (p[..., 1] + p[..., 2]) + p[..., 0] if self.exact else p.sum(-1)
+
+    def sqrt(self, x: torch.Tensor) -> torch.Tensor:
+        if self.exact and x.dtype == torch.float32:
+            return torch.sqrt(x.double()).float()
+        return torch.sqrt(x)
+
+    def length(self, v: torch.Tensor) -> torch.Tensor:
+        return self.sqrt(self.dot(v, v)) if self.exact else v.norm(dim=-1)
+
+    def normalize(self, v: torch.Tensor) -> torch.Tensor:
+        if self.exact:
+            return v * (1.0 / self.sqrt(self.dot(v, v)))[..., None]
+        return F.normalize(v, dim=-1, eps=1e-12)
+
+
+_EXACT = GLSLVectorOps(exact=True)
 
 
 def glsl_constants(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -110,7 +162,7 @@ def _slice_direction(q: Queries, s: int, slice_count: int, jitter: torch.Tensor)
 
 
 class GLSLPattern(SamplingPattern):
-    """Seed 001's walk: ``sliceCount + 1`` slices, one side each, ``sampleCount + 1`` nearest-texel steps.
+    """The shader's walk: ``sliceCount + 1`` slices, one side each, ``sampleCount + 1`` nearest-texel steps.
 
     Args:
         slices, steps: the shader's ``sliceCount`` (>= 2) and ``sampleCount`` (>= 1).
@@ -153,7 +205,7 @@ class GLSLPattern(SamplingPattern):
         ox, oy = _slice_direction(q, geom.index, self.slice_count, jitter)
         p00 = (2 * frame.fx / W).to(dt)[q.batch]  # projection[0][0] as camera.opengl_projection() builds it
         radius = torch.as_tensor(self.radius, dtype=dt, device=q.u.device)
-        scale = (-radius * p00) / -q.depth  # position.z = -depth
+        scale = (-radius * p00) / q.position[:, 2]  # the centre's position.z (-depth unless a position buffer says otherwise)
         frag_u = (q.u + 0.5) / W
         y_gl = (H - 1) - q.v
         frag_v = (y_gl + 0.5) / H
@@ -174,15 +226,16 @@ class GLSLPattern(SamplingPattern):
 
 
 class GLSLAccumulator(SliceAccumulator):
-    """Seed 001's per-step work (hard: 32-bit masks; soft/straight-through: :func:`sector_union`)."""
+    """The shader's per-step work (hard: 32-bit masks; soft/straight-through: :func:`sector_union`)."""
 
-    def __init__(self, *, mode: str, rounding: str, tau: float, thickness: ThicknessLookup, indirect: bool,
+    def __init__(self, *, mode: str, rounding: str, tau: float, thickness: BoundThickness, indirect: bool,
                  slice_count: int, frame: Frame, jitter: bool = True, numerics: str = "ieee") -> None:
         self.mode, self.rounding, self.tau, self.thickness = mode, rounding, tau, thickness
         self.indirect, self.slice_count = indirect, slice_count
         self.height = frame.shape[1]
         self.jitter_enabled = jitter
         self.numerics = numerics
+        self.gl = GLSLVectorOps(exact=numerics in ("mesa", "mesa_mediump"))
 
     def begin_slice(self, q: Queries, geom: SliceGeometry):
         pi, _, half_pi = glsl_constants(q.u.dtype)
@@ -194,17 +247,19 @@ class GLSLAccumulator(SliceAccumulator):
                 "visibility": q.u.new_zeros(n),
                 "lighting": q.u.new_zeros(n, 3),
             }
-        camera = q.view
-        normal = F.normalize(q.normal, dim=-1)
+        gl = self.gl
+        camera = gl.normalize(-q.position) if gl.exact else q.view
+        normal = gl.normalize(q.normal)
         direction = self._direction(q, geom)
-        ortho = direction - (direction * camera).sum(-1, keepdim=True) * camera
+        ortho = direction - gl.dot(direction, camera)[:, None] * camera
         axis = torch.cross(direction, camera, dim=-1)  # not normalised (as written)
-        proj = normal - axis * (normal * axis).sum(-1, keepdim=True)
-        proj_length = proj.norm(dim=-1)
-        sign_n = torch.sign((ortho * proj).sum(-1))
-        cos_n = ((proj * camera).sum(-1) / proj_length).clamp(0.0, 1.0)
+        proj = normal - axis * gl.dot(normal, axis)[:, None]
+        proj_length = gl.length(proj)
+        sign_n = torch.sign(gl.dot(ortho, proj))
+        cos_n = (gl.dot(proj, camera) / proj_length).clamp(0.0, 1.0)
         n_angle = sign_n * self._acos(cos_n)
-        return {"n": n_angle, "pi": pi, "half_pi": half_pi, "normal": normal, "s": [], "w": [], "light": []}
+        return {"n": n_angle, "pi": pi, "half_pi": half_pi, "normal": normal, "camera": camera,
+                "s": [], "w": [], "light": []}
 
     def _acos(self, x: torch.Tensor) -> torch.Tensor:
         if self.numerics in ("mesa", "mesa_mediump"):
@@ -212,10 +267,17 @@ class GLSLAccumulator(SliceAccumulator):
         return safe_acos(x)
 
     def _horizon(self, cosine: torch.Tensor, n, pi, half_pi) -> torch.Tensor:
-        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of a cosine rounded beyond +-1 is
-        NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
-        value = ((self._acos(cosine) + n + half_pi) / pi).clamp(0.0, 1.0)
-        return torch.where(cosine.detach().abs() > 1, torch.zeros_like(value), value)
+        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of NaN or of a cosine rounded
+        beyond +-1 is NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
+        c = cosine.detach()
+        bad = ~(c.abs() <= 1)
+        cosine = torch.where(bad, torch.zeros_like(cosine), cosine)
+        if self.gl.exact:  # Mesa folds acos's pi/2 into the + halfPi: (pi - asin(c)) + n, bit for bit
+            value = ((pi - mesa_asin(cosine)) + n) / pi
+        else:
+            value = (self._acos(cosine) + n + half_pi) / pi
+        value = value.clamp(0.0, 1.0)
+        return torch.where(bad, torch.zeros_like(value), value)
 
     def _direction(self, q: Queries, geom: SliceGeometry) -> torch.Tensor:
         jitter = glsl_jitter(q, self.height, self.jitter_enabled, self.numerics)
@@ -223,34 +285,41 @@ class GLSLAccumulator(SliceAccumulator):
         return torch.stack((ox, oy, torch.zeros_like(ox)), -1)
 
     def step(self, state, q: Queries, geom: SliceGeometry, sample: Sample):
-        camera = q.view
+        gl, camera = self.gl, state["camera"]
         delta = sample.delta
-        length = delta.norm(dim=-1, keepdim=True)
-        horizon = delta / length
+        horizon = delta / gl.length(delta)[:, None]
         t = self.thickness(sample)
         t = t[:, None] if t.dim() == 1 else t
-        front = (horizon * camera).sum(-1)
-        back = (F.normalize(delta - camera * t, dim=-1) * camera).sum(-1)
+        front = gl.dot(horizon, camera)
+        back = gl.dot(gl.normalize(delta - camera * t), camera)
         pi, half_pi, n = state["pi"], state["half_pi"], state["n"]
         x = self._horizon(front, n, pi, half_pi)
         y = self._horizon(back, n, pi, half_pi)
+        # Background samples never occlude (what the shader does when its position buffer holds NaN
+        # there: NaN horizons clamp to 0, an empty run); their stand-in delta -V could otherwise round
+        # to a cosine beyond -1 and occlude everything.
+        x = torch.where(sample.valid, x, torch.ones_like(x))
+        y = torch.where(sample.valid, y, torch.ones_like(y))
         # A sample on the centre texel has sampleDistance = 0: the shader's front horizon is 0/0 = NaN,
-        # and clamp(NaN, 0, 1) gives 0 on llvmpipe, so x = 0. Its back direction is -camera, so y = 1
-        # when the thickness is > 0 (exactly; a driver may round the cosine below -1 and get NaN -> 0),
-        # and NaN -> 0 when it is 0. With y = 1 the whole half circle is occluded.
+        # and clamp(NaN, 0, 1) gives 0 on llvmpipe, so x = 0. Its back direction is -camera: y = 1 when
+        # the thickness is > 0 (the whole half circle occluded) and NaN -> 0 when it is 0. With the
+        # driver's roundings (exact ops) dot(normalize(-camera t), camera) may fall below -1: NaN -> 0.
         centre = sample.distance_px == 0
         if bool(centre.any()):
             x = torch.where(centre, torch.zeros_like(x), x)
-            t_pos = (t[:, 0] if t.dim() == 2 else t.expand_as(x)) > 0
-            y = torch.where(centre, t_pos.to(y.dtype), y)
+            if gl.exact:
+                y_centre = self._horizon(gl.dot(gl.normalize(-(camera * t)), camera), n, pi, half_pi)
+            else:
+                y_centre = ((t[:, 0] if t.dim() == 2 else t.expand_as(x)) > 0).to(y.dtype)
+            y = torch.where(centre, y_centre, y)
         s = x * float(SECTORS)
         w = (y - x) * float(SECTORS)
         light = None
         if self.indirect:
-            sample_normal = F.normalize(sample.gather("normals"), dim=-1)
+            sample_normal = gl.normalize(sample.gather("normals"))
             light = sample.gather("light")
-            c1 = (state["normal"] * horizon).sum(-1).clamp(0.0, 1.0)
-            c2 = (sample_normal * -horizon).sum(-1).clamp(0.0, 1.0) * sample.valid.to(delta.dtype)
+            c1 = gl.dot(state["normal"], horizon).clamp(0.0, 1.0)
+            c2 = gl.dot(sample_normal, -horizon).clamp(0.0, 1.0) * sample.valid.to(delta.dtype)
             light = (light * c1[:, None]) * c2[:, None]
         if self.mode == "hard":
             mask = hard_mask(s, w, self.rounding)

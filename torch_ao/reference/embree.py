@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .tracer import _Triangles
+
 __all__ = ["embree_available", "EmbreeTriangles"]
 
 _FAR = np.float32(1e37)  # Embree's "no limit"
@@ -27,8 +29,12 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to("cpu", torch.float32).numpy())
 
 
-class EmbreeTriangles:
-    """All meshes of a scene in one Embree scene; ``closest`` returns global triangle indices."""
+class EmbreeTriangles(_Triangles):
+    """All meshes of a scene as one Embree mesh; ``closest`` returns global triangle indices.
+
+    The mesh goes to Embree indexed (float32 vertices, int32 faces) and normals are computed from
+    the same indices, so memory is about ``12 V + 12 F`` bytes for Embree plus its BVH, with no
+    per-triangle copies."""
 
     def __init__(self, meshes, obj_of_mesh, device, dtype):
         try:
@@ -36,22 +42,9 @@ class EmbreeTriangles:
             from embreex.mesh_construction import TriangleMesh
         except ImportError:
             raise ImportError("meshes: the Embree backend needs embreex: pip install torch-ao[mesh] (or pip install embreex)") from None
+        self._concatenate(meshes, obj_of_mesh, device, dtype)
         self._scene = rtcore_scene.EmbreeScene()
-        self._keep = []
-        offsets, tris, objs = [], [], []
-        start = 0
-        for m, oi in zip(meshes, obj_of_mesh):
-            tri = m.triangles.to(torch.float32).numpy()
-            self._keep.append(TriangleMesh(self._scene, np.ascontiguousarray(tri)))
-            offsets.append(start)
-            start += tri.shape[0]
-            tris.append(m.triangles)
-            objs.append(torch.full((tri.shape[0],), int(oi), dtype=torch.long))
-        self._offsets = np.asarray(offsets, dtype=np.int64)
-        tri = torch.cat(tris)
-        self.e1 = (tri[:, 1] - tri[:, 0]).to(device, dtype)
-        self.e2 = (tri[:, 2] - tri[:, 0]).to(device, dtype)
-        self.obj = torch.cat(objs).to(device)
+        self._mesh = TriangleMesh(self._scene, _np(self.vertices), np.ascontiguousarray(self.faces.cpu().numpy(), dtype=np.int32))
 
     @staticmethod
     def _dists(tmax, n: int) -> np.ndarray:
@@ -61,10 +54,9 @@ class EmbreeTriangles:
 
     def closest(self, o, d, tmax):
         res = self._scene.run(_np(o), _np(d), dists=self._dists(tmax, o.shape[0]), output=1)
-        geom = res["geomID"]
-        hit = geom >= 0
+        hit = res["geomID"] >= 0
         t = np.where(hit, res["tfar"], np.inf).astype(np.float64)
-        idx = np.where(hit, self._offsets[np.maximum(geom, 0)] + res["primID"], 0)
+        idx = np.where(hit, res["primID"], 0).astype(np.int64)
         t = torch.from_numpy(t).to(o.device, o.dtype)
         t = torch.where(t < tmax, t, float("inf"))
         return t, torch.from_numpy(idx).to(o.device)
@@ -73,5 +65,3 @@ class EmbreeTriangles:
         res = self._scene.run(_np(o), _np(d), dists=self._dists(tmax, o.shape[0]), query="OCCLUDED")
         return torch.from_numpy(np.asarray(res) >= 0).to(o.device)
 
-    def normal(self, p, idx):
-        return torch.linalg.cross(self.e1[idx], self.e2[idx], dim=-1)

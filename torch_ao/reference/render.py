@@ -16,6 +16,13 @@ Quantities (per pixel ``x`` with camera-facing geometric normal ``n``, hemispher
   the mean of ``L_in``. This is the quantity SSILVB's ``indirect`` approximates from the ``light``
   buffer (the receiver's albedo multiplies it afterwards, if at all).
 
+* ``backface_depth`` (optional): the view-axis depth at which each pixel's camera ray leaves the
+  object it hit first (the exit depth; what an engine's front-face-culled depth pass of that object
+  gives), ``inf`` on background. Closed forms for spheres, boxes and cylinders; ``inf`` for planes
+  (half-spaces: nothing behind them is reachable); for meshes the next hit of the same object along
+  the ray (other objects ignored), or the front depth itself when there is none (an open surface: zero thickness).
+  See :meth:`Tracer.exit_distance`.
+
 Background pixels: depth ``inf``, ``mask`` False, ``ao = 1``, errors 0, light/indirect 0.
 Every estimate comes with its Monte Carlo standard error (``*_stderr``), from independent groups of
 stratified samples (:mod:`.sampling`).
@@ -63,6 +70,7 @@ class Reference:
     spp: int
     seed: int
     world_to_view: torch.Tensor
+    backface_depth: torch.Tensor | None = None
     extra: dict = field(default_factory=dict)
 
     def arrays(self) -> dict:
@@ -74,6 +82,8 @@ class Reference:
             out["ao_uniform"], out["ao_uniform_stderr"] = self.ao_uniform, self.ao_uniform_stderr
         if self.indirect is not None:
             out["indirect_reference"], out["indirect_reference_stderr"] = self.indirect, self.indirect_stderr
+        if self.backface_depth is not None:
+            out["backface_depth"] = self.backface_depth
         return out
 
     def save(self, path: str | os.PathLike):
@@ -160,6 +170,7 @@ def render_reference(
     progress: bool = True,
     indirect: bool = False,
     uniform: bool = True,
+    backface: bool = False,
     device=None,
     dtype: torch.dtype = torch.float32,
     mesh_backend: str = "auto",
@@ -178,6 +189,8 @@ def render_reference(
         progress: show a tqdm progress bar.
         indirect: also render one-bounce indirect light (costs closest hits + shadow rays).
         uniform: also render uniform-weighted visibility (another ``spp`` rays per pixel).
+        backface: also render ``backface_depth`` ``(B,1,H,W)``, the exit depth of each pixel's
+            first-hit object (see the module docstring).
         device, dtype: where and in what precision rays are traced.
         mesh_backend: ``"auto"``, ``"embree"`` or ``"torch"`` (see :class:`Tracer`).
     Returns:
@@ -214,9 +227,13 @@ def render_reference(
     t_prim = torch.empty(npix, dtype=dtype, device=device)
     obj = torch.empty(npix, dtype=torch.long, device=device)
     nrm = torch.empty(npix, 3, dtype=dtype, device=device)
+    t_exit = torch.empty(npix, dtype=dtype, device=device) if backface else None
     for s in range(0, npix, chunk_rays):
-        hit = tracer.intersect(o[s:s + chunk_rays], d[s:s + chunk_rays])
-        t_prim[s:s + chunk_rays], obj[s:s + chunk_rays], nrm[s:s + chunk_rays] = hit.t, hit.obj, hit.normal
+        sl = slice(s, s + chunk_rays)
+        hit = tracer.intersect(o[sl], d[sl])
+        t_prim[sl], obj[sl], nrm[sl] = hit.t, hit.obj, hit.normal
+        if backface:
+            t_exit[sl] = tracer.exit_distance(o[sl], d[sl], hit)
         bar.update(hit.t.shape[0])
     valid = obj >= 0
     flip = torch.where((nrm * d).sum(-1) > 0, -1.0, 1.0).to(dtype)
@@ -288,7 +305,11 @@ def render_reference(
         return out.view(B, H, W, C).permute(0, 3, 1, 2).contiguous()
 
     mask = valid.view(B, 1, H, W)
-    depth = torch.where(mask, t_prim.view(B, 1, H, W).double() / scale_depth, float("inf")).to(dtype)
+
+    def view_depth(t):  # distance along the unit camera ray -> view-axis depth, inf on background
+        return torch.where(mask, t.view(B, 1, H, W).double() / scale_depth, float("inf")).to(dtype)
+
+    depth = view_depth(t_prim)
     Rv = Rw.to(dtype)
     n_view = torch.einsum("bij,bjhw->bihw", Rv, image(n, 0.0, 3))
     n_view = torch.where(mask, n_view, torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device).view(1, 3, 1, 1))
@@ -305,6 +326,7 @@ def render_reference(
         indirect=image(ind, 0.0, 3) if indirect else None,
         indirect_stderr=image(ind_se, 0.0, 3) if indirect else None,
         max_distance=R, spp=spp, seed=seed, world_to_view=views.world_to_view.clone(),
+        backface_depth=view_depth(t_exit) if backface else None,
     )
 
 

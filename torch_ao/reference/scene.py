@@ -215,27 +215,15 @@ class Mesh(_Object):
         """
         from pathlib import Path
 
+        from .meshfile import normalize_vertices, read_trimesh
+
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"mesh: no such file: {path}")
-        try:
-            import trimesh
-        except ImportError:
-            raise ImportError("mesh: loading mesh files needs trimesh: pip install torch-ao[mesh] (or pip install trimesh)") from None
-        try:
-            tm = trimesh.load(str(path), force="mesh", process=False)
-        except Exception as err:  # trimesh raises many kinds for bad files
-            raise ValueError(f"mesh: cannot read {path} ({type(err).__name__}: {err})") from None
+        tm = read_trimesh(path, force="mesh", process=False)
         if not hasattr(tm, "faces") or len(tm.faces) == 0:
             raise ValueError(f"mesh: {path} has no triangles")
         v = torch.as_tensor(tm.vertices, dtype=torch.float64)
         if normalize:
-            lo, hi = v.min(0).values, v.max(0).values
-            scale = float((hi - lo).max())
-            if scale <= 0:
-                raise ValueError(f"mesh: {path} is degenerate (zero extent)")
-            centre = (lo + hi) / 2
-            v = (v - torch.stack([centre[0], lo[1], centre[2]])) / scale
+            v = normalize_vertices(v, path)[0]
         return cls(albedo=albedo, object_id=object_id, vertices=v, faces=torch.as_tensor(tm.faces).long(), name=path.name)
 
 
@@ -324,11 +312,14 @@ class Scene:
         """A new scene with ``obj`` appended (ids re-assigned for objects without one)."""
         return Scene(self.objects + [obj], self.light, self.view, self.name, self.description)
 
-    @property
-    def scale(self) -> float:
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Axis-aligned ``(lo, hi)`` float64 bounds of the bounded objects, ``None`` when there are none."""
         boxes = [b for b in (o.bounds() for o in self.objects) if b is not None]
         if not boxes:
-            return 1.0
-        lo = torch.stack([b[0] for b in boxes]).min(0).values
-        hi = torch.stack([b[1] for b in boxes]).max(0).values
-        return max(float((hi - lo).max()), 1e-3)
+            return None
+        return torch.stack([b[0] for b in boxes]).min(0).values, torch.stack([b[1] for b in boxes]).max(0).values
+
+    @property
+    def scale(self) -> float:
+        box = self.bounds()
+        return 1.0 if box is None else max(float((box[1] - box[0]).max()), 1e-3)

@@ -14,9 +14,13 @@ from dataclasses import dataclass
 
 import torch
 
+from ..checks import check_choice
 from .scene import Box, Cylinder, Mesh, Plane, Scene, Sphere
 
 __all__ = ["Tracer", "Hit", "TORCH_MAX_TRIANGLES"]
+
+#: Triangle tracers: see :class:`Tracer`.
+MESH_BACKENDS = ("auto", "embree", "warp", "torch")
 
 #: Largest total triangle count the pure-torch mesh path accepts when Embree is unavailable.
 TORCH_MAX_TRIANGLES = 20_000
@@ -54,6 +58,12 @@ class _Group(abc.ABC):
     def occluded(self, o, d, tmax):
         return self.closest(o, d, tmax)[0] < tmax
 
+    @abc.abstractmethod
+    def exit(self, o, d, t, prim, obj, eps):
+        """``(M,)`` distances along rays ``o + s d`` at which each leaves the object ``obj (M,)``
+        (object index) it entered at ``t (M,)``; ``prim (M,)`` is the primitive's index in this
+        group, ``eps (M,)`` a step past the entry against finding it again."""
+
 
 def _reduce(t: torch.Tensor, tmax) -> tuple[torch.Tensor, torch.Tensor]:
     """``t (N,P)`` with ``inf`` for misses -> closest ``(t, idx)`` below ``tmax``."""
@@ -79,6 +89,21 @@ class _Planes(_Group):
     def normal(self, p, idx):
         return self.n[idx]
 
+    def exit(self, o, d, t, prim, obj, eps):
+        # nothing behind an infinite plane is reachable from the camera's side: a half-space
+        return torch.full_like(t, _INF)
+
+
+def _sphere_roots(oc, d, r2):
+    """Entry and exit distances ``(t0, t1)`` of rays with unit ``d`` and ``oc = origin - centre``
+    (broadcast over leading dims, last dim 3) through spheres of squared radius ``r2``, and
+    whether the line meets the sphere."""
+    b = (oc * d).sum(-1)  # d . (o - c)
+    perp = oc - b[..., None] * d  # closest approach vector, numerically stable
+    disc = r2 - (perp * perp).sum(-1)
+    sq = disc.clamp_min(0).sqrt_()
+    return -b - sq, sq - b, disc >= 0
+
 
 class _Spheres(_Group):
     def __init__(self, spheres, obj, device, dtype):
@@ -87,18 +112,27 @@ class _Spheres(_Group):
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        oc = o[:, None, :] - self.c  # (N,P,3)
-        b = (oc * d[:, None, :]).sum(-1)  # d . (o - c)
-        perp = oc - b[..., None] * d[:, None, :]  # closest approach vector, numerically stable
-        disc = self.r2 - (perp * perp).sum(-1)
-        sq = disc.clamp_min(0).sqrt_()
-        t0 = -b - sq
-        t = torch.where(t0 > 0, t0, sq - b)
-        t = torch.where((disc >= 0) & (t > 0), t, _INF)
+        t0, t1, ok = _sphere_roots(o[:, None, :] - self.c, d[:, None, :], self.r2)
+        t = torch.where(t0 > 0, t0, t1)
+        t = torch.where(ok & (t > 0), t, _INF)
         return _reduce(t, tmax)
+
+    def exit(self, o, d, t, prim, obj, eps):
+        return _sphere_roots(o - self.c[prim], d, self.r2[prim])[1]
 
     def normal(self, p, idx):
         return p - self.c[idx]
+
+
+def _slabs(ol, inv, h, dim):
+    """Entry and exit distances ``(tn, tf)`` through boxes ``|x_k| <= h_k`` of rays with local
+    origins ``ol`` and reciprocal local directions ``inv``; the 3 axes along ``dim``. NaN only
+    when a direction component is exactly 0 with the origin exactly on that slab: a miss."""
+    t1 = (-h - ol).mul_(inv)
+    t2 = (h - ol).mul_(inv)
+    lx, ly, lz = torch.minimum(t1, t2).unbind(dim)  # pairwise max/min: faster than amax/amin over 3
+    hx, hy, hz = torch.maximum(t1, t2).unbind(dim)
+    return torch.maximum(torch.maximum(lx, ly), lz), torch.minimum(torch.minimum(hx, hy), hz)
 
 
 class _Boxes(_Group):
@@ -112,22 +146,23 @@ class _Boxes(_Group):
         self.c = c.to(device, dtype)
         self.cl = torch.einsum("pi,pij->jp", c, R).reshape(-1).to(device, dtype)  # (3P,)
         self.h = _t([b.half_extents for b in boxes], device, dtype)  # (P,3)
-        self.hcat = self.h.T.reshape(-1)  # (3P,) axis-major
+        self.h_axis_major = self.h.T.contiguous()  # (3,P)
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        P = self.P
-        ol = (o @ self.Rcat).sub_(self.cl)  # (N,3P)
-        inv = (d @ self.Rcat).reciprocal_()
-        t1 = (-self.hcat - ol).mul_(inv)
-        t2 = (self.hcat - ol).mul_(inv)
-        # NaN only when a direction component is exactly 0 with the origin exactly on that slab: a miss
-        lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
-        tn = torch.maximum(torch.maximum(lo[:, :P], lo[:, P:2 * P]), lo[:, 2 * P:])
-        tf = torch.minimum(torch.minimum(hi[:, :P], hi[:, P:2 * P]), hi[:, 2 * P:])
+        N, P = o.shape[0], self.P
+        ol = (o @ self.Rcat).sub_(self.cl).view(N, 3, P)  # local coordinates, axis-major
+        inv = (d @ self.Rcat).reciprocal_().view(N, 3, P)
+        tn, tf = _slabs(ol, inv, self.h_axis_major, dim=1)
         t = torch.where(tn > 0, tn, tf)
         t = torch.where((tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
+
+    def exit(self, o, d, t, prim, obj, eps):
+        R = self.R[prim]
+        ol = torch.einsum("mi,mij->mj", o - self.c[prim], R)
+        inv = torch.einsum("mi,mij->mj", d, R).reciprocal_()
+        return _slabs(ol, inv, self.h[prim], dim=-1)[1]
 
     def normal(self, p, idx):
         R = self.R[idx]  # (M,3,3)
@@ -136,6 +171,29 @@ class _Boxes(_Group):
         axis = (pl.abs() / h).argmax(-1)
         nl = torch.zeros_like(pl).scatter_(1, axis[:, None], 1.0) * torch.sign(pl)
         return torch.einsum("mij,mj->mi", R, nl)
+
+
+def _cylinder_interval(oc, d, a, r2, h, da):
+    """Entry and exit distances ``(tn, tf)`` and ``miss`` of rays with unit ``d`` and
+    ``oc = origin - centre`` through capped cylinders (unit axis ``a``, squared radius ``r2``,
+    half height ``h``), broadcast over leading dims (last dim 3 for vectors); ``da = d . a``."""
+    oa = (oc * a).sum(-1)
+    op = oc - oa[..., None] * a
+    dp = d - da[..., None] * a
+    A = (dp * dp).sum(-1)
+    B = (op * dp).sum(-1)
+    C = (op * op).sum(-1) - r2
+    disc = B * B - A * C
+    sq = disc.clamp_min(0).sqrt_()
+    parallel = A < 1e-12
+    Asafe = torch.where(parallel, torch.ones_like(A), A)
+    c_near = torch.where(parallel, torch.where(C < 0, -_INF, _INF), (-B - sq) / Asafe)
+    c_far = torch.where(parallel, torch.where(C < 0, _INF, -_INF), (-B + sq) / Asafe)
+    miss = (disc < 0) & ~parallel
+    inv = da.reciprocal()
+    s1 = (-h - oa) * inv
+    s2 = (h - oa) * inv
+    return torch.maximum(c_near, torch.fmin(s1, s2)), torch.minimum(c_far, torch.fmax(s1, s2)), miss
 
 
 class _Cylinders(_Group):
@@ -148,29 +206,14 @@ class _Cylinders(_Group):
         self.obj = obj
 
     def closest(self, o, d, tmax):
-        oc = o[:, None, :] - self.c  # (N,P,3)
-        oa = (oc * self.a).sum(-1)  # (N,P)
-        da = d @ self.a.T
-        op = oc - oa[..., None] * self.a
-        dp = d[:, None, :] - da[..., None] * self.a
-        A = (dp * dp).sum(-1)
-        B = (op * dp).sum(-1)
-        C = (op * op).sum(-1) - self.r2
-        disc = B * B - A * C
-        sq = disc.clamp_min(0).sqrt_()
-        parallel = A < 1e-12
-        Asafe = torch.where(parallel, torch.ones_like(A), A)
-        c_near = torch.where(parallel, torch.where(C < 0, -_INF, _INF), (-B - sq) / Asafe)
-        c_far = torch.where(parallel, torch.where(C < 0, _INF, -_INF), (-B + sq) / Asafe)
-        miss = (disc < 0) & ~parallel
-        inv = da.reciprocal()
-        s1 = (-self.h - oa) * inv
-        s2 = (self.h - oa) * inv
-        tn = torch.maximum(c_near, torch.fmin(s1, s2))
-        tf = torch.minimum(c_far, torch.fmax(s1, s2))
+        tn, tf, miss = _cylinder_interval(o[:, None, :] - self.c, d[:, None, :], self.a, self.r2, self.h, d @ self.a.T)
         t = torch.where(tn > 0, tn, tf)
         t = torch.where(~miss & (tn <= tf) & (t > 0), t, _INF)
         return _reduce(t, tmax)
+
+    def exit(self, o, d, t, prim, obj, eps):
+        a = self.a[prim]
+        return _cylinder_interval(o - self.c[prim], d, a, self.r2[prim], self.h[prim], (d * a).sum(-1))[1]
 
     def normal(self, p, idx):
         a = self.a[idx]
@@ -181,10 +224,53 @@ class _Cylinders(_Group):
         return torch.where(side[:, None], radial, a * torch.sign(qa))
 
 
-class _TorchTriangles(_Group):
+class _Triangles(_Group):
+    """Triangle meshes: ``closest`` returns global triangle indices; ``obj`` maps them to objects.
+    Subclasses are built as ``cls(meshes, obj_of_mesh, device, dtype)`` and call :meth:`_remember`."""
+
+    def _remember(self, meshes, obj_of_mesh, device, dtype) -> None:
+        self._source = (list(meshes), [int(i) for i in obj_of_mesh], device, dtype)
+        self._single = {}  # object index -> a group of that object's mesh alone, built on demand
+
+    def exit(self, o, d, t, prim, obj, eps):
+        """The next hit of the same object along the ray, found among that object's triangles
+        alone (so faces of other objects that coincide with its own, such as a floor under a box,
+        cannot hide its exit); ``t`` itself when there is none: an open surface, a sheet."""
+        meshes, objs, device, dtype = self._source
+        out = t.clone()
+        start = t + eps
+        for k in obj.unique().tolist():
+            sel = (obj == k).nonzero()[:, 0]
+            if len(objs) == 1:
+                group = self
+            else:
+                if k not in self._single:
+                    self._single[k] = type(self)([meshes[objs.index(k)]], [k], device, dtype)
+                group = self._single[k]
+            th, _ = group.closest(o[sel] + start[sel, None] * d[sel], d[sel], _INF)
+            out[sel] = torch.where(torch.isfinite(th), start[sel] + th, t[sel])
+        return out
+
+    def _concatenate(self, meshes, obj_of_mesh, device, dtype) -> None:
+        """All meshes as one indexed mesh: ``vertices (V,3)`` in ``dtype``, ``faces (F,3)`` long
+        global indices, ``obj (F,)`` each triangle's object index."""
+        self._remember(meshes, obj_of_mesh, device, dtype)
+        starts = torch.tensor([0] + [m.vertices.shape[0] for m in meshes]).cumsum(0)
+        self.vertices = torch.cat([m.vertices for m in meshes]).to(device, dtype)
+        self.faces = torch.cat([m.faces + int(s) for m, s in zip(meshes, starts)]).to(device)
+        self.obj = torch.cat([torch.full((m.faces.shape[0],), int(oi), dtype=torch.long)
+                              for m, oi in zip(meshes, obj_of_mesh)]).to(device)
+
+    def normal(self, p, idx):
+        v0, v1, v2 = self.vertices[self.faces[idx]].unbind(1)
+        return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)
+
+
+class _TorchTriangles(_Triangles):
     """Moller-Trumbore over ``(N, T)`` blocks, after culling rays that miss each mesh's bounds."""
 
     def __init__(self, meshes, obj_of_mesh, device, dtype, block: int = 1 << 22):
+        self._remember(meshes, obj_of_mesh, device, dtype)
         self.meshes = []
         tri_all, tri_obj = [], []
         for m, oi in zip(meshes, obj_of_mesh):
@@ -241,7 +327,10 @@ class _TorchTriangles(_Group):
         qvec = torch.linalg.cross(tvec, e1[None].expand_as(tvec), dim=-1)
         v = (qvec * d[:, None, :]).sum(-1) * inv_det
         t = (qvec * e2).sum(-1) * inv_det
-        ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (det.abs() > 0)
+        # barycentric slack of a few ulps: without it a ray through a shared edge can miss both
+        # triangles by rounding (Moller-Trumbore is not watertight)
+        tol = 64 * torch.finfo(o.dtype).eps
+        ok = (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 0) & (det.abs() > 0)
         return torch.where(ok, t, _INF)
 
     def normal(self, p, idx):
@@ -253,16 +342,18 @@ class Tracer:
 
     Args:
         scene: the :class:`Scene`.
-        mesh_backend: ``"auto"`` (Embree when ``embreex`` imports, else torch for meshes up to
-            :data:`TORCH_MAX_TRIANGLES` triangles, else an error naming the package), ``"embree"``
-            or ``"torch"``.
+        mesh_backend: ``"auto"`` (on a CUDA device Warp when ``warp-lang`` imports; else Embree
+            when ``embreex`` imports; else torch for meshes up to :data:`TORCH_MAX_TRIANGLES`
+            triangles, else an error naming the package), ``"embree"`` (CPU; rays on another device
+            are copied), ``"warp"`` (NVIDIA Warp's BVH, CPU or CUDA, in place on torch tensors) or
+            ``"torch"``. On the CPU Embree is 3-4x faster than Warp for AO rays (Warp's CPU kernels
+            run on one thread; ``python benchmarks/bench_tracer.py``).
     """
 
     def __init__(self, scene: Scene, device=None, dtype: torch.dtype = torch.float32, mesh_backend: str = "auto"):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene: expected a torch_ao.reference.Scene, got {type(scene).__name__}")
-        if mesh_backend not in ("auto", "embree", "torch"):
-            raise ValueError(f"mesh_backend: expected 'auto', 'embree' or 'torch', got {mesh_backend!r}")
+        check_choice("mesh_backend", mesh_backend, MESH_BACKENDS)
         self.scene = scene
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
@@ -280,13 +371,24 @@ class Tracer:
         self.mesh_backend = None
         if mesh_idx:
             meshes = [objs[i] for i in mesh_idx]
-            self.mesh_backend = _choose_backend(mesh_backend, sum(m.faces.shape[0] for m in meshes))
-            if self.mesh_backend == "embree":
+            self.mesh_backend = _choose_backend(mesh_backend, sum(m.faces.shape[0] for m in meshes), self.device)
+            if self.mesh_backend == "warp":
+                from .warp_mesh import WarpTriangles
+
+                self.groups.append(WarpTriangles(meshes, mesh_idx, self.device, dtype))
+            elif self.mesh_backend == "embree":
                 from .embree import EmbreeTriangles
 
                 self.groups.append(EmbreeTriangles(meshes, mesh_idx, self.device, dtype))
             else:
                 self.groups.append(_TorchTriangles(meshes, mesh_idx, self.device, dtype))
+        # each object's group and, for analytic objects (one primitive each), its index in the group
+        self._group_of = torch.full((len(objs),), -1, dtype=torch.long, device=self.device)
+        self._prim_of = torch.zeros(len(objs), dtype=torch.long, device=self.device)
+        for g, group in enumerate(self.groups):
+            self._group_of[group.obj] = g
+            if not isinstance(group, _Triangles):
+                self._prim_of[group.obj] = torch.arange(group.obj.numel(), device=self.device)
 
     #: rays intersected at once inside a call: 2**14 on CPU (blocks stay in cache, about 2x faster
     #: than 2**18), 2**20 on GPUs
@@ -330,27 +432,55 @@ class Tracer:
             hit |= group.occluded(o, d, tmax)
         return hit
 
-    def offset(self, p: torch.Tensor, n: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
-        """Origins ``p + eps * n`` against self-intersection; ``n`` on the side rays leave from.
+    def exit_distance(self, o: torch.Tensor, d: torch.Tensor, hit: Hit) -> torch.Tensor:
+        """``(N,)`` distance along each ray ``o + t d`` at which it leaves the object it hit first.
 
-        ``eps = rel * (1e-2 * scene.scale + max|p| + distance)``: relative to the scene size, the
-        point's magnitude (float rounding of ``p``) and the primary ray's length.
+        Spheres, boxes and cylinders: the far root (closed form). Planes: ``inf`` (nothing behind
+        an infinite plane is reachable from the camera's side, so it acts as a half-space). Meshes:
+        the next hit of the same object along the ray, among its own triangles (other objects are
+        ignored); when there is none (an open surface) the entry distance (a sheet, zero
+        thickness). Misses: ``inf``.
         """
+        out = torch.full_like(hit.t, _INF)
+        group_of = torch.where(hit.hit, self._group_of[hit.obj.clamp_min(0)], -1)
+        for g, group in enumerate(self.groups):
+            sel = (group_of == g).nonzero()[:, 0]
+            if sel.numel() == 0:
+                continue
+            obj, t = hit.obj[sel], hit.t[sel]
+            eps = self._eps(o[sel] + t[:, None] * d[sel], t)
+            out[sel] = group.exit(o[sel], d[sel], t, self._prim_of[obj], obj, eps)
+        return out
+
+    def _eps(self, p: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
+        """``(N,)`` offsets against self-intersection at points ``p (N,3)``:
+        ``rel * (1e-2 * scene.scale + max|p| + distance)``, relative to the scene size, the point's
+        magnitude (float rounding of ``p``) and the primary ray's length."""
         mag = p.abs().amax(-1)
         if distance is not None:
             mag = mag + distance
-        eps = rel * (1e-2 * self.scale + mag)
-        return p + eps[:, None] * n
+        return rel * (1e-2 * self.scale + mag)
+
+    def offset(self, p: torch.Tensor, n: torch.Tensor, distance: torch.Tensor | None = None, rel: float = 1e-4) -> torch.Tensor:
+        """Origins ``p + eps * n`` against self-intersection (``eps`` of :meth:`_eps`); ``n`` on the
+        side rays leave from."""
+        return p + self._eps(p, distance, rel)[:, None] * n
 
 
 def _slice(tmax, start: int, size: int):
     return tmax[start:start + size] if isinstance(tmax, torch.Tensor) and tmax.dim() > 0 else tmax
 
 
-def _choose_backend(requested: str, triangles: int) -> str:
+def _choose_backend(requested: str, triangles: int, device: torch.device) -> str:
     if requested == "torch":
         return "torch"
     from .embree import embree_available
+    from .warp_mesh import warp_available
+
+    if requested == "warp" or (requested == "auto" and device.type == "cuda" and warp_available()):
+        if not warp_available():
+            raise ImportError("mesh_backend='warp' needs warp-lang: pip install torch-ao[warp] (or pip install warp-lang)")
+        return "warp"
 
     if embree_available():
         return "embree"

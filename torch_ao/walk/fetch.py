@@ -95,19 +95,30 @@ class Footprint:
 
     def inputs(self, frame: Frame) -> tuple[torch.Tensor, ...]:
         """The differentiable tensors the position depends on (the frame's positions or depths, ``su``, ``sv``)."""
-        if self.fu is None:
+        if self.fu is None or frame.has_position:
             return (frame.positions, self.su, self.sv)
         return (frame.inverse_depth, self.su, self.sv)
 
     def fusable(self, frame: Frame) -> bool:
-        """Whether :class:`SampleAlong` can differentiate the position (camera intrinsics without gradient)."""
+        """Whether :class:`SampleAlong` can differentiate the position (camera intrinsics without gradient;
+        its bilinear backward is the depth fetch's, so not for bilinear reads of a position buffer)."""
+        if self.fu is not None and frame.has_position:
+            return False
         return not any(t.requires_grad for t in (frame.fx, frame.fy, frame.cx, frame.cy))
 
     def position(self, frame: Frame) -> torch.Tensor:
         """``(N,3)`` view-space position: the texel's, or the perspective-correct bilinear depth
-        unprojected at ``(su, sv)`` clamped to the frame."""
+        unprojected at ``(su, sv)`` clamped to the frame; with a position buffer, its four taps
+        interpolated perspective-correctly (``p / depth`` and ``1 / depth`` bilinearly, then divided),
+        which equals the depth fetch where the positions are the unprojected depth."""
         if self.fu is None:
             return take(frame.positions, self.index)
+        if frame.has_position:
+            taps = take(frame.positions, self.index)  # (N,4,3)
+            inverse = -taps[..., 2].reciprocal()  # (N,4) 1 / depth of each tap (z < 0)
+            fu, fv = self.fu[:, None], self.fv[:, None]
+            scaled = bilerp((taps * inverse[..., None]).unbind(1), fu, fv)
+            return scaled / bilerp(inverse.unbind(-1), self.fu, self.fv)[:, None]
         if torch.is_grad_enabled():
             depth = PerspectiveBilinearDepth.apply(frame.safe_depth, self.index, self.fu, self.fv)
         else:  # the same values, from the frame's inverse depths

@@ -61,7 +61,8 @@ class Frame:
         shape: ``(B, H, W)``; dtype: the depth's floating type.
         fx, fy, cx, cy: ``(B,)`` intrinsics in pixels.
         safe_depth, inverse_depth: ``(B*H*W,)`` positive depths and their reciprocals (what bilinear
-            fetches interpolate); positions: ``(B*H*W, 3)`` view-space positions; valid: ``(B*H*W,)`` bool.
+            fetches interpolate); positions: ``(B*H*W, 3)`` view-space positions (the G-buffer's position
+            buffer when it has one: ``has_position``); valid: ``(B*H*W,)`` bool.
         queries: the valid pixels (:class:`Queries`).
     """
 
@@ -75,6 +76,7 @@ class Frame:
         self.safe_depth = flat(gbuffer.safe_depth)[:, 0]  # (BHW,)
         self.inverse_depth = self.safe_depth.reciprocal()  # (BHW,): what bilinear fetches interpolate
         self.positions = flat(gbuffer.positions())  # (BHW, 3)
+        self.has_position = gbuffer.position is not None  # samples read positions, not depth
         self.valid = flat(gbuffer.valid)[:, 0]  # (BHW,)
         self.buffers = {k: flat(v) for k, v in (buffers or {}).items()}
         if normals is None:

@@ -1,0 +1,122 @@
+"""Bitmask AO's error against the screen-space truth and the ray-traced reference, preset by preset.
+
+For each built-in scene, one view is ray-traced (cosine-weighted AO within ``R``) and its screen-space
+truth computed for the same depth buffer and a fixed thickness (``torch_ao.screen_truth``: rays tested
+against the depth buffer as surfaces of that thickness, the back face at depth + thickness): a scalar, or
+with ``--thickness backface`` each object's own, from its traced exit depth (``BackfaceThickness``).
+Each configuration of bitmask AO then runs in hard mode at every preset; the table gives its MAE and
+mean signed error (bias) against both. Renders are cached in ``--cache``.
+
+    python benchmarks/bitmask_convergence.py                       # fence and stairs, 96x54, R = 0.5
+    python benchmarks/bitmask_convergence.py --size 320x180 --scenes fence,stairs,poles --thickness 0.1
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import math
+
+import torch
+
+from torch_ao.gbuffer import GBuffer
+from torch_ao.methods.base import PRESETS
+from torch_ao.methods.bitmask import BitmaskAO
+from torch_ao.reference import Tracer, get_scene, render_reference
+from torch_ao.screen_truth import screen_space_truth
+from torch_ao.thickness import BackfaceThickness
+
+CONFIGS = {
+    "default (uniform sectors, ceil)": dict(),
+    "default, cosine": dict(weighting="cosine"),
+    "+ union=exact": dict(weighting="cosine", union="exact"),
+    "+ clip_to_radius": dict(weighting="cosine", union="exact", clip_to_radius=True),
+    "+ sample_extent=sphere": dict(weighting="cosine", union="exact", clip_to_radius=True, sample_extent="sphere"),
+    "variant=exact (+ thickness_direction=depth, min_step_px=0.25)": dict(variant="exact"),
+}
+
+
+def backface_depth(scene, ref) -> torch.Tensor:
+    """``(B,1,H,W)`` depth where each camera ray leaves the object it first hit (``inf``: an open surface,
+    or another object first), traced again from just behind the first hit."""
+    tracer = Tracer(scene)
+    M = ref.world_to_view.double()
+    Rw = M[:, :3, :3]
+    eye = -torch.einsum("bji,bj->bi", Rw, M[:, :3, 3])
+    dview = ref.gbuffer.camera.to(dtype=torch.float64).pixel_rays()
+    d = torch.nn.functional.normalize(torch.einsum("bji,bjhw->bihw", Rw, dview), dim=1).permute(0, 2, 3, 1).reshape(-1, 3).float()
+    o = eye[:, None, :].expand(-1, d.shape[0] // eye.shape[0], 3).reshape(-1, 3).float()
+    first = tracer.intersect(o, d)
+    eps = 1e-4 * first.t.clamp(max=1e6)
+    second = tracer.intersect(o + (first.t + eps)[:, None] * d, d)
+    same = first.hit & second.hit & (second.obj == first.obj)
+    t_exit = torch.where(same, first.t + eps + second.t, torch.full_like(first.t, math.inf))
+    depth = t_exit.view(ref.gbuffer.depth.shape[0], 1, *ref.gbuffer.depth.shape[-2:]) / dview.norm(dim=1, keepdim=True).float()
+    return torch.where(ref.gbuffer.valid, torch.maximum(depth, ref.gbuffer.depth), ref.gbuffer.depth)
+
+
+def views(scene: str, size: tuple[int, int], radius: float, thickness: str, rays: int, cache: Path):
+    """The G-buffer (with ``backface_depth``), the ray-traced AO, the screen-space truth and its stderr."""
+    W, H = size
+    path = cache / f"{scene}-{W}x{H}-R{radius:g}-t{thickness}-r{rays}.pt"
+    if path.exists():
+        return torch.load(path, weights_only=False)
+    t0 = time.perf_counter()
+    built = get_scene(scene)
+    ref = render_reference(built, height=H, width=W, spp=256, max_distance=radius, progress=False, uniform=False)
+    g = ref.gbuffer
+    gb = GBuffer(g.depth, g.camera, normals=g.normals, light=g.light, mask=g.mask, object_id=g.object_id,
+                 backface_depth=backface_depth(built, ref))
+    t1 = time.perf_counter()
+    if thickness == "backface":
+        truth = screen_space_truth(gb, radius, backface_depth=gb.backface_depth, rays=rays)
+    else:
+        truth = screen_space_truth(gb, radius, float(thickness), rays=rays)
+    print(f"{scene}: reference {t1 - t0:.0f} s, screen-space truth {time.perf_counter() - t1:.0f} s", file=sys.stderr)
+    out = (gb, ref.ao, truth.visibility, truth.stderr)
+    cache.mkdir(parents=True, exist_ok=True)
+    torch.save(out, path)
+    return out
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="fence,stairs")
+    p.add_argument("--size", default="96x54")
+    p.add_argument("--radius", type=float, default=0.5)
+    p.add_argument("--thickness", default="0.25", help="a scalar (world units), or 'backface': each occluder's "
+                   "own thickness from the traced back-face depth (BackfaceThickness, and the truth with it)")
+    p.add_argument("--rays", type=int, default=1024, help="rays per pixel of the screen-space truth")
+    p.add_argument("--presets", default=",".join(PRESETS))
+    p.add_argument("--configs", default=",".join(str(i) for i in range(len(CONFIGS))),
+                   help="indices into the configurations (0..%d)" % (len(CONFIGS) - 1))
+    p.add_argument("--cache", default=str(Path.home() / ".cache" / "torch_ao" / "bitmask_convergence"))
+    args = p.parse_args(argv)
+    size = tuple(int(x) for x in args.size.split("x"))
+    names = list(CONFIGS)
+    for scene in args.scenes.split(","):
+        gb, ref, truth, se = views(scene, size, args.radius, args.thickness, args.rays, Path(args.cache))
+        valid = gb.valid
+        print(f"\n### {scene} {args.size}, R = {args.radius:g}, thickness = {args.thickness} "
+              f"(truth: mean stderr {float(se[valid].mean()):.4f}; truth vs ray-traced MAE "
+              f"{float((truth - ref)[valid].abs().mean()):.4f})\n")
+        presets = args.presets.split(",")
+        print("| configuration | " + " | ".join(presets) + " |")
+        print("| --- |" + " ---: |" * len(presets))
+        for i in map(int, args.configs.split(",")):
+            cells_t, cells_r = [], []
+            for preset in presets:
+                with torch.no_grad():
+                    model = BackfaceThickness() if args.thickness == "backface" else float(args.thickness)
+                    vis = BitmaskAO(preset=preset, radius=args.radius, thickness=model, **CONFIGS[names[i]])(gb).visibility
+                e_t, e_r = (vis - truth)[valid], (vis - ref)[valid]
+                cells_t.append(f"{float(e_t.abs().mean()):.4f} ({float(e_t.mean()):+.4f})")
+                cells_r.append(f"{float(e_r.abs().mean()):.4f}")
+            print(f"| {names[i]}: vs truth MAE (bias) | " + " | ".join(cells_t) + " |")
+            print(f"| {names[i]}: vs ray-traced MAE | " + " | ".join(cells_r) + " |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,233 @@
+"""Fitted pipelines: params.json holds everything to rebuild them (same numbers, bit for bit, as the
+module that was fitted), `torch-ao ao --fitted/--denoise` and `torch-ao bench --fitted` apply them,
+and the fit keeps the parameters that are best in hard mode."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from torch_ao import BitmaskAO, Denoiser, GTAO
+from torch_ao.cli import main
+from torch_ao.datasets import reference_view
+from torch_ao.fit import FitConfig, FitView, evaluate, fit, fittable_parameters
+from torch_ao.fitted import FittedPipeline, load_fitted
+from torch_ao.io import read_npz, save_npz
+from torch_ao.metrics import error_metrics
+from torch_ao.methods.base import AOOutput
+from torch_ao.examples import plane_gbuffer
+
+
+@pytest.fixture(scope="module")
+def views(tmp_path_factory):
+    """Two tiny ray-traced views (fence: thin slats with object ids; stairs) and their files."""
+    cache = tmp_path_factory.mktemp("refs")
+    vs = [reference_view(s, 1, height=24, width=32, spp=16, max_distance=0.8, cache_dir=cache) for s in ("fence", "stairs")]
+    files = [next(f for f in cache.rglob("*.npz") if f.name.startswith(s)) for s in ("fence", "stairs")]
+    return vs, files
+
+
+def test_pipeline_round_trip_is_exact_with_per_object_tables_and_denoiser(views, tmp_path):
+    vs, _ = views
+    gb = vs[0].gbuffer
+    K = int(gb.object_id.max()) + 1
+    pipe = FittedPipeline("bitmask", {"preset": "medium", "radius": 0.8, "weighting": "cosine",
+                                      "thickness": torch.linspace(0.1, 0.9, K)}, denoiser={"kernel_size": 3})
+    with torch.no_grad():  # as if fitted: values no constructor default would give
+        pipe.method.thickness.mul_(1.37).add_(0.011)
+        pipe.method.radius.fill_(0.7731)
+    expected = pipe(gb).visibility
+    path = pipe.save(tmp_path / "params.json", note="extra keys are kept")
+    data = json.loads(path.read_text())
+    assert data["method"] == "bitmask" and data["options"]["weighting"] == "cosine" and data["options"]["mode"] == "hard"
+    assert data["parameters"]["thickness"]["shape"] == [K] and data["parameters"]["radius"] == pytest.approx(0.7731)
+    assert data["denoiser"]["kernel_size"] == 3 and data["note"] == "extra keys are kept"
+    assert data["torch_ao_version"] and (data["slices"], data["steps"]) == (2, 2)
+    again = load_fitted(path)
+    assert torch.equal(again.method.thickness, pipe.method.thickness)
+    assert torch.equal(again(gb).visibility, expected)
+    # the denoiser is really applied: without it the numbers differ
+    assert not torch.equal(again.method(gb).visibility, expected)
+    assert torch.equal(Denoiser(kernel_size=3)(again.method(gb).visibility, gb).visibility, expected)
+
+
+def test_load_fitted_rebuilds_what_fit_fitted(views, tmp_path):
+    vs, _ = views
+    pipe = FittedPipeline("gtao", {"preset": "low", "radius": 0.8, "falloff_range": 0.25}, denoiser=True)
+    assert set(fittable_parameters(pipe)) == {"radius", "falloff_range", "final_power"}
+    result = fit(pipe, vs, FitConfig(params=("radius", "falloff_range", "final_power"), steps=4, lr=0.05), progress=False)
+    assert result.parameters["final_power"] != 1.0  # it moved
+    pipe.save(tmp_path / "p.json")
+    again = load_fitted(tmp_path / "p.json")
+    for v in vs:
+        assert torch.equal(again(v.gbuffer).visibility, pipe(v.gbuffer).visibility)
+    assert evaluate(again, vs)["mae"] == evaluate(pipe, vs)["mae"]
+
+
+def test_bad_files_are_refused(tmp_path):
+    with pytest.raises(FileNotFoundError, match="fitted: no such file"):
+        load_fitted(tmp_path / "missing.json")
+    (tmp_path / "a.json").write_text("{not json")
+    with pytest.raises(ValueError, match="is not JSON"):
+        load_fitted(tmp_path / "a.json")
+    (tmp_path / "b.json").write_text(json.dumps({"method": "gtao", "options": {"colour": 1}}))
+    with pytest.raises(ValueError, match="cannot rebuild 'gtao'"):
+        load_fitted(tmp_path / "b.json")
+    (tmp_path / "c.json").write_text(json.dumps({"method": "gtao", "format": "other/9"}))
+    with pytest.raises(ValueError, match="format"):
+        load_fitted(tmp_path / "c.json")
+    with pytest.raises(ValueError, match="denoiser: unknown setting"):
+        FittedPipeline("gtao", {}, denoiser={"radius": 2})
+
+
+def test_cli_ao_fitted_and_denoise_give_the_modules_numbers(views, tmp_path):
+    vs, files = views
+    frame = next(f for f in files if "fence" in f.name)
+    pipe = FittedPipeline("bitmask", {"preset": "low", "radius": 0.8, "thickness": 0.37, "weighting": "cosine"}, denoiser=True)
+    pipe.save(tmp_path / "params.json")
+    assert main(["ao", str(frame), "--fitted", str(tmp_path / "params.json"), "--out", str(tmp_path / "f.npz")]) == 0
+    got = torch.from_numpy(read_npz(tmp_path / "f.npz")["visibility"]).reshape(vs[0].reference.shape)
+    assert torch.equal(got, pipe(vs[0].gbuffer).visibility)
+
+    assert main(["ao", str(frame), "--method", "gtao", "--preset", "low", "--radius", "0.8", "--denoise",
+                 "--out", str(tmp_path / "d.npz")]) == 0
+    got = torch.from_numpy(read_npz(tmp_path / "d.npz")["visibility"]).reshape(vs[0].reference.shape)
+    raw = GTAO(preset="low", radius=0.8)(vs[0].gbuffer).visibility
+    assert torch.equal(got, Denoiser()(raw, vs[0].gbuffer).visibility) and not torch.equal(got, raw)
+    assert main(["ao", str(frame), "--fitted", str(tmp_path / "params.json"), "--preset", "high",
+                 "--out", str(tmp_path / "x.npz")]) == 2
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_cli_bench_adds_fitted_rows(views, tmp_path):
+    vs, files = views
+    frame = next(f for f in files if "stairs" in f.name)
+    pipe = FittedPipeline("bitmask", {"preset": "low", "radius": 0.8, "thickness": 0.2, "weighting": "cosine"}, denoiser=True)
+    (tmp_path / "mine").mkdir()
+    pipe.save(tmp_path / "mine" / "params.json")
+    out = tmp_path / "bench"
+    assert main(["bench", "--reference", str(frame), "--methods", "gtao", "--presets", "low", "--fitted",
+                 str(tmp_path / "mine" / "params.json"), "--no-background", "--no-plots", "--no-backward",
+                 "--repeats", "1", "--quiet", "--out", str(out)]) == 0
+    rows = json.loads((out / "report.json").read_text())["rows"]
+    mine = {r["denoise"]: r for r in rows if r["method"] == "bitmask fitted (mine)"}
+    assert set(mine) == {False, True} and mine[True]["preset"] == "low"
+    expected = error_metrics(pipe(vs[1].gbuffer).visibility, vs[1].reference, vs[1].gbuffer.valid)
+    assert mine[True]["mae"] == pytest.approx(expected["mae"], rel=1e-6)
+    assert any(r["method"] == "gtao" for r in rows)
+
+
+def _with_radius(src, dst, radius):
+    arrays = dict(np.load(src))
+    arrays["max_distance"] = np.float32(radius)
+    np.savez(dst, **arrays)
+    return dst
+
+
+def test_fit_takes_R_from_the_files_and_refuses_disagreeing_ones(views, tmp_path, capsys):
+    _, files = views
+    a = _with_radius(files[0], tmp_path / "a.npz", 0.8)
+    b = _with_radius(files[1], tmp_path / "b.npz", 0.5)
+    out = tmp_path / "out"
+    assert main(["fit", "--reference", str(a), str(b), "--method", "gtao", "--preset", "low", "--steps", "2",
+                 "--no-progress", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "disagree on max_distance" in err and "a.npz" in err and "b.npz" in err
+    assert not (out / "params.json").exists()
+    with pytest.warns(UserWarning, match="--radius 0.6 overrides"):
+        assert main(["fit", "--reference", str(a), str(b), "--radius", "0.6", "--method", "gtao", "--preset", "low",
+                     "--steps", "2", "--no-progress", "--out", str(out)]) == 0
+    assert json.loads((out / "params.json").read_text())["options"]["preset"] == "low"
+    # --method gtao without --params fits GTAO's own parameters; R comes from the files
+    out2 = tmp_path / "out2"
+    assert main(["fit", "--reference", str(a), str(files[1]), "--method", "gtao", "--preset", "low", "--steps", "3",
+                 "--no-progress", "--out", str(out2)]) == 0
+    data = json.loads((out2 / "params.json").read_text())
+    assert data["fitted"] == ["radius", "falloff_range", "final_power"]
+    assert data["denoiser"] is not None and data["history"][0]["radius"] == [pytest.approx(0.8)]
+    fitted = load_fitted(out2 / "params.json")
+    assert evaluate(fitted, FitView_list(files[1]))["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
+
+
+def FitView_list(path):
+    from torch_ao.fit import load_views
+
+    return load_views([path])
+
+
+class Biased(nn.Module):
+    """visibility = exp(-t (depth - 3)^2 / 4) in hard mode; soft mode sees ``t - 0.5`` (a soft
+    objective whose optimum is not the hard one, as soft sector masks can be)."""
+
+    def __init__(self, t):
+        super().__init__()
+        self.thickness = nn.Parameter(torch.tensor(float(t)))
+        self.mode, self.tau = "hard", 0.1
+
+    def forward(self, gb):
+        t = self.thickness - (0.5 if self.mode == "soft" else 0.0)
+        return AOOutput(torch.exp(-t * (gb.safe_depth - 3).square() / 4))
+
+
+def _biased_views():
+    out = []
+    for tilt in (40, 55):
+        gb = plane_gbuffer(12, 16, tilt_degrees=tilt)
+        with torch.no_grad():
+            out.append(FitView(gb, Biased(0.3)(gb).visibility))
+    return out
+
+
+def _hard_loss(module, vs):
+    return evaluate(module, vs)["mae"]
+
+
+def test_fit_keeps_the_best_hard_mode_parameters():
+    vs = _biased_views()
+    soft_only = Biased(0.35)
+    fit(soft_only, vs, FitConfig(steps=80, lr=0.05, hard_every=0), progress=False)
+    assert soft_only.thickness.item() == pytest.approx(0.8, abs=0.05)  # the soft optimum
+    hard = Biased(0.35)
+    start = _hard_loss(Biased(0.35), vs)
+    result = fit(hard, vs, FitConfig(steps=80, lr=0.05, hard_every=5), progress=False)
+    assert _hard_loss(hard, vs) <= start
+    assert _hard_loss(hard, vs) < _hard_loss(soft_only, vs) / 3
+    assert [h["step"] for h in result.hard_history] == list(range(0, 80, 5)) + [80]
+    best = min(result.hard_history, key=lambda h: h["loss"])
+    assert result.best_step == best["step"] and hard.thickness.item() == pytest.approx(best["thickness"][0])
+    assert hard.mode == "hard"
+    # stopping once two hard-mode scores in a row did not improve keeps the same parameters, in fewer steps
+    patient = Biased(0.35)
+    early = fit(patient, vs, FitConfig(steps=80, lr=0.05, hard_every=5, hard_patience=2), progress=False)
+    assert early.stopped_early and early.steps_done < 80 and early.best_step == result.best_step
+    assert patient.thickness.item() == hard.thickness.item()
+    assert [h["step"] for h in early.hard_history] == [h["step"] for h in result.hard_history][:len(early.hard_history)]
+
+
+def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
+    """The main job at a tiny size: bitmask + denoiser, thickness and radius by default; the kept
+    parameters are never worse in hard mode on the training views than the defaults it started from,
+    and params.json rebuilds the pipeline that was scored."""
+    from torch_ao.datasets import train_and_holdout_views
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--size", "32x24", "--spp", "16",
+                 "--preset", "low", "--steps", "6", "--hard-every", "2", "--hard-patience", "0", "--cache", str(cache), "--no-progress",
+                 "--out", str(out)]) == 0
+    data = json.loads((out / "params.json").read_text())
+    assert data["fitted"] == ["radius", "thickness"] and data["denoiser"] is not None
+    assert data["options"]["weighting"] == "cosine" and data["options"]["mode"] == "hard"
+    assert [h["step"] for h in data["hard_history"]] == [0, 2, 4, 6]
+    assert data["train_loss_fitted"] == min(h["loss"] for h in data["hard_history"]) <= data["train_loss_start"]
+    train, held = train_and_holdout_views(["fence", "stairs"], 1, 1, height=24, width=32, spp=16, max_distance=1.0,
+                                          cache_dir=cache)
+    pipeline = load_fitted(out / "params.json")
+    assert evaluate(pipeline, held)["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
+    assert evaluate(pipeline, train)["mae"] == pytest.approx(data["train_loss_fitted"], rel=1e-5)
+    assert set(data["per_view"]["fitted"]) == {v.name for v in held}
+    report = (out / "report.md").read_text()
+    assert "fence/s1000" in report and "bitmask fitted" in report

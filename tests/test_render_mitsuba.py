@@ -1,0 +1,122 @@
+"""Mitsuba 3 scene files (``torch-ao render scene.xml``, optional ``mitsuba``): shapes, albedo and the
+camera as Mitsuba reads them, and the same render as the equivalent native scene within Monte Carlo
+noise."""
+from __future__ import annotations
+
+import math
+import sys
+
+import pytest
+import torch
+
+from test_reference import _judge
+from torch_ao.cli import main
+from torch_ao.io import load_gbuffer
+from torch_ao.reference import Box, Mesh, Plane, Scene, Sphere, look_at_matrix, mesh_scene, render_reference
+
+XML = """<scene version="3.0.0">
+    <sensor type="perspective">
+        <float name="fov" value="50"/>
+        <transform name="to_world"><lookat origin="-2, 1.5, 3" target="0, 0.4, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="64"/><integer name="height" value="48"/></film>
+    </sensor>
+    <shape type="sphere" id="a_ball">
+        <point name="center" x="0" y="0.5" z="0"/><float name="radius" value="0.5"/>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0.2, 0.4, 0.6"/></bsdf>
+    </shape>
+    <shape type="cube" id="b_crate">
+        <transform name="to_world"><scale value="0.3"/><translate x="1" y="0.3" z="0.2"/></transform>
+    </shape>
+    <shape type="rectangle" id="c_floor">
+        <transform name="to_world"><scale value="50"/><rotate x="1" angle="-90"/></transform>
+    </shape>
+    <shape type="cylinder" id="d_pole">
+        <point name="p0" x="-1" y="0" z="-0.5"/><point name="p1" x="-1" y="1.5" z="-0.5"/><float name="radius" value="0.1"/>
+    </shape>
+</scene>
+"""
+
+
+@pytest.fixture
+def xml(tmp_path):
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 scene files need mitsuba (pip install torch-ao[mitsuba])")
+    path = tmp_path / "scene.xml"
+    path.write_text(XML)
+    return path
+
+
+def test_shapes_albedo_and_camera(xml):
+    scene = mesh_scene([xml])
+    ball, crate, floor, pole = scene.objects
+    assert isinstance(ball, Sphere) and ball.center == (0.0, 0.5, 0.0) and ball.radius == pytest.approx(0.5)
+    assert ball.albedo == pytest.approx((0.2, 0.4, 0.6), abs=1e-6)
+    assert crate.albedo == pytest.approx((0.5, 0.5, 0.5))  # Mitsuba's default diffuse reflectance
+    lo, hi = crate.bounds()
+    assert torch.allclose(lo, torch.tensor([0.7, 0.0, -0.1], dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(hi, torch.tensor([1.3, 0.6, 0.5], dtype=torch.float64), atol=1e-6)
+    assert float(floor.vertices[:, 1].abs().max()) < 1e-5 and float(floor.vertices[:, 0].max()) == pytest.approx(50)
+    # the open cylinder: every vertex 0.1 from its axis x = -1, z = -0.5, between y = 0 and 1.5, no caps
+    v = pole.vertices
+    assert torch.allclose(torch.hypot(v[:, 0] + 1, v[:, 2] + 0.5), torch.full((v.shape[0],), 0.1, dtype=torch.float64), atol=1e-6)
+    assert set(torch.round(v[:, 1], decimals=6).tolist()) == {0.0, 1.5}
+    # camera: Mitsuba's fov is horizontal by default; 64x48 film
+    view = scene.view
+    assert view.eye == pytest.approx((-2.0, 1.5, 3.0))
+    assert view.fov_y_degrees == pytest.approx(math.degrees(2 * math.atan(math.tan(math.radians(25)) * 48 / 64)))
+    expected = look_at_matrix((-2, 1.5, 3), (0, 0.4, 0))[0]
+    assert torch.allclose(look_at_matrix(view.eye, view.target, view.up)[0], expected, atol=1e-6)
+
+
+def test_render_matches_the_native_scene_within_noise(xml, tmp_path):
+    """The same geometry written natively: a Sphere, a Box, a Plane for the 100x100 floor (the view
+    is judged only nearer than its edge) and the same tessellated pole; same seed, same rays."""
+    mine = mesh_scene([xml])
+    native = Scene([Sphere(center=(0, 0.5, 0), radius=0.5, albedo=(0.2, 0.4, 0.6)),
+                    Box(center=(1, 0.3, 0.2), half_extents=(0.3, 0.3, 0.3), albedo=0.5),
+                    Plane(albedo=0.5), Mesh(vertices=mine.objects[3].vertices, faces=mine.objects[3].faces, albedo=0.5)],
+                   view=mine.view)
+    spp = 32
+    kw = dict(height=36, width=48, spp=spp, max_distance=0.6, seed=3, progress=False, backface=True)
+    a, b = render_reference(mine, **kw), render_reference(native, **kw)
+    same = a.gbuffer.object_id == b.gbuffer.object_id
+    inside = b.gbuffer.depth < 30  # nearer than the floor's edge (the Plane goes on to the horizon)
+    assert same[inside].double().mean() > 0.995 and set(a.gbuffer.object_id.unique().tolist()) == {0, 1, 2, 3, 4}
+    v = inside & same
+    assert torch.allclose(a.gbuffer.depth[v], b.gbuffer.depth[v], rtol=1e-4)
+    assert torch.allclose(a.gbuffer.light[v.expand_as(a.gbuffer.light)], b.gbuffer.light[v.expand_as(b.gbuffer.light)], atol=1e-4)
+    se = (a.ao_stderr.pow(2) + b.ao_stderr.pow(2)).sqrt()
+    _judge(a.ao[v], se[v], b.ao[v].double(), spp)
+    crate = (a.gbuffer.object_id == 2) & v
+    assert torch.allclose(a.backface_depth[crate], b.backface_depth[crate], rtol=1e-4)
+
+
+def test_cli_renders_the_file_with_its_camera(xml, tmp_path):
+    out = tmp_path / "m.npz"
+    assert main(["render", str(xml), "--width", "32", "--height", "24", "--spp", "2", "--quiet", "--out", str(out)]) == 0
+    gb, extras = load_gbuffer(out)
+    expected = look_at_matrix((-2, 1.5, 3), (0, 0.4, 0))[0]
+    assert torch.allclose(extras["world_to_view"][0].double(), expected, atol=1e-6)
+    assert set(gb.object_id.unique().tolist()) <= {0, 1, 2, 3, 4} and gb.valid.double().mean() > 0.5
+
+
+@pytest.mark.parametrize("text, match", [
+    ("<scene version='3.0.0'><shape type='nonsense'/></scene>", "cannot read"),
+    ("<scene version='3.0.0'><shape", "cannot read"),
+    ("<scene version='3.0.0'></scene>", "has no shapes"),
+])
+def test_bad_scene_files_one_line_exit_2(xml, text, match, tmp_path, capsys):
+    bad = tmp_path / "bad.xml"
+    bad.write_text(text)
+    out = tmp_path / "out" / "x.npz"
+    assert main(["render", str(bad), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert match in err and "bad.xml" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_mitsuba_names_the_extra(tmp_path, monkeypatch, capsys):
+    path = tmp_path / "scene.xml"
+    path.write_text(XML)
+    monkeypatch.setitem(sys.modules, "mitsuba", None)
+    assert main(["render", str(path), "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
+    assert "pip install torch-ao[mitsuba]" in capsys.readouterr().err

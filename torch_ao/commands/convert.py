@@ -1,0 +1,104 @@
+"""``torch-ao convert``: read an engine's G-buffer (OpenEXR, 16-bit PNG depth, or ``.npz``) and write the
+library's ``.npz`` format, so a user can check what was read."""
+from __future__ import annotations
+
+import argparse
+
+from ..engine_io import ENGINE_OPTIONS, EngineOptions
+from .args import allow_negative_lists, parse_float_list
+from .options_cli import add_options, flag, given
+
+__all__ = ["register", "run", "add_engine_flags", "engine_options"]
+
+_FLAGS = {o.name: o for o in ENGINE_OPTIONS if o.name != "far"}
+_FAR = next(o for o in ENGINE_OPTIONS if o.name == "far")
+
+
+def add_engine_flags(p: argparse.ArgumentParser) -> None:
+    """The flags of :class:`~torch_ao.engine_io.EngineOptions` (for any command that reads engine files),
+    built from :data:`~torch_ao.engine_io.ENGINE_OPTIONS`."""
+    g = p.add_argument_group("engine conventions (see docs/engines.md)")
+    add_options(g, _FLAGS)
+    # --far takes inf (no far plane), which Option.check refuses for numbers: its own parser, same help
+    g.add_argument(flag("far"), dest="far", type=float, default=None, metavar="FAR", help=_FAR.describe())
+    allow_negative_lists(p)  # --view-matrix -1,0,...
+
+
+def engine_options(args: argparse.Namespace) -> dict:
+    """The :class:`~torch_ao.engine_io.EngineOptions` fields given on the command line (others default)."""
+    from ..engine_io import parse_channels
+
+    options = given(args, [*_FLAGS, "far"])
+    if "channels" in options:
+        options["channels"] = parse_channels(options["channels"])
+    for name, count, names in (("view_matrix", 16, "M00,M01,...,M33"), ("intrinsics", 4, "fx,fy,cx,cy")):
+        if name in options:
+            options[name] = parse_float_list(flag(name), options[name], count, names=names)
+    return options
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "convert", help="convert an engine G-buffer (OpenEXR, 16-bit PNG depth) to the library's .npz",
+        description="Read a G-buffer written by an engine or DCC tool (OpenEXR with depth, normals, positions, "
+        "light, albedo, object ids; or a 16-bit PNG depth), convert it to the library's conventions (view-axis "
+        "depth, OpenGL view-space normals and positions) and write it as .npz. Needs `pip install torch-ao[exr]` "
+        "for OpenEXR files.")
+    p.add_argument("input", help="input file: .exr, .png (16-bit depth) or .npz")
+    p.add_argument("--out", help="output .npz file")
+    p.add_argument("--png", help="also write a preview PNG (depth | normals)")
+    p.add_argument("--list-channels", action="store_true", help="print the channels of the OpenEXR file and exit")
+    add_engine_flags(p)
+    p.set_defaults(func=run)
+
+
+def _rename_option_error(err: ValueError) -> ValueError:
+    msg = str(err)
+    name = msg.split(":", 1)[0]
+    if name in EngineOptions.__dataclass_fields__:
+        msg = "--" + name.replace("_", "-") + msg[len(name):]
+    return ValueError(msg)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..cli import CommandError
+    from ..engine_io import list_exr_channels
+    from ..io import gbuffer_from_arrays, read_gbuffer_arrays, save_npz
+
+    if args.list_channels:
+        for name, dtype, shape in list_exr_channels(args.input):
+            print(f"{name}  {dtype}  {shape[1]}x{shape[0]}")
+        return 0
+    if not args.out or not args.out.endswith(".npz"):
+        raise CommandError(f"--out: expected a .npz file name, got {args.out!r}")
+    if args.png and not args.png.lower().endswith(".png"):
+        raise CommandError(f"--png: expected a .png file name, got {args.png!r}")
+    try:
+        arrays = read_gbuffer_arrays(args.input, **engine_options(args))
+        gbuffer, extras = gbuffer_from_arrays(arrays, args.input)
+    except ValueError as err:
+        raise _rename_option_error(err) from None
+    path = save_npz(args.out, gbuffer, **extras)
+    if args.png:
+        _preview(args.png, gbuffer)
+    B, _, H, W = gbuffer.depth.shape
+    valid = gbuffer.valid
+    found = [k for k in ("normals", "position", "light", "object_id", "mask") if getattr(gbuffer, k) is not None]
+    depth = gbuffer.depth[valid]
+    span = f"depth {float(depth.min()):.4g}..{float(depth.max()):.4g}" if depth.numel() else "no valid pixels"
+    print(f"{args.input}: {W}x{H}, {int(valid.sum())} valid pixels ({span}); "
+          f"{', '.join(found + sorted(extras)) or 'depth only'} -> {path}")
+    return 0
+
+
+def _preview(path: str, gbuffer) -> None:
+    """depth (near bright) | normals, side by side."""
+    import torch
+
+    from ..images import save_png
+
+    valid = gbuffer.valid
+    inv = torch.where(valid, 1 / gbuffer.safe_depth, torch.zeros_like(gbuffer.depth))
+    near = inv / inv.amax(dim=(2, 3), keepdim=True).clamp_min(1e-30)
+    normals = torch.where(valid, gbuffer.view_normals() * 0.5 + 0.5, torch.zeros_like(gbuffer.depth))
+    save_png(path, torch.cat([near.expand(-1, 3, -1, -1), normals], dim=3)[:1])

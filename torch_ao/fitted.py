@@ -1,0 +1,237 @@
+"""Fitted pipelines: a method with its fitted parameters and an optional denoiser, as one module that
+is saved to and rebuilt from a ``params.json``.
+
+A :class:`FittedPipeline` is what ``torch-ao fit`` fits and scores (the method in hard mode, followed
+by the :class:`~torch_ao.denoise.Denoiser` when it has one) and what ``torch-ao ao --fitted``,
+``torch-ao bench --fitted`` and :func:`load_fitted` rebuild. The file holds everything the rebuild
+needs:
+
+* ``method``: the registry name (``"bitmask"``, ``"gtao"``, ...);
+* ``options``: the constructor's other keyword arguments (variant, weighting, preset or
+  slices/steps, jitter, ...), JSON values;
+* ``parameters``: every float parameter of the method (its ``nn.Parameter``\\ s, and frozen ones that
+  were given as options) at its current value: a number, or ``{"shape": [...], "values": [...]}``
+  for a per-object table or a per-pixel map (float32 values survive the JSON round trip exactly);
+* ``denoiser``: the denoiser's settings, or ``null``;
+* ``torch_ao_version``, and whatever the writer adds (metrics, loss history) under other keys.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+from .denoise import Denoiser
+from .gbuffer import GBuffer
+from .methods import get_method
+
+__all__ = ["DenoisedAO", "FittedPipeline", "load_fitted", "bench_rows", "cli_module", "FORMAT", "DENOISER_SETTINGS"]
+
+#: Value of the file's ``format`` key (bumped when the layout changes).
+FORMAT = "torch_ao.fitted/1"
+#: The :class:`~torch_ao.denoise.Denoiser` settings stored in (and read from) the file.
+DENOISER_SETTINGS = ("kernel_size", "sigma_space", "sigma_depth", "sigma_normal", "guide", "temporal", "alpha")
+
+
+def _encode(value: Any) -> Any:
+    """A JSON value for an option or parameter: tensors of one element as numbers, larger ones as
+    ``{"shape", "values"}``; tuples as lists."""
+    if isinstance(value, torch.Tensor):
+        t = value.detach().cpu()
+        if t.numel() == 1 and t.dim() == 0:
+            return t.item()
+        return {"shape": list(t.shape), "values": t.flatten().tolist()}
+    if isinstance(value, tuple):
+        return [_encode(v) for v in value]
+    return value
+
+
+def _decode(value: Any) -> Any:
+    if isinstance(value, dict) and set(value) == {"shape", "values"}:
+        return torch.tensor(value["values"], dtype=torch.float32).reshape(value["shape"])
+    return value
+
+
+def _denoiser_settings(denoiser: Denoiser | Mapping | bool | None) -> dict | None:
+    if denoiser is None or denoiser is False:
+        return None
+    if denoiser is True:
+        denoiser = Denoiser()
+    if isinstance(denoiser, Denoiser):
+        return {k: getattr(denoiser, k) for k in DENOISER_SETTINGS}
+    if isinstance(denoiser, Mapping):
+        unknown = set(denoiser) - set(DENOISER_SETTINGS)
+        if unknown:
+            raise ValueError(f"denoiser: unknown setting(s) {', '.join(sorted(unknown))}; expected some of "
+                             f"{', '.join(DENOISER_SETTINGS)}")
+        return {k: getattr(Denoiser(**denoiser), k) for k in DENOISER_SETTINGS}
+    raise ValueError(f"denoiser: expected a Denoiser, a dict of its settings, True, False or None, got {denoiser!r}")
+
+
+class DenoisedAO(nn.Module):
+    """``method`` followed by an optional ``denoiser``: ``forward(gbuffer)`` returns the method's
+    :class:`~torch_ao.methods.AOOutput` with ``visibility`` ``(B,1,H,W)`` (and ``indirect``
+    ``(B,3,H,W)`` when computed) filtered by the denoiser, guided by the G-buffer."""
+
+    def __init__(self, method: nn.Module, denoiser: Denoiser | Mapping | bool | None = None) -> None:
+        super().__init__()
+        self.method = method
+        settings = _denoiser_settings(denoiser)
+        self.denoiser = None if settings is None else Denoiser(**settings)
+
+    def forward(self, gbuffer: GBuffer):
+        out = self.method(gbuffer)
+        if self.denoiser is None:
+            return out
+        filtered = self.denoiser(out.visibility, gbuffer, indirect=out.indirect)
+        return replace(out, visibility=filtered.visibility, indirect=filtered.indirect)
+
+
+class FittedPipeline(DenoisedAO):
+    """A screen-space AO method, named and configured so that it can be saved and rebuilt, followed
+    by an optional denoiser (what ships, and what ``torch-ao fit`` fits).
+
+    Args:
+        method: registry name of the method (see :data:`torch_ao.METHODS`).
+        options: the method's constructor keywords (``preset``/``slices``/``steps``, ``radius``,
+            ``variant``, ``weighting``, initial parameter values, ...). Parameters may be numbers or
+            tensors (a ``(K,)`` per-object table, a ``(B,1,H,W)`` map).
+        denoiser: a :class:`~torch_ao.denoise.Denoiser`, a dict of its settings, ``True`` (default
+            settings) or ``None`` (no denoiser).
+
+    The method's parameters are those of ``self.method`` (named ``method.<name>``;
+    :func:`torch_ao.fit.fit` also takes the bare ``<name>``).
+    """
+
+    def __init__(self, method: str, options: Mapping[str, Any] | None = None,
+                 denoiser: Denoiser | Mapping | bool | None = None) -> None:
+        self_options = dict(options or {})
+        super().__init__(get_method(method)(**{k: _decode(v) for k, v in self_options.items()}), denoiser)
+        self.method_name, self.options = method, self_options
+
+    # ------------------------------------------------------------------ what is stored
+    def parameter_values(self) -> dict[str, torch.Tensor]:
+        """Every float parameter of the method: its ``nn.Parameter``\\ s and the frozen ones given as
+        options (buffers), at their current values."""
+        values = dict(self.method.named_parameters(recurse=False))
+        for name, buf in self.method.named_buffers(recurse=False):
+            if name in self.options:
+                values[name] = buf
+        return {k: v.detach() for k, v in values.items()}
+
+    def to_dict(self) -> dict:
+        """The JSON content of ``params.json`` (see the module docstring)."""
+        from . import __version__
+
+        params = self.parameter_values()
+        options = {k: _encode(v) for k, v in self.options.items() if k not in params}
+        if hasattr(self.method, "mode"):
+            options["mode"] = "hard"  # what ships; soft masks are for fitting
+        return {"format": FORMAT, "torch_ao_version": __version__, "method": self.method_name,
+                "options": options, "parameters": {k: _encode(v) for k, v in params.items()},
+                "denoiser": None if self.denoiser is None else _denoiser_settings(self.denoiser),
+                "slices": getattr(self.method, "slices", None), "steps": getattr(self.method, "steps", None)}
+
+    def save(self, path: str | os.PathLike, **extra) -> Path:
+        """Write :meth:`to_dict` (and ``extra`` keys, e.g. metrics and history) to ``path`` atomically."""
+        from .io import save_json
+
+        payload = self.to_dict()
+        clash = set(extra) & set(payload)
+        if clash:
+            raise ValueError(f"extra: keys {', '.join(sorted(clash))} are part of the pipeline description")
+        return save_json(path, {**payload, **extra})
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "params") -> "FittedPipeline":
+        """Rebuild a pipeline from :meth:`to_dict`'s content (``source`` names it in errors)."""
+        if not isinstance(data, Mapping) or "method" not in data:
+            raise ValueError(f"{source}: expected a torch_ao fitted-pipeline description with a 'method' key")
+        fmt = data.get("format", FORMAT)
+        if fmt != FORMAT:
+            raise ValueError(f"{source}: format {fmt!r} is not {FORMAT!r} (written by another torch_ao version?)")
+        options = dict(data.get("options") or {})
+        parameters = data.get("parameters") or {}
+        if not isinstance(options, Mapping) or not isinstance(parameters, Mapping):
+            raise ValueError(f"{source}: 'options' and 'parameters' must be objects")
+        try:
+            return cls(data["method"], {**options, **parameters}, data.get("denoiser"))
+        except (TypeError, ValueError) as err:  # an option the method does not take, or a bad value
+            raise ValueError(f"{source}: cannot rebuild {data['method']!r} ({err})") from None
+
+    def extra_repr(self) -> str:
+        return f"method={self.method_name!r}"
+
+
+def load_fitted(path: str | os.PathLike, device: torch.device | str | None = None) -> FittedPipeline:
+    """The pipeline a ``params.json`` describes (written by ``torch-ao fit`` or :meth:`FittedPipeline.save`),
+    in hard mode, on ``device``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"fitted: no such file {path}")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"fitted: {path} is not JSON ({err})") from None
+    pipeline = FittedPipeline.from_dict(data, source=f"fitted: {path}")
+    return pipeline if device is None else pipeline.to(device)
+
+
+def cli_module(args, build, method_flags=()) -> nn.Module:
+    """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline) or
+    ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``.
+    ``method_flags``: names of the method flags, refused with ``--fitted`` when given."""
+    fitted, denoise = getattr(args, "fitted", None), bool(getattr(args, "denoise", False))
+    if fitted is None:
+        module = build(args)
+        return DenoisedAO(module, True) if denoise else module
+    clash = [f"--{k.replace('_', '-')}" for k in method_flags if getattr(args, k, None) is not None]
+    if getattr(args, "auto", False):
+        clash.append("--auto")
+    if clash:
+        raise ValueError(f"--fitted: the file fixes the method and its options; drop {', '.join(clash)}")
+    pipeline = load_fitted(fitted)
+    if denoise and pipeline.denoiser is None:
+        pipeline.denoiser = Denoiser()
+    return pipeline
+
+
+def _preset_of(pipeline: FittedPipeline, source: str) -> str:
+    from .methods import PRESETS
+
+    preset = pipeline.options.get("preset")
+    counts = (getattr(pipeline.method, "slices", None), getattr(pipeline.method, "steps", None))
+    if preset in PRESETS and PRESETS[preset] == counts:
+        return preset
+    match = [name for name, c in PRESETS.items() if c == counts]
+    if not match:
+        raise ValueError(f"fitted: {source} uses {counts[0]} slices x {counts[1]} steps, which is no preset; "
+                         "bench rows are per preset")
+    return match[0]
+
+
+def bench_rows(paths, views, **run_bench_options) -> list[dict]:
+    """Rows of :func:`torch_ao.bench.run_bench` for fitted pipelines (``params.json`` files), one
+    method per file named ``"<method> fitted (<name>)"`` (the file stem, or its folder for
+    ``params.json``), at the file's preset, radius and parameters; with the file's denoiser when it
+    has one (rows without and with it), else without."""
+    from .bench import run_bench
+
+    rows = []
+    for path in paths:
+        path = Path(path)
+        pipeline = load_fitted(path)
+        name = path.parent.name if path.stem == "params" and path.parent.name else path.stem
+        label = f"{pipeline.method_name} fitted ({name})"
+
+        def factory(_path=path, **_ignored):  # preset, radius and mode come from the file
+            return load_fitted(_path).method
+
+        options = {**run_bench_options, "denoise": pipeline.denoiser is not None, "denoiser": pipeline.denoiser}
+        rows += run_bench(views, {label: factory}, [_preset_of(pipeline, str(path))], **options)
+    return rows

@@ -1,0 +1,231 @@
+"""Scenes from a user's mesh files: OBJ, PLY, STL, OFF, glTF/GLB... through trimesh.
+
+* One :class:`~torch_ao.reference.scene.Mesh` (one object id) per file, except glTF/GLB files,
+  which give one per node that carries triangles (in the order of the node names), placed by the
+  node's world transform.
+* A glTF file's first perspective camera (``cameras``, on a node of the default scene, with its
+  parents' transforms) becomes the scene's view: glTF cameras look down their local ``-Z`` with
+  ``+Y`` up, the library's view convention, and ``yfov`` is the vertical field of view.
+* Without a camera, the view frames the meshes' bounding sphere from the front right, above
+  (:func:`frame_view`).
+* World space is the files' own (glTF: metres, ``+Y`` up); an optional ground plane ``y = h``.
+
+Errors (a missing file, a format trimesh cannot read, a file without triangles, a glTF without
+meshes) are one-line messages that name the file: ``FileNotFoundError`` or ``ValueError``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..checks import check_float
+from .scene import LookAt, Mesh, Plane, Scene, Vec3
+
+__all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera"]
+
+_GLTF = (".gltf", ".glb")
+
+
+def _one_line(err: Exception) -> str:
+    text = " ".join(str(err).split())
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def read_trimesh(path: Path, **kwargs):
+    """``trimesh.load(path, **kwargs)`` with the library's errors (no such file, no trimesh,
+    unreadable file), each one line naming the file."""
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh: no such file: {path}")
+    try:
+        import trimesh
+    except ImportError:
+        raise ImportError("mesh: loading mesh files needs trimesh: pip install torch-ao[mesh] (or pip install trimesh)") from None
+    try:
+        return trimesh.load(str(path), **kwargs)
+    except Exception as err:  # trimesh raises many kinds for bad or unsupported files
+        raise ValueError(f"mesh: cannot read {path} ({_one_line(err)})") from None
+
+
+def normalize_vertices(v: torch.Tensor, path: Path) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Scale and shift ``(V,3)`` vertices to a largest extent of 1, resting on ``y = 0`` and centred
+    on the ``y`` axis. Returns ``(normalised, offset (3,), scale)`` with ``v = normalised * scale + offset``."""
+    lo, hi = v.min(0).values, v.max(0).values
+    scale = float((hi - lo).max())
+    if scale <= 0:
+        raise ValueError(f"mesh: {path} is degenerate (zero extent)")
+    centre = (lo + hi) / 2
+    offset = torch.stack([centre[0], lo[1], centre[2]])
+    return (v - offset) / scale, offset, scale
+
+
+# ---------------------------------------------------------------------------------------- glTF camera
+def _gltf_json(path: Path) -> dict:
+    """The JSON part of a ``.gltf`` or ``.glb`` file."""
+    data = path.read_bytes()
+    try:
+        if data[:4] == b"glTF":
+            length, kind = struct.unpack_from("<II", data, 12)
+            if kind != 0x4E4F534A:  # "JSON"
+                raise ValueError("the first GLB chunk is not JSON")
+            return json.loads(data[20:20 + length])
+        return json.loads(data)
+    except (ValueError, struct.error, UnicodeDecodeError) as err:
+        raise ValueError(f"mesh: cannot read {path} as glTF ({_one_line(err)})") from None
+
+
+def _node_matrix(node: dict) -> np.ndarray:
+    """A glTF node's local ``(4,4)`` transform: ``matrix`` (column-major) or ``T * R * S``."""
+    if "matrix" in node:
+        return np.asarray(node["matrix"], dtype=np.float64).reshape(4, 4).T
+    M = np.eye(4)
+    x, y, z, w = node.get("rotation", (0.0, 0.0, 0.0, 1.0))
+    M[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    M[:3, :3] *= np.asarray(node.get("scale", (1.0, 1.0, 1.0)), dtype=np.float64)
+    M[:3, 3] = node.get("translation", (0.0, 0.0, 0.0))
+    return M
+
+
+def gltf_camera(path: str | Path) -> LookAt | None:
+    """The first perspective camera of a glTF/GLB file's default scene as a :class:`LookAt`, or ``None``.
+
+    The camera node's world transform (parents included; scale removed) gives the eye (its
+    origin), the viewing direction (its ``-Z`` axis) and ``up`` (its ``+Y`` axis); ``yfov``
+    (radians) the vertical field of view.
+    """
+    path = Path(path)
+    header = _gltf_json(path)
+    nodes, cameras = header.get("nodes", []), header.get("cameras", [])
+    scenes = header.get("scenes", [])
+    roots = scenes[header.get("scene", 0)].get("nodes", []) if scenes else range(len(nodes))
+    stack = [(int(i), np.eye(4)) for i in reversed(list(roots))]
+    seen = set()
+    while stack:
+        i, parent = stack.pop()
+        if i in seen or not 0 <= i < len(nodes):
+            continue
+        seen.add(i)
+        node = nodes[i]
+        world = parent @ _node_matrix(node)
+        cam = node.get("camera")
+        if cam is not None and 0 <= cam < len(cameras) and cameras[cam].get("type") == "perspective":
+            yfov = float(cameras[cam]["perspective"]["yfov"])
+            R = world[:3, :3] / np.linalg.norm(world[:3, :3], axis=0)
+            eye = world[:3, 3]
+            return LookAt(eye=eye.tolist(), target=(eye - R[:, 2]).tolist(), up=R[:, 1].tolist(),
+                          fov_y_degrees=math.degrees(yfov))
+        stack.extend((int(c), world) for c in reversed(node.get("children", [])))
+    return None
+
+
+# ---------------------------------------------------------------------------------------- meshes
+def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8),
+                   normalize: bool = False) -> tuple[list[Mesh], LookAt | None]:
+    """Read a mesh file: ``(meshes, camera)``.
+
+    Args:
+        path: OBJ, PLY, STL, OFF, glTF/GLB or any other format trimesh reads.
+        albedo: linear RGB of every mesh of the file.
+        normalize: scale the file's meshes together to a largest extent of 1, resting on ``y = 0``,
+            centred on the ``y`` axis (a glTF camera moves with them).
+    Returns:
+        one :class:`Mesh` per file (all parts concatenated) or, for glTF/GLB, one per node with
+        triangles (node-name order, world transforms applied; names ``"file.glb:node"``), and the
+        file's glTF camera (:func:`gltf_camera`) or ``None``.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in _GLTF:
+        return [Mesh.load(path, albedo=albedo, normalize=normalize)], None
+    scene = read_trimesh(path, process=False)
+    parts = []
+    graph = getattr(scene, "graph", None)
+    for node in sorted(graph.nodes_geometry) if graph is not None else []:
+        matrix, geom_name = graph[node]
+        geom = scene.geometry[geom_name]
+        faces = getattr(geom, "faces", None)
+        if faces is None or len(faces) == 0:
+            continue  # points or lines
+        v = np.asarray(geom.vertices, dtype=np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+        parts.append((f"{path.name}:{node}", v, np.asarray(faces)))
+    if not parts:
+        raise ValueError(f"mesh: {path} has no meshes (no node of its scene carries triangles)")
+    camera = gltf_camera(path)
+    verts = [torch.as_tensor(v, dtype=torch.float64) for _, v, _ in parts]
+    if normalize:
+        _, offset, scale = normalize_vertices(torch.cat(verts), path)
+        verts = [(v - offset) / scale for v in verts]
+        if camera is not None:
+            eye = (torch.tensor(camera.eye, dtype=torch.float64) - offset) / scale
+            fwd = torch.tensor(camera.target, dtype=torch.float64) - torch.tensor(camera.eye, dtype=torch.float64)
+            camera = LookAt(eye.tolist(), (eye + fwd).tolist(), camera.up, camera.fov_y_degrees)
+    meshes = [Mesh(albedo=albedo, vertices=v, faces=torch.as_tensor(f).long(), name=name)
+              for (name, _, f), v in zip(parts, verts)]
+    return meshes, camera
+
+
+def frame_view(lo: Vec3, hi: Vec3, fov_y_degrees: float = 60.0) -> LookAt:
+    """A view of the box ``[lo, hi]``: looks at its centre from the front right (``+X, +Y, +Z``),
+    far enough that its bounding sphere fits the vertical field of view."""
+    lo, hi = torch.as_tensor(lo, dtype=torch.float64), torch.as_tensor(hi, dtype=torch.float64)
+    centre = (lo + hi) / 2
+    radius = max(float((hi - lo).norm()) / 2, 1e-6)
+    direction = torch.tensor([0.55, 0.45, 1.0], dtype=torch.float64)
+    distance = 1.05 * radius / math.sin(math.radians(fov_y_degrees) / 2)
+    eye = centre + distance * direction / direction.norm()
+    return LookAt(eye=eye.tolist(), target=centre.tolist(), fov_y_degrees=fov_y_degrees)
+
+
+def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None = None,
+               normalize: bool = False, progress: bool = False) -> Scene:
+    """A scene made of mesh files (and Mitsuba 3 scene files) alone.
+
+    Args:
+        paths: one or more mesh files (:func:`load_mesh_file`) or Mitsuba 3 ``.xml`` scene files
+            (:func:`~torch_ao.reference.mitsuba_file.load_mitsuba_file`); object ids 1, 2, ... in
+            file order (glTF: one per node, Mitsuba: one per shape), then the ground plane.
+        ground_plane: ``None``/``False`` for none, ``True`` for a plane ``y = min y`` of the meshes
+            (they rest on it), or a height ``h`` for the plane ``y = h`` (world units).
+        normalize: normalise each file (see :func:`load_mesh_file`).
+        progress: a tqdm bar over the files (triangles read so far).
+    Returns:
+        a :class:`Scene` whose view is the first file camera found (glTF or Mitsuba), else :func:`frame_view` of the
+        meshes; its ``description`` says which.
+    """
+    from tqdm.auto import tqdm
+
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ValueError("paths: expected at least one mesh file")
+    meshes, view, source = [], None, ""  # meshes: every object read (Mitsuba spheres too)
+    bar = tqdm(paths, desc="load meshes", unit="file", disable=not progress, leave=False)
+    for path in bar:
+        if path.suffix.lower() == ".xml":
+            from .mitsuba_file import load_mitsuba_file
+
+            if normalize:
+                raise ValueError(f"normalize: not for Mitsuba scene files ({path.name})")
+            found, camera = load_mitsuba_file(path)
+        else:
+            found, camera = load_mesh_file(path, normalize=normalize)
+        meshes += found
+        if view is None and camera is not None:
+            view, source = camera, f"camera of {path.name}"
+        bar.set_postfix(triangles=sum(m.faces.shape[0] for m in meshes if isinstance(m, Mesh)))
+    bar.close()
+    names = ", ".join(p.name for p in paths)
+    scene = Scene(meshes, name=paths[0].stem if len(paths) == 1 else "meshes")
+    lo, hi = scene.bounds()
+    if view is None:
+        view, source = frame_view(lo, hi), "framing the meshes"
+    if ground_plane is not None and ground_plane is not False:
+        height = float(lo[1]) if ground_plane is True else check_float("ground_plane", ground_plane)
+        scene = scene.add(Plane(point=(0.0, height, 0.0), normal=(0.0, 1.0, 0.0)))
+    scene.view, scene.description = view, f"{len(meshes)} meshes from {names}; view: {source}"
+    return scene

@@ -1,0 +1,254 @@
+"""Thickness models of the visibility-bitmask family: how deep each occluder reaches behind its visible surface.
+
+Bitmask AO treats the depth buffer as surfaces of some thickness: a sample occludes the directions
+between its front point and its back point, the front point pushed ``t`` away from the camera. A
+:class:`Thickness` is one small object per model that says
+
+* which parameters it fits (:meth:`Thickness.parameters`: name -> initial value and lower bound; the AO
+  module registers them as ``nn.Parameter``\\ s on itself under these names, so ``fit --params`` and
+  checkpoints see flat names such as ``thickness`` or ``thickness_scale``),
+* which images its samples read from the G-buffer (:meth:`Thickness.buffers`), and
+* its value at a sample (:meth:`Thickness.at`), in world units.
+
+Models (every value is ``>= 0``; ``thickness`` is always the additive term in world units):
+
+=====================  ===========================================================  ===========================
+class                  thickness of the occluder at a sample                         reads
+=====================  ===========================================================  ===========================
+:class:`ScalarThickness`   ``thickness`` (0-d)                                       nothing
+:class:`ObjectThickness`   ``thickness[object_id]`` (a ``(K,)`` table)               ``gbuffer.object_id``
+:class:`MapThickness`      ``thickness`` map ``(B,1,H,W)`` read at the sample        the map
+:class:`LinearThickness`   ``thickness + thickness_slope * depth`` (SSRT3, Filament)  the sample's depth
+:class:`BackfaceThickness` ``thickness_scale * (backface_depth - depth) + thickness`` ``gbuffer.backface_depth``
+=====================  ===========================================================  ===========================
+
+Any model with ``growth`` given also multiplies by ``1 + thickness_growth * |sample - pixel|`` (world
+units; this reads the sample's 3D offset, which autograd then records: about 24 more bytes per sample).
+:func:`as_thickness` maps the constructor's historical forms (a float, a ``(K,)`` table, a ``(B,1,H,W)``
+map, ``thickness_growth=``) onto these classes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .checks import check_float
+
+__all__ = ["Thickness", "ScalarThickness", "ObjectThickness", "MapThickness", "LinearThickness",
+           "BackfaceThickness", "BoundThickness", "as_thickness"]
+
+#: the back-face thickness of a pixel whose object has no exit along its camera ray (``backface_depth =
+#: inf``), in world units: a finite stand-in for "as thick as the scene", so that gradients stay finite
+BACKFACE_CAP = 1e6
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A fitted parameter of a thickness model: its initial value and lower bound."""
+
+    value: torch.Tensor
+    minimum: float | None = 0.0
+
+
+class Thickness:
+    """Base of the thickness models (see the module docstring).
+
+    Args:
+        growth: optional ``g >= 0`` (per world unit): the thickness grows as ``1 + g * |sample - pixel|``.
+    """
+
+    def __init__(self, *, growth: float | torch.Tensor | None = None) -> None:
+        if growth is not None and not isinstance(growth, torch.Tensor):
+            growth = check_float("thickness_growth", growth, 0.0)
+        self.growth = growth
+
+    def own_parameters(self) -> dict[str, Parameter]:
+        """The model's own parameters (without growth)."""
+        return {}
+
+    def parameters(self) -> dict[str, Parameter]:
+        """Every parameter the AO module registers for this model: name -> :class:`Parameter`."""
+        out = self.own_parameters()
+        if self.growth is not None:
+            out["thickness_growth"] = Parameter(torch.as_tensor(self.growth))
+        return out
+
+    def check(self, name: str, value: torch.Tensor) -> None:
+        """Raise ``ValueError`` if ``value`` cannot be parameter ``name`` (its shape)."""
+        if value.dim() != 0:
+            raise ValueError(f"{name}: expected a scalar, got shape {tuple(value.shape)}")
+
+    def buffers(self, gbuffer, params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """``(B,C,H,W)`` images the samples read (default none); ``ValueError`` if the G-buffer lacks one."""
+        return {}
+
+    def at(self, sample, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Thickness ``(rows,)`` (or 0-d) of the occluder at ``sample``, before growth, in world units."""
+        raise NotImplementedError
+
+    def value(self, sample, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """:meth:`at`, times the growth factor when the model has one."""
+        t = self.at(sample, params)
+        if self.growth is not None:
+            t = t * (1 + params["thickness_growth"].to(sample.dtype) * sample.distance)
+        return t
+
+    def describe(self) -> str:
+        return type(self).__name__ + ("" if self.growth is None else f"(growth={float(self.growth):g})")
+
+
+class _TensorThickness(Thickness):
+    """A model whose one parameter ``thickness`` is a tensor of ``dims`` dimensions (``expected`` says which)."""
+
+    dims: int
+    expected: str
+
+    def __init__(self, thickness, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.initial = torch.as_tensor(thickness)
+
+    def own_parameters(self):
+        return {"thickness": Parameter(self.initial)}
+
+    def check(self, name, value):
+        if name != "thickness":
+            return super().check(name, value)
+        if value.dim() != self.dims or (self.dims == 4 and value.shape[1] != 1):
+            raise ValueError(f"thickness: expected {self.expected}, got shape {tuple(value.shape)}")
+
+
+class ScalarThickness(_TensorThickness):
+    """One thickness ``thickness`` (world units, 0-d) for every occluder: the paper's."""
+
+    dims, expected = 0, "a scalar"
+
+    def __init__(self, thickness: float | torch.Tensor = 0.5, **kwargs) -> None:
+        super().__init__(thickness, **kwargs)
+
+    def at(self, sample, params):
+        return params["thickness"].to(sample.dtype)
+
+
+class ObjectThickness(_TensorThickness):
+    """A thickness per object: a ``(K,)`` table indexed by ``gbuffer.object_id`` at the sample (ids beyond
+    the table use its last entry)."""
+
+    dims, expected = 1, "a (K,) per-object table"
+
+    def buffers(self, gbuffer, params):
+        if gbuffer.object_id is None:
+            raise ValueError("gbuffer.object_id: a per-object thickness table needs an object_id buffer")
+        return {"object_id": gbuffer.object_id}
+
+    def at(self, sample, params):
+        table = params["thickness"]
+        ids = sample.gather("object_id")[:, 0].long().clamp(0, table.shape[0] - 1)
+        return table.to(sample.dtype)[ids]
+
+
+class MapThickness(_TensorThickness):
+    """A per-pixel thickness map ``(B,1,H,W)`` (or batch 1), read at the sample: the *occluder's* thickness."""
+
+    dims, expected = 4, "a (B,1,H,W) map"
+
+    def buffers(self, gbuffer, params):
+        B, _, H, W = gbuffer.depth.shape
+        t = params["thickness"]
+        if t.shape[-2:] != (H, W) or t.shape[0] not in (1, B):
+            raise ValueError(f"thickness: map of shape {tuple(t.shape)} does not match the G-buffer (B={B}, H={H}, W={W})")
+        return {"thickness": t.to(gbuffer.depth.dtype).expand(B, 1, H, W)}
+
+    def at(self, sample, params):
+        return sample.gather("thickness")[:, 0]
+
+
+class LinearThickness(Thickness):
+    """``t = thickness + thickness_slope * depth`` at the sample (world units; ``thickness_slope`` is
+    unitless): thicker far away, as SSRT3 and Filament's SSAO scale their thickness with depth.
+
+    Reads the sample's own depth, so autograd records the sample's position (about 24 bytes per sample).
+    """
+
+    def __init__(self, thickness: float | torch.Tensor = 0.1, slope: float | torch.Tensor = 0.05, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.initial, self.slope = torch.as_tensor(thickness), torch.as_tensor(slope)
+
+    def own_parameters(self):
+        return {"thickness": Parameter(self.initial), "thickness_slope": Parameter(self.slope)}
+
+    def at(self, sample, params):
+        depth = -sample.position[:, 2]
+        return params["thickness"].to(sample.dtype) + params["thickness_slope"].to(sample.dtype) * depth
+
+
+class BackfaceThickness(Thickness):
+    """Each occluder's own thickness from a back-face depth layer: ``t = thickness_scale * (backface_depth -
+    depth) + thickness`` at the sample (``gbuffer.backface_depth`` ``(B,1,H,W)``: the depth where the camera
+    ray leaves the first object it hit, as a front-face-culled depth pass renders it; ``inf`` = no exit,
+    treated as :data:`BACKFACE_CAP` world units). ``thickness_scale`` (unitless, default 1) and the offset
+    ``thickness`` (world units, default 0) are fitted corrections."""
+
+    def __init__(self, scale: float | torch.Tensor = 1.0, thickness: float | torch.Tensor = 0.0, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.scale, self.initial = torch.as_tensor(scale), torch.as_tensor(thickness)
+
+    def own_parameters(self):
+        return {"thickness_scale": Parameter(self.scale), "thickness": Parameter(self.initial)}
+
+    def buffers(self, gbuffer, params):
+        back = getattr(gbuffer, "backface_depth", None)
+        if back is None:
+            raise ValueError("gbuffer.backface_depth: the back-face thickness model needs a (B,1,H,W) back-face depth layer")
+        depth = gbuffer.safe_depth
+        layer = torch.where(gbuffer.valid, back - depth, torch.zeros_like(depth))
+        return {"backface_thickness": layer.clamp(0.0, BACKFACE_CAP)}
+
+    def at(self, sample, params):
+        layer = sample.gather("backface_thickness")[:, 0]
+        return params["thickness_scale"].to(sample.dtype) * layer + params["thickness"].to(sample.dtype)
+
+
+_BY_DIM = {0: ScalarThickness, 1: ObjectThickness, 4: MapThickness}
+
+
+def as_thickness(thickness, growth=None) -> Thickness:
+    """A :class:`Thickness` from the AO modules' ``thickness=``: a model (returned, with ``growth`` set if
+    given), a number or 0-d tensor (:class:`ScalarThickness`), a ``(K,)`` table (:class:`ObjectThickness`)
+    or a ``(B,1,H,W)`` map (:class:`MapThickness`)."""
+    if isinstance(thickness, Thickness):
+        if growth is not None:
+            if thickness.growth is not None:
+                raise ValueError("thickness_growth: given twice (as an argument and in the thickness model)")
+            thickness.growth = Thickness(growth=growth).growth
+        return thickness
+    if isinstance(thickness, bool) or not isinstance(thickness, (int, float, torch.Tensor)):
+        raise ValueError(f"thickness: expected a number, a tensor or a torch_ao.thickness.Thickness, got {thickness!r}")
+    value = torch.as_tensor(thickness)
+    cls = _BY_DIM.get(value.dim())
+    if cls is None or (value.dim() == 4 and value.shape[1] != 1):
+        raise ValueError(f"thickness: expected a scalar, a (K,) table or a (B,1,H,W) map, got shape {tuple(value.shape)}")
+    return cls(value, growth=growth)
+
+
+def matching(model: Thickness, value: torch.Tensor) -> Thickness:
+    """``model``, or the tensor model matching ``value``'s shape when ``model`` is one of the three tensor
+    forms and the module's ``thickness`` was reassigned with another shape (e.g. a map set per frame)."""
+    cls = _BY_DIM.get(value.dim())
+    if isinstance(model, _TensorThickness) and cls is not None and type(model) is not cls:
+        return cls(value, growth=model.growth)
+    return model
+
+
+@dataclass
+class BoundThickness:
+    """A model with the AO module's current parameter values: ``bound(sample)`` is the thickness ``(rows,)``."""
+
+    model: Thickness
+    params: dict[str, torch.Tensor]
+
+    def __call__(self, sample) -> torch.Tensor:
+        return self.model.value(sample, self.params)
+
+    def buffers(self, gbuffer) -> dict[str, torch.Tensor]:
+        return self.model.buffers(gbuffer, self.params)
