@@ -90,7 +90,10 @@ def test_kernel_covers_names_what_it_does_not_cover():
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
     cases = {"variant": BitmaskAO(variant="hdrp", azimuth="view"), "mode": BitmaskAO(mode="soft"),
              "weighting": BitmaskAO(weighting="cosine"), "indirect": BitmaskAO(indirect=True),
-             "azimuth": BitmaskAO(azimuth="screen"), "thickness": BitmaskAO(thickness=torch.ones(3))}
+             "azimuth": BitmaskAO(azimuth="screen"), "thickness": BitmaskAO(thickness=torch.ones(3)),
+             "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
+             "thickness_direction": BitmaskAO(thickness_direction="depth"),
+             "sample_extent": BitmaskAO(sample_extent="sphere"), "growth": BitmaskAO(thickness_growth=0.5)}
     for word, module in cases.items():
         assert word in kernel_covers(module, gb), word
     assert "float64" in kernel_covers(BitmaskAO(mode="hard"), gb.to(dtype=torch.float64))

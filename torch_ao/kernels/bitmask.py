@@ -59,7 +59,8 @@ _COVERED = {
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
     # the bitmask family's
     "variant": ("default",), "mode": ("hard", "straight_through"), "tau": None, "rounding": None,
-    "weighting": ("uniform",), "thickness": None, "thickness_growth": (None,), "indirect": (False,),
+    "weighting": ("uniform",), "union": ("sectors",), "clip_to_radius": (False,), "thickness_direction": ("view",),
+    "sample_extent": ("radius",), "thickness": None, "thickness_growth": (None,), "indirect": (False,),
     "bent_normals": (False,), "ambient": (None,), "ambient_directions": None, "sector_epsilon": None,
     "glsl_numerics": None,
 }
@@ -74,8 +75,9 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     soft gradients) only when no gradient is asked for.
     """
     values = dict(getattr(module, "values", {}))
-    for name in ("variant", "mode", "weighting", "azimuth", "thickness_growth", "ambient"):
-        values[name] = getattr(module, name, "?")  # the bitmask family keeps these as attributes
+    for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
+                 "azimuth", "thickness_growth", "ambient"):
+        values[name] = getattr(module, name, "?")  # resolved per variant, kept as attributes
     values["indirect"] = getattr(module, "want_indirect", "?")
     values["bent_normals"] = getattr(module, "want_bent", "?")
     if getattr(module, "_ambient_constant", False):
@@ -86,9 +88,10 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         allowed = _COVERED[name]
         if allowed is not None and not any(value is a or (isinstance(value, str) and value == a) for a in allowed):
             return f"{name}={value!r}"
-    thickness = getattr(module, "thickness", None)
-    if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0:
-        return "a per-object or per-pixel thickness"
+    thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
+    if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
+            model is not None and (type(model).__name__ != "ScalarThickness" or model.growth is not None)):
+        return "a thickness other than one scalar (a table, a map, a model, a growth)"
     if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
