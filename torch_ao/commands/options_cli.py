@@ -102,6 +102,7 @@ def add_option(parser, name: str, entry: Option | Mapping[str, Option], *, given
         kwargs["action"] = "store_true" if switch else argparse.BooleanOptionalAction
     else:
         kwargs.update(type=_value_parser(name, opts, infinite), metavar=name.upper())
+        kwargs["type"].options = by_owner  # what the flag is built from: {owner ("" when one): Option}
     kwargs.update(argparse_kwargs)
     parser.add_argument(flag(name), **kwargs)
     return name
