@@ -34,6 +34,8 @@ LENGTHS = ("radius", "thickness", "fade_distance")
 #: hard cut: neither radius nor falloff has a gradient there).
 NO_GRADIENT_START = {"falloff_range": 0.25}
 BITMASK = ("bitmask", "ssilvb")
+#: Smallest width and height of the built-in views (``--size``).
+MIN_SIZE = 4
 
 
 def _method_option(method: str, name: str) -> Option:
@@ -61,7 +63,8 @@ OPTIONS = (
            unit="world units", minimum=0.0, open_minimum=True),
     Option("scenes", ",".join(TRAIN_SCENES), "comma-separated built-in scenes (without --reference)", str),
     Option("train_views", 2, "randomised training views per scene", int, minimum=1),
-    Option("size", "160x96", "render size WxH of the built-in views (at least 4x4)", str, unit="pixels"),
+    Option("size", "160x96", f"render size WxH of the built-in views (at least {MIN_SIZE}x{MIN_SIZE})", str,
+           unit="pixels"),
     options_by_name(RENDER_OPTIONS)["spp"],
     replace(options_by_name(RENDER_OPTIONS)["max_distance"], default=1.0,
             help="reference AO ray length R of the built-in views (finite)"),
@@ -107,8 +110,8 @@ def _size(text: str) -> tuple[int, int]:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise CommandError(f"--size: expected WxH such as 160x96, got {text!r}") from None
-    if w < 4 or h < 4:
-        raise CommandError(f"--size: expected at least 4x4, got {text!r}")
+    if w < MIN_SIZE or h < MIN_SIZE:
+        raise CommandError(f"--size: expected at least {MIN_SIZE}x{MIN_SIZE}, got {text!r}")
     return w, h
 
 

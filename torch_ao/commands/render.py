@@ -73,6 +73,7 @@ _FORMS = {
     "fov": dict(metavar="DEG"),
 }
 _VECTORS = ("eye", "target", "up")
+_FOV = next(o for o in OPTIONS if o.name == "fov")
 
 
 def register(subparsers) -> None:
@@ -137,8 +138,10 @@ def _views(args, scene):
         # a new eye without a target looks at the meshes, not along the file's camera
         v = frame_view(*scene.bounds(), v.fov_y_degrees)
     fov = v.fov_y_degrees if args.fov is None else args.fov
-    if not (0 < fov < 180):
-        raise CommandError(f"--fov: expected degrees in (0, 180), got {fov}")
+    try:  # the view's own field of view (a glTF or Mitsuba camera) is held to the flag's bounds
+        _FOV.check(fov)
+    except ValueError as err:
+        raise CommandError(f"--fov: {str(err).split(': ', 1)[-1]} (the view's field of view)") from None
     try:
         return look_at(eye or v.eye, target or v.target, up or v.up, fov, height=args.height, width=args.width)
     except ValueError as err:
