@@ -18,7 +18,7 @@ import torch
 
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
-from ..fit import FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
+from ..fit import LOSSES, FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
 from ..fitted import FittedPipeline
 from ..io import read_npz, write_text_atomic
 from ..methods import get_method
@@ -76,7 +76,7 @@ OPTIONS = (
     Option("hard_patience", 2, "stop once this many hard-mode scores in a row have not improved on the best "
            "(0 = run all --steps)", int, minimum=0),
     Option("batch_views", FitConfig.batch_views, "training views per step (0 = all)", int, minimum=0),
-    Option("loss", FitConfig.loss, "per-pixel loss against the reference", str, choices=("l1", "mse")),
+    Option("loss", FitConfig.loss, "per-pixel loss against the reference", str, choices=LOSSES),
     Option("seed", FitConfig.seed, "seed of the fit's randomness (view batches, jitter)", int, minimum=0),
     Option("cache", None, f"reference cache folder; when not given, {default_cache_dir()}", str),
     Option("out", "fit-out", "output folder (params.json, report.md, comparison.png, checkpoint.pt)", str),
