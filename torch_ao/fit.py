@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .checks import check_choice
 from .metrics import error_metrics
 from .views import FitView, load_views
 
@@ -44,6 +45,10 @@ PARAMETER_MINIMUM = {"thickness": 0.0, "radius": 1e-3, "falloff_range": 1e-2, "f
 PARAMETER_MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
 
 
+#: per-pixel losses against the reference
+LOSSES = ("l1", "mse")
+
+
 @dataclass
 class FitConfig:
     """Settings of :func:`fit` (all serialisable, so a checkpoint can check it resumes the same run)."""
@@ -51,7 +56,7 @@ class FitConfig:
     params: Sequence[str] = ("thickness",)
     steps: int = 100
     lr: float = 0.05
-    loss: str = "l1"  # "l1" | "mse"
+    loss: str = "l1"  # one of LOSSES
     weight_by_stderr: bool = False
     batch_views: int = 0  # views per step (0 = all)
     temperature_start: float = 0.5
@@ -72,8 +77,7 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         self.params = tuple(self.params)
-        if self.loss not in ("l1", "mse"):
-            raise ValueError(f"loss: expected 'l1' or 'mse', got {self.loss!r}")
+        check_choice("loss", self.loss, LOSSES)
         if self.steps < 0 or self.lr <= 0:
             raise ValueError(f"steps/lr: expected steps >= 0 and lr > 0, got {self.steps}, {self.lr}")
         if not (self.temperature_start > 0 and self.temperature_end > 0):

@@ -74,13 +74,13 @@ def register(sub) -> None:
                    help=f"comma-separated built-in scenes, some of: {', '.join(SCENES)}. "
                    f"Default: {','.join(DEFAULT.scenes)}, none when --reference is given")
     p.add_argument("--reference", nargs="+", action="extend", default=[], metavar="FILE.npz",
-                   help="reference files (G-buffer + 'ao', e.g. from `torch-ao render`), named by file stem")
+                   help="reference files (G-buffer + 'ao', e.g. from `torch-ao render`), named by file stem. Default: none")
     p.add_argument("--params", metavar="JSON", action="append",
                    help="per-method constructor arguments, e.g. fitted values: a `torch-ao fit` params.json, or a "
-                   "JSON file or string {\"bitmask\": {\"thickness\": 0.3}} (repeatable; wins over method flags)")
+                   "JSON file or string {\"bitmask\": {\"thickness\": 0.3}} (repeatable; wins over method flags). Default: none")
     p.add_argument("--fitted", nargs="+", action="extend", default=[], metavar="PARAMS.json",
                    help="fitted pipelines (`torch-ao fit` params.json files) added as rows, each at its own preset, "
-                   "radius, parameters and denoiser")
+                   "radius, parameters and denoiser. Default: none")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
     sizes = p.add_argument_group("sweep size (defaults as below, or those of --quick)")
     add_options(sizes, {o.name: o for o in SIZE_OPTIONS})

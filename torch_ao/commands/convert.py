@@ -6,7 +6,7 @@ import argparse
 
 from ..engine_io import ENGINE_OPTIONS, EngineOptions
 from .args import allow_negative_lists, parse_float_list
-from .options_cli import add_options, flag, given
+from .options_cli import add_option, add_options, flag, given
 
 __all__ = ["register", "run", "add_engine_flags", "engine_options"]
 
@@ -19,8 +19,7 @@ def add_engine_flags(p: argparse.ArgumentParser) -> None:
     built from :data:`~torch_ao.engine_io.ENGINE_OPTIONS`."""
     g = p.add_argument_group("engine conventions (see docs/engines.md)")
     add_options(g, _FLAGS)
-    # --far takes inf (no far plane), which Option.check refuses for numbers: its own parser, same help
-    g.add_argument(flag("far"), dest="far", type=float, default=None, metavar="FAR", help=_FAR.describe())
+    add_option(g, "far", _FAR, infinite=True)  # inf: no far plane
     allow_negative_lists(p)  # --view-matrix -1,0,...
 
 
@@ -45,8 +44,8 @@ def register(sub) -> None:
         "depth, OpenGL view-space normals and positions) and write it as .npz. Needs `pip install torch-ao[exr]` "
         "for OpenEXR files.")
     p.add_argument("input", help="input file: .exr, .png (16-bit depth) or .npz")
-    p.add_argument("--out", help="output .npz file")
-    p.add_argument("--png", help="also write a preview PNG (depth | normals)")
+    p.add_argument("--out", help="output .npz file (required)")
+    p.add_argument("--png", help="also write a preview PNG (depth | normals). Default: none")
     p.add_argument("--list-channels", action="store_true", help="print the channels of the OpenEXR file and exit")
     add_engine_flags(p)
     p.set_defaults(func=run)

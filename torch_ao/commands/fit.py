@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,10 +18,14 @@ import torch
 
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
-from ..fit import FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
+from ..fit import LOSSES, FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
 from ..fitted import FittedPipeline
 from ..io import read_npz, write_text_atomic
-from ..methods import METHODS, PRESETS, get_method
+from ..methods import get_method
+from ..options import Option, options_by_name
+from .ao import OPTIONS as AO_OPTIONS
+from .options_cli import add_option
+from .render import OPTIONS as RENDER_OPTIONS
 
 #: Parameters in world units: their learning rate is ``--lr`` times R, so a fit moves them by the
 #: same fraction of R whatever the scene's scale.
@@ -29,6 +34,61 @@ LENGTHS = ("radius", "thickness", "fade_distance")
 #: hard cut: neither radius nor falloff has a gradient there).
 NO_GRADIENT_START = {"falloff_range": 0.25}
 BITMASK = ("bitmask", "ssilvb")
+#: Smallest width and height of the built-in views (``--size``).
+MIN_SIZE = 4
+
+
+def _method_option(method: str, name: str) -> Option:
+    return get_method(method).options()[name]
+
+
+#: The flags of ``torch-ao fit``: what each does, its unit, range and default (the flags' help). Defaults
+#: that a :class:`~torch_ao.fit.FitConfig` field also has are read from it; the renderer's sampling
+#: flags and ``torch-ao ao``'s method choice are reused with this command's defaults.
+OPTIONS = (
+    Option("reference", None, "your own G-buffers with an 'ao' reference (and 'max_distance', the method's radius "
+           "R); when not given, randomised views of the built-in --scenes", str),
+    Option("holdout", None, "held-out references; when not given, the last third of --reference", str),
+    replace(options_by_name(AO_OPTIONS)["method"], default="bitmask", help="method to fit"),
+    Option("variant", None, "the method's variant; when not given, the method's default", str),
+    Option("params", None, "comma-separated parameters to fit jointly, e.g. thickness,radius; when not given, every "
+           "float parameter the method and variant use", str),
+    Option("init", None, "start values, e.g. thickness=0.5,radius=1.2 (lengths in world units; a bare number is the "
+           "thickness); when not given, the method's defaults", str),
+    replace(_method_option("bitmask", "preset"), default="high", help="quality preset of the fitted method"),
+    replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
+            "(cosine matches the cosine-weighted reference)"),
+    Option("no_denoise", False, "fit and score the method alone, without the denoiser", bool),
+    Option("radius", None, "the method's radius R; when not given, the references' max_distance", float,
+           unit="world units", minimum=0.0, open_minimum=True),
+    Option("scenes", ",".join(TRAIN_SCENES), "comma-separated built-in scenes (without --reference)", str),
+    Option("train_views", 2, "randomised training views per scene", int, minimum=1),
+    Option("size", "160x96", f"render size WxH of the built-in views (at least {MIN_SIZE}x{MIN_SIZE})", str,
+           unit="pixels"),
+    options_by_name(RENDER_OPTIONS)["spp"],
+    replace(options_by_name(RENDER_OPTIONS)["max_distance"], default=1.0,
+            help="reference AO ray length R of the built-in views (finite)"),
+    Option("steps", 60, "optimizer steps", int, minimum=0),
+    Option("lr", FitConfig.lr, "Adam learning rate (times R for parameters in world units)", float, minimum=0.0,
+           open_minimum=True),
+    Option("hard_every", FitConfig.hard_every, "score the parameters in hard mode every N steps and keep the best "
+           "(0 = keep the best soft-mode loss)", int, unit="steps", minimum=0),
+    Option("hard_patience", 2, "stop once this many hard-mode scores in a row have not improved on the best "
+           "(0 = run all --steps)", int, minimum=0),
+    Option("batch_views", FitConfig.batch_views, "training views per step (0 = all)", int, minimum=0),
+    Option("loss", FitConfig.loss, "per-pixel loss against the reference", str, choices=LOSSES),
+    Option("seed", FitConfig.seed, "seed of the fit's randomness (view batches, jitter)", int, minimum=0),
+    Option("cache", None, f"reference cache folder; when not given, {default_cache_dir()}", str),
+    Option("out", "fit-out", "output folder (params.json, report.md, comparison.png, checkpoint.pt)", str),
+    Option("device", "cpu", "torch device of the fit and of the reference renders, e.g. cpu or cuda", str),
+    Option("no_progress", False, "no progress bars", bool),
+)
+
+#: Flags whose form an Option cannot say: argparse keywords replacing the option's own.
+_FORMS = {
+    "reference": dict(nargs="+", metavar="FILE.npz"),
+    "holdout": dict(nargs="+", metavar="FILE.npz"),
+}
 
 
 def register(sub) -> None:
@@ -39,40 +99,9 @@ def register(sub) -> None:
         "scoring the pipeline that ships (method in hard mode + denoiser), then compare on held-out views. "
         "Without --reference, uses randomised views of the built-in scenes (rendered once, then cached). "
         "Re-running the same command resumes an interrupted fit.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--reference", nargs="+", metavar="FILE.npz", help="your own G-buffers with an 'ao' reference "
-                   "(and 'max_distance', the method's radius R)")
-    p.add_argument("--holdout", nargs="+", metavar="FILE.npz", help="held-out references (default: the last third of --reference)")
-    p.add_argument("--method", default="bitmask", help=f"method to fit: one of {', '.join(sorted(METHODS))}")
-    p.add_argument("--variant", default=None, help="the method's variant (default: the method's)")
-    p.add_argument("--params", default=None, help="comma-separated parameters to fit jointly, e.g. thickness,radius "
-                   "(default: every float parameter the method and variant use)")
-    p.add_argument("--init", default=None, help="start values, e.g. thickness=0.5,radius=1.2 (radius in world units; "
-                   "a bare number is the thickness; default: the method's defaults)")
-    p.add_argument("--preset", default="high", choices=sorted(PRESETS), help="quality preset of the fitted method")
-    p.add_argument("--weighting", choices=("uniform", "cosine"), default="cosine",
-                   help="sector weighting of bitmask methods (cosine matches the cosine-weighted reference)")
-    p.add_argument("--no-denoise", action="store_true", help="fit and score the method alone, without the denoiser")
-    p.add_argument("--radius", type=float, default=None, help="the method's radius R (default: the references' max_distance)")
-    p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes (without --reference)")
-    p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
-    p.add_argument("--size", default="160x96", help="render size WxH of built-in views")
-    p.add_argument("--spp", type=int, default=256, help="reference rays per pixel")
-    p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R of built-in views")
-    p.add_argument("--steps", type=int, default=60, help="optimizer steps")
-    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (times R for lengths)")
-    p.add_argument("--hard-every", type=int, default=10, help="score the parameters in hard mode every N steps and "
-                   "keep the best (0 = keep the best soft-mode loss)")
-    p.add_argument("--hard-patience", type=int, default=2, help="stop once this many hard-mode scores in a row have "
-                   "not improved on the best (0 = run all --steps)")
-    p.add_argument("--batch-views", type=int, default=0, help="training views per step (0 = all)")
-    p.add_argument("--loss", choices=("l1", "mse"), default="l1")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--cache", default=None, help=f"reference cache folder (default {default_cache_dir()})")
-    p.add_argument("--out", default="fit-out", help="output folder (params.json, report.md, comparison.png, checkpoint.pt)")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--no-progress", action="store_true")
+    for opt in OPTIONS:
+        add_option(p, opt.name, opt, given_only=False, switch=True, **_FORMS.get(opt.name, {}))
     p.set_defaults(func=run)
 
 
@@ -81,8 +110,8 @@ def _size(text: str) -> tuple[int, int]:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise CommandError(f"--size: expected WxH such as 160x96, got {text!r}") from None
-    if w < 4 or h < 4:
-        raise CommandError(f"--size: expected at least 4x4, got {text!r}")
+    if w < MIN_SIZE or h < MIN_SIZE:
+        raise CommandError(f"--size: expected at least {MIN_SIZE}x{MIN_SIZE}, got {text!r}")
     return w, h
 
 
@@ -135,8 +164,6 @@ def _views(args) -> tuple[list, list, float]:
     unknown = [s for s in scenes if s not in SCENES]
     if unknown:
         raise CommandError(f"--scenes: unknown scene(s) {', '.join(unknown)}; see `torch-ao render --list`")
-    if not (math.isfinite(args.max_distance) and args.max_distance > 0):
-        raise CommandError(f"--max-distance: expected a finite value > 0, got {args.max_distance}")
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   progress=not args.no_progress, device=device)
@@ -183,13 +210,6 @@ def pipeline_options(args, radius: float, **values) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.method not in METHODS:
-        raise CommandError(f"--method: unknown method {args.method!r}; expected one of {', '.join(sorted(METHODS))}")
-    if args.steps < 0:
-        raise CommandError(f"--steps: expected >= 0, got {args.steps}")
-    for name in ("hard_every", "hard_patience"):
-        if getattr(args, name) < 0:
-            raise CommandError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(args, name)}")
     init = _init_values(args.init)
     out = Path(args.out)
     denoise = not args.no_denoise

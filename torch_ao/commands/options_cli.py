@@ -10,12 +10,13 @@ flags the user gave, so every other argument keeps the constructor's default.
 from __future__ import annotations
 
 import argparse
+import math
 from typing import Iterable, Mapping
 
 from ..cli import CommandError
 from ..options import Option
 
-__all__ = ["flag", "method_options", "add_options", "given", "method_kwargs", "construct"]
+__all__ = ["flag", "method_options", "add_option", "add_options", "given", "method_kwargs", "construct"]
 
 #: Option kinds that have a command-line form (others, such as tensors or callables, are Python-only).
 FLAG_KINDS = (float, int, str, bool)
@@ -38,9 +39,10 @@ def method_options(classes: Mapping[str, type], exclude: Iterable[str] = ()) -> 
     return out
 
 
-def _value_parser(name: str, opts: list[Option]):
+def _value_parser(name: str, opts: list[Option], infinite: bool = False):
     """argparse ``type=``: the kind's conversion, then the choices, then the option's own check when
-    there is one option (several: each method checks its own, :func:`method_kwargs`)."""
+    there is one option (several: each method checks its own, :func:`method_kwargs`). ``infinite``:
+    ``inf`` is taken as a value above every bound (an unlimited length, say)."""
     kind = opts[0].kind
     choices = [c for o in opts for c in (o.choices or ())] if all(o.choices for o in opts) else None
 
@@ -51,6 +53,8 @@ def _value_parser(name: str, opts: list[Option]):
             raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
         if choices is not None and value not in choices:
             raise argparse.ArgumentTypeError(f"unknown {name} {value!r}; expected one of {', '.join(map(str, dict.fromkeys(choices)))}")
+        if infinite and value == math.inf:
+            return value
         if len(opts) == 1:
             try:
                 value = opts[0].check(value)
@@ -76,26 +80,41 @@ def _help(by_owner: Mapping[str, Option]) -> str:
     return " | ".join(f"{', '.join(owners)}: {opt.describe()}" for opt, owners in distinct)
 
 
+def add_option(parser, name: str, entry: Option | Mapping[str, Option], *, given_only: bool = True,
+               switch: bool = False, infinite: bool = False, **argparse_kwargs) -> str:
+    """Add the flag of one option to ``parser``; returns ``name``.
+
+    ``entry``: an :class:`Option` or ``{owner: Option}``. ``switch``: a ``bool`` option becomes a plain
+    ``--name`` switch (``store_true``) instead of a ``--name``/``--no-name`` pair. ``infinite``: a number
+    flag also takes ``inf``. ``argparse_kwargs`` (``nargs``, ``const``, ``action``, ``metavar``, ``type``,
+    ``default``) replace what the option gives, for flags whose form an :class:`Option` cannot say
+    (a repeatable flag, an optional value); the help always stays the option's description.
+    """
+    by_owner = {"": entry} if isinstance(entry, Option) else dict(entry)
+    opts = [o for i, o in enumerate(by_owner.values()) if o not in list(by_owner.values())[:i]]
+    kinds = {o.kind for o in opts}
+    if len(kinds) != 1:
+        raise TypeError(f"option {name!r} has several kinds ({', '.join(k.__name__ for k in kinds)})")
+    kind = kinds.pop()
+    default = None if given_only else opts[0].default
+    kwargs = {"dest": name, "default": default, "help": _help(by_owner).replace("%", "%%")}
+    if kind is bool:
+        kwargs["action"] = "store_true" if switch else argparse.BooleanOptionalAction
+    else:
+        kwargs.update(type=_value_parser(name, opts, infinite), metavar=name.upper())
+        kwargs["type"].options = by_owner  # what the flag is built from: {owner ("" when one): Option}
+    kwargs.update(argparse_kwargs)
+    parser.add_argument(flag(name), **kwargs)
+    return name
+
+
 def add_options(parser, options: Mapping[str, Option | Mapping[str, Option]], *, given_only: bool = True) -> list[str]:
     """Add one flag per option to ``parser`` (a parser or an argument group); returns the names.
 
     ``options`` maps a name to an :class:`Option` or to ``{owner: Option}`` (:func:`method_options`).
     ``given_only``: the flags default to ``None`` (read back only when given); else to the option's default.
     """
-    for name, entry in options.items():
-        by_owner = {"": entry} if isinstance(entry, Option) else dict(entry)
-        opts = [o for i, o in enumerate(by_owner.values()) if o not in list(by_owner.values())[:i]]
-        kinds = {o.kind for o in opts}
-        if len(kinds) != 1:
-            raise TypeError(f"option {name!r} has several kinds ({', '.join(k.__name__ for k in kinds)})")
-        kind = kinds.pop()
-        default = None if given_only else opts[0].default
-        kwargs = {"dest": name, "default": default, "help": _help(by_owner).replace("%", "%%")}
-        if kind is bool:
-            parser.add_argument(flag(name), action=argparse.BooleanOptionalAction, **kwargs)
-            continue
-        parser.add_argument(flag(name), type=_value_parser(name, opts), metavar=name.upper(), **kwargs)
-    return list(options)
+    return [add_option(parser, name, entry, given_only=given_only) for name, entry in options.items()]
 
 
 def given(args: argparse.Namespace, names: Iterable[str]) -> dict:

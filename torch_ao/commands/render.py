@@ -14,7 +14,9 @@ import zlib
 from pathlib import Path
 
 from ..reference.tracer import MESH_BACKENDS
+from ..options import Option
 from .args import add_float_list, allow_negative_lists, parse_float_list
+from .options_cli import add_option, flag
 
 __all__ = ["register", "run", "write_png"]
 
@@ -23,6 +25,55 @@ _AUTO = "auto"  # --ground-plane without a height: under the meshes
 
 def _ground_height(text: str):
     return text if text == _AUTO else float(text)
+
+
+#: The flags of ``torch-ao render``: what each does, its unit, range and default (the flags' help).
+OPTIONS = (
+    Option("list", False, "list the built-in scenes and exit", bool),
+    Option("eye", None, "camera position; when not given, the scene's view, a glTF camera of the mesh files, or a "
+           "view framing the meshes", str, unit="world units"),
+    Option("target", None, "point looked at; when not given, the view's, or the centre of the meshes", str,
+           unit="world units"),
+    Option("up", None, "up direction (any length); when not given, the view's, usually 0,1,0", str),
+    Option("fov", None, "vertical field of view; when not given, the view's (60 for framed meshes)", float,
+           unit="degrees", minimum=0.0, maximum=180.0, open_minimum=True, open_maximum=True),
+    Option("mesh", None, "a mesh file (OBJ, PLY, STL, OFF, glTF/GLB...; needs trimesh): one object id per file, per "
+           "node for glTF; added to SCENE, or rendered alone without SCENE; repeatable; when not given, SCENE alone", str),
+    Option("mesh_normalize", False, "scale each --mesh file to unit size resting on y=0 at the origin (else as stored)",
+           bool),
+    Option("ground_plane", None, "add a ground plane y=HEIGHT; without HEIGHT, at the lowest point of the scene's "
+           "bounded objects (e.g. under the meshes); when not given, none", float, unit="world units"),
+    Option("randomize", None, "seed of a randomised variant of the built-in scene; when not given, the scene as "
+           "defined", int),
+    Option("width", 320, "image width", int, unit="pixels", minimum=1),
+    Option("height", 180, "image height", int, unit="pixels", minimum=1),
+    Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16])", int, unit="rays",
+           minimum=2),
+    Option("max_distance", float("inf"), "AO ray length R (inf: unlimited)", float, unit="world units",
+           minimum=0.0, open_minimum=True),
+    Option("seed", 0, "sampling seed (same seed, same image, whatever --chunk-rays and --device)", int, minimum=0),
+    Option("indirect", False, "also render one-bounce indirect light", bool),
+    Option("no_uniform", False, "skip uniform-weighted AO", bool),
+    Option("backface", False, "also write backface_depth: the view-axis depth at which each pixel's camera ray leaves "
+           "the object it hit first (inf on background and planes; the front depth on open surfaces)", bool),
+    Option("mesh_backend", "auto", "triangle tracer: auto = Warp on a CUDA --device when warp-lang is installed, else "
+           "Embree when installed, else the pure-torch one (small meshes only)", str, choices=MESH_BACKENDS),
+    Option("chunk_rays", 1 << 18, "rays traced at once (memory is proportional to it)", int, unit="rays", minimum=1),
+    Option("device", "cpu", "torch device of the tracer, e.g. cpu or cuda", str),
+    Option("out", None, "output .npz file (required)", str),
+    Option("png", None, "also write a preview PNG (depth | normals | light | AO) to this path", str),
+    Option("quiet", False, "no progress bar", bool),
+)
+
+#: Flags whose form an Option cannot say: argparse keywords replacing the option's own.
+_FORMS = {
+    "mesh": dict(action="append", default=[], metavar="FILE"),
+    "ground_plane": dict(nargs="?", const=_AUTO, type=_ground_height, metavar="HEIGHT"),
+    "randomize": dict(metavar="SEED"),
+    "fov": dict(metavar="DEG"),
+}
+_VECTORS = ("eye", "target", "up")
+_FOV = next(o for o in OPTIONS if o.name == "fov")
 
 
 def register(subparsers) -> None:
@@ -34,42 +85,12 @@ def register(subparsers) -> None:
     allow_negative_lists(p)
     p.add_argument("scene", nargs="?", help="built-in scene name (see --list), or a Mitsuba 3 scene file (.xml, needs "
                                             "mitsuba); omit it to render --mesh files alone")
-    p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
-    add_float_list(p, "--eye", 3, "camera position in world units (default: the scene's view, a glTF "
-                   "camera of the mesh files, or a view framing the meshes)")
-    add_float_list(p, "--target", 3, "point looked at, world units (default: the scene's, or the centre of the meshes)")
-    add_float_list(p, "--up", 3, "up vector (default: the view's, usually 0,1,0)")
-    p.add_argument("--fov", type=float, metavar="DEG", help="vertical field of view in degrees, in (0, 180) "
-                   "(default: the view's, 60 for framed meshes)")
-    p.add_argument("--mesh", action="append", default=[], metavar="FILE",
-                   help="a mesh file (OBJ, PLY, STL, OFF, glTF/GLB...; needs trimesh): one object id per file, "
-                        "per node for glTF; added to SCENE, or rendered alone without SCENE; repeatable")
-    p.add_argument("--mesh-normalize", action="store_true",
-                   help="scale each --mesh file to unit size resting on y=0 at the origin (default: as stored)")
-    p.add_argument("--ground-plane", nargs="?", const=_AUTO, type=_ground_height,
-                   metavar="HEIGHT", help="add a ground plane y=HEIGHT (world units; without HEIGHT: at the lowest "
-                                          "point of the scene's bounded objects, e.g. under the meshes)")
-    p.add_argument("--randomize", type=int, metavar="SEED", help="a randomised variant of the built-in scene")
-    p.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
-    p.add_argument("--height", type=int, default=180, help="image height in pixels (default 180)")
-    p.add_argument("--spp", type=int, default=256, help="AO samples per pixel per weighting (default 256; "
-                                                        "needs a divisor in [2, 16])")
-    p.add_argument("--max-distance", type=float, default=float("inf"),
-                   help="AO ray length R in world units, > 0 (default inf)")
-    p.add_argument("--seed", type=int, default=0, help="sampling seed, >= 0 (default 0)")
-    p.add_argument("--indirect", action="store_true", help="also render one-bounce indirect light")
-    p.add_argument("--no-uniform", action="store_true", help="skip uniform-weighted AO")
-    p.add_argument("--backface", action="store_true",
-                   help="also write backface_depth: the view-axis depth at which each pixel's camera ray leaves "
-                        "the object it hit first (inf on background and planes; the front depth on open surfaces)")
-    p.add_argument("--mesh-backend", choices=MESH_BACKENDS, default="auto",
-                   help="triangle tracer: auto = Warp on a CUDA --device when warp-lang is installed, else Embree "
-                        "when installed, else the pure-torch one (small meshes only)")
-    p.add_argument("--chunk-rays", type=int, default=1 << 18, help="rays traced at once (memory; default 262144)")
-    p.add_argument("--device", default="cpu", help="torch device of the tracer (default cpu)")
-    p.add_argument("--out", help="output .npz file")
-    p.add_argument("--png", help="also write a preview PNG (depth | normals | light | AO)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    for opt in OPTIONS:
+        if opt.name in _VECTORS:
+            add_float_list(p, flag(opt.name), 3, opt.describe())
+        else:
+            add_option(p, opt.name, opt, given_only=False, switch=True, infinite=opt.name == "max_distance",
+                       **_FORMS.get(opt.name, {}))
     p.set_defaults(func=run)
 
 
@@ -112,13 +133,15 @@ def _views(args, scene):
     from ..reference.meshfile import frame_view
 
     v = scene.view
-    eye, target, up = (parse_float_list(f"--{k}", getattr(args, k), 3, names="x,y,z") for k in ("eye", "target", "up"))
+    eye, target, up = (parse_float_list(flag(k), getattr(args, k), 3, names="x,y,z") for k in _VECTORS)
     if _files_only(args) and eye is not None and target is None:
         # a new eye without a target looks at the meshes, not along the file's camera
         v = frame_view(*scene.bounds(), v.fov_y_degrees)
     fov = v.fov_y_degrees if args.fov is None else args.fov
-    if not (0 < fov < 180):
-        raise CommandError(f"--fov: expected degrees in (0, 180), got {fov}")
+    try:  # the view's own field of view (a glTF or Mitsuba camera) is held to the flag's bounds
+        _FOV.check(fov)
+    except ValueError as err:
+        raise CommandError(f"--fov: {str(err).split(': ', 1)[-1]} (the view's field of view)") from None
     try:
         return look_at(eye or v.eye, target or v.target, up or v.up, fov, height=args.height, width=args.width)
     except ValueError as err:
@@ -143,11 +166,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--out: expected a .npz file name, got {args.out!r}")
     if args.png and not args.png.lower().endswith(".png"):
         raise CommandError(f"--png: expected a .png file name, got {args.png!r}")
-    for name in ("width", "height"):
-        if getattr(args, name) < 1:
-            raise CommandError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
-    for flag in ("eye", "target", "up"):  # check the flags before loading (big) mesh files
-        parse_float_list(f"--{flag}", getattr(args, flag), 3, names="x,y,z")
+    for name in _VECTORS:  # check the flags before loading (big) mesh files
+        parse_float_list(flag(name), getattr(args, name), 3, names="x,y,z")
     scene = _scene(args)
     views = _views(args, scene)
     start = time.perf_counter()
@@ -160,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         msg = str(err)
         for key in ("spp", "max_distance", "seed", "chunk_rays"):
             if msg.startswith(key + ":"):
-                msg = "--" + key.replace("_", "-") + msg[len(key):]
+                msg = flag(key) + msg[len(key):]
         raise CommandError(msg) from None
     elapsed = time.perf_counter() - start
     out = ref.save(args.out)

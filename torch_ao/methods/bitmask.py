@@ -65,11 +65,11 @@ from dataclasses import replace
 from ..intervals import THICKNESS_DIRECTIONS, back_point, clip_to_sphere, sphere_stretch
 from ..ops import safe_fast_acos as _safe_fast_acos
 from ..options import Option, options_by_name
-from ..sectors import MODES, ROUNDINGS, SECTORS
+from ..sectors import MODES, ROUNDINGS, SECTORS, sector_interval
 from ..thickness import BoundThickness, as_thickness, matching
 from ..walk import Frame, GradientRows, SamplingPattern
-from .base import AOOutput, ScreenSpaceAO, make_parameter
-from .common import RADIUS
+from .base import ScreenSpaceAO, make_parameter
+from .common import RADIUS, functional_twin
 from .bitmask_common import SectorAccumulator
 
 __all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTINGS", "UNIONS", "OPTIONS"]
@@ -140,10 +140,8 @@ def _saturate(x: torch.Tensor) -> torch.Tensor:
 def _interval_from_unit(lo: torch.Tensor, hi: torch.Tensor, epsilon: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Interval ``[lo, hi]`` of ``[0, 1]`` -> start and width in sector units, ``epsilon`` sectors narrower.
     The width may come out negative: the sector union reads that as empty (and without gradient)."""
-    width = (hi - lo) * SECTORS
-    if epsilon > 0:
-        width = width - epsilon
-    return lo * SECTORS, width
+    start, width = sector_interval(lo, hi)
+    return start, (width - epsilon if epsilon > 0 else width)
 
 
 def _hemisphere_shift(gamma: torch.Tensor) -> torch.Tensor:
@@ -533,27 +531,5 @@ class SSILVB(BitmaskAO):
         super().__init__(indirect=indirect, **kwargs)
 
 
-def _functional(cls, gbuffer: GBuffer, radius, thickness, thickness_growth, kwargs) -> AOOutput:
-    kwargs = dict(kwargs)
-    kwargs.setdefault("trainable", False)
-    tensors = {}
-    for name, value in (("radius", radius), ("thickness", thickness), ("thickness_growth", thickness_growth)):
-        if isinstance(value, torch.Tensor):
-            tensors[name] = value
-            kwargs[name] = value.detach()
-        elif value is not None:
-            kwargs[name] = value
-    module = cls(**kwargs)
-    for name, value in tensors.items():  # keep the caller's tensors (and their autograd graph)
-        setattr(module, name, value)
-    return module(gbuffer)
-
-
-def bitmask_ao(gbuffer: GBuffer, *, radius=1.0, thickness=0.5, thickness_growth=None, **kwargs) -> AOOutput:
-    """Functional :class:`BitmaskAO`: ``radius``/``thickness`` may be tensors that require grad."""
-    return _functional(BitmaskAO, gbuffer, radius, thickness, thickness_growth, kwargs)
-
-
-def ssilvb(gbuffer: GBuffer, *, radius=1.0, thickness=0.5, thickness_growth=None, **kwargs) -> AOOutput:
-    """Functional :class:`SSILVB` (visibility and indirect light)."""
-    return _functional(SSILVB, gbuffer, radius, thickness, thickness_growth, kwargs)
+bitmask_ao = functional_twin(BitmaskAO, "bitmask_ao")
+ssilvb = functional_twin(SSILVB, "ssilvb")

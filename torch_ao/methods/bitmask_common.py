@@ -24,7 +24,6 @@ import torch.nn.functional as F
 
 from ..intervals import union_measure
 from ..ops import arc_measure as arc_integral
-from ..ops import safe_acos
 from ..sectors import SECTORS, sector_union
 from ..thickness import BoundThickness
 from ..walk import Queries, Sample, SliceAccumulator, SliceGeometry

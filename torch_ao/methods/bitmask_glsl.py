@@ -54,11 +54,10 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..ops import clamped_gradient
+from ..ops import clamped_gradient, safe_acos
 from ..walk import Frame, Queries, Sample, SamplingPattern, SliceAccumulator, SliceGeometry
 from ..sectors import SECTORS, hard_mask, popcount32, sector_union
 from ..thickness import BoundThickness
-from .bitmask_common import safe_acos
 
 __all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "glsl_constants", "mesa_acos", "mesa_asin", "GLSL_NUMERICS"]
 

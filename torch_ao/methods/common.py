@@ -188,11 +188,9 @@ def functional_twin(cls, name: str):
     def twin(gbuffer, **options):
         tensors = {k: options[k] for k in fitted if isinstance(options.get(k), torch.Tensor)}
         init = {k: (v.detach() if isinstance(v, torch.Tensor) else v) for k, v in options.items()}
-        module = cls(**{"trainable": False, **init})
-        for key, value in tensors.items():
-            if value.dim() != 0:
-                raise ValueError(f"{key}: expected a scalar, got shape {tuple(value.shape)}")
-            module._buffers[key] = value
+        module = cls(**{"trainable": False, **init})  # validates every option, the tensors' shapes too
+        for key, value in tensors.items():  # the caller's tensors themselves, so their graph is kept
+            setattr(module, key, value)
         return module(gbuffer)
 
     twin.__name__ = twin.__qualname__ = name
