@@ -296,7 +296,7 @@ def test_an_accumulator_without_single_steps_is_refused_by_name():
     class OnlyPairs(PairRecorder):
         paired_sides = False
 
-    with pytest.raises(NotImplementedError, match="OnlyPairs"):
+    with pytest.raises(TypeError, match="OnlyPairs"):
         march(Frame(plane_gbuffer(6, 6)), SlicePattern(1, 1, 1.0), OnlyPairs())
 
 

@@ -29,6 +29,8 @@ map, ``thickness_growth=``) onto these classes.
 """
 from __future__ import annotations
 
+import abc
+
 from dataclasses import dataclass
 
 import torch
@@ -51,7 +53,14 @@ class Parameter:
     minimum: float | None = 0.0
 
 
-class Thickness:
+def _checked_growth(growth: float | torch.Tensor | None) -> float | torch.Tensor | None:
+    """``growth`` (a number ``>= 0``, a tensor, or ``None``), checked."""
+    if growth is not None and not isinstance(growth, torch.Tensor):
+        growth = check_float("thickness_growth", growth, 0.0)
+    return growth
+
+
+class Thickness(abc.ABC):
     """Base of the thickness models (see the module docstring).
 
     Args:
@@ -59,9 +68,7 @@ class Thickness:
     """
 
     def __init__(self, *, growth: float | torch.Tensor | None = None) -> None:
-        if growth is not None and not isinstance(growth, torch.Tensor):
-            growth = check_float("thickness_growth", growth, 0.0)
-        self.growth = growth
+        self.growth = _checked_growth(growth)
 
     def own_parameters(self) -> dict[str, Parameter]:
         """The model's own parameters (without growth)."""
@@ -83,9 +90,9 @@ class Thickness:
         """``(B,C,H,W)`` images the samples read (default none); ``ValueError`` if the G-buffer lacks one."""
         return {}
 
+    @abc.abstractmethod
     def at(self, sample, params: dict[str, torch.Tensor]) -> torch.Tensor:
         """Thickness ``(rows,)`` (or 0-d) of the occluder at ``sample``, before growth, in world units."""
-        raise NotImplementedError
 
     def value(self, sample, params: dict[str, torch.Tensor]) -> torch.Tensor:
         """:meth:`at`, times the growth factor when the model has one."""
@@ -220,7 +227,7 @@ def as_thickness(thickness, growth=None) -> Thickness:
         if growth is not None:
             if thickness.growth is not None:
                 raise ValueError("thickness_growth: given twice (as an argument and in the thickness model)")
-            thickness.growth = Thickness(growth=growth).growth
+            thickness.growth = _checked_growth(growth)
         return thickness
     if isinstance(thickness, bool) or not isinstance(thickness, (int, float, torch.Tensor)):
         raise ValueError(f"thickness: expected a number, a tensor or a torch_ao.thickness.Thickness, got {thickness!r}")

@@ -113,7 +113,7 @@ class ScreenSpaceAO(nn.Module):
 
     def accumulator(self, frame: Frame) -> SliceAccumulator:
         """What the method keeps per step of the walk over ``frame``."""
-        raise NotImplementedError(f"{type(self).__name__}: a slice method returns its SliceAccumulator here")
+        raise TypeError(f"{type(self).__name__}: a slice method returns its SliceAccumulator here")
 
     def frame_buffers(self, gbuffer: GBuffer, normals: torch.Tensor) -> dict[str, torch.Tensor]:
         """``(B,C,H,W)`` images the samples gather (default none)."""

@@ -16,6 +16,8 @@ toward) and ``interval`` (``start``, ``width`` in sector units).
 """
 from __future__ import annotations
 
+import abc
+
 import math
 from typing import Callable
 
@@ -99,10 +101,10 @@ class SectorAccumulator(SliceAccumulator):
         ``(N,3)`` toward which signed angles grow."""
         return geom.normal_angle, geom.normal_length, geom.tangent
 
+    @abc.abstractmethod
     def interval(self, state: dict, q: Queries, sample: Sample, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The occluded interval ``(start, width)`` ``(rows,)`` in sector units of every step of ``sample``
         (a negative width is empty); ``t`` is the occluders' thickness."""
-        raise NotImplementedError
 
     # ------------------------------------------------------------------ slice
     def begin_slice(self, q: Queries, geom: SliceGeometry):

@@ -45,6 +45,8 @@ in closed form, summed over slices.
 """
 from __future__ import annotations
 
+import abc
+
 import math
 
 import torch
@@ -131,10 +133,10 @@ class GTAOAccumulator(SliceAccumulator):
         self.m = module
         self.radius = module.radius.to(frame.dtype)
 
+    @abc.abstractmethod
     def angles(self, state, geom):
         """``(h1, h2, n, cos n, sin n, weight, degenerate)`` ``(N,)`` each (``degenerate`` may be ``None``):
         the horizons ``h1 <= 0 <= h2``, the projected normal's angle and the slice's weight."""
-        raise NotImplementedError
 
     def end_slice(self, state, q, geom):
         h1, h2, n, cos_n, sin_n, weight, degenerate = self.angles(state, geom)

@@ -75,11 +75,11 @@ class SliceAccumulator(abc.ABC):
 
     def step(self, state, queries: "Queries", geom: "SliceGeometry", sample: "Sample"):
         """The state after ``sample``."""
-        raise NotImplementedError(f"{type(self).__name__} takes no single steps (paired_sides={self.paired_sides})")
+        raise TypeError(f"{type(self).__name__} takes no single steps (paired_sides={self.paired_sides})")
 
     def step_pair(self, state, queries: "Queries", geom: "SliceGeometry", plus: "Sample", minus: "Sample"):
         """With ``paired_sides``: the state after step ``j`` on side ``+1`` (``plus``) and ``-1`` (``minus``)."""
-        raise NotImplementedError(f"{type(self).__name__} takes no paired steps (paired_sides={self.paired_sides})")
+        raise TypeError(f"{type(self).__name__} takes no paired steps (paired_sides={self.paired_sides})")
 
     @abc.abstractmethod
     def end_slice(self, state, queries: "Queries", geom: "SliceGeometry") -> dict[str, torch.Tensor]:
