@@ -12,6 +12,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
+from ..thickness import ScalarThickness
 from .build import cpu_kernels
 
 __all__ = ["bitmask_hard", "kernel_covers"]
@@ -90,7 +91,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
             return f"{name}={value!r}"
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
     if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
-            model is not None and (type(model).__name__ != "ScalarThickness" or model.growth is not None)):
+            model is not None and (type(model) is not ScalarThickness or model.growth is not None)):
         return "a thickness other than one scalar (a table, a map, a model, a growth)"
     if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"

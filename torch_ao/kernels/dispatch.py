@@ -32,10 +32,7 @@ def kernel_forward(module, gbuffer: GBuffer, backend: str):
     """
     if backend == "torch":
         return None
-    if not any(klass.__name__ == "BitmaskAO" for klass in type(module).__mro__):
-        reason = f"no kernel for {type(module).__name__}"
-    else:
-        reason = kernel_covers(module, gbuffer)
+    reason = kernel_covers(module, gbuffer) if module.has_kernel else f"no kernel for {type(module).__name__}"
     if reason is not None:
         if backend == "kernel":
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")

@@ -62,6 +62,8 @@ class ScreenSpaceAO(nn.Module):
     OPTIONS: tuple[Option, ...] = (RADIUS,)
     #: The walk's options this method takes (all of them by default), with its defaults.
     SAMPLING: tuple[Option, ...] = Sampling.options_for()
+    #: whether :mod:`torch_ao.kernels` has a fused kernel for this method (it then decides per call)
+    has_kernel = False
     #: (slices, steps) when neither they nor a preset are given.
     default_slices_steps: tuple[int, int] = (4, 8)
 
