@@ -11,7 +11,7 @@ from torch_ao.camera import PinholeCamera
 from torch_ao.examples import example_gbuffer, plane_gbuffer, planes_gbuffer
 from torch_ao.methods import METHODS, get_method
 from torch_ao.methods.common import PRESET_NAMES, split_preset
-from torch_ao.resolution import SPATIAL_FLOOR, downsample_gbuffer, reduced_forward, upsample
+from torch_ao.resolution import RANGE_FLOOR, downsample_gbuffer, reduced_forward, upsample
 
 
 def step_gbuffer(height=21, width=33, dtype=torch.float64):
@@ -56,9 +56,9 @@ def test_upsample_does_not_bleed_across_a_depth_edge():
     outs = [upsample(torch.where(near_low, torch.full_like(low.depth, v), torch.full_like(low.depth, 0.5)),
                      low.valid, gb, 2) for v in (0.0, 1.0)]
     # the near side's values (0 or 1) reach the far side only through the spatial floor's weight
-    assert float((outs[0] - outs[1]).abs()[far].max()) < 2 * SPATIAL_FLOOR
-    assert float((outs[0] - 0.5).abs()[far].max()) < 2 * SPATIAL_FLOOR
-    assert float((outs[0] - 0.0).abs()[~far].max()) < 2 * SPATIAL_FLOOR  # nor the far side's onto the near
+    assert float((outs[0] - outs[1]).abs()[far].max()) < 2 * RANGE_FLOOR
+    assert float((outs[0] - 0.5).abs()[far].max()) < 2 * RANGE_FLOOR
+    assert float((outs[0] - 0.0).abs()[~far].max()) < 2 * RANGE_FLOOR  # nor the far side's onto the near
 
 
 def test_step_frame_end_to_end_no_leak_either_way():
@@ -76,9 +76,9 @@ def test_step_frame_end_to_end_no_leak_either_way():
     dark = walked[0, 0, :, edge_low:edge_low + 2]
     assert float(dark.max()) < 0.9
     # the far pixels next to the edge: as dark as their own side's texels, not lifted toward 1
-    assert float(up[0, 0, :, edge:edge + 3].max()) <= float(dark.max()) + 2 * SPATIAL_FLOOR
+    assert float(up[0, 0, :, edge:edge + 3].max()) <= float(dark.max()) + 2 * RANGE_FLOOR
     # the near pixels next to the edge stay 1
-    assert float((1 - up[0, 0, :, edge - 3:edge]).abs().max()) < 2 * SPATIAL_FLOOR
+    assert float((1 - up[0, 0, :, edge - 3:edge]).abs().max()) < 2 * RANGE_FLOOR
 
 
 def test_upsample_gradients_match_finite_differences():

@@ -30,8 +30,7 @@ from kornia.filters import joint_bilateral_blur
 from .gbuffer import GBuffer
 from .options import Option, options_by_name
 
-__all__ = ["Denoiser", "DenoiseOutput", "denoise", "spatial_filter", "normalized_filter", "temporal_blend",
-           "denoise_guide"]
+__all__ = ["Denoiser", "DenoiseOutput", "denoise", "spatial_filter", "temporal_blend", "denoise_guide"]
 
 GUIDES = ("depth", "normal", "depth+normal")
 
@@ -84,25 +83,16 @@ def spatial_filter(values: torch.Tensor, valid: torch.Tensor, guide: torch.Tenso
     ``guide (B,G,H,W)`` (range sigma 1: normalise the guide first). Invalid pixels get ``fill``."""
     if values.dim() != 4 or valid.shape != (values.shape[0], 1, *values.shape[2:]):
         raise ValueError(f"values/valid: expected (B,C,H,W) and (B,1,H,W), got {tuple(values.shape)} and {tuple(valid.shape)}")
-    num, den = normalized_filter(values, valid, guide, kernel_size=kernel_size, sigma_space=sigma_space)
-    # A valid pixel always weighs itself (weight 1 in the range kernel), so den > 0 there.
-    return torch.where(valid, num / den.clamp_min(1e-12), fill)
-
-
-def normalized_filter(values: torch.Tensor, valid: torch.Tensor, guide: torch.Tensor, *, kernel_size: int = 5,
-                      sigma_space: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """The two halves of a joint bilateral normalised convolution over the ``valid (B,1,H,W)`` pixels of
-    ``values (B,C,H,W)``, guided by ``guide (B,G,H,W)`` (range sigma 1): ``(num (B,C,H,W), den (B,1,H,W))``
-    at every pixel, the filtered values being ``num / den`` where ``den > 0``. The kernel shrinks to the
-    largest odd size the image holds (none: ``values`` masked, and ``valid`` as the weight)."""
     m = valid.to(values.dtype)
     stacked = torch.cat((torch.where(valid, values, 0.0), m), 1)
     k = min(kernel_size, 2 * (min(values.shape[-2:]) // 2) - 1) if min(values.shape[-2:]) > 1 else 1
     if k <= 1:
-        return stacked[:, :-1], stacked[:, -1:]
+        return torch.where(valid, values, fill)
     out = joint_bilateral_blur(stacked, guide.to(values.dtype), (k, k), 1.0, (sigma_space, sigma_space),
                                border_type="reflect", color_distance_type="l2")
-    return out[:, :-1], out[:, -1:]
+    num, den = out[:, :-1], out[:, -1:]
+    # A valid pixel always weighs itself (weight 1 in the range kernel), so den > 0 there.
+    return torch.where(valid, num / den.clamp_min(1e-12), fill)
 
 
 def temporal_blend(current: torch.Tensor, history: torch.Tensor | None, valid: torch.Tensor,

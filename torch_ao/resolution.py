@@ -15,19 +15,20 @@ Godot, three.js). Here a method with ``resolution="half"`` (or a preset ``"high@
    pixels is seen only where it crosses a picked row or column.
 2. The method walks the smaller G-buffer unchanged (a world radius covers ``1/f`` as many pixels; options
    in pixels, e.g. ``min_step_px``, are in the walk's pixels).
-3. :func:`upsample`: a joint bilateral normalised convolution at full resolution (kornia's
-   ``joint_bilateral_blur``, through :func:`torch_ao.denoise.normalized_filter`) of the walked values
-   placed at their texels, guided by the full-resolution log-depth and normals, so a pixel takes its
-   value from samples on its own surface and nothing bleeds across a depth edge. Differentiable in the
-   values and the guide.
+3. :func:`upsample`: a joint bilateral upsample: every full-resolution pixel takes the mean of the walked
+   texels around it weighted by distance and by similarity of the full-resolution guide (log-depth and
+   normals, the denoiser's :func:`~torch_ao.denoise.denoise_guide`) at the pixel and at the sample's
+   texel, so it takes its value from samples on its own surface and nothing bleeds across a depth edge.
+   Differentiable in the values and the guide (so in depth and normals).
 """
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from .camera import PinholeCamera
 from .checks import check_choice
-from .denoise import denoise_guide, normalized_filter
+from .denoise import denoise_guide
 from .gbuffer import GBuffer
 
 __all__ = ["RESOLUTIONS", "resolution_factor", "downsample_gbuffer", "upsample", "reduced_forward"]
@@ -35,10 +36,13 @@ __all__ = ["RESOLUTIONS", "resolution_factor", "downsample_gbuffer", "upsample",
 #: resolution names and their decimation factor per axis
 RESOLUTIONS: dict[str, int] = {"full": 1, "half": 2, "quarter": 4}
 
-#: weight of the plain spatial filter added to the bilateral one: a pixel whose window holds no sample
-#: on its surface (an isolated sliver thinner than the sampling grid) takes its neighbours' mean
-#: instead of dividing by nothing; elsewhere it moves the value by at most this fraction
-SPATIAL_FLOOR = 1e-4
+#: floor of the range weight: a pixel whose window holds no sample on its own surface (a sliver thinner
+#: than the sampling grid) takes its neighbours' spatially weighted mean instead of dividing by nothing;
+#: elsewhere a sample across an edge moves a value by about this fraction of the difference
+RANGE_FLOOR = 1e-4
+
+#: spatial sigma of the upsample in full-resolution pixels per unit of the factor
+SIGMA = 0.75
 
 
 def resolution_factor(resolution: str) -> int:
@@ -73,40 +77,64 @@ def downsample_gbuffer(gbuffer: GBuffer, factor: int, *, normals: torch.Tensor |
 
 def upsample(values: torch.Tensor, low_valid: torch.Tensor, gbuffer: GBuffer, factor: int, *,
              guide: torch.Tensor | None = None, fill: float | torch.Tensor = 0.0) -> torch.Tensor:
-    """Full-resolution ``(B,C,H,W)`` of values walked on :func:`downsample_gbuffer`'s frame.
+    """Full-resolution ``(B,C,H,W)`` of values walked on :func:`downsample_gbuffer`'s frame: a joint
+    bilateral upsample.
+
+    Each full-resolution pixel ``p`` takes the weighted mean of the 3x3 low-resolution texels around its
+    block, ``w = exp(-|p - s|^2 / (2 sigma^2)) * (exp(-|g(p) - g(s)|^2 / 2) + RANGE_FLOOR)`` over the valid
+    ones, where ``|p - s|`` is the full-resolution pixel distance to the sample's texel, ``sigma = 0.75 f``
+    pixels and ``g`` the guide (range sigma 1). Only the samples are weighed (9 taps per pixel), not every
+    pixel of a ``(2f+1)^2`` window as a same-resolution joint bilateral filter would (kornia's; measured
+    in docs/performance.md).
 
     Args:
         values: ``(B,C,h,w)`` per low-resolution texel (``h = ceil(H/f)``, ``w = ceil(W/f)``).
         low_valid: ``(B,1,h,w)`` bool, the low-resolution frame's valid texels (the only samples used).
-        gbuffer: the full-resolution G-buffer (its valid pixels get values; the guide comes from it).
+        gbuffer: the full-resolution G-buffer (its valid pixels get values; the default guide is its).
         factor: ``f``, the decimation factor per axis.
         guide: ``(B,G,H,W)`` normalised guide (default :func:`~torch_ao.denoise.denoise_guide` of
-            ``gbuffer``: log-depth / 0.05 and normals / 0.3, range sigma 1).
-        fill: value of background pixels (a number or a ``(B,C,H,W)`` tensor).
-
-    The spatial kernel is ``2f+1`` pixels wide with sigma ``0.75 f`` pixels, so every pixel's window
-    holds the samples on both sides of it.
+            ``gbuffer``: log-depth / 0.05 and normals / 0.3).
+        fill: value of background pixels, and of a valid pixel with no valid sample around it (a number
+            or a ``(B,C,H,W)`` tensor).
     """
     f = int(factor)
-    B, C = values.shape[:2]
+    B, C, h, w = values.shape
     H, W = gbuffer.depth.shape[-2:]
-    if values.shape[-2:] != (-(-H // f), -(-W // f)) or low_valid.shape != (B, 1, *values.shape[-2:]):
+    if (h, w) != (-(-H // f), -(-W // f)) or low_valid.shape != (B, 1, h, w):
         raise ValueError(f"values/low_valid: expected (B,C,{-(-H // f)},{-(-W // f)}) and (B,1,...) for a {H}x{W} "
                          f"frame at 1/{f}, got {tuple(values.shape)} and {tuple(low_valid.shape)}")
-    placed = values.new_zeros(B, C, H, W)
-    placed[..., ::f, ::f] = values
-    samples = torch.zeros_like(gbuffer.valid)
-    samples[..., ::f, ::f] = low_valid
     if guide is None:
         guide = denoise_guide(gbuffer)
-    kernel, sigma = 2 * f + 1, 0.75 * f
-    num, den = normalized_filter(placed, samples, guide, kernel_size=kernel, sigma_space=sigma)
-    num_s, den_s = normalized_filter(placed, samples, torch.zeros_like(guide[:, :1]), kernel_size=kernel,
-                                     sigma_space=sigma)
-    out = (num + SPATIAL_FLOOR * num_s) / (den + SPATIAL_FLOOR * den_s).clamp_min(1e-30)
-    fill = torch.as_tensor(fill, dtype=out.dtype, device=out.device)
-    # background, and a pixel with no sample at all in its window (background all around it), get fill
-    return torch.where(gbuffer.valid & (den_s > 0), out, fill)
+    guide = guide.to(values.dtype)
+    G = guide.shape[1]
+    # samples: value, guide at the sample's texel, weight 1 where valid; padded by one texel of weight 0
+    m = low_valid.to(values.dtype)
+    samples = F.pad(torch.cat((values * m, guide[..., ::f, ::f], m), 1), (1, 1, 1, 1))
+    # the full-resolution pixels, padded to whole blocks and split into the f*f pixels of a block: (B,f*f,G,h,w)
+    at = F.pad(guide, (0, w * f - W, 0, h * f - H)).reshape(B, G, h, f, w, f).permute(0, 3, 5, 1, 2, 4)
+    at = at.reshape(B, f * f, G, h, w)
+    num = values.new_zeros(B, f * f, C, h, w)
+    den = values.new_zeros(B, f * f, 1, h, w)
+    py = torch.arange(f, dtype=values.dtype, device=values.device).repeat_interleave(f).view(1, f * f, 1, 1, 1)
+    px = torch.arange(f, dtype=values.dtype, device=values.device).repeat(f).view(1, f * f, 1, 1, 1)
+    inv_two_sigma2 = 1.0 / (2 * (SIGMA * f) ** 2)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            tap = samples[..., 1 + di:1 + di + h, 1 + dj:1 + dj + w].unsqueeze(1)  # (B,1,C+G+1,h,w)
+            v, g, valid = tap[:, :, :C], tap[:, :, C:C + G], tap[:, :, C + G:]
+            dy, dx = f * di - py, f * dj - px
+            spatial = torch.exp(-(dy ** 2 + dx ** 2) * inv_two_sigma2) * ((dy.abs() <= f) & (dx.abs() <= f))
+            weight = spatial * valid * (torch.exp(-0.5 * ((at - g) ** 2).sum(2, keepdim=True)) + RANGE_FLOOR)
+            num = num + weight * v
+            den = den + weight
+    out = num / den.clamp_min(torch.finfo(values.dtype).tiny)
+
+    def blocks(x: torch.Tensor, channels: int) -> torch.Tensor:  # (B,f*f,c,h,w) -> (B,c,H,W)
+        x = x.reshape(B, f, f, channels, h, w).permute(0, 3, 4, 1, 5, 2).reshape(B, channels, h * f, w * f)
+        return x[..., :H, :W]
+
+    fill = torch.as_tensor(fill, dtype=values.dtype, device=values.device)
+    return torch.where(gbuffer.valid & (blocks(den, 1) > 0), blocks(out, C), fill)
 
 
 def reduced_forward(forward, gbuffer: GBuffer, factor: int, normals: torch.Tensor):
