@@ -137,13 +137,19 @@ def upsample(values: torch.Tensor, low_valid: torch.Tensor, gbuffer: GBuffer, fa
     return torch.where(gbuffer.valid & (blocks(den, 1) > 0), blocks(out, C), fill)
 
 
-def reduced_forward(forward, gbuffer: GBuffer, factor: int, normals: torch.Tensor):
+def reduced_forward(forward, gbuffer: GBuffer, factor: int, normals_method: str = "improved"):
     """``forward`` (a module's full-resolution call ``GBuffer -> AOOutput``) on the G-buffer decimated by
-    ``factor``, its outputs upsampled to ``gbuffer``'s size: visibility (background 1), indirect and
-    ambient light (background 0) and bent normals (renormalised; background: ``normals``, the
-    ``(B,3,H,W)`` full-resolution normals the walk's normals are picked from)."""
+    ``factor``, its outputs upsampled to ``gbuffer``'s size (guided by log-depth and normals): visibility (background
+    1), indirect and ambient light (background 0) and bent normals (renormalised; background: the pixel's
+    normal).
+
+    Normals the G-buffer lacks are reconstructed at full resolution (``normals_method``) before the pick:
+    from the decimated depth they would be coarser. (A log-depth guide alone, without normals, measured
+    0.0327 against 0.0322 mean MAE of ``GTAO(preset="high@half")`` over the bench's six scenes.)
+    """
     from .methods.base import AOOutput
 
+    normals = gbuffer.normals if gbuffer.normals is not None else gbuffer.view_normals(normals_method)
     low = downsample_gbuffer(gbuffer, factor, normals=normals)
     out = forward(low)
     guide = denoise_guide(gbuffer, normals=normals)
@@ -151,8 +157,10 @@ def reduced_forward(forward, gbuffer: GBuffer, factor: int, normals: torch.Tenso
     def up(x, fill):
         return None if x is None else upsample(x, low.valid, gbuffer, factor, guide=guide, fill=fill)
 
-    bent = up(out.bent_normal, normals)
-    if bent is not None:
-        bent = torch.where(gbuffer.valid, torch.nn.functional.normalize(bent, dim=1, eps=1e-12), normals)
+    bent = None
+    if out.bent_normal is not None:
+        facing = gbuffer.view_normals(normals_method)
+        bent = up(out.bent_normal, facing)
+        bent = torch.where(gbuffer.valid, F.normalize(bent, dim=1, eps=1e-12), facing)
     return AOOutput(visibility=up(out.visibility, 1.0), indirect=up(out.indirect, 0.0), bent_normal=bent,
                     ambient=up(out.ambient, 0.0))

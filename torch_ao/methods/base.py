@@ -145,7 +145,7 @@ class ScreenSpaceAO(nn.Module):
         factor = resolution_factor(self.resolution)
         if factor == 1:
             return self._forward_full(gbuffer)
-        return reduced_forward(self._forward_full, gbuffer, factor, gbuffer.view_normals(self.normals_method))
+        return reduced_forward(self._forward_full, gbuffer, factor, self.normals_method)
 
     def _forward_full(self, gbuffer: GBuffer) -> AOOutput:
         visibility = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
