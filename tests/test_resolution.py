@@ -193,9 +193,13 @@ def test_quarter_resolution_runs_on_odd_sizes():
 
 
 def test_kernel_backend_runs_at_half():
+    from torch_ao.kernels import kernel_covers
+
     gb = example_gbuffer(24, 40)
+    module = torch_ao.BitmaskAO(preset="high@half", backend="kernel")
+    assert kernel_covers(module, downsample_gbuffer(gb, 2)) is None  # the kernel takes the smaller frame
     with torch.no_grad():
-        kernel = torch_ao.BitmaskAO(preset="high@half", backend="kernel")(gb).visibility
+        kernel = module(gb).visibility
         torch_path = torch_ao.BitmaskAO(preset="high@half", backend="torch")(gb).visibility
     assert kernel.shape == (1, 1, 24, 40)
     assert torch.allclose(kernel, torch_path, atol=1e-6)
