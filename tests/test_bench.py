@@ -263,3 +263,11 @@ def test_default_sweeps_include_half_presets():
 
     for presets in (DEFAULT.presets, QUICK.presets, AUTO_PRESETS):
         assert "high@half" in presets and "high" in presets
+
+
+def test_fitted_rows_keep_the_resolution_of_their_preset():
+    from torch_ao.fitted import FittedPipeline, _preset_of
+
+    assert _preset_of(FittedPipeline("gtao", {"preset": "high@half", "radius": 1.0}), "p.json") == "high@half"
+    assert _preset_of(FittedPipeline("gtao", {"preset": "high", "radius": 1.0}), "p.json") == "high"
+    assert _preset_of(FittedPipeline("gtao", {"slices": 9, "steps": 3, "resolution": "half"}), "p.json") == "ultra@half"
