@@ -255,3 +255,14 @@ def test_preset_names_and_bad_input():
     with pytest.raises(ValueError, match="resolution"):
         torch_ao.GTAO(resolution="twice")
     assert torch_ao.GTAO().resolution == "full" and torch_ao.GTAO(preset="low@full").resolution == "full"
+
+
+def test_a_per_pixel_thickness_map_is_given_at_the_walks_size():
+    gb = example_gbuffer(23, 41)
+    full_map = torch.full((1, 1, 23, 41), 0.3)
+    with torch.no_grad():
+        with pytest.raises(ValueError, match="thickness"):
+            torch_ao.BitmaskAO(preset="high@half", thickness=full_map)(gb)
+        mapped = torch_ao.BitmaskAO(preset="high@half", thickness=full_map[..., ::2, ::2])(gb).visibility
+        scalar = torch_ao.BitmaskAO(preset="high@half", thickness=0.3)(gb).visibility
+    assert torch.allclose(mapped, scalar, atol=1e-6)
