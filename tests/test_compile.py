@@ -1,4 +1,5 @@
-"""``torch.compile(module)`` in hard mode gives the module's own numbers, for every method (slow: compiles)."""
+"""``torch.compile(module)`` gives the module's own numbers: every method in hard mode, soft and straight-through
+``BitmaskAO`` with gradients, a half-resolution walk (slow: compiles)."""
 import pytest
 import torch
 
