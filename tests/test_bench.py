@@ -155,7 +155,7 @@ def test_auto_quick_sweep_on_reference_file(cache, monkeypatch):
     monkeypatch.setattr(ba, "available_methods", lambda names=None, log=None: _tiny_methods())
     ref = reference_path(cache, "sphere_on_plane", H, W, SPP, 1.0)
     c = ba.auto_choice(ref, tolerance=0.0)
-    assert c["method"] in ("tiny", "tiny_sq") and c["preset"] in ("low", "medium", "high", "ultra")
+    assert c["method"] in ("tiny", "tiny_sq") and c["preset"] in ba.AUTO_PRESETS
     assert "quick sweep" in c["source"] and c["radius"] == 1.0
 
 
@@ -200,3 +200,74 @@ def test_fit_views_and_bench_views_share_the_cache(cache, views):
     assert path.stat().st_mtime_ns == mtime and len(list((cache / "references").iterdir())) == 1
     assert v.name == "sphere_on_plane/default" and torch.equal(v.reference, views[0].reference)
     assert v.max_distance == 1.0 and torch.equal(v.gbuffer.depth, views[0].gbuffer.depth)
+
+
+# ------------------------------------------------------------------------------ the resolution dimension
+def test_sweep_with_half_resolution_presets(views, tmp_path):
+    from torch_ao.metrics import error_metrics
+
+    rows = run_bench(views, {"tiny": TinyAO}, ["medium", "medium@half"], denoise=False, repeats=1, warmup=0,
+                     progress=False, log=None)
+    by = {r["preset"]: r for r in rows}
+    assert set(by) == {"medium", "medium@half"}
+    assert (by["medium"]["resolution"], by["medium@half"]["resolution"]) == ("full", "half")
+    assert (by["medium@half"]["slices"], by["medium@half"]["steps"]) == (2, 2)
+    view = views[0]
+    with torch.no_grad():
+        vis = make_method(TinyAO, "medium@half", radius=1.0)(view.gbuffer).visibility
+    expected = error_metrics(vis, view.reference, view.gbuffer.valid)
+    assert by["medium@half"]["mae"] == pytest.approx(float(expected["mae"]), rel=1e-6)
+    assert by["medium@half"]["mae"] != pytest.approx(by["medium"]["mae"], rel=1e-6)  # a different walk
+    files = write_report(tmp_path, rows, tolerance=0.0, env={"device": "cpu", "threads": 1})
+    md = files["md"].read_text()
+    table = md.split("## Error against run time")[1]
+    assert "| sphere_on_plane | tiny | medium | 2x2 |" in table and "| sphere_on_plane | tiny | medium@half | 2x2 |" in table
+    assert table.index("| medium |") < table.index("| medium@half |")  # full resolution first
+    with open(files["csv"]) as f:
+        assert {r["resolution"] for r in csv.DictReader(f)} == {"full", "half"}
+    assert files["plot_sphere_on_plane"].stat().st_size > 0
+
+
+def test_recommend_and_auto_pick_a_half_resolution_preset(views, tmp_path, cache, capsys):
+    from torch_ao.bench import auto_choice
+
+    rows = [_row("sphere_on_plane", "gtao", "high", 0.050, 4.0), _row("sphere_on_plane", "gtao", "high@half", 0.054, 1.2),
+            _row("sphere_on_plane", "gtao", "ultra@half", 0.049, 3.5), _row("sphere_on_plane", "gtao", "low", 0.09, 1.0)]
+    for r in rows:
+        r["radius"] = 1.0
+    assert recommend(rows, 0.005)["sphere_on_plane"]["preset"] == "high@half"
+    assert recommend(rows, 0.0)["sphere_on_plane"]["preset"] == "ultra@half"  # the best, and cheaper than high
+    write_report(tmp_path / "rep", rows, tolerance=0.005, plots=False)
+    ref = reference_path(cache, "sphere_on_plane", H, W, SPP, 1.0)
+    c = auto_choice(ref, report=tmp_path / "rep")
+    assert (c["method"], c["preset"]) == ("gtao", "high@half")
+    rc = main(["ao", str(ref), "--auto", "--report", str(tmp_path / "rep"), "--out", str(tmp_path / "o.npz")])
+    assert rc == 0 and "auto: gtao preset high@half" in capsys.readouterr().out
+
+
+def test_bench_cli_half_presets(cache, tmp_path, capsys):
+    out = tmp_path / "bench"
+    rc = main(["bench", "--methods", "gtao", "--presets", "low,low@half", "--scenes", "sphere_on_plane",
+               "--height", str(H), "--width", str(W), "--spp", str(SPP), "--repeats", "1", "--warmup", "0",
+               "--cache", str(cache), "--out", str(out), "--quiet", "--no-background", "--no-denoise",
+               "--no-backward", "--no-plots", "--threads", "1"])
+    assert rc == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [(r["preset"], r["resolution"]) for r in report["rows"]] == [("low", "full"), ("low@half", "half")]
+    assert main(["bench", "--presets", "high@double", "--out", str(tmp_path)]) == 2
+    assert "--presets" in capsys.readouterr().err
+
+
+def test_default_sweeps_include_half_presets():
+    from torch_ao.bench import AUTO_PRESETS, DEFAULT, QUICK
+
+    for presets in (DEFAULT.presets, QUICK.presets, AUTO_PRESETS):
+        assert "high@half" in presets and "high" in presets
+
+
+def test_fitted_rows_keep_the_resolution_of_their_preset():
+    from torch_ao.fitted import FittedPipeline, _preset_of
+
+    assert _preset_of(FittedPipeline("gtao", {"preset": "high@half", "radius": 1.0}), "p.json") == "high@half"
+    assert _preset_of(FittedPipeline("gtao", {"preset": "high", "radius": 1.0}), "p.json") == "high"
+    assert _preset_of(FittedPipeline("gtao", {"slices": 9, "steps": 3, "resolution": "half"}), "p.json") == "ultra@half"

@@ -1,4 +1,5 @@
-"""``torch.compile(module)`` in hard mode gives the module's own numbers, for every method (slow: compiles)."""
+"""``torch.compile(module)`` gives the module's own numbers: every method in hard mode, soft and straight-through
+``BitmaskAO`` with gradients, a half-resolution walk (slow: compiles)."""
 import pytest
 import torch
 
@@ -16,6 +17,8 @@ METHODS = {
     "pssao": lambda: torch_ao.PSSAO(slices=2, steps=2),
     "ssilvb": lambda: torch_ao.SSILVB(mode="hard", slices=2, steps=2),
     "bitmask_torch": lambda: torch_ao.BitmaskAO(mode="hard", slices=2, steps=2, backend="torch"),
+    # the walk on the decimated frame and kornia's joint bilateral upsample
+    "gtao_half": lambda: torch_ao.GTAO(slices=2, steps=2, resolution="half"),
 }
 
 
@@ -55,3 +58,38 @@ def test_compiled_bitmask_with_the_kernel_is_bit_identical():
     assert torch.equal(eager.visibility, compiled.visibility)
     reference = torch_ao.BitmaskAO(mode="hard", slices=3, steps=4, backend="torch")(gb).visibility
     assert torch.equal(compiled.visibility, reference)
+
+
+# Soft and straight-through BitmaskAO under torch.compile: forward values and gradients (to depth, normals
+# by way of depth, radius and thickness) against eager. Tiny frame and walk: Inductor compiles forward and
+# backward graphs of every slice x step.
+SOFT_CASES = [(variant, mode) for variant in ("default", "exact") for mode in ("soft", "straight_through")]
+
+
+@pytest.mark.parametrize("variant,mode", SOFT_CASES, ids=[f"{v}-{m}" for v, m in SOFT_CASES])
+def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode):
+    from torch._dynamo.utils import counters
+
+    torch._dynamo.reset()
+    counters.clear()
+    gb = example_gbuffer(12, 16)
+    module = torch_ao.BitmaskAO(variant=variant, mode=mode, slices=2, steps=2, backend="torch")
+    compiled = torch.compile(module, dynamic=False)
+
+    def run(fn):
+        depth = gb.depth.detach().clone().requires_grad_(True)
+        frame = torch_ao.GBuffer(depth=depth, camera=gb.camera, normals=gb.normals, mask=gb.mask)
+        vis = fn(frame).visibility
+        weights = torch.linspace(0.5, 1.5, vis.numel(), dtype=vis.dtype).reshape(vis.shape)
+        grads = torch.autograd.grad((vis * weights).sum(), (depth, module.radius, module.thickness))
+        return vis.detach(), grads
+
+    vis_e, grads_e = run(module)
+    vis_c, grads_c = run(compiled)
+    # Inductor compiled the walk (in pieces: the flat list of valid pixels, nonzero, breaks the graph)
+    assert counters["stats"]["unique_graphs"] >= 1
+    assert torch.allclose(vis_c, vis_e, atol=1e-5, rtol=0), (vis_c - vis_e).abs().max()
+    for name, ge, gc in zip(("depth", "radius", "thickness"), grads_e, grads_c):
+        assert bool(ge.abs().max() > 0), name  # a gradient to compare
+        scale = ge.abs().max()
+        assert float((gc - ge).abs().max() / scale) <= 1e-4, (name, float((gc - ge).abs().max() / scale))

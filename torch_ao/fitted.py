@@ -206,9 +206,12 @@ def _preset_of(pipeline: FittedPipeline, source: str) -> str:
 
     preset = pipeline.options.get("preset")
     counts = (getattr(pipeline.method, "slices", None), getattr(pipeline.method, "steps", None))
-    if preset in PRESETS and PRESETS[preset] == counts:
-        return preset
-    match = [name for name, c in PRESETS.items() if c == counts]
+    resolution = getattr(pipeline.method, "resolution", "full")
+    suffix = "" if resolution == "full" else f"@{resolution}"
+    quality = str(preset).partition("@")[0]
+    if quality in PRESETS and PRESETS[quality] == counts:
+        return quality + suffix
+    match = [name + suffix for name, c in PRESETS.items() if c == counts]
     if not match:
         raise ValueError(f"fitted: {source} uses {counts[0]} slices x {counts[1]} steps, which is no preset; "
                          "bench rows are per preset")

@@ -15,8 +15,8 @@ from .sweep import QUICK, available_methods, run_bench
 
 __all__ = ["auto_choice", "AUTO_PRESETS"]
 
-#: Presets of the quick sweep run when there is no report.
-AUTO_PRESETS = ("low", "medium", "high", "ultra")
+#: Presets of the quick sweep run when there is no report (the @half ones walk a quarter of the pixels).
+AUTO_PRESETS = ("low", "medium", "high", "ultra", "high@half", "ultra@half")
 
 _NEITHER = ("--auto needs either a bench report (--report REPORT.json, written by `torch-ao bench --out DIR`) "
             "or a G-buffer file with an 'ao' reference array to sweep against (`torch-ao render SCENE --out FILE.npz` "
@@ -30,7 +30,7 @@ def auto_choice(path: str | os.PathLike | None = None, *, report: str | os.PathL
 
     With ``report``: the report's rows, re-ranked with ``tolerance`` (default: the report's), for the
     scene named like ``path``'s stem, else for the mean over the report's scenes (``"all"``).
-    Without: a quick sweep (all available methods, presets low..ultra, no denoiser, forward only) on
+    Without: a quick sweep (all available methods, presets low..ultra and high@half, ultra@half, no denoiser, forward only) on
     ``path``'s ``ao`` reference. Raises ``ValueError`` explaining what is missing when neither is possible.
     """
     if tolerance is not None:

@@ -12,17 +12,37 @@ from typing import Sequence
 
 from ..io import write_text_atomic
 from ..methods import PRESETS
+from ..methods.common import split_preset
+from ..resolution import RESOLUTIONS
 from .recommend import DEFAULT_TOLERANCE, aggregate_rows, pareto_front, recommend
 from .sweep import COLUMNS
 
 __all__ = ["write_report", "write_csv", "markdown_report", "plot_error_vs_time", "load_report", "REPORT_VERSION"]
 
 REPORT_VERSION = 1
-_PRESET_ORDER = {p: i for i, p in enumerate(PRESETS)}
+_QUALITY_ORDER = {p: i for i, p in enumerate(PRESETS)}
+_RESOLUTION_ORDER = {r: i for i, r in enumerate(RESOLUTIONS)}
+#: a preset's resolution as the plots mark it
+_RESOLUTION_MARK = {"full": "", "half": "½", "quarter": "¼"}
+
+
+def _preset_parts(preset) -> tuple[str, str]:
+    """``(quality, resolution)`` of a row's preset (``"full"`` when it names none; unknown names as given)."""
+    try:
+        quality, resolution = split_preset(preset)
+    except ValueError:
+        return str(preset), "full"
+    return quality, resolution or "full"
+
+
+def _preset_key(preset) -> tuple[int, int]:
+    """Sort key of a preset: full-resolution presets first, each resolution from low to reference."""
+    quality, resolution = _preset_parts(preset)
+    return _RESOLUTION_ORDER.get(resolution, 9), _QUALITY_ORDER.get(quality, 99)
 
 
 def _sorted(rows: Sequence[dict]) -> list[dict]:
-    return sorted(rows, key=lambda r: (str(r["scene"]), str(r["method"]), _PRESET_ORDER.get(r["preset"], 99),
+    return sorted(rows, key=lambda r: (str(r["scene"]), str(r["method"]), _preset_key(r["preset"]),
                                        bool(r.get("denoise", False))))
 
 
@@ -64,7 +84,7 @@ def _metrics(r: dict) -> list[str]:
 def _size(r: dict) -> str:
     if r.get("slices") is not None and r.get("steps") is not None:
         return f"{r['slices']}x{r['steps']}"
-    s = PRESETS.get(r.get("preset"))
+    s = PRESETS.get(_preset_parts(r.get("preset"))[0])
     return f"{s[0]}x{s[1]}" if s else "?"
 
 
@@ -126,8 +146,9 @@ def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: 
 
 def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: str = "", metric: str = "mae",
                        cost: str = "forward_ms") -> Path:
-    """Error against run time (log x), one curve per method through its presets (solid: plain, dashed:
-    denoised), the Pareto front over all points as a black step line with ringed points."""
+    """Error against run time (log x), one curve per method and walk resolution through its presets
+    (solid: plain, dashed: denoised; at half/quarter resolution thinner, points labelled ``H½``), the
+    Pareto front over all points as a black step line with ringed points."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -137,17 +158,21 @@ def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: 
     methods = sorted({r["method"] for r in rows})
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, m in enumerate(methods):
-        for den in (False, True):
-            rs = sorted([r for r in rows if r["method"] == m and bool(r.get("denoise", False)) == den],
-                        key=lambda r: _PRESET_ORDER.get(r["preset"], 99))
+        for res, den in ((res, den) for res in RESOLUTIONS for den in (False, True)):
+            rs = sorted([r for r in rows if r["method"] == m and bool(r.get("denoise", False)) == den
+                         and _preset_parts(r["preset"])[1] == res], key=lambda r: _preset_key(r["preset"]))
             if not rs:
                 continue
             xs, ys = [float(r[cost]) for r in rs], [float(r[metric]) for r in rs]
-            ax.plot(xs, ys, "--" if den else "-", marker="s" if den else "o", ms=4, color=colors[i % len(colors)],
-                    label=f"{m}{' + denoise' if den else ''}", alpha=0.6 if den else 1.0)
+            ax.plot(xs, ys, "--" if den else "-", marker="s" if den else ("o" if res == "full" else "^"), ms=4,
+                    color=colors[i % len(colors)], lw=1.5 if res == "full" else 0.8,
+                    label=f"{m}{'' if res == 'full' else ' @' + res}{' + denoise' if den else ''}",
+                    alpha=0.6 if den else 1.0)
             if not den:
                 for x, y, r in zip(xs, ys, rs):
-                    ax.annotate(r["preset"][0].upper(), (x, y), textcoords="offset points", xytext=(3, 3), fontsize=6)
+                    quality, _ = _preset_parts(r["preset"])
+                    ax.annotate(quality[0].upper() + _RESOLUTION_MARK.get(res, ""), (x, y), textcoords="offset points",
+                                xytext=(3, 3), fontsize=6)
     pts = [(float(r[cost]), float(r[metric])) for r in rows]
     front = [pts[i] for i in pareto_front(pts)]
     if front:

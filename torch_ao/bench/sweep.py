@@ -20,6 +20,7 @@ from torch import nn
 from ..fit import set_mode
 from ..gbuffer import GBuffer
 from ..methods import METHODS, PRESETS, get_method
+from ..methods.common import split_preset
 from ..metrics import error_metrics
 from ..options import Option
 from ..views import FitView
@@ -28,7 +29,7 @@ __all__ = ["SIZE_OPTIONS", "BenchSettings", "QUICK", "DEFAULT", "COLUMNS", "Meth
            "make_method", "time_call", "time_calls", "run_bench", "environment"]
 
 #: Columns of a result row (CSV order).
-COLUMNS = ("scene", "method", "preset", "slices", "steps", "denoise", "mae", "rmse", "psnr", "ssim",
+COLUMNS = ("scene", "method", "preset", "slices", "steps", "resolution", "denoise", "mae", "rmse", "psnr", "ssim",
            "forward_ms", "forward_cpu_ms", "forward_backward_ms", "valid_pixels", "pixels", "batch", "height", "width",
            "radius", "device", "threads", "repeats")
 
@@ -60,9 +61,11 @@ class BenchSettings:
             opt.check(getattr(self, opt.name))
 
 
+# the @half presets walk a quarter of the pixels: the sweep shows where that pays (error against time)
 DEFAULT = BenchSettings(("sphere_on_plane", "room_corner", "fence", "stairs", "floating", "poles"),
-                        ("low", "medium", "high", "ultra"), **{o.name: o.default for o in SIZE_OPTIONS})
-QUICK = BenchSettings(("sphere_on_plane", "room_corner", "fence"), ("low", "medium", "high"), 72, 96, 64, 3)
+                        ("low", "medium", "high", "ultra", "medium@half", "high@half", "ultra@half"),
+                        **{o.name: o.default for o in SIZE_OPTIONS})
+QUICK = BenchSettings(("sphere_on_plane", "room_corner", "fence"), ("low", "medium", "high", "high@half"), 72, 96, 64, 3)
 
 
 def environment(device: torch.device | str = "cpu") -> dict:
@@ -184,7 +187,8 @@ def run_bench(views: Sequence[FitView], methods: Mapping[str, MethodFactory], pr
     Args:
         views: reference views (:func:`~torch_ao.views.load_bench_views`).
         methods: ``{name: factory}``; a factory takes ``preset=``, ``radius=`` (and ``params[name]``).
-        presets: names from :data:`~torch_ao.methods.PRESETS`.
+        presets: names from :data:`~torch_ao.methods.PRESETS`, optionally with a resolution (``"high@half"``,
+            :data:`~torch_ao.methods.common.PRESET_NAMES`).
         denoise: also run every method followed by ``denoiser`` (default :class:`~torch_ao.denoise.Denoiser()`).
         backward: also time forward+backward (gradients to depth and to the module's parameters), in the
             mode fitting uses (``mode="soft"`` for modules that have one; errors are always measured hard).
@@ -197,8 +201,10 @@ def run_bench(views: Sequence[FitView], methods: Mapping[str, MethodFactory], pr
 
     device = torch.device(device)
     for p in presets:
-        if p not in PRESETS:
-            raise ValueError(f"presets: unknown preset {p!r}; expected some of {', '.join(PRESETS)}")
+        try:
+            split_preset(p)
+        except ValueError as err:
+            raise ValueError(f"presets: {err}") from None
     if not views:
         raise ValueError("views: nothing to benchmark (no scene and no reference file)")
     if not methods:
@@ -219,7 +225,9 @@ def run_bench(views: Sequence[FitView], methods: Mapping[str, MethodFactory], pr
                 for preset in presets:
                     bar.set_postfix_str(f"{view.name} {name} {preset}")
                     module = make_method(factory, preset, radius=r, params=(params or {}).get(name)).to(device)
-                    slices, steps = getattr(module, "slices", PRESETS[preset][0]), getattr(module, "steps", PRESETS[preset][1])
+                    quality, resolution = split_preset(preset)
+                    slices, steps = getattr(module, "slices", PRESETS[quality][0]), getattr(module, "steps", PRESETS[quality][1])
+                    resolution = getattr(module, "resolution", resolution or "full")
                     try:
                         with torch.no_grad():
                             module(gb)
@@ -246,7 +254,7 @@ def run_bench(views: Sequence[FitView], methods: Mapping[str, MethodFactory], pr
                         B, _, H, W = gb.depth.shape
                         rows.append({
                             "scene": view.name, "method": name, "preset": preset, "slices": int(slices),
-                            "steps": int(steps), "denoise": den, **err, "forward_ms": fwd * 1e3, "forward_cpu_ms": fwd_cpu * 1e3,
+                            "steps": int(steps), "resolution": resolution, "denoise": den, **err, "forward_ms": fwd * 1e3, "forward_cpu_ms": fwd_cpu * 1e3,
                             "forward_backward_ms": fb * 1e3, "valid_pixels": int(valid.sum()), "pixels": B * H * W,
                             "batch": B, "height": H, "width": W, "radius": float(r), "device": str(device),
                             "threads": threads, "repeats": repeats,

@@ -13,6 +13,8 @@ import torch
 from ..bench import DEFAULT, DEFAULT_TOLERANCE, QUICK, SIZE_OPTIONS
 from ..cli import CommandError
 from ..methods import METHODS, PRESETS, get_method
+from ..methods.common import split_preset
+from ..resolution import RESOLUTIONS
 from ..options import Option
 from ..reference import SCENES
 from ..views import default_cache_dir
@@ -69,7 +71,8 @@ def register(sub) -> None:
     p.add_argument("--methods", type=_csv, metavar="A,B,...",
                    help=f"comma-separated methods, some of: {', '.join(METHODS)}. Default: all")
     p.add_argument("--presets", type=_csv, metavar="A,B,...",
-                   help=f"comma-separated presets, some of: {', '.join(PRESETS)}. Default: {','.join(DEFAULT.presets)}")
+                   help=f"comma-separated presets, some of: {', '.join(PRESETS)}, each optionally @{'/@'.join(RESOLUTIONS)} "
+                   f"for the walk's resolution (e.g. high,high@half). Default: {','.join(DEFAULT.presets)}")
     p.add_argument("--scenes", type=_csv, metavar="A,B,...",
                    help=f"comma-separated built-in scenes, some of: {', '.join(SCENES)}. "
                    f"Default: {','.join(DEFAULT.scenes)}, none when --reference is given")
@@ -131,8 +134,10 @@ def run(args: argparse.Namespace) -> int:
     scenes = args.scenes if args.scenes is not None else ([] if args.reference else list(base.scenes))
     presets = args.presets or list(base.presets)
     for preset in presets:
-        if preset not in PRESETS:
-            raise CommandError(f"--presets: unknown preset {preset!r}; expected some of {', '.join(PRESETS)}")
+        try:
+            split_preset(preset)
+        except ValueError as err:
+            raise CommandError(f"--presets: {err}") from None
     for s in scenes:
         if s not in SCENES:
             raise CommandError(f"--scenes: unknown scene {s!r}; built-in scenes: {', '.join(SCENES)}")

@@ -58,6 +58,7 @@ _COVERED = {
     "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
     "jitter": None, "seed": None, "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view",), "normals": None,
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
+    "resolution": None,  # the kernel walks the (smaller) G-buffer it is given
     # the bitmask family's
     "variant": ("default",), "mode": ("hard", "straight_through"), "tau": None, "rounding": None,
     "weighting": ("uniform",), "union": ("sectors",), "clip_to_radius": (False,), "thickness_direction": ("view",),

@@ -25,8 +25,10 @@ from torch import nn
 from ..gbuffer import GBuffer
 from ..kernels import kernel_forward
 from ..options import Option, options_by_name
+from ..resolution import reduced_forward, resolution_factor
 from ..walk import Frame, SamplingPattern, SliceAccumulator, march
-from .common import MODULE_OPTIONS, PRESETS, RADIUS, Sampling, declare_signature, make_parameter, register_parameters, resolve_preset
+from .common import (MODULE_OPTIONS, PRESETS, RADIUS, Sampling, declare_signature, make_parameter, register_parameters,
+                     resolve_preset, split_preset)
 
 __all__ = ["AOOutput", "ScreenSpaceAO", "PRESETS", "resolve_preset", "make_parameter"]
 
@@ -75,6 +77,9 @@ class ScreenSpaceAO(nn.Module):
         self.normals_method, self.chunk_size, self.recompute = v["normals"], v["chunk_size"], v["recompute"]
         self.trainable = v["trainable"]
         self.backend = v["backend"]
+        preset = v.get("preset")
+        #: the walk's resolution: ``"full"``, ``"half"`` or ``"quarter"`` (explicit option, else the preset's suffix)
+        self.resolution = v["resolution"] or (split_preset(preset)[1] if preset is not None else None) or "full"
         if "radius" in v:
             register_parameters(self, self.options(), v, ("radius",), trainable=self.trainable)
 
@@ -133,8 +138,16 @@ class ScreenSpaceAO(nn.Module):
 
     # ---------------------------------------------------------------- forward
     def forward(self, gbuffer: GBuffer) -> AOOutput:
+        """The outputs ``(B,C,H,W)`` of :class:`AOOutput` for ``gbuffer``; at ``resolution`` half or quarter,
+        walked on the decimated G-buffer and upsampled (:mod:`torch_ao.resolution`)."""
         if not isinstance(gbuffer, GBuffer):
             raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(gbuffer).__name__}")
+        factor = resolution_factor(self.resolution)
+        if factor == 1:
+            return self._forward_full(gbuffer)
+        return reduced_forward(self._forward_full, gbuffer, factor, self.normals_method)
+
+    def _forward_full(self, gbuffer: GBuffer) -> AOOutput:
         visibility = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
         if visibility is not None:
             return AOOutput(visibility=visibility)
@@ -149,4 +162,5 @@ class ScreenSpaceAO(nn.Module):
         )
 
     def extra_repr(self) -> str:
-        return f"slices={self.slices}, steps={self.steps}, fetch={self.fetch!r}, border={self.border!r}"
+        res = f", resolution={self.resolution!r}" if self.resolution != "full" else ""
+        return f"slices={self.slices}, steps={self.steps}, fetch={self.fetch!r}, border={self.border!r}{res}"

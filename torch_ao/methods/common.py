@@ -18,9 +18,10 @@ import torch
 from torch import nn
 
 from ..options import Option, options_by_name
+from ..resolution import RESOLUTIONS
 from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, SlicePattern
 
-__all__ = ["PRESETS", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
+__all__ = ["PRESETS", "PRESET_NAMES", "split_preset", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
            "register_parameters", "functional_twin", "declare_signature"]
 
 #: Quality presets shared by every horizon/bitmask method: (slices, steps per side).
@@ -32,6 +33,21 @@ PRESETS: dict[str, tuple[int, int]] = {
     "extreme": (16, 8),
     "reference": (32, 32),
 }
+
+#: Every preset name: a quality, optionally with the resolution its walk runs at (``"high@half"``).
+PRESET_NAMES: tuple[str, ...] = tuple(PRESETS) + tuple(f"{p}@{r}" for p in PRESETS for r in RESOLUTIONS)
+
+
+def split_preset(preset: str) -> tuple[str, str | None]:
+    """``(quality, resolution)`` of a preset name: ``"high@half"`` -> ``("high", "half")``, ``"high"`` ->
+    ``("high", None)`` (``ValueError`` naming ``preset`` for an unknown one)."""
+    key = str(preset).lower()
+    quality, _, resolution = key.partition("@")
+    if quality not in PRESETS or (resolution and resolution not in RESOLUTIONS):
+        raise ValueError(f"preset: expected one of {', '.join(PRESETS)}, optionally with @{'/@'.join(RESOLUTIONS)} "
+                         f"(e.g. high@half), got {preset!r}")
+    return quality, resolution or None
+
 
 #: The world-space radius most methods search (a method that samples in pixels does not list it).
 RADIUS = Option("radius", 1.0, "Search radius: samples farther than this from the pixel do not occlude",
@@ -47,6 +63,10 @@ MODULE_OPTIONS = (
     Option("recompute", False, "With autograd, recompute each chunk's walk in backward instead of keeping its "
            "graph (with chunk_size: forward+backward memory of one chunk)", kind=bool),
     Option("trainable", True, "Register the fitted options as nn.Parameters (False: frozen buffers)", kind=bool),
+    Option("resolution", None, "Resolution of the walk: full, half or quarter (the G-buffer decimated 2x2 or "
+           "4x4 to one texel per block, the walk on the smaller frame, a depth-aware joint bilateral upsample: "
+           "about 4x or 16x cheaper, softer at edges and blind to occluders thinner than the block); default: a "
+           "preset's @ suffix, else full (the walk as the method defines it)", kind=str, choices=tuple(RESOLUTIONS)),
     Option("backend", "auto", "Where the walk runs: auto (a fused kernel when one covers the call, else tensor "
            "ops), kernel (the kernel; an error for a call it does not cover), torch (tensor ops)", kind=str,
            choices=("auto", "kernel", "torch")),
@@ -54,12 +74,10 @@ MODULE_OPTIONS = (
 
 
 def resolve_preset(preset: str | None, slices: int | None, steps: int | None, default: tuple[int, int]) -> tuple[int, int]:
-    """Slices and steps from a preset name and/or explicit counts (explicit counts win)."""
+    """Slices and steps from a preset name (its quality; see :func:`split_preset`) and/or explicit counts
+    (explicit counts win)."""
     if preset is not None:
-        key = str(preset).lower()
-        if key not in PRESETS:
-            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
-        default = PRESETS[key]
+        default = PRESETS[split_preset(preset)[0]]
     return (default[0] if slices is None else slices, default[1] if steps is None else steps)
 
 
@@ -82,9 +100,10 @@ class Sampling:
     azimuth: str = "view"
 
     OPTIONS: ClassVar[tuple[Option, ...]] = (
-        Option("preset", None, f"Quality preset setting slices x steps: {', '.join(f'{k} ({a}x{b})' for k, (a, b) in PRESETS.items())} "
-               "(slices/steps given explicitly win; default: the method's own counts)", kind=str,
-               choices=tuple(PRESETS)),
+        Option("preset", None, f"Quality preset setting slices x steps: {', '.join(f'{k} ({a}x{b})' for k, (a, b) in PRESETS.items())}, "
+               f"optionally @{'/@'.join(RESOLUTIONS)} for the walk's resolution, e.g. high@half "
+               "(slices/steps/resolution given explicitly win; default: the method's own counts)", kind=str,
+               choices=PRESET_NAMES),
         Option("slices", None, "Directions per pixel (default: from preset, else the method's)", kind=int, minimum=1),
         Option("steps", None, "Samples per side of each direction (default: from preset, else the method's)",
                kind=int, minimum=1),
