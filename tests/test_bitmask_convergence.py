@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torch_ao.methods.base import PRESETS
-from torch_ao.methods.bitmask import BitmaskAO
+from torch_ao.methods.bitmask import EXACT_FETCH, BitmaskAO
 from torch_ao.reference import get_scene, render_reference
 from torch_ao.screen_truth import screen_space_truth
 
@@ -19,7 +19,7 @@ NOISE = 0.003
 @pytest.mark.parametrize("scene", ["fence", "stairs"])
 def test_exact_variant_error_does_not_grow_with_the_preset(scene):
     ref = render_reference(get_scene(scene), height=36, width=64, spp=256, max_distance=R, progress=False, uniform=False)
-    truth = screen_space_truth(ref.gbuffer, R, THICKNESS, rays=1024)
+    truth = screen_space_truth(ref.gbuffer, R, THICKNESS, rays=1024, fetch=EXACT_FETCH)  # the depth the variant reads
     valid = ref.gbuffer.valid
     to_truth, to_ref = {}, {}
     for preset in PRESETS:

@@ -203,6 +203,8 @@ def test_methods_take_it_and_the_kernel_does_not_claim_it():
             edge = BitmaskAO(preset="low", radius=1.0, variant=variant, fetch="edge_aware")(gb).visibility
             plain = BitmaskAO(preset="low", radius=1.0, variant=variant, fetch="bilinear", backend="torch")(gb).visibility
         assert torch.equal(edge, plain) and float(edge[gb.valid].mean()) < 0.99
+    assert BitmaskAO(variant="exact").fetch == "edge_aware" and BitmaskAO().fetch == "bilinear"
+    assert BitmaskAO(variant="exact", fetch="bilinear").fetch == "bilinear"
     reason = kernel_covers(BitmaskAO(preset="low", radius=1.0, fetch="edge_aware"), gb)
     assert reason is not None and "edge_aware" in reason
     assert kernel_covers(BitmaskAO(preset="low", radius=1.0, fetch="bilinear"), gb) is None
