@@ -2,9 +2,10 @@
 
 A sample reads either the nearest texel or four bilinear taps whose inverse depths are interpolated
 (perspective-correct: planes are reproduced exactly), or, with the ``"edge_aware"`` fetch, the four taps
-where the 2x2 cell holding the sample is one surface (:func:`continuous_cells`) and the nearest texel's
-depth elsewhere: bilinear interpolation across a depth edge invents a surface (a "skirt") joining the near
-and the far side, which a thick occluder model turns into occlusion that is not there. The walk fetches ``slices x sides x steps``
+where the 2x2 cell holding the sample is one surface (:func:`continuous_cell_image`) and the nearest
+texel's depth elsewhere: bilinear interpolation across a depth edge invents a surface (a "skirt") joining
+the near and the far side, which a thick occluder model turns into occlusion that is not there (the
+screen-space truth's ``edge_aware`` uses the same rule). The walk fetches ``slices x sides x steps``
 samples per pixel, so the two autograd functions here keep a few floats per sample and rebuild the
 rest in backward: :class:`PerspectiveBilinearDepth` (the depth alone) and :class:`SampleAlong` (the
 two in-slice coordinates of ``delta``, fused with the fetch).
