@@ -50,7 +50,7 @@ from .gbuffer import GBuffer
 from .metrics import error_metrics
 from .reference import sampling
 from .reference.render import _group_stats
-from .walk.fetch import continuous_cells, edge_ratio_limit
+from .walk.fetch import continuous_cell_image, continuous_cells
 
 __all__ = ["FETCHES", "SCREEN_REACH", "ScreenTruth", "screen_space_truth", "thickness_map", "ErrorSplit", "split_error", "ray_steps"]
 
@@ -173,12 +173,13 @@ def screen_space_truth(
         fetch: how the depth buffer becomes surfaces: ``"bilinear"`` (perspective-correct, as the
             methods' default fetch: across a depth edge it interpolates a "skirt" joining the near and far
             surface, which occludes rays that pass behind the near one), ``"nearest"`` (flat tiles), or
-            ``"edge_aware"`` (bilinear inside every 2x2 cell whose depths are within ``edge_ratio`` of each
-            other, the nearest texel in the others: no skirts; the cell rule is the walk's,
-            :func:`torch_ao.walk.fetch.continuous_cells`).
-        edge_ratio: ``max/min`` depth of a 2x2 cell above which ``"edge_aware"`` treats it as an edge (> 1;
-            default ``None``: each view's :func:`~torch_ao.walk.fetch.edge_ratio_limit`, the methods' rule:
-            what a plane 80 degrees from facing the camera spreads over a cell at that focal length).
+            ``"edge_aware"`` (bilinear inside every 2x2 cell that is one surface, the nearest texel in the
+            others: no skirts; see ``edge_ratio``).
+        edge_ratio: ``None`` (default): ``"edge_aware"`` finds edges as the methods' walk does
+            (:func:`~torch_ao.walk.fetch.continuous_cell_image`: a pair of texels is one surface when their
+            depths are within 2 % or their jump continues a neighbouring pair's, so a plane at any angle and a
+            crease stay bilinear); a float (> 1): a cell is an edge when ``max/min`` of its depths exceeds it,
+            whatever its neighbours.
         seed: the random numbers are a hash of ``(seed, pixel, ray)``: reproducible whatever the chunking.
         chunk_points: ray points tested at once (memory: about 100 bytes each).
         bound: which ray points count: ``"sphere"`` (the definition: within distance ``R`` of the pixel) or
@@ -223,8 +224,6 @@ def screen_space_truth(
     if isinstance(T, torch.Tensor):
         planes.append(T.to(dtype))
     image = torch.cat(planes, 1)
-    if edge_ratio is None:
-        edge_ratio = edge_ratio_limit(gbuffer.camera.fx, gbuffer.camera.fy).to(dtype).view(B, 1, 1, 1)
     cells = _continuous_cells(inv, edge_ratio) if fetch == "edge_aware" else None
     scalar_T = None if isinstance(T, torch.Tensor) else min(float(T), _BIG)
 
@@ -293,10 +292,12 @@ def _chunk_pixels(nsteps, order, start, rays, chunk_points) -> int:
     return m
 
 
-def _continuous_cells(inv: torch.Tensor, edge_ratio) -> torch.Tensor:
-    """``(B,1,H-1,W-1)`` float, 1 where the 2x2 cell of texels ``(i..i+1, j..j+1)`` is one surface: all four
-    valid (``inv > 0``) and ``max(depth) <= edge_ratio * min(depth)`` (:func:`continuous_cells`; ``edge_ratio``
-    a float or ``(B,1,1,1)``)."""
+def _continuous_cells(inv: torch.Tensor, edge_ratio: float | None) -> torch.Tensor:
+    """``(B,1,H-1,W-1)`` float, 1 where the 2x2 cell of texels ``(i..i+1, j..j+1)`` is one surface (``inv > 0``
+    where valid): :func:`continuous_cell_image` (``edge_ratio=None``), else all four valid and ``max(depth)
+    <= edge_ratio * min(depth)`` (:func:`continuous_cells`)."""
+    if edge_ratio is None:
+        return continuous_cell_image(inv).to(inv.dtype)
     taps = torch.stack((inv[..., :-1, :-1], inv[..., :-1, 1:], inv[..., 1:, :-1], inv[..., 1:, 1:]), -1)
     return continuous_cells(taps, edge_ratio).to(inv.dtype)
 

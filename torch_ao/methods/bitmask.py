@@ -19,8 +19,8 @@ Variants (``variant=``), one accumulator each:
     of the union of the steps' intervals instead of 32 sectors (``union="exact"``), each occluder
     segment clipped to the radius (``clip_to_radius=True``), the back point along the sample's own
     camera ray (``thickness_direction="depth"``), the steps over the sphere's screen extent
-    (``sample_extent="sphere"``) from a quarter pixel out (``min_step_px=0.25``), cosine weighting.
-    Visibility only.
+    (``sample_extent="sphere"``) from a quarter pixel out (``min_step_px=0.25``), cosine weighting,
+    depth read by the skirt-free ``fetch="edge_aware"``. Visibility only.
 ``"hdrp"``
     The bitmask blog's HLSL on HDRP's GTAO: both sides into one bitfield; the 3D cosines
     ``dot(normalize(delta - t V), V)`` through the polynomial ``fast_acos``;
@@ -80,6 +80,8 @@ UNIONS = ("sectors", "exact")
 SAMPLE_EXTENTS = ("radius", "sphere")
 #: the ``"exact"`` variant's default ``min_step_px`` (pixels): where its first step lies
 EXACT_MIN_STEP_PX = 0.25
+#: ... and its default depth fetch
+EXACT_FETCH = "edge_aware"
 _HALF_PI = math.pi / 2
 
 #: The bitmask family's options (beyond :class:`~torch_ao.methods.base.ScreenSpaceAO`'s sampling options).
@@ -347,7 +349,7 @@ class BitmaskAO(ScreenSpaceAO):
             pixels, recomputed in backward only when a soft gradient's graph would exceed
             ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"``/``"exact"`` and
             ``"screen"`` for ``"hdrp"``; ``min_step_px`` to 0.25 for ``"exact"`` (:data:`EXACT_MIN_STEP_PX`),
-            1 otherwise.
+            1 otherwise; ``fetch`` to ``"edge_aware"`` for ``"exact"`` (:data:`EXACT_FETCH`), bilinear otherwise.
     """
 
     has_kernel = True  # hard visibility in torch_ao.kernels (kernel_covers says which calls)
@@ -398,6 +400,9 @@ class BitmaskAO(ScreenSpaceAO):
             # The walk's first step 1 px out misses occluders within the first pixel (creases): a quarter
             # pixel halves the remaining bias against the screen-space truth on stairs (docs/bitmask.md).
             kwargs.setdefault("min_step_px", EXACT_MIN_STEP_PX)
+            # Bilinear skirts across depth edges are surfaces its steps cannot resolve: with them the
+            # estimator does not reach the truth on thin occluders (docs/bitmask.md, "Convergence").
+            kwargs.setdefault("fetch", EXACT_FETCH)
         super().__init__(azimuth=azimuth, **kwargs)
         self.pattern_for(None)  # validate the variant's walk now (the base no longer calls it)
         self.mode, self.tau, self.rounding = mode, float(tau), rounding

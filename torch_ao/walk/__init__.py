@@ -12,7 +12,7 @@ Layers (each file one concept):
 * :mod:`~torch_ao.walk.frame`: :class:`Frame` (the G-buffer flattened, channel-last) and
   :class:`Queries` (the valid pixels, the rows every tensor of the walk has).
 * :mod:`~torch_ao.walk.patterns`: :class:`SlicePattern` (slice tangents, step offsets), noise, tangents.
-* :mod:`~torch_ao.walk.fetch`: :class:`Footprint` (nearest or bilinear depth reads) and the
+* :mod:`~torch_ao.walk.fetch`: :class:`Footprint` (nearest, bilinear or edge-aware depth reads) and the
   hand-written backwards that keep a few floats per sample.
 * :mod:`~torch_ao.walk.sample`: :class:`Sample`, what a method reads about one step.
 * :mod:`~torch_ao.walk.protocol`: :class:`SamplingPattern` and :class:`SliceAccumulator`, every hook.

@@ -2,16 +2,16 @@
 
 A sample reads either the nearest texel or four bilinear taps whose inverse depths are interpolated
 (perspective-correct: planes are reproduced exactly), or, with the ``"edge_aware"`` fetch, the four taps
-where the 2x2 cell holding the sample is one surface (:func:`continuous_cells`) and the nearest texel's
-depth elsewhere: bilinear interpolation across a depth edge invents a surface (a "skirt") joining the near
-and the far side, which a thick occluder model turns into occlusion that is not there. The walk fetches ``slices x sides x steps``
+where the 2x2 cell holding the sample is one surface (:func:`continuous_cell_image`) and the nearest
+texel's depth elsewhere: bilinear interpolation across a depth edge invents a surface (a "skirt") joining
+the near and the far side, which a thick occluder model turns into occlusion that is not there (the
+screen-space truth's ``edge_aware`` uses the same rule). The walk fetches ``slices x sides x steps``
 samples per pixel, so the two autograd functions here keep a few floats per sample and rebuild the
 rest in backward: :class:`PerspectiveBilinearDepth` (the depth alone) and :class:`SampleAlong` (the
 two in-slice coordinates of ``delta``, fused with the fetch).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -20,44 +20,84 @@ from ..camera import pixels_to_view
 from .frame import Frame, repeat_rows, take
 
 __all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps",
-           "EDGE_ANGLE", "edge_ratio_limit", "continuous_cells", "edge_aware_taps"]
+           "EDGE_MIN_RATIO", "EDGE_SLOPE_TOLERANCE", "continuous_cells", "continuous_cell_image", "edge_aware_taps"]
 
-#: The ``"edge_aware"`` fetch's steepest surface (degrees between its normal and the view ray). A plane at
-#: angle ``theta`` changes depth across a 2x2 cell's diagonal by the factor ``1 + tan(theta) |dr|`` at most,
-#: ``|dr| = hypot(1/fx, 1/fy)`` the diagonal's step in ``tan`` of the view angle: four depths cannot tell a
-#: steeper plane from a depth step, so a cell whose depths spread more is an edge (:func:`edge_ratio_limit`).
-#: 80 degrees: 1.155 at 96x54 (60 degree field), 1.05 at 320x180. Measured on the six built-in scenes at 96x54
-#: (the screen-space truth, thickness 0.25, against the ray-traced AO; docs/bitmask.md): 70-75 degrees
-#: keep skirts behind the floor's grazing far part (sphere_on_plane 23.5-23.8 dB, bilinear 24.2), 85
-#: degrees bilinear-joins the room's corner to the box in front of it (room_corner 20.1 dB, 80: 29.7).
-EDGE_ANGLE = 80.0
-
-
-def edge_ratio_limit(fx: torch.Tensor, fy: torch.Tensor, max_angle: float = EDGE_ANGLE) -> torch.Tensor:
-    """The ``max/min`` depth ratio of a 2x2 cell above which it is a depth edge, for focal lengths ``fx, fy``
-    (pixels, any shape): ``1 + tan(max_angle) hypot(1/fx, 1/fy)`` (see :data:`EDGE_ANGLE`)."""
-    return 1 + math.tan(math.radians(max_angle)) * torch.hypot(1 / fx, 1 / fy)
+#: The ``"edge_aware"`` fetch: two neighbouring texels whose depths are within this ratio are one surface
+#: whatever their neighbours (the smallest steps, e.g. a plank's edge on the floor behind it, are edges).
+EDGE_MIN_RATIO = 1.02
+#: ... and a larger jump in inverse depth between them is one surface when it lies within the range of the
+#: jumps of the pairs beside it (one or two) widened by this fraction of itself: inverse depth is affine in
+#: screen space across a plane, so a plane at any angle has equal jumps, a crease one between its two
+#: sides', and a depth step (a slat before a wall, a pole before the floor) one larger than both.
+EDGE_SLOPE_TOLERANCE = 0.5
 
 
 def continuous_cells(inverse: torch.Tensor, edge_ratio) -> torch.Tensor:
-    """``(...)`` bool: whether the 2x2 cell whose four texels have inverse depths ``inverse`` ``(..., 4)``
-    (``<= 0`` where a texel is invalid) is one surface: all four valid and ``max(depth) <= edge_ratio *
-    min(depth)`` (``edge_ratio`` a float or a tensor broadcasting to ``(...)``, e.g. :func:`edge_ratio_limit`).
-    The rule of the ``"edge_aware"`` fetch, in the walk and in the screen-space truth."""
+    """``(...)`` bool: whether all four texels of a 2x2 cell with inverse depths ``inverse`` ``(..., 4)``
+    (``<= 0`` where a texel is invalid) are valid and ``max(depth) <= edge_ratio * min(depth)`` (a float, or a
+    tensor broadcasting to ``(...)``): the ratio rule alone, without the neighbours of
+    :func:`continuous_cell_image`."""
     lo, hi = inverse.amin(-1), inverse.amax(-1)
     return (lo > 0) & (hi <= edge_ratio * lo)
 
 
-def edge_aware_taps(frame: Frame, batch: torch.Tensor, index: torch.Tensor, fu: torch.Tensor,
-                    fv: torch.Tensor) -> torch.Tensor:
+def _continuous_pairs(inv: torch.Tensor) -> torch.Tensor:
+    """``(..., W-1)`` bool: whether each pair of neighbours ``(k, k+1)`` along the last axis of ``inv``
+    ``(..., W)`` (inverse depths, ``<= 0`` where invalid) is one surface: both valid, and within
+    :data:`EDGE_MIN_RATIO`, or its jump within the range of the valid neighbouring pairs' jumps widened by
+    :data:`EDGE_SLOPE_TOLERANCE` of itself."""
+    a, b = inv[..., :-1], inv[..., 1:]
+    both = (a > 0) & (b > 0)
+    near = torch.maximum(a, b) <= EDGE_MIN_RATIO * torch.minimum(a, b)
+    jump = b - a
+    no = torch.zeros_like(both[..., :1])
+    zero = torch.zeros_like(jump[..., :1])
+    has_before, before = torch.cat((no, both[..., :-1]), -1), torch.cat((zero, jump[..., :-1]), -1)
+    has_after, after = torch.cat((both[..., 1:], no), -1), torch.cat((jump[..., 1:], zero), -1)
+    # the range of the neighbours' jumps (one of them where the other is missing)
+    lo = torch.where(has_before & has_after, torch.minimum(before, after), torch.where(has_before, before, after))
+    hi = torch.where(has_before & has_after, torch.maximum(before, after), torch.where(has_before, before, after))
+    tol = EDGE_SLOPE_TOLERANCE * jump.abs()
+    follows = (has_before | has_after) & (jump >= lo - tol) & (jump <= hi + tol)
+    return both & (near | follows)
+
+
+def continuous_cell_image(inverse: torch.Tensor) -> torch.Tensor:
+    """``(..., H-1, W-1)`` bool: whether the 2x2 cell of texels ``(i..i+1, j..j+1)`` of the inverse depths
+    ``inverse`` ``(..., H, W)`` (``<= 0`` where invalid) is one surface: its two horizontal and two vertical
+    pairs each are (``_continuous_pairs``: within :data:`EDGE_MIN_RATIO`, or continuing a neighbouring pair's
+    jump). The rule of the ``"edge_aware"`` fetch, in the walk and in the screen-space truth."""
+    across = _continuous_pairs(inverse)  # (..., H, W-1)
+    down = _continuous_pairs(inverse.transpose(-1, -2)).transpose(-1, -2)  # (..., H-1, W)
+    return across[..., :-1, :] & across[..., 1:, :] & down[..., :, :-1] & down[..., :, 1:]
+
+
+def _cell_flags(frame: Frame) -> torch.Tensor:
+    """``(B*H*W,)`` bool, per texel: whether the cell whose top-left texel it is is one surface
+    (:func:`continuous_cell_image`; False on the last row and column). Computed once per frame."""
+    flags = getattr(frame, "_edge_aware_cells", None)
+    if flags is None:
+        B, H, W = frame.shape
+        with torch.no_grad():
+            inverse = torch.where(frame.valid, frame.inverse_depth, 0.0).view(B, H, W)
+            flags = torch.zeros(B, H, W, dtype=torch.bool, device=inverse.device)
+            if H > 1 and W > 1:
+                flags[:, :-1, :-1] = continuous_cell_image(inverse)
+        frame._edge_aware_cells = flags = flags.view(-1)
+    return flags
+
+
+def edge_aware_taps(frame: Frame, index: torch.Tensor, fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
     """The ``"edge_aware"`` fetch's taps ``(N,4)``: the bilinear taps ``index`` ``(N,4)`` where their cell is
-    one surface (:func:`continuous_cells` with each image's :func:`edge_ratio_limit`), else four copies of
-    the tap nearest to the fractions ``fu, fv`` ``(N,)`` (interpolating four equal taps reads that texel,
-    and its gradient goes to it alone); ``batch`` ``(N,)`` is each row's image."""
-    inverse = torch.where(take(frame.valid, index), take(frame.inverse_depth, index), 0.0)
-    fx, fy = frame.fx.detach(), frame.fy.detach()
-    limit = edge_ratio_limit(fx, fy).to(inverse.dtype)
-    smooth = continuous_cells(inverse, limit if limit.numel() == 1 else take(limit, batch))
+    one surface (:func:`continuous_cell_image`; a footprint clamped at the image border, whose taps repeat,
+    by the ratio rule :func:`continuous_cells` at :data:`EDGE_MIN_RATIO`), else four copies of the tap
+    nearest to the fractions ``fu, fv`` ``(N,)`` (interpolating four equal taps reads that texel, and its
+    gradient goes to it alone)."""
+    proper = (index[:, 1] != index[:, 0]) & (index[:, 2] != index[:, 0])
+    smooth = take(_cell_flags(frame), index[:, 0])
+    if not bool(proper.all()):
+        inverse = torch.where(take(frame.valid, index), take(frame.inverse_depth, index), 0.0).detach()
+        smooth = torch.where(proper, smooth, continuous_cells(inverse, EDGE_MIN_RATIO))
     corner = (fu.detach() >= 0.5).to(index.dtype) + 2 * (fv.detach() >= 0.5).to(index.dtype)
     nearest = index.gather(1, corner[:, None].long())
     return torch.where(smooth[:, None], index, nearest)
@@ -130,7 +170,7 @@ class Footprint:
         u0, v0 = torch.floor(su), torch.floor(sv)
         inside = (u0 >= 0) & (u0 + 1 < W) & (v0 >= 0) & (v0 + 1 < H)
         if fetch == "edge_aware":
-            return Footprint(batch, su, sv, edge_aware_taps(frame, batch, index, fu, fv), fu, fv, True), inside
+            return Footprint(batch, su, sv, edge_aware_taps(frame, index, fu, fv), fu, fv, True), inside
         return Footprint(batch, su, sv, index, fu, fv), inside
 
     def map_rows(self, fn) -> "Footprint":
@@ -267,7 +307,7 @@ class SampleAlong(torch.autograd.Function):
                 batch_rows = rows.per_row(batch) if B > 1 else batch  # (a single image needs no per-row batch)
                 taps, fu, fv = bilinear_taps(frame, batch_rows, su, sv)
                 if ctx.edge_aware:
-                    taps = edge_aware_taps(frame, batch_rows, taps, fu, fv)
+                    taps = edge_aware_taps(frame, taps, fu, fv)
                 inverse = take(source, taps)  # (rows,4) inverse depths
                 depth = bilerp(inverse.unbind(-1), fu, fv).reciprocal()
                 fx, fy, cx, cy = frame.intrinsics(batch_rows)

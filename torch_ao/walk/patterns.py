@@ -72,8 +72,9 @@ class SlicePattern(SamplingPattern):
         step_power: 1 = linear, 2 = quadratic (denser near the pixel), etc.
         min_step_px: the first sample is at least this many pixels away.
         jitter, seed: per-pixel noise.
-        fetch: ``"nearest"`` texel, or ``"bilinear"`` (perspective-correct: interpolates 1/depth, so
-            planes are reproduced exactly); border: ``"clamp"`` to the edge or ``"drop"`` off-screen samples.
+        fetch: ``"nearest"`` texel, ``"bilinear"`` (perspective-correct: interpolates 1/depth, so
+            planes are reproduced exactly), or ``"edge_aware"`` (bilinear inside a surface, the nearest
+            texel across a depth edge; :mod:`~torch_ao.walk.fetch`); border: ``"clamp"`` to the edge or ``"drop"`` off-screen samples.
         azimuth: ``"view"`` spaces slices evenly around the view vector (exact slice integral);
             ``"screen"`` evenly in screen angle (XeGTAO/HDRP; biased off-centre).
         max_radius_px: optional clamp of the screen radius.

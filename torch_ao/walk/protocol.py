@@ -33,7 +33,7 @@ class SamplingPattern(abc.ABC):
 
     Attributes:
         num_slices: slices per pixel; sides: the sides marched, ``(1, -1)`` (a half circle of slices)
-            or ``(1,)`` (a full circle, one side each); fetch: ``"nearest"`` or ``"bilinear"``;
+            or ``(1,)`` (a full circle, one side each); fetch: ``"nearest"``, ``"bilinear"`` or ``"edge_aware"``;
             border: ``"clamp"`` or ``"drop"`` (see :mod:`torch_ao.walk.patterns`).
     """
 

@@ -127,7 +127,7 @@ class Sample:
         return (d * view).sum(-1) / d.norm(dim=-1).clamp_min(1e-30)
 
     def gather(self, name: str) -> torch.Tensor:
-        """Value ``(N, C)`` of the frame buffer ``name`` at this sample (nearest or bilinear,
+        """Value ``(N, C)`` of the frame buffer ``name`` at this sample (nearest, bilinear or edge-aware,
         as the walk fetches depth; integer buffers are always nearest)."""
         buf = self._frame.buffers[name]
         f = self._footprint
