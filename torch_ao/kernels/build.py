@@ -65,5 +65,9 @@ def _register_fake() -> None:
     @torch.library.register_fake("torch_ao_kernels::gtao_sums")
     def _(positions, *args):
         B, H, W, _ = positions.shape
-        bent = args[-1]
-        return [positions.new_empty(B, H, W, 2), positions.new_empty(B, H, W, 3) if bent else positions.new_empty(0)]
+        return positions.new_empty(B, H, W, 5 if args[-1] else 2)  # args[-1]: bent normals
+
+    @torch.library.register_fake("torch_ao_kernels::hbao_sums")
+    def _(positions, *args):
+        B, H, W, _ = positions.shape
+        return positions.new_empty(B, H, W, 1)

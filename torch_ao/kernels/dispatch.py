@@ -6,7 +6,7 @@ import warnings
 from ..gbuffer import GBuffer
 from .bitmask import bitmask_hard, kernel_covers
 from .build import KernelUnavailable
-from .gtao import gtao_covers, gtao_forward
+from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
 
 __all__ = ["BACKENDS", "kernel_forward"]
 
@@ -37,6 +37,7 @@ def _bitmask(module, gbuffer: GBuffer) -> dict:
 KERNELS = {
     "bitmask": (kernel_covers, _bitmask),
     "gtao": (gtao_covers, gtao_forward),
+    "hbao": (hbao_covers, hbao_forward),
 }
 
 

@@ -4,10 +4,8 @@
 //
 // It returns the per-pixel sums over slices that GTAOAccumulator.finish turns into the outputs (the
 // slice integrals, the unoccluded integrals and, when asked, the bent-normal sum), so that the
-// normalisation, final power and multi-bounce fit have one definition (in Python).
-#include <ATen/core/Tensor.h>
-#include <ATen/ops/empty.h>
-#include <ATen/ops/zeros.h>
+// normalisation, final power and multi-bounce fit have one definition (in Python). HBAO
+// (torch_ao/methods/hbao.py) is the same walk over the full circle with its own accumulator.
 #include <torch/library.h>
 
 #include "walk_cpu.h"
@@ -52,8 +50,15 @@ struct GTAOAccumulator {
   GTAOSettings g;
   struct State { Vec best[2]; };  // [0]: side +1, [1]: side -1
   struct Sums { Vec vis, free, bent[3]; };
+  int channels() const { return g.bent ? 5 : 2; }
+  void store(const Sums& sums, float lanes[][L]) const {
+    sums.vis.store(lanes[0]);
+    sums.free.store(lanes[1]);
+    if (g.bent)
+      for (int c = 0; c < 3; ++c) sums.bent[c].store(lanes[2 + c]);
+  }
 
-  State begin_slice(const Slice& sl) const {
+  State begin_slice(const Pixels&, const Slice& sl) const {
     if (g.variant == Variant::exact)  // the smallest angle from V per side, from the hemisphere boundary
       return State{{half_pi + sl.gamma, half_pi - sl.gamma}};
     return State{{Vec(-1.0f), Vec(-1.0f)}};  // the shaders' largest horizon cosine, from cos(pi)
@@ -149,78 +154,85 @@ struct GTAOAccumulator {
   }
 };
 
-void walk_row(const WalkSettings& cfg, const GTAOAccumulator& acc, const Image& img, const float* normals,
-              const float* depth, const bool* valid, int64_t row, float* sums_out, float* bent_out) {
-  const SliceAngles angles(cfg, row, img.W);
-  for (int64_t u0 = 0; u0 < img.W; u0 += L) {
-    const Pixels px(cfg, img, normals, depth, valid, row, u0);
-    const int64_t p0 = row * img.W + u0;
-    if (!px.any) {  // background: zero sums (the caller puts 1 and the G-buffer's normal there)
-      for (int l = 0; l < px.n; ++l) {
-        sums_out[2 * (p0 + l)] = sums_out[2 * (p0 + l) + 1] = 0.0f;
-        if (bent_out != nullptr)
-          for (int c = 0; c < 3; ++c) bent_out[3 * (p0 + l) + c] = 0.0f;
-      }
-      continue;
-    }
-    GTAOAccumulator::Sums sums;
-    for (int64_t s = 0; s < cfg.slices; ++s) {  // Algorithm 1: for each slice
-      const Slice sl(cfg, img, px, angles.cos(s, u0), angles.sin(s, u0));
-      GTAOAccumulator::State st = acc.begin_slice(sl);
-      for (int side = 1; side >= -1; side -= 2) {  // for each side
-        const Vec sgn = Vec(float(side));
-        for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
-          const Sample smp(cfg, img, px, sl, sgn, step_distance(cfg, sl, px.xi, j));
-          acc.step(st, side, px, sl, smp);
-        }
-      }
-      acc.end_slice(st, px, sl, sums, s == 0);
-    }
-    alignas(64) float lanes[5][L];
-    const Vec zero = Vec(0.0f);
-    select(px.live, sums.vis, zero).store(lanes[0]);
-    select(px.live, sums.free, zero).store(lanes[1]);
-    if (bent_out != nullptr)
-      for (int c = 0; c < 3; ++c) select(px.live, sums.bent[c], zero).store(lanes[2 + c]);
-    for (int l = 0; l < px.n; ++l) {
-      sums_out[2 * (p0 + l)] = lanes[0][l];
-      sums_out[2 * (p0 + l) + 1] = lanes[1][l];
-      if (bent_out != nullptr)
-        for (int c = 0; c < 3; ++c) bent_out[3 * (p0 + l) + c] = lanes[2 + c][l];
-    }
-  }
-}
+// HBAOAccumulator (torch_ao/methods/hbao.py): per direction, the running horizon sin h above the
+// tangent's sin t and its weighted rise
+struct HBAOSettings {
+  float radius, angle_bias;
+  bool quadratic, incremental, view_elevation;
+};
 
-std::vector<at::Tensor> gtao_sums(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
-                                  const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
-                                  int64_t variant, int64_t slices, int64_t steps, double walk_radius, double radius,
-                                  double falloff, double thickness, double step_power, double min_step_px,
-                                  double max_radius_px, bool jitter, int64_t seed, bool bilinear, bool drop,
-                                  bool screen_azimuth, bool projected_normal_weight, bool bent) {
-  TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
-  for (const at::Tensor* t : {&positions, &normals, &inverse_depth, &depth, &intrinsics})
-    TORCH_CHECK(t->scalar_type() == at::kFloat && t->is_contiguous(), "expected contiguous float32 inputs");
-  TORCH_CHECK(valid.scalar_type() == at::kBool && valid.is_contiguous(), "valid: expected contiguous bool");
+struct HBAOAccumulator {
+  HBAOSettings h;
+  struct State { Vec sin_t, sin_h, ao, w; };
+  struct Sums { Vec ao; };
+  int channels() const { return 1; }
+  void store(const Sums& sums, float lanes[][L]) const { sums.ao.store(lanes[0]); }
+
+  State begin_slice(const Pixels& px, const Slice& sl) const {
+    Vec t;
+    if (h.view_elevation) {  // the hemisphere boundary on side +1 sits at angle pi/2 + gamma from V
+      t = sl.gamma.neg();
+    } else {  // the elevation of the tangent cos(b) V + sin(b) T, b = pi/2 + gamma, above the image plane
+      const Vec boundary = half_pi + sl.gamma;
+      Vec c, s;
+      cos_sin(&boundary, 1, &c, &s);
+      t = asin(at::vec::clamp(c * px.V[2] + s * sl.T[2], Vec(float(-1 + 1e-7)), Vec(float(1 - 1e-7))));
+    }
+    const Vec biased = at::vec::clamp_max(t + Vec(h.angle_bias), half_pi);
+    Vec sin_t;
+    cos_sin(&biased, 1, nullptr, &sin_t);
+    return State{sin_t, sin_t, Vec(0.0f), Vec(0.0f)};
+  }
+
+  void step(State& st, int, const Pixels& px, const Slice& sl, const Sample& smp) const {
+    const Vec distance = norm3(smp.delta);
+    Vec sin_s;
+    if (h.view_elevation) {
+      const Vec angle = dot3(smp.delta, sl.T).atan2(dot3(smp.delta, px.V));
+      cos_sin(&angle, 1, &sin_s, nullptr);
+    } else {
+      sin_s = smp.delta[2] / at::vec::clamp_min(distance, Vec(1e-30f));
+    }
+    const Vec r = distance / Vec(std::max(h.radius, 1e-30f));
+    const Vec w = at::vec::clamp_min(h.quadratic ? Vec(1.0f) - r * r : Vec(1.0f) - r, Vec(0.0f));
+    const Vec rise = smp.valid & (r < Vec(1.0f)) & (sin_s > st.sin_h);
+    if (h.incremental) {
+      st.ao = select(rise, st.ao + w * (sin_s - st.sin_h), st.ao);
+    } else {
+      st.w = select(rise, w, st.w);
+    }
+    st.sin_h = select(rise, sin_s, st.sin_h);
+  }
+
+  void end_slice(const State& st, const Pixels&, const Slice&, Sums& sums, bool first) const {
+    const Vec ao = h.incremental ? st.ao : st.w * (st.sin_h - st.sin_t);
+    sums.ao = first ? ao : sums.ao + ao;
+  }
+};
+
+at::Tensor gtao_sums(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+                     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, int64_t variant,
+                     int64_t slices, int64_t steps, double walk_radius, double radius, double falloff, double thickness,
+                     double step_power, double min_step_px, double max_radius_px, bool jitter, int64_t seed,
+                     bool bilinear, bool drop, bool screen_azimuth, bool projected_normal_weight, bool bent) {
   TORCH_CHECK(variant >= 0 && variant <= 2, "variant: expected 0 (exact), 1 (hdrp) or 2 (ue4)");
-  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2);
   const Variant v = Variant(variant);
   const WalkSettings cfg{slices, steps, float(walk_radius), float(step_power), float(min_step_px), float(max_radius_px),
                          jitter, bilinear, drop, /*full_circle=*/false, screen_azimuth, seed,
                          v == Variant::exact ? Steps::power : v == Variant::hdrp ? Steps::hdrp : Steps::ue4};
   const GTAOAccumulator acc{{v, float(radius), float(falloff), float(thickness), projected_normal_weight, bent}};
-  at::Tensor sums = at::empty({B, H, W, 2}, positions.options());
-  at::Tensor bent_sum = bent ? at::empty({B, H, W, 3}, positions.options()) : at::zeros({0}, positions.options());
-  const float *P = positions.data_ptr<float>(), *Nr = normals.data_ptr<float>();
-  const float *inv = inverse_depth.data_ptr<float>(), *d = depth.data_ptr<float>(), *K = intrinsics.data_ptr<float>();
-  const bool* ok = valid.data_ptr<bool>();
-  float *out = sums.data_ptr<float>(), *out_bent = bent ? bent_sum.data_ptr<float>() : nullptr;
-  const int64_t plane = H * W;
-  for_each_row(B, H, [&](int64_t b, int64_t row) {
-    const Image img{H, W, K[4 * b], K[4 * b + 1], K[4 * b + 2], K[4 * b + 3], inv + b * plane, P + 3 * b * plane};
-    walk_row(cfg, acc, img, Nr + 3 * b * plane, d + b * plane, ok + b * plane, row, out + 2 * b * plane,
-             out_bent == nullptr ? nullptr : out_bent + 3 * b * plane);
-  });
-  return {sums, bent_sum};
+  return walk(cfg, acc, Inputs{positions, normals, inverse_depth, depth, valid, intrinsics});
+}
+
+at::Tensor hbao_sums(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+                     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, int64_t slices,
+                     int64_t steps, double radius, double angle_bias, bool quadratic, bool incremental,
+                     bool view_elevation, double step_power, double min_step_px, bool jitter, int64_t seed,
+                     bool bilinear, bool drop, bool screen_azimuth) {
+  const WalkSettings cfg{slices, steps, float(radius), float(step_power), float(min_step_px), /*max_radius_px=*/0.0f,
+                         jitter, bilinear, drop, /*full_circle=*/true, screen_azimuth, seed, Steps::power};
+  const HBAOAccumulator acc{{float(radius), float(angle_bias), quadratic, incremental, view_elevation}};
+  return walk(cfg, acc, Inputs{positions, normals, inverse_depth, depth, valid, intrinsics});
 }
 
 }  // namespace
@@ -229,6 +241,11 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.def("gtao_sums(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, int variant, int slices, int steps, float walk_radius, float radius, float falloff, "
         "float thickness, float step_power, float min_step_px, float max_radius_px, bool jitter, int seed, "
-        "bool bilinear, bool drop, bool screen_azimuth, bool projected_normal_weight, bool bent) -> Tensor[]");
+        "bool bilinear, bool drop, bool screen_azimuth, bool projected_normal_weight, bool bent) -> Tensor");
   m.impl("gtao_sums", c10::DispatchKey::CPU, TORCH_FN(gtao_sums));
+  m.def("hbao_sums(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
+        "Tensor intrinsics, int slices, int steps, float radius, float angle_bias, bool quadratic, bool incremental, "
+        "bool view_elevation, float step_power, float min_step_px, bool jitter, int seed, bool bilinear, bool drop, "
+        "bool screen_azimuth) -> Tensor");
+  m.impl("hbao_sums", c10::DispatchKey::CPU, TORCH_FN(hbao_sums));
 }
