@@ -5,8 +5,6 @@ it except on the last few query pixels: torch's elementwise loops run the tail o
 two vectors, i.e. < 32 rows with AVX-512) through the scalar libm functions (``atan2``...) instead of
 SLEEF's vector ones, an ulp apart. Everywhere the agreement asserted is 1e-6 absolute.
 """
-import math
-import shutil
 import warnings
 
 import pytest
@@ -14,42 +12,15 @@ import torch
 
 import torch_ao
 from torch_ao.camera import PinholeCamera
-from torch_ao.examples import crease_gbuffer, example_gbuffer, floor_wall_gbuffer
+from torch_ao.examples import example_gbuffer, floor_wall_gbuffer
 from torch_ao.gbuffer import GBuffer
-from torch_ao.kernels import KernelUnavailable, cpu_kernels, gtao_covers, hbao_covers
+from torch_ao.kernels import KernelUnavailable, gtao_covers, hbao_covers
 from torch_ao.methods.gtao import GTAO
 from torch_ao.methods.hbao import HBAO
 
-pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
-                                reason="the kernels need a C++ compiler")
+# the frames of the hard bitmask kernel's tests, and its build fixture
+from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401,E402
 
-
-@pytest.fixture(scope="module")
-def built():
-    try:
-        return cpu_kernels()
-    except KernelUnavailable as exc:  # a compiler is there: a failed build is a failure
-        pytest.fail(str(exc))
-
-
-def rough_gbuffer(height=40, width=56, batch=2, seed=0) -> GBuffer:
-    """Bumpy depth with background holes, two images with different focal lengths (normals from depth)."""
-    g = torch.Generator().manual_seed(seed)
-    v, u = torch.meshgrid(torch.linspace(0, 1, height), torch.linspace(0, 1, width), indexing="ij")
-    depth = 2.0 + 0.6 * torch.sin(9 * u + 4 * v) * torch.cos(7 * v) + 0.05 * torch.rand(batch, 1, height, width, generator=g)
-    depth[:, :, :5, :9] = math.inf  # background
-    depth[1, 0, 20:26, 30:37] = 0.0
-    cam = PinholeCamera.from_fov(torch.tensor([55.0, 70.0]), height, width, batch_size=batch)
-    return GBuffer(depth=depth.to(torch.float32), camera=cam)
-
-
-FRAMES = {
-    "example": lambda: example_gbuffer(54, 96),
-    "floor_wall": lambda: floor_wall_gbuffer(48, 48, pitch_degrees=-50.0)[0],
-    "crease": lambda: crease_gbuffer(40, 40),
-    "rough": rough_gbuffer,
-    "tiny": lambda: example_gbuffer(6, 11),  # narrower than one vector of pixels
-}
 GTAO_SETTINGS = [
     dict(slices=4, steps=4),
     dict(slices=3, steps=6, radius=0.6, falloff_range=0.5, bent_normals=True),
