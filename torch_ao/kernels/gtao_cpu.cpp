@@ -30,7 +30,7 @@ const Vec half_pi = Vec(float(M_PI / 2));
 inline Vec fast_acos(const Vec& x) {
   const Vec ax = x.abs();
   const Vec inside = ax < Vec(1.0f);
-  const Vec root = select(inside, select(inside, Vec(1.0f) - ax, Vec(1.0f)).sqrt(), Vec(0.0f));
+  const Vec root = select(inside, torch_ao_walk::sqrt(select(inside, Vec(1.0f) - ax, Vec(1.0f))), Vec(0.0f));
   const Vec res = (Vec(-0.156583f) * ax + half_pi) * root;
   return select(x >= Vec(0.0f), res, Vec(float(M_PI)) - res);
 }

@@ -26,6 +26,7 @@
 extern "C" void vmsCos(int n, const float* a, float* r, long long mode);
 extern "C" void vmsSin(int n, const float* a, float* r, long long mode);
 extern "C" void vmsAsin(int n, const float* a, float* r, long long mode);
+extern "C" void vmsSqrt(int n, const float* a, float* r, long long mode);
 extern "C" int MKL_Set_Num_Threads_Local(int n);
 #endif
 
@@ -81,15 +82,32 @@ inline void cos_sin(const Vec* x, int n, Vec* cosine, Vec* sine) {
 #endif
 }
 
-// torch.asin (MKL's vector math where torch uses it)
-inline Vec asin(const Vec& x) {
 #ifdef TORCH_AO_MKL_VML
+// one VML function on L floats
+inline Vec vml(void (*fn)(int, const float*, float*, long long), const Vec& x) {
   alignas(64) float in[L], out[L];
   x.store(in);
-  vmsAsin(L, in, out, 0x2 | 0x140000 | 0x100);
+  fn(L, in, out, 0x2 | 0x140000 | 0x100);
   return Vec::loadu(out);
+}
+#endif
+
+// torch.asin
+inline Vec asin(const Vec& x) {
+#ifdef TORCH_AO_MKL_VML
+  return vml(vmsAsin, x);
 #else
   return x.asin();
+#endif
+}
+
+// torch.sqrt: MKL's (high accuracy, 1 ulp: not always the correctly rounded root that torch's norms
+// and Vec::sqrt give) where torch calls it
+inline Vec sqrt(const Vec& x) {
+#ifdef TORCH_AO_MKL_VML
+  return vml(vmsSqrt, x);
+#else
+  return x.sqrt();
 #endif
 }
 
