@@ -92,24 +92,15 @@ inline Vec vml(void (*fn)(int, const float*, float*, long long), const Vec& x) {
 }
 #endif
 
-// torch.asin
-inline Vec asin(const Vec& x) {
+// torch.asin, torch.sqrt: MKL's vector math where torch calls it (its sqrt is accurate to 1 ulp, not
+// always the IEEE root that torch's norms and Vec::sqrt give), else SLEEF / the instruction
 #ifdef TORCH_AO_MKL_VML
-  return vml(vmsAsin, x);
+inline Vec asin(const Vec& x) { return vml(vmsAsin, x); }
+inline Vec sqrt(const Vec& x) { return vml(vmsSqrt, x); }
 #else
-  return x.asin();
+inline Vec asin(const Vec& x) { return x.asin(); }
+inline Vec sqrt(const Vec& x) { return x.sqrt(); }
 #endif
-}
-
-// torch.sqrt: MKL's (high accuracy, 1 ulp: not always the correctly rounded root that torch's norms
-// and Vec::sqrt give) where torch calls it
-inline Vec sqrt(const Vec& x) {
-#ifdef TORCH_AO_MKL_VML
-  return vml(vmsSqrt, x);
-#else
-  return x.sqrt();
-#endif
-}
 
 // Jimenez's interleaved gradient noise, in double as torch_ao.walk.interleaved_gradient_noise
 inline float ign(float u, float v, int64_t seed) {
