@@ -4,9 +4,11 @@
 //
 // The float arithmetic repeats the tensor path's operation by operation: where a torch CPU kernel
 // fuses a multiply and an add (cross products, addcmul, lerp, the tail of a 2-/3-element norm) this
-// code calls fma, and nowhere else (the kernels are built with -ffp-contract=off). The names follow
-// torch_ao/walk/walk.py (GTAO's Algorithm 1): slice_frame is slice_geometry, step_distance is
-// SlicePattern.step_offsets, fetch_sample is fetch_sample + Sample's valid/delta.
+// code calls fma, and nowhere else (the kernels are built with -ffp-contract=off); torch's unary
+// functions that call MKL's vector math on this build (cos, sin, asin, sqrt) are MKL's here too. The
+// names follow torch_ao/walk (GTAO's Algorithm 1 in walk.py): Pixels is Frame's queries, Slice is
+// slice_geometry, step_distance is SlicePattern.step_offsets, Sample is fetch_sample + Sample's
+// valid/delta, walk<Accumulator> is the walk's loop.
 #pragma once
 
 #include <ATen/Parallel.h>
