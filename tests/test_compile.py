@@ -11,9 +11,9 @@ pytestmark = pytest.mark.slow
 # small walks keep Inductor's compile time (it unrolls the slice and step loops) to tens of seconds
 METHODS = {
     "ssao": lambda: torch_ao.SSAO(radius=1.0),
-    "hbao": lambda: torch_ao.HBAO(slices=2, steps=2),
+    "hbao": lambda: torch_ao.HBAO(slices=2, steps=2, backend="torch"),  # the kernel's: test_kernels_gtao.py
     "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=2),
-    "gtao": lambda: torch_ao.GTAO(slices=2, steps=2),
+    "gtao": lambda: torch_ao.GTAO(slices=2, steps=2, backend="torch"),
     "pssao": lambda: torch_ao.PSSAO(slices=2, steps=2),
     "ssilvb": lambda: torch_ao.SSILVB(mode="hard", slices=2, steps=2),
     "bitmask_torch": lambda: torch_ao.BitmaskAO(mode="hard", slices=2, steps=2, backend="torch"),

@@ -1,8 +1,9 @@
 """Fused kernels for the walk: one pixel's whole walk in registers, SIMD across pixels, on every core.
 
 The tensor-op walk (:mod:`torch_ao.marching`) stays the reference and serves whatever a kernel does
-not cover; a kernel is tested equal to it. Today: the hard visibility-bitmask AO of
-``BitmaskAO(variant="default")`` on CPU (:func:`bitmask_hard`), a C++ source built on first use with
+not cover; a kernel is tested equal to it. Today, on CPU: the hard visibility-bitmask AO of
+``BitmaskAO(variant="default")`` (:func:`bitmask_hard`), and ``GTAO`` (every variant, bent normals too)
+and ``HBAO`` forward without gradients (:func:`gtao_sums`, :func:`hbao_sums`), C++ built on first use with
 the compiler PyTorch's extensions use (``torch.utils.cpp_extension``) and cached; see
 docs/performance.md for how it was chosen and what it measures.
 """
@@ -10,6 +11,8 @@ from __future__ import annotations
 
 from .build import KernelUnavailable, cpu_kernels
 from .bitmask import bitmask_hard, kernel_covers
-from .dispatch import BACKENDS, kernel_forward
+from .gtao import gtao_covers, gtao_sums, hbao_covers, hbao_sums
+from .dispatch import BACKENDS, KERNELS, kernel_forward
 
-__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "kernel_covers", "BACKENDS", "kernel_forward"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "kernel_covers", "gtao_sums", "gtao_covers", "hbao_sums",
+           "hbao_covers", "BACKENDS", "KERNELS", "kernel_forward"]

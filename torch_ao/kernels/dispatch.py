@@ -6,6 +6,7 @@ import warnings
 from ..gbuffer import GBuffer
 from .bitmask import bitmask_hard, kernel_covers
 from .build import KernelUnavailable
+from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
 
 __all__ = ["BACKENDS", "kernel_forward"]
 
@@ -22,28 +23,42 @@ def _warn_once(message: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=4)
 
 
-def kernel_forward(module, gbuffer: GBuffer, backend: str):
-    """The kernel's visibility ``(B,1,H,W)`` for ``module(gbuffer)``, or ``None`` where the tensor path runs.
+def _bitmask(module, gbuffer: GBuffer) -> dict:
+    return {"visibility": bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
+                                       steps=module.steps, radius=float(module.radius.detach()),
+                                       thickness=float(module.thickness.detach()), step_power=module.step_power,
+                                       min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
+                                       fetch=module.fetch, border=module.border, rounding=module.rounding,
+                                       sector_epsilon=module.sector_epsilon)}
 
-    A kernel exists for ``BitmaskAO`` (and subclasses) in the settings :func:`kernel_covers` accepts.
 
-    A kernel that cannot be built here (no compiler, a failed build) falls back to the tensor path with
-    one warning per process, whatever ``backend`` asks.
+#: a method's ``has_kernel`` -> ``(covers, run)``: ``covers(module, gbuffer)`` is ``None`` when the kernel
+#: computes the call, else why not; ``run(module, gbuffer)`` gives the outputs ``{AOOutput field: tensor}``
+KERNELS = {
+    "bitmask": (kernel_covers, _bitmask),
+    "gtao": (gtao_covers, gtao_forward),
+    "hbao": (hbao_covers, hbao_forward),
+}
+
+
+def kernel_forward(module, gbuffer: GBuffer, backend: str) -> dict | None:
+    """The kernel's outputs ``{"visibility": (B,1,H,W), ...}`` for ``module(gbuffer)``, or ``None`` where
+    the tensor path runs.
+
+    A method names its kernel in ``has_kernel`` (a key of :data:`KERNELS`); the kernel's ``covers`` says
+    which calls it computes. A kernel that cannot be built here (no compiler, a failed build) falls back
+    to the tensor path with one warning per process, whatever ``backend`` asks.
     """
     if backend == "torch":
         return None
-    reason = kernel_covers(module, gbuffer) if module.has_kernel else f"no kernel for {type(module).__name__}"
+    covers, run = KERNELS.get(module.has_kernel, (None, None))
+    reason = covers(module, gbuffer) if covers is not None else f"no kernel for {type(module).__name__}"
     if reason is not None:
         if backend == "kernel":
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")
         return None
     try:
-        return bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
-                            steps=module.steps, radius=float(module.radius.detach()),
-                            thickness=float(module.thickness.detach()), step_power=module.step_power,
-                            min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
-                            fetch=module.fetch, border=module.border, rounding=module.rounding,
-                            sector_epsilon=module.sector_epsilon)
+        return run(module, gbuffer)
     except KernelUnavailable as exc:
         _warn_once(f"torch_ao: {exc}; using the tensor-op walk instead (backend='torch' silences this)")
         return None

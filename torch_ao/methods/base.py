@@ -64,8 +64,9 @@ class ScreenSpaceAO(nn.Module):
     OPTIONS: tuple[Option, ...] = (RADIUS,)
     #: The walk's options this method takes (all of them by default), with its defaults.
     SAMPLING: tuple[Option, ...] = Sampling.options_for()
-    #: whether :mod:`torch_ao.kernels` has a fused kernel for this method (it then decides per call)
-    has_kernel = False
+    #: the name of this method's fused kernel in :mod:`torch_ao.kernels` (``KERNELS``; it then decides per
+    #: call), or ``False``
+    has_kernel: str | bool = False
     #: (slices, steps) when neither they nor a preset are given.
     default_slices_steps: tuple[int, int] = (4, 8)
 
@@ -148,9 +149,9 @@ class ScreenSpaceAO(nn.Module):
         return reduced_forward(self._forward_full, gbuffer, factor, self.normals_method)
 
     def _forward_full(self, gbuffer: GBuffer) -> AOOutput:
-        visibility = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
-        if visibility is not None:
-            return AOOutput(visibility=visibility)
+        fused = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
+        if fused is not None:
+            return AOOutput(**fused)
         normals = gbuffer.view_normals(self.normals_method)
         frame = Frame(gbuffer, normals=normals, buffers=self.frame_buffers(gbuffer, normals))
         out = self.walk(frame, *self.chunking(gbuffer))

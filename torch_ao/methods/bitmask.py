@@ -352,7 +352,7 @@ class BitmaskAO(ScreenSpaceAO):
             1 otherwise; ``fetch`` to ``"edge_aware"`` for ``"exact"`` (:data:`EXACT_FETCH`), bilinear otherwise.
     """
 
-    has_kernel = True  # hard visibility in torch_ao.kernels (kernel_covers says which calls)
+    has_kernel = "bitmask"  # hard visibility in torch_ao.kernels (kernel_covers says which calls)
     #: its own options and the radius (``options()`` adds the walk's and the module's: the CLI's flags)
     OPTIONS = (RADIUS,) + OPTIONS
 

@@ -1,0 +1,203 @@
+"""The C++ horizon kernels (GTAO's three variants, HBAO) against the tensor-op walk.
+
+The kernels repeat the tensor path's float operations in order, with the same functions (MKL's vector
+``cos``/``sin``/``asin``/``sqrt`` where torch calls them), so they are bit for bit equal to it except on
+the last few query pixels: torch's elementwise loops run the tail of a tensor (fewer than
+two vectors, i.e. < 32 rows with AVX-512) through the scalar libm functions (``atan2``...) instead of
+SLEEF's vector ones, an ulp apart. Everywhere the agreement asserted is 1e-6 absolute.
+"""
+import warnings
+
+import pytest
+import torch
+
+import torch_ao
+from torch_ao.camera import PinholeCamera
+from torch_ao.examples import example_gbuffer, floor_wall_gbuffer
+from torch_ao.gbuffer import GBuffer
+from torch_ao.kernels import KernelUnavailable, gtao_covers, hbao_covers
+from torch_ao.methods.gtao import GTAO
+from torch_ao.methods.hbao import HBAO
+
+# the frames of the hard bitmask kernel's tests, and its build fixture
+from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401,E402
+
+GTAO_SETTINGS = [
+    dict(slices=4, steps=4),
+    dict(slices=3, steps=6, radius=0.6, falloff_range=0.5, bent_normals=True),
+    dict(slices=2, steps=5, jitter=False, step_power=2.0, min_step_px=2.0, normalize="none", final_power=1.7),
+    dict(slices=3, steps=3, fetch="nearest", border="clamp", seed=3, multibounce=True, albedo=0.3, bent_normals=True),
+    dict(slices=2, steps=4, azimuth="screen", search_scale=1.5, max_radius_px=8.0, step_power=1.5),
+    dict(variant="hdrp", slices=3, steps=4, bent_normals=True),
+    dict(variant="hdrp", slices=2, steps=3, projected_normal_weight=False, max_radius_px=6.0),
+    dict(variant="ue4", slices=2, steps=4, thickness_heuristic=0.6, final_power=0.8),
+]
+HBAO_SETTINGS = [
+    dict(slices=4, steps=4),
+    dict(slices=3, steps=5, falloff="quadratic", accumulate="max", radius=0.7),
+    dict(slices=5, steps=3, elevation="view", jitter=False),
+    dict(slices=4, steps=4, fetch="nearest", border="clamp", azimuth="view", angle_bias=0.3, step_power=2.0, seed=2),
+]
+
+
+def _both(make, gb):
+    with torch.no_grad():
+        return make(backend="torch")(gb), make(backend="kernel")(gb)
+
+
+def _assert_agrees(reference: torch.Tensor, out: torch.Tensor, gb: GBuffer) -> None:
+    assert out.shape == reference.shape and out.dtype == reference.dtype
+    assert (out - reference).abs().max() <= 1e-6
+    # bit for bit but on the last rows of the flat list of valid pixels
+    differ = (out != reference).any(1).flatten()[gb.valid.flatten()].nonzero()[:, 0]
+    assert (differ >= int(gb.valid.sum()) - 31).all(), differ
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", range(len(GTAO_SETTINGS)))
+def test_gtao_kernel_equals_the_tensor_walk(built, frame, setting):
+    gb, options = FRAMES[frame](), GTAO_SETTINGS[setting]
+    reference, out = _both(lambda **kw: GTAO(**options, **kw), gb)
+    assert reference.visibility.min() < 0.99  # something is occluded: the comparison means something
+    _assert_agrees(reference.visibility, out.visibility, gb)
+    assert (out.bent_normal is None) == (not options.get("bent_normals", False))
+    if out.bent_normal is not None:
+        _assert_agrees(reference.bent_normal, out.bent_normal, gb)
+        assert not torch.equal(out.bent_normal, gb.view_normals())  # bent somewhere
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", range(len(HBAO_SETTINGS)))
+def test_hbao_kernel_equals_the_tensor_walk(built, frame, setting):
+    gb = FRAMES[frame]()
+    reference, out = _both(lambda **kw: HBAO(**HBAO_SETTINGS[setting], **kw), gb)
+    assert reference.visibility.min() < 0.99
+    _assert_agrees(reference.visibility, out.visibility, gb)
+
+
+def test_background_keeps_visibility_one_and_its_normal_and_images_are_independent(built):
+    gb = rough_gbuffer()
+    with torch.no_grad():
+        out = GTAO(slices=3, steps=4, bent_normals=True, backend="kernel")(gb)
+        one = GBuffer(depth=gb.depth[1:], camera=PinholeCamera(gb.camera.intrinsics[1:], gb.camera.height, gb.camera.width))
+        alone = GTAO(slices=3, steps=4, bent_normals=True, backend="kernel")(one)
+    background = ~gb.valid[:, 0]
+    assert torch.equal(out.visibility[:, 0][background], torch.ones(int(background.sum())))
+    normals = gb.view_normals().permute(0, 2, 3, 1)
+    assert torch.equal(out.bent_normal.permute(0, 2, 3, 1)[background], normals[background])
+    assert torch.equal(alone.visibility, out.visibility[1:]) and torch.equal(alone.bent_normal, out.bent_normal[1:])
+
+
+def test_a_plane_is_unoccluded_exactly_and_bends_nothing(built):
+    gb = floor_wall_gbuffer(40, 40, wall_distance=100.0)[0]  # the wall is far outside the radius
+    with torch.no_grad():
+        out = GTAO(slices=4, steps=6, bent_normals=True, backend="kernel")(gb)
+        hbao = HBAO(slices=4, steps=6, backend="kernel")(gb)
+    # normalize="exact": 1 on a plane (to float rounding: a sample on the plane can sit an ulp above it)
+    assert (1 - out.visibility).abs().max() <= 1e-6
+    # the cosine-weighted mean direction of an unoccluded hemisphere is its normal
+    assert (out.bent_normal - gb.view_normals()).abs().max() < 1e-5
+    assert torch.equal(hbao.visibility, torch.ones_like(hbao.visibility))  # the angle bias keeps a plane clear
+
+
+# ------------------------------------------------------------------------------- what the kernel covers
+def test_kernel_covers_names_what_it_does_not_cover():
+    gb = example_gbuffer(8, 8)
+    with torch.no_grad():
+        for variant in ("exact", "hdrp", "ue4"):
+            assert gtao_covers(GTAO(variant=variant, bent_normals=True, multibounce=True), gb) is None
+        assert hbao_covers(HBAO(falloff="quadratic", elevation="view"), gb) is None
+        assert "float64" in gtao_covers(GTAO(), gb.to(dtype=torch.float64))
+        assert "float64" in hbao_covers(HBAO(), gb.to(dtype=torch.float64))
+        module = GTAO()
+        module.values = dict(module.values, new_option=1)  # an option added to the module later
+        assert "new_option" in gtao_covers(module, gb)
+        positions = GBuffer(depth=gb.depth, camera=gb.camera, position=gb.positions())
+        assert "position buffer" in gtao_covers(GTAO(), positions)
+        assert gtao_covers(GTAO(fetch="nearest"), positions) is None  # nearest reads the texel's position
+    # the kernels have no backward: a call that may need gradients runs the tensor path
+    assert "gradient" in gtao_covers(GTAO(), gb)  # trainable parameters, autograd on
+    assert gtao_covers(GTAO(trainable=False), gb) is None
+    assert "gradient" in hbao_covers(HBAO(trainable=False), GBuffer(depth=gb.depth.clone().requires_grad_(),
+                                                                    camera=gb.camera))
+
+
+def _count_calls(monkeypatch, name):
+    import torch_ao.kernels.dispatch as dispatch
+
+    calls = []
+    covers, run = dispatch.KERNELS[name]
+    monkeypatch.setitem(dispatch.KERNELS, name, (covers, lambda *a: calls.append(1) or run(*a)))
+    return calls
+
+
+def test_auto_runs_the_kernel_without_gradients_and_the_tensor_path_with(built, monkeypatch):
+    calls = _count_calls(monkeypatch, "gtao")
+    gb = rough_gbuffer()
+    module = GTAO(slices=3, steps=4, bent_normals=True)
+    with torch.no_grad():
+        auto = module(gb)
+    assert calls == [1]
+    reference = GTAO(slices=3, steps=4, bent_normals=True, backend="torch")(gb)
+    assert (auto.visibility - reference.visibility).abs().max() <= 1e-6
+    graph = module(gb)  # autograd on, trainable radius: the tensor path, with its gradient
+    assert calls == [1] and graph.visibility.requires_grad
+    graph.visibility.sum().backward()
+    assert module.radius.grad is not None and module.radius.grad.abs() > 0
+
+
+def test_torch_backend_never_calls_the_kernels(monkeypatch):
+    import torch_ao.kernels.dispatch as dispatch
+
+    def refuse(*args):
+        raise AssertionError("the kernel was called")
+
+    for name in ("gtao", "hbao"):
+        monkeypatch.setitem(dispatch.KERNELS, name, (dispatch.KERNELS[name][0], refuse))
+    with torch.no_grad():
+        assert GTAO(slices=2, steps=3, backend="torch")(example_gbuffer(16, 24)).visibility.min() < 1
+        assert HBAO(slices=2, steps=3, backend="torch")(example_gbuffer(16, 24)).visibility.min() < 1
+
+
+def test_kernel_backend_refuses_a_call_it_does_not_cover():
+    gb = example_gbuffer(8, 8)
+    with pytest.raises(ValueError, match="backend.*gradient"):
+        GTAO(backend="kernel")(gb)
+    with torch.no_grad(), pytest.raises(ValueError, match="backend.*float64"):
+        HBAO(backend="kernel")(gb.to(dtype=torch.float64))
+
+
+def test_a_kernel_that_cannot_be_built_falls_back_with_one_warning(monkeypatch):
+    import torch_ao.kernels.dispatch as dispatch
+
+    def unavailable(*args):
+        raise KernelUnavailable("the C++ kernels could not be built (no compiler)")
+
+    monkeypatch.setitem(dispatch.KERNELS, "gtao", (dispatch.KERNELS["gtao"][0], unavailable))
+    monkeypatch.setattr(dispatch, "_warned", set())
+    gb = example_gbuffer(16, 24)
+    with torch.no_grad():
+        expected = GTAO(slices=2, steps=3, backend="torch")(gb).visibility
+        with pytest.warns(RuntimeWarning, match="no compiler.*tensor-op walk"):
+            out = GTAO(slices=2, steps=3, backend="kernel")(gb).visibility
+        assert torch.equal(out, expected)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert torch.equal(GTAO(slices=2, steps=3)(gb).visibility, expected)  # warned once
+
+
+@pytest.mark.slow  # Inductor compiles the finish (10-30 s)
+@pytest.mark.parametrize("make", [lambda: torch_ao.GTAO(slices=3, steps=4, bent_normals=True, final_power=1.5),
+                                  lambda: torch_ao.HBAO(slices=3, steps=4)], ids=["gtao", "hbao"])
+def test_compiled_kernel_path_equals_eager(built, make):
+    gb = example_gbuffer(24, 40)
+    module = make()  # backend auto, no gradient: the kernel, one graph node, and the finish compiled
+    torch._dynamo.reset()
+    with torch.no_grad():
+        eager = module(gb)
+        compiled = torch.compile(module, dynamic=False)(gb)
+    for field in ("visibility", "bent_normal"):
+        a, b = getattr(eager, field), getattr(compiled, field)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert (a - b).abs().max() <= 1e-6, field

@@ -1,0 +1,181 @@
+"""The horizon kernels: ``GTAO`` (every variant) and ``HBAO`` forward in one fused pass (``gtao_cpu.cpp``).
+
+It walks exactly what the tensor path walks (the same slice directions, jitter, step placement, fetch
+and border, :mod:`torch_ao.walk`) with the accumulators of :mod:`torch_ao.methods.gtao` (a horizon per
+side, the clamped arc integral of :func:`torch_ao.ops.arc_integral`), and returns the per-pixel sums
+over slices; the module's own ``GTAOAccumulator.finish`` turns them into the outputs, so the
+normalisation, final power and multi-bounce fit are the tensor path's code. docs/performance.md gives
+the measured agreement. ``HBAO`` is the same walk over the full circle with its accumulator
+(:mod:`torch_ao.methods.hbao`), finished the same way.
+"""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import torch
+
+from ..gbuffer import GBuffer
+from .build import cpu_kernels
+
+__all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
+
+#: the variants in the kernel's numbering
+VARIANTS = ("exact", "hdrp", "ue4")
+
+
+def _channels_last(x: torch.Tensor) -> torch.Tensor:
+    """``(B,C,H,W)`` -> contiguous ``(B,H,W,C)`` float32."""
+    return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
+
+
+def _kernel_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The walk's inputs as the kernels read them: positions and normals ``(B,H,W,3)``, the inverse
+    depth (NaN where invalid: a texel's validity travels with it), depth and validity ``(B,H,W)`` and
+    the intrinsics ``(B,4)`` ``(fx, fy, cx, cy)`` in pixels."""
+    depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
+    valid = gbuffer.valid[:, 0].contiguous()
+    inverse = torch.where(valid, depth.reciprocal(), torch.nan)
+    cam = gbuffer.camera
+    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
+    return _channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics
+
+
+def _value(x) -> float:
+    """A 0-d parameter (or a number) as the float32 value the tensor path computes with."""
+    return float(torch.as_tensor(x).detach().to(torch.float32))
+
+
+def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact", slices: int, steps: int,
+              walk_radius: float, radius: float, falloff: float = 0.0, thickness: float = 1.0,
+              step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
+              jitter: bool = True, seed: int = 0, fetch: str = "bilinear", border: str = "drop",
+              azimuth: str = "view", projected_normal_weight: bool = True,
+              bent_normals: bool = False) -> torch.Tensor:
+    """Per-pixel sums over slices of GTAO's walk ``(B,H,W,C)`` (0 on background).
+
+    Args:
+        gbuffer: a float32 CPU G-buffer; normals: its ``(B,3,H,W)`` unit view-space normals.
+        variant: ``"exact"``, ``"hdrp"`` or ``"ue4"`` (the accumulator and, for the shaders, their step
+            placement). slices, steps: counts; walk_radius: world units the walk covers on screen
+            (``radius * search_scale``); radius: world units within which samples count.
+        falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
+            thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
+            (pixels, ``None``: none), jitter, seed, fetch, border, azimuth, projected_normal_weight: as
+            :class:`~torch_ao.GTAO`.
+
+    Channels: the slice integrals and the unoccluded integrals summed over slices, then with
+    ``bent_normals`` the bent-normal sum (3). Raises :class:`~torch_ao.kernels.KernelUnavailable` when the
+    kernel cannot be built.
+    """
+    return cpu_kernels().gtao_sums(
+        *_kernel_inputs(gbuffer, normals), VARIANTS.index(variant), int(slices), int(steps), float(walk_radius),
+        float(radius), float(falloff), float(thickness), float(step_power), float(min_step_px),
+        float(max_radius_px or 0.0), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
+        azimuth == "screen", bool(projected_normal_weight), bool(bent_normals))
+
+
+def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
+              angle_bias: float, falloff: str = "linear", accumulate: str = "incremental", elevation: str = "image",
+              step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
+              fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen") -> torch.Tensor:
+    """Per-pixel sum over directions of HBAO's weighted horizon rise ``(B,H,W,1)`` (0 on background).
+
+    Args:
+        gbuffer, normals: as :func:`gtao_sums`. slices: directions over the full circle; steps: samples
+        per direction; radius: world units; angle_bias: radians; falloff, accumulate, elevation,
+        step_power, min_step_px (pixels), jitter, seed, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
+    """
+    return cpu_kernels().hbao_sums(
+        *_kernel_inputs(gbuffer, normals), int(slices), int(steps), float(radius), float(angle_bias),
+        falloff == "quadratic", accumulate == "incremental", elevation == "view", float(step_power),
+        float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop", azimuth == "screen")
+
+
+def _finish(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The module's accumulator's ``finish`` of per-pixel ``sums`` ``{name: (B*H*W, C)}`` on every pixel (rows
+    are independent), as images, with the background put back (visibility 1, the G-buffer's normal)."""
+    B, _, H, W = gbuffer.depth.shape
+    out = module.accumulator(SimpleNamespace(dtype=torch.float32)).finish(sums, None, module.slices)
+    images = {"visibility": 1.0, "bent_normal": normals}
+    return {name: torch.where(gbuffer.valid, out[name].view(B, H, W, -1).permute(0, 3, 1, 2), images[name])
+            for name in out}
+
+
+def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
+    """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)[, "bent_normal": (B,3,H,W)]}`` for a
+    :class:`~torch_ao.GTAO` the kernel covers (:func:`gtao_covers`)."""
+    m = module
+    normals = gbuffer.view_normals(m.normals_method)
+    falloff = 0.0
+    if m.variant == "exact" and _value(m.falloff_range) > 0:
+        falloff = _value((m.falloff_range * m.radius).clamp_min(1e-12))
+    sums = gtao_sums(
+        gbuffer, normals, variant=m.variant, slices=m.slices, steps=m.steps,
+        walk_radius=_value(m.radius * m.search_scale) if m.variant == "exact" else _value(m.radius),
+        radius=_value(m.radius), falloff=falloff, thickness=_value(m.thickness_heuristic),
+        step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
+        seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
+        projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
+    sums = sums.view(-1, sums.shape[-1])
+    flat = {"vis": sums[:, 0:1], "free": sums[:, 1:2]}
+    if m.bent_normals:
+        flat["bent"] = sums[:, 2:5].contiguous()
+    return _finish(m, gbuffer, flat, normals)
+
+
+def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
+    """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for an :class:`~torch_ao.HBAO` the kernel
+    covers (:func:`hbao_covers`)."""
+    m = module
+    normals = gbuffer.view_normals(m.normals_method)
+    sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=_value(m.radius),
+                     angle_bias=_value(m.angle_bias), falloff=m.falloff, accumulate=m.accumulate,
+                     elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
+                     seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
+    return _finish(m, gbuffer, {"ao": sums.view(-1, 1)}, normals)
+
+
+#: options of every module the horizon kernels know: ``None`` for any value, else the values covered
+_WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed",
+                               "fetch", "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
+                               "backend"))
+_GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
+    "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
+    "projected_normal_weight", "max_radius_px", "search_scale"))
+_HBAO_OPTIONS = _WALK_OPTIONS | dict.fromkeys(("angle_bias", "falloff", "accumulate", "elevation"))
+
+
+def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]) -> str | None:
+    """Why the kernel cannot compute ``module(gbuffer)`` (``None``: it can).
+
+    Every option of the module must be one the kernel knows, at a value it covers (an option added to
+    the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
+    G-buffer float32 on CPU, and no gradient asked for (the kernels have no backward).
+    """
+    for name, value in getattr(module, "values", {}).items():
+        if name not in options:
+            return f"option {name!r} (unknown to the kernel)"
+        if options[name] is not None and value not in options[name]:
+            return f"{name}={value!r}"
+    tensors = [getattr(module, name) for name in parameters]
+    if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in tensors):
+        return "a parameter other than a scalar"
+    if gbuffer.position is not None and module.fetch == "bilinear":
+        return "bilinear reads of a position buffer (the kernel unprojects the interpolated depth)"
+    if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
+        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                       for t in [gbuffer.depth, gbuffer.normals, *tensors]):
+        return "a gradient is asked for (the kernel has no backward)"
+    return None
+
+
+def gtao_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`gtao_forward` computes ``module(gbuffer)`` (a ``GTAO``), else why not."""
+    return _covers(module, gbuffer, _GTAO_OPTIONS, ("radius", "falloff_range", "thickness_heuristic", "final_power",
+                                                   "albedo"))
+
+
+def hbao_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`hbao_forward` computes ``module(gbuffer)`` (an ``HBAO``), else why not."""
+    return _covers(module, gbuffer, _HBAO_OPTIONS, ("radius", "angle_bias"))
