@@ -115,6 +115,10 @@ def test_kernel_covers_names_what_it_does_not_cover():
         positions = GBuffer(depth=gb.depth, camera=gb.camera, position=gb.positions())
         assert "position buffer" in gtao_covers(GTAO(), positions)
         assert gtao_covers(GTAO(fetch="nearest"), positions) is None  # nearest reads the texel's position
+        # the edge-aware fetch is the tensor path's only; a reduced resolution is a smaller G-buffer to the kernel
+        assert gtao_covers(GTAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
+        assert hbao_covers(HBAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
+        assert gtao_covers(GTAO(preset="high@half"), gb) is None
     # the kernels have no backward: a call that may need gradients runs the tensor path
     assert "gradient" in gtao_covers(GTAO(), gb)  # trainable parameters, autograd on
     assert gtao_covers(GTAO(trainable=False), gb) is None

@@ -137,8 +137,8 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
 
 #: options of every module the horizon kernels know: ``None`` for any value, else the values covered
 _WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed",
-                               "fetch", "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
-                               "backend"))
+                               "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
+                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest")}
 _GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))
