@@ -4,6 +4,7 @@ from __future__ import annotations
 import warnings
 
 from ..gbuffer import GBuffer
+from . import soft_bitmask
 from .bitmask import bitmask_hard, kernel_covers
 from .build import KernelUnavailable
 
@@ -22,28 +23,46 @@ def _warn_once(message: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=4)
 
 
+def _hard_forward(module, gbuffer: GBuffer):
+    return bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
+                        steps=module.steps, radius=float(module.radius.detach()),
+                        thickness=float(module.thickness.detach()), step_power=module.step_power,
+                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
+                        fetch=module.fetch, border=module.border, rounding=module.rounding,
+                        sector_epsilon=module.sector_epsilon)
+
+
+#: the kernels of a method with ``has_kernel``, tried in order: ``(covers, forward)``, ``covers(module,
+#: gbuffer)`` giving ``None`` or why not, ``forward(module, gbuffer)`` the visibility ``(B,1,H,W)``
+KERNELS = ((kernel_covers, _hard_forward), (soft_bitmask.kernel_covers, soft_bitmask.module_forward))
+
+
 def kernel_forward(module, gbuffer: GBuffer, backend: str):
     """The kernel's visibility ``(B,1,H,W)`` for ``module(gbuffer)``, or ``None`` where the tensor path runs.
 
-    A kernel exists for ``BitmaskAO`` (and subclasses) in the settings :func:`kernel_covers` accepts.
+    A kernel exists for ``BitmaskAO`` (and subclasses): the hard one in the settings :func:`kernel_covers`
+    accepts, the soft / straight-through one (with its backward) in those
+    :func:`~.soft_bitmask.kernel_covers` accepts (:data:`KERNELS`).
 
     A kernel that cannot be built here (no compiler, a failed build) falls back to the tensor path with
     one warning per process, whatever ``backend`` asks.
     """
     if backend == "torch":
         return None
-    reason = kernel_covers(module, gbuffer) if module.has_kernel else f"no kernel for {type(module).__name__}"
-    if reason is not None:
+    reasons, run = [], None
+    for covers, forward in KERNELS if module.has_kernel else ():
+        reason = covers(module, gbuffer)
+        if reason is None:
+            run = forward
+            break
+        reasons.append(reason)
+    if run is None:
         if backend == "kernel":
+            reason = " / ".join(dict.fromkeys(reasons)) or f"no kernel for {type(module).__name__}"
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")
         return None
     try:
-        return bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
-                            steps=module.steps, radius=float(module.radius.detach()),
-                            thickness=float(module.thickness.detach()), step_power=module.step_power,
-                            min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
-                            fetch=module.fetch, border=module.border, rounding=module.rounding,
-                            sector_epsilon=module.sector_epsilon)
+        return run(module, gbuffer)
     except KernelUnavailable as exc:
         _warn_once(f"torch_ao: {exc}; using the tensor-op walk instead (backend='torch' silences this)")
         return None
