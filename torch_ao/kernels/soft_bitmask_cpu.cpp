@@ -189,25 +189,27 @@ void slice_frame(const Config& cfg, const Pixel& px, const Vec& cs, const Vec& s
   }
   // methods.bitmask_common.cosine_sector_weights: omega_k = |n_p| max(H(e_{k+1}) - H(e_k), 0) with the
   // sector edges e_k = gamma - pi/2 + pi k / 32 and H(t) = sign(t) (F(t) - F(0)),
-  // F(t) = -cos(2 t - gamma) / 4 + t sin(gamma) / 2 (ops.arc_measure)
+  // F(t) = -cos(2 t - gamma) / 4 + t sin(gamma) / 2 (ops.arc_measure). No trigonometry: n_p lies in the
+  // slice plane, so (cos gamma, sin gamma) = (n_p . V, n_p . T) / |n_p|, and 2 e_k - gamma =
+  // gamma - pi + pi k / 16 gives -cos(2 e_k - gamma) = cos gamma cos(pi k / 16) - sin gamma sin(pi k / 16).
   sl.length = norm3(np);
-  alignas(64) float arg[K + 2][L], cosine[K + 2][L], sine_gamma[L];
-  Vec edge[K + 1];
+  const Vec flat = sl.length == Vec(0.0f);  // (gamma = atan2(0, 0) = 0 there)
+  const Vec inv_length = select(flat, Vec(0.0f), Vec(1.0f) / sl.length);
+  const Vec cos_g = select(flat, Vec(1.0f), dot3(np, V) * inv_length), sin_g = dot3(np, T) * inv_length;
+  const Vec F0 = cos_g.neg() / Vec(4.0f);
   const Vec base = gamma - Vec(float(M_PI / 2));
-  for (int k = 0; k <= K; ++k) {
-    edge[k] = base + Vec(float(M_PI) * float(k) / float(K));
-    (edge[k] * Vec(2.0f) - gamma).store(arg[k]);
-  }
-  (Vec(0.0f) - gamma).store(arg[K + 1]);
-  gamma.store(sine_gamma);
-  cos_sin(&arg[0][0], &cosine[0][0], nullptr, (K + 2) * L);
-  cos_sin(sine_gamma, nullptr, sine_gamma, L);
-  const Vec sin_g = Vec::loadu(sine_gamma);
-  const Vec F0 = Vec::loadu(cosine[K + 1]).neg() / Vec(4.0f) + (Vec(0.0f) * sin_g) / Vec(2.0f);
+  static const std::vector<float> rotation = [] {  // cos(pi k / 16), sin(pi k / 16)
+    std::vector<float> r(2 * (K + 1));
+    for (int k = 0; k <= K; ++k) {
+      r[2 * k] = float(std::cos(M_PI * k / 16.0));
+      r[2 * k + 1] = float(std::sin(M_PI * k / 16.0));
+    }
+    return r;
+  }();
   Vec previous;
   for (int k = 0; k <= K; ++k) {
-    const Vec t = edge[k];
-    const Vec F = Vec::loadu(cosine[k]).neg() / Vec(4.0f) + (t * sin_g) / Vec(2.0f);
+    const Vec t = base + Vec(float(M_PI) * float(k) / float(K));
+    const Vec F = (cos_g * Vec(rotation[2 * k]) - sin_g * Vec(rotation[2 * k + 1])) / Vec(4.0f) + (t * sin_g) / Vec(2.0f);
     const Vec sign = select(t > Vec(0.0f), Vec(1.0f), select(t < Vec(0.0f), Vec(-1.0f), Vec(0.0f)));
     const Vec H = sign * (F - F0);
     if (k > 0) omega[k - 1] = at::vec::clamp_min(H - previous, Vec(0.0f)) * sl.length;
