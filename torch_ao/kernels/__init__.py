@@ -2,7 +2,8 @@
 
 The tensor-op walk (:mod:`torch_ao.marching`) stays the reference and serves whatever a kernel does
 not cover; a kernel is tested equal to it. Today: the hard visibility-bitmask AO of
-``BitmaskAO(variant="default")`` on CPU (:func:`bitmask_hard`), a C++ source built on first use with
+``BitmaskAO(variant="default")`` on CPU (:func:`bitmask_hard`) and its soft / straight-through forward and
+backward (:func:`bitmask_soft`, gradients of radius and thickness), C++ sources built on first use with
 the compiler PyTorch's extensions use (``torch.utils.cpp_extension``) and cached; see
 docs/performance.md for how it was chosen and what it measures.
 """
@@ -10,6 +11,8 @@ from __future__ import annotations
 
 from .build import KernelUnavailable, cpu_kernels
 from .bitmask import bitmask_hard, kernel_covers
+from .soft_bitmask import bitmask_soft
 from .dispatch import BACKENDS, kernel_forward
 
-__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "kernel_covers", "BACKENDS", "kernel_forward"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "bitmask_soft", "kernel_covers", "BACKENDS",
+           "kernel_forward"]

@@ -16,7 +16,7 @@ from ..sectors import ROUNDINGS
 from .bitmask import options_uncovered, walk_inputs
 from .build import cpu_kernels
 
-__all__ = ["soft_bitmask", "kernel_covers", "module_forward"]
+__all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
 _OP = "torch_ao_kernels::soft_bitmask"
 #: the op's arguments after its eight tensors, in order
@@ -24,7 +24,7 @@ _SETTINGS = ("slices", "steps", "step_power", "min_step_px", "jitter", "seed", "
              "epsilon", "tau", "cosine")
 
 
-def soft_bitmask(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
+def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, weighting: str = "uniform", straight_through: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
@@ -91,7 +91,7 @@ _WEIGHTINGS = ("uniform", "cosine")
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
-    """``None`` when :func:`soft_bitmask` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
+    """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
     in soft or straight-through mode), else why not: the hard kernel's options (any slices, steps, radius,
     jitter, rounding, fetch, border... one scalar thickness, visibility only, a float32 CPU G-buffer) with
     either weighting, and no gradient asked of the G-buffer (depth, position, normals, intrinsics)."""
@@ -107,8 +107,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 
 
 def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
-    """``module(gbuffer).visibility`` by :func:`soft_bitmask` (a call :func:`kernel_covers` accepts)."""
-    return soft_bitmask(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
+    """``module(gbuffer).visibility`` by :func:`bitmask_soft` (a call :func:`kernel_covers` accepts)."""
+    return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=module.radius, thickness=module.thickness, tau=module.tau, weighting=module.weighting,
                         straight_through=module.mode == "straight_through", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
