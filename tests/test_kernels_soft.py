@@ -71,6 +71,18 @@ def test_values_and_gradients_equal_the_tensor_walk(built, frame, setting):
         assert ref_radius != 0
 
 
+def test_hard_mode_with_cosine_weights_equals_the_tensor_walk(built):
+    """The hard kernel has uniform sectors only; this kernel's straight-through forward covers hard mode with
+    cosine weights: the same masks, the cosine weights without trigonometry (to a few ulp of torch's)."""
+    for frame in ("example", "rough"):
+        gb = FRAMES[frame]()
+        settings = dict(mode="hard", weighting="cosine", slices=3, steps=4)
+        reference = BitmaskAO(backend="torch", **settings)(gb).visibility
+        out = BitmaskAO(backend="kernel", **settings)(gb).visibility
+        assert not out.requires_grad and reference.min() < 1
+        assert (out - reference).abs().max() <= 1e-6
+
+
 def test_straight_through_forward_is_the_hard_kernels_visibility_bit_for_bit(built):
     gb = rough_gbuffer()
     settings = dict(slices=3, steps=4, rounding="round")
@@ -146,7 +158,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
     for mode in ("soft", "straight_through"):
         for weighting in ("uniform", "cosine"):
             assert covers(BitmaskAO(mode=mode, weighting=weighting), gb) is None
-    assert "mode" in covers(BitmaskAO(mode="hard"), gb)
+    assert covers(BitmaskAO(mode="hard", weighting="cosine"), gb) is None  # (uniform: the hard kernel's first)
     assert "thickness" in covers(BitmaskAO(mode="soft", thickness=torch.ones(3)), gb)
     assert "indirect" in covers(BitmaskAO(mode="soft", indirect=True), gb)
     assert "float64" in covers(BitmaskAO(mode="soft"), gb.to(dtype=torch.float64))

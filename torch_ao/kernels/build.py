@@ -63,10 +63,11 @@ def _register_fake() -> None:
         return positions.new_empty(B, 1, H, W)
 
     @torch.library.register_fake("torch_ao_kernels::soft_bitmask")
-    def _(positions, *args):
-        B, H, W, _ = positions.shape
-        return positions.new_empty(B, 1, H, W)
+    def _(positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, slices, steps, *args):
+        B, H, W, _ = positions.shape  # the visibility, and one byte per 16 pixels, slice and step (live steps)
+        return positions.new_empty(B, 1, H, W), positions.new_empty(B, H, -(-W // 16), slices, 2 * steps,
+                                                                      dtype=torch.uint8)
 
     @torch.library.register_fake("torch_ao_kernels::soft_bitmask_backward")
-    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, *args):
+    def _(grad, live, positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, *args):
         return radius.new_empty(()), thickness.new_empty(())

@@ -60,17 +60,17 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     return ops.soft_bitmask(*walk_inputs(gbuffer, normals), *scalars, int(slices), int(steps), float(step_power),
                             float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
                             ROUNDINGS.index(rounding), float(sector_epsilon), float(tau), weighting == "cosine",
-                            bool(straight_through))
+                            bool(straight_through))[0]
 
 
 def _setup_context(ctx, inputs, output):
-    ctx.save_for_backward(*inputs[:8])
+    ctx.save_for_backward(output[1], *inputs[:8])  # the forward's marks of the live steps, then its tensors
     ctx.settings = inputs[8:8 + len(_SETTINGS)]
 
 
-def _backward(ctx, grad):
-    tensors = ctx.saved_tensors
-    g_radius, g_thickness = torch.ops.torch_ao_kernels.soft_bitmask_backward(grad, *tensors, *ctx.settings)
+def _backward(ctx, grad, _):
+    live, *tensors = ctx.saved_tensors
+    g_radius, g_thickness = torch.ops.torch_ao_kernels.soft_bitmask_backward(grad, live, *tensors, *ctx.settings)
     return (None,) * 6 + (g_radius, g_thickness) + (None,) * (len(_SETTINGS) + 1)
 
 
@@ -85,14 +85,15 @@ def _register_autograd() -> None:
         _registered = True
 
 
-#: options of a module the soft kernel reproduces (beyond the hard kernel's): the modes and weightings
-_MODES = ("soft", "straight_through")
+#: options of a module the soft kernel reproduces (beyond the hard kernel's): the modes and weightings (hard
+#: mode is the straight-through forward without a graph: the hard kernel's masks with cosine weights too)
+_MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
-    in soft or straight-through mode), else why not: the hard kernel's options (any slices, steps, radius,
+    in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's options (any slices, steps, radius,
     jitter, rounding, fetch, border... one scalar thickness, visibility only, a float32 CPU G-buffer) with
     either weighting, and no gradient asked of the G-buffer (depth, position, normals, intrinsics)."""
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS)
@@ -108,8 +109,10 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 
 def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
     """``module(gbuffer).visibility`` by :func:`bitmask_soft` (a call :func:`kernel_covers` accepts)."""
+    hard = module.mode == "hard"  # hard masks have no gradient: no graph
+    radius, thickness = (module.radius.detach(), module.thickness.detach()) if hard else (module.radius, module.thickness)
     return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                        radius=module.radius, thickness=module.thickness, tau=module.tau, weighting=module.weighting,
-                        straight_through=module.mode == "straight_through", step_power=module.step_power,
+                        radius=radius, thickness=thickness, tau=module.tau, weighting=module.weighting,
+                        straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
                         border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)

@@ -24,6 +24,7 @@
 #include <ATen/cpu/vec/vec.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/full.h>
+#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
 #include <atomic>
@@ -48,6 +49,11 @@ constexpr int K = 32;             // sectors
 constexpr float kClamp = 30.0f;   // logistic arguments are clamped to +-30 (torch_ao.sectors.sweeps.CLAMP)
 constexpr float kTiny = 1e-30f;   // visibilities at or below are flushed to 0 (sweeps.TINY)
 constexpr int kWindowMax = 8;     // sweeps.WINDOW_MAX
+// The forward marks, per chunk of kChunk pixels of a row, slice and step, whether any pixel's interval is
+// not empty (one byte per kChunk samples); the backward walks only those steps (an empty one covers
+// nothing and has no gradient). kChunk is a multiple of every build's vector width.
+constexpr int kChunk = 16;
+static_assert(kChunk % L == 0, "a chunk holds whole vectors");
 
 // cos/sin as torch.cos/torch.sin compute them on this build (MKL's vector math, else SLEEF)
 void cos_sin(const float* x, float* c, float* s, int64_t n) {
@@ -465,13 +471,19 @@ struct Row {
                 K4[0], K4[1], sl, omega);
   }
 
-  void walk_slice(const Pixel& px, const Slice& sl, bool slopes, Step* steps) const {
-    int64_t m = 0;
-    for (int side = 1; side >= -1; side -= 2)
-      for (int64_t j = 0; j < cfg.steps; ++j) sample_step(cfg, in, b, px, sl, side, j, slopes, steps[m++]);
+  // step m of a slice: steps 0 .. steps - 1 on side +1, then those of side -1 (the tensor walk's order)
+  void sample(const Pixel& px, const Slice& sl, int64_t m, bool slopes, Step& st) const {
+    const bool plus = m < cfg.steps;
+    sample_step(cfg, in, b, px, sl, plus ? 1 : -1, plus ? m : m - cfg.steps, slopes, st);
   }
 
-  void forward(float* out) const {
+  // the live marks of the chunk holding pixel u0: (slices, 2 steps) bytes
+  uint8_t* marks(uint8_t* live, int64_t u0) const {
+    const int64_t chunks = (in.W + kChunk - 1) / kChunk;
+    return live + ((b * in.H + row) * chunks + u0 / kChunk) * cfg.slices * 2 * cfg.steps;
+  }
+
+  void forward(float* out, uint8_t* live) const {
     const int64_t M = 2 * cfg.steps;
     std::vector<Step> steps(M);
     Coverage cv;
@@ -486,9 +498,13 @@ struct Row {
         continue;
       }
       Vec num(0.0f), den(0.0f);
+      uint8_t* mark = marks(live, u0);
       for (int64_t s = 0; s < cfg.slices; ++s) {
         slice(px, u0, s, sl, omega);
-        walk_slice(px, sl, false, steps.data());
+        for (int64_t m = 0; m < M; ++m) {
+          sample(px, sl, m, false, steps[m]);
+          mark[s * M + m] |= any_lane(steps[m].w >= Vec(0.0f));
+        }
         num = num + slice_forward(cfg, steps.data(), M, omega, cv);
         if (cfg.cosine) {
           Vec total(0.0f);
@@ -503,7 +519,7 @@ struct Row {
   }
 
   // adds (dL/dradius, dL/dthickness) of this row to sums[0], sums[1]
-  void backward(const float* grad_out, double* sums) const {
+  void backward(const float* grad_out, const uint8_t* live, double* sums) const {
     const int64_t M = 2 * cfg.steps, S = cfg.slices;
     std::vector<Step> steps(M);
     std::vector<Vec> omega(S * K), gs(M), gw(M);
@@ -527,12 +543,18 @@ struct Row {
       const Vec upstream = select(px.live, Vec::loadu(grad_out + (b * in.H + row) * in.W + u0, n) / den, Vec(0.0f));
       if (!any_lane(upstream != Vec(0.0f))) continue;
       Vec g_radius(0.0f), g_thickness(0.0f);
+      const uint8_t* mark = marks(const_cast<uint8_t*>(live), u0);
       for (int64_t s = 0; s < S; ++s) {
+        int64_t count = 0;  // the slice's live steps, in order
+        for (int64_t m = 0; m < M; ++m) count += mark[s * M + m];
+        if (count == 0) continue;
         slice(px, u0, s, sl, cfg.cosine ? nullptr : omega.data());
         for (int k = 0; k < K; ++k) grad[k] = upstream * (cfg.cosine ? omega[s * K + k] : omega[k]);
-        walk_slice(px, sl, true, steps.data());
-        slice_backward(cfg, steps.data(), M, grad, tab, gs.data(), gw.data());
-        for (int64_t m = 0; m < M; ++m) {
+        count = 0;
+        for (int64_t m = 0; m < M; ++m)
+          if (mark[s * M + m]) sample(px, sl, m, true, steps[count++]);
+        slice_backward(cfg, steps.data(), count, grad, tab, gs.data(), gw.data());
+        for (int64_t m = 0; m < count; ++m) {
           const Step& st = steps[m];
           // SectorInterval.backward: s = 32 lo, w = 32 (hi - lo) - epsilon, clamps pass inside [0, 1]
           const Vec g_lo = (gs[m] - gw[m]) * Vec(float(K)), g_hi = gw[m] * Vec(float(K));
@@ -610,7 +632,7 @@ void over_rows(int64_t rows, F&& fn) {
   });
 }
 
-at::Tensor soft_bitmask(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+std::tuple<at::Tensor, at::Tensor> soft_bitmask(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
                         const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
                         const at::Tensor& radius, const at::Tensor& thickness, int64_t slices, int64_t steps,
                         double step_power, double min_step_px, bool jitter, int64_t seed, bool bilinear, bool drop,
@@ -620,13 +642,15 @@ at::Tensor soft_bitmask(const at::Tensor& positions, const at::Tensor& normals, 
   const Inputs in = make_inputs(positions, normals, inverse_depth, depth, valid, intrinsics);
   const int64_t B = positions.size(0);
   at::Tensor out = at::empty({B, 1, in.H, in.W}, positions.options());
+  at::Tensor live = at::zeros({B, in.H, (in.W + kChunk - 1) / kChunk, slices, 2 * steps}, positions.options().dtype(at::kByte));
   float* o = out.data_ptr<float>();
-  over_rows(B * in.H, [&](int64_t r) { Row(cfg, in, r / in.H, r % in.H).forward(o); });
-  return out;
+  uint8_t* marks = live.data_ptr<uint8_t>();
+  over_rows(B * in.H, [&](int64_t r) { Row(cfg, in, r / in.H, r % in.H).forward(o, marks); });
+  return {out, live};
 }
 
 std::tuple<at::Tensor, at::Tensor> soft_bitmask_backward(
-    const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+    const at::Tensor& grad, const at::Tensor& live, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& radius,
     const at::Tensor& thickness, int64_t slices, int64_t steps, double step_power, double min_step_px, bool jitter,
     int64_t seed, bool bilinear, bool drop, int64_t rounding, double epsilon, double tau, bool cosine) {
@@ -637,8 +661,11 @@ std::tuple<at::Tensor, at::Tensor> soft_bitmask_backward(
   TORCH_CHECK(g.numel() == positions.size(0) * in.H * in.W, "grad: expected (B, 1, H, W)");
   const int64_t rows = positions.size(0) * in.H;
   std::vector<double> per_row(2 * rows, 0.0);  // summed in row order below: the same result on any thread count
+  TORCH_CHECK(live.scalar_type() == at::kByte && live.is_contiguous() &&
+              live.numel() == rows * ((in.W + kChunk - 1) / kChunk) * slices * 2 * steps, "live: expected the forward's marks");
   const float* go = g.data_ptr<float>();
-  over_rows(rows, [&](int64_t r) { Row(cfg, in, r / in.H, r % in.H).backward(go, per_row.data() + 2 * r); });
+  const uint8_t* marks = live.data_ptr<uint8_t>();
+  over_rows(rows, [&](int64_t r) { Row(cfg, in, r / in.H, r % in.H).backward(go, marks, per_row.data() + 2 * r); });
   double total[2] = {0.0, 0.0};
   for (int64_t r = 0; r < rows; ++r) {
     total[0] += per_row[2 * r];
@@ -654,8 +681,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.def("soft_bitmask(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, Tensor radius, Tensor thickness, int slices, int steps, float step_power, "
         "float min_step_px, bool jitter, int seed, bool bilinear, bool drop, int rounding, float epsilon, float tau, "
-        "bool cosine, bool hard_forward) -> Tensor");
-  m.def("soft_bitmask_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
+        "bool cosine, bool hard_forward) -> (Tensor, Tensor)");
+  m.def("soft_bitmask_backward(Tensor grad, Tensor live, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
         "Tensor valid, Tensor intrinsics, Tensor radius, Tensor thickness, int slices, int steps, float step_power, "
         "float min_step_px, bool jitter, int seed, bool bilinear, bool drop, int rounding, float epsilon, float tau, "
         "bool cosine) -> (Tensor, Tensor)");
