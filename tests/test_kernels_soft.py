@@ -1,28 +1,16 @@
 """The C++ soft / straight-through bitmask kernel against the tensor-op walk: values to 1e-6, gradients of
 radius and thickness to 1e-5 relative; finite differences; the hard limit; what it does not cover."""
-import shutil
 import warnings
 
 import pytest
 import torch
 
-from test_kernels import FRAMES, kernel_of, rough_gbuffer
+from test_kernels import FRAMES, built, kernel_of, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
-from torch_ao.kernels import KernelUnavailable, bitmask_soft, cpu_kernels
+from torch_ao.kernels import KernelUnavailable, bitmask_soft
 import torch_ao.kernels.soft_bitmask as soft_module
 from torch_ao.methods.bitmask import BitmaskAO
-
-pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
-                                reason="the kernels need a C++ compiler")
-
-
-@pytest.fixture(scope="module")
-def built():
-    try:
-        return cpu_kernels()
-    except KernelUnavailable as exc:  # a compiler is there: a failed build is a failure
-        pytest.fail(str(exc))
 
 
 SETTINGS = [
@@ -213,3 +201,16 @@ def test_a_soft_kernel_that_cannot_be_built_falls_back_with_one_warning(monkeypa
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         BitmaskAO(mode="soft", slices=2, steps=3)(gb)  # warned once
+
+
+@pytest.mark.slow
+def test_compiled_module_runs_the_kernel_with_eager_values_and_gradients(built):
+    """``torch.compile`` traces the op as one graph node (its fake shapes) and its registered backward."""
+    gb = example_gbuffer(24, 32)
+    module = BitmaskAO(mode="soft", slices=2, steps=3, weighting="cosine")
+    compiled = torch.compile(module, dynamic=False)
+    out = compiled(gb).visibility
+    grads = torch.autograd.grad(out.sum(), [module.radius, module.thickness])
+    eager = module(gb).visibility
+    assert torch.equal(out, eager)
+    assert all(torch.equal(a, b) for a, b in zip(grads, torch.autograd.grad(eager.sum(), [module.radius, module.thickness])))
