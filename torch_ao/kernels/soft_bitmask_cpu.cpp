@@ -27,6 +27,8 @@
 #include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
+#include "walk_cpu.h"
+
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -253,14 +255,8 @@ void sample_step(const Config& cfg, const Inputs& in, int64_t b, const Pixel& px
   const Vec su = px.u + dist * su_dir, sv = px.v + dist * sv_dir;
   Vec at_s[3], ok, d_at[3];  // the sample's position (and its derivative along the radius)
   if (cfg.bilinear) {
-    const Vec fu0 = su.floor(), fv0 = sv.floor();
-    const Vec fu = su - fu0, fv = sv - fv0;
-    const Int iu = to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), iv = to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf));
-    const Int c0 = at::vec::clamp(iu, zero_i, Wlast), c1 = at::vec::clamp(iu + one_i, zero_i, Wlast);
-    const Int r0 = at::vec::clamp(iv, zero_i, Hlast) * Wi, r1 = at::vec::clamp(iv + one_i, zero_i, Hlast) * Wi;
-    const Vec t0 = at::vec::gather<4>(inv, r0 + c0), t1 = at::vec::gather<4>(inv, r0 + c1);
-    const Vec t2 = at::vec::gather<4>(inv, r1 + c0), t3 = at::vec::gather<4>(inv, r1 + c1);
-    ok = (t0 == t0) & (t1 == t1) & (t2 == t2) & (t3 == t3);  // invalid texels hold NaN
+    const auto [fu0, fv0, fu, fv, t0, t1, t2, t3, taps_ok] = torch_ao_walk::bilinear_taps(inv, su, sv, in.W, in.H);
+    ok = taps_ok;  // invalid texels hold NaN
     if (cfg.drop) ok = ok & (fu0 >= Vec(0.0f)) & (fu0 + Vec(1.0f) < Wf) & (fv0 >= Vec(0.0f)) & (fv0 + Vec(1.0f) < Hf);
     const Vec depth_s = lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv).reciprocal();
     const Vec su_c = at::vec::clamp(su, Vec(0.0f), Vec(float(in.W - 1)));
