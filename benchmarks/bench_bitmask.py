@@ -8,6 +8,8 @@ building the G-buffer). On CUDA, ``torch.cuda.max_memory_allocated`` is reported
     python benchmarks/bench_bitmask.py --quick         # 320x180 only
     python benchmarks/bench_bitmask.py --size 160x90 --repeat 5   # any size (no 1280x720 row); warm, min of 4
     python benchmarks/bench_bitmask.py --scene stairs --no-720p   # a reference scene's ray-traced G-buffer
+    python benchmarks/bench_bitmask.py --soft-kernel --repeat 3   # the soft kernel: gradients of radius and
+                                                                  # thickness only, 640x360 and 1280x720
 
 The default frame is a floor meeting a wall (``torch_ao.examples.floor_wall_gbuffer``). The "dense" rows
 use ``thickness=1000, sector_epsilon=0``: every sample's interval is non-empty, the worst case for the
@@ -41,15 +43,18 @@ def child(args: dict) -> dict:
         gb, _ = floor_wall_gbuffer(H, W, wall_distance=1.0, light_direction=(0.3, 0.8, 0.5))
     device = args.get("device", "cpu")
     grad = args["backward"]
-    depth = gb.depth.to(device).requires_grad_(grad)
-    normals = gb.normals.to(device).requires_grad_(grad)
-    light = gb.light.to(device).requires_grad_(grad)
+    params_only = args.get("params_only", False)  # the gradients of radius and thickness, not the G-buffer's
+    depth = gb.depth.to(device).requires_grad_(grad and not params_only)
+    normals = gb.normals.to(device).requires_grad_(grad and not params_only)
+    light = gb.light.to(device).requires_grad_(grad and not params_only)
     gbuf = GBuffer(depth, gb.camera.to(device), normals=normals, light=light)
     extra = {} if args.get("chunk_size") is None else {"chunk_size": args["chunk_size"], "recompute": True}
     if args.get("dense"):
         extra.update(thickness=1000.0, sector_epsilon=0.0)
+    if args.get("backend"):
+        extra["backend"] = args["backend"]
     module = BitmaskAO(mode=args["mode"], slices=4, steps=8, radius=1.0, **{"thickness": 0.5, **extra},
-                       indirect=args["indirect"]).to(device)
+                       indirect=args["indirect"], weighting=args.get("weighting", "uniform")).to(device)
 
     def rss_now_kb() -> int:
         with open(f"/proc/{os.getpid()}/statm") as f:
@@ -60,7 +65,7 @@ def child(args: dict) -> dict:
         torch.cuda.reset_peak_memory_stats()
         torch.cuda.synchronize()
     def call():
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ctx = torch.enable_grad() if grad else torch.no_grad()
         with ctx:
             out = module(gbuf)
@@ -69,18 +74,20 @@ def child(args: dict) -> dict:
                 loss.backward()
         if device != "cpu":
             torch.cuda.synchronize()
-        return time.perf_counter() - t0, out
+        return time.perf_counter() - t0, time.process_time() - c0, out
 
-    seconds, out = call()
+    seconds, cpu, out = call()
     if args.get("repeat", 1) > 1:  # warm: the first call above is the warm-up; report the fastest of the rest
-        seconds = min(call()[0] for _ in range(args["repeat"] - 1))
+        seconds, cpu = min(call()[:2] for _ in range(args["repeat"] - 1))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    result = {"seconds": seconds, "peak_mb": (peak - baseline) / 1024.0, "baseline_mb": baseline / 1024.0}
+    result = {"seconds": seconds, "cpu_seconds": cpu, "peak_mb": (peak - baseline) / 1024.0,
+              "baseline_mb": baseline / 1024.0}
     if device != "cpu":
         result["peak_mb"] = torch.cuda.max_memory_allocated() / 2**20
     valid = gbuf.valid
+    graded = [module.radius.grad, module.thickness.grad] if params_only else [depth.grad]
     result["finite"] = bool(torch.isfinite(out.visibility[valid.expand_as(out.visibility)]).all()) and (
-        not grad or bool(torch.isfinite(depth.grad).all()))
+        not grad or all(bool(torch.isfinite(g).all()) for g in graded))
     return result
 
 
@@ -103,9 +110,14 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads in each case (default 1)")
     parser.add_argument("--scene", default=None, help="a reference scene (torch_ao.reference.list_scenes()) instead "
                         "of the floor/wall frame: its G-buffer ray traced at the benchmark size")
+    parser.add_argument("--soft-kernel", action="store_true", help="the soft kernel's table (gradients of radius and "
+                        "thickness, kernel against tensor path) at 640x360 and 1280x720 instead")
     a = parser.parse_args()
     if a.child:
         print(json.dumps(child(json.loads(a.child))))
+        return
+    if a.soft_kernel:
+        soft_kernel_table(a)
         return
     H, W = (180, 320) if a.quick else (360, 640)
     if a.size:
@@ -151,6 +163,32 @@ def main() -> None:
         r = run_case(height=720, width=1280, device=a.device, chunk_size=a.chunk_size, threads=a.threads, mode="soft",
                      backward=True, indirect=False)
         print(f"{'1280x720 soft forward+backward, AO only':46s} {r['seconds']:8.2f} {r['peak_mb']:9.0f}")
+
+
+def soft_kernel_table(a) -> None:
+    """The soft kernel's rows: forward+backward of the scalar radius and thickness (the G-buffer without
+    gradients, as ``torch-ao fit``) against the kernel's hard forward and the tensor path, CPU and wall time."""
+    rows = [
+        ("hard forward (kernel)", dict(mode="hard", backward=False, backend="kernel")),
+        ("soft fwd+bwd (kernel)", dict(mode="soft", backward=True, backend="kernel")),
+        ("soft fwd+bwd, cosine (kernel)", dict(mode="soft", backward=True, backend="kernel", weighting="cosine")),
+        ("straight-through fwd+bwd (kernel)", dict(mode="straight_through", backward=True, backend="kernel")),
+        ("soft fwd+bwd (tensor path)", dict(mode="soft", backward=True, backend="torch")),
+        ("soft fwd+bwd, cosine (tensor path)", dict(mode="soft", backward=True, backend="torch", weighting="cosine")),
+    ]
+    sizes = [(360, 640), (720, 1280)] if not a.size else [tuple(int(v) for v in reversed(a.size.lower().split("x")))]
+    for H, W in sizes:
+        print(f"BitmaskAO, {W}x{H} (a floor meeting a wall), 4 slices x 8 steps per side, gradients of radius and "
+              f"thickness, torch threads={a.threads}")
+        print("| case | CPU ms | wall ms | peak MB | / hard kernel (CPU) |")
+        print("|---|---:|---:|---:|---:|")
+        hard = None
+        for name, args in rows:
+            r = run_case(height=H, width=W, device="cpu", chunk_size=a.chunk_size, threads=a.threads, repeat=a.repeat,
+                         indirect=False, params_only=True, **args)
+            hard = hard or r["cpu_seconds"]
+            print(f"| {name} | {1e3 * r['cpu_seconds']:.0f} | {1e3 * r['seconds']:.0f} | {r['peak_mb']:.0f} | "
+                  f"{r['cpu_seconds'] / hard:.2f}x |{'' if r['finite'] else '  NON-FINITE'}", flush=True)
 
 
 if __name__ == "__main__":

@@ -116,7 +116,7 @@ def test_auto_backend_runs_the_kernel_with_the_tensor_paths_numbers(built, monke
     auto = BitmaskAO(slices=3, steps=4)(gb)  # autograd on, trainable parameters: hard masks have no gradient
     assert calls == [1] and auto.indirect is None and auto.bent_normal is None
     assert torch.equal(auto.visibility, BitmaskAO(slices=3, steps=4, backend="torch")(gb).visibility)
-    BitmaskAO(slices=3, steps=4, mode="soft")(gb)  # not covered: the tensor path
+    BitmaskAO(slices=3, steps=4, mode="soft")(gb)  # the soft kernel's (tests/test_kernels_soft.py)
     assert calls == [1]
 
 
@@ -135,8 +135,8 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
     from torch_ao.methods.pssao import PSSAO
 
     gb = example_gbuffer(8, 8)
-    with pytest.raises(ValueError, match="backend.*mode='soft'"):
-        BitmaskAO(mode="soft", backend="kernel")(gb)
+    with pytest.raises(ValueError, match="backend.*union='exact'"):
+        BitmaskAO(union="exact", backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend.*no kernel for PSSAO"):
         PSSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):

@@ -130,8 +130,8 @@ def _count_calls(monkeypatch, name):
     import torch_ao.kernels.dispatch as dispatch
 
     calls = []
-    covers, run = dispatch.KERNELS[name]
-    monkeypatch.setitem(dispatch.KERNELS, name, (covers, lambda *a: calls.append(1) or run(*a)))
+    ((covers, run),) = dispatch.KERNELS[name]
+    monkeypatch.setitem(dispatch.KERNELS, name, ((covers, lambda *a: calls.append(1) or run(*a)),))
     return calls
 
 
@@ -157,7 +157,7 @@ def test_torch_backend_never_calls_the_kernels(monkeypatch):
         raise AssertionError("the kernel was called")
 
     for name in ("gtao", "hbao"):
-        monkeypatch.setitem(dispatch.KERNELS, name, (dispatch.KERNELS[name][0], refuse))
+        monkeypatch.setitem(dispatch.KERNELS, name, ((dispatch.KERNELS[name][0][0], refuse),))
     with torch.no_grad():
         assert GTAO(slices=2, steps=3, backend="torch")(example_gbuffer(16, 24)).visibility.min() < 1
         assert HBAO(slices=2, steps=3, backend="torch")(example_gbuffer(16, 24)).visibility.min() < 1
@@ -177,7 +177,7 @@ def test_a_kernel_that_cannot_be_built_falls_back_with_one_warning(monkeypatch):
     def unavailable(*args):
         raise KernelUnavailable("the C++ kernels could not be built (no compiler)")
 
-    monkeypatch.setitem(dispatch.KERNELS, "gtao", (dispatch.KERNELS["gtao"][0], unavailable))
+    monkeypatch.setitem(dispatch.KERNELS, "gtao", ((dispatch.KERNELS["gtao"][0][0], unavailable),))
     monkeypatch.setattr(dispatch, "_warned", set())
     gb = example_gbuffer(16, 24)
     with torch.no_grad():

@@ -2,8 +2,9 @@
 
 The tensor-op walk (:mod:`torch_ao.marching`) stays the reference and serves whatever a kernel does
 not cover; a kernel is tested equal to it. Today, on CPU: the hard visibility-bitmask AO of
-``BitmaskAO(variant="default")`` (:func:`bitmask_hard`), and ``GTAO`` (every variant, bent normals too)
-and ``HBAO`` forward without gradients (:func:`gtao_sums`, :func:`hbao_sums`), C++ built on first use with
+``BitmaskAO(variant="default")`` (:func:`bitmask_hard`) and its soft / straight-through forward and
+backward (:func:`bitmask_soft`, gradients of radius and thickness), and ``GTAO`` (every variant, bent
+normals too) and ``HBAO`` forward without gradients (:func:`gtao_sums`, :func:`hbao_sums`), C++ built on first use with
 the compiler PyTorch's extensions use (``torch.utils.cpp_extension``) and cached; see
 docs/performance.md for how it was chosen and what it measures.
 """
@@ -12,7 +13,8 @@ from __future__ import annotations
 from .build import KernelUnavailable, cpu_kernels
 from .bitmask import bitmask_hard, kernel_covers
 from .gtao import gtao_covers, gtao_sums, hbao_covers, hbao_sums
+from .soft_bitmask import bitmask_soft
 from .dispatch import BACKENDS, KERNELS, kernel_forward
 
-__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "kernel_covers", "gtao_sums", "gtao_covers", "hbao_sums",
-           "hbao_covers", "BACKENDS", "KERNELS", "kernel_forward"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "bitmask_soft", "kernel_covers", "gtao_sums",
+           "gtao_covers", "hbao_sums", "hbao_covers", "BACKENDS", "KERNELS", "kernel_forward"]

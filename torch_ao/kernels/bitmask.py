@@ -15,7 +15,7 @@ from ..sectors import ROUNDINGS
 from ..thickness import ScalarThickness
 from .build import cpu_kernels
 
-__all__ = ["bitmask_hard", "kernel_covers"]
+__all__ = ["bitmask_hard", "kernel_covers", "options_uncovered", "walk_inputs"]
 
 
 def _channels_last(x: torch.Tensor) -> torch.Tensor:
@@ -40,16 +40,22 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
     ops = cpu_kernels()
+    return ops.bitmask_hard(
+        *walk_inputs(gbuffer, normals), int(slices), int(steps), float(radius), float(thickness),
+        float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
+        ROUNDINGS.index(rounding), float(sector_epsilon))
+
+
+def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The kernels' frame tensors: channel-last ``positions``, ``normals`` ``(B,H,W,3)``, the inverse
+    depth ``(B,H,W)`` (NaN where invalid: the kernels read a texel's validity from it), ``depth``,
+    ``valid`` ``(B,H,W)`` and the intrinsics ``(B,4)`` ``(fx, fy, cx, cy)``, all contiguous float32 (bool)."""
     depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
     valid = gbuffer.valid[:, 0].contiguous()
-    # the kernel reads a texel's validity from its inverse depth: NaN where invalid
     inverse = torch.where(valid, depth.reciprocal(), torch.nan)
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    return ops.bitmask_hard(
-        _channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics, int(slices), int(steps), float(radius), float(thickness),
-        float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
-        ROUNDINGS.index(rounding), float(sector_epsilon))
+    return (_channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics)
 
 
 #: options of a module the kernel reproduces: ``None`` for any value, else the values it covers
@@ -76,6 +82,17 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     have no gradient, so hard mode is covered with autograd on too; straight-through mode (hard values,
     soft gradients) only when no gradient is asked for.
     """
+    reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform",))
+    if reason is None and module.mode == "straight_through" and _needs_grad(module, gbuffer):
+        reason = "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
+    return reason
+
+
+def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...]) -> str | None:
+    """Why a bitmask kernel walking in one of ``modes`` with one of ``weightings`` does not reproduce
+    ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness other than
+    one scalar, a G-buffer other than float32 CPU), or ``None``."""
+    covered = dict(_COVERED, mode=modes, weighting=weightings)
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
                  "azimuth", "thickness_growth", "ambient"):
@@ -85,9 +102,9 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "_ambient_constant", False):
         values["ambient"] = "a colour"
     for name, value in values.items():
-        if name not in _COVERED:
+        if name not in covered:
             return f"option {name!r} (unknown to the kernel)"
-        allowed = _COVERED[name]
+        allowed = covered[name]
         if allowed is not None and not any(value is a or (isinstance(value, str) and value == a) for a in allowed):
             return f"{name}={value!r}"
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
@@ -96,8 +113,6 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return "a thickness other than one scalar (a table, a map, a model, a growth)"
     if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
-    if module.mode == "straight_through" and _needs_grad(module, gbuffer):
-        return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     return None
 
 

@@ -14,6 +14,8 @@
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
+#include "walk_cpu.h"
+
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -173,15 +175,9 @@ void walk_row(const Settings& cfg, int64_t b, int64_t row, int64_t H, int64_t W,
           const Vec su = u + dist * su_dir, sv = v + dist * sv_dir;
           Vec pos_s[3], sample_ok;
           if (cfg.bilinear) {
-            const Vec fu0 = su.floor(), fv0 = sv.floor();
-            const Vec fu = su - fu0, fv = sv - fv0;
-            const Int iu = to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), iv = to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf));
-            const Int c0 = at::vec::clamp(iu, zero_i, Wlast), c1 = at::vec::clamp(iu + one_i, zero_i, Wlast);
-            const Int r0 = at::vec::clamp(iv, zero_i, Hlast) * Wi, r1 = at::vec::clamp(iv + one_i, zero_i, Hlast) * Wi;
             // invalid texels hold NaN: a sample is valid when its four taps are
-            const Vec t0 = at::vec::gather<4>(inv, r0 + c0), t1 = at::vec::gather<4>(inv, r0 + c1);
-            const Vec t2 = at::vec::gather<4>(inv, r1 + c0), t3 = at::vec::gather<4>(inv, r1 + c1);
-            sample_ok = (t0 == t0) & (t1 == t1) & (t2 == t2) & (t3 == t3);
+            const auto [fu0, fv0, fu, fv, t0, t1, t2, t3, taps_ok] = torch_ao_walk::bilinear_taps(inv, su, sv, W, H);
+            sample_ok = taps_ok;
             if (cfg.drop) {
               sample_ok = sample_ok & (fu0 >= Vec(0.0f)) & (fu0 + Vec(1.0f) < Wf) & (fv0 >= Vec(0.0f)) &
                           (fv0 + Vec(1.0f) < Hf);

@@ -9,8 +9,10 @@ import torch
 
 __all__ = ["KernelUnavailable", "cpu_kernels"]
 
-#: the C++ sources of the one extension (walk_cpu.h, the walk they share, is included by them)
-_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "gtao_cpu.cpp"))
+#: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``; walk_cpu.h,
+#: the walk they share, is included by them)
+_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "gtao_cpu.cpp",
+                                                             "soft_bitmask_cpu.cpp"))
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
@@ -71,3 +73,13 @@ def _register_fake() -> None:
     def _(positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, H, W, 1)
+
+    @torch.library.register_fake("torch_ao_kernels::soft_bitmask")
+    def _(positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, slices, steps, *args):
+        B, H, W, _ = positions.shape  # the visibility, and one byte per 16 pixels, slice and step (live steps)
+        return positions.new_empty(B, 1, H, W), positions.new_empty(B, H, -(-W // 16), slices, 2 * steps,
+                                                                      dtype=torch.uint8)
+
+    @torch.library.register_fake("torch_ao_kernels::soft_bitmask_backward")
+    def _(grad, live, positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, *args):
+        return radius.new_empty(()), thickness.new_empty(())

@@ -4,6 +4,7 @@ from __future__ import annotations
 import warnings
 
 from ..gbuffer import GBuffer
+from . import soft_bitmask
 from .bitmask import bitmask_hard, kernel_covers
 from .build import KernelUnavailable
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
@@ -23,7 +24,7 @@ def _warn_once(message: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=4)
 
 
-def _bitmask(module, gbuffer: GBuffer) -> dict:
+def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     return {"visibility": bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
                                        steps=module.steps, radius=float(module.radius.detach()),
                                        thickness=float(module.thickness.detach()), step_power=module.step_power,
@@ -32,12 +33,18 @@ def _bitmask(module, gbuffer: GBuffer) -> dict:
                                        sector_epsilon=module.sector_epsilon)}
 
 
-#: a method's ``has_kernel`` -> ``(covers, run)``: ``covers(module, gbuffer)`` is ``None`` when the kernel
-#: computes the call, else why not; ``run(module, gbuffer)`` gives the outputs ``{AOOutput field: tensor}``
+def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
+    return {"visibility": soft_bitmask.module_forward(module, gbuffer)}
+
+
+#: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,
+#: gbuffer)`` is ``None`` when that kernel computes the call, else why not; ``run(module, gbuffer)`` gives the
+#: outputs ``{AOOutput field: tensor}``. Bitmask AO has the hard kernel and the soft / straight-through one
+#: (with its backward).
 KERNELS = {
-    "bitmask": (kernel_covers, _bitmask),
-    "gtao": (gtao_covers, gtao_forward),
-    "hbao": (hbao_covers, hbao_forward),
+    "bitmask": ((kernel_covers, _bitmask_hard), (soft_bitmask.kernel_covers, _bitmask_soft)),
+    "gtao": ((gtao_covers, gtao_forward),),
+    "hbao": ((hbao_covers, hbao_forward),),
 }
 
 
@@ -45,16 +52,22 @@ def kernel_forward(module, gbuffer: GBuffer, backend: str) -> dict | None:
     """The kernel's outputs ``{"visibility": (B,1,H,W), ...}`` for ``module(gbuffer)``, or ``None`` where
     the tensor path runs.
 
-    A method names its kernel in ``has_kernel`` (a key of :data:`KERNELS`); the kernel's ``covers`` says
-    which calls it computes. A kernel that cannot be built here (no compiler, a failed build) falls back
+    A method names its kernels in ``has_kernel`` (a key of :data:`KERNELS`); the first whose ``covers``
+    accepts the call runs it. A kernel that cannot be built here (no compiler, a failed build) falls back
     to the tensor path with one warning per process, whatever ``backend`` asks.
     """
     if backend == "torch":
         return None
-    covers, run = KERNELS.get(module.has_kernel, (None, None))
-    reason = covers(module, gbuffer) if covers is not None else f"no kernel for {type(module).__name__}"
-    if reason is not None:
+    reasons, run = [], None
+    for covers, candidate in KERNELS.get(module.has_kernel, ()):
+        reason = covers(module, gbuffer)
+        if reason is None:
+            run = candidate
+            break
+        reasons.append(reason)
+    if run is None:
         if backend == "kernel":
+            reason = " / ".join(dict.fromkeys(reasons)) or f"no kernel for {type(module).__name__}"
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")
         return None
     try:

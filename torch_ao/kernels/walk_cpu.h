@@ -270,29 +270,50 @@ inline Vec step_distance(const WalkSettings& cfg, const Slice& sl, const Vec& xi
 
 // One sample (fetch_sample and Sample): delta = position - P where valid, else -V (away from the
 // camera: it never occludes); valid drops background taps, the border (drop) and the centre texel.
+// The perspective-correct bilinear footprint of samples at screen (su, sv) (torch_ao.walk.fetch.bilinear_taps):
+// the top-left texel (fu0, fv0), the fractions (fu, fv), the four taps' inverse depths t0..t3 of the
+// (W x H) image `inverse_depth` (rows and columns clamped to the image), and whether all four are valid
+// (an invalid texel holds NaN).
+struct BilinearTaps {
+  Vec fu0, fv0, fu, fv, t0, t1, t2, t3, ok;
+};
+
+inline BilinearTaps bilinear_taps(const float* inverse_depth, const Vec& su, const Vec& sv, int64_t W, int64_t H) {
+  const Int zero = Int(0), one = Int(1), Wi = Int(int32_t(W)), Wlast = Int(int32_t(W - 1)), Hlast = Int(int32_t(H - 1));
+  BilinearTaps tap;
+  tap.fu0 = su.floor();
+  tap.fv0 = sv.floor();
+  tap.fu = su - tap.fu0;
+  tap.fv = sv - tap.fv0;
+  const Int iu = at::vec::convert_to_int_of_same_size<float>(at::vec::clamp(tap.fu0, Vec(-1.0f), Vec(float(W))));
+  const Int iv = at::vec::convert_to_int_of_same_size<float>(at::vec::clamp(tap.fv0, Vec(-1.0f), Vec(float(H))));
+  const Int c0 = at::vec::clamp(iu, zero, Wlast), c1 = at::vec::clamp(iu + one, zero, Wlast);
+  const Int r0 = at::vec::clamp(iv, zero, Hlast) * Wi, r1 = at::vec::clamp(iv + one, zero, Hlast) * Wi;
+  tap.t0 = at::vec::gather<4>(inverse_depth, r0 + c0);
+  tap.t1 = at::vec::gather<4>(inverse_depth, r0 + c1);
+  tap.t2 = at::vec::gather<4>(inverse_depth, r1 + c0);
+  tap.t3 = at::vec::gather<4>(inverse_depth, r1 + c1);
+  tap.ok = (tap.t0 == tap.t0) & (tap.t1 == tap.t1) & (tap.t2 == tap.t2) & (tap.t3 == tap.t3);
+  return tap;
+}
+
 struct Sample {
   Vec delta[3], valid;
 
   Sample(const WalkSettings& cfg, const Image& img, const Pixels& px, const Slice& sl, const Vec& side, const Vec& dist) {
-    const Int zero_i = Int(0), one_i = Int(1), Wi = Int(int32_t(img.W));
+    const Int zero_i = Int(0), Wi = Int(int32_t(img.W));
     const Int Wlast = Int(int32_t(img.W - 1)), Hlast = Int(int32_t(img.H - 1));
     const Vec Wf = Vec(float(img.W)), Hf = Vec(float(img.H));
     const Vec su = px.u + dist * (sl.unit_u * side), sv = px.v + dist * (sl.unit_v * side);
     Vec pos[3];
     if (cfg.bilinear) {
-      const Vec fu0 = su.floor(), fv0 = sv.floor();
-      const Vec fu = su - fu0, fv = sv - fv0;
-      const Int iu = to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), iv = to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf));
-      const Int c0 = at::vec::clamp(iu, zero_i, Wlast), c1 = at::vec::clamp(iu + one_i, zero_i, Wlast);
-      const Int r0 = at::vec::clamp(iv, zero_i, Hlast) * Wi, r1 = at::vec::clamp(iv + one_i, zero_i, Hlast) * Wi;
-      // invalid texels hold NaN: a sample is valid when its four taps are
-      const Vec t0 = at::vec::gather<4>(img.inverse, r0 + c0), t1 = at::vec::gather<4>(img.inverse, r0 + c1);
-      const Vec t2 = at::vec::gather<4>(img.inverse, r1 + c0), t3 = at::vec::gather<4>(img.inverse, r1 + c1);
-      valid = (t0 == t0) & (t1 == t1) & (t2 == t2) & (t3 == t3);
+      const BilinearTaps tap = bilinear_taps(img.inverse, su, sv, img.W, img.H);
+      const Vec &fu0 = tap.fu0, &fv0 = tap.fv0;
+      valid = tap.ok;  // invalid texels hold NaN: a sample is valid when its four taps are
       if (cfg.drop) {
         valid = valid & (fu0 >= Vec(0.0f)) & (fu0 + Vec(1.0f) < Wf) & (fv0 >= Vec(0.0f)) & (fv0 + Vec(1.0f) < Hf);
       }
-      const Vec depth = lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv).reciprocal();
+      const Vec depth = lerp(lerp(tap.t0, tap.t1, tap.fu), lerp(tap.t2, tap.t3, tap.fu), tap.fv).reciprocal();
       const Vec su_c = at::vec::clamp(su, Vec(0.0f), Wf - Vec(1.0f)), sv_c = at::vec::clamp(sv, Vec(0.0f), Hf - Vec(1.0f));
       pos[0] = ((su_c - Vec(img.cx)) / Vec(img.fx)) * depth;
       pos[1] = ((sv_c - Vec(img.cy)).neg() / Vec(img.fy)) * depth;
