@@ -118,7 +118,8 @@ def render(args, source: str, seed: int, device) -> FitView:
     from torch_ao.reference import render_reference
 
     w, h = (int(x) for x in args.size.lower().split("x"))
-    stem = source.replace("mesh:", "mesh_" + Path(source).parent.name + "_").replace("/", "_").replace(".", "_")
+    mesh = Path(source[5:]) if source.startswith("mesh:") else None
+    stem = source if mesh is None else f"mesh_{mesh.parent.name}_{mesh.stem}"
     path = Path(args.cache or default_cache_dir()) / "backface" / f"{stem}_{w}x{h}_spp{args.spp}_R{args.max_distance:g}_s{seed}.npz"
     if not path.exists():
         scene, views = _scene_and_views(source, seed, w, h)
