@@ -77,7 +77,7 @@ MESH_DIR = Path("/usr/share/assimp/models")
 #: training meshes (assimp-testmodels; spider, duck, engine and wuson are kept for independent checks)
 TRAIN_MESHES = ("OBJ/empty_mat.obj", "STL/sphereWithHole.stl", "STL/3DSMaxExport.STL", "OBJ/box_longline.obj")
 #: held-out meshes, never trained on
-HOLDOUT_MESHES = ("OBJ/regr01.obj",)
+HOLDOUT_MESHES = ("OBJ/regr01.obj", "glTF2/ClearCoat-glTF/ClearCoatTest.gltf")
 HOLDOUT_SEED = 1000
 
 
@@ -247,8 +247,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (for tests of resuming)")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
     p.add_argument("--tiny", action="store_true", help="smoke test (options left at their defaults are replaced): 2 scenes, "
-                   "1 mesh, 32x24, 16 spp, low presets, 2 + 1 epochs")
-    return apply_tiny(p, p.parse_args(argv), scenes="fence,floating", meshes="STL/sphereWithHole.stl", size="32x24", spp=16,
+                   "no meshes unless given, 32x24, 16 spp, low presets, 2 + 1 epochs")
+    return apply_tiny(p, p.parse_args(argv), scenes="fence,floating", meshes="", holdout_meshes="", size="32x24", spp=16,
                       preset="low", eval_preset="low", views_per_scene=2, seed_pool=2, epochs=2, finetune_epochs=1, batch=1)
 
 
