@@ -219,10 +219,11 @@ def test_net_thickness_is_fitted_end_to_end_through_fit():
     gb = _gbuffer()
     opts = dict(OPTS, steps=4)
     reference = BitmaskAO(thickness=0.15, mode="hard", **opts)(gb).visibility.detach()
+    torch.manual_seed(0)
     model = NetThickness(0.8, width=4, init=0.6)
     ao = BitmaskAO(thickness=model, mode="soft", **opts)
     names = tuple(n for n, _ in ao.named_parameters() if n.startswith(PREFIX))
-    result = fit(ao, [FitView(gb, reference)], FitConfig(params=names, steps=30, lr=0.05, hard_every=5), progress=False)
+    result = fit(ao, [FitView(gb, reference)], FitConfig(params=names, steps=30, lr=0.02, hard_every=5), progress=False)
     hard = [h["loss"] for h in result.hard_history]
     ao.mode = "hard"
     after = float((ao(gb).visibility - reference)[gb.valid].abs().mean())
@@ -257,3 +258,11 @@ def test_net_thickness_bad_inputs_are_named():
         NetThickness(1.0, cnn=torch.nn.Conv2d(8, 1, 3))
     with pytest.raises(ValueError, match="thickness_net_head_bias"):
         NetThickness(1.0).check("thickness_net_head_bias", torch.zeros(2))
+
+
+def test_net_thickness_offset_is_added_to_its_own_map():
+    gb = _gbuffer()
+    plain, shifted = NetThickness(1.0, init=0.4), NetThickness(1.0, init=0.4, thickness=0.1)
+    shifted.cnn.load_state_dict(plain.cnn.state_dict())
+    diff = (shifted.predict(gb) - plain.predict(gb))[gb.valid].detach()
+    assert diff.numpy() == pytest.approx(0.1, abs=1e-6)

@@ -148,25 +148,25 @@ class NetThickness(Thickness):
     def predict(self, gbuffer, params=None, *, offset: bool = True) -> torch.Tensor:
         """The thickness map ``(B,1,H,W)`` (world units, ``>= 0``; 0 on background pixels) of ``gbuffer``,
         with the weights of ``params`` (as :meth:`weights`; ``None``: the model's own, differentiable
-        w.r.t. ``self.cnn``) plus the offset ``thickness`` when ``offset`` (0 when ``params`` is ``None``)."""
+        w.r.t. ``self.cnn``) plus, when ``offset``, the additive ``thickness`` (``params``' or the model's)."""
         weights = self.weights(params)
         dtype = next(iter(weights.values())).dtype
         x = net_features(gbuffer, self.scale).to(dtype)
         t = self.scale * functional_call(self.cnn, weights, (x,))
-        if offset and params is not None:
-            off = params.thickness if isinstance(params, nn.Module) else params["thickness"]
-            t = t + off.to(dtype)
+        if offset:
+            t = t + self._offset(params).to(dtype)
         return (t * gbuffer.valid.to(dtype)).to(gbuffer.depth.dtype)
+
+    def _offset(self, params) -> torch.Tensor:
+        if params is None:
+            return torch.as_tensor(self.initial)
+        return params.thickness if isinstance(params, nn.Module) else params["thickness"]
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike, params: dict[str, torch.Tensor] | nn.Module | None = None) -> Path:
         """Write the model (scale, width, offset and CNN weights: those of ``params`` as :meth:`weights`,
         else its own) to ``path`` (``torch.save``; :meth:`load` reads it with ``weights_only=True``)."""
-        if params is None:
-            off = self.initial
-        else:
-            off = params.thickness if isinstance(params, nn.Module) else params["thickness"]
-        state = {"scale": self.scale, "width": self.cnn.width, "thickness": torch.as_tensor(off).detach().cpu().clone(),
+        state = {"scale": self.scale, "width": self.cnn.width, "thickness": self._offset(params).detach().cpu().clone(),
                  "growth": None if self.growth is None else float(self.growth),
                  "cnn": {k: v.detach().cpu().clone() for k, v in self.weights(params).items()}}
         path = Path(path)
