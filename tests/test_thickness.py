@@ -207,7 +207,7 @@ def test_net_thickness_learns_the_thickness_of_two_slabs():
         loss = (model.predict(gb) - target)[gb.valid].abs().mean()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     start = float((torch.full_like(target, 0.5) - target)[gb.valid].abs().mean())
     assert losses[0] == pytest.approx(start, rel=1e-5)
     assert losses[-1] < 0.15 * start, losses[::20]

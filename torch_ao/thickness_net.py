@@ -180,7 +180,7 @@ class NetThickness(Thickness):
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict) or not {"scale", "width", "cnn", "thickness"} <= set(state):
             raise ValueError(f"path: {path} is not a NetThickness file (expected keys scale, width, thickness, cnn)")
-        cnn = ThicknessCNN(int(state["width"]))
+        cnn = ThicknessCNN(int(state["width"])).to(next(iter(state["cnn"].values())).dtype)
         cnn.load_state_dict(state["cnn"])
         return cls(float(state["scale"]), cnn=cnn, thickness=state["thickness"], growth=state.get("growth"))
 
