@@ -157,12 +157,14 @@ def test_train_thickness_net_single_process(tmp_path, cache):
     stages = [h["stage"] for h in result["history"]]
     assert stages[0] == "supervised" and stages[-1] == "end-to-end" and stages == sorted(stages, reverse=True)
     rows = result["holdout"]
-    assert {"thickness net", "untrained net (init everywhere)", "true back-face layer"} <= set(rows)
+    assert {"thickness net", "untrained net (init everywhere)", "true back-face layer",
+            "thickness net after stage a (supervised only)"} <= set(rows)
     assert all(finite(r) for r in rows.values()) and any(k.startswith("best scalar") for k in rows)
     assert set(result["holdout_views"]) == {"fence/s1000", "floating/s1000", f"{ball}/s1000"}
     # stage a learns the back-face thickness: the held-out thickness error falls below the constant start's
     err = result["thickness_error"]
-    assert err["thickness net"]["mae"] < 0.8 * err["untrained net"]["mae"]
+    assert err["net after stage a"]["mae"] < 0.8 * err["untrained net"]["mae"]
+    assert NetThickness.load(out / "thickness_net_stage_a.pt").scale == 0.5
     model = NetThickness.load(out / "thickness_net.pt")
     assert model.scale == 0.5 and all(torch.isfinite(p).all() for p in model.cnn.parameters())
     assert "held-out views" in proc.stdout and "thickness MAE" in proc.stdout

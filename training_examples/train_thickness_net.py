@@ -79,6 +79,8 @@ TRAIN_MESHES = ("OBJ/empty_mat.obj", "STL/sphereWithHole.stl", "STL/3DSMaxExport
 #: held-out meshes, never trained on
 HOLDOUT_MESHES = ("OBJ/regr01.obj", "glTF2/ClearCoat-glTF/ClearCoatTest.gltf")
 HOLDOUT_SEED = 1000
+#: the net at the end of stage a, when stage b follows (``OUT/thickness_net_stage_a.pt``)
+STAGE_A = "thickness_net_stage_a.pt"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -222,7 +224,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--meshes", default=",".join(TRAIN_MESHES), help=f"mesh files to train on (relative to {MESH_DIR})")
     p.add_argument("--holdout-meshes", default=",".join(HOLDOUT_MESHES), help="mesh files to evaluate on, never trained on")
     p.add_argument("--views-per-scene", type=int, default=2, help="training views per scene or mesh and epoch")
-    p.add_argument("--seed-pool", type=int, default=6, help="distinct random seeds per scene (epochs cycle through them)")
+    p.add_argument("--seed-pool", type=int, default=4, help="distinct random seeds per scene (epochs cycle through them)")
     p.add_argument("--holdout-views", type=int, default=1, help="held-out views per scene and mesh (seeds 1000, 1001, ...)")
     p.add_argument("--size", default="96x54", help="render size WxH")
     p.add_argument("--spp", type=int, default=256, help="reference rays per pixel")
@@ -232,7 +234,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--eval-preset", default="high", help="bitmask quality preset of the evaluation")
     p.add_argument("--weighting", default="cosine", choices=("uniform", "cosine"))
     p.add_argument("--epochs", type=int, default=12, help="epochs of stage a (supervised on the back-face thickness)")
-    p.add_argument("--finetune-epochs", type=int, default=0, help="epochs of stage b (end-to-end through soft bitmask AO)")
+    p.add_argument("--finetune-epochs", type=int, default=0, help="epochs of stage b (end-to-end through soft bitmask AO; "
+                   "the net after stage a is then evaluated too)")
     p.add_argument("--batch", type=int, default=2, help="views per step and rank")
     p.add_argument("--lr", type=float, default=5e-3)
     p.add_argument("--finetune-lr", type=float, default=1e-3)
@@ -319,6 +322,8 @@ def main(argv=None) -> dict | None:
         if step % max(1, total // 20) == 0 or step == total - 1 or step == supervised_steps:
             say(f"step {step + 1}/{total}  epoch {epoch}  {stage} loss {float(mean_loss):.4f}", flush=True)
         step += 1
+        if rank == 0 and step == supervised_steps and args.finetune_epochs > 0:  # stage a's net, for comparison
+            NetThickness(R, cnn=net).save(out / STAGE_A)
         if step % args.checkpoint_every == 0 or step == stop:
             states = [None] * world
             if world > 1:
@@ -335,13 +340,12 @@ def main(argv=None) -> dict | None:
                  "backend": dist.get_backend() if world > 1 else None})
     result = None
     if rank == 0 and step == total:
-        trained = NetThickness(R, cnn=net.cpu())
-        trained.save(out / "thickness_net.pt")
-        net.to(device)
+        NetThickness(R, cnn=net).save(out / "thickness_net.pt")
         result = {"steps": step, "world_size": world, "train_seconds": seconds, "train_cpu_seconds": cpu_seconds,
                   "history": history, "checksum": checksum}
         if not args.no_eval:
-            result.update(evaluate_holdout(args, net, device))
+            stage_a = out / STAGE_A if args.finetune_epochs > 0 else None
+            result.update(evaluate_holdout(args, net, device, stage_a))
         save_json(out / "result.json", result)
         say(f"wrote {out / 'thickness_net.pt'}, {out / 'result.json'}")
     if world > 1:
@@ -370,9 +374,10 @@ def thickness_error(model: NetThickness, views: list[FitView], cap: float) -> di
             "true_median": float(true.median()), "pred_quantiles": torch.quantile(pred.float(), torch.tensor([0.05, 0.5, 0.95])).tolist()}
 
 
-def evaluate_holdout(args, net: nn.Module, device) -> dict:
+def evaluate_holdout(args, net: nn.Module, device, stage_a: Path | None = None) -> dict:
     """Held-out hard-mode AO error (with the denoiser) of the best scalar thickness, the untrained and the
-    trained net and the true back-face layer, and the net's thickness error."""
+    trained net (and the net after stage a, from the file ``stage_a``) and the true back-face layer, and the
+    nets' thickness errors."""
     R, cap = args.max_distance, args.cap * args.max_distance
     held = [render(args, s, HOLDOUT_SEED + i, device) for s in sources(args, holdout=True) for i in range(args.holdout_views)]
     net.eval()
@@ -389,12 +394,17 @@ def evaluate_holdout(args, net: nn.Module, device) -> dict:
                 f"best scalar ({scalar:g})": evaluate(pipeline(args, scalar), held),
                 "thickness net": evaluate(pipeline(args, trained), held),
                 "true back-face layer": evaluate(pipeline(args, BackfaceThickness()), held)}
+        nets = {"thickness net": trained, "untrained net": untrained}
+        if stage_a is not None:
+            nets["net after stage a"] = NetThickness.load(stage_a)
+            nets["net after stage a"].cnn.to(device)
+            rows["thickness net after stage a (supervised only)"] = evaluate(pipeline(args, nets["net after stage a"]), held)
         per_view = {name: evaluate(pipeline(args, model), held, per_view=True)["views"]
                     for name, model in (("best scalar", scalar), ("thickness net", trained), ("true back-face layer", BackfaceThickness()))}
-    thickness = {"thickness net": thickness_error(trained, held, cap), "untrained net": thickness_error(untrained, held, cap)}
-    print(f"\n{'held-out views, hard mode, ' + args.eval_preset + ' + denoiser':<40}{'MAE':>8}{'RMSE':>8}{'PSNR':>8}{'SSIM':>8}")
+    thickness = {name: thickness_error(model, held, cap) for name, model in nets.items()}
+    print(f"\n{'held-out views, hard mode, ' + args.eval_preset + ' + denoiser':<48}{'MAE':>8}{'RMSE':>8}{'PSNR':>8}{'SSIM':>8}")
     for name, r in rows.items():
-        print(f"{name:<40}{r['mae']:8.4f}{r['rmse']:8.4f}{r['psnr']:8.2f}{r['ssim']:8.4f}")
+        print(f"{name:<48}{r['mae']:8.4f}{r['rmse']:8.4f}{r['psnr']:8.2f}{r['ssim']:8.4f}")
     for name, r in thickness.items():
         print(f"thickness MAE of the {name} against the true back-face thickness (capped at {cap:g}): "
               f"{r['mae']:.4f} ({r['mae_over_R']:.3f} R; true median {r['true_median']:.3f})")
