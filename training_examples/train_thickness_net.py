@@ -71,7 +71,7 @@ from torch_ao.thickness import BackfaceThickness, NetThickness
 from torch_ao.thickness_net import ThicknessCNN, net_features
 from torch_ao.views import default_cache_dir
 
-from common import apply_tiny
+from common import add_view_options, apply_tiny
 
 MESH_DIR = Path("/usr/share/assimp/models")
 #: training meshes (assimp-testmodels; spider, duck, engine and wuson are kept for independent checks)
@@ -225,10 +225,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--holdout-meshes", default=",".join(HOLDOUT_MESHES), help="mesh files to evaluate on, never trained on")
     p.add_argument("--views-per-scene", type=int, default=2, help="training views per scene or mesh and epoch")
     p.add_argument("--seed-pool", type=int, default=4, help="distinct random seeds per scene (epochs cycle through them)")
-    p.add_argument("--holdout-views", type=int, default=1, help="held-out views per scene and mesh (seeds 1000, 1001, ...)")
-    p.add_argument("--size", default="96x54", help="render size WxH")
-    p.add_argument("--spp", type=int, default=256, help="reference rays per pixel")
-    p.add_argument("--max-distance", type=float, default=0.5, help="reference AO distance R (also the method's radius and the net's scale)")
+    add_view_options(p, size="96x54", spp=256, max_distance=0.5, radius_note=" (also the method's radius and the net's scale)",
+                     holdout_note="per scene and mesh (seeds 1000, 1001, ...)")
     p.add_argument("--cap", type=float, default=2.0, help="back-face thickness cap, in units of R")
     p.add_argument("--preset", default="medium", help="bitmask quality preset of the end-to-end stage")
     p.add_argument("--eval-preset", default="high", help="bitmask quality preset of the evaluation")
@@ -245,7 +243,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--scalar", type=float, default=None, help="scalar thickness (world units) to compare with (default: grid search)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=2, help="steps between checkpoints")
-    p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
     p.add_argument("--out", default="runs/thickness_net", help="output folder")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (for tests of resuming)")
     p.add_argument("--no-eval", action="store_true", help="skip the held-out evaluation")
