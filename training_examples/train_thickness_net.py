@@ -341,7 +341,7 @@ def main(argv=None) -> dict | None:
         result = {"steps": step, "world_size": world, "train_seconds": seconds, "train_cpu_seconds": cpu_seconds,
                   "history": history, "checksum": checksum}
         if not args.no_eval:
-            stage_a = out / STAGE_A if args.finetune_epochs > 0 else None
+            stage_a = out / STAGE_A if args.finetune_epochs > 0 and (out / STAGE_A).exists() else None
             result.update(evaluate_holdout(args, net, device, stage_a))
         save_json(out / "result.json", result)
         say(f"wrote {out / 'thickness_net.pt'}, {out / 'result.json'}")
