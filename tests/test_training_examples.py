@@ -135,17 +135,39 @@ def test_tune_gtao(tmp_path, cache):
     assert evaluate(pipeline, held)["mae"] == pytest.approx(rows["fitted"]["mae"], rel=1e-6)
 
 
+def small_meshes(folder: Path) -> tuple[Path, Path]:
+    """Two small mesh files (a box for training, an icosphere held out), so the test needs no system package."""
+    import trimesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    box, ball = folder / "box.obj", folder / "ball.obj"
+    trimesh.creation.box(extents=(1.0, 0.4, 0.6)).export(box)
+    trimesh.creation.icosphere(subdivisions=2).export(ball)
+    return box, ball
+
+
 def test_train_thickness_net_single_process(tmp_path, cache):
+    from torch_ao.thickness import NetThickness
+
     out = tmp_path / "out"
-    proc = run("train_thickness_net.py", "--tiny", "--out", out, cache=cache)
+    box, ball = small_meshes(tmp_path / "meshes")
+    proc = run("train_thickness_net.py", "--tiny", "--meshes", box, "--holdout-meshes", ball, "--out", out, cache=cache)
     result = json.loads((out / "result.json").read_text())
     assert result["world_size"] == 1 and result["steps"] == len(result["history"]) > 0
+    stages = [h["stage"] for h in result["history"]]
+    assert stages[0] == "supervised" and stages[-1] == "end-to-end" and stages == sorted(stages, reverse=True)
     rows = result["holdout"]
-    assert {"thickness net", "untrained net (init everywhere)"} <= set(rows) and all(finite(r) for r in rows.values())
-    assert any(k.startswith("best scalar") for k in rows)
-    state = torch.load(out / "thickness_net.pt", weights_only=True)
-    assert all(torch.isfinite(v).all() for v in state.values())
-    assert "held-out views" in proc.stdout
+    assert {"thickness net", "untrained net (init everywhere)", "true back-face layer",
+            "thickness net after stage a (supervised only)"} <= set(rows)
+    assert all(finite(r) for r in rows.values()) and any(k.startswith("best scalar") for k in rows)
+    assert set(result["holdout_views"]) == {"fence/s1000", "floating/s1000", f"{ball}/s1000"}
+    # stage a learns the back-face thickness: the held-out thickness error falls below the constant start's
+    err = result["thickness_error"]
+    assert err["net after stage a"]["mae"] < 0.8 * err["untrained net"]["mae"]
+    assert NetThickness.load(out / "thickness_net_stage_a.pt").scale == 0.5
+    model = NetThickness.load(out / "thickness_net.pt")
+    assert model.scale == 0.5 and all(torch.isfinite(p).all() for p in model.cnn.parameters())
+    assert "held-out views" in proc.stdout and "thickness MAE" in proc.stdout
 
 
 @pytest.mark.slow

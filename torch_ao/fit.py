@@ -319,7 +319,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             with torch.no_grad():
                 for name, p in params.items():
                     key = name.rsplit(".", 1)[-1]
-                    p.clamp_(min=PARAMETER_MINIMUM.get(key), max=PARAMETER_MAXIMUM.get(key))
+                    if key in PARAMETER_MINIMUM or key in PARAMETER_MAXIMUM:  # others are unbounded (network weights)
+                        p.clamp_(min=PARAMETER_MINIMUM.get(key), max=PARAMETER_MAXIMUM.get(key))
             # With partial batches a step's loss depends on its batch: keep the last parameters instead.
             if partial and not hard:
                 state["best"], state["best_step"] = values(), step + 1

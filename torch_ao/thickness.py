@@ -20,6 +20,7 @@ class                  thickness of the occluder at a sample                    
 :class:`MapThickness`      ``thickness`` map ``(B,1,H,W)`` read at the sample        the map
 :class:`LinearThickness`   ``thickness + thickness_slope * depth`` (SSRT3, Filament)  the sample's depth
 :class:`BackfaceThickness` ``thickness_scale * (backface_depth - depth) + thickness`` ``gbuffer.backface_depth``
+:class:`NetThickness`      ``scale * cnn(front G-buffer) + thickness`` (learned map)  depth and normals
 =====================  ===========================================================  ===========================
 
 Any model with ``growth`` given also multiplies by ``1 + thickness_growth * |sample - pixel|`` (world
@@ -38,7 +39,7 @@ import torch
 from .checks import check_float
 
 __all__ = ["Thickness", "ScalarThickness", "ObjectThickness", "MapThickness", "LinearThickness",
-           "BackfaceThickness", "BoundThickness", "as_thickness"]
+           "BackfaceThickness", "NetThickness", "BoundThickness", "as_thickness"]
 
 #: the back-face thickness of a pixel whose object has no exit along its camera ray (``backface_depth =
 #: inf``), in world units: a finite stand-in for "as thick as the scene", so that gradients stay finite
@@ -259,3 +260,6 @@ class BoundThickness:
 
     def buffers(self, gbuffer) -> dict[str, torch.Tensor]:
         return self.model.buffers(gbuffer, self.params)
+
+
+from .thickness_net import NetThickness  # noqa: E402  (it builds on Thickness above)

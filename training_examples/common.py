@@ -22,6 +22,17 @@ def apply_tiny(parser: argparse.ArgumentParser, args: argparse.Namespace, **sett
     return args
 
 
+def add_view_options(parser: argparse.ArgumentParser, *, size: str, spp: int = 128, max_distance: float = 1.0,
+                     radius_note: str = " (also the method's radius)", holdout_note: str = "per scene") -> None:
+    """The options every script's views share: ``--holdout-views``, ``--size``, ``--spp``, ``--max-distance``
+    (world units) and ``--cache``, with the script's defaults."""
+    parser.add_argument("--holdout-views", type=int, default=1, help=f"held-out views {holdout_note}")
+    parser.add_argument("--size", default=size, help="render size WxH")
+    parser.add_argument("--spp", type=int, default=spp, help="reference rays per pixel")
+    parser.add_argument("--max-distance", type=float, default=max_distance, help="reference AO distance R" + radius_note)
+    parser.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
+
+
 def build_views(args: argparse.Namespace) -> tuple[list[FitView], list[FitView]]:
     """Training and held-out views: the user's ``--reference``/``--holdout`` files, else randomised
     views of the built-in ``--scenes`` (seeds 1.. for training, 1000.. held out), cached."""

@@ -47,7 +47,7 @@ from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
 from torch_ao.reference import Box, Cylinder, Mesh, Plane, Sphere, get_scene
 
-from common import apply_tiny
+from common import add_view_options, apply_tiny
 from common import build_views as shared_views
 
 CLASSES = ("background", "plane", "box", "thin box", "sphere", "cylinder", "thin cylinder", "mesh")
@@ -62,10 +62,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--thin", type=float, default=0.15, help="'thin' objects: smallest extent below this (world units)")
     p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes")
     p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
-    p.add_argument("--holdout-views", type=int, default=1, help="held-out views per scene")
-    p.add_argument("--size", default="64x48", help="render size WxH")
-    p.add_argument("--spp", type=int, default=128, help="reference rays per pixel")
-    p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R (also the method's radius)")
+    add_view_options(p, size="64x48")
     p.add_argument("--preset", default="medium", help="quality preset (slices x steps per side)")
     p.add_argument("--weighting", default="cosine", choices=("uniform", "cosine"), help="bitmask sector weighting")
     p.add_argument("--init", type=float, default=1.0, help="initial thickness (every object, and the scalar)")
@@ -75,7 +72,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--no-denoise", action="store_true", help="fit and score bitmask AO alone, without the denoiser")
     p.add_argument("--hard-every", type=int, default=5, help="score in hard mode every N steps and keep the best (0 = off)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
     p.add_argument("--out", default="runs/fit_object_thickness", help="output folder")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")

@@ -44,7 +44,7 @@ from torch_ao.fit import FitConfig, evaluate, fit, fittable_parameters
 from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
 
-from common import apply_tiny, build_views
+from common import add_view_options, apply_tiny, build_views
 
 #: XeGTAO's auto-tuned defaults (XeGTAO.h: XE_GTAO_DEFAULT_RADIUS_MULTIPLIER, _FALLOFF_RANGE, _FINAL_VALUE_POWER).
 XEGTAO = {"radius_multiplier": 1.457, "falloff_range": 0.615, "final_power": 2.2}
@@ -64,16 +64,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--holdout", nargs="+", metavar="FILE.npz", help="your own held-out references")
     p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes")
     p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
-    p.add_argument("--holdout-views", type=int, default=1, help="held-out views per scene")
-    p.add_argument("--size", default="96x64", help="render size WxH")
-    p.add_argument("--spp", type=int, default=128, help="reference rays per pixel")
-    p.add_argument("--max-distance", type=float, default=1.0, help="reference AO distance R")
+    add_view_options(p, size="96x64", radius_note="")
     p.add_argument("--steps", type=int, default=30, help="optimizer steps")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
     p.add_argument("--no-denoise", action="store_true", help="fit and score the method alone, without the denoiser")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
     p.add_argument("--out", default="runs/tune_gtao", help="output folder")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
