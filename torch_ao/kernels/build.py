@@ -9,7 +9,8 @@ import torch
 
 __all__ = ["KernelUnavailable", "cpu_kernels"]
 
-_SOURCE = Path(__file__).with_name("bitmask_cpu.cpp")
+#: the C++ sources of the one extension
+_SOURCES = (Path(__file__).with_name("bitmask_cpu.cpp"),)
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
@@ -43,7 +44,7 @@ def cpu_kernels():
         flags.append("-DTORCH_AO_MKL_VML")
     name = f"torch_ao_kernels_{capability.lower()}{'_vml' if vml else ''}"
     try:
-        cpp_extension.load(name=name, sources=[str(_SOURCE)], extra_cflags=flags, extra_ldflags=["-fopenmp"],
+        cpp_extension.load(name=name, sources=[str(p) for p in _SOURCES], extra_cflags=flags, extra_ldflags=["-fopenmp"],
                            is_python_module=False,
                            verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE")))
     except Exception as exc:  # no compiler, missing headers, a failed build...
@@ -60,3 +61,15 @@ def _register_fake() -> None:
     def _(positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, 1, H, W)
+
+    @torch.library.register_fake("torch_ao_kernels::bitmask_walk")
+    def _(positions, normals, inverse_depth, depth, valid, intrinsics, light, *args):
+        B, H, W, _ = positions.shape
+        indirect, bent = args[-2:]
+        return (positions.new_empty(B, 1, H, W), positions.new_empty(B if indirect else 0, 3, H, W),
+                positions.new_empty(B if bent else 0, 3, H, W))
+
+    @torch.library.register_fake("torch_ao_kernels::glsl_walk")
+    def _(positions, *args):
+        B, H, W, _ = positions.shape
+        return positions.new_empty(B, 1, H, W), positions.new_empty(B if args[-1] else 0, 3, H, W)

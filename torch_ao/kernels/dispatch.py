@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import warnings
 
+import torch
+
 from ..gbuffer import GBuffer
-from .bitmask import bitmask_hard, kernel_covers
+from .bitmask import bitmask_hard, bitmask_outputs, kernel_covers, ssilvb_glsl_hard
 from .build import KernelUnavailable
 
 __all__ = ["BACKENDS", "kernel_forward"]
@@ -23,7 +25,8 @@ def _warn_once(message: str) -> None:
 
 
 def kernel_forward(module, gbuffer: GBuffer, backend: str):
-    """The kernel's visibility ``(B,1,H,W)`` for ``module(gbuffer)``, or ``None`` where the tensor path runs.
+    """The kernel's outputs (an :class:`~torch_ao.methods.base.AOOutput`) for ``module(gbuffer)``, or
+    ``None`` where the tensor path runs.
 
     A kernel exists for ``BitmaskAO`` (and subclasses) in the settings :func:`kernel_covers` accepts.
 
@@ -38,12 +41,34 @@ def kernel_forward(module, gbuffer: GBuffer, backend: str):
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")
         return None
     try:
-        return bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
-                            steps=module.steps, radius=float(module.radius.detach()),
-                            thickness=float(module.thickness.detach()), step_power=module.step_power,
-                            min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
-                            fetch=module.fetch, border=module.border, rounding=module.rounding,
-                            sector_epsilon=module.sector_epsilon)
+        return _bitmask_forward(module, gbuffer)
     except KernelUnavailable as exc:
         _warn_once(f"torch_ao: {exc}; using the tensor-op walk instead (backend='torch' silences this)")
         return None
+
+
+def _bitmask_forward(module, gbuffer: GBuffer):
+    """A covered ``BitmaskAO`` call through its variant's kernel."""
+    from ..methods.base import AOOutput
+
+    normals = gbuffer.view_normals(module.normals_method)
+    radius, thickness = float(module.radius.detach()), float(module.thickness.detach())
+    if module.variant == "ssilvb_glsl":
+        vis, indirect, _ = ssilvb_glsl_hard(gbuffer, normals, slices=module.slices, steps=module.steps,
+                                            radius=module.radius, thickness=thickness, jitter=module.jitter,
+                                            rounding=module.rounding, numerics=module.glsl_numerics,
+                                            indirect=module.want_indirect)
+        return AOOutput(visibility=vis, indirect=indirect)
+    options = dict(slices=module.slices, steps=module.steps, radius=radius, thickness=thickness,
+                   step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
+                   seed=module.seed, fetch=module.fetch, border=module.border, rounding=module.rounding,
+                   sector_epsilon=module.sector_epsilon, weighting=module.weighting)
+    if not (module.want_indirect or module.want_bent):
+        vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
+    else:
+        vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
+                                              bent_normals=module.want_bent, **options)
+    ambient = None
+    if module._ambient_constant:  # SectorAccumulator.finish: visibility times the colour; 0 on background
+        ambient = torch.where(gbuffer.valid, vis * module.ambient_colour.to(vis.dtype).view(1, 3, 1, 1), 0.0)
+    return AOOutput(visibility=vis, indirect=indirect, bent_normal=bent, ambient=ambient)

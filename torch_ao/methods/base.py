@@ -135,9 +135,9 @@ class ScreenSpaceAO(nn.Module):
     def forward(self, gbuffer: GBuffer) -> AOOutput:
         if not isinstance(gbuffer, GBuffer):
             raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(gbuffer).__name__}")
-        visibility = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
-        if visibility is not None:
-            return AOOutput(visibility=visibility)
+        kernel_out = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
+        if kernel_out is not None:
+            return kernel_out if isinstance(kernel_out, AOOutput) else AOOutput(visibility=kernel_out)
         normals = gbuffer.view_normals(self.normals_method)
         frame = Frame(gbuffer, normals=normals, buffers=self.frame_buffers(gbuffer, normals))
         out = self.walk(frame, *self.chunking(gbuffer))
