@@ -59,11 +59,36 @@ def _light(gbuffer: GBuffer, wanted: bool) -> torch.Tensor:
     return _channels_last(gbuffer.light)
 
 
+#: ``scalar_from`` of a pixel none of whose steps takes torch's scalar ``atan2``
+_NO_SCALAR = 1 << 30
+
+
+def _scalar_tails(valid: torch.Tensor, steps: int, chunk_size: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which of the tensor path's ``atan2`` evaluations are scalar: ``torch.atan2`` runs SLEEF over whole
+    runs of 32 floats and the C library on the rest, the last ``n mod 32`` elements of each call. The walk
+    calls it per chunk of ``chunk_size`` query pixels (all of them for ``None``), on ``(n,)`` projected
+    normals and on the ``(steps, n)`` samples of a side (block-major). Returns per pixel ``(B,H,W)``: the
+    first step whose sample angles are scalar (int32, :data:`_NO_SCALAR` for none) and whether the
+    projected normal's angle is (bool)."""
+    flat = valid.reshape(-1)
+    n = int(flat.sum())
+    size = max(n, 1) if chunk_size is None else max(1, int(chunk_size))
+    query = torch.cumsum(flat, 0) - 1
+    chunk = torch.div(query, size, rounding_mode="floor")
+    i = query - chunk * size  # index within its chunk
+    count = (n - chunk * size).clamp_max(size)  # the chunk's queries
+    gamma = flat & (i >= count // 32 * 32)
+    first = count * steps // 32 * 32  # the first scalar row of a side's samples
+    step = torch.div(first - i + count - 1, count.clamp_min(1), rounding_mode="floor").clamp_min(0)
+    step = torch.where(flat & (step < steps), step, _NO_SCALAR)
+    return step.to(torch.int32).view(valid.shape).contiguous(), gamma.view(valid.shape).contiguous()
+
+
 def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
                     thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
                     seed: int = 0, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
-                    bent_normals: bool = False) -> KernelOutputs:
+                    bent_normals: bool = False, chunk_size: int | None = None) -> KernelOutputs:
     """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
     pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
@@ -76,32 +101,27 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             (``"bilinear"``/``"nearest"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon
             (sectors), weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as
             :class:`~torch_ao.BitmaskAO`.
+        chunk_size: the query pixels per chunk of the tensor path being reproduced (``None``: one
+            chunk; a module's is ``module.chunking(gbuffer)[0]``): it decides which few angles torch
+            evaluates with the C library's ``atan2f`` (:func:`_scalar_tails`).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
     ops = cpu_kernels()
+    frame = _frame(gbuffer, normals)
     vis, light, bent = ops.bitmask_walk(
-        *_frame(gbuffer, normals), _light(gbuffer, indirect), int(slices), int(steps), float(radius),
+        *frame, _light(gbuffer, indirect), *_scalar_tails(frame[4], int(steps), chunk_size), int(slices), int(steps), float(radius),
         float(thickness), float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear",
         border == "drop", ROUNDINGS.index(rounding), float(sector_epsilon), weighting == "cosine", bool(indirect),
         bool(bent_normals))
     return KernelOutputs(vis, light if indirect else None, bent if bent_normals else None)
 
 
-def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, weighting: str = "uniform", **options) -> torch.Tensor:
+def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
     """Hard visibility ``(B,1,H,W)`` of the ``"default"`` variant: :func:`bitmask_outputs`'s first output
     (same arguments, visibility only)."""
-    if weighting == "uniform":  # the original op: visibility only
-        return _uniform_visibility(gbuffer, normals, **options)
-    return bitmask_outputs(gbuffer, normals, weighting=weighting, **options).visibility
-
-
-def _uniform_visibility(gbuffer, normals, *, slices, steps, radius, thickness, step_power=1.0, min_step_px=1.0,
-                        jitter=True, seed=0, fetch="bilinear", border="drop", rounding="ceil", sector_epsilon=0.01):
-    return cpu_kernels().bitmask_hard(
-        *_frame(gbuffer, normals), int(slices), int(steps), float(radius), float(thickness), float(step_power),
-        float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop", ROUNDINGS.index(rounding),
-        float(sector_epsilon))
+    options.update(indirect=False, bent_normals=False)
+    return bitmask_outputs(gbuffer, normals, **options).visibility
 
 
 def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
@@ -176,9 +196,11 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
     if gbuffer.position is not None and module.variant == "default" and module.fetch == "bilinear":
         return "bilinear reads of a position buffer"  # (the kernel interpolates depth)
-    beyond = module.want_indirect or module.want_bent or module.weighting == "cosine" or module.variant != "default"
+    beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
+                                    ("bent_normals", module.want_bent), ("variant='ssilvb_glsl'", module.variant != "default"))
+              if on]
     if beyond and module.mode != "hard":
-        return f"mode={module.mode!r} with more than uniform visibility"
+        return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through

@@ -97,6 +97,18 @@ inline void array_acos(int64_t n, const float* a, float* r) {
 #endif
 }
 
+// torch.atan2 evaluates SLEEF's vector atan2 over runs of 2 vectors and the C library's atan2f on the
+// last (n mod 32) elements of a tensor: lanes with ``scalar`` set take the latter
+inline Vec atan2_as_torch(const Vec& y, const Vec& x, const Vec& scalar, bool any_scalar) {
+  const Vec vector = y.atan2(x);
+  if (!any_scalar || scalar.zero_mask() == (1 << L) - 1) return vector;
+  alignas(64) float ys[L], xs[L], out[L], flags[L];
+  y.store(ys), x.store(xs), vector.store(out), scalar.store(flags);
+  for (int l = 0; l < L; ++l)
+    if (flags[l] != 0.0f) out[l] = std::atan2(ys[l], xs[l]);
+  return Vec::loadu(out);
+}
+
 // Jimenez's interleaved gradient noise, in double as torch_ao.marching.interleaved_gradient_noise
 inline float ign(float u, float v, int64_t seed) {
   double x = double(u) + 5.588238 * double(seed), y = double(v) + 5.588238 * double(seed);
@@ -151,6 +163,8 @@ struct Taps {
 struct Image {
   const float *positions, *normals, *inverse_depth, *depth, *light;  // light may be null
   const bool* valid;
+  const int32_t* scalar_from;  // per pixel: the first step whose atan2 is torch's scalar one (steps: none)
+  const bool* scalar_gamma;    // per pixel: whether its projected normal's atan2 is
   float fx, fy, cx, cy;
   int64_t H, W;
 };
@@ -196,13 +210,16 @@ struct Block {
   int n;      // real pixels in the block
   bool any;   // whether any lane is a valid pixel
   Vec P[3], N[3], V[3], d, u, v, live;
+  Vec scalar_from, scalar_gamma;  // (as Image's, for the lanes)
+  bool any_scalar;                // whether any lane has a scalar atan2
 };
 
 inline Block load_block(const Image& im, int64_t row, int64_t u0) {
   Block blk;
   blk.n = int(std::min<int64_t>(L, im.W - u0));
-  alignas(64) float lane[8][L];
+  alignas(64) float lane[10][L];
   blk.any = false;
+  blk.any_scalar = false;
   for (int l = 0; l < L; ++l) {
     const int64_t p = row * im.W + u0 + std::min(l, blk.n - 1);
     const bool live = l < blk.n && im.valid[p];
@@ -213,7 +230,12 @@ inline Block load_block(const Image& im, int64_t row, int64_t u0) {
     }
     lane[6][l] = im.depth[p];
     lane[7][l] = live ? 1.0f : 0.0f;
+    lane[8][l] = im.scalar_from ? float(im.scalar_from[p]) : 1e9f;
+    lane[9][l] = im.scalar_gamma && im.scalar_gamma[p] ? 1.0f : 0.0f;
+    blk.any_scalar |= live && im.scalar_from && (im.scalar_from[p] < (1 << 20) || im.scalar_gamma[p]);
   }
+  blk.scalar_from = load_lanes(lane[8]);
+  blk.scalar_gamma = load_lanes(lane[9]);
   for (int c = 0; c < 3; ++c) {
     blk.P[c] = load_lanes(lane[c]);
     blk.N[c] = load_lanes(lane[3 + c]);
@@ -331,7 +353,7 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
       cross3(T, V, axis);
       const Vec nd = dot3(N, axis);
       for (int c = 0; c < 3; ++c) np[c] = N[c] - axis[c] * nd;
-      const Vec gamma = dot3(np, T).atan2(dot3(np, V));
+      const Vec gamma = atan2_as_torch(dot3(np, T), dot3(np, V), blk.scalar_gamma != Vec(0.0f), blk.any_scalar);
       const Vec shift = (half_pi - gamma) / pi;
       Vec omega[kSectors];
       if (cfg.cosine) {
@@ -370,8 +392,10 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
           for (int c = 0; c < 3; ++c) delta[c] = select(sample_ok, delta[c], V[c].neg());
           const Vec along_view = dot3(delta, V);
           const Vec along_tangent = sgn * dot3(delta, T);
-          const Vec front = fma(along_tangent.atan2(along_view), scale, shift);
-          const Vec back = fma(along_tangent.atan2(along_view - Vec(cfg.thickness)), scale, shift);
+          const Vec scalar = Vec(float(j)) >= blk.scalar_from;
+          const Vec front = fma(atan2_as_torch(along_tangent, along_view, scalar, blk.any_scalar), scale, shift);
+          const Vec back = fma(atan2_as_torch(along_tangent, along_view - Vec(cfg.thickness), scalar, blk.any_scalar),
+                               scale, shift);
           const Vec xf = at::vec::clamp(front, Vec(0.0f), Vec(1.0f)), xb = at::vec::clamp(back, Vec(0.0f), Vec(1.0f));
           const Vec lo = side > 0 ? xf : xb, hi = side > 0 ? xb : xf;
           Vec width = (hi - lo) * sectors;
@@ -680,13 +704,14 @@ void check_inputs(std::initializer_list<const at::Tensor*> floats, const at::Ten
 
 Image image_of(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
                const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor* light,
-               int64_t b) {
+               int64_t b, const at::Tensor* scalar_from = nullptr, const at::Tensor* scalar_gamma = nullptr) {
   const int64_t H = positions.size(1), W = positions.size(2), plane = b * H * W;
   const float* K = intrinsics.data_ptr<float>() + 4 * b;
   return Image{positions.data_ptr<float>() + 3 * plane, normals.data_ptr<float>() + 3 * plane,
                inverse_depth.data_ptr<float>() + plane, depth.data_ptr<float>() + plane,
                light ? light->data_ptr<float>() + 3 * plane : nullptr, valid.data_ptr<bool>() + plane,
-               K[0], K[1], K[2], K[3], H, W};
+               scalar_from ? scalar_from->data_ptr<int32_t>() + plane : nullptr,
+               scalar_gamma ? scalar_gamma->data_ptr<bool>() + plane : nullptr, K[0], K[1], K[2], K[3], H, W};
 }
 
 // rows handed out a few at a time to whichever thread is free (even split fails when a core is busy)
@@ -708,12 +733,14 @@ void over_rows(int64_t rows, const F& fn) {
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> bitmask_walk(
     const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth, const at::Tensor& depth,
-    const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light, int64_t slices, int64_t steps,
-    double radius, double thickness, double step_power, double min_step_px, bool jitter, int64_t seed, bool bilinear,
+    const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light, const at::Tensor& scalar_from,
+    const at::Tensor& scalar_gamma, int64_t slices, int64_t steps, double radius, double thickness, double step_power, double min_step_px, bool jitter, int64_t seed, bool bilinear,
     bool drop, int64_t rounding, double epsilon, bool cosine, bool indirect, bool bent) {
   TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
   check_inputs({&positions, &normals, &inverse_depth, &depth, &intrinsics}, valid);
   if (indirect) check_inputs({&light}, valid);
+  TORCH_CHECK(scalar_from.scalar_type() == at::kInt && scalar_from.is_contiguous() && scalar_gamma.scalar_type() == at::kBool &&
+              scalar_gamma.is_contiguous(), "scalar_from, scalar_gamma: expected contiguous int32 and bool maps");
   const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2);
   Settings cfg{slices, steps, float(radius), float(thickness), float(step_power), float(min_step_px),
                float(epsilon), jitter, bilinear, drop, seed, rounding, cosine, indirect, bent};
@@ -722,22 +749,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> bitmask_walk(
   at::Tensor bn = at::empty({bent ? B : 0, 3, H, W}, positions.options());
   over_rows(B * H, [&](int64_t r) {
     const int64_t b = r / H;
-    const Image im = image_of(positions, normals, inverse_depth, depth, valid, intrinsics, indirect ? &light : nullptr, b);
+    const Image im = image_of(positions, normals, inverse_depth, depth, valid, intrinsics, indirect ? &light : nullptr, b,
+                              &scalar_from, &scalar_gamma);
     const Outputs out{vis.data_ptr<float>() + b * H * W, indirect ? ind.data_ptr<float>() + b * 3 * H * W : nullptr,
                       bent ? bn.data_ptr<float>() + b * 3 * H * W : nullptr};
     walk_row(cfg, im, r % H, out);
   });
   return {vis, ind, bn};
-}
-
-at::Tensor bitmask_hard(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
-                        const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
-                        int64_t slices, int64_t steps, double radius, double thickness, double step_power,
-                        double min_step_px, bool jitter, int64_t seed, bool bilinear, bool drop, int64_t rounding,
-                        double epsilon) {
-  return std::get<0>(bitmask_walk(positions, normals, inverse_depth, depth, valid, intrinsics, positions, slices, steps,
-                                  radius, thickness, step_power, min_step_px, jitter, seed, bilinear, drop, rounding,
-                                  epsilon, false, false, false));
 }
 
 std::tuple<at::Tensor, at::Tensor> glsl_walk(const at::Tensor& positions, const at::Tensor& normals,
@@ -767,17 +785,13 @@ std::tuple<at::Tensor, at::Tensor> glsl_walk(const at::Tensor& positions, const 
 }  // namespace
 
 TORCH_LIBRARY(torch_ao_kernels, m) {
-  m.def("bitmask_hard(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
-        "Tensor intrinsics, int slices, int steps, float radius, float thickness, float step_power, "
-        "float min_step_px, bool jitter, int seed, bool bilinear, bool drop, int rounding, float epsilon) -> Tensor");
   m.def("bitmask_walk(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
-        "Tensor intrinsics, Tensor light, int slices, int steps, float radius, float thickness, float step_power, "
+        "Tensor intrinsics, Tensor light, Tensor scalar_from, Tensor scalar_gamma, int slices, int steps, float radius, float thickness, float step_power, "
         "float min_step_px, bool jitter, int seed, bool bilinear, bool drop, int rounding, float epsilon, "
         "bool cosine, bool indirect, bool bent) -> (Tensor, Tensor, Tensor)");
   m.def("glsl_walk(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, Tensor radius_scale, Tensor light, int slices, int steps, float thickness, bool jitter, "
         "int numerics, int rounding, bool indirect) -> (Tensor, Tensor)");
-  m.impl("bitmask_hard", c10::DispatchKey::CPU, TORCH_FN(bitmask_hard));
   m.impl("bitmask_walk", c10::DispatchKey::CPU, TORCH_FN(bitmask_walk));
   m.impl("glsl_walk", c10::DispatchKey::CPU, TORCH_FN(glsl_walk));
 }
