@@ -159,8 +159,8 @@ _COVERED = {
     "indirect": (False, True), "bent_normals": (False, True), "ambient": (None, "a colour"),
     "ambient_directions": None, "sector_epsilon": None, "glsl_numerics": None,
 }
-#: what the ``"ssilvb_glsl"`` variant's walk ignores (its shader places its own samples) or does not cover
-_GLSL = {"azimuth": None, "mode": ("hard",)}
+#: what the ``"ssilvb_glsl"`` variant's walk ignores (its shader places its own samples)
+_GLSL = {"azimuth": None}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
