@@ -4,8 +4,9 @@ Same G-buffer (``torch_ao.examples.example_gbuffer``: a floor meeting a wall), s
 shader runs through moderngl's EGL backend exactly as ``tests/test_glsl_parity.py`` runs it (view-space
 position/normal/light as RGBA32F textures); it is compiled and its textures uploaded once, then each
 timed call draws the full-screen quad and reads the result back (``fbo.read`` waits for the GPU, here
-llvmpipe's threads). torch_ao's calls are whole module forwards without autograd (``BitmaskAO`` twice: the fused kernel,
-``backend="kernel"``, and the tensor-op walk, ``backend="torch"``). Best of ``--repeat``
+llvmpipe's threads). torch_ao's calls are whole module forwards without autograd (``SSILVB(variant="ssilvb_glsl")``, the
+shader's own rules, and ``BitmaskAO`` each twice: the fused kernel, ``backend="kernel"``, and the
+tensor-op walk, ``backend="torch"``). Best of ``--repeat``
 calls after a warm-up; machines are noisy, so read the ratios.
 
     python benchmarks/bench_vs_shader.py                       # 640x360 and 1280x720, 4x4 and 4x8
@@ -102,9 +103,9 @@ def main(argv=None) -> int:
     ctx = create_context()
     print(f"shader: {ctx.info['GL_RENDERER']} (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'default')}); "
           f"torch {torch.__version__}, {args.threads} threads")
-    print("| size, slices x steps | shader on llvmpipe (ms) | ssilvb_glsl hard AO+indirect | BitmaskAO hard AO, "
-          "kernel | BitmaskAO hard AO, tensor ops | GTAO |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| size, slices x steps | shader on llvmpipe (ms) | ssilvb_glsl hard AO+indirect, kernel | ssilvb_glsl, tensor "
+          "ops | BitmaskAO hard AO, kernel | BitmaskAO hard AO, tensor ops | GTAO |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for size in args.sizes:
         W, H = map(int, size.split("x"))
         gb = example_gbuffer(H, W)
@@ -114,7 +115,8 @@ def main(argv=None) -> int:
             ms_shader = best_ms(shader, args.repeat)
             common = dict(slices=slices, steps=steps, radius=args.radius)
             modules = [
-                torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", thickness=args.thickness, **common),
+                torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", thickness=args.thickness, backend="kernel", **common),
+                torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", thickness=args.thickness, backend="torch", **common),
                 torch_ao.BitmaskAO(mode="hard", thickness=args.thickness, backend="kernel", **common),
                 torch_ao.BitmaskAO(mode="hard", thickness=args.thickness, backend="torch", **common),
                 torch_ao.GTAO(**common),

@@ -39,24 +39,34 @@ def _channels_last(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
 
 
-def _frame(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def _frame(gbuffer: GBuffer, normals: torch.Tensor, records: bool = False) -> tuple[torch.Tensor, ...]:
     """What every kernel reads: channel-last positions and normals ``(B,H,W,3)``, inverse depth (NaN
     where invalid: the kernels read a texel's validity from it), depth and validity ``(B,H,W)``, and the
-    intrinsics ``(B,4)`` ``(fx, fy, cx, cy)``."""
+    intrinsics ``(B,4)`` ``(fx, fy, cx, cy)``. With ``records``, positions and normals are
+    ``(B,H,W,4)``: the positions with the inverse depth as fourth channel, the normals padded."""
     depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
     valid = gbuffer.valid[:, 0].contiguous()
     inverse = torch.where(valid, depth.reciprocal(), torch.nan)
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    return _channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics
+    positions, normals = _channels_last(gbuffer.positions()), _channels_last(normals)
+    if records:
+        positions, normals = torch.cat((positions, inverse[..., None]), -1), _padded(normals)
+    return positions, normals, inverse, depth, valid, intrinsics
 
 
-def _light(gbuffer: GBuffer, wanted: bool) -> torch.Tensor:
+def _padded(x: torch.Tensor) -> torch.Tensor:
+    """``(B,H,W,3)`` -> contiguous ``(B,H,W,4)`` (a zero fourth channel)."""
+    return torch.nn.functional.pad(x, (0, 1))
+
+
+def _light(gbuffer: GBuffer, wanted: bool, records: bool = False) -> torch.Tensor:
     if not wanted:
         return torch.empty(0)
     if gbuffer.light is None:
         raise ValueError("gbuffer.light: indirect light needs a (B,3,H,W) direct-light buffer")
-    return _channels_last(gbuffer.light)
+    light = _channels_last(gbuffer.light)
+    return _padded(light) if records else light
 
 
 #: ``scalar_from`` of a pixel none of whose steps takes torch's scalar ``atan2``
@@ -140,7 +150,8 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     # sampleScale's numerator -radius P[0][0] per image, as GLSLPattern forms it
     p00 = (2 * gbuffer.camera.fx / W).to(torch.float32)
     scale = ((-torch.as_tensor(radius, dtype=torch.float32).detach()) * p00).contiguous()
-    vis, light = ops.glsl_walk(*_frame(gbuffer, normals), scale, _light(gbuffer, indirect), int(slices), int(steps),
+    vis, light = ops.glsl_walk(*_frame(gbuffer, normals, records=True), scale, _light(gbuffer, indirect, records=True),
+                               int(slices), int(steps),
                                float(thickness), bool(jitter), _NUMERICS.index(numerics), ROUNDINGS.index(rounding),
                                bool(indirect))
     return KernelOutputs(vis, light if indirect else None)

@@ -145,23 +145,50 @@ inline Int sector_bits(const Vec& s, const Vec& w, int64_t rounding) {
   return ((Int(1) << k1) - Int(1)) & ~((Int(1) << k0) - Int(1));
 }
 
+// Channels 0..3 of the 4-float records base[4 i] at the lanes' indices i: one 16-byte load per lane and a
+// transpose (the hardware gather of single floats is several times slower on this CPU: measured)
+inline void gather_records(const float* base, const Int& index, Vec* out) {
+#if defined(CPU_CAPABILITY_AVX512)
+  static_assert(L == 16, "AVX-512: 16 lanes");
+  alignas(64) int32_t at[L];
+  index.store(at);
+  __m512 v[4];
+  for (int j = 0; j < 4; ++j) {  // v[j] holds the records of lanes j, 4 + j, 8 + j, 12 + j
+    __m512 r = _mm512_castps128_ps512(_mm_loadu_ps(base + 4 * int64_t(at[j])));
+    r = _mm512_insertf32x4(r, _mm_loadu_ps(base + 4 * int64_t(at[4 + j])), 1);
+    r = _mm512_insertf32x4(r, _mm_loadu_ps(base + 4 * int64_t(at[8 + j])), 2);
+    v[j] = _mm512_insertf32x4(r, _mm_loadu_ps(base + 4 * int64_t(at[12 + j])), 3);
+  }
+  const __m512 t0 = _mm512_unpacklo_ps(v[0], v[1]), t1 = _mm512_unpackhi_ps(v[0], v[1]);
+  const __m512 t2 = _mm512_unpacklo_ps(v[2], v[3]), t3 = _mm512_unpackhi_ps(v[2], v[3]);
+  out[0] = _mm512_shuffle_ps(t0, t2, 0x44), out[1] = _mm512_shuffle_ps(t0, t2, 0xEE);
+  out[2] = _mm512_shuffle_ps(t1, t3, 0x44), out[3] = _mm512_shuffle_ps(t1, t3, 0xEE);
+#else
+  for (int c = 0; c < 4; ++c) out[c] = at::vec::gather<4>(base + c, index * Int(4));
+#endif
+}
+
 // Where a sample reads the frame: the nearest texel, or four bilinear taps and their fractions
 struct Taps {
   Int index[4];  // texel indices within the image (only index[0] for a nearest fetch)
   Vec fu, fv;
   bool bilinear;
-  // value of channel c of a (H, W, 3) channel-last image at the taps (Sample.gather)
-  Vec gather(const float* image, int c) const {
-    if (!bilinear) return at::vec::gather<4>(image + c, index[0] * Int(3));
-    const Vec t0 = at::vec::gather<4>(image + c, index[0] * Int(3)), t1 = at::vec::gather<4>(image + c, index[1] * Int(3));
-    const Vec t2 = at::vec::gather<4>(image + c, index[2] * Int(3)), t3 = at::vec::gather<4>(image + c, index[3] * Int(3));
+  // value of channel c of a (H, W, stride) channel-last image at the taps (Sample.gather)
+  Vec gather(const float* image, int c, int stride = 3) const {
+    const Int step(stride);
+    if (!bilinear) return at::vec::gather<4>(image + c, index[0] * step);
+    const Vec t0 = at::vec::gather<4>(image + c, index[0] * step), t1 = at::vec::gather<4>(image + c, index[1] * step);
+    const Vec t2 = at::vec::gather<4>(image + c, index[2] * step), t3 = at::vec::gather<4>(image + c, index[3] * step);
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 };
 
 // One image of the frame, channel-last: what a row's walk reads
 struct Image {
-  const float *positions, *normals, *inverse_depth, *depth, *light;  // light may be null
+  // positions, normals and light (may be null) hold `stride` floats per texel: 3, or 4 with the inverse
+  // depth as the positions' fourth (a nearest fetch then reads a texel with one record load)
+  const float *positions, *normals, *inverse_depth, *depth, *light;
+  int stride;
   const bool* valid;
   const int32_t* scalar_from;  // per pixel: the first step whose atan2 is torch's scalar one (steps: none)
   const bool* scalar_gamma;    // per pixel: whether its projected normal's atan2 is
@@ -198,10 +225,18 @@ inline void fetch(const Image& im, const Vec& su, const Vec& sv, bool bilinear, 
     const Int iu = at::vec::clamp(to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), zero, Wlast);
     const Int iv = at::vec::clamp(to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf)), zero, Hlast);
     taps.index[0] = iv * Wi + iu;
-    const Vec t = at::vec::gather<4>(im.inverse_depth, taps.index[0]);
+    Vec t;
+    if (im.stride == 4) {
+      Vec record[4];
+      gather_records(im.positions, taps.index[0], record);
+      for (int c = 0; c < 3; ++c) pos[c] = record[c];
+      t = record[3];
+    } else {
+      t = at::vec::gather<4>(im.inverse_depth, taps.index[0]);
+      for (int c = 0; c < 3; ++c) pos[c] = taps.gather(im.positions, c);
+    }
     ok = t == t;
     if (drop) ok = ok & (fu0 >= Vec(0.0f)) & (fu0 < Wf) & (fv0 >= Vec(0.0f)) & (fv0 < Hf);
-    for (int c = 0; c < 3; ++c) pos[c] = taps.gather(im.positions, c);
   }
 }
 
@@ -225,8 +260,8 @@ inline Block load_block(const Image& im, int64_t row, int64_t u0) {
     const bool live = l < blk.n && im.valid[p];
     blk.any |= live;
     for (int c = 0; c < 3; ++c) {
-      lane[c][l] = im.positions[3 * p + c];
-      lane[3 + c][l] = im.normals[3 * p + c];
+      lane[c][l] = im.positions[im.stride * p + c];
+      lane[3 + c][l] = im.normals[im.stride * p + c];
     }
     lane[6][l] = im.depth[p];
     lane[7][l] = live ? 1.0f : 0.0f;
@@ -669,18 +704,17 @@ void walk_row_glsl(const GlslSettings& cfg, const Image& im, int64_t row, float 
         const Int bits = sector_bits(x * sectors, (y - x) * sectors, cfg.rounding);
         if (cfg.indirect) {
           const Vec* h = &horizon[3 * j];
-          Vec raw_n[3], sample_n[3], away[3];
-          for (int c = 0; c < 3; ++c) {
-            raw_n[c] = taps[j].gather(im.normals, c);
-            away[c] = h[c].neg();
-          }
+          Vec raw_n[4], light[4], sample_n[3], away[3];
+          gather_records(im.normals, taps[j].index[0], raw_n);
+          gather_records(im.light, taps[j].index[0], light);
+          for (int c = 0; c < 3; ++c) away[c] = h[c].neg();
           gl.normalize(raw_n, sample_n);
           const Vec c1 = at::vec::clamp(gl.dot(normal, h), Vec(0.0f), Vec(1.0f));
           const Vec c2 = at::vec::clamp(gl.dot(sample_n, away), Vec(0.0f), Vec(1.0f)) *
                          select(sample_ok[j], Vec(1.0f), Vec(0.0f));
           const Vec newly = to_float(popcount(bits & ~occ));
           const Vec weight = Vec(1.0f) - newly / sectors;
-          for (int c = 0; c < 3; ++c) lighting[c] = lighting[c] + weight * ((taps[j].gather(im.light, c) * c1) * c2);
+          for (int c = 0; c < 3; ++c) lighting[c] = lighting[c] + weight * ((light[c] * c1) * c2);
         }
         occ = occ | bits;
       }
@@ -705,11 +739,12 @@ void check_inputs(std::initializer_list<const at::Tensor*> floats, const at::Ten
 Image image_of(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
                const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor* light,
                int64_t b, const at::Tensor* scalar_from = nullptr, const at::Tensor* scalar_gamma = nullptr) {
-  const int64_t H = positions.size(1), W = positions.size(2), plane = b * H * W;
+  const int64_t H = positions.size(1), W = positions.size(2), plane = b * H * W, stride = positions.size(3);
+  TORCH_CHECK(normals.size(3) == stride && (!light || light->size(3) == stride), "expected channel-last inputs of one width");
   const float* K = intrinsics.data_ptr<float>() + 4 * b;
-  return Image{positions.data_ptr<float>() + 3 * plane, normals.data_ptr<float>() + 3 * plane,
+  return Image{positions.data_ptr<float>() + stride * plane, normals.data_ptr<float>() + stride * plane,
                inverse_depth.data_ptr<float>() + plane, depth.data_ptr<float>() + plane,
-               light ? light->data_ptr<float>() + 3 * plane : nullptr, valid.data_ptr<bool>() + plane,
+               light ? light->data_ptr<float>() + stride * plane : nullptr, int(stride), valid.data_ptr<bool>() + plane,
                scalar_from ? scalar_from->data_ptr<int32_t>() + plane : nullptr,
                scalar_gamma ? scalar_gamma->data_ptr<bool>() + plane : nullptr, K[0], K[1], K[2], K[3], H, W};
 }
@@ -764,8 +799,9 @@ std::tuple<at::Tensor, at::Tensor> glsl_walk(const at::Tensor& positions, const 
                                              const at::Tensor& radius_scale, const at::Tensor& light, int64_t slices,
                                              int64_t steps, double thickness, bool jitter, int64_t numerics,
                                              int64_t rounding, bool indirect) {
-  TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
+  TORCH_CHECK(positions.dim() == 4, "positions: expected (B, H, W, 4)");
   TORCH_CHECK(slices >= 2 && steps >= 1, "slices >= 2 and steps >= 1 expected");
+  TORCH_CHECK(positions.size(3) == 4, "positions: expected (B, H, W, 4) records (x, y, z, inverse depth)");
   check_inputs({&positions, &normals, &inverse_depth, &depth, &intrinsics, &radius_scale}, valid);
   if (indirect) check_inputs({&light}, valid);
   const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2);
