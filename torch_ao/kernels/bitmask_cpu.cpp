@@ -74,28 +74,21 @@ inline Vec sum32(const Vec* x) {
   return total;
 }
 
-// n floats (a multiple of L) through the functions torch.cos/sin/acos use
-inline void array_cos(int64_t n, const float* a, float* r) {
+// array_cos/sin/acos: n floats (a multiple of L) through the function torch.cos/sin/acos use, MKL's
+// vector math where torch has it, else SLEEF's
 #ifdef TORCH_AO_MKL_VML
-  vmsCos(int(n), a, r, kVmlMode);
+#define TORCH_AO_ARRAY_FN(fn, mkl) \
+  inline void array_##fn(int64_t n, const float* a, float* r) { mkl(int(n), a, r, kVmlMode); }
 #else
-  for (int64_t i = 0; i < n; i += L) Vec::loadu(a + i).cos().store(r + i);
+#define TORCH_AO_ARRAY_FN(fn, mkl) \
+  inline void array_##fn(int64_t n, const float* a, float* r) { \
+    for (int64_t i = 0; i < n; i += L) Vec::loadu(a + i).fn().store(r + i); \
+  }
 #endif
-}
-inline void array_sin(int64_t n, const float* a, float* r) {
-#ifdef TORCH_AO_MKL_VML
-  vmsSin(int(n), a, r, kVmlMode);
-#else
-  for (int64_t i = 0; i < n; i += L) Vec::loadu(a + i).sin().store(r + i);
-#endif
-}
-inline void array_acos(int64_t n, const float* a, float* r) {
-#ifdef TORCH_AO_MKL_VML
-  vmsAcos(int(n), a, r, kVmlMode);
-#else
-  for (int64_t i = 0; i < n; i += L) Vec::loadu(a + i).acos().store(r + i);
-#endif
-}
+TORCH_AO_ARRAY_FN(cos, vmsCos)
+TORCH_AO_ARRAY_FN(sin, vmsSin)
+TORCH_AO_ARRAY_FN(acos, vmsAcos)
+#undef TORCH_AO_ARRAY_FN
 
 // torch.atan2 evaluates SLEEF's vector atan2 over runs of 2 vectors and the C library's atan2f on the
 // last (n mod 32) elements of a tensor: lanes with ``scalar`` set take the latter
