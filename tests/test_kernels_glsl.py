@@ -204,3 +204,20 @@ def test_ssilvb_glsl_kernel_matches_the_shader_on_mesa_softpipe(built, tmp_path)
             assert float(di[ok & (dv == 0)].max()) < 1e-5, (name, i)
             exact, total = exact + share * int(ok.sum()), total + int(ok.sum())
     assert exact / total >= 0.99
+
+
+@pytest.mark.slow
+def test_an_engine_sized_frame_walked_in_chunks(built):
+    """640x360: the module walks 16384-pixel chunks (the scalar atan2 tails at each chunk's end)."""
+    from torch_ao.examples import example_gbuffer
+
+    gb = example_gbuffer(360, 640)
+    ref, out = both(gb, weighting="cosine", bent_normals=True, slices=3, steps=3)
+    assert BitmaskAO(weighting="cosine").chunking(gb)[0] == 16384
+    assert_identical(out.visibility, ref.visibility, "visibility")
+    assert_identical(out.bent_normal, ref.bent_normal, "bent_normal")
+    with torch.no_grad():
+        options = dict(variant="ssilvb_glsl", slices=4, steps=8, glsl_numerics="mesa")
+        glsl_ref, glsl = SSILVB(backend="torch", **options)(gb), SSILVB(backend="kernel", **options)(gb)
+    assert_identical(glsl.visibility, glsl_ref.visibility, "visibility")
+    assert_identical(glsl.indirect, glsl_ref.indirect, "indirect")
