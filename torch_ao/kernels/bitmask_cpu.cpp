@@ -74,6 +74,27 @@ inline Vec sum32(const Vec* x) {
   return total;
 }
 
+// torch's row_sum (SumKernel's cascade) of n values x[0], x[stride], ..., lane by lane: four interleaved
+// partial sums over groups of 4 values (in blocks of 16 groups, each block's sum added to a second level),
+// the leftover values added to the first partial sum, then the four summed in order (n < 4 * 65536)
+inline Vec row_sum(const Vec* x, int64_t n, int64_t stride) {
+  constexpr int64_t block = 16;  // multi_row_sum's level step while rows < 2^16
+  const int64_t rows = n / 4;
+  Vec level0[4], level1[4];
+  for (int k = 0; k < 4; ++k) level0[k] = level1[k] = Vec(0.0f);
+  int64_t i = 0;
+  for (; i + block <= rows;) {
+    for (int64_t j = 0; j < block; ++j, ++i)
+      for (int k = 0; k < 4; ++k) level0[k] = level0[k] + x[(4 * i + k) * stride];
+    for (int k = 0; k < 4; ++k) level1[k] = level1[k] + level0[k], level0[k] = Vec(0.0f);
+  }
+  for (; i < rows; ++i)
+    for (int k = 0; k < 4; ++k) level0[k] = level0[k] + x[(4 * i + k) * stride];
+  for (int k = 0; k < 4; ++k) level0[k] = level0[k] + level1[k];
+  for (int64_t r = rows * 4; r < n; ++r) level0[0] = level0[0] + x[r * stride];
+  return ((level0[0] + level0[1]) + level0[2]) + level0[3];
+}
+
 // array_cos/sin/acos: n floats (a multiple of L) through the function torch.cos/sin/acos use, MKL's
 // vector math where torch has it, else SLEEF's
 #ifdef TORCH_AO_MKL_VML
@@ -343,6 +364,7 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
   const bool weights_needed = cfg.cosine || cfg.bent;
   std::vector<float> scratch(weights_needed ? 70 * L : 0), phi(cfg.bent ? 2 * kSectors * L : 0),
       trig(cfg.bent ? 2 * kSectors * L : 0);
+  std::vector<Vec> step_light(cfg.indirect ? 3 * 2 * cfg.steps : 0);
   for (int64_t u0 = 0; u0 < W; u0 += L) {
     const Block blk = load_block(im, row, u0);
     const int n = blk.n;
@@ -396,7 +418,7 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
       const Vec unit_u = du / at::vec::clamp_min(len, Vec(1e-12f)), unit_v = dv / at::vec::clamp_min(len, Vec(1e-12f));
       const Vec span = at::vec::clamp_min(Vec(cfg.radius) * len - Vec(cfg.min_step_px), Vec(0.0f));
       Int occ = Int(0);
-      Vec light_sum[3] = {Vec(0.0f), Vec(0.0f), Vec(0.0f)};  // sum over steps of newly occluded share x light
+      int64_t sent = 0;  // steps so far; step_light[3 step + c]: the step's newly occluded share x light
       for (int side = 1; side >= -1; side -= 2) {
         const Vec sgn = Vec(float(side)), scale = Vec(float(side / M_PI));
         const Vec su_dir = unit_u * sgn, sv_dir = unit_v * sgn;
@@ -452,10 +474,11 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
             const Vec sends = width >= Vec(0.0f);  // only a non-empty interval gathers light
             for (int c = 0; c < 3; ++c) {
               const Vec light = select(sends, taps.gather(im.light, c) * factor, Vec(0.0f));
-              light_sum[c] = light_sum[c] + newly * light;
+              step_light[3 * sent + c] = newly * light;
             }
           }
           occ = occ | bits;
+          ++sent;
         }
       }
       // finish the slice: its visible sectors, their weights, the light, the bent normal
@@ -492,7 +515,11 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
         }
       }
       if (cfg.indirect)
-        for (int c = 0; c < 3; ++c) indirect[c] = s == 0 ? light_sum[c] : indirect[c] + light_sum[c];
+        for (int c = 0; c < 3; ++c) {
+          // (newly x light).sum(0) over the slice's steps: the product is laid out step-fastest per channel
+          const Vec light = row_sum(step_light.data() + c, sent, 3);
+          indirect[c] = s == 0 ? light : indirect[c] + light;
+        }
     }
     // finish: average over slices (uniform) or divide by the cosine weights' total
     Vec den;
