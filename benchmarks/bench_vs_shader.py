@@ -4,9 +4,10 @@ Same G-buffer (``torch_ao.examples.example_gbuffer``: a floor meeting a wall), s
 shader runs through moderngl's EGL backend exactly as ``tests/test_glsl_parity.py`` runs it (view-space
 position/normal/light as RGBA32F textures); it is compiled and its textures uploaded once, then each
 timed call draws the full-screen quad and reads the result back (``fbo.read`` waits for the GPU, here
-llvmpipe's threads). torch_ao's calls are whole module forwards without autograd (``BitmaskAO`` and ``GTAO`` twice each: the
-fused kernel, ``backend="kernel"``, and the tensor-op walk, ``backend="torch"``). Best of ``--repeat``
-calls after a warm-up; machines are noisy, so read the ratios.
+llvmpipe's threads). torch_ao's calls are whole module forwards without autograd (``SSILVB(variant="ssilvb_glsl")``, the
+shader's own rules, ``BitmaskAO`` and ``GTAO`` each twice: the fused kernel, ``backend="kernel"``, and the
+tensor-op walk, ``backend="torch"``). Best of ``--repeat``
+calls after a warm-up, wall and CPU (process) time; machines are noisy, so read the ratios.
 
     python benchmarks/bench_vs_shader.py                       # 640x360 and 1280x720, 4x4 and 4x8
     python benchmarks/bench_vs_shader.py --sizes 320x180 --repeat 3 --threads 1
@@ -74,14 +75,17 @@ class ShaderRun:
         return self.fbo.read(components=4, dtype="f4")
 
 
-def best_ms(fn, repeat: int) -> float:
+def best_ms(fn, repeat: int) -> tuple[float, float]:
+    """Best wall and best CPU milliseconds of ``repeat`` calls after a warm-up (CPU: process time, which
+    counts llvmpipe's threads too: they run in this process)."""
     fn()  # warm-up
-    times = []
+    wall, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * min(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return 1e3 * min(wall), 1e3 * min(cpu)
 
 
 def main(argv=None) -> int:
@@ -92,6 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--thickness", type=float, default=0.5, help="hit thickness, world units")
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per case (best is reported)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads")
+    ap.add_argument("--kernels-only", action="store_true", help="leave out the tensor-op columns (seconds per call)")
     args = ap.parse_args(argv)
 
     import torch_ao
@@ -102,30 +107,35 @@ def main(argv=None) -> int:
     ctx = create_context()
     print(f"shader: {ctx.info['GL_RENDERER']} (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'default')}); "
           f"torch {torch.__version__}, {args.threads} threads")
-    print("| size, slices x steps | shader on llvmpipe (ms) | ssilvb_glsl hard AO+indirect | BitmaskAO hard AO, "
-          "kernel | BitmaskAO hard AO, tensor ops | GTAO, kernel | GTAO, tensor ops |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    # (column, kernel?, module factory); the tensor-op columns take seconds per call
+    columns = [
+        ("ssilvb_glsl hard AO+indirect, kernel", True,
+         lambda c: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="kernel", **c)),
+        ("ssilvb_glsl, tensor ops", False, lambda c: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="torch", **c)),
+        ("BitmaskAO hard AO, kernel", True, lambda c: torch_ao.BitmaskAO(mode="hard", backend="kernel", **c)),
+        ("BitmaskAO hard AO, tensor ops", False, lambda c: torch_ao.BitmaskAO(mode="hard", backend="torch", **c)),
+        ("GTAO, kernel", True, lambda c: torch_ao.GTAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
+        ("GTAO, tensor ops", False, lambda c: torch_ao.GTAO(backend="torch", **{k: v for k, v in c.items() if k != "thickness"})),
+    ]
+    columns = [col for col in columns if col[1] or not args.kernels_only]
+    print("| size, slices x steps | shader on llvmpipe (ms) | " + " | ".join(col[0] for col in columns) + " |")
+    print("|---|---:|" + "---:|" * len(columns))
     for size in args.sizes:
         W, H = map(int, size.split("x"))
         gb = example_gbuffer(H, W)
         for setting in args.settings:
             slices, steps = map(int, setting.split("x"))
             shader = ShaderRun(ctx, gb, slices=slices, steps=steps, radius=args.radius, thickness=args.thickness)
-            ms_shader = best_ms(shader, args.repeat)
-            common = dict(slices=slices, steps=steps, radius=args.radius)
-            modules = [
-                torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", thickness=args.thickness, **common),
-                torch_ao.BitmaskAO(mode="hard", thickness=args.thickness, backend="kernel", **common),
-                torch_ao.BitmaskAO(mode="hard", thickness=args.thickness, backend="torch", **common),
-                torch_ao.GTAO(backend="kernel", **common),
-                torch_ao.GTAO(backend="torch", **common),
-            ]
+            ms_shader, cpu_shader = best_ms(shader, args.repeat)
+            common = dict(slices=slices, steps=steps, radius=args.radius, thickness=args.thickness)
             cells = []
             with torch.no_grad():
-                for module in modules:
-                    ms = best_ms(lambda: module(gb), args.repeat)
-                    cells.append(f"{ms:.0f} ms ({ms / ms_shader:.1f}x)")
-            print(f"| {W}x{H}, {slices} x {steps} | {ms_shader:.0f} | " + " | ".join(cells) + " |", flush=True)
+                for _, _, make in columns:
+                    module = make(common)
+                    ms, cpu = best_ms(lambda: module(gb), args.repeat)
+                    cells.append(f"{ms:.0f} ms ({ms / ms_shader:.1f}x; CPU {cpu:.0f}, {cpu / cpu_shader:.1f}x)")
+            print(f"| {W}x{H}, {slices} x {steps} | {ms_shader:.0f} (CPU {cpu_shader:.0f}) | " + " | ".join(cells) + " |",
+                  flush=True)
     return 0
 
 

@@ -88,8 +88,10 @@ def test_flat_plane_is_unoccluded(built):
 def test_kernel_covers_names_what_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
+    # (cosine weights and indirect light are covered since the kernel has them: see test_kernels_glsl.py)
     cases = {"variant": BitmaskAO(variant="hdrp", azimuth="view"), "mode": BitmaskAO(mode="soft"),
-             "weighting": BitmaskAO(weighting="cosine"), "indirect": BitmaskAO(indirect=True),
+             "weighting": BitmaskAO(weighting="cosine", mode="straight_through"),
+             "indirect": BitmaskAO(indirect=True, mode="straight_through"), "ambient": BitmaskAO(ambient=lambda d: d),
              "azimuth": BitmaskAO(azimuth="screen"), "thickness": BitmaskAO(thickness=torch.ones(3)),
              "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
              "thickness_direction": BitmaskAO(thickness_direction="depth"),

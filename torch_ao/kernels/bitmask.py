@@ -1,12 +1,17 @@
-"""The hard bitmask AO kernel: ``BitmaskAO(variant="default", mode="hard")`` in one fused pass.
+"""The hard bitmask kernels: ``BitmaskAO(variant="default" | "ssilvb_glsl", mode="hard")`` in one fused pass.
 
-It walks exactly what the tensor path walks (the same slice directions around the view vector, jitter,
-step placement, fetch, border and sector rule; see :mod:`torch_ao.methods.bitmask`) and returns the
-same visibility: bit for bit where both evaluate the same float operations in the same order (the
-C++ source follows torch's kernels operation by operation; docs/performance.md gives the measured
-agreement).
+:func:`bitmask_hard` / :func:`bitmask_outputs` walk exactly what the ``"default"`` variant's tensor path
+walks (the same slice directions around the view vector, jitter, step placement, fetch, border and
+sector rule; see :mod:`torch_ao.methods.bitmask`), with uniform or cosine sector weights, and return the
+same visibility, indirect light and bent normals. :func:`ssilvb_glsl_hard` is the ``"ssilvb_glsl"``
+variant (the SSILVB GLSL article's shader, :mod:`torch_ao.methods.bitmask_glsl`): AO and indirect light.
+Hard visibility is bit for bit the tensor path's where both evaluate the same float operations in the
+same order (the C++ source follows torch's kernels operation by operation); docs/performance.md gives
+the measured agreement of every output.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 
@@ -15,7 +20,19 @@ from ..sectors import ROUNDINGS
 from ..thickness import ScalarThickness
 from .build import cpu_kernels
 
-__all__ = ["bitmask_hard", "kernel_covers", "options_uncovered", "walk_inputs"]
+__all__ = ["bitmask_hard", "bitmask_outputs", "ssilvb_glsl_hard", "kernel_covers", "options_uncovered", "walk_inputs",
+           "KernelOutputs"]
+
+#: ``glsl_numerics`` values in the order the C++ source numbers them
+_NUMERICS = ("ieee", "mesa", "mesa_mediump")
+
+
+class KernelOutputs(NamedTuple):
+    """A kernel's outputs: ``visibility`` ``(B,1,H,W)``; ``indirect``, ``bent_normal`` ``(B,3,H,W)`` or ``None``."""
+
+    visibility: torch.Tensor
+    indirect: torch.Tensor | None = None
+    bent_normal: torch.Tensor | None = None
 
 
 def _channels_last(x: torch.Tensor) -> torch.Tensor:
@@ -23,42 +40,125 @@ def _channels_last(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
 
 
-def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
-                 thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
-                 seed: int = 0, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
-                 sector_epsilon: float = 0.01) -> torch.Tensor:
-    """Hard bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background pixels 1).
-
-    Args:
-        gbuffer: a float32 CPU G-buffer; normals: its ``(B,3,H,W)`` unit view-space normals (as the
-            module uses them, e.g. ``gbuffer.view_normals()``).
-        slices, steps: directions per pixel (uniform around the view vector) and samples per side.
-        radius, thickness: world units (scalars); step_power, min_step_px (pixels), jitter, seed, fetch
-            (``"bilinear"``/``"nearest"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon
-            (sectors): as :class:`~torch_ao.BitmaskAO`.
-
-    Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
-    """
-    ops = cpu_kernels()
-    return ops.bitmask_hard(
-        *walk_inputs(gbuffer, normals), int(slices), int(steps), float(radius), float(thickness),
-        float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
-        ROUNDINGS.index(rounding), float(sector_epsilon))
-
-
-def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """The kernels' frame tensors: channel-last ``positions``, ``normals`` ``(B,H,W,3)``, the inverse
-    depth ``(B,H,W)`` (NaN where invalid: the kernels read a texel's validity from it), ``depth``,
-    ``valid`` ``(B,H,W)`` and the intrinsics ``(B,4)`` ``(fx, fy, cx, cy)``, all contiguous float32 (bool)."""
+def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor, records: bool = False) -> tuple[torch.Tensor, ...]:
+    """What every kernel reads: channel-last positions and normals ``(B,H,W,3)``, inverse depth (NaN
+    where invalid: the kernels read a texel's validity from it), depth and validity ``(B,H,W)``, and the
+    intrinsics ``(B,4)`` ``(fx, fy, cx, cy)``. With ``records``, positions and normals are
+    ``(B,H,W,4)``: the positions with the inverse depth as fourth channel, the normals padded."""
     depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
     valid = gbuffer.valid[:, 0].contiguous()
     inverse = torch.where(valid, depth.reciprocal(), torch.nan)
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    return (_channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics)
+    positions, normals = _channels_last(gbuffer.positions()), _channels_last(normals)
+    if records:
+        positions, normals = torch.cat((positions, inverse[..., None]), -1), _padded(normals)
+    return positions, normals, inverse, depth, valid, intrinsics
 
 
-#: options of a module the kernel reproduces: ``None`` for any value, else the values it covers
+def _padded(x: torch.Tensor) -> torch.Tensor:
+    """``(B,H,W,3)`` -> contiguous ``(B,H,W,4)`` (a zero fourth channel)."""
+    return torch.nn.functional.pad(x, (0, 1))
+
+
+def _light(gbuffer: GBuffer, wanted: bool, records: bool = False) -> torch.Tensor:
+    if not wanted:
+        return torch.empty(0)
+    if gbuffer.light is None:
+        raise ValueError("gbuffer.light: indirect light needs a (B,3,H,W) direct-light buffer")
+    light = _channels_last(gbuffer.light)
+    return _padded(light) if records else light
+
+
+#: ``scalar_from`` of a pixel none of whose steps takes torch's scalar ``atan2``
+_NO_SCALAR = 1 << 30
+
+
+def _scalar_tails(valid: torch.Tensor, steps: int, chunk_size: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which of the tensor path's ``atan2`` evaluations are scalar: ``torch.atan2`` runs SLEEF over whole
+    runs of 32 floats and the C library on the rest, the last ``n mod 32`` elements of each call. The walk
+    calls it per chunk of ``chunk_size`` query pixels (all of them for ``None``), on ``(n,)`` projected
+    normals and on the ``(steps, n)`` samples of a side (block-major). Returns per pixel ``(B,H,W)``: the
+    first step whose sample angles are scalar (int32, :data:`_NO_SCALAR` for none) and whether the
+    projected normal's angle is (bool)."""
+    flat = valid.reshape(-1)
+    n = int(flat.sum())
+    size = max(n, 1) if chunk_size is None else max(1, int(chunk_size))
+    query = torch.cumsum(flat, 0) - 1
+    chunk = torch.div(query, size, rounding_mode="floor")
+    i = query - chunk * size  # index within its chunk
+    count = (n - chunk * size).clamp_max(size)  # the chunk's queries
+    gamma = flat & (i >= count // 32 * 32)
+    first = count * steps // 32 * 32  # the first scalar row of a side's samples
+    step = torch.div(first - i + count - 1, count.clamp_min(1), rounding_mode="floor").clamp_min(0)
+    step = torch.where(flat & (step < steps), step, _NO_SCALAR)
+    return step.to(torch.int32).view(valid.shape).contiguous(), gamma.view(valid.shape).contiguous()
+
+
+def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
+                    thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
+                    seed: int = 0, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
+                    sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
+                    bent_normals: bool = False, chunk_size: int | None = None) -> KernelOutputs:
+    """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
+    pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
+    ``normals``).
+
+    Args:
+        gbuffer: a float32 CPU G-buffer (with ``light`` for ``indirect``); normals: its ``(B,3,H,W)``
+            unit view-space normals (as the module uses them, e.g. ``gbuffer.view_normals()``).
+        slices, steps: directions per pixel (uniform around the view vector) and samples per side.
+        radius, thickness: world units (scalars); step_power, min_step_px (pixels), jitter, seed, fetch
+            (``"bilinear"``/``"nearest"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon
+            (sectors), weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as
+            :class:`~torch_ao.BitmaskAO`.
+        chunk_size: the query pixels per chunk of the tensor path being reproduced (``None``: one
+            chunk; a module's is ``module.chunking(gbuffer)[0]``): it decides which few angles torch
+            evaluates with the C library's ``atan2f`` (:func:`_scalar_tails`).
+
+    Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
+    """
+    ops = cpu_kernels()
+    frame = walk_inputs(gbuffer, normals)
+    vis, light, bent = ops.bitmask_walk(
+        *frame, _light(gbuffer, indirect), *_scalar_tails(frame[4], int(steps), chunk_size), int(slices), int(steps), float(radius),
+        float(thickness), float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear",
+        border == "drop", ROUNDINGS.index(rounding), float(sector_epsilon), weighting == "cosine", bool(indirect),
+        bool(bent_normals))
+    return KernelOutputs(vis, light if indirect else None, bent if bent_normals else None)
+
+
+def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
+    """Hard visibility ``(B,1,H,W)`` of the ``"default"`` variant: :func:`bitmask_outputs`'s first output
+    (same arguments, visibility only)."""
+    options.update(indirect=False, bent_normals=False)
+    return bitmask_outputs(gbuffer, normals, **options).visibility
+
+
+def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
+                     thickness: float, jitter: bool = True, rounding: str = "ceil", numerics: str = "ieee",
+                     indirect: bool = False) -> KernelOutputs:
+    """The ``"ssilvb_glsl"`` variant in hard mode: visibility ``(B,1,H,W)`` (background 1; may exceed 1,
+    as the shader's) and, with ``indirect``, its light ``(B,3,H,W)`` (background 0).
+
+    Args:
+        gbuffer, normals: as :func:`bitmask_outputs`; slices, steps: the shader's ``sliceCount`` (>= 2) and
+            ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world units),
+            jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+    """
+    ops = cpu_kernels()
+    W = gbuffer.depth.shape[-1]
+    # sampleScale's numerator -radius P[0][0] per image, as GLSLPattern forms it
+    p00 = (2 * gbuffer.camera.fx / W).to(torch.float32)
+    scale = ((-torch.as_tensor(radius, dtype=torch.float32).detach()) * p00).contiguous()
+    vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale, _light(gbuffer, indirect, records=True),
+                               int(slices), int(steps),
+                               float(thickness), bool(jitter), _NUMERICS.index(numerics), ROUNDINGS.index(rounding),
+                               bool(indirect))
+    return KernelOutputs(vis, light if indirect else None)
+
+
+#: options of a module the kernels reproduce: ``None`` for any value, else the values they cover
 _COVERED = {
     # the walk's and every module's options
     "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
@@ -66,33 +166,56 @@ _COVERED = {
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
     "resolution": None,  # the kernel walks the (smaller) G-buffer it is given
     # the bitmask family's
-    "variant": ("default",), "mode": ("hard", "straight_through"), "tau": None, "rounding": None,
-    "weighting": ("uniform",), "union": ("sectors",), "clip_to_radius": (False,), "thickness_direction": ("view",),
-    "sample_extent": ("radius",), "thickness": None, "thickness_growth": (None,), "indirect": (False,),
-    "bent_normals": (False,), "ambient": (None,), "ambient_directions": None, "sector_epsilon": None,
-    "glsl_numerics": None,
+    "variant": ("default", "ssilvb_glsl"), "mode": ("hard", "straight_through"), "tau": None, "rounding": None,
+    "weighting": ("uniform", "cosine"), "union": ("sectors",), "clip_to_radius": (False,),
+    "thickness_direction": ("view",), "sample_extent": ("radius",), "thickness": None, "thickness_growth": (None,),
+    "indirect": (False, True), "bent_normals": (False, True), "ambient": (None, "a colour"),
+    "ambient_directions": None, "sector_epsilon": None, "glsl_numerics": None,
 }
+#: what the ``"ssilvb_glsl"`` variant's walk ignores (its shader places its own samples)
+_GLSL = {"azimuth": None}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
-    """``None`` when :func:`bitmask_hard` computes ``module(gbuffer)`` (a ``BitmaskAO``), else why not.
+    """``None`` when a kernel computes ``module(gbuffer)`` (a ``BitmaskAO``), else why not.
 
-    Every option of the module must be one the kernel knows, at a value it reproduces (an option it
-    does not know, e.g. one added to the module later, sends the call to the tensor path). Hard masks
-    have no gradient, so hard mode is covered with autograd on too; straight-through mode (hard values,
-    soft gradients) only when no gradient is asked for.
+    Every option of the module must be one the kernels know, at a value they reproduce (an option they
+    do not know, e.g. one added to the module later, sends the call to the tensor path). Hard masks
+    have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights,
+    indirect light and bent normals have gradients in hard mode too (through the normals, the light and
+    the sample positions), so those only when no gradient is asked for; straight-through mode (hard
+    values, soft gradients) only for uniform visibility without a gradient.
     """
-    reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform",))
-    if reason is None and module.mode == "straight_through" and _needs_grad(module, gbuffer):
-        reason = "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
-    return reason
+    reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
+                               variants=("default", "ssilvb_glsl"), outputs=True)
+    if reason is not None:
+        return reason
+    beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
+                                    ("bent_normals", module.want_bent), ("variant='ssilvb_glsl'", module.variant != "default"))
+              if on]
+    if beyond and module.mode != "hard":
+        return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
+    if module.mode == "straight_through" and _needs_grad(module, gbuffer):
+        return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
+    # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through
+    # the normals, the light through the light, normals and (default variant) the sample positions
+    weighted = module.want_indirect or (module.variant == "default" and (module.want_bent or module.weighting == "cosine"))
+    if weighted and _needs_grad(module, gbuffer, parameters=module.want_indirect and module.variant == "default"):
+        return "a gradient is asked for (cosine weights, indirect light and bent normals have one in hard mode)"
+    return None
 
 
-def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...]) -> str | None:
-    """Why a bitmask kernel walking in one of ``modes`` with one of ``weightings`` does not reproduce
-    ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness other than
-    one scalar, a G-buffer other than float32 CPU), or ``None``."""
-    covered = dict(_COVERED, mode=modes, weighting=weightings)
+#: the outputs beyond visibility, for a kernel that computes visibility only
+_VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (None,)}
+
+
+def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
+                      variants: tuple[str, ...] = ("default",), outputs: bool = False) -> str | None:
+    """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
+    with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
+    reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness
+    other than one scalar, a G-buffer other than float32 CPU, bilinear reads of a position buffer), or
+    ``None``."""
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
                  "azimuth", "thickness_growth", "ambient"):
@@ -101,6 +224,8 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     values["bent_normals"] = getattr(module, "want_bent", "?")
     if getattr(module, "_ambient_constant", False):
         values["ambient"] = "a colour"
+    covered = dict(_COVERED, mode=modes, weighting=weightings, variant=variants,
+                   **({} if outputs else _VISIBILITY_ONLY), **(_GLSL if values["variant"] == "ssilvb_glsl" else {}))
     for name, value in values.items():
         if name not in covered:
             return f"option {name!r} (unknown to the kernel)"
@@ -113,11 +238,17 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
         return "a thickness other than one scalar (a table, a map, a model, a growth)"
     if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
         return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+    if gbuffer.position is not None and module.variant == "default" and module.fetch == "bilinear":
+        return "bilinear reads of a position buffer"  # (the kernel interpolates depth)
     return None
 
 
-def _needs_grad(module, gbuffer: GBuffer) -> bool:
+def _needs_grad(module, gbuffer: GBuffer, parameters: bool = True) -> bool:
+    """Whether autograd would record a gradient of the G-buffer's tensors (and, with ``parameters``, of
+    the module's radius and thickness)."""
     if not torch.is_grad_enabled():
         return False
-    tensors = [gbuffer.depth, gbuffer.normals, module.radius, module.thickness]
+    tensors = [gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position]
+    if parameters:
+        tensors += [module.radius, module.thickness]
     return any(t is not None and t.requires_grad for t in tensors)

@@ -59,10 +59,17 @@ def cpu_kernels():
 def _register_fake() -> None:
     """Shapes of the kernels' outputs for tracing (``torch.compile`` calls the op as one graph node)."""
 
-    @torch.library.register_fake("torch_ao_kernels::bitmask_hard")
+    @torch.library.register_fake("torch_ao_kernels::bitmask_walk")
     def _(positions, *args):
         B, H, W, _ = positions.shape
-        return positions.new_empty(B, 1, H, W)
+        indirect, bent = args[-2:]
+        return (positions.new_empty(B, 1, H, W), positions.new_empty(B if indirect else 0, 3, H, W),
+                positions.new_empty(B if bent else 0, 3, H, W))
+
+    @torch.library.register_fake("torch_ao_kernels::glsl_walk")
+    def _(positions, *args):
+        B, H, W, _ = positions.shape
+        return positions.new_empty(B, 1, H, W), positions.new_empty(B if args[-1] else 0, 3, H, W)
 
     @torch.library.register_fake("torch_ao_kernels::gtao_sums")
     def _(positions, *args):

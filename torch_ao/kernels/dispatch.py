@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import warnings
 
+import torch
+
 from ..gbuffer import GBuffer
 from . import soft_bitmask
-from .bitmask import bitmask_hard, kernel_covers
+from .bitmask import bitmask_hard, bitmask_outputs, kernel_covers, ssilvb_glsl_hard
 from .build import KernelUnavailable
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
 
@@ -25,12 +27,29 @@ def _warn_once(message: str) -> None:
 
 
 def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
-    return {"visibility": bitmask_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices,
-                                       steps=module.steps, radius=float(module.radius.detach()),
-                                       thickness=float(module.thickness.detach()), step_power=module.step_power,
-                                       min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed,
-                                       fetch=module.fetch, border=module.border, rounding=module.rounding,
-                                       sector_epsilon=module.sector_epsilon)}
+    """A covered hard ``BitmaskAO`` call through its variant's kernel: ``{AOOutput field: tensor}``."""
+    normals = gbuffer.view_normals(module.normals_method)
+    radius, thickness = float(module.radius.detach()), float(module.thickness.detach())
+    if module.variant == "ssilvb_glsl":
+        vis, indirect, _ = ssilvb_glsl_hard(gbuffer, normals, slices=module.slices, steps=module.steps,
+                                            radius=module.radius, thickness=thickness, jitter=module.jitter,
+                                            rounding=module.rounding, numerics=module.glsl_numerics,
+                                            indirect=module.want_indirect)
+        return {"visibility": vis, "indirect": indirect}
+    options = dict(slices=module.slices, steps=module.steps, radius=radius, thickness=thickness,
+                   step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
+                   seed=module.seed, fetch=module.fetch, border=module.border, rounding=module.rounding,
+                   sector_epsilon=module.sector_epsilon, weighting=module.weighting,
+                   chunk_size=module.chunking(gbuffer)[0])
+    if not (module.want_indirect or module.want_bent):
+        vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
+    else:
+        vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
+                                              bent_normals=module.want_bent, **options)
+    ambient = None
+    if module._ambient_constant:  # SectorAccumulator.finish: visibility times the colour; 0 on background
+        ambient = torch.where(gbuffer.valid, vis * module.ambient_colour.to(vis.dtype).view(1, 3, 1, 1), 0.0)
+    return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": ambient}
 
 
 def _bitmask_soft(module, gbuffer: GBuffer) -> dict:

@@ -1,0 +1,221 @@
+"""The C++ hard bitmask kernels beyond uniform visibility against the tensor-op walk, bit for bit: cosine
+sector weights, indirect light, bent normals and ambient light of the ``"default"`` variant, and the
+``"ssilvb_glsl"`` variant (AO and indirect light), on the frames and settings of tests/test_kernels.py; and
+the kernel against the SSILVB GLSL article's shader on Mesa (as tests/test_glsl_parity.py checks the
+tensor path)."""
+import shutil
+
+import pytest
+import torch
+
+from test_kernels import FRAMES, SETTINGS, built, rough_gbuffer  # noqa: F401  (built: the fixture)
+from torch_ao.gbuffer import GBuffer
+from torch_ao.kernels import bitmask_outputs, kernel_covers, ssilvb_glsl_hard
+from torch_ao.methods.bitmask import SSILVB, BitmaskAO
+
+pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                                reason="the kernels need a C++ compiler")
+
+
+def lit(gb: GBuffer, seed: int = 1) -> GBuffer:
+    """``gb`` with a random direct-light buffer (the light is only gathered, so any values test it)."""
+    g = torch.Generator().manual_seed(seed)
+    light = torch.rand(gb.depth.shape[0], 3, *gb.depth.shape[-2:], generator=g)
+    return GBuffer(depth=gb.depth, camera=gb.camera, normals=gb.normals, light=light)
+
+
+def both(gb: GBuffer, **options):
+    """The module's outputs through the tensor path and through the kernel (no autograd)."""
+    with torch.no_grad():
+        return (BitmaskAO(mode="hard", backend="torch", **options)(gb),
+                BitmaskAO(mode="hard", backend="kernel", **options)(gb))
+
+
+def assert_identical(out, ref, name):
+    assert out.shape == ref.shape and out.dtype == ref.dtype, name
+    assert torch.equal(out, ref), (name, (out != ref).sum().item(), (out - ref).abs().max().item())
+
+
+# ------------------------------------------------------------------------------- the default variant
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", range(len(SETTINGS)))
+def test_cosine_weighted_visibility_is_bit_for_bit(built, frame, setting):
+    gb = FRAMES[frame]()
+    ref, out = both(gb, weighting="cosine", **SETTINGS[setting])
+    assert ref.visibility.min() < 1
+    # the weights are not 1/32: cosine visibility differs from the uniform one where something is occluded
+    uniform, _ = both(gb, **SETTINGS[setting])
+    assert not torch.equal(ref.visibility, uniform.visibility)
+    assert_identical(out.visibility, ref.visibility, "visibility")
+
+
+@pytest.mark.parametrize("weighting", ["uniform", "cosine"])
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", [0, 1, 3])
+def test_indirect_light_bent_normals_and_ambient(built, weighting, frame, setting):
+    """Every output bit for bit (the light summed over a slice's steps in torch's row_sum order)."""
+    gb = lit(FRAMES[frame]())
+    ref, out = both(gb, weighting=weighting, indirect=True, bent_normals=True, ambient=(0.2, 0.5, 1.0),
+                    **SETTINGS[setting])
+    assert ref.indirect.max() > 0.01 and ref.visibility.min() < 1
+    for name in ("visibility", "indirect", "bent_normal", "ambient"):
+        assert_identical(getattr(out, name), getattr(ref, name), name)
+
+
+def test_bent_normals_point_away_from_the_occluder_and_background_keeps_its_normal(built):
+    gb = lit(rough_gbuffer())
+    normals = gb.view_normals()
+    out = bitmask_outputs(gb, normals, slices=4, steps=6, radius=1.0, thickness=0.5, bent_normals=True,
+                          indirect=True, weighting="cosine")
+    bent = out.bent_normal
+    assert torch.allclose(bent.norm(dim=1), torch.ones_like(bent[:, 0]), atol=1e-5)
+    background = ~gb.valid.expand_as(bent)
+    assert torch.equal(bent[background], normals[background])
+    assert torch.equal(out.indirect[background], torch.zeros_like(out.indirect[background]))
+    # a fully visible pixel's bent normal is its normal (within the sector quantisation)
+    visible = (out.visibility > 0.999).expand_as(bent) & ~background
+    assert visible.any() and (bent - normals)[visible].abs().max() < 0.05
+
+
+def test_chunked_calls_reproduce_the_chunked_tensor_path(built):
+    """A frame walked in several chunks (the module's ``chunk_size``): torch.atan2's scalar tail falls at
+    each chunk's end, and the kernel follows it."""
+    gb = FRAMES["rough"]()
+    ref, out = both(gb, weighting="cosine", slices=3, steps=5, chunk_size=1000)
+    assert_identical(out.visibility, ref.visibility, "visibility")
+
+
+def test_the_fit_pipeline_scores_through_the_kernel(built, monkeypatch):
+    """``torch-ao fit`` scores ``BitmaskAO(preset="high", weighting="cosine")`` in hard mode without
+    autograd: that call runs the kernel, with the tensor path's numbers."""
+    import torch_ao.kernels.dispatch as dispatch
+
+    calls = []
+    real = dispatch.bitmask_hard
+    monkeypatch.setattr(dispatch, "bitmask_hard", lambda *a, **k: calls.append(k["weighting"]) or real(*a, **k))
+    gb = FRAMES["example"]()
+    module = BitmaskAO(preset="high", weighting="cosine")
+    with torch.no_grad():
+        out = module(gb).visibility
+    assert calls == ["cosine"]
+    with torch.no_grad():
+        assert torch.equal(out, BitmaskAO(preset="high", weighting="cosine", backend="torch")(gb).visibility)
+
+
+def test_coverage_of_the_new_outputs():
+    gb = lit(FRAMES["example"]())
+    everything = BitmaskAO(weighting="cosine", indirect=True, bent_normals=True, ambient=0.5)
+    with torch.no_grad():
+        assert kernel_covers(everything, gb) is None
+    # the light's factors move with the radius (the sample positions): a trainable radius has a gradient
+    assert "gradient" in kernel_covers(everything, gb)
+    assert kernel_covers(BitmaskAO(weighting="cosine", bent_normals=True), gb) is None  # (not with the radius)
+    assert kernel_covers(SSILVB(variant="ssilvb_glsl"), gb) is None  # the shader's radius only picks texels
+    assert "ambient" in kernel_covers(BitmaskAO(ambient=lambda d: d), gb)
+    assert "hard mode only" in kernel_covers(SSILVB(variant="ssilvb_glsl", mode="straight_through"), gb)
+    # gradients the hard outputs do have: through the normals (cosine weights) and the light
+    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, light=gb.light)
+    assert "gradient" in kernel_covers(BitmaskAO(weighting="cosine"), graph)
+    assert kernel_covers(BitmaskAO(), graph) is None  # uniform hard visibility has none
+    light = GBuffer(depth=gb.depth, camera=gb.camera, light=gb.light.clone().requires_grad_())
+    assert "gradient" in kernel_covers(SSILVB(variant="ssilvb_glsl"), light)
+    assert kernel_covers(BitmaskAO(variant="ssilvb_glsl"), light) is None  # AO only: no gradient
+    with torch.no_grad():
+        assert kernel_covers(SSILVB(variant="ssilvb_glsl"), light) is None
+    positions = GBuffer(depth=None, camera=gb.camera, position=gb.positions())
+    assert "position buffer" in kernel_covers(BitmaskAO(), positions)
+
+
+def test_indirect_light_without_a_light_buffer_is_refused_by_name(built):
+    gb = FRAMES["example"]()
+    gb = GBuffer(depth=gb.depth, camera=gb.camera)
+    with pytest.raises(ValueError, match="gbuffer.light"):
+        with torch.no_grad():
+            SSILVB(backend="kernel")(gb)
+
+
+# ------------------------------------------------------------------------------- ssilvb_glsl
+GLSL_SETTINGS = [
+    dict(slices=4, steps=4),
+    dict(slices=3, steps=6, radius=0.6, thickness=0.2),
+    dict(slices=2, steps=5, jitter=False, rounding="round"),
+    dict(slices=5, steps=3, radius=2.0, rounding="floor", thickness=0.0),
+]
+
+
+@pytest.mark.parametrize("numerics", ["ieee", "mesa", "mesa_mediump"])
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", range(len(GLSL_SETTINGS)))
+def test_ssilvb_glsl_is_bit_for_bit(built, numerics, frame, setting):
+    gb = lit(FRAMES[frame]())
+    options = dict(variant="ssilvb_glsl", indirect=True, glsl_numerics=numerics, **GLSL_SETTINGS[setting])
+    ref, out = both(gb, **options)
+    assert ref.indirect.max() > 0  # (visibility may be one value everywhere: the shader's quirks, e.g. 1.2 with 5 slices)
+    assert_identical(out.visibility, ref.visibility, "visibility")
+    assert_identical(out.indirect, ref.indirect, "indirect")
+    ao_only, _ = both(gb, **dict(options, indirect=False))
+    assert_identical(ao_only.visibility, ref.visibility, "visibility without light")
+
+
+def test_ssilvb_glsl_batch_images_are_independent(built):
+    gb = lit(rough_gbuffer())
+    normals = gb.view_normals()
+    out = ssilvb_glsl_hard(gb, normals, slices=3, steps=4, radius=1.0, thickness=0.3, indirect=True)
+    one = GBuffer(depth=gb.depth[1:], camera=type(gb.camera)(gb.camera.intrinsics[1:], gb.camera.height, gb.camera.width),
+                  light=gb.light[1:])
+    single = ssilvb_glsl_hard(one, normals[1:], slices=3, steps=4, radius=1.0, thickness=0.3, indirect=True)
+    assert torch.equal(single.visibility, out.visibility[1:]) and torch.equal(single.indirect, out.indirect[1:])
+    assert torch.equal(out.visibility[~gb.valid], torch.ones_like(out.visibility[~gb.valid]))
+
+
+@pytest.mark.gl
+@pytest.mark.slow
+def test_ssilvb_glsl_kernel_matches_the_shader_on_mesa_softpipe(built, tmp_path):
+    """The kernel against the shader, with the thresholds tests/test_glsl_parity.py sets for the tensor path
+    (every pixel whose walk never fetches its own texel: visibility bit for bit on >= 97 % per case and
+    99 % overall, light within 1e-5), and equal to the tensor path on every pixel."""
+    import sys
+
+    import test_glsl_parity as parity
+
+    sys.path.insert(0, str(parity.HERE / "glsl"))
+    from runner import centre_texel_pixels
+
+    rendered = parity._render("softpipe", tmp_path)
+    exact, total = 0.0, 0
+    for name in parity.SCENES:
+        gb = parity.scene(name)
+        for i, (sl, st, r, t, jit) in enumerate(parity.SETTINGS):
+            gl = rendered[f"{name}/{i}"]
+            ref, out = both(gb, variant="ssilvb_glsl", indirect=True, slices=sl, steps=st, radius=r, thickness=t,
+                            jitter=jit, glsl_numerics="mesa")
+            assert_identical(out.visibility, ref.visibility, "visibility")
+            assert_identical(out.indirect, ref.indirect, "indirect")
+            ok = ~centre_texel_pixels(gb, slices=sl, steps=st, radius=r, jitter=jit, numerics="mesa")
+            dv = (out.visibility[0, 0] - gl[..., 3]).abs()
+            di = (out.indirect[0].permute(1, 2, 0) - gl[..., :3]).abs().amax(-1)
+            share = float((dv[ok] == 0).float().mean())
+            assert share >= 0.97, (name, i, share)
+            assert float(di[ok & (dv == 0)].max()) < 1e-5, (name, i)
+            exact, total = exact + share * int(ok.sum()), total + int(ok.sum())
+    assert exact / total >= 0.99
+
+
+@pytest.mark.slow
+def test_an_engine_sized_frame_walked_in_chunks(built):
+    """640x360: the module walks 16384-pixel chunks (the scalar atan2 tails at each chunk's end)."""
+    from torch_ao.examples import example_gbuffer
+
+    gb = example_gbuffer(360, 640)
+    ref, out = both(gb, weighting="cosine", bent_normals=True, slices=3, steps=3)
+    assert BitmaskAO(weighting="cosine").chunking(gb)[0] == 16384
+    assert_identical(out.visibility, ref.visibility, "visibility")
+    assert_identical(out.bent_normal, ref.bent_normal, "bent_normal")
+    with torch.no_grad():
+        lit_ref, lit_out = SSILVB(backend="torch", slices=2, steps=16)(gb), SSILVB(backend="kernel", slices=2, steps=16)(gb)
+    assert_identical(lit_out.indirect, lit_ref.indirect, "indirect")  # 32 steps a slice: row_sum's partial sums
+    with torch.no_grad():
+        options = dict(variant="ssilvb_glsl", slices=4, steps=8, glsl_numerics="mesa")
+        glsl_ref, glsl = SSILVB(backend="torch", **options)(gb), SSILVB(backend="kernel", **options)(gb)
+    assert_identical(glsl.visibility, glsl_ref.visibility, "visibility")
+    assert_identical(glsl.indirect, glsl_ref.indirect, "indirect")
