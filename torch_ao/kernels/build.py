@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["KernelUnavailable", "cpu_kernels"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "load_cpu_library", "load_cached_library"]
 
 _SOURCE = Path(__file__).with_name("bitmask_cpu.cpp")
 
@@ -34,8 +34,13 @@ def cpu_kernels():
     (about a minute, once per source version and CPU capability) is cached in
     ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``).
     """
-    from torch.utils import cpp_extension
+    load_cpu_library("torch_ao_kernels", [_SOURCE])
+    _register_fake()
+    return torch.ops.torch_ao_kernels
 
+
+def cpu_build_options() -> tuple[str, list[str], list[str]]:
+    """``(name suffix, compiler flags, linker flags)`` of the C++ CPU libraries on this machine."""
     capability = torch.backends.cpu.get_cpu_capability()
     # -fopenmp: ATen's parallel_for is a header template, threaded only where the including code is
     # built with OpenMP (as Inductor builds its kernels); without it the walk runs on one thread
@@ -43,14 +48,19 @@ def cpu_kernels():
     vml = torch.backends.mkl.is_available()  # torch.cos/sin then use MKL's vector math: the kernel too
     if vml:
         flags.append("-DTORCH_AO_MKL_VML")
-    name = f"torch_ao_kernels_{capability.lower()}{'_vml' if vml else ''}"
+    return f"{capability.lower()}{'_vml' if vml else ''}", flags, ["-fopenmp"]
+
+
+def load_cpu_library(prefix: str, sources) -> Path:
+    """Build (once) and load the CPU operator library ``<prefix>_<capability>`` from ``sources``.
+
+    Raises :class:`KernelUnavailable` when it cannot be built (the message says why)."""
+    suffix, flags, ldflags = cpu_build_options()
     try:
-        load_cached_library(name, [_SOURCE], flags, ["-fopenmp"])
+        return load_cached_library(f"{prefix}_{suffix}", sources, flags, ldflags)
     except Exception as exc:  # no compiler, missing headers, a failed build...
         raise KernelUnavailable(f"the C++ kernels could not be built ({type(exc).__name__}: "
                                 f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc
-    _register_fake()
-    return torch.ops.torch_ao_kernels
 
 
 #: Written next to a built library: the fingerprint of what it was built from.
