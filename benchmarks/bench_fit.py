@@ -76,7 +76,11 @@ def child(fit_args: list[str]) -> None:
     phases = _Phases()
     phases.wall["imports"] = time.perf_counter() - _T0_WALL
     phases.cpu["imports"] = time.process_time() - _T0_CPU
-    build.load_cached_library = phases.wrap("kernel load", build.load_cached_library)
+    from torch.utils import cpp_extension
+
+    cpp_extension.load = phases.wrap("kernel load", cpp_extension.load)
+    if hasattr(build, "load_cached_library"):  # (absent before the build cache: then cpp_extension.load alone)
+        build.load_cached_library = phases.wrap("kernel load", build.load_cached_library)
     reference.render_reference = phases.wrap("render", reference.render_reference)
     fit_cmd.fit = phases.wrap("fit loop", fit_cmd.fit)
     fit_cmd.evaluate = phases.wrap("scoring", fit_cmd.evaluate)
