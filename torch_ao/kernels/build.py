@@ -68,13 +68,13 @@ _STAMP = "torch_ao_build.sha256"
 
 
 def _fingerprint(sources, cflags, ldflags) -> str:
-    """SHA-256 of everything a build depends on that can change between processes: the sources and
-    the headers beside them, the flags, torch (its headers) and the interpreter."""
+    """SHA-256 of everything a build depends on that can change between processes: the sources, the
+    headers beside them and in this folder, the flags, torch (its headers) and the interpreter."""
     h = hashlib.sha256()
     for item in (torch.__version__, torch.__file__, sys.version, sys.executable, *cflags, "|", *ldflags):
         h.update(str(item).encode() + b"\0")
     files = {Path(s).resolve() for s in sources}
-    for folder in {f.parent for f in files}:
+    for folder in {f.parent for f in files} | {_SOURCE.parent.resolve()}:  # (shared headers live here)
         files.update(p.resolve() for ext in ("*.h", "*.hpp", "*.cuh") for p in folder.glob(ext))
     for f in sorted(files):
         h.update(str(f).encode() + b"\0" + f.read_bytes() + b"\0")

@@ -24,12 +24,7 @@
 #include <limits>
 #include <vector>
 
-#ifdef TORCH_AO_MKL_VML
-extern "C" void vmsCos(int n, const float* a, float* r, long long mode);
-extern "C" void vmsSin(int n, const float* a, float* r, long long mode);
-extern "C" int MKL_Set_Num_Threads_Local(int n);
-constexpr long long kVmlMode = 0x2 | 0x140000 | 0x100;  // VML_HA | VML_FTZDAZ_OFF | VML_ERRMODE_IGNORE, as ATen
-#endif
+#include "../kernels/mkl_vml.h"
 
 namespace {
 
