@@ -52,12 +52,15 @@ def cpu_build_options() -> tuple[str, list[str], list[str]]:
 
 
 def load_cpu_library(prefix: str, sources) -> Path:
-    """Build (once) and load the CPU operator library ``<prefix>_<capability>`` from ``sources``.
+    """Build (once) and load the CPU operator library ``<prefix>_<capability>_<place>`` from ``sources``.
 
-    Raises :class:`KernelUnavailable` when it cannot be built (the message says why)."""
+    ``place`` names where the sources are, so that checkouts sharing one ``$TORCH_EXTENSIONS_DIR``
+    keep a build each instead of rebuilding it in turn (cpp_extension rebuilds when a source's path
+    changes). Raises :class:`KernelUnavailable` when it cannot be built (the message says why)."""
     suffix, flags, ldflags = cpu_build_options()
+    place = hashlib.sha256("\0".join(str(Path(s).resolve()) for s in sources).encode()).hexdigest()[:8]
     try:
-        return load_cached_library(f"{prefix}_{suffix}", sources, flags, ldflags)
+        return load_cached_library(f"{prefix}_{suffix}_{place}", sources, flags, ldflags)
     except Exception as exc:  # no compiler, missing headers, a failed build...
         raise KernelUnavailable(f"the C++ kernels could not be built ({type(exc).__name__}: "
                                 f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc
