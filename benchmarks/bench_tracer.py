@@ -6,6 +6,9 @@ million triangles (a torus written as binary PLY) in fresh processes, and report
 against a process that only imports the same modules.
 
 AO rays are realistic: cosine-distributed from the G-buffer points of each scene's default view.
+Full references are timed with both AO-ray backends of ``render_reference`` on the CPU: ``torch``
+(the tensor tracer) and ``kernel`` (the C++ pass of ``torch_ao.reference.ao_kernel``), at ``R = inf``
+on the default layouts and at ``R = 1`` on layout 1 of the six scenes of ``torch-ao fit``.
 """
 from __future__ import annotations
 
@@ -115,6 +118,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--large", type=int, nargs="?", const=1_000_000, metavar="TRIANGLES",
                     help="only time torch-ao render on a generated mesh of this many triangles (default 1M), peak RSS")
+    ap.add_argument("--references", action="store_true", help="only the full references (both backends)")
     args = ap.parse_args()
     if args.large:
         large_mesh(args.large)
@@ -122,6 +126,12 @@ def main() -> None:
     dev = args.device
     n = 1 << (16 if args.quick else 20)
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}, device {dev}")
+    if not args.references:
+        tracer_rays(dev, n)
+    references(dev, args.quick)
+
+
+def tracer_rays(dev, n: int) -> None:
     print("\n## torch tracer, analytic scenes (rays/s, chunks of", n, "rays)")
     print(f"| scene | primitives | AO rays R=inf (any hit) | AO rays R=1 | closest hit + normal |")
     print("|---|---|---|---|---|")
@@ -151,21 +161,28 @@ def main() -> None:
             r = rays_per_second(lambda: tr.occluded(o, d, float("inf")), n, device=dev)
             print(f"| icosphere on plane (whole scene) | {f.shape[0]} | {backend} + torch plane | {r / 1e6:.2f} M |")
 
-    print("\n## full references (seconds)")
-    print("| scene | size | spp | what | time | rays/s |")
-    print("|---|---|---|---|---|---|")
-    H, W, spp = (90, 160, 256) if args.quick else (180, 320, 1024)
-    for name, uniform, indirect in (("sphere_on_plane", False, False), ("sphere_on_plane", True, False),
-                                    ("stairs", False, False), ("sphere_on_plane", False, True)):
-        scene = get_scene(name)
-        t = time.perf_counter()
-        ref = render_reference(scene, height=H, width=W, spp=spp, max_distance=float("inf"), uniform=uniform,
-                               indirect=indirect, progress=False, device=dev)
-        dt = time.perf_counter() - t
-        px = int(ref.gbuffer.valid.sum())
-        rays = H * W + px * (1 + spp * (2 if uniform else 1) + (spp if indirect else 0))
-        what = "cosine AO" + (" + uniform AO" if uniform else "") + (" + indirect" if indirect else "")
-        print(f"| {name} | {W}x{H} | {spp} | {what} | {dt:.1f} s | {rays / dt / 1e6:.1f} M |")
+
+
+def references(dev, quick: bool) -> None:
+    print("\n## full references (seconds; CPU = process time of all threads)")
+    print("| scene | size | spp | R | what | AO rays | time | CPU | rays/s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    H, W, spp = (90, 160, 256) if quick else (180, 320, 1024)
+    cases = [("sphere_on_plane", False, False, math.inf), ("sphere_on_plane", True, False, math.inf),
+             ("stairs", False, False, math.inf), ("sphere_on_plane", False, True, math.inf)]
+    cases += [(name, False, False, 1.0) for name in ("sphere_on_plane", "fence", "room_corner", "stairs", "floating", "poles")]
+    for name, uniform, indirect, R in cases:
+        scene = get_scene(name, None if math.isinf(R) else 1)
+        for backend in (("torch", "kernel") if dev == "cpu" and not indirect else ("torch",)):
+            t, c = time.perf_counter(), time.process_time()
+            ref = render_reference(scene, height=H, width=W, spp=spp, max_distance=R, uniform=uniform,
+                                   indirect=indirect, progress=False, device=dev, backend=backend)
+            dt, dc = time.perf_counter() - t, time.process_time() - c
+            px = int(ref.gbuffer.valid.sum())
+            rays = H * W + px * (1 + spp * (2 if uniform else 1) + (spp if indirect else 0))
+            what = "cosine AO" + (" + uniform AO" if uniform else "") + (" + indirect" if indirect else "")
+            print(f"| {name} | {W}x{H} | {spp} | {R:g} | {what} | {backend} | {dt:.2f} s | {dc:.2f} s | "
+                  f"{rays / dt / 1e6:.1f} M |", flush=True)
 
 
 if __name__ == "__main__":

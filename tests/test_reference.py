@@ -253,6 +253,7 @@ def test_large_mesh_without_embree_names_the_package(monkeypatch):
     (dict(spp=17), "spp"), (dict(spp=1), "spp"), (dict(spp=2.5), "spp"),
     (dict(max_distance=-1.0), "max_distance"), (dict(max_distance=float("nan")), "max_distance"),
     (dict(seed=-3), "seed"), (dict(chunk_rays=0), "chunk_rays"), (dict(mesh_backend="optix"), "mesh_backend"),
+    (dict(backend="gpu"), "backend"),
 ])
 def test_bad_render_arguments(kwargs, match):
     args = dict(height=4, width=4, spp=4, progress=False)
@@ -280,3 +281,67 @@ def test_bad_scene_and_view_inputs():
         look_at((0, 0, 0), (0, 1, 0), up=(0, 1, 0), height=4, width=4)
     with pytest.raises(FileNotFoundError, match="mesh"):
         Mesh.load("/nonexistent/bunny.obj")
+
+
+def _every_primitive_scene() -> Scene:
+    """A plane floor and wall, a sphere, a rotated box and a tilted capped cylinder close together."""
+    from torch_ao.reference import Cylinder, Sphere, rotation_y
+
+    return Scene([Plane(), Plane(point=(0, 0, -0.8), normal=(0, 0, 1)), Sphere(center=(-0.5, 0.3, 0.1), radius=0.3),
+                  Box(center=(0.4, 0.25, -0.2), half_extents=(0.25, 0.25, 0.15), rotation=rotation_y(0.6)),
+                  Cylinder(center=(0.0, 0.5, 0.4), axis=(0.3, 0.9, 0.3), radius=0.08, half_height=0.5)],
+                 view=LookAt(eye=(0.3, 1.4, 2.0), target=(0.0, 0.2, -0.1), fov_y_degrees=55))
+
+
+def _flipped_rays(a, b, spp: int) -> int:
+    return int(round(float((a.double() - b.double()).abs().sum()) * spp))
+
+
+@pytest.mark.parametrize("scene_name, R", [("every primitive", math.inf), ("every primitive", 0.7),
+                                           ("every primitive", 0.3), ("fence", 1.0), ("poles", 1.0)])
+def test_kernel_and_tensor_paths_trace_the_same_rays(scene_name, R):
+    """The C++ AO pass draws the tensor path's samples and directions; a ray may differ only where a
+    hit test grazes (BLAS dot products), so of the ~50k rays of each weighting at most a few flip."""
+    scene = _every_primitive_scene() if scene_name == "every primitive" else get_scene(scene_name, 3)
+    spp = 32
+    kw = dict(height=36, width=48, spp=spp, max_distance=R, seed=3, progress=False, uniform=True)
+    a = render_reference(scene, backend="torch", **kw)
+    b = render_reference(scene, backend="kernel", **kw)
+    valid = a.gbuffer.valid
+    for key in ("ao", "ao_uniform"):  # there is occlusion to get right
+        assert float((getattr(a, key)[valid] < 1).double().mean()) > 0.05
+    rays = int(valid.sum()) * spp
+    for key in ("ao", "ao_uniform"):
+        flipped = _flipped_rays(getattr(a, key), getattr(b, key), spp)
+        assert flipped <= max(2, rays // 20_000), f"{key}: {flipped} of {rays} rays differ"
+    assert torch.equal(a.gbuffer.depth, b.gbuffer.depth)
+
+
+def test_kernel_backend_refuses_what_it_does_not_cover():
+    with pytest.raises(ValueError, match="backend"):
+        render_reference(_small_mesh_scene(), height=4, width=4, spp=2, progress=False, backend="kernel")
+    with pytest.raises(ValueError, match="backend"):
+        render_reference(get_scene("fence"), height=4, width=4, spp=2, progress=False, backend="kernel",
+                         dtype=torch.float64)
+
+
+def test_unbuildable_kernel_falls_back_with_one_warning(monkeypatch):
+    from torch_ao.kernels import KernelUnavailable
+    from torch_ao.reference import ao_kernel
+
+    def broken():
+        raise KernelUnavailable("no compiler (test)")
+
+    monkeypatch.setattr(ao_kernel, "_ops", broken)
+    ao_kernel._available.cache_clear()
+    try:
+        kw = dict(height=12, width=16, spp=8, max_distance=0.5, seed=7, progress=False)
+        with pytest.warns(UserWarning, match="no compiler") as record:
+            a = render_reference(get_scene("fence"), **kw)
+            render_reference(get_scene("fence"), **kw)
+        assert len([w for w in record if "no compiler" in str(w.message)]) == 1
+        with pytest.raises(KernelUnavailable):
+            render_reference(get_scene("fence"), backend="kernel", **kw)
+    finally:
+        ao_kernel._available.cache_clear()
+    assert torch.equal(a.ao, render_reference(get_scene("fence"), backend="torch", **kw).ao)

@@ -67,6 +67,13 @@ def denoise_guide(gbuffer: GBuffer, *, guide: str = "depth+normal", sigma_depth:
                   sigma_normal: float = 0.3, normals: torch.Tensor | None = None) -> torch.Tensor:
     """The normalised guide image ``(B, C, H, W)`` (``C`` = 1, 3 or 4): ``log(depth)/sigma_depth`` and/or
     ``normal/sigma_normal``; zero on background (background is excluded by the mask anyway)."""
+    if normals is None:  # then it depends on the G-buffer alone: computed once per G-buffer
+        return gbuffer.derived(("denoise_guide", guide, sigma_depth, sigma_normal),
+                               lambda: _guide(gbuffer, guide, sigma_depth, sigma_normal, None))
+    return _guide(gbuffer, guide, sigma_depth, sigma_normal, normals)
+
+
+def _guide(gbuffer: GBuffer, guide: str, sigma_depth: float, sigma_normal: float, normals) -> torch.Tensor:
     valid = gbuffer.valid
     parts = []
     if "depth" in guide:

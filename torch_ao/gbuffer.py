@@ -68,6 +68,7 @@ class GBuffer:
     backface_depth: torch.Tensor | None = None
     position: torch.Tensor | None = None
     _valid: torch.Tensor = field(init=False, repr=False)
+    _derived: dict = field(init=False, repr=False, compare=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.depth is None and self.position is not None:
@@ -168,14 +169,28 @@ class GBuffer:
         """``(B,1,H,W)`` bool: True on pixels that have geometry."""
         return self._valid
 
+    def derived(self, key, compute):
+        """``compute()``, a buffer derived from this G-buffer, computed once per ``key`` and kept for the
+        next call (a fit evaluates the same views hundreds of times) while none of the G-buffer's
+        tensors needs gradients (then it is recomputed every time). Do not modify the result in place."""
+        if any(x is not None and x.requires_grad for x in (self.depth, self.normals, self.position,
+                                                          self.camera.intrinsics)):
+            return compute()
+        if key not in self._derived:
+            self._derived[key] = compute()
+        return self._derived[key]
+
     @property
     def safe_depth(self) -> torch.Tensor:
         """Depth with background replaced by 1 (finite everywhere; zero gradient there)."""
-        return torch.where(self._valid, self.depth, torch.ones_like(self.depth))
+        return self.derived("safe_depth", lambda: torch.where(self._valid, self.depth, torch.ones_like(self.depth)))
 
     def positions(self) -> torch.Tensor:
         """``(B,3,H,W)`` view-space positions: the ``position`` buffer when given, else unprojected
         depth (background at depth 1 either way)."""
+        return self.derived("positions", self._positions)
+
+    def _positions(self) -> torch.Tensor:
         unprojected = self.camera.unproject(self.safe_depth)
         if self.position is None:
             return unprojected
@@ -183,6 +198,9 @@ class GBuffer:
 
     def view_normals(self, method: str = "improved") -> torch.Tensor:
         """``(B,3,H,W)`` unit normals facing the camera: given ones, else reconstructed from depth."""
+        return self.derived(("view_normals", method), lambda: self._view_normals(method))
+
+    def _view_normals(self, method: str) -> torch.Tensor:
         if self.normals is not None:
             n = F.normalize(torch.where(self._valid, self.normals, _toward_camera(self.positions())), dim=1, eps=1e-12)
             return _face_camera(n, self.positions())

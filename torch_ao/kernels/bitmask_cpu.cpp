@@ -26,14 +26,7 @@
 #include <tuple>
 #include <vector>
 
-#ifdef TORCH_AO_MKL_VML
-// torch.cos/sin/acos on a build with MKL call its vector math (inside libtorch_cpu); so does this
-extern "C" void vmsCos(int n, const float* a, float* r, long long mode);
-extern "C" void vmsSin(int n, const float* a, float* r, long long mode);
-extern "C" void vmsAcos(int n, const float* a, float* r, long long mode);
-extern "C" int MKL_Set_Num_Threads_Local(int n);
-constexpr long long kVmlMode = 0x2 | 0x140000 | 0x100;  // VML_HA | VML_FTZDAZ_OFF | VML_ERRMODE_IGNORE, as ATen
-#endif
+#include "mkl_vml.h"  // torch.cos/sin/acos on a build with MKL call its vector math; so does this
 
 namespace {
 

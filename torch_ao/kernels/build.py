@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
+import sys
 from pathlib import Path
 
 import torch
 
-__all__ = ["KernelUnavailable", "cpu_kernels"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "load_cpu_library", "load_cached_library"]
 
 #: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``; walk_cpu.h,
 #: the walk they share, is included by them)
@@ -35,8 +37,13 @@ def cpu_kernels():
     (about a minute, once per source version and CPU capability) is cached in
     ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``).
     """
-    from torch.utils import cpp_extension
+    load_cpu_library("torch_ao_kernels", _SOURCES)
+    _register_fake()
+    return torch.ops.torch_ao_kernels
 
+
+def cpu_build_options() -> tuple[str, list[str], list[str]]:
+    """``(name suffix, compiler flags, linker flags)`` of the C++ CPU libraries on this machine."""
     capability = torch.backends.cpu.get_cpu_capability()
     # -fopenmp: ATen's parallel_for is a header template, threaded only where the including code is
     # built with OpenMP (as Inductor builds its kernels); without it the walk runs on one thread
@@ -44,16 +51,70 @@ def cpu_kernels():
     vml = torch.backends.mkl.is_available()  # torch.cos/sin then use MKL's vector math: the kernel too
     if vml:
         flags.append("-DTORCH_AO_MKL_VML")
-    name = f"torch_ao_kernels_{capability.lower()}{'_vml' if vml else ''}"
+    return f"{capability.lower()}{'_vml' if vml else ''}", flags, ["-fopenmp"]
+
+
+def load_cpu_library(prefix: str, sources) -> Path:
+    """Build (once) and load the CPU operator library ``<prefix>_<capability>_<place>`` from ``sources``.
+
+    ``place`` names where the sources are, so that checkouts sharing one ``$TORCH_EXTENSIONS_DIR``
+    keep a build each instead of rebuilding it in turn (cpp_extension rebuilds when a source's path
+    changes). Raises :class:`KernelUnavailable` when it cannot be built (the message says why)."""
+    suffix, flags, ldflags = cpu_build_options()
+    place = hashlib.sha256("\0".join(str(Path(s).resolve()) for s in sources).encode()).hexdigest()[:8]
     try:
-        cpp_extension.load(name=name, sources=[str(p) for p in _SOURCES], extra_cflags=flags, extra_ldflags=["-fopenmp"],
-                           is_python_module=False,
-                           verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE")))
+        return load_cached_library(f"{prefix}_{suffix}_{place}", sources, flags, ldflags)
     except Exception as exc:  # no compiler, missing headers, a failed build...
         raise KernelUnavailable(f"the C++ kernels could not be built ({type(exc).__name__}: "
                                 f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc
-    _register_fake()
-    return torch.ops.torch_ao_kernels
+
+
+#: Written next to a built library: the fingerprint of what it was built from.
+_STAMP = "torch_ao_build.sha256"
+
+
+def _fingerprint(sources, cflags, ldflags) -> str:
+    """SHA-256 of everything a build depends on that can change between processes: the sources, the
+    headers beside them and in this folder, the flags, torch (its headers) and the interpreter."""
+    h = hashlib.sha256()
+    for item in (torch.__version__, torch.__file__, sys.version, sys.executable, *cflags, "|", *ldflags):
+        h.update(str(item).encode() + b"\0")
+    files = {Path(s).resolve() for s in sources}
+    for folder in {f.parent for f in files} | {_SOURCES[0].parent.resolve()}:  # (shared headers live here)
+        files.update(p.resolve() for ext in ("*.h", "*.hpp", "*.cuh") for p in folder.glob(ext))
+    for f in sorted(files):
+        h.update(str(f).encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def load_cached_library(name: str, sources, cflags, ldflags) -> Path:
+    """Build (when needed) and load the operator library ``name`` from C++ ``sources``; returns its path.
+
+    ``cpp_extension.load`` runs ninja in every new process (its record of what was built lives only in
+    memory), about 5 s on a busy 2-core machine even when nothing changed. A stamp file beside the
+    library holds the :func:`_fingerprint` of its inputs: when it matches, the library is loaded
+    directly (milliseconds); otherwise ``cpp_extension.load`` builds it (ninja rebuilds what changed)
+    and the stamp is rewritten.
+    """
+    from torch.utils import cpp_extension
+
+    folder = Path(cpp_extension._get_build_directory(name, verbose=False))
+    stamp = folder / _STAMP
+    fingerprint = _fingerprint(sources, cflags, ldflags)
+    recorded = stamp.read_text().split() if stamp.exists() else []
+    if len(recorded) == 2 and recorded[0] == fingerprint and (folder / recorded[1]).is_file():
+        library = folder / recorded[1]
+        torch.ops.load_library(str(library))
+        return library
+    stamp.unlink(missing_ok=True)  # a build interrupted from here on leaves no stale stamp
+    library = Path(cpp_extension.load(name=name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
+                                      extra_ldflags=list(ldflags), is_python_module=False,
+                                      build_directory=str(folder),
+                                      verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE"))))
+    tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}.tmp")
+    tmp.write_text(f"{fingerprint} {library.name}\n")
+    os.replace(tmp, stamp)
+    return library
 
 
 def _register_fake() -> None:

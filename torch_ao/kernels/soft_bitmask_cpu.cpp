@@ -35,11 +35,7 @@
 #include <tuple>
 #include <vector>
 
-#ifdef TORCH_AO_MKL_VML
-extern "C" void vmsCos(int n, const float* a, float* r, long long mode);
-extern "C" void vmsSin(int n, const float* a, float* r, long long mode);
-extern "C" int MKL_Set_Num_Threads_Local(int n);
-#endif
+#include "mkl_vml.h"
 
 namespace soft_bitmask {
 namespace {
@@ -60,9 +56,8 @@ static_assert(kChunk % L == 0, "a chunk holds whole vectors");
 // cos/sin as torch.cos/torch.sin compute them on this build (MKL's vector math, else SLEEF)
 void cos_sin(const float* x, float* c, float* s, int64_t n) {
 #ifdef TORCH_AO_MKL_VML
-  constexpr long long mode = 0x2 | 0x140000 | 0x100;  // VML_HA | VML_FTZDAZ_OFF | VML_ERRMODE_IGNORE, as ATen
-  if (c) vmsCos(int(n), x, c, mode);
-  if (s) vmsSin(int(n), x, s, mode);
+  if (c) vmsCos(int(n), x, c, kVmlMode);
+  if (s) vmsSin(int(n), x, s, kVmlMode);
 #else
   for (int64_t i = 0; i < n; i += L) {
     const int m = int(std::min<int64_t>(L, n - i));

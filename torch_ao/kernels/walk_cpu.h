@@ -23,14 +23,7 @@
 #include <cstdint>
 #include <vector>
 
-#ifdef TORCH_AO_MKL_VML
-// torch.cos/torch.sin on a build with MKL call its vector math (inside libtorch_cpu); so do the kernels
-extern "C" void vmsCos(int n, const float* a, float* r, long long mode);
-extern "C" void vmsSin(int n, const float* a, float* r, long long mode);
-extern "C" void vmsAsin(int n, const float* a, float* r, long long mode);
-extern "C" void vmsSqrt(int n, const float* a, float* r, long long mode);
-extern "C" int MKL_Set_Num_Threads_Local(int n);
-#endif
+#include "mkl_vml.h"  // torch.cos/torch.sin on a build with MKL call its vector math; so do the kernels
 
 namespace torch_ao_walk {
 
@@ -65,7 +58,7 @@ inline Int to_int(const Vec& x) { return at::vec::convert_to_int_of_same_size<fl
 // cos and sin of n * L floats, through MKL's vector math where torch.cos/torch.sin use it
 inline void cos_sin(const Vec* x, int n, Vec* cosine, Vec* sine) {
 #ifdef TORCH_AO_MKL_VML
-  constexpr long long mode = 0x2 | 0x140000 | 0x100;  // VML_HA | VML_FTZDAZ_OFF | VML_ERRMODE_IGNORE, as ATen
+  constexpr long long mode = kVmlMode;
   alignas(64) float in[8 * L], out[8 * L];
   for (int i = 0; i < n; ++i) x[i].store(in + i * L);
   if (cosine != nullptr) {
@@ -89,7 +82,7 @@ inline void cos_sin(const Vec* x, int n, Vec* cosine, Vec* sine) {
 inline Vec vml(void (*fn)(int, const float*, float*, long long), const Vec& x) {
   alignas(64) float in[L], out[L];
   x.store(in);
-  fn(L, in, out, 0x2 | 0x140000 | 0x100);
+  fn(L, in, out, kVmlMode);
   return Vec::loadu(out);
 }
 #endif
@@ -153,7 +146,7 @@ struct SliceAngles {
       for (int64_t s = 0; s < S; ++s) angle[s * stride + u] = (a + float(s)) * step;
     }
 #ifdef TORCH_AO_MKL_VML
-    constexpr long long mode = 0x2 | 0x140000 | 0x100;
+    constexpr long long mode = kVmlMode;
     vmsCos(int(angle.size()), angle.data(), cosine.data(), mode);
     vmsSin(int(angle.size()), angle.data(), sine.data(), mode);
 #else

@@ -36,8 +36,9 @@ from dataclasses import dataclass, field
 import torch
 
 from ..camera import PinholeCamera
+from ..checks import check_choice
 from ..gbuffer import GBuffer
-from . import sampling
+from . import ao_kernel, sampling
 from .scene import Scene
 from .tracer import Tracer
 from .views import Views, look_at
@@ -149,6 +150,20 @@ def _to_world(local, t, b, n):
     return local[..., :1] * t[:, None] + local[..., 1:2] * b[:, None] + local[..., 2:] * n[:, None]
 
 
+def _ao_occlusion(tracer: Tracer, backend: str, org, t, b, n, key, spp: int, groups: int, seed: int, stream: int,
+                  cosine: bool, R: float) -> torch.Tensor:
+    """``(m, spp)`` bool occlusion within ``R`` of the stratified samples of ``(seed, stream)`` of
+    pixels ``key (m,)`` with ray origins ``org (m,3)`` and frames ``t, b, n (m,3)``, on the cosine
+    (``cosine``) or uniform hemisphere: the C++ kernel where ``backend`` allows and it applies."""
+    occl = ao_kernel.occlusion(tracer, backend, org, t, b, n, key, spp, groups, seed, stream, cosine, R)
+    if occl is None:
+        u1, u2 = sampling.stratified_square(key, spp, groups, seed, stream, org.dtype)
+        hemisphere = sampling.cosine_hemisphere if cosine else sampling.uniform_hemisphere
+        dirs = _to_world(hemisphere(u1, u2), t, b, n).reshape(-1, 3)
+        occl = tracer.occluded(org[:, None, :].expand(-1, spp, 3).reshape(-1, 3), dirs, R)
+    return occl
+
+
 def _group_stats(x: torch.Tensor, groups: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``x (m, spp[, C])`` -> mean and standard error over ``groups`` independent group means."""
     m, spp = x.shape[:2]
@@ -174,6 +189,7 @@ def render_reference(
     device=None,
     dtype: torch.dtype = torch.float32,
     mesh_backend: str = "auto",
+    backend: str = "auto",
 ) -> Reference:
     """Ray-trace the G-buffer and reference AO (and optionally one-bounce indirect light).
 
@@ -193,10 +209,16 @@ def render_reference(
             first-hit object (see the module docstring).
         device, dtype: where and in what precision rays are traced.
         mesh_backend: ``"auto"``, ``"embree"`` or ``"torch"`` (see :class:`Tracer`).
+        backend: how AO rays (without ``indirect``) are traced: ``"auto"`` (the C++ kernel of
+            :mod:`.ao_kernel` for CPU float32 renders of analytic scenes, else tensor ops),
+            ``"kernel"`` (that kernel, or an error where it does not apply) or ``"torch"`` (tensor
+            ops). The kernel draws the same samples; it can differ from the tensor path only in a ray
+            grazing an edge (docs/performance.md).
     Returns:
         a :class:`Reference`.
     """
     groups, R = _check_args(spp, max_distance, seed, chunk_rays)
+    check_choice("backend", backend, ao_kernel.BACKENDS)
     if isinstance(views, PinholeCamera):
         if world_to_view is None:
             raise ValueError("world_to_view: needed (B,4,4) when views is a PinholeCamera")
@@ -270,10 +292,10 @@ def render_reference(
         key = idx[sl]
         tb, bb = _world_basis(ns)
         org = tracer.offset(ps, ns, ts)
-        o_rep = org[:, None, :].expand(m, spp, 3).reshape(-1, 3)
-        u1, u2 = sampling.stratified_square(key, spp, groups, seed, _AO_STREAM, dtype)
-        dirs = _to_world(sampling.cosine_hemisphere(u1, u2), tb, bb, ns).reshape(-1, 3)
         if indirect:
+            o_rep = org[:, None, :].expand(m, spp, 3).reshape(-1, 3)
+            u1, u2 = sampling.stratified_square(key, spp, groups, seed, _AO_STREAM, dtype)
+            dirs = _to_world(sampling.cosine_hemisphere(u1, u2), tb, bb, ns).reshape(-1, 3)
             hit = tracer.intersect(o_rep, dirs, R)
             occl = hit.hit
             Lin = torch.zeros(m * spp, 3, dtype=dtype, device=device)
@@ -287,13 +309,11 @@ def render_reference(
             ind[sl], ind_se[sl] = _group_stats(Lin.view(m, spp, 3), groups)
             bar.update(m * spp)
         else:
-            occl = tracer.occluded(o_rep, dirs, R)
+            occl = _ao_occlusion(tracer, backend, org, tb, bb, ns, key, spp, groups, seed, _AO_STREAM, True, R)
         ao[sl], ao_se[sl] = _group_stats((~occl).to(dtype).view(m, spp), groups)
         bar.update(m * spp)
         if uniform:
-            u1, u2 = sampling.stratified_square(key, spp, groups, seed, _UNIFORM_STREAM, dtype)
-            dirs = _to_world(sampling.uniform_hemisphere(u1, u2), tb, bb, ns).reshape(-1, 3)
-            occl = tracer.occluded(o_rep, dirs, R)
+            occl = _ao_occlusion(tracer, backend, org, tb, bb, ns, key, spp, groups, seed, _UNIFORM_STREAM, False, R)
             aou[sl], aou_se[sl] = _group_stats((~occl).to(dtype).view(m, spp), groups)
             bar.update(m * spp)
     bar.close()

@@ -15,7 +15,7 @@ import math
 
 import torch
 
-__all__ = ["uniform", "stratified_square", "choose_groups", "cosine_hemisphere", "uniform_hemisphere", "frame"]
+__all__ = ["uniform", "stream_constants", "group_grid", "stratified_square", "choose_groups", "cosine_hemisphere", "uniform_hemisphere", "frame"]
 
 _M32 = 0xFFFFFFFF
 
@@ -29,12 +29,17 @@ def _mix(x: torch.Tensor) -> torch.Tensor:
     return x ^ (x >> 16)
 
 
+def stream_constants(seed: int, stream: int) -> tuple[int, int]:
+    """The two 32-bit constants that :func:`uniform` mixes into the keys of ``(seed, stream)``."""
+    s = int(_mix(torch.tensor(((seed * 0x9E3779B9) ^ (stream * 0x85EBCA6B) ^ 0x27D4EB2F) & _M32, dtype=torch.int64)))
+    return s, int(_mix(torch.tensor(s ^ ((seed >> 32) & _M32), dtype=torch.int64)))
+
+
 def uniform(key: torch.Tensor, seed: int, stream: int, dtype=torch.float32) -> torch.Tensor:
     """Uniform ``[0, 1)`` numbers, one per int64 ``key``, for ``(seed, stream)``."""
-    s = _mix(torch.tensor(((seed * 0x9E3779B9) ^ (stream * 0x85EBCA6B) ^ 0x27D4EB2F) & _M32, dtype=torch.int64))
-    s2 = _mix(s ^ ((seed >> 32) & _M32))
-    h = _mix((key & _M32) ^ s.to(key.device))
-    h = _mix(h ^ ((key >> 32) & _M32) ^ s2.to(key.device))
+    s, s2 = stream_constants(seed, stream)
+    h = _mix((key & _M32) ^ s)
+    h = _mix(h ^ ((key >> 32) & _M32) ^ s2)
     return (h >> 8).to(dtype) * (1.0 / (1 << 24))
 
 
@@ -52,15 +57,20 @@ def choose_groups(spp: int, max_groups: int = 16) -> int:
     )
 
 
+def group_grid(spp: int, groups: int) -> tuple[int, int, int]:
+    """``(n, nx, ny)``: samples per group and the ``nx x ny`` jitter grid they fill."""
+    n = spp // groups
+    nx = max(1, int(math.isqrt(n)))
+    return n, nx, -(-n // nx)
+
+
 def stratified_square(pixel_key: torch.Tensor, spp: int, groups: int, seed: int, stream: int, dtype=torch.float32):
     """``(u1, u2)`` each ``(M, spp)`` for pixels ``pixel_key (M,)`` (int64, unique per pixel).
 
     Sample ``j`` belongs to group ``j // n``; within a group the samples fill consecutive cells of an
     ``nx x ny`` grid from a random offset, each jittered uniformly inside its cell.
     """
-    n = spp // groups
-    nx = max(1, int(math.isqrt(n)))
-    ny = -(-n // nx)
+    n, nx, ny = group_grid(spp, groups)
     cells = nx * ny
     dev = pixel_key.device
     j = torch.arange(spp, device=dev)

@@ -1,0 +1,39 @@
+"""Buffers derived from a G-buffer (safe depth, positions, view normals, the denoiser's guide) are
+computed once per G-buffer and reused, equal to a fresh computation; while a G-buffer tensor needs
+gradients they are recomputed at every call, so each forward pass builds its own graph."""
+from __future__ import annotations
+
+import torch
+
+from torch_ao.denoise import denoise_guide
+from torch_ao.examples import crease_gbuffer
+from torch_ao.gbuffer import GBuffer, normals_from_depth
+
+
+def _depth_only(gb: GBuffer, requires_grad: bool = False) -> GBuffer:
+    depth = gb.depth.clone().requires_grad_(requires_grad)
+    return GBuffer(depth=depth, camera=gb.camera)
+
+
+def test_derived_buffers_are_computed_once_and_equal_fresh_ones():
+    gb = _depth_only(crease_gbuffer(24, 32))
+    fresh = GBuffer(depth=gb.depth.clone(), camera=gb.camera)
+    for get in (lambda g: g.safe_depth, lambda g: g.positions(), lambda g: g.view_normals(),
+                lambda g: g.view_normals("kornia"), lambda g: denoise_guide(g)):
+        first = get(gb)
+        assert get(gb) is first
+        assert torch.equal(first, get(GBuffer(depth=fresh.depth.clone(), camera=fresh.camera)))
+    assert torch.equal(gb.view_normals(), normals_from_depth(gb.depth, gb.camera, valid=gb.valid))
+    assert not torch.equal(gb.view_normals("kornia"), gb.view_normals())  # one entry per method
+    normals = torch.nn.functional.normalize(torch.randn(1, 3, 24, 32), dim=1)
+    assert not torch.equal(denoise_guide(gb, normals=normals), denoise_guide(gb))  # given normals: not cached
+
+
+def test_buffers_needing_gradients_are_recomputed_each_call():
+    gb = _depth_only(crease_gbuffer(24, 32), requires_grad=True)
+    a, b = gb.view_normals(), gb.view_normals()
+    assert a is not b and a.requires_grad
+    assert torch.equal(a, b)
+    for _ in range(2):  # a second forward's graph is its own: backward twice works
+        (gb.positions().sum() + denoise_guide(gb).sum()).backward()
+    assert gb.depth.grad is not None and bool(torch.isfinite(gb.depth.grad).all())
