@@ -349,10 +349,11 @@ def test_cli_fit_thickness_models(views, backface_views, tmp_path, capsys):
           for s in ("fence", "stairs")]
     assert evaluate(pipeline, vs)["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
 
-    out = tmp_path / "o3"  # the per-object table spans the ids of all the views
+    out = tmp_path / "o3"  # the per-object table spans the ids of all the views; --fetch reaches the method
     assert main(["fit", "--reference", str(files[0]), "--thickness", "object", "--init", "0.3", "--preset", "low",
-                 "--steps", "1", "--no-progress", "--out", str(out)]) == 0
+                 "--fetch", "nearest", "--steps", "1", "--no-progress", "--out", str(out)]) == 0
     data = json.loads((out / "params.json").read_text())
+    assert data["options"]["fetch"] == "nearest" and load_fitted(out / "params.json").method.fetch == "nearest"
     K = int(read_npz(files[0])["object_id"].max()) + 1
     assert data["options"]["thickness_model"] == "object" and data["parameters"]["thickness"]["shape"] == [K]
     assert data["history"][0]["thickness"] == [pytest.approx(0.3)] * K

@@ -62,6 +62,8 @@ OPTIONS = (
     replace(_method_option("bitmask", "preset"), default="high", help="quality preset of the fitted method"),
     replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
             "(cosine matches the cosine-weighted reference)"),
+    replace(_method_option("bitmask", "fetch"), default=None, help="depth fetch of the fitted method's walk (see "
+            "`torch-ao ao --help`); when not given, the method's default"),
     Option("no_denoise", False, "fit and score the method alone, without the denoiser", bool),
     Option("radius", None, "the method's radius R; when not given, the references' max_distance", float,
            unit="world units", minimum=0.0, open_minimum=True),
@@ -211,7 +213,7 @@ def _init_values(text: str | None) -> dict[str, float]:
 
 
 def pipeline_options(args, radius: float, **values) -> dict:
-    """Constructor options of the fitted method: preset, radius, variant, weighting (bitmask), ``values``."""
+    """Constructor options of the fitted method: preset, radius, variant, weighting (bitmask), fetch, ``values``."""
     options = {"preset": args.preset}
     if "radius" in get_method(args.method).options():  # (PSSAO walks in pixels)
         options["radius"] = radius
@@ -219,6 +221,8 @@ def pipeline_options(args, radius: float, **values) -> dict:
         options["variant"] = args.variant
     if args.method in BITMASK:
         options["weighting"] = args.weighting
+    if args.fetch is not None:
+        options["fetch"] = args.fetch
     options.update(values)
     return options
 
