@@ -57,25 +57,34 @@ def backface_depth(scene, ref) -> torch.Tensor:
     return torch.where(ref.gbuffer.valid, torch.maximum(depth, ref.gbuffer.depth), ref.gbuffer.depth)
 
 
-def views(scene: str, size: tuple[int, int], radius: float, thickness: str, rays: int, cache: Path):
-    """The G-buffer (with ``backface_depth``), the ray-traced AO, the screen-space truth and its stderr."""
+def views(scene: str, size: tuple[int, int], radius: float, thickness: str, rays: int, cache: Path,
+          fetch: str = "bilinear"):
+    """The G-buffer (with ``backface_depth``), the ray-traced AO, the screen-space truth (read with
+    ``fetch``) and its stderr. The render is shared by the truths of every fetch."""
     W, H = size
-    path = cache / f"{scene}-{W}x{H}-R{radius:g}-t{thickness}-r{rays}.pt"
+    stem = f"{scene}-{W}x{H}-R{radius:g}-t{thickness}-r{rays}"
+    path = cache / f"{stem}{'' if fetch == 'bilinear' else '-' + fetch}.pt"
     if path.exists():
         return torch.load(path, weights_only=False)
     t0 = time.perf_counter()
-    built = get_scene(scene)
-    ref = render_reference(built, height=H, width=W, spp=256, max_distance=radius, progress=False, uniform=False)
-    g = ref.gbuffer
-    gb = GBuffer(g.depth, g.camera, normals=g.normals, light=g.light, mask=g.mask, object_id=g.object_id,
-                 backface_depth=backface_depth(built, ref))
+    rendered = [p for p in sorted(cache.glob(f"{scene}-{W}x{H}-R{radius:g}-t*.pt"))]
+    if rendered:
+        gb, ref_ao = torch.load(rendered[0], weights_only=False)[:2]
+    else:
+        built = get_scene(scene)
+        ref = render_reference(built, height=H, width=W, spp=256, max_distance=radius, progress=False, uniform=False)
+        g = ref.gbuffer
+        gb = GBuffer(g.depth, g.camera, normals=g.normals, light=g.light, mask=g.mask, object_id=g.object_id,
+                     backface_depth=backface_depth(built, ref))
+        ref_ao = ref.ao
     t1 = time.perf_counter()
     if thickness == "backface":
-        truth = screen_space_truth(gb, radius, backface_depth=gb.backface_depth, rays=rays)
+        truth = screen_space_truth(gb, radius, backface_depth=gb.backface_depth, rays=rays, fetch=fetch)
     else:
-        truth = screen_space_truth(gb, radius, float(thickness), rays=rays)
-    print(f"{scene}: reference {t1 - t0:.0f} s, screen-space truth {time.perf_counter() - t1:.0f} s", file=sys.stderr)
-    out = (gb, ref.ao, truth.visibility, truth.stderr)
+        truth = screen_space_truth(gb, radius, float(thickness), rays=rays, fetch=fetch)
+    print(f"{scene}: reference {t1 - t0:.0f} s, screen-space truth ({fetch}) {time.perf_counter() - t1:.0f} s",
+          file=sys.stderr)
+    out = (gb, ref_ao, truth.visibility, truth.stderr)
     cache.mkdir(parents=True, exist_ok=True)
     torch.save(out, path)
     return out

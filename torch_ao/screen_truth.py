@@ -50,6 +50,7 @@ from .gbuffer import GBuffer
 from .metrics import error_metrics
 from .reference import sampling
 from .reference.render import _group_stats
+from .walk.fetch import continuous_cells, edge_ratio_limit
 
 __all__ = ["FETCHES", "SCREEN_REACH", "ScreenTruth", "screen_space_truth", "thickness_map", "ErrorSplit", "split_error", "ray_steps"]
 
@@ -150,7 +151,7 @@ def screen_space_truth(
     step_px: float = 0.5,
     uniform: bool = False,
     fetch: str = "bilinear",
-    edge_ratio: float = 1.1,
+    edge_ratio: float | None = None,
     seed: int = 0,
     chunk_points: int = 1 << 21,
     where: torch.Tensor | None = None,
@@ -173,8 +174,11 @@ def screen_space_truth(
             methods' default fetch: across a depth edge it interpolates a "skirt" joining the near and far
             surface, which occludes rays that pass behind the near one), ``"nearest"`` (flat tiles), or
             ``"edge_aware"`` (bilinear inside every 2x2 cell whose depths are within ``edge_ratio`` of each
-            other, the nearest texel in the others: no skirts).
-        edge_ratio: ``max/min`` depth of a 2x2 cell above which ``"edge_aware"`` treats it as an edge (> 1).
+            other, the nearest texel in the others: no skirts; the cell rule is the walk's,
+            :func:`torch_ao.walk.fetch.continuous_cells`).
+        edge_ratio: ``max/min`` depth of a 2x2 cell above which ``"edge_aware"`` treats it as an edge (> 1;
+            default ``None``: each view's :func:`~torch_ao.walk.fetch.edge_ratio_limit`, the methods' rule:
+            what a plane 80 degrees from facing the camera spreads over a cell at that focal length).
         seed: the random numbers are a hash of ``(seed, pixel, ray)``: reproducible whatever the chunking.
         chunk_points: ray points tested at once (memory: about 100 bytes each).
         bound: which ray points count: ``"sphere"`` (the definition: within distance ``R`` of the pixel) or
@@ -196,7 +200,8 @@ def screen_space_truth(
     check_choice("fetch", fetch, FETCHES)
     check_choice("bound", bound, ("sphere", "screen"))
     length = radius * (SCREEN_REACH if bound == "screen" else 1.0)
-    edge_ratio = check_float("edge_ratio", edge_ratio, 1.0, open_minimum=True)
+    if edge_ratio is not None:
+        edge_ratio = check_float("edge_ratio", edge_ratio, 1.0, open_minimum=True)
     seed = check_int("seed", seed, 0)
     chunk_points = check_int("chunk_points", chunk_points, 1)
     T = thickness_map(gbuffer, thickness, backface_depth)
@@ -218,6 +223,8 @@ def screen_space_truth(
     if isinstance(T, torch.Tensor):
         planes.append(T.to(dtype))
     image = torch.cat(planes, 1)
+    if edge_ratio is None:
+        edge_ratio = edge_ratio_limit(gbuffer.camera.fx, gbuffer.camera.fy).to(dtype).view(B, 1, 1, 1)
     cells = _continuous_cells(inv, edge_ratio) if fetch == "edge_aware" else None
     scalar_T = None if isinstance(T, torch.Tensor) else min(float(T), _BIG)
 
@@ -286,12 +293,12 @@ def _chunk_pixels(nsteps, order, start, rays, chunk_points) -> int:
     return m
 
 
-def _continuous_cells(inv: torch.Tensor, edge_ratio: float) -> torch.Tensor:
+def _continuous_cells(inv: torch.Tensor, edge_ratio) -> torch.Tensor:
     """``(B,1,H-1,W-1)`` float, 1 where the 2x2 cell of texels ``(i..i+1, j..j+1)`` is one surface: all four
-    valid (``inv > 0``) and ``max(depth) <= edge_ratio * min(depth)``."""
-    taps = torch.stack((inv[..., :-1, :-1], inv[..., :-1, 1:], inv[..., 1:, :-1], inv[..., 1:, 1:]))
-    lo, hi = taps.amin(0), taps.amax(0)
-    return ((lo > 0) & (hi <= edge_ratio * lo)).to(inv.dtype)
+    valid (``inv > 0``) and ``max(depth) <= edge_ratio * min(depth)`` (:func:`continuous_cells`; ``edge_ratio``
+    a float or ``(B,1,1,1)``)."""
+    taps = torch.stack((inv[..., :-1, :-1], inv[..., :-1, 1:], inv[..., 1:, :-1], inv[..., 1:, 1:]), -1)
+    return continuous_cells(taps, edge_ratio).to(inv.dtype)
 
 
 def _fetch(surfaces, grid: torch.Tensor, size: tuple[int, int]):

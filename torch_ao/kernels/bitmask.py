@@ -56,7 +56,7 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
 _COVERED = {
     # the walk's and every module's options
     "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
-    "jitter": None, "seed": None, "fetch": None, "border": None, "azimuth": ("view",), "normals": None,
+    "jitter": None, "seed": None, "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view",), "normals": None,
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
     # the bitmask family's
     "variant": ("default",), "mode": ("hard", "straight_through"), "tau": None, "rounding": None,

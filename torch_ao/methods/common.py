@@ -95,8 +95,10 @@ class Sampling:
         Option("jitter", True, "Rotate the directions and offset the steps per pixel by interleaved gradient "
                "noise (banding becomes noise that a denoiser removes)", kind=bool),
         Option("seed", 0, "Seed of the per-pixel noise (each seed is a new, reproducible pattern)", kind=int, minimum=0),
-        Option("fetch", "bilinear", "Depth fetch: nearest texel, or perspective-correct bilinear (interpolates "
-               "1/depth, so planes are reproduced exactly: the default)", kind=str, choices=FETCH_MODES),
+        Option("fetch", "bilinear", "Depth fetch: nearest texel, perspective-correct bilinear (interpolates "
+               "1/depth, so planes are reproduced exactly: the default), or edge_aware (bilinear inside a surface, "
+               "the nearest texel across a depth edge: no skirts joining a near and a far surface)", kind=str,
+               choices=FETCH_MODES),
         Option("border", "drop", "Samples off the image: drop them (they occlude nothing: the default, no "
                "smeared edge) or clamp them to the edge texel", kind=str, choices=BORDER_MODES),
         Option("azimuth", "view", "Direction spacing: evenly around the view vector (the slice integral is exact "

@@ -1,13 +1,17 @@
 """The depth fetch: where a sample reads the frame (:class:`Footprint`), and its hand-written backwards.
 
 A sample reads either the nearest texel or four bilinear taps whose inverse depths are interpolated
-(perspective-correct: planes are reproduced exactly). The walk fetches ``slices x sides x steps``
+(perspective-correct: planes are reproduced exactly), or, with the ``"edge_aware"`` fetch, the four taps
+where the 2x2 cell holding the sample is one surface (:func:`continuous_cells`) and the nearest texel's
+depth elsewhere: bilinear interpolation across a depth edge invents a surface (a "skirt") joining the near
+and the far side, which a thick occluder model turns into occlusion that is not there. The walk fetches ``slices x sides x steps``
 samples per pixel, so the two autograd functions here keep a few floats per sample and rebuild the
 rest in backward: :class:`PerspectiveBilinearDepth` (the depth alone) and :class:`SampleAlong` (the
 two in-slice coordinates of ``delta``, fused with the fetch).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -15,7 +19,48 @@ import torch
 from ..camera import pixels_to_view
 from .frame import Frame, repeat_rows, take
 
-__all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps"]
+__all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps",
+           "EDGE_ANGLE", "edge_ratio_limit", "continuous_cells", "edge_aware_taps"]
+
+#: The ``"edge_aware"`` fetch's steepest surface (degrees between its normal and the view ray). A plane at
+#: angle ``theta`` changes depth across a 2x2 cell's diagonal by the factor ``1 + tan(theta) |dr|`` at most,
+#: ``|dr| = hypot(1/fx, 1/fy)`` the diagonal's step in ``tan`` of the view angle: four depths cannot tell a
+#: steeper plane from a depth step, so a cell whose depths spread more is an edge (:func:`edge_ratio_limit`).
+#: 80 degrees: 1.155 at 96x54 (60 degree field), 1.05 at 320x180. Measured on the six built-in scenes at 96x54
+#: (the screen-space truth, thickness 0.25, against the ray-traced AO; docs/bitmask.md): 70-75 degrees
+#: keep skirts behind the floor's grazing far part (sphere_on_plane 23.5-23.8 dB, bilinear 24.2), 85
+#: degrees bilinear-joins the room's corner to the box in front of it (room_corner 20.1 dB, 80: 29.7).
+EDGE_ANGLE = 80.0
+
+
+def edge_ratio_limit(fx: torch.Tensor, fy: torch.Tensor, max_angle: float = EDGE_ANGLE) -> torch.Tensor:
+    """The ``max/min`` depth ratio of a 2x2 cell above which it is a depth edge, for focal lengths ``fx, fy``
+    (pixels, any shape): ``1 + tan(max_angle) hypot(1/fx, 1/fy)`` (see :data:`EDGE_ANGLE`)."""
+    return 1 + math.tan(math.radians(max_angle)) * torch.hypot(1 / fx, 1 / fy)
+
+
+def continuous_cells(inverse: torch.Tensor, edge_ratio) -> torch.Tensor:
+    """``(...)`` bool: whether the 2x2 cell whose four texels have inverse depths ``inverse`` ``(..., 4)``
+    (``<= 0`` where a texel is invalid) is one surface: all four valid and ``max(depth) <= edge_ratio *
+    min(depth)`` (``edge_ratio`` a float or a tensor broadcasting to ``(...)``, e.g. :func:`edge_ratio_limit`).
+    The rule of the ``"edge_aware"`` fetch, in the walk and in the screen-space truth."""
+    lo, hi = inverse.amin(-1), inverse.amax(-1)
+    return (lo > 0) & (hi <= edge_ratio * lo)
+
+
+def edge_aware_taps(frame: Frame, batch: torch.Tensor, index: torch.Tensor, fu: torch.Tensor,
+                    fv: torch.Tensor) -> torch.Tensor:
+    """The ``"edge_aware"`` fetch's taps ``(N,4)``: the bilinear taps ``index`` ``(N,4)`` where their cell is
+    one surface (:func:`continuous_cells` with each image's :func:`edge_ratio_limit`), else four copies of
+    the tap nearest to the fractions ``fu, fv`` ``(N,)`` (interpolating four equal taps reads that texel,
+    and its gradient goes to it alone); ``batch`` ``(N,)`` is each row's image."""
+    inverse = torch.where(take(frame.valid, index), take(frame.inverse_depth, index), 0.0)
+    fx, fy = frame.fx.detach(), frame.fy.detach()
+    limit = edge_ratio_limit(fx, fy).to(inverse.dtype)
+    smooth = continuous_cells(inverse, limit if limit.numel() == 1 else take(limit, batch))
+    corner = (fu.detach() >= 0.5).to(index.dtype) + 2 * (fv.detach() >= 0.5).to(index.dtype)
+    nearest = index.gather(1, corner[:, None].long())
+    return torch.where(smooth[:, None], index, nearest)
 
 
 def bilerp(taps, fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
@@ -60,7 +105,8 @@ class PerspectiveBilinearDepth(torch.autograd.Function):
 class Footprint:
     """Where a sample reads the frame: the nearest texel (``index`` ``(N,)``) or four bilinear taps
     (``index`` ``(N,4)``, fractions ``fu``, ``fv``) at screen position ``(su, sv)`` ``(N,)``;
-    ``batch`` ``(N,)`` is each row's image."""
+    ``batch`` ``(N,)`` is each row's image. ``edge_aware`` is set for the ``"edge_aware"`` fetch: its
+    taps are :func:`edge_aware_taps` (four copies of the nearest texel across a depth edge)."""
 
     batch: torch.Tensor
     su: torch.Tensor
@@ -68,6 +114,7 @@ class Footprint:
     index: torch.Tensor
     fu: torch.Tensor | None = None
     fv: torch.Tensor | None = None
+    edge_aware: bool = False
 
     @staticmethod
     def at(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Tensor, fetch: str) -> tuple["Footprint", torch.Tensor]:
@@ -82,12 +129,23 @@ class Footprint:
         index, fu, fv = bilinear_taps(frame, batch, su, sv)
         u0, v0 = torch.floor(su), torch.floor(sv)
         inside = (u0 >= 0) & (u0 + 1 < W) & (v0 >= 0) & (v0 + 1 < H)
+        if fetch == "edge_aware":
+            return Footprint(batch, su, sv, edge_aware_taps(frame, batch, index, fu, fv), fu, fv, True), inside
         return Footprint(batch, su, sv, index, fu, fv), inside
 
     def map_rows(self, fn) -> "Footprint":
         """The footprint with ``fn`` applied to every per-row tensor."""
         return Footprint(fn(self.batch), fn(self.su), fn(self.sv), fn(self.index),
-                         None if self.fu is None else fn(self.fu), None if self.fv is None else fn(self.fv))
+                         None if self.fu is None else fn(self.fu), None if self.fv is None else fn(self.fv),
+                         self.edge_aware)
+
+    def on_own_texel(self, own: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` bool: where the ``"edge_aware"`` fetch reads the nearest texel and it is ``own``
+        ``(N,)`` (the query's flat index), as the nearest fetch does on the centre texel (all False for
+        other fetches)."""
+        if not self.edge_aware:
+            return torch.zeros_like(own, dtype=torch.bool)
+        return (self.index == self.index[:, :1]).all(-1) & (self.index[:, 0] == own)
 
     def valid(self, frame: Frame) -> torch.Tensor:
         v = take(frame.valid, self.index)
@@ -110,7 +168,8 @@ class Footprint:
         """``(N,3)`` view-space position: the texel's, or the perspective-correct bilinear depth
         unprojected at ``(su, sv)`` clamped to the frame; with a position buffer, its four taps
         interpolated perspective-correctly (``p / depth`` and ``1 / depth`` bilinearly, then divided),
-        which equals the depth fetch where the positions are the unprojected depth."""
+        which equals the depth fetch where the positions are the unprojected depth (so does the
+        ``"edge_aware"`` fetch's nearest texel: its depth, unprojected at ``(su, sv)``)."""
         if self.fu is None:
             return take(frame.positions, self.index)
         if frame.has_position:
@@ -118,7 +177,13 @@ class Footprint:
             inverse = -taps[..., 2].reciprocal()  # (N,4) 1 / depth of each tap (z < 0)
             fu, fv = self.fu[:, None], self.fv[:, None]
             scaled = bilerp((taps * inverse[..., None]).unbind(1), fu, fv)
-            return scaled / bilerp(inverse.unbind(-1), self.fu, self.fv)[:, None]
+            position = scaled / bilerp(inverse.unbind(-1), self.fu, self.fv)[:, None]
+            if not self.edge_aware:
+                return position
+            # four equal taps interpolate to the texel's own position; the depth fetch puts its depth at (su, sv)
+            single = (self.index == self.index[:, :1]).all(-1)
+            tile = _unproject(frame, self.batch, self.su, self.sv, -taps[:, 0, 2])
+            return torch.where(single[:, None], tile, position)
         if torch.is_grad_enabled():
             depth = PerspectiveBilinearDepth.apply(frame.safe_depth, self.index, self.fu, self.fv)
         else:  # the same values, from the frame's inverse depths
@@ -164,6 +229,7 @@ class SampleAlong(torch.autograd.Function):
     @staticmethod
     def forward(ctx, frame, footprint, valid, side, steps, batch, along, source, su, sv, P, V, T):
         ctx.frame, ctx.side, ctx.steps, ctx.nearest = frame, side, steps, footprint.fu is None
+        ctx.edge_aware = footprint.edge_aware
         ctx.save_for_backward(source, su, sv, valid, batch, P, V, T, footprint.index if ctx.nearest else None)
         return along
 
@@ -200,6 +266,8 @@ class SampleAlong(torch.autograd.Function):
                 B, H, W = frame.shape
                 batch_rows = rows.per_row(batch) if B > 1 else batch  # (a single image needs no per-row batch)
                 taps, fu, fv = bilinear_taps(frame, batch_rows, su, sv)
+                if ctx.edge_aware:
+                    taps = edge_aware_taps(frame, batch_rows, taps, fu, fv)
                 inverse = take(source, taps)  # (rows,4) inverse depths
                 depth = bilerp(inverse.unbind(-1), fu, fv).reciprocal()
                 fx, fy, cx, cy = frame.intrinsics(batch_rows)

@@ -18,8 +18,9 @@ from .protocol import SamplingPattern
 __all__ = ["SlicePattern", "FETCH_MODES", "BORDER_MODES", "AZIMUTHS", "interleaved_gradient_noise",
            "tangent_from_screen_angle", "tangent_from_view_azimuth", "radius_px", "step_direction"]
 
-#: Depth fetch: the nearest texel, or perspective-correct bilinear (interpolates 1/depth).
-FETCH_MODES = ("nearest", "bilinear")
+#: Depth fetch: the nearest texel, perspective-correct bilinear (interpolates 1/depth), or bilinear inside
+#: a surface and the nearest texel across a depth edge (``"edge_aware"``: no skirts; see walk/fetch.py).
+FETCH_MODES = ("nearest", "bilinear", "edge_aware")
 #: Samples outside the image: clamped to the edge texel, or dropped (they occlude nothing).
 BORDER_MODES = ("clamp", "drop")
 #: Slice spacing: evenly around the view vector, or evenly in screen angle.

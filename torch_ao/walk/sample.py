@@ -146,11 +146,11 @@ def fetch_sample(frame: Frame, q: Queries, geom: "SliceGeometry | None", side: i
                  offset: torch.Tensor, *, fetch: str, border: str, steps: int = 1,
                  base: "tuple[Queries, SliceGeometry] | None" = None) -> Sample:
     """The sample at pixel ``offset`` ``(N,2)`` from each query pixel, on ``side``, read with ``fetch``
-    (``"nearest"``/``"bilinear"``) and ``border`` (``"clamp"``/``"drop"``). With ``steps`` > 1 the rows of
+    (``"nearest"``/``"bilinear"``/``"edge_aware"``) and ``border`` (``"clamp"``/``"drop"``). With ``steps`` > 1 the rows of
     ``q``, ``geom`` and ``offset`` hold that many steps, block-major, and ``base`` gives the queries and
     geometry of one step."""
     footprint, inside = Footprint.at(frame, q.batch, q.u + offset[:, 0], q.v + offset[:, 1], fetch)
-    valid = footprint.valid(frame)
+    valid = footprint.valid(frame) & ~footprint.on_own_texel(q.index)
     if border == "drop":
         valid = valid & inside
     return Sample(frame, geom, side, step, q, footprint, valid, offset, steps, base)
