@@ -4,7 +4,7 @@ For each ``params.json``: the screen-space truth of the view's depth buffer with
 thickness model (and its fetch) against the ray-traced reference (what the screen cannot know), the
 pipeline (hard mode, with its denoiser) against that truth (what the estimator adds), and the total.
 
-    python docs/targets/split_error.py docs/targets/{bitmask,backface}/params.json --scenes sphere_on_plane,fence,poles
+    PYTHONPATH=. python docs/targets/split_error.py docs/targets/{bitmask,backface}/params.json --scenes sphere_on_plane,fence,poles
 
 Truths are cached under ``$TORCH_AO_CACHE/targets_truths``; the views are the seed-1000 built-in views at
 320x180, 1024 spp, R = 0.5 (the same files as the fits, with their back-face layer).
