@@ -4,6 +4,7 @@ and the fit keeps the parameters that are best in hard mode."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -231,3 +232,128 @@ def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
     assert set(data["per_view"]["fitted"]) == {v.name for v in held}
     report = (out / "report.md").read_text()
     assert "fence/s1000" in report and "bitmask fitted" in report
+
+
+# ---------------------------------------------------------------- thickness models (--thickness)
+
+@pytest.fixture(scope="module")
+def backface_views(tmp_path_factory):
+    """The fence and stairs views of ``views`` rendered into another cache, with the back-face layer."""
+    cache = tmp_path_factory.mktemp("refs_backface")
+    vs = [reference_view(s, 1, height=24, width=32, spp=16, max_distance=0.8, cache_dir=cache, backface=True)
+          for s in ("fence", "stairs")]
+    return vs, cache
+
+
+@pytest.mark.parametrize("model, options", [
+    ("linear", {"thickness": 0.05, "thickness_slope": 0.1}),
+    ("backface", {"thickness_scale": 0.8, "thickness": 0.02}),
+    ("object", {"thickness": torch.full((15,), 0.3)}),
+])
+def test_thickness_models_round_trip_after_a_fit(backface_views, tmp_path, model, options):
+    """A pipeline with each thickness model, fitted a few steps: params.json names the model and its
+    parameters, and load_fitted gives the fitted module's numbers bit for bit."""
+    from torch_ao.fitted import THICKNESS_MODELS
+
+    vs, _ = backface_views
+    pipe = FittedPipeline("bitmask", {"preset": "low", "radius": 0.8, "weighting": "cosine", "thickness_model": model,
+                                      **options}, denoiser=True)
+    cls, keywords = THICKNESS_MODELS[model]
+    assert type(pipe.method.thickness_model) is cls
+    names = tuple(keywords)
+    assert set(fittable_parameters(pipe)) == {"radius", *names}
+    before = {k: v.clone() for k, v in pipe.parameter_values().items()}
+    fit(pipe, vs, FitConfig(params=("radius", *names), steps=3, lr=0.05, hard_every=0), progress=False)
+    moved = [k for k in names if not torch.equal(pipe.parameter_values()[k], before[k])]
+    assert moved, "the fit moved none of the model's parameters"
+    pipe.save(tmp_path / "params.json")
+    data = json.loads((tmp_path / "params.json").read_text())
+    assert data["options"]["thickness_model"] == model and set(names) <= set(data["parameters"])
+    again = load_fitted(tmp_path / "params.json")
+    assert type(again.method.thickness_model) is cls
+    for k, v in pipe.parameter_values().items():
+        assert torch.equal(again.parameter_values()[k], v), k
+    for v in vs:
+        assert torch.equal(again(v.gbuffer).visibility, pipe(v.gbuffer).visibility)
+
+
+def test_backface_model_reads_the_layer_and_the_offset_only_model_is_the_scalar(backface_views):
+    """thickness_scale = 0 leaves the offset: the same numbers as the scalar thickness; with scale 1
+    each occluder's own thickness is used, and a G-buffer without the layer is refused."""
+    vs, _ = backface_views
+    gb = vs[0].gbuffer
+    common = {"preset": "low", "radius": 0.8, "weighting": "cosine"}
+    offset_only = FittedPipeline("bitmask", {**common, "thickness_model": "backface", "thickness_scale": 0.0,
+                                             "thickness": 0.3})
+    scalar = FittedPipeline("bitmask", {**common, "thickness": 0.3})
+    assert torch.allclose(offset_only(gb).visibility, scalar(gb).visibility, atol=1e-6)
+    own = FittedPipeline("bitmask", {**common, "thickness_model": "backface"})
+    assert not torch.allclose(own(gb).visibility, scalar(gb).visibility, atol=1e-3)
+    with pytest.raises(ValueError, match="backface_depth"):
+        own(replace(gb, backface_depth=None))
+    with pytest.raises(ValueError, match="thickness_model: expected one of scalar, object, linear, backface"):
+        FittedPipeline("bitmask", {**common, "thickness_model": "quadratic"})
+
+
+def test_cached_view_without_the_layer_gets_it_added_never_used_without_it(backface_views, tmp_path):
+    """A cached reference rendered without --backface is extended (the same layer as a full render with
+    it; every other array unchanged), and a file whose depth is not the scene's is refused."""
+    from torch_ao.datasets import add_backface_layer
+    from torch_ao.reference import get_scene, render_reference
+
+    plain = reference_view("fence", 1, height=24, width=32, spp=16, max_distance=0.8, cache_dir=tmp_path)
+    assert plain.gbuffer.backface_depth is None
+    path = next(tmp_path.rglob("fence*.npz"))
+    arrays = read_npz(path)
+    view = reference_view("fence", 1, height=24, width=32, spp=16, max_distance=0.8, cache_dir=tmp_path, backface=True)
+    extended = read_npz(path)
+    assert set(extended) == set(arrays) | {"backface_depth"}
+    for k, a in arrays.items():
+        assert np.array_equal(extended[k], a), k
+    full = render_reference(get_scene("fence", 1), height=24, width=32, spp=16, max_distance=0.8, seed=1,
+                            uniform=False, backface=True, progress=False)
+    assert torch.equal(view.gbuffer.backface_depth, full.backface_depth)
+    assert torch.equal(view.reference, full.ao)
+    thick = (view.gbuffer.backface_depth - view.gbuffer.depth)[view.gbuffer.valid]
+    assert bool((thick >= 0).all()) and bool(torch.isinf(thick).any()) and bool(torch.isfinite(thick).any())
+    assert add_backface_layer(path, "fence", 1) is False  # already there: left alone
+    with pytest.raises(ValueError, match="does not hold the depth of scene 'stairs'"):
+        save_npz(tmp_path / "other.npz", **arrays)
+        add_backface_layer(tmp_path / "other.npz", "stairs", 1)
+
+
+def test_cli_fit_thickness_models(views, backface_views, tmp_path, capsys):
+    """`fit --thickness backface` refuses references without the layer (naming the file), fits the
+    model's own parameters plus the radius by default, and params.json rebuilds what it scored; the
+    built-in views are rendered with the layer; a method without thickness models is refused."""
+    _, files = views
+    assert main(["fit", "--reference", str(files[0]), "--thickness", "backface", "--preset", "low", "--steps", "2",
+                 "--no-progress", "--out", str(tmp_path / "o0")]) == 2
+    err = capsys.readouterr().err
+    assert "--thickness backface" in err and files[0].name in err and "backface_depth" in err
+    assert main(["fit", "--reference", str(files[0]), "--method", "gtao", "--thickness", "linear", "--preset", "low",
+                 "--steps", "2", "--no-progress", "--out", str(tmp_path / "o1")]) == 2
+    assert "gtao has no thickness model" in capsys.readouterr().err
+
+    _, cache = backface_views
+    out = tmp_path / "o2"
+    assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--size", "32x24", "--spp", "16",
+                 "--max-distance", "0.8", "--preset", "low", "--steps", "2", "--hard-every", "1", "--thickness",
+                 "backface", "--cache", str(cache), "--no-progress", "--out", str(out)]) == 0
+    data = json.loads((out / "params.json").read_text())
+    assert data["fitted"] == ["radius", "thickness_scale", "thickness"]
+    assert data["options"]["thickness_model"] == "backface"
+    assert "backface thickness" in (out / "report.md").read_text()
+    pipeline = load_fitted(out / "params.json")
+    vs = [reference_view(s, 1000, height=24, width=32, spp=16, max_distance=0.8, cache_dir=cache, backface=True)
+          for s in ("fence", "stairs")]
+    assert evaluate(pipeline, vs)["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
+
+    out = tmp_path / "o3"  # the per-object table spans the ids of all the views; --fetch reaches the method
+    assert main(["fit", "--reference", str(files[0]), "--thickness", "object", "--init", "0.3", "--preset", "low",
+                 "--fetch", "nearest", "--steps", "1", "--no-progress", "--out", str(out)]) == 0
+    data = json.loads((out / "params.json").read_text())
+    assert data["options"]["fetch"] == "nearest" and load_fitted(out / "params.json").method.fetch == "nearest"
+    K = int(read_npz(files[0])["object_id"].max()) + 1
+    assert data["options"]["thickness_model"] == "object" and data["parameters"]["thickness"]["shape"] == [K]
+    assert data["history"][0]["thickness"] == [pytest.approx(0.3)] * K

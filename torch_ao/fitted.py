@@ -8,7 +8,10 @@ needs:
 
 * ``method``: the registry name (``"bitmask"``, ``"gtao"``, ...);
 * ``options``: the constructor's other keyword arguments (variant, weighting, preset or
-  slices/steps, jitter, ...), JSON values;
+  slices/steps, jitter, ...), JSON values; for bitmask methods ``thickness_model`` names the
+  thickness model (:data:`THICKNESS_MODELS`: ``scalar`` when absent), whose parameters are among
+  ``parameters`` under the names the method registers (``thickness``, ``thickness_slope``,
+  ``thickness_scale``);
 * ``parameters``: every float parameter of the method (its ``nn.Parameter``\\ s, and frozen ones that
   were given as options) at its current value: a number, or ``{"shape": [...], "values": [...]}``
   for a per-object table or a per-pixel map (float32 values survive the JSON round trip exactly);
@@ -29,13 +32,35 @@ from torch import nn
 from .denoise import Denoiser
 from .gbuffer import GBuffer
 from .methods import get_method
+from .thickness import BackfaceThickness, LinearThickness, ObjectThickness, ScalarThickness
 
-__all__ = ["DenoisedAO", "FittedPipeline", "load_fitted", "bench_rows", "cli_module", "FORMAT", "DENOISER_SETTINGS"]
+__all__ = ["DenoisedAO", "FittedPipeline", "load_fitted", "bench_rows", "cli_module", "FORMAT", "DENOISER_SETTINGS",
+           "THICKNESS_MODELS", "thickness_model"]
 
 #: Value of the file's ``format`` key (bumped when the layout changes).
 FORMAT = "torch_ao.fitted/1"
 #: The :class:`~torch_ao.denoise.Denoiser` settings stored in (and read from) the file.
 DENOISER_SETTINGS = ("kernel_size", "sigma_space", "sigma_depth", "sigma_normal", "guide", "temporal", "alpha")
+
+
+#: Thickness models a pipeline's ``thickness_model`` option names: the :mod:`torch_ao.thickness` class and
+#: its constructor's keyword for each parameter the method registers (the method's name -> the keyword).
+THICKNESS_MODELS = {
+    "scalar": (ScalarThickness, {"thickness": "thickness"}),
+    "object": (ObjectThickness, {"thickness": "thickness"}),
+    "linear": (LinearThickness, {"thickness": "thickness", "thickness_slope": "slope"}),
+    "backface": (BackfaceThickness, {"thickness": "thickness", "thickness_scale": "scale"}),
+}
+
+
+def thickness_model(name: str, values: Mapping[str, Any]):
+    """The :mod:`torch_ao.thickness` model ``name`` (a key of :data:`THICKNESS_MODELS`) with the parameter
+    values found in ``values`` (method names such as ``thickness_scale``; missing ones take the model's
+    defaults; JSON forms are decoded). ``ValueError`` names an unknown model."""
+    if name not in THICKNESS_MODELS:
+        raise ValueError(f"thickness_model: expected one of {', '.join(THICKNESS_MODELS)}, got {name!r}")
+    cls, keywords = THICKNESS_MODELS[name]
+    return cls(**{kw: _decode(values[param]) for param, kw in keywords.items() if param in values})
 
 
 def _encode(value: Any) -> Any:
@@ -100,7 +125,9 @@ class FittedPipeline(DenoisedAO):
         method: registry name of the method (see :data:`torch_ao.METHODS`).
         options: the method's constructor keywords (``preset``/``slices``/``steps``, ``radius``,
             ``variant``, ``weighting``, initial parameter values, ...). Parameters may be numbers or
-            tensors (a ``(K,)`` per-object table, a ``(B,1,H,W)`` map).
+            tensors (a ``(K,)`` per-object table, a ``(B,1,H,W)`` map). ``thickness_model`` (bitmask
+            methods): a key of :data:`THICKNESS_MODELS`; the model is built from the options named
+            after its parameters (``thickness``, ``thickness_slope``, ``thickness_scale``).
         denoiser: a :class:`~torch_ao.denoise.Denoiser`, a dict of its settings, ``True`` (default
             settings) or ``None`` (no denoiser).
 
@@ -111,7 +138,12 @@ class FittedPipeline(DenoisedAO):
     def __init__(self, method: str, options: Mapping[str, Any] | None = None,
                  denoiser: Denoiser | Mapping | bool | None = None) -> None:
         self_options = dict(options or {})
-        super().__init__(get_method(method)(**{k: _decode(v) for k, v in self_options.items()}), denoiser)
+        kwargs = {k: _decode(v) for k, v in self_options.items()}
+        model = kwargs.pop("thickness_model", None)
+        if model is not None:
+            kwargs = {k: v for k, v in kwargs.items() if k not in THICKNESS_MODELS.get(model, (None, {}))[1]}
+            kwargs["thickness"] = thickness_model(model, self_options)
+        super().__init__(get_method(method)(**kwargs), denoiser)
         self.method_name, self.options = method, self_options
 
     # ------------------------------------------------------------------ what is stored

@@ -19,7 +19,7 @@ import torch
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
 from ..fit import LOSSES, FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
-from ..fitted import FittedPipeline
+from ..fitted import THICKNESS_MODELS, FittedPipeline
 from ..io import read_npz, write_text_atomic
 from ..methods import get_method
 from ..options import Option, options_by_name
@@ -53,11 +53,17 @@ OPTIONS = (
     Option("variant", None, "the method's variant; when not given, the method's default", str),
     Option("params", None, "comma-separated parameters to fit jointly, e.g. thickness,radius; when not given, every "
            "float parameter the method and variant use", str),
+    Option("thickness", "scalar", "thickness model of a bitmask method (torch_ao.thickness): one scalar; one per "
+           "object id (a table over the views' ids); linear in depth (thickness + thickness_slope * depth); the "
+           "back-face layer (thickness_scale * (backface_depth - depth) + thickness: the built-in views are rendered "
+           "with it, --reference files must hold backface_depth)", str, choices=tuple(THICKNESS_MODELS)),
     Option("init", None, "start values, e.g. thickness=0.5,radius=1.2 (lengths in world units; a bare number is the "
            "thickness); when not given, the method's defaults", str),
     replace(_method_option("bitmask", "preset"), default="high", help="quality preset of the fitted method"),
     replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
             "(cosine matches the cosine-weighted reference)"),
+    replace(_method_option("bitmask", "fetch"), default=None, help="depth fetch of the fitted method's walk (see "
+            "`torch-ao ao --help`); when not given, the method's default"),
     Option("no_denoise", False, "fit and score the method alone, without the denoiser", bool),
     Option("radius", None, "the method's radius R; when not given, the references' max_distance", float,
            unit="world units", minimum=0.0, open_minimum=True),
@@ -145,11 +151,21 @@ def reference_radius(paths, override: float | None) -> float:
     return values[0]
 
 
+def _require_backface(views) -> None:
+    """``CommandError`` naming the reference files without a ``backface_depth`` layer."""
+    missing = [v.name for v in views if v.gbuffer.backface_depth is None]
+    if missing:
+        raise CommandError(f"--thickness backface: {', '.join(missing)} has no backface_depth layer; render it with "
+                           "`torch-ao render --backface` (or choose another --thickness)")
+
+
 def _views(args) -> tuple[list, list, float]:
     device = torch.device(args.device)
     if args.reference:
         train = load_views(args.reference, device=device)
         held = load_views(args.holdout, device=device) if args.holdout else None
+        if args.thickness == "backface":
+            _require_backface(train + (held or []))
         radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
         if held is not None:
             return train, held, radius
@@ -166,7 +182,7 @@ def _views(args) -> tuple[list, list, float]:
         raise CommandError(f"--scenes: unknown scene(s) {', '.join(unknown)}; see `torch-ao render --list`")
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
-                  progress=not args.no_progress, device=device)
+                  progress=not args.no_progress, device=device, backface=args.thickness == "backface")
     print(f"references: {len(scenes)} scenes x ({args.train_views} training + 1 held-out) views at {w}x{h}, {args.spp} spp")
     train, held = train_and_holdout_views(scenes, args.train_views, 1, **common)
     radius = args.max_distance
@@ -197,7 +213,7 @@ def _init_values(text: str | None) -> dict[str, float]:
 
 
 def pipeline_options(args, radius: float, **values) -> dict:
-    """Constructor options of the fitted method: preset, radius, variant, weighting (bitmask), ``values``."""
+    """Constructor options of the fitted method: preset, radius, variant, weighting (bitmask), fetch, ``values``."""
     options = {"preset": args.preset}
     if "radius" in get_method(args.method).options():  # (PSSAO walks in pixels)
         options["radius"] = radius
@@ -205,7 +221,29 @@ def pipeline_options(args, radius: float, **values) -> dict:
         options["variant"] = args.variant
     if args.method in BITMASK:
         options["weighting"] = args.weighting
+    if args.fetch is not None:
+        options["fetch"] = args.fetch
     options.update(values)
+    return options
+
+
+def thickness_options(args, views, init: dict[str, float]) -> dict:
+    """Options choosing ``--thickness``'s model (none for ``scalar``, the historical form); for ``object``
+    the ``(K,)`` table over the ids of ``views`` (``K`` = largest id + 1), every entry the initial
+    thickness (``--init``'s, else the method's default). Refuses a model on a method without one."""
+    if args.thickness == "scalar":
+        return {}
+    if args.method not in BITMASK:
+        raise CommandError(f"--thickness {args.thickness}: {args.method} has no thickness model (only "
+                           f"{', '.join(BITMASK)} do)")
+    options = {"thickness_model": args.thickness}
+    if args.thickness == "object":
+        if any(v.gbuffer.object_id is None for v in views):
+            raise CommandError("--thickness object: " + ", ".join(v.name for v in views if v.gbuffer.object_id is None)
+                               + " has no object_id layer")
+        K = max(int(v.gbuffer.object_id.max()) for v in views) + 1
+        t = init.pop("thickness", _method_option(args.method, "thickness").default)
+        options["thickness"] = torch.full((K,), float(t))
     return options
 
 
@@ -214,8 +252,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     denoise = not args.no_denoise
     train, held, radius = _views(args)
+    model = thickness_options(args, train + held, init)
 
-    default = FittedPipeline(args.method, pipeline_options(args, radius), denoiser=denoise).to(args.device)
+    default = FittedPipeline(args.method, pipeline_options(args, radius, **model), denoiser=denoise).to(args.device)
     params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params
               else fittable_parameters(default.method))
     if not params:
@@ -230,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(start) - set(params)
     if unknown:
         raise CommandError(f"--init: {', '.join(sorted(unknown))} not among the fitted parameters ({', '.join(params)})")
-    module = FittedPipeline(args.method, pipeline_options(args, radius, **start), denoiser=denoise).to(args.device)
+    module = FittedPipeline(args.method, pipeline_options(args, radius, **model, **start), denoiser=denoise).to(args.device)
     denoised = " + denoiser" if denoise else ""
     print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views, "
           f"evaluating on {len(held)} held-out views")
@@ -294,6 +333,8 @@ def _describe(pipeline: FittedPipeline, params) -> str:
         parts.append(f"{name}={v.item():.3g}" if v.numel() == 1 else f"{name}=<{v.numel()} values>")
     if "weighting" in pipeline.options:
         parts.append(f"{pipeline.options['weighting']} sectors")
+    if "thickness_model" in pipeline.options:
+        parts.append(f"{pipeline.options['thickness_model']} thickness")
     return ", ".join(parts)
 
 
