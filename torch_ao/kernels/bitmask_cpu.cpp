@@ -27,31 +27,24 @@
 #include <vector>
 
 #include "mkl_vml.h"  // torch.cos/sin/acos on a build with MKL call its vector math; so does this
+#include "walk_cpu.h"
 
 namespace {
 
-using Vec = at::vec::Vectorized<float>;
-using Int = at::vec::Vectorized<int32_t>;
-constexpr int L = Vec::size();
+using torch_ao_walk::Int;
+using torch_ao_walk::L;
+using torch_ao_walk::Vec;
+// the float helpers that repeat torch's CPU kernels (walk_cpu.h)
+using torch_ao_walk::cross;
+using torch_ao_walk::dot3;
+using torch_ao_walk::fma;
+using torch_ao_walk::lerp;
+using torch_ao_walk::norm2;
+using torch_ao_walk::norm3;
+using torch_ao_walk::select;
+using torch_ao_walk::to_int;
 constexpr int kSectors = 32;
 
-inline Vec fma(const Vec& a, const Vec& b, const Vec& c) { return at::vec::fmadd(a, b, c); }
-inline Vec dot3(const Vec* a, const Vec* b) { return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]; }
-// torch's norm over a last dimension shorter than a vector: an fma chain, then sqrt
-inline Vec norm3(const Vec* a) { return fma(a[2], a[2], fma(a[1], a[1], a[0] * a[0])).sqrt(); }
-inline Vec norm2(const Vec& a, const Vec& b) { return fma(b, b, a * a).sqrt(); }
-inline Vec select(const Vec& mask, const Vec& yes, const Vec& no) { return Vec::blendv(no, yes, mask); }
-// torch.cross(a, b): a1 b2 - a2 b1 ..., the first product fused
-inline void cross3(const Vec* a, const Vec* b, Vec* out) {
-  out[0] = fma(a[1], b[2], (a[2] * b[1]).neg());
-  out[1] = fma(a[2], b[0], (a[0] * b[2]).neg());
-  out[2] = fma(a[0], b[1], (a[1] * b[0]).neg());
-}
-// torch.lerp: start + w (end - start) for |w| < 0.5, else end - (1 - w) (end - start), both fused
-inline Vec lerp(const Vec& start, const Vec& end, const Vec& w) {
-  Vec small = w.abs() < Vec(0.5f);
-  return fma(select(small, w, w - Vec(1.0f)), end - start, select(small, start, end));
-}
 // torch.sign
 inline Vec sign(const Vec& x) {
   return select(x > Vec(0.0f), Vec(1.0f), Vec(0.0f)) - select(x < Vec(0.0f), Vec(1.0f), Vec(0.0f));
@@ -128,7 +121,6 @@ inline float ign(float u, float v, int64_t seed) {
 }
 
 inline Vec load_lanes(const float* lanes) { return Vec::loadu(lanes); }
-inline Int to_int(const Vec& x) { return at::vec::convert_to_int_of_same_size<float>(x); }
 inline Vec to_float(const Int& x) { return at::vec::convert_to_fp_of_same_size<float>(x); }
 inline Int operator~(const Int& x) { return x ^ Int(-1); }
 inline Vec bit(const Int& mask, int k) { return to_float((mask >> Int(k)) & Int(1)); }
@@ -383,7 +375,7 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
       Vec c1[3] = {V[2], Vec(0.0f), V[0].neg()};
       Vec len1 = at::vec::clamp_min(norm3(c1), Vec(1e-12f));
       for (int c = 0; c < 3; ++c) e1[c] = c1[c] / len1;
-      cross3(V, e1, e2);
+      cross(V, e1, e2);
     }
     const Vec depth_floor = Vec(1e-20f) * (d * d);
     Vec visible = Vec(0.0f);  // uniform: unoccluded sectors summed over slices (exact small integers)
@@ -393,7 +385,7 @@ void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& 
       const Vec cs = Vec::loadu(cosine.data() + s * row_stride + u0), sn = Vec::loadu(sine.data() + s * row_stride + u0);
       Vec T[3], axis[3], np[3];
       for (int c = 0; c < 3; ++c) T[c] = cs * e1[c] + sn * e2[c];
-      cross3(T, V, axis);
+      cross(T, V, axis);
       const Vec nd = dot3(N, axis);
       for (int c = 0; c < 3; ++c) np[c] = N[c] - axis[c] * nd;
       const Vec gamma = atan2_as_torch(dot3(np, T), dot3(np, V), blk.scalar_gamma != Vec(0.0f), blk.any_scalar);
@@ -643,7 +635,7 @@ void walk_row_glsl(const GlslSettings& cfg, const Image& im, int64_t row, float 
       const Vec dc = gl.dot(direction, camera);
       Vec ortho[3], axis[3], proj[3];
       for (int c = 0; c < 3; ++c) ortho[c] = direction[c] - dc * camera[c];
-      cross3(direction, camera, axis);  // not normalised (as written)
+      cross(direction, camera, axis);  // not normalised (as written)
       const Vec na = gl.dot(normal, axis);
       for (int c = 0; c < 3; ++c) proj[c] = normal[c] - axis[c] * na;
       const Vec sign_n = sign(gl.dot(ortho, proj));
