@@ -335,6 +335,9 @@ def main(argv=None) -> dict | None:
     checksum = weights_checksum(net)
     save_json(out / f"rank{rank}.json", {"rank": rank, "world_size": world, "steps": step, "views_seen": seen, "checksum": checksum,
                  "backend": dist.get_backend() if world > 1 else None})
+    if world > 1:  # the evaluation below needs no collectives: the other ranks need not wait in a barrier for it
+        dist.barrier()
+        dist.destroy_process_group()
     result = None
     if rank == 0 and step == total:
         NetThickness(R, cnn=net).save(out / "thickness_net.pt")
@@ -345,9 +348,6 @@ def main(argv=None) -> dict | None:
             result.update(evaluate_holdout(args, net, device, stage_a))
         save_json(out / "result.json", result)
         say(f"wrote {out / 'thickness_net.pt'}, {out / 'result.json'}")
-    if world > 1:
-        dist.barrier()
-        dist.destroy_process_group()
     return result
 
 
