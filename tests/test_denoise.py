@@ -181,3 +181,14 @@ def test_weights_cached_per_gbuffer_and_in_the_graph_for_a_differentiable_guide(
                            sigma_depth=0.1).visibility
     assert torch.autograd.gradcheck(fn, (depth,))
     assert depth.grad is None and fn(depth).sum().grad_fn is not None
+
+
+def test_weights_bad_shapes_raise():
+    from torch_ao.denoise import apply_weights, bilateral_weights
+
+    with pytest.raises(ValueError, match="kernel_size: expected an odd integer"):
+        bilateral_weights(torch.zeros(1, 1, 8, 8), 4, 1.0)
+    with pytest.raises(ValueError, match="kernel_size"):
+        bilateral_weights(torch.zeros(1, 1, 2, 8), 5, 1.0)  # a reflect padding of 2 needs a side > 2
+    with pytest.raises(ValueError, match="weights: expected shape"):
+        apply_weights(torch.zeros(1, 1, 8, 8), torch.zeros(1, 16, 8, 8))

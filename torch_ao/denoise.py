@@ -114,10 +114,13 @@ def bilateral_weights(guide: torch.Tensor, kernel_size: int, sigma_space: float,
     ``(B, G, H, W)`` is unitless (range sigma 1), and ``m`` is ``valid (B, 1, H, W)`` (all ones when
     ``None``), all reflect-padded at the border. Without ``valid``, :func:`apply_weights` with these
     weights is kornia's ``joint_bilateral_blur(x, guide, (k, k), 1, (s, s), "reflect", "l2")``. Where
-    no neighbour is valid the weights are 0. ``kernel_size`` must be odd and at most the image side
-    (see :func:`spatial_filter`, which shrinks it)."""
+    no neighbour is valid the weights are 0. ``kernel_size`` must be odd, its half less than the image
+    side (:func:`spatial_filter` shrinks it)."""
     k, p = kernel_size, kernel_size // 2
     H, W = guide.shape[-2:]
+    if k % 2 == 0 or k < 1 or p >= min(H, W):
+        raise ValueError(f"kernel_size: expected an odd integer with (kernel_size - 1) / 2 < {min(H, W)} "
+                         f"(reflect padding of the {H}x{W} image), got {k!r}")
     space = get_gaussian_kernel2d((k, k), (sigma_space, sigma_space), device=guide.device,
                                   dtype=guide.dtype).reshape(1, k * k, 1, 1)
     padded = F.pad(guide, (p, p, p, p), mode="reflect")
@@ -165,7 +168,7 @@ def apply_weights(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """``sum_t weights[:, t] * values(p + t)``: ``values (B,C,H,W)`` reflect-padded, ``weights (B,k*k,H,W)``
     from :func:`bilateral_weights` (same dtype); returns ``(B,C,H,W)``, differentiable in both."""
     k = round(weights.shape[1] ** 0.5)
-    if k * k != weights.shape[1] or weights.shape[0] != values.shape[0] or weights.shape[-2:] != values.shape[-2:]:
+    if k * k != weights.shape[1] or k % 2 == 0 or weights.shape[0] != values.shape[0] or weights.shape[-2:] != values.shape[-2:]:
         raise ValueError(f"weights: expected shape ({values.shape[0]}, k*k, {values.shape[-2]}, {values.shape[-1]}), "
                          f"got {tuple(weights.shape)}")
     p = k // 2
