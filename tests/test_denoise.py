@@ -121,3 +121,74 @@ def test_gradients_and_errors():
 def test_bad_options_name_the_argument(kwargs, message):
     with pytest.raises(ValueError, match=message):
         Denoiser(**kwargs)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("k, sigma, channels, guide_channels", [(5, 1.5, 5, 4), (3, 0.8, 1, 1), (7, 2.0, 2, 3)])
+def test_weights_equal_kornia_joint_bilateral_blur(dtype, k, sigma, channels, guide_channels):
+    from kornia.filters import joint_bilateral_blur
+    from torch_ao.denoise import apply_weights, bilateral_weights
+
+    g = torch.Generator().manual_seed(k)
+    x = torch.rand(2, channels, 13, 17, generator=g, dtype=dtype)
+    guide = 2 * torch.randn(2, guide_channels, 13, 17, generator=g, dtype=dtype)
+    ours = apply_weights(x, bilateral_weights(guide, k, sigma))
+    theirs = joint_bilateral_blur(x, guide, (k, k), 1.0, (sigma, sigma), border_type="reflect",
+                                  color_distance_type="l2")
+    assert ours.dtype == dtype
+    assert (ours - theirs).abs().max() < 1e-6
+
+
+def test_masked_filter_equals_kornia_on_value_and_mask():
+    """The valid-only filter is kornia's filter of ``[value * valid, valid]``, divided."""
+    from kornia.filters import joint_bilateral_blur
+    from torch_ao.denoise import spatial_filter
+
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(2, 4, 12, 16, generator=g)
+    valid = torch.rand(2, 1, 12, 16, generator=g) > 0.3
+    guide = torch.randn(2, 4, 12, 16, generator=g)
+    out = joint_bilateral_blur(torch.cat((x * valid, valid.float()), 1), guide, (5, 5), 1.0, (1.5, 1.5),
+                               border_type="reflect", color_distance_type="l2")
+    expected = torch.where(valid, out[:, :-1] / out[:, -1:], -1.0)
+    assert (spatial_filter(x, valid, guide, fill=-1.0) - expected).abs().max() < 1e-6
+
+
+def test_weights_and_filter_gradients_against_finite_differences():
+    from torch_ao.denoise import apply_weights, bilateral_weights
+
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(2, 2, 5, 6, generator=g, dtype=torch.float64, requires_grad=True)
+    guide = torch.randn(2, 3, 5, 6, generator=g, dtype=torch.float64, requires_grad=True)
+    valid = torch.rand(2, 1, 5, 6, generator=g) > 0.3
+    assert torch.autograd.gradcheck(lambda a, b: apply_weights(a, bilateral_weights(b, 3, 1.0, valid)), (x, guide))
+    assert torch.autograd.gradgradcheck(lambda a, b: apply_weights(a, bilateral_weights(b, 3, 1.0)), (x, guide))
+
+
+def test_weights_cached_per_gbuffer_and_in_the_graph_for_a_differentiable_guide():
+    gb = plane_gbuffer(8, 10, dtype=torch.float64)
+    x = torch.rand(1, 1, 8, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(8))
+    first = denoise(x, gb, kernel_size=3).visibility
+    keys = [key for key in gb._derived if key[0] == "denoise_weights"]
+    assert len(keys) == 1
+    cached = gb._derived[keys[0]]
+    assert torch.equal(denoise(x, gb, kernel_size=3).visibility, first)
+    assert gb._derived[keys[0]] is cached  # reused, not recomputed
+    # A G-buffer whose depth needs gradients: the weights are recomputed in the graph.
+    depth = (gb.depth * (1 + 0.3 * torch.rand(gb.depth.shape, dtype=torch.float64,
+                                              generator=torch.Generator().manual_seed(9)))).requires_grad_()
+    fn = lambda d: denoise(x, GBuffer(depth=d, camera=gb.camera, normals=gb.normals), kernel_size=3,
+                           sigma_depth=0.1).visibility
+    assert torch.autograd.gradcheck(fn, (depth,))
+    assert depth.grad is None and fn(depth).sum().grad_fn is not None
+
+
+def test_weights_bad_shapes_raise():
+    from torch_ao.denoise import apply_weights, bilateral_weights
+
+    with pytest.raises(ValueError, match="kernel_size: expected an odd integer"):
+        bilateral_weights(torch.zeros(1, 1, 8, 8), 4, 1.0)
+    with pytest.raises(ValueError, match="kernel_size"):
+        bilateral_weights(torch.zeros(1, 1, 2, 8), 5, 1.0)  # a reflect padding of 2 needs a side > 2
+    with pytest.raises(ValueError, match="weights: expected shape"):
+        apply_weights(torch.zeros(1, 1, 8, 8), torch.zeros(1, 16, 8, 8))

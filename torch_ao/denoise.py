@@ -1,8 +1,9 @@
 """Edge-aware denoising of AO outputs: a joint bilateral filter guided by depth and normals, and an
 optional temporal blend.
 
-The spatial filter is kornia's :func:`~kornia.filters.joint_bilateral_blur` with a *normalised*
-guide, so its range sigmas do not depend on the scene's units:
+The spatial filter is a joint bilateral filter with a *normalised* guide (the same numbers as
+kornia's :func:`~kornia.filters.joint_bilateral_blur` with ``sigma_color = 1``, reflect borders, the
+l2 distance, and kornia's Gaussian window), so its range sigmas do not depend on the scene's units:
 
 * depth enters as ``log(depth) / sigma_depth``: a difference of ``sigma_depth`` in log depth is a
   relative depth change of about ``sigma_depth`` (``0.05`` = 5 %), at any distance and any scale;
@@ -13,7 +14,11 @@ range weight is ``exp(-(dlogz^2 / sigma_depth^2 + |dn|^2 / sigma_normal^2) / 2)`
 
 Background pixels are excluded, not mixed in: the filter runs on ``[value * valid, valid]`` with one
 kernel and divides, so a valid pixel averages only valid neighbours; background keeps its input value
-(visibility 1, indirect 0). The temporal blend is an exponential moving average
+(visibility 1, indirect 0). The per-pixel weights of the ``k * k`` neighbours (window x range x mask,
+divided by their sum) depend on the G-buffer only, so :func:`denoise` computes them once per G-buffer
+(:meth:`~torch_ao.gbuffer.GBuffer.derived`; in the graph when the G-buffer needs gradients) and each
+call is a weighted sum of ``k * k`` shifted views of the padded input: a fit filters the same views
+hundreds of times. The temporal blend is an exponential moving average
 ``alpha * current + (1 - alpha) * history`` on pixels valid in both frames (no reprojection: the
 caller supplies a history already aligned with the current view, or a static camera).
 
@@ -25,12 +30,14 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
-from kornia.filters import joint_bilateral_blur
+from kornia.filters import get_gaussian_kernel2d
+from torch.nn import functional as F
 
 from .gbuffer import GBuffer
 from .options import Option, options_by_name
 
-__all__ = ["Denoiser", "DenoiseOutput", "denoise", "spatial_filter", "temporal_blend", "denoise_guide"]
+__all__ = ["Denoiser", "DenoiseOutput", "denoise", "spatial_filter", "temporal_blend", "denoise_guide",
+           "bilateral_weights", "apply_weights"]
 
 GUIDES = ("depth", "normal", "depth+normal")
 
@@ -84,22 +91,104 @@ def _guide(gbuffer: GBuffer, guide: str, sigma_depth: float, sigma_normal: float
     return torch.cat(parts, 1)
 
 
+def _window(values: torch.Tensor, kernel_size: int) -> int:
+    """The window side actually used for ``values (..., H, W)``: ``kernel_size``, shrunk to the largest odd
+    size whose reflect padding fits in the image (1 for a 1-pixel-wide image)."""
+    side = min(values.shape[-2:])
+    return min(kernel_size, 2 * (side // 2) - 1) if side > 1 else 1
+
+
+def _shifts(padded: torch.Tensor, k: int, shape) -> list[torch.Tensor]:
+    """The ``k * k`` views ``padded[..., i:i+H, j:j+W]`` (row-major over ``i, j``) of a ``(k-1)/2``-padded image."""
+    H, W = shape
+    return [padded[..., i:i + H, j:j + W] for i in range(k) for j in range(k)]
+
+
+def bilateral_weights(guide: torch.Tensor, kernel_size: int, sigma_space: float,
+                      valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Normalised joint bilateral weights ``(B, k*k, H, W)`` of each pixel's ``k x k`` neighbours (tap
+    ``t = i*k + j`` is the neighbour at row offset ``i - (k-1)/2``, column offset ``j - (k-1)/2``).
+
+    Weight ``t`` of pixel ``p`` is ``s_t * exp(-|guide(p + t) - guide(p)|^2 / 2) * m(p + t)``, divided by
+    the sum over ``t``: ``s`` is kornia's Gaussian window of ``sigma_space`` pixels, the guide
+    ``(B, G, H, W)`` is unitless (range sigma 1), and ``m`` is ``valid (B, 1, H, W)`` (all ones when
+    ``None``), all reflect-padded at the border. Without ``valid``, :func:`apply_weights` with these
+    weights is kornia's ``joint_bilateral_blur(x, guide, (k, k), 1, (s, s), "reflect", "l2")``. Where
+    no neighbour is valid the weights are 0. ``kernel_size`` must be odd, its half less than the image
+    side (:func:`spatial_filter` shrinks it)."""
+    k, p = kernel_size, kernel_size // 2
+    H, W = guide.shape[-2:]
+    if k % 2 == 0 or k < 1 or p >= min(H, W):
+        raise ValueError(f"kernel_size: expected an odd integer with (kernel_size - 1) / 2 < {min(H, W)} "
+                         f"(reflect padding of the {H}x{W} image), got {k!r}")
+    space = get_gaussian_kernel2d((k, k), (sigma_space, sigma_space), device=guide.device,
+                                  dtype=guide.dtype).reshape(1, k * k, 1, 1)
+    padded = F.pad(guide, (p, p, p, p), mode="reflect")
+    dist_sq = torch.stack([(g - guide).square().sum(1) for g in _shifts(padded, k, (H, W))], 1)
+    weights = space * torch.exp(-0.5 * dist_sq)
+    if valid is not None:
+        m = F.pad(valid.to(guide.dtype), (p, p, p, p), mode="reflect")
+        weights = weights * torch.cat(_shifts(m, k, (H, W)), 1)
+    # A valid pixel always weighs itself (range weight 1), so the sum is > 0 there.
+    return weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+
+
+class _ShiftedSum(torch.autograd.Function):
+    """``out = sum_t weights[:, t] * shift_t(padded)``: ``padded (B,C,H+k-1,W+k-1)``, ``weights (B,k*k,H,W)``,
+    ``out (B,C,H,W)``. Its backward is the adjoint written out (each tap's gradient added into its
+    window of a zero image), instead of autograd's ``k * k`` slice backwards, each a full-size copy."""
+
+    @staticmethod
+    def forward(ctx, padded, weights):
+        k = round(weights.shape[1] ** 0.5)
+        views = _shifts(padded, k, weights.shape[-2:])
+        out = views[0] * weights[:, :1]
+        for t in range(1, k * k):
+            out.addcmul_(views[t], weights[:, t:t + 1])
+        ctx.save_for_backward(padded, weights)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        padded, weights = ctx.saved_tensors
+        k = round(weights.shape[1] ** 0.5)
+        grad_padded = grad_weights = None
+        if ctx.needs_input_grad[0]:
+            grad_padded = torch.zeros_like(padded)
+            H, W = grad.shape[-2:]
+            for t in range(k * k):  # each view sliced after the previous in-place add (double backward)
+                i, j = divmod(t, k)
+                grad_padded[..., i:i + H, j:j + W].addcmul_(grad, weights[:, t:t + 1])
+        if ctx.needs_input_grad[1]:
+            grad_weights = torch.stack([(grad * v).sum(1) for v in _shifts(padded, k, weights.shape[-2:])], 1)
+        return grad_padded, grad_weights
+
+
+def apply_weights(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """``sum_t weights[:, t] * values(p + t)``: ``values (B,C,H,W)`` reflect-padded, ``weights (B,k*k,H,W)``
+    from :func:`bilateral_weights` (same dtype); returns ``(B,C,H,W)``, differentiable in both."""
+    k = round(weights.shape[1] ** 0.5)
+    if k * k != weights.shape[1] or k % 2 == 0 or weights.shape[0] != values.shape[0] or weights.shape[-2:] != values.shape[-2:]:
+        raise ValueError(f"weights: expected shape ({values.shape[0]}, k*k, {values.shape[-2]}, {values.shape[-1]}), "
+                         f"got {tuple(weights.shape)}")
+    p = k // 2
+    return _ShiftedSum.apply(F.pad(values, (p, p, p, p), mode="reflect"), weights)
+
+
 def spatial_filter(values: torch.Tensor, valid: torch.Tensor, guide: torch.Tensor, *, kernel_size: int = 5,
-                   sigma_space: float = 1.5, fill: float = 0.0) -> torch.Tensor:
+                   sigma_space: float = 1.5, fill: float = 0.0, weights: torch.Tensor | None = None) -> torch.Tensor:
     """Joint bilateral filter of ``values (B,C,H,W)`` over ``valid (B,1,H,W)`` pixels only, guided by
-    ``guide (B,G,H,W)`` (range sigma 1: normalise the guide first). Invalid pixels get ``fill``."""
+    ``guide (B,G,H,W)`` (range sigma 1: normalise the guide first). Invalid pixels get ``fill``.
+    ``weights``: this call's :func:`bilateral_weights` (``valid`` included, the window of
+    :func:`_window`), when the caller keeps them; else they are computed here."""
     if values.dim() != 4 or valid.shape != (values.shape[0], 1, *values.shape[2:]):
         raise ValueError(f"values/valid: expected (B,C,H,W) and (B,1,H,W), got {tuple(values.shape)} and {tuple(valid.shape)}")
-    m = valid.to(values.dtype)
-    stacked = torch.cat((torch.where(valid, values, 0.0), m), 1)
-    k = min(kernel_size, 2 * (min(values.shape[-2:]) // 2) - 1) if min(values.shape[-2:]) > 1 else 1
+    k = _window(values, kernel_size)
     if k <= 1:
         return torch.where(valid, values, fill)
-    out = joint_bilateral_blur(stacked, guide.to(values.dtype), (k, k), 1.0, (sigma_space, sigma_space),
-                               border_type="reflect", color_distance_type="l2")
-    num, den = out[:, :-1], out[:, -1:]
-    # A valid pixel always weighs itself (weight 1 in the range kernel), so den > 0 there.
-    return torch.where(valid, num / den.clamp_min(1e-12), fill)
+    if weights is None:
+        weights = bilateral_weights(guide.to(values.dtype), k, sigma_space, valid)
+    return torch.where(valid, apply_weights(torch.where(valid, values, 0.0), weights.to(values.dtype)), fill)
 
 
 def temporal_blend(current: torch.Tensor, history: torch.Tensor | None, valid: torch.Tensor,
@@ -139,7 +228,12 @@ def denoise(visibility: torch.Tensor, gbuffer: GBuffer, *, indirect: torch.Tenso
     valid = gbuffer.valid
     g = denoise_guide(gbuffer, guide=guide, sigma_depth=sigma_depth, sigma_normal=sigma_normal)
     channels = [visibility] if indirect is None else [visibility, indirect.to(visibility.dtype)]
-    filtered = spatial_filter(torch.cat(channels, 1), valid, g, kernel_size=kernel_size, sigma_space=sigma_space)
+    k = _window(visibility, kernel_size)
+    weights = None if k <= 1 else gbuffer.derived(
+        ("denoise_weights", guide, sigma_depth, sigma_normal, k, sigma_space, visibility.dtype),
+        lambda: bilateral_weights(g.to(visibility.dtype), k, sigma_space, valid))
+    filtered = spatial_filter(torch.cat(channels, 1), valid, g, kernel_size=kernel_size, sigma_space=sigma_space,
+                              weights=weights)
     vis = torch.where(valid, filtered[:, :1], visibility)
     ind = None if indirect is None else torch.where(valid, filtered[:, 1:], indirect.to(vis.dtype))
     if history is not None:
