@@ -28,7 +28,8 @@ EDGE_MIN_RATIO = 1.02
 #: ... and a larger jump in inverse depth between them is one surface when it lies within the range of the
 #: jumps of the pairs beside it (one or two) widened by this fraction of itself: inverse depth is affine in
 #: screen space across a plane, so a plane at any angle has equal jumps, a crease one between its two
-#: sides', and a depth step (a slat before a wall, a pole before the floor) one larger than both.
+#: sides', and a depth step (a slat before a wall, a pole before the floor) one larger than both. A pair with
+#: no valid pair beside it along its row is matched, within the same fraction, to the parallel pair next to it.
 EDGE_SLOPE_TOLERANCE = 0.5
 
 
