@@ -1,10 +1,12 @@
 """The walk's ``"edge_aware"`` fetch: bilinear inside a surface, the nearest texel across a depth edge."""
+import math
+
 import pytest
 import torch
 
 from torch_ao import BitmaskAO
 from torch_ao.camera import PinholeCamera
-from torch_ao.examples import floor_wall_gbuffer, plane_gbuffer
+from torch_ao.examples import floor_wall_gbuffer, plane_gbuffer, planes_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels.bitmask import kernel_covers
 from torch_ao.screen_truth import _continuous_cells, _fetch
@@ -64,6 +66,38 @@ def test_on_a_plane_edge_aware_is_bilinear_exactly(position):
     assert (foot.index[~on] == foot.index[~on][:, :1]).all()  # across the horizon: the nearest texel
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("tilt", [85.0, 89.0])
+@pytest.mark.parametrize("roll", [0.0, 30.0])
+def test_grazing_planes_are_continuous_everywhere(tilt, roll, dtype):
+    # a plane tilted `tilt` degrees from facing the camera at the image centre (nearer 90 towards its
+    # horizon), its tilt axis rolled `roll` degrees so that both rows and columns step in depth
+    t, r = math.radians(tilt), math.radians(roll)
+    normal = (-math.sin(t) * math.sin(r), math.sin(t) * math.cos(r), math.cos(t))
+    H, W = 36, 48
+    gb = planes_gbuffer([(normal, -4.0 * math.cos(t), None)], PinholeCamera.from_fov(60.0, H, W), dtype=dtype)
+    valid = gb.valid[0, 0]
+    facing = torch.rad2deg(torch.acos((gb.view_normals() * -gb.positions()).sum(1)[0]
+                                      / gb.positions().norm(dim=1)[0]))[valid]
+    assert float(facing.min()) < tilt < float(facing.max()) and float(facing.max()) > 89.5
+    inverse = torch.where(gb.valid, gb.safe_depth.reciprocal(), 0.0)[0, 0]
+    # every cell of four valid texels is one surface; those touching the horizon are edges
+    cells = continuous_cell_image(inverse)
+    on = valid[:-1, :-1] & valid[1:, :-1] & valid[:-1, 1:] & valid[1:, 1:]
+    assert int(on.sum()) > 100 and int((~on).sum()) > 0
+    assert torch.equal(cells, on)
+    # and the fetch reads it bilinearly there, exactly
+    frame = Frame(gb)
+    g = torch.Generator().manual_seed(4)
+    su = torch.rand(2000, generator=g, dtype=dtype) * (W - 1)
+    sv = torch.rand(2000, generator=g, dtype=dtype) * (H - 1)
+    foot, p = _read(frame, su, sv, "edge_aware")
+    ref_foot, ref = _read(frame, su, sv, "bilinear")
+    inside = frame.valid[ref_foot.index.long()].all(-1)
+    assert float(inside.double().mean()) > 0.3
+    assert torch.equal(foot.index[inside], ref_foot.index[inside]) and torch.equal(p[inside], ref[inside])
+
+
 def test_cell_rule_closed_form():
     inv = 1 / torch.tensor([[2.0, 2.0, 2.02, 2.04], [2.0, 2.0, 2.0, 2.1], [2.0, 2.0, 2.0, 4.0]], dtype=torch.float64)
     assert continuous_cells(inv, EDGE_MIN_RATIO).tolist() == [True, False, False]
@@ -86,6 +120,9 @@ def test_cell_rule_closed_form():
     assert cells([[0.25, 0.25, 0.5, 0.25, 0.25]] * 2) == [[True, False, False, True]]
     assert cells([[0.5, 0.5, 0.5 / 1.019, 0.5 / 1.019]] * 2) == [[True, True, True]]
     assert cells([[0.5, 0.5, 0.0, 0.5]] * 2) == [[True, False, False]]  # background
+    # a pair alone in its row (a plane's corner at its horizon): one surface when the pair below it has its jump
+    assert cells([[0.0, 0.05, 0.28, 0.0], [0.2, 0.3, 0.53, 0.76]]) == [[False, True, False]]
+    assert cells([[0.0, 0.05, 0.28, 0.0], [0.2, 0.3, 0.35, 0.4]]) == [[False, False, False]]
 
 
 def test_walk_and_screen_truth_read_the_same_surface():

@@ -28,7 +28,8 @@ EDGE_MIN_RATIO = 1.02
 #: ... and a larger jump in inverse depth between them is one surface when it lies within the range of the
 #: jumps of the pairs beside it (one or two) widened by this fraction of itself: inverse depth is affine in
 #: screen space across a plane, so a plane at any angle has equal jumps, a crease one between its two
-#: sides', and a depth step (a slat before a wall, a pole before the floor) one larger than both.
+#: sides', and a depth step (a slat before a wall, a pole before the floor) one larger than both. A pair with
+#: no valid pair beside it along its row is matched, within the same fraction, to the parallel pair next to it.
 EDGE_SLOPE_TOLERANCE = 0.5
 
 
@@ -41,24 +42,39 @@ def continuous_cells(inverse: torch.Tensor, edge_ratio) -> torch.Tensor:
     return (lo > 0) & (hi <= edge_ratio * lo)
 
 
+def _shifted(x: torch.Tensor, by: int, dim: int, fill) -> torch.Tensor:
+    """``x`` moved ``by`` (+1 or -1) along ``dim``: ``out[k] = x[k - by]``, ``fill`` where that is outside."""
+    pad = torch.full_like(x.narrow(dim, 0, 1), fill)
+    n = x.shape[dim]
+    if by > 0:
+        return torch.cat((pad, x.narrow(dim, 0, n - 1)), dim)
+    return torch.cat((x.narrow(dim, 1, n - 1), pad), dim)
+
+
 def _continuous_pairs(inv: torch.Tensor) -> torch.Tensor:
-    """``(..., W-1)`` bool: whether each pair of neighbours ``(k, k+1)`` along the last axis of ``inv``
-    ``(..., W)`` (inverse depths, ``<= 0`` where invalid) is one surface: both valid, and within
-    :data:`EDGE_MIN_RATIO`, or its jump within the range of the valid neighbouring pairs' jumps widened by
-    :data:`EDGE_SLOPE_TOLERANCE` of itself."""
+    """``(..., H, W-1)`` bool: whether each pair of neighbours ``(k, k+1)`` along the last axis of ``inv``
+    ``(..., H, W)`` (inverse depths, ``<= 0`` where invalid) is one surface: both valid, and within
+    :data:`EDGE_MIN_RATIO`, or its jump within the range of the valid neighbouring pairs' jumps along the
+    row widened by :data:`EDGE_SLOPE_TOLERANCE` of itself; a pair with no valid neighbour along its row (a
+    plane's corner at its horizon) when its jump is within that tolerance of the same columns' pair in the
+    row above or below (inverse depth is affine on a plane, so its jump along a row is the same in every
+    row)."""
     a, b = inv[..., :-1], inv[..., 1:]
     both = (a > 0) & (b > 0)
     near = torch.maximum(a, b) <= EDGE_MIN_RATIO * torch.minimum(a, b)
     jump = b - a
-    no = torch.zeros_like(both[..., :1])
-    zero = torch.zeros_like(jump[..., :1])
-    has_before, before = torch.cat((no, both[..., :-1]), -1), torch.cat((zero, jump[..., :-1]), -1)
-    has_after, after = torch.cat((both[..., 1:], no), -1), torch.cat((jump[..., 1:], zero), -1)
+    has_before, before = _shifted(both, 1, -1, False), _shifted(jump, 1, -1, 0.0)
+    has_after, after = _shifted(both, -1, -1, False), _shifted(jump, -1, -1, 0.0)
     # the range of the neighbours' jumps (one of them where the other is missing)
     lo = torch.where(has_before & has_after, torch.minimum(before, after), torch.where(has_before, before, after))
     hi = torch.where(has_before & has_after, torch.maximum(before, after), torch.where(has_before, before, after))
     tol = EDGE_SLOPE_TOLERANCE * jump.abs()
     follows = (has_before | has_after) & (jump >= lo - tol) & (jump <= hi + tol)
+    if inv.dim() >= 2 and inv.shape[-2] > 1:
+        alone = both & ~(has_before | has_after)
+        for by in (1, -1):
+            parallel = _shifted(both, by, -2, False) & ((_shifted(jump, by, -2, 0.0) - jump).abs() <= tol)
+            follows = follows | (alone & parallel)
     return both & (near | follows)
 
 
@@ -66,7 +82,7 @@ def continuous_cell_image(inverse: torch.Tensor) -> torch.Tensor:
     """``(..., H-1, W-1)`` bool: whether the 2x2 cell of texels ``(i..i+1, j..j+1)`` of the inverse depths
     ``inverse`` ``(..., H, W)`` (``<= 0`` where invalid) is one surface: its two horizontal and two vertical
     pairs each are (``_continuous_pairs``: within :data:`EDGE_MIN_RATIO`, or continuing a neighbouring pair's
-    jump). The rule of the ``"edge_aware"`` fetch, in the walk and in the screen-space truth."""
+    jump; a pair alone in its row or column, matching the parallel pair beside it). The rule of the ``"edge_aware"`` fetch, in the walk and in the screen-space truth."""
     across = _continuous_pairs(inverse)  # (..., H, W-1)
     down = _continuous_pairs(inverse.transpose(-1, -2)).transpose(-1, -2)  # (..., H-1, W)
     return across[..., :-1, :] & across[..., 1:, :] & down[..., :, :-1] & down[..., :, 1:]
