@@ -38,17 +38,14 @@ using torch_ao_walk::Vec;
 using torch_ao_walk::cross;
 using torch_ao_walk::dot3;
 using torch_ao_walk::fma;
+using torch_ao_walk::ign;
 using torch_ao_walk::lerp;
 using torch_ao_walk::norm2;
 using torch_ao_walk::norm3;
 using torch_ao_walk::select;
+using torch_ao_walk::sign;
 using torch_ao_walk::to_int;
 constexpr int kSectors = 32;
-
-// torch.sign
-inline Vec sign(const Vec& x) {
-  return select(x > Vec(0.0f), Vec(1.0f), Vec(0.0f)) - select(x < Vec(0.0f), Vec(1.0f), Vec(0.0f));
-}
 
 // torch's sum over a contiguous last dimension of 32 floats, lane by lane (each x[k] holds sector k of
 // L pixels): SumKernel (dispatched at 8-float vectors, also on AVX-512 CPUs, as measured) adds sectors
@@ -107,17 +104,6 @@ inline Vec atan2_as_torch(const Vec& y, const Vec& x, const Vec& scalar, bool an
   for (int l = 0; l < L; ++l)
     if (flags[l] != 0.0f) out[l] = std::atan2(ys[l], xs[l]);
   return Vec::loadu(out);
-}
-
-// Jimenez's interleaved gradient noise, in double as torch_ao.marching.interleaved_gradient_noise
-inline float ign(float u, float v, int64_t seed) {
-  double x = double(u) + 5.588238 * double(seed), y = double(v) + 5.588238 * double(seed);
-  double a = 0.06711056 * x;
-  double b = 0.00583715 * y;
-  double s = a + b;
-  double f = s - std::trunc(s);
-  double g = 52.9829189 * f;
-  return float(g - std::trunc(g));
 }
 
 inline Vec load_lanes(const float* lanes) { return Vec::loadu(lanes); }

@@ -35,10 +35,6 @@ inline Vec fast_acos(const Vec& x) {
   return select(x >= Vec(0.0f), res, Vec(float(M_PI)) - res);
 }
 
-inline Vec sign(const Vec& x) {
-  return select(x > Vec(0.0f), Vec(1.0f), select(x < Vec(0.0f), Vec(-1.0f), Vec(0.0f)));
-}
-
 // torch_ao.ops.arc_integral's two halves, given cos(2 h - n) of each end
 inline Vec arc_integral(const Vec& h1, const Vec& h2, const Vec& cos1, const Vec& cos2, const Vec& cos_n, const Vec& sin_n) {
   const Vec two = Vec(2.0f);

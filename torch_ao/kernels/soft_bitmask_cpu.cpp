@@ -40,9 +40,9 @@
 namespace soft_bitmask {
 namespace {
 
-using Vec = at::vec::Vectorized<float>;
-using Int = at::vec::Vectorized<int32_t>;
-constexpr int L = Vec::size();
+using torch_ao_walk::Int;
+using torch_ao_walk::L;
+using torch_ao_walk::Vec;
 constexpr int K = 32;             // sectors
 constexpr float kClamp = 30.0f;   // logistic arguments are clamped to +-30 (torch_ao.sectors.sweeps.CLAMP)
 constexpr float kTiny = 1e-30f;   // visibilities at or below are flushed to 0 (sweeps.TINY)
@@ -83,18 +83,17 @@ struct Inputs {
   int64_t H, W;
 };
 
-inline Vec fma(const Vec& a, const Vec& b, const Vec& c) { return at::vec::fmadd(a, b, c); }
-inline Vec dot3(const Vec* a, const Vec* b) { return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]; }
-inline Vec norm3(const Vec* a) { return fma(a[2], a[2], fma(a[1], a[1], a[0] * a[0])).sqrt(); }
-inline Vec select(const Vec& mask, const Vec& yes, const Vec& no) { return Vec::blendv(no, yes, mask); }
-inline Vec lerp(const Vec& start, const Vec& end, const Vec& w) {  // torch.lerp
-  Vec small = w.abs() < Vec(0.5f);
-  return fma(select(small, w, w - Vec(1.0f)), end - start, select(small, start, end));
-}
+// the float helpers that repeat torch's CPU kernels, and the jitter noise (walk_cpu.h)
+using torch_ao_walk::dot3;
+using torch_ao_walk::fma;
+using torch_ao_walk::ign;
+using torch_ao_walk::lerp;
+using torch_ao_walk::norm3;
+using torch_ao_walk::select;
+using torch_ao_walk::to_int;
 inline Vec sigmoid(const Vec& x) {  // torch.sigmoid's vectorised form, argument clamped as the sweeps do
   return (Vec(1.0f) + at::vec::clamp(x, Vec(-kClamp), Vec(kClamp)).neg().exp()).reciprocal();
 }
-inline Int to_int(const Vec& x) { return at::vec::convert_to_int_of_same_size<float>(x); }
 inline bool any_lane(const Vec& mask) { return mask.zero_mask() != (1 << L) - 1; }
 inline double lane_sum(const Vec& x) {
   alignas(64) float v[L];
@@ -102,13 +101,6 @@ inline double lane_sum(const Vec& x) {
   double total = 0;
   for (int l = 0; l < L; ++l) total += v[l];
   return total;
-}
-
-inline float ign(float u, float v, int64_t seed) {  // torch_ao.walk.patterns.interleaved_gradient_noise
-  double x = double(u) + 5.588238 * double(seed), y = double(v) + 5.588238 * double(seed);
-  double s = 0.06711056 * x + 0.00583715 * y;
-  double g = 52.9829189 * (s - std::trunc(s));
-  return float(g - std::trunc(g));
 }
 
 // ---------------------------------------------------------------- the pixel and its slice

@@ -37,6 +37,10 @@ inline Vec dot3(const Vec* a, const Vec* b) { return (a[0] * b[0] + a[1] * b[1])
 inline Vec norm3(const Vec* a) { return fma(a[2], a[2], fma(a[1], a[1], a[0] * a[0])).sqrt(); }
 inline Vec norm2(const Vec& a, const Vec& b) { return fma(b, b, a * a).sqrt(); }
 inline Vec select(const Vec& mask, const Vec& yes, const Vec& no) { return Vec::blendv(no, yes, mask); }
+// torch.sign (0 for 0 and NaN)
+inline Vec sign(const Vec& x) {
+  return select(x > Vec(0.0f), Vec(1.0f), select(x < Vec(0.0f), Vec(-1.0f), Vec(0.0f)));
+}
 // torch's cross(a, b) as its CPU kernel evaluates it
 inline void cross(const Vec* a, const Vec* b, Vec* out) {
   out[0] = fma(a[1], b[2], (a[2] * b[1]).neg());
