@@ -19,6 +19,7 @@ from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from ..thickness import ScalarThickness
 from .build import cpu_kernels
+from .coverage import gbuffer_uncovered, option_uncovered
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "ssilvb_glsl_hard", "kernel_covers", "options_uncovered", "walk_inputs",
            "KernelOutputs"]
@@ -226,18 +227,16 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
         values["ambient"] = "a colour"
     covered = dict(_COVERED, mode=modes, weighting=weightings, variant=variants,
                    **({} if outputs else _VISIBILITY_ONLY), **(_GLSL if values["variant"] == "ssilvb_glsl" else {}))
-    for name, value in values.items():
-        if name not in covered:
-            return f"option {name!r} (unknown to the kernel)"
-        allowed = covered[name]
-        if allowed is not None and not any(value is a or (isinstance(value, str) and value == a) for a in allowed):
-            return f"{name}={value!r}"
+    reason = option_uncovered(values, covered)
+    if reason is not None:
+        return reason
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
     if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
             model is not None and (type(model) is not ScalarThickness or model.growth is not None)):
         return "a thickness other than one scalar (a table, a map, a model, a growth)"
-    if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
-        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+    reason = gbuffer_uncovered(gbuffer)
+    if reason is not None:
+        return reason
     if gbuffer.position is not None and module.variant == "default" and module.fetch == "bilinear":
         return "bilinear reads of a position buffer"  # (the kernel interpolates depth)
     return None

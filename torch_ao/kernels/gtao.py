@@ -16,6 +16,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import cpu_kernels
+from .coverage import gbuffer_uncovered, option_uncovered
 
 __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
 
@@ -152,18 +153,17 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
     G-buffer float32 on CPU, and no gradient asked for (the kernels have no backward).
     """
-    for name, value in getattr(module, "values", {}).items():
-        if name not in options:
-            return f"option {name!r} (unknown to the kernel)"
-        if options[name] is not None and value not in options[name]:
-            return f"{name}={value!r}"
+    reason = option_uncovered(getattr(module, "values", {}), options)
+    if reason is not None:
+        return reason
     tensors = [getattr(module, name) for name in parameters]
     if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in tensors):
         return "a parameter other than a scalar"
     if gbuffer.position is not None and module.fetch == "bilinear":
         return "bilinear reads of a position buffer (the kernel unprojects the interpolated depth)"
-    if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
-        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+    reason = gbuffer_uncovered(gbuffer)
+    if reason is not None:
+        return reason
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad
                                        for t in [gbuffer.depth, gbuffer.normals, *tensors]):
         return "a gradient is asked for (the kernel has no backward)"

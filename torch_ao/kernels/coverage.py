@@ -1,0 +1,29 @@
+"""What every kernel's ``covers`` checks the same way: a module's option values and the G-buffer's type."""
+from __future__ import annotations
+
+import torch
+
+from ..gbuffer import GBuffer
+
+__all__ = ["option_uncovered", "gbuffer_uncovered"]
+
+
+def option_uncovered(values: dict, covered: dict) -> str | None:
+    """The first of a module's option ``values`` (name -> value) a kernel does not reproduce, said as the
+    reason, or ``None``. ``covered`` maps each option the kernel knows to ``None`` (any value) or the values
+    it covers; an option it does not know (e.g. one added to the module later) is not covered."""
+    for name, value in values.items():
+        if name not in covered:
+            return f"option {name!r} (unknown to the kernel)"
+        allowed = covered[name]
+        # identity, or equality of strings: True must not pass for 1, nor a tensor compare elementwise
+        if allowed is not None and not any(value is a or (isinstance(value, str) and value == a) for a in allowed):
+            return f"{name}={value!r}"
+    return None
+
+
+def gbuffer_uncovered(gbuffer: GBuffer) -> str | None:
+    """Why a CPU kernel cannot read ``gbuffer`` (not float32 on CPU), or ``None``."""
+    if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
+        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+    return None
