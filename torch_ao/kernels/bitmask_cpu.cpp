@@ -185,22 +185,16 @@ struct Image {
 // it is valid (its texels are, and with drop it lies inside), and the taps for other buffers
 inline void fetch(const Image& im, const Vec& su, const Vec& sv, bool bilinear, bool drop, Vec* pos, Vec& ok, Taps& taps) {
   const Vec Wf(float(im.W)), Hf(float(im.H)), Wmax(float(im.W - 1)), Hmax(float(im.H - 1));
-  const Int Wi(int32_t(im.W)), Wlast(int32_t(im.W - 1)), Hlast(int32_t(im.H - 1)), zero(0), one(1);
+  const Int Wi(int32_t(im.W)), Wlast(int32_t(im.W - 1)), Hlast(int32_t(im.H - 1)), zero(0);
   taps.bilinear = bilinear;
   if (bilinear) {
-    const Vec fu0 = su.floor(), fv0 = sv.floor();
-    taps.fu = su - fu0;
-    taps.fv = sv - fv0;
-    const Int iu = to_int(at::vec::clamp(fu0, Vec(-1.0f), Wf)), iv = to_int(at::vec::clamp(fv0, Vec(-1.0f), Hf));
-    const Int c0 = at::vec::clamp(iu, zero, Wlast), c1 = at::vec::clamp(iu + one, zero, Wlast);
-    const Int r0 = at::vec::clamp(iv, zero, Hlast) * Wi, r1 = at::vec::clamp(iv + one, zero, Hlast) * Wi;
-    taps.index[0] = r0 + c0, taps.index[1] = r0 + c1, taps.index[2] = r1 + c0, taps.index[3] = r1 + c1;
-    // invalid texels hold NaN: a sample is valid when its four taps are
-    Vec t[4];
-    for (int k = 0; k < 4; ++k) t[k] = at::vec::gather<4>(im.inverse_depth, taps.index[k]);
-    ok = (t[0] == t[0]) & (t[1] == t[1]) & (t[2] == t[2]) & (t[3] == t[3]);
+    const torch_ao_walk::BilinearTaps tap = torch_ao_walk::bilinear_taps(im.inverse_depth, su, sv, im.W, im.H);
+    const Vec &fu0 = tap.fu0, &fv0 = tap.fv0;
+    taps.fu = tap.fu, taps.fv = tap.fv;
+    for (int k = 0; k < 4; ++k) taps.index[k] = tap.index[k];
+    ok = tap.ok;  // invalid texels hold NaN: a sample is valid when its four taps are
     if (drop) ok = ok & (fu0 >= Vec(0.0f)) & (fu0 + Vec(1.0f) < Wf) & (fv0 >= Vec(0.0f)) & (fv0 + Vec(1.0f) < Hf);
-    const Vec depth_s = lerp(lerp(t[0], t[1], taps.fu), lerp(t[2], t[3], taps.fu), taps.fv).reciprocal();
+    const Vec depth_s = lerp(lerp(tap.t0, tap.t1, taps.fu), lerp(tap.t2, tap.t3, taps.fu), taps.fv).reciprocal();
     const Vec su_c = at::vec::clamp(su, Vec(0.0f), Wmax), sv_c = at::vec::clamp(sv, Vec(0.0f), Hmax);
     pos[0] = ((su_c - Vec(im.cx)) / Vec(im.fx)) * depth_s;
     pos[1] = ((sv_c - Vec(im.cy)).neg() / Vec(im.fy)) * depth_s;

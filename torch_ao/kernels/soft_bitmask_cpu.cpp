@@ -242,8 +242,10 @@ void sample_step(const Config& cfg, const Inputs& in, int64_t b, const Pixel& px
   const Vec su = px.u + dist * su_dir, sv = px.v + dist * sv_dir;
   Vec at_s[3], ok, d_at[3];  // the sample's position (and its derivative along the radius)
   if (cfg.bilinear) {
-    const auto [fu0, fv0, fu, fv, t0, t1, t2, t3, taps_ok] = torch_ao_walk::bilinear_taps(inv, su, sv, in.W, in.H);
-    ok = taps_ok;  // invalid texels hold NaN
+    const torch_ao_walk::BilinearTaps tap = torch_ao_walk::bilinear_taps(inv, su, sv, in.W, in.H);
+    const Vec &fu0 = tap.fu0, &fv0 = tap.fv0, &fu = tap.fu, &fv = tap.fv, &t0 = tap.t0, &t1 = tap.t1, &t2 = tap.t2,
+              &t3 = tap.t3;
+    ok = tap.ok;  // invalid texels hold NaN
     if (cfg.drop) ok = ok & (fu0 >= Vec(0.0f)) & (fu0 + Vec(1.0f) < Wf) & (fv0 >= Vec(0.0f)) & (fv0 + Vec(1.0f) < Hf);
     const Vec depth_s = lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv).reciprocal();
     const Vec su_c = at::vec::clamp(su, Vec(0.0f), Vec(float(in.W - 1)));

@@ -269,10 +269,11 @@ inline Vec step_distance(const WalkSettings& cfg, const Slice& sl, const Vec& xi
 // camera: it never occludes); valid drops background taps, the border (drop) and the centre texel.
 // The perspective-correct bilinear footprint of samples at screen (su, sv) (torch_ao.walk.fetch.bilinear_taps):
 // the top-left texel (fu0, fv0), the fractions (fu, fv), the four taps' inverse depths t0..t3 of the
-// (W x H) image `inverse_depth` (rows and columns clamped to the image), and whether all four are valid
-// (an invalid texel holds NaN).
+// (W x H) image `inverse_depth` (rows and columns clamped to the image), whether all four are valid
+// (an invalid texel holds NaN), and the four texels' indices (to read other images at the same taps).
 struct BilinearTaps {
   Vec fu0, fv0, fu, fv, t0, t1, t2, t3, ok;
+  Int index[4];
 };
 
 inline BilinearTaps bilinear_taps(const float* inverse_depth, const Vec& su, const Vec& sv, int64_t W, int64_t H) {
@@ -286,10 +287,11 @@ inline BilinearTaps bilinear_taps(const float* inverse_depth, const Vec& su, con
   const Int iv = at::vec::convert_to_int_of_same_size<float>(at::vec::clamp(tap.fv0, Vec(-1.0f), Vec(float(H))));
   const Int c0 = at::vec::clamp(iu, zero, Wlast), c1 = at::vec::clamp(iu + one, zero, Wlast);
   const Int r0 = at::vec::clamp(iv, zero, Hlast) * Wi, r1 = at::vec::clamp(iv + one, zero, Hlast) * Wi;
-  tap.t0 = at::vec::gather<4>(inverse_depth, r0 + c0);
-  tap.t1 = at::vec::gather<4>(inverse_depth, r0 + c1);
-  tap.t2 = at::vec::gather<4>(inverse_depth, r1 + c0);
-  tap.t3 = at::vec::gather<4>(inverse_depth, r1 + c1);
+  tap.index[0] = r0 + c0, tap.index[1] = r0 + c1, tap.index[2] = r1 + c0, tap.index[3] = r1 + c1;
+  tap.t0 = at::vec::gather<4>(inverse_depth, tap.index[0]);
+  tap.t1 = at::vec::gather<4>(inverse_depth, tap.index[1]);
+  tap.t2 = at::vec::gather<4>(inverse_depth, tap.index[2]);
+  tap.t3 = at::vec::gather<4>(inverse_depth, tap.index[3]);
   tap.ok = (tap.t0 == tap.t0) & (tap.t1 == tap.t1) & (tap.t2 == tap.t2) & (tap.t3 == tap.t3);
   return tap;
 }
