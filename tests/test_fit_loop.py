@@ -50,6 +50,32 @@ def test_fit_recovers_a_known_thickness_and_evaluates_in_hard_mode():
     assert [r["step"] for r in result.history] == list(range(150))
 
 
+def test_psnr_loss_is_minus_the_reported_psnr_of_each_view():
+    from torch_ao.fit import _loss
+    from torch_ao.metrics import error_metrics
+
+    for view in views():
+        pred = Toy(0.5)(view.gbuffer).visibility
+        expected = error_metrics(pred, view.reference, view.gbuffer.valid)["psnr"]
+        assert float(_loss(pred, view, "psnr", False)) == pytest.approx(-expected, abs=1e-4)
+
+
+def test_psnr_loss_fits_the_view_it_can_match_where_mse_averages():
+    """One view made by thickness 0.3, one that no thickness makes (0.9 x thickness 1.0's): MSE settles between
+    them, the mean of the views' log MSE at 0.3, where one view's error vanishes (its PSNR is what a per-scene
+    report counts)."""
+    vs = views(2)
+    with torch.no_grad():
+        vs[1].reference = 0.9 * Toy(1.0)(vs[1].gbuffer).visibility
+    got = {}
+    for kind in ("mse", "psnr"):
+        toy = Toy(0.6)
+        fit(toy, vs, FitConfig(steps=300, lr=0.02, loss=kind, hard_every=0), progress=False)
+        got[kind] = toy.thickness.item()
+    assert got["psnr"] == pytest.approx(0.3, abs=0.01)
+    assert 0.4 < got["mse"] < 0.9
+
+
 def test_projection_keeps_thickness_non_negative_and_early_stopping():
     toy = Toy(0.01)
     vs = views(1)

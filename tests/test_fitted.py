@@ -234,6 +234,24 @@ def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
     assert "fence/s1000" in report and "bitmask fitted" in report
 
 
+def test_cli_fit_holdout_views_and_psnr_loss(tmp_path):
+    """``--holdout-views 2`` scores seeds 1000 and 1001 of every scene; ``--loss psnr`` fits (and keeps) by the
+    training views' mean PSNR, which params.json's training losses are minus."""
+    from torch_ao.datasets import reference_views
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--holdout-views", "2", "--size", "32x24",
+                 "--spp", "16", "--preset", "low", "--steps", "4", "--hard-every", "2", "--loss", "psnr", "--cache",
+                 str(cache), "--no-progress", "--out", str(out)]) == 0
+    data = json.loads((out / "params.json").read_text())
+    assert data["loss"] == "psnr"
+    assert data["holdout_views"] == ["fence/s1000", "fence/s1001", "stairs/s1000", "stairs/s1001"]
+    train = reference_views(["fence", "stairs"], [1], height=24, width=32, spp=16, max_distance=1.0, cache_dir=cache)
+    pipeline = load_fitted(out / "params.json")
+    assert -evaluate(pipeline, train)["psnr"] == pytest.approx(data["train_loss_fitted"], abs=1e-3)
+    assert data["train_loss_fitted"] == min(h["loss"] for h in data["hard_history"]) <= data["train_loss_start"]
+
+
 # ---------------------------------------------------------------- thickness models (--thickness)
 
 @pytest.fixture(scope="module")

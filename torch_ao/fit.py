@@ -2,7 +2,9 @@
 
 The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
 
-* a loss on valid pixels only (L1 or MSE, optionally weighted by ``1/(stderr^2 + eps)``),
+* a loss on valid pixels only (L1, MSE or ``psnr``, optionally weighted by ``1/(stderr^2 + eps)``); ``psnr`` is
+  each view's ``10 log10(MSE)``, the negative of its PSNR, so the views are averaged in decibels as the reports
+  average them and a view that is already close to its reference is not outweighed by the others' larger errors,
 * a temperature schedule for soft-mask modules (geometric from ``temperature_start`` to
   ``temperature_end``; the module is put in ``mode="soft"`` while fitting),
 * gradient clipping, projection onto each parameter's valid range, early stopping,
@@ -45,8 +47,11 @@ PARAMETER_MINIMUM = {"thickness": 0.0, "thickness_scale": 0.0, "thickness_slope"
 PARAMETER_MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
 
 
-#: per-pixel losses against the reference
-LOSSES = ("l1", "mse")
+#: losses against the reference: per pixel (``l1``, ``mse``) or per view (``psnr``: minus its PSNR in dB)
+LOSSES = ("l1", "mse", "psnr")
+
+#: The smallest MSE the ``psnr`` loss tells apart: PSNR 100 dB, where :func:`error_metrics` caps it.
+PSNR_MSE_FLOOR = 1e-10
 
 
 @dataclass
@@ -140,11 +145,15 @@ def _has_hard_mode(module: nn.Module) -> bool:
 def _loss(pred: torch.Tensor, view: FitView, kind: str, weight_by_stderr: bool) -> torch.Tensor:
     valid = view.gbuffer.valid
     diff = (pred - view.reference)[valid]
+    if not diff.numel():
+        return pred.sum() * 0.0
     per_pixel = diff.abs() if kind == "l1" else diff.square()
     if weight_by_stderr and view.stderr is not None:
         w = 1.0 / (view.stderr[valid].square() + 1e-4)
-        return (per_pixel * w).sum() / w.sum().clamp_min(1e-12)
-    return per_pixel.mean() if per_pixel.numel() else pred.sum() * 0.0
+        mean = (per_pixel * w).sum() / w.sum().clamp_min(1e-12)
+    else:
+        mean = per_pixel.mean()
+    return 10.0 * torch.log10(mean + PSNR_MSE_FLOOR) if kind == "psnr" else mean
 
 
 def _temperature(cfg: FitConfig, step: int) -> float:

@@ -231,6 +231,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--preset", default="medium", help="bitmask quality preset of the end-to-end stage")
     p.add_argument("--eval-preset", default="high", help="bitmask quality preset of the evaluation")
     p.add_argument("--weighting", default="cosine", choices=("uniform", "cosine"))
+    p.add_argument("--fetch", default="edge_aware", choices=("bilinear", "edge_aware"),
+                   help="bitmask AO's depth fetch (stage b and the evaluation): with bilinear's skirts across depth "
+                        "edges even the true back-face layer loses to one scalar thickness")
     p.add_argument("--epochs", type=int, default=12, help="epochs of stage a (supervised on the back-face thickness)")
     p.add_argument("--finetune-epochs", type=int, default=0, help="epochs of stage b (end-to-end through soft bitmask AO; "
                    "the net after stage a is then evaluated too)")
@@ -267,7 +270,7 @@ def main(argv=None) -> dict | None:
     model = nn.parallel.DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None) \
         if world > 1 else net
     optimizer = torch.optim.Adam(net.parameters(), lr=args.lr)
-    ao = get_method("bitmask")(preset=args.preset, radius=R, weighting=args.weighting, mode="soft", tau=tau0,
+    ao = get_method("bitmask")(preset=args.preset, radius=R, weighting=args.weighting, mode="soft", tau=tau0, fetch=args.fetch,
                                thickness=torch.ones(1, 1, 1, 1), trainable=False).to(device)
 
     per_epoch = math.ceil(len(epoch_views(args, 0)) / (args.batch * world))
@@ -354,7 +357,7 @@ def main(argv=None) -> dict | None:
 def pipeline(args, thickness) -> DenoisedAO:
     """Bitmask AO at ``--eval-preset`` with ``thickness`` (a number or a model), followed by the denoiser."""
     method = get_method("bitmask")(preset=args.eval_preset, radius=args.max_distance, weighting=args.weighting,
-                                   thickness=thickness, trainable=False)
+                                   thickness=thickness, fetch=args.fetch, trainable=False)
     return DenoisedAO(method, denoiser=True)
 
 

@@ -69,6 +69,7 @@ OPTIONS = (
            unit="world units", minimum=0.0, open_minimum=True),
     Option("scenes", ",".join(TRAIN_SCENES), "comma-separated built-in scenes (without --reference)", str),
     Option("train_views", 2, "randomised training views per scene", int, minimum=1),
+    Option("holdout_views", 1, "held-out views per scene (seeds 1000, 1001, ...; never trained on)", int, minimum=1),
     Option("size", "160x96", f"render size WxH of the built-in views (at least {MIN_SIZE}x{MIN_SIZE})", str,
            unit="pixels"),
     options_by_name(RENDER_OPTIONS)["spp"],
@@ -82,7 +83,7 @@ OPTIONS = (
     Option("hard_patience", 2, "stop once this many hard-mode scores in a row have not improved on the best "
            "(0 = run all --steps)", int, minimum=0),
     Option("batch_views", FitConfig.batch_views, "training views per step (0 = all)", int, minimum=0),
-    Option("loss", FitConfig.loss, "per-pixel loss against the reference", str, choices=LOSSES),
+    Option("loss", FitConfig.loss, "loss against the reference: l1 or mse per pixel, or psnr (each view's 10 log10 MSE, so views count in dB as the report averages them)", str, choices=LOSSES),
     Option("seed", FitConfig.seed, "seed of the fit's randomness (view batches, jitter)", int, minimum=0),
     Option("cache", None, f"reference cache folder; when not given, {default_cache_dir()}", str),
     Option("out", "fit-out", "output folder (params.json, report.md, comparison.png, checkpoint.pt)", str),
@@ -183,8 +184,9 @@ def _views(args) -> tuple[list, list, float]:
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   progress=not args.no_progress, device=device, backface=args.thickness == "backface")
-    print(f"references: {len(scenes)} scenes x ({args.train_views} training + 1 held-out) views at {w}x{h}, {args.spp} spp")
-    train, held = train_and_holdout_views(scenes, args.train_views, 1, **common)
+    print(f"references: {len(scenes)} scenes x ({args.train_views} training + {args.holdout_views} held-out) views at "
+          f"{w}x{h}, {args.spp} spp")
+    train, held = train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
     radius = args.max_distance
     if args.radius is not None:
         radius = reference_radius([], args.radius)
@@ -306,7 +308,8 @@ def run(args: argparse.Namespace) -> int:
     write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: "
                       f"{result.steps_done}; R = {radius:g}; hard mode{denoised}\n\n{table}\n\nPer held-out view:\n\n{scenes}\n")
     module.save(out / "params.json", fitted=list(params), before=_summary(before), after=_summary(after),
-                train_loss_start=train_start, train_loss_fitted=train_best, per_view={"default": before["views"], "fitted": after["views"]},
+                loss=args.loss, train_loss_start=train_start, train_loss_fitted=train_best,
+                per_view={"default": before["views"], "fitted": after["views"]},
                 comparison={k: _summary(v) for k, v in rows.items()}, steps_done=result.steps_done,
                 best_step=result.best_step, fit_seconds=result.seconds, history=result.history,
                 hard_history=result.hard_history, train_views=[v.name for v in train], holdout_views=[v.name for v in held])
@@ -316,7 +319,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _train_losses(result) -> tuple[float | None, float | None]:
-    """Training loss (mean L1 over valid pixels, hard mode) of the start and of the kept parameters,
+    """Training loss (``--loss``, mean over the training views, hard mode) of the start and of the kept parameters,
     from the fit's own records (no extra forward passes)."""
     records = result.hard_history or result.history
     if not records:
