@@ -38,7 +38,7 @@ def turned(view, degrees: float):
     """``view`` (a LookAt) with its eye turned ``degrees`` about the vertical axis through its target."""
     from torch_ao.reference import LookAt
 
-    (ex, ey, ez), (tx, ty, tz) = view.eye, view.target
+    (ex, ey, ez), (tx, _, tz) = view.eye, view.target
     a = math.radians(degrees)
     dx, dz = ex - tx, ez - tz
     eye = (tx + dx * math.cos(a) + dz * math.sin(a), ey, tz - dx * math.sin(a) + dz * math.cos(a))

@@ -1,0 +1,31 @@
+"""docs/targets/table.py: each scene's PSNR is the mean over its held-out views, and every pipeline is judged
+against the strongest GTAO fit of each scene (issue 13's three targets)."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+TABLE = Path(__file__).resolve().parents[1] / "docs" / "targets" / "table.py"
+
+
+def _fit(folder: Path, fitted: dict, default: dict | None = None) -> str:
+    folder.mkdir(parents=True)
+    views = lambda d: {name: {"psnr": p} for name, p in d.items()}
+    (folder / "params.json").write_text(json.dumps({"per_view": {"fitted": views(fitted), "default": views(default or fitted)}}))
+    return str(folder / "params.json")
+
+
+def test_scene_means_and_the_strongest_gtao(tmp_path):
+    bitmask = _fit(tmp_path / "bm", {"fence/s1000": 30.0, "fence/s1001": 26.0, "floating/s1000": 40.0, "poles/s1000": 33.0})
+    gtao_a = _fit(tmp_path / "ga", {"fence/s1000": 24.0, "fence/s1001": 24.0, "floating/s1000": 41.0, "poles/s1000": 29.0},
+                  default={"fence/s1000": 20.0, "fence/s1001": 20.0, "floating/s1000": 20.0, "poles/s1000": 20.0})
+    gtao_b = _fit(tmp_path / "gb", {"fence/s1000": 25.0, "fence/s1001": 24.0, "floating/s1000": 40.2, "poles/s1000": 30.0})
+    out = subprocess.run([sys.executable, str(TABLE), bitmask, "--gtao", gtao_a, gtao_b], capture_output=True, text=True,
+                         check=True).stdout
+    assert "| fence | 28.00 | 24.00 | 24.50 | 20.00 |" in out  # (30 + 26) / 2; the GTAO default column is the first fit's
+    assert "| fence | GTAO gb | 24.50 | +3.50 |" in out
+    assert "| floating | GTAO ga | 41.00 | -1.00 |" in out  # the stronger GTAO on this scene, not the first
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("bm: mean 33.67 dB (>= 28: True)")
+    assert "thin occluders +3.00 (>= +3: True)" in last  # poles 33 - 30 is the smaller margin
+    assert "worst floating -1.00 (>= -0.5: False)" in last
