@@ -64,6 +64,19 @@ def _row(scene, method, preset, mae, ms, denoise=False):
     return {"scene": scene, "method": method, "preset": preset, "mae": mae, "forward_ms": ms, "denoise": denoise}
 
 
+def test_report_recommends_with_the_denoiser_too_when_a_denoised_row_wins(tmp_path):
+    from torch_ao.bench.files import markdown_report
+
+    rows = [_row("s", "gtao", "high", 0.040, 4.0), _row("s", "bitmask", "high", 0.045, 8.0),
+            _row("s", "bitmask", "high", 0.020, 9.0, denoise=True)]
+    md = markdown_report(rows, recommend(rows, 0.001), tolerance=0.001, with_denoiser=recommend(rows, 0.001, denoise=None))
+    plain, denoised = md.split("### With the denoiser allowed")
+    assert "| s | gtao | high | no | 0.0400 |" in plain
+    assert "| s | bitmask | high | yes | 0.0200 |" in denoised.split("## Error against run time")[0]
+    assert "With the denoiser allowed" not in markdown_report(rows[:2], recommend(rows[:2]), tolerance=0.01,
+                                                              with_denoiser=recommend(rows[:2], denoise=None))
+
+
 def test_recommend_cheaper_when_tolerance_allows_best_when_not():
     rows = [_row("s", "gtao", "low", 0.080, 1.0), _row("s", "gtao", "medium", 0.050, 2.0),
             _row("s", "gtao", "high", 0.040, 4.0), _row("s", "bitmask", "high", 0.035, 8.0),

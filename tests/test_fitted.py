@@ -122,6 +122,25 @@ def test_cli_bench_adds_fitted_rows(views, tmp_path):
     assert any(r["method"] == "gtao" for r in rows)
 
 
+def test_cli_bench_gives_built_in_views_the_back_face_layer_a_fitted_pipeline_needs(tmp_path):
+    from torch_ao.views import load_views, reference_path
+
+    pipe = FittedPipeline("bitmask", {"preset": "low", "radius": 0.8, "thickness_model": "backface",
+                                      "thickness_scale": 0.8, "thickness": 0.05}, denoiser=False)
+    (tmp_path / "bf").mkdir()
+    pipe.save(tmp_path / "bf" / "params.json")
+    out, cache = tmp_path / "bench", tmp_path / "cache"
+    assert main(["bench", "--scenes", "fence", "--width", "32", "--height", "24", "--spp", "16", "--max-distance", "0.8",
+                 "--cache", str(cache), "--methods", "gtao", "--presets", "low", "--fitted", str(tmp_path / "bf" / "params.json"),
+                 "--no-background", "--no-plots", "--no-backward", "--repeats", "1", "--quiet", "--out", str(out)]) == 0
+    rows = [r for r in json.loads((out / "report.json").read_text())["rows"] if r["method"] == "bitmask fitted (bf)"]
+    assert rows, "the back-face pipeline was skipped"
+    view = load_views([reference_path(cache, "fence", 24, 32, 16, 0.8)])[0]
+    assert view.gbuffer.backface_depth is not None
+    expected = error_metrics(pipe(view.gbuffer).visibility, view.reference, view.gbuffer.valid)
+    assert rows[0]["mae"] == pytest.approx(expected["mae"], rel=1e-6)
+
+
 def _with_radius(src, dst, radius):
     arrays = dict(np.load(src))
     arrays["max_distance"] = np.float32(radius)

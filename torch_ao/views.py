@@ -120,13 +120,19 @@ def cached_reference(scene: str, *, height: int, width: int, spp: int, max_dista
 def load_bench_views(scenes: Sequence[str] = (), files: Sequence[str | os.PathLike] = (), *, height: int = 72,
                      width: int = 96, spp: int = 64, max_distance: float = 1.0, seed: int = 0,
                      cache_dir: str | os.PathLike | None = None, device=None, progress: bool = True,
-                     log: Callable[[str], None] | None = print) -> list[BenchView]:
+                     log: Callable[[str], None] | None = print, backface: bool = False) -> list[BenchView]:
     """Reference views of built-in ``scenes`` (default layout; :func:`cached_reference`) and of
-    reference ``files``; each named after its scene or file stem (names must differ)."""
+    reference ``files``; each named after its scene or file stem (names must differ). ``backface=True``
+    gives the built-in scenes' views their back-face depth layer (added to the cached file once:
+    :func:`~torch_ao.datasets.add_backface_layer`), for pipelines with the back-face thickness model."""
+    from .datasets import add_backface_layer
+
     views = []
     for name in scenes:
         path = cached_reference(name, height=height, width=width, spp=spp, max_distance=max_distance, seed=seed,
                                 cache_dir=cache_dir, progress=progress, log=log)
+        if backface:
+            add_backface_layer(path, name, None)
         views.append(_named(path, name, device))
     for f in files:
         views.append(_named(f, Path(f).stem, device))

@@ -96,8 +96,9 @@ def _table(header: Sequence[str], lines: Sequence[Sequence]) -> list[str]:
 
 def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: Sequence[dict] | None = None,
                     env: dict | None = None, command: str | None = None, plots: Sequence[str] = (),
-                    tolerance: float | None = None) -> str:
-    """The markdown summary: environment, recommendation per scene, the result table, background timings."""
+                    tolerance: float | None = None, with_denoiser: dict | None = None) -> str:
+    """The markdown summary: environment, recommendation per scene (and, given ``with_denoiser``, the same over
+    the rows with the denoiser too), the result table, background timings."""
     md = ["# torch-ao bench", ""]
     if command:
         md += ["```", command, "```", ""]
@@ -116,6 +117,12 @@ def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: 
         md += _table(("scene", "method", "preset", "denoise", "MAE", "forward ms", "best", "best MAE"), lines)
         md += ["", "`all`: the same choice on the mean over scenes (used for frames that are not in the sweep). "
                "fwd+bwd is timed in the mode fitting uses (soft for bitmask modules); `–`: no gradient path.", ""]
+    if with_denoiser and any(r["denoise"] or r["best"]["denoise"] for r in with_denoiser.values()):
+        md += ["### With the denoiser allowed (forward ms include it)", ""]
+        lines = [(s, r["method"], r["preset"], _fmt(r["denoise"]), r["mae"], _ms(r["forward_ms"]),
+                  f"{r['best']['method']} {r['best']['preset']}{' +denoise' if r['best']['denoise'] else ''}",
+                  r["best"]["mae"]) for s, r in with_denoiser.items()]
+        md += _table(("scene", "method", "preset", "denoise", "MAE", "forward ms", "best", "best MAE"), lines) + [""]
     if rows:
         md += ["## Error against run time", ""]
         lines = [(r["scene"], r["method"], r["preset"], _size(r), _fmt(bool(r.get("denoise", False))),
@@ -223,7 +230,7 @@ def write_report(out_dir: str | os.PathLike, rows: Sequence[dict], *, tolerance:
         for p in plot_paths:
             files[p.stem] = p
     md = markdown_report(rows, rec, background=background, env=env, command=command,
-                         plots=[str(p) for p in plot_paths], tolerance=tolerance)
+                         plots=[str(p) for p in plot_paths], tolerance=tolerance, with_denoiser=rec_any)
     write_text_atomic(out / "bench.md", md)
     files["md"] = out / "bench.md"
     payload = {"version": REPORT_VERSION, "command": command, "environment": env or {}, "settings": settings or {},

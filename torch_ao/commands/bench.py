@@ -121,6 +121,17 @@ def _method_params(methods: dict, flags: dict, params: dict) -> dict:
     return {m: p for m, p in out.items() if p} | {m: p for m, p in params.items() if m not in out}
 
 
+def _needs_backface(fitted) -> bool:
+    """Whether any ``--fitted`` pipeline reads the G-buffer's back-face layer (its thickness model)."""
+    def model(path):
+        try:
+            return json.loads(Path(path).read_text()).get("options", {}).get("thickness_model")
+        except (OSError, ValueError, AttributeError):
+            return None  # unreadable files are refused, with their names, where the rows are built
+
+    return any(model(f) == "backface" for f in fitted)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..bench import available_methods, background_scaling, environment, load_report, run_bench, write_report
     from ..views import load_bench_views
@@ -151,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     views = load_bench_views(scenes, args.reference, height=height, width=width, spp=spp,
                              max_distance=args.max_distance, seed=args.seed, cache_dir=args.cache, device=device,
-                             progress=progress)
+                             progress=progress, backface=_needs_backface(args.fitted))
     rows = run_bench(views, methods, presets, denoise=args.denoise, backward=args.backward,
                      repeats=repeats, warmup=warmup, device=device, radius=args.radius, params=params,
                      progress=progress)
