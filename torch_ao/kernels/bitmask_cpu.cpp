@@ -42,6 +42,7 @@ using torch_ao_walk::ign;
 using torch_ao_walk::lerp;
 using torch_ao_walk::norm2;
 using torch_ao_walk::norm3;
+using torch_ao_walk::over_rows;
 using torch_ao_walk::select;
 using torch_ao_walk::sign;
 using torch_ao_walk::to_int;
@@ -732,23 +733,6 @@ Image image_of(const at::Tensor& positions, const at::Tensor& normals, const at:
                light ? light->data_ptr<float>() + stride * plane : nullptr, int(stride), valid.data_ptr<bool>() + plane,
                scalar_from ? scalar_from->data_ptr<int32_t>() + plane : nullptr,
                scalar_gamma ? scalar_gamma->data_ptr<bool>() + plane : nullptr, K[0], K[1], K[2], K[3], H, W};
-}
-
-// rows handed out a few at a time to whichever thread is free (even split fails when a core is busy)
-template <typename F>
-void over_rows(int64_t rows, const F& fn) {
-  const int64_t chunk = 4;
-  std::atomic<int64_t> next{0};
-  at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t, int64_t) {
-#ifdef TORCH_AO_MKL_VML
-    const int mkl_threads = MKL_Set_Num_Threads_Local(1);  // MKL's own threads inside ours: 7x slower
-#endif
-    for (int64_t r0 = next.fetch_add(chunk); r0 < rows; r0 = next.fetch_add(chunk))
-      for (int64_t r = r0; r < std::min(rows, r0 + chunk); ++r) fn(r);
-#ifdef TORCH_AO_MKL_VML
-    MKL_Set_Num_Threads_Local(mkl_threads);
-#endif
-  });
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> bitmask_walk(

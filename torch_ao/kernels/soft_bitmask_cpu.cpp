@@ -89,6 +89,7 @@ using torch_ao_walk::fma;
 using torch_ao_walk::ign;
 using torch_ao_walk::lerp;
 using torch_ao_walk::norm3;
+using torch_ao_walk::over_rows;
 using torch_ao_walk::select;
 using torch_ao_walk::to_int;
 inline Vec sigmoid(const Vec& x) {  // torch.sigmoid's vectorised form, argument clamped as the sweeps do
@@ -599,22 +600,6 @@ Inputs make_inputs(const at::Tensor& positions, const at::Tensor& normals, const
   return Inputs{positions.data_ptr<float>(), normals.data_ptr<float>(), inverse_depth.data_ptr<float>(),
                 depth.data_ptr<float>(), intrinsics.data_ptr<float>(), valid.data_ptr<bool>(), positions.size(1),
                 positions.size(2)};
-}
-
-// rows handed out a few at a time to whichever thread is free
-template <typename F>
-void over_rows(int64_t rows, F&& fn) {
-  std::atomic<int64_t> next{0};
-  at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t, int64_t) {
-#ifdef TORCH_AO_MKL_VML
-    const int mkl_threads = MKL_Set_Num_Threads_Local(1);  // MKL's own threads inside ours: 7x slower
-#endif
-    for (int64_t r0 = next.fetch_add(4); r0 < rows; r0 = next.fetch_add(4))
-      for (int64_t r = r0; r < std::min(rows, r0 + 4); ++r) fn(r);
-#ifdef TORCH_AO_MKL_VML
-    MKL_Set_Num_Threads_Local(mkl_threads);
-#endif
-  });
 }
 
 std::tuple<at::Tensor, at::Tensor> soft_bitmask(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
