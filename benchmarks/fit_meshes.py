@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import time
 from pathlib import Path
 
@@ -64,9 +63,7 @@ def render_views(files, args) -> tuple[list[Path], list[Path]]:
                                        spp=args.spp, max_distance=args.radius, seed=0, uniform=False, backface=True,
                                        progress=False)
                 path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(path.stem + f".tmp{os.getpid()}.npz")
-                ref.save(tmp)
-                os.replace(tmp, path)
+                ref.save(path)  # atomic
                 print(f"  rendered {path.name}: {time.perf_counter() - t0:.1f} s")
             (held if tag == "held" else train).append(path)
     return train, held

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import torch
@@ -39,19 +38,13 @@ def main() -> None:
     w, h = (int(x) for x in args.size.split("x"))
     views = reference_views(TRAIN_SCENES, seeds, height=h, width=w, spp=1024, max_distance=0.5, cache_dir=args.cache,
                             backface=True)
-    with tempfile.TemporaryDirectory() as tmp, torch.no_grad():
-        files = {}
-        for f in [*args.bitmask, *args.gtao]:
-            scored = {"fitted": evaluate(load_fitted(f), views, per_view=True)["views"]}
-            if f == args.gtao[0]:  # table.py's "GTAO default" column
-                scored["default"] = evaluate(starting_pipeline(f), views, per_view=True)["views"]
-            out = Path(tmp) / Path(f).parent.name / "params.json"
-            out.parent.mkdir(parents=True)
-            out.write_text(json.dumps({"per_view": scored}))
-            files[f] = str(out)
-        sys.argv = [sys.argv[0], *(files[f] for f in args.bitmask), "--gtao", *(files[f] for f in args.gtao)]
-        print(f"held-out seeds {', '.join(map(str, seeds))}: {len(views)} views")
-        table.main()
+    with torch.no_grad():
+        scored = lambda pipeline: evaluate(pipeline, views, per_view=True)["views"]
+        fits = {Path(f).parent.name: scored(load_fitted(f)) for f in args.bitmask}
+        gtao = {f"GTAO {Path(f).parent.name}": scored(load_fitted(f)) for f in args.gtao}
+        default = scored(starting_pipeline(args.gtao[0]))
+    print(f"held-out seeds {', '.join(map(str, seeds))}: {len(views)} views")
+    table.report(fits, gtao, default)
 
 
 def starting_pipeline(path: str) -> FittedPipeline:

@@ -26,18 +26,15 @@ def per_scene(views: dict) -> dict[str, float]:
     return {s: sum(v) / len(v) for s, v in scenes.items()}
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("params", nargs="+", help="the bitmask fits' params.json")
-    p.add_argument("--gtao", nargs="+", required=True, help="the GTAO fits' params.json (their defaults are added)")
-    args = p.parse_args()
-    load = lambda f: json.loads(Path(f).read_text())["per_view"]
-    fits = {Path(f).parent.name: per_scene(load(f)["fitted"]) for f in args.params}
-    gtao = {f"GTAO {Path(f).parent.name}": per_scene(load(f)["fitted"]) for f in args.gtao}
+def report(fits: dict[str, dict], gtao: dict[str, dict], gtao_default: dict) -> None:
+    """Print the tables and the verdict: ``fits`` and ``gtao`` map a column name to its per-view metrics
+    (``{"<scene>/s<seed>": {"psnr": ...}}``), ``gtao_default`` is GTAO's at its defaults."""
+    fits = {n: per_scene(v) for n, v in fits.items()}
+    gtao = {n: per_scene(v) for n, v in gtao.items()}
     scenes = list(next(iter(gtao.values())))
     mean = lambda xs: sum(xs) / len(xs)
 
-    columns = {**fits, **gtao, "GTAO default": per_scene(load(args.gtao[0])["default"])}
+    columns = {**fits, **gtao, "GTAO default": per_scene(gtao_default)}
     print("| scene | " + " | ".join(columns) + " |")
     print("| --- |" + " ---: |" * len(columns))
     for s in scenes:
@@ -57,6 +54,16 @@ def main() -> None:
         print(f"{n}: mean {mean(list(f.values())):.2f} dB (>= {MEAN_TARGET:g}: {mean(list(f.values())) >= MEAN_TARGET}); "
               f"thin occluders {thin:+.2f} (>= +{THIN_MARGIN:g}: {thin >= THIN_MARGIN}); "
               f"worst {worst} {f[worst] - best[worst]:+.2f} (>= -{MAX_SHORTFALL:g}: {f[worst] - best[worst] >= -MAX_SHORTFALL})")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("params", nargs="+", help="the bitmask fits' params.json")
+    p.add_argument("--gtao", nargs="+", required=True, help="the GTAO fits' params.json (their defaults are added)")
+    args = p.parse_args()
+    load = lambda f: json.loads(Path(f).read_text())["per_view"]
+    report({Path(f).parent.name: load(f)["fitted"] for f in args.params},
+           {f"GTAO {Path(f).parent.name}": load(f)["fitted"] for f in args.gtao}, load(args.gtao[0])["default"])
 
 
 if __name__ == "__main__":
