@@ -94,6 +94,14 @@ def _table(header: Sequence[str], lines: Sequence[Sequence]) -> list[str]:
     return out
 
 
+def _recommendation_table(recommendations: dict) -> list[str]:
+    """Markdown lines of :func:`~torch_ao.bench.recommend.recommend`'s choice per scene."""
+    lines = [(s, r["method"], r["preset"], _fmt(r["denoise"]), r["mae"], _ms(r["forward_ms"]),
+              f"{r['best']['method']} {r['best']['preset']}{' +denoise' if r['best']['denoise'] else ''}",
+              r["best"]["mae"]) for s, r in recommendations.items()]
+    return _table(("scene", "method", "preset", "denoise", "MAE", "forward ms", "best", "best MAE"), lines)
+
+
 def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: Sequence[dict] | None = None,
                     env: dict | None = None, command: str | None = None, plots: Sequence[str] = (),
                     tolerance: float | None = None, with_denoiser: dict | None = None) -> str:
@@ -111,18 +119,12 @@ def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: 
                "(all threads; steadier than wall time on a shared machine).", ""]
     if recommendations:
         md += [f"## Recommendation (cheapest forward time with MAE within {tolerance:g} of the best)", ""]
-        lines = [(s, r["method"], r["preset"], _fmt(r["denoise"]), r["mae"], _ms(r["forward_ms"]),
-                  f"{r['best']['method']} {r['best']['preset']}{' +denoise' if r['best']['denoise'] else ''}",
-                  r["best"]["mae"]) for s, r in recommendations.items()]
-        md += _table(("scene", "method", "preset", "denoise", "MAE", "forward ms", "best", "best MAE"), lines)
+        md += _recommendation_table(recommendations)
         md += ["", "`all`: the same choice on the mean over scenes (used for frames that are not in the sweep). "
                "fwd+bwd is timed in the mode fitting uses (soft for bitmask modules); `–`: no gradient path.", ""]
     if with_denoiser and any(r["denoise"] or r["best"]["denoise"] for r in with_denoiser.values()):
         md += ["### With the denoiser allowed (forward ms include it)", ""]
-        lines = [(s, r["method"], r["preset"], _fmt(r["denoise"]), r["mae"], _ms(r["forward_ms"]),
-                  f"{r['best']['method']} {r['best']['preset']}{' +denoise' if r['best']['denoise'] else ''}",
-                  r["best"]["mae"]) for s, r in with_denoiser.items()]
-        md += _table(("scene", "method", "preset", "denoise", "MAE", "forward ms", "best", "best MAE"), lines) + [""]
+        md += _recommendation_table(with_denoiser) + [""]
     if rows:
         md += ["## Error against run time", ""]
         lines = [(r["scene"], r["method"], r["preset"], _size(r), _fmt(bool(r.get("denoise", False))),
