@@ -1,4 +1,5 @@
-"""The C++ hard bitmask kernel against the tensor-op walk: the same visibility, bit for bit."""
+"""The hard bitmask kernel (the one walk, SIMD and scalar lanes) against the tensor-op walk, by the
+tolerance of tests/kernel_agreement.py."""
 import math
 import shutil
 
@@ -10,6 +11,8 @@ from torch_ao.examples import crease_gbuffer, example_gbuffer, floor_wall_gbuffe
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kernel_covers
 from torch_ao.methods.bitmask import BitmaskAO
+
+from kernel_agreement import SHARE, assert_masks_agree, degenerate
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="the kernels need a C++ compiler")
@@ -34,11 +37,12 @@ def rough_gbuffer(height=40, width=56, batch=2, seed=0) -> GBuffer:
     return GBuffer(depth=depth.to(torch.float32), camera=cam)
 
 
-def kernel_of(module: BitmaskAO, gb: GBuffer) -> torch.Tensor:
+def kernel_of(module: BitmaskAO, gb: GBuffer, lanes: str = "simd") -> torch.Tensor:
     return bitmask_hard(gb, gb.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=module.radius.item(), thickness=module.thickness.item(), step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
-                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)
+                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
+                        lanes=lanes)
 
 
 FRAMES = {
@@ -57,17 +61,20 @@ SETTINGS = [
 ]
 
 
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
 @pytest.mark.parametrize("frame", sorted(FRAMES))
 @pytest.mark.parametrize("setting", range(len(SETTINGS)))
-def test_kernel_equals_the_tensor_walk_bit_for_bit(built, frame, setting):
+def test_kernel_agrees_with_the_tensor_walk(built, frame, setting, lanes):
     gb = FRAMES[frame]()
-    module = BitmaskAO(mode="hard", **SETTINGS[setting])
+    module = BitmaskAO(mode="hard", backend="torch", **SETTINGS[setting])
     with torch.no_grad():
         reference = module(gb).visibility
-        out = kernel_of(module, gb)
-    assert out.shape == reference.shape and out.dtype == reference.dtype
+        out = kernel_of(module, gb, lanes)
     assert reference.min() < 1  # something is occluded: the comparison means something
-    assert torch.equal(out, reference), (out != reference).sum()
+    if frame != "rough" and degenerate(SETTINGS[setting]):
+        assert_masks_agree(out, reference, gb.valid, module.slices, share=0.0, sectors=2)
+    else:
+        assert_masks_agree(out, reference, gb.valid, module.slices)
 
 
 def test_background_is_unoccluded_and_batch_images_are_independent(built):
@@ -117,7 +124,7 @@ def test_auto_backend_runs_the_kernel_with_the_tensor_paths_numbers(built, monke
     gb = rough_gbuffer()
     auto = BitmaskAO(slices=3, steps=4)(gb)  # autograd on, trainable parameters: hard masks have no gradient
     assert calls == [1] and auto.indirect is None and auto.bent_normal is None
-    assert torch.equal(auto.visibility, BitmaskAO(slices=3, steps=4, backend="torch")(gb).visibility)
+    assert_masks_agree(auto.visibility, BitmaskAO(slices=3, steps=4, backend="torch")(gb).visibility, gb.valid, 3)
     BitmaskAO(slices=3, steps=4, mode="soft")(gb)  # the soft kernel's (tests/test_kernels_soft.py)
     assert calls == [1]
 

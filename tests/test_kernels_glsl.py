@@ -1,8 +1,8 @@
-"""The C++ hard bitmask kernels beyond uniform visibility against the tensor-op walk, bit for bit: cosine
-sector weights, indirect light, bent normals and ambient light of the ``"default"`` variant, and the
-``"ssilvb_glsl"`` variant (AO and indirect light), on the frames and settings of tests/test_kernels.py; and
-the kernel against the SSILVB GLSL article's shader on Mesa (as tests/test_glsl_parity.py checks the
-tensor path)."""
+"""The hard bitmask kernels beyond uniform visibility against the tensor-op walk: cosine sector weights,
+indirect light, bent normals and ambient light of the ``"default"`` variant (the one walk, by the tolerance
+of tests/kernel_agreement.py), and the ``"ssilvb_glsl"`` variant (AO and indirect light, bit for bit), on
+the frames and settings of tests/test_kernels.py; and the kernel against the SSILVB GLSL article's shader
+on Mesa (as tests/test_glsl_parity.py checks the tensor path)."""
 import shutil
 
 import pytest
@@ -12,6 +12,8 @@ from test_kernels import FRAMES, SETTINGS, built, rough_gbuffer  # noqa: F401  (
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import bitmask_outputs, kernel_covers, ssilvb_glsl_hard
 from torch_ao.methods.bitmask import SSILVB, BitmaskAO
+
+from kernel_agreement import SHARE, assert_values_agree, degenerate
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="the kernels need a C++ compiler")
@@ -39,27 +41,29 @@ def assert_identical(out, ref, name):
 # ------------------------------------------------------------------------------- the default variant
 @pytest.mark.parametrize("frame", sorted(FRAMES))
 @pytest.mark.parametrize("setting", range(len(SETTINGS)))
-def test_cosine_weighted_visibility_is_bit_for_bit(built, frame, setting):
+def test_cosine_weighted_visibility_agrees(built, frame, setting):
     gb = FRAMES[frame]()
     ref, out = both(gb, weighting="cosine", **SETTINGS[setting])
     assert ref.visibility.min() < 1
     # the weights are not 1/32: cosine visibility differs from the uniform one where something is occluded
     uniform, _ = both(gb, **SETTINGS[setting])
     assert not torch.equal(ref.visibility, uniform.visibility)
-    assert_identical(out.visibility, ref.visibility, "visibility")
+    # one sector of one slice flipped moves at most that sector's share of the cosine weights
+    share = 0.0 if frame != "rough" and degenerate(SETTINGS[setting]) else SHARE
+    assert_values_agree(out.visibility, ref.visibility, gb.valid, bound=0.1 / SETTINGS[setting]["slices"], share=share)
 
 
 @pytest.mark.parametrize("weighting", ["uniform", "cosine"])
 @pytest.mark.parametrize("frame", sorted(FRAMES))
 @pytest.mark.parametrize("setting", [0, 1, 3])
 def test_indirect_light_bent_normals_and_ambient(built, weighting, frame, setting):
-    """Every output bit for bit (the light summed over a slice's steps in torch's row_sum order)."""
+    """Every output, by tolerance (the ambient light is the visibility times the colour)."""
     gb = lit(FRAMES[frame]())
     ref, out = both(gb, weighting=weighting, indirect=True, bent_normals=True, ambient=(0.2, 0.5, 1.0),
                     **SETTINGS[setting])
     assert ref.indirect.max() > 0.01 and ref.visibility.min() < 1
     for name in ("visibility", "indirect", "bent_normal", "ambient"):
-        assert_identical(getattr(out, name), getattr(ref, name), name)
+        assert_values_agree(getattr(out, name), getattr(ref, name), gb.valid, bound=0.2)
 
 
 def test_bent_normals_point_away_from_the_occluder_and_background_keeps_its_normal(built):
@@ -77,12 +81,11 @@ def test_bent_normals_point_away_from_the_occluder_and_background_keeps_its_norm
     assert visible.any() and (bent - normals)[visible].abs().max() < 0.05
 
 
-def test_chunked_calls_reproduce_the_chunked_tensor_path(built):
-    """A frame walked in several chunks (the module's ``chunk_size``): torch.atan2's scalar tail falls at
-    each chunk's end, and the kernel follows it."""
+def test_chunked_calls_agree_with_the_chunked_tensor_path(built):
+    """A frame the tensor path walks in several chunks (the module's ``chunk_size``): the kernel walks it whole."""
     gb = FRAMES["rough"]()
     ref, out = both(gb, weighting="cosine", slices=3, steps=5, chunk_size=1000)
-    assert_identical(out.visibility, ref.visibility, "visibility")
+    assert_values_agree(out.visibility, ref.visibility, gb.valid, bound=0.1 / 3)
 
 
 def test_the_fit_pipeline_scores_through_the_kernel(built, monkeypatch):
@@ -99,7 +102,8 @@ def test_the_fit_pipeline_scores_through_the_kernel(built, monkeypatch):
         out = module(gb).visibility
     assert calls == ["cosine"]
     with torch.no_grad():
-        assert torch.equal(out, BitmaskAO(preset="high", weighting="cosine", backend="torch")(gb).visibility)
+        assert_values_agree(out, BitmaskAO(preset="high", weighting="cosine", backend="torch")(gb).visibility, gb.valid,
+                            bound=0.1 / module.slices)
 
 
 def test_coverage_of_the_new_outputs():
@@ -203,17 +207,17 @@ def test_ssilvb_glsl_kernel_matches_the_shader_on_mesa_softpipe(built, tmp_path)
 
 @pytest.mark.slow
 def test_an_engine_sized_frame_walked_in_chunks(built):
-    """640x360: the module walks 16384-pixel chunks (the scalar atan2 tails at each chunk's end)."""
+    """640x360: the tensor path walks 16384-pixel chunks, the kernel the whole frame."""
     from torch_ao.examples import example_gbuffer
 
     gb = example_gbuffer(360, 640)
     ref, out = both(gb, weighting="cosine", bent_normals=True, slices=3, steps=3)
     assert BitmaskAO(weighting="cosine").chunking(gb)[0] == 16384
-    assert_identical(out.visibility, ref.visibility, "visibility")
-    assert_identical(out.bent_normal, ref.bent_normal, "bent_normal")
+    assert_values_agree(out.visibility, ref.visibility, gb.valid, bound=0.1 / 3)
+    assert_values_agree(out.bent_normal, ref.bent_normal, gb.valid, bound=0.2)
     with torch.no_grad():
         lit_ref, lit_out = SSILVB(backend="torch", slices=2, steps=16)(gb), SSILVB(backend="kernel", slices=2, steps=16)(gb)
-    assert_identical(lit_out.indirect, lit_ref.indirect, "indirect")  # 32 steps a slice: row_sum's partial sums
+    assert_values_agree(lit_out.indirect, lit_ref.indirect, gb.valid, bound=0.2)
     with torch.no_grad():
         options = dict(variant="ssilvb_glsl", slices=4, steps=8, glsl_numerics="mesa")
         glsl_ref, glsl = SSILVB(backend="torch", **options)(gb), SSILVB(backend="kernel", **options)(gb)

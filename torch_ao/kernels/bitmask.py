@@ -5,9 +5,9 @@ walks (the same slice directions around the view vector, jitter, step placement,
 sector rule; see :mod:`torch_ao.methods.bitmask`), with uniform or cosine sector weights, and return the
 same visibility, indirect light and bent normals. :func:`ssilvb_glsl_hard` is the ``"ssilvb_glsl"``
 variant (the SSILVB GLSL article's shader, :mod:`torch_ao.methods.bitmask_glsl`): AO and indirect light.
-Hard visibility is bit for bit the tensor path's where both evaluate the same float operations in the
-same order (the C++ source follows torch's kernels operation by operation); docs/performance.md gives
-the measured agreement of every output.
+The default variant is the one walk of ``walk.h`` with the accumulator of ``bitmask.h``; it agrees with
+the tensor path by tolerance (hard masks on all but a few pixels where an angle lies within rounding of a
+sector edge; tests/test_kernels.py), not by reproducing torch's float operations.
 """
 from __future__ import annotations
 
@@ -20,8 +20,9 @@ from ..sectors import ROUNDINGS
 from ..thickness import ScalarThickness
 from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
+from .frame import light_input, scalar_lanes, walk_inputs
 
-__all__ = ["bitmask_hard", "bitmask_outputs", "ssilvb_glsl_hard", "kernel_covers", "options_uncovered", "walk_inputs",
+__all__ = ["bitmask_hard", "bitmask_outputs", "ssilvb_glsl_hard", "kernel_covers", "options_uncovered",
            "KernelOutputs"]
 
 #: ``glsl_numerics`` values in the order the C++ source numbers them
@@ -36,71 +37,11 @@ class KernelOutputs(NamedTuple):
     bent_normal: torch.Tensor | None = None
 
 
-def _channels_last(x: torch.Tensor) -> torch.Tensor:
-    """``(B,C,H,W)`` -> contiguous ``(B,H,W,C)`` float32."""
-    return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
-
-
-def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor, records: bool = False) -> tuple[torch.Tensor, ...]:
-    """What every kernel reads: channel-last positions and normals ``(B,H,W,3)``, inverse depth (NaN
-    where invalid: the kernels read a texel's validity from it), depth and validity ``(B,H,W)``, and the
-    intrinsics ``(B,4)`` ``(fx, fy, cx, cy)``. With ``records``, positions and normals are
-    ``(B,H,W,4)``: the positions with the inverse depth as fourth channel, the normals padded."""
-    depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
-    valid = gbuffer.valid[:, 0].contiguous()
-    inverse = torch.where(valid, depth.reciprocal(), torch.nan)
-    cam = gbuffer.camera
-    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    positions, normals = _channels_last(gbuffer.positions()), _channels_last(normals)
-    if records:
-        positions, normals = torch.cat((positions, inverse[..., None]), -1), _padded(normals)
-    return positions, normals, inverse, depth, valid, intrinsics
-
-
-def _padded(x: torch.Tensor) -> torch.Tensor:
-    """``(B,H,W,3)`` -> contiguous ``(B,H,W,4)`` (a zero fourth channel)."""
-    return torch.nn.functional.pad(x, (0, 1))
-
-
-def _light(gbuffer: GBuffer, wanted: bool, records: bool = False) -> torch.Tensor:
-    if not wanted:
-        return torch.empty(0)
-    if gbuffer.light is None:
-        raise ValueError("gbuffer.light: indirect light needs a (B,3,H,W) direct-light buffer")
-    light = _channels_last(gbuffer.light)
-    return _padded(light) if records else light
-
-
-#: ``scalar_from`` of a pixel none of whose steps takes torch's scalar ``atan2``
-_NO_SCALAR = 1 << 30
-
-
-def _scalar_tails(valid: torch.Tensor, steps: int, chunk_size: int | None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Which of the tensor path's ``atan2`` evaluations are scalar: ``torch.atan2`` runs SLEEF over whole
-    runs of 32 floats and the C library on the rest, the last ``n mod 32`` elements of each call. The walk
-    calls it per chunk of ``chunk_size`` query pixels (all of them for ``None``), on ``(n,)`` projected
-    normals and on the ``(steps, n)`` samples of a side (block-major). Returns per pixel ``(B,H,W)``: the
-    first step whose sample angles are scalar (int32, :data:`_NO_SCALAR` for none) and whether the
-    projected normal's angle is (bool)."""
-    flat = valid.reshape(-1)
-    n = int(flat.sum())
-    size = max(n, 1) if chunk_size is None else max(1, int(chunk_size))
-    query = torch.cumsum(flat, 0) - 1
-    chunk = torch.div(query, size, rounding_mode="floor")
-    i = query - chunk * size  # index within its chunk
-    count = (n - chunk * size).clamp_max(size)  # the chunk's queries
-    gamma = flat & (i >= count // 32 * 32)
-    first = count * steps // 32 * 32  # the first scalar row of a side's samples
-    step = torch.div(first - i + count - 1, count.clamp_min(1), rounding_mode="floor").clamp_min(0)
-    step = torch.where(flat & (step < steps), step, _NO_SCALAR)
-    return step.to(torch.int32).view(valid.shape).contiguous(), gamma.view(valid.shape).contiguous()
-
-
 def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
                     thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
                     seed: int = 0, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
-                    bent_normals: bool = False, chunk_size: int | None = None) -> KernelOutputs:
+                    bent_normals: bool = False, lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
     pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
@@ -113,20 +54,19 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             (``"bilinear"``/``"nearest"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon
             (sectors), weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as
             :class:`~torch_ao.BitmaskAO`.
-        chunk_size: the query pixels per chunk of the tensor path being reproduced (``None``: one
-            chunk; a module's is ``module.chunking(gbuffer)[0]``): it decides which few angles torch
-            evaluates with the C library's ``atan2f`` (:func:`_scalar_tails`).
+        lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
+            kernel's arithmetic).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
-    ops = cpu_kernels()
-    frame = walk_inputs(gbuffer, normals)
-    vis, light, bent = ops.bitmask_walk(
-        *frame, _light(gbuffer, indirect), *_scalar_tails(frame[4], int(steps), chunk_size), int(slices), int(steps), float(radius),
+    out = cpu_kernels().bitmask_walk(
+        *walk_inputs(gbuffer, normals), light_input(gbuffer, indirect), int(slices), int(steps), float(radius),
         float(thickness), float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear",
         border == "drop", ROUNDINGS.index(rounding), float(sector_epsilon), weighting == "cosine", bool(indirect),
-        bool(bent_normals))
-    return KernelOutputs(vis, light if indirect else None, bent if bent_normals else None)
+        bool(bent_normals), scalar_lanes(lanes))
+    light = out[:, 1:4] if indirect else None
+    bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
+    return KernelOutputs(out[:, :1], light, bent)
 
 
 def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
@@ -152,7 +92,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     # sampleScale's numerator -radius P[0][0] per image, as GLSLPattern forms it
     p00 = (2 * gbuffer.camera.fx / W).to(torch.float32)
     scale = ((-torch.as_tensor(radius, dtype=torch.float32).detach()) * p00).contiguous()
-    vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale, _light(gbuffer, indirect, records=True),
+    vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale, light_input(gbuffer, indirect, records=True),
                                int(slices), int(steps),
                                float(thickness), bool(jitter), _NUMERICS.index(numerics), ROUNDINGS.index(rounding),
                                bool(indirect))

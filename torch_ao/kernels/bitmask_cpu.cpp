@@ -48,37 +48,6 @@ using torch_ao_walk::sign;
 using torch_ao_walk::to_int;
 constexpr int kSectors = 32;
 
-// torch's sum over a contiguous last dimension of 32 floats, lane by lane (each x[k] holds sector k of
-// L pixels): SumKernel (dispatched at 8-float vectors, also on AVX-512 CPUs, as measured) adds sectors
-// k, k + 8, k + 16, k + 24 in one accumulator lane, then its 8 lanes in order
-constexpr int kSumWidth = 8;
-inline Vec sum32(const Vec* x) {
-  Vec total = x[0] + x[kSumWidth] + x[2 * kSumWidth] + x[3 * kSumWidth];
-  for (int k = 1; k < kSumWidth; ++k) total = total + (((x[k] + x[k + kSumWidth]) + x[k + 2 * kSumWidth]) + x[k + 3 * kSumWidth]);
-  return total;
-}
-
-// torch's row_sum (SumKernel's cascade) of n values x[0], x[stride], ..., lane by lane: four interleaved
-// partial sums over groups of 4 values (in blocks of 16 groups, each block's sum added to a second level),
-// the leftover values added to the first partial sum, then the four summed in order (n < 4 * 65536)
-inline Vec row_sum(const Vec* x, int64_t n, int64_t stride) {
-  constexpr int64_t block = 16;  // multi_row_sum's level step while rows < 2^16
-  const int64_t rows = n / 4;
-  Vec level0[4], level1[4];
-  for (int k = 0; k < 4; ++k) level0[k] = level1[k] = Vec(0.0f);
-  int64_t i = 0;
-  for (; i + block <= rows;) {
-    for (int64_t j = 0; j < block; ++j, ++i)
-      for (int k = 0; k < 4; ++k) level0[k] = level0[k] + x[(4 * i + k) * stride];
-    for (int k = 0; k < 4; ++k) level1[k] = level1[k] + level0[k], level0[k] = Vec(0.0f);
-  }
-  for (; i < rows; ++i)
-    for (int k = 0; k < 4; ++k) level0[k] = level0[k] + x[(4 * i + k) * stride];
-  for (int k = 0; k < 4; ++k) level0[k] = level0[k] + level1[k];
-  for (int64_t r = rows * 4; r < n; ++r) level0[0] = level0[0] + x[r * stride];
-  return ((level0[0] + level0[1]) + level0[2]) + level0[3];
-}
-
 // array_cos/sin/acos: n floats (a multiple of L) through the function torch.cos/sin/acos use, MKL's
 // vector math where torch has it, else SLEEF's
 #ifdef TORCH_AO_MKL_VML
@@ -94,18 +63,6 @@ TORCH_AO_ARRAY_FN(cos, vmsCos)
 TORCH_AO_ARRAY_FN(sin, vmsSin)
 TORCH_AO_ARRAY_FN(acos, vmsAcos)
 #undef TORCH_AO_ARRAY_FN
-
-// torch.atan2 evaluates SLEEF's vector atan2 over runs of 2 vectors and the C library's atan2f on the
-// last (n mod 32) elements of a tensor: lanes with ``scalar`` set take the latter
-inline Vec atan2_as_torch(const Vec& y, const Vec& x, const Vec& scalar, bool any_scalar) {
-  const Vec vector = y.atan2(x);
-  if (!any_scalar || scalar.zero_mask() == (1 << L) - 1) return vector;
-  alignas(64) float ys[L], xs[L], out[L], flags[L];
-  y.store(ys), x.store(xs), vector.store(out), scalar.store(flags);
-  for (int l = 0; l < L; ++l)
-    if (flags[l] != 0.0f) out[l] = std::atan2(ys[l], xs[l]);
-  return Vec::loadu(out);
-}
 
 inline Vec load_lanes(const float* lanes) { return Vec::loadu(lanes); }
 inline Vec to_float(const Int& x) { return at::vec::convert_to_fp_of_same_size<float>(x); }
@@ -270,244 +227,6 @@ inline void store_lanes(const Vec& x, int n, float* out, int64_t stride = 1) {
   alignas(64) float result[L];
   x.store(result);
   for (int l = 0; l < n; ++l) out[l * stride] = result[l];
-}
-
-// ====================================================================================== "default" variant
-
-struct Settings {
-  int64_t slices, steps;
-  float radius, thickness, step_power, min_step_px, epsilon;
-  bool jitter, bilinear, drop;
-  int64_t seed, rounding;  // rounding: 0 ceil, 1 round (half to even), 2 floor
-  bool cosine, indirect, bent;
-};
-
-struct Outputs {
-  float *vis, *indirect, *bent;  // one image's (H,W), (3,H,W) or null, (3,H,W) or null
-};
-
-// cosine_sector_weights: each sector's share |n_p| int cos(theta - gamma) |sin theta| over the sector,
-// H(theta) = sign(theta) (F(theta) - F(0)), F(t) = -cos(2t - gamma) / 4 + t sin(gamma) / 2 (ops.arc_measure)
-void cosine_weights(const Vec& gamma, const Vec& length, Vec* omega, float* scratch) {
-  float* arg = scratch;                        // (34, L): 2 edge_k - gamma, then 2 * 0 - gamma
-  float* cosine = scratch + 34 * L;            // (34, L)
-  float* sine = scratch + 68 * L;              // (1, L) sin(gamma)
-  float* gamma_lanes = scratch + 69 * L;
-  Vec edge[kSectors + 1];
-  const Vec start = gamma - Vec(float(M_PI / 2));
-  for (int k = 0; k <= kSectors; ++k) {
-    edge[k] = start + Vec((float(M_PI) * float(k)) / float(kSectors));
-    (Vec(2.0f) * edge[k] - gamma).store(arg + k * L);
-  }
-  (Vec(2.0f) * Vec(0.0f) - gamma).store(arg + 33 * L);
-  array_cos(34 * L, arg, cosine);
-  gamma.store(gamma_lanes);
-  array_sin(L, gamma_lanes, sine);
-  const Vec sin_gamma = Vec::loadu(sine);
-  const Vec F0 = Vec::loadu(cosine + 33 * L).neg() / Vec(4.0f) + (Vec(0.0f) * sin_gamma) / Vec(2.0f);
-  Vec H_prev;
-  for (int k = 0; k <= kSectors; ++k) {
-    const Vec F = Vec::loadu(cosine + k * L).neg() / Vec(4.0f) + (edge[k] * sin_gamma) / Vec(2.0f);
-    const Vec H = sign(edge[k]) * (F - F0);
-    if (k > 0) omega[k - 1] = at::vec::clamp_min(H - H_prev, Vec(0.0f)) * length;
-    H_prev = H;
-  }
-}
-
-void walk_row(const Settings& cfg, const Image& im, int64_t row, const Outputs& out) {
-  const int64_t H = im.H, W = im.W;
-  const float slice_step = float(M_PI / double(cfg.slices));
-  const Vec half_pi = Vec(float(M_PI / 2)), pi = Vec(float(M_PI)), sectors = Vec(32.0f);
-  // cos and sin of every pixel's slice angles, one call per row (torch evaluates them over all pixels)
-  const int64_t S = cfg.slices, row_stride = (W + L - 1) / L * L;
-  std::vector<float> angle(S * row_stride), cosine(S * row_stride), sine(S * row_stride);
-  for (int64_t u = 0; u < row_stride; ++u) {
-    const float a = cfg.jitter ? ign(float(u), float(row), cfg.seed) : 0.0f;
-    for (int64_t s = 0; s < S; ++s) angle[s * row_stride + u] = (a + float(s)) * slice_step;
-  }
-  array_cos(angle.size(), angle.data(), cosine.data());
-  array_sin(angle.size(), angle.data(), sine.data());
-  const bool weights_needed = cfg.cosine || cfg.bent;
-  std::vector<float> scratch(weights_needed ? 70 * L : 0), phi(cfg.bent ? 2 * kSectors * L : 0),
-      trig(cfg.bent ? 2 * kSectors * L : 0);
-  std::vector<Vec> step_light(cfg.indirect ? 3 * 2 * cfg.steps : 0);
-  for (int64_t u0 = 0; u0 < W; u0 += L) {
-    const Block blk = load_block(im, row, u0);
-    const int n = blk.n;
-    const int64_t at = row * W + u0;  // this block's first pixel in the image
-    if (!blk.any) {
-      for (int l = 0; l < n; ++l) {
-        out.vis[at + l] = 1.0f;
-        for (int c = 0; c < 3; ++c) {
-          if (cfg.indirect) out.indirect[c * H * W + at + l] = 0.0f;
-          if (cfg.bent) out.bent[c * H * W + at + l] = im.normals[3 * (at + l) + c];
-        }
-      }
-      continue;
-    }
-    const Vec *P = blk.P, *N = blk.N, *V = blk.V;
-    const Vec &d = blk.d, &u = blk.u, &v = blk.v;
-    alignas(64) float noise[L];
-    for (int l = 0; l < L; ++l) noise[l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
-    const Vec xi = load_lanes(noise);
-    // e1 = normalize(cross(+Y, V)) = normalize((V_z, 0, -V_x)); e2 = cross(V, e1)
-    Vec e1[3], e2[3];
-    {
-      Vec c1[3] = {V[2], Vec(0.0f), V[0].neg()};
-      Vec len1 = at::vec::clamp_min(norm3(c1), Vec(1e-12f));
-      for (int c = 0; c < 3; ++c) e1[c] = c1[c] / len1;
-      cross(V, e1, e2);
-    }
-    const Vec depth_floor = Vec(1e-20f) * (d * d);
-    Vec visible = Vec(0.0f);  // uniform: unoccluded sectors summed over slices (exact small integers)
-    Vec vis_num(0.0f), vis_den(0.0f), indirect[3] = {Vec(0.0f), Vec(0.0f), Vec(0.0f)}, bent[3] = {Vec(0.0f), Vec(0.0f), Vec(0.0f)};
-    for (int64_t s = 0; s < cfg.slices; ++s) {
-      // slice: its tangent T, the projected normal's angle gamma and length, the sector weights
-      const Vec cs = Vec::loadu(cosine.data() + s * row_stride + u0), sn = Vec::loadu(sine.data() + s * row_stride + u0);
-      Vec T[3], axis[3], np[3];
-      for (int c = 0; c < 3; ++c) T[c] = cs * e1[c] + sn * e2[c];
-      cross(T, V, axis);
-      const Vec nd = dot3(N, axis);
-      for (int c = 0; c < 3; ++c) np[c] = N[c] - axis[c] * nd;
-      const Vec gamma = atan2_as_torch(dot3(np, T), dot3(np, V), blk.scalar_gamma != Vec(0.0f), blk.any_scalar);
-      const Vec shift = (half_pi - gamma) / pi;
-      Vec omega[kSectors];
-      if (cfg.cosine) {
-        cosine_weights(gamma, norm3(np), omega, scratch.data());
-      } else {
-        for (int k = 0; k < kSectors; ++k) omega[k] = Vec(1.0f / kSectors);
-      }
-      // screen motion (pixels per world unit along +T) of the projection (fx x/d + cx, -fy y/d + cy)
-      const Vec du = (Vec(im.fx) * (T[0] + (P[0] * T[2]) / d)) / d;
-      const Vec dv = (Vec(-im.fy) * (T[1] + (P[1] * T[2]) / d)) / d;
-      const Vec len = norm2(du, dv);
-      const Vec unit_u = du / at::vec::clamp_min(len, Vec(1e-12f)), unit_v = dv / at::vec::clamp_min(len, Vec(1e-12f));
-      const Vec span = at::vec::clamp_min(Vec(cfg.radius) * len - Vec(cfg.min_step_px), Vec(0.0f));
-      Int occ = Int(0);
-      int64_t sent = 0;  // steps so far; step_light[3 step + c]: the step's newly occluded share x light
-      for (int side = 1; side >= -1; side -= 2) {
-        const Vec sgn = Vec(float(side)), scale = Vec(float(side / M_PI));
-        const Vec su_dir = unit_u * sgn, sv_dir = unit_v * sgn;
-        for (int64_t j = 0; j < cfg.steps; ++j) {
-          // sample: the step's screen position, its fetch and its occluded interval
-          Vec frac = (Vec(float(j)) + xi) / Vec(float(cfg.steps));
-          if (cfg.step_power == 2.0f) {
-            frac = frac * frac;
-          } else if (cfg.step_power != 1.0f) {
-            frac = frac.pow(Vec(cfg.step_power));
-          }
-          const Vec dist = Vec(cfg.min_step_px) + span * frac;
-          const Vec su = u + dist * su_dir, sv = v + dist * sv_dir;
-          Vec pos_s[3], sample_ok;
-          Taps taps;
-          fetch(im, su, sv, cfg.bilinear, cfg.drop, pos_s, sample_ok, taps);
-          Vec delta[3];
-          for (int c = 0; c < 3; ++c) delta[c] = pos_s[c] - P[c];
-          // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
-          sample_ok = sample_ok & (dot3(delta, delta) > depth_floor);
-          for (int c = 0; c < 3; ++c) delta[c] = select(sample_ok, delta[c], V[c].neg());
-          const Vec along_view = dot3(delta, V);
-          const Vec along_tangent = sgn * dot3(delta, T);
-          const Vec scalar = Vec(float(j)) >= blk.scalar_from;
-          const Vec front = fma(atan2_as_torch(along_tangent, along_view, scalar, blk.any_scalar), scale, shift);
-          const Vec back = fma(atan2_as_torch(along_tangent, along_view - Vec(cfg.thickness), scalar, blk.any_scalar),
-                               scale, shift);
-          const Vec xf = at::vec::clamp(front, Vec(0.0f), Vec(1.0f)), xb = at::vec::clamp(back, Vec(0.0f), Vec(1.0f));
-          const Vec lo = side > 0 ? xf : xb, hi = side > 0 ? xb : xf;
-          Vec width = (hi - lo) * sectors;
-          if (cfg.epsilon > 0) width = width - Vec(cfg.epsilon);
-          const Int bits = sector_bits(lo * sectors, width, cfg.rounding);
-          if (cfg.indirect) {
-            // the light this step sends (SectorAccumulator.step), times the share of sectors it newly occludes
-            const Int fresh = bits & ~occ;
-            Vec newly;
-            if (cfg.cosine) {
-              Vec x[kSectors];
-              for (int k = 0; k < kSectors; ++k) x[k] = bit(fresh, k) * omega[k];
-              newly = sum32(x);
-            } else {
-              newly = to_float(popcount(fresh)) * Vec(1.0f / kSectors);
-            }
-            const Vec distance = at::vec::clamp_min(norm3(delta), Vec(1e-30f));
-            Vec ldir[3], away[3], sender_n[3];
-            for (int c = 0; c < 3; ++c) {
-              ldir[c] = delta[c] / distance;
-              away[c] = ldir[c].neg();
-              sender_n[c] = taps.gather(im.normals, c);
-            }
-            Vec factor = at::vec::clamp(dot3(sender_n, away), Vec(0.0f), Vec(1.0f)) * select(sample_ok, Vec(1.0f), Vec(0.0f));
-            if (!cfg.cosine) factor = factor * at::vec::clamp(dot3(N, ldir), Vec(0.0f), Vec(1.0f));
-            const Vec sends = width >= Vec(0.0f);  // only a non-empty interval gathers light
-            for (int c = 0; c < 3; ++c) {
-              const Vec light = select(sends, taps.gather(im.light, c) * factor, Vec(0.0f));
-              step_light[3 * sent + c] = newly * light;
-            }
-          }
-          occ = occ | bits;
-          ++sent;
-        }
-      }
-      // finish the slice: its visible sectors, their weights, the light, the bent normal
-      if (!weights_needed) {
-        visible = visible + to_float(Int(kSectors) - popcount(occ));
-      } else {
-        Vec wv[kSectors];
-        for (int k = 0; k < kSectors; ++k) wv[k] = (Vec(1.0f) - bit(occ, k)) * omega[k];
-        const Vec num = sum32(wv);
-        if (cfg.cosine) {
-          vis_num = s == 0 ? num : vis_num + num;
-          const Vec den = sum32(omega);
-          vis_den = s == 0 ? den : vis_den + den;
-        } else {
-          visible = visible + to_float(Int(kSectors) - popcount(occ));
-        }
-        if (cfg.bent) {
-          // sector_centres: (gamma - pi/2) + pi (k + 1/2) / 32
-          const Vec start = gamma - Vec(float(M_PI / 2));
-          for (int k = 0; k < kSectors; ++k)
-            (start + Vec((float(M_PI) * (float(k) + 0.5f)) / float(kSectors))).store(phi.data() + k * L);
-          array_cos(kSectors * L, phi.data(), trig.data());
-          array_sin(kSectors * L, phi.data(), trig.data() + kSectors * L);
-          Vec xc[kSectors], xs[kSectors];
-          for (int k = 0; k < kSectors; ++k) {
-            xc[k] = wv[k] * Vec::loadu(trig.data() + k * L);
-            xs[k] = wv[k] * Vec::loadu(trig.data() + (kSectors + k) * L);
-          }
-          const Vec along_v = sum32(xc), along_t = sum32(xs);
-          for (int c = 0; c < 3; ++c) {
-            const Vec b = along_v * V[c] + along_t * T[c];
-            bent[c] = s == 0 ? b : bent[c] + b;
-          }
-        }
-      }
-      if (cfg.indirect)
-        for (int c = 0; c < 3; ++c) {
-          // (newly x light).sum(0) over the slice's steps: the product is laid out step-fastest per channel
-          const Vec light = row_sum(step_light.data() + c, sent, 3);
-          indirect[c] = s == 0 ? light : indirect[c] + light;
-        }
-    }
-    // finish: average over slices (uniform) or divide by the cosine weights' total
-    Vec den;
-    Vec vis;
-    if (cfg.cosine) {
-      den = at::vec::clamp_min(vis_den, Vec(1e-30f));
-      vis = vis_num / den;
-    } else {
-      den = Vec(float(cfg.slices));
-      vis = (visible * Vec(1.0f / 32.0f)) / den;
-    }
-    const Vec live = blk.live;
-    store_lanes(select(live, vis, Vec(1.0f)), n, out.vis + at);
-    if (cfg.indirect)
-      for (int c = 0; c < 3; ++c) store_lanes(select(live, indirect[c] / den, Vec(0.0f)), n, out.indirect + c * H * W + at);
-    if (cfg.bent) {
-      // F.normalize where the sum is not ~0, else the pixel's normal
-      const Vec nb = norm3(bent);
-      const Vec has = nb > Vec(1e-12f), scale = at::vec::clamp_min(nb, Vec(1e-12f));
-      for (int c = 0; c < 3; ++c) store_lanes(select(live & has, bent[c] / scale, N[c]), n, out.bent + c * H * W + at);
-    }
-  }
 }
 
 // ====================================================================================== "ssilvb_glsl" variant
@@ -735,33 +454,6 @@ Image image_of(const at::Tensor& positions, const at::Tensor& normals, const at:
                scalar_gamma ? scalar_gamma->data_ptr<bool>() + plane : nullptr, K[0], K[1], K[2], K[3], H, W};
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor> bitmask_walk(
-    const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth, const at::Tensor& depth,
-    const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light, const at::Tensor& scalar_from,
-    const at::Tensor& scalar_gamma, int64_t slices, int64_t steps, double radius, double thickness, double step_power, double min_step_px, bool jitter, int64_t seed, bool bilinear,
-    bool drop, int64_t rounding, double epsilon, bool cosine, bool indirect, bool bent) {
-  TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
-  check_inputs({&positions, &normals, &inverse_depth, &depth, &intrinsics}, valid);
-  if (indirect) check_inputs({&light}, valid);
-  TORCH_CHECK(scalar_from.scalar_type() == at::kInt && scalar_from.is_contiguous() && scalar_gamma.scalar_type() == at::kBool &&
-              scalar_gamma.is_contiguous(), "scalar_from, scalar_gamma: expected contiguous int32 and bool maps");
-  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2);
-  Settings cfg{slices, steps, float(radius), float(thickness), float(step_power), float(min_step_px),
-               float(epsilon), jitter, bilinear, drop, seed, rounding, cosine, indirect, bent};
-  at::Tensor vis = at::empty({B, 1, H, W}, positions.options());
-  at::Tensor ind = at::empty({indirect ? B : 0, 3, H, W}, positions.options());
-  at::Tensor bn = at::empty({bent ? B : 0, 3, H, W}, positions.options());
-  over_rows(B * H, [&](int64_t r) {
-    const int64_t b = r / H;
-    const Image im = image_of(positions, normals, inverse_depth, depth, valid, intrinsics, indirect ? &light : nullptr, b,
-                              &scalar_from, &scalar_gamma);
-    const Outputs out{vis.data_ptr<float>() + b * H * W, indirect ? ind.data_ptr<float>() + b * 3 * H * W : nullptr,
-                      bent ? bn.data_ptr<float>() + b * 3 * H * W : nullptr};
-    walk_row(cfg, im, r % H, out);
-  });
-  return {vis, ind, bn};
-}
-
 std::tuple<at::Tensor, at::Tensor> glsl_walk(const at::Tensor& positions, const at::Tensor& normals,
                                              const at::Tensor& inverse_depth, const at::Tensor& depth,
                                              const at::Tensor& valid, const at::Tensor& intrinsics,
@@ -790,13 +482,8 @@ std::tuple<at::Tensor, at::Tensor> glsl_walk(const at::Tensor& positions, const 
 }  // namespace
 
 TORCH_LIBRARY(torch_ao_kernels, m) {
-  m.def("bitmask_walk(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
-        "Tensor intrinsics, Tensor light, Tensor scalar_from, Tensor scalar_gamma, int slices, int steps, float radius, float thickness, float step_power, "
-        "float min_step_px, bool jitter, int seed, bool bilinear, bool drop, int rounding, float epsilon, "
-        "bool cosine, bool indirect, bool bent) -> (Tensor, Tensor, Tensor)");
   m.def("glsl_walk(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, Tensor radius_scale, Tensor light, int slices, int steps, float thickness, bool jitter, "
         "int numerics, int rounding, bool indirect) -> (Tensor, Tensor)");
-  m.impl("bitmask_walk", c10::DispatchKey::CPU, TORCH_FN(bitmask_walk));
   m.impl("glsl_walk", c10::DispatchKey::CPU, TORCH_FN(glsl_walk));
 }

@@ -11,17 +11,18 @@ import torch
 
 __all__ = ["KernelUnavailable", "cpu_kernels", "load_cpu_library", "load_cached_library"]
 
-#: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``; walk_cpu.h,
-#: the walk they share, is included by them)
-_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "gtao_cpu.cpp",
+#: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``): ops_cpu.cpp
+#: compiles the one walk (walk.h and its accumulators); bitmask_cpu.cpp (the GLSL article's variant) and
+#: soft_bitmask_cpu.cpp still walk with walk_cpu.h
+_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "ops_cpu.cpp",
                                                              "soft_bitmask_cpu.cpp"))
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
 _CAPABILITY_FLAGS = {
-    "AVX512": ["-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512dq", "-mfma", "-DCPU_CAPABILITY=AVX512",
+    "AVX512": ["-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512dq", "-mfma", "-mf16c", "-DCPU_CAPABILITY=AVX512",
                "-DCPU_CAPABILITY_AVX512"],
-    "AVX2": ["-mavx2", "-mfma", "-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2"],
+    "AVX2": ["-mavx2", "-mfma", "-mf16c", "-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2"],
 }
 
 
@@ -123,9 +124,8 @@ def _register_fake() -> None:
     @torch.library.register_fake("torch_ao_kernels::bitmask_walk")
     def _(positions, *args):
         B, H, W, _ = positions.shape
-        indirect, bent = args[-2:]
-        return (positions.new_empty(B, 1, H, W), positions.new_empty(B if indirect else 0, 3, H, W),
-                positions.new_empty(B if bent else 0, 3, H, W))
+        indirect, bent = args[-3:-1]  # (args[-1]: scalar lanes)
+        return positions.new_empty(B, 1 + 3 * indirect + 3 * bent, H, W)
 
     @torch.library.register_fake("torch_ao_kernels::glsl_walk")
     def _(positions, *args):
@@ -135,12 +135,12 @@ def _register_fake() -> None:
     @torch.library.register_fake("torch_ao_kernels::gtao_sums")
     def _(positions, *args):
         B, H, W, _ = positions.shape
-        return positions.new_empty(B, H, W, 5 if args[-1] else 2)  # args[-1]: bent normals
+        return positions.new_empty(B, 5 if args[-2] else 2, H, W)  # args[-2]: bent normals
 
     @torch.library.register_fake("torch_ao_kernels::hbao_sums")
     def _(positions, *args):
         B, H, W, _ = positions.shape
-        return positions.new_empty(B, H, W, 1)
+        return positions.new_empty(B, 1, H, W)
 
     @torch.library.register_fake("torch_ao_kernels::soft_bitmask")
     def _(positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, slices, steps, *args):

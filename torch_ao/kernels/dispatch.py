@@ -39,8 +39,7 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     options = dict(slices=module.slices, steps=module.steps, radius=radius, thickness=thickness,
                    step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                    seed=module.seed, fetch=module.fetch, border=module.border, rounding=module.rounding,
-                   sector_epsilon=module.sector_epsilon, weighting=module.weighting,
-                   chunk_size=module.chunking(gbuffer)[0])
+                   sector_epsilon=module.sector_epsilon, weighting=module.weighting)
     if not (module.want_indirect or module.want_bent):
         vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
     else:

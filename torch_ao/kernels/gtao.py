@@ -1,11 +1,12 @@
-"""The horizon kernels: ``GTAO`` (every variant) and ``HBAO`` forward in one fused pass (``gtao_cpu.cpp``).
+"""The horizon kernels: ``GTAO`` (every variant) and ``HBAO`` forward in one fused pass (the one walk of
+``walk.h`` with the accumulators of ``horizon.h``).
 
-It walks exactly what the tensor path walks (the same slice directions, jitter, step placement, fetch
+It walks what the tensor path walks (the same slice directions, jitter, step placement, fetch
 and border, :mod:`torch_ao.walk`) with the accumulators of :mod:`torch_ao.methods.gtao` (a horizon per
 side, the clamped arc integral of :func:`torch_ao.ops.arc_integral`), and returns the per-pixel sums
 over slices; the module's own ``GTAOAccumulator.finish`` turns them into the outputs, so the
-normalisation, final power and multi-bounce fit are the tensor path's code. docs/performance.md gives
-the measured agreement. ``HBAO`` is the same walk over the full circle with its accumulator
+normalisation, final power and multi-bounce fit are the tensor path's code; the sums agree with the
+tensor path's to float rounding (tests/test_kernels_gtao.py). ``HBAO`` is the same walk over the full circle with its accumulator
 (:mod:`torch_ao.methods.hbao`), finished the same way.
 """
 from __future__ import annotations
@@ -17,28 +18,12 @@ import torch
 from ..gbuffer import GBuffer
 from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
+from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
 
 #: the variants in the kernel's numbering
 VARIANTS = ("exact", "hdrp", "ue4")
-
-
-def _channels_last(x: torch.Tensor) -> torch.Tensor:
-    """``(B,C,H,W)`` -> contiguous ``(B,H,W,C)`` float32."""
-    return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
-
-
-def _kernel_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """The walk's inputs as the kernels read them: positions and normals ``(B,H,W,3)``, the inverse
-    depth (NaN where invalid: a texel's validity travels with it), depth and validity ``(B,H,W)`` and
-    the intrinsics ``(B,4)`` ``(fx, fy, cx, cy)`` in pixels."""
-    depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
-    valid = gbuffer.valid[:, 0].contiguous()
-    inverse = torch.where(valid, depth.reciprocal(), torch.nan)
-    cam = gbuffer.camera
-    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    return _channels_last(gbuffer.positions()), _channels_last(normals), inverse, depth, valid, intrinsics
 
 
 def _value(x) -> float:
@@ -51,8 +36,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
               step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
               jitter: bool = True, seed: int = 0, fetch: str = "bilinear", border: str = "drop",
               azimuth: str = "view", projected_normal_weight: bool = True,
-              bent_normals: bool = False) -> torch.Tensor:
-    """Per-pixel sums over slices of GTAO's walk ``(B,H,W,C)`` (0 on background).
+              bent_normals: bool = False, lanes: str = "simd") -> torch.Tensor:
+    """Per-pixel sums over slices of GTAO's walk ``(B,C,H,W)`` (0 on background).
 
     Args:
         gbuffer: a float32 CPU G-buffer; normals: its ``(B,3,H,W)`` unit view-space normals.
@@ -62,24 +47,24 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
         falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
             (pixels, ``None``: none), jitter, seed, fetch, border, azimuth, projected_normal_weight: as
-            :class:`~torch_ao.GTAO`.
+            :class:`~torch_ao.GTAO`. lanes: ``"simd"`` or ``"scalar"`` (the CUDA kernel's arithmetic).
 
     Channels: the slice integrals and the unoccluded integrals summed over slices, then with
     ``bent_normals`` the bent-normal sum (3). Raises :class:`~torch_ao.kernels.KernelUnavailable` when the
     kernel cannot be built.
     """
     return cpu_kernels().gtao_sums(
-        *_kernel_inputs(gbuffer, normals), VARIANTS.index(variant), int(slices), int(steps), float(walk_radius),
+        *walk_inputs(gbuffer, normals), VARIANTS.index(variant), int(slices), int(steps), float(walk_radius),
         float(radius), float(falloff), float(thickness), float(step_power), float(min_step_px),
         float(max_radius_px or 0.0), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
-        azimuth == "screen", bool(projected_normal_weight), bool(bent_normals))
+        azimuth == "screen", bool(projected_normal_weight), bool(bent_normals), scalar_lanes(lanes))
 
 
 def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
               angle_bias: float, falloff: str = "linear", accumulate: str = "incremental", elevation: str = "image",
               step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
-              fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen") -> torch.Tensor:
-    """Per-pixel sum over directions of HBAO's weighted horizon rise ``(B,H,W,1)`` (0 on background).
+              fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen", lanes: str = "simd") -> torch.Tensor:
+    """Per-pixel sum over directions of HBAO's weighted horizon rise ``(B,1,H,W)`` (0 on background).
 
     Args:
         gbuffer, normals: as :func:`gtao_sums`. slices: directions over the full circle; steps: samples
@@ -87,9 +72,10 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
         step_power, min_step_px (pixels), jitter, seed, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
     """
     return cpu_kernels().hbao_sums(
-        *_kernel_inputs(gbuffer, normals), int(slices), int(steps), float(radius), float(angle_bias),
+        *walk_inputs(gbuffer, normals), int(slices), int(steps), float(radius), float(angle_bias),
         falloff == "quadratic", accumulate == "incremental", elevation == "view", float(step_power),
-        float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop", azimuth == "screen")
+        float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop", azimuth == "screen",
+        scalar_lanes(lanes))
 
 
 def _finish(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -117,7 +103,7 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
         seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
         projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
-    sums = sums.view(-1, sums.shape[-1])
+    sums = sums.permute(0, 2, 3, 1).reshape(-1, sums.shape[1])
     flat = {"vis": sums[:, 0:1], "free": sums[:, 1:2]}
     if m.bent_normals:
         flat["bent"] = sums[:, 2:5].contiguous()
@@ -133,7 +119,7 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
                      angle_bias=_value(m.angle_bias), falloff=m.falloff, accumulate=m.accumulate,
                      elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
                      seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
-    return _finish(m, gbuffer, {"ao": sums.view(-1, 1)}, normals)
+    return _finish(m, gbuffer, {"ao": sums.reshape(-1, 1)}, normals)
 
 
 #: options of every module the horizon kernels know: ``None`` for any value, else the values covered

@@ -13,7 +13,8 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
-from .bitmask import options_uncovered, walk_inputs
+from .bitmask import options_uncovered
+from .frame import walk_inputs
 from .build import cpu_kernels
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]

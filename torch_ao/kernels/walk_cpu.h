@@ -18,14 +18,17 @@
 #include <ATen/ops/empty.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <vector>
 
 #include "mkl_vml.h"  // torch.cos/torch.sin on a build with MKL call its vector math; so do the kernels
+#include "rows_cpu.h"
 
 namespace torch_ao_walk {
+
+using torch_ao_rows::for_each_row;
+using torch_ao_rows::over_rows;
 
 using Vec = at::vec::Vectorized<float>;
 using Int = at::vec::Vectorized<int32_t>;
@@ -333,92 +336,5 @@ struct Sample {
     for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], px.V[c].neg());
   }
 };
-
-// fn(r) for every r in [0, rows), handed out a few at a time to whichever of torch's threads is
-// free (an even split waits for a busy core)
-template <class Fn>
-void over_rows(int64_t rows, const Fn& fn) {
-  const int64_t chunk = 4;
-  std::atomic<int64_t> next{0};
-  at::parallel_for(0, at::get_num_threads(), 1, [&](int64_t, int64_t) {
-#ifdef TORCH_AO_MKL_VML
-    const int mkl_threads = MKL_Set_Num_Threads_Local(1);  // MKL's own threads inside ours: 7x slower
-#endif
-    for (int64_t r0 = next.fetch_add(chunk); r0 < rows; r0 = next.fetch_add(chunk))
-      for (int64_t r = r0; r < std::min(rows, r0 + chunk); ++r) fn(r);
-#ifdef TORCH_AO_MKL_VML
-    MKL_Set_Num_Threads_Local(mkl_threads);
-#endif
-  });
-}
-
-// fn(b, row) for every row of a batch of B images H rows high, as over_rows hands them out
-template <class Fn>
-void for_each_row(int64_t B, int64_t H, const Fn& fn) {
-  over_rows(B * H, [&](int64_t r) { fn(r / H, r % H); });
-}
-
-// The walk's inputs as torch_ao/kernels/gtao.py passes them: positions, normals (B, H, W, 3), the
-// inverse depth (NaN where invalid), depth, valid (B, H, W), intrinsics (B, 4) (fx, fy, cx, cy)
-struct Inputs {
-  at::Tensor positions, normals, inverse_depth, depth, valid, intrinsics;
-
-  void check() const {
-    TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
-    for (const at::Tensor* t : {&positions, &normals, &inverse_depth, &depth, &intrinsics})
-      TORCH_CHECK(t->scalar_type() == at::kFloat && t->is_contiguous(), "expected contiguous float32 inputs");
-    TORCH_CHECK(valid.scalar_type() == at::kBool && valid.is_contiguous(), "valid: expected contiguous bool");
-  }
-};
-
-// GTAO's Algorithm 1 for every pixel: slices, sides (one with full_circle), steps, with what the
-// accumulator Acc keeps (its State per slice and Sums over slices):
-//   State begin_slice(const Pixels&, const Slice&), void step(State&, int side, const Pixels&, const Slice&, const Sample&),
-//   void end_slice(const State&, const Pixels&, const Slice&, Sums&, bool first_slice),
-//   int channels(), void store(const Sums&, float lanes[][L]).
-// Returns the per-pixel sums (B, H, W, channels), zero on background.
-template <class Acc>
-at::Tensor walk(const WalkSettings& cfg, const Acc& acc, const Inputs& in) {
-  in.check();
-  const int64_t B = in.positions.size(0), H = in.positions.size(1), W = in.positions.size(2), plane = H * W;
-  const int C = acc.channels();
-  at::Tensor sums = at::empty({B, H, W, C}, in.positions.options());
-  const float *P = in.positions.data_ptr<float>(), *normals = in.normals.data_ptr<float>();
-  const float *inverse = in.inverse_depth.data_ptr<float>(), *depth = in.depth.data_ptr<float>();
-  const float* K = in.intrinsics.data_ptr<float>();
-  const bool* valid = in.valid.data_ptr<bool>();
-  float* out = sums.data_ptr<float>();
-  for_each_row(B, H, [&](int64_t b, int64_t row) {
-    const Image img{H, W, K[4 * b], K[4 * b + 1], K[4 * b + 2], K[4 * b + 3], inverse + b * plane, P + 3 * b * plane};
-    const SliceAngles angles(cfg, row, W);
-    for (int64_t u0 = 0; u0 < W; u0 += L) {
-      const Pixels px(cfg, img, normals + 3 * b * plane, depth + b * plane, valid + b * plane, row, u0);
-      float* dst = out + (b * plane + row * W + u0) * C;
-      if (!px.any) {
-        std::fill(dst, dst + px.n * C, 0.0f);
-        continue;
-      }
-      typename Acc::Sums total;
-      for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
-        const Slice sl(cfg, img, px, angles.cos(s, u0), angles.sin(s, u0));
-        typename Acc::State state = acc.begin_slice(px, sl);
-        for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
-          const Vec sgn = Vec(float(side));
-          for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
-            const Sample sample(cfg, img, px, sl, sgn, step_distance(cfg, sl, px.xi, j));
-            acc.step(state, side, px, sl, sample);
-          }
-        }
-        acc.end_slice(state, px, sl, total, s == 0);
-      }
-      alignas(64) float lanes[8][L];
-      acc.store(total, lanes);
-      const int dead = px.live.zero_mask();  // lanes on background
-      for (int l = 0; l < px.n; ++l)
-        for (int c = 0; c < C; ++c) dst[l * C + c] = (dead >> l & 1) ? 0.0f : lanes[c][l];
-    }
-  });
-  return sums;
-}
 
 }  // namespace torch_ao_walk

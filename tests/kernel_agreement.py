@@ -1,0 +1,48 @@
+"""How a kernel's outputs must agree with the tensor-op walk (the specification), by tolerance.
+
+The kernels compute the walk in their own float arithmetic (SIMD SLEEF functions, or the scalar libm
+ones of the CUDA build's lanes): an angle within rounding of a sector edge can fall into the next
+sector, and a horizon comparison can flip. So hard masks are identical on all but a few pixels, and
+never more than one sector of one slice apart; continuous outputs agree to float rounding on all but
+the pixels where such a decision flipped.
+"""
+import torch
+
+#: the share of valid pixels on which the outputs must be identical (masks) or within ATOL (values)
+SHARE = 0.999
+ATOL = 1e-5
+
+
+def _per_pixel(out: torch.Tensor, ref: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    assert out.shape == ref.shape and out.dtype == ref.dtype, (out.shape, ref.shape, out.dtype, ref.dtype)
+    assert torch.isfinite(out).all()
+    return (out - ref).abs().amax(1, keepdim=True)[valid]
+
+
+def degenerate(options: dict) -> bool:
+    """Whether ``options`` take no margin off the sector intervals (``sector_epsilon=0``): then a sample on
+    the pixel's own plane gives an interval of zero width give or take rounding, which ``ceil`` makes zero
+    or one sector, on each side. On planar frames both paths then decide by their rounding, so only the
+    bound holds (one sector per side of a slice)."""
+    return options.get("sector_epsilon", 0.01) == 0
+
+
+def assert_masks_agree(out: torch.Tensor, ref: torch.Tensor, valid: torch.Tensor, slices: int,
+                       share: float = SHARE, sectors: int = 1) -> None:
+    """Uniform hard visibility ``(B,1,H,W)``: identical on >= ``share`` of the valid pixels, and never more
+    than ``sectors`` sectors of one slice (``sectors / (32 slices)``) apart; background identical."""
+    d = _per_pixel(out, ref, valid)
+    assert (d == 0).float().mean() >= share, (d > 0).sum()
+    assert d.max() <= sectors / (32 * slices) + 1e-6, d.max()
+    assert torch.equal(out[~valid.expand_as(out)], ref[~valid.expand_as(ref)])
+
+
+def assert_values_agree(out: torch.Tensor, ref: torch.Tensor, valid: torch.Tensor, *, atol: float = ATOL,
+                        bound: float = 1.0, share: float = SHARE) -> None:
+    """Continuous outputs ``(B,C,H,W)``: within ``atol`` on >= SHARE of the valid pixels, within ``bound``
+    everywhere (one flipped decision), and equal to float rounding on the background."""
+    d = _per_pixel(out, ref, valid)
+    assert (d <= atol).float().mean() >= share, ((d > atol).sum(), d.max())
+    assert d.max() <= bound, d.max()
+    background = ~valid.expand_as(out)
+    assert torch.allclose(out[background], ref[background], atol=1e-6)

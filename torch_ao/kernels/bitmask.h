@@ -1,0 +1,161 @@
+// The hard visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" variant
+// (methods/bitmask.py DefaultAccumulator, methods/bitmask_common.py's SectorAccumulator) for walk.h:
+// 32 sectors per slice, each sample's occluded interval [front, back] (the sector rule of
+// torch_ao/sectors/rule.py), with uniform or cosine sector weights, and optionally the indirect light
+// of the newly occluded sectors and the bent normal of the visible ones.
+#pragma once
+
+#include "walk.h"
+
+namespace tao {
+
+constexpr int kSectors = 32;
+
+// cos and sin of pi k / 16, k = 0..32: the doubled sector edges (cosine weights)
+TAO_CONST float kEdgeCos[33] = {1.0f, 0.98078528f, 0.923879533f, 0.831469612f, 0.707106781f, 0.555570233f, 0.382683432f, 0.195090322f, 6.123234e-17f, -0.195090322f, -0.382683432f, -0.555570233f, -0.707106781f, -0.831469612f, -0.923879533f, -0.98078528f, -1.0f, -0.98078528f, -0.923879533f, -0.831469612f, -0.707106781f, -0.555570233f, -0.382683432f, -0.195090322f, -1.8369702e-16f, 0.195090322f, 0.382683432f, 0.555570233f, 0.707106781f, 0.831469612f, 0.923879533f, 0.98078528f, 1.0f};
+TAO_CONST float kEdgeSin[33] = {0.0f, 0.195090322f, 0.382683432f, 0.555570233f, 0.707106781f, 0.831469612f, 0.923879533f, 0.98078528f, 1.0f, 0.98078528f, 0.923879533f, 0.831469612f, 0.707106781f, 0.555570233f, 0.382683432f, 0.195090322f, 1.2246468e-16f, -0.195090322f, -0.382683432f, -0.555570233f, -0.707106781f, -0.831469612f, -0.923879533f, -0.98078528f, -1.0f, -0.98078528f, -0.923879533f, -0.831469612f, -0.707106781f, -0.555570233f, -0.382683432f, -0.195090322f, -2.4492936e-16f};
+// cos and sin of pi (k + 1/2) / 32, k = 0..31: the sector centres from the hemisphere's edge (bent normals)
+TAO_CONST float kCentreCos[32] = {0.998795456f, 0.98917651f, 0.970031253f, 0.941544065f, 0.903989293f, 0.85772861f, 0.803207531f, 0.740951125f, 0.671558955f, 0.595699304f, 0.514102744f, 0.427555093f, 0.336889853f, 0.24298018f, 0.146730474f, 0.0490676743f, -0.0490676743f, -0.146730474f, -0.24298018f, -0.336889853f, -0.427555093f, -0.514102744f, -0.595699304f, -0.671558955f, -0.740951125f, -0.803207531f, -0.85772861f, -0.903989293f, -0.941544065f, -0.970031253f, -0.98917651f, -0.998795456f};
+TAO_CONST float kCentreSin[32] = {0.0490676743f, 0.146730474f, 0.24298018f, 0.336889853f, 0.427555093f, 0.514102744f, 0.595699304f, 0.671558955f, 0.740951125f, 0.803207531f, 0.85772861f, 0.903989293f, 0.941544065f, 0.970031253f, 0.98917651f, 0.998795456f, 0.998795456f, 0.98917651f, 0.970031253f, 0.941544065f, 0.903989293f, 0.85772861f, 0.803207531f, 0.740951125f, 0.671558955f, 0.595699304f, 0.514102744f, 0.427555093f, 0.336889853f, 0.24298018f, 0.146730474f, 0.0490676743f};
+
+// sectors.hard_mask: bits [floor(s), floor(s) + count) of 32 (bits past 31 are shifted out), count the
+// interval's width w rounded (0 ceil, 1 round half to even, 2 floor), both clamped to [0, 32]
+template <class F>
+TAO_FN typename LaneTraits<F>::I sector_bits(const F& s, const F& w, int64_t rounding) {
+  using I = typename LaneTraits<F>::I;
+  const F sectors = F(float(kSectors));
+  const F count = rounding == 0 ? ceil(w) : rounding == 1 ? rint(w) : floor(w);
+  const I k0 = to_int(clamp(floor(s), F(0.0f), sectors));
+  const I k1 = imin(k0 + to_int(clamp(count, F(0.0f), sectors)), I(kSectors));
+  return low_bits(k1) & bnot(low_bits(k0));
+}
+
+struct BitmaskAccumulator {
+  int64_t slices;
+  float thickness;  // world units along the view ray
+  float epsilon;    // sector_epsilon: sectors taken off each interval's width
+  int64_t rounding;
+  bool cosine, indirect, bent;
+
+  template <class F> struct State {
+    typename LaneTraits<F>::I occ;
+    F shift;             // (pi/2 - gamma) / pi: the hemisphere's edge in sector units / 32
+    F omega[kSectors];   // the sectors' weights (cosine or bent normals)
+    F light[3];          // the light the slice's newly occluded sectors send
+  };
+  template <class F> struct Sums {
+    F visible = F(0.0f), num = F(0.0f), den = F(0.0f);  // uniform: visible sectors; cosine: weighted
+    F light[3] = {F(0.0f), F(0.0f), F(0.0f)}, bent[3] = {F(0.0f), F(0.0f), F(0.0f)};
+  };
+  TAO_FN int channels() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
+  TAO_FN bool weighted() const { return cosine || bent; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+    State<F> st;
+    st.occ = typename LaneTraits<F>::I(0);
+    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    for (int c = 0; c < 3; ++c) st.light[c] = F(0.0f);
+    if (cosine) {
+      // cosine_sector_weights: each sector's share |n_p| int cos(theta - gamma) |sin theta| over it, as
+      // H(e_k+1) - H(e_k), H(t) = sign(t) (G(t) - G(0)), G(t) = -cos(2t - gamma) / 4 + t sin(gamma) / 2
+      // (ops.arc_measure), edges e_k = gamma - pi/2 + pi k / 32: cos(2 e_k - gamma) = -cos(gamma + pi k / 16)
+      const F cg = sl.cos_gamma, sg = sl.sin_gamma;
+      const F G0 = neg(cg) / F(4.0f);
+      F H_prev = F(0.0f);
+      for (int k = 0; k <= kSectors; ++k) {
+        const F edge = sl.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
+        const F G = (cg * F(kEdgeCos[k]) - sg * F(kEdgeSin[k])) / F(4.0f) + edge * sg / F(2.0f);
+        const F H = sign(edge) * (G - G0);
+        if (k > 0) st.omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * sl.length;
+        H_prev = H;
+      }
+    } else if (bent) {
+      for (int k = 0; k < kSectors; ++k) st.omega[k] = F(1.0f / kSectors);
+    }
+    return st;
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    using I = typename LaneTraits<F>::I;
+    // the sector rule: the sample's front (delta) and back (delta - thickness V) seen from the pixel,
+    // as fractions of the hemisphere from its edge on side -1
+    const F scale = F(float(side) / kPi);
+    const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
+    const F front = clamp(fma(atan2(along_tangent, along_view), scale, st.shift), F(0.0f), F(1.0f));
+    const F back = clamp(fma(atan2(along_tangent, along_view - F(thickness)), scale, st.shift), F(0.0f), F(1.0f));
+    const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
+    F width = (hi - lo) * F(float(kSectors));
+    if (epsilon > 0) width = width - F(epsilon);
+    const I bits = sector_bits(lo * F(float(kSectors)), width, rounding);
+    if (indirect) {  // SectorAccumulator.step: the light the sample sends, times the share it newly occludes
+      const I fresh = bits & bnot(st.occ);
+      F newly = F(0.0f);
+      if (cosine) {
+        for (int k = 0; k < kSectors; ++k) newly = newly + bit(fresh, k) * st.omega[k];
+      } else {
+        newly = to_float(popcount(fresh)) * F(1.0f / kSectors);
+      }
+      const F distance = clamp_min(norm3(smp.delta), F(1e-30f));
+      F ldir[3], away[3], sender_n[3];
+      for (int c = 0; c < 3; ++c) {
+        ldir[c] = smp.delta[c] / distance;
+        away[c] = neg(ldir[c]);
+        sender_n[c] = smp.gather(smp.image->normals, c);
+      }
+      F factor = select(smp.valid, clamp(dot3(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
+      if (!cosine) factor = factor * clamp(dot3(px.N, ldir), F(0.0f), F(1.0f));
+      const auto sends = width >= F(0.0f);  // only a non-empty interval gathers light
+      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + newly * select(sends, smp.gather(smp.image->light, c) * factor, F(0.0f));
+    }
+    st.occ = st.occ | bits;
+  }
+
+  template <class F>
+  TAO_FN void end_slice(const State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
+    if (!cosine) sums.visible = sums.visible + to_float(typename LaneTraits<F>::I(kSectors) - popcount(st.occ));
+    if (weighted()) {
+      F wv[kSectors];
+      for (int k = 0; k < kSectors; ++k) wv[k] = (F(1.0f) - bit(st.occ, k)) * st.omega[k];
+      if (cosine)
+        for (int k = 0; k < kSectors; ++k) {
+          sums.num = sums.num + wv[k];
+          sums.den = sums.den + st.omega[k];
+        }
+      if (bent) {
+        // the visible sectors' centres phi_k = gamma - pi/2 + c_k in the slice's (V, T) frame:
+        // cos phi_k = sin(gamma + c_k), sin phi_k = -cos(gamma + c_k)
+        const F cg = sl.cos_gamma, sg = sl.sin_gamma;
+        F along_v = F(0.0f), along_t = F(0.0f);
+        for (int k = 0; k < kSectors; ++k) {
+          along_v = along_v + wv[k] * (sg * F(kCentreCos[k]) + cg * F(kCentreSin[k]));
+          along_t = along_t + wv[k] * (sg * F(kCentreSin[k]) - cg * F(kCentreCos[k]));
+        }
+        for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + along_v * px.V[c] + along_t * sl.T[c];
+      }
+    }
+    if (indirect)
+      for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + st.light[c];
+  }
+
+  // visibility (background 1), the indirect light (background 0), the bent normal (the pixel's normal
+  // where the visible sectors' sum is ~0 or on background)
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    const F den = cosine ? clamp_min(sums.den, F(1e-30f)) : F(float(slices));
+    const F vis = cosine ? sums.num / den : (sums.visible * F(1.0f / kSectors)) / den;
+    out[0] = select(px.live, vis, F(1.0f));
+    int c0 = 1;
+    if (indirect) {
+      for (int c = 0; c < 3; ++c) out[c0 + c] = select(px.live, sums.light[c] / den, F(0.0f));
+      c0 += 3;
+    }
+    if (bent) {
+      const F nb = norm3(sums.bent);
+      const auto keep = land(px.live, nb > F(1e-12f));
+      const F scale = clamp_min(nb, F(1e-12f));
+      for (int c = 0; c < 3; ++c) out[c0 + c] = select(keep, sums.bent[c] / scale, px.N[c]);
+    }
+  }
+};
+
+}  // namespace tao

@@ -1,0 +1,181 @@
+// The horizon accumulators of torch_ao/methods/gtao.py (GTAO's three variants: a horizon per side, then
+// the clamped arc integral of torch_ao.ops.arc_integral) and torch_ao/methods/hbao.py, for walk.h.
+// They finish into the per-pixel sums over slices (0 on background) that the modules' own Python
+// finish turns into outputs, so normalisation, final power and multi-bounce have one definition.
+#pragma once
+
+#include "walk.h"
+
+namespace tao {
+
+// HDRP's GTAOFastAcos / UE4's acosFast (torch_ao.ops.fast_acos)
+template <class F> TAO_FN F fast_acos(const F& x) {
+  const F ax = abs(x);
+  const auto inside = ax < F(1.0f);
+  const F root = select(inside, sqrt(select(inside, F(1.0f) - ax, F(1.0f))), F(0.0f));
+  const F res = (F(-0.156583f) * ax + F(kHalfPi)) * root;
+  return select(x >= F(0.0f), res, F(kPi) - res);
+}
+
+// torch_ao.ops.arc_integral over [h1, h2] around the projected normal's angle n: both halves of
+// 1/4 (-cos(2h - n) + cos n + 2 h sin n)
+template <class F> TAO_FN F arc_integral(const F& h1, const F& h2, const F& n, const F& cos_n, const F& sin_n) {
+  const F two = F(2.0f);
+  return F(0.25f) * ((neg(cos(two * h1 - n)) + cos_n + two * h1 * sin_n) + (neg(cos(two * h2 - n)) + cos_n + two * h2 * sin_n));
+}
+
+enum class GTAOVariant : int64_t { exact = 0, hdrp = 1, ue4 = 2 };
+
+struct GTAOAccumulator {
+  GTAOVariant variant;
+  float radius;     // world units: where samples stop counting (not the walk's radius)
+  float falloff;    // exact: falloff_range * radius clamped to 1e-12; <= 0: a hard cut
+  float thickness;  // ue4: the thickness heuristic
+  bool projected_normal_weight, bent;
+
+  template <class F> struct State { F best[2]; };  // [0]: side +1, [1]: side -1
+  template <class F> struct Sums { F vis = F(0.0f), free = F(0.0f), bent[3] = {F(0.0f), F(0.0f), F(0.0f)}; };
+  TAO_FN int channels() const { return bent ? 5 : 2; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+    if (variant == GTAOVariant::exact)  // the smallest angle from V per side, from the hemisphere boundary
+      return State<F>{{F(kHalfPi) + sl.gamma, F(kHalfPi) - sl.gamma}};
+    return State<F>{{F(-1.0f), F(-1.0f)}};  // the shaders' largest horizon cosine, from cos(pi)
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    F& best = st.best[side > 0 ? 0 : 1];
+    const F R = F(radius);
+    if (variant == GTAOVariant::exact) {
+      const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
+      const F theta = clamp(atan2(along_tangent, along_view), F(0.0f), F(kPi));
+      const F distance = norm3(smp.delta);
+      F w = falloff > 0 ? clamp((R - distance) / F(falloff), F(0.0f), F(1.0f)) : select(distance < R, F(1.0f), F(0.0f));
+      w = select(smp.valid, w, F(0.0f));
+      const F bound = F(kHalfPi) + F(float(side)) * sl.gamma;
+      best = min(best, bound + w * (theta - bound));
+    } else if (variant == GTAOVariant::hdrp) {  // UpdateHorizon
+      const F distance = norm3(smp.delta);
+      const F cand = dot3(smp.delta, px.V) / clamp_min(distance, F(1e-30f));
+      const F falloff_w = clamp(F(1.0f) - (distance * distance) / (R * R), F(0.0f), F(1.0f));
+      const F upd = select(cand > best, best + falloff_w * (cand - best), best);
+      best = select(smp.valid, upd, best);
+    } else {  // SearchForLargestAngleDual
+      const F len_sq = dot3(smp.delta, smp.delta);
+      F ang = dot3(smp.delta, px.V) * rsqrt(len_sq + F(1e-4f));
+      const F falloff_w = clamp(len_sq * (F(2.0f) / (R * R)), F(0.0f), F(1.0f));
+      ang = ang + falloff_w * (best - ang);
+      const F upd = select(ang > best, ang, ang + F(thickness) * (best - ang));
+      best = select(smp.valid, upd, best);
+    }
+  }
+
+  template <class F>
+  TAO_FN void end_slice(const State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
+    // the horizons h1 <= 0 <= h2, the projected normal's angle n, its cos and sin, the slice's weight
+    F h1, h2, n, cos_n, sin_n, weight;
+    const F length = sl.length, one = F(1.0f), minus_one = F(-1.0f);
+    auto degenerate = length < F(0.0f);
+    if (variant == GTAOVariant::exact) {
+      h1 = neg(st.best[1]), h2 = st.best[0], n = sl.gamma, cos_n = sl.cos_gamma, sin_n = sl.sin_gamma, weight = length;
+    } else {
+      h1 = neg(fast_acos(clamp(st.best[1], minus_one, one)));
+      h2 = fast_acos(clamp(st.best[0], minus_one, one));
+      if (variant == GTAOVariant::hdrp) {
+        cos_n = clamp(sl.cos_gamma, minus_one, one);
+        n = sign(sl.sin_gamma) * fast_acos(cos_n);
+        sin_n = sin(n);
+        weight = projected_normal_weight ? length : one;
+        degenerate = length < F(1e-6f);
+      } else {  // ComputeInnerIntegral, with its own |n_p| + 1e-6
+        const F Lp = length + F(1e-6f);
+        const F cos_ang = (length * sl.sin_gamma) / Lp;
+        n = F(kHalfPi) - fast_acos(clamp(cos_ang, minus_one, one));
+        cos_n = (length * sl.cos_gamma) / Lp, sin_n = cos_ang, weight = Lp;
+      }
+    }
+    const F lo = n - F(kHalfPi), hi = n + F(kHalfPi);
+    h1 = max(h1, lo);  // n + max(h1 - n, -pi/2)
+    h2 = min(h2, hi);  // n + min(h2 - n, pi/2)
+    F integral = weight * arc_integral(h1, h2, n, cos_n, sin_n);
+    F free_integral = weight * arc_integral(lo, hi, n, cos_n, sin_n);
+    if (variant == GTAOVariant::hdrp) {  // AnyIsNaN(...) ? 1
+      integral = select(degenerate, one, integral);
+      free_integral = select(degenerate, one, free_integral);
+    }
+    sums.vis = sums.vis + integral;
+    sums.free = sums.free + free_integral;
+    if (bent) {  // bent_vector(h1, h2, n), times |n_p|, in the slice's (V, T) frame
+      const F h[2] = {h2, h1}, cn = cos(n), sn = sin(n), three = F(3.0f);
+      F fc[2], fs[2];
+      for (int k = 0; k < 2; ++k) {
+        const F ch = cos(h[k]), sh = sin(h[k]);
+        const F c3 = ch * ch * ch, s3 = sh * sh * sh;
+        fc[k] = (neg(c3) * cn + s3 * sn) / three;
+        fs[k] = (s3 * cn) / three + sn * (c3 / three - ch);
+      }
+      const F along_v = (fc[0] + fc[1]) + (F(2.0f) * cn) / three;
+      const F along_t = (fs[0] + fs[1]) + (F(4.0f) * sn) / three;
+      for (int k = 0; k < 3; ++k) sums.bent[k] = sums.bent[k] + length * (along_v * px.V[k] + along_t * sl.T[k]);
+    }
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    out[0] = select(px.live, sums.vis, F(0.0f));
+    out[1] = select(px.live, sums.free, F(0.0f));
+    if (bent)
+      for (int c = 0; c < 3; ++c) out[2 + c] = select(px.live, sums.bent[c], F(0.0f));
+  }
+};
+
+// HBAOAccumulator (torch_ao/methods/hbao.py): per direction, the running horizon sin h above the
+// tangent's sin t and its weighted rise
+struct HBAOAccumulator {
+  float radius, angle_bias;
+  bool quadratic, incremental, view_elevation;
+
+  template <class F> struct State { F sin_t, sin_h, ao, w; };
+  template <class F> struct Sums { F ao = F(0.0f); };
+  TAO_FN int channels() const { return 1; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
+    F t;
+    if (view_elevation) {  // the hemisphere boundary on side +1 sits at angle pi/2 + gamma from V
+      t = neg(sl.gamma);
+    } else {  // the elevation of the tangent cos(b) V + sin(b) T, b = pi/2 + gamma, above the image plane
+      // cos(pi/2 + gamma) = -sin(gamma), sin(pi/2 + gamma) = cos(gamma)
+      const F z = neg(sl.sin_gamma) * px.V[2] + sl.cos_gamma * sl.T[2];
+      t = asin(clamp(z, F(float(-1 + 1e-7)), F(float(1 - 1e-7))));
+    }
+    const F sin_t = sin(clamp_max(t + F(angle_bias), F(kHalfPi)));
+    return State<F>{sin_t, sin_t, F(0.0f), F(0.0f)};
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    const F distance = norm3(smp.delta);
+    const F sin_s = view_elevation ? cos(atan2(dot3(smp.delta, sl.T), dot3(smp.delta, px.V)))
+                                   : smp.delta[2] / clamp_min(distance, F(1e-30f));
+    const F r = distance / F(radius > 1e-30f ? radius : 1e-30f);
+    const F w = clamp_min(quadratic ? F(1.0f) - r * r : F(1.0f) - r, F(0.0f));
+    const auto rise = land(land(smp.valid, r < F(1.0f)), sin_s > st.sin_h);
+    if (incremental) {
+      st.ao = select(rise, st.ao + w * (sin_s - st.sin_h), st.ao);
+    } else {
+      st.w = select(rise, w, st.w);
+    }
+    st.sin_h = select(rise, sin_s, st.sin_h);
+  }
+
+  template <class F>
+  TAO_FN void end_slice(const State<F>& st, const Pixels<F>&, const Slice<F>&, Sums<F>& sums) const {
+    sums.ao = sums.ao + (incremental ? st.ao : st.w * (st.sin_h - st.sin_t));
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    out[0] = select(px.live, sums.ao, F(0.0f));
+  }
+};
+
+}  // namespace tao

@@ -1,0 +1,74 @@
+// One pixel per lane set: the lane type of the CUDA kernel (one thread per pixel, compiled at run time
+// by NVRTC) and of the CPU build of the same walk that CI runs (lanes="scalar"). The walk (walk.h) is
+// written against the names defined here and in lanes_simd.h, nothing else.
+#pragma once
+
+#ifdef __CUDACC_RTC__
+#define TAO_FN __device__ __forceinline__
+#define TAO_CONST static __device__ const
+typedef int int32_t;
+typedef unsigned int uint32_t;
+typedef long long int64_t;
+#else
+#define TAO_FN inline
+#define TAO_CONST static constexpr
+#include <cmath>
+#include <cstdint>
+#endif
+
+namespace tao {
+
+template <class F> struct LaneTraits;
+
+template <> struct LaneTraits<float> {
+  using M = bool;      // a lane mask
+  using I = uint32_t;  // integer lanes (sector masks, texel indices)
+  static constexpr int L = 1;
+};
+
+TAO_FN float from_lanes(const float* x, float) { return x[0]; }
+TAO_FN void to_lanes(float x, float* out) { out[0] = x; }
+TAO_FN float select(bool m, float yes, float no) { return m ? yes : no; }
+TAO_FN uint32_t select(bool m, uint32_t yes, uint32_t no) { return m ? yes : no; }
+TAO_FN bool land(bool a, bool b) { return a && b; }
+TAO_FN bool lor(bool a, bool b) { return a || b; }
+TAO_FN bool lnot(bool a) { return !a; }
+TAO_FN bool any(bool m) { return m; }
+TAO_FN bool lane_on(bool m, int) { return m; }
+TAO_FN float neg(float x) { return -x; }
+TAO_FN float fma(float a, float b, float c) { return fmaf(a, b, c); }
+TAO_FN float abs(float x) { return fabsf(x); }
+TAO_FN float sqrt(float x) { return sqrtf(x); }
+TAO_FN float floor(float x) { return floorf(x); }
+TAO_FN float ceil(float x) { return ceilf(x); }
+TAO_FN float rint(float x) { return rintf(x); }  // half to even
+TAO_FN float atan2(float y, float x) { return atan2f(y, x); }
+TAO_FN float acos(float x) { return acosf(x); }
+TAO_FN float asin(float x) { return asinf(x); }
+TAO_FN float cos(float x) { return cosf(x); }
+TAO_FN float sin(float x) { return sinf(x); }
+TAO_FN float pow(float x, float y) { return powf(x, y); }
+// NaN-propagating like ATen's maximum/minimum, which the SIMD lanes use
+TAO_FN float max(float a, float b) { return (a != a || b != b) ? a + b : (a > b ? a : b); }
+TAO_FN float min(float a, float b) { return (a != a || b != b) ? a + b : (a < b ? a : b); }
+TAO_FN float clamp_min(float x, float lo) { return x < lo ? lo : x; }
+TAO_FN float clamp_max(float x, float hi) { return x > hi ? hi : x; }
+TAO_FN float clamp(float x, float lo, float hi) { return clamp_max(clamp_min(x, lo), hi); }
+TAO_FN float rsqrt(float x) { return 1.0f / sqrtf(x); }
+TAO_FN float reciprocal(float x) { return 1.0f / x; }
+
+TAO_FN uint32_t to_int(float x) { return uint32_t(int32_t(x)); }  // truncation, x in int range
+TAO_FN float to_float(uint32_t x) { return float(int32_t(x)); }
+TAO_FN uint32_t imin(uint32_t a, uint32_t b) { return int32_t(a) < int32_t(b) ? a : b; }
+TAO_FN uint32_t imax(uint32_t a, uint32_t b) { return int32_t(a) > int32_t(b) ? a : b; }
+TAO_FN uint32_t bnot(uint32_t x) { return ~x; }
+TAO_FN uint32_t low_bits(uint32_t k) { return k >= 32u ? 0xffffffffu : (1u << k) - 1u; }  // k in [0, 32]
+TAO_FN float bit(uint32_t mask, int k) { return float((mask >> k) & 1u); }
+#ifdef __CUDACC_RTC__
+TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
+#else
+TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
+#endif
+TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
+
+}  // namespace tao

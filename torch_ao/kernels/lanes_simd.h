@@ -1,0 +1,70 @@
+// The pixels of a row in SIMD lanes: ATen's Vectorized<float> (AVX2 / AVX-512 as torch dispatches,
+// SLEEF's vector atan2, cos, sin, pow), the CPU kernels' lane type. Same names as lanes_scalar.h.
+#pragma once
+
+#include <ATen/cpu/vec/functional.h>
+#include <ATen/cpu/vec/vec.h>
+
+#include "lanes_scalar.h"
+
+namespace tao {
+
+using Vec = at::vec::Vectorized<float>;
+using IVec = at::vec::Vectorized<int32_t>;
+
+template <> struct LaneTraits<Vec> {
+  using M = Vec;  // all-ones / all-zeros lanes
+  using I = IVec;
+  static constexpr int L = Vec::size();
+};
+
+inline Vec from_lanes(const float* x, Vec) { return Vec::loadu(x); }
+inline void to_lanes(const Vec& x, float* out) { x.store(out); }
+inline Vec select(const Vec& m, const Vec& yes, const Vec& no) { return Vec::blendv(no, yes, m); }
+inline IVec select(const Vec& m, const IVec& yes, const IVec& no) {
+  const IVec mi = at::vec::cast<int32_t>(m);
+  return (yes & mi) | (no & (mi ^ IVec(-1)));
+}
+inline Vec land(const Vec& a, const Vec& b) { return a & b; }
+inline Vec lor(const Vec& a, const Vec& b) { return a | b; }
+inline Vec lnot(const Vec& a) { return a ^ Vec(at::vec::cast<float>(IVec(-1))); }
+inline bool any(const Vec& m) { return m.zero_mask() != (1 << Vec::size()) - 1; }
+inline bool lane_on(const Vec& m, int l) { return !((m.zero_mask() >> l) & 1); }
+inline Vec neg(const Vec& x) { return x.neg(); }
+inline Vec fma(const Vec& a, const Vec& b, const Vec& c) { return at::vec::fmadd(a, b, c); }
+inline Vec abs(const Vec& x) { return x.abs(); }
+inline Vec sqrt(const Vec& x) { return x.sqrt(); }
+inline Vec floor(const Vec& x) { return x.floor(); }
+inline Vec ceil(const Vec& x) { return x.ceil(); }
+inline Vec rint(const Vec& x) { return x.round(); }  // half to even
+inline Vec atan2(const Vec& y, const Vec& x) { return y.atan2(x); }
+inline Vec acos(const Vec& x) { return x.acos(); }
+inline Vec asin(const Vec& x) { return x.asin(); }
+inline Vec cos(const Vec& x) { return x.cos(); }
+inline Vec sin(const Vec& x) { return x.sin(); }
+inline Vec pow(const Vec& x, const Vec& y) { return x.pow(y); }
+inline Vec max(const Vec& a, const Vec& b) { return at::vec::maximum(a, b); }
+inline Vec min(const Vec& a, const Vec& b) { return at::vec::minimum(a, b); }
+inline Vec clamp_min(const Vec& x, const Vec& lo) { return at::vec::clamp_min(x, lo); }
+inline Vec clamp_max(const Vec& x, const Vec& hi) { return at::vec::clamp_max(x, hi); }
+inline Vec clamp(const Vec& x, const Vec& lo, const Vec& hi) { return at::vec::clamp(x, lo, hi); }
+inline Vec rsqrt(const Vec& x) { return x.rsqrt(); }
+inline Vec reciprocal(const Vec& x) { return x.reciprocal(); }
+
+inline IVec to_int(const Vec& x) { return at::vec::convert_to_int_of_same_size<float>(x); }
+inline Vec to_float(const IVec& x) { return at::vec::convert_to_fp_of_same_size<float>(x); }
+inline IVec imin(const IVec& a, const IVec& b) { return at::vec::minimum(a, b); }
+inline IVec imax(const IVec& a, const IVec& b) { return at::vec::maximum(a, b); }
+inline IVec bnot(const IVec& x) { return x ^ IVec(-1); }
+inline IVec low_bits(const IVec& k) { return (IVec(1) << k) - IVec(1); }  // a shift by 32 gives 0: all ones
+inline Vec bit(const IVec& mask, int k) { return to_float((mask >> IVec(k)) & IVec(1)); }
+// SWAR popcount (arithmetic shifts are safe: the masks clear the smeared sign bits)
+inline IVec popcount(const IVec& v) {
+  IVec x = v - ((v >> IVec(1)) & IVec(0x55555555));
+  x = (x & IVec(0x33333333)) + ((x >> IVec(2)) & IVec(0x33333333));
+  x = (x + (x >> IVec(4))) & IVec(0x0F0F0F0F);
+  return (x * IVec(0x01010101)) >> IVec(24);
+}
+inline Vec gather(const float* base, const IVec& index) { return at::vec::gather<4>(base, index); }
+
+}  // namespace tao

@@ -1,0 +1,266 @@
+// The walk of torch_ao.walk compiled: one source for every backend. Written against the lane names of
+// lanes_scalar.h / lanes_simd.h, so the same code runs L pixels of a row in SIMD lanes on the CPU
+// (F = Vectorized<float>), one pixel per lane set on the CPU (F = float, what CI runs of the CUDA
+// build) and one pixel per thread on CUDA (F = float under NVRTC).
+//
+// The names follow torch_ao/walk (GTAO's Algorithm 1 in walk.py): Pixels is Frame's queries, Slice
+// is slice_geometry, step_distance is SlicePattern.step_offsets, Sample is fetch_sample + Sample's
+// valid/delta, walk_block is march's loop. An accumulator (horizon.h, bitmask.h) says what a method
+// keeps: its State per slice and Sums over slices, and the output channels it finishes them into:
+//   State begin_slice(px, sl); void step(State&, int side, px, sl, sample);
+//   void end_slice(const State&, px, sl, Sums&); void finish(const Sums&, px, F out[channels]).
+// Sums start at zero; finish gives every lane its value, background lanes included (select on px.live).
+#pragma once
+
+#ifndef __CUDACC_RTC__
+#include <algorithm>
+#endif
+
+namespace tao {
+
+constexpr float kPi = 3.14159265358979323846f;
+constexpr float kHalfPi = 1.57079632679489661923f;
+
+template <class F> TAO_FN F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+template <class F> TAO_FN F norm3(const F* a) { return sqrt(dot3(a, a)); }
+template <class F> TAO_FN void cross(const F* a, const F* b, F* out) {
+  out[0] = a[1] * b[2] - a[2] * b[1];
+  out[1] = a[2] * b[0] - a[0] * b[2];
+  out[2] = a[0] * b[1] - a[1] * b[0];
+}
+// F.normalize(x, eps=1e-12)
+template <class F> TAO_FN void normalize3(const F* x, F* out) {
+  const F len = clamp_min(norm3(x), F(1e-12f));
+  for (int c = 0; c < 3; ++c) out[c] = x[c] / len;
+}
+template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
+// torch.sign (0 for 0 and NaN)
+template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
+
+// Jimenez's interleaved gradient noise, in double as torch_ao.walk.interleaved_gradient_noise
+TAO_FN float ign(float u, float v, int64_t seed) {
+  const double x = double(u) + 5.588238 * double(seed), y = double(v) + 5.588238 * double(seed);
+  const double s = 0.06711056 * x + 0.00583715 * y;
+  const double g = 52.9829189 * (s - double(int64_t(s)));
+  return float(g - double(int64_t(g)));
+}
+
+// Step placement (SlicePattern.step_offsets, or ShaderStepPattern's)
+enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2 };
+
+struct WalkSettings {
+  int64_t slices, steps;
+  float radius;         // world units: the walk's radius (search_scale included)
+  float step_power, min_step_px;
+  float max_radius_px;  // <= 0: none
+  bool jitter, bilinear, drop, full_circle, screen_azimuth;
+  int64_t seed;
+  Steps placement;
+};
+
+// One image of the batch, channel-last: intrinsics in pixels, positions and normals (H, W, 3), the
+// inverse depth (NaN where invalid: a texel's validity travels with it), depth and validity (H, W),
+// and the light (H, W, 3) or null
+struct Image {
+  int64_t H, W;
+  float fx, fy, cx, cy;
+  const float *positions, *normals, *inverse, *depth, *light;
+  const bool* valid;
+};
+
+// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth, u, v, the step noise xi, and the
+// basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its
+// last pixel and are not live.
+template <class F> struct Pixels {
+  using M = typename LaneTraits<F>::M;
+  static constexpr int L = LaneTraits<F>::L;
+  F P[3], N[3], V[3], e1[3], e2[3], depth, u, v, xi;
+  M live;
+  int64_t row, u0;
+
+  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, int64_t row_, int64_t u0_, int n) : row(row_), u0(u0_) {
+    float lane[10][L];
+    for (int l = 0; l < L; ++l) {
+      const int64_t p = row * img.W + u0 + (l < n ? l : n - 1);
+      for (int c = 0; c < 3; ++c) {
+        lane[c][l] = img.positions[3 * p + c];
+        lane[3 + c][l] = img.normals[3 * p + c];
+      }
+      lane[6][l] = img.depth[p];
+      lane[7][l] = float(u0 + l);
+      lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
+      lane[9][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
+    }
+    const F like(0.0f);
+    for (int c = 0; c < 3; ++c) {
+      P[c] = from_lanes(lane[c], like);
+      N[c] = from_lanes(lane[3 + c], like);
+    }
+    depth = from_lanes(lane[6], like);
+    u = from_lanes(lane[7], like);
+    v = F(float(row));
+    live = from_lanes(lane[8], like) > F(0.5f);
+    xi = from_lanes(lane[9], like);
+    const F minus[3] = {neg(P[0]), neg(P[1]), neg(P[2])};
+    normalize3(minus, V);
+    const F c1[3] = {V[2], F(0.0f), neg(V[0])};  // cross(+Y, V)
+    normalize3(c1, e1);
+    cross(V, e1, e2);
+  }
+};
+
+// slice_geometry: the slice tangent T, its plane's axis, the projected normal's length, its angle gamma
+// from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
+template <class F> struct Slice {
+  F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+
+  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
+    // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's jitter
+    float lane[LaneTraits<F>::L];
+    const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
+    for (int l = 0; l < LaneTraits<F>::L; ++l)
+      lane[l] = ((cfg.jitter ? ign(float(px.u0 + l), float(px.row), cfg.seed) : 0.0f) + float(s)) * step;
+    const F angle = from_lanes(lane, F(0.0f));
+    const F cs = cos(angle), sn = sin(angle);
+    if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V
+      const F d[3] = {cs, sn, F(0.0f)};
+      const F along = dot3(d, px.V);
+      F t[3];
+      for (int c = 0; c < 3; ++c) t[c] = d[c] - along * px.V[c];
+      normalize3(t, T);
+    } else {  // tangent_from_view_azimuth
+      for (int c = 0; c < 3; ++c) T[c] = cs * px.e1[c] + sn * px.e2[c];
+    }
+    cross(T, px.V, axis);
+    const F nd = dot3(px.N, axis);
+    F np[3];
+    for (int c = 0; c < 3; ++c) np[c] = px.N[c] - axis[c] * nd;
+    length = norm3(np);
+    const F y = dot3(np, T), x = dot3(np, px.V);
+    gamma = atan2(y, x);
+    const auto flat = length > F(1e-30f);  // atan2(0, 0) = 0: cos 1, sin 0
+    cos_gamma = select(flat, x / clamp_min(length, F(1e-30f)), F(1.0f));
+    sin_gamma = select(flat, y / clamp_min(length, F(1e-30f)), F(0.0f));
+    // screen motion (pixels per world unit along +T) of the projection (fx x/d + cx, -fy y/d + cy)
+    const F du = (F(img.fx) * (T[0] + (px.P[0] * T[2]) / px.depth)) / px.depth;
+    const F dv = (F(-img.fy) * (T[1] + (px.P[1] * T[2]) / px.depth)) / px.depth;
+    const F len = sqrt(du * du + dv * dv);
+    unit_u = du / clamp_min(len, F(1e-12f));
+    unit_v = dv / clamp_min(len, F(1e-12f));
+    radius_px = F(cfg.radius) * len;
+    if (cfg.placement == Steps::power) {
+      if (cfg.max_radius_px > 0) radius_px = clamp_max(radius_px, F(cfg.max_radius_px));
+      span = clamp_min(radius_px - F(cfg.min_step_px), F(0.0f));
+    } else {  // ShaderStepPattern: R_px clamped to [steps, max_radius_px], dt = R_px / (steps + 1)
+      const F steps = F(float(cfg.steps));
+      radius_px = clamp_min(radius_px, steps);
+      if (cfg.max_radius_px > 0)
+        radius_px = clamp_max(radius_px, F(cfg.max_radius_px > float(cfg.steps) ? cfg.max_radius_px : float(cfg.steps)));
+      span = radius_px / F(float(cfg.steps + 1));
+    }
+  }
+};
+
+// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern)
+template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, int64_t j) {
+  if (cfg.placement == Steps::hdrp) return (F(float(j + 1)) + xi) * sl.span;
+  if (cfg.placement == Steps::ue4) return clamp_min((F(float(j)) + xi) * sl.span, F(float(j + 1)));
+  F frac = (F(float(j)) + xi) / F(float(cfg.steps));
+  if (cfg.step_power == 2.0f) {
+    frac = frac * frac;
+  } else if (cfg.step_power != 1.0f) {
+    frac = pow(frac, F(cfg.step_power));
+  }
+  return F(cfg.min_step_px) + sl.span * frac;
+}
+
+// One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
+// perspective-correct bilinear footprint of four taps (walk.fetch.bilinear_taps: inverse depth
+// interpolated, then unprojected) — delta = position - P where valid, else -V (away from the camera: it
+// never occludes). valid drops background taps, the border (drop) and the centre texel.
+template <class F> struct Sample {
+  using M = typename LaneTraits<F>::M;
+  using I = typename LaneTraits<F>::I;
+  F delta[3];
+  M valid;
+  I index[4];  // the taps' texels (index[0] only for a nearest fetch), to read other buffers
+  F fu, fv;
+  bool bilinear;
+  const Image* image;
+
+  // channel c of a (H, W, 3) image at the sample's taps (Sample.gather)
+  TAO_FN F gather(const float* image, int c) const {
+    if (!bilinear) return tao::gather(image + c, index[0] * I(3));
+    const F t0 = tao::gather(image + c, index[0] * I(3)), t1 = tao::gather(image + c, index[1] * I(3));
+    const F t2 = tao::gather(image + c, index[2] * I(3)), t3 = tao::gather(image + c, index[3] * I(3));
+    return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
+  }
+
+  TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
+                const F& dist) {
+    const F Wf = F(float(img.W)), Hf = F(float(img.H));
+    const I zero = I(0), Wi = I(int32_t(img.W)), Wlast = I(int32_t(img.W - 1)), Hlast = I(int32_t(img.H - 1)), one = I(1);
+    const F su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
+    F pos[3];
+    bilinear = cfg.bilinear;
+    image = &img;
+    if (cfg.bilinear) {
+      const F fu0 = floor(su), fv0 = floor(sv);
+      fu = su - fu0, fv = sv - fv0;
+      const I iu = to_int(clamp(fu0, F(-1.0f), Wf)), iv = to_int(clamp(fv0, F(-1.0f), Hf));
+      const I c0 = imin(imax(iu, zero), Wlast), c1 = imin(imax(iu + one, zero), Wlast);
+      const I r0 = imin(imax(iv, zero), Hlast) * Wi, r1 = imin(imax(iv + one, zero), Hlast) * Wi;
+      index[0] = r0 + c0, index[1] = r0 + c1, index[2] = r1 + c0, index[3] = r1 + c1;
+      const F t0 = tao::gather(img.inverse, index[0]), t1 = tao::gather(img.inverse, index[1]);
+      const F t2 = tao::gather(img.inverse, index[2]), t3 = tao::gather(img.inverse, index[3]);
+      valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
+      if (cfg.drop)
+        valid = land(valid, land(land(fu0 >= F(0.0f), fu0 + F(1.0f) < Wf), land(fv0 >= F(0.0f), fv0 + F(1.0f) < Hf)));
+      const F depth = reciprocal(lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv));
+      const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
+      pos[0] = ((su_c - F(img.cx)) / F(img.fx)) * depth;
+      pos[1] = (neg(sv_c - F(img.cy)) / F(img.fy)) * depth;
+      pos[2] = neg(depth);
+    } else {
+      const F fu0 = floor(su + F(0.5f)), fv0 = floor(sv + F(0.5f));
+      fu = F(0.0f), fv = F(0.0f);
+      const I iu = imin(imax(to_int(clamp(fu0, F(-1.0f), Wf)), zero), Wlast);
+      const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);
+      index[0] = iv * Wi + iu;
+      index[1] = index[2] = index[3] = index[0];
+      const F t = tao::gather(img.inverse, index[0]);
+      valid = t == t;
+      if (cfg.drop) valid = land(valid, land(land(fu0 >= F(0.0f), fu0 < Wf), land(fv0 >= F(0.0f), fv0 < Hf)));
+      for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
+    }
+    for (int c = 0; c < 3; ++c) delta[c] = pos[c] - px.P[c];
+    // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
+    valid = land(valid, dot3(delta, delta) > F(1e-20f) * (px.depth * px.depth));
+    for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], neg(px.V[c]));
+  }
+};
+
+// GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: for each slice, each side (one
+// with full_circle), each step; out[c] receives channel c of every lane.
+template <class F, class Acc>
+TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
+                       F* out) {
+  const Pixels<F> px(cfg, img, row, u0, n);
+  typename Acc::template Sums<F> sums;
+  if (any(px.live)) {
+    for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
+      const Slice<F> sl(cfg, img, px, s);
+      typename Acc::template State<F> state = acc.begin_slice(px, sl);
+      for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
+        for (int64_t j = 0; j < cfg.steps; ++j) {                          // for each sample
+          const Sample<F> sample(cfg, img, px, sl, float(side), step_distance(cfg, sl, px.xi, j));
+          acc.step(state, side, px, sl, sample);
+        }
+      }
+      acc.end_slice(state, px, sl, sums);
+    }
+  }
+  acc.finish(sums, px, out);
+}
+
+}  // namespace tao
