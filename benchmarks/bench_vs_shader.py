@@ -114,8 +114,13 @@ def main(argv=None) -> int:
         ("ssilvb_glsl, tensor ops", False, lambda c: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="torch", **c)),
         ("BitmaskAO hard AO, kernel", True, lambda c: torch_ao.BitmaskAO(mode="hard", backend="kernel", **c)),
         ("BitmaskAO hard AO, tensor ops", False, lambda c: torch_ao.BitmaskAO(mode="hard", backend="torch", **c)),
+        ("BitmaskAO cosine hard AO, kernel", True,
+         lambda c: torch_ao.BitmaskAO(mode="hard", weighting="cosine", backend="kernel", **c)),
+        ("BitmaskAO cosine hard AO + bent normals, kernel", True,
+         lambda c: torch_ao.BitmaskAO(mode="hard", weighting="cosine", bent_normals=True, backend="kernel", **c)),
         ("GTAO, kernel", True, lambda c: torch_ao.GTAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
         ("GTAO, tensor ops", False, lambda c: torch_ao.GTAO(backend="torch", **{k: v for k, v in c.items() if k != "thickness"})),
+        ("HBAO, kernel", True, lambda c: torch_ao.HBAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
     ]
     columns = [col for col in columns if col[1] or not args.kernels_only]
     print("| size, slices x steps | shader on llvmpipe (ms) | " + " | ".join(col[0] for col in columns) + " |")
