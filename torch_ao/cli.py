@@ -61,4 +61,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m torch_ao.cli`: this file runs as __main__, a second copy of the module; the commands raise
+    # torch_ao.cli's CommandError, so run torch_ao.cli's main.
+    from torch_ao.cli import main as _main
+
+    sys.exit(_main())
