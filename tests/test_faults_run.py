@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
 from torch_ao.cli import main
 from torch_ao.fit import CheckpointMismatch, FitConfig, fingerprint_differences, fit, run_fingerprint
+from torch_ao.views import reference_path
 
 TINY = ["--size", "16x12", "--spp", "16", "--train-views", "1", "--steps", "3", "--hard-every", "2", "--no-progress"]
 
@@ -95,7 +97,7 @@ def test_changed_reference_data_is_named_when_no_setting_differs(first_fit, cach
     shutil.copytree(cache, other_cache)
     from torch_ao.io import read_npz, save_npz
 
-    path = other_cache / "references" / "fence_s1_16x12_spp16_R1_seed1.npz"
+    path = reference_path(other_cache, "fence", 12, 16, 16, 1.0, 1, layout=1)
     arrays = read_npz(path)
     arrays["ao"] = arrays["ao"] * 0.5
     save_npz(path, **arrays)
@@ -132,3 +134,192 @@ def test_checkpoint_of_other_settings_is_refused_before_rendering(first_fit, tmp
     code, err = _fit(capsys, empty, out, scenes="stairs")
     assert code == 2 and "(--scenes)" in err
     assert not empty.exists()  # nothing rendered
+
+
+# ------------------------------------------------------------------------------ one line, exit 2
+@pytest.fixture
+def gbuffer_file(tmp_path):
+    np.savez(tmp_path / "g.npz", depth=np.full((6, 8), 2.0, np.float32), fov_y_degrees=60.0)
+    return tmp_path / "g.npz"
+
+
+def _one_line(capsys, argv) -> str:
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, (code, err)
+    return err
+
+
+def test_truncated_exr_is_one_line(tmp_path, capsys):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    path = tmp_path / "t.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"Z": np.full((8, 8), 2.0, np.float32)}).write(str(path))
+    path.write_bytes(path.read_bytes()[:40])
+    err = _one_line(capsys, ["convert", path, "--fov", "60", "--out", tmp_path / "o.npz"])
+    assert f"path: {path} is not a readable OpenEXR file" in err and not (tmp_path / "o.npz").exists()
+
+
+def test_gltf_perspective_camera_without_its_block_is_one_line(tmp_path, capsys):
+    trimesh = pytest.importorskip("trimesh")
+    from test_render_mesh import rewrite_glb_json
+
+    src = tmp_path / "box.glb"
+    trimesh.Scene(trimesh.creation.box()).export(src)
+
+    def edit(header):
+        header["cameras"] = [{"type": "perspective"}]
+        header["nodes"].append({"camera": 0})
+        header["scenes"][0]["nodes"].append(len(header["nodes"]) - 1)
+
+    path = tmp_path / "cam.glb"
+    rewrite_glb_json(src, path, edit)
+    err = _one_line(capsys, ["render", "--mesh", path, "--width", "8", "--height", "6", "--spp", "2", "--quiet",
+                             "--out", tmp_path / "o.npz"])
+    assert err == (f"torch-ao render: error: camera: {path}: cameras[0] is a perspective camera without a "
+                   "'perspective' object holding 'yfov'\n")
+
+
+def test_deeply_nested_params_json_is_one_line(gbuffer_file, tmp_path, capsys):
+    deep = tmp_path / "params.json"
+    deep.write_text("[" * 100000 + "]" * 100000)
+    err = _one_line(capsys, ["ao", gbuffer_file, "--fitted", deep, "--out", tmp_path / "o.npz"])
+    assert err == f"torch-ao ao: error: fitted: {deep} is nested too deeply to be a params.json\n"
+
+
+def test_params_json_radius_zero_is_refused_like_the_flag(gbuffer_file, tmp_path, capsys):
+    params = tmp_path / "params.json"
+    params.write_text(json.dumps({"method": "gtao", "options": {"preset": "low"}, "parameters": {"radius": 0.0}}))
+    err = _one_line(capsys, ["ao", gbuffer_file, "--fitted", params, "--out", tmp_path / "o.npz"])
+    assert "cannot rebuild 'gtao' (radius: expected a number > 0.0, got 0.0)" in err
+    assert "radius: expected a number > 0" in _one_line(capsys, ["ao", gbuffer_file, "--radius", "0", "--out", tmp_path / "o.npz"])
+    assert not (tmp_path / "o.npz").exists()
+
+
+@pytest.mark.parametrize("command", ["ao", "render", "fit", "bench"])
+def test_out_that_is_a_folder_is_refused_before_computing(gbuffer_file, tmp_path, capsys, command):
+    folder = tmp_path / "taken.npz"
+    folder.mkdir()
+    argv = {"ao": ["ao", gbuffer_file], "render": ["render", "sphere_on_plane"], "fit": ["fit"], "bench": ["bench"]}[command]
+    if command in ("fit", "bench"):
+        folder = tmp_path / "file"
+        folder.write_text("")
+    err = _one_line(capsys, [*argv, "--out", folder])
+    expected = f"{folder} is a file; expected a folder" if command in ("fit", "bench") else \
+        f"{folder} is a folder; expected a file name"
+    assert err == f"torch-ao {command}: error: --out: {expected}\n"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+@pytest.mark.parametrize("command", ["render", "fit", "ao", "bench"])
+def test_cuda_device_without_cuda_is_one_line(tmp_path, capsys, command):
+    argv = {"render": ["render", "sphere_on_plane", "--out", tmp_path / "o.npz"], "fit": ["fit", "--out", tmp_path / "f"],
+            "ao": ["ao", "--out", tmp_path / "o.npz"], "bench": ["bench", "--out", tmp_path / "b"]}[command]
+    err = _one_line(capsys, [*argv, "--device", "cuda"])
+    assert err == f"torch-ao {command}: error: --device: CUDA is not available on this machine\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_malformed_device_is_one_line(tmp_path, capsys):
+    err = _one_line(capsys, ["render", "sphere_on_plane", "--out", tmp_path / "o.npz", "--device", "gpu7"])
+    assert err == "torch-ao render: error: --device: expected a torch device such as cpu, cuda or cuda:1, got 'gpu7'\n"
+
+
+def test_png_decompression_bomb_is_one_line(tmp_path, capsys):
+    pytest.importorskip("PIL")
+    import struct
+    import zlib
+
+    def chunk(tag, data):
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    bomb = tmp_path / "bomb.png"  # a 30000 x 30000 16-bit header over a few bytes of data
+    bomb.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 30000, 30000, 16, 0, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\0" * 100)) + chunk(b"IEND", b""))
+    err = _one_line(capsys, ["convert", bomb, "--fov", "60", "--out", tmp_path / "o.npz"])
+    assert f"path: {bomb} is not a readable PNG file" in err and "decompression bomb" in err
+
+
+@pytest.mark.parametrize("error, message", [
+    (MemoryError(), "out of memory (MemoryError); use a smaller size, fewer samples or another --device"),
+    (RuntimeError("[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: can't allocate memory: you tried "
+                  "to allocate 1099511627776 bytes."), "out of memory ([enforce fail at alloc_cpu.cpp:117] data. "
+     "DefaultCPUAllocator: can't allocate memory: you tried to allocate 1099511627776 bytes.); use a smaller size"),
+    (RecursionError("maximum recursion depth exceeded"), "the input is nested too deeply to read"),
+    (PermissionError(13, "Permission denied", "/x/g.npz"), "/x/g.npz: Permission denied"),
+])
+def test_machine_errors_are_one_line(gbuffer_file, tmp_path, capsys, monkeypatch, error, message):
+    import torch_ao.commands.ao as ao
+
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(ao, "load_gbuffer", fail)
+    err = _one_line(capsys, ["ao", gbuffer_file, "--out", tmp_path / "o.npz"])
+    assert err.startswith(f"torch-ao ao: error: {message}")
+
+
+@pytest.mark.parametrize("bug", [KeyError("x"), RuntimeError("boom"), AttributeError("no")])
+def test_genuine_bugs_keep_their_traceback(gbuffer_file, tmp_path, monkeypatch, bug):
+    import torch_ao.commands.ao as ao
+
+    def fail(*args, **kwargs):
+        raise bug
+
+    monkeypatch.setattr(ao, "load_gbuffer", fail)
+    with pytest.raises(type(bug)):
+        main(["ao", str(gbuffer_file), "--out", str(tmp_path / "o.npz")])
+
+
+def test_debug_environment_keeps_the_traceback_of_user_errors(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_AO_DEBUG", "1")
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        main(["ao", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "o.npz")])
+
+
+def test_exr_without_camera_points_ao_to_convert(tmp_path, capsys):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    path = tmp_path / "x.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"Z": np.full((8, 8), 2.0, np.float32)}).write(str(path))
+    err = _one_line(capsys, ["ao", path, "--out", tmp_path / "o.npz"])
+    assert err == (f"torch-ao ao: error: camera: {path} names no camera, and `torch-ao ao` takes none; convert it first: "
+                   f"torch-ao convert {path} --fov DEGREES (or --intrinsics FX,FY,CX,CY) --out FILE.npz\n")
+    # the flags it names are convert's: that command succeeds
+    assert main(["convert", str(path), "--fov", "60", "--out", str(tmp_path / "c.npz")]) == 0
+    assert main(["ao", str(tmp_path / "c.npz"), "--out", str(tmp_path / "o.npz")]) == 0
+
+
+# ------------------------------------------------------------------------------ no partial output
+@pytest.mark.parametrize("flags, message", [
+    (["--png", "bad.txt"], "--png: expected a .png file name, got '{d}/bad.txt'"),
+    (["--out", "{d}/x.txt"], "--out: expected a .npz file name, got '{d}/x.txt'"),
+    (["--out", "{d}/file/x.npz"], "--out: cannot write {d}/file/x.npz: {d}/file is not a folder"),
+], ids=["png", "out-suffix", "out-parent"])
+def test_bad_output_paths_are_refused_before_anything_is_written(gbuffer_file, tmp_path, capsys, flags, message):
+    (tmp_path / "file").write_text("")
+    flags = [f.format(d=tmp_path) if "{d}" in f else str(tmp_path / f) if f.endswith(".txt") else f for f in flags]
+    argv = ["ao", gbuffer_file, "--out", tmp_path / "x.npz", *flags]
+    before = sorted(tmp_path.iterdir())
+    err = _one_line(capsys, argv)
+    assert err == f"torch-ao ao: error: {message.format(d=tmp_path)}\n"
+    assert sorted(tmp_path.iterdir()) == before
+
+
+def test_save_png_is_atomic(tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from torch_ao import images
+
+    path = tmp_path / "v.png"
+    images.save_png(path, torch.zeros(1, 1, 4, 4))
+    first = path.read_bytes()
+    plt = images.pyplot()
+
+    def half_written(target, *args, **kwargs):
+        open(target, "wb").write(b"\x89PNG partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plt, "imsave", half_written)
+    with pytest.raises(KeyboardInterrupt):
+        images.save_png(path, torch.ones(1, 1, 4, 4))
+    assert path.read_bytes() == first and sorted(p.name for p in tmp_path.iterdir()) == ["v.png"]

@@ -27,7 +27,6 @@ import hashlib
 import math
 import os
 import random
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,6 +37,8 @@ import torch
 from torch import nn
 
 from .checks import check_choice
+from .io import remove_stale_temporaries as remove_stale_files
+from .io import write_atomic
 from .metrics import error_metrics
 from .views import FitView, load_views
 
@@ -188,24 +189,16 @@ def set_rng_state(state: dict) -> None:
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
-    """``torch.save`` to a temporary file in the same folder, then an atomic rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """``torch.save`` to a temporary file in the same folder, then an atomic rename (:func:`~torch_ao.io.write_atomic`)."""
+    write_atomic(path, lambda tmp: torch.save(payload, tmp))
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete temporary files a run killed inside :func:`save_checkpoint` left next to ``path``
-    (the checkpoint itself is always whole: it is replaced by an atomic rename)."""
+    """Delete temporary files a run killed inside :func:`save_checkpoint` left next to ``path`` (the
+    checkpoint itself is always whole: it is replaced by an atomic rename); a concurrent writer's file
+    in progress is kept (:func:`~torch_ao.io.remove_stale_temporaries`)."""
     path = Path(path)
-    for stale in path.parent.glob(path.name + ".*.tmp"):
-        stale.unlink(missing_ok=True)
+    remove_stale_files(path.parent, path.name)
 
 
 class CheckpointMismatch(ValueError):

@@ -21,10 +21,11 @@ from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
 from ..fit import (LOSSES, CheckpointMismatch, FitConfig, checkpoint_settings_differences, evaluate, fit,
                    fittable_parameters, load_views, set_mode)
 from ..fitted import THICKNESS_MODELS, FittedPipeline
-from ..io import read_npz, write_text_atomic
+from ..io import check_output_path, read_npz, write_text_atomic
 from ..methods import get_method
 from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
+from .args import parse_device
 from .options_cli import add_option
 from .render import OPTIONS as RENDER_OPTIONS
 
@@ -258,7 +259,8 @@ def thickness_options(args, views, init: dict[str, float]) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     init = _init_values(args.init)
-    out = Path(args.out)
+    parse_device(args.device)
+    out = check_output_path("--out", args.out, folder=True)
     checkpoint, settings = _checkpoint(args)
     denoise = not args.no_denoise
     train, held, radius = _views(args)
