@@ -323,3 +323,259 @@ def test_save_png_is_atomic(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         images.save_png(path, torch.ones(1, 1, 4, 4))
     assert path.read_bytes() == first and sorted(p.name for p in tmp_path.iterdir()) == ["v.png"]
+
+
+# ------------------------------------------------------------------------------ the reference cache
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_cache_key_holds_r_exactly_and_the_versions(tmp_path):
+    import torch_ao
+    from torch_ao.reference.render import TRACER_VERSION
+
+    a, b = (reference_path(tmp_path, "fence", 12, 16, 16, r) for r in (0.5, 0.5000001))
+    assert a != b and a.name == f"fence_16x12_spp16_R0.5_seed0_v{torch_ao.__version__}-t{TRACER_VERSION}.npz"
+    assert "R0.5000001_" in b.name
+
+
+def test_a_cached_file_of_another_request_is_rendered_again(tmp_path):
+    from torch_ao.io import read_npz
+    from torch_ao.views import cached_reference
+
+    low = cached_reference("sphere_on_plane", height=12, width=16, spp=16, max_distance=1.0, cache_dir=tmp_path)
+    planted = reference_path(tmp_path, "sphere_on_plane", 12, 16, 64, 1.0)
+    shutil.copy(low, planted)  # a spp-16 file under the spp-64 name
+    got = cached_reference("sphere_on_plane", height=12, width=16, spp=64, max_distance=1.0, cache_dir=tmp_path)
+    assert got == planted and int(read_npz(got)["spp"]) == 64
+    assert not np.array_equal(read_npz(got)["ao"], read_npz(low)["ao"])
+    before = got.stat().st_mtime_ns
+    cached_reference("sphere_on_plane", height=12, width=16, spp=64, max_distance=1.0, cache_dir=tmp_path)
+    assert got.stat().st_mtime_ns == before  # a matching file is used as it is
+
+
+def test_only_dead_or_old_writers_temporaries_are_removed(tmp_path):
+    import os
+    import time
+
+    from torch_ao import io
+
+    host, dead = io._HOST, _dead_pid()
+    names = {"dead": f"x.npz.{host}-{dead}.abcd1234.tmp.npz", "live": f"x.npz.{host}-{os.getpid()}.abcd1234.tmp.npz",
+             "other-host": f"x.npz.elsewhere-{dead}.abcd1234.tmp.npz", "unnamed-fresh": "x.npz.abcd1234.tmp.npz",
+             "unnamed-old": "y.npz.abcd1234.tmp.npz", "live-but-old": f"z.pt.{host}-{os.getpid()}.abcd1234.tmp"}
+    for name in names.values():
+        (tmp_path / name).write_bytes(b"partial")
+    old = time.time() - io.STALE_TEMPORARY_SECONDS - 60
+    for key in ("unnamed-old", "live-but-old"):
+        os.utime(tmp_path / names[key], (old, old))
+    removed = {p.name for p in io.remove_stale_temporaries(tmp_path)}
+    assert removed == {names[k] for k in ("dead", "unnamed-old", "live-but-old")}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[k] for k in ("live", "other-host", "unnamed-fresh"))
+
+
+def test_cache_writes_and_checkpoints_clean_dead_writers_leftovers_only(tmp_path):
+    import os
+
+    from torch_ao import io
+    from torch_ao.fit import remove_stale_temporaries
+    from torch_ao.views import cached_reference
+
+    refs = tmp_path / "references"
+    refs.mkdir()
+    dead = refs / f"other.npz.{io._HOST}-{_dead_pid()}.abcd1234.tmp.npz"
+    live = refs / f"other.npz.{io._HOST}-{os.getpid()}.abcd1234.tmp.npz"
+    dead.write_bytes(b"partial")
+    live.write_bytes(b"in progress")
+    cached_reference("sphere_on_plane", height=12, width=16, spp=16, max_distance=1.0, cache_dir=tmp_path)
+    assert not dead.exists() and live.exists()
+    ckpt = tmp_path / "checkpoint.pt"
+    in_progress = tmp_path / f"checkpoint.pt.{io._HOST}-{os.getpid()}.abcd1234.tmp"
+    in_progress.write_bytes(b"a concurrent run's checkpoint being written")
+    remove_stale_temporaries(ckpt)
+    assert in_progress.exists()
+
+
+# ------------------------------------------------------------------------------ interrupted at every phase
+FIT = ["fit", *TINY, "--scenes", "sphere_on_plane,fence"]
+TIMED = ("seconds", "fit_seconds")
+
+
+def _untimed(x):
+    """``x`` without its timings (what differs between two runs of the same fit)."""
+    if isinstance(x, dict):
+        return {k: _untimed(v) for k, v in x.items() if k not in TIMED}
+    return [_untimed(v) for v in x] if isinstance(x, list) else x
+
+
+def _fit_outputs(out):
+    return _untimed(json.loads((out / "params.json").read_text())), (out / "comparison.png").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """A fit from an empty cache: its outputs, and the number of forward passes of the pipeline it made."""
+    from torch_ao.fitted import FittedPipeline
+
+    root = tmp_path_factory.mktemp("straight")
+    calls = [0]
+    forward = FittedPipeline.forward
+
+    def counting(self, *args, **kwargs):
+        calls[0] += 1
+        return forward(self, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(FittedPipeline, "forward", counting)
+        assert main([*FIT, "--cache", str(root / "cache"), "--out", str(root / "out")]) == 0
+    return _fit_outputs(root / "out"), calls[0]
+
+
+def _interrupt_at(monkeypatch, owner, name, n, *, partial=None):
+    """Make the ``n``-th call of ``owner.name`` raise ``KeyboardInterrupt`` (as Ctrl-C there would), after
+    ``partial(*args)`` when given (a write cut short)."""
+    original, calls = getattr(owner, name), [0]
+
+    def wrapper(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == n:
+            if partial is not None:
+                partial(*args)
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, wrapper)
+
+
+def _half_written(target, *args, **kwargs):
+    with open(target, "wb") as f:
+        f.write(b"PK\x03\x04 cut short")
+
+
+PHASES = {
+    "rendering the 2nd reference": ("render_reference", 2),
+    "writing the 3rd reference": ("savez", 3),
+    "the first hard-mode score": ("forward", 1),
+    "a soft step": ("forward", 0.25),
+    "scoring the held-out views": ("forward", 0.8),
+    "the last forward pass": ("forward", 1.0),
+    "writing report.md": ("replace", -3),
+    "writing params.json": ("replace", -2),
+    "writing comparison.png": ("replace", -1),
+}
+
+
+@pytest.mark.parametrize("phase", list(PHASES))
+def test_fit_interrupted_at_each_phase_then_rerun_gives_the_same_result(uninterrupted, tmp_path, monkeypatch, capsys, phase):
+    import os
+
+    import torch_ao.reference as reference
+    from torch_ao.fitted import FittedPipeline
+
+    (expected, forwards), (what, n) = uninterrupted, PHASES[phase]
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    argv = [*FIT, "--cache", str(cache), "--out", str(out)]
+    if what == "render_reference":
+        _interrupt_at(monkeypatch, reference, "render_reference", n)
+    elif what == "savez":
+        _interrupt_at(monkeypatch, np, "savez_compressed", n, partial=_half_written)
+    elif what == "forward":
+        _interrupt_at(monkeypatch, FittedPipeline, "forward", max(1, round(n * forwards)))
+    else:  # the n-th rename from the end: the outputs are written last (report.md, params.json, comparison.png)
+        main(argv[:-2] + ["--out", str(tmp_path / "count")])  # (renders the cache too)
+        replaces = [0]
+        real = os.replace
+        monkeypatch.setattr(os, "replace", lambda *a: replaces.__setitem__(0, replaces[0] + 1) or real(*a))
+        main(argv[:-2] + ["--out", str(tmp_path / "count2")])
+        monkeypatch.setattr(os, "replace", real)
+        _interrupt_at(monkeypatch, os, "replace", replaces[0] + 1 + n)
+    capsys.readouterr()
+    assert main(argv) == 130
+    assert "interrupted" in capsys.readouterr().err
+    monkeypatch.undo()
+    assert main(argv) == 0
+    assert _fit_outputs(out) == expected
+    leftovers = [p for p in [*out.iterdir(), *(cache / "references").iterdir()] if ".tmp" in p.name]
+    assert leftovers == []
+
+
+@pytest.mark.parametrize("phase", ["tracing", "writing the .npz", "writing the .png"])
+def test_render_interrupted_then_rerun_gives_the_same_file(tmp_path, monkeypatch, capsys, phase):
+    import os
+
+    import torch_ao.commands.render as render
+
+    argv = ["render", "fence", "--width", "16", "--height", "12", "--spp", "16", "--quiet"]
+    assert main([*argv, "--out", str(tmp_path / "a.npz"), "--png", str(tmp_path / "a.png")]) == 0
+    out, png = tmp_path / "b" / "b.npz", tmp_path / "b" / "b.png"
+    if phase == "tracing":
+        import torch_ao.reference as reference
+
+        monkeypatch.setattr(reference, "render_reference", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    elif phase == "writing the .npz":
+        _interrupt_at(monkeypatch, np, "savez_compressed", 1, partial=_half_written)
+    else:
+        _interrupt_at(monkeypatch, render, "write_png", 1)
+    assert main([*argv, "--out", str(out), "--png", str(png)]) == 130
+    assert not out.exists() or phase == "writing the .png"
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert main([*argv, "--out", str(out), "--png", str(png)]) == 0
+    from torch_ao.io import read_npz
+
+    a, b = read_npz(tmp_path / "a.npz"), read_npz(out)
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert png.read_bytes() == (tmp_path / "a.png").read_bytes()
+    assert sorted(os.listdir(out.parent)) == ["b.npz", "b.png"]
+
+
+# ------------------------------------------------------------------------------ real kills, concurrent runs
+def _cli(*argv, **kwargs):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), OMP_NUM_THREADS="1")
+    return subprocess.Popen([sys.executable, "-m", "torch_ao.cli", *map(str, argv)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("when", ["a reference is cached", "the checkpoint exists", "params.json exists"])
+def test_fit_killed_with_sigkill_then_rerun_gives_the_same_result(uninterrupted, tmp_path, when):
+    import signal
+    import time
+
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    argv = [*FIT, "--cache", cache, "--out", out]
+    sign = {"a reference is cached": lambda: any((cache / "references").glob("*.npz")) if (cache / "references").is_dir() else False,
+            "the checkpoint exists": lambda: (out / "checkpoint.pt").exists(),
+            "params.json exists": lambda: (out / "params.json").exists()}[when]
+    proc = _cli(*argv)
+    deadline = time.time() + 120
+    while not sign() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=60)
+    rerun = _cli(*argv)
+    stdout, stderr = rerun.communicate(timeout=300)
+    assert rerun.returncode == 0, stderr
+    assert _fit_outputs(out) == uninterrupted[0]
+
+
+@pytest.mark.slow
+def test_two_concurrent_fits_share_a_cache(uninterrupted, tmp_path):
+    cache = tmp_path / "cache"
+    runs = [_cli(*FIT, "--cache", cache, "--out", tmp_path / f"out{i}") for i in range(2)]
+    for run in runs:
+        _, stderr = run.communicate(timeout=300)
+        assert run.returncode == 0, stderr
+    for i in range(2):
+        assert _fit_outputs(tmp_path / f"out{i}") == uninterrupted[0]
+    assert [p.name for p in (cache / "references").iterdir() if ".tmp" in p.name] == []
