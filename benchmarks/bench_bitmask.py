@@ -38,7 +38,9 @@ def child(args: dict) -> dict:
     torch.set_num_threads(args.get("threads", 1))
     H, W = args["height"], args["width"]
     if args.get("gbuffer"):
-        gb = torch.load(args["gbuffer"], weights_only=False)
+        from torch_ao.io import load_gbuffer
+
+        gb, _ = load_gbuffer(args["gbuffer"])
     else:
         gb, _ = floor_wall_gbuffer(H, W, wall_distance=1.0, light_direction=(0.3, 0.8, 0.5))
     device = args.get("device", "cpu")
@@ -127,14 +129,12 @@ def main() -> None:
     if a.scene:
         import tempfile
 
-        import torch
-
+        from torch_ao.io import save_npz
         from torch_ao.reference import get_scene, render_reference
 
         ref = render_reference(get_scene(a.scene), height=H, width=W, spp=2, max_distance=1.0, progress=False,
                                uniform=False)
-        common["gbuffer"] = str(Path(tempfile.mkdtemp()) / f"{a.scene}.pt")
-        torch.save(ref.gbuffer, common["gbuffer"])
+        common["gbuffer"] = str(save_npz(Path(tempfile.mkdtemp()) / f"{a.scene}.npz", ref.gbuffer))
         frame = f"scene {a.scene!r}"
     rows = [
         ("hard forward, AO only", dict(mode="hard", backward=False, indirect=False)),

@@ -26,6 +26,7 @@ import math
 import torch
 
 from torch_ao.gbuffer import GBuffer
+from torch_ao.io import load_gbuffer, save_npz
 from torch_ao.methods.base import PRESETS
 from torch_ao.metrics import error_metrics
 from torch_ao.methods.bitmask import BitmaskAO
@@ -72,12 +73,12 @@ def views(scene: str, size: tuple[int, int], radius: float, thickness: str, rays
     ``fetch``) and its stderr. The render is shared by the truths of every fetch."""
     W, H = size
     stem = f"{scene}-{W}x{H}-R{radius:g}-t{thickness}-r{rays}"
-    path = cache / f"{stem}{'' if fetch == 'bilinear' else '-' + fetch}.pt"
+    path = cache / f"{stem}{'' if fetch == 'bilinear' else '-' + fetch}.npz"
     if path.exists():
-        return torch.load(path, weights_only=False)
+        return _read(path)
     t0 = time.perf_counter()
-    rendered = (torch.load(p, weights_only=False) for p in sorted(cache.glob(f"{scene}-{W}x{H}-R{radius:g}-t*-r*.pt")))
-    found = next((r[:2] for r in rendered if isinstance(r[0], GBuffer) and r[0].backface_depth is not None), None)
+    rendered = (_read(p) for p in sorted(cache.glob(f"{scene}-{W}x{H}-R{radius:g}-t*-r*.npz")))
+    found = next((r[:2] for r in rendered if r[0].backface_depth is not None), None)
     if found is not None:
         gb, ref_ao = found
     else:
@@ -94,10 +95,14 @@ def views(scene: str, size: tuple[int, int], radius: float, thickness: str, rays
         truth = screen_space_truth(gb, radius, float(thickness), rays=rays, fetch=fetch)
     print(f"{scene}: reference {t1 - t0:.0f} s, screen-space truth ({fetch}) {time.perf_counter() - t1:.0f} s",
           file=sys.stderr)
-    out = (gb, ref_ao, truth.visibility, truth.stderr)
-    cache.mkdir(parents=True, exist_ok=True)
-    torch.save(out, path)
-    return out
+    save_npz(path, gb, ao=ref_ao, truth=truth.visibility, truth_stderr=truth.stderr)
+    return gb, ref_ao, truth.visibility, truth.stderr
+
+
+def _read(path: Path):
+    """``(G-buffer, reference AO, screen-space truth, its stderr)`` of a cached ``.npz`` (no pickles)."""
+    gb, extras = load_gbuffer(path)
+    return gb, extras["ao"], extras["truth"], extras["truth_stderr"]
 
 
 def main(argv=None) -> None:

@@ -196,11 +196,13 @@ def test_default_cache_dir_rule(monkeypatch, tmp_path):
     monkeypatch.setenv("TORCH_AO_CACHE", "~/mine")
     assert default_cache_dir() == tmp_path / "home" / "mine"
     import torch_ao.datasets
+    from torch_ao.reference.render import TRACER_VERSION
 
     assert torch_ao.datasets.default_cache_dir is default_cache_dir  # one rule
     assert reference_path(None, "fence", 72, 96, 64, 1.0) == tmp_path / "home" / "mine" / "references" / \
-        "fence_96x72_spp64_R1_seed0.npz"
-    assert reference_path("c", "fence", 72, 96, 64, float("inf"), 3, layout=3).name == "fence_s3_96x72_spp64_Rinf_seed3.npz"
+        f"fence_96x72_spp64_R1.0_seed0_v{torch_ao.__version__}-t{TRACER_VERSION}.npz"
+    assert reference_path("c", "fence", 72, 96, 64, float("inf"), 3, layout=3).name == \
+        f"fence_s3_96x72_spp64_Rinf_seed3_v{torch_ao.__version__}-t{TRACER_VERSION}.npz"
 
 
 def test_fit_views_and_bench_views_share_the_cache(cache, views):

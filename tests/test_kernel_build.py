@@ -65,3 +65,79 @@ def test_any_change_rebuilds(recorder, change):
     assert again.read_text() == source.read_text()
     build.load_cached_library("k_test", [source], cflags, ldflags)  # and now it is current again
     assert len(calls["build"]) == 2 and calls["load"] == [str(again)]
+
+
+def test_a_stale_torch_lock_is_removed_before_building(recorder, tmp_path, monkeypatch):
+    """A build killed with SIGKILL leaves cpp_extension's ``lock`` file, on which every later build would
+    wait forever: under the folder's own lock (whose holder is alive, or the OS released it) it is stale."""
+    calls, source = recorder
+    folder = Path(cpp_extension._get_build_directory("k_test", verbose=False))
+    (folder / "lock").write_text("")
+    seen = []
+    fake = cpp_extension.load
+    monkeypatch.setattr(cpp_extension, "load", lambda **kw: seen.append((folder / "lock").exists()) or fake(**kw))
+    library = build.load_cached_library("k_test", [source], ["-O3"], [])
+    assert seen == [False] and len(calls["build"]) == 1 and library.is_file()
+
+
+LOCK_HOLDER = """
+import fcntl, sys, time
+from pathlib import Path
+folder, stamp_text, library = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+with open(folder / "torch_ao_build.lock", "a") as handle:
+    fcntl.flock(handle, fcntl.LOCK_EX)
+    print("locked", flush=True)
+    time.sleep(1.5)
+    (folder / library).write_bytes(b"built by the other process")
+    (folder / "torch_ao_build.sha256").write_text(stamp_text)
+"""
+
+
+def test_a_build_waits_for_a_live_builder_and_loads_what_it_built(recorder, tmp_path, capfd):
+    import subprocess
+    import sys
+    import time
+
+    calls, source = recorder
+    folder = Path(cpp_extension._get_build_directory("k_test", verbose=False))
+    name = f"k_test{cpp_extension.LIB_EXT}"
+    stamp = f"{build._fingerprint([source], ['-O3'], [])} {name}\n"
+    holder = subprocess.Popen([sys.executable, "-c", LOCK_HOLDER, str(folder), stamp, name], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "locked\n"
+        start = time.perf_counter()
+        library = build.load_cached_library("k_test", [source], ["-O3"], [])
+        waited = time.perf_counter() - start
+    finally:
+        holder.wait(timeout=30)
+    assert calls["build"] == [] and calls["load"] == [str(folder / name)] and library == folder / name
+    assert waited > 0.5
+    assert f"waiting for another process building the C++ kernels in {folder}" in capfd.readouterr().err
+
+
+REAL_BUILD = """
+import sys
+from pathlib import Path
+from torch_ao.kernels import build
+print(build.load_cached_library("k_stale", [sys.argv[1]], [], []))
+"""
+
+
+@pytest.mark.slow
+def test_a_real_build_completes_despite_a_stale_torch_lock(tmp_path):
+    """cpp_extension itself (no recorder): a ``lock`` file left by a killed build does not hang the next one."""
+    import os
+    import subprocess
+    import sys
+
+    source = tmp_path / "k.cpp"
+    source.write_text("extern \"C\" int torch_ao_stale_lock_test() { return 42; }\n")
+    ext = tmp_path / "ext"
+    (ext / "k_stale").mkdir(parents=True)
+    (ext / "k_stale" / "lock").write_text("")
+    env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(ext), PYTHONPATH=str(Path(build.__file__).parents[2]))
+    proc = subprocess.run([sys.executable, "-c", REAL_BUILD, str(source)], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    library = Path(proc.stdout.strip().splitlines()[-1])
+    assert library.is_file() and library.parent == ext / "k_stale" and not (ext / "k_stale" / "lock").exists()

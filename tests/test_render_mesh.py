@@ -145,22 +145,30 @@ def test_ground_plane_height_may_be_negative(tmp_path, two_node_glb):
     assert (oid == 3).any() and float((world[oid == 3, 1] + 0.25).abs().max()) < 1e-4
 
 
-def _with_camera(src, dst):
-    """Rewrite the GLB ``src`` with a camera node nested under a translated parent."""
+def rewrite_glb_json(src, dst, edit) -> None:
+    """Write the GLB ``src`` to ``dst`` with its JSON chunk changed in place by ``edit(header)``."""
     data = src.read_bytes()
     jlen = struct.unpack_from("<I", data, 12)[0]
     header = json.loads(data[20:20 + jlen])
-    rest = data[20 + jlen:]
-    angle = math.radians(30)
-    header["cameras"] = [{"type": "perspective", "perspective": {"yfov": math.radians(50), "znear": 0.05}}]
-    header["nodes"].append({"name": "rig", "translation": [1.0, 1.0, 0.0], "children": [len(header["nodes"]) + 1]})
-    header["nodes"].append({"name": "cam", "camera": 0, "translation": [0.0, 0.0, 4.0],
-                            "rotation": [0.0, math.sin(angle / 2), 0.0, math.cos(angle / 2)]})
-    header["scenes"][header.get("scene", 0)]["nodes"].append(len(header["nodes"]) - 2)
+    edit(header)
     text = json.dumps(header).encode()
     text += b" " * (-len(text) % 4)
-    body = struct.pack("<II", len(text), 0x4E4F534A) + text + rest
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + data[20 + jlen:]
     dst.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)
+
+
+def _with_camera(src, dst):
+    """Rewrite the GLB ``src`` with a camera node nested under a translated parent."""
+    angle = math.radians(30)
+
+    def edit(header):
+        header["cameras"] = [{"type": "perspective", "perspective": {"yfov": math.radians(50), "znear": 0.05}}]
+        header["nodes"].append({"name": "rig", "translation": [1.0, 1.0, 0.0], "children": [len(header["nodes"]) + 1]})
+        header["nodes"].append({"name": "cam", "camera": 0, "translation": [0.0, 0.0, 4.0],
+                                "rotation": [0.0, math.sin(angle / 2), 0.0, math.cos(angle / 2)]})
+        header["scenes"][header.get("scene", 0)]["nodes"].append(len(header["nodes"]) - 2)
+
+    rewrite_glb_json(src, dst, edit)
     # expected camera-to-world: T(1,1,0) @ T(0,0,4) @ Ry(30 degrees)
     c, s = math.cos(angle), math.sin(angle)
     R = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)

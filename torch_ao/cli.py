@@ -10,8 +10,9 @@ import sys
 _COMMANDS = ("ao", "render", "fit", "bench", "convert")
 
 
-class CommandError(Exception):
-    """A user error: printed as one line, exit status 2, no traceback."""
+class CommandError(ValueError):
+    """A user error a command finds: printed as one line, exit status 2, no traceback. (The library
+    raises ``ValueError`` for bad input, naming the argument or file; this is one.)"""
 
 
 class _UsageError(CommandError):
@@ -41,6 +42,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def user_error(err: BaseException) -> str | None:
+    """The one-line message of an error that is the input's or the machine's, not a bug; ``None`` for a bug.
+
+    * ``ValueError`` (``CommandError`` among them): bad input, by the library's convention naming the
+      argument or file; ``TypeError``: an argument of the wrong kind (e.g. an integer depth array);
+      ``ImportError``: an optional dependency missing (the message says which extra installs it);
+    * ``OSError``: a file that cannot be read or written (``PATH: reason``);
+    * ``RecursionError``: input nested deeper than Python can read; ``MemoryError`` and torch's
+      out-of-memory errors: the job does not fit in this machine's memory.
+    """
+    if isinstance(err, (ValueError, TypeError, ImportError)):
+        return str(err)
+    if isinstance(err, OSError):
+        if err.filename is None or err.strerror is None:
+            return str(err)
+        target = err.filename if err.filename2 is None else err.filename2
+        return f"{target}: {err.strerror}"
+    if isinstance(err, RecursionError):
+        return "the input is nested too deeply to read (Python's recursion limit)"
+    if isinstance(err, MemoryError) or _out_of_memory(err):
+        detail = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        return f"out of memory ({detail}); use a smaller size, fewer samples or another --device"
+    return None
+
+
+def _out_of_memory(err: BaseException) -> bool:
+    """torch's allocation failures: ``torch.OutOfMemoryError`` (CUDA) or the CPU allocator's ``RuntimeError``."""
+    if type(err).__name__ == "OutOfMemoryError":
+        return True
+    return isinstance(err, RuntimeError) and "can't allocate memory" in str(err)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -50,15 +83,20 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (CommandError, ValueError, TypeError, FileNotFoundError, ImportError) as err:
-        if os.environ.get("TORCH_AO_DEBUG"):  # the full traceback, for developers
-            raise
-        print(f"torch-ao {args.command}: error: {err}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"torch-ao {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # noqa: BLE001 - user errors become one line; anything else is a bug: re-raised
+        message = user_error(err)
+        if message is None or os.environ.get("TORCH_AO_DEBUG"):  # the full traceback, for developers
+            raise
+        print(f"torch-ao {args.command}: error: {' '.join(message.split())}", file=sys.stderr)  # one line
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m torch_ao.cli`: this file runs as __main__, a second copy of the module; the commands raise
+    # torch_ao.cli's CommandError, so run torch_ao.cli's main.
+    from torch_ao.cli import main as _main
+
+    sys.exit(_main())

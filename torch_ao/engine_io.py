@@ -32,7 +32,7 @@ import torch
 from .checks import check_choice, check_float
 from .options import Option, options_by_name
 
-__all__ = ["EngineOptions", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
+__all__ = ["EngineOptions", "CameraMissing", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
            "parse_channels"]
 
 _EXR_MISSING = "reading OpenEXR files needs the OpenEXR package: pip install 'torch-ao[exr]'"
@@ -159,6 +159,8 @@ def _read_exr(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     OpenEXR = _exr_module()
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
+            if not f.parts:  # (the binding reports a truncated file on stderr and returns no parts)
+                raise ValueError(f"path: {path} is not a readable OpenEXR file (no image parts: truncated?)")
             channels, header = {}, dict(f.parts[0].header)
             for part in f.parts:
                 prefix = part.name() + "." if len(f.parts) > 1 and part.name() else ""
@@ -267,12 +269,17 @@ def _read_png_depth(path: Path, scale: float) -> np.ndarray:
     try:
         with Image.open(path) as im:
             a = np.asarray(im)
-    except OSError as err:
+    except (OSError, Image.DecompressionBombError) as err:
         raise ValueError(f"path: {path} is not a readable PNG file ({err})") from None
     if a.ndim != 2 or a.dtype.itemsize < 2:
         raise ValueError(f"path: {path}: expected a single-channel 16-bit PNG depth, got {a.dtype} of shape {a.shape}")
     depth = a.astype(np.float64) * scale
     return np.where(a == 0, np.inf, depth).astype(np.float32)  # 0 = no depth (background)
+
+
+class CameraMissing(ValueError):
+    """An engine file that names no camera (its message gives ``torch-ao convert``'s flags, a command without
+    them says how to proceed instead)."""
 
 
 def read_engine_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarray]:
@@ -298,7 +305,7 @@ def read_engine_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarr
         arrays["view_matrix"] = np.asarray(header["worldToCamera"], dtype=np.float64).T  # Imath: row vectors
     arrays = apply_engine_options(arrays, opts)
     if "intrinsics" not in arrays and "fov_y_degrees" not in arrays:
-        raise ValueError(f"camera: {path.name} names no camera; give --fov DEGREES or --intrinsics FX,FY,CX,CY")
+        raise CameraMissing(f"camera: {path.name} names no camera; give --fov DEGREES or --intrinsics FX,FY,CX,CY")
     return arrays
 
 

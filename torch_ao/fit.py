@@ -14,16 +14,19 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
   without improvement,
 * atomic checkpoints (parameters, optimizer state, step, RNG state, history) every
   ``checkpoint_every`` steps; the same call with the same ``checkpoint`` path resumes and ends
-  with the same result as an uninterrupted run.
+  with the same result as an uninterrupted run. A checkpoint records the fingerprint of everything
+  that determines the result (:func:`run_fingerprint`: the config, the caller's settings, the module's
+  structure and start values, the training views' data); one written by a run that differs in any
+  of them is refused with :class:`CheckpointMismatch`, which names what differs.
 
 Evaluation is always in **hard** mode (what an engine ships) with :func:`evaluate`.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import random
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,11 +37,14 @@ import torch
 from torch import nn
 
 from .checks import check_choice
+from .io import remove_stale_temporaries as remove_stale_files
+from .io import write_atomic
 from .metrics import error_metrics
 from .views import FitView, load_views
 
 __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views", "set_mode", "rng_state",
-           "set_rng_state", "save_checkpoint", "load_checkpoint", "remove_stale_temporaries", "fittable_parameters"]
+           "set_rng_state", "save_checkpoint", "load_checkpoint", "remove_stale_temporaries", "fittable_parameters",
+           "CheckpointMismatch", "run_fingerprint", "fingerprint_differences", "checkpoint_settings_differences"]
 
 #: Bounds applied after every optimizer step (parameters outside them are meaningless). A falloff
 #: range of exactly 0 is GTAO's hard cut, where neither radius nor falloff has a gradient.
@@ -183,24 +189,95 @@ def set_rng_state(state: dict) -> None:
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
-    """``torch.save`` to a temporary file in the same folder, then an atomic rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """``torch.save`` to a temporary file in the same folder, then an atomic rename (:func:`~torch_ao.io.write_atomic`)."""
+    write_atomic(path, lambda tmp: torch.save(payload, tmp))
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete temporary files a run killed inside :func:`save_checkpoint` left next to ``path``
-    (the checkpoint itself is always whole: it is replaced by an atomic rename)."""
+    """Delete temporary files a run killed inside :func:`save_checkpoint` left next to ``path`` (the
+    checkpoint itself is always whole: it is replaced by an atomic rename); a concurrent writer's file
+    in progress is kept (:func:`~torch_ao.io.remove_stale_temporaries`)."""
     path = Path(path)
-    for stale in path.parent.glob(path.name + ".*.tmp"):
-        stale.unlink(missing_ok=True)
+    remove_stale_files(path.parent, path.name)
+
+
+class CheckpointMismatch(ValueError):
+    """A checkpoint written by a run with other settings; ``differences`` names them
+    (:func:`fingerprint_differences`)."""
+
+    def __init__(self, path: str | os.PathLike, differences) -> None:
+        self.path, self.differences = Path(path), tuple(differences)
+        super().__init__(f"checkpoint: {path} was written with other settings ({', '.join(self.differences)}); "
+                         "remove it or use another path")
+
+
+def _digest(items) -> str:
+    """SHA-256 (hex, 16 digits) of tensors (dtype, shape and bytes) and other values (their ``repr``)."""
+    h = hashlib.sha256()
+    for item in items:
+        if isinstance(item, torch.Tensor):
+            t = item.detach().cpu().contiguous()
+            h.update(f"{t.dtype}{tuple(t.shape)}".encode())
+            h.update((t.float() if t.dtype in (torch.float16, torch.bfloat16) else t).numpy().tobytes())
+        else:
+            h.update(repr(item).encode())
+        h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+def run_fingerprint(module: nn.Module, views: Sequence[FitView], cfg: FitConfig, settings: dict | None = None) -> dict:
+    """What determines a :func:`fit`'s result, as values a checkpoint stores and compares.
+
+    ``config``: ``cfg``'s fields (but ``checkpoint_every``); ``settings``: the caller's named settings
+    (JSON values: what built the module and the views, e.g. scenes, size, preset); ``module``: a digest
+    of the module's structure (its ``repr``) and start values (``state_dict``); ``views``: a digest of
+    the training views' names and data (G-buffer layers, intrinsics, references, standard errors);
+    ``torch_ao_version``.
+    """
+    from . import __version__
+
+    state = module.state_dict()
+    tensors = []
+    for v in views:
+        gb = v.gbuffer
+        tensors += [v.name, gb.depth, gb.normals, gb.light, gb.mask, gb.object_id, gb.backface_depth, gb.position,
+                    gb.camera.intrinsics, v.reference, v.stderr]
+    return {"config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if k != "checkpoint_every"},
+            "settings": dict(settings or {}),
+            "module": _digest([repr(module), *(x for k, t in state.items() for x in (k, t))]),
+            "views": _digest(tensors), "torch_ao_version": __version__}
+
+
+def fingerprint_differences(saved: dict | None, current: dict) -> list[str]:
+    """What differs between two :func:`run_fingerprint` values, most specific cause first: the
+    ``settings`` keys that differ; when none do, the ``config`` fields; when none do, ``module``,
+    ``views`` and ``torch_ao_version`` (``[]``: the same run). ``saved=None`` (a checkpoint without a
+    fingerprint, from an older torch_ao) is ``["torch_ao_version"]``."""
+    if not isinstance(saved, dict):
+        return ["torch_ao_version"]
+    for group in ("settings", "config"):
+        names = _changed(saved.get(group) or {}, current[group])
+        if names:
+            return names
+    return [k for k in ("module", "views", "torch_ao_version") if saved.get(k) != current[k]]
+
+
+def checkpoint_settings_differences(path: str | os.PathLike, settings: dict) -> list[str]:
+    """The ``settings`` keys in which the checkpoint at ``path`` was written with other values
+    (``["torch_ao_version"]`` for one without a fingerprint; ``[]`` when there is no checkpoint): a
+    caller can refuse a checkpoint of other settings before building the views and the module."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    saved = load_checkpoint(path).get("fingerprint")
+    if not isinstance(saved, dict):
+        return ["torch_ao_version"]
+    return _changed(saved.get("settings") or {}, settings)
+
+
+def _changed(old: dict, new: dict) -> list[str]:
+    """Keys (``new``'s order, then ``old``'s) whose values differ, a missing key counting as ``None``."""
+    return [k for k in dict.fromkeys([*new, *old]) if old.get(k) != new.get(k)]
 
 
 def load_checkpoint(path: Path) -> dict:
@@ -211,7 +288,7 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = None, *,
-        checkpoint: str | os.PathLike | None = None, progress: bool = True) -> FitResult:
+        checkpoint: str | os.PathLike | None = None, progress: bool = True, settings: dict | None = None) -> FitResult:
     """Fit ``config.params`` of ``module`` to the reference visibility of ``views``.
 
     Args:
@@ -219,8 +296,11 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             e.g. a method or a :class:`~torch_ao.fitted.FittedPipeline` (method + denoiser).
         views: training views (see :class:`FitView`, :func:`load_views`).
         config: :class:`FitConfig`.
-        checkpoint: file to write checkpoints to and resume from.
+        checkpoint: file to write checkpoints to and resume from; one written by a run with another
+            :func:`run_fingerprint` raises :class:`CheckpointMismatch` before anything is changed.
         progress: show a tqdm progress bar.
+        settings: named JSON values that built ``module`` and ``views`` (e.g. ``{"scenes": ...,
+            "preset": ...}``), stored in the checkpoint's fingerprint so that a mismatch names them.
 
     Returns:
         :class:`FitResult` with the fitted parameter values, the loss history and timings.
@@ -234,6 +314,9 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     if not views:
         raise ValueError("views: expected at least one reference view")
     params = _named_fit_parameters(module, cfg.params)
+    ckpt_path = Path(checkpoint) if checkpoint is not None else None
+    if ckpt_path is not None:
+        fingerprint = run_fingerprint(module, views, cfg, settings)  # (before anything changes the module)
     chosen = {id(p) for p in params.values()}
     for p in module.parameters():
         p.requires_grad_(id(p) in chosen)
@@ -242,16 +325,18 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     hard = cfg.hard_every > 0 and _has_hard_mode(module)
     state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False,
              "hard": [], "best_hard": math.inf, "best_step": None}
-    ckpt_path = Path(checkpoint) if checkpoint is not None else None
-    fingerprint = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if k != "checkpoint_every"}
     if ckpt_path is not None:
         remove_stale_temporaries(ckpt_path)
     if ckpt_path is not None and ckpt_path.exists():
         saved = load_checkpoint(ckpt_path)
-        if saved.get("config") != fingerprint:
-            raise ValueError(f"checkpoint: {ckpt_path} was written with other settings; remove it or use another path")
-        module.load_state_dict(saved["module"])
-        optimizer.load_state_dict(saved["optimizer"])
+        differences = fingerprint_differences(saved.get("fingerprint"), fingerprint)
+        if differences:
+            raise CheckpointMismatch(ckpt_path, differences)
+        try:
+            module.load_state_dict(saved["module"])
+            optimizer.load_state_dict(saved["optimizer"])
+        except (KeyError, RuntimeError, ValueError) as err:  # same fingerprint, yet not this module's state
+            raise CheckpointMismatch(ckpt_path, ["module"]) from err
         set_rng_state(saved["rng"])
         state = saved["state"]
     else:
@@ -260,7 +345,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         random.seed(cfg.seed)
 
     def snapshot():
-        return {"config": fingerprint, "module": module.state_dict(), "optimizer": optimizer.state_dict(),
+        return {"fingerprint": fingerprint, "module": module.state_dict(), "optimizer": optimizer.state_dict(),
                 "rng": rng_state(), "state": state}
 
     def values() -> dict[str, torch.Tensor]:

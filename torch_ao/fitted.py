@@ -210,6 +210,8 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
         data = json.loads(path.read_text())
     except json.JSONDecodeError as err:
         raise ValueError(f"fitted: {path} is not JSON ({err})") from None
+    except RecursionError:
+        raise ValueError(f"fitted: {path} is nested too deeply to be a params.json") from None
     pipeline = FittedPipeline.from_dict(data, source=f"fitted: {path}")
     return pipeline if device is None else pipeline.to(device)
 

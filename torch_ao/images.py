@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["save_png", "to_display"]
+__all__ = ["save_png", "to_display", "pyplot"]
 
 
 def to_display(image: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -22,8 +22,9 @@ def to_display(image: torch.Tensor | np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
 
 
-def save_png(path: str | Path, image) -> Path:
-    """Save an image (see :func:`to_display`) as PNG. Needs matplotlib (``pip install torch-ao[plot]``)."""
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend; ``ImportError`` saying how to install it (a command
+    calls it before computing anything when it will write a PNG)."""
     try:
         import matplotlib
 
@@ -31,7 +32,13 @@ def save_png(path: str | Path, image) -> Path:
         import matplotlib.pyplot as plt
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError("--png needs matplotlib: pip install 'torch-ao[plot]'") from err
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    plt.imsave(path, to_display(image))
-    return path
+    return plt
+
+
+def save_png(path: str | Path, image) -> Path:
+    """Save an image (see :func:`to_display`) as PNG, atomically. Needs matplotlib (``pip install torch-ao[plot]``)."""
+    from .io import write_atomic
+
+    plt = pyplot()
+    display = to_display(image)
+    return write_atomic(path, lambda tmp: plt.imsave(tmp, display, format="png"))

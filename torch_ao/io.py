@@ -25,10 +25,15 @@ Other image-like keys (``(...,H,W)`` or ``(...,H,W,C)``) are kept and returned a
 """
 from __future__ import annotations
 
+import glob
 import os
+import re
+import socket
 import tempfile
+import time
 import zipfile
 from pathlib import Path
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -36,7 +41,9 @@ import torch
 from .camera import PinholeCamera
 from .gbuffer import GBuffer
 
-__all__ = ["load_gbuffer", "read_gbuffer_arrays", "gbuffer_from_arrays", "save_npz", "read_npz", "image_to_numpy", "numpy_to_image", "write_text_atomic", "save_json"]
+__all__ = ["load_gbuffer", "read_gbuffer_arrays", "gbuffer_from_arrays", "save_npz", "read_npz", "image_to_numpy",
+           "numpy_to_image", "write_text_atomic", "save_json", "write_atomic", "remove_stale_temporaries",
+           "check_output_path", "STALE_TEMPORARY_SECONDS"]
 
 # "position" is also returned among the extras (as before it was a G-buffer key; references written by
 # ``torch-ao render`` carry it).
@@ -213,35 +220,110 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
             out[key] = image_to_numpy(value) if value.dim() == 4 else value.detach().cpu().numpy()
         else:
             out[key] = np.asarray(value)
+    return write_atomic(path, lambda tmp: np.savez_compressed(tmp, **out), suffix=".npz")
+
+
+#: Age after which a temporary file of :func:`write_atomic` is stale even when the process that named
+#: it seems alive (its PID reused, or a writer on another host): no write takes this long.
+STALE_TEMPORARY_SECONDS = 24 * 3600
+
+_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname()) or "host"
+
+
+def _temporary_writer(path: Path) -> tuple[str, int] | None:
+    """``(host, pid)`` of the writer a :func:`write_atomic` temporary name records, else ``None``."""
+    match = re.search(r"\.([A-Za-z0-9_]+)-(\d+)\.[^.]+\.tmp(\.[^.]*)?$", path.name)
+    return (match.group(1), int(match.group(2))) if match else None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def write_atomic(path: str | os.PathLike, write: Callable[[str], None], *, suffix: str = "") -> Path:
+    """Create or replace ``path`` atomically: ``write(tmp)`` fills a temporary file in the same folder,
+    which is then renamed onto ``path``, so readers (and a run killed mid-write) never see a partial file.
+
+    The temporary file is ``<name>.<host>-<pid>.<random>.tmp<suffix>`` (``suffix``: an extension the
+    writer needs, e.g. ``.npz``), so :func:`remove_stale_temporaries` can tell a dead writer's leftover
+    from a live one's file in progress; the stale leftovers of earlier writes of ``path`` are removed
+    first. The file gets the usual permissions (``0666`` less the umask).
+    """
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
+    remove_stale_temporaries(path.parent, path.name)
+    fd, tmp = tempfile.mkstemp(prefix=f"{path.name}.{_HOST}-{os.getpid()}.", suffix=".tmp" + suffix, dir=path.parent)
     os.close(fd)
     try:
-        np.savez_compressed(tmp, **out)
+        write(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+    return path
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, name: str = "*") -> list[Path]:
+    """Delete the temporary files :func:`write_atomic` left in ``folder`` (for the file ``name``; ``*``:
+    any) when it was killed mid-write; returns them. A temporary file is stale when its writer (the PID
+    in its name, on this host) is dead, or when it is older than :data:`STALE_TEMPORARY_SECONDS`; a
+    concurrent run's file in progress is never deleted."""
+    removed = []
+    now = time.time()
+    for tmp in Path(folder).glob(f"{name if name == '*' else glob.escape(name)}.*.tmp*"):
+        writer = _temporary_writer(tmp)
+        try:
+            old = now - tmp.stat().st_mtime > STALE_TEMPORARY_SECONDS
+        except FileNotFoundError:  # renamed or removed by its writer meanwhile
+            continue
+        dead = writer is not None and writer[0] == _HOST and not _alive(writer[1])
+        if dead or old:
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
+def check_output_path(flag: str, path: str | os.PathLike, suffixes: Sequence[str] = (), *, folder: bool = False) -> Path:
+    """``ValueError`` naming ``flag`` unless ``path`` can be written: a file that ends with one of
+    ``suffixes`` (any when empty; compared without case) and is not a folder, or with ``folder=True``
+    a folder (existing, or to be created) that is not a file; either way its nearest existing parent
+    must be a writable folder. Nothing is created: call it before computing anything."""
+    path = Path(path)
+    if folder:
+        if path.exists() and not path.is_dir():
+            raise ValueError(f"{flag}: {path} is a file; expected a folder")
+    else:
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise ValueError(f"{flag}: expected a {' or '.join(suffixes)} file name, got {str(path)!r}")
+        if path.is_dir():
+            raise ValueError(f"{flag}: {path} is a folder; expected a file name")
+    parent = path if folder and path.is_dir() else path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"{flag}: cannot write {path}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"{flag}: cannot write {path}: {parent} is not writable")
     return path
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file and a rename: readers (and a run killed
-    mid-write) never see a partial file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
+    """Write ``text`` to ``path`` atomically (:func:`write_atomic`)."""
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", newline="") as f:
             f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+
+    return write_atomic(path, write)
 
 
 def save_json(path: str | os.PathLike, obj, **dumps_options) -> Path:

@@ -89,30 +89,60 @@ def reference_path(cache_dir: str | os.PathLike | None, scene: str, height: int,
                    max_distance: float, seed: int = 0, *, layout: int | None = None) -> Path:
     """The cache file of a built-in scene's reference.
 
-    ``references/<scene>[_s<layout>]_<W>x<H>_spp<spp>_R<max_distance>_seed<seed>.npz``: ``layout`` is
-    the scene's randomisation seed (``None``: its default layout), ``seed`` the sampling seed of the
-    renderer; ``cache_dir=None`` is :func:`default_cache_dir`.
+    ``references/<scene>[_s<layout>]_<W>x<H>_spp<spp>_R<max_distance>_seed<seed>_v<version>-t<tracer>.npz``:
+    ``layout`` is the scene's randomisation seed (``None``: its default layout), ``seed`` the sampling
+    seed of the renderer, ``max_distance`` written exactly (``repr``: ``0.5000001`` is not ``0.5``),
+    ``version`` and ``tracer`` the library's version and
+    :data:`~torch_ao.reference.render.TRACER_VERSION`; ``cache_dir=None`` is :func:`default_cache_dir`.
     """
+    from . import __version__
+    from .reference.render import TRACER_VERSION
+
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    r = "inf" if math.isinf(max_distance) else f"{max_distance:g}"
+    r = repr(float(max_distance))
     tag = "" if layout is None else f"_s{layout}"
-    return cache / "references" / f"{scene}{tag}_{width}x{height}_spp{spp}_R{r}_seed{seed}.npz"
+    return cache / "references" / (f"{scene}{tag}_{width}x{height}_spp{spp}_R{r}_seed{seed}"
+                                   f"_v{__version__}-t{TRACER_VERSION}.npz")
+
+
+def _cached_file_matches(path: Path, height: int, width: int, spp: int, max_distance: float, seed: int) -> bool:
+    """Whether the cached file ``path`` holds what its name promises: its size, ``spp``, ``max_distance``,
+    ``seed`` and tracer version (a planted, renamed or older file does not)."""
+    import numpy as np
+
+    from .reference.render import TRACER_VERSION
+
+    want = {"spp": spp, "max_distance": float(max_distance), "seed": seed, "tracer_version": TRACER_VERSION}
+    try:
+        with np.load(path, allow_pickle=False) as data:  # (reads only these members)
+            stored = {k: data[k] for k in want if k in data.files}
+            shape = data["depth"].shape
+    except Exception:  # noqa: BLE001 - whatever makes the file unreadable, it is rendered again
+        return False
+    return (tuple(shape[-2:]) == (height, width) and set(stored) == set(want)
+            and all(stored[k].size == 1 and float(stored[k]) == float(v) for k, v in want.items()))
 
 
 def cached_reference(scene: str, *, height: int, width: int, spp: int, max_distance: float, seed: int = 0,
                      layout: int | None = None, cache_dir: str | os.PathLike | None = None, progress: bool = False,
                      log: Callable[[str], None] | None = None) -> Path:
     """The path of the reference of built-in ``scene`` (see :func:`reference_path`), ray-traced and
-    written there first when it is not in the cache yet."""
+    written there first when it is not in the cache yet, or when the file there does not hold this
+    request (another size, spp, max_distance, seed or tracer version: it is rendered again). Temporary
+    files that runs killed while writing to the cache left are removed (never a live run's)."""
+    from .io import remove_stale_temporaries
+
     path = reference_path(cache_dir, scene, height, width, spp, max_distance, seed, layout=layout)
-    if not path.exists():
+    if not (path.exists() and _cached_file_matches(path, height, width, spp, max_distance, seed)):
         from .reference import get_scene, render_reference
 
+        if path.parent.is_dir():
+            remove_stale_temporaries(path.parent)
         if log is not None:
-            log(f"rendering reference {scene} ({width}x{height}, {spp} spp, R={max_distance:g}) -> {path}")
+            redo = " (the cached file holds another render)" if path.exists() else ""
+            log(f"rendering reference {scene} ({width}x{height}, {spp} spp, R={max_distance:g}){redo} -> {path}")
         ref = render_reference(get_scene(scene, layout), height=height, width=width, spp=spp,
                                max_distance=max_distance, seed=seed, uniform=False, progress=progress)
-        path.parent.mkdir(parents=True, exist_ok=True)
         ref.save(path)
     return path
 

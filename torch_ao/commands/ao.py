@@ -7,11 +7,11 @@ import time
 import torch
 
 from ..bench import DEFAULT_TOLERANCE
-from ..cli import CommandError
 from ..examples import example_gbuffer
-from ..io import load_gbuffer, save_npz
+from ..io import check_output_path, load_gbuffer, save_npz
 from ..methods import METHODS, get_method
 from ..options import Option
+from .args import parse_device
 from .auto import apply_auto
 from .options_cli import add_options, construct, given, method_kwargs, method_options
 
@@ -57,14 +57,29 @@ def build_method(name: str, args: argparse.Namespace) -> torch.nn.Module:
     return construct(cls, method_kwargs(name, cls, given(args, args.method_flags)))
 
 
+def _load(path: str, device):
+    """The G-buffer of ``path``; an engine file without a camera is refused with the command that converts it."""
+    from ..engine_io import CameraMissing
+
+    try:
+        return load_gbuffer(path, device=device)[0]
+    except CameraMissing:
+        raise ValueError(f"camera: {path} names no camera, and `torch-ao ao` takes none; convert it first: "
+                         f"torch-ao convert {path} --fov DEGREES (or --intrinsics FX,FY,CX,CY) --out FILE.npz") from None
+
+
 def run(args: argparse.Namespace) -> int:
-    device = torch.device(args.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise CommandError("--device: CUDA is not available on this machine")
+    device = parse_device(args.device)
+    check_output_path("--out", args.out, (".npz",))
+    if args.png:
+        from ..images import pyplot
+
+        check_output_path("--png", args.png, (".png",))
+        pyplot()  # (matplotlib, before the method runs)
     if args.auto or args.report or args.tolerance is not None:
         apply_auto(args)
     if args.gbuffer:
-        gbuffer, _ = load_gbuffer(args.gbuffer, device=device)
+        gbuffer = _load(args.gbuffer, device)
     else:
         gbuffer = example_gbuffer().to(device)
     from ..fitted import cli_module

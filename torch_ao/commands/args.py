@@ -13,7 +13,7 @@ import argparse
 import math
 import re
 
-__all__ = ["allow_negative_lists", "add_float_list", "parse_float_list"]
+__all__ = ["allow_negative_lists", "add_float_list", "parse_float_list", "parse_device"]
 
 # Anything that starts like a negative number ("-2", "-.5", "-2,1,3", "-2,x,1") is a value: the
 # flag's own check then says what is wrong with it, instead of argparse's "expected one argument".
@@ -72,3 +72,20 @@ def add_float_list(parser: argparse.ArgumentParser, flag: str, length: int, help
     allow_negative_lists(parser)
     parser.add_argument(flag, metavar=names.upper(), default=default,
                         help=f"{help} ({length} comma-separated numbers; may start with '-')")
+
+
+def parse_device(text: str, flag: str = "--device"):
+    """``torch.device(text)``, checked before anything runs on it: a ``ValueError`` naming ``flag`` for a
+    malformed device, CUDA on a machine without it, or a CUDA index the machine does not have."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{flag}: expected a torch device such as cpu, cuda or cuda:1, got {text!r}") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{flag}: CUDA is not available on this machine")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"{flag}: {text} does not exist (this machine has {torch.cuda.device_count()} CUDA devices)")
+    return device

@@ -18,6 +18,8 @@ from ..resolution import RESOLUTIONS
 from ..options import Option
 from ..reference import SCENES
 from ..views import default_cache_dir
+from ..io import check_output_path
+from .args import parse_device
 from .options_cli import add_options, flag, given, method_kwargs, method_options
 
 
@@ -136,9 +138,8 @@ def run(args: argparse.Namespace) -> int:
     from ..bench import available_methods, background_scaling, environment, load_report, run_bench, write_report
     from ..views import load_bench_views
 
-    device = torch.device(args.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise CommandError("--device: CUDA is not available on this machine")
+    device = parse_device(args.device)
+    check_output_path("--out", args.out, folder=True)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     base = QUICK if args.quick else DEFAULT

@@ -62,16 +62,20 @@ def _rename_option_error(err: ValueError) -> ValueError:
 def run(args: argparse.Namespace) -> int:
     from ..cli import CommandError
     from ..engine_io import list_exr_channels
-    from ..io import gbuffer_from_arrays, read_gbuffer_arrays, save_npz
+    from ..io import check_output_path, gbuffer_from_arrays, read_gbuffer_arrays, save_npz
 
     if args.list_channels:
         for name, dtype, shape in list_exr_channels(args.input):
             print(f"{name}  {dtype}  {shape[1]}x{shape[0]}")
         return 0
-    if not args.out or not args.out.endswith(".npz"):
-        raise CommandError(f"--out: expected a .npz file name, got {args.out!r}")
-    if args.png and not args.png.lower().endswith(".png"):
-        raise CommandError(f"--png: expected a .png file name, got {args.png!r}")
+    if not args.out:
+        raise CommandError("--out: an output .npz file is required")
+    check_output_path("--out", args.out, (".npz",))
+    if args.png:
+        from ..images import pyplot
+
+        check_output_path("--png", args.png, (".png",))
+        pyplot()
     try:
         arrays = read_gbuffer_arrays(args.input, **engine_options(args))
         gbuffer, extras = gbuffer_from_arrays(arrays, args.input)

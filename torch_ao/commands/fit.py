@@ -18,12 +18,14 @@ import torch
 
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
-from ..fit import LOSSES, FitConfig, evaluate, fit, fittable_parameters, load_views, set_mode
+from ..fit import (LOSSES, CheckpointMismatch, FitConfig, checkpoint_settings_differences, evaluate, fit,
+                   fittable_parameters, load_views, set_mode)
 from ..fitted import THICKNESS_MODELS, FittedPipeline
-from ..io import read_npz, write_text_atomic
+from ..io import check_output_path, read_npz, write_text_atomic
 from ..methods import get_method
 from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
+from .args import parse_device
 from .options_cli import add_option
 from .render import OPTIONS as RENDER_OPTIONS
 
@@ -36,6 +38,9 @@ NO_GRADIENT_START = {"falloff_range": 0.25}
 BITMASK = ("bitmask", "ssilvb")
 #: Smallest width and height of the built-in views (``--size``).
 MIN_SIZE = 4
+#: Flags that do not change the fit (where it writes, how it reports, the held-out views it is scored on
+#: afterwards): every other flag is in the checkpoint's fingerprint, so a resumed fit is the same fit.
+NOT_IN_CHECKPOINT = ("out", "restart", "cache", "no_progress", "holdout", "holdout_views")
 
 
 def _method_option(method: str, name: str) -> Option:
@@ -87,6 +92,8 @@ OPTIONS = (
     Option("seed", FitConfig.seed, "seed of the fit's randomness (view batches, jitter)", int, minimum=0),
     Option("cache", None, f"reference cache folder; when not given, {default_cache_dir()}", str),
     Option("out", "fit-out", "output folder (params.json, report.md, comparison.png, checkpoint.pt)", str),
+    Option("restart", False, "discard --out's checkpoint.pt and fit from the start (else a run with the same settings "
+           "resumes it, and one with other settings is refused)", bool),
     Option("device", "cpu", "torch device of the fit and of the reference renders, e.g. cpu or cuda", str),
     Option("no_progress", False, "no progress bars", bool),
 )
@@ -105,7 +112,8 @@ def register(sub) -> None:
         description="Fit a method's float parameters by gradient descent against ray-traced reference AO, "
         "scoring the pipeline that ships (method in hard mode + denoiser), then compare on held-out views. "
         "Without --reference, uses randomised views of the built-in scenes (rendered once, then cached). "
-        "Re-running the same command resumes an interrupted fit.",
+        "Re-running the same command resumes an interrupted fit; one with other settings is refused while --out holds "
+        "the first one's checkpoint (give another --out, or --restart).",
     )
     for opt in OPTIONS:
         add_option(p, opt.name, opt, given_only=False, switch=True, **_FORMS.get(opt.name, {}))
@@ -251,7 +259,9 @@ def thickness_options(args, views, init: dict[str, float]) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     init = _init_values(args.init)
-    out = Path(args.out)
+    parse_device(args.device)
+    out = check_output_path("--out", args.out, folder=True)
+    checkpoint, settings = _checkpoint(args)
     denoise = not args.no_denoise
     train, held, radius = _views(args)
     model = thickness_options(args, train + held, init)
@@ -279,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
                     seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
                     param_lr={k: args.lr * radius for k in params if k in LENGTHS})
-    result = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
+    result = _fit(module, train, cfg, args, checkpoint, settings)
 
     rows = {}
     if args.method in BITMASK:
@@ -316,6 +326,39 @@ def run(args: argparse.Namespace) -> int:
     _comparison_png(out / "comparison.png", held[0], default, module)
     print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
     return 0
+
+
+def _checkpoint(args: argparse.Namespace) -> tuple[Path, dict]:
+    """``--out``'s checkpoint path (removed with ``--restart``) and the settings its fingerprint holds
+    (every flag that changes the fit); a checkpoint of other settings is refused by name here, before
+    any reference is rendered."""
+    checkpoint = Path(args.out) / "checkpoint.pt"
+    if args.restart:
+        checkpoint.unlink(missing_ok=True)
+    settings = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_IN_CHECKPOINT and k not in ("command", "func")}
+    _refuse_checkpoint(args, checkpoint, settings, checkpoint_settings_differences(checkpoint, settings))
+    return checkpoint, settings
+
+
+def _refuse_checkpoint(args, checkpoint: Path, settings: dict, differences) -> None:
+    """``CommandError`` naming ``differences`` (flags, or what else differs) when there are any."""
+    if not differences:
+        return
+    from .options_cli import flag
+
+    what = {"module": "the method's start values", "views": "the training views' data",
+            "torch_ao_version": "another torch_ao version"}
+    named = [flag(k) if k in settings else what.get(k, k) for k in differences]
+    raise CommandError(f"--out {args.out}: {checkpoint} belongs to a fit with other settings ({', '.join(named)}); "
+                       "give another --out, or --restart to discard it")
+
+
+def _fit(module, train, cfg: FitConfig, args: argparse.Namespace, checkpoint: Path, settings: dict):
+    """:func:`~torch_ao.fit.fit` with ``--out``'s checkpoint, refused by name when it belongs to other settings."""
+    try:
+        return fit(module, train, cfg, checkpoint=checkpoint, progress=not args.no_progress, settings=settings)
+    except CheckpointMismatch as err:
+        _refuse_checkpoint(args, checkpoint, settings, err.differences)
 
 
 def _train_losses(result) -> tuple[float | None, float | None]:

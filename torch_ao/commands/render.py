@@ -15,7 +15,8 @@ from pathlib import Path
 
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
-from .args import add_float_list, allow_negative_lists, parse_float_list
+from ..io import check_output_path
+from .args import add_float_list, allow_negative_lists, parse_device, parse_float_list
 from .options_cli import add_option, flag
 
 __all__ = ["register", "run", "write_png"]
@@ -162,10 +163,10 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("SCENE: name a built-in scene (torch-ao render --list shows them) or give --mesh FILE")
     if not args.out:
         raise CommandError("--out: an output .npz file is required")
-    if not args.out.endswith(".npz"):
-        raise CommandError(f"--out: expected a .npz file name, got {args.out!r}")
-    if args.png and not args.png.lower().endswith(".png"):
-        raise CommandError(f"--png: expected a .png file name, got {args.png!r}")
+    check_output_path("--out", args.out, (".npz",))
+    if args.png:
+        check_output_path("--png", args.png, (".png",))
+    parse_device(args.device)
     for name in _VECTORS:  # check the flags before loading (big) mesh files
         parse_float_list(flag(name), getattr(args, name), 3, names="x,y,z")
     scene = _scene(args)
@@ -218,9 +219,6 @@ def preview(ref):
 
 def write_png(path, rgb) -> Path:
     """Write an ``(H, W, 3)`` uint8 array as a PNG (no extra dependency), atomically."""
-    import os
-    import tempfile
-
     import numpy as np
 
     rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
@@ -232,10 +230,6 @@ def write_png(path, rgb) -> Path:
 
     data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)) \
         + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-    return path
+    from ..io import write_atomic
+
+    return write_atomic(path, lambda tmp: Path(tmp).write_bytes(data))

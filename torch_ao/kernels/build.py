@@ -1,6 +1,7 @@
 """Building the C++ kernels on first use (``torch.utils.cpp_extension``), cached per CPU capability."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -72,6 +73,10 @@ def load_cpu_library(prefix: str, sources) -> Path:
 
 #: Written next to a built library: the fingerprint of what it was built from.
 _STAMP = "torch_ao_build.sha256"
+#: Locked (``flock``) by the process that builds in the folder; the OS releases it when that process dies.
+_LOCK = "torch_ao_build.lock"
+#: The file cpp_extension creates while it builds, and waits on (forever) while it exists.
+_TORCH_LOCK = "lock"
 
 
 def _fingerprint(sources, cflags, ldflags) -> str:
@@ -96,17 +101,61 @@ def load_cached_library(name: str, sources, cflags, ldflags) -> Path:
     library holds the :func:`_fingerprint` of its inputs: when it matches, the library is loaded
     directly (milliseconds); otherwise ``cpp_extension.load`` builds it (ninja rebuilds what changed)
     and the stamp is rewritten.
+
+    A build holds :func:`_build_lock` on the folder: a second process waits for it and then loads what
+    it built, and cpp_extension's own ``lock`` file, which a build killed with SIGKILL leaves behind
+    (and every later build would wait on forever), is removed as stale.
     """
     from torch.utils import cpp_extension
 
     folder = Path(cpp_extension._get_build_directory(name, verbose=False))
-    stamp = folder / _STAMP
     fingerprint = _fingerprint(sources, cflags, ldflags)
+    library = _current_library(folder, fingerprint)
+    if library is None:
+        with _build_lock(folder):
+            library = _current_library(folder, fingerprint)  # (built by the process we waited for)
+            if library is None:
+                (folder / _TORCH_LOCK).unlink(missing_ok=True)  # under our lock, no live build owns it
+                return _build(cpp_extension, name, folder, fingerprint, sources, cflags, ldflags)
+    torch.ops.load_library(str(library))
+    return library
+
+
+def _current_library(folder: Path, fingerprint: str) -> Path | None:
+    """The library the stamp in ``folder`` records for ``fingerprint``, if it is there."""
+    stamp = folder / _STAMP
     recorded = stamp.read_text().split() if stamp.exists() else []
     if len(recorded) == 2 and recorded[0] == fingerprint and (folder / recorded[1]).is_file():
-        library = folder / recorded[1]
-        torch.ops.load_library(str(library))
-        return library
+        return folder / recorded[1]
+    return None
+
+
+@contextlib.contextmanager
+def _build_lock(folder: Path):
+    """Hold an exclusive ``flock`` on ``folder/torch_ao_build.lock`` (waiting, with a note on stderr, while
+    another process holds it). The OS releases it when its holder exits or is killed, so it is never
+    stale. Where ``fcntl`` is missing (Windows) nothing is locked."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / _LOCK, "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"torch_ao: waiting for another process building the C++ kernels in {folder}", file=sys.stderr)
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _build(cpp_extension, name: str, folder: Path, fingerprint: str, sources, cflags, ldflags) -> Path:
+    """``cpp_extension.load`` (build and load) in ``folder``, then the stamp of ``fingerprint``."""
+    stamp = folder / _STAMP
     stamp.unlink(missing_ok=True)  # a build interrupted from here on leaves no stale stamp
     library = Path(cpp_extension.load(name=name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
                                       extra_ldflags=list(ldflags), is_python_module=False,

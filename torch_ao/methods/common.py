@@ -51,7 +51,7 @@ def split_preset(preset: str) -> tuple[str, str | None]:
 
 #: The world-space radius most methods search (a method that samples in pixels does not list it).
 RADIUS = Option("radius", 1.0, "Search radius: samples farther than this from the pixel do not occlude",
-                unit="world units", minimum=0.0, fitted=True)
+                unit="world units", minimum=0.0, open_minimum=True, fitted=True)
 
 #: Options of every module, outside the walk: normals reconstruction, memory, trainability.
 MODULE_OPTIONS = (

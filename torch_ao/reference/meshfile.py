@@ -116,7 +116,11 @@ def gltf_camera(path: str | Path) -> LookAt | None:
         world = parent @ _node_matrix(node)
         cam = node.get("camera")
         if cam is not None and 0 <= cam < len(cameras) and cameras[cam].get("type") == "perspective":
-            yfov = float(cameras[cam]["perspective"]["yfov"])
+            perspective = cameras[cam].get("perspective")
+            if not isinstance(perspective, dict) or "yfov" not in perspective:
+                raise ValueError(f"camera: {path}: cameras[{cam}] is a perspective camera without a 'perspective' "
+                                 "object holding 'yfov'")
+            yfov = float(perspective["yfov"])
             R = world[:3, :3] / np.linalg.norm(world[:3, :3], axis=0)
             eye = world[:3, 3]
             return LookAt(eye=eye.tolist(), target=(eye - R[:, 2]).tolist(), up=R[:, 1].tolist(),

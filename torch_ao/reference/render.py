@@ -78,7 +78,7 @@ class Reference:
         """The non-G-buffer arrays under their file keys (see :func:`torch_ao.io.save_npz`)."""
         out = {"ao": self.ao, "ao_stderr": self.ao_stderr, "albedo": self.albedo, "position": self.position,
                "max_distance": float(self.max_distance), "spp": self.spp, "seed": self.seed,
-               "world_to_view": self.world_to_view}
+               "world_to_view": self.world_to_view, "tracer_version": TRACER_VERSION}
         if self.ao_uniform is not None:
             out["ao_uniform"], out["ao_uniform_stderr"] = self.ao_uniform, self.ao_uniform_stderr
         if self.indirect is not None:
@@ -92,6 +92,11 @@ class Reference:
         from ..io import save_npz
 
         return save_npz(path, self.gbuffer, **self.arrays())
+
+
+#: Version of what the tracer renders: raised whenever a change alters a rendered file's values (the
+#: reference cache's file names hold it, with the library's version, so older renders are not reused).
+TRACER_VERSION = 1
 
 
 def default_views(scene: Scene, height: int, width: int) -> Views:
