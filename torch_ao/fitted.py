@@ -35,10 +35,11 @@ from torch import nn
 from .denoise import Denoiser
 from .gbuffer import GBuffer
 from .methods import get_method
+from .options import Option
 from .thickness import BackfaceThickness, LinearThickness, ObjectThickness, ScalarThickness
 
 __all__ = ["DenoisedAO", "FittedPipeline", "load_fitted", "bench_rows", "cli_module", "FORMAT", "DENOISER_SETTINGS",
-           "THICKNESS_MODELS", "thickness_model", "DEFAULT_LENGTH_UNIT", "length_factors", "scale_lengths", "rescaled"]
+           "THICKNESS_MODELS", "thickness_model", "DEFAULT_LENGTH_UNIT", "SCALE", "length_factors", "scale_lengths", "rescaled"]
 
 #: Value of the file's ``format`` key (bumped when the layout changes).
 FORMAT = "torch_ao.fitted/1"
@@ -48,6 +49,10 @@ DENOISER_SETTINGS = ("kernel_size", "sigma_space", "sigma_depth", "sigma_normal"
 DEFAULT_LENGTH_UNIT = "world units"
 #: How an :class:`~torch_ao.options.Option`'s unit scales with the lengths: the power of the length scale.
 _LENGTH_POWERS = {"world units": 1, "1 / world units": -1}
+#: The ``--scale`` flag of ``torch-ao ao --fitted`` and ``torch-ao export``.
+SCALE = Option("scale", None, "with a params.json: world units of the frames it runs on per length unit of the file "
+               "(e.g. 100 for a fit in metres applied to centimetres); multiplies every length parameter together "
+               "(radius, thickness, biases, fade lengths); default 1", float, minimum=0.0, open_minimum=True)
 
 
 #: Thickness models a pipeline's ``thickness_model`` option names: the :mod:`torch_ao.thickness` class and
@@ -267,11 +272,14 @@ def rescaled(pipeline: FittedPipeline, scale: float) -> FittedPipeline:
 
 
 def cli_module(args, build, method_flags=()) -> nn.Module:
-    """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline) or
-    ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``.
+    """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline, its lengths
+    times ``--scale``) or ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``.
     ``method_flags``: names of the method flags, refused with ``--fitted`` when given."""
     fitted, denoise = getattr(args, "fitted", None), bool(getattr(args, "denoise", False))
     if fitted is None:
+        if getattr(args, "scale", None) is not None:
+            raise ValueError("--scale: scales a --fitted pipeline's lengths; give --radius (and the other lengths) "
+                             "directly without --fitted")
         module = build(args)
         return DenoisedAO(module, True) if denoise else module
     clash = [f"--{k.replace('_', '-')}" for k in method_flags if getattr(args, k, None) is not None]
@@ -279,7 +287,8 @@ def cli_module(args, build, method_flags=()) -> nn.Module:
         clash.append("--auto")
     if clash:
         raise ValueError(f"--fitted: the file fixes the method and its options; drop {', '.join(clash)}")
-    pipeline = load_fitted(fitted)
+    scale = getattr(args, "scale", None)
+    pipeline = load_fitted(fitted, scale=1.0 if scale is None else scale)
     if denoise and pipeline.denoiser is None:
         pipeline.denoiser = Denoiser()
     return pipeline

@@ -242,7 +242,7 @@ def _summary(pipeline, scale: float) -> str:
     else:
         lines.append(f"variant {m.variant}, normalize {m.normalize}")
     unit = getattr(pipeline, "length_unit", "world units")
-    lines.append(f"lengths in {unit}" + ("" if scale == 1.0 else f", scaled by {scale:g} (--scale)"))
+    lines.append(f"lengths in {unit}" if scale == 1.0 else f"lengths: the file's {unit} x {scale:g} (--scale)")
     lines.append("The denoiser is not part of this pass" + (" (the pipeline's denoiser is excluded: run a depth- "
                  "and normal-aware blur after it)" if pipeline.denoiser is not None else "") + ".")
     lines.append("Interface: uPosition, uNormal" + (", uBackfaceDepth" if "AO_THICKNESS_SCALE" in shader_defines(pipeline)

@@ -46,34 +46,34 @@ float aoInverseDepth(int x, int y)
 // walk/fetch.py _continuous_pairs for the pair (k, k+1) along a row (alongRow) or a column: both texels
 // valid, and within EDGE_MIN_RATIO, or the jump within its neighbours' range widened by EDGE_SLOPE_TOLERANCE
 // of itself; a pair alone in its line, matching the parallel pair beside it.
-float aoInverseAt(int line, int k, bool alongRow) { return alongRow ? aoInverseDepth(k, line) : aoInverseDepth(line, k); }
+float aoInverseAt(int ln, int k, bool alongRow) { return alongRow ? aoInverseDepth(k, ln) : aoInverseDepth(ln, k); }
 
-bool aoPairBoth(int line, int k, bool alongRow)
+bool aoPairBoth(int ln, int k, bool alongRow)
 {
-    return aoInverseAt(line, k, alongRow) > 0.0 && aoInverseAt(line, k + 1, alongRow) > 0.0;
+    return aoInverseAt(ln, k, alongRow) > 0.0 && aoInverseAt(ln, k + 1, alongRow) > 0.0;
 }
 
-float aoPairJump(int line, int k, bool alongRow) { return aoInverseAt(line, k + 1, alongRow) - aoInverseAt(line, k, alongRow); }
+float aoPairJump(int ln, int k, bool alongRow) { return aoInverseAt(ln, k + 1, alongRow) - aoInverseAt(ln, k, alongRow); }
 
-bool aoContinuousPair(int line, int k, bool alongRow)
+bool aoContinuousPair(int ln, int k, bool alongRow)
 {
-    float a = aoInverseAt(line, k, alongRow);
-    float b = aoInverseAt(line, k + 1, alongRow);
+    float a = aoInverseAt(ln, k, alongRow);
+    float b = aoInverseAt(ln, k + 1, alongRow);
     if (!(a > 0.0 && b > 0.0)) return false;
     if (max(a, b) <= AO_EDGE_MIN_RATIO * min(a, b)) return true;
     float jump = b - a;
-    bool hasBefore = aoPairBoth(line, k - 1, alongRow);
-    bool hasAfter = aoPairBoth(line, k + 1, alongRow);
-    float before = hasBefore ? aoPairJump(line, k - 1, alongRow) : 0.0;
-    float after = hasAfter ? aoPairJump(line, k + 1, alongRow) : 0.0;
+    bool hasBefore = aoPairBoth(ln, k - 1, alongRow);
+    bool hasAfter = aoPairBoth(ln, k + 1, alongRow);
+    float before = hasBefore ? aoPairJump(ln, k - 1, alongRow) : 0.0;
+    float after = hasAfter ? aoPairJump(ln, k + 1, alongRow) : 0.0;
     float lo = hasBefore && hasAfter ? min(before, after) : (hasBefore ? before : after);
     float hi = hasBefore && hasAfter ? max(before, after) : (hasBefore ? before : after);
     float tol = AO_EDGE_SLOPE_TOLERANCE * abs(jump);
     if ((hasBefore || hasAfter) && jump >= lo - tol && jump <= hi + tol) return true;
-    int lines = alongRow ? aoHeight() : aoWidth();
-    if (lines > 1 && !(hasBefore || hasAfter)) {
-        if (aoPairBoth(line - 1, k, alongRow) && abs(aoPairJump(line - 1, k, alongRow) - jump) <= tol) return true;
-        if (aoPairBoth(line + 1, k, alongRow) && abs(aoPairJump(line + 1, k, alongRow) - jump) <= tol) return true;
+    int lineCount = alongRow ? aoHeight() : aoWidth();
+    if (lineCount > 1 && !(hasBefore || hasAfter)) {
+        if (aoPairBoth(ln - 1, k, alongRow) && abs(aoPairJump(ln - 1, k, alongRow) - jump) <= tol) return true;
+        if (aoPairBoth(ln + 1, k, alongRow) && abs(aoPairJump(ln + 1, k, alongRow) - jump) <= tol) return true;
     }
     return false;
 }
@@ -133,7 +133,7 @@ AOSample aoFetch(float su, float sv, int ownX, int ownY, float4 intr)
     int c1 = clamp(iu0 + 1, 0, W - 1);
     int r0 = clamp(iv0, 0, H - 1);
     int r1 = clamp(iv0 + 1, 0, H - 1);
-    bool single = false;
+    bool oneTap = false;
 #if AO_FETCH == 2
     // edge_aware_taps: the four taps inside one surface, else four copies of the nearest one
     bool smoothCell;
@@ -152,7 +152,7 @@ AOSample aoFetch(float su, float sv, int ownX, int ownY, float4 intr)
         int nu = fu >= 0.5 ? c1 : c0;
         int nv = fv >= 0.5 ? r1 : r0;
         c0 = nu; c1 = nu; r0 = nv; r1 = nv;
-        single = true;
+        oneTap = true;
     }
 #endif
     float4 p0 = aoPosition(c0, r0);
@@ -161,7 +161,7 @@ AOSample aoFetch(float su, float sv, int ownX, int ownY, float4 intr)
     float4 p3 = aoPosition(c1, r1);
     f.valid = p0.w != 0.0 && p1.w != 0.0 && p2.w != 0.0 && p3.w != 0.0;
 #if AO_FETCH == 2
-    if (single && c0 == ownX && r0 == ownY) f.valid = false;  // Footprint.on_own_texel
+    if (oneTap && c0 == ownX && r0 == ownY) f.valid = false;  // Footprint.on_own_texel
 #endif
     float depth = 1.0 / aoBilerp(1.0 / (-p0.z), 1.0 / (-p1.z), 1.0 / (-p2.z), 1.0 / (-p3.z), fu, fv);
     float cu = clamp(su, 0.0, float(W - 1));
