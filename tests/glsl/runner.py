@@ -72,6 +72,16 @@ def run_ssilvb(ctx, gbuffer, *, slices: int, steps: int, radius: float, thicknes
     if "projection" in prog:
         P = gbuffer.camera.opengl_projection()[0].to(torch.float32).numpy()
         prog["projection"].write(np.ascontiguousarray(P.T, dtype="f4").tobytes())  # column-major
+    out = torch.from_numpy(_draw(ctx, prog, W, H))
+    for obj in textures + [prog]:
+        obj.release()
+    return out
+
+
+def _draw(ctx, prog, W: int, H: int) -> np.ndarray:
+    """Draw a full-screen quad with ``prog`` into a ``W x H`` RGBA32F target; its ``(H, W, 4)`` pixels, row 0 at the top."""
+    import moderngl
+
     vbo = ctx.buffer(np.array([-1, -1, 1, -1, -1, 1, 1, 1], dtype="f4").tobytes())
     vao = ctx.vertex_array(prog, [(vbo, "2f", "in_vert")])
     target = ctx.texture((W, H), 4, dtype="f4")
@@ -79,11 +89,10 @@ def run_ssilvb(ctx, gbuffer, *, slices: int, steps: int, radius: float, thicknes
     fbo.use()
     ctx.viewport = (0, 0, W, H)
     vao.render(moderngl.TRIANGLE_STRIP)
-    data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype="f4").reshape(H, W, 4)[::-1]
-    out = torch.from_numpy(data.copy())
-    for obj in textures + [target, fbo, vao, vbo, prog]:
+    data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype="f4").reshape(H, W, 4)[::-1].copy()
+    for obj in (target, fbo, vao, vbo):
         obj.release()
-    return out
+    return data
 
 
 def centre_texel_pixels(gbuffer, *, slices: int, steps: int, radius: float, jitter: bool, numerics: str = "mesa") -> torch.Tensor:
@@ -132,15 +141,7 @@ def run_exported(ctx, gbuffer, source: str) -> torch.Tensor:
     P = gbuffer.camera.opengl_projection()[0].to(torch.float32).numpy()
     prog["uProjection"].write(np.ascontiguousarray(P.T, dtype="f4").tobytes())  # column-major
     prog["uResolution"] = (float(W), float(H))
-    vbo = ctx.buffer(np.array([-1, -1, 1, -1, -1, 1, 1, 1], dtype="f4").tobytes())
-    vao = ctx.vertex_array(prog, [(vbo, "2f", "in_vert")])
-    target = ctx.texture((W, H), 4, dtype="f4")
-    fbo = ctx.framebuffer([target])
-    fbo.use()
-    ctx.viewport = (0, 0, W, H)
-    vao.render(moderngl.TRIANGLE_STRIP)
-    data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype="f4").reshape(H, W, 4)[::-1]
-    out = torch.from_numpy(data[..., 0].copy())
-    for obj in textures + [target, fbo, vao, vbo, prog]:
+    out = torch.from_numpy(_draw(ctx, prog, W, H)[..., 0].copy())
+    for obj in textures + [prog]:
         obj.release()
     return out
