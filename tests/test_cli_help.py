@@ -46,7 +46,7 @@ def _bad_value(opt: Option) -> str | None:
 
 
 def test_every_subcommand_is_covered():
-    assert set(SUBCOMMANDS) == {"ao", "render", "fit", "bench", "convert"}
+    assert set(SUBCOMMANDS) == {"ao", "render", "fit", "bench", "convert", "export"}
     for name, parser in SUBCOMMANDS.items():
         assert sum(1 for n, _ in FLAGS if n == name) >= 3, name
 

@@ -7,7 +7,7 @@ import os
 import sys
 
 # Subcommand modules, each with ``register(subparsers)`` that adds its parser and sets ``func``.
-_COMMANDS = ("ao", "render", "fit", "bench", "convert")
+_COMMANDS = ("ao", "render", "fit", "bench", "convert", "export")
 
 
 class CommandError(ValueError):

@@ -16,6 +16,9 @@ needs:
   were given as options) at its current value: a number, or ``{"shape": [...], "values": [...]}``
   for a per-object table or a per-pixel map (float32 values survive the JSON round trip exactly);
 * ``denoiser``: the denoiser's settings, or ``null``;
+* ``length_unit``: the unit of every length among ``options`` and ``parameters`` (the unit of the
+  G-buffers it was fitted on, e.g. ``"m"``; ``"world units"`` when not said, and in files written
+  before the key existed). :func:`scale_lengths` rescales them all together (``--scale``);
 * ``torch_ao_version``, and whatever the writer adds (metrics, loss history) under other keys.
 """
 from __future__ import annotations
@@ -32,15 +35,24 @@ from torch import nn
 from .denoise import Denoiser
 from .gbuffer import GBuffer
 from .methods import get_method
+from .options import Option
 from .thickness import BackfaceThickness, LinearThickness, ObjectThickness, ScalarThickness
 
 __all__ = ["DenoisedAO", "FittedPipeline", "load_fitted", "bench_rows", "cli_module", "FORMAT", "DENOISER_SETTINGS",
-           "THICKNESS_MODELS", "thickness_model"]
+           "THICKNESS_MODELS", "thickness_model", "DEFAULT_LENGTH_UNIT", "SCALE", "length_factors", "scale_lengths", "rescaled"]
 
 #: Value of the file's ``format`` key (bumped when the layout changes).
 FORMAT = "torch_ao.fitted/1"
 #: The :class:`~torch_ao.denoise.Denoiser` settings stored in (and read from) the file.
 DENOISER_SETTINGS = ("kernel_size", "sigma_space", "sigma_depth", "sigma_normal", "guide", "temporal", "alpha")
+#: The ``length_unit`` of a file that does not say.
+DEFAULT_LENGTH_UNIT = "world units"
+#: How an :class:`~torch_ao.options.Option`'s unit scales with the lengths: the power of the length scale.
+_LENGTH_POWERS = {"world units": 1, "1 / world units": -1}
+#: The ``--scale`` flag of ``torch-ao ao --fitted`` and ``torch-ao export``.
+SCALE = Option("scale", None, "with a params.json: world units of the frames it runs on per length unit of the file "
+               "(e.g. 100 for a fit in metres applied to centimetres); multiplies every length parameter together "
+               "(radius, thickness, biases, fade lengths); default 1", float, minimum=0.0, open_minimum=True)
 
 
 #: Thickness models a pipeline's ``thickness_model`` option names: the :mod:`torch_ao.thickness` class and
@@ -61,6 +73,37 @@ def thickness_model(name: str, values: Mapping[str, Any]):
         raise ValueError(f"thickness_model: expected one of {', '.join(THICKNESS_MODELS)}, got {name!r}")
     cls, keywords = THICKNESS_MODELS[name]
     return cls(**{kw: _decode(values[param]) for param, kw in keywords.items() if param in values})
+
+
+def length_factors(method: str) -> dict[str, int]:
+    """``{name: power}`` of every option of ``method`` with a length unit (from the method's
+    :class:`~torch_ao.options.Option` units: 1 for world units, -1 for 1 / world units). The thickness
+    models' own parameters follow the ``thickness`` option (world units); their ``thickness_slope`` and
+    ``thickness_scale`` are unitless."""
+    return {name: _LENGTH_POWERS[opt.unit] for name, opt in get_method(method).options().items()
+            if opt.unit in _LENGTH_POWERS}
+
+
+def scale_lengths(method: str, values: Mapping[str, Any], scale: float) -> dict[str, Any]:
+    """``values`` (a pipeline's options and parameters, JSON forms or tensors) with every length of
+    ``method`` multiplied by ``scale`` (world units per fitted unit; ``1 / world units`` divided by it),
+    so the pipeline computes on a frame ``scale`` times larger what it computed on the original.
+    ``ValueError`` names a ``scale`` that is not a positive finite number."""
+    import math
+
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"scale: expected a positive number (world units per fitted unit), got {scale!r}")
+    out = dict(values)
+    for name, power in length_factors(method).items():
+        value = out.get(name)
+        if value is None or isinstance(value, (bool, str)):
+            continue
+        factor = float(scale) ** power
+        if isinstance(value, dict) and set(value) == {"shape", "values"}:
+            out[name] = {"shape": value["shape"], "values": [v * factor for v in value["values"]]}
+        else:  # a number or a tensor
+            out[name] = value * factor
+    return out
 
 
 def _encode(value: Any) -> Any:
@@ -136,7 +179,9 @@ class FittedPipeline(DenoisedAO):
     """
 
     def __init__(self, method: str, options: Mapping[str, Any] | None = None,
-                 denoiser: Denoiser | Mapping | bool | None = None) -> None:
+                 denoiser: Denoiser | Mapping | bool | None = None, *, length_unit: str = DEFAULT_LENGTH_UNIT) -> None:
+        if not isinstance(length_unit, str) or not length_unit.strip():
+            raise ValueError(f"length_unit: expected the name of a unit (e.g. 'm'), got {length_unit!r}")
         self_options = dict(options or {})
         kwargs = {k: _decode(v) for k, v in self_options.items()}
         model = kwargs.pop("thickness_model", None)
@@ -144,7 +189,7 @@ class FittedPipeline(DenoisedAO):
             kwargs = {k: v for k, v in kwargs.items() if k not in THICKNESS_MODELS.get(model, (None, {}))[1]}
             kwargs["thickness"] = thickness_model(model, self_options)
         super().__init__(get_method(method)(**kwargs), denoiser)
-        self.method_name, self.options = method, self_options
+        self.method_name, self.options, self.length_unit = method, self_options, length_unit
 
     # ------------------------------------------------------------------ what is stored
     def parameter_values(self) -> dict[str, torch.Tensor]:
@@ -167,7 +212,7 @@ class FittedPipeline(DenoisedAO):
         return {"format": FORMAT, "torch_ao_version": __version__, "method": self.method_name,
                 "options": options, "parameters": {k: _encode(v) for k, v in params.items()},
                 "denoiser": None if self.denoiser is None else _denoiser_settings(self.denoiser),
-                "slices": getattr(self.method, "slices", None), "steps": getattr(self.method, "steps", None)}
+                "length_unit": self.length_unit, "slices": getattr(self.method, "slices", None), "steps": getattr(self.method, "steps", None)}
 
     def save(self, path: str | os.PathLike, **extra) -> Path:
         """Write :meth:`to_dict` (and ``extra`` keys, e.g. metrics and history) to ``path`` atomically."""
@@ -180,8 +225,9 @@ class FittedPipeline(DenoisedAO):
         return save_json(path, {**payload, **extra})
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], *, source: str = "params") -> "FittedPipeline":
-        """Rebuild a pipeline from :meth:`to_dict`'s content (``source`` names it in errors)."""
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "params", scale: float = 1.0) -> "FittedPipeline":
+        """Rebuild a pipeline from :meth:`to_dict`'s content (``source`` names it in errors), its lengths
+        multiplied by ``scale`` (:func:`scale_lengths`)."""
         if not isinstance(data, Mapping) or "method" not in data:
             raise ValueError(f"{source}: expected a torch_ao fitted-pipeline description with a 'method' key")
         fmt = data.get("format", FORMAT)
@@ -191,8 +237,12 @@ class FittedPipeline(DenoisedAO):
         parameters = data.get("parameters") or {}
         if not isinstance(options, Mapping) or not isinstance(parameters, Mapping):
             raise ValueError(f"{source}: 'options' and 'parameters' must be objects")
+        values = {**options, **parameters}
+        if scale != 1.0:
+            values = scale_lengths(data["method"], values, scale)
         try:
-            return cls(data["method"], {**options, **parameters}, data.get("denoiser"))
+            return cls(data["method"], values, data.get("denoiser"),
+                       length_unit=data.get("length_unit", DEFAULT_LENGTH_UNIT))
         except (TypeError, ValueError) as err:  # an option the method does not take, or a bad value
             raise ValueError(f"{source}: cannot rebuild {data['method']!r} ({err})") from None
 
@@ -200,9 +250,11 @@ class FittedPipeline(DenoisedAO):
         return f"method={self.method_name!r}"
 
 
-def load_fitted(path: str | os.PathLike, device: torch.device | str | None = None) -> FittedPipeline:
+def load_fitted(path: str | os.PathLike, device: torch.device | str | None = None, *,
+                scale: float = 1.0) -> FittedPipeline:
     """The pipeline a ``params.json`` describes (written by ``torch-ao fit`` or :meth:`FittedPipeline.save`),
-    in hard mode, on ``device``."""
+    in hard mode, on ``device``, with every length multiplied by ``scale`` (world units of the frames it
+    will run on per length unit of the file; :func:`scale_lengths`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"fitted: no such file {path}")
@@ -212,16 +264,24 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
         raise ValueError(f"fitted: {path} is not JSON ({err})") from None
     except RecursionError:
         raise ValueError(f"fitted: {path} is nested too deeply to be a params.json") from None
-    pipeline = FittedPipeline.from_dict(data, source=f"fitted: {path}")
+    pipeline = FittedPipeline.from_dict(data, source=f"fitted: {path}", scale=scale)
     return pipeline if device is None else pipeline.to(device)
 
 
+def rescaled(pipeline: FittedPipeline, scale: float) -> FittedPipeline:
+    """A copy of ``pipeline`` with every length multiplied by ``scale`` (:func:`scale_lengths`)."""
+    return FittedPipeline.from_dict(pipeline.to_dict(), scale=scale)
+
+
 def cli_module(args, build, method_flags=()) -> nn.Module:
-    """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline) or
-    ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``.
+    """The module ``torch-ao ao`` runs: ``--fitted FILE`` (a :func:`load_fitted` pipeline, its lengths
+    times ``--scale``) or ``build(args)`` (the method from the flags), followed by the denoiser with ``--denoise``.
     ``method_flags``: names of the method flags, refused with ``--fitted`` when given."""
     fitted, denoise = getattr(args, "fitted", None), bool(getattr(args, "denoise", False))
     if fitted is None:
+        if getattr(args, "scale", None) is not None:
+            raise ValueError("--scale: scales a --fitted pipeline's lengths; give --radius (and the other lengths) "
+                             "directly without --fitted")
         module = build(args)
         return DenoisedAO(module, True) if denoise else module
     clash = [f"--{k.replace('_', '-')}" for k in method_flags if getattr(args, k, None) is not None]
@@ -229,7 +289,8 @@ def cli_module(args, build, method_flags=()) -> nn.Module:
         clash.append("--auto")
     if clash:
         raise ValueError(f"--fitted: the file fixes the method and its options; drop {', '.join(clash)}")
-    pipeline = load_fitted(fitted)
+    scale = getattr(args, "scale", None)
+    pipeline = load_fitted(fitted, scale=1.0 if scale is None else scale)
     if denoise and pipeline.denoiser is None:
         pipeline.denoiser = Denoiser()
     return pipeline

@@ -72,6 +72,16 @@ def run_ssilvb(ctx, gbuffer, *, slices: int, steps: int, radius: float, thicknes
     if "projection" in prog:
         P = gbuffer.camera.opengl_projection()[0].to(torch.float32).numpy()
         prog["projection"].write(np.ascontiguousarray(P.T, dtype="f4").tobytes())  # column-major
+    out = torch.from_numpy(_draw(ctx, prog, W, H))
+    for obj in textures + [prog]:
+        obj.release()
+    return out
+
+
+def _draw(ctx, prog, W: int, H: int) -> np.ndarray:
+    """Draw a full-screen quad with ``prog`` into a ``W x H`` RGBA32F target; its ``(H, W, 4)`` pixels, row 0 at the top."""
+    import moderngl
+
     vbo = ctx.buffer(np.array([-1, -1, 1, -1, -1, 1, 1, 1], dtype="f4").tobytes())
     vao = ctx.vertex_array(prog, [(vbo, "2f", "in_vert")])
     target = ctx.texture((W, H), 4, dtype="f4")
@@ -79,11 +89,10 @@ def run_ssilvb(ctx, gbuffer, *, slices: int, steps: int, radius: float, thicknes
     fbo.use()
     ctx.viewport = (0, 0, W, H)
     vao.render(moderngl.TRIANGLE_STRIP)
-    data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype="f4").reshape(H, W, 4)[::-1]
-    out = torch.from_numpy(data.copy())
-    for obj in textures + [target, fbo, vao, vbo, prog]:
+    data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype="f4").reshape(H, W, 4)[::-1].copy()
+    for obj in (target, fbo, vao, vbo):
         obj.release()
-    return out
+    return data
 
 
 def centre_texel_pixels(gbuffer, *, slices: int, steps: int, radius: float, jitter: bool, numerics: str = "mesa") -> torch.Tensor:
@@ -100,3 +109,39 @@ def centre_texel_pixels(gbuffer, *, slices: int, steps: int, radius: float, jitt
         for offset in pattern.step_offsets(q, geom, -1):
             hit |= (offset == 0).all(-1)
     return frame.scatter(hit[:, None].to(gbuffer.depth.dtype), 0.0)[0, 0] > 0
+
+
+_QUAD_330 = """#version 330 core
+in vec2 in_vert;
+void main() { gl_Position = vec4(in_vert, 0.0, 1.0); }
+"""
+
+
+def run_exported(ctx, gbuffer, source: str) -> torch.Tensor:
+    """Draw an exported AO pass (``torch-ao export --format glsl``) over ``gbuffer`` through its fixed
+    interface: ``uPosition`` (w = 1 on valid pixels, 0 on background), ``uNormal``, ``uBackfaceDepth``
+    when the shader declares it, ``uProjection``, ``uResolution``. Returns its ``.r`` ``(H, W)``, row 0 at the top."""
+    import moderngl
+
+    H, W = gbuffer.depth.shape[-2:]
+    prog = ctx.program(vertex_shader=_QUAD_330, fragment_shader=source)
+    valid = gbuffer.valid[0].to(torch.float32)
+    images = {"uPosition": torch.cat([gbuffer.positions()[0].to(torch.float32), valid], 0),
+              "uNormal": torch.cat([gbuffer.view_normals()[0].to(torch.float32), torch.zeros_like(valid)], 0)}
+    if "uBackfaceDepth" in prog:
+        images["uBackfaceDepth"] = gbuffer.backface_depth[0].to(torch.float32)
+    textures = []
+    for unit, (name, img) in enumerate(images.items()):
+        data = np.ascontiguousarray(img.detach().permute(1, 2, 0).numpy()[::-1], dtype="f4")  # GL row 0 = bottom
+        tex = ctx.texture((W, H), img.shape[0], data.tobytes(), dtype="f4")
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        tex.use(unit)
+        textures.append(tex)
+        prog[name] = unit
+    P = gbuffer.camera.opengl_projection()[0].to(torch.float32).numpy()
+    prog["uProjection"].write(np.ascontiguousarray(P.T, dtype="f4").tobytes())  # column-major
+    prog["uResolution"] = (float(W), float(H))
+    out = torch.from_numpy(_draw(ctx, prog, W, H)[..., 0].copy())
+    for obj in textures + [prog]:
+        obj.release()
+    return out

@@ -8,6 +8,7 @@ import torch
 
 from ..bench import DEFAULT_TOLERANCE
 from ..examples import example_gbuffer
+from ..fitted import SCALE
 from ..io import check_output_path, load_gbuffer, save_npz
 from ..methods import METHODS, get_method
 from ..options import Option
@@ -30,6 +31,7 @@ OPTIONS = (
     Option("report", None, "with --auto: a `torch-ao bench` report.json, or the folder holding it", str),
     Option("fitted", None, "run the pipeline a `torch-ao fit` params.json describes (method, options, fitted "
            "parameters, denoiser) instead of --method and the method flags", str),
+    SCALE,
     Option("denoise", False, "filter the output with the edge-aware denoiser (torch_ao.Denoiser, default "
            "settings); with --fitted, adds one when the file has none", bool),
 )

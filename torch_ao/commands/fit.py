@@ -72,6 +72,8 @@ OPTIONS = (
     Option("no_denoise", False, "fit and score the method alone, without the denoiser", bool),
     Option("radius", None, "the method's radius R; when not given, the references' max_distance", float,
            unit="world units", minimum=0.0, open_minimum=True),
+    Option("length_unit", "world units", "the unit of the G-buffers' lengths (e.g. m, cm), recorded in params.json as "
+           "the unit of its lengths (`ao --fitted --scale` and `export --scale` convert to another)", str),
     Option("scenes", ",".join(TRAIN_SCENES), "comma-separated built-in scenes (without --reference)", str),
     Option("train_views", 2, "randomised training views per scene", int, minimum=1),
     Option("holdout_views", 1, "held-out views per scene (seeds 1000, 1001, ...; never trained on)", int, minimum=1),
@@ -281,7 +283,8 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(start) - set(params)
     if unknown:
         raise CommandError(f"--init: {', '.join(sorted(unknown))} not among the fitted parameters ({', '.join(params)})")
-    module = FittedPipeline(args.method, pipeline_options(args, radius, **model, **start), denoiser=denoise).to(args.device)
+    module = FittedPipeline(args.method, pipeline_options(args, radius, **model, **start), denoiser=denoise,
+                            length_unit=args.length_unit).to(args.device)
     denoised = " + denoiser" if denoise else ""
     print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views, "
           f"evaluating on {len(held)} held-out views")
