@@ -13,7 +13,7 @@ from torch_ao.cli import main
 from torch_ao.examples import example_gbuffer
 from torch_ao.io import read_npz
 
-OpenEXR = pytest.importorskip("OpenEXR", reason="needs the exr extra: pip install 'torch-ao[exr]'")
+OpenEXR = pytest.importorskip("OpenEXR", reason="needs the exr extra: pip install -e '.[exr]'")
 
 H, W = 24, 32
 K = np.array([[30.0, 0, 14.2], [0, 31.0, 12.9], [0, 0, 1]])
@@ -199,7 +199,7 @@ def test_options_apply_to_npz_files_too(tmp_path, scene):
 def test_missing_openexr_names_the_extra(tmp_path, monkeypatch):
     _write_exr(tmp_path / "a.exr", {"Z": np.ones((2, 2), np.float32)})
     monkeypatch.setitem(sys.modules, "OpenEXR", None)
-    with pytest.raises(ImportError, match=r"pip install 'torch-ao\[exr\]'"):
+    with pytest.raises(ImportError, match=r'pip install -e "\.\[exr\]" \(in the torch_ao checkout\) or pip install openexr'):
         load_gbuffer(tmp_path / "a.exr", fov=60.0)
 
 

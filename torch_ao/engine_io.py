@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .checks import check_choice, check_float
+from .checks import check_choice, check_float, install_hint
 from .options import Option, options_by_name
 
 __all__ = ["EngineOptions", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
            "parse_channels"]
 
-_EXR_MISSING = "reading OpenEXR files needs the OpenEXR package: pip install 'torch-ao[exr]'"
+_EXR_MISSING = f"reading OpenEXR files needs the OpenEXR package: {install_hint('exr', 'openexr')}"
 
 # Target -> (number of components, candidate layer/pass names, first match wins). A channel matches a
 # name when its full name is ``[LAYER.]NAME`` (one component) or ``[LAYER.]NAME.C`` with ``C`` one of
@@ -263,7 +263,7 @@ def _read_png_depth(path: Path, scale: float) -> np.ndarray:
     try:
         from PIL import Image
     except ImportError as err:  # pragma: no cover - depends on the environment
-        raise ImportError("reading PNG depth needs Pillow: pip install 'torch-ao[plot]'") from err
+        raise ImportError(f"reading PNG depth needs Pillow: {install_hint('plot', 'pillow')}") from err
     try:
         with Image.open(path) as im:
             a = np.asarray(im)

@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .checks import install_hint
+
 __all__ = ["save_png", "to_display"]
 
 
@@ -23,14 +25,14 @@ def to_display(image: torch.Tensor | np.ndarray) -> np.ndarray:
 
 
 def save_png(path: str | Path, image) -> Path:
-    """Save an image (see :func:`to_display`) as PNG. Needs matplotlib (``pip install torch-ao[plot]``)."""
+    """Save an image (see :func:`to_display`) as PNG. Needs matplotlib (the ``plot`` extra)."""
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as err:  # pragma: no cover - depends on the environment
-        raise ImportError("--png needs matplotlib: pip install 'torch-ao[plot]'") from err
+        raise ImportError(f"--png needs matplotlib: {install_hint('plot', 'matplotlib')}") from err
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     plt.imsave(path, to_display(image))

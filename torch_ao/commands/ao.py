@@ -13,7 +13,7 @@ from ..io import load_gbuffer, save_npz
 from ..methods import METHODS, get_method
 from ..options import Option
 from .auto import apply_auto
-from .options_cli import add_options, construct, given, method_kwargs, method_options
+from .options_cli import add_options, add_progress, construct, given, method_kwargs, method_options
 
 #: The flags of ``torch-ao ao`` that are not method options.
 OPTIONS = (
@@ -47,6 +47,7 @@ def register(sub) -> None:
                    help="input .npz (keys: depth, and optionally normal, light, mask, object_id, intrinsics or "
                    "fov_y_degrees; see docs/gbuffer.md). Default: the built-in example")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
+    add_progress(p)
     group = p.add_argument_group("method options (see --method; each says which methods take it when they differ)")
     p.set_defaults(func=run, method_flags=add_options(group, method_options({m: get_method(m) for m in METHODS})))
 

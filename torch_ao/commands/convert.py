@@ -41,7 +41,7 @@ def register(sub) -> None:
         "convert", help="convert an engine G-buffer (OpenEXR, 16-bit PNG depth) to the library's .npz",
         description="Read a G-buffer written by an engine or DCC tool (OpenEXR with depth, normals, positions, "
         "light, albedo, object ids; or a 16-bit PNG depth), convert it to the library's conventions (view-axis "
-        "depth, OpenGL view-space normals and positions) and write it as .npz. Needs `pip install torch-ao[exr]` "
+        "depth, OpenGL view-space normals and positions) and write it as .npz. Needs the exr extra (`pip install -e \".[exr]\"`) "
         "for OpenEXR files.")
     p.add_argument("input", help="input file: .exr, .png (16-bit depth) or .npz")
     p.add_argument("--out", help="output .npz file (required)")

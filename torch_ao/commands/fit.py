@@ -24,7 +24,7 @@ from ..io import read_npz, write_text_atomic
 from ..methods import get_method
 from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
-from .options_cli import add_option
+from .options_cli import add_option, add_progress
 from .render import OPTIONS as RENDER_OPTIONS
 
 #: Parameters in world units: their learning rate is ``--lr`` times R, so a fit moves them by the
@@ -88,7 +88,6 @@ OPTIONS = (
     Option("cache", None, f"reference cache folder; when not given, {default_cache_dir()}", str),
     Option("out", "fit-out", "output folder (params.json, report.md, comparison.png, checkpoint.pt)", str),
     Option("device", "cpu", "torch device of the fit and of the reference renders, e.g. cpu or cuda", str),
-    Option("no_progress", False, "no progress bars", bool),
 )
 
 #: Flags whose form an Option cannot say: argparse keywords replacing the option's own.
@@ -109,6 +108,7 @@ def register(sub) -> None:
     )
     for opt in OPTIONS:
         add_option(p, opt.name, opt, given_only=False, switch=True, **_FORMS.get(opt.name, {}))
+    add_progress(p)
     p.set_defaults(func=run)
 
 
@@ -183,7 +183,7 @@ def _views(args) -> tuple[list, list, float]:
         raise CommandError(f"--scenes: unknown scene(s) {', '.join(unknown)}; see `torch-ao render --list`")
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
-                  progress=not args.no_progress, device=device, backface=args.thickness == "backface")
+                  progress=args.progress, device=device, backface=args.thickness == "backface")
     print(f"references: {len(scenes)} scenes x ({args.train_views} training + {args.holdout_views} held-out) views at "
           f"{w}x{h}, {args.spp} spp")
     train, held = train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
@@ -279,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
                     seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
                     param_lr={k: args.lr * radius for k in params if k in LENGTHS})
-    result = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=not args.no_progress)
+    result = fit(module, train, cfg, checkpoint=out / "checkpoint.pt", progress=args.progress)
 
     rows = {}
     if args.method in BITMASK:
