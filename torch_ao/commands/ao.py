@@ -13,6 +13,7 @@ from ..io import load_gbuffer, save_npz
 from ..methods import METHODS, get_method
 from ..options import Option
 from .auto import apply_auto
+from .inputs import add_input_flags, flag_errors, input_options
 from .options_cli import add_options, add_progress, construct, given, method_kwargs, method_options
 
 #: The flags of ``torch-ao ao`` that are not method options.
@@ -44,10 +45,12 @@ def register(sub) -> None:
         "method's constructor only when given; a flag the chosen method does not take is an error.",
     )
     p.add_argument("gbuffer", nargs="?", metavar="GBUFFER",
-                   help="input .npz (keys: depth, and optionally normal, light, mask, object_id, intrinsics or "
-                   "fov_y_degrees; see docs/gbuffer.md). Default: the built-in example")
+                   help="input G-buffer: .npz (keys: depth, and optionally normal, light, mask, object_id, intrinsics or "
+                   "fov_y_degrees; see docs/gbuffer.md), or an engine's .exr or 16-bit .png depth read with the "
+                   "input conventions below. Default: the built-in example")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
     add_progress(p)
+    add_input_flags(p, "GBUFFER")
     group = p.add_argument_group("method options (see --method; each says which methods take it when they differ)")
     p.set_defaults(func=run, method_flags=add_options(group, method_options({m: get_method(m) for m in METHODS})))
 
@@ -64,8 +67,10 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--device: CUDA is not available on this machine")
     if args.auto or args.report or args.tolerance is not None:
         apply_auto(args)
+    reading = input_options(args, args.gbuffer, "a GBUFFER file")
     if args.gbuffer:
-        gbuffer, _ = load_gbuffer(args.gbuffer, device=device)
+        with flag_errors():
+            gbuffer, _ = load_gbuffer(args.gbuffer, device=device, **reading)
     else:
         gbuffer = example_gbuffer().to(device)
     from ..fitted import cli_module

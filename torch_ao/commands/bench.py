@@ -18,6 +18,7 @@ from ..resolution import RESOLUTIONS
 from ..options import Option
 from ..reference import SCENES
 from ..views import default_cache_dir
+from .inputs import add_input_flags, flag_errors, input_options
 from .options_cli import add_options, add_progress, flag, given, method_kwargs, method_options
 
 
@@ -85,6 +86,7 @@ def register(sub) -> None:
                    "radius, parameters and denoiser. Default: none")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
     add_progress(p)
+    add_input_flags(p, "the --reference files")
     sizes = p.add_argument_group("sweep size (defaults as below, or those of --quick)")
     add_options(sizes, {o.name: o for o in SIZE_OPTIONS})
     group = p.add_argument_group("method options (each applies to the swept methods that take it; "
@@ -159,10 +161,12 @@ def run(args: argparse.Namespace) -> int:
     height, width, spp, repeats, warmup = (getattr(base, o.name) if getattr(args, o.name) is None else getattr(args, o.name)
                                            for o in SIZE_OPTIONS)
     progress = args.progress
+    reading = input_options(args, args.reference, "--reference files")
     start = time.perf_counter()
-    views = load_bench_views(scenes, args.reference, height=height, width=width, spp=spp,
-                             max_distance=args.max_distance, seed=args.seed, cache_dir=args.cache, device=device,
-                             progress=progress, backface=_needs_backface(args.fitted))
+    with flag_errors():
+        views = load_bench_views(scenes, args.reference, height=height, width=width, spp=spp,
+                                 max_distance=args.max_distance, seed=args.seed, cache_dir=args.cache, device=device,
+                                 progress=progress, backface=_needs_backface(args.fitted), reading=reading)
     rows = run_bench(views, methods, presets, denoise=args.denoise, backward=args.backward,
                      repeats=repeats, warmup=warmup, device=device, radius=args.radius, params=params,
                      progress=progress)

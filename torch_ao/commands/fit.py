@@ -24,6 +24,7 @@ from ..io import read_npz, write_text_atomic
 from ..methods import get_method
 from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
+from .inputs import add_input_flags, flag_errors, input_options
 from .options_cli import add_option, add_progress
 from .render import OPTIONS as RENDER_OPTIONS
 
@@ -109,6 +110,7 @@ def register(sub) -> None:
     for opt in OPTIONS:
         add_option(p, opt.name, opt, given_only=False, switch=True, **_FORMS.get(opt.name, {}))
     add_progress(p)
+    add_input_flags(p, "the --reference and --holdout files")
     p.set_defaults(func=run)
 
 
@@ -162,9 +164,11 @@ def _require_backface(views) -> None:
 
 def _views(args) -> tuple[list, list, float]:
     device = torch.device(args.device)
+    reading = input_options(args, args.reference, "--reference files")
     if args.reference:
-        train = load_views(args.reference, device=device)
-        held = load_views(args.holdout, device=device) if args.holdout else None
+        with flag_errors():
+            train = load_views(args.reference, device=device, **reading)
+            held = load_views(args.holdout, device=device, **reading) if args.holdout else None
         if args.thickness == "backface":
             _require_backface(train + (held or []))
         radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
