@@ -77,7 +77,7 @@ def test_blender_multilayer_exr_equals_npz(tmp_path, scene):
     header = {"intrinsics": K.astype(np.float32)}
     _write_exr(tmp_path / "frame.exr", _blender_channels(gb, albedo), header)
     ref, ref_extras = load_gbuffer(tmp_path / "ref.npz")
-    got, extras = load_gbuffer(tmp_path / "frame.exr")
+    got, extras = load_gbuffer(tmp_path / "frame.exr", normal_space="view")  # Blender's names: world unless told
     _assert_same(got, ref, names=("normals", "light"))
     assert torch.equal(got.object_id, ref.object_id) and got.object_id.dtype == torch.int64
     assert torch.allclose(extras["albedo"], ref_extras["albedo"], atol=1e-6)
@@ -254,7 +254,8 @@ def test_convert_refuses_bad_files(exr_files, capsys, argv, message):
 def test_convert_end_to_end(exr_files, capsys, scene):
     gb, albedo = scene
     out = exr_files / "frame.npz"
-    assert main(["convert", str(exr_files / "good.exr"), "--out", str(out), "--png", str(exr_files / "p.png")]) == 0
+    assert main(["convert", str(exr_files / "good.exr"), "--out", str(out), "--png", str(exr_files / "p.png"),
+                 "--normal-space", "view"]) == 0  # view-space normals under Blender's names
     printed = capsys.readouterr().out
     assert "32x24, 756 valid pixels" in printed and "normals" in printed
     raw = read_npz(out)

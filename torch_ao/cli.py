@@ -5,6 +5,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 # Subcommand modules, each with ``register(subparsers)`` that adds its parser and sets ``func``.
 _COMMANDS = ("ao", "render", "fit", "bench", "convert")
@@ -52,8 +53,13 @@ def main(argv: list[str] | None = None) -> int:
     except _UsageError as err:
         print(f"{err.prog}: error: {err} (see {err.prog} --help)", file=sys.stderr)
         return 2
+    def show(message, category, *_args, **_kwargs):  # one line on stderr, like the errors
+        print(f"torch-ao {args.command}: warning: {message}", file=sys.stderr)
+
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = show
+            return int(args.func(args) or 0)
     except (CommandError, ValueError, TypeError, FileNotFoundError, ImportError) as err:
         if os.environ.get("TORCH_AO_DEBUG"):  # the full traceback, for developers
             raise
