@@ -135,3 +135,100 @@ def test_row_vector_view_matrix_is_refused_suggesting_the_transpose(tmp_path, ca
     n = read_npz(tmp_path / "o.npz")["normal"][0]
     ok = gb.valid[0, 0].numpy()
     assert np.allclose(n[ok], _arrays(gb)["normal"][ok], atol=1e-6)
+
+
+# ------------------------------------------------------------------------------- engine EXR mistakes
+def _exr(path, channels: dict):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}).write(str(path))
+    return path
+
+
+def _vector(prefix: str, x: np.ndarray, letters="XYZ") -> dict:
+    return {f"{prefix}.{c}": x[..., i] for i, c in enumerate(letters)}
+
+
+M = np.array([[0.0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, -2], [0, 0, 0, 1]])  # world -> view
+M_FLAG = "--view-matrix=" + ",".join(f"{x:g}" for x in M.reshape(-1))
+
+
+def test_blender_channel_names_mean_world_space_normals(tmp_path, capsys):
+    gb = _frame()
+    a = _arrays(gb)
+    depth = np.where(np.isfinite(a["depth"]), a["depth"], 1e10)
+    world = a["normal"].astype(np.float64) @ M[:3, :3]
+    path = _exr(tmp_path / "blender.exr", {"ViewLayer.Depth.Z": depth, **_vector("ViewLayer.Normal", world)})
+    out = tmp_path / "o.npz"
+    assert main(["convert", str(path), "--fov", "60", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "torch-ao convert: error: --normal-space: ViewLayer.Normal is Blender's Normal pass, in world space: give "
+        "--view-matrix (the camera's world-to-view matrix), or --normal-space view if it holds view-space vectors")
+    assert not out.exists()
+    assert main(["ao", str(path), "--fov", "60", M_FLAG, "--method", "gtao", "--preset", "low", "--radius", "1",
+                 "--no-jitter", "--out", str(out)]) == 0  # world space without --normal-space world
+    got = read_npz(out)
+    ok = gb.valid[0, 0].numpy()
+    assert np.allclose(got["normal"][0][ok], a["normal"][ok], atol=1e-6)
+    assert np.abs(got["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
+    # a plain "Normal" layer without Blender's LAYER.Depth.Z stays view space
+    plain = _exr(tmp_path / "plain.exr", {"Z": depth, **_vector("Normal", a["normal"])})
+    assert main(["convert", str(plain), "--fov", "60", "--out", str(out)]) == 0
+    assert np.allclose(read_npz(out)["normal"][0][ok], a["normal"][ok], atol=1e-6)
+
+
+def test_normals_stored_as_unorm_are_detected_and_decoded(tmp_path, capsys):
+    gb = _frame()
+    a = _arrays(gb)
+    encoded = dict(a, normal=(0.5 * a["normal"] + 0.5).astype(np.float32))
+    path = _exr(tmp_path / "n.exr", {"Z": a["depth"], **_vector("N", encoded["normal"])})
+    out = tmp_path / "ao.npz"
+    argv = ["ao", str(path), "--fov", "60", "--method", "gtao", "--preset", "low", "--radius", "1", "--no-jitter",
+            "--out", str(out)]
+    assert main(argv) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("torch-ao ao: warning: normal_encoding: the normals are stored as "
+                                               "0.5 n + 0.5"), err
+    assert np.abs(read_npz(out)["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
+    assert main(argv + ["--normal-encoding", "unorm"]) == 0 and capsys.readouterr().err == ""  # said: no warning
+    assert np.abs(read_npz(out)["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
+    # signed unit normals whose components happen to be in [0, 1] are not touched
+    assert main(["convert", str(_exr(tmp_path / "s.exr", {"Z": a["depth"], **_vector("N", np.abs(a["normal"]))})),
+                 "--fov", "60", "--out", str(tmp_path / "s.npz")]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_unreal_sky_without_far_names_far(tmp_path, capsys):
+    gb = _frame()
+    a = _arrays(gb)
+    sky = ~np.isfinite(a["depth"])
+    depth = np.where(sky, 65504.0, a["depth"])
+    normal = np.where(sky[..., None], 0.0, a["normal"])
+    path = _exr(tmp_path / "unreal.exr", {"SceneDepth.R": depth, **_vector("WorldNormal", normal, "RGB")})
+    out = tmp_path / "ao.npz"
+    assert main(["ao", str(path), "--fov", "60", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "torch-ao ao: error: --far: 12 valid pixels have zero-length normals, all at depth >= 65504 (beyond every "
+        "other pixel: a far plane or sky); give --far 65504 to make them background")
+    assert main(["ao", str(path), "--fov", "60", "--far", "65504", "--method", "gtao", "--preset", "low", "--radius",
+                 "1", "--no-jitter", "--out", str(out)]) == 0
+    assert np.abs(read_npz(out)["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
+
+
+def test_a_horizontal_fov_gets_a_warning(tmp_path, capsys):
+    """The rule: with normals in the file, warn when the median angle between them and the normals
+    reconstructed from depth is over 2 degrees with --fov read as vertical and under a quarter of that
+    read as horizontal."""
+    gb = _frame()
+    a = _arrays(gb)
+    del a["fov_y_degrees"]
+    horizontal = np.degrees(2 * np.arctan(np.tan(np.radians(FOV) / 2) * W / H))  # what Blender displays
+    path = _write(tmp_path / "f.npz", a)
+    out = tmp_path / "o.npz"
+    assert main(["convert", str(path), "--fov", f"{horizontal:.6f}", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"torch-ao convert: warning: fov: --fov {horizontal:.6g} is read as the "
+                                               "vertical field of view, but the normals fit the depth far better"), err
+    assert err[0].endswith("if so, give --fov 60")
+    assert main(["convert", str(path), "--fov", "60", "--out", str(out)]) == 0
+    assert capsys.readouterr().err == ""
