@@ -1,6 +1,10 @@
 """Conventions that cannot go silently wrong: each common mistake reading an engine's G-buffer either
 gives the right AO or one error line naming the flag that fixes it."""
 import argparse
+import subprocess
+import sys
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -185,17 +189,17 @@ def test_normals_stored_as_unorm_are_detected_and_decoded(tmp_path, capsys):
     out = tmp_path / "ao.npz"
     argv = ["ao", str(path), "--fov", "60", "--method", "gtao", "--preset", "low", "--radius", "1", "--no-jitter",
             "--out", str(out)]
-    assert main(argv) == 0
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("torch-ao ao: warning: normal_encoding: the normals are stored as "
-                                               "0.5 n + 0.5"), err
+    with pytest.warns(UserWarning, match=r"^normal_encoding: the normals are stored as 0\.5 n \+ 0\.5") as record:
+        assert main(argv) == 0
+    assert sum("normal_encoding" in str(w.message) for w in record) == 1
     assert np.abs(read_npz(out)["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
-    assert main(argv + ["--normal-encoding", "unorm"]) == 0 and capsys.readouterr().err == ""  # said: no warning
-    assert np.abs(read_npz(out)["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
-    # signed unit normals whose components happen to be in [0, 1] are not touched
-    assert main(["convert", str(_exr(tmp_path / "s.exr", {"Z": a["depth"], **_vector("N", np.abs(a["normal"]))})),
-                 "--fov", "60", "--out", str(tmp_path / "s.npz")]) == 0
-    assert capsys.readouterr().err == ""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # said: no warning
+        assert main(argv + ["--normal-encoding", "unorm"]) == 0
+        assert np.abs(read_npz(out)["visibility"][0] - _ao(gb)[0, 0].numpy()).max() < 1e-5
+        # signed unit normals whose components happen to be in [0, 1] are not touched
+        assert main(["convert", str(_exr(tmp_path / "s.exr", {"Z": a["depth"], **_vector("N", np.abs(a["normal"]))})),
+                     "--fov", "60", "--out", str(tmp_path / "s.npz")]) == 0
 
 
 def test_unreal_sky_without_far_names_far(tmp_path, capsys):
@@ -225,10 +229,16 @@ def test_a_horizontal_fov_gets_a_warning(tmp_path, capsys):
     horizontal = np.degrees(2 * np.arctan(np.tan(np.radians(FOV) / 2) * W / H))  # what Blender displays
     path = _write(tmp_path / "f.npz", a)
     out = tmp_path / "o.npz"
-    assert main(["convert", str(path), "--fov", f"{horizontal:.6f}", "--out", str(out)]) == 0
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"torch-ao convert: warning: fov: --fov {horizontal:.6g} is read as the "
-                                               "vertical field of view, but the normals fit the depth far better"), err
-    assert err[0].endswith("if so, give --fov 60")
-    assert main(["convert", str(path), "--fov", "60", "--out", str(out)]) == 0
-    assert capsys.readouterr().err == ""
+    argv = ["convert", str(path), "--fov", f"{horizontal:.6f}", "--out", str(out)]
+    with pytest.warns(UserWarning) as record:
+        assert main(argv) == 0
+    (message,) = [str(w.message) for w in record if w.category is UserWarning]
+    assert message.startswith(f"fov: --fov {horizontal:.6g} is read as the vertical field of view, but the normals "
+                              "fit the depth far better") and message.endswith("if so, give --fov 60"), message
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        assert main(["convert", str(path), "--fov", "60", "--out", str(out)]) == 0
+    # on the command line: one line on stderr
+    env = {"PYTHONPATH": str(Path(__file__).resolve().parents[1]), "PATH": "/usr/bin:/bin"}
+    proc = subprocess.run([sys.executable, "-m", "torch_ao", *argv], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0 and proc.stderr == f"torch-ao convert: warning: {message}\n", proc.stderr

@@ -53,13 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     except _UsageError as err:
         print(f"{err.prog}: error: {err} (see {err.prog} --help)", file=sys.stderr)
         return 2
-    def show(message, category, *_args, **_kwargs):  # one line on stderr, like the errors
-        print(f"torch-ao {args.command}: warning: {message}", file=sys.stderr)
+    def one_line(message, *_args, **_kwargs):  # warnings print as one line on stderr, like the errors
+        return f"torch-ao {args.command}: warning: {message}\n"
 
+    formatwarning, warnings.formatwarning = warnings.formatwarning, one_line
     try:
-        with warnings.catch_warnings():
-            warnings.showwarning = show
-            return int(args.func(args) or 0)
+        return int(args.func(args) or 0)
     except (CommandError, ValueError, TypeError, FileNotFoundError, ImportError) as err:
         if os.environ.get("TORCH_AO_DEBUG"):  # the full traceback, for developers
             raise
@@ -68,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"torch-ao {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = formatwarning
 
 
 if __name__ == "__main__":  # pragma: no cover

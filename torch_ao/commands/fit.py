@@ -261,16 +261,20 @@ def run(args: argparse.Namespace) -> int:
     model = thickness_options(args, train + held, init)
 
     default = FittedPipeline(args.method, pipeline_options(args, radius, **model), denoiser=denoise).to(args.device)
-    params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params
-              else fittable_parameters(default.method))
+    # a default without a gradient is a buffer: fittable once moved to its start value
+    moved = {k: v for k, v in NO_GRADIENT_START.items() if k in default.method.options()
+             and float(getattr(default.method, k).detach()) == 0.0}
+    fittable = fittable_parameters(FittedPipeline(args.method, pipeline_options(args, radius, **model, **moved),
+                                                  denoiser=denoise).method)
+    params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params else fittable)
     if not params:
         raise CommandError(f"--params: {args.method} has no float parameter to fit with these options")
     for name in params:
-        if name not in fittable_parameters(default.method):
+        if name not in fittable:
             raise CommandError(f"--params: {name!r} is not a fitted parameter of {args.method}"
                                f"{' (' + args.variant + ')' if args.variant else ''}; "
-                               f"available: {', '.join(fittable_parameters(default.method))}")
-    start = {k: v for k, v in NO_GRADIENT_START.items() if k in params and float(getattr(default.method, k).detach()) == 0.0}
+                               f"available: {', '.join(fittable)}")
+    start = {k: v for k, v in moved.items() if k in params}
     start.update(init)
     unknown = set(start) - set(params)
     if unknown:
@@ -336,7 +340,7 @@ def _describe(pipeline: FittedPipeline, params) -> str:
     values = pipeline.parameter_values()
     parts = []
     for name in params:
-        v = values[name]
+        v = values[name] if name in values else getattr(pipeline.method, name).detach()  # a default frozen at 0
         parts.append(f"{name}={v.item():.3g}" if v.numel() == 1 else f"{name}=<{v.numel()} values>")
     if "weighting" in pipeline.options:
         parts.append(f"{pipeline.options['weighting']} sectors")
