@@ -65,7 +65,6 @@ def test_functional_signature_lists_the_module_options(module, functional):
     sig, module_sig = inspect.signature(fn), inspect.signature(cls)
     assert list(sig.parameters) == ["gbuffer", *module_sig.parameters]
     named = {n for n, p in module_sig.parameters.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
-    assert named <= set(cls.options())
     if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in module_sig.parameters.values()):
         assert named == set(cls.options())  # (BitmaskAO and SSILVB list some and end in **kwargs)
     for name in named:
