@@ -104,7 +104,7 @@ def large_mesh(triangles: int) -> None:
         print("|---|---|---|---|")
         for size, spp, extra in (("320x180", 16, ["--backface"]), ("640x360", 64, [])):
             w, h = size.split("x")
-            dt, rss, code = _child(["-m", "torch_ao.cli", "render", "--mesh", str(path), "--ground-plane", "--quiet",
+            dt, rss, code = _child(["-m", "torch_ao.cli", "render", "--mesh", str(path), "--ground-plane", "--no-progress",
                                     "--width", w, "--height", h, "--spp", str(spp), "--max-distance", "0.3",
                                     "--no-uniform", "--out", str(Path(tmp) / "out.npz")] + extra)
             if code != 0:

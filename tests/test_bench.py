@@ -118,7 +118,7 @@ def test_bench_cli_tiny(cache, tmp_path):
     out = tmp_path / "bench"
     rc = main(["bench", "--methods", ",".join(names), "--presets", "low,medium", "--scenes", "sphere_on_plane",
                "--height", str(H), "--width", str(W), "--spp", str(SPP), "--repeats", "1", "--warmup", "0",
-               "--cache", str(cache), "--out", str(out), "--quiet", "--no-background", "--threads", "1"])
+               "--cache", str(cache), "--out", str(out), "--no-progress", "--no-background", "--threads", "1"])
     assert rc == 0
     report = json.loads((out / "report.json").read_text())
     assert len(report["rows"]) == 8 and {r["method"] for r in report["rows"]} == set(names)
@@ -264,7 +264,7 @@ def test_bench_cli_half_presets(cache, tmp_path, capsys):
     out = tmp_path / "bench"
     rc = main(["bench", "--methods", "gtao", "--presets", "low,low@half", "--scenes", "sphere_on_plane",
                "--height", str(H), "--width", str(W), "--spp", str(SPP), "--repeats", "1", "--warmup", "0",
-               "--cache", str(cache), "--out", str(out), "--quiet", "--no-background", "--no-denoise",
+               "--cache", str(cache), "--out", str(out), "--no-progress", "--no-background", "--no-denoise",
                "--no-backward", "--no-plots", "--threads", "1"])
     assert rc == 0
     report = json.loads((out / "report.json").read_text())
@@ -286,3 +286,28 @@ def test_fitted_rows_keep_the_resolution_of_their_preset():
     assert _preset_of(FittedPipeline("gtao", {"preset": "high@half", "radius": 1.0}), "p.json") == "high@half"
     assert _preset_of(FittedPipeline("gtao", {"preset": "high", "radius": 1.0}), "p.json") == "high"
     assert _preset_of(FittedPipeline("gtao", {"slices": 9, "steps": 3, "resolution": "half"}), "p.json") == "ultra@half"
+
+
+@pytest.mark.parametrize("methods", [7, 14])
+def test_plot_legend_lies_inside_the_image(methods, tmp_path):
+    """Every legend entry is drawn inside the saved figure (no entry cut off at the right or bottom),
+    for the full method list and for twice as many curves."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from torch_ao.bench.files import error_vs_time_figure, plot_error_vs_time
+
+    rows = [{"method": f"method_{m}", "preset": p, "denoise": d, "forward_ms": (1 + m) * (1 + i) * (1.3 if d else 1),
+             "mae": 0.1 / (1 + i) + 0.01 * m, "scene": "s"}
+            for m in range(methods) for i, p in enumerate(("low", "medium", "high", "ultra")) for d in (False, True)]
+    fig = error_vs_time_figure(rows, title="t")
+    fig.canvas.draw()
+    (legend,) = fig.legends
+    box, page = legend.get_window_extent(), fig.bbox
+    assert len(legend.get_texts()) == 2 * methods + 1  # plain and denoised per method, and the Pareto front
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, (box, page)
+    axes = fig.axes[0].get_window_extent()
+    assert axes.x1 <= box.x0 and axes.width > 0.5 * page.width  # beside the axes, which keep most of the width
+    plt.close(fig)
+    path = plot_error_vs_time(rows, tmp_path / "plot.png")
+    assert path.stat().st_size > 0

@@ -1,5 +1,7 @@
 """Bad input on the command line: one clear line naming the argument, exit status 2, no traceback,
 and no output file written."""
+import argparse
+
 import numpy as np
 import pytest
 
@@ -117,7 +119,7 @@ def test_every_method_flag_help_is_its_options_description():
             assert _squash(opt.describe()) in _flag_help(ao, flag(opt_name)), (name, opt_name)
     for parser in (ao, bench):
         for action in parser._actions:
-            if action.option_strings and action.dest != "help":
+            if action.option_strings and action.dest != "help" and action.help is not argparse.SUPPRESS:  # hidden aliases: test_cli_help
                 assert len(action.help or "") > len(action.dest) + 10, action.option_strings
 
 

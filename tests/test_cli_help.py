@@ -25,7 +25,10 @@ def _subcommands() -> dict[str, argparse.ArgumentParser]:
 
 SUBCOMMANDS = _subcommands()
 FLAGS = [(name, action) for name, p in SUBCOMMANDS.items() for action in p._actions
-         if action.option_strings and not isinstance(action, argparse._HelpAction)]
+         if action.option_strings and not isinstance(action, argparse._HelpAction) and action.help is not argparse.SUPPRESS]
+#: Older spellings kept working but not shown in --help.
+HIDDEN = [(name, action) for name, p in SUBCOMMANDS.items() for action in p._actions
+          if action.option_strings and action.help is argparse.SUPPRESS]
 IDS = [f"{name} {action.option_strings[-1]}" for name, action in FLAGS]
 
 
@@ -49,6 +52,25 @@ def test_every_subcommand_is_covered():
     assert set(SUBCOMMANDS) == {"ao", "render", "fit", "bench", "convert", "export"}
     for name, parser in SUBCOMMANDS.items():
         assert sum(1 for n, _ in FLAGS if n == name) >= 3, name
+
+
+def test_hidden_flags_are_aliases_of_shown_ones():
+    assert sorted(a.option_strings[0] for n, a in HIDDEN) == ["--no-quiet"] * 4 + ["--quiet"] * 4
+    for command, action in HIDDEN:
+        assert any(a.dest == action.dest for n, a in FLAGS if n == command), action.option_strings
+
+
+@pytest.mark.parametrize("command", ["ao", "render", "fit", "bench"])
+def test_progress_flag_is_spelled_the_same_on_every_command(command):
+    parser = build_parser()
+    rest = ["--out", "x"]
+    assert parser.parse_args([command, *rest]).progress is True
+    assert parser.parse_args([command, "--no-progress", *rest]).progress is False
+    assert parser.parse_args([command, "--no-progress", "--progress", *rest]).progress is True
+    assert parser.parse_args([command, "--quiet", *rest]).progress is False  # the older spelling
+    assert parser.parse_args([command, "--quiet", "--no-quiet", *rest]).progress is True
+    assert "--progress, --no-progress" in SUBCOMMANDS[command].format_help()
+    assert "--quiet" not in SUBCOMMANDS[command].format_help()
 
 
 @pytest.mark.parametrize("command, action", FLAGS, ids=IDS)
@@ -124,7 +146,8 @@ def test_render_flags_are_its_options_with_the_same_defaults_and_parsing():
         320, 180, 256, math.inf, 0, 262144)
     assert (args.mesh, args.mesh_backend, args.device, args.ground_plane, args.fov, args.out) == (
         [], "auto", "cpu", None, None, None)
-    assert (args.list, args.indirect, args.no_uniform, args.backface, args.quiet, args.mesh_normalize) == (False,) * 6
+    assert (args.list, args.indirect, args.no_uniform, args.backface, args.mesh_normalize) == (False,) * 5
+    assert args.progress is True
     args = build_parser().parse_args(["render", "--mesh", "a.obj", "--mesh", "b.ply", "--eye", "-2,1,3",
                                       "--ground-plane", "--max-distance", "inf", "--fov", "45"])
     assert (args.mesh, args.eye, args.ground_plane, args.max_distance, args.fov) == (
@@ -150,7 +173,7 @@ def test_fit_flags_are_its_options_with_the_same_defaults():
         FitConfig.lr, FitConfig.hard_every, FitConfig.batch_views, FitConfig.seed, FitConfig.loss)
     assert (args.spp, args.max_distance, args.train_views) == (256, 1.0, 2)
     assert (args.reference, args.holdout, args.variant, args.radius, args.params, args.init, args.cache) == (None,) * 7
-    assert (args.no_denoise, args.no_progress) == (False, False)
+    assert (args.no_denoise, args.progress) == (False, True)
     args = build_parser().parse_args(["fit", "--reference", "a.npz", "b.npz", "--loss", "mse", "--no-denoise"])
     assert (args.reference, args.loss, args.no_denoise) == (["a.npz", "b.npz"], "mse", True)
 
@@ -172,3 +195,54 @@ def test_bad_values_message(argv, message, capsys):
 def test_convert_far_takes_inf():
     assert build_parser().parse_args(["convert", "in.exr", "--far", "inf"]).far == math.inf
     assert build_parser().parse_args(["convert", "in.exr"]).far is None
+
+
+def test_every_cited_document_exists():
+    """``docs/X.md`` named in --help, in the library's source or in the docs, and every relative
+    markdown link of README.md and docs/, point to files that exist."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    texts = {f"{name} --help": p.format_help() for name, p in SUBCOMMANDS.items()}
+    texts |= {str(p.relative_to(root)): p.read_text() for p in (root / "torch_ao").rglob("*.py")}
+    markdown = [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+    texts |= {str(p.relative_to(root)): p.read_text() for p in markdown}
+    cited = {(where, name) for where, text in texts.items() for name in re.findall(r"docs/[\w./-]+?\.md", _squash(text))}
+    assert ("ao --help", "docs/gbuffer.md") in cited
+    missing = [(where, name) for where, name in cited if not (root / name).is_file()]
+    for page in markdown:
+        for link in re.findall(r"\]\(([^)#:\s]+)(?:#[^)]*)?\)", page.read_text()):
+            if not (page.parent / link).exists():
+                missing.append((page.name, link))
+    assert missing == []
+
+
+def test_version(capsys):
+    import torch_ao
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out == f"torch-ao {torch_ao.__version__}\n"
+
+
+def test_python_m_torch_ao_is_the_command_line():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import torch_ao
+
+    root = Path(__file__).resolve().parent.parent
+    env = {"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"}
+    ok = subprocess.run([sys.executable, "-m", "torch_ao", "--version"], capture_output=True, text=True, env=env)
+    assert (ok.returncode, ok.stdout) == (0, f"torch-ao {torch_ao.__version__}\n")
+    bad = subprocess.run([sys.executable, "-m", "torch_ao", "ao", "--slices", "0"], capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--slices" in bad.stderr, bad.stderr
+
+
+def test_license_is_mit():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "LICENSE").read_text()
+    assert text.startswith("MIT License\n\nCopyright (c) the torch_ao developers\n")

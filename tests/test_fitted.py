@@ -115,7 +115,7 @@ def test_cli_bench_adds_fitted_rows(views, tmp_path):
     out = tmp_path / "bench"
     assert main(["bench", "--reference", str(frame), "--methods", "gtao", "--presets", "low", "--fitted",
                  str(tmp_path / "mine" / "params.json"), "--no-background", "--no-plots", "--no-backward",
-                 "--repeats", "1", "--quiet", "--out", str(out)]) == 0
+                 "--repeats", "1", "--no-progress", "--out", str(out)]) == 0
     rows = json.loads((out / "report.json").read_text())["rows"]
     mine = {r["denoise"]: r for r in rows if r["method"] == "bitmask fitted (mine)"}
     assert set(mine) == {False, True} and mine[True]["preset"] == "low"
@@ -134,7 +134,7 @@ def test_cli_bench_gives_built_in_views_the_back_face_layer_a_fitted_pipeline_ne
     out, cache = tmp_path / "bench", tmp_path / "cache"
     assert main(["bench", "--scenes", "fence", "--width", "32", "--height", "24", "--spp", "16", "--max-distance", "0.8",
                  "--cache", str(cache), "--methods", "gtao", "--presets", "low", "--fitted", str(tmp_path / "bf" / "params.json"),
-                 "--no-background", "--no-plots", "--no-backward", "--repeats", "1", "--quiet", "--out", str(out)]) == 0
+                 "--no-background", "--no-plots", "--no-backward", "--repeats", "1", "--no-progress", "--out", str(out)]) == 0
     rows = [r for r in json.loads((out / "report.json").read_text())["rows"] if r["method"] == "bitmask fitted (bf)"]
     assert rows, "the back-face pipeline was skipped"
     view = load_views([reference_path(cache, "fence", 24, 32, 16, 0.8)])[0]

@@ -309,7 +309,7 @@ def test_options_describe_the_signature_and_unused_options_are_refused(cls):
                 PSSAO(**{name: options.get(name, None) or 1})
 
 
-_FROZEN_BY_DEFAULT = {GTAO: {"thickness_heuristic", "albedo"}}  # (used by variant="ue4" / multibounce only)
+_FROZEN_BY_DEFAULT = {GTAO: {"thickness_heuristic", "albedo", "falloff_range"}}  # (ue4 / multibounce only; falloff_range 0 has no gradient)
 
 
 def test_sampling_configuration_validates_each_field():

@@ -11,7 +11,7 @@ from torch_ao.cli import main
 from torch_ao.examples import example_gbuffer
 from torch_ao.io import read_npz
 
-pytest.importorskip("OpenEXR", reason="needs the exr extra: pip install 'torch-ao[exr]'")
+pytest.importorskip("OpenEXR", reason="needs the exr extra: pip install -e '.[exr]'")
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "engines.md"
 

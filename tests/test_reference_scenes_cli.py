@@ -69,7 +69,7 @@ def test_cli_render_writes_npz_and_png(tmp_path, capsys):
     out, png = tmp_path / "o.npz", tmp_path / "o.png"
     code = main(["render", "room_corner", "--width", "16", "--height", "9", "--spp", "4", "--max-distance", "0.5",
                  "--eye", "3,2,3", "--target", "0.5,0.2,0.5", "--fov", "50", "--seed", "3", "--out", str(out),
-                 "--png", str(png), "--quiet"])
+                 "--png", str(png), "--no-progress"])
     assert code == 0
     assert " s " in capsys.readouterr().out  # prints the time taken
     gb, extras = load_gbuffer(out)
@@ -86,7 +86,7 @@ def test_cli_mesh_file(tmp_path):
     assert abs(float((m.vertices.max(0).values - m.vertices.min(0).values).max()) - 1) < 1e-9
     out = tmp_path / "m.npz"
     assert main(["render", "mesh_on_floor", "--mesh", str(mesh_path), "--mesh-normalize", "--width", "12", "--height", "8",
-                 "--spp", "2", "--out", str(out), "--quiet", "--mesh-backend", "torch"]) == 0
+                 "--spp", "2", "--out", str(out), "--no-progress", "--mesh-backend", "torch"]) == 0
     gb, _ = load_gbuffer(out)
     assert int(gb.object_id.max()) <= 4
 
@@ -104,6 +104,6 @@ def test_cli_mesh_file(tmp_path):
 ])
 def test_cli_errors_name_the_argument_and_write_nothing(argv, match, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    assert main(argv + ["--width", "8", "--height", "6", "--quiet"] if "--width" not in argv else argv + ["--quiet"]) == 2
+    assert main(argv + ["--width", "8", "--height", "6", "--no-progress"] if "--width" not in argv else argv + ["--no-progress"]) == 2
     assert match in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []

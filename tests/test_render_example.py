@@ -34,7 +34,7 @@ def test_reference_doc_example_runs(tmp_path, monkeypatch, capsys):
             assert argv[1] == "-c"
             exec(compile(argv[2], "<docs example>", "exec"), {})
         else:
-            assert main(argv[1:] + ["--quiet"]) == 0
+            assert main(argv[1:] + ["--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "ring thickness" in out
     gb, extras = load_gbuffer(tmp_path / "ring.npz")

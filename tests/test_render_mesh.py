@@ -18,7 +18,7 @@ from torch_ao.reference import gltf_camera, load_mesh_file, look_at_matrix, mesh
 
 trimesh = pytest.importorskip("trimesh", reason="trimesh reads the mesh files")
 
-SMALL = ["--width", "24", "--height", "16", "--spp", "2", "--quiet"]
+SMALL = ["--width", "24", "--height", "16", "--spp", "2", "--no-progress"]
 
 
 def _world_points(path):
@@ -242,7 +242,7 @@ def test_bad_files_one_line_exit_2_nothing_written(suffix, make, match, tmp_path
 
 
 def test_no_scene_and_no_mesh_is_an_error(capsys, tmp_path):
-    assert main(["render", "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
+    assert main(["render", "--out", str(tmp_path / "x.npz"), "--no-progress"]) == 2
     assert "--mesh" in capsys.readouterr().err
 
 
@@ -266,7 +266,7 @@ def test_million_triangle_mesh_through_embree(tmp_path):
     out = tmp_path / "t.npz"
     assert main(["render", "--mesh", str(path), "--eye", "-1.5,1.2,-2.2", "--target", "0,0.2,0", "--backface",
                  "--mesh-backend", "embree", "--out", str(out), "--width", "40", "--height", "24", "--spp", "2",
-                 "--quiet"]) == 0
+                 "--no-progress"]) == 0
     world, oid, valid, extras = _world_points(out)
     w = world[valid]
     assert valid.float().mean() > 0.1

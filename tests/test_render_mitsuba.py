@@ -39,7 +39,7 @@ XML = """<scene version="3.0.0">
 
 @pytest.fixture
 def xml(tmp_path):
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 scene files need mitsuba (pip install torch-ao[mitsuba])")
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 scene files need mitsuba (pip install -e '.[mitsuba]')")
     path = tmp_path / "scene.xml"
     path.write_text(XML)
     return path
@@ -92,7 +92,7 @@ def test_render_matches_the_native_scene_within_noise(xml, tmp_path):
 
 def test_cli_renders_the_file_with_its_camera(xml, tmp_path):
     out = tmp_path / "m.npz"
-    assert main(["render", str(xml), "--width", "32", "--height", "24", "--spp", "2", "--quiet", "--out", str(out)]) == 0
+    assert main(["render", str(xml), "--width", "32", "--height", "24", "--spp", "2", "--no-progress", "--out", str(out)]) == 0
     gb, extras = load_gbuffer(out)
     expected = look_at_matrix((-2, 1.5, 3), (0, 0.4, 0))[0]
     assert torch.allclose(extras["world_to_view"][0].double(), expected, atol=1e-6)
@@ -108,7 +108,7 @@ def test_bad_scene_files_one_line_exit_2(xml, text, match, tmp_path, capsys):
     bad = tmp_path / "bad.xml"
     bad.write_text(text)
     out = tmp_path / "out" / "x.npz"
-    assert main(["render", str(bad), "--out", str(out), "--quiet"]) == 2
+    assert main(["render", str(bad), "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert match in err and "bad.xml" in err and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
@@ -118,5 +118,5 @@ def test_missing_mitsuba_names_the_extra(tmp_path, monkeypatch, capsys):
     path = tmp_path / "scene.xml"
     path.write_text(XML)
     monkeypatch.setitem(sys.modules, "mitsuba", None)
-    assert main(["render", str(path), "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
-    assert "pip install torch-ao[mitsuba]" in capsys.readouterr().err
+    assert main(["render", str(path), "--out", str(tmp_path / "x.npz"), "--no-progress"]) == 2
+    assert 'pip install -e ".[mitsuba]" (in the torch_ao checkout) or pip install mitsuba' in capsys.readouterr().err

@@ -27,7 +27,7 @@ def test_unknown_backend_is_refused():
 
 @pytest.fixture(scope="module")
 def warp():
-    return pytest.importorskip("warp", reason="warp-lang is not installed (pip install torch-ao[warp])")
+    return pytest.importorskip("warp", reason="warp-lang is not installed (pip install -e '.[warp]')")
 
 
 def test_warp_hits_match_the_torch_path(warp):

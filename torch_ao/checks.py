@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from typing import Iterable, TypeVar
 
-__all__ = ["check_int", "check_float", "check_choice", "check_bool"]
+__all__ = ["check_int", "check_float", "check_choice", "check_bool", "install_hint"]
 
 T = TypeVar("T")
 
@@ -57,3 +57,12 @@ def check_bool(name: str, value) -> bool:
     if not isinstance(value, bool):
         raise _fail(name, "True or False", value)
     return value
+
+
+def install_hint(extra: str, package: str) -> str:
+    """How to install an optional dependency: the extra from the repository's checkout, or the package.
+
+    ``install_hint("exr", "openexr")`` -> ``pip install -e ".[exr]" (in the torch_ao checkout) or pip
+    install openexr``.
+    """
+    return f'pip install -e ".[{extra}]" (in the torch_ao checkout) or pip install {package}'

@@ -5,6 +5,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 # Subcommand modules, each with ``register(subparsers)`` that adds its parser and sets ``func``.
 _COMMANDS = ("ao", "render", "fit", "bench", "convert", "export")
@@ -29,7 +30,11 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     parser = _Parser(prog="torch-ao", description="Differentiable screen-space ambient occlusion.")
+    parser.add_argument("--version", action="version", version=f"torch-ao {__version__}",
+                        help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in _COMMANDS:
         try:
@@ -81,6 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     except _UsageError as err:
         print(f"{err.prog}: error: {err} (see {err.prog} --help)", file=sys.stderr)
         return 2
+    def one_line(message, *_args, **_kwargs):  # warnings print as one line on stderr, like the errors
+        return f"torch-ao {args.command}: warning: {message}\n"
+
+    formatwarning, warnings.formatwarning = warnings.formatwarning, one_line
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
@@ -92,6 +101,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"torch-ao {args.command}: error: {' '.join(message.split())}", file=sys.stderr)  # one line
         return 2
+    finally:
+        warnings.formatwarning = formatwarning
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,6 +8,8 @@ import torch
 
 __all__ = ["save_png", "to_display", "pyplot"]
 
+from .checks import install_hint
+
 
 def to_display(image: torch.Tensor | np.ndarray) -> np.ndarray:
     """``(B,C,H,W)``/``(C,H,W)``/``(H,W)`` -> ``(H, B*W, 3)`` float array in [0, 1] (batch side by side)."""
@@ -31,12 +33,12 @@ def pyplot():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as err:  # pragma: no cover - depends on the environment
-        raise ImportError("--png needs matplotlib: pip install 'torch-ao[plot]'") from err
+        raise ImportError(f"--png needs matplotlib: {install_hint('plot', 'matplotlib')}") from err
     return plt
 
 
 def save_png(path: str | Path, image) -> Path:
-    """Save an image (see :func:`to_display`) as PNG, atomically. Needs matplotlib (``pip install torch-ao[plot]``)."""
+    """Save an image (see :func:`to_display`) as PNG, atomically. Needs matplotlib (the ``plot`` extra)."""
     from .io import write_atomic
 
     plt = pyplot()

@@ -60,14 +60,15 @@ class BenchView(FitView):
     max_distance: float = math.inf
 
 
-def load_views(paths: Iterable[str | os.PathLike], device=None) -> list[BenchView]:
+def load_views(paths: Iterable[str | os.PathLike], device=None, **options) -> list[BenchView]:
     """Reference views from G-buffer files that hold an ``ao`` array (and optionally ``ao_stderr`` and
-    ``max_distance``), named by their path."""
+    ``max_distance``), named by their path. ``options``: how to read the files
+    (:class:`~torch_ao.engine_io.EngineOptions` fields, see :func:`~torch_ao.io.read_gbuffer_arrays`)."""
     from .io import load_gbuffer
 
     views = []
     for path in paths:
-        gb, extras = load_gbuffer(path, device=device)
+        gb, extras = load_gbuffer(path, device=device, **options)
         if "ao" not in extras:
             raise ValueError(f"reference: {path} has no 'ao' array; render one with `torch-ao render`")
         md = extras.get("max_distance")
@@ -150,11 +151,13 @@ def cached_reference(scene: str, *, height: int, width: int, spp: int, max_dista
 def load_bench_views(scenes: Sequence[str] = (), files: Sequence[str | os.PathLike] = (), *, height: int = 72,
                      width: int = 96, spp: int = 64, max_distance: float = 1.0, seed: int = 0,
                      cache_dir: str | os.PathLike | None = None, device=None, progress: bool = True,
-                     log: Callable[[str], None] | None = print, backface: bool = False) -> list[BenchView]:
+                     log: Callable[[str], None] | None = print, backface: bool = False,
+                     reading: dict | None = None) -> list[BenchView]:
     """Reference views of built-in ``scenes`` (default layout; :func:`cached_reference`) and of
     reference ``files``; each named after its scene or file stem (names must differ). ``backface=True``
     gives the built-in scenes' views their back-face depth layer (added to the cached file once:
-    :func:`~torch_ao.datasets.add_backface_layer`), for pipelines with the back-face thickness model."""
+    :func:`~torch_ao.datasets.add_backface_layer`), for pipelines with the back-face thickness model.
+    ``reading``: how to read the reference ``files`` (:func:`load_views`' options)."""
     from .datasets import add_backface_layer
 
     views = []
@@ -165,14 +168,14 @@ def load_bench_views(scenes: Sequence[str] = (), files: Sequence[str | os.PathLi
             add_backface_layer(path, name, None)
         views.append(_named(path, name, device))
     for f in files:
-        views.append(_named(f, Path(f).stem, device))
+        views.append(_named(f, Path(f).stem, device, reading or {}))
     names = [v.name for v in views]
     if len(set(names)) != len(names):
         raise ValueError(f"reference: two views share a name ({', '.join(names)}); rename the files")
     return views
 
 
-def _named(path: str | os.PathLike, name: str, device) -> BenchView:
-    view = load_views([path], device=device)[0]
+def _named(path: str | os.PathLike, name: str, device, reading: dict | None = None) -> BenchView:
+    view = load_views([path], device=device, **(reading or {}))[0]
     view.name = name
     return view

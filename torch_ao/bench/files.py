@@ -153,17 +153,34 @@ def markdown_report(rows: Sequence[dict], recommendations: dict, *, background: 
     return "\n".join(md)
 
 
+#: Legend entries per column of :func:`plot_error_vs_time` (more entries: more columns, so it fits the figure).
+_LEGEND_ROWS = 16
+
+
 def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: str = "", metric: str = "mae",
                        cost: str = "forward_ms") -> Path:
     """Error against run time (log x), one curve per method and walk resolution through its presets
     (solid: plain, dashed: denoised; at half/quarter resolution thinner, points labelled ``H½``), the
-    Pareto front over all points as a black step line with ringed points."""
+    Pareto front over all points as a black step line with ringed points; the legend to the right,
+    inside the image (:func:`error_vs_time_figure`)."""
+    import matplotlib.pyplot as plt
+
+    fig = error_vs_time_figure(rows, title=title, metric=metric, cost=cost)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def error_vs_time_figure(rows: Sequence[dict], *, title: str = "", metric: str = "mae", cost: str = "forward_ms"):
+    """The matplotlib figure :func:`plot_error_vs_time` saves (the caller closes it)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8.0, 4.4), dpi=100)
+    fig, ax = plt.subplots(figsize=(8.0, 4.4), dpi=100, layout="constrained")
     methods = sorted({r["method"] for r in rows})
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, m in enumerate(methods):
@@ -197,13 +214,10 @@ def plot_error_vs_time(rows: Sequence[dict], path: str | os.PathLike, *, title: 
     ax.set_ylabel(metric.upper() + " vs reference")
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    entries = len(ax.get_legend_handles_labels()[1])
+    # "outside": constrained layout shrinks the axes so the legend lies inside the saved image
+    fig.legend(fontsize=7, loc="outside right upper", ncols=max(1, math.ceil(entries / _LEGEND_ROWS)))
+    return fig
 
 
 def write_report(out_dir: str | os.PathLike, rows: Sequence[dict], *, tolerance: float = DEFAULT_TOLERANCE,

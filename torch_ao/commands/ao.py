@@ -14,7 +14,8 @@ from ..methods import METHODS, get_method
 from ..options import Option
 from .args import parse_device
 from .auto import apply_auto
-from .options_cli import add_options, construct, given, method_kwargs, method_options
+from .inputs import add_input_flags, flag_errors, input_options
+from .options_cli import add_options, add_progress, construct, given, method_kwargs, method_options
 
 #: The flags of ``torch-ao ao`` that are not method options.
 OPTIONS = (
@@ -46,9 +47,12 @@ def register(sub) -> None:
         "method's constructor only when given; a flag the chosen method does not take is an error.",
     )
     p.add_argument("gbuffer", nargs="?", metavar="GBUFFER",
-                   help="input .npz (keys: depth, and optionally normal, light, mask, object_id, intrinsics or "
-                   "fov_y_degrees; see docs/gbuffer.md). Default: the built-in example")
+                   help="input G-buffer: .npz (keys: depth, and optionally normal, light, mask, object_id, intrinsics or "
+                   "fov_y_degrees; see docs/gbuffer.md), or an engine's .exr or 16-bit .png depth read with the "
+                   "input conventions below. Default: the built-in example")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
+    add_progress(p)
+    add_input_flags(p, "GBUFFER")
     group = p.add_argument_group("method options (see --method; each says which methods take it when they differ)")
     p.set_defaults(func=run, method_flags=add_options(group, method_options({m: get_method(m) for m in METHODS})))
 
@@ -57,17 +61,6 @@ def build_method(name: str, args: argparse.Namespace) -> torch.nn.Module:
     """The module ``name`` with the method flags given on the command line."""
     cls = get_method(name)
     return construct(cls, method_kwargs(name, cls, given(args, args.method_flags)))
-
-
-def _load(path: str, device):
-    """The G-buffer of ``path``; an engine file without a camera is refused with the command that converts it."""
-    from ..engine_io import CameraMissing
-
-    try:
-        return load_gbuffer(path, device=device)[0]
-    except CameraMissing:
-        raise ValueError(f"camera: {path} names no camera, and `torch-ao ao` takes none; convert it first: "
-                         f"torch-ao convert {path} --fov DEGREES (or --intrinsics FX,FY,CX,CY) --out FILE.npz") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,8 +73,10 @@ def run(args: argparse.Namespace) -> int:
         pyplot()  # (matplotlib, before the method runs)
     if args.auto or args.report or args.tolerance is not None:
         apply_auto(args)
+    reading = input_options(args, args.gbuffer, "a GBUFFER file")
     if args.gbuffer:
-        gbuffer = _load(args.gbuffer, device)
+        with flag_errors():
+            gbuffer, _ = load_gbuffer(args.gbuffer, device=device, **reading)
     else:
         gbuffer = example_gbuffer().to(device)
     from ..fitted import cli_module

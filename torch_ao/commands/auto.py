@@ -17,7 +17,7 @@ def apply_auto(args: argparse.Namespace, log: Callable[[str], None] = print) -> 
     if args.report is None and args.gbuffer:
         log(f"auto: no --report; running a quick sweep on {args.gbuffer}'s reference (all methods, low..ultra)")
     choice = auto_choice(args.gbuffer, report=args.report, tolerance=args.tolerance, device=args.device,
-                         progress=True, log=None)
+                         progress=getattr(args, "progress", True), log=None)
     args.method, args.preset = choice["method"], choice["preset"]
     if getattr(args, "radius", None) is None and choice["radius"] is not None:
         args.radius = choice["radius"]

@@ -20,7 +20,8 @@ from ..reference import SCENES
 from ..views import default_cache_dir
 from ..io import check_output_path
 from .args import parse_device
-from .options_cli import add_options, flag, given, method_kwargs, method_options
+from .inputs import add_input_flags, flag_errors, input_options
+from .options_cli import add_options, add_progress, flag, given, method_kwargs, method_options
 
 
 def _csv(text: str) -> list[str]:
@@ -49,7 +50,6 @@ OPTIONS = (
     Option("device", "cpu", "torch device the methods run on, e.g. cpu or cuda", str),
     Option("threads", None, "torch CPU threads; when not given, torch's default", int, minimum=1),
     Option("seed", 0, "sampling seed of the reference renders", int, minimum=0),
-    Option("quiet", False, "no progress bars", bool),
 )
 
 #: Method arguments the sweep sets itself (per preset and reference), so they are not method flags here.
@@ -87,6 +87,8 @@ def register(sub) -> None:
                    help="fitted pipelines (`torch-ao fit` params.json files) added as rows, each at its own preset, "
                    "radius, parameters and denoiser. Default: none")
     add_options(p, {o.name: o for o in OPTIONS}, given_only=False)
+    add_progress(p)
+    add_input_flags(p, "the --reference files")
     sizes = p.add_argument_group("sweep size (defaults as below, or those of --quick)")
     add_options(sizes, {o.name: o for o in SIZE_OPTIONS})
     group = p.add_argument_group("method options (each applies to the swept methods that take it; "
@@ -159,11 +161,13 @@ def run(args: argparse.Namespace) -> int:
     params = _method_params(methods, given(args, args.method_flags), _params(args.params))
     height, width, spp, repeats, warmup = (getattr(base, o.name) if getattr(args, o.name) is None else getattr(args, o.name)
                                            for o in SIZE_OPTIONS)
-    progress = not args.quiet
+    progress = args.progress
+    reading = input_options(args, args.reference, "--reference files")
     start = time.perf_counter()
-    views = load_bench_views(scenes, args.reference, height=height, width=width, spp=spp,
-                             max_distance=args.max_distance, seed=args.seed, cache_dir=args.cache, device=device,
-                             progress=progress, backface=_needs_backface(args.fitted))
+    with flag_errors():
+        views = load_bench_views(scenes, args.reference, height=height, width=width, spp=spp,
+                                 max_distance=args.max_distance, seed=args.seed, cache_dir=args.cache, device=device,
+                                 progress=progress, backface=_needs_backface(args.fitted), reading=reading)
     rows = run_bench(views, methods, presets, denoise=args.denoise, backward=args.backward,
                      repeats=repeats, warmup=warmup, device=device, radius=args.radius, params=params,
                      progress=progress)

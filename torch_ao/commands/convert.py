@@ -4,36 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from ..engine_io import ENGINE_OPTIONS, EngineOptions
-from .args import allow_negative_lists, parse_float_list
-from .options_cli import add_option, add_options, flag, given
+from .inputs import add_input_flags, flag_errors, input_options
 
-__all__ = ["register", "run", "add_engine_flags", "engine_options"]
-
-_FLAGS = {o.name: o for o in ENGINE_OPTIONS if o.name != "far"}
-_FAR = next(o for o in ENGINE_OPTIONS if o.name == "far")
-
-
-def add_engine_flags(p: argparse.ArgumentParser) -> None:
-    """The flags of :class:`~torch_ao.engine_io.EngineOptions` (for any command that reads engine files),
-    built from :data:`~torch_ao.engine_io.ENGINE_OPTIONS`."""
-    g = p.add_argument_group("engine conventions (see docs/engines.md)")
-    add_options(g, _FLAGS)
-    add_option(g, "far", _FAR, infinite=True)  # inf: no far plane
-    allow_negative_lists(p)  # --view-matrix -1,0,...
-
-
-def engine_options(args: argparse.Namespace) -> dict:
-    """The :class:`~torch_ao.engine_io.EngineOptions` fields given on the command line (others default)."""
-    from ..engine_io import parse_channels
-
-    options = given(args, [*_FLAGS, "far"])
-    if "channels" in options:
-        options["channels"] = parse_channels(options["channels"])
-    for name, count, names in (("view_matrix", 16, "M00,M01,...,M33"), ("intrinsics", 4, "fx,fy,cx,cy")):
-        if name in options:
-            options[name] = parse_float_list(flag(name), options[name], count, names=names)
-    return options
+__all__ = ["register", "run"]
 
 
 def register(sub) -> None:
@@ -41,22 +14,14 @@ def register(sub) -> None:
         "convert", help="convert an engine G-buffer (OpenEXR, 16-bit PNG depth) to the library's .npz",
         description="Read a G-buffer written by an engine or DCC tool (OpenEXR with depth, normals, positions, "
         "light, albedo, object ids; or a 16-bit PNG depth), convert it to the library's conventions (view-axis "
-        "depth, OpenGL view-space normals and positions) and write it as .npz. Needs `pip install torch-ao[exr]` "
+        "depth, OpenGL view-space normals and positions) and write it as .npz. Needs the exr extra (`pip install -e \".[exr]\"`) "
         "for OpenEXR files.")
     p.add_argument("input", help="input file: .exr, .png (16-bit depth) or .npz")
     p.add_argument("--out", help="output .npz file (required)")
     p.add_argument("--png", help="also write a preview PNG (depth | normals). Default: none")
     p.add_argument("--list-channels", action="store_true", help="print the channels of the OpenEXR file and exit")
-    add_engine_flags(p)
+    add_input_flags(p, "the input file")
     p.set_defaults(func=run)
-
-
-def _rename_option_error(err: ValueError) -> ValueError:
-    msg = str(err)
-    name = msg.split(":", 1)[0]
-    if name in EngineOptions.__dataclass_fields__:
-        msg = "--" + name.replace("_", "-") + msg[len(name):]
-    return ValueError(msg)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,11 +41,10 @@ def run(args: argparse.Namespace) -> int:
 
         check_output_path("--png", args.png, (".png",))
         pyplot()
-    try:
-        arrays = read_gbuffer_arrays(args.input, **engine_options(args))
+    options = input_options(args)
+    with flag_errors():
+        arrays = read_gbuffer_arrays(args.input, **options)
         gbuffer, extras = gbuffer_from_arrays(arrays, args.input)
-    except ValueError as err:
-        raise _rename_option_error(err) from None
     path = save_npz(args.out, gbuffer, **extras)
     if args.png:
         _preview(args.png, gbuffer)

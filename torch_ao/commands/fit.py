@@ -26,7 +26,8 @@ from ..methods import get_method
 from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
 from .args import parse_device
-from .options_cli import add_option
+from .inputs import add_input_flags, flag_errors, input_options
+from .options_cli import add_option, add_progress
 from .render import OPTIONS as RENDER_OPTIONS
 
 #: Parameters in world units: their learning rate is ``--lr`` times R, so a fit moves them by the
@@ -40,7 +41,7 @@ BITMASK = ("bitmask", "ssilvb")
 MIN_SIZE = 4
 #: Flags that do not change the fit (where it writes, how it reports, the held-out views it is scored on
 #: afterwards): every other flag is in the checkpoint's fingerprint, so a resumed fit is the same fit.
-NOT_IN_CHECKPOINT = ("out", "restart", "cache", "no_progress", "holdout", "holdout_views")
+NOT_IN_CHECKPOINT = ("out", "restart", "cache", "progress", "holdout", "holdout_views")
 
 
 def _method_option(method: str, name: str) -> Option:
@@ -97,7 +98,6 @@ OPTIONS = (
     Option("restart", False, "discard --out's checkpoint.pt and fit from the start (else a run with the same settings "
            "resumes it, and one with other settings is refused)", bool),
     Option("device", "cpu", "torch device of the fit and of the reference renders, e.g. cpu or cuda", str),
-    Option("no_progress", False, "no progress bars", bool),
 )
 
 #: Flags whose form an Option cannot say: argparse keywords replacing the option's own.
@@ -119,6 +119,8 @@ def register(sub) -> None:
     )
     for opt in OPTIONS:
         add_option(p, opt.name, opt, given_only=False, switch=True, **_FORMS.get(opt.name, {}))
+    add_progress(p)
+    add_input_flags(p, "the --reference and --holdout files")
     p.set_defaults(func=run)
 
 
@@ -172,9 +174,11 @@ def _require_backface(views) -> None:
 
 def _views(args) -> tuple[list, list, float]:
     device = torch.device(args.device)
+    reading = input_options(args, args.reference, "--reference files")
     if args.reference:
-        train = load_views(args.reference, device=device)
-        held = load_views(args.holdout, device=device) if args.holdout else None
+        with flag_errors():
+            train = load_views(args.reference, device=device, **reading)
+            held = load_views(args.holdout, device=device, **reading) if args.holdout else None
         if args.thickness == "backface":
             _require_backface(train + (held or []))
         radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
@@ -193,7 +197,7 @@ def _views(args) -> tuple[list, list, float]:
         raise CommandError(f"--scenes: unknown scene(s) {', '.join(unknown)}; see `torch-ao render --list`")
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
-                  progress=not args.no_progress, device=device, backface=args.thickness == "backface")
+                  progress=args.progress, device=device, backface=args.thickness == "backface")
     print(f"references: {len(scenes)} scenes x ({args.train_views} training + {args.holdout_views} held-out) views at "
           f"{w}x{h}, {args.spp} spp")
     train, held = train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
@@ -269,16 +273,20 @@ def run(args: argparse.Namespace) -> int:
     model = thickness_options(args, train + held, init)
 
     default = FittedPipeline(args.method, pipeline_options(args, radius, **model), denoiser=denoise).to(args.device)
-    params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params
-              else fittable_parameters(default.method))
+    # a default without a gradient is a buffer: fittable once moved to its start value
+    moved = {k: v for k, v in NO_GRADIENT_START.items() if k in default.method.options()
+             and float(getattr(default.method, k).detach()) == 0.0}
+    fittable = fittable_parameters(FittedPipeline(args.method, pipeline_options(args, radius, **model, **moved),
+                                                  denoiser=denoise).method)
+    params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params else fittable)
     if not params:
         raise CommandError(f"--params: {args.method} has no float parameter to fit with these options")
     for name in params:
-        if name not in fittable_parameters(default.method):
+        if name not in fittable:
             raise CommandError(f"--params: {name!r} is not a fitted parameter of {args.method}"
                                f"{' (' + args.variant + ')' if args.variant else ''}; "
-                               f"available: {', '.join(fittable_parameters(default.method))}")
-    start = {k: v for k, v in NO_GRADIENT_START.items() if k in params and float(getattr(default.method, k).detach()) == 0.0}
+                               f"available: {', '.join(fittable)}")
+    start = {k: v for k, v in moved.items() if k in params}
     start.update(init)
     unknown = set(start) - set(params)
     if unknown:
@@ -359,7 +367,7 @@ def _refuse_checkpoint(args, checkpoint: Path, settings: dict, differences) -> N
 def _fit(module, train, cfg: FitConfig, args: argparse.Namespace, checkpoint: Path, settings: dict):
     """:func:`~torch_ao.fit.fit` with ``--out``'s checkpoint, refused by name when it belongs to other settings."""
     try:
-        return fit(module, train, cfg, checkpoint=checkpoint, progress=not args.no_progress, settings=settings)
+        return fit(module, train, cfg, checkpoint=checkpoint, progress=args.progress, settings=settings)
     except CheckpointMismatch as err:
         _refuse_checkpoint(args, checkpoint, settings, err.differences)
 
@@ -378,7 +386,7 @@ def _describe(pipeline: FittedPipeline, params) -> str:
     values = pipeline.parameter_values()
     parts = []
     for name in params:
-        v = values[name]
+        v = values[name] if name in values else getattr(pipeline.method, name).detach()  # a default frozen at 0
         parts.append(f"{name}={v.item():.3g}" if v.numel() == 1 else f"{name}=<{v.numel()} values>")
     if "weighting" in pipeline.options:
         parts.append(f"{pipeline.options['weighting']} sectors")

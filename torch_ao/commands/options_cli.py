@@ -16,7 +16,8 @@ from typing import Iterable, Mapping
 from ..cli import CommandError
 from ..options import Option
 
-__all__ = ["flag", "method_options", "add_option", "add_options", "given", "method_kwargs", "construct"]
+__all__ = ["flag", "method_options", "add_option", "add_options", "add_progress", "given", "method_kwargs", "construct",
+           "PROGRESS"]
 
 #: Option kinds that have a command-line form (others, such as tensors or callables, are Python-only).
 FLAG_KINDS = (float, int, str, bool)
@@ -115,6 +116,21 @@ def add_options(parser, options: Mapping[str, Option | Mapping[str, Option]], *,
     ``given_only``: the flags default to ``None`` (read back only when given); else to the option's default.
     """
     return [add_option(parser, name, entry, given_only=given_only) for name, entry in options.items()]
+
+
+#: The progress flag, spelled the same on every command: ``--progress``/``--no-progress``.
+PROGRESS = Option("progress", True, "progress bars on stderr (--no-progress: none)", bool)
+#: Older spellings, still accepted but not shown: ``{flag: value of args.progress}``.
+_PROGRESS_ALIASES = {"--quiet": False, "--no-quiet": True}
+
+
+def add_progress(parser) -> str:
+    """Add :data:`PROGRESS` (``args.progress``, default True) and its hidden aliases ``--quiet``
+    (= ``--no-progress``) and ``--no-quiet``; returns ``"progress"``."""
+    add_option(parser, PROGRESS.name, PROGRESS, given_only=False)
+    for alias, value in _PROGRESS_ALIASES.items():
+        parser.add_argument(alias, dest=PROGRESS.name, action="store_const", const=value, help=argparse.SUPPRESS)
+    return PROGRESS.name
 
 
 def given(args: argparse.Namespace, names: Iterable[str]) -> dict:

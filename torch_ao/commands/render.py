@@ -17,7 +17,7 @@ from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
 from ..io import check_output_path
 from .args import add_float_list, allow_negative_lists, parse_device, parse_float_list
-from .options_cli import add_option, flag
+from .options_cli import add_option, add_progress, flag
 
 __all__ = ["register", "run", "write_png"]
 
@@ -63,7 +63,6 @@ OPTIONS = (
     Option("device", "cpu", "torch device of the tracer, e.g. cpu or cuda", str),
     Option("out", None, "output .npz file (required)", str),
     Option("png", None, "also write a preview PNG (depth | normals | light | AO) to this path", str),
-    Option("quiet", False, "no progress bar", bool),
 )
 
 #: Flags whose form an Option cannot say: argparse keywords replacing the option's own.
@@ -92,6 +91,7 @@ def register(subparsers) -> None:
         else:
             add_option(p, opt.name, opt, given_only=False, switch=True, infinite=opt.name == "max_distance",
                        **_FORMS.get(opt.name, {}))
+    add_progress(p)
     p.set_defaults(func=run)
 
 
@@ -113,7 +113,7 @@ def _scene(args):
         if args.randomize is not None:
             raise CommandError("--randomize: only for built-in scenes")
         files = ([args.scene] if args.scene else []) + args.mesh
-        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=not args.quiet)
+        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=args.progress)
     try:
         scene = get_scene(args.scene, seed=args.randomize)
     except ValueError as err:
@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         ref = render_reference(scene, views, spp=args.spp, max_distance=args.max_distance, seed=args.seed,
-                               chunk_rays=args.chunk_rays, progress=not args.quiet, indirect=args.indirect,
+                               chunk_rays=args.chunk_rays, progress=args.progress, indirect=args.indirect,
                                uniform=not args.no_uniform, backface=args.backface, device=args.device,
                                mesh_backend=args.mesh_backend)
     except ValueError as err:

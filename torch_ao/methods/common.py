@@ -215,6 +215,14 @@ def functional_twin(cls, name: str):
         return module(gbuffer)
 
     twin.__name__ = twin.__qualname__ = name
-    twin.__doc__ = (f"Functional :class:`{cls.__name__}` ``(gbuffer, **options) -> AOOutput``: the options of the "
-                    f"module; {', '.join(fitted)} may be tensors (gradients flow to them).")
+    twin.__doc__ = (f"Functional :class:`{cls.__name__}` ``(gbuffer, *, options...) -> AOOutput``: the keyword "
+                    f"options of the module (listed in the signature, described by ``{cls.__name__}.options()``); "
+                    f"{', '.join(fitted)} may be tensors (gradients flow to them).\n\n"
+                    "Shape:\n    - gbuffer: depth ``(B, 1, H, W)`` (world units), normals ``(B, 3, H, W)``.\n"
+                    "    - Output: ``visibility (B, 1, H, W)`` in [0, 1] (1 = unoccluded), and what was asked for.")
+    keywords = [p.replace(default=False) if p.name == "trainable" else p
+                for p in inspect.signature(cls).parameters.values()]
+    twin.__signature__ = inspect.Signature(
+        [inspect.Parameter("gbuffer", inspect.Parameter.POSITIONAL_OR_KEYWORD)] + keywords,
+        return_annotation="AOOutput")
     return twin

@@ -283,7 +283,8 @@ class GTAO(ScreenSpaceAO):
     """Ground-truth ambient occlusion; see the module docstring for the variants and :meth:`options`
     for every argument. Parameters a variant does not use (``falloff_range`` outside ``"exact"``,
     ``thickness_heuristic`` outside ``"ue4"``, ``albedo`` without ``multibounce``) are kept as frozen
-    buffers, so ``parameters()`` lists exactly what shapes the result."""
+    buffers, so ``parameters()`` lists exactly what shapes the result; so is ``falloff_range`` at 0 (a
+    hard cut, which has no gradient): give it a value > 0 to fit it."""
 
     OPTIONS = (
         Option("variant", "exact", "exact: in-plane angles, exact trigonometry; hdrp: Unity HDRP's shader; "
@@ -327,7 +328,9 @@ class GTAO(ScreenSpaceAO):
         self.multibounce, self.bent_normals = v["multibounce"], v["bent_normals"]
         self.projected_normal_weight, self.max_radius_px = v["projected_normal_weight"], v["max_radius_px"]
         self.search_scale = float(v["search_scale"])
-        frozen = {"falloff_range"} if self.variant != "exact" else set()
+        # falloff_range 0 (a hard cut) has no gradient: a buffer there, a parameter from any value > 0
+        no_falloff = float(torch.as_tensor(v["falloff_range"]).detach().reshape(-1)[0]) == 0.0
+        frozen = {"falloff_range"} if self.variant != "exact" or no_falloff else set()
         frozen |= {"thickness_heuristic"} if self.variant != "ue4" else set()
         frozen |= {"albedo"} if not self.multibounce else set()
         register_parameters(self, self.options(), v, ("falloff_range", "thickness_heuristic", "final_power", "albedo"),

@@ -1,4 +1,4 @@
-"""Optional Intel Embree backend for triangle meshes (PyPI ``embreex``; ``pip install torch-ao[mesh]``).
+"""Optional Intel Embree backend for triangle meshes (PyPI ``embreex``; the ``mesh`` extra).
 
 Embree works in float32 on the CPU; rays on another device are copied to the CPU and back.
 Triangles are two-sided (Embree's default), so back faces occlude, as in the torch path.
@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..checks import install_hint
 from .tracer import _Triangles
 
 __all__ = ["embree_available", "EmbreeTriangles"]
@@ -41,7 +42,7 @@ class EmbreeTriangles(_Triangles):
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
         except ImportError:
-            raise ImportError("meshes: the Embree backend needs embreex: pip install torch-ao[mesh] (or pip install embreex)") from None
+            raise ImportError(f"meshes: the Embree backend needs embreex: {install_hint('mesh', 'embreex')}") from None
         self._concatenate(meshes, obj_of_mesh, device, dtype)
         self._scene = rtcore_scene.EmbreeScene()
         self._mesh = TriangleMesh(self._scene, _np(self.vertices), np.ascontiguousarray(self.faces.cpu().numpy(), dtype=np.int32))

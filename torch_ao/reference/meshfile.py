@@ -24,7 +24,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..checks import check_float
+from ..checks import check_float, install_hint
 from .scene import LookAt, Mesh, Plane, Scene, Vec3
 
 __all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera"]
@@ -45,7 +45,7 @@ def read_trimesh(path: Path, **kwargs):
     try:
         import trimesh
     except ImportError:
-        raise ImportError("mesh: loading mesh files needs trimesh: pip install torch-ao[mesh] (or pip install trimesh)") from None
+        raise ImportError(f"mesh: loading mesh files needs trimesh: {install_hint('mesh', 'trimesh')}") from None
     try:
         return trimesh.load(str(path), **kwargs)
     except Exception as err:  # trimesh raises many kinds for bad or unsupported files

@@ -1,5 +1,5 @@
 """Mitsuba 3 scene files (``.xml``) as scenes, through Mitsuba's own loader (PyPI ``mitsuba``;
-``pip install torch-ao[mitsuba]``). Only the geometry, the diffuse albedo and the first camera are
+the ``mitsuba`` extra). Only the geometry, the diffuse albedo and the first camera are
 taken; emitters and other materials are ignored (the scene gets the default :class:`Light`).
 
 Shapes (one object id each, in the order of the shapes' ids):
@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..checks import install_hint
 from .meshfile import _one_line
 from .scene import LookAt, Mesh, Sphere
 
@@ -37,7 +38,7 @@ def _mitsuba():
     try:
         import mitsuba as mi
     except ImportError:
-        raise ImportError("scene: Mitsuba 3 scene files need mitsuba: pip install torch-ao[mitsuba] (or pip install mitsuba)") from None
+        raise ImportError(f"scene: Mitsuba 3 scene files need mitsuba: {install_hint('mitsuba', 'mitsuba')}") from None
     if mi.variant() is None:  # leave a variant the caller chose alone
         mi.set_variant("scalar_rgb")
     return mi

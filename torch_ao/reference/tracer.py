@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..checks import check_choice
+from ..checks import check_choice, install_hint
 from .scene import Box, Cylinder, Mesh, Plane, Scene, Sphere
 
 __all__ = ["Tracer", "Hit", "TORCH_MAX_TRIANGLES"]
@@ -479,16 +479,16 @@ def _choose_backend(requested: str, triangles: int, device: torch.device) -> str
 
     if requested == "warp" or (requested == "auto" and device.type == "cuda" and warp_available()):
         if not warp_available():
-            raise ImportError("mesh_backend='warp' needs warp-lang: pip install torch-ao[warp] (or pip install warp-lang)")
+            raise ImportError(f"mesh_backend='warp' needs warp-lang: {install_hint('warp', 'warp-lang')}")
         return "warp"
 
     if embree_available():
         return "embree"
     if requested == "embree":
-        raise ImportError("mesh_backend='embree' needs embreex: pip install torch-ao[mesh] (or pip install embreex)")
+        raise ImportError(f"mesh_backend='embree' needs embreex: {install_hint('mesh', 'embreex')}")
     if triangles > TORCH_MAX_TRIANGLES:
         raise ImportError(
             f"meshes: {triangles} triangles is too many for the pure-torch tracer (limit {TORCH_MAX_TRIANGLES}); "
-            "install Embree: pip install torch-ao[mesh] (or pip install embreex), or pass mesh_backend='torch' to force it"
+            f"install Embree: {install_hint('mesh', 'embreex')}, or pass mesh_backend='torch' to force it"
         )
     return "torch"

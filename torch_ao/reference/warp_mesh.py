@@ -1,4 +1,4 @@
-"""Optional NVIDIA Warp backend for triangle meshes (PyPI ``warp-lang``; ``pip install torch-ao[warp]``).
+"""Optional NVIDIA Warp backend for triangle meshes (PyPI ``warp-lang``; the ``warp`` extra).
 
 One code path for CPU and CUDA: the meshes go into one ``warp.Mesh`` (a BVH) on the tracer's device
 and rays are intersected with ``warp.mesh_query_ray`` in place on torch tensors (shared memory, no
@@ -10,6 +10,7 @@ import logging
 
 import torch
 
+from ..checks import install_hint
 from .tracer import _Triangles
 
 try:
@@ -57,7 +58,7 @@ class WarpTriangles(_Triangles):
 
     def __init__(self, meshes, obj_of_mesh, device, dtype):
         if wp is None:
-            raise ImportError("meshes: the Warp backend needs warp-lang: pip install torch-ao[warp] (or pip install warp-lang)")
+            raise ImportError(f"meshes: the Warp backend needs warp-lang: {install_hint('warp', 'warp-lang')}")
         self.device = torch.device(device)
         # Warp's start-up banner and kernel-load lines are info; without a GPU in use, its missing-driver warning is noise
         wp.config.log_level = logging.WARNING if self.device.type == "cuda" else logging.ERROR
