@@ -35,7 +35,7 @@ def test_every_command_reading_gbuffers_has_the_same_input_flags():
     (["ao", "x.npz", "--fov", "60", "--intrinsics", "1,1,0,0"], "torch-ao ao: error: --fov: give fov or intrinsics, not both"),
 ])
 def test_input_flags_without_files_or_contradicting_are_refused(argv, message, capsys, tmp_path):
-    assert main(argv + ["--out", str(tmp_path / "o")]) == 2
+    assert main(argv + ["--out", str(tmp_path / "o.npz")]) == 2
     assert capsys.readouterr().err.strip() == message
     assert list(tmp_path.iterdir()) == []
 

@@ -28,6 +28,7 @@
 
 #include "mkl_vml.h"  // torch.cos/sin/acos on a build with MKL call its vector math; so does this
 #include "walk_cpu.h"
+#include "bitmask.h"
 
 namespace {
 
@@ -46,7 +47,7 @@ using torch_ao_walk::over_rows;
 using torch_ao_walk::select;
 using torch_ao_walk::sign;
 using torch_ao_walk::to_int;
-constexpr int kSectors = 32;
+using tao::kSectors;
 
 // array_cos/sin/acos: n floats (a multiple of L) through the function torch.cos/sin/acos use, MKL's
 // vector math where torch has it, else SLEEF's
@@ -65,28 +66,12 @@ TORCH_AO_ARRAY_FN(acos, vmsAcos)
 #undef TORCH_AO_ARRAY_FN
 
 inline Vec load_lanes(const float* lanes) { return Vec::loadu(lanes); }
-inline Vec to_float(const Int& x) { return at::vec::convert_to_fp_of_same_size<float>(x); }
+using tao::bit;
+using tao::popcount;
+using tao::to_float;
 inline Int operator~(const Int& x) { return x ^ Int(-1); }
-inline Vec bit(const Int& mask, int k) { return to_float((mask >> Int(k)) & Int(1)); }
 
-// popcount of 32-bit lanes, SWAR (arithmetic shifts are safe here: the masks clear the smeared sign bits)
-inline Int popcount(const Int& v) {
-  Int x = v - ((v >> Int(1)) & Int(0x55555555));
-  x = (x & Int(0x33333333)) + ((x >> Int(2)) & Int(0x33333333));
-  x = (x + (x >> Int(4))) & Int(0x0F0F0F0F);
-  return (x * Int(0x01010101)) >> Int(24);
-}
-
-// sectors.hard_mask: bits [floor(s), floor(s) + count) of 32 (bits past 31 are shifted out), count the
-// interval's width w rounded (0 ceil, 1 round half to even, 2 floor), both clamped to [0, 32]
-inline Int sector_bits(const Vec& s, const Vec& w, int64_t rounding) {
-  const Vec sectors = Vec(float(kSectors));
-  const Vec count = rounding == 0 ? w.ceil() : rounding == 1 ? w.round() : w.floor();
-  const Int k0 = to_int(at::vec::clamp(s.floor(), Vec(0.0f), sectors));
-  const Int k1 = at::vec::minimum(k0 + to_int(at::vec::clamp(count, Vec(0.0f), sectors)), Int(kSectors));
-  // (1 << k) - 1 for k = 32 is all ones: a vector shift by 32 gives 0
-  return ((Int(1) << k1) - Int(1)) & ~((Int(1) << k0) - Int(1));
-}
+using tao::sector_bits;  // bitmask.h: the sector rule
 
 // Channels 0..3 of the 4-float records base[4 i] at the lanes' indices i: one 16-byte load per lane and a
 // transpose (the hardware gather of single floats is several times slower on this CPU: measured)

@@ -12,9 +12,7 @@
 // Sums start at zero; finish gives every lane its value, background lanes included (select on px.live).
 #pragma once
 
-#ifndef __CUDACC_RTC__
-#include <algorithm>
-#endif
+#include "lanes_scalar.h"
 
 namespace tao {
 

@@ -23,7 +23,9 @@
 #include <vector>
 
 #include "mkl_vml.h"  // torch.cos/torch.sin on a build with MKL call its vector math; so do the kernels
+#include "lanes_simd.h"
 #include "rows_cpu.h"
+#include "walk.h"
 
 namespace torch_ao_walk {
 
@@ -104,29 +106,10 @@ inline Vec asin(const Vec& x) { return x.asin(); }
 inline Vec sqrt(const Vec& x) { return x.sqrt(); }
 #endif
 
-// Jimenez's interleaved gradient noise, in double as torch_ao.walk.interleaved_gradient_noise
-inline float ign(float u, float v, int64_t seed) {
-  double x = double(u) + 5.588238 * double(seed), y = double(v) + 5.588238 * double(seed);
-  double a = 0.06711056 * x;
-  double b = 0.00583715 * y;
-  double s = a + b;
-  double f = s - std::trunc(s);
-  double g = 52.9829189 * f;
-  return float(g - std::trunc(g));
-}
-
-// Step placement (SlicePattern.step_offsets, or ShaderStepPattern's): 0 the default walk
-enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2 };
-
-struct WalkSettings {
-  int64_t slices, steps;
-  float radius;        // world units: the walk's radius (search_scale included)
-  float step_power, min_step_px;
-  float max_radius_px;  // <= 0: none
-  bool jitter, bilinear, drop, full_circle, screen_azimuth;
-  int64_t seed;
-  Steps placement;
-};
+// the noise, the step placement and the walk's settings: walk.h's
+using tao::ign;
+using tao::Steps;
+using tao::WalkSettings;
 
 // One image of the batch: its intrinsics, inverse depth (NaN where invalid), positions (H, W, 3).
 struct Image {
