@@ -39,6 +39,8 @@ OPTIONS = (
            unit="degrees", minimum=0.0, maximum=180.0, open_minimum=True, open_maximum=True),
     Option("mesh", None, "a mesh file (OBJ, PLY, STL, OFF, glTF/GLB...; needs trimesh): one object id per file, per "
            "node for glTF; added to SCENE, or rendered alone without SCENE; repeatable; when not given, SCENE alone", str),
+    Option("allow_outside_paths", False, "let scene and mesh files name files (Mitsuba includes and shapes, glTF "
+           "buffers and images, materials) outside their own folder; by default those are refused", bool),
     Option("mesh_normalize", False, "scale each --mesh file to unit size resting on y=0 at the origin (else as stored)",
            bool),
     Option("ground_plane", None, "add a ground plane y=HEIGHT; without HEIGHT, at the lowest point of the scene's "
@@ -112,13 +114,14 @@ def _scene(args):
         if args.randomize is not None:
             raise CommandError("--randomize: only for built-in scenes")
         files = ([args.scene] if args.scene else []) + args.mesh
-        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=not args.quiet)
+        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=not args.quiet,
+                          allow_outside_paths=args.allow_outside_paths)
     try:
         scene = get_scene(args.scene, seed=args.randomize)
     except ValueError as err:
         raise CommandError(str(err).replace("scene:", "SCENE:", 1)) from None
     for path in args.mesh:
-        for mesh in load_mesh_file(path, normalize=args.mesh_normalize)[0]:
+        for mesh in load_mesh_file(path, normalize=args.mesh_normalize, allow_outside_paths=args.allow_outside_paths)[0]:
             scene = scene.add(mesh)
     if ground is not None:
         box = scene.bounds()
