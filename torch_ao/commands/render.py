@@ -13,6 +13,7 @@ import time
 import zlib
 from pathlib import Path
 
+from ..checks import check_finite_outputs
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
 from .args import add_float_list, allow_negative_lists, parse_float_list
@@ -186,6 +187,7 @@ def run(args: argparse.Namespace) -> int:
                 msg = flag(key) + msg[len(key):]
         raise CommandError(msg) from None
     elapsed = time.perf_counter() - start
+    check_finite_outputs("the tracer", {k: getattr(ref, k, None) for k in ("ao", "ao_stderr", "ao_uniform", "indirect")})
     out = ref.save(args.out)
     if args.png:
         write_png(args.png, preview(ref))
