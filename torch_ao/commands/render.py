@@ -14,6 +14,7 @@ import zlib
 from pathlib import Path
 
 from ..checks import check_finite_outputs
+from ..reference.sampling import MAX_SPP
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
 from .args import add_float_list, allow_negative_lists, parse_float_list
@@ -50,8 +51,8 @@ OPTIONS = (
            "defined", int),
     Option("width", 320, "image width", int, unit="pixels", minimum=1),
     Option("height", 180, "image height", int, unit="pixels", minimum=1),
-    Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16])", int, unit="rays",
-           minimum=2),
+    Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16]); at most 65536, where the "
+           "standard error is about 0.002: more only runs for hours", int, unit="rays", minimum=2, maximum=MAX_SPP),
     Option("max_distance", float("inf"), "AO ray length R (inf: unlimited)", float, unit="world units",
            minimum=0.0, open_minimum=True),
     Option("seed", 0, "sampling seed (same seed, same image, whatever --chunk-rays and --device)", int, minimum=0),
