@@ -110,6 +110,30 @@ def camera(fov: float = 60.0, principal=(0.5, 0.5), dtype=torch.float64) -> GBuf
     return _with(gb, light=_light(gb))
 
 
+def sky(value: float, dtype=torch.float64) -> GBuffer:
+    """The floor/wall scene with its top three rows at depth ``value`` (an engine's sky: FLT_MAX, 1e20...)."""
+    gb = scene(12, 16, dtype)
+    d = gb.depth.clone()
+    d[..., :3, :] = value
+    return _with(gb, depth=d, normals=None, light=_light(gb))
+
+
+def scaled(factor: float, dtype=torch.float64) -> GBuffer:
+    """The floor/wall scene with every depth times ``factor`` (normals reconstructed)."""
+    gb = scene(12, 16, dtype)
+    return _with(gb, depth=gb.depth * factor, normals=None, light=_light(gb))
+
+
+def extreme_camera(focal_ratio: float, principal_offset: float, depth_scale: float, dtype=torch.float64) -> GBuffer:
+    """The floor/wall depths times ``depth_scale`` seen through focal lengths ``focal_ratio`` times the image
+    width and a principal point ``principal_offset`` widths right of the centre (the camera's bounds)."""
+    gb = scene(12, 16, dtype)
+    K = gb.camera.intrinsics.clone()
+    K[:, 0, 0] = K[:, 1, 1] = focal_ratio * 16
+    K[:, 0, 2] += principal_offset * 16
+    return _with(gb, depth=gb.depth * depth_scale, camera=PinholeCamera(K, 12, 16), normals=None, light=_light(gb))
+
+
 FRAMES = {
     "scene": lambda dtype=torch.float64: scene(12, 16, dtype),
     "depth_range": depth_range,
@@ -130,4 +154,12 @@ FRAMES = {
     "fov1": lambda dtype=torch.float64: camera(1.0, dtype=dtype),
     "fov170": lambda dtype=torch.float64: camera(170.0, dtype=dtype),
     "off_centre": lambda dtype=torch.float64: camera(60.0, (-1.5, 2.5), dtype),
+    # engine backgrounds and the largest depths and widest cameras the library takes (float32: the walk's
+    # squares overflow first there)
+    "sky_fltmax": lambda dtype=torch.float32: sky(torch.finfo(torch.float32).max, dtype),
+    "sky_1e20": lambda dtype=torch.float32: sky(1e20, dtype),
+    "depth_1e14": lambda dtype=torch.float32: scaled(1e14, dtype),
+    "depth_1e19": lambda dtype=torch.float32: scaled(1e19, dtype),
+    "widest_camera_far": lambda dtype=torch.float32: extreme_camera(1e-3, 4.0, 2e14, dtype),
+    "narrowest_camera_far": lambda dtype=torch.float32: extreme_camera(1e9, 0.0, 2e14, dtype),
 }

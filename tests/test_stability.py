@@ -167,3 +167,112 @@ def test_cuda_matches_cpu(config):
     gpu = build(config).cuda()(gb.to("cuda")).visibility.cpu()
     assert torch.isfinite(gpu).all()
     assert (cpu - gpu).abs().max() < 1e-3
+
+
+# ---------------------------------------------------------------------------------------- range bounds
+RANGE_FRAMES = ("sky_fltmax", "sky_1e20", "depth_1e14", "depth_1e19", "widest_camera_far", "narrowest_camera_far")
+
+
+@pytest.mark.parametrize("frame", ["sky_fltmax", "widest_camera_far"])
+@pytest.mark.parametrize("config", list(CONFIGS))
+def test_engine_sky_and_widest_camera(config, frame):
+    check(config, FRAMES[frame]())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("frame", RANGE_FRAMES)
+@pytest.mark.parametrize("config", list(CONFIGS))
+def test_range_bounds_at_the_frames_scale(config, frame):
+    """The same at radius and thickness of the frame's own scale (1e14 world units)."""
+    check(config, FRAMES[frame](), radius=1e14, thickness=1e14)
+
+
+@pytest.mark.parametrize("value", [torch.finfo(torch.float32).max, 1e20, 1e15])
+@pytest.mark.parametrize("config", ["gtao", "pssao", "bitmask-soft", "hbao"])
+def test_huge_sky_is_background_exactly_like_inf(config, value):
+    """Depth at or above BACKGROUND_DEPTH is background: the result equals that of an inf sky, bit for bit."""
+    from stability_cases import sky
+    from torch_ao.gbuffer import BACKGROUND_DEPTH
+
+    assert value >= BACKGROUND_DEPTH
+    huge, inf = sky(value, torch.float32), sky(float("inf"), torch.float32)
+    assert int((~huge.valid).sum()) == 3 * 16
+    a, b = build(config)(huge).visibility, build(config)(inf).visibility
+    assert torch.equal(a, b) and bool((a[..., :3, :] == 1).all())
+
+
+def test_depth_just_below_the_background_threshold_is_geometry():
+    from stability_cases import sky
+    from torch_ao.gbuffer import BACKGROUND_DEPTH
+
+    gb = sky(BACKGROUND_DEPTH * (1 - 1e-6), torch.float64)
+    assert bool(gb.valid.all())
+
+
+@pytest.mark.parametrize("fx, message", [
+    (1e-20, "intrinsics: fx must be in [0.016, 1.6e+10] pixels for a 16x12 image"),
+    (0.0159, "intrinsics: fx must be in [0.016, 1.6e+10]"),
+    (1.61e10, "intrinsics: fx must be in [0.016, 1.6e+10]"),
+])
+def test_intrinsics_no_camera_can_have_are_refused(fx, message):
+    K = torch.tensor([[fx, 0, 7.5], [0, 10.0, 5.5], [0, 0, 1]])
+    with pytest.raises(ValueError) as err:
+        PinholeCamera(K, 12, 16)
+    assert str(err.value).startswith(message), err.value
+    PinholeCamera(torch.tensor([[0.016, 0, 7.5], [0, 1.6e10, 5.5], [0, 0, 1]]), 12, 16)  # the bounds themselves
+
+
+def test_principal_point_far_outside_is_refused():
+    ok = torch.tensor([[10.0, 0, 7.5 + 64], [0, 10.0, 5.5], [0, 0, 1]])
+    PinholeCamera(ok, 12, 16)  # 4 image sizes off
+    bad = ok.clone()
+    bad[0, 2] += 0.5
+    with pytest.raises(ValueError, match=r"^intrinsics: cx must be within 64 pixels of the image centre 7.5, got 72"):
+        PinholeCamera(bad, 12, 16)
+
+
+def test_cli_ao_on_an_fltmax_sky_is_finite_with_the_sky_as_background(tmp_path, capsys):
+    import numpy as np
+
+    from stability_cases import sky
+    from torch_ao.cli import main
+    from torch_ao.io import read_npz, save_npz
+
+    gb = sky(float("inf"), torch.float32)
+    depth = gb.depth.clone()
+    depth[..., :3, :] = torch.finfo(torch.float32).max
+    src = save_npz(tmp_path / "sky_fltmax.npz", depth=depth, intrinsics=gb.camera.intrinsics[0].numpy())
+    for method in ("gtao", "pssao", "bitmask"):
+        out = tmp_path / f"{method}.npz"
+        assert main(["ao", str(src), "--method", method, "--out", str(out)]) == 0
+        assert "mean visibility nan" not in capsys.readouterr().out
+        vis = read_npz(out)["visibility"]
+        assert np.isfinite(vis).all() and (vis[0, :3] == 1).all() and (vis[0, 3:] < 1).any()
+
+
+def test_cli_refuses_a_non_finite_output_naming_the_method(tmp_path, capsys, monkeypatch):
+    """The safety net: a method that returned NaN is reported by name, exit 2, nothing written."""
+    from torch_ao.cli import main
+    from torch_ao.methods.base import AOOutput
+
+    import torch_ao.commands.ao as ao_command
+
+    real = ao_command.build_method
+
+    def broken(name, args):
+        module = real(name, args)
+
+        class NaNMethod(torch.nn.Module):
+            def forward(self, gb):
+                out = module(gb)
+                vis = out.visibility.clone()
+                vis[..., 0, 0] = float("nan")
+                return AOOutput(visibility=vis)
+        return NaNMethod()
+
+    monkeypatch.setattr(ao_command, "build_method", broken)
+    out = tmp_path / "x.npz"
+    assert main(["ao", "--method", "gtao", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("torch-ao ao: error: gtao: visibility has 1 NaN and 0 infinite values of ") and err.count("\n") == 1
+    assert not out.exists()

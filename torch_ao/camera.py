@@ -18,7 +18,18 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 
-__all__ = ["PinholeCamera", "pixels_to_view", "view_to_pixels"]
+__all__ = ["PinholeCamera", "pixels_to_view", "view_to_pixels", "MIN_FOCAL_RATIO", "MAX_FOCAL_RATIO",
+           "MAX_PRINCIPAL_OFFSET"]
+
+#: Focal lengths ``fx``, ``fy`` below this times the image's larger side are refused: a centred camera's
+#: field of view across that side would exceed 179.88 degrees, and view-space positions (``(u - cx) / fx * depth``) would
+#: be thousands of times their depth, which overflows float32 squares.
+MIN_FOCAL_RATIO = 1e-3
+#: ... and above this times the larger side (a field of view under 6e-8 degrees, offsets that vanish).
+MAX_FOCAL_RATIO = 1e9
+#: The principal point ``cx``, ``cy`` must lie within this many image sizes (the larger side) of the image's
+#: centre (off-axis crops of a wider view put it outside the image, a few sizes away at most).
+MAX_PRINCIPAL_OFFSET = 4.0
 
 # Flips an OpenCV camera frame (x right, y down, z forward) into OpenGL view space.
 _CV_TO_GL = (1.0, -1.0, -1.0)
@@ -38,6 +49,24 @@ def _check_intrinsics(K: torch.Tensor) -> torch.Tensor:
     if bool((K[:, 0, 0] <= 0).any()) or bool((K[:, 1, 1] <= 0).any()):
         raise ValueError("intrinsics: focal lengths K[:,0,0] and K[:,1,1] must be > 0")
     return K
+
+
+def _check_ranges(K: torch.Tensor, height: int, width: int) -> None:
+    """Refuse focal lengths and principal points no real camera of this image size has (see
+    :data:`MIN_FOCAL_RATIO`, :data:`MAX_FOCAL_RATIO`, :data:`MAX_PRINCIPAL_OFFSET`)."""
+    size = max(height, width)
+    lo, hi = MIN_FOCAL_RATIO * size, MAX_FOCAL_RATIO * size
+    for name, value in (("fx", K[:, 0, 0]), ("fy", K[:, 1, 1])):
+        bad = (value < lo) | (value > hi)
+        if bool(bad.any()):
+            raise ValueError(f"intrinsics: {name} must be in [{lo:g}, {hi:g}] pixels for a {width}x{height} image "
+                             f"(a field of view across the larger side between 6e-8 and 179.88 degrees), got {float(value[bad][0]):g}")
+    for name, value, extent in (("cx", K[:, 0, 2], width), ("cy", K[:, 1, 2], height)):
+        centre, reach = (extent - 1) / 2, MAX_PRINCIPAL_OFFSET * size
+        bad = (value - centre).abs() > reach
+        if bool(bad.any()):
+            raise ValueError(f"intrinsics: {name} must be within {reach:g} pixels of the image centre {centre:g}, "
+                             f"got {float(value[bad][0]):g}")
 
 
 def _check_size(name: str, value) -> None:
@@ -63,6 +92,7 @@ class PinholeCamera:
         for name in ("height", "width"):
             _check_size(name, getattr(self, name))
         object.__setattr__(self, "intrinsics", _check_intrinsics(self.intrinsics))
+        _check_ranges(self.intrinsics, self.height, self.width)
 
     # ------------------------------------------------------------------ constructors
     @classmethod

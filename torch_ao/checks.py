@@ -8,7 +8,8 @@ from __future__ import annotations
 import math
 from typing import Iterable, TypeVar
 
-__all__ = ["check_int", "check_float", "check_choice", "check_bool", "install_hint"]
+__all__ = ["check_int", "check_float", "check_choice", "check_bool", "install_hint", "NonFiniteOutput",
+           "check_finite_outputs"]
 
 T = TypeVar("T")
 
@@ -66,3 +67,24 @@ def install_hint(extra: str, package: str) -> str:
     install openexr``.
     """
     return f'pip install -e ".[{extra}]" (in the torch_ao checkout) or pip install {package}'
+
+
+class NonFiniteOutput(ValueError):
+    """A computation produced NaN or infinity (a defect or an input outside the library's ranges)."""
+
+
+def check_finite_outputs(producer: str, outputs: dict) -> None:
+    """Raise :class:`NonFiniteOutput` naming ``producer`` (a method, the tracer...) and the first output
+    of ``outputs`` (``{name: tensor, array or number}``) that holds NaN or infinity, with how many of each:
+    the last check of a command before it writes, so that nothing non-finite is ever returned with
+    exit status 0."""
+    import numpy as np
+
+    for name, value in outputs.items():
+        if value is None:
+            continue
+        a = value.detach().cpu().double().numpy() if hasattr(value, "detach") else np.asarray(value, dtype=np.float64)
+        nan, inf = int(np.isnan(a).sum()), int(np.isinf(a).sum())
+        if nan or inf:
+            raise NonFiniteOutput(f"{producer}: {name} has {nan} NaN and {inf} infinite values of {a.size} "
+                                  "(nothing was written; an input outside the documented ranges?)")

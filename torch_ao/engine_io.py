@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import struct
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from .checks import check_choice, check_float, install_hint
+from .limits import ResourceLimitError
 from .options import Option, options_by_name
 
 __all__ = ["EngineOptions", "CameraMissing", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "DEPTH_ENCODINGS", "decode_device_depth", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
@@ -230,6 +232,7 @@ def _exr_module():
 def _read_exr(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     """All channels of every part, keyed ``[PART.]CHANNEL``, and the first part's header."""
     OpenEXR = _exr_module()
+    _check_exr_size(OpenEXR, path)
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
             if not f.parts:  # (the binding reports a truncated file on stderr and returns no parts)
@@ -242,6 +245,27 @@ def _read_exr(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     except (RuntimeError, OSError) as err:
         raise ValueError(f"path: {path} is not a readable OpenEXR file ({err})") from None
     return channels, header
+
+
+def _check_exr_size(OpenEXR, path: Path) -> None:
+    """Refuse (:mod:`torch_ao.limits`) an OpenEXR file whose parts' data windows hold more pixels, or
+    more bytes (pixels x channels x 4), than the limits allow, from its headers alone."""
+    from .limits import check_limit
+
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            parts = [dict(part.header) for part in f.parts]
+    except (RuntimeError, OSError) as err:
+        raise ValueError(f"path: {path} is not a readable OpenEXR file ({err})") from None
+    total = 0
+    for i, header in enumerate(parts):
+        lo, hi = (np.asarray(x, dtype=np.int64) for x in header.get("dataWindow", ((0, 0), (-1, -1))))
+        width, height = (int(v) for v in hi - lo + 1)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"path: {path}: part {i} has an empty data window {lo.tolist()}..{hi.tolist()}")
+        check_limit("image_pixels", width * height, f"path: {path}: part {i}'s data window ({width}x{height})")
+        total += width * height * max(len(header.get("channels", ())), 1) * 4
+    check_limit("array_bytes", total, f"path: {path} ({len(parts)} parts, as float32)")
 
 
 def list_exr_channels(path: str | os.PathLike) -> list[tuple[str, str, tuple[int, ...]]]:
@@ -355,10 +379,26 @@ def _read_png_depth(path: Path, scale: float) -> np.ndarray:
         from PIL import Image
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(f"reading PNG depth needs Pillow: {install_hint('plot', 'pillow')}") from err
+    from .limits import check_limit, limit
+
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":  # its size, before anything is inflated
+        width, height = struct.unpack(">II", head[16:24])
+        check_limit("image_pixels", width * height, f"path: {path} ({width}x{height} PNG)")
+        check_limit("array_bytes", width * height * 8, f"path: {path} ({width}x{height} PNG, as float64)")
     try:
-        with Image.open(path) as im:
-            a = np.asarray(im)
-    except (OSError, Image.DecompressionBombError) as err:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our own limit decides
+            pil_limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, limit("image_pixels")
+            try:
+                with Image.open(path) as im:
+                    a = np.asarray(im)
+            finally:
+                Image.MAX_IMAGE_PIXELS = pil_limit
+    except Image.DecompressionBombError as err:
+        raise ResourceLimitError(f"path: {path}: {err}") from None
+    except (OSError, SyntaxError, ValueError) as err:
         raise ValueError(f"path: {path} is not a readable PNG file ({err})") from None
     if a.ndim != 2 or a.dtype.itemsize < 2:
         raise ValueError(f"path: {path}: expected a single-channel 16-bit PNG depth, got {a.dtype} of shape {a.shape}")

@@ -3,7 +3,8 @@
 A :class:`GBuffer` holds ``depth (B,1,H,W)`` and optionally ``normals (B,3,H,W)``, ``light (B,3,H,W)``,
 ``mask (B,1,H,W)``, ``object_id (B,1,H,W)``, ``backface_depth (B,1,H,W)`` and ``position (B,3,H,W)`` with a
 :class:`~torch_ao.camera.PinholeCamera`.
-Background pixels (``inf``, ``0`` or ``nan`` depth, or ``mask`` False) are never NaN downstream:
+Background pixels (``inf``, ``0``, ``nan`` or a depth of at least :data:`BACKGROUND_DEPTH`, or ``mask``
+False) are never NaN downstream:
 :attr:`GBuffer.safe_depth` replaces them with 1 so every derived quantity is finite, and methods
 mask them out with :attr:`GBuffer.valid`.
 """
@@ -17,7 +18,19 @@ from kornia.geometry.depth import depth_to_normals
 
 from .camera import PinholeCamera
 
-__all__ = ["GBuffer", "normals_from_depth"]
+__all__ = ["GBuffer", "normals_from_depth", "BACKGROUND_DEPTH", "geometry_depth"]
+
+#: Depths at or above this (world units) are background, as ``inf``, ``0`` and ``nan`` are: engines write
+#: ``FLT_MAX`` (3.4e38) or other huge values for the sky. The walk squares view-space distances in
+#: float32 (largest 3.4e38), and a pixel's view-space distance is up to about 3e3 times its depth
+#: (fields of view up to 179.88 degrees, :data:`~torch_ao.camera.MIN_FOCAL_RATIO`), so geometry stays
+#: below 1e15 world units, where squares and their gradients cannot overflow.
+BACKGROUND_DEPTH = 1e15
+
+
+def geometry_depth(depth: torch.Tensor) -> torch.Tensor:
+    """``depth``'s geometry pixels (bool, same shape): finite, positive and below :data:`BACKGROUND_DEPTH`."""
+    return torch.isfinite(depth) & (depth > 0) & (depth < BACKGROUND_DEPTH)
 
 _FLOAT_TYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
 _POSITION_IN_FRONT = "position: expected z < 0 (in front of the camera, OpenGL axes) on valid pixels"
@@ -44,7 +57,7 @@ class GBuffer:
 
     Args:
         depth: ``(B,1,H,W)`` positive linear depth along the view axis (world units);
-            ``inf``/``0``/``nan`` mark background. float16/bfloat16 are computed in float32.
+            ``inf``/``0``/``nan`` and depths ``>=`` :data:`BACKGROUND_DEPTH` mark background. float16/bfloat16 are computed in float32.
         camera: the views' camera (batch 1 or B, image size ``H x W``).
         normals: optional ``(B,3,H,W)`` unit view-space normals facing the camera.
         light: optional ``(B,3,H,W)`` direct light (radiance leaving each pixel), for indirect light.
@@ -101,7 +114,7 @@ class GBuffer:
                     "depth: negative values found; depth is the positive distance along the view axis "
                     "(use inf, 0 or nan for background)"
                 )
-            valid = torch.isfinite(self.depth) & (self.depth > 0)
+            valid = geometry_depth(self.depth)
         if self.mask is not None:
             _check_tensor("mask", self.mask, 1, self.depth)
             if self.mask.dtype != torch.bool:
@@ -233,7 +246,7 @@ def normals_from_depth(
     if method not in ("improved", "kornia"):
         raise ValueError(f"method: expected 'improved' or 'kornia', got {method!r}")
     if valid is None:
-        valid = torch.isfinite(depth) & (depth > 0)
+        valid = geometry_depth(depth)
     d = torch.where(valid, depth, torch.ones_like(depth))
     pos = camera.unproject(d)
     if method == "kornia":

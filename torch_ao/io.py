@@ -55,12 +55,18 @@ _IMAGE_KEYS = {"normal": ("normals", True), "light": ("light", True), "mask": ("
 
 
 def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """All arrays of an ``.npz`` file, refusing pickled objects, with a clear error for bad files."""
+    """All arrays of an ``.npz`` file, refusing pickled objects, with a clear error for bad files.
+
+    Every member's header is read first (:func:`npz_members`): a member whose data is shorter than its
+    header says is reported as truncated, and what would not fit is refused before anything is
+    allocated (:mod:`torch_ao.limits`: ``array_bytes`` summed over the members, ``image_pixels`` per image).
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no such file: {path}")
     if not zipfile.is_zipfile(path):
         raise ValueError(f"path: {path} is not a valid .npz file (not a zip archive)")
+    npz_members(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
@@ -68,6 +74,54 @@ def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise ValueError(f"path: {path} holds pickled objects, which are refused ({err})") from None
     except (zipfile.BadZipFile, OSError, EOFError) as err:
         raise ValueError(f"path: {path} is not a valid .npz file ({err})") from None
+
+
+def image_pixels(shape: tuple[int, ...]) -> int:
+    """Pixels of one image of an array of ``shape`` in the ``.npz`` layout: ``H*W`` of ``(...,H,W)``, or of
+    ``(...,H,W,C)`` when its last axis is a few channels (at most 4); 0 for fewer than two axes."""
+    if len(shape) >= 3 and shape[-1] <= 4:
+        return int(shape[-3]) * int(shape[-2])
+    return int(shape[-2]) * int(shape[-1]) if len(shape) >= 2 else 0
+
+
+def npz_members(path: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """``{key: (shape, dtype)}`` of an ``.npz`` file from its members' headers alone (nothing else is read).
+
+    Raises ``ValueError`` naming the file and member for a pickled (object) member, a member whose data
+    is shorter than its header says (truncated), or a header numpy cannot read; and
+    :class:`~torch_ao.limits.ResourceLimitError` for a member image above ``image_pixels`` or members
+    above ``array_bytes`` in all (the uncompressed size: a zip bomb is refused without inflating it).
+    """
+    from .limits import check_limit
+
+    members, total = {}, 0
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                key = info.filename[:-4]
+                with zf.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    shape, fortran, dtype = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+                                             else np.lib.format.read_array_header_2_0(f))
+                    header = f.tell()
+                if dtype.hasobject:
+                    raise ValueError(f"path: {path}: member {key!r} holds pickled objects ({dtype}), which are refused")
+                pixels = image_pixels(shape)
+                check_limit("image_pixels", pixels, f"path: {path}: member {key!r} of shape {shape}")
+                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if header + need > info.file_size:
+                    raise ValueError(f"path: {path}: member {key!r} is truncated: its header says {shape} {dtype} "
+                                     f"({need} bytes), the member holds {info.file_size - header}")
+                total += info.file_size
+                members[key] = (tuple(shape), dtype)
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, SyntaxError) as err:
+        if isinstance(err, ValueError) and str(err).startswith(f"path: {path}"):
+            raise
+        raise ValueError(f"path: {path} is not a valid .npz file ({type(err).__name__}: {err})") from None
+    check_limit("array_bytes", total, f"path: {path} ({len(members)} arrays, uncompressed)")
+    return members
 
 
 def numpy_to_image(array: np.ndarray, name: str, channels_last: bool) -> torch.Tensor:

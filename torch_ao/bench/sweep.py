@@ -23,6 +23,7 @@ from ..methods import METHODS, PRESETS, get_method
 from ..methods.common import split_preset
 from ..metrics import error_metrics
 from ..options import Option
+from ..reference.sampling import MAX_SPP
 from ..views import FitView
 
 __all__ = ["SIZE_OPTIONS", "BenchSettings", "QUICK", "DEFAULT", "COLUMNS", "MethodFactory", "available_methods", "accepted_arguments",
@@ -38,7 +39,8 @@ COLUMNS = ("scene", "method", "preset", "slices", "steps", "resolution", "denois
 SIZE_OPTIONS = (
     Option("height", 144, "reference height of the built-in scenes", int, unit="pixels", minimum=1),
     Option("width", 256, "reference width of the built-in scenes", int, unit="pixels", minimum=1),
-    Option("spp", 256, "reference AO rays per pixel (the renderer needs at least 2)", int, unit="rays", minimum=2),
+    Option("spp", 256, "reference AO rays per pixel (the renderer needs at least 2, and takes at most 65536)", int,
+           unit="rays", minimum=2, maximum=MAX_SPP),
     Option("repeats", 5, "timed runs per measurement (the median is reported)", int, minimum=1),
     Option("warmup", 1, "untimed runs before timing", int, minimum=0),
 )

@@ -7,6 +7,7 @@ import time
 import torch
 
 from ..bench import DEFAULT_TOLERANCE
+from ..checks import check_finite_outputs
 from ..examples import example_gbuffer
 from ..fitted import SCALE
 from ..io import check_output_path, load_gbuffer, save_npz
@@ -96,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     for key in ("indirect", "bent_normal", "ambient"):
         if getattr(out, key) is not None:
             arrays[key] = getattr(out, key)
+    check_finite_outputs(args.method, arrays)
     path = save_npz(args.out, gbuffer, **arrays)
     B, _, H, W = gbuffer.depth.shape
     vis = out.visibility[gbuffer.valid]

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..checks import check_finite_outputs
 from ..cli import CommandError
 from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
 from ..fit import (LOSSES, CheckpointMismatch, FitConfig, checkpoint_settings_differences, evaluate, fit,
@@ -301,6 +302,7 @@ def run(args: argparse.Namespace) -> int:
                     seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
                     param_lr={k: args.lr * radius for k in params if k in LENGTHS})
     result = _fit(module, train, cfg, args, checkpoint, settings)
+    check_finite_outputs(f"{args.method} fit", {f"fitted {k}": v for k, v in result.parameters.items()})
 
     rows = {}
     if args.method in BITMASK:

@@ -13,6 +13,8 @@ import time
 import zlib
 from pathlib import Path
 
+from ..checks import check_finite_outputs
+from ..reference.sampling import MAX_SPP
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
 from ..io import check_output_path
@@ -40,6 +42,8 @@ OPTIONS = (
            unit="degrees", minimum=0.0, maximum=180.0, open_minimum=True, open_maximum=True),
     Option("mesh", None, "a mesh file (OBJ, PLY, STL, OFF, glTF/GLB...; needs trimesh): one object id per file, per "
            "node for glTF; added to SCENE, or rendered alone without SCENE; repeatable; when not given, SCENE alone", str),
+    Option("allow_outside_paths", False, "let scene and mesh files name files (Mitsuba includes and shapes, glTF "
+           "buffers and images, materials) outside their own folder; by default those are refused", bool),
     Option("mesh_normalize", False, "scale each --mesh file to unit size resting on y=0 at the origin (else as stored)",
            bool),
     Option("ground_plane", None, "add a ground plane y=HEIGHT; without HEIGHT, at the lowest point of the scene's "
@@ -48,8 +52,8 @@ OPTIONS = (
            "defined", int),
     Option("width", 320, "image width", int, unit="pixels", minimum=1),
     Option("height", 180, "image height", int, unit="pixels", minimum=1),
-    Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16])", int, unit="rays",
-           minimum=2),
+    Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16]); at most 65536, where the "
+           "standard error is about 0.002: more only runs for hours", int, unit="rays", minimum=2, maximum=MAX_SPP),
     Option("max_distance", float("inf"), "AO ray length R (inf: unlimited)", float, unit="world units",
            minimum=0.0, open_minimum=True),
     Option("seed", 0, "sampling seed (same seed, same image, whatever --chunk-rays and --device)", int, minimum=0),
@@ -113,13 +117,14 @@ def _scene(args):
         if args.randomize is not None:
             raise CommandError("--randomize: only for built-in scenes")
         files = ([args.scene] if args.scene else []) + args.mesh
-        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=args.progress)
+        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=args.progress,
+                          allow_outside_paths=args.allow_outside_paths)
     try:
         scene = get_scene(args.scene, seed=args.randomize)
     except ValueError as err:
         raise CommandError(str(err).replace("scene:", "SCENE:", 1)) from None
     for path in args.mesh:
-        for mesh in load_mesh_file(path, normalize=args.mesh_normalize)[0]:
+        for mesh in load_mesh_file(path, normalize=args.mesh_normalize, allow_outside_paths=args.allow_outside_paths)[0]:
             scene = scene.add(mesh)
     if ground is not None:
         box = scene.bounds()
@@ -184,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
                 msg = flag(key) + msg[len(key):]
         raise CommandError(msg) from None
     elapsed = time.perf_counter() - start
+    check_finite_outputs("the tracer", {k: getattr(ref, k, None) for k in ("ao", "ao_stderr", "ao_uniform", "indirect")})
     out = ref.save(args.out)
     if args.png:
         write_png(args.png, preview(ref))

@@ -24,6 +24,7 @@ from torch import nn
 
 from ..gbuffer import GBuffer
 from ..kernels import kernel_forward
+from ..limits import check_limit, walk_bytes
 from ..options import Option, options_by_name
 from ..resolution import reduced_forward, resolution_factor
 from ..walk import Frame, SamplingPattern, SliceAccumulator, march
@@ -148,7 +149,20 @@ class ScreenSpaceAO(nn.Module):
             return self._forward_full(gbuffer)
         return reduced_forward(self._forward_full, gbuffer, factor, self.normals_method)
 
+    def check_memory(self, gbuffer: GBuffer) -> None:
+        """Refuse (:class:`~torch_ao.limits.ResourceLimitError`) a call whose estimated memory
+        (:func:`~torch_ao.limits.walk_bytes`, an upper bound: the tensor-op walk's) exceeds the limit."""
+        B, _, H, W = gbuffer.depth.shape
+        grad = torch.is_grad_enabled() and (any(p.requires_grad for p in self.parameters()) or any(
+            t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position)))
+        chunk_size, recompute = self.chunking(gbuffer)
+        need = walk_bytes(B, H, W, self.slices, self.steps, grad=grad, chunk_size=chunk_size, recompute=recompute)
+        check_limit("walk_bytes", need, f"{type(self).__name__}: {B}x{H}x{W} pixels at {self.slices} slices x "
+                    f"{self.steps} steps{' with gradients' if grad else ''}",
+                    "or give chunk_size (and recompute=True), fewer slices or steps, or a smaller frame")
+
     def _forward_full(self, gbuffer: GBuffer) -> AOOutput:
+        self.check_memory(gbuffer)
         fused = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
         if fused is not None:
             return AOOutput(**fused)

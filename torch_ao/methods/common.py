@@ -34,6 +34,11 @@ PRESETS: dict[str, tuple[int, int]] = {
     "reference": (32, 32),
 }
 
+#: Largest ``slices`` and ``steps`` (per side) a method takes: 2x and 8x the ``reference`` preset's 32 x 32,
+#: already far past where more samples change the result; larger counts only run for minutes or
+#: exhaust memory (the walk keeps one side's steps at once, :func:`torch_ao.limits.walk_bytes`).
+MAX_SLICES, MAX_STEPS = 64, 256
+
 #: Every preset name: a quality, optionally with the resolution its walk runs at (``"high@half"``).
 PRESET_NAMES: tuple[str, ...] = tuple(PRESETS) + tuple(f"{p}@{r}" for p in PRESETS for r in RESOLUTIONS)
 
@@ -104,9 +109,12 @@ class Sampling:
                f"optionally @{'/@'.join(RESOLUTIONS)} for the walk's resolution, e.g. high@half "
                "(slices/steps/resolution given explicitly win; default: the method's own counts)", kind=str,
                choices=PRESET_NAMES),
-        Option("slices", None, "Directions per pixel (default: from preset, else the method's)", kind=int, minimum=1),
-        Option("steps", None, "Samples per side of each direction (default: from preset, else the method's)",
-               kind=int, minimum=1),
+        Option("slices", None, "Directions per pixel (default: from preset, else the method's); at most "
+               "MAX_SLICES, twice the reference preset's: time grows linearly with it", kind=int, minimum=1,
+               maximum=MAX_SLICES),
+        Option("steps", None, "Samples per side of each direction (default: from preset, else the method's); at "
+               "most MAX_STEPS, eight times the reference preset's: time and memory grow linearly with it",
+               kind=int, minimum=1, maximum=MAX_STEPS),
         Option("step_power", 1.0, "Exponent of the step spacing: 1 evenly spaced, 2 denser near the pixel "
                "(where occluders matter most)", minimum=0.0, open_minimum=True),
         Option("min_step_px", 1.0, "Distance of the first step at least; 1 keeps it off the pixel's own texel",

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from ..checks import check_float, install_hint
+from .confine import ALLOW_HINT, OutsidePathError, confined_path, confined_resolver, scene_root
 from .scene import LookAt, Mesh, Plane, Scene, Vec3
 
 __all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera"]
@@ -37,19 +38,54 @@ def _one_line(err: Exception) -> str:
     return f"{type(err).__name__}: {text}" if text else type(err).__name__
 
 
-def read_trimesh(path: Path, **kwargs):
+def read_trimesh(path: Path, *, allow_outside_paths: bool = False, **kwargs):
     """``trimesh.load(path, **kwargs)`` with the library's errors (no such file, no trimesh,
-    unreadable file), each one line naming the file."""
+    unreadable file), each one line naming the file. The files ``path`` names (materials, textures,
+    glTF buffers) are confined to its folder unless ``allow_outside_paths``
+    (:mod:`~torch_ao.reference.confine`)."""
     if not path.is_file():
         raise FileNotFoundError(f"mesh: no such file: {path}")
     try:
         import trimesh
     except ImportError:
         raise ImportError(f"mesh: loading mesh files needs trimesh: {install_hint('mesh', 'trimesh')}") from None
+    if path.suffix.lower() in _GLTF:
+        check_gltf_uris(path, _gltf_json(path), allow_outside_paths=allow_outside_paths)
+    resolver = confined_resolver(path, allow_outside=allow_outside_paths)
     try:
-        return trimesh.load(str(path), **kwargs)
+        loaded = trimesh.load(str(path), resolver=resolver, **kwargs)
     except Exception as err:  # trimesh raises many kinds for bad or unsupported files
+        if resolver.refused:
+            raise OutsidePathError(resolver.refused[0]) from None
         raise ValueError(f"mesh: cannot read {path} ({_one_line(err)})") from None
+    if resolver.refused:  # trimesh skipped the asset (a material, say): still refused
+        raise OutsidePathError(resolver.refused[0])
+    return loaded
+
+
+def check_gltf_uris(path: Path, header: dict, *, allow_outside_paths: bool = False) -> None:
+    """Refuse (:class:`~torch_ao.reference.confine.OutsidePathError`) a glTF whose ``buffers`` or
+    ``images`` name a file outside its folder, or any URI with a scheme but ``data:``, before trimesh
+    reads anything."""
+    from urllib.parse import unquote, urlsplit
+
+    root = scene_root(path)
+    for kind in ("buffers", "images"):
+        entries = header.get(kind, [])
+        if not isinstance(entries, list):
+            raise ValueError(f"mesh: {path}: {kind}: expected a list, got {type(entries).__name__}")
+        for i, entry in enumerate(entries):
+            uri = entry.get("uri") if isinstance(entry, dict) else None
+            if uri is None:
+                continue
+            if not isinstance(uri, str):
+                raise ValueError(f"mesh: {path}: {kind}[{i}].uri: expected a string, got {type(uri).__name__}")
+            if uri.startswith("data:"):
+                continue
+            if len(urlsplit(uri).scheme) > 1 and not allow_outside_paths:  # (a one-letter scheme is a drive, c:/)
+                raise OutsidePathError(f"scene: {path}: {kind}[{i}].uri {uri!r} is a URL, outside the scene's folder "
+                                       f"{root}; files a scene names must be inside its folder ({ALLOW_HINT})")
+            confined_path(path, unquote(uri), f"{kind}[{i}].uri", root=root, allow_outside=allow_outside_paths)
 
 
 def normalize_vertices(v: torch.Tensor, path: Path) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -130,8 +166,8 @@ def gltf_camera(path: str | Path) -> LookAt | None:
 
 
 # ---------------------------------------------------------------------------------------- meshes
-def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8),
-                   normalize: bool = False) -> tuple[list[Mesh], LookAt | None]:
+def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normalize: bool = False,
+                   allow_outside_paths: bool = False) -> tuple[list[Mesh], LookAt | None]:
     """Read a mesh file: ``(meshes, camera)``.
 
     Args:
@@ -139,6 +175,8 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8),
         albedo: linear RGB of every mesh of the file.
         normalize: scale the file's meshes together to a largest extent of 1, resting on ``y = 0``,
             centred on the ``y`` axis (a glTF camera moves with them).
+        allow_outside_paths: let the file name files (materials, glTF buffers and images) outside its
+            folder; by default they are refused (:mod:`~torch_ao.reference.confine`).
     Returns:
         one :class:`Mesh` per file (all parts concatenated) or, for glTF/GLB, one per node with
         triangles (node-name order, world transforms applied; names ``"file.glb:node"``), and the
@@ -146,8 +184,8 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8),
     """
     path = Path(path)
     if path.suffix.lower() not in _GLTF:
-        return [Mesh.load(path, albedo=albedo, normalize=normalize)], None
-    scene = read_trimesh(path, process=False)
+        return [Mesh.load(path, albedo=albedo, normalize=normalize, allow_outside_paths=allow_outside_paths)], None
+    scene = read_trimesh(path, process=False, allow_outside_paths=allow_outside_paths)
     parts = []
     graph = getattr(scene, "graph", None)
     for node in sorted(graph.nodes_geometry) if graph is not None else []:
@@ -187,7 +225,7 @@ def frame_view(lo: Vec3, hi: Vec3, fov_y_degrees: float = 60.0) -> LookAt:
 
 
 def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None = None,
-               normalize: bool = False, progress: bool = False) -> Scene:
+               normalize: bool = False, progress: bool = False, allow_outside_paths: bool = False) -> Scene:
     """A scene made of mesh files (and Mitsuba 3 scene files) alone.
 
     Args:
@@ -198,6 +236,8 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
             (they rest on it), or a height ``h`` for the plane ``y = h`` (world units).
         normalize: normalise each file (see :func:`load_mesh_file`).
         progress: a tqdm bar over the files (triangles read so far).
+        allow_outside_paths: let the files name files outside their folders (Mitsuba includes and
+            shapes, glTF buffers, materials); by default refused (:mod:`~torch_ao.reference.confine`).
     Returns:
         a :class:`Scene` whose view is the first file camera found (glTF or Mitsuba), else :func:`frame_view` of the
         meshes; its ``description`` says which.
@@ -215,9 +255,9 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
 
             if normalize:
                 raise ValueError(f"normalize: not for Mitsuba scene files ({path.name})")
-            found, camera = load_mitsuba_file(path)
+            found, camera = load_mitsuba_file(path, allow_outside_paths=allow_outside_paths)
         else:
-            found, camera = load_mesh_file(path, normalize=normalize)
+            found, camera = load_mesh_file(path, normalize=normalize, allow_outside_paths=allow_outside_paths)
         meshes += found
         if view is None and camera is not None:
             view, source = camera, f"camera of {path.name}"

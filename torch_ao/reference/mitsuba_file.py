@@ -15,20 +15,27 @@ Albedo: a diffuse BSDF's constant ``reflectance`` (clamped to ``[0, 1]``), else 
 sensor with a field of view (``perspective``, ``thinlens``): Mitsuba cameras look down their local
 ``+Z`` with ``+Y`` up, and ``x_fov`` is horizontal, turned into the vertical field of view with the
 film's aspect ratio.
+
+Files the scene names (``<include filename>``, ``<path value>``, every ``filename``: shapes, textures,
+spectra), after substituting its ``<default>`` parameters, must be inside the scene file's folder
+(relative names are taken relative to it), unless ``allow_outside_paths=True``
+(:mod:`~torch_ao.reference.confine`): they are checked, included files too, before Mitsuba reads anything.
 """
 from __future__ import annotations
 
 import math
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..checks import install_hint
+from .confine import confined_path, scene_root
 from .meshfile import _one_line
 from .scene import LookAt, Mesh, Sphere
 
-__all__ = ["load_mitsuba_file", "SEGMENTS"]
+__all__ = ["load_mitsuba_file", "check_scene_references", "SEGMENTS"]
 
 #: Segments of a tessellated Mitsuba ``cylinder`` or ``disk``.
 SEGMENTS = 96
@@ -79,16 +86,72 @@ def _camera(mi, sensor) -> LookAt | None:
     return LookAt(eye=eye.tolist(), target=(eye + R[:, 2]).tolist(), up=R[:, 1].tolist(), fov_y_degrees=fov_y)
 
 
-def load_mitsuba_file(path: str | Path) -> tuple[list, LookAt | None]:
+def _references(root: ET.Element):
+    """``(what, file name)`` of every file reference of a parsed Mitsuba document, as written."""
+    for node in root.iter():
+        if node.tag == "include" and "filename" in node.attrib:
+            yield "<include filename>", node.attrib["filename"]
+        elif node.tag == "path" and "value" in node.attrib:
+            yield "<path value>", node.attrib["value"]
+        elif node.tag == "string" and node.attrib.get("name", "").endswith("filename") and "value" in node.attrib:
+            yield f"<string name={node.attrib['name']!r}>", node.attrib["value"]
+        elif "filename" in node.attrib and node.tag != "include":
+            yield f"<{node.tag} filename>", node.attrib["filename"]
+
+
+def _substituted(text: str, defaults: list[tuple[str, str]]) -> list[str]:
+    """``text`` with Mitsuba's ``$name`` parameters replaced (plain string replacement, as Mitsuba
+    does), with the defaults taken in their order and longest name first (every result is checked)."""
+    out = []
+    for order in (defaults, sorted(defaults, key=lambda kv: -len(kv[0]))):
+        value = text
+        for name, replacement in order:
+            value = value.replace("$" + name, replacement)
+        out.append(value)
+    return out
+
+
+def check_scene_references(path: str | Path, *, allow_outside_paths: bool = False) -> None:
+    """Refuse (:class:`~torch_ao.reference.confine.OutsidePathError`, naming the file and the
+    reference) a Mitsuba scene file that names a file outside its folder, directly or through an
+    ``<include>``, a ``<default>`` parameter or a symbolic link; ``ValueError`` for a file that is
+    not XML. Reads the scene file and the files it includes, nothing else."""
+    path = Path(path)
+    root = scene_root(path)
+    pending, seen = [(path, [])], set()
+    while pending:
+        file, inherited = pending.pop()
+        if file in seen:
+            continue
+        seen.add(file)
+        try:
+            doc = ET.parse(file).getroot()
+        except (ET.ParseError, OSError) as err:
+            raise ValueError(f"scene: cannot read {file} as a Mitsuba 3 scene ({_one_line(err)})") from None
+        defaults = inherited + [(d.attrib["name"], d.attrib.get("value", "")) for d in doc.iter("default")
+                                if "name" in d.attrib]
+        for what, reference in _references(doc):
+            for value in dict.fromkeys(_substituted(reference, defaults)):
+                if "$" in value and not allow_outside_paths:
+                    raise ValueError(f"scene: {file}: {what} {reference!r} uses a parameter without a <default>")
+                target = confined_path(file, value, what if value == reference else f"{what} {reference!r} =",
+                                       root=root, allow_outside=allow_outside_paths)
+                if what == "<include filename>" and target.is_file():
+                    pending.append((target, defaults))
+
+
+def load_mitsuba_file(path: str | Path, *, allow_outside_paths: bool = False) -> tuple[list, LookAt | None]:
     """Read a Mitsuba 3 scene file: ``(objects, camera)`` (see the module docstring).
 
     Raises ``FileNotFoundError`` for a missing file, ``ValueError`` (one line naming the file) for a
     file Mitsuba cannot load, without shapes, or with a shape this tracer cannot represent, and
-    ``ImportError`` naming the extra when ``mitsuba`` is missing.
+    ``ImportError`` naming the extra when ``mitsuba`` is missing. Files the scene names must be inside
+    its folder unless ``allow_outside_paths`` (:func:`check_scene_references`).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene: no such file: {path}")
+    check_scene_references(path, allow_outside_paths=allow_outside_paths)
     mi = _mitsuba()
     try:
         scene = mi.load_file(str(path))

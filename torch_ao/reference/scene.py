@@ -207,18 +207,19 @@ class Mesh(_Object):
 
     @classmethod
     def load(cls, path, *, albedo: Vec3 = (0.8, 0.8, 0.8), object_id: int | None = None,
-             normalize: bool = False) -> "Mesh":
+             normalize: bool = False, allow_outside_paths: bool = False) -> "Mesh":
         """Read a mesh file (OBJ, PLY, GLB, STL, OFF...) with trimesh; all parts are concatenated.
 
         ``normalize=True`` scales the mesh to a largest extent of 1 and rests it on ``y = 0``
-        centred on the ``y`` axis.
+        centred on the ``y`` axis. Files the mesh file names (materials, textures) must be inside its
+        folder unless ``allow_outside_paths`` (:mod:`~torch_ao.reference.confine`).
         """
         from pathlib import Path
 
         from .meshfile import normalize_vertices, read_trimesh
 
         path = Path(path)
-        tm = read_trimesh(path, force="mesh", process=False)
+        tm = read_trimesh(path, force="mesh", process=False, allow_outside_paths=allow_outside_paths)
         if not hasattr(tm, "faces") or len(tm.faces) == 0:
             raise ValueError(f"mesh: {path} has no triangles")
         v = torch.as_tensor(tm.vertices, dtype=torch.float64)

@@ -55,7 +55,8 @@ class Sample:
             position = footprint.position(frame)
             delta = position - queries.position
             # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
-            self.valid = valid = valid & (delta.square().sum(-1) > 1e-20 * queries.depth.square())
+            # (relative to the depth, so that no square of a large depth is taken)
+            self.valid = valid = valid & ((delta / queries.depth[:, None]).square().sum(-1) > 1e-20)
             self._delta_values = torch.where(valid[:, None], delta, -queries.view)  # away from the camera
         base_q, base_g = self._base
         self._inputs = footprint.inputs(frame) + (base_q.position, base_q.view) + (() if base_g is None else (base_g.tangent,))
