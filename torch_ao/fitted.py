@@ -187,10 +187,11 @@ class FittedPipeline(DenoisedAO):
         fmt = data.get("format", FORMAT)
         if fmt != FORMAT:
             raise ValueError(f"{source}: format {fmt!r} is not {FORMAT!r} (written by another torch_ao version?)")
-        options = dict(data.get("options") or {})
-        parameters = data.get("parameters") or {}
-        if not isinstance(options, Mapping) or not isinstance(parameters, Mapping):
-            raise ValueError(f"{source}: 'options' and 'parameters' must be objects")
+        for key in ("options", "parameters"):
+            if not isinstance(data.get(key) or {}, Mapping):
+                raise ValueError(f"{source}: '{key}' must be an object ({{name: value}}), got "
+                                 f"{type(data[key]).__name__} {_short(data[key])}")
+        options, parameters = dict(data.get("options") or {}), data.get("parameters") or {}
         try:
             return cls(data["method"], {**options, **parameters}, data.get("denoiser"))
         except (TypeError, ValueError) as err:  # an option the method does not take, or a bad value
@@ -198,6 +199,11 @@ class FittedPipeline(DenoisedAO):
 
     def extra_repr(self) -> str:
         return f"method={self.method_name!r}"
+
+
+def _short(value, width: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def load_fitted(path: str | os.PathLike, device: torch.device | str | None = None) -> FittedPipeline:

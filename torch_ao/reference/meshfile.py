@@ -129,6 +129,23 @@ def _node_matrix(node: dict) -> np.ndarray:
     return M
 
 
+def _camera_type(camera) -> str | None:
+    return camera.get("type") if isinstance(camera, dict) else None
+
+
+def _yfov(camera: dict, index: int, path: Path) -> float:
+    """``cameras[index].perspective.yfov`` (radians) of a perspective glTF camera, checked: a number in
+    ``(0, pi)`` (``ValueError`` naming the file and the key otherwise)."""
+    key = f"cameras[{index}].perspective.yfov"
+    perspective = camera.get("perspective")
+    if not isinstance(perspective, dict) or "yfov" not in perspective:
+        raise ValueError(f"mesh: {path}: {key}: a perspective camera needs its 'perspective' block with 'yfov'")
+    try:
+        return check_float(key, perspective["yfov"], 0.0, math.pi, open_minimum=True, open_maximum=True)
+    except ValueError as err:
+        raise ValueError(f"mesh: {path}: {err} (radians)") from None
+
+
 def gltf_camera(path: str | Path) -> LookAt | None:
     """The first perspective camera of a glTF/GLB file's default scene as a :class:`LookAt`, or ``None``.
 
@@ -151,8 +168,8 @@ def gltf_camera(path: str | Path) -> LookAt | None:
         node = nodes[i]
         world = parent @ _node_matrix(node)
         cam = node.get("camera")
-        if cam is not None and 0 <= cam < len(cameras) and cameras[cam].get("type") == "perspective":
-            yfov = float(cameras[cam]["perspective"]["yfov"])
+        if isinstance(cam, int) and 0 <= cam < len(cameras) and _camera_type(cameras[cam]) == "perspective":
+            yfov = _yfov(cameras[cam], cam, path)
             R = world[:3, :3] / np.linalg.norm(world[:3, :3], axis=0)
             eye = world[:3, 3]
             return LookAt(eye=eye.tolist(), target=(eye - R[:, 2]).tolist(), up=R[:, 1].tolist(),
