@@ -209,7 +209,17 @@ def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = No
 
 def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike = "arrays",
                         device: torch.device | str | None = None) -> tuple[GBuffer, dict[str, torch.Tensor]]:
-    """:func:`load_gbuffer` on arrays already read (``path`` names them in errors)."""
+    """:func:`load_gbuffer` on arrays already read (``path`` names them in errors: every error is a
+    ``ValueError`` whose message names the key and ``path``)."""
+    try:
+        return _gbuffer_from_arrays(arrays, path, device)
+    except (ValueError, TypeError) as err:
+        if str(path) in str(err):
+            raise
+        raise ValueError(f"{err} (in {path})") from None
+
+
+def _gbuffer_from_arrays(arrays, path, device):
     if "depth" not in arrays and "position" not in arrays:
         raise ValueError(f"path: {path} has no 'depth' or 'position' array (keys: {sorted(arrays)})")
     image_args = {}

@@ -155,6 +155,19 @@ def gltf_camera(path: str | Path) -> LookAt | None:
     """
     path = Path(path)
     header = _gltf_json(path)
+    try:
+        return _first_camera(header, path)
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as err:
+        if str(path) in str(err):
+            raise
+        raise ValueError(f"mesh: {path}: malformed glTF scene graph ({_one_line(err)})") from None
+
+
+def _first_camera(header: dict, path: Path) -> LookAt | None:
+    """:func:`gltf_camera` on the parsed JSON (malformed parts raise whatever they raise; the caller
+    names the file)."""
+    if not isinstance(header, dict):
+        raise ValueError(f"mesh: {path}: expected a JSON object, got {type(header).__name__}")
     nodes, cameras = header.get("nodes", []), header.get("cameras", [])
     scenes = header.get("scenes", [])
     roots = scenes[header.get("scene", 0)].get("nodes", []) if scenes else range(len(nodes))
@@ -167,6 +180,8 @@ def gltf_camera(path: str | Path) -> LookAt | None:
         seen.add(i)
         node = nodes[i]
         world = parent @ _node_matrix(node)
+        if not np.isfinite(world).all():
+            raise ValueError(f"mesh: {path}: nodes[{i}]: non-finite transform")
         cam = node.get("camera")
         if isinstance(cam, int) and 0 <= cam < len(cameras) and _camera_type(cameras[cam]) == "perspective":
             yfov = _yfov(cameras[cam], cam, path)
