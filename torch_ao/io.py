@@ -5,7 +5,7 @@ Keys (arrays are top-down: row 0 is the top of the image; ``...`` is an optional
 =================  ==================  =====================================================
 key                shape               meaning
 =================  ==================  =====================================================
-``depth``          ``(...,H,W)``       positive view-axis depth; ``inf``/``0``/``nan`` = background
+``depth``          ``(...,H,W)``       positive view-axis depth; ``inf``/``0``/``nan``/``>= 1e15`` = background
 ``normal``         ``(...,H,W,3)``     unit view-space normals (OpenGL axes, facing the camera)
 ``light``          ``(...,H,W,3)``     direct light leaving each pixel
 ``mask``           ``(...,H,W)``       bool, False = background
