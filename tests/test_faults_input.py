@@ -31,7 +31,6 @@ H, W = 6, 8
 
 
 def _valid_arrays() -> dict[str, np.ndarray]:
-    gb = torch_ao.examples.example_gbuffer(H, W) if hasattr(torch_ao, "examples") else None
     from torch_ao.examples import example_gbuffer
 
     gb = example_gbuffer(H, W)
@@ -42,6 +41,15 @@ def _valid_arrays() -> dict[str, np.ndarray]:
 
 def _method():
     return torch_ao.GTAO(slices=2, steps=2, radius=1.0)
+
+
+def _written_then_checked(name: str, write, run) -> str:
+    """``write(path)`` a file ``name`` in a fresh folder, then assert that ``run(path)`` either returns a
+    finite visibility in [0, 1] or raises a one-line ValueError naming ``path``."""
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / name
+        write(path)
+        return _assert_outcome(lambda: run(path), path)
 
 
 def _assert_outcome(run, path):
@@ -92,15 +100,11 @@ def npz_mutations(draw):
 @FAST
 @given(npz_mutations())
 def test_mutated_npz_gives_a_result_or_a_value_error_naming_the_file(arrays):
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "g.npz"
-        np.savez(path, **arrays)
-
-        def run():
-            gb, _ = load_gbuffer(path)
-            with torch.no_grad():
-                return _method()(gb).visibility
-        _assert_outcome(run, path)
+    def run(path):
+        gb, _ = load_gbuffer(path)
+        with torch.no_grad():
+            return _method()(gb).visibility
+    _written_then_checked("g.npz", lambda path: np.savez(path, **arrays), run)
 
 
 # ---------------------------------------------------------------------------------------- params.json
@@ -129,15 +133,10 @@ def params_mutations(draw):
 def test_mutated_params_json_gives_a_pipeline_or_a_value_error_naming_the_file(data):
     from torch_ao.examples import example_gbuffer
 
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "params.json"
-        path.write_text(json.dumps(data))
-
-        def run():
-            pipeline = load_fitted(path)
-            with torch.no_grad():
-                return pipeline(example_gbuffer(H, W)).visibility
-        _assert_outcome(run, path)
+    def run(path):
+        with torch.no_grad():
+            return load_fitted(path)(example_gbuffer(H, W)).visibility
+    _written_then_checked("params.json", lambda path: path.write_text(json.dumps(data)), run)
 
 
 # ---------------------------------------------------------------------------------------- OpenEXR
@@ -156,19 +155,17 @@ def test_exr_header_attributes_give_a_result_or_a_value_error(attribute, value):
         value = np.array(value, np.float32)
         if value.size == 9:
             value = value.reshape(3, 3)
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "g.exr"
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, attribute: value}
-        try:
-            OpenEXR.File(header, {"Z": depth}).write(str(path))
-        except (TypeError, ValueError, RuntimeError):
-            return  # the binding cannot write this attribute: nothing to read
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, attribute: value}
+    try:
+        OpenEXR.File(header, {"Z": depth})
+    except (TypeError, ValueError, RuntimeError):
+        return  # the binding cannot hold this attribute: nothing to read
 
-        def run():
-            gb, _ = load_gbuffer(path, **({} if attribute != "worldToCamera" else {"fov": 60.0}))
-            with torch.no_grad():
-                return _method()(gb).visibility
-        _assert_outcome(run, path)
+    def run(path):
+        gb, _ = load_gbuffer(path, **({} if attribute != "worldToCamera" else {"fov": 60.0}))
+        with torch.no_grad():
+            return _method()(gb).visibility
+    _written_then_checked("g.exr", lambda path: OpenEXR.File(header, {"Z": depth}).write(str(path)), run)
 
 
 # ---------------------------------------------------------------------------------------- Mitsuba
