@@ -234,7 +234,10 @@ def denoise(visibility: torch.Tensor, gbuffer: GBuffer, *, indirect: torch.Tenso
         lambda: bilateral_weights(g.to(visibility.dtype), k, sigma_space, valid))
     filtered = spatial_filter(torch.cat(channels, 1), valid, g, kernel_size=kernel_size, sigma_space=sigma_space,
                               weights=weights)
-    vis = torch.where(valid, filtered[:, :1], visibility)
+    # A weighted mean lies within its inputs' range, but rounding can leave it by an ulp (1.0000001):
+    # held to the input's range, so visibility in [0, 1] stays there.
+    lo, hi = visibility.detach().amin(), visibility.detach().amax()
+    vis = torch.where(valid, torch.minimum(torch.maximum(filtered[:, :1], lo), hi), visibility)
     ind = None if indirect is None else torch.where(valid, filtered[:, 1:], indirect.to(vis.dtype))
     if history is not None:
         vis = temporal_blend(vis, history.visibility, valid, history_valid, alpha)

@@ -156,11 +156,11 @@ class EngineOptions:
         if self.fov is not None and self.intrinsics is not None:
             raise ValueError("fov: give fov or intrinsics, not both")
         if self.intrinsics is not None:
-            k = np.asarray(self.intrinsics, dtype=np.float64).reshape(-1)
+            k = _real(self.intrinsics, "intrinsics").reshape(-1)
             if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
                 raise ValueError(f"intrinsics: expected four finite numbers fx,fy,cx,cy with fx, fy > 0, got {self.intrinsics!r}")
         if self.view_matrix is not None:
-            m = np.asarray(self.view_matrix, dtype=np.float64)
+            m = _real(self.view_matrix, "view_matrix")
             if m.size != 16 or not np.isfinite(m).all():
                 raise ValueError(f"view_matrix: expected 16 finite numbers (a 4x4 matrix), got {self.view_matrix!r}")
             check_view_matrix(m.reshape(4, 4), "view_matrix")
@@ -206,6 +206,12 @@ def decode_device_depth(d: np.ndarray, encoding: str, near: float, far: float) -
     with np.errstate(divide="ignore", invalid="ignore"):
         z = near / d if math.isinf(far) else near * far / (near + d * (far - near))
     return np.where(ok & (d > 0), z, np.inf)
+
+
+def _real(value, name: str) -> np.ndarray:
+    from .io import real_array
+
+    return real_array(value, name, "the engine options")
 
 
 def parse_channels(text: str) -> dict[str, str]:
@@ -414,6 +420,8 @@ class CameraMissing(ValueError):
 def read_engine_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarray]:
     """Read an OpenEXR file (``.exr``) or a 16-bit PNG depth (``.png``) into ``.npz``-layout arrays in
     the library's conventions. ``options`` are :class:`EngineOptions` fields."""
+    from .io import real_array
+
     opts = EngineOptions(**options)
     path = _existing(path)
     suffix = path.suffix.lower()
@@ -430,9 +438,9 @@ def read_engine_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarr
         raise ValueError(f"path: expected an .npz, .exr or .png file, got {path.name!r}")
     for key in ("intrinsics", "fov_y_degrees"):  # torch_ao's own optional header attributes
         if key in header:
-            arrays[key] = np.asarray(header[key], dtype=np.float64)
-    if "worldToCamera" in header:
-        arrays["view_matrix"] = np.asarray(header["worldToCamera"], dtype=np.float64).T  # Imath: row vectors
+            arrays[key] = real_array(header[key], f"{key} (header attribute)", path)
+    if "worldToCamera" in header:  # Imath: row vectors
+        arrays["view_matrix"] = real_array(header["worldToCamera"], "worldToCamera (header attribute)", path).T
     if "intrinsics" not in arrays and "fov_y_degrees" not in arrays and opts.fov is None and opts.intrinsics is None:
         raise CameraMissing(f"camera: {path.name} names no camera; give --fov DEGREES or --intrinsics FX,FY,CX,CY")
     arrays = apply_engine_options(arrays, opts)

@@ -233,10 +233,11 @@ class FittedPipeline(DenoisedAO):
         fmt = data.get("format", FORMAT)
         if fmt != FORMAT:
             raise ValueError(f"{source}: format {fmt!r} is not {FORMAT!r} (written by another torch_ao version?)")
-        options = dict(data.get("options") or {})
-        parameters = data.get("parameters") or {}
-        if not isinstance(options, Mapping) or not isinstance(parameters, Mapping):
-            raise ValueError(f"{source}: 'options' and 'parameters' must be objects")
+        for key in ("options", "parameters"):
+            if not isinstance(data.get(key) or {}, Mapping):
+                raise ValueError(f"{source}: '{key}' must be an object ({{name: value}}), got "
+                                 f"{type(data[key]).__name__} {_short(data[key])}")
+        options, parameters = dict(data.get("options") or {}), data.get("parameters") or {}
         values = {**options, **parameters}
         if scale != 1.0:
             values = scale_lengths(data["method"], values, scale)
@@ -248,6 +249,11 @@ class FittedPipeline(DenoisedAO):
 
     def extra_repr(self) -> str:
         return f"method={self.method_name!r}"
+
+
+def _short(value, width: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def load_fitted(path: str | os.PathLike, device: torch.device | str | None = None, *,

@@ -5,7 +5,7 @@ Keys (arrays are top-down: row 0 is the top of the image; ``...`` is an optional
 =================  ==================  =====================================================
 key                shape               meaning
 =================  ==================  =====================================================
-``depth``          ``(...,H,W)``       positive view-axis depth; ``inf``/``0``/``nan`` = background
+``depth``          ``(...,H,W)``       positive view-axis depth; ``inf``/``0``/``nan``/``>= 1e15`` = background
 ``normal``         ``(...,H,W,3)``     unit view-space normals (OpenGL axes, facing the camera)
 ``light``          ``(...,H,W,3)``     direct light leaving each pixel
 ``mask``           ``(...,H,W)``       bool, False = background
@@ -149,16 +149,36 @@ def image_to_numpy(t: torch.Tensor) -> np.ndarray:
     return a[:, 0] if a.shape[1] == 1 else np.moveaxis(a, 1, -1)
 
 
-def _camera_from_arrays(arrays: dict, height: int, width: int, batch: int) -> PinholeCamera:
+def real_array(value, key: str, source) -> np.ndarray:
+    """``value`` as a float64 array, when it holds real numbers (integers or floats; not booleans,
+    strings, complex numbers or objects): else ``ValueError`` naming ``key`` and ``source`` (the file)."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"{key}: expected real numbers in {source}, got {a.dtype} {_preview(a)}")
+    return a.astype(np.float64)
+
+
+def _preview(a: np.ndarray) -> str:
+    text = repr(a.reshape(-1)[:4].tolist())
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _camera_from_arrays(arrays: dict, height: int, width: int, batch: int, source="arrays") -> PinholeCamera:
     if "intrinsics" in arrays:
-        K = torch.from_numpy(np.asarray(arrays["intrinsics"], dtype=np.float64))
+        K = torch.from_numpy(real_array(arrays["intrinsics"], "intrinsics", source))
         if K.shape not in ((3, 3), (batch, 3, 3), (1, 3, 3)):
-            raise ValueError(f"intrinsics: expected shape (3,3) or ({batch},3,3), got {tuple(K.shape)}")
-        return PinholeCamera(K.float(), height, width)
+            raise ValueError(f"intrinsics: expected shape (3,3) or ({batch},3,3) in {source}, got {tuple(K.shape)}")
+        try:
+            return PinholeCamera(K.float(), height, width)
+        except ValueError as err:
+            raise ValueError(f"{err} (in {source})") from None
     if "fov_y_degrees" in arrays:
-        fov = np.asarray(arrays["fov_y_degrees"], dtype=np.float64).reshape(-1)
-        return PinholeCamera.from_fov(torch.from_numpy(fov).float(), height, width, batch_size=batch)
-    raise ValueError("camera: the file needs 'intrinsics' (3,3) or 'fov_y_degrees'")
+        fov = real_array(arrays["fov_y_degrees"], "fov_y_degrees", source).reshape(-1)
+        try:
+            return PinholeCamera.from_fov(torch.from_numpy(fov).float(), height, width, batch_size=batch)
+        except ValueError as err:
+            raise ValueError(f"{err} (in {source})") from None
+    raise ValueError(f"camera: {source} needs 'intrinsics' (3,3) or 'fov_y_degrees'")
 
 
 def read_gbuffer_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarray]:
@@ -196,7 +216,17 @@ def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = No
 
 def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike = "arrays",
                         device: torch.device | str | None = None) -> tuple[GBuffer, dict[str, torch.Tensor]]:
-    """:func:`load_gbuffer` on arrays already read (``path`` names them in errors)."""
+    """:func:`load_gbuffer` on arrays already read (``path`` names them in errors: every error is a
+    ``ValueError`` whose message names the key and ``path``)."""
+    try:
+        return _gbuffer_from_arrays(arrays, path, device)
+    except (ValueError, TypeError) as err:
+        if str(path) in str(err):
+            raise
+        raise ValueError(f"{err} (in {path})") from None
+
+
+def _gbuffer_from_arrays(arrays, path, device):
     if "depth" not in arrays and "position" not in arrays:
         raise ValueError(f"path: {path} has no 'depth' or 'position' array (keys: {sorted(arrays)})")
     image_args = {}
@@ -210,7 +240,7 @@ def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike =
     else:
         depth = None
     B, _, H, W = (depth if depth is not None else image_args["position"]).shape
-    camera = _camera_from_arrays(arrays, H, W, B)
+    camera = _camera_from_arrays(arrays, H, W, B, path)
     to = dict(device=device)
     gb = GBuffer(
         depth=None if depth is None else depth.to(**to),

@@ -165,7 +165,14 @@ def make_parameter(module: nn.Module, name: str, value, *, trainable: bool, mini
     ``value`` may be a number or a tensor (a per-object table or a per-pixel map). Non-finite values
     and values below ``minimum`` raise a ``ValueError`` naming ``name``.
     """
-    t = torch.as_tensor(value).detach().clone()
+    try:
+        if isinstance(value, (bool, str)) or value is None:
+            raise TypeError
+        t = torch.as_tensor(value).detach().clone()
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{name}: expected a number or a tensor of numbers, got {value!r}"[:200]) from None
+    if t.dtype == torch.bool or t.is_complex():
+        raise ValueError(f"{name}: expected real numbers, got a {t.dtype} tensor")
     if not t.is_floating_point():
         t = t.to(torch.get_default_dtype())
     if not bool(torch.isfinite(t).all()):

@@ -129,6 +129,23 @@ def _node_matrix(node: dict) -> np.ndarray:
     return M
 
 
+def _camera_type(camera) -> str | None:
+    return camera.get("type") if isinstance(camera, dict) else None
+
+
+def _yfov(camera: dict, index: int, path: Path) -> float:
+    """``cameras[index].perspective.yfov`` (radians) of a perspective glTF camera, checked: a number in
+    ``(0, pi)`` (``ValueError`` naming the file and the key otherwise)."""
+    key = f"cameras[{index}].perspective.yfov"
+    perspective = camera.get("perspective")
+    if not isinstance(perspective, dict) or "yfov" not in perspective:
+        raise ValueError(f"mesh: {path}: {key}: a perspective camera needs its 'perspective' block with 'yfov'")
+    try:
+        return check_float(key, perspective["yfov"], 0.0, math.pi, open_minimum=True, open_maximum=True)
+    except ValueError as err:
+        raise ValueError(f"mesh: {path}: {err} (radians)") from None
+
+
 def gltf_camera(path: str | Path) -> LookAt | None:
     """The first perspective camera of a glTF/GLB file's default scene as a :class:`LookAt`, or ``None``.
 
@@ -138,6 +155,19 @@ def gltf_camera(path: str | Path) -> LookAt | None:
     """
     path = Path(path)
     header = _gltf_json(path)
+    try:
+        return _first_camera(header, path)
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as err:
+        if str(path) in str(err):
+            raise
+        raise ValueError(f"mesh: {path}: malformed glTF scene graph ({_one_line(err)})") from None
+
+
+def _first_camera(header: dict, path: Path) -> LookAt | None:
+    """:func:`gltf_camera` on the parsed JSON (malformed parts raise whatever they raise; the caller
+    names the file)."""
+    if not isinstance(header, dict):
+        raise ValueError(f"mesh: {path}: expected a JSON object, got {type(header).__name__}")
     nodes, cameras = header.get("nodes", []), header.get("cameras", [])
     scenes = header.get("scenes", [])
     roots = scenes[header.get("scene", 0)].get("nodes", []) if scenes else range(len(nodes))
@@ -150,13 +180,11 @@ def gltf_camera(path: str | Path) -> LookAt | None:
         seen.add(i)
         node = nodes[i]
         world = parent @ _node_matrix(node)
+        if not np.isfinite(world).all():
+            raise ValueError(f"mesh: {path}: nodes[{i}]: non-finite transform")
         cam = node.get("camera")
-        if cam is not None and 0 <= cam < len(cameras) and cameras[cam].get("type") == "perspective":
-            perspective = cameras[cam].get("perspective")
-            if not isinstance(perspective, dict) or "yfov" not in perspective:
-                raise ValueError(f"camera: {path}: cameras[{cam}] is a perspective camera without a 'perspective' "
-                                 "object holding 'yfov'")
-            yfov = float(perspective["yfov"])
+        if isinstance(cam, int) and 0 <= cam < len(cameras) and _camera_type(cameras[cam]) == "perspective":
+            yfov = _yfov(cameras[cam], cam, path)
             R = world[:3, :3] / np.linalg.norm(world[:3, :3], axis=0)
             eye = world[:3, 3]
             return LookAt(eye=eye.tolist(), target=(eye - R[:, 2]).tolist(), up=R[:, 1].tolist(),
