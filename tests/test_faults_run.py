@@ -237,7 +237,9 @@ def test_png_decompression_bomb_is_one_line(tmp_path, capsys):
     bomb.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 30000, 30000, 16, 0, 0, 0, 0))
                      + chunk(b"IDAT", zlib.compress(b"\0" * 100)) + chunk(b"IEND", b""))
     err = _one_line(capsys, ["convert", bomb, "--fov", "60", "--out", tmp_path / "o.npz"])
-    assert f"path: {bomb} is not a readable PNG file" in err and "decompression bomb" in err
+    # refused from its header, before anything is inflated, with the limit and how to raise it
+    assert err == (f"torch-ao convert: error: path: {bomb} (30000x30000 PNG): needs 900,000,000 pixels, above the "
+                   "limit of 268,435,456 pixels (TORCH_AO_MAX_IMAGE_PIXELS raises it)\n")
 
 
 @pytest.mark.parametrize("error, message", [
