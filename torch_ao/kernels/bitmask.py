@@ -20,7 +20,8 @@ from ..sectors import ROUNDINGS
 from ..thickness import ScalarThickness
 from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
-from .frame import light_input, scalar_lanes, walk_inputs
+from .frame import light_input, walk_inputs
+from .launch import run_walk, walk_settings
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "ssilvb_glsl_hard", "kernel_covers", "options_uncovered",
            "KernelOutputs"]
@@ -59,11 +60,12 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
-    out = cpu_kernels().bitmask_walk(
-        *walk_inputs(gbuffer, normals), light_input(gbuffer, indirect), int(slices), int(steps), float(radius),
-        float(thickness), float(step_power), float(min_step_px), bool(jitter), int(seed), fetch == "bilinear",
-        border == "drop", ROUNDINGS.index(rounding), float(sector_epsilon), weighting == "cosine", bool(indirect),
-        bool(bent_normals), scalar_lanes(lanes))
+    settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
+                             jitter=jitter, seed=seed, fetch=fetch, border=border)
+    out = run_walk("bitmask", gbuffer, normals, settings,
+                   [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals)],
+                   [thickness, sector_epsilon], 1 + 3 * bool(indirect) + 3 * bool(bent_normals),
+                   light=light_input(gbuffer, indirect) if indirect else None, lanes=lanes)
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
@@ -128,7 +130,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     values, soft gradients) only for uniform visibility without a gradient.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
-                               variants=("default", "ssilvb_glsl"), outputs=True)
+                               variants=("default", "ssilvb_glsl"), outputs=True,
+                               devices=("cpu", "cuda") if module.variant == "default" else ("cpu",))
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
@@ -151,7 +154,8 @@ _VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (
 
 
 def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
-                      variants: tuple[str, ...] = ("default",), outputs: bool = False) -> str | None:
+                      variants: tuple[str, ...] = ("default",), outputs: bool = False,
+                      devices: tuple[str, ...] = ("cpu",)) -> str | None:
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness
@@ -174,7 +178,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
             model is not None and (type(model) is not ScalarThickness or model.growth is not None)):
         return "a thickness other than one scalar (a table, a map, a model, a growth)"
-    reason = gbuffer_uncovered(gbuffer)
+    reason = gbuffer_uncovered(gbuffer, devices)
     if reason is not None:
         return reason
     if gbuffer.position is not None and module.variant == "default" and module.fetch == "bilinear":

@@ -170,26 +170,15 @@ def _build(cpp_extension, name: str, folder: Path, fingerprint: str, sources, cf
 def _register_fake() -> None:
     """Shapes of the kernels' outputs for tracing (``torch.compile`` calls the op as one graph node)."""
 
-    @torch.library.register_fake("torch_ao_kernels::bitmask_walk")
-    def _(positions, *args):
+    @torch.library.register_fake("torch_ao_kernels::walk")
+    def _(accumulator, positions, *args):
         B, H, W, _ = positions.shape
-        indirect, bent = args[-3:-1]  # (args[-1]: scalar lanes)
-        return positions.new_empty(B, 1 + 3 * indirect + 3 * bent, H, W)
+        return positions.new_empty(B, args[-2], H, W)  # args[-2]: channels
 
     @torch.library.register_fake("torch_ao_kernels::glsl_walk")
     def _(positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, 1, H, W), positions.new_empty(B if args[-1] else 0, 3, H, W)
-
-    @torch.library.register_fake("torch_ao_kernels::gtao_sums")
-    def _(positions, *args):
-        B, H, W, _ = positions.shape
-        return positions.new_empty(B, 5 if args[-2] else 2, H, W)  # args[-2]: bent normals
-
-    @torch.library.register_fake("torch_ao_kernels::hbao_sums")
-    def _(positions, *args):
-        B, H, W, _ = positions.shape
-        return positions.new_empty(B, 1, H, W)
 
     @torch.library.register_fake("torch_ao_kernels::soft_bitmask")
     def _(positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, slices, steps, *args):

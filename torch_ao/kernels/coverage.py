@@ -22,8 +22,9 @@ def option_uncovered(values: dict, covered: dict) -> str | None:
     return None
 
 
-def gbuffer_uncovered(gbuffer: GBuffer) -> str | None:
-    """Why a CPU kernel cannot read ``gbuffer`` (not float32 on CPU), or ``None``."""
-    if gbuffer.depth.device.type != "cpu" or gbuffer.depth.dtype != torch.float32:
-        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 CPU)"
+def gbuffer_uncovered(gbuffer: GBuffer, devices: tuple[str, ...] = ("cpu",)) -> str | None:
+    """Why a kernel for ``devices`` cannot read ``gbuffer`` (not float32 on one of them), or ``None``."""
+    if gbuffer.depth.device.type not in devices or gbuffer.depth.dtype != torch.float32:
+        return (f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 "
+                f"{' or '.join(d.upper() for d in devices)})")
     return None

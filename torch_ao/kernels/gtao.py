@@ -16,9 +16,8 @@ from types import SimpleNamespace
 import torch
 
 from ..gbuffer import GBuffer
-from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
-from .frame import scalar_lanes, walk_inputs
+from .launch import run_walk, walk_settings
 
 __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
 
@@ -47,17 +46,20 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
         falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
             (pixels, ``None``: none), jitter, seed, fetch, border, azimuth, projected_normal_weight: as
-            :class:`~torch_ao.GTAO`. lanes: ``"simd"`` or ``"scalar"`` (the CUDA kernel's arithmetic).
+            :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
+            body); a CUDA G-buffer runs the CUDA kernel.
 
     Channels: the slice integrals and the unoccluded integrals summed over slices, then with
     ``bent_normals`` the bent-normal sum (3). Raises :class:`~torch_ao.kernels.KernelUnavailable` when the
     kernel cannot be built.
     """
-    return cpu_kernels().gtao_sums(
-        *walk_inputs(gbuffer, normals), VARIANTS.index(variant), int(slices), int(steps), float(walk_radius),
-        float(radius), float(falloff), float(thickness), float(step_power), float(min_step_px),
-        float(max_radius_px or 0.0), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
-        azimuth == "screen", bool(projected_normal_weight), bool(bent_normals), scalar_lanes(lanes))
+    settings = walk_settings(slices=slices, steps=steps, radius=walk_radius, step_power=step_power,
+                             min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed,
+                             fetch=fetch, border=border, azimuth=azimuth,
+                             placement="power" if variant == "exact" else variant)
+    return run_walk("gtao", gbuffer, normals, settings,
+                    [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
+                    [radius, falloff, thickness], 5 if bent_normals else 2, lanes=lanes)
 
 
 def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
@@ -71,11 +73,11 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
         per direction; radius: world units; angle_bias: radians; falloff, accumulate, elevation,
         step_power, min_step_px (pixels), jitter, seed, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
     """
-    return cpu_kernels().hbao_sums(
-        *walk_inputs(gbuffer, normals), int(slices), int(steps), float(radius), float(angle_bias),
-        falloff == "quadratic", accumulate == "incremental", elevation == "view", float(step_power),
-        float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop", azimuth == "screen",
-        scalar_lanes(lanes))
+    settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
+                             jitter=jitter, seed=seed, fetch=fetch, border=border, azimuth=azimuth, full_circle=True)
+    return run_walk("hbao", gbuffer, normals, settings,
+                    [falloff == "quadratic", accumulate == "incremental", elevation == "view"], [radius, angle_bias], 1,
+                    lanes=lanes)
 
 
 def _finish(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -147,7 +149,7 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
         return "a parameter other than a scalar"
     if gbuffer.position is not None and module.fetch == "bilinear":
         return "bilinear reads of a position buffer (the kernel unprojects the interpolated depth)"
-    reason = gbuffer_uncovered(gbuffer)
+    reason = gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))
     if reason is not None:
         return reason
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad

@@ -1,0 +1,151 @@
+"""The CUDA kernels' source, run on the CPU: ``cuda_source()`` (the headers NVRTC compiles, and the
+``__global__`` entry points of walk_cuda.cu) compiled by the host C++ compiler with its device branch on
+(``__CUDACC_RTC__``) and stand-ins for what NVRTC provides, then launched thread by thread over a grid
+of blocks. Its output must be the CPU operator's scalar lanes' (the same walk_pixel), and so the tensor
+path's by tests/kernel_agreement.py. On a machine with CUDA, the kernels themselves run against the CPU
+operator.
+"""
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+from kernel_agreement import assert_masks_agree, assert_values_agree
+from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
+from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
+
+COMPILER = shutil.which("g++") or shutil.which("c++")
+pytestmark = pytest.mark.skipif(COMPILER is None, reason="needs a C++ compiler")
+
+# what NVRTC provides, for the host compiler: no system header in this unit (the device branch defines
+# its own int64_t), the math functions declared, the thread indices as globals the driver sets
+SHIM = """
+#define __device__
+#define __forceinline__ inline
+#define __global__
+extern "C" {
+float fabsf(float); float sqrtf(float); float floorf(float); float ceilf(float); float rintf(float);
+float atan2f(float, float); float acosf(float); float asinf(float); float cosf(float); float sinf(float);
+float powf(float, float); float fmaf(float, float, float);
+struct tao_dim3 { unsigned x, y, z; };
+tao_dim3 blockIdx, blockDim, threadIdx;
+}
+static inline int __popc(unsigned x) { return __builtin_popcount(x); }
+"""
+
+DRIVER = r"""
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+#include <vector>
+extern "C" {
+struct tao_dim3 { unsigned x, y, z; };
+extern tao_dim3 blockIdx, blockDim, threadIdx;
+typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
+                    float*, const long long*, const float*, int, int, int);
+Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask;
+}
+template <class T> std::vector<T> load(const std::string& dir, const char* name) {
+  std::vector<T> v;
+  FILE* f = std::fopen((dir + "/" + name).c_str(), "rb");
+  if (!f) return v;
+  T x;
+  while (std::fread(&x, sizeof(T), 1, f) == 1) v.push_back(x);
+  std::fclose(f);
+  return v;
+}
+int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch of <<<blocks, THREADS>>>
+  const std::string name = argv[1], dir = argv[2];
+  const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
+  const unsigned threads = unsigned(std::atoi(argv[7]));
+  Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao : tao_walk_bitmask;
+  auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
+  auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
+  auto V8 = load<unsigned char>(dir, "valid");  // (std::vector<bool> holds bits)
+  const bool* V = reinterpret_cast<const bool*>(V8.data());
+  auto ints = load<long long>(dir, "ints");
+  auto floats = load<float>(dir, "floats");
+  std::vector<float> out(size_t(B) * C * H * W, -7.0f);
+  const long long pixels = (long long)B * H * W;
+  blockDim.x = threads;
+  for (unsigned b = 0; (long long)b * threads < pixels; ++b)
+    for (unsigned t = 0; t < threads; ++t) {  // every thread of the grid, the last block's idle ones too
+      blockIdx.x = b, threadIdx.x = t;
+      kernel(P.data(), N.data(), I.data(), D.data(), V, K.data(), Li.empty() ? nullptr : Li.data(), out.data(),
+             ints.data(), floats.data(), B, H, W);
+    }
+  FILE* f = std::fopen((dir + "/out").c_str(), "wb");
+  std::fwrite(out.data(), sizeof(float), out.size(), f);
+  std::fclose(f);
+  return 0;
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def cuda_on_cpu(tmp_path_factory):
+    """The CUDA source compiled for the host and linked with the driver: the program's path."""
+    folder = tmp_path_factory.mktemp("cuda_on_cpu")
+    (folder / "kernels.cpp").write_text(SHIM + cuda_source())
+    (folder / "driver.cpp").write_text(DRIVER)
+    flags = ["-std=c++17", "-O2", "-ffp-contract=off", "-fno-math-errno"]
+    subprocess.run([COMPILER, *flags, "-D__CUDACC_RTC__", "-c", "kernels.cpp", "-o", "kernels.o"], cwd=folder, check=True)
+    subprocess.run([COMPILER, *flags, "driver.cpp", "kernels.o", "-lm", "-o", "driver"], cwd=folder, check=True)
+    return folder / "driver"
+
+
+def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light=None):
+    inputs, light_t, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light)
+    folder = program.parent / accumulator
+    folder.mkdir(exist_ok=True)
+    for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics"), inputs):
+        t.numpy().tofile(folder / name)
+    light_t.numpy().tofile(folder / "light")
+    ints.numpy().tofile(folder / "ints")
+    floats.numpy().tofile(folder / "floats")
+    B, H, W = inputs[3].shape
+    subprocess.run([str(program), accumulator, str(folder), str(B), str(H), str(W), str(channels), str(_THREADS)],
+                   check=True)
+    return torch.from_numpy(np.fromfile(folder / "out", dtype=np.float32).reshape(B, channels, H, W))
+
+
+def cases(gb):
+    """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO and bitmask AO."""
+    light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
+    common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
+    yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
+    yield "gtao", walk_settings(**common, placement="hdrp"), [1, True, True], [1.0, 0.0, 1.0], 5, None
+    yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2, None
+    yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
+    yield "bitmask", walk_settings(**common), [0, True, True, True], [0.5, 0.01], 7, light
+    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False], [0.3, 0.01], 1, None
+
+
+@pytest.mark.parametrize("frame", ["rough", "tiny"])
+def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_cpu, frame):
+    gb = FRAMES[frame]()
+    normals = gb.view_normals()
+    for accumulator, settings, ints, floats, channels, light in cases(gb):
+        cuda = launch_on_cpu(cuda_on_cpu, accumulator, gb, normals, settings, ints, floats, channels, light)
+        scalar = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
+        assert (cuda != -7.0).all()  # every pixel written, by exactly its thread
+        assert (cuda - scalar).abs().max() <= 1e-6, (accumulator, (cuda - scalar).abs().max())
+        simd = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light)
+        if accumulator == "bitmask" and channels == 1:
+            assert_masks_agree(cuda, simd, gb.valid, settings[0][0])
+        else:
+            assert_values_agree(cuda, simd, gb.valid, atol=1e-4, bound=0.5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_kernels_agree_with_the_cpu_operator(built):
+    gb = FRAMES["rough"]()
+    normals = gb.view_normals()
+    device = gb.to(device="cuda")
+    for accumulator, settings, ints, floats, channels, light in cases(gb):
+        cpu = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
+        gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
+                       light=None if light is None else light.cuda())
+        assert_values_agree(gpu.cpu(), cpu, gb.valid, atol=1e-4, bound=0.5)

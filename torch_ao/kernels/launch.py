@@ -1,0 +1,101 @@
+"""Running the one walk (``walk.h``): its settings packed once, then the CPU operator or the CUDA kernel.
+
+The walk's and an accumulator's settings travel as two small arrays (int64, float32) that ``packed.h``
+reads, the same on every backend. On CPU the ``torch_ao_kernels::walk`` operator runs them (SIMD lanes, or
+``lanes="scalar"``: each pixel through ``walk_pixel``, the CUDA thread's body). On CUDA the headers are
+compiled at run time with NVRTC (``torch.cuda._compile_kernel``, which CUDA builds of torch ship: no CUDA
+toolkit needed), one thread per pixel.
+"""
+from __future__ import annotations
+
+import functools
+import re
+from pathlib import Path
+
+import torch
+
+from ..gbuffer import GBuffer
+from .build import KernelUnavailable, cpu_kernels
+from .frame import scalar_lanes, walk_inputs
+
+__all__ = ["PLACEMENTS", "walk_settings", "run_walk", "packed_inputs", "cuda_source"]
+
+#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern)
+PLACEMENTS = ("power", "hdrp", "ue4")
+
+_HERE = Path(__file__).parent
+#: the CUDA source in dependency order: each header once, then the entry points
+_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "packed.h", "walk_cuda.cu")
+_THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
+
+
+def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
+                  step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
+                  placement: str = "power", full_circle: bool = False, azimuth: str = "view"
+                  ) -> tuple[list[int], list[float]]:
+    """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
+
+    slices, steps: counts; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``, border
+    ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels; ``None``: none), placement
+    (:data:`PLACEMENTS`), full_circle (HBAO's directions), azimuth ``"view"``/``"screen"``.
+    """
+    ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch == "bilinear",
+            border == "drop", bool(full_circle), azimuth == "screen"]
+    floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
+    return [int(v) for v in ints], floats
+
+
+def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]],
+             acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
+             lanes: str = "simd") -> torch.Tensor:
+    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``) over ``gbuffer`` (float32, CPU or
+    CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
+
+    ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);
+    ``light``: the channel-last ``(B,H,W,3)`` light or ``None``; ``lanes``: on CPU, ``"simd"`` or ``"scalar"``.
+    Raises :class:`KernelUnavailable` when the backend's kernel cannot be built here.
+    """
+    device = gbuffer.depth.device
+    inputs, light, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light)
+    if device.type == "cpu":
+        return cpu_kernels().walk(accumulator, *inputs, light, ints, floats, int(channels), scalar_lanes(lanes))
+    if device.type != "cuda":
+        raise KernelUnavailable(f"no kernel for a G-buffer on {device.type}")
+    B, H, W = inputs[3].shape
+    out = torch.empty(B, channels, H, W, device=device)
+    kernel = _cuda_kernel(f"tao_walk_{accumulator}", device.index if device.index is not None else torch.cuda.current_device())
+    blocks = -(-B * H * W // _THREADS)
+    kernel(grid=(blocks, 1, 1), block=(_THREADS, 1, 1), args=[*inputs, light, out, ints, floats, B, H, W])
+    return out
+
+
+def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]], acc_ints: list,
+                  acc_floats: list, light: torch.Tensor | None = None) -> tuple:
+    """What every backend's walk reads, on the G-buffer's device: :func:`walk_inputs`' six tensors, the
+    light (empty for none) and the packed ``ints`` (int64) and ``floats`` (float32)."""
+    device = gbuffer.depth.device
+    light = torch.empty(0, device=device) if light is None else light
+    ints = torch.tensor(settings[0] + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
+    floats = torch.tensor(settings[1] + [float(v) for v in acc_floats], dtype=torch.float32, device=device)
+    return walk_inputs(gbuffer, normals), light, ints, floats
+
+
+def cuda_source() -> str:
+    """The CUDA kernels' source as NVRTC compiles it: the headers inlined in order, then ``walk_cuda.cu``."""
+    parts = []
+    for name in _CUDA_FILES:
+        text = (_HERE / name).read_text()
+        text = re.sub(r'^\s*#\s*(pragma once|include\s+"[^"]+")\s*$', "", text, flags=re.M)
+        parts.append(f"// ---- {name}\n{text}")
+    return "\n".join(parts)
+
+
+@functools.lru_cache(maxsize=None)
+def _cuda_kernel(name: str, device_index: int):
+    """The compiled CUDA kernel ``name`` for the device (compiled once per process and device)."""
+    try:
+        with torch.cuda.device(device_index):
+            return torch.cuda._compile_kernel(cuda_source(), name, nvcc_options=["-std=c++17"])
+    except Exception as exc:  # no NVRTC in this build, a compile error...
+        raise KernelUnavailable(f"the CUDA kernel {name} could not be compiled ({type(exc).__name__}: "
+                                f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc

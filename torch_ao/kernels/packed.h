@@ -1,0 +1,66 @@
+// The walk's and the accumulators' settings as two arrays (int64 and float32), packed in Python by
+// torch_ao/kernels/launch.py: one encoding for every backend (the CPU operator and the CUDA kernel read
+// the same arrays), and walk_pixel, one pixel's whole walk: the body of a CUDA thread, and of the CPU's
+// scalar lanes.
+#pragma once
+
+#include "bitmask.h"
+#include "horizon.h"
+
+namespace tao {
+
+// ints: slices, steps, seed, placement, jitter, bilinear, drop, full_circle, screen_azimuth, then the
+// accumulator's from kAccInts; floats: radius, step_power, min_step_px, max_radius_px, then from kAccFloats
+constexpr int kAccInts = 9, kAccFloats = 4;
+
+TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
+  WalkSettings c;
+  c.slices = i[0], c.steps = i[1], c.seed = i[2], c.placement = Steps(i[3]);
+  c.jitter = i[4] != 0, c.bilinear = i[5] != 0, c.drop = i[6] != 0, c.full_circle = i[7] != 0, c.screen_azimuth = i[8] != 0;
+  c.radius = f[0], c.step_power = f[1], c.min_step_px = f[2], c.max_radius_px = f[3];
+  return c;
+}
+
+// ints: variant, projected_normal_weight, bent; floats: radius, falloff, thickness
+TAO_FN GTAOAccumulator unpack_gtao(const int64_t* i, const float* f) {
+  i += kAccInts, f += kAccFloats;
+  return GTAOAccumulator{GTAOVariant(i[0]), f[0], f[1], f[2], i[1] != 0, i[2] != 0};
+}
+
+// ints: quadratic, incremental, view_elevation; floats: radius, angle_bias
+TAO_FN HBAOAccumulator unpack_hbao(const int64_t* i, const float* f) {
+  i += kAccInts, f += kAccFloats;
+  return HBAOAccumulator{f[0], f[1], i[0] != 0, i[1] != 0, i[2] != 0};
+}
+
+// ints: rounding, cosine, indirect, bent; floats: thickness, epsilon
+TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
+  const int64_t slices = i[0];
+  i += kAccInts, f += kAccFloats;
+  return BitmaskAccumulator{slices, f[0], f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
+}
+
+// A batch of B images channel-last (walk.h's Image per image; light may be null)
+struct Frame {
+  const float *positions, *normals, *inverse, *depth, *intrinsics, *light;
+  const bool* valid;
+  int64_t B, H, W;
+
+  TAO_FN Image image(int64_t b) const {
+    const int64_t plane = H * W;
+    const float* K = intrinsics + 4 * b;
+    return Image{H, W, K[0], K[1], K[2], K[3], positions + 3 * b * plane, normals + 3 * b * plane, inverse + b * plane,
+                 depth + b * plane, light ? light + 3 * b * plane : nullptr, valid + b * plane};
+  }
+};
+
+// Pixel p (of B H W, row-major) walked alone, its channels written to out (B, C, H, W)
+template <class Acc> TAO_FN void walk_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* out, int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  float values[8];
+  walk_block(cfg, fr.image(b), acc, row, u, 1, values);
+  const int C = acc.channels();
+  for (int c = 0; c < C; ++c) out[((b * C + c) * fr.H + row) * fr.W + u] = values[c];
+}
+
+}  // namespace tao
