@@ -118,6 +118,12 @@ def main(argv=None) -> int:
          lambda c: torch_ao.BitmaskAO(mode="hard", weighting="cosine", backend="kernel", **c)),
         ("BitmaskAO cosine hard AO + bent normals, kernel", True,
          lambda c: torch_ao.BitmaskAO(mode="hard", weighting="cosine", bent_normals=True, backend="kernel", **c)),
+        ("BitmaskAO exact + back-face + edge_aware, kernel", True,
+         lambda c: torch_ao.BitmaskAO(variant="exact", thickness=torch_ao.thickness.BackfaceThickness(), trainable=False,
+                                      backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
+        ("BitmaskAO exact + back-face + edge_aware, tensor ops", False,
+         lambda c: torch_ao.BitmaskAO(variant="exact", thickness=torch_ao.thickness.BackfaceThickness(), trainable=False,
+                                      backend="torch", **{k: v for k, v in c.items() if k != "thickness"})),
         ("GTAO, kernel", True, lambda c: torch_ao.GTAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
         ("GTAO, tensor ops", False, lambda c: torch_ao.GTAO(backend="torch", **{k: v for k, v in c.items() if k != "thickness"})),
         ("HBAO, kernel", True, lambda c: torch_ao.HBAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
@@ -128,6 +134,10 @@ def main(argv=None) -> int:
     for size in args.sizes:
         W, H = map(int, size.split("x"))
         gb = example_gbuffer(H, W)
+        # a back-face layer for the exact pipeline: every surface 0.3 world units thick (its cost does not
+        # depend on the values)
+        gb = torch_ao.GBuffer(depth=gb.depth, camera=gb.camera, normals=gb.normals, light=gb.light,
+                              backface_depth=gb.depth + 0.3)
         for setting in args.settings:
             slices, steps = map(int, setting.split("x"))
             shader = ShaderRun(ctx, gb, slices=slices, steps=steps, radius=args.radius, thickness=args.thickness)

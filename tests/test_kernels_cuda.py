@@ -44,8 +44,8 @@ extern "C" {
 struct tao_dim3 { unsigned x, y, z; };
 extern tao_dim3 blockIdx, blockDim, threadIdx;
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
-                    float*, const long long*, const float*, int, int, int);
-Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask;
+                    const float*, const float*, float*, const long long*, const float*, int, int, int);
+Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -60,9 +60,11 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const unsigned threads = unsigned(std::atoi(argv[7]));
-  Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao : tao_walk_bitmask;
+  Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao
+                 : name == "exact" ? tao_walk_exact : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
+  auto Ce = load<float>(dir, "cells"), Bf = load<float>(dir, "backface");
   auto V8 = load<unsigned char>(dir, "valid");  // (std::vector<bool> holds bits)
   const bool* V = reinterpret_cast<const bool*>(V8.data());
   auto ints = load<long long>(dir, "ints");
@@ -73,7 +75,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   for (unsigned b = 0; (long long)b * threads < pixels; ++b)
     for (unsigned t = 0; t < threads; ++t) {  // every thread of the grid, the last block's idle ones too
       blockIdx.x = b, threadIdx.x = t;
-      kernel(P.data(), N.data(), I.data(), D.data(), V, K.data(), Li.empty() ? nullptr : Li.data(), out.data(),
+      kernel(P.data(), N.data(), I.data(), D.data(), V, K.data(), Li.empty() ? nullptr : Li.data(),
+             Ce.empty() ? nullptr : Ce.data(), Bf.empty() ? nullptr : Bf.data(), out.data(),
              ints.data(), floats.data(), B, H, W);
     }
   FILE* f = std::fopen((dir + "/out").c_str(), "wb");
@@ -97,12 +100,12 @@ def cuda_on_cpu(tmp_path_factory):
 
 
 def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light=None):
-    inputs, light_t, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light)
+    inputs, extra, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light)
     folder = program.parent / accumulator
     folder.mkdir(exist_ok=True)
-    for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics"), inputs):
+    for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "light", "cells", "backface"),
+                       (*inputs, *extra)):
         t.numpy().tofile(folder / name)
-    light_t.numpy().tofile(folder / "light")
     ints.numpy().tofile(folder / "ints")
     floats.numpy().tofile(folder / "floats")
     B, H, W = inputs[3].shape
@@ -121,6 +124,9 @@ def cases(gb):
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
     yield "bitmask", walk_settings(**common), [0, True, True, True], [0.5, 0.01], 7, light
     yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False], [0.3, 0.01], 1, None
+    exact = dict(common, fetch="edge_aware")
+    yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
+    yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])

@@ -158,4 +158,122 @@ struct BitmaskAccumulator {
   }
 };
 
+// The thickness at a sample (thickness.py): a scalar, or the back-face layer's t = scale * layer + offset
+struct ThicknessModel {
+  float offset;  // the scalar thickness, or the back-face model's offset (world units)
+  float scale;   // the back-face model's thickness_scale (unitless)
+  bool backface;
+
+  template <class F> TAO_FN F at(const Sample<F>& smp) const {
+    return backface ? F(scale) * smp.gather(smp.image->backface, 0, 1) + F(offset) : F(offset);
+  }
+};
+
+// H(theta) = int_0^theta cos(t - gamma) |sin t| dt (ops.arc_measure) of the slice's hemisphere from its
+// edge at x = 0 to position x (sector units): theta(x) = gamma - pi/2 + pi x / 32
+template <class F> TAO_FN F arc_measure_at(const F& x, const Slice<F>& sl) {
+  const F theta = sl.gamma - F(kHalfPi) + x * F(kPi / float(kSectors));
+  const F G = neg(cos(F(2.0f) * theta - sl.gamma)) / F(4.0f) + theta * sl.sin_gamma / F(2.0f);
+  const F G0 = neg(sl.cos_gamma) / F(4.0f);
+  return sign(theta) * (G - G0);
+}
+
+// The "exact" variant's accumulator (methods/bitmask.py DefaultAccumulator with union="exact",
+// bitmask_common's end_slice): each sample's occluder segment from its front point to its back point
+// (thickness along the view vector, or along its own camera ray: intervals.back_point), clipped to the
+// radius' sphere (intervals.clip_to_sphere), as an interval of the hemisphere; a slice's visible share is
+// the exact (uniform or cosine) measure of what the union of its intervals leaves (intervals.union_measure).
+constexpr int kMaxIntervals = 64;  // both sides' steps of a slice: steps <= 32
+
+struct ExactAccumulator {
+  int64_t slices, steps;
+  ThicknessModel thickness;
+  float radius;   // world units: the sphere the segments are clipped to
+  float epsilon;  // sector_epsilon
+  bool cosine, along_ray, clip;
+
+  template <class F> struct State {
+    F shift, lo[kMaxIntervals], hi[kMaxIntervals];
+    int n;
+  };
+  template <class F> struct Sums { F num = F(0.0f), den = F(0.0f); };
+  TAO_FN int channels() const { return 1; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+    State<F> st;
+    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    st.n = 0;
+    return st;
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    const F t = thickness.at(smp);
+    F fv = dot3(smp.delta, px.V), ft = F(float(side)) * dot3(smp.delta, sl.T), bv, bt;
+    if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
+      const F k = t / clamp_min(neg(smp.delta[2] + px.P[2]), F(1e-30f));
+      bv = fv + k * (fv - norm3(px.P)), bt = ft * (F(1.0f) + k);
+    } else {
+      bv = fv - t, bt = ft;
+    }
+    auto live = smp.valid;
+    if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
+      const F ev = bv - fv, et = bt - ft;
+      const F a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - F(radius * radius);
+      const F disc = b * b - a * c;
+      const auto degenerate = a <= F(1e-30f) * clamp_min(fv * fv + ft * ft, F(1e-30f));  // a point occluder
+      const auto hit = land(disc > F(0.0f), lnot(degenerate));
+      const F safe_a = select(hit, a, F(1.0f)), root = sqrt(select(hit, disc, F(1.0f)));
+      const F u0 = select(hit, clamp((neg(b) - root) / safe_a, F(0.0f), F(1.0f)), F(0.0f));
+      const F u1 = select(hit, clamp((neg(b) + root) / safe_a, F(0.0f), F(1.0f)), F(1.0f));
+      live = land(live, select(degenerate, c <= F(0.0f), land(hit, u1 > u0)));
+      const F fv0 = fv, ft0 = ft;
+      fv = fv0 + u0 * ev, ft = ft0 + u0 * et, bv = fv0 + u1 * ev, bt = ft0 + u1 * et;
+    }
+    const F scale = F(float(side) / kPi);
+    const F front = clamp(fma(atan2(ft, fv), scale, st.shift), F(0.0f), F(1.0f));
+    const F back = clamp(fma(atan2(bt, bv), scale, st.shift), F(0.0f), F(1.0f));
+    const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
+    F width = (hi - lo) * F(float(kSectors));
+    if (epsilon > 0) width = width - F(epsilon);
+    const F start = lo * F(float(kSectors));
+    // union_measure's clipped ends; an empty (or dead) interval is [0, 0]
+    const auto open = land(live, width > F(0.0f));
+    st.lo[st.n] = select(open, clamp(start, F(0.0f), F(float(kSectors))), F(0.0f));
+    st.hi[st.n] = select(open, clamp(start + width, F(0.0f), F(float(kSectors))), F(0.0f));
+    ++st.n;
+  }
+
+  template <class F>
+  TAO_FN void end_slice(State<F>& st, const Pixels<F>&, const Slice<F>& sl, Sums<F>& sums) const {
+    // sorted by start (lane by lane: compare-exchanges), each interval adds what lies beyond the reach
+    // of those before it
+    for (int i = 1; i < st.n; ++i)
+      for (int j = i; j > 0; --j) {
+        const auto swap = st.lo[j] < st.lo[j - 1];
+        const F lo = select(swap, st.lo[j - 1], st.lo[j]), hi = select(swap, st.hi[j - 1], st.hi[j]);
+        st.lo[j - 1] = select(swap, st.lo[j], st.lo[j - 1]), st.hi[j - 1] = select(swap, st.hi[j], st.hi[j - 1]);
+        st.lo[j] = lo, st.hi[j] = hi;
+      }
+    F reach = F(0.0f), covered = F(0.0f);
+    for (int j = 0; j < st.n; ++j) {
+      const F a = max(st.lo[j], reach), b = max(st.hi[j], reach);
+      covered = covered + (cosine ? (arc_measure_at(b, sl) - arc_measure_at(a, sl)) * sl.length : b - a);
+      reach = b;
+    }
+    if (cosine) {
+      const F total = (arc_measure_at(F(float(kSectors)), sl) - arc_measure_at(F(0.0f), sl)) * sl.length;
+      sums.num = sums.num + (total - covered);
+      sums.den = sums.den + total;
+    } else {
+      sums.num = sums.num + (F(1.0f) - covered / F(float(kSectors)));
+    }
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    const F vis = cosine ? sums.num / clamp_min(sums.den, F(1e-30f)) : sums.num / F(float(slices));
+    out[0] = select(px.live, vis, F(1.0f));
+  }
+};
+
 }  // namespace tao

@@ -17,13 +17,14 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
-from ..thickness import ScalarThickness
+from ..thickness import BackfaceThickness, ScalarThickness
 from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
 from .frame import light_input, walk_inputs
 from .launch import run_walk, walk_settings
 
-__all__ = ["bitmask_hard", "bitmask_outputs", "ssilvb_glsl_hard", "kernel_covers", "options_uncovered",
+__all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
+           "kernel_covers", "options_uncovered",
            "KernelOutputs"]
 
 #: ``glsl_numerics`` values in the order the C++ source numbers them
@@ -69,6 +70,35 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
+
+
+def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
+               backface_scale: float | None = None, step_power: float = 1.0, min_step_px: float = 0.25,
+               jitter: bool = True, seed: int = 0, fetch: str = "edge_aware", border: str = "drop",
+               weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
+               sample_extent: str = "sphere", sector_epsilon: float = 0.0, lanes: str = "simd") -> torch.Tensor:
+    """Visibility ``(B,1,H,W)`` (background 1) of the exact union of a slice's occluder intervals
+    (``union="exact"``, the ``"exact"`` variant's rule; its defaults here), in one fused pass.
+
+    Args:
+        gbuffer: a float32 G-buffer (CPU or CUDA; with ``backface_depth`` for the back-face model);
+            normals: its ``(B,3,H,W)`` unit view-space normals.
+        slices, steps (<= 32 per side); radius, thickness: world units (with ``backface_scale`` the
+            back-face model's offset, the layer scaled by ``backface_scale``); step_power, min_step_px
+            (pixels), jitter, seed, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
+            thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as :class:`~torch_ao.BitmaskAO`.
+        lanes: on CPU, ``"simd"`` or ``"scalar"``.
+    """
+    settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
+                             jitter=jitter, seed=seed, fetch=fetch, border=border,
+                             sphere_extent=sample_extent == "sphere")
+    backface = None
+    if backface_scale is not None:
+        backface = BackfaceThickness().buffers(gbuffer, None)["backface_thickness"]
+    return run_walk("exact", gbuffer, normals, settings,
+                    [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius), backface is not None],
+                    [thickness, 1.0 if backface_scale is None else backface_scale, radius, sector_epsilon], 1,
+                    backface=backface, lanes=lanes)
 
 
 def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
@@ -149,13 +179,53 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     return None
 
 
+#: what the exact union's kernel covers beyond the hard kernels' options
+_EXACT = {"variant": ("default", "exact"), "union": ("exact",), "clip_to_radius": (False, True),
+          "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere"),
+          "fetch": ("nearest", "bilinear", "edge_aware")}
+#: the most steps per side the exact union's kernel holds (kMaxIntervals / 2 in bitmask.h)
+EXACT_MAX_STEPS = 32
+
+
+def exact_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`exact_hard` computes ``module(gbuffer)`` (a ``BitmaskAO`` with ``union="exact"``:
+    the ``"exact"`` variant), else why not. Visibility only, hard mode, a scalar or back-face thickness;
+    the exact union has gradients in hard mode too, so only when no gradient is asked for."""
+    if getattr(module, "union", None) != "exact":
+        return "union other than 'exact' (the hard kernels')"
+    reason = options_uncovered(module, gbuffer, modes=("hard",), weightings=("uniform", "cosine"),
+                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT)
+    if reason is not None:
+        return reason
+    if module.steps > EXACT_MAX_STEPS:
+        return f"steps={module.steps} (the exact union's kernel holds {EXACT_MAX_STEPS} per side)"
+    if _needs_grad(module, gbuffer) or (torch.is_grad_enabled() and any(
+            getattr(module, name).requires_grad for name in module.thickness_model.parameters())):
+        return "a gradient is asked for (the exact union has one in hard mode)"
+    return None
+
+
+def exact_forward(module, gbuffer: GBuffer) -> dict:
+    """``module(gbuffer)``'s ``{"visibility": (B,1,H,W)}`` for a module :func:`exact_covers` accepts."""
+    backface = isinstance(module.thickness_model, BackfaceThickness)
+    value = lambda name: float(getattr(module, name).detach())  # noqa: E731
+    vis = exact_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
+                     radius=value("radius"), thickness=value("thickness"),
+                     backface_scale=value("thickness_scale") if backface else None, step_power=module.step_power,
+                     min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
+                     border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
+                     clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,
+                     sector_epsilon=module.sector_epsilon)
+    return {"visibility": vis}
+
+
 #: the outputs beyond visibility, for a kernel that computes visibility only
 _VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (None,)}
 
 
 def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
                       variants: tuple[str, ...] = ("default",), outputs: bool = False,
-                      devices: tuple[str, ...] = ("cpu",)) -> str | None:
+                      devices: tuple[str, ...] = ("cpu",), extra: dict | None = None) -> str | None:
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness
@@ -169,15 +239,18 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     values["bent_normals"] = getattr(module, "want_bent", "?")
     if getattr(module, "_ambient_constant", False):
         values["ambient"] = "a colour"
-    covered = dict(_COVERED, mode=modes, weighting=weightings, variant=variants,
-                   **({} if outputs else _VISIBILITY_ONLY), **(_GLSL if values["variant"] == "ssilvb_glsl" else {}))
+    covered = {**_COVERED, "mode": modes, "weighting": weightings, "variant": variants,
+               **({} if outputs else _VISIBILITY_ONLY), **(_GLSL if values["variant"] == "ssilvb_glsl" else {}),
+               **(extra or {})}
     reason = option_uncovered(values, covered)
     if reason is not None:
         return reason
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
+    models = (ScalarThickness, BackfaceThickness) if extra is _EXACT else (ScalarThickness,)
     if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
-            model is not None and (type(model) is not ScalarThickness or model.growth is not None)):
-        return "a thickness other than one scalar (a table, a map, a model, a growth)"
+            model is not None and (type(model) not in models or model.growth is not None)):
+        return ("a thickness other than one scalar or the back-face layer (a table, a map, a model, a growth)"
+                if extra is _EXACT else "a thickness other than one scalar (a table, a map, a model, a growth)")
     reason = gbuffer_uncovered(gbuffer, devices)
     if reason is not None:
         return reason

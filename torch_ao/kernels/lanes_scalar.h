@@ -30,6 +30,8 @@ TAO_FN float from_lanes(const float* x, float) { return x[0]; }
 TAO_FN void to_lanes(float x, float* out) { out[0] = x; }
 TAO_FN float select(bool m, float yes, float no) { return m ? yes : no; }
 TAO_FN uint32_t select(bool m, uint32_t yes, uint32_t no) { return m ? yes : no; }
+TAO_FN bool select(bool m, bool yes, bool no) { return m ? yes : no; }
+TAO_FN bool ieq(uint32_t a, uint32_t b) { return a == b; }  // integer lanes equal: a lane mask
 TAO_FN bool land(bool a, bool b) { return a && b; }
 TAO_FN bool lor(bool a, bool b) { return a || b; }
 TAO_FN bool lnot(bool a) { return !a; }

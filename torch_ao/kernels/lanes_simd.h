@@ -25,6 +25,7 @@ inline IVec select(const Vec& m, const IVec& yes, const IVec& no) {
   const IVec mi = at::vec::cast<int32_t>(m);
   return (yes & mi) | (no & (mi ^ IVec(-1)));
 }
+inline Vec ieq(const IVec& a, const IVec& b) { return at::vec::cast<float>(a == b); }
 inline Vec land(const Vec& a, const Vec& b) { return a & b; }
 inline Vec lor(const Vec& a, const Vec& b) { return a | b; }
 inline Vec lnot(const Vec& a) { return a ^ Vec(at::vec::cast<float>(IVec(-1))); }

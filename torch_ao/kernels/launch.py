@@ -16,6 +16,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import KernelUnavailable, cpu_kernels
+from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["PLACEMENTS", "walk_settings", "run_walk", "packed_inputs", "cuda_source"]
@@ -31,53 +32,63 @@ _THREADS = 128  # per block: a walk holds a few hundred registers' worth of stat
 
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
                   step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
-                  placement: str = "power", full_circle: bool = False, azimuth: str = "view"
-                  ) -> tuple[list[int], list[float]]:
+                  placement: str = "power", full_circle: bool = False, azimuth: str = "view",
+                  sphere_extent: bool = False) -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
-    slices, steps: counts; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``, border
-    ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels; ``None``: none), placement
-    (:data:`PLACEMENTS`), full_circle (HBAO's directions), azimuth ``"view"``/``"screen"``.
+    slices, steps: counts; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
+    ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
+    ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions), azimuth
+    ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent).
     """
-    ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch == "bilinear",
-            border == "drop", bool(full_circle), azimuth == "screen"]
+    ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
+            border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent)]
     floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
     return [int(v) for v in ints], floats
 
 
 def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]],
              acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
-             lanes: str = "simd") -> torch.Tensor:
+             backface: torch.Tensor | None = None, lanes: str = "simd") -> torch.Tensor:
     """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``) over ``gbuffer`` (float32, CPU or
     CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
 
     ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);
-    ``light``: the channel-last ``(B,H,W,3)`` light or ``None``; ``lanes``: on CPU, ``"simd"`` or ``"scalar"``.
+    ``light``: the channel-last ``(B,H,W,3)`` light or ``None``; ``backface``: the back-face thickness
+    layer ``(B,1,H,W)`` or ``None``; ``lanes``: on CPU, ``"simd"`` or ``"scalar"``.
     Raises :class:`KernelUnavailable` when the backend's kernel cannot be built here.
     """
     device = gbuffer.depth.device
-    inputs, light, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light)
+    inputs, extra, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light, backface)
     if device.type == "cpu":
-        return cpu_kernels().walk(accumulator, *inputs, light, ints, floats, int(channels), scalar_lanes(lanes))
+        return cpu_kernels().walk(accumulator, *inputs, *extra, ints, floats, int(channels), scalar_lanes(lanes))
     if device.type != "cuda":
         raise KernelUnavailable(f"no kernel for a G-buffer on {device.type}")
     B, H, W = inputs[3].shape
     out = torch.empty(B, channels, H, W, device=device)
     kernel = _cuda_kernel(f"tao_walk_{accumulator}", device.index if device.index is not None else torch.cuda.current_device())
     blocks = -(-B * H * W // _THREADS)
-    kernel(grid=(blocks, 1, 1), block=(_THREADS, 1, 1), args=[*inputs, light, out, ints, floats, B, H, W])
+    kernel(grid=(blocks, 1, 1), block=(_THREADS, 1, 1), args=[*inputs, *extra, out, ints, floats, B, H, W])
     return out
 
 
 def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]], acc_ints: list,
-                  acc_floats: list, light: torch.Tensor | None = None) -> tuple:
+                  acc_floats: list, light: torch.Tensor | None = None, backface: torch.Tensor | None = None) -> tuple:
     """What every backend's walk reads, on the G-buffer's device: :func:`walk_inputs`' six tensors, the
-    light (empty for none) and the packed ``ints`` (int64) and ``floats`` (float32)."""
+    optional images ``(light, cells, backface)`` (each empty where unused: the cells are the edge-aware
+    fetch's :func:`~torch_ao.walk.fetch.cell_flags`), and the packed ``ints`` (int64) and ``floats``
+    (float32)."""
     device = gbuffer.depth.device
-    light = torch.empty(0, device=device) if light is None else light
+    inputs = walk_inputs(gbuffer, normals)
+    none = torch.empty(0, device=device)
+    cells = none
+    if settings[0][9]:  # edge_aware
+        inverse, valid = inputs[2], inputs[4]
+        cells = cell_flags(torch.where(valid, inverse, 0.0)).to(torch.float32).contiguous()
+    layer = none if backface is None else backface[:, 0].to(torch.float32).contiguous()
     ints = torch.tensor(settings[0] + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
     floats = torch.tensor(settings[1] + [float(v) for v in acc_floats], dtype=torch.float32, device=device)
-    return walk_inputs(gbuffer, normals), light, ints, floats
+    return inputs, (none if light is None else light, cells, layer), ints, floats
 
 
 def cuda_source() -> str:

@@ -19,18 +19,26 @@ using namespace tao;
 // The walk's inputs as torch_ao/kernels/launch.py passes them: positions, normals (B, H, W, 3), the
 // inverse depth (NaN where invalid), depth, valid (B, H, W), intrinsics (B, 4) (fx, fy, cx, cy), light
 // (B, H, W, 3) or empty
+// An optional image: empty, or contiguous float32 of `numel` values
+const float* optional_image(const at::Tensor& t, int64_t numel, const char* name) {
+  if (t.numel() == 0) return nullptr;
+  TORCH_CHECK(t.numel() == numel && t.scalar_type() == at::kFloat && t.is_contiguous() && t.device().is_cpu(), name,
+              ": expected empty or contiguous float32 of ", numel, " values");
+  return t.data_ptr<float>();
+}
+
 Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
-               const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light) {
+               const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
+               const at::Tensor& cells, const at::Tensor& backface) {
   TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
   for (const at::Tensor* t : {&positions, &normals, &inverse_depth, &depth, &intrinsics})
     TORCH_CHECK(t->scalar_type() == at::kFloat && t->is_contiguous() && t->device().is_cpu(),
                 "expected contiguous float32 CPU inputs");
   TORCH_CHECK(valid.scalar_type() == at::kBool && valid.is_contiguous(), "valid: expected contiguous bool");
-  TORCH_CHECK(light.numel() == 0 || (light.sizes() == positions.sizes() && light.scalar_type() == at::kFloat &&
-                                     light.is_contiguous()),
-              "light: expected empty or contiguous float32 (B, H, W, 3)");
+  const int64_t pixels = depth.numel();
   return Frame{positions.data_ptr<float>(), normals.data_ptr<float>(), inverse_depth.data_ptr<float>(),
-               depth.data_ptr<float>(), intrinsics.data_ptr<float>(), light.numel() ? light.data_ptr<float>() : nullptr,
+               depth.data_ptr<float>(), intrinsics.data_ptr<float>(), optional_image(light, 3 * pixels, "light"),
+               optional_image(cells, pixels, "cells"), optional_image(backface, pixels, "backface"),
                valid.data_ptr<bool>(), positions.size(0), positions.size(1), positions.size(2)};
 }
 
@@ -59,13 +67,13 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
-// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask") over the frame,
+// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
-                const at::Tensor& intrinsics, const at::Tensor& light, const at::Tensor& ints, const at::Tensor& floats,
-                int64_t channels, bool scalar) {
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, light);
+                const at::Tensor& intrinsics, const at::Tensor& light, const at::Tensor& cells, const at::Tensor& backface,
+                const at::Tensor& ints, const at::Tensor& floats, int64_t channels, bool scalar) {
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface);
   TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && floats.scalar_type() == at::kFloat &&
                   floats.is_contiguous() && ints.device().is_cpu() && floats.device().is_cpu(),
               "ints, floats: expected the packed int64 and float32 settings on the CPU");
@@ -75,6 +83,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 ": expected ", kAccInts + n_ints, " ints and ", kAccFloats + n_floats, " floats");
   };
   TORCH_CHECK(ints.numel() >= kAccInts && floats.numel() >= kAccFloats, "ints, floats: the walk's settings are missing");
+  TORCH_CHECK(!ints.data_ptr<int64_t>()[9] || fr.cells, "cells: the edge-aware fetch needs the cell flags");
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
@@ -95,8 +104,13 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     packed(4, 2);
     TORCH_CHECK(!i[kAccInts + 2] || fr.light, "light: indirect light needs the light buffer");
     run(unpack_bitmask(i, f));
+  } else if (name == "exact") {
+    packed(4, 4);
+    TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
+    TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
+    run(unpack_exact(i, f));
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao or bitmask, got ", name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask or exact, got ", name);
   }
   return out;
 }
@@ -105,6 +119,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
 
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.def("walk(str accumulator, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
-        "Tensor intrinsics, Tensor light, Tensor ints, Tensor floats, int channels, bool scalar) -> Tensor");
+        "Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, "
+        "bool scalar) -> Tensor");
   m.impl("walk", c10::DispatchKey::CPU, TORCH_FN(walk));
 }

@@ -9,14 +9,16 @@
 
 namespace tao {
 
-// ints: slices, steps, seed, placement, jitter, bilinear, drop, full_circle, screen_azimuth, then the
-// accumulator's from kAccInts; floats: radius, step_power, min_step_px, max_radius_px, then from kAccFloats
-constexpr int kAccInts = 9, kAccFloats = 4;
+// ints: slices, steps, seed, placement, jitter, bilinear, drop, full_circle, screen_azimuth, edge_aware,
+// sphere_extent, then the accumulator's from kAccInts; floats: radius, step_power, min_step_px,
+// max_radius_px, then from kAccFloats
+constexpr int kAccInts = 11, kAccFloats = 4;
 
 TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   WalkSettings c;
   c.slices = i[0], c.steps = i[1], c.seed = i[2], c.placement = Steps(i[3]);
   c.jitter = i[4] != 0, c.bilinear = i[5] != 0, c.drop = i[6] != 0, c.full_circle = i[7] != 0, c.screen_azimuth = i[8] != 0;
+  c.edge_aware = i[9] != 0, c.sphere_extent = i[10] != 0;
   c.radius = f[0], c.step_power = f[1], c.min_step_px = f[2], c.max_radius_px = f[3];
   return c;
 }
@@ -40,9 +42,18 @@ TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   return BitmaskAccumulator{slices, f[0], f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
 }
 
-// A batch of B images channel-last (walk.h's Image per image; light may be null)
+// ints: cosine, along_ray, clip, backface; floats: thickness (or the back-face offset), the back-face
+// scale, radius, epsilon
+TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
+  const int64_t slices = i[0], steps = i[1];
+  i += kAccInts, f += kAccFloats;
+  return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], i[3] != 0}, f[2], f[3], i[0] != 0, i[1] != 0,
+                          i[2] != 0};
+}
+
+// A batch of B images channel-last (walk.h's Image per image; light, cells and backface may be null)
 struct Frame {
-  const float *positions, *normals, *inverse, *depth, *intrinsics, *light;
+  const float *positions, *normals, *inverse, *depth, *intrinsics, *light, *cells, *backface;
   const bool* valid;
   int64_t B, H, W;
 
@@ -50,7 +61,8 @@ struct Frame {
     const int64_t plane = H * W;
     const float* K = intrinsics + 4 * b;
     return Image{H, W, K[0], K[1], K[2], K[3], positions + 3 * b * plane, normals + 3 * b * plane, inverse + b * plane,
-                 depth + b * plane, light ? light + 3 * b * plane : nullptr, valid + b * plane};
+                 depth + b * plane, light ? light + 3 * b * plane : nullptr, valid + b * plane,
+                 cells ? cells + b * plane : nullptr, backface ? backface + b * plane : nullptr};
   }
 };
 

@@ -17,6 +17,7 @@
 namespace tao {
 
 constexpr float kPi = 3.14159265358979323846f;
+constexpr float kEdgeMinRatio = 1.02f;  // walk.fetch.EDGE_MIN_RATIO
 constexpr float kHalfPi = 1.57079632679489661923f;
 
 template <class F> TAO_FN F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
@@ -54,16 +55,21 @@ struct WalkSettings {
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
   int64_t seed;
   Steps placement;
+  bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
+  bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
 };
 
 // One image of the batch, channel-last: intrinsics in pixels, positions and normals (H, W, 3), the
 // inverse depth (NaN where invalid: a texel's validity travels with it), depth and validity (H, W),
-// and the light (H, W, 3) or null
+// the light (H, W, 3) or null; for the edge-aware fetch, per texel whether the 2x2 cell it is the
+// top-left of is one surface (walk.fetch.continuous_cell_image: 1 or 0), and the back-face thickness
+// layer (H, W) of thickness.BackfaceThickness, or null
 struct Image {
   int64_t H, W;
   float fx, fy, cx, cy;
   const float *positions, *normals, *inverse, *depth, *light;
   const bool* valid;
+  const float *cells, *backface;
 };
 
 // L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth, u, v, the step noise xi, and the
@@ -146,6 +152,10 @@ template <class F> struct Slice {
     unit_u = du / clamp_min(len, F(1e-12f));
     unit_v = dv / clamp_min(len, F(1e-12f));
     radius_px = F(cfg.radius) * len;
+    if (cfg.sphere_extent) {  // 1 / sqrt(1 - (R / |P|)^2), at most 10 (intervals.sphere_stretch)
+      const F ratio = F(cfg.radius) / norm3(px.P);
+      radius_px = radius_px * rsqrt(clamp_min(F(1.0f) - ratio * ratio, F(1.0f / 100.0f)));
+    }
     if (cfg.placement == Steps::power) {
       if (cfg.max_radius_px > 0) radius_px = clamp_max(radius_px, F(cfg.max_radius_px));
       span = clamp_min(radius_px - F(cfg.min_step_px), F(0.0f));
@@ -186,11 +196,12 @@ template <class F> struct Sample {
   bool bilinear;
   const Image* image;
 
-  // channel c of a (H, W, 3) image at the sample's taps (Sample.gather)
-  TAO_FN F gather(const float* image, int c) const {
-    if (!bilinear) return tao::gather(image + c, index[0] * I(3));
-    const F t0 = tao::gather(image + c, index[0] * I(3)), t1 = tao::gather(image + c, index[1] * I(3));
-    const F t2 = tao::gather(image + c, index[2] * I(3)), t3 = tao::gather(image + c, index[3] * I(3));
+  // channel c of a (H, W, channels) image at the sample's taps (Sample.gather)
+  TAO_FN F gather(const float* image, int c, int channels = 3) const {
+    const I n = I(channels);
+    if (!bilinear) return tao::gather(image + c, index[0] * n);
+    const F t0 = tao::gather(image + c, index[0] * n), t1 = tao::gather(image + c, index[1] * n);
+    const F t2 = tao::gather(image + c, index[2] * n), t3 = tao::gather(image + c, index[3] * n);
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 
@@ -202,6 +213,7 @@ template <class F> struct Sample {
     F pos[3];
     bilinear = cfg.bilinear;
     image = &img;
+    auto own = F(0.0f) > F(1.0f);  // (edge-aware fetch: the pixel's own texel)
     if (cfg.bilinear) {
       const F fu0 = floor(su), fv0 = floor(sv);
       fu = su - fu0, fv = sv - fv0;
@@ -209,8 +221,24 @@ template <class F> struct Sample {
       const I c0 = imin(imax(iu, zero), Wlast), c1 = imin(imax(iu + one, zero), Wlast);
       const I r0 = imin(imax(iv, zero), Hlast) * Wi, r1 = imin(imax(iv + one, zero), Hlast) * Wi;
       index[0] = r0 + c0, index[1] = r0 + c1, index[2] = r1 + c0, index[3] = r1 + c1;
-      const F t0 = tao::gather(img.inverse, index[0]), t1 = tao::gather(img.inverse, index[1]);
-      const F t2 = tao::gather(img.inverse, index[2]), t3 = tao::gather(img.inverse, index[3]);
+      F t0 = tao::gather(img.inverse, index[0]), t1 = tao::gather(img.inverse, index[1]);
+      F t2 = tao::gather(img.inverse, index[2]), t3 = tao::gather(img.inverse, index[3]);
+      if (cfg.edge_aware) {
+        // edge_aware_taps: the four taps where their cell is one surface (a footprint clamped at the
+        // border, whose taps repeat, by the ratio rule alone), else four copies of the nearest tap
+        const auto proper = land(lnot(ieq(index[1], index[0])), lnot(ieq(index[2], index[0])));
+        const F lo = min(min(t0, t1), min(t2, t3)), hi = max(max(t0, t1), max(t2, t3));
+        const auto by_ratio = land(lo > F(0.0f), hi <= F(kEdgeMinRatio) * lo);  // (NaN taps: never)
+        const auto smooth = select(proper, tao::gather(img.cells, index[0]) > F(0.5f), by_ratio);
+        const auto right = fu >= F(0.5f), down = fv >= F(0.5f);
+        const I nearest = select(down, select(right, index[3], index[2]), select(right, index[1], index[0]));
+        const F t_near = select(down, select(right, t3, t2), select(right, t1, t0));
+        for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
+        t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
+        t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
+        // the nearest texel being the pixel's own: no occluder, as the nearest fetch's centre texel
+        own = land(lnot(smooth), ieq(nearest, I(int32_t(px.row * img.W)) + to_int(px.u)));
+      }
       valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
       if (cfg.drop)
         valid = land(valid, land(land(fu0 >= F(0.0f), fu0 + F(1.0f) < Wf), land(fv0 >= F(0.0f), fv0 + F(1.0f) < Hf)));
@@ -233,7 +261,11 @@ template <class F> struct Sample {
     }
     for (int c = 0; c < 3; ++c) delta[c] = pos[c] - px.P[c];
     // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
-    valid = land(valid, dot3(delta, delta) > F(1e-20f) * (px.depth * px.depth));
+    // (relative to the depth, so that no square of a large depth is taken)
+    F rel[3];
+    for (int c = 0; c < 3; ++c) rel[c] = delta[c] / px.depth;
+    valid = land(valid, dot3(rel, rel) > F(1e-20f));
+    if (cfg.edge_aware) valid = land(valid, lnot(own));
     for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], neg(px.V[c]));
   }
 };

@@ -6,14 +6,15 @@
 #define TAO_CUDA_ENTRY(name, unpack)                                                                        \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
                                   const float* depth, const bool* valid, const float* intrinsics,        \
-                                  const float* light, float* out, const int64_t* ints, const float* floats, \
-                                  int B, int H, int W) {                                                  \
+                                  const float* light, const float* cells, const float* backface, float* out, \
+                                  const int64_t* ints, const float* floats, int B, int H, int W) {        \
     const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                    \
     if (p >= int64_t(B) * H * W) return;                                                                  \
-    const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, valid, B, H, W};       \
+    const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, cells, backface, valid, B, H, W}; \
     tao::walk_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, p);            \
   }
 
 TAO_CUDA_ENTRY(tao_walk_gtao, unpack_gtao)
 TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao)
 TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask)
+TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact)

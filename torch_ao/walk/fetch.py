@@ -20,7 +20,7 @@ from ..camera import pixels_to_view
 from .frame import Frame, repeat_rows, take
 
 __all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps",
-           "EDGE_MIN_RATIO", "EDGE_SLOPE_TOLERANCE", "continuous_cells", "continuous_cell_image", "edge_aware_taps"]
+           "EDGE_MIN_RATIO", "EDGE_SLOPE_TOLERANCE", "continuous_cells", "continuous_cell_image", "cell_flags", "edge_aware_taps"]
 
 #: The ``"edge_aware"`` fetch: two neighbouring texels whose depths are within this ratio are one surface
 #: whatever their neighbours (the smallest steps, e.g. a plank's edge on the floor behind it, are edges).
@@ -88,18 +88,25 @@ def continuous_cell_image(inverse: torch.Tensor) -> torch.Tensor:
     return across[..., :-1, :] & across[..., 1:, :] & down[..., :, :-1] & down[..., :, 1:]
 
 
+def cell_flags(inverse: torch.Tensor) -> torch.Tensor:
+    """``(B, H, W)`` bool, per texel of the inverse depths ``inverse`` ``(B, H, W)`` (``<= 0`` where invalid):
+    whether the cell whose top-left texel it is is one surface (:func:`continuous_cell_image`; False on the
+    last row and column)."""
+    B, H, W = inverse.shape
+    with torch.no_grad():
+        flags = torch.zeros(B, H, W, dtype=torch.bool, device=inverse.device)
+        if H > 1 and W > 1:
+            flags[:, :-1, :-1] = continuous_cell_image(inverse)
+    return flags
+
+
 def _cell_flags(frame: Frame) -> torch.Tensor:
-    """``(B*H*W,)`` bool, per texel: whether the cell whose top-left texel it is is one surface
-    (:func:`continuous_cell_image`; False on the last row and column). Computed once per frame."""
+    """``(B*H*W,)`` :func:`cell_flags` of the frame, computed once per frame."""
     flags = getattr(frame, "_edge_aware_cells", None)
     if flags is None:
         B, H, W = frame.shape
-        with torch.no_grad():
-            inverse = torch.where(frame.valid, frame.inverse_depth, 0.0).view(B, H, W)
-            flags = torch.zeros(B, H, W, dtype=torch.bool, device=inverse.device)
-            if H > 1 and W > 1:
-                flags[:, :-1, :-1] = continuous_cell_image(inverse)
-        frame._edge_aware_cells = flags = flags.view(-1)
+        inverse = torch.where(frame.valid, frame.inverse_depth, 0.0).view(B, H, W)
+        frame._edge_aware_cells = flags = cell_flags(inverse).view(-1)
     return flags
 
 
