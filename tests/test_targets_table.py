@@ -1,5 +1,5 @@
 """docs/targets/table.py: each scene's PSNR is the mean over its held-out views, and every pipeline is judged
-against the strongest GTAO fit of each scene (issue 13's three targets)."""
+against the strongest GTAO fit of each scene (docs/accuracy.md's three targets)."""
 import json
 import subprocess
 import sys
