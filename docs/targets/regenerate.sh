@@ -41,6 +41,7 @@ first() {  # one training view and one held-out view per scene
   fit --method bitmask --thickness linear $C --out $T/linear
   fit --method bitmask --thickness backface $C --out $T/backface
   fit --method bitmask --thickness backface --fetch edge_aware $C --out $T/backface_edge
+  fit --method bitmask --variant exact --thickness backface --fetch edge_aware $C --out $T/exact_backface_edge
   fit --method bitmask --fetch edge_aware $C --out $T/edge
   fit --method gtao $C --out $T/gtao
   fit --method gtao --fetch edge_aware $C --out $T/gtao_edge
