@@ -1,5 +1,5 @@
 """docs/targets/table.py: each scene's PSNR is the mean over its held-out views, and every pipeline is judged
-against the strongest GTAO fit of each scene (issue 13's three targets)."""
+against the strongest GTAO fit of each scene (docs/accuracy.md's three targets)."""
 import json
 import subprocess
 import sys
@@ -29,3 +29,24 @@ def test_scene_means_and_the_strongest_gtao(tmp_path):
     assert last.startswith("bm: mean 33.67 dB (>= 28: True)")
     assert "thin occluders +3.00 (>= +3: True)" in last  # poles 33 - 30 is the smaller margin
     assert "worst floating -1.00 (>= -0.5: False)" in last
+
+
+REGENERATE = TABLE.parent / "regenerate.sh"
+
+
+def test_regenerate_writes_every_committed_report():
+    """Each fit folder the docs keep a report.md of is one that regenerate.sh re-runs, and the other way round."""
+    import re
+
+    script = REGENERATE.read_text()
+    folders = {f.replace("$T/", "") for f in re.findall(r"--out (\$T/[\w/]+)", script)}
+    folders -= {"meshes"}  # benchmarks/fit_meshes.py writes one folder per pipeline under it
+    kept = {str(p.parent.relative_to(TABLE.parent)) for p in TABLE.parent.rglob("report.md")}
+    assert folders == {k for k in kept if not k.startswith("meshes/")}
+    assert {k for k in kept if k.startswith("meshes/")} and (TABLE.parent / "meshes" / "table.md").is_file()
+
+
+def test_regenerate_refuses_an_unknown_part():
+    out = subprocess.run(["bash", str(REGENERATE), "views"], capture_output=True, text=True)
+    assert (out.returncode, out.stdout) == (2, "")
+    assert out.stderr == "regenerate.sh: unknown part 'views'; expected views2x3, first, meshes, bench or all\n"

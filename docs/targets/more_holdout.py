@@ -1,4 +1,4 @@
-"""Score fitted pipelines on more held-out views than their fit did (no refit): docs/accuracy.md, "Targets (issue 13)".
+"""Score fitted pipelines on more held-out views than their fit did (no refit): docs/accuracy.md, "Fitted pipelines against the strongest GTAO".
 
 The views are the built-in scenes' randomised views with the given seeds (never training seeds, which are 1, 2...),
 at 320x180, 1024 spp, R = 0.5, with the back-face layer (rendered into the cache on first use). Prints the same

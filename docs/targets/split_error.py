@@ -1,4 +1,4 @@
-"""The error split of fitted pipelines on the held-out views (docs/accuracy.md, "Targets (issue 13)").
+"""The error split of fitted pipelines on the held-out views (docs/accuracy.md, "Fitted pipelines against the strongest GTAO").
 
 For each ``params.json``: the screen-space truth of the view's depth buffer with the pipeline's *fitted*
 thickness model (and its fetch) against the ray-traced reference (what the screen cannot know), the

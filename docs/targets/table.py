@@ -1,4 +1,4 @@
-"""The per-scene PSNR tables of docs/accuracy.md's "Targets (issue 13)" from the fits' params.json files.
+"""The per-scene PSNR tables of docs/accuracy.md's "Fitted pipelines against the strongest GTAO" from the fits' params.json files.
 
 Each scene's PSNR is the mean over its held-out views (``<scene>/s1000``, ``s1001``...). The first table has
 every fitted pipeline, every GTAO fit and GTAO's defaults; the second each bitmask pipeline against the
