@@ -120,3 +120,11 @@ def test_missing_mitsuba_names_the_extra(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "mitsuba", None)
     assert main(["render", str(path), "--out", str(tmp_path / "x.npz"), "--no-progress"]) == 2
     assert 'pip install -e ".[mitsuba]" (in the torch_ao checkout) or pip install mitsuba' in capsys.readouterr().err
+
+
+def test_up_axis_is_refused_for_a_mitsuba_file(xml, tmp_path, capsys):
+    out = tmp_path / "out" / "x.npz"
+    assert main(["render", str(xml), "--up-axis", "z", "--out", str(out), "--no-progress"]) == 2
+    assert capsys.readouterr().err == ("torch-ao render: error: --up-axis: not for Mitsuba scene files (scene.xml); "
+                                       "it turns mesh files only\n")
+    assert not (tmp_path / "out").exists()

@@ -14,6 +14,7 @@ import zlib
 from pathlib import Path
 
 from ..checks import check_finite_outputs
+from ..reference.meshfile import UP_AXES
 from ..reference.sampling import MAX_SPP
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
@@ -44,6 +45,8 @@ OPTIONS = (
            "node for glTF; added to SCENE, or rendered alone without SCENE; repeatable; when not given, SCENE alone", str),
     Option("allow_outside_paths", False, "let scene and mesh files name files (Mitsuba includes and shapes, glTF "
            "buffers and images, materials) outside their own folder; by default those are refused", bool),
+    Option("up_axis", "y", "the --mesh files' up direction (z for most STL files and Z-up OBJ exports): each file "
+           "is turned so that it points up (+y), keeping handedness; not for Mitsuba scene files", str, choices=UP_AXES),
     Option("mesh_normalize", False, "scale each --mesh file to unit size resting on y=0 at the origin (else as stored)",
            bool),
     Option("ground_plane", None, "add a ground plane y=HEIGHT; without HEIGHT, at the lowest point of the scene's "
@@ -117,20 +120,36 @@ def _scene(args):
         if args.randomize is not None:
             raise CommandError("--randomize: only for built-in scenes")
         files = ([args.scene] if args.scene else []) + args.mesh
-        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=args.progress,
-                          allow_outside_paths=args.allow_outside_paths)
+        try:
+            return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, up_axis=args.up_axis,
+                              progress=args.progress, allow_outside_paths=args.allow_outside_paths)
+        except ValueError as err:  # the keyword arguments' messages restated with their flags; file errors as they are
+            msg = _flag_message(str(err), {"normalize": "mesh_normalize", "up_axis": "up_axis"})
+            if msg == str(err):
+                raise
+            raise CommandError(msg) from None
     try:
         scene = get_scene(args.scene, seed=args.randomize)
     except ValueError as err:
         raise CommandError(str(err).replace("scene:", "SCENE:", 1)) from None
     for path in args.mesh:
-        for mesh in load_mesh_file(path, normalize=args.mesh_normalize, allow_outside_paths=args.allow_outside_paths)[0]:
+        for mesh in load_mesh_file(path, normalize=args.mesh_normalize, up_axis=args.up_axis,
+                                   allow_outside_paths=args.allow_outside_paths)[0]:
             scene = scene.add(mesh)
     if ground is not None:
         box = scene.bounds()
         height = ground if ground is not True else (float(box[0][1]) if box is not None else 0.0)
         scene = scene.add(Plane(point=(0.0, height, 0.0), normal=(0.0, 1.0, 0.0)))
     return scene
+
+
+def _flag_message(msg: str, keys: dict) -> str:
+    """A library message starting ``"keyword:"`` (a key of ``keys``) restated with the flag of the
+    option ``keys[keyword]`` (``"spp: ..."`` -> ``"--spp: ..."``)."""
+    for key, option in keys.items():
+        if msg.startswith(key + ":"):
+            return flag(option) + msg[len(key):]
+    return msg
 
 
 def _views(args, scene):
@@ -183,11 +202,7 @@ def run(args: argparse.Namespace) -> int:
                                uniform=not args.no_uniform, backface=args.backface, device=args.device,
                                mesh_backend=args.mesh_backend)
     except ValueError as err:
-        msg = str(err)
-        for key in ("spp", "max_distance", "seed", "chunk_rays"):
-            if msg.startswith(key + ":"):
-                msg = flag(key) + msg[len(key):]
-        raise CommandError(msg) from None
+        raise CommandError(_flag_message(str(err), {k: k for k in ("spp", "max_distance", "seed", "chunk_rays")})) from None
     elapsed = time.perf_counter() - start
     check_finite_outputs("the tracer", {k: getattr(ref, k, None) for k in ("ao", "ao_stderr", "ao_uniform", "indirect")})
     out = ref.save(args.out)
