@@ -358,3 +358,37 @@ def test_up_axis_turns_a_gltf_camera_with_the_meshes(tmp_path, two_node_glb):
     assert torch.allclose(torch.tensor(cam.up, dtype=torch.float64), Rz @ R[:, 1], atol=1e-12)
     forward = torch.tensor(cam.target, dtype=torch.float64) - torch.tensor(cam.eye, dtype=torch.float64)
     assert torch.allclose(forward, Rz @ -R[:, 2], atol=1e-12) and cam.fov_y_degrees == pytest.approx(50)
+
+
+# ------------------------------------------------------------------------------ orthographic cameras
+def _with_cameras(src, dst, kinds):
+    """Rewrite the GLB ``src`` with one camera node per kind ("orthographic"/"perspective"), in order."""
+    def edit(header):
+        header["cameras"] = [{"type": k, "name": f"{k[:5]}_cam", k: {"xmag": 2.0, "ymag": 1.5, "znear": 0.1, "zfar": 50.0}
+                              if k == "orthographic" else {"yfov": math.radians(40), "znear": 0.1}} for k in kinds]
+        for i in range(len(kinds)):
+            header["nodes"].append({"name": f"cam{i}", "camera": i, "translation": [0.0, 1.0, 5.0 + i]})
+            header["scenes"][header.get("scene", 0)]["nodes"].append(len(header["nodes"]) - 1)
+
+    rewrite_glb_json(src, dst, edit)
+
+
+def test_orthographic_only_camera_is_refused_by_name(tmp_path, two_node_glb, capsys):
+    path = tmp_path / "ortho.glb"
+    _with_cameras(two_node_glb, path, ["orthographic"])
+    with pytest.raises(ValueError, match=r"cameras\[0\] 'ortho_cam' \(node 'cam0'\) is an orthographic camera"):
+        mesh_scene([path])
+    out = tmp_path / "out" / "x.npz"
+    assert main(["render", "--mesh", str(path), "--out", str(out)] + SMALL) == 2
+    assert capsys.readouterr().err == (
+        f"torch-ao render: error: camera: {path}: cameras[0] 'ortho_cam' (node 'cam0') is an orthographic camera, which "
+        "torch_ao cannot render; only perspective cameras are supported (add one, or delete the camera to frame the "
+        "meshes)\n")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_perspective_camera_beside_an_orthographic_one_is_used(tmp_path, two_node_glb):
+    path = tmp_path / "both.glb"
+    _with_cameras(two_node_glb, path, ["orthographic", "perspective"])
+    cam = gltf_camera(path)
+    assert cam.fov_y_degrees == pytest.approx(40) and cam.eye == pytest.approx((0.0, 1.0, 6.0))

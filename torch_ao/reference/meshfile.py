@@ -5,7 +5,8 @@
   node's world transform.
 * A glTF file's first perspective camera (``cameras``, on a node of the default scene, with its
   parents' transforms) becomes the scene's view: glTF cameras look down their local ``-Z`` with
-  ``+Y`` up, the library's view convention, and ``yfov`` is the vertical field of view.
+  ``+Y`` up, the library's view convention, and ``yfov`` is the vertical field of view. A file whose
+  cameras are all orthographic is refused, naming the camera (the tracer is perspective only).
 * Without a camera, the view frames the meshes' bounding sphere from the front right, above
   (:func:`frame_view`).
 * World space is the files' own (glTF: metres, ``+Y`` up) turned so that the file's up axis
@@ -152,7 +153,9 @@ def gltf_camera(path: str | Path) -> LookAt | None:
 
     The camera node's world transform (parents included; scale removed) gives the eye (its
     origin), the viewing direction (its ``-Z`` axis) and ``up`` (its ``+Y`` axis); ``yfov``
-    (radians) the vertical field of view.
+    (radians) the vertical field of view. Orthographic cameras cannot be rendered: they are passed
+    over for a perspective one, and a scene whose cameras are all orthographic is refused
+    (``ValueError`` naming the first of them).
     """
     path = Path(path)
     header = _gltf_json(path)
@@ -160,7 +163,7 @@ def gltf_camera(path: str | Path) -> LookAt | None:
     scenes = header.get("scenes", [])
     roots = scenes[header.get("scene", 0)].get("nodes", []) if scenes else range(len(nodes))
     stack = [(int(i), np.eye(4)) for i in reversed(list(roots))]
-    seen = set()
+    seen, orthographic = set(), None
     while stack:
         i, parent = stack.pop()
         if i in seen or not 0 <= i < len(nodes):
@@ -169,6 +172,9 @@ def gltf_camera(path: str | Path) -> LookAt | None:
         node = nodes[i]
         world = parent @ _node_matrix(node)
         cam = node.get("camera")
+        if orthographic is None and cam is not None and 0 <= cam < len(cameras) \
+                and cameras[cam].get("type") == "orthographic":
+            orthographic = (cam, cameras[cam].get("name"), node.get("name", f"nodes[{i}]"))
         if cam is not None and 0 <= cam < len(cameras) and cameras[cam].get("type") == "perspective":
             perspective = cameras[cam].get("perspective")
             if not isinstance(perspective, dict) or "yfov" not in perspective:
@@ -180,6 +186,12 @@ def gltf_camera(path: str | Path) -> LookAt | None:
             return LookAt(eye=eye.tolist(), target=(eye - R[:, 2]).tolist(), up=R[:, 1].tolist(),
                           fov_y_degrees=math.degrees(yfov))
         stack.extend((int(c), world) for c in reversed(node.get("children", [])))
+    if orthographic is not None:
+        cam, name, node_name = orthographic
+        named = f" {name!r}" if name else ""
+        raise ValueError(f"camera: {path}: cameras[{cam}]{named} (node {node_name!r}) is an orthographic camera, which "
+                         "torch_ao cannot render; only perspective cameras are supported (add one, or delete the camera "
+                         "to frame the meshes)")
     return None
 
 
