@@ -39,7 +39,8 @@ OPTIONS = (
     Option("target", None, "point looked at; when not given, the view's, or the centre of the meshes", str,
            unit="world units"),
     Option("up", None, "up direction (any length); when not given, the view's, usually 0,1,0", str),
-    Option("fov", None, "vertical field of view; when not given, the view's (60 for framed meshes)", float,
+    Option("fov", None, "vertical field of view at the rendered size; when not given, the view's (60 for framed "
+           "meshes; a file camera's refitted to --width/--height on its fov_axis)", float,
            unit="degrees", minimum=0.0, maximum=180.0, open_minimum=True, open_maximum=True),
     Option("mesh", None, "a mesh file (OBJ, PLY, STL, OFF, glTF/GLB...; needs trimesh): one object id per file, per "
            "node for glTF; added to SCENE, or rendered alone without SCENE; repeatable; when not given, SCENE alone", str),
@@ -53,8 +54,11 @@ OPTIONS = (
            "bounded objects (e.g. under the meshes); when not given, none", float, unit="world units"),
     Option("randomize", None, "seed of a randomised variant of the built-in scene; when not given, the scene as "
            "defined", int),
-    Option("width", 320, "image width", int, unit="pixels", minimum=1),
-    Option("height", 180, "image height", int, unit="pixels", minimum=1),
+    Option("width", None, "image width; when not given, the width of a Mitsuba scene file's film, else 320. Given, it "
+           "overrides the film's, and the file camera's field of view is kept on its fov_axis (Mitsuba's default: the "
+           "horizontal one), as when Mitsuba renders the film at that size", int, unit="pixels", minimum=1),
+    Option("height", None, "image height; when not given, the height of a Mitsuba scene file's film, else 180. Given, "
+           "it overrides the film's, the field of view kept as for --width", int, unit="pixels", minimum=1),
     Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16]); at most 65536, where the "
            "standard error is about 0.002: more only runs for hours", int, unit="rays", minimum=2, maximum=MAX_SPP),
     Option("max_distance", float("inf"), "AO ray length R (inf: unlimited)", float, unit="world units",
@@ -80,6 +84,8 @@ _FORMS = {
     "fov": dict(metavar="DEG"),
 }
 _VECTORS = ("eye", "target", "up")
+#: The image size without --width/--height and without a file camera's film.
+_DEFAULT_SIZE = (320, 180)
 _FOV = next(o for o in OPTIONS if o.name == "fov")
 
 
@@ -161,14 +167,15 @@ def _views(args, scene):
     eye, target, up = (parse_float_list(flag(k), getattr(args, k), 3, names="x,y,z") for k in _VECTORS)
     if _files_only(args) and eye is not None and target is None:
         # a new eye without a target looks at the meshes, not along the file's camera
-        v = frame_view(*scene.bounds(), v.fov_y_degrees)
-    fov = v.fov_y_degrees if args.fov is None else args.fov
+        v = frame_view(*scene.bounds(), v.fov_y_at(args.width, args.height))
+    fov = v.fov_y_at(args.width, args.height) if args.fov is None else args.fov
     try:  # the view's own field of view (a glTF or Mitsuba camera) is held to the flag's bounds
         _FOV.check(fov)
     except ValueError as err:
         raise CommandError(f"--fov: {str(err).split(': ', 1)[-1]} (the view's field of view)") from None
     try:
-        return look_at(eye or v.eye, target or v.target, up or v.up, fov, height=args.height, width=args.width)
+        return look_at(eye or v.eye, target or v.target, up or v.up, fov, height=args.height, width=args.width,
+                       principal_offset=v.principal_offset)
     except ValueError as err:
         raise CommandError(f"--eye/--target/--up: {err}") from None
 
@@ -194,6 +201,8 @@ def run(args: argparse.Namespace) -> int:
     for name in _VECTORS:  # check the flags before loading (big) mesh files
         parse_float_list(flag(name), getattr(args, name), 3, names="x,y,z")
     scene = _scene(args)
+    film = scene.view.film or _DEFAULT_SIZE  # a flag given replaces its side only
+    args.width, args.height = args.width or film[0], args.height or film[1]
     views = _views(args, scene)
     start = time.perf_counter()
     try:

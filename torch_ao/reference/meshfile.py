@@ -18,6 +18,7 @@ meshes) are one-line messages that name the file: ``FileNotFoundError`` or ``Val
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import struct
@@ -230,7 +231,7 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normaliz
     if camera is not None and (normalize or up_axis != "y"):
         eye, target, up = (R @ torch.tensor(x, dtype=torch.float64) for x in (camera.eye, camera.target, camera.up))
         eye_n = (eye - offset) / scale
-        camera = LookAt(eye_n.tolist(), (eye_n + target - eye).tolist(), up.tolist(), camera.fov_y_degrees)
+        camera = dataclasses.replace(camera, eye=eye_n.tolist(), target=(eye_n + target - eye).tolist(), up=up.tolist())
     meshes = [Mesh(albedo=albedo, vertices=v, faces=torch.as_tensor(f).long(), name=name)
               for (name, _, f), v in zip(parts, verts)]
     return meshes, camera

@@ -100,9 +100,11 @@ TRACER_VERSION = 1
 
 
 def default_views(scene: Scene, height: int, width: int) -> Views:
-    """The scene's default look-at view at ``height x width``."""
+    """The scene's default look-at view at ``height x width`` (a file camera's FOV refitted to that size
+    on its ``fov_axis``, its principal point offset kept: :class:`~torch_ao.reference.scene.LookAt`)."""
     v = scene.view
-    return look_at(v.eye, v.target, v.up, v.fov_y_degrees, height=height, width=width)
+    return look_at(v.eye, v.target, v.up, v.fov_y_at(width, height), height=height, width=width,
+                   principal_offset=v.principal_offset)
 
 
 def _check_args(spp, max_distance, seed, chunk_rays):
