@@ -198,6 +198,8 @@ def test_film_size_and_principal_point_match_mitsubas_rays(xml, tmp_path):
     assert float(K[0, 0]) == pytest.approx(80 / math.tan(math.radians(30)), rel=1e-6)
     assert (float(K[0, 2]), float(K[1, 2])) == pytest.approx((0.4 * 160 - 0.5, 0.55 * 96 - 0.5), abs=1e-4)
     _assert_same_as_mitsuba(out, _mitsuba_depth(path))
+    ref = render_reference(mesh_scene([path]), spp=2, progress=False)  # Python: the film's size too
+    assert torch.equal(ref.gbuffer.depth, gb.depth) and torch.equal(ref.gbuffer.camera.intrinsics, gb.camera.intrinsics)
 
 
 @pytest.mark.parametrize("fov_axis", [None, "y", "diagonal", "smaller", "larger"])
