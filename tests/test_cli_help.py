@@ -143,7 +143,7 @@ def test_render_flags_are_its_options_with_the_same_defaults_and_parsing():
         assert _squash(opt.describe()) in _squash(action.help), opt.name
     args = build_parser().parse_args(["render", "stairs"])
     assert (args.width, args.height, args.spp, args.max_distance, args.seed, args.chunk_rays) == (
-        320, 180, 256, math.inf, 0, 262144)
+        None, None, 256, math.inf, 0, 262144)  # the size: a scene file's film, else 320x180
     assert (args.mesh, args.mesh_backend, args.device, args.ground_plane, args.fov, args.out) == (
         [], "auto", "cpu", None, None, None)
     assert (args.list, args.indirect, args.no_uniform, args.backface, args.mesh_normalize) == (False,) * 5

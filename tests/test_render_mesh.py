@@ -14,7 +14,8 @@ import torch
 from torch_ao.cli import main
 from torch_ao.commands.args import add_float_list, allow_negative_lists, parse_float_list
 from torch_ao.io import load_gbuffer
-from torch_ao.reference import gltf_camera, load_mesh_file, look_at_matrix, mesh_scene
+from torch_ao.reference import gltf_camera, load_mesh_file, look_at_matrix, mesh_scene, render_reference
+from torch_ao.reference.meshfile import UP_AXES, up_axis_rotation
 
 trimesh = pytest.importorskip("trimesh", reason="trimesh reads the mesh files")
 
@@ -276,3 +277,118 @@ def test_million_triangle_mesh_through_embree(tmp_path):
     gb, _ = load_gbuffer(out)
     thickness = (gb.backface_depth - gb.depth)[gb.valid]
     assert bool((thickness > 0).all())
+
+
+# ------------------------------------------------------------------------------ up axis
+def _box_on_floor():
+    """A unit box standing on a 2 x 2 floor quad at y = 0 (Y up); float32-exact coordinates."""
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    box.apply_translation([0.25, 0.5, -0.25])
+    floor = trimesh.Trimesh(vertices=[[-1, 0, -1], [-1, 0, 1], [1, 0, 1], [1, 0, -1]], faces=[[0, 1, 2], [0, 2, 3]])
+    return trimesh.util.concatenate([box, floor])
+
+
+def test_up_axis_rotations_are_proper_and_lift_their_axis():
+    for axis in UP_AXES:
+        R = up_axis_rotation(axis)
+        sign, i = (-1.0, axis[1]) if axis.startswith("-") else (1.0, axis)
+        e = torch.zeros(3, dtype=torch.float64)
+        e["xyz".index(i)] = sign
+        assert torch.equal(R @ e, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)), axis
+        assert torch.equal(R @ R.T, torch.eye(3, dtype=torch.float64)) and float(torch.linalg.det(R)) == 1.0
+    z = up_axis_rotation("z")  # Blender's Z up: its front (-Y) faces +Z after the turn
+    assert torch.equal(z @ torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"up_axis: expected one of \('y', 'z', 'x', '-y', '-z', '-x'\), got 'w'"):
+        up_axis_rotation("w")
+
+
+@pytest.mark.parametrize("axis", ["z", "x", "-y", "-z", "-x"])
+def test_turned_mesh_renders_as_the_y_up_original(tmp_path, axis):
+    original = _box_on_floor()
+    original.export(tmp_path / "y_up.obj")
+    turned = original.copy()
+    turned.vertices = turned.vertices @ up_axis_rotation(axis).numpy()  # R^T p: the file as an axis-up tool writes it
+    turned.export(tmp_path / f"turned.{'stl' if axis == 'z' else 'obj'}")
+    a = mesh_scene([tmp_path / "y_up.obj"])
+    b = mesh_scene([next(tmp_path.glob("turned.*"))], up_axis=axis)
+    assert b.view.eye == pytest.approx(a.view.eye, abs=1e-9)  # the framing view sees the same bounds
+    kw = dict(height=16, width=24, spp=4, max_distance=1.0, seed=1, progress=False)
+    ra, rb = render_reference(a, **kw), render_reference(b, **kw)
+    assert torch.equal(ra.gbuffer.valid, rb.gbuffer.valid) and float(ra.gbuffer.valid.double().mean()) > 0.1
+    v = ra.gbuffer.valid
+    assert torch.allclose(ra.gbuffer.depth[v], rb.gbuffer.depth[v], rtol=1e-5)
+    assert torch.allclose(ra.gbuffer.normals, rb.gbuffer.normals, atol=1e-5)
+    assert torch.allclose(ra.ao, rb.ao, atol=1e-5)
+    assert torch.allclose(ra.gbuffer.light, rb.gbuffer.light, atol=1e-5)  # the light comes from above in both
+
+
+def test_cli_up_axis_z_stl(tmp_path):
+    original = _box_on_floor()
+    original.export(tmp_path / "y_up.obj")
+    turned = original.copy()
+    turned.vertices = turned.vertices @ up_axis_rotation("z").numpy()
+    turned.export(tmp_path / "z_up.stl")
+    outs = {}
+    for name, extra in (("y_up.obj", []), ("z_up.stl", ["--up-axis", "z"]), ("lying", [])):
+        src = tmp_path / ("z_up.stl" if name == "lying" else name)
+        outs[name] = tmp_path / f"{name}.npz"
+        assert main(["render", "--mesh", str(src), "--out", str(outs[name])] + extra + SMALL) == 0
+    (ga, ea), (gb, eb), (gc, ec) = (load_gbuffer(outs[n]) for n in ("y_up.obj", "z_up.stl", "lying"))
+    assert torch.equal(ga.valid, gb.valid)
+    assert torch.allclose(ga.depth[ga.valid], gb.depth[gb.valid], rtol=1e-5)
+    assert torch.allclose(ea["ao"], eb["ao"], atol=1e-5) and torch.allclose(ga.normals, gb.normals, atol=1e-5)
+
+    def mean_world_up(gbuf, extras):  # mean world-space n_y of the valid pixels
+        n = extras["world_to_view"][0, :3, :3].double().T @ gbuf.normals[0].double().reshape(3, -1)
+        return float(n[1][gbuf.valid.reshape(-1)].mean())
+
+    # the floor and the box's top face up; without --up-axis the Z-up file lies on its side (they face +Z)
+    assert mean_world_up(ga, ea) > 0.5 and mean_world_up(gb, eb) == pytest.approx(mean_world_up(ga, ea), abs=1e-5)
+    assert abs(mean_world_up(gc, ec)) < 0.3
+
+
+def test_up_axis_turns_a_gltf_camera_with_the_meshes(tmp_path, two_node_glb):
+    path = tmp_path / "cam.glb"
+    eye, R = _with_camera(two_node_glb, path)
+    Rz = up_axis_rotation("z")
+    (box, ball), cam = load_mesh_file(path, up_axis="z")
+    (box0, ball0), _ = load_mesh_file(path)
+    assert torch.equal(box.vertices, box0.vertices @ Rz.T) and torch.equal(ball.vertices, ball0.vertices @ Rz.T)
+    assert torch.allclose(torch.tensor(cam.eye, dtype=torch.float64), Rz @ eye, atol=1e-12)
+    assert torch.allclose(torch.tensor(cam.up, dtype=torch.float64), Rz @ R[:, 1], atol=1e-12)
+    forward = torch.tensor(cam.target, dtype=torch.float64) - torch.tensor(cam.eye, dtype=torch.float64)
+    assert torch.allclose(forward, Rz @ -R[:, 2], atol=1e-12) and cam.fov_y_degrees == pytest.approx(50)
+
+
+# ------------------------------------------------------------------------------ orthographic cameras
+def _with_cameras(src, dst, kinds):
+    """Rewrite the GLB ``src`` with one camera node per kind ("orthographic"/"perspective"), in order."""
+    def edit(header):
+        header["cameras"] = [{"type": k, "name": f"{k[:5]}_cam", k: {"xmag": 2.0, "ymag": 1.5, "znear": 0.1, "zfar": 50.0}
+                              if k == "orthographic" else {"yfov": math.radians(40), "znear": 0.1}} for k in kinds]
+        for i in range(len(kinds)):
+            header["nodes"].append({"name": f"cam{i}", "camera": i, "translation": [0.0, 1.0, 5.0 + i]})
+            header["scenes"][header.get("scene", 0)]["nodes"].append(len(header["nodes"]) - 1)
+
+    rewrite_glb_json(src, dst, edit)
+
+
+def test_orthographic_only_camera_is_refused_by_name(tmp_path, two_node_glb, capsys):
+    path = tmp_path / "ortho.glb"
+    _with_cameras(two_node_glb, path, ["orthographic"])
+    with pytest.raises(ValueError, match=r"cameras\[0\] 'ortho_cam' \(node 'cam0'\) is an orthographic camera"):
+        mesh_scene([path])
+    out = tmp_path / "out" / "x.npz"
+    assert main(["render", "--mesh", str(path), "--out", str(out)] + SMALL) == 2
+    assert capsys.readouterr().err == (
+        f"torch-ao render: error: camera: {path}: cameras[0] 'ortho_cam' (node 'cam0') is an orthographic camera, which "
+        "torch_ao cannot render; only perspective cameras are supported (add one, or delete the camera to frame the "
+        "meshes)\n")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_perspective_camera_beside_an_orthographic_one_is_used(tmp_path, two_node_glb):
+    path = tmp_path / "both.glb"
+    _with_cameras(two_node_glb, path, ["orthographic", "perspective"])
+    cam = gltf_camera(path)
+    assert cam.fov_y_degrees == pytest.approx(40) and cam.eye == pytest.approx((0.0, 1.0, 6.0))

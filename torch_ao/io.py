@@ -149,12 +149,16 @@ def image_to_numpy(t: torch.Tensor) -> np.ndarray:
     return a[:, 0] if a.shape[1] == 1 else np.moveaxis(a, 1, -1)
 
 
+class FileContentError(ValueError):
+    """Bad content of a file (a key or attribute of it): named by the file, never by a command-line flag."""
+
+
 def real_array(value, key: str, source) -> np.ndarray:
     """``value`` as a float64 array, when it holds real numbers (integers or floats; not booleans,
     strings, complex numbers or objects): else ``ValueError`` naming ``key`` and ``source`` (the file)."""
     a = np.asarray(value)
     if a.dtype.kind not in "iuf":
-        raise ValueError(f"{key}: expected real numbers in {source}, got {a.dtype} {_preview(a)}")
+        raise FileContentError(f"{key}: expected real numbers in {source}, got {a.dtype} {_preview(a)}")
     return a.astype(np.float64)
 
 

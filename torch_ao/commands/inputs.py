@@ -12,6 +12,7 @@ import argparse
 import contextlib
 
 from ..engine_io import ENGINE_OPTIONS, EngineOptions
+from ..io import FileContentError
 from .args import allow_negative_lists, parse_float_list
 from .options_cli import add_option, flag, given
 
@@ -59,6 +60,8 @@ def flag_errors():
     """Re-raise a ``ValueError`` about an :class:`EngineOptions` field as one naming its flag."""
     try:
         yield
+    except FileContentError:  # a file's own key of the same name as a flag
+        raise
     except ValueError as err:
         msg = str(err)
         name = msg.split(":", 1)[0]

@@ -14,6 +14,7 @@ import zlib
 from pathlib import Path
 
 from ..checks import check_finite_outputs
+from ..reference.meshfile import UP_AXES
 from ..reference.sampling import MAX_SPP
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
@@ -38,20 +39,26 @@ OPTIONS = (
     Option("target", None, "point looked at; when not given, the view's, or the centre of the meshes", str,
            unit="world units"),
     Option("up", None, "up direction (any length); when not given, the view's, usually 0,1,0", str),
-    Option("fov", None, "vertical field of view; when not given, the view's (60 for framed meshes)", float,
+    Option("fov", None, "vertical field of view at the rendered size; when not given, the view's (60 for framed "
+           "meshes; a file camera's refitted to --width/--height on its fov_axis)", float,
            unit="degrees", minimum=0.0, maximum=180.0, open_minimum=True, open_maximum=True),
     Option("mesh", None, "a mesh file (OBJ, PLY, STL, OFF, glTF/GLB...; needs trimesh): one object id per file, per "
            "node for glTF; added to SCENE, or rendered alone without SCENE; repeatable; when not given, SCENE alone", str),
     Option("allow_outside_paths", False, "let scene and mesh files name files (Mitsuba includes and shapes, glTF "
            "buffers and images, materials) outside their own folder; by default those are refused", bool),
+    Option("up_axis", "y", "the --mesh files' up direction (z for most STL files and Z-up OBJ exports): each file "
+           "is turned so that it points up (+y), keeping handedness; not for Mitsuba scene files", str, choices=UP_AXES),
     Option("mesh_normalize", False, "scale each --mesh file to unit size resting on y=0 at the origin (else as stored)",
            bool),
     Option("ground_plane", None, "add a ground plane y=HEIGHT; without HEIGHT, at the lowest point of the scene's "
            "bounded objects (e.g. under the meshes); when not given, none", float, unit="world units"),
     Option("randomize", None, "seed of a randomised variant of the built-in scene; when not given, the scene as "
            "defined", int),
-    Option("width", 320, "image width", int, unit="pixels", minimum=1),
-    Option("height", 180, "image height", int, unit="pixels", minimum=1),
+    Option("width", None, "image width; when not given, the width of a Mitsuba scene file's film, else 320. Given, it "
+           "overrides the film's, and the file camera's field of view is kept on its fov_axis (Mitsuba's default: the "
+           "horizontal one), as when Mitsuba renders the film at that size", int, unit="pixels", minimum=1),
+    Option("height", None, "image height; when not given, the height of a Mitsuba scene file's film, else 180. Given, "
+           "it overrides the film's, the field of view kept as for --width", int, unit="pixels", minimum=1),
     Option("spp", 256, "AO rays per pixel for each weighting (needs a divisor in [2, 16]); at most 65536, where the "
            "standard error is about 0.002: more only runs for hours", int, unit="rays", minimum=2, maximum=MAX_SPP),
     Option("max_distance", float("inf"), "AO ray length R (inf: unlimited)", float, unit="world units",
@@ -77,6 +84,8 @@ _FORMS = {
     "fov": dict(metavar="DEG"),
 }
 _VECTORS = ("eye", "target", "up")
+#: The image size without --width/--height and without a file camera's film.
+_DEFAULT_SIZE = (320, 180)
 _FOV = next(o for o in OPTIONS if o.name == "fov")
 
 
@@ -117,20 +126,36 @@ def _scene(args):
         if args.randomize is not None:
             raise CommandError("--randomize: only for built-in scenes")
         files = ([args.scene] if args.scene else []) + args.mesh
-        return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, progress=args.progress,
-                          allow_outside_paths=args.allow_outside_paths)
+        try:
+            return mesh_scene(files, ground_plane=ground, normalize=args.mesh_normalize, up_axis=args.up_axis,
+                              progress=args.progress, allow_outside_paths=args.allow_outside_paths)
+        except ValueError as err:  # the keyword arguments' messages restated with their flags; file errors as they are
+            msg = _flag_message(str(err), {"normalize": "mesh_normalize", "up_axis": "up_axis"})
+            if msg == str(err):
+                raise
+            raise CommandError(msg) from None
     try:
         scene = get_scene(args.scene, seed=args.randomize)
     except ValueError as err:
         raise CommandError(str(err).replace("scene:", "SCENE:", 1)) from None
     for path in args.mesh:
-        for mesh in load_mesh_file(path, normalize=args.mesh_normalize, allow_outside_paths=args.allow_outside_paths)[0]:
+        for mesh in load_mesh_file(path, normalize=args.mesh_normalize, up_axis=args.up_axis,
+                                   allow_outside_paths=args.allow_outside_paths)[0]:
             scene = scene.add(mesh)
     if ground is not None:
         box = scene.bounds()
         height = ground if ground is not True else (float(box[0][1]) if box is not None else 0.0)
         scene = scene.add(Plane(point=(0.0, height, 0.0), normal=(0.0, 1.0, 0.0)))
     return scene
+
+
+def _flag_message(msg: str, keys: dict) -> str:
+    """A library message starting ``"keyword:"`` (a key of ``keys``) restated with the flag of the
+    option ``keys[keyword]`` (``"spp: ..."`` -> ``"--spp: ..."``)."""
+    for key, option in keys.items():
+        if msg.startswith(key + ":"):
+            return flag(option) + msg[len(key):]
+    return msg
 
 
 def _views(args, scene):
@@ -142,14 +167,15 @@ def _views(args, scene):
     eye, target, up = (parse_float_list(flag(k), getattr(args, k), 3, names="x,y,z") for k in _VECTORS)
     if _files_only(args) and eye is not None and target is None:
         # a new eye without a target looks at the meshes, not along the file's camera
-        v = frame_view(*scene.bounds(), v.fov_y_degrees)
-    fov = v.fov_y_degrees if args.fov is None else args.fov
+        v = frame_view(*scene.bounds(), v.fov_y_at(args.width, args.height))
+    fov = v.fov_y_at(args.width, args.height) if args.fov is None else args.fov
     try:  # the view's own field of view (a glTF or Mitsuba camera) is held to the flag's bounds
         _FOV.check(fov)
     except ValueError as err:
         raise CommandError(f"--fov: {str(err).split(': ', 1)[-1]} (the view's field of view)") from None
     try:
-        return look_at(eye or v.eye, target or v.target, up or v.up, fov, height=args.height, width=args.width)
+        return look_at(eye or v.eye, target or v.target, up or v.up, fov, height=args.height, width=args.width,
+                       principal_offset=v.principal_offset)
     except ValueError as err:
         raise CommandError(f"--eye/--target/--up: {err}") from None
 
@@ -175,6 +201,8 @@ def run(args: argparse.Namespace) -> int:
     for name in _VECTORS:  # check the flags before loading (big) mesh files
         parse_float_list(flag(name), getattr(args, name), 3, names="x,y,z")
     scene = _scene(args)
+    film = scene.view.film or _DEFAULT_SIZE  # a flag given replaces its side only
+    args.width, args.height = args.width or film[0], args.height or film[1]
     views = _views(args, scene)
     start = time.perf_counter()
     try:
@@ -183,11 +211,7 @@ def run(args: argparse.Namespace) -> int:
                                uniform=not args.no_uniform, backface=args.backface, device=args.device,
                                mesh_backend=args.mesh_backend)
     except ValueError as err:
-        msg = str(err)
-        for key in ("spp", "max_distance", "seed", "chunk_rays"):
-            if msg.startswith(key + ":"):
-                msg = flag(key) + msg[len(key):]
-        raise CommandError(msg) from None
+        raise CommandError(_flag_message(str(err), {k: k for k in ("spp", "max_distance", "seed", "chunk_rays")})) from None
     elapsed = time.perf_counter() - start
     check_finite_outputs("the tracer", {k: getattr(ref, k, None) for k in ("ao", "ao_stderr", "ao_uniform", "indirect")})
     out = ref.save(args.out)

@@ -5,16 +5,20 @@
   node's world transform.
 * A glTF file's first perspective camera (``cameras``, on a node of the default scene, with its
   parents' transforms) becomes the scene's view: glTF cameras look down their local ``-Z`` with
-  ``+Y`` up, the library's view convention, and ``yfov`` is the vertical field of view.
+  ``+Y`` up, the library's view convention, and ``yfov`` is the vertical field of view. A file whose
+  cameras are all orthographic is refused, naming the camera (the tracer is perspective only).
 * Without a camera, the view frames the meshes' bounding sphere from the front right, above
   (:func:`frame_view`).
-* World space is the files' own (glTF: metres, ``+Y`` up); an optional ground plane ``y = h``.
+* World space is the files' own (glTF: metres, ``+Y`` up) turned so that the file's up axis
+  (``up_axis``, one of :data:`UP_AXES`; STL and many OBJ files are ``"z"`` up) is the library's
+  ``+Y`` (:func:`up_axis_rotation`); an optional ground plane ``y = h``.
 
 Errors (a missing file, a format trimesh cannot read, a file without triangles, a glTF without
 meshes) are one-line messages that name the file: ``FileNotFoundError`` or ``ValueError``.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import struct
@@ -24,13 +28,29 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..checks import check_float, install_hint
+from ..checks import check_choice, check_float, install_hint
 from .confine import ALLOW_HINT, OutsidePathError, confined_path, confined_resolver, scene_root
 from .scene import LookAt, Mesh, Plane, Scene, Vec3
 
-__all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera"]
+__all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera", "UP_AXES", "up_axis_rotation"]
 
 _GLTF = (".gltf", ".glb")
+
+#: The up axes a mesh file may have (``up_axis``, ``torch-ao render --up-axis``).
+UP_AXES = ("y", "z", "x", "-y", "-z", "-x")
+#: Rows of the rotation taking each up axis to ``+Y``: proper rotations (no mirror, so triangle winding
+#: and handedness are kept). ``"z"`` is Blender's and most CAD tools' convention, turned as Blender's
+#: glTF exporter turns it: ``(x, y, z) -> (x, z, -y)``, so the front (``-Y``) faces ``+Z``.
+_UP_ROWS = {"y": ((1, 0, 0), (0, 1, 0), (0, 0, 1)), "z": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+            "x": ((0, -1, 0), (1, 0, 0), (0, 0, 1)), "-y": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),
+            "-z": ((1, 0, 0), (0, 0, -1), (0, 1, 0)), "-x": ((0, 1, 0), (-1, 0, 0), (0, 0, 1))}
+
+
+def up_axis_rotation(up_axis: str) -> torch.Tensor:
+    """``(3,3)`` float64 rotation ``R`` taking a file whose up direction is ``up_axis`` (one of
+    :data:`UP_AXES`) to the library's ``+Y`` up: world points are ``R @ p_file``."""
+    check_choice("up_axis", up_axis, UP_AXES)
+    return torch.tensor(_UP_ROWS[up_axis], dtype=torch.float64)
 
 
 def _one_line(err: Exception) -> str:
@@ -151,7 +171,9 @@ def gltf_camera(path: str | Path) -> LookAt | None:
 
     The camera node's world transform (parents included; scale removed) gives the eye (its
     origin), the viewing direction (its ``-Z`` axis) and ``up`` (its ``+Y`` axis); ``yfov``
-    (radians) the vertical field of view.
+    (radians) the vertical field of view. Orthographic cameras cannot be rendered: they are passed
+    over for a perspective one, and a scene whose cameras are all orthographic is refused
+    (``ValueError`` naming the first of them).
     """
     path = Path(path)
     header = _gltf_json(path)
@@ -172,7 +194,7 @@ def _first_camera(header: dict, path: Path) -> LookAt | None:
     scenes = header.get("scenes", [])
     roots = scenes[header.get("scene", 0)].get("nodes", []) if scenes else range(len(nodes))
     stack = [(int(i), np.eye(4)) for i in reversed(list(roots))]
-    seen = set()
+    seen, orthographic = set(), None
     while stack:
         i, parent = stack.pop()
         if i in seen or not 0 <= i < len(nodes):
@@ -183,6 +205,9 @@ def _first_camera(header: dict, path: Path) -> LookAt | None:
         if not np.isfinite(world).all():
             raise ValueError(f"mesh: {path}: nodes[{i}]: non-finite transform")
         cam = node.get("camera")
+        if orthographic is None and isinstance(cam, int) and 0 <= cam < len(cameras) \
+                and _camera_type(cameras[cam]) == "orthographic":
+            orthographic = (cam, cameras[cam].get("name"), node.get("name", f"nodes[{i}]"))
         if isinstance(cam, int) and 0 <= cam < len(cameras) and _camera_type(cameras[cam]) == "perspective":
             yfov = _yfov(cameras[cam], cam, path)
             R = world[:3, :3] / np.linalg.norm(world[:3, :3], axis=0)
@@ -190,12 +215,18 @@ def _first_camera(header: dict, path: Path) -> LookAt | None:
             return LookAt(eye=eye.tolist(), target=(eye - R[:, 2]).tolist(), up=R[:, 1].tolist(),
                           fov_y_degrees=math.degrees(yfov))
         stack.extend((int(c), world) for c in reversed(node.get("children", [])))
+    if orthographic is not None:
+        cam, name, node_name = orthographic
+        named = f" {name!r}" if name else ""
+        raise ValueError(f"camera: {path}: cameras[{cam}]{named} (node {node_name!r}) is an orthographic camera, which "
+                         "torch_ao cannot render; only perspective cameras are supported (add one, or delete the camera "
+                         "to frame the meshes)")
     return None
 
 
 # ---------------------------------------------------------------------------------------- meshes
 def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normalize: bool = False,
-                   allow_outside_paths: bool = False) -> tuple[list[Mesh], LookAt | None]:
+                   up_axis: str = "y", allow_outside_paths: bool = False) -> tuple[list[Mesh], LookAt | None]:
     """Read a mesh file: ``(meshes, camera)``.
 
     Args:
@@ -203,6 +234,9 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normaliz
         albedo: linear RGB of every mesh of the file.
         normalize: scale the file's meshes together to a largest extent of 1, resting on ``y = 0``,
             centred on the ``y`` axis (a glTF camera moves with them).
+        up_axis: the file's up direction, one of :data:`UP_AXES` (``"z"`` for most STL files and
+            Z-up OBJ exports); the meshes (and a glTF camera) are turned so that it becomes ``+Y``
+            (:func:`up_axis_rotation`), before ``normalize``.
         allow_outside_paths: let the file name files (materials, glTF buffers and images) outside its
             folder; by default they are refused (:mod:`~torch_ao.reference.confine`).
     Returns:
@@ -211,8 +245,28 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normaliz
         file's glTF camera (:func:`gltf_camera`) or ``None``.
     """
     path = Path(path)
-    if path.suffix.lower() not in _GLTF:
-        return [Mesh.load(path, albedo=albedo, normalize=normalize, allow_outside_paths=allow_outside_paths)], None
+    R = up_axis_rotation(up_axis)
+    if path.suffix.lower() in _GLTF:
+        parts, camera = _gltf_parts(path, allow_outside_paths), gltf_camera(path)
+    else:
+        mesh = Mesh.load(path, albedo=albedo, allow_outside_paths=allow_outside_paths)
+        parts, camera = [(mesh.name, mesh.vertices, mesh.faces)], None
+    verts = [torch.as_tensor(v, dtype=torch.float64) @ R.T for _, v, _ in parts]
+    offset, scale = torch.zeros(3, dtype=torch.float64), 1.0
+    if normalize:
+        _, offset, scale = normalize_vertices(torch.cat(verts), path)
+        verts = [(v - offset) / scale for v in verts]
+    if camera is not None and (normalize or up_axis != "y"):
+        eye, target, up = (R @ torch.tensor(x, dtype=torch.float64) for x in (camera.eye, camera.target, camera.up))
+        eye_n = (eye - offset) / scale
+        camera = dataclasses.replace(camera, eye=eye_n.tolist(), target=(eye_n + target - eye).tolist(), up=up.tolist())
+    meshes = [Mesh(albedo=albedo, vertices=v, faces=torch.as_tensor(f).long(), name=name)
+              for (name, _, f), v in zip(parts, verts)]
+    return meshes, camera
+
+
+def _gltf_parts(path: Path, allow_outside_paths: bool) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(name "file.glb:node", world vertices (V,3), faces (F,3))`` of each glTF node with triangles."""
     scene = read_trimesh(path, process=False, allow_outside_paths=allow_outside_paths)
     parts = []
     graph = getattr(scene, "graph", None)
@@ -226,18 +280,7 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normaliz
         parts.append((f"{path.name}:{node}", v, np.asarray(faces)))
     if not parts:
         raise ValueError(f"mesh: {path} has no meshes (no node of its scene carries triangles)")
-    camera = gltf_camera(path)
-    verts = [torch.as_tensor(v, dtype=torch.float64) for _, v, _ in parts]
-    if normalize:
-        _, offset, scale = normalize_vertices(torch.cat(verts), path)
-        verts = [(v - offset) / scale for v in verts]
-        if camera is not None:
-            eye = (torch.tensor(camera.eye, dtype=torch.float64) - offset) / scale
-            fwd = torch.tensor(camera.target, dtype=torch.float64) - torch.tensor(camera.eye, dtype=torch.float64)
-            camera = LookAt(eye.tolist(), (eye + fwd).tolist(), camera.up, camera.fov_y_degrees)
-    meshes = [Mesh(albedo=albedo, vertices=v, faces=torch.as_tensor(f).long(), name=name)
-              for (name, _, f), v in zip(parts, verts)]
-    return meshes, camera
+    return parts
 
 
 def frame_view(lo: Vec3, hi: Vec3, fov_y_degrees: float = 60.0) -> LookAt:
@@ -253,7 +296,8 @@ def frame_view(lo: Vec3, hi: Vec3, fov_y_degrees: float = 60.0) -> LookAt:
 
 
 def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None = None,
-               normalize: bool = False, progress: bool = False, allow_outside_paths: bool = False) -> Scene:
+               normalize: bool = False, up_axis: str = "y", progress: bool = False,
+               allow_outside_paths: bool = False) -> Scene:
     """A scene made of mesh files (and Mitsuba 3 scene files) alone.
 
     Args:
@@ -263,6 +307,8 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
         ground_plane: ``None``/``False`` for none, ``True`` for a plane ``y = min y`` of the meshes
             (they rest on it), or a height ``h`` for the plane ``y = h`` (world units).
         normalize: normalise each file (see :func:`load_mesh_file`).
+        up_axis: the mesh files' up direction, one of :data:`UP_AXES` (see :func:`load_mesh_file`);
+            not for Mitsuba files (their cameras and shapes are placed in one world already).
         progress: a tqdm bar over the files (triangles read so far).
         allow_outside_paths: let the files name files outside their folders (Mitsuba includes and
             shapes, glTF buffers, materials); by default refused (:mod:`~torch_ao.reference.confine`).
@@ -273,6 +319,7 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
     from tqdm.auto import tqdm
 
     paths = [Path(p) for p in paths]
+    check_choice("up_axis", up_axis, UP_AXES)
     if not paths:
         raise ValueError("paths: expected at least one mesh file")
     meshes, view, source = [], None, ""  # meshes: every object read (Mitsuba spheres too)
@@ -283,9 +330,12 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
 
             if normalize:
                 raise ValueError(f"normalize: not for Mitsuba scene files ({path.name})")
+            if up_axis != "y":
+                raise ValueError(f"up_axis: not for Mitsuba scene files ({path.name}); it turns mesh files only")
             found, camera = load_mitsuba_file(path, allow_outside_paths=allow_outside_paths)
         else:
-            found, camera = load_mesh_file(path, normalize=normalize, allow_outside_paths=allow_outside_paths)
+            found, camera = load_mesh_file(path, normalize=normalize, up_axis=up_axis,
+                                           allow_outside_paths=allow_outside_paths)
         meshes += found
         if view is None and camera is not None:
             view, source = camera, f"camera of {path.name}"

@@ -12,9 +12,12 @@ Shapes (one object id each, in the order of the shapes' ids):
 * anything else (curves, SDF grids, instances...) is refused, naming the shape.
 
 Albedo: a diffuse BSDF's constant ``reflectance`` (clamped to ``[0, 1]``), else 0.8. Camera: the first
-sensor with a field of view (``perspective``, ``thinlens``): Mitsuba cameras look down their local
-``+Z`` with ``+Y`` up, and ``x_fov`` is horizontal, turned into the vertical field of view with the
-film's aspect ratio.
+sensor with a field of view (``perspective``, ``thinlens``), as a :class:`LookAt` that renders Mitsuba's
+camera rays: Mitsuba cameras look down their local ``+Z`` with ``+Y`` up; ``x_fov`` (horizontal) is
+turned into the vertical field of view at the film's size (``LookAt.film``); the FOV's ``fov_axis``
+(``LookAt.fov_axis``, read with Mitsuba's parser) says what another image size keeps; the principal point
+offsets (fractions of the film added to its sample position) become ``LookAt.principal_offset``
+(negated: the optical axis crosses the film at ``0.5 - offset``). A film with a crop window is refused.
 
 Files the scene names (``<include filename>``, ``<path value>``, every ``filename``: shapes, textures,
 spectra), after substituting its ``<default>`` parameters, must be inside the scene file's folder
@@ -73,17 +76,44 @@ def _albedo(params) -> tuple[float, float, float]:
     return tuple(float(x) for x in np.clip(value[:3], 0.0, 1.0))
 
 
-def _camera(mi, sensor) -> LookAt | None:
+def _fov_axis(mi, path: Path, sensor) -> str:
+    """The axis the sensor's field of view was given on (Mitsuba's ``fov_axis``, default ``"x"``;
+    ``"diagonal"`` for a ``focal_length``), read with Mitsuba's own parser (``mitsuba.parser``); ``"x"``
+    where this Mitsuba has none."""
+    parser = getattr(mi, "parser", None)
+    if parser is None:
+        return "x"
+    config = parser.ParserConfig(mi.variant())
+    state = parser.parse_file(config, str(path))
+    parser.transform_all(config, state)
+    sensors = [n.props for n in state.nodes if n.type == mi.ObjectType.Sensor]
+    props = next((q for q in sensors if sensor.id() and q.id() == sensor.id()), sensors[0] if sensors else None)
+    if props is None or "fov" not in props:
+        return "diagonal" if props is not None and "focal_length" in props else "x"
+    return str(props["fov_axis"]).lower() if "fov_axis" in props else "x"
+
+
+def _camera(mi, path: Path, sensor) -> LookAt | None:
+    """The sensor as a :class:`LookAt` carrying its film size, ``fov_axis`` and principal point offset;
+    ``None`` for a sensor without a field of view (orthographic, radiance meters...)."""
     params = mi.traverse(sensor)
     if "x_fov" not in params.keys():
         return None
+    width, height = (int(x) for x in np.asarray(params["film.size"]).reshape(-1)[:2])
+    crop = tuple(int(x) for x in np.asarray(params["film.crop_size"]).reshape(-1)[:2])
+    if crop != (width, height):
+        raise ValueError(f"scene: {path}: the film's crop window ({crop[0]}x{crop[1]} of {width}x{height}) is not "
+                         "supported; render the whole film (its width and height)")
     M = np.asarray(sensor.world_transform().matrix, dtype=np.float64)
     R = M[:3, :3] / np.linalg.norm(M[:3, :3], axis=0)
-    width, height = (int(x) for x in np.asarray(params["film.size"]).reshape(-1)[:2])
     x_fov = math.radians(float(np.asarray(params["x_fov"]).reshape(-1)[0]))
     fov_y = math.degrees(2 * math.atan(math.tan(x_fov / 2) * height / width))
+    # Mitsuba adds the offsets to the film sample (0..1, y down): the axis passes the film at 0.5 - offset
+    offset = tuple(-float(np.asarray(params[f"principal_point_offset_{k}"]).reshape(-1)[0])
+                   if f"principal_point_offset_{k}" in params.keys() else 0.0 for k in "xy")
     eye = M[:3, 3]
-    return LookAt(eye=eye.tolist(), target=(eye + R[:, 2]).tolist(), up=R[:, 1].tolist(), fov_y_degrees=fov_y)
+    return LookAt(eye=eye.tolist(), target=(eye + R[:, 2]).tolist(), up=R[:, 1].tolist(), fov_y_degrees=fov_y,
+                  film=(width, height), fov_axis=_fov_axis(mi, path, sensor), principal_offset=offset)
 
 
 def _references(root: ET.Element):
@@ -181,4 +211,4 @@ def load_mitsuba_file(path: str | Path, *, allow_outside_paths: bool = False) ->
     if not objects:
         raise ValueError(f"scene: {path} has no shapes")
     sensors = scene.sensors()
-    return objects, (_camera(mi, sensors[0]) if sensors else None)
+    return objects, (_camera(mi, path, sensors[0]) if sensors else None)

@@ -100,9 +100,11 @@ TRACER_VERSION = 1
 
 
 def default_views(scene: Scene, height: int, width: int) -> Views:
-    """The scene's default look-at view at ``height x width``."""
+    """The scene's default look-at view at ``height x width`` (a file camera's FOV refitted to that size
+    on its ``fov_axis``, its principal point offset kept: :class:`~torch_ao.reference.scene.LookAt`)."""
     v = scene.view
-    return look_at(v.eye, v.target, v.up, v.fov_y_degrees, height=height, width=width)
+    return look_at(v.eye, v.target, v.up, v.fov_y_at(width, height), height=height, width=width,
+                   principal_offset=v.principal_offset)
 
 
 def _check_args(spp, max_distance, seed, chunk_rays):
@@ -201,7 +203,8 @@ def render_reference(
     Args:
         scene: a :class:`~torch_ao.reference.scene.Scene` (e.g. ``get_scene("stairs")``).
         views: a :class:`Views` (``look_at(...)``), a ``PinholeCamera`` with ``world_to_view
-            (B,4,4)``, or ``None`` for the scene's default view at ``height x width``.
+            (B,4,4)``, or ``None`` for the scene's default view at ``height x width`` (each, when
+            ``None``, the view's ``film`` size: a Mitsuba file camera's).
         spp: samples per pixel for each AO weighting (>= 2, with a divisor in [2, 16]: the samples
             form that many independent stratified groups for the standard error).
         max_distance: AO ray length ``R`` in world units (``inf`` allowed); also bounds indirect rays.
@@ -229,8 +232,11 @@ def render_reference(
             raise ValueError("world_to_view: needed (B,4,4) when views is a PinholeCamera")
         views = Views(views, world_to_view)
     elif views is None:
+        film = scene.view.film or (None, None)  # a scene file camera's image size
+        width, height = width or film[0], height or film[1]
         if height is None or width is None:
-            raise ValueError("height/width: needed when no views are given (the scene's default view is used)")
+            raise ValueError("height/width: needed when no views are given (the scene's default view is used) "
+                             "and its view has no film size")
         views = default_views(scene, height, width)
     elif not isinstance(views, Views):
         raise TypeError(f"views: expected a Views, a PinholeCamera or None, got {type(views).__name__}")

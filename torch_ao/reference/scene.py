@@ -23,7 +23,7 @@ from typing import Sequence, Union
 import torch
 
 __all__ = [
-    "Plane", "Sphere", "Box", "Cylinder", "Mesh", "Light", "LookAt", "Scene", "Primitive",
+    "Plane", "Sphere", "Box", "Cylinder", "Mesh", "Light", "LookAt", "Scene", "Primitive", "FOV_AXES",
     "rotation_y", "rotation_from_axis_angle",
 ]
 
@@ -255,14 +255,49 @@ class Light:
             raise ValueError(f"light intensity: expected values >= 0, got {self.intensity}")
 
 
+#: What a :class:`LookAt`'s field of view is held on when it is rendered at another image size than its
+#: ``film`` (Mitsuba's ``fov_axis``): the horizontal (``"x"``) or vertical (``"y"``) extent, the
+#: ``"diagonal"``, or the ``"smaller"``/``"larger"`` side of each image.
+FOV_AXES = ("x", "y", "diagonal", "smaller", "larger")
+
+
+def _axis(fov_axis: str, width: int, height: int) -> str:
+    """``fov_axis`` with ``"smaller"``/``"larger"`` resolved for a ``width x height`` image (as Mitsuba: a
+    square image's smaller side is ``x``)."""
+    if fov_axis == "smaller":
+        return "y" if width > height else "x"
+    if fov_axis == "larger":
+        return "x" if width > height else "y"
+    return fov_axis
+
+
+def _half_tangent_per_vertical(axis: str, width: int, height: int) -> float:
+    """``tan(fov_axis / 2) / tan(fov_y / 2)`` of a centred pinhole with square pixels, ``axis`` resolved."""
+    return {"x": width / height, "y": 1.0, "diagonal": math.hypot(width, height) / height}[axis]
+
+
 @dataclass
 class LookAt:
-    """A default view: ``eye``, ``target``, ``up`` and vertical field of view in degrees."""
+    """A default view: ``eye``, ``target``, ``up`` and vertical field of view in degrees.
+
+    A file's camera made for an image size also carries (all optional):
+
+    * ``film``: ``(width, height)`` in pixels, the size rendered when no other is asked for (``torch-ao
+      render`` without ``--width``/``--height``); ``fov_y_degrees`` is the vertical FOV at that size;
+    * ``fov_axis`` (one of :data:`FOV_AXES`): at another size, the FOV along this axis is kept
+      (:meth:`fov_y_at`), as Mitsuba does; without ``film`` the vertical FOV is kept;
+    * ``principal_offset``: ``(dx, dy)``, the principal point's offset from the image centre in
+      fractions of the image's width and height (``+x`` right, ``+y`` down): pixel
+      ``cx = (W - 1) / 2 + dx W``, ``cy = (H - 1) / 2 + dy H`` at every size.
+    """
 
     eye: Vec3 = (0.0, 1.0, 4.0)
     target: Vec3 = (0.0, 0.0, 0.0)
     up: Vec3 = (0.0, 1.0, 0.0)
     fov_y_degrees: float = 60.0
+    film: tuple[int, int] | None = None
+    fov_axis: str = "y"
+    principal_offset: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         self.eye = _vec3("eye", self.eye)
@@ -271,6 +306,28 @@ class LookAt:
         if not (0 < float(self.fov_y_degrees) < 180):
             raise ValueError(f"fov: expected degrees in (0, 180), got {self.fov_y_degrees}")
         self.fov_y_degrees = float(self.fov_y_degrees)
+        if self.film is not None:
+            film = tuple(self.film)
+            if len(film) != 2 or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in film):
+                raise ValueError(f"film: expected (width, height) as two positive integers, got {self.film!r}")
+            self.film = film
+        if self.fov_axis not in FOV_AXES:
+            raise ValueError(f"fov_axis: expected one of {FOV_AXES}, got {self.fov_axis!r}")
+        offset = tuple(float(x) for x in self.principal_offset)
+        if len(offset) != 2 or not all(math.isfinite(x) for x in offset):
+            raise ValueError(f"principal_offset: expected two finite numbers, got {self.principal_offset!r}")
+        self.principal_offset = offset
+
+    def fov_y_at(self, width: int, height: int) -> float:
+        """The vertical field of view (degrees) of this view rendered at ``width x height``: the FOV
+        along ``fov_axis`` at ``film`` is kept (``fov_y_degrees`` itself without ``film``)."""
+        if self.film is None or (width, height) == self.film:
+            return self.fov_y_degrees
+        w0, h0 = self.film
+        half = math.tan(math.radians(self.fov_y_degrees) / 2)
+        half *= _half_tangent_per_vertical(_axis(self.fov_axis, w0, h0), w0, h0)
+        half /= _half_tangent_per_vertical(_axis(self.fov_axis, width, height), width, height)
+        return math.degrees(2 * math.atan(half))
 
 
 @dataclass

@@ -84,10 +84,22 @@ class Views:
         return -torch.einsum("bji,bj->bi", R, t)
 
 
-def look_at(eye, target, up=(0.0, 1.0, 0.0), fov_y_degrees=60.0, *, height: int, width: int) -> Views:
-    """Views from look-at parameters (``(3,)`` or ``(B,3)``) and vertical fov (float or ``(B,)``)."""
+def look_at(eye, target, up=(0.0, 1.0, 0.0), fov_y_degrees=60.0, *, height: int, width: int,
+            principal_offset: tuple[float, float] = (0.0, 0.0)) -> Views:
+    """Views from look-at parameters (``(3,)`` or ``(B,3)``) and vertical fov (float or ``(B,)``).
+
+    ``principal_offset``: ``(dx, dy)``, the principal point's offset from the image centre in fractions
+    of the width and height (``+x`` right, ``+y`` down; ``fov_y_degrees`` is then the FOV of the centred
+    camera with the same focal length): ``cx = (W - 1) / 2 + dx W``, ``cy = (H - 1) / 2 + dy H``.
+    """
     M = look_at_matrix(eye, target, up)
     fov = torch.as_tensor(fov_y_degrees, dtype=torch.float64).reshape(-1)
     B = max(M.shape[0], fov.numel())
     cam = PinholeCamera.from_fov(fov, height, width, batch_size=B)
+    dx, dy = (float(x) for x in principal_offset)
+    if dx or dy:
+        K = cam.intrinsics.clone()
+        K[:, 0, 2] += dx * width
+        K[:, 1, 2] += dy * height
+        cam = PinholeCamera(K, height, width)
     return Views(cam, M.expand(B, 4, 4))
