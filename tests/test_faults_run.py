@@ -176,8 +176,8 @@ def test_gltf_perspective_camera_without_its_block_is_one_line(tmp_path, capsys)
     rewrite_glb_json(src, path, edit)
     err = _one_line(capsys, ["render", "--mesh", path, "--width", "8", "--height", "6", "--spp", "2", "--quiet",
                              "--out", tmp_path / "o.npz"])
-    assert err == (f"torch-ao render: error: camera: {path}: cameras[0] is a perspective camera without a "
-                   "'perspective' object holding 'yfov'\n")
+    assert err == (f"torch-ao render: error: mesh: {path}: cameras[0].perspective.yfov: a perspective camera needs "
+                   "its 'perspective' block with 'yfov'\n")
 
 
 def test_deeply_nested_params_json_is_one_line(gbuffer_file, tmp_path, capsys):

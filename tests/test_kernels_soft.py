@@ -174,8 +174,8 @@ def test_auto_backend_runs_the_soft_kernel(built, monkeypatch):
     import torch_ao.kernels.dispatch as dispatch
 
     calls = []
-    hard, soft = dispatch.KERNELS["bitmask"]
-    monkeypatch.setitem(dispatch.KERNELS, "bitmask", (hard, (soft[0], lambda *a: calls.append(1) or soft[1](*a))))
+    *others, soft = dispatch.KERNELS["bitmask"]
+    monkeypatch.setitem(dispatch.KERNELS, "bitmask", (*others, (soft[0], lambda *a: calls.append(1) or soft[1](*a))))
     gb = rough_gbuffer()
     auto = BitmaskAO(mode="soft", slices=3, steps=4)(gb).visibility
     assert calls == [1] and auto.requires_grad
