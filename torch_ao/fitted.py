@@ -193,11 +193,12 @@ class FittedPipeline(DenoisedAO):
 
     # ------------------------------------------------------------------ what is stored
     def parameter_values(self) -> dict[str, torch.Tensor]:
-        """Every float parameter of the method: its ``nn.Parameter``\\ s and the frozen ones given as
-        options (buffers), at their current values."""
+        """Every float parameter of the method: its ``nn.Parameter``\\ s, the frozen ones given as options
+        and those without a gradient at these options (buffers), at their current values."""
         values = dict(self.method.named_parameters(recurse=False))
+        frozen = set(self.options) | set(getattr(self.method, "no_gradient_options", {}))
         for name, buf in self.method.named_buffers(recurse=False):
-            if name in self.options:
+            if name in frozen:
                 values[name] = buf
         return {k: v.detach() for k, v in values.items()}
 

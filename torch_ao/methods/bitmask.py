@@ -314,7 +314,8 @@ class BitmaskAO(ScreenSpaceAO):
     Args (:data:`OPTIONS` gives each option's unit, range and default):
         variant: ``"default"``, ``"exact"`` (converges; see docs/bitmask.md), ``"hdrp"`` (the bitmask
             blog) or ``"ssilvb_glsl"`` (the SSILVB GLSL article as written; there ``slices``/``steps`` are
-            the shader's ``sliceCount``/``sampleCount`` uniforms).
+            the shader's ``sliceCount``/``sampleCount`` uniforms, and ``radius``, which only picks the
+            nearest texels its walk reads, is a buffer rather than a parameter).
         mode: ``"hard"`` (integer bitmasks, bit for bit; zero gradient a.e.), ``"soft"`` or
             ``"straight_through"`` (hard forward, soft gradient). No effect with ``union="exact"``, which
             is differentiable almost everywhere as it is.
@@ -431,6 +432,12 @@ class BitmaskAO(ScreenSpaceAO):
             self.register_buffer("ambient_colour", colour.clone())
             self.ambient = None
         self._ambient_constant = ambient is not None and not callable(ambient)
+
+    def no_gradient(self, values):
+        if self.variant == "ssilvb_glsl":
+            return {"radius": "the 'ssilvb_glsl' shader's walk reads nearest texels, which the radius only picks "
+                              "(no gradient): use variant='default' to fit it"}
+        return {}
 
     @property
     def _plain_autograd(self) -> bool:
