@@ -1,7 +1,9 @@
 """Every registered ``nn.Parameter`` of every method gets a finite, nonzero gradient at its default in
 the differentiable mode on a small frame (a default without one would be skipped by an optimizer
 without a word: such a value is a buffer, see GTAO's ``falloff_range``)."""
+import inspect
 import math
+import pydoc
 
 import pytest
 import torch
@@ -93,18 +95,38 @@ def test_fit_names_why_a_parameter_is_not_fittable(tmp_path, capsys):
                                                 ("GTAO", "gtao"), ("PSSAO", "pssao"), ("BitmaskAO", "bitmask_ao"),
                                                 ("SSILVB", "ssilvb")])
 def test_functional_signature_lists_the_module_options(module, functional):
-    import inspect
-
     import torch_ao
 
     cls, fn = getattr(torch_ao, module), getattr(torch_ao, functional)
     sig, module_sig = inspect.signature(fn), inspect.signature(cls)
     assert list(sig.parameters) == ["gbuffer", *module_sig.parameters]
-    named = {n for n, p in module_sig.parameters.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
-    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in module_sig.parameters.values()):
-        assert named == set(cls.options())  # (BitmaskAO and SSILVB list some and end in **kwargs)
-    for name in named:
+    assert all(p.kind is inspect.Parameter.KEYWORD_ONLY for p in module_sig.parameters.values())  # no **kwargs
+    python_only = {"ambient"} if module in ("BitmaskAO", "SSILVB") else set()  # a callable: no CLI flag
+    assert set(module_sig.parameters) == set(cls.options()) | python_only
+    for name in module_sig.parameters:
         p = sig.parameters[name]
         assert p.kind is inspect.Parameter.KEYWORD_ONLY
         assert p.default == (False if name == "trainable" else module_sig.parameters[name].default), name
     assert "Shape:" in fn.__doc__
+    # help() shows them
+    listed = lambda params: ", ".join(str(p) for p in params)  # noqa: E731
+    assert f"{functional}(gbuffer, *, {listed(list(sig.parameters.values())[1:])})" in pydoc.render_doc(fn, renderer=pydoc.plaintext)
+    assert f"__init__(self, *, {listed(module_sig.parameters.values())})" in pydoc.render_doc(cls, renderer=pydoc.plaintext)
+
+
+@pytest.mark.parametrize("cls_name, variant", [("BitmaskAO", "default"), ("BitmaskAO", "exact"), ("BitmaskAO", "hdrp"),
+                                               ("SSILVB", "default")])
+def test_bitmask_signature_defaults_are_the_constructor_defaults(cls_name, variant):
+    """Every default the signature shows, passed explicitly, builds the module the bare call builds."""
+    import torch_ao
+
+    cls = getattr(torch_ao, cls_name)
+    shown = {n: p.default for n, p in inspect.signature(cls).parameters.items()}
+    a = cls(**(shown | {"variant": variant, "slices": 2, "steps": 2, "jitter": False}))
+    b = cls(variant=variant, slices=2, steps=2, jitter=False)
+    assert repr(a) == repr(b) and a.sampling == b.sampling and a._auto_chunk == b._auto_chunk
+    g = example_gbuffer(12, 16)  # (lit: SSILVB has its light)
+    oa, ob = a(g), b(g)
+    assert torch.equal(oa.visibility, ob.visibility)
+    if cls_name == "SSILVB":
+        assert torch.equal(oa.indirect, ob.indirect)

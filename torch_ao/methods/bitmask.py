@@ -69,7 +69,7 @@ from ..sectors import MODES, ROUNDINGS, SECTORS, sector_interval
 from ..thickness import BoundThickness, as_thickness, matching
 from ..walk import Frame, GradientRows, SamplingPattern
 from .base import ScreenSpaceAO, make_parameter
-from .common import RADIUS, functional_twin
+from .common import RADIUS, declare_signature, functional_twin
 from .bitmask_common import SectorAccumulator
 
 __all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTINGS", "UNIONS", "OPTIONS"]
@@ -126,6 +126,9 @@ OPTIONS = (
            "llvmpipe's float16 mediump jitter", str, choices=("ieee", "mesa", "mesa_mediump")),
 )
 _OPTIONS = options_by_name(OPTIONS)
+#: options of the walk and the module whose default the signature shows as None: resolved per variant
+#: (``azimuth``, ``min_step_px``, ``fetch``) or per call (``recompute``: see :meth:`BitmaskAO.auto_chunking`)
+_RESOLVED_LATER = {"azimuth": None, "min_step_px": None, "fetch": None, "recompute": None}
 #: per variant, the defaults of the options whose default is ``None``
 _VARIANT_DEFAULTS = {
     "default": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.01),
@@ -343,10 +346,10 @@ class BitmaskAO(ScreenSpaceAO):
         glsl_numerics: ``"ssilvb_glsl"`` only: ``"ieee"`` (exact ``acos``, input precision), ``"mesa"``
             (Mesa's polynomial ``acos``; matches Mesa softpipe) or ``"mesa_mediump"`` (also llvmpipe's
             float16 ``mediump`` jitter). See :mod:`torch_ao.methods.bitmask_glsl`.
-        **kwargs: :class:`~torch_ao.methods.base.ScreenSpaceAO` options (``slices``, ``steps``,
-            ``preset``, ``radius``, ``fetch``, ``border``, ``azimuth``, ``jitter``, ``seed``,
-            ``chunk_size``, ``recompute``, ``trainable``...). Unless ``chunk_size``/``recompute`` are
-            given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
+        radius, preset, slices, steps, step_power, min_step_px, jitter, seed, fetch, border, azimuth,
+        normals, chunk_size, recompute, trainable, resolution, backend: the walk's and every module's
+            options (:class:`~torch_ao.methods.base.ScreenSpaceAO`; :meth:`options` describes each). Unless
+            ``chunk_size``/``recompute`` are given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
             pixels, recomputed in backward only when a soft gradient's graph would exceed
             ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"``/``"exact"`` and
             ``"screen"`` for ``"hdrp"``; ``min_step_px`` to 0.25 for ``"exact"`` (:data:`EXACT_MIN_STEP_PX`),
@@ -382,6 +385,8 @@ class BitmaskAO(ScreenSpaceAO):
                  indirect: bool = False, bent_normals: bool = False, ambient=None, ambient_directions: int = 8,
                  azimuth: str | None = None, glsl_numerics: str = "ieee",
                  sector_epsilon: float | None = None, **kwargs) -> None:
+        # None: the variant's default (min_step_px, fetch) or the automatic choice per call (recompute)
+        kwargs = {k: v for k, v in kwargs.items() if not (v is None and k in _RESOLVED_LATER)}
         given = dict(variant=variant, mode=mode, tau=tau, rounding=rounding, weighting=weighting, union=union,
                      clip_to_radius=clip_to_radius, thickness_direction=thickness_direction, sample_extent=sample_extent,
                      sector_epsilon=sector_epsilon, indirect=indirect, bent_normals=bent_normals,
@@ -544,5 +549,7 @@ class SSILVB(BitmaskAO):
         super().__init__(indirect=indirect, **kwargs)
 
 
+declare_signature(BitmaskAO, defaults=_RESOLVED_LATER, extra={"ambient": None})
+declare_signature(SSILVB, defaults=_RESOLVED_LATER | {"indirect": True}, extra={"ambient": None})
 bitmask_ao = functional_twin(BitmaskAO, "bitmask_ao")
 ssilvb = functional_twin(SSILVB, "ssilvb")

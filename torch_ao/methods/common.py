@@ -192,11 +192,17 @@ def register_parameters(module: nn.Module, options: dict[str, Option], values: d
         opt.check(float(t.detach()))
 
 
-def declare_signature(cls):
-    """Class decorator: ``inspect.signature(cls)`` lists ``cls.options()`` as keyword-only arguments
-    with their defaults (the constructor takes ``**options``; the CLI reads the signature)."""
-    params = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=opt.default)
-              for name, opt in cls.options().items()]
+def declare_signature(cls=None, /, *, defaults: dict[str, Any] | None = None, extra: dict[str, Any] | None = None):
+    """Class decorator: ``inspect.signature(cls)`` (and so ``help(cls)``) lists ``cls.options()`` as keyword-only
+    arguments with their defaults (the constructor takes ``**options``; the CLI reads the signature).
+
+    ``defaults`` replaces the default shown for some options (``None`` where the constructor resolves it per
+    variant or per call); ``extra`` adds keyword arguments outside ``options()`` (Python objects no flag can
+    give, e.g. a callable), ``{name: default}``, after them. Called as ``declare_signature(cls, ...)``."""
+    if cls is None:
+        return functools.partial(declare_signature, defaults=defaults, extra=extra)
+    shown = {name: opt.default for name, opt in cls.options().items()} | dict(defaults or {}) | dict(extra or {})
+    params = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default) for name, default in shown.items()]
     init = cls.__init__
     if "__init__" not in cls.__dict__:  # give the class its own constructor to carry the signature
         @functools.wraps(init)
