@@ -130,3 +130,4 @@ def test_bitmask_signature_defaults_are_the_constructor_defaults(cls_name, varia
     assert torch.equal(oa.visibility, ob.visibility)
     if cls_name == "SSILVB":
         assert torch.equal(oa.indirect, ob.indirect)
+

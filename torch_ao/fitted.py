@@ -176,6 +176,12 @@ class FittedPipeline(DenoisedAO):
 
     The method's parameters are those of ``self.method`` (named ``method.<name>``;
     :func:`torch_ao.fit.fit` also takes the bare ``<name>``).
+
+    Shape:
+        - Input: a :class:`~torch_ao.GBuffer` (depth ``(B, 1, H, W)`` in the pipeline's length unit, normals
+          ``(B, 3, H, W)``...).
+        - Output: :class:`~torch_ao.AOOutput`: ``visibility`` ``(B, 1, H, W)`` in [0, 1], denoised when the
+          pipeline has a denoiser.
     """
 
     def __init__(self, method: str, options: Mapping[str, Any] | None = None,
@@ -255,7 +261,11 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
                 scale: float = 1.0) -> FittedPipeline:
     """The pipeline a ``params.json`` describes (written by ``torch-ao fit`` or :meth:`FittedPipeline.save`),
     in hard mode, on ``device``, with every length multiplied by ``scale`` (world units of the frames it
-    will run on per length unit of the file; :func:`scale_lengths`)."""
+    will run on per length unit of the file; :func:`scale_lengths`).
+
+    Shape:
+        - Output: a :class:`FittedPipeline`: :class:`~torch_ao.GBuffer` ``(B, C, H, W)`` -> visibility ``(B, 1, H, W)``.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"fitted: no such file {path}")

@@ -70,6 +70,12 @@ class GBuffer:
             valid pixels, anything on background), as an engine's position buffer. When given,
             :meth:`positions` returns it instead of unprojecting depth. ``depth=None`` derives the depth
             as ``-position.z`` (non-finite ``z`` is background).
+
+    Shape:
+        - ``depth``, ``backface_depth``: ``(B, 1, H, W)`` float (world units); ``normals``, ``light``, ``position``:
+          ``(B, 3, H, W)`` float; ``mask``: ``(B, 1, H, W)`` bool; ``object_id``: ``(B, 1, H, W)`` integer.
+        - ``valid``: ``(B, 1, H, W)`` bool; :meth:`positions`: ``(B, 3, H, W)`` (world units, view space).
+        - dtype: float32 or float64 (float16/bfloat16 depth is computed in float32).
     """
 
     depth: torch.Tensor
@@ -242,6 +248,10 @@ def normals_from_depth(
     predicted by extrapolating the two pixels beyond it (``1/depth`` is affine across a plane, so
     ``l1*l2/(2*l2 - l1)`` predicts the centre exactly on planes); the PSSAO gist's ``computeNormalImproved``.
     Background pixels get the direction toward the camera.
+
+    Shape:
+        - depth: ``(B, 1, H, W)`` float (world units); valid: optional ``(B, 1, H, W)`` bool.
+        - Output: ``(B, 3, H, W)`` unit view-space normals, the depth's dtype.
     """
     if method not in ("improved", "kornia"):
         raise ValueError(f"method: expected 'improved' or 'kornia', got {method!r}")

@@ -43,6 +43,10 @@ class AOOutput:
         indirect: ``(B,3,H,W)`` one-bounce indirect light, when requested.
         bent_normal: ``(B,3,H,W)`` unit view-space bent normals, when requested.
         ambient: ``(B,3,H,W)`` ambient light through unoccluded sectors, when requested.
+
+    Shape:
+        - ``visibility``: ``(B, 1, H, W)``; ``indirect``, ``bent_normal``, ``ambient``: ``(B, 3, H, W)`` or ``None``;
+          float32 or float64 (the computation's dtype).
     """
 
     visibility: torch.Tensor

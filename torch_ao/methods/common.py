@@ -192,6 +192,23 @@ def register_parameters(module: nn.Module, options: dict[str, Option], values: d
         opt.check(float(t.detach()))
 
 
+#: The ``Shape:`` section of every method's module and functional docstring (appended to them).
+METHOD_SHAPE = """
+    Shape:
+        - Input: a :class:`~torch_ao.GBuffer` of ``B`` views ``H x W``: ``depth`` ``(B, 1, H, W)`` (world units,
+          positive along the view axis; ``inf``/``0``/``nan`` background), optional ``normals`` ``(B, 3, H, W)``
+          (unit, view space), ``light`` ``(B, 3, H, W)`` (indirect light), ``mask``/``object_id`` ``(B, 1, H, W)``.
+        - Output: :class:`~torch_ao.AOOutput`: ``visibility`` ``(B, 1, H, W)`` in [0, 1] (1 = unoccluded);
+          ``indirect``, ``bent_normal``, ``ambient`` ``(B, 3, H, W)`` when asked for (``None`` otherwise).
+        - dtype: the input's float32 or float64; float16/bfloat16 inputs are computed and returned in float32.
+"""
+
+
+def _with_shape(doc: str | None) -> str:
+    doc = doc or ""
+    return doc if "Shape:" in doc else doc.rstrip() + "\n" + METHOD_SHAPE
+
+
 def declare_signature(cls=None, /, *, defaults: dict[str, Any] | None = None, extra: dict[str, Any] | None = None):
     """Class decorator: ``inspect.signature(cls)`` (and so ``help(cls)``) lists ``cls.options()`` as keyword-only
     arguments with their defaults (the constructor takes ``**options``; the CLI reads the signature).
@@ -211,6 +228,7 @@ def declare_signature(cls=None, /, *, defaults: dict[str, Any] | None = None, ex
         cls.__init__ = init
     cls.__init__.__signature__ = inspect.Signature([inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)]
                                                    + params)
+    cls.__doc__ = _with_shape(cls.__doc__)
     return cls
 
 
@@ -231,9 +249,7 @@ def functional_twin(cls, name: str):
     twin.__name__ = twin.__qualname__ = name
     twin.__doc__ = (f"Functional :class:`{cls.__name__}` ``(gbuffer, *, options...) -> AOOutput``: the keyword "
                     f"options of the module (listed in the signature, described by ``{cls.__name__}.options()``); "
-                    f"{', '.join(fitted)} may be tensors (gradients flow to them).\n\n"
-                    "Shape:\n    - gbuffer: depth ``(B, 1, H, W)`` (world units), normals ``(B, 3, H, W)``.\n"
-                    "    - Output: ``visibility (B, 1, H, W)`` in [0, 1] (1 = unoccluded), and what was asked for.")
+                    f"{', '.join(fitted)} may be tensors (gradients flow to them).\n" + METHOD_SHAPE)
     keywords = [p.replace(default=False) if p.name == "trainable" else p
                 for p in inspect.signature(cls).parameters.values()]
     twin.__signature__ = inspect.Signature(

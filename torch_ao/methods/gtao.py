@@ -189,10 +189,10 @@ class ExactGTAOAccumulator(GTAOAccumulator):
         bound = HALF_PI + s * geom.normal_angle
         theta = sample.angle().clamp(0.0, math.pi)
         R = self.radius
-        if float(self.falloff.detach()) > 0:
-            w = ((R - sample.distance) / (self.falloff * R).clamp_min(1e-12)).clamp(0.0, 1.0)
-        else:
-            w = (sample.distance < R).to(theta.dtype)
+        # a linear ramp over falloff x R, or the hard cut at falloff 0 (chosen by a tensor, not .item(): no
+        # graph break under torch.compile)
+        ramp = ((R - sample.distance) / (self.falloff * R).clamp_min(1e-12)).clamp(0.0, 1.0)
+        w = torch.where(self.falloff.detach() > 0, ramp, (sample.distance < R).to(theta.dtype))
         w = torch.where(sample.valid, w, torch.zeros_like(w))
         state[s] = torch.minimum(state[s], bound + w * (theta - bound))
         return state
