@@ -147,3 +147,21 @@ def test_compiled_walk_over_every_pixel_keeps_values_background_and_gradients(ma
     assert torch.equal(v1[bg], torch.ones_like(v1[bg])) and torch.equal(d1[bg], torch.zeros_like(d1[bg]))
     assert bool(torch.isfinite(d1).all()) and float(d1.abs().sum()) > 0
     assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(d1, d0, atol=1e-10) and torch.allclose(r1, r0, atol=1e-10)
+
+
+def test_gtao_second_call_on_the_same_gbuffer_reuses_the_graph():
+    """The G-buffer's derived-buffer cache is not consulted while compiling, so calling again on the same
+    G-buffer (a fit's views) reuses the one compiled graph instead of recompiling the walk."""
+    graphs = []
+
+    def backend(gm, example_inputs):
+        graphs.append(gm)
+        return gm.forward
+
+    torch._dynamo.reset()
+    gb = _sky_frame()
+    compiled = torch.compile(torch_ao.GTAO(slices=2, steps=2, backend="torch"), backend=backend, dynamic=False)
+    with torch.no_grad():
+        first = compiled(gb).visibility
+        second = compiled(gb).visibility
+    assert len(graphs) == 1 and torch.equal(first, second)

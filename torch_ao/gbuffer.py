@@ -191,9 +191,11 @@ class GBuffer:
     def derived(self, key, compute):
         """``compute()``, a buffer derived from this G-buffer, computed once per ``key`` and kept for the
         next call (a fit evaluates the same views hundreds of times) while none of the G-buffer's
-        tensors needs gradients (then it is recomputed every time). Do not modify the result in place."""
-        if any(x is not None and x.requires_grad for x in (self.depth, self.normals, self.position,
-                                                          self.camera.intrinsics)):
+        tensors needs gradients (then it is recomputed every time), nor under ``torch.compile`` (the cache's
+        content would be a guard: a second call on the same G-buffer would recompile the whole walk). Do not
+        modify the result in place."""
+        if torch.compiler.is_compiling() or any(x is not None and x.requires_grad for x in (
+                self.depth, self.normals, self.position, self.camera.intrinsics)):
             return compute()
         if key not in self._derived:
             self._derived[key] = compute()
