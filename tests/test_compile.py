@@ -93,3 +93,75 @@ def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode):
         assert bool(ge.abs().max() > 0), name  # a gradient to compare
         scale = ge.abs().max()
         assert float((gc - ge).abs().max() / scale) <= 1e-4, (name, float((gc - ge).abs().max() / scale))
+
+
+def _sky_frame():
+    """8 x 12, a grazing floor and a wall under a background sky (the walk's all-pixel path must keep it)."""
+    from torch_ao.examples import floor_wall_gbuffer
+
+    gb, _ = floor_wall_gbuffer(8, 12, wall_distance=0.5, camera_height=1.0, pitch_degrees=-5.0)
+    assert not bool(gb.valid.all())
+    return gb
+
+
+def _breaks(module, gb):
+    torch._dynamo.reset()
+    explained = torch._dynamo.explain(module)(gb)
+    return explained.graph_count, [(b.reason.splitlines()[0], b.user_stack[-1].filename if b.user_stack else "")
+                                   for b in explained.break_reasons]
+
+
+def test_gtao_walk_traces_as_one_graph():
+    """GTAO's tensor walk, forward and its hand-written backwards, is one graph: no graph break."""
+    graphs, breaks = _breaks(torch_ao.GTAO(slices=2, steps=2, backend="torch"), _sky_frame())
+    assert breaks == [] and graphs == 1
+
+
+def test_soft_bitmask_breaks_only_in_the_soft_union():
+    """Soft BitmaskAO's walk traces whole except the soft union: its live-step layout (data-dependent sizes)
+    and its autograd Function (block sizes read from the Function class, which dynamo cannot trace there)."""
+    graphs, breaks = _breaks(torch_ao.BitmaskAO(mode="soft", slices=2, steps=2, backend="torch"), _sky_frame())
+    assert breaks and all(path.endswith(("sectors/soft_union.py", "sectors/live_steps.py")) for _, path in breaks), breaks
+
+
+@pytest.mark.parametrize("make", [lambda: torch_ao.GTAO(slices=2, steps=2, backend="torch", falloff_range=0.3),
+                                  lambda: torch_ao.BitmaskAO(mode="soft", slices=2, steps=2, backend="torch")],
+                         ids=["gtao", "bitmask_soft"])
+def test_compiled_walk_over_every_pixel_keeps_values_background_and_gradients(make):
+    """Under torch.compile the walk queries every pixel (no data-dependent list of valid ones): the values
+    and gradients equal eager, the background stays 1 with zero gradient (aot_eager: the traced graphs
+    without Inductor's code generation)."""
+    gb = _sky_frame()
+    results = []
+    for compiled in (False, True):
+        torch._dynamo.reset()
+        module = make().double()
+        depth = gb.depth.double().clone().requires_grad_(True)
+        g = torch_ao.GBuffer(depth, gb.camera.to(dtype=torch.float64), normals=gb.normals.double())
+        run = torch.compile(module, backend="aot_eager", dynamic=False) if compiled else module
+        vis = run(g).visibility
+        (vis * torch.linspace(0.5, 1.5, vis.numel(), dtype=vis.dtype).reshape(vis.shape)).sum().backward()
+        results.append((vis.detach(), depth.grad, module.radius.grad))
+    (v0, d0, r0), (v1, d1, r1) = results
+    bg = ~gb.valid
+    assert torch.equal(v1[bg], torch.ones_like(v1[bg])) and torch.equal(d1[bg], torch.zeros_like(d1[bg]))
+    assert bool(torch.isfinite(d1).all()) and float(d1.abs().sum()) > 0
+    assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(d1, d0, atol=1e-10) and torch.allclose(r1, r0, atol=1e-10)
+
+
+def test_gtao_second_call_on_the_same_gbuffer_reuses_the_graph():
+    """The G-buffer's derived-buffer cache is not consulted while compiling, so calling again on the same
+    G-buffer (a fit's views) reuses the one compiled graph instead of recompiling the walk."""
+    graphs = []
+
+    def backend(gm, example_inputs):
+        graphs.append(gm)
+        return gm.forward
+
+    torch._dynamo.reset()
+    gb = _sky_frame()
+    compiled = torch.compile(torch_ao.GTAO(slices=2, steps=2, backend="torch"), backend=backend, dynamic=False)
+    with torch.no_grad():
+        first = compiled(gb).visibility
+        second = compiled(gb).visibility
+    assert len(graphs) == 1 and torch.equal(first, second)

@@ -119,10 +119,6 @@ def test_gradients_reach_inputs_and_parameters_on_the_default_settings(name, cls
     if cls is not UE4SSAO:  # the normal-less method
         assert bool(torch.isfinite(normals.grad).all()) and float(normals.grad.abs().sum()) > 0
     for pname, p in module.named_parameters():
-        if pname == "radius" and module.fetch == "nearest" and cls is UE4SSAO:
-            # UE4 SSAO's radius only places the samples; a nearest fetch makes that piecewise constant.
-            assert p.grad is None or float(p.grad.abs()) == 0
-            continue
         assert p.grad is not None and bool(torch.isfinite(p.grad).all()), pname
 
 
@@ -309,7 +305,10 @@ def test_options_describe_the_signature_and_unused_options_are_refused(cls):
                 PSSAO(**{name: options.get(name, None) or 1})
 
 
-_FROZEN_BY_DEFAULT = {GTAO: {"thickness_heuristic", "albedo", "falloff_range"}}  # (ue4 / multibounce only; falloff_range 0 has no gradient)
+# unused by the default variant (ue4 / multibounce only), or without a gradient at the default (falloff_range 0,
+# SSAO's and UE4's hard comparisons, UE4's radius with its nearest fetch)
+_FROZEN_BY_DEFAULT = {GTAO: {"thickness_heuristic", "albedo", "falloff_range"}, SSAO: {"bias"},
+                      UE4SSAO: {"radius", "flat_surface_bias"}}
 
 
 def test_sampling_configuration_validates_each_field():

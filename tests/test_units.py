@@ -26,6 +26,9 @@ CASES = {  # name: (method, options)
                                      "thickness_scale": 0.8, "thickness": 0.1, "radius": 0.6}),
     "ssao": ("ssao", {"preset": "high", "radius": 0.5, "bias": 0.03, "softness": 0.01}),
     "ue4_ssao": ("ue4_ssao", {"preset": "high", "radius": 0.9, "fade_distance": 0.3, "flat_surface_bias": 0.02}),
+    # the published defaults: bias, flat_surface_bias and UE4's radius (nearest fetch) are buffers there
+    "ssao_default": ("ssao", {"preset": "high"}),
+    "ue4_ssao_default": ("ue4_ssao", {"preset": "high"}),
 }
 
 

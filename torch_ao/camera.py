@@ -82,6 +82,13 @@ class PinholeCamera:
         intrinsics: ``(B, 3, 3)`` kornia-style matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``
             in pixels.
         height, width: image size in pixels.
+
+    Shape:
+        - ``intrinsics``: ``(B, 3, 3)`` (pixels); ``fx``, ``fy``, ``cx``, ``cy``: ``(B,)``, the dtype of the intrinsics.
+        - :meth:`unproject`: depth ``(B, 1, H, W)`` (world units) -> view-space positions ``(B, 3, H, W)`` (world
+          units, OpenGL axes: the camera looks down -Z); :meth:`pixel_rays`: ``(B, 3, H, W)``.
+        - :meth:`pixel_to_view`: pixel ``u``, ``v`` (pixels) and depth of one shape ``(...)`` -> points ``(..., 3)``;
+          :meth:`view_to_pixel` the inverse. Results take the input's dtype.
     """
 
     intrinsics: torch.Tensor

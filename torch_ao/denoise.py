@@ -220,6 +220,11 @@ def denoise(visibility: torch.Tensor, gbuffer: GBuffer, *, indirect: torch.Tenso
         history: the previous (denoised) output, aligned with this frame, for the temporal blend.
         history_valid: ``(B,1,H,W)`` pixels where ``history`` is meaningful (default: all).
         alpha: weight of the current frame in the blend.
+
+    Shape:
+        - visibility: ``(B, 1, H, W)``; indirect: ``(B, 3, H, W)``; history_valid: ``(B, 1, H, W)`` bool.
+        - Output: ``DenoiseOutput`` with ``visibility`` ``(B, 1, H, W)`` and ``indirect`` ``(B, 3, H, W)`` (or
+          ``None``), the input's dtype.
     """
     _check_options(kernel_size=kernel_size, sigma_space=sigma_space, sigma_depth=sigma_depth,
                    sigma_normal=sigma_normal, guide=guide)
@@ -252,6 +257,11 @@ class Denoiser(nn.Module):
 
     Call ``reset()`` on a camera cut. The history is dropped automatically when the frame size or
     batch changes.
+
+    Shape:
+        - Input: ``visibility`` ``(B, 1, H, W)``, a :class:`~torch_ao.GBuffer` of the same frame, optional
+          ``indirect`` ``(B, 3, H, W)`` (as :func:`denoise`).
+        - Output: as :func:`denoise`: ``visibility`` ``(B, 1, H, W)``, ``indirect`` ``(B, 3, H, W)`` or ``None``.
     """
 
     def __init__(self, *, kernel_size: int = 5, sigma_space: float = 1.5, sigma_depth: float = 0.05,

@@ -309,6 +309,11 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         ``hard_every``-th step and the end (so the result is never worse in hard mode on the training
         views than the start); otherwise the parameters of the lowest training loss, or the last ones
         when each step sees only a batch of the views.
+
+    Shape:
+        - views: each a :class:`FitView`: a :class:`~torch_ao.GBuffer` ``(B, C, H, W)`` and its reference
+          visibility ``(B, 1, H, W)`` in [0, 1] (optional stderr the same shape).
+        - module: returns visibility ``(B, 1, H, W)`` for such a G-buffer.
     """
     cfg = config or FitConfig()
     if not views:
@@ -453,6 +458,10 @@ def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = 
 
     Returns mean ``mae``, ``rmse``, ``psnr``, ``ssim`` over views and ``seconds`` (median forward time
     per view over ``repeats`` runs of each); with ``per_view``, also ``views``: ``{view name: metrics}``.
+
+    Shape:
+        - views: as :func:`fit` (G-buffers ``(B, C, H, W)``, references ``(B, 1, H, W)``).
+        - Output: a dict of floats (``seconds`` in seconds).
     """
     if mode is not None:
         set_mode(module, mode)

@@ -176,6 +176,12 @@ class FittedPipeline(DenoisedAO):
 
     The method's parameters are those of ``self.method`` (named ``method.<name>``;
     :func:`torch_ao.fit.fit` also takes the bare ``<name>``).
+
+    Shape:
+        - Input: a :class:`~torch_ao.GBuffer` (depth ``(B, 1, H, W)`` in the pipeline's length unit, normals
+          ``(B, 3, H, W)``...).
+        - Output: :class:`~torch_ao.AOOutput`: ``visibility`` ``(B, 1, H, W)`` in [0, 1], denoised when the
+          pipeline has a denoiser.
     """
 
     def __init__(self, method: str, options: Mapping[str, Any] | None = None,
@@ -193,11 +199,12 @@ class FittedPipeline(DenoisedAO):
 
     # ------------------------------------------------------------------ what is stored
     def parameter_values(self) -> dict[str, torch.Tensor]:
-        """Every float parameter of the method: its ``nn.Parameter``\\ s and the frozen ones given as
-        options (buffers), at their current values."""
+        """Every float parameter of the method: its ``nn.Parameter``\\ s, the frozen ones given as options
+        and those without a gradient at these options (buffers), at their current values."""
         values = dict(self.method.named_parameters(recurse=False))
+        frozen = set(self.options) | set(getattr(self.method, "no_gradient_options", {}))
         for name, buf in self.method.named_buffers(recurse=False):
-            if name in self.options:
+            if name in frozen:
                 values[name] = buf
         return {k: v.detach() for k, v in values.items()}
 
@@ -260,7 +267,11 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
                 scale: float = 1.0) -> FittedPipeline:
     """The pipeline a ``params.json`` describes (written by ``torch-ao fit`` or :meth:`FittedPipeline.save`),
     in hard mode, on ``device``, with every length multiplied by ``scale`` (world units of the frames it
-    will run on per length unit of the file; :func:`scale_lengths`)."""
+    will run on per length unit of the file; :func:`scale_lengths`).
+
+    Shape:
+        - Output: a :class:`FittedPipeline`: :class:`~torch_ao.GBuffer` ``(B, C, H, W)`` -> visibility ``(B, 1, H, W)``.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"fitted: no such file {path}")

@@ -70,6 +70,12 @@ class GBuffer:
             valid pixels, anything on background), as an engine's position buffer. When given,
             :meth:`positions` returns it instead of unprojecting depth. ``depth=None`` derives the depth
             as ``-position.z`` (non-finite ``z`` is background).
+
+    Shape:
+        - ``depth``, ``backface_depth``: ``(B, 1, H, W)`` float (world units); ``normals``, ``light``, ``position``:
+          ``(B, 3, H, W)`` float; ``mask``: ``(B, 1, H, W)`` bool; ``object_id``: ``(B, 1, H, W)`` integer.
+        - ``valid``: ``(B, 1, H, W)`` bool; :meth:`positions`: ``(B, 3, H, W)`` (world units, view space).
+        - dtype: float32 or float64 (float16/bfloat16 depth is computed in float32).
     """
 
     depth: torch.Tensor
@@ -185,9 +191,11 @@ class GBuffer:
     def derived(self, key, compute):
         """``compute()``, a buffer derived from this G-buffer, computed once per ``key`` and kept for the
         next call (a fit evaluates the same views hundreds of times) while none of the G-buffer's
-        tensors needs gradients (then it is recomputed every time). Do not modify the result in place."""
-        if any(x is not None and x.requires_grad for x in (self.depth, self.normals, self.position,
-                                                          self.camera.intrinsics)):
+        tensors needs gradients (then it is recomputed every time), nor under ``torch.compile`` (the cache's
+        content would be a guard: a second call on the same G-buffer would recompile the whole walk). Do not
+        modify the result in place."""
+        if torch.compiler.is_compiling() or any(x is not None and x.requires_grad for x in (
+                self.depth, self.normals, self.position, self.camera.intrinsics)):
             return compute()
         if key not in self._derived:
             self._derived[key] = compute()
@@ -242,6 +250,10 @@ def normals_from_depth(
     predicted by extrapolating the two pixels beyond it (``1/depth`` is affine across a plane, so
     ``l1*l2/(2*l2 - l1)`` predicts the centre exactly on planes); the PSSAO gist's ``computeNormalImproved``.
     Background pixels get the direction toward the camera.
+
+    Shape:
+        - depth: ``(B, 1, H, W)`` float (world units); valid: optional ``(B, 1, H, W)`` bool.
+        - Output: ``(B, 3, H, W)`` unit view-space normals, the depth's dtype.
     """
     if method not in ("improved", "kornia"):
         raise ValueError(f"method: expected 'improved' or 'kornia', got {method!r}")

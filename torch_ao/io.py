@@ -214,6 +214,10 @@ def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = No
 
     Image-like extras (``ao``, ``ao_stderr``, ``albedo``, ``visibility``, ``indirect``...) come back as
     ``(B,C,H,W)`` tensors; scalars such as ``max_distance`` as 0-d tensors.
+
+    Shape:
+        - Output: ``(GBuffer, {name: tensor})``: the G-buffer's images ``(B, C, H, W)`` (depth in the file's world
+          units), float32 unless the file holds float64; extras ``(B, C, H, W)`` or 0-d.
     """
     return gbuffer_from_arrays(read_gbuffer_arrays(path, **options), path, device)
 
@@ -284,6 +288,10 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
 
     ``arrays`` values may be ``(B,C,H,W)`` tensors (stored top-down as ``(B,H,W[,C])``),
     numpy arrays or scalars.
+
+    Shape:
+        - gbuffer: a :class:`GBuffer` (images ``(B, C, H, W)``); arrays: ``(B, C, H, W)`` tensors, numpy arrays or scalars.
+        - Output: the written path.
     """
     path = Path(path)
     out: dict[str, np.ndarray] = {}

@@ -15,6 +15,10 @@ def error_metrics(prediction: torch.Tensor, reference: torch.Tensor, valid: torc
     Only ``valid`` pixels count. SSIM is kornia's local SSIM map averaged over valid pixels, with
     background pixels of the prediction set to the reference so they do not disturb their neighbours.
     PSNR is capped at 100 dB for identical images.
+
+    Shape:
+        - prediction, reference: ``(B, 1, H, W)`` float in [0, 1]; valid: optional ``(B, 1, H, W)`` bool.
+        - Output: ``{"mae", "rmse", "psnr", "ssim"}`` floats (PSNR in dB).
     """
     if prediction.shape != reference.shape:
         raise ValueError(f"reference: expected shape {tuple(prediction.shape)} (that of the prediction), got {tuple(reference.shape)}")

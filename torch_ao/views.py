@@ -29,7 +29,12 @@ __all__ = ["FitView", "BenchView", "load_views", "load_bench_views", "default_ca
 
 @dataclass
 class FitView:
-    """One reference view: its G-buffer, reference visibility ``(B,1,H,W)`` and optional stderr."""
+    """One reference view: its G-buffer, reference visibility ``(B,1,H,W)`` and optional stderr.
+
+    Shape:
+        - ``gbuffer``: a :class:`~torch_ao.GBuffer` (images ``(B, C, H, W)``, world units).
+        - ``reference``, ``stderr``: ``(B, 1, H, W)`` float, visibility in [0, 1] and its standard error.
+    """
 
     gbuffer: GBuffer
     reference: torch.Tensor
@@ -63,7 +68,11 @@ class BenchView(FitView):
 def load_views(paths: Iterable[str | os.PathLike], device=None, **options) -> list[BenchView]:
     """Reference views from G-buffer files that hold an ``ao`` array (and optionally ``ao_stderr`` and
     ``max_distance``), named by their path. ``options``: how to read the files
-    (:class:`~torch_ao.engine_io.EngineOptions` fields, see :func:`~torch_ao.io.read_gbuffer_arrays`)."""
+    (:class:`~torch_ao.engine_io.EngineOptions` fields, see :func:`~torch_ao.io.read_gbuffer_arrays`).
+
+    Shape:
+        - Output: views whose ``gbuffer`` images are ``(B, C, H, W)`` and ``reference``/``stderr`` ``(B, 1, H, W)``.
+    """
     from .io import load_gbuffer
 
     views = []

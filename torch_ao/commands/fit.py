@@ -277,16 +277,17 @@ def run(args: argparse.Namespace) -> int:
     # a default without a gradient is a buffer: fittable once moved to its start value
     moved = {k: v for k, v in NO_GRADIENT_START.items() if k in default.method.options()
              and float(getattr(default.method, k).detach()) == 0.0}
-    fittable = fittable_parameters(FittedPipeline(args.method, pipeline_options(args, radius, **model, **moved),
-                                                  denoiser=denoise).method)
+    fitted_method = FittedPipeline(args.method, pipeline_options(args, radius, **model, **moved), denoiser=denoise).method
+    fittable = fittable_parameters(fitted_method)
     params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params else fittable)
     if not params:
         raise CommandError(f"--params: {args.method} has no float parameter to fit with these options")
     for name in params:
         if name not in fittable:
+            why = getattr(fitted_method, "no_gradient_options", {}).get(name)
             raise CommandError(f"--params: {name!r} is not a fitted parameter of {args.method}"
-                               f"{' (' + args.variant + ')' if args.variant else ''}; "
-                               f"available: {', '.join(fittable)}")
+                               f"{' (' + args.variant + ')' if args.variant else ''}"
+                               + (f" with these options: {why}" if why else f"; available: {', '.join(fittable)}"))
     start = {k: v for k, v in moved.items() if k in params}
     start.update(init)
     unknown = set(start) - set(params)

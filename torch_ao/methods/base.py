@@ -43,6 +43,10 @@ class AOOutput:
         indirect: ``(B,3,H,W)`` one-bounce indirect light, when requested.
         bent_normal: ``(B,3,H,W)`` unit view-space bent normals, when requested.
         ambient: ``(B,3,H,W)`` ambient light through unoccluded sectors, when requested.
+
+    Shape:
+        - ``visibility``: ``(B, 1, H, W)``; ``indirect``, ``bent_normal``, ``ambient``: ``(B, 3, H, W)`` or ``None``;
+          float32 or float64 (the computation's dtype).
     """
 
     visibility: torch.Tensor
@@ -82,8 +86,11 @@ class ScreenSpaceAO(nn.Module):
         preset = v.get("preset")
         #: the walk's resolution: ``"full"``, ``"half"`` or ``"quarter"`` (explicit option, else the preset's suffix)
         self.resolution = v["resolution"] or (split_preset(preset)[1] if preset is not None else None) or "full"
+        #: fitted options that get no gradient with these options ``{name: why}``: buffers, not parameters
+        self.no_gradient_options: dict[str, str] = self.no_gradient(v)
         if "radius" in v:
-            register_parameters(self, self.options(), v, ("radius",), trainable=self.trainable)
+            register_parameters(self, self.options(), v, ("radius",), trainable=self.trainable,
+                                frozen=self.no_gradient_options)
 
     @classmethod
     def options(cls) -> dict[str, Option]:
@@ -114,6 +121,13 @@ class ScreenSpaceAO(nn.Module):
     fetch = property(lambda self: self.sampling.fetch)
     border = property(lambda self: self.sampling.border)
     azimuth = property(lambda self: self.sampling.azimuth)
+
+    def no_gradient(self, values: dict[str, Any]) -> dict[str, str]:
+        """The fitted options whose gradient is zero everywhere with the options ``values`` (a hard
+        comparison of the published shader, a value that only picks texels), ``{name: why and what makes it
+        fittable}``. They are registered as buffers, not ``nn.Parameter``\\ s, so an optimizer never holds a
+        parameter it cannot move. Default: none."""
+        return {}
 
     # ---------------------------------------------------------------- parts
     def pattern_for(self, frame: Frame | None) -> SamplingPattern:

@@ -69,7 +69,7 @@ from ..sectors import MODES, ROUNDINGS, SECTORS, sector_interval
 from ..thickness import BoundThickness, as_thickness, matching
 from ..walk import Frame, GradientRows, SamplingPattern
 from .base import ScreenSpaceAO, make_parameter
-from .common import RADIUS, functional_twin
+from .common import RADIUS, declare_signature, functional_twin
 from .bitmask_common import SectorAccumulator
 
 __all__ = ["BitmaskAO", "SSILVB", "bitmask_ao", "ssilvb", "VARIANTS", "WEIGHTINGS", "UNIONS", "OPTIONS"]
@@ -126,6 +126,9 @@ OPTIONS = (
            "llvmpipe's float16 mediump jitter", str, choices=("ieee", "mesa", "mesa_mediump")),
 )
 _OPTIONS = options_by_name(OPTIONS)
+#: options of the walk and the module whose default the signature shows as None: resolved per variant
+#: (``azimuth``, ``min_step_px``, ``fetch``) or per call (``recompute``: see :meth:`BitmaskAO.auto_chunking`)
+_RESOLVED_LATER = {"azimuth": None, "min_step_px": None, "fetch": None, "recompute": None}
 #: per variant, the defaults of the options whose default is ``None``
 _VARIANT_DEFAULTS = {
     "default": dict(weighting="uniform", union="sectors", clip_to_radius=False, thickness_direction="view", sample_extent="radius", sector_epsilon=0.01),
@@ -314,7 +317,8 @@ class BitmaskAO(ScreenSpaceAO):
     Args (:data:`OPTIONS` gives each option's unit, range and default):
         variant: ``"default"``, ``"exact"`` (converges; see docs/bitmask.md), ``"hdrp"`` (the bitmask
             blog) or ``"ssilvb_glsl"`` (the SSILVB GLSL article as written; there ``slices``/``steps`` are
-            the shader's ``sliceCount``/``sampleCount`` uniforms).
+            the shader's ``sliceCount``/``sampleCount`` uniforms, and ``radius``, which only picks the
+            nearest texels its walk reads, is a buffer rather than a parameter).
         mode: ``"hard"`` (integer bitmasks, bit for bit; zero gradient a.e.), ``"soft"`` or
             ``"straight_through"`` (hard forward, soft gradient). No effect with ``union="exact"``, which
             is differentiable almost everywhere as it is.
@@ -342,10 +346,10 @@ class BitmaskAO(ScreenSpaceAO):
         glsl_numerics: ``"ssilvb_glsl"`` only: ``"ieee"`` (exact ``acos``, input precision), ``"mesa"``
             (Mesa's polynomial ``acos``; matches Mesa softpipe) or ``"mesa_mediump"`` (also llvmpipe's
             float16 ``mediump`` jitter). See :mod:`torch_ao.methods.bitmask_glsl`.
-        **kwargs: :class:`~torch_ao.methods.base.ScreenSpaceAO` options (``slices``, ``steps``,
-            ``preset``, ``radius``, ``fetch``, ``border``, ``azimuth``, ``jitter``, ``seed``,
-            ``chunk_size``, ``recompute``, ``trainable``...). Unless ``chunk_size``/``recompute`` are
-            given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
+        radius, preset, slices, steps, step_power, min_step_px, jitter, seed, fetch, border, azimuth,
+        normals, chunk_size, recompute, trainable, resolution, backend: the walk's and every module's
+            options (:class:`~torch_ao.methods.base.ScreenSpaceAO`; :meth:`options` describes each). Unless
+            ``chunk_size``/``recompute`` are given, each call picks them (see :meth:`auto_chunking`): cache-sized chunks of 16384
             pixels, recomputed in backward only when a soft gradient's graph would exceed
             ``graph_budget`` (1 GiB). ``azimuth`` defaults to ``"view"`` for ``"default"``/``"exact"`` and
             ``"screen"`` for ``"hdrp"``; ``min_step_px`` to 0.25 for ``"exact"`` (:data:`EXACT_MIN_STEP_PX`),
@@ -381,6 +385,8 @@ class BitmaskAO(ScreenSpaceAO):
                  indirect: bool = False, bent_normals: bool = False, ambient=None, ambient_directions: int = 8,
                  azimuth: str | None = None, glsl_numerics: str = "ieee",
                  sector_epsilon: float | None = None, **kwargs) -> None:
+        # None: the variant's default (min_step_px, fetch) or the automatic choice per call (recompute)
+        kwargs = {k: v for k, v in kwargs.items() if not (v is None and k in _RESOLVED_LATER)}
         given = dict(variant=variant, mode=mode, tau=tau, rounding=rounding, weighting=weighting, union=union,
                      clip_to_radius=clip_to_radius, thickness_direction=thickness_direction, sample_extent=sample_extent,
                      sector_epsilon=sector_epsilon, indirect=indirect, bent_normals=bent_normals,
@@ -431,6 +437,12 @@ class BitmaskAO(ScreenSpaceAO):
             self.register_buffer("ambient_colour", colour.clone())
             self.ambient = None
         self._ambient_constant = ambient is not None and not callable(ambient)
+
+    def no_gradient(self, values):
+        if self.variant == "ssilvb_glsl":
+            return {"radius": "the 'ssilvb_glsl' shader's walk reads nearest texels, which the radius only picks "
+                              "(no gradient): use variant='default' to fit it"}
+        return {}
 
     @property
     def _plain_autograd(self) -> bool:
@@ -537,5 +549,7 @@ class SSILVB(BitmaskAO):
         super().__init__(indirect=indirect, **kwargs)
 
 
+declare_signature(BitmaskAO, defaults=_RESOLVED_LATER, extra={"ambient": None})
+declare_signature(SSILVB, defaults=_RESOLVED_LATER | {"indirect": True}, extra={"ambient": None})
 bitmask_ao = functional_twin(BitmaskAO, "bitmask_ao")
 ssilvb = functional_twin(SSILVB, "ssilvb")

@@ -199,11 +199,34 @@ def register_parameters(module: nn.Module, options: dict[str, Option], values: d
         opt.check(float(t.detach()))
 
 
-def declare_signature(cls):
-    """Class decorator: ``inspect.signature(cls)`` lists ``cls.options()`` as keyword-only arguments
-    with their defaults (the constructor takes ``**options``; the CLI reads the signature)."""
-    params = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=opt.default)
-              for name, opt in cls.options().items()]
+#: The ``Shape:`` section of every method's module and functional docstring (appended to them).
+METHOD_SHAPE = """
+    Shape:
+        - Input: a :class:`~torch_ao.GBuffer` of ``B`` views ``H x W``: ``depth`` ``(B, 1, H, W)`` (world units,
+          positive along the view axis; ``inf``/``0``/``nan`` background), optional ``normals`` ``(B, 3, H, W)``
+          (unit, view space), ``light`` ``(B, 3, H, W)`` (indirect light), ``mask``/``object_id`` ``(B, 1, H, W)``.
+        - Output: :class:`~torch_ao.AOOutput`: ``visibility`` ``(B, 1, H, W)`` in [0, 1] (1 = unoccluded);
+          ``indirect``, ``bent_normal``, ``ambient`` ``(B, 3, H, W)`` when asked for (``None`` otherwise).
+        - dtype: the input's float32 or float64; float16/bfloat16 inputs are computed and returned in float32.
+"""
+
+
+def _with_shape(doc: str | None) -> str:
+    doc = doc or ""
+    return doc if "Shape:" in doc else doc.rstrip() + "\n" + METHOD_SHAPE
+
+
+def declare_signature(cls=None, /, *, defaults: dict[str, Any] | None = None, extra: dict[str, Any] | None = None):
+    """Class decorator: ``inspect.signature(cls)`` (and so ``help(cls)``) lists ``cls.options()`` as keyword-only
+    arguments with their defaults (the constructor takes ``**options``; the CLI reads the signature).
+
+    ``defaults`` replaces the default shown for some options (``None`` where the constructor resolves it per
+    variant or per call); ``extra`` adds keyword arguments outside ``options()`` (Python objects no flag can
+    give, e.g. a callable), ``{name: default}``, after them. Called as ``declare_signature(cls, ...)``."""
+    if cls is None:
+        return functools.partial(declare_signature, defaults=defaults, extra=extra)
+    shown = {name: opt.default for name, opt in cls.options().items()} | dict(defaults or {}) | dict(extra or {})
+    params = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default) for name, default in shown.items()]
     init = cls.__init__
     if "__init__" not in cls.__dict__:  # give the class its own constructor to carry the signature
         @functools.wraps(init)
@@ -212,6 +235,7 @@ def declare_signature(cls):
         cls.__init__ = init
     cls.__init__.__signature__ = inspect.Signature([inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)]
                                                    + params)
+    cls.__doc__ = _with_shape(cls.__doc__)
     return cls
 
 
@@ -232,9 +256,7 @@ def functional_twin(cls, name: str):
     twin.__name__ = twin.__qualname__ = name
     twin.__doc__ = (f"Functional :class:`{cls.__name__}` ``(gbuffer, *, options...) -> AOOutput``: the keyword "
                     f"options of the module (listed in the signature, described by ``{cls.__name__}.options()``); "
-                    f"{', '.join(fitted)} may be tensors (gradients flow to them).\n\n"
-                    "Shape:\n    - gbuffer: depth ``(B, 1, H, W)`` (world units), normals ``(B, 3, H, W)``.\n"
-                    "    - Output: ``visibility (B, 1, H, W)`` in [0, 1] (1 = unoccluded), and what was asked for.")
+                    f"{', '.join(fitted)} may be tensors (gradients flow to them).\n" + METHOD_SHAPE)
     keywords = [p.replace(default=False) if p.name == "trainable" else p
                 for p in inspect.signature(cls).parameters.values()]
     twin.__signature__ = inspect.Signature(

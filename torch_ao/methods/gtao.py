@@ -189,10 +189,10 @@ class ExactGTAOAccumulator(GTAOAccumulator):
         bound = HALF_PI + s * geom.normal_angle
         theta = sample.angle().clamp(0.0, math.pi)
         R = self.radius
-        if float(self.falloff.detach()) > 0:
-            w = ((R - sample.distance) / (self.falloff * R).clamp_min(1e-12)).clamp(0.0, 1.0)
-        else:
-            w = (sample.distance < R).to(theta.dtype)
+        # a linear ramp over falloff x R, or the hard cut at falloff 0 (chosen by a tensor, not .item(): no
+        # graph break under torch.compile)
+        ramp = ((R - sample.distance) / (self.falloff * R).clamp_min(1e-12)).clamp(0.0, 1.0)
+        w = torch.where(self.falloff.detach() > 0, ramp, (sample.distance < R).to(theta.dtype))
         w = torch.where(sample.valid, w, torch.zeros_like(w))
         state[s] = torch.minimum(state[s], bound + w * (theta - bound))
         return state
@@ -328,13 +328,16 @@ class GTAO(ScreenSpaceAO):
         self.multibounce, self.bent_normals = v["multibounce"], v["bent_normals"]
         self.projected_normal_weight, self.max_radius_px = v["projected_normal_weight"], v["max_radius_px"]
         self.search_scale = float(v["search_scale"])
-        # falloff_range 0 (a hard cut) has no gradient: a buffer there, a parameter from any value > 0
-        no_falloff = float(torch.as_tensor(v["falloff_range"]).detach().reshape(-1)[0]) == 0.0
-        frozen = {"falloff_range"} if self.variant != "exact" or no_falloff else set()
+        frozen = set(self.no_gradient_options) | ({"falloff_range"} if self.variant != "exact" else set())
         frozen |= {"thickness_heuristic"} if self.variant != "ue4" else set()
         frozen |= {"albedo"} if not self.multibounce else set()
         register_parameters(self, self.options(), v, ("falloff_range", "thickness_heuristic", "final_power", "albedo"),
                             trainable=self.trainable, frozen=frozen)
+
+    def no_gradient(self, values):
+        if values["variant"] == "exact" and float(torch.as_tensor(values["falloff_range"]).detach().reshape(-1)[0]) == 0:
+            return {"falloff_range": "falloff_range 0 (a hard cut) has no gradient: give it a value > 0 to fit it"}
+        return {}
 
     def pattern_for(self, frame):
         if self.variant == "exact":

@@ -14,7 +14,8 @@ border clamp/drop); with ``z_s`` the depth of ``S`` and ``z_b`` the buffer's dep
 
 ``softness > 0`` (an improvement, off by default) replaces the step by
 ``sigmoid((z_s - z_b - bias) / softness)`` so that depth gets a gradient through the comparison; with
-the hard step only ``rangeCheck`` and the fetched positions carry gradients. Samples that are invalid
+the hard step only ``rangeCheck`` and the fetched positions carry gradients, and ``bias``, which then
+has none, is a buffer rather than a parameter. Samples that are invalid
 (background, dropped at the border, behind the camera) occlude nothing. Visibility is in [0, 1] by
 construction.
 
@@ -123,7 +124,13 @@ class SSAO(ScreenSpaceAO):
         self.samples = 2 * self.slices * self.steps if v["samples"] is None else v["samples"]
         self.register_buffer("kernel", hemisphere_kernel(self.samples, self.seed).to(torch.get_default_dtype()),
                              persistent=False)
-        register_parameters(self, self.options(), v, ("bias",), trainable=self.trainable)
+        register_parameters(self, self.options(), v, ("bias",), trainable=self.trainable,
+                            frozen=self.no_gradient_options)
+
+    def no_gradient(self, values):
+        if float(values["softness"]) == 0:
+            return {"bias": "the hard occlusion step (softness 0) has no gradient: give softness > 0 to fit it"}
+        return {}
 
     def walk(self, frame, chunk_size, recompute):
         return march_chunks(frame, functools.partial(kernel_occlusion, module=self), chunk_size=chunk_size,

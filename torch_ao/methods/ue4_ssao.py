@@ -20,7 +20,8 @@ The halo weight ``Weight`` is what the article calls the halo fix; the per-side 
 (``1 - |D| / halo``) of the article are dead code in the shipped shader (``OPTIMIZATION_O1``) and are not
 used. Improvements (named options, off by default): ``accurate_angle=True`` uses ``acos(cos)/pi``;
 ``flat_softness > 0`` replaces the hard flat-surface test by a logistic blend of that width (so depth
-gets a gradient through it).
+gets a gradient through it). Without it ``flat_surface_bias`` has no gradient, nor has ``radius`` with the
+default nearest fetch (it only picks texels): both are then buffers rather than parameters.
 
 Sampling: ``sample_set="ue4_3"`` (default; UE4's 3 spiral offsets, ``SHADER_QUALITY`` 0-3) or
 ``"ue4_6"`` (6 offsets, quality 4) fix the directions and their lengths (``slices`` is then the set
@@ -166,7 +167,16 @@ class UE4SSAO(ScreenSpaceAO):
         v = self.values
         self.sample_set, self.accurate_angle, self.flat_softness = v["sample_set"], v["accurate_angle"], float(v["flat_softness"])
         register_parameters(self, self.options(), v, ("fade_distance", "flat_surface_bias", "final_power", "intensity"),
-                            trainable=self.trainable)
+                            trainable=self.trainable, frozen=self.no_gradient_options)
+
+    def no_gradient(self, values):
+        out = {}
+        if values["fetch"] == "nearest":
+            out["radius"] = "with fetch='nearest' the radius only picks texels (no gradient): use fetch='bilinear' to fit it"
+        if float(values["flat_softness"]) == 0:
+            out["flat_surface_bias"] = ("the hard flat-surface test (flat_softness 0) has no gradient: give "
+                                        "flat_softness > 0 to fit it")
+        return out
 
     def pattern_for(self, frame):
         return self.sampling.pattern(self.radius, WedgePattern, offsets=SAMPLE_SETS.get(self.sample_set))

@@ -370,7 +370,9 @@ class GradientRows:
         nonzero = grads[0] != 0
         for g in grads[1:]:
             nonzero |= g != 0
-        self.index = nonzero.nonzero()[:, 0] if 2 * int(nonzero.sum()) <= J * N else None
+        # (all rows under torch.compile: the selection has a data-dependent size, a graph break)
+        sparse = not torch.compiler.is_compiling() and 2 * int(nonzero.sum()) <= J * N
+        self.index = nonzero.nonzero()[:, 0] if sparse else None
         self.query = None if self.index is None else self.index.remainder(N)
 
     def take(self, x: torch.Tensor) -> torch.Tensor:

@@ -63,7 +63,7 @@ class Frame:
         safe_depth, inverse_depth: ``(B*H*W,)`` positive depths and their reciprocals (what bilinear
             fetches interpolate); positions: ``(B*H*W, 3)`` view-space positions (the G-buffer's position
             buffer when it has one: ``has_position``); valid: ``(B*H*W,)`` bool.
-        queries: the valid pixels (:class:`Queries`).
+        queries: the valid pixels (:class:`Queries`); every pixel under ``torch.compile`` (``all_pixels``).
     """
 
     def __init__(self, gbuffer: GBuffer, normals: torch.Tensor | None = None,
@@ -81,7 +81,13 @@ class Frame:
         self.buffers = {k: flat(v) for k, v in (buffers or {}).items()}
         if normals is None:
             normals = gbuffer.view_normals()
-        index = self.valid.nonzero()[:, 0]
+        #: every pixel is a query under torch.compile: the list of valid ones has a data-dependent size (a
+        #: graph break); :meth:`scatter` then keeps the background's fill
+        self.all_pixels = torch.compiler.is_compiling()
+        if self.all_pixels:
+            index = torch.arange(self.valid.shape[0], device=self.valid.device)
+        else:
+            index = self.valid.nonzero()[:, 0]
         hw = H * W
         batch = torch.div(index, hw, rounding_mode="floor")
         rem = index - batch * hw
@@ -114,7 +120,10 @@ class Frame:
             base = flat(fill.to(values.dtype))
         else:
             base = values.new_full((B * H * W, C), float(fill))
-        out = base.index_put((self.queries.index,), values)
+        if self.all_pixels:
+            out = torch.where(self.valid[:, None], values, base)
+        else:
+            out = base.index_put((self.queries.index,), values)
         return out.view(B, H, W, C).permute(0, 3, 1, 2)
 
 

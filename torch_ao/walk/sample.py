@@ -15,6 +15,23 @@ if TYPE_CHECKING:
 __all__ = ["Sample", "fetch_sample"]
 
 
+class cached_property:  # noqa: N801 (functools' name)
+    """``functools.cached_property`` without its lock: Python 3.11's takes an ``RLock``, a context manager
+    that ``torch.compile`` cannot trace (a graph break at every first read of a sample's attribute)."""
+
+    def __init__(self, fn) -> None:
+        self.fn, self.name, self.__doc__ = fn, fn.__name__, fn.__doc__
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        value = obj.__dict__[self.name] = self.fn(obj)
+        return value
+
+
 class Sample:
     """One step of the walk on one side of a slice, for every query pixel (``N`` rows).
 
@@ -65,15 +82,15 @@ class Sample:
             self._raw_position = position
             self.__dict__["delta"] = self._delta_values
 
-    @functools.cached_property
+    @cached_property
     def along_view(self) -> torch.Tensor:
         return self._along[0]
 
-    @functools.cached_property
+    @cached_property
     def along_tangent(self) -> torch.Tensor:
         return self._along[1]
 
-    @functools.cached_property
+    @cached_property
     def _along(self) -> tuple[torch.Tensor, torch.Tensor]:
         q, geom = self._queries, self._geom
         if not self._graph:
@@ -92,24 +109,24 @@ class Sample:
                       self._footprint.map_rows(pick), pick(self.valid), pick(self.offset))
 
     # Computed on first use only: most methods need neither, and autograd would keep their inputs.
-    @functools.cached_property
+    @cached_property
     def position(self) -> torch.Tensor:
         raw = self._footprint.position(self._frame) if self._raw_position is None else self._raw_position
         return torch.where(self.valid[:, None], raw, self._queries.position - self._queries.view)
 
-    @functools.cached_property
+    @cached_property
     def delta(self) -> torch.Tensor:
         return torch.where(self.valid[:, None], self.position - self._queries.position, -self._queries.view)
 
-    @functools.cached_property
+    @cached_property
     def distance(self) -> torch.Tensor:
         return self.delta.norm(dim=-1)
 
-    @functools.cached_property
+    @cached_property
     def distance_px(self) -> torch.Tensor:
         return self.offset.norm(dim=-1)
 
-    @functools.cached_property
+    @cached_property
     def inside(self) -> torch.Tensor:
         _, H, W = self._frame.shape
         su, sv = self._footprint.su, self._footprint.sv
