@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from typing import Iterable, TypeVar
 
-__all__ = ["check_int", "check_float", "check_choice", "check_bool", "install_hint", "NonFiniteOutput",
+__all__ = ["check_int", "check_float", "check_choice", "check_bool", "install_hint", "scalar_value", "NonFiniteOutput",
            "check_finite_outputs"]
 
 T = TypeVar("T")
@@ -58,6 +58,18 @@ def check_bool(name: str, value) -> bool:
     if not isinstance(value, bool):
         raise _fail(name, "True or False", value)
     return value
+
+
+def scalar_value(value) -> float | None:
+    """The float of a real number (not a bool) or a one-element tensor, else ``None`` (for a caller that
+    leaves the refusal of other values to their check)."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        return float(value)
+    if hasattr(value, "numel") and value.numel() == 1 and value.dtype.is_floating_point:
+        return float(value.detach())
+    return None
 
 
 def install_hint(extra: str, package: str) -> str:

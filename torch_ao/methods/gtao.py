@@ -52,7 +52,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..checks import check_choice
+from ..checks import check_choice, scalar_value
 from ..ops import arc_integral, fast_acos, safe_pow
 from ..options import Option
 from ..walk import Frame, SliceAccumulator, SlicePattern, radius_px, step_direction
@@ -335,7 +335,8 @@ class GTAO(ScreenSpaceAO):
                             trainable=self.trainable, frozen=frozen)
 
     def no_gradient(self, values):
-        if values["variant"] == "exact" and float(torch.as_tensor(values["falloff_range"]).detach().reshape(-1)[0]) == 0:
+        # (a falloff_range that is not a number is refused by name when it is registered)
+        if values["variant"] == "exact" and scalar_value(values["falloff_range"]) == 0:
             return {"falloff_range": "falloff_range 0 (a hard cut) has no gradient: give it a value > 0 to fit it"}
         return {}
 
