@@ -11,7 +11,7 @@ import pytest
 
 from torch_ao.cli import main
 from torch_ao.reference import load_mesh_file, mesh_scene
-from torch_ao.reference.confine import OutsidePathError
+from torch_ao.io.confine import OutsidePathError
 
 SMALL = ["--width", "8", "--height", "6", "--spp", "2", "--quiet"]
 SECRET = "secret line one\nsecret line two\nsecret line three\n"

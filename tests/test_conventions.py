@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from torch_ao.cli import build_parser, main
-from torch_ao.engine_io import ENGINE_OPTIONS
+from torch_ao.io.engine import ENGINE_OPTIONS
 
 
 def _input_flags(command: str) -> dict[str, str]:

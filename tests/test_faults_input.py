@@ -186,7 +186,7 @@ def _outside(folder: Path, name: str) -> bool:
 def test_mitsuba_references_outside_are_always_refused(name, default, element):
     pytest.importorskip("mitsuba")
     from torch_ao.reference import mesh_scene
-    from torch_ao.reference.confine import OutsidePathError
+    from torch_ao.io.confine import OutsidePathError
 
     with tempfile.TemporaryDirectory() as d:
         root = Path(d).resolve() / "scene"

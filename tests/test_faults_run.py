@@ -364,7 +364,7 @@ def test_only_dead_or_old_writers_temporaries_are_removed(tmp_path):
     import os
     import time
 
-    from torch_ao import io
+    from torch_ao.io import npz as io
 
     host, dead = io._HOST, _dead_pid()
     names = {"dead": f"x.npz.{host}-{dead}.abcd1234.tmp.npz", "live": f"x.npz.{host}-{os.getpid()}.abcd1234.tmp.npz",
@@ -383,7 +383,7 @@ def test_only_dead_or_old_writers_temporaries_are_removed(tmp_path):
 def test_cache_writes_and_checkpoints_clean_dead_writers_leftovers_only(tmp_path):
     import os
 
-    from torch_ao import io
+    from torch_ao.io import npz as io
     from torch_ao.fit import remove_stale_temporaries
     from torch_ao.views import cached_reference
 

@@ -55,7 +55,7 @@ def test_exr_header_attributes_must_be_numbers(attribute, tmp_path):
 
 
 def test_engine_option_intrinsics_complex_refused():
-    from torch_ao.engine_io import EngineOptions
+    from torch_ao.io.engine import EngineOptions
 
     with pytest.raises(ValueError, match=r"^intrinsics: expected real numbers in the engine options, got complex128"):
         EngineOptions(intrinsics=(5 + 1j, 5.0, 2.5, 1.5))

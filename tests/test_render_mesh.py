@@ -15,7 +15,7 @@ from torch_ao.cli import main
 from torch_ao.commands.args import add_float_list, allow_negative_lists, parse_float_list
 from torch_ao.io import load_gbuffer
 from torch_ao.reference import gltf_camera, load_mesh_file, look_at_matrix, mesh_scene, render_reference
-from torch_ao.reference.meshfile import UP_AXES, up_axis_rotation
+from torch_ao.io.mesh import UP_AXES, up_axis_rotation
 
 trimesh = pytest.importorskip("trimesh", reason="trimesh reads the mesh files")
 

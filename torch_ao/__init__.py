@@ -19,7 +19,7 @@ from .methods.ssao import SSAO, ssao
 from .methods.ue4_ssao import UE4SSAO, ue4_ssao
 from .metrics import error_metrics
 
-__version__ = "0.1.0"
+from .version import __version__  # noqa: F401  (torch_ao.__version__)
 
 __all__ = [
     "PinholeCamera", "GBuffer", "normals_from_depth", "load_gbuffer", "save_npz",

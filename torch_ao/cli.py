@@ -30,7 +30,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from .version import __version__
 
     parser = _Parser(prog="torch-ao", description="Differentiable screen-space ambient occlusion.")
     parser.add_argument("--version", action="version", version=f"torch-ao {__version__}",

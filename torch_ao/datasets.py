@@ -5,13 +5,9 @@ files ``torch-ao bench`` uses), so a scene set is ray-traced the first time only
 """
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
-from .views import FitView, cached_reference, default_cache_dir, load_views
+from .views import FitView, add_backface_layer, cached_reference, default_cache_dir, load_views
 
 __all__ = ["default_cache_dir", "reference_view", "reference_views", "train_and_holdout_views", "add_backface_layer",
            "TRAIN_SCENES", "HOLDOUT_SEED"]
@@ -21,35 +17,6 @@ TRAIN_SCENES = ("sphere_on_plane", "fence", "room_corner", "stairs", "floating",
 
 #: Seeds of held-out views: never used for training views (those are 1, 2, ...).
 HOLDOUT_SEED = 1000
-
-
-def add_backface_layer(path: str | os.PathLike, scene: str, layout: int | None) -> bool:
-    """Give the cached reference ``path`` of built-in ``scene`` (randomised with ``layout``; ``None``: its
-    default layout) a ``backface_depth`` layer ``(B,1,H,W)`` if it has none; returns whether it was added.
-
-    Only the camera rays are traced again (the layer depends on nothing else), and the file is rewritten
-    atomically with all its arrays kept. The new depth must equal the file's bit for bit, else the file
-    is not this scene's view and ``ValueError`` names it.
-    """
-    from .io import image_to_numpy, read_npz, save_npz
-    from .reference import get_scene, render_reference
-
-    path = Path(path)
-    arrays = read_npz(path)
-    if "backface_depth" in arrays:
-        return False
-    depth = arrays["depth"]
-    height, width = depth.shape[-2:]
-    # 2 AO rays per pixel (the fewest the renderer takes) at the file's R: the AO is thrown away.
-    ref = render_reference(get_scene(scene, layout), height=height, width=width, spp=2,
-                           max_distance=float(arrays["max_distance"]), uniform=False, backface=True, progress=False)
-    new_depth = image_to_numpy(ref.gbuffer.depth)
-    if new_depth.shape != depth.shape or not np.array_equal(new_depth, depth):
-        raise ValueError(f"reference: {path} does not hold the depth of scene {scene!r} (layout {layout}); "
-                         "delete it to render it again")
-    arrays["backface_depth"] = image_to_numpy(ref.backface_depth)
-    save_npz(path, **arrays)
-    return True
 
 
 def reference_view(scene: str, seed: int | None, *, height: int, width: int, spp: int, max_distance: float,

@@ -234,7 +234,7 @@ def run_fingerprint(module: nn.Module, views: Sequence[FitView], cfg: FitConfig,
     the training views' names and data (G-buffer layers, intrinsics, references, standard errors);
     ``torch_ao_version``.
     """
-    from . import __version__
+    from .version import __version__
 
     state = module.state_dict()
     tensors = []

@@ -210,7 +210,7 @@ class FittedPipeline(DenoisedAO):
 
     def to_dict(self) -> dict:
         """The JSON content of ``params.json`` (see the module docstring)."""
-        from . import __version__
+        from .version import __version__
 
         params = self.parameter_values()
         options = {k: _encode(v) for k, v in self.options.items() if k not in params}

@@ -23,7 +23,7 @@ from torch import nn
 from torch.func import functional_call
 
 from .checks import check_float, check_int
-from .thickness import Parameter, Thickness
+from .thickness_base import Parameter, Thickness
 
 __all__ = ["FEATURES", "net_features", "ThicknessCNN", "NetThickness"]
 

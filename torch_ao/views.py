@@ -19,11 +19,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
+import numpy as np
 import torch
 
 from .gbuffer import GBuffer
 
 __all__ = ["FitView", "BenchView", "load_views", "load_bench_views", "default_cache_dir", "reference_path",
+           "add_backface_layer",
            "cached_reference"]
 
 
@@ -68,7 +70,7 @@ class BenchView(FitView):
 def load_views(paths: Iterable[str | os.PathLike], device=None, **options) -> list[BenchView]:
     """Reference views from G-buffer files that hold an ``ao`` array (and optionally ``ao_stderr`` and
     ``max_distance``), named by their path. ``options``: how to read the files
-    (:class:`~torch_ao.engine_io.EngineOptions` fields, see :func:`~torch_ao.io.read_gbuffer_arrays`).
+    (:class:`~torch_ao.io.engine.EngineOptions` fields, see :func:`~torch_ao.io.read_gbuffer_arrays`).
 
     Shape:
         - Output: views whose ``gbuffer`` images are ``(B, C, H, W)`` and ``reference``/``stderr`` ``(B, 1, H, W)``.
@@ -105,7 +107,7 @@ def reference_path(cache_dir: str | os.PathLike | None, scene: str, height: int,
     ``version`` and ``tracer`` the library's version and
     :data:`~torch_ao.reference.render.TRACER_VERSION`; ``cache_dir=None`` is :func:`default_cache_dir`.
     """
-    from . import __version__
+    from .version import __version__
     from .reference.render import TRACER_VERSION
 
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -118,8 +120,6 @@ def reference_path(cache_dir: str | os.PathLike | None, scene: str, height: int,
 def _cached_file_matches(path: Path, height: int, width: int, spp: int, max_distance: float, seed: int) -> bool:
     """Whether the cached file ``path`` holds what its name promises: its size, ``spp``, ``max_distance``,
     ``seed`` and tracer version (a planted, renamed or older file does not)."""
-    import numpy as np
-
     from .reference.render import TRACER_VERSION
 
     want = {"spp": spp, "max_distance": float(max_distance), "seed": seed, "tracer_version": TRACER_VERSION}
@@ -157,6 +157,35 @@ def cached_reference(scene: str, *, height: int, width: int, spp: int, max_dista
     return path
 
 
+def add_backface_layer(path: str | os.PathLike, scene: str, layout: int | None) -> bool:
+    """Give the cached reference ``path`` of built-in ``scene`` (randomised with ``layout``; ``None``: its
+    default layout) a ``backface_depth`` layer ``(B,1,H,W)`` if it has none; returns whether it was added.
+
+    Only the camera rays are traced again (the layer depends on nothing else), and the file is rewritten
+    atomically with all its arrays kept. The new depth must equal the file's bit for bit, else the file
+    is not this scene's view and ``ValueError`` names it.
+    """
+    from .io import image_to_numpy, read_npz, save_npz
+    from .reference import get_scene, render_reference
+
+    path = Path(path)
+    arrays = read_npz(path)
+    if "backface_depth" in arrays:
+        return False
+    depth = arrays["depth"]
+    height, width = depth.shape[-2:]
+    # 2 AO rays per pixel (the fewest the renderer takes) at the file's R: the AO is thrown away.
+    ref = render_reference(get_scene(scene, layout), height=height, width=width, spp=2,
+                           max_distance=float(arrays["max_distance"]), uniform=False, backface=True, progress=False)
+    new_depth = image_to_numpy(ref.gbuffer.depth)
+    if new_depth.shape != depth.shape or not np.array_equal(new_depth, depth):
+        raise ValueError(f"reference: {path} does not hold the depth of scene {scene!r} (layout {layout}); "
+                         "delete it to render it again")
+    arrays["backface_depth"] = image_to_numpy(ref.backface_depth)
+    save_npz(path, **arrays)
+    return True
+
+
 def load_bench_views(scenes: Sequence[str] = (), files: Sequence[str | os.PathLike] = (), *, height: int = 72,
                      width: int = 96, spp: int = 64, max_distance: float = 1.0, seed: int = 0,
                      cache_dir: str | os.PathLike | None = None, device=None, progress: bool = True,
@@ -165,10 +194,8 @@ def load_bench_views(scenes: Sequence[str] = (), files: Sequence[str | os.PathLi
     """Reference views of built-in ``scenes`` (default layout; :func:`cached_reference`) and of
     reference ``files``; each named after its scene or file stem (names must differ). ``backface=True``
     gives the built-in scenes' views their back-face depth layer (added to the cached file once:
-    :func:`~torch_ao.datasets.add_backface_layer`), for pipelines with the back-face thickness model.
+    :func:`add_backface_layer`), for pipelines with the back-face thickness model.
     ``reading``: how to read the reference ``files`` (:func:`load_views`' options)."""
-    from .datasets import add_backface_layer
-
     views = []
     for name in scenes:
         path = cached_reference(name, height=height, width=width, spp=spp, max_distance=max_distance, seed=seed,

@@ -26,7 +26,7 @@ def register(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..cli import CommandError
-    from ..engine_io import list_exr_channels
+    from ..io.engine import list_exr_channels
     from ..io import check_output_path, gbuffer_from_arrays, read_gbuffer_arrays, save_npz
 
     if args.list_channels:

@@ -1,6 +1,6 @@
 """The G-buffer input flags, one group shared by every command that reads G-buffer files (``ao``,
 ``bench --reference``, ``fit --reference``, ``convert``): the fields of
-:class:`~torch_ao.engine_io.EngineOptions`, built from :data:`~torch_ao.engine_io.ENGINE_OPTIONS`.
+:class:`~torch_ao.io.engine.EngineOptions`, built from :data:`~torch_ao.io.engine.ENGINE_OPTIONS`.
 
 :func:`add_input_flags` adds the group, :func:`input_options` reads back the fields given (the others
 keep their defaults) and :func:`flag_errors` turns an ``EngineOptions`` error (``"far: ..."``) into one
@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 
-from ..engine_io import ENGINE_OPTIONS, EngineOptions
+from ..io.engine import ENGINE_OPTIONS, EngineOptions
 from ..io import FileContentError
 from .args import allow_negative_lists, parse_float_list
 from .options_cli import add_option, flag, given
@@ -34,13 +34,13 @@ def add_input_flags(p: argparse.ArgumentParser, what: str = "G-buffer files") ->
 
 
 def input_options(args: argparse.Namespace, files=True, what: str = "G-buffer files") -> dict:
-    """The :class:`~torch_ao.engine_io.EngineOptions` fields given on the command line (others default).
+    """The :class:`~torch_ao.io.engine.EngineOptions` fields given on the command line (others default).
 
     ``files``: whether the command reads any file (else a given flag is refused: it would do nothing);
     ``what`` names those files in that message.
     """
     from ..cli import CommandError
-    from ..engine_io import parse_channels
+    from ..io.engine import parse_channels
 
     options = given(args, _OPTIONS)
     if options and not files:

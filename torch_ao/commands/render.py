@@ -14,7 +14,7 @@ import zlib
 from pathlib import Path
 
 from ..checks import check_finite_outputs
-from ..reference.meshfile import UP_AXES
+from ..io.mesh import UP_AXES
 from ..reference.sampling import MAX_SPP
 from ..reference.tracer import MESH_BACKENDS
 from ..options import Option
@@ -161,7 +161,7 @@ def _flag_message(msg: str, keys: dict) -> str:
 def _views(args, scene):
     from ..cli import CommandError
     from ..reference import look_at
-    from ..reference.meshfile import frame_view
+    from ..io.mesh import frame_view
 
     v = scene.view
     eye, target, up = (parse_float_list(flag(k), getattr(args, k), 3, names="x,y,z") for k in _VECTORS)

@@ -231,7 +231,7 @@ _BACKFACE = {
 
 def _summary(pipeline, scale: float) -> str:
     """Comment lines describing what the pass computes."""
-    from .. import __version__
+    from ..version import __version__
 
     m = pipeline.method
     lines = [f"torch_ao {__version__} export: {pipeline.method_name} AO pass, {m.slices} slices x {m.steps} steps, "

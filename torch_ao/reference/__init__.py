@@ -1,9 +1,9 @@
 """Ray-traced references: scenes, a batched torch tracer (optional Embree for meshes), G-buffers,
 ground-truth AO with standard errors and one-bounce indirect light for the same views."""
 from .embree import embree_available
-from .meshfile import frame_view, gltf_camera, load_mesh_file, mesh_scene
+from ..io.mesh import frame_view, gltf_camera, load_mesh_file, mesh_scene
 from .render import Reference, default_views, render_reference
-from .scene import Box, Cylinder, Light, LookAt, Mesh, Plane, Scene, Sphere, rotation_from_axis_angle, rotation_y
+from ..scene import Box, Cylinder, Light, LookAt, Mesh, Plane, Scene, Sphere, rotation_from_axis_angle, rotation_y
 from .scenes import SCENES, get_scene, icosphere, list_scenes, torus
 from .tracer import TORCH_MAX_TRIANGLES, Hit, Tracer
 from .views import Views, look_at, look_at_matrix

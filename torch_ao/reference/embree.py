@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..checks import install_hint
-from .tracer import _Triangles
+from .primitives import _Triangles
 
 __all__ = ["embree_available", "EmbreeTriangles"]
 

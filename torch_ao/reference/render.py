@@ -39,7 +39,7 @@ from ..camera import PinholeCamera
 from ..checks import check_choice
 from ..gbuffer import GBuffer
 from . import ao_kernel, sampling
-from .scene import Scene
+from ..scene import Scene
 from .tracer import Tracer
 from .views import Views, look_at
 
@@ -101,7 +101,7 @@ TRACER_VERSION = 1
 
 def default_views(scene: Scene, height: int, width: int) -> Views:
     """The scene's default look-at view at ``height x width`` (a file camera's FOV refitted to that size
-    on its ``fov_axis``, its principal point offset kept: :class:`~torch_ao.reference.scene.LookAt`)."""
+    on its ``fov_axis``, its principal point offset kept: :class:`~torch_ao.scene.LookAt`)."""
     v = scene.view
     return look_at(v.eye, v.target, v.up, v.fov_y_at(width, height), height=height, width=width,
                    principal_offset=v.principal_offset)
@@ -201,7 +201,7 @@ def render_reference(
     """Ray-trace the G-buffer and reference AO (and optionally one-bounce indirect light).
 
     Args:
-        scene: a :class:`~torch_ao.reference.scene.Scene` (e.g. ``get_scene("stairs")``).
+        scene: a :class:`~torch_ao.scene.Scene` (e.g. ``get_scene("stairs")``).
         views: a :class:`Views` (``look_at(...)``), a ``PinholeCamera`` with ``world_to_view
             (B,4,4)``, or ``None`` for the scene's default view at ``height x width`` (each, when
             ``None``, the view's ``film`` size: a Mitsuba file camera's).

@@ -13,7 +13,7 @@ from typing import Callable
 
 import torch
 
-from .scene import Box, Cylinder, Light, LookAt, Mesh, Plane, Scene, Sphere, rotation_y
+from ..scene import Box, Cylinder, Light, LookAt, Mesh, Plane, Scene, Sphere, rotation_y
 
 __all__ = ["SCENES", "SceneInfo", "get_scene", "list_scenes", "icosphere", "torus"]
 

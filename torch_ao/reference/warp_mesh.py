@@ -11,7 +11,7 @@ import logging
 import torch
 
 from ..checks import install_hint
-from .tracer import _Triangles
+from .primitives import _Triangles
 
 try:
     import warp as wp

@@ -38,10 +38,10 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from .camera import PinholeCamera
-from .gbuffer import GBuffer
+from ..camera import PinholeCamera
+from ..gbuffer import GBuffer
 
-__all__ = ["load_gbuffer", "read_gbuffer_arrays", "gbuffer_from_arrays", "save_npz", "read_npz", "image_to_numpy",
+__all__ = ["gbuffer_from_arrays", "save_npz", "read_npz", "image_to_numpy",
            "numpy_to_image", "write_text_atomic", "save_json", "write_atomic", "remove_stale_temporaries",
            "check_output_path", "STALE_TEMPORARY_SECONDS"]
 
@@ -92,7 +92,7 @@ def npz_members(path: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     :class:`~torch_ao.limits.ResourceLimitError` for a member image above ``image_pixels`` or members
     above ``array_bytes`` in all (the uncompressed size: a zip bomb is refused without inflating it).
     """
-    from .limits import check_limit
+    from ..limits import check_limit
 
     members, total = {}, 0
     try:
@@ -185,46 +185,9 @@ def _camera_from_arrays(arrays: dict, height: int, width: int, batch: int, sourc
     raise ValueError(f"camera: {source} needs 'intrinsics' (3,3) or 'fov_y_degrees'")
 
 
-def read_gbuffer_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarray]:
-    """The arrays of a G-buffer file in the ``.npz`` layout and the library's conventions.
-
-    ``.npz`` files are read as they are; ``.exr`` (OpenEXR) and ``.png`` (16-bit depth) files through
-    :func:`torch_ao.engine_io.read_engine_arrays`. ``options`` (:class:`torch_ao.engine_io.EngineOptions`
-    fields: ``channels``, ``depth_kind``, ``normal_space``, ``position_space``, ``view_matrix``,
-    ``convention``, ``far``, ``fov``, ``intrinsics``, ``depth_scale``) convert an engine's conventions;
-    for ``.npz`` files every option but ``channels`` applies too.
-    """
-    from .engine_io import EngineOptions, apply_engine_options, read_engine_arrays
-
-    if Path(path).suffix.lower() in (".exr", ".png"):
-        return read_engine_arrays(path, **options)
-    arrays = read_npz(path)
-    if not options:
-        return arrays
-    opts = EngineOptions(**options)
-    if opts.channels:
-        raise ValueError("channels: .npz files have fixed keys; --channels applies to OpenEXR files")
-    return apply_engine_options(arrays, opts)
-
-
-def load_gbuffer(path: str | os.PathLike, device: torch.device | str | None = None,
-                 **options) -> tuple[GBuffer, dict[str, torch.Tensor]]:
-    """Load a G-buffer file (``.npz``, ``.exr`` or 16-bit ``.png`` depth; see :func:`read_gbuffer_arrays`
-    for ``options``). Returns the :class:`GBuffer` and the other arrays.
-
-    Image-like extras (``ao``, ``ao_stderr``, ``albedo``, ``visibility``, ``indirect``...) come back as
-    ``(B,C,H,W)`` tensors; scalars such as ``max_distance`` as 0-d tensors.
-
-    Shape:
-        - Output: ``(GBuffer, {name: tensor})``: the G-buffer's images ``(B, C, H, W)`` (depth in the file's world
-          units), float32 unless the file holds float64; extras ``(B, C, H, W)`` or 0-d.
-    """
-    return gbuffer_from_arrays(read_gbuffer_arrays(path, **options), path, device)
-
-
 def gbuffer_from_arrays(arrays: dict[str, np.ndarray], path: str | os.PathLike = "arrays",
                         device: torch.device | str | None = None) -> tuple[GBuffer, dict[str, torch.Tensor]]:
-    """:func:`load_gbuffer` on arrays already read (``path`` names them in errors: every error is a
+    """:func:`~torch_ao.io.load_gbuffer` on arrays already read (``path`` names them in errors: every error is a
     ``ValueError`` whose message names the key and ``path``)."""
     try:
         return _gbuffer_from_arrays(arrays, path, device)
@@ -298,18 +261,9 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
     if gbuffer is not None:
         depth = torch.where(gbuffer.valid, gbuffer.depth, torch.full_like(gbuffer.depth, float("inf")))
         out["depth"] = image_to_numpy(depth)
-        if gbuffer.normals is not None:
-            out["normal"] = image_to_numpy(gbuffer.normals)
-        if gbuffer.light is not None:
-            out["light"] = image_to_numpy(gbuffer.light)
-        if gbuffer.mask is not None:
-            out["mask"] = image_to_numpy(gbuffer.mask)
-        if gbuffer.object_id is not None:
-            out["object_id"] = image_to_numpy(gbuffer.object_id)
-        if gbuffer.backface_depth is not None:
-            out["backface_depth"] = image_to_numpy(gbuffer.backface_depth)
-        if gbuffer.position is not None:
-            out["position"] = image_to_numpy(gbuffer.position)
+        for key, (field, _) in _IMAGE_KEYS.items():
+            if getattr(gbuffer, field) is not None:
+                out[key] = image_to_numpy(getattr(gbuffer, field))
         out["intrinsics"] = gbuffer.camera.intrinsics.detach().cpu().numpy()
     for key, value in arrays.items():
         if isinstance(value, torch.Tensor):

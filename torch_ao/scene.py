@@ -212,11 +212,11 @@ class Mesh(_Object):
 
         ``normalize=True`` scales the mesh to a largest extent of 1 and rests it on ``y = 0``
         centred on the ``y`` axis. Files the mesh file names (materials, textures) must be inside its
-        folder unless ``allow_outside_paths`` (:mod:`~torch_ao.reference.confine`).
+        folder unless ``allow_outside_paths`` (:mod:`~torch_ao.io.confine`).
         """
         from pathlib import Path
 
-        from .meshfile import normalize_vertices, read_trimesh
+        from .io.trimesh_file import normalize_vertices, read_trimesh
 
         path = Path(path)
         tm = read_trimesh(path, force="mesh", process=False, allow_outside_paths=allow_outside_paths)

@@ -1,6 +1,6 @@
 """Scenes from a user's mesh files: OBJ, PLY, STL, OFF, glTF/GLB... through trimesh.
 
-* One :class:`~torch_ao.reference.scene.Mesh` (one object id) per file, except glTF/GLB files,
+* One :class:`~torch_ao.scene.Mesh` (one object id) per file, except glTF/GLB files,
   which give one per node that carries triangles (in the order of the node names), placed by the
   node's world transform.
 * A glTF file's first perspective camera (``cameras``, on a node of the default scene, with its
@@ -19,22 +19,20 @@ meshes) are one-line messages that name the file: ``FileNotFoundError`` or ``Val
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import struct
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 
-from ..checks import check_choice, check_float, install_hint
-from .confine import ALLOW_HINT, OutsidePathError, confined_path, confined_resolver, scene_root
-from .scene import LookAt, Mesh, Plane, Scene, Vec3
+from ..checks import check_choice, check_float
+from ..scene import LookAt, Mesh, Plane, Scene, Vec3
+from .mitsuba import load_mitsuba_file
+from .trimesh_file import GLTF_SUFFIXES, gltf_json, normalize_vertices, one_line, read_trimesh
 
 __all__ = ["load_mesh_file", "mesh_scene", "frame_view", "gltf_camera", "UP_AXES", "up_axis_rotation"]
 
-_GLTF = (".gltf", ".glb")
 
 #: The up axes a mesh file may have (``up_axis``, ``torch-ao render --up-axis``).
 UP_AXES = ("y", "z", "x", "-y", "-z", "-x")
@@ -53,88 +51,7 @@ def up_axis_rotation(up_axis: str) -> torch.Tensor:
     return torch.tensor(_UP_ROWS[up_axis], dtype=torch.float64)
 
 
-def _one_line(err: Exception) -> str:
-    text = " ".join(str(err).split())
-    return f"{type(err).__name__}: {text}" if text else type(err).__name__
-
-
-def read_trimesh(path: Path, *, allow_outside_paths: bool = False, **kwargs):
-    """``trimesh.load(path, **kwargs)`` with the library's errors (no such file, no trimesh,
-    unreadable file), each one line naming the file. The files ``path`` names (materials, textures,
-    glTF buffers) are confined to its folder unless ``allow_outside_paths``
-    (:mod:`~torch_ao.reference.confine`)."""
-    if not path.is_file():
-        raise FileNotFoundError(f"mesh: no such file: {path}")
-    try:
-        import trimesh
-    except ImportError:
-        raise ImportError(f"mesh: loading mesh files needs trimesh: {install_hint('mesh', 'trimesh')}") from None
-    if path.suffix.lower() in _GLTF:
-        check_gltf_uris(path, _gltf_json(path), allow_outside_paths=allow_outside_paths)
-    resolver = confined_resolver(path, allow_outside=allow_outside_paths)
-    try:
-        loaded = trimesh.load(str(path), resolver=resolver, **kwargs)
-    except Exception as err:  # trimesh raises many kinds for bad or unsupported files
-        if resolver.refused:
-            raise OutsidePathError(resolver.refused[0]) from None
-        raise ValueError(f"mesh: cannot read {path} ({_one_line(err)})") from None
-    if resolver.refused:  # trimesh skipped the asset (a material, say): still refused
-        raise OutsidePathError(resolver.refused[0])
-    return loaded
-
-
-def check_gltf_uris(path: Path, header: dict, *, allow_outside_paths: bool = False) -> None:
-    """Refuse (:class:`~torch_ao.reference.confine.OutsidePathError`) a glTF whose ``buffers`` or
-    ``images`` name a file outside its folder, or any URI with a scheme but ``data:``, before trimesh
-    reads anything."""
-    from urllib.parse import unquote, urlsplit
-
-    root = scene_root(path)
-    for kind in ("buffers", "images"):
-        entries = header.get(kind, [])
-        if not isinstance(entries, list):
-            raise ValueError(f"mesh: {path}: {kind}: expected a list, got {type(entries).__name__}")
-        for i, entry in enumerate(entries):
-            uri = entry.get("uri") if isinstance(entry, dict) else None
-            if uri is None:
-                continue
-            if not isinstance(uri, str):
-                raise ValueError(f"mesh: {path}: {kind}[{i}].uri: expected a string, got {type(uri).__name__}")
-            if uri.startswith("data:"):
-                continue
-            if len(urlsplit(uri).scheme) > 1 and not allow_outside_paths:  # (a one-letter scheme is a drive, c:/)
-                raise OutsidePathError(f"scene: {path}: {kind}[{i}].uri {uri!r} is a URL, outside the scene's folder "
-                                       f"{root}; files a scene names must be inside its folder ({ALLOW_HINT})")
-            confined_path(path, unquote(uri), f"{kind}[{i}].uri", root=root, allow_outside=allow_outside_paths)
-
-
-def normalize_vertices(v: torch.Tensor, path: Path) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """Scale and shift ``(V,3)`` vertices to a largest extent of 1, resting on ``y = 0`` and centred
-    on the ``y`` axis. Returns ``(normalised, offset (3,), scale)`` with ``v = normalised * scale + offset``."""
-    lo, hi = v.min(0).values, v.max(0).values
-    scale = float((hi - lo).max())
-    if scale <= 0:
-        raise ValueError(f"mesh: {path} is degenerate (zero extent)")
-    centre = (lo + hi) / 2
-    offset = torch.stack([centre[0], lo[1], centre[2]])
-    return (v - offset) / scale, offset, scale
-
-
 # ---------------------------------------------------------------------------------------- glTF camera
-def _gltf_json(path: Path) -> dict:
-    """The JSON part of a ``.gltf`` or ``.glb`` file."""
-    data = path.read_bytes()
-    try:
-        if data[:4] == b"glTF":
-            length, kind = struct.unpack_from("<II", data, 12)
-            if kind != 0x4E4F534A:  # "JSON"
-                raise ValueError("the first GLB chunk is not JSON")
-            return json.loads(data[20:20 + length])
-        return json.loads(data)
-    except (ValueError, struct.error, UnicodeDecodeError) as err:
-        raise ValueError(f"mesh: cannot read {path} as glTF ({_one_line(err)})") from None
-
-
 def _node_matrix(node: dict) -> np.ndarray:
     """A glTF node's local ``(4,4)`` transform: ``matrix`` (column-major) or ``T * R * S``."""
     if "matrix" in node:
@@ -176,13 +93,13 @@ def gltf_camera(path: str | Path) -> LookAt | None:
     (``ValueError`` naming the first of them).
     """
     path = Path(path)
-    header = _gltf_json(path)
+    header = gltf_json(path)
     try:
         return _first_camera(header, path)
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as err:
         if str(path) in str(err):
             raise
-        raise ValueError(f"mesh: {path}: malformed glTF scene graph ({_one_line(err)})") from None
+        raise ValueError(f"mesh: {path}: malformed glTF scene graph ({one_line(err)})") from None
 
 
 def _first_camera(header: dict, path: Path) -> LookAt | None:
@@ -238,7 +155,7 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normaliz
             Z-up OBJ exports); the meshes (and a glTF camera) are turned so that it becomes ``+Y``
             (:func:`up_axis_rotation`), before ``normalize``.
         allow_outside_paths: let the file name files (materials, glTF buffers and images) outside its
-            folder; by default they are refused (:mod:`~torch_ao.reference.confine`).
+            folder; by default they are refused (:mod:`~torch_ao.io.confine`).
     Returns:
         one :class:`Mesh` per file (all parts concatenated) or, for glTF/GLB, one per node with
         triangles (node-name order, world transforms applied; names ``"file.glb:node"``), and the
@@ -246,7 +163,7 @@ def load_mesh_file(path: str | Path, *, albedo: Vec3 = (0.8, 0.8, 0.8), normaliz
     """
     path = Path(path)
     R = up_axis_rotation(up_axis)
-    if path.suffix.lower() in _GLTF:
+    if path.suffix.lower() in GLTF_SUFFIXES:
         parts, camera = _gltf_parts(path, allow_outside_paths), gltf_camera(path)
     else:
         mesh = Mesh.load(path, albedo=albedo, allow_outside_paths=allow_outside_paths)
@@ -302,7 +219,7 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
 
     Args:
         paths: one or more mesh files (:func:`load_mesh_file`) or Mitsuba 3 ``.xml`` scene files
-            (:func:`~torch_ao.reference.mitsuba_file.load_mitsuba_file`); object ids 1, 2, ... in
+            (:func:`~torch_ao.io.mitsuba.load_mitsuba_file`); object ids 1, 2, ... in
             file order (glTF: one per node, Mitsuba: one per shape), then the ground plane.
         ground_plane: ``None``/``False`` for none, ``True`` for a plane ``y = min y`` of the meshes
             (they rest on it), or a height ``h`` for the plane ``y = h`` (world units).
@@ -311,7 +228,7 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
             not for Mitsuba files (their cameras and shapes are placed in one world already).
         progress: a tqdm bar over the files (triangles read so far).
         allow_outside_paths: let the files name files outside their folders (Mitsuba includes and
-            shapes, glTF buffers, materials); by default refused (:mod:`~torch_ao.reference.confine`).
+            shapes, glTF buffers, materials); by default refused (:mod:`~torch_ao.io.confine`).
     Returns:
         a :class:`Scene` whose view is the first file camera found (glTF or Mitsuba), else :func:`frame_view` of the
         meshes; its ``description`` says which.
@@ -326,8 +243,6 @@ def mesh_scene(paths: Sequence[str | Path], *, ground_plane: float | bool | None
     bar = tqdm(paths, desc="load meshes", unit="file", disable=not progress, leave=False)
     for path in bar:
         if path.suffix.lower() == ".xml":
-            from .mitsuba_file import load_mitsuba_file
-
             if normalize:
                 raise ValueError(f"normalize: not for Mitsuba scene files ({path.name})")
             if up_axis != "y":

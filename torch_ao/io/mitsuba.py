@@ -22,7 +22,7 @@ offsets (fractions of the film added to its sample position) become ``LookAt.pri
 Files the scene names (``<include filename>``, ``<path value>``, every ``filename``: shapes, textures,
 spectra), after substituting its ``<default>`` parameters, must be inside the scene file's folder
 (relative names are taken relative to it), unless ``allow_outside_paths=True``
-(:mod:`~torch_ao.reference.confine`): they are checked, included files too, before Mitsuba reads anything.
+(:mod:`~torch_ao.io.confine`): they are checked, included files too, before Mitsuba reads anything.
 """
 from __future__ import annotations
 
@@ -34,9 +34,9 @@ import numpy as np
 import torch
 
 from ..checks import install_hint
+from ..scene import LookAt, Mesh, Sphere
 from .confine import confined_path, scene_root
-from .meshfile import _one_line
-from .scene import LookAt, Mesh, Sphere
+from .trimesh_file import one_line
 
 __all__ = ["load_mitsuba_file", "check_scene_references", "SEGMENTS"]
 
@@ -142,7 +142,7 @@ def _substituted(text: str, defaults: list[tuple[str, str]]) -> list[str]:
 
 
 def check_scene_references(path: str | Path, *, allow_outside_paths: bool = False) -> None:
-    """Refuse (:class:`~torch_ao.reference.confine.OutsidePathError`, naming the file and the
+    """Refuse (:class:`~torch_ao.io.confine.OutsidePathError`, naming the file and the
     reference) a Mitsuba scene file that names a file outside its folder, directly or through an
     ``<include>``, a ``<default>`` parameter or a symbolic link; ``ValueError`` for a file that is
     not XML. Reads the scene file and the files it includes, nothing else."""
@@ -157,7 +157,7 @@ def check_scene_references(path: str | Path, *, allow_outside_paths: bool = Fals
         try:
             doc = ET.parse(file).getroot()
         except (ET.ParseError, OSError) as err:
-            raise ValueError(f"scene: cannot read {file} as a Mitsuba 3 scene ({_one_line(err)})") from None
+            raise ValueError(f"scene: cannot read {file} as a Mitsuba 3 scene ({one_line(err)})") from None
         defaults = inherited + [(d.attrib["name"], d.attrib.get("value", "")) for d in doc.iter("default")
                                 if "name" in d.attrib]
         for what, reference in _references(doc):
@@ -186,7 +186,7 @@ def load_mitsuba_file(path: str | Path, *, allow_outside_paths: bool = False) ->
     try:
         scene = mi.load_file(str(path))
     except Exception as err:  # Mitsuba raises RuntimeError with a multi-line parser message
-        raise ValueError(f"scene: cannot read {path} as a Mitsuba 3 scene ({_one_line(err)})") from None
+        raise ValueError(f"scene: cannot read {path} as a Mitsuba 3 scene ({one_line(err)})") from None
     objects = []
     for shape in sorted(scene.shapes(), key=lambda s: s.id()):
         params = mi.traverse(shape)

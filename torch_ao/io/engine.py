@@ -1,5 +1,5 @@
 """Engine G-buffers in: OpenEXR files (Blender, Unreal, Unity) and 16-bit PNG depth, converted to the
-library's conventions (the arrays of the ``.npz`` format, see :mod:`torch_ao.io`).
+library's conventions (the arrays of the ``.npz`` format, see :mod:`torch_ao.io.npz`).
 
 Everything here works on numpy arrays in the ``.npz`` layout (``depth (...,H,W)``, ``normal``/``position``
 /``light``/``albedo (...,H,W,3)``, ``object_id``/``mask (...,H,W)``, ``intrinsics (3,3)``), so a file read
@@ -31,9 +31,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .checks import check_choice, check_float, install_hint
-from .limits import ResourceLimitError
-from .options import Option, options_by_name
+from ..checks import check_choice, check_float, install_hint
+from ..limits import ResourceLimitError
+from ..options import Option, options_by_name
+from .npz import _camera_from_arrays, real_array
 
 __all__ = ["EngineOptions", "CameraMissing", "ENGINE_OPTIONS", "CHANNEL_ALIASES", "DEPTH_ENCODINGS", "decode_device_depth", "read_engine_arrays", "apply_engine_options", "list_exr_channels",
            "parse_channels"]
@@ -209,7 +210,6 @@ def decode_device_depth(d: np.ndarray, encoding: str, near: float, far: float) -
 
 
 def _real(value, name: str) -> np.ndarray:
-    from .io import real_array
 
     return real_array(value, name, "the engine options")
 
@@ -256,7 +256,7 @@ def _read_exr(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 def _check_exr_size(OpenEXR, path: Path) -> None:
     """Refuse (:mod:`torch_ao.limits`) an OpenEXR file whose parts' data windows hold more pixels, or
     more bytes (pixels x channels x 4), than the limits allow, from its headers alone."""
-    from .limits import check_limit
+    from ..limits import check_limit
 
     try:
         with OpenEXR.File(str(path), header_only=True) as f:
@@ -385,7 +385,7 @@ def _read_png_depth(path: Path, scale: float) -> np.ndarray:
         from PIL import Image
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(f"reading PNG depth needs Pillow: {install_hint('plot', 'pillow')}") from err
-    from .limits import check_limit, limit
+    from ..limits import check_limit, limit
 
     with open(path, "rb") as f:
         head = f.read(24)
@@ -420,7 +420,6 @@ class CameraMissing(ValueError):
 def read_engine_arrays(path: str | os.PathLike, **options) -> dict[str, np.ndarray]:
     """Read an OpenEXR file (``.exr``) or a 16-bit PNG depth (``.png``) into ``.npz``-layout arrays in
     the library's conventions. ``options`` are :class:`EngineOptions` fields."""
-    from .io import real_array
 
     opts = EngineOptions(**options)
     path = _existing(path)
@@ -502,7 +501,6 @@ def _set_camera(arrays: dict, opts: EngineOptions) -> None:
 
 def _ray_lengths(arrays: dict, height: int, width: int) -> np.ndarray:
     """``(H,W)`` length of each pixel's ray ``((u-cx)/fx, (v-cy)/fy, 1)``: distance / length = depth."""
-    from .io import _camera_from_arrays
 
     try:
         camera = _camera_from_arrays(arrays, height, width, 1)
@@ -626,8 +624,8 @@ def _warn_if_fov_looks_horizontal(arrays: dict, fov: float) -> None:
     """Warn when ``fov`` (read as vertical) fits the file's own normals far worse than the same angle
     read as horizontal: the median angle between the file's normals and those reconstructed from depth
     is over 2 degrees with the vertical reading and under a quarter of it with the horizontal one."""
-    from .gbuffer import normals_from_depth
-    from .camera import PinholeCamera
+    from ..gbuffer import normals_from_depth
+    from ..camera import PinholeCamera
 
     depth = torch.from_numpy(np.asarray(arrays["depth"], dtype=np.float64))
     depth = depth.reshape(-1, 1, *depth.shape[-2:])
