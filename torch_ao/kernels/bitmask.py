@@ -124,10 +124,11 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     # sampleScale's numerator -radius P[0][0] per image, as GLSLPattern forms it
     p00 = (2 * gbuffer.camera.fx / W).to(torch.float32)
     scale = ((-torch.as_tensor(radius, dtype=torch.float32).detach()) * p00).contiguous()
-    vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale, light_input(gbuffer, indirect, records=True),
-                               int(slices), int(steps),
-                               float(thickness), bool(jitter), _NUMERICS.index(numerics), ROUNDINGS.index(rounding),
-                               bool(indirect))
+    with torch.no_grad():  # no backward: the dispatch sends calls that want gradients to the tensor path
+        vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale,
+                                   light_input(gbuffer, indirect, records=True), int(slices), int(steps),
+                                   float(thickness), bool(jitter), _NUMERICS.index(numerics),
+                                   ROUNDINGS.index(rounding), bool(indirect))
     return KernelOutputs(vis, light if indirect else None)
 
 

@@ -58,6 +58,11 @@ def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings
     layer ``(B,1,H,W)`` or ``None``; ``lanes``: on CPU, ``"simd"`` or ``"scalar"``.
     Raises :class:`KernelUnavailable` when the backend's kernel cannot be built here.
     """
+    with torch.no_grad():  # no kernel of the walk has a backward: the dispatch sends gradients to the tensor path
+        return _run(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light, backface, lanes)
+
+
+def _run(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light, backface, lanes):
     device = gbuffer.depth.device
     inputs, extra, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light, backface)
     if device.type == "cpu":
