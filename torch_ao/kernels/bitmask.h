@@ -212,7 +212,7 @@ struct ExactAccumulator {
     F fv = dot3(smp.delta, px.V), ft = F(float(side)) * dot3(smp.delta, sl.T), bv, bt;
     if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
       const F k = t / clamp_min(neg(smp.delta[2] + px.P[2]), F(1e-30f));
-      bv = fv + k * (fv - norm3(px.P)), bt = ft * (F(1.0f) + k);
+      bv = fv + k * (fv - px.distance), bt = ft * (F(1.0f) + k);
     } else {
       bv = fv - t, bt = ft;
     }

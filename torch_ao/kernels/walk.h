@@ -78,7 +78,7 @@ struct Image {
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
-  F P[3], N[3], V[3], e1[3], e2[3], depth, u, v, xi;
+  F P[3], N[3], V[3], e1[3], e2[3], depth, distance, u, v, xi;  // distance: |P|
   M live;
   int64_t row, u0;
 
@@ -107,6 +107,7 @@ template <class F> struct Pixels {
     xi = from_lanes(lane[9], like);
     const F minus[3] = {neg(P[0]), neg(P[1]), neg(P[2])};
     normalize3(minus, V);
+    distance = norm3(P);
     const F c1[3] = {V[2], F(0.0f), neg(V[0])};  // cross(+Y, V)
     normalize3(c1, e1);
     cross(V, e1, e2);
@@ -153,7 +154,7 @@ template <class F> struct Slice {
     unit_v = dv / clamp_min(len, F(1e-12f));
     radius_px = F(cfg.radius) * len;
     if (cfg.sphere_extent) {  // 1 / sqrt(1 - (R / |P|)^2), at most 10 (intervals.sphere_stretch)
-      const F ratio = F(cfg.radius) / norm3(px.P);
+      const F ratio = F(cfg.radius) / px.distance;
       radius_px = radius_px * rsqrt(clamp_min(F(1.0f) - ratio * ratio, F(1.0f / 100.0f)));
     }
     if (cfg.placement == Steps::power) {
