@@ -109,3 +109,17 @@ def test_gtao_sums_refuses_an_uncovered_gradient():
     with pytest.raises(ValueError, match="gbuffer: gradients through the kernel"):
         gtao_sums(gb, gb.view_normals(), variant="exact", slices=2, steps=2, walk_radius=0.5, radius=0.5,
                   fetch="nearest")
+
+
+def test_threads_scatter_into_their_own_images(built):
+    gb = rough_gbuffer(20, 28)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        _, one = _gradients(gb, "kernel", True, slices=3, steps=4)
+        torch.set_num_threads(3)
+        _, three = _gradients(gb, "kernel", True, slices=3, steps=4)
+    finally:
+        torch.set_num_threads(before)
+    for name in one:
+        assert torch.allclose(one[name], three[name], rtol=1e-5, atol=1e-6), name
