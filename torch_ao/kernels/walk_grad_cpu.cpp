@@ -3,8 +3,9 @@
 //  - each pixel's outputs' derivatives with respect to its own position, normal and depth (tangents
 //    0..6, seeded in Pixels), the sample positions' and bilinear weights' dependence on them included;
 //  - per slice and side, the derivatives with respect to the horizon's winning sample's offset delta
-//    (tangents 7..9 for side +1, 10..12 for side -1, seeded on every sample: the horizon is a minimum,
-//    so the tangents that survive are the winner's). They are chained to the winner's taps: for a
+//    (tangents 7..9, seeded on every sample: the horizon is a minimum, so the tangents that survive are
+//    the winner's; each side's horizon keeps its own, taken out before the slice's integral, which then
+//    runs with tangents 7 and 8 on the two horizons). They are chained to the winner's taps: for a
 //    bilinear fetch delta = pos - P with pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a
 //    nearest fetch reads the tap's position itself. Scattered into per-thread images, summed at the end.
 // The outputs' upstream gradient is read per pixel before the walk, so nothing per sample is stored.
@@ -29,7 +30,7 @@ namespace {
 using namespace tao;
 
 constexpr int kOwn = 7;                  // tangents of the pixel's own P (3), N (3), depth (1)
-constexpr int kTangents = kOwn + 2 * 3;  // and of the winning sample's delta per side
+constexpr int kTangents = kOwn + 3;      // and of a side's winning sample's delta
 
 inline bool mask_lane(bool m, int) { return m; }
 inline bool mask_lane(const Vec& m, int l) { return lane_on(m, l); }
@@ -85,7 +86,7 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
       Winner<B>& w = win[k];
       for (int64_t j = 0; j < cfg.steps; ++j) {
         Sample<D> smp(cfg, img, px, sl, float(side), step_distance(cfg, sl, px.xi, j));
-        for (int c = 0; c < 3; ++c) smp.delta[c].d[kOwn + 3 * k + c] = B(1.0f);
+        for (int c = 0; c < 3; ++c) smp.delta[c].d[kOwn + c] = B(1.0f);
         const B before = state.best[k].v;
         acc.step(state, side, px, sl, smp);
         const M took = state.best[k].v < before;
@@ -95,6 +96,10 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
         w.has = lor(w.has, took);
       }
     }
+    B along_delta[2][3];  // d best[k] / d delta of its winner; then tangents kOwn + k probe best[k]
+    for (int k = 0; k < 2; ++k)
+      for (int c = 0; c < 3; ++c) along_delta[k][c] = state.best[k].d[kOwn + c], state.best[k].d[kOwn + c] = B(0.0f);
+    state.best[0].d[kOwn] = state.best[1].d[kOwn + 1] = B(1.0f);
     typename Acc::template Sums<D> part;
     acc.end_slice(state, px, sl, part);
     D outs[8];
@@ -103,10 +108,9 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
       for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
     for (int k = 0; k < 2; ++k) {  // the winners' taps
       B gd[3];
-      for (int c = 0; c < 3; ++c) {
-        gd[c] = B(0.0f);
-        for (int ch = 0; ch < C; ++ch) gd[c] = gd[c] + g[ch] * outs[ch].d[kOwn + 3 * k + c];
-      }
+      B along_best = B(0.0f);
+      for (int ch = 0; ch < C; ++ch) along_best = along_best + g[ch] * outs[ch].d[kOwn + k];
+      for (int c = 0; c < 3; ++c) gd[c] = along_best * along_delta[k][c];
       const Winner<B>& w = win[k];
       float gl[3][L], pl[3][L], ful[L], fvl[L];
       int32_t il[4][L];
