@@ -152,7 +152,7 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
 
     Every option of the module must be one the kernel knows, at a value it covers (an option added to
     the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
-    G-buffer float32 on CPU, and no gradient asked for (the kernels have no backward).
+    G-buffer float32 on CPU, and, where autograd records, a gradient the backward covers (:func:`gradient_uncovered`).
     """
     reason = option_uncovered(getattr(module, "values", {}), options)
     if reason is not None:
