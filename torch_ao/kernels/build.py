@@ -51,6 +51,12 @@ def grad_kernels():
     only calls that want gradients need it. Raises :class:`KernelUnavailable` as :func:`cpu_kernels`."""
     cpu_kernels()
     load_cpu_library("torch_ao_walk_grad", (Path(__file__).with_name("walk_grad_cpu.cpp"),))
+
+    @torch.library.register_fake("torch_ao_kernels::walk_backward")
+    def _(accumulator, grad, positions, normals, inverse_depth, depth, *args):
+        return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape))
+
     return torch.ops.torch_ao_kernels
 
 
