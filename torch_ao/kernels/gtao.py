@@ -178,6 +178,9 @@ def gradient_uncovered(module, gbuffer: GBuffer) -> str | None:
     """Why the walk's backward cannot give ``module(gbuffer)``'s gradients to the G-buffer, or ``None``."""
     if getattr(module, "has_kernel", None) != "gtao" or module.variant != "exact":
         return "a gradient is asked for (the kernel's backward covers GTAO's exact variant)"
+    # a nearest fetch (texel positions on a plane) and a clamped border (steps past it reading one footprint)
+    # give samples whose horizon angles tie exactly: torch.minimum splits the gradient between them, the
+    # backward's horizon keeps the first sample's
     if module.fetch != "bilinear" or module.border != "drop":
         return ("a gradient is asked for with fetch, border = "
                 f"{module.fetch!r}, {module.border!r} (the kernel's backward covers 'bilinear', 'drop')")
