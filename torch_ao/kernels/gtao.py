@@ -166,8 +166,8 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
-        lengths = ("radius", "final_power", "albedo")  # the radius by scale invariance; the others: torch ops
-        if any(t.requires_grad for name, t in zip(parameters, tensors) if name not in lengths):
+        differentiable = ("radius", "final_power", "albedo")  # the radius by scale invariance; the others: torch ops
+        if any(t.requires_grad for name, t in zip(parameters, tensors) if name not in differentiable):
             return "a gradient of a parameter other than radius, final_power, albedo is asked for"
         if any(t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, *tensors)):
             return gradient_uncovered(module, gbuffer)
