@@ -132,8 +132,9 @@ def test_kernel_covers_names_what_it_does_not_cover():
         assert gtao_covers(GTAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
         assert hbao_covers(HBAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
         assert gtao_covers(GTAO(preset="high@half"), gb) is None
-    # the kernels have no backward: a call that may need gradients runs the tensor path
-    assert "gradient" in gtao_covers(GTAO(), gb)  # trainable parameters, autograd on
+    # gradients: the exact variant's backward (tests/test_kernels_gtao_grad.py); others run the tensor path
+    assert gtao_covers(GTAO(), gb) is None  # the trainable radius and final power, autograd on
+    assert "gradient" in gtao_covers(GTAO(variant="hdrp"), gb)
     assert gtao_covers(GTAO(trainable=False), gb) is None
     assert "gradient" in hbao_covers(HBAO(trainable=False), GBuffer(depth=gb.depth.clone().requires_grad_(),
                                                                     camera=gb.camera))
@@ -148,7 +149,7 @@ def _count_calls(monkeypatch, name):
     return calls
 
 
-def test_auto_runs_the_kernel_without_gradients_and_the_tensor_path_with(built, monkeypatch):
+def test_auto_runs_the_kernel_with_and_without_gradients(built, monkeypatch):
     calls = _count_calls(monkeypatch, "gtao")
     gb = rough_gbuffer()
     module = GTAO(slices=3, steps=4, bent_normals=True)
@@ -157,10 +158,16 @@ def test_auto_runs_the_kernel_without_gradients_and_the_tensor_path_with(built, 
     assert calls == [1]
     reference = GTAO(slices=3, steps=4, bent_normals=True, backend="torch")(gb)
     assert (auto.visibility - reference.visibility).abs().max() <= 1e-6
-    graph = module(gb)  # autograd on, trainable radius: the tensor path, with its gradient
-    assert calls == [1] and graph.visibility.requires_grad
+    graph = module(gb)  # autograd on, trainable radius: the kernel's backward
+    assert calls == [1, 1] and graph.visibility.requires_grad
     graph.visibility.sum().backward()
-    assert module.radius.grad is not None and module.radius.grad.abs() > 0
+    torch_radius = GTAO(slices=3, steps=4, bent_normals=True, backend="torch")
+    torch_radius(gb).visibility.sum().backward()
+    assert module.radius.grad.abs() > 0
+    assert torch.allclose(module.radius.grad, torch_radius.radius.grad, rtol=1e-4)
+    variant = GTAO(slices=3, steps=4, variant="hdrp")
+    variant(gb).visibility.sum().backward()  # no backward for hdrp: the tensor path, with its gradient
+    assert calls == [1, 1] and variant.radius.grad.abs() > 0
 
 
 def test_torch_backend_never_calls_the_kernels(monkeypatch):
@@ -179,7 +186,7 @@ def test_torch_backend_never_calls_the_kernels(monkeypatch):
 def test_kernel_backend_refuses_a_call_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     with pytest.raises(ValueError, match="backend.*gradient"):
-        GTAO(backend="kernel")(gb)
+        GTAO(variant="hdrp", backend="kernel")(gb)
     with torch.no_grad(), pytest.raises(ValueError, match="backend.*float64"):
         HBAO(backend="kernel")(gb.to(dtype=torch.float64))
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["KernelUnavailable", "cpu_kernels", "load_cpu_library", "load_cached_library"]
+__all__ = ["KernelUnavailable", "cpu_kernels", "grad_kernels", "load_cpu_library", "load_cached_library"]
 
 #: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``): ops_cpu.cpp
 #: compiles the one walk (walk.h and its accumulators); bitmask_cpu.cpp (the GLSL article's variant) and
@@ -41,6 +41,22 @@ def cpu_kernels():
     """
     load_cpu_library("torch_ao_kernels", _SOURCES)
     _register_fake()
+    return torch.ops.torch_ao_kernels
+
+
+@functools.lru_cache(maxsize=None)
+def grad_kernels():
+    """The namespace with the walk's backward (``walk_backward``, walk_grad_cpu.cpp), built on first use
+    as a library of its own: its dual-number walk takes longer to compile than the forward kernels, and
+    only calls that want gradients need it. Raises :class:`KernelUnavailable` as :func:`cpu_kernels`."""
+    cpu_kernels()
+    load_cpu_library("torch_ao_walk_grad", (Path(__file__).with_name("walk_grad_cpu.cpp"),))
+
+    @torch.library.register_fake("torch_ao_kernels::walk_backward")
+    def _(accumulator, grad, positions, normals, inverse_depth, depth, *args):
+        return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape))
+
     return torch.ops.torch_ao_kernels
 
 

@@ -18,6 +18,7 @@ import torch
 from ..gbuffer import GBuffer
 from .coverage import gbuffer_uncovered, option_uncovered
 from .launch import run_walk, walk_settings
+from .walk_grad import differentiable_walk, wants_gradient
 
 __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
 
@@ -31,7 +32,7 @@ def _value(x) -> float:
 
 
 def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact", slices: int, steps: int,
-              walk_radius: float, radius: float, falloff: float = 0.0, thickness: float = 1.0,
+              walk_radius: float, radius: float | torch.Tensor, falloff: float = 0.0, thickness: float = 1.0,
               step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
               jitter: bool = True, seed: int = 0, fetch: str = "bilinear", border: str = "drop",
               azimuth: str = "view", projected_normal_weight: bool = True,
@@ -47,7 +48,9 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
             (pixels, ``None``: none), jitter, seed, fetch, border, azimuth, projected_normal_weight: as
             :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
-            body); a CUDA G-buffer runs the CUDA kernel.
+            body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer (the
+            exact variant, bilinear fetch, dropped border, on CPU) the sums carry gradients to its depth and
+            normals (walk_grad.py).
 
     Channels: the slice integrals and the unoccluded integrals summed over slices, then with
     ``bent_normals`` the bent-normal sum (3). Raises :class:`~torch_ao.kernels.KernelUnavailable` when the
@@ -57,9 +60,18 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
                              min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed,
                              fetch=fetch, border=border, azimuth=azimuth,
                              placement="power" if variant == "exact" else variant)
-    return run_walk("gtao", gbuffer, normals, settings,
+    walk, options = run_walk, {}
+    if wants_gradient(gbuffer, normals, radius):
+        if variant != "exact" or gbuffer.depth.device.type != "cpu" or fetch != "bilinear" or border != "drop":
+            raise ValueError("gbuffer: gradients through the kernel cover the exact variant's bilinear fetch and "
+                             f"dropped border on CPU, not variant={variant!r}, fetch={fetch!r}, border={border!r} on "
+                             f"{gbuffer.depth.device.type}")
+        # every length setting is proportional to the radius (walk_radius = radius * search_scale, falloff =
+        # falloff_range * radius): its gradient by the walk's scale invariance (walk_grad.py)
+        walk, options = differentiable_walk, {"radius": radius}
+    return walk("gtao", gbuffer, normals, settings,
                     [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
-                    [radius, falloff, thickness], 5 if bent_normals else 2, lanes=lanes)
+                    [_value(radius), falloff, thickness], 5 if bent_normals else 2, lanes=lanes, **options)
 
 
 def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
@@ -101,7 +113,8 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     sums = gtao_sums(
         gbuffer, normals, variant=m.variant, slices=m.slices, steps=m.steps,
         walk_radius=_value(m.radius * m.search_scale) if m.variant == "exact" else _value(m.radius),
-        radius=_value(m.radius), falloff=falloff, thickness=_value(m.thickness_heuristic),
+        radius=m.radius if m.variant == "exact" else _value(m.radius), falloff=falloff,
+        thickness=_value(m.thickness_heuristic),
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
         seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
         projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
@@ -139,7 +152,7 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
 
     Every option of the module must be one the kernel knows, at a value it covers (an option added to
     the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
-    G-buffer float32 on CPU, and no gradient asked for (the kernels have no backward).
+    G-buffer float32 on CPU, and, where autograd records, a gradient the backward covers (:func:`gradient_uncovered`).
     """
     reason = option_uncovered(getattr(module, "values", {}), options)
     if reason is not None:
@@ -152,9 +165,30 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     reason = gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))
     if reason is not None:
         return reason
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad
-                                       for t in [gbuffer.depth, gbuffer.normals, *tensors]):
-        return "a gradient is asked for (the kernel has no backward)"
+    if torch.is_grad_enabled():
+        differentiable = ("radius", "final_power", "albedo")  # the radius by scale invariance; the others: torch ops
+        if any(t.requires_grad for name, t in zip(parameters, tensors) if name not in differentiable):
+            return "a gradient of a parameter other than radius, final_power, albedo is asked for"
+        if any(t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, *tensors)):
+            return gradient_uncovered(module, gbuffer)
+    return None
+
+
+def gradient_uncovered(module, gbuffer: GBuffer) -> str | None:
+    """Why the walk's backward cannot give ``module(gbuffer)``'s gradients to the G-buffer, or ``None``."""
+    if getattr(module, "has_kernel", None) != "gtao" or module.variant != "exact":
+        return "a gradient is asked for (the kernel's backward covers GTAO's exact variant)"
+    # a nearest fetch (texel positions on a plane) and a clamped border (steps past it reading one footprint)
+    # give samples whose horizon angles tie exactly: torch.minimum splits the gradient between them, the
+    # backward's horizon keeps the first sample's
+    if module.fetch != "bilinear" or module.border != "drop":
+        return ("a gradient is asked for with fetch, border = "
+                f"{module.fetch!r}, {module.border!r} (the kernel's backward covers 'bilinear', 'drop')")
+    if gbuffer.depth.device.type != "cpu":
+        return "a gradient is asked for on CUDA (the kernel's backward runs on CPU)"
+    cam = gbuffer.camera
+    if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+        return "a gradient of the intrinsics is asked for (the kernel's backward covers depth and normals)"
     return None
 
 

@@ -32,6 +32,8 @@ template <class F> TAO_FN void normalize3(const F* x, F* out) {
   const F len = clamp_min(norm3(x), F(1e-12f));
   for (int c = 0; c < 3; ++c) out[c] = x[c] / len;
 }
+// The walk's derivatives' seed on a pixel's own inputs: nothing for plain lanes (lanes_dual.h's for duals)
+template <class F> TAO_FN void seed_pixel(F*, F*, F&) {}
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)
 template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
@@ -101,6 +103,7 @@ template <class F> struct Pixels {
       N[c] = from_lanes(lane[3 + c], like);
     }
     depth = from_lanes(lane[6], like);
+    seed_pixel(P, N, depth);
     u = from_lanes(lane[7], like);
     v = F(float(row));
     live = from_lanes(lane[8], like) > F(0.5f);

@@ -1,0 +1,147 @@
+// Forward-mode dual numbers over any lane type of lanes_scalar.h / lanes_simd.h: Dual<F, N> carries a
+// value and its derivatives along N tangents, lane by lane, so the one walk (walk.h) run with
+// F = Dual<Vec, N> (or Dual<float, N>) gives its outputs' derivatives with respect to whatever the caller
+// seeds (seed_pixel: the pixel's own position, normal and depth).
+//
+// Derivatives at non-differentiable points follow torch's autograd of the tensor path: floor, rint and
+// comparisons have none; clamp passes the gradient where lo <= x <= hi; min / max pass the chosen
+// operand's (ties: the first). pow differentiates its base only (the walk's exponents are settings).
+#pragma once
+
+#include "lanes_scalar.h"
+
+namespace tao {
+
+template <class F, int N> struct Dual {
+  using M = typename LaneTraits<F>::M;
+  F v;
+  F d[N];
+
+  TAO_FN Dual() : v(0.0f) {
+    for (int k = 0; k < N; ++k) d[k] = F(0.0f);
+  }
+  TAO_FN Dual(const F& x) : v(x) {  // a constant (float converts through F)
+    for (int k = 0; k < N; ++k) d[k] = F(0.0f);
+  }
+
+  // a value with derivative a * x.d + b * y.d
+  static TAO_FN Dual chain(const F& value, const F& a, const Dual& x) {
+    Dual r(value);
+    for (int k = 0; k < N; ++k) r.d[k] = a * x.d[k];
+    return r;
+  }
+  static TAO_FN Dual chain(const F& value, const F& a, const Dual& x, const F& b, const Dual& y) {
+    Dual r(value);
+    for (int k = 0; k < N; ++k) r.d[k] = a * x.d[k] + b * y.d[k];
+    return r;
+  }
+
+  friend TAO_FN Dual operator+(const Dual& a, const Dual& b) {
+    Dual r(a.v + b.v);
+    for (int k = 0; k < N; ++k) r.d[k] = a.d[k] + b.d[k];
+    return r;
+  }
+  friend TAO_FN Dual operator-(const Dual& a, const Dual& b) {
+    Dual r(a.v - b.v);
+    for (int k = 0; k < N; ++k) r.d[k] = a.d[k] - b.d[k];
+    return r;
+  }
+  friend TAO_FN Dual operator*(const Dual& a, const Dual& b) { return chain(a.v * b.v, b.v, a, a.v, b); }
+  friend TAO_FN Dual operator/(const Dual& a, const Dual& b) {
+    const F inv = F(1.0f) / b.v, q = a.v * inv;
+    return chain(q, inv, a, neg(q * inv), b);
+  }
+  friend TAO_FN M operator<(const Dual& a, const Dual& b) { return a.v < b.v; }
+  friend TAO_FN M operator>(const Dual& a, const Dual& b) { return a.v > b.v; }
+  friend TAO_FN M operator<=(const Dual& a, const Dual& b) { return a.v <= b.v; }
+  friend TAO_FN M operator>=(const Dual& a, const Dual& b) { return a.v >= b.v; }
+  friend TAO_FN M operator==(const Dual& a, const Dual& b) { return a.v == b.v; }
+};
+
+template <class F, int N> struct LaneTraits<Dual<F, N>> {
+  using M = typename LaneTraits<F>::M;
+  using I = typename LaneTraits<F>::I;
+  static constexpr int L = LaneTraits<F>::L;
+};
+
+template <class F, int N> TAO_FN Dual<F, N> from_lanes(const float* x, const Dual<F, N>&) {
+  return Dual<F, N>(from_lanes(x, F(0.0f)));
+}
+template <class F, int N>
+TAO_FN Dual<F, N> select(const typename LaneTraits<F>::M& m, const Dual<F, N>& yes, const Dual<F, N>& no) {
+  Dual<F, N> r(select(m, yes.v, no.v));
+  for (int k = 0; k < N; ++k) r.d[k] = select(m, yes.d[k], no.d[k]);
+  return r;
+}
+template <class F, int N> TAO_FN Dual<F, N> neg(const Dual<F, N>& x) {
+  Dual<F, N> r(neg(x.v));
+  for (int k = 0; k < N; ++k) r.d[k] = neg(x.d[k]);
+  return r;
+}
+template <class F, int N> TAO_FN Dual<F, N> fma(const Dual<F, N>& a, const Dual<F, N>& b, const Dual<F, N>& c) {
+  return a * b + c;
+}
+template <class F, int N> TAO_FN Dual<F, N> abs(const Dual<F, N>& x) { return select(x.v < F(0.0f), neg(x), x); }
+template <class F, int N> TAO_FN Dual<F, N> sqrt(const Dual<F, N>& x) {
+  const F r = sqrt(x.v);
+  return Dual<F, N>::chain(r, F(0.5f) / r, x);
+}
+template <class F, int N> TAO_FN Dual<F, N> rsqrt(const Dual<F, N>& x) {
+  const F r = rsqrt(x.v);
+  return Dual<F, N>::chain(r, F(-0.5f) * r * r * r, x);
+}
+template <class F, int N> TAO_FN Dual<F, N> reciprocal(const Dual<F, N>& x) {
+  const F r = reciprocal(x.v);
+  return Dual<F, N>::chain(r, neg(r * r), x);
+}
+template <class F, int N> TAO_FN Dual<F, N> floor(const Dual<F, N>& x) { return Dual<F, N>(floor(x.v)); }
+template <class F, int N> TAO_FN Dual<F, N> ceil(const Dual<F, N>& x) { return Dual<F, N>(ceil(x.v)); }
+template <class F, int N> TAO_FN Dual<F, N> rint(const Dual<F, N>& x) { return Dual<F, N>(rint(x.v)); }
+template <class F, int N> TAO_FN Dual<F, N> atan2(const Dual<F, N>& y, const Dual<F, N>& x) {
+  const F r2 = x.v * x.v + y.v * y.v;  // torch's atan2 backward: 0 / 0 at the origin, as here
+  return Dual<F, N>::chain(atan2(y.v, x.v), x.v / r2, y, neg(y.v) / r2, x);
+}
+template <class F, int N> TAO_FN Dual<F, N> cos(const Dual<F, N>& x) { return Dual<F, N>::chain(cos(x.v), neg(sin(x.v)), x); }
+template <class F, int N> TAO_FN Dual<F, N> sin(const Dual<F, N>& x) { return Dual<F, N>::chain(sin(x.v), cos(x.v), x); }
+template <class F, int N> TAO_FN Dual<F, N> asin(const Dual<F, N>& x) {
+  return Dual<F, N>::chain(asin(x.v), rsqrt(F(1.0f) - x.v * x.v), x);
+}
+template <class F, int N> TAO_FN Dual<F, N> acos(const Dual<F, N>& x) {
+  return Dual<F, N>::chain(acos(x.v), neg(rsqrt(F(1.0f) - x.v * x.v)), x);
+}
+template <class F, int N> TAO_FN Dual<F, N> pow(const Dual<F, N>& x, const Dual<F, N>& y) {
+  const F r = pow(x.v, y.v);
+  return Dual<F, N>::chain(r, y.v * pow(x.v, y.v - F(1.0f)), x);
+}
+template <class F, int N> TAO_FN Dual<F, N> max(const Dual<F, N>& a, const Dual<F, N>& b) {
+  Dual<F, N> r = select(b.v > a.v, b, a);
+  r.v = max(a.v, b.v);  // NaN-propagating
+  return r;
+}
+template <class F, int N> TAO_FN Dual<F, N> min(const Dual<F, N>& a, const Dual<F, N>& b) {
+  Dual<F, N> r = select(b.v < a.v, b, a);
+  r.v = min(a.v, b.v);
+  return r;
+}
+template <class F, int N> TAO_FN Dual<F, N> clamp_min(const Dual<F, N>& x, const Dual<F, N>& lo) {
+  return select(x.v < lo.v, lo, x);
+}
+template <class F, int N> TAO_FN Dual<F, N> clamp_max(const Dual<F, N>& x, const Dual<F, N>& hi) {
+  return select(x.v > hi.v, hi, x);
+}
+template <class F, int N> TAO_FN Dual<F, N> clamp(const Dual<F, N>& x, const Dual<F, N>& lo, const Dual<F, N>& hi) {
+  return clamp_max(clamp_min(x, lo), hi);
+}
+template <class F, int N> TAO_FN typename LaneTraits<F>::I to_int(const Dual<F, N>& x) { return to_int(x.v); }
+
+// The walk's seed (walk.h's Pixels): tangents 0..2 the pixel's position, 3..5 its normal, 6 its depth
+template <class F, int N> TAO_FN void seed_pixel(Dual<F, N>* P, Dual<F, N>* Nrm, Dual<F, N>& depth) {
+  static_assert(N >= 7, "seed_pixel: the pixel's own tangents need 7 slots");
+  for (int c = 0; c < 3; ++c) {
+    P[c].d[c] = F(1.0f);
+    Nrm[c].d[3 + c] = F(1.0f);
+  }
+  depth.d[6] = F(1.0f);
+}
+
+}  // namespace tao
