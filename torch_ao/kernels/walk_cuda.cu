@@ -18,3 +18,4 @@ TAO_CUDA_ENTRY(tao_walk_gtao, unpack_gtao)
 TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao)
 TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask)
 TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact)
+TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft)  // with gradients: d visibility / d radius, thickness too
