@@ -36,12 +36,14 @@ template <class F> struct SoftCoverage {
   F a[kSectors], b[kSectors], gate, slope;
 };
 
-struct SoftAccumulator {
+// kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays)
+template <bool kGradients> struct SoftAccumulator {
   WalkSettings walk;  // the step placement (the radius' gradient moves the steps)
   float thickness, epsilon, tau, delta;  // delta: sectors.rule.rounding_offset
   int64_t rounding;
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
-  bool windowed, cosine, straight_through, gradients;
+  bool windowed, cosine, straight_through;
+  static constexpr int kKept = kGradients ? kSoftMaxSteps : 1;  // steps kept per slice
 
   template <class F> struct State {
     using I = typename LaneTraits<F>::I;
@@ -49,11 +51,10 @@ struct SoftAccumulator {
     F shift, omega[kSectors], P[kSectors];
     int n;
     // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius
-    F s[kSoftMaxSteps], w[kSoftMaxSteps], av[kSoftMaxSteps], at[kSoftMaxSteps], dav[kSoftMaxSteps],
-        dat[kSoftMaxSteps];
+    F s[kKept], w[kKept], av[kKept], at[kKept], dav[kKept], dat[kKept];
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
-  TAO_FN int channels() const { return gradients ? 3 : 1; }
+  TAO_FN int channels() const { return kGradients ? 3 : 1; }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
     const float inv_tau = float(1.0 / double(tau));
@@ -129,7 +130,7 @@ struct SoftAccumulator {
     if (epsilon > 0) w = w - F(epsilon);
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
     if (straight_through) st.occ = st.occ | sector_bits(s, w, rounding);
-    if (!gradients) {
+    if (!kGradients) {
       if (!straight_through && any(w >= F(0.0f))) cover(s, w, st.P, static_cast<F*>(nullptr));
       return;
     }
@@ -137,7 +138,7 @@ struct SoftAccumulator {
     st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at;
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
     F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    if (smp.bilinear) {
+    if (smp.bilinear && any(w >= F(0.0f))) {  // (an empty step has no gradient)
       const int64_t j = m % walk.steps;
       const F reach_px = sl.radius_px - F(walk.min_step_px);
       const F span_slope = select(reach_px >= F(0.0f), sl.radius_px / F(walk.radius), F(0.0f));
@@ -166,8 +167,8 @@ struct SoftAccumulator {
   template <class F>
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
     const int M = st.n;
-    F before[kSoftMaxSteps][kSectors];  // P_m of each step (with gradients)
-    if (gradients)
+    F before[kKept][kSectors];  // P_m of each step (with gradients)
+    if (kGradients)
       for (int m = 0; m < M; ++m)
         if (any(st.w[m] >= F(0.0f))) cover(st.s[m], st.w[m], st.P, before[m]);
     F visible = F(0.0f);
@@ -177,7 +178,7 @@ struct SoftAccumulator {
       if (cosine) sums.den = sums.den + st.omega[k];
     }
     sums.num = sums.num + visible;
-    if (!gradients) return;
+    if (!kGradients) return;
     const float inv_tau = float(1.0 / double(tau));
     F S[kSectors];
     for (int k = 0; k < kSectors; ++k) S[k] = st.omega[k];
@@ -221,7 +222,7 @@ struct SoftAccumulator {
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
     const F den = cosine ? clamp_min(sums.den, F(1e-30f)) : F(float(walk.slices));
     out[0] = select(px.live, sums.num / den, F(1.0f));
-    if (gradients) {
+    if (kGradients) {
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
     }

@@ -67,9 +67,9 @@ def _walk(gbuffer, normals, radius, thickness, o, gradients):
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius), jitter=o["jitter"],
                              seed=o["seed"], fetch=o["fetch"], border=o["border"], step_power=o["step_power"],
                              min_step_px=o["min_step_px"])
-    acc_ints = [o["rounding"], o["cosine"], o["straight_through"], gradients]
+    acc_ints = [o["rounding"], o["cosine"], o["straight_through"]]
     acc_floats = [float(thickness), o["epsilon"], o["tau"]]
-    return run_walk("soft", gbuffer, normals, settings, acc_ints, acc_floats, 3 if gradients else 1, lanes=o["lanes"])
+    return run_walk("soft_gradients" if gradients else "soft", gbuffer, normals, settings, acc_ints, acc_floats, 3 if gradients else 1, lanes=o["lanes"])
 
 
 class _SoftWalk(torch.autograd.Function):
