@@ -27,13 +27,22 @@ constexpr float kSoftTiny = 1e-30f;  // visibilities at or below are flushed to 
 constexpr int kSoftWindowMax = 8;    // sweeps.WINDOW_MAX
 constexpr int kSoftMaxSteps = 64;    // both sides' steps of a slice: steps <= 32
 
+// N lanes values left uninitialised (ATen's Vectorized zeroes itself on construction: the per-step arrays
+// of every slice would be cleared for nothing)
+template <class F, int N> struct LaneArray {
+  alignas(F) unsigned char bytes[N * sizeof(F)];
+  TAO_FN F& operator[](int i) { return reinterpret_cast<F*>(bytes)[i]; }
+  TAO_FN const F& operator[](int i) const { return reinterpret_cast<const F*>(bytes)[i]; }
+};
+
 template <class F> TAO_FN F soft_sigmoid(const F& x) {
   return reciprocal(F(1.0f) + exp(neg(clamp(x, F(-kSoftClamp), F(kSoftClamp)))));
 }
 
 // One step's soft coverage: a[k], b[k], the gate tanh(w / tau) (0 where empty), F'(s)
 template <class F> struct SoftCoverage {
-  F a[kSectors], b[kSectors], gate, slope;
+  LaneArray<F, kSectors> a, b;
+  F gate, slope;
 };
 
 // kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays)
@@ -48,10 +57,11 @@ template <bool kGradients> struct SoftAccumulator {
   template <class F> struct State {
     using I = typename LaneTraits<F>::I;
     I occ;  // straight-through: the hard coverage
-    F shift, omega[kSectors], P[kSectors];
+    F shift;
+    LaneArray<F, kSectors> omega, P;
     int n;
     // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius
-    F s[kKept], w[kKept], av[kKept], at[kKept], dav[kKept], dat[kKept];
+    LaneArray<F, kKept> s, w, av, at, dav, dat;
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
   TAO_FN int channels() const { return kGradients ? 3 : 1; }
@@ -131,7 +141,7 @@ template <bool kGradients> struct SoftAccumulator {
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
     if (straight_through) st.occ = st.occ | sector_bits(s, w, rounding);
     if (!kGradients) {
-      if (!straight_through && any(w >= F(0.0f))) cover(s, w, st.P, static_cast<F*>(nullptr));
+      if (!straight_through && any(w >= F(0.0f))) cover(s, w, &st.P[0], static_cast<F*>(nullptr));
       return;
     }
     const int m = st.n++;
@@ -167,10 +177,10 @@ template <bool kGradients> struct SoftAccumulator {
   template <class F>
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
     const int M = st.n;
-    F before[kKept][kSectors];  // P_m of each step (with gradients)
+    LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients): before[m * 32 + k]
     if (kGradients)
       for (int m = 0; m < M; ++m)
-        if (any(st.w[m] >= F(0.0f))) cover(st.s[m], st.w[m], st.P, before[m]);
+        if (any(st.w[m] >= F(0.0f))) cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors]);
     F visible = F(0.0f);
     for (int k = 0; k < kSectors; ++k) {
       const F free = straight_through ? F(1.0f) - bit(st.occ, k) : st.P[k];
@@ -190,7 +200,7 @@ template <bool kGradients> struct SoftAccumulator {
       F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
       for (int k = 0; k < kSectors; ++k) {
         const F ab = cv.a[k] * cv.b[k];
-        const F y = ab * before[m][k] * S[k];  // Y = a b P_m S_{m+1}
+        const F y = ab * before[m * kSectors + k] * S[k];  // Y = a b P_m S_{m+1}
         sum_y = sum_y + y;
         sum_ya = sum_ya + y * cv.a[k];
         sum_yb = sum_yb + y * cv.b[k];
