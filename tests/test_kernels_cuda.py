@@ -28,7 +28,7 @@ SHIM = """
 extern "C" {
 float fabsf(float); float sqrtf(float); float floorf(float); float ceilf(float); float rintf(float);
 float atan2f(float, float); float acosf(float); float asinf(float); float cosf(float); float sinf(float);
-float powf(float, float); float fmaf(float, float, float);
+float powf(float, float); float fmaf(float, float, float); float expf(float); float expm1f(float);
 struct tao_dim3 { unsigned x, y, z; };
 tao_dim3 blockIdx, blockDim, threadIdx;
 }
@@ -45,7 +45,7 @@ struct tao_dim3 { unsigned x, y, z; };
 extern tao_dim3 blockIdx, blockDim, threadIdx;
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
-Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact;
+Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_soft, tao_walk_soft_gradients;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -61,7 +61,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const unsigned threads = unsigned(std::atoi(argv[7]));
   Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao
-                 : name == "exact" ? tao_walk_exact : tao_walk_bitmask;
+                 : name == "exact" ? tao_walk_exact : name == "soft" ? tao_walk_soft
+                 : name == "soft_gradients" ? tao_walk_soft_gradients : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
   auto Ce = load<float>(dir, "cells"), Bf = load<float>(dir, "backface");
@@ -115,7 +116,8 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
 
 
 def cases(gb):
-    """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO and bitmask AO."""
+    """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
+    (hard, exact, soft: its forward, and with the radius and thickness derivatives)."""
     light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
     common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
@@ -127,6 +129,9 @@ def cases(gb):
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
+    yield "soft", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 1, None
+    yield "soft_gradients", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 3, None
+    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True], [0.4, 0.01, 0.05], 3, None
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -137,8 +142,15 @@ def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_
         cuda = launch_on_cpu(cuda_on_cpu, accumulator, gb, normals, settings, ints, floats, channels, light)
         scalar = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
         assert (cuda != -7.0).all()  # every pixel written, by exactly its thread
-        assert (cuda - scalar).abs().max() <= 1e-6, (accumulator, (cuda - scalar).abs().max())
         simd = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light)
+        if accumulator == "soft_gradients":  # (derivatives up to ~1 / tau^2: relative to their scale)
+            scale = scalar[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
+            assert (cuda[:, :1] - scalar[:, :1]).abs().max() <= 1e-6
+            assert ((cuda[:, 1:] - scalar[:, 1:]) / scale).abs().max() <= 1e-5, accumulator
+            assert ((cuda[:, 1:] - simd[:, 1:]) / scale).abs().max() <= 1e-3, accumulator
+            assert_values_agree(cuda[:, :1], simd[:, :1], gb.valid, atol=1e-4, bound=0.5)
+            continue
+        assert (cuda - scalar).abs().max() <= 1e-6, (accumulator, (cuda - scalar).abs().max())
         if accumulator == "bitmask" and channels == 1:
             assert_masks_agree(cuda, simd, gb.valid, settings[0][0])
         else:

@@ -13,10 +13,9 @@ import torch
 __all__ = ["KernelUnavailable", "cpu_kernels", "grad_kernels", "load_cpu_library", "load_cached_library"]
 
 #: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``): ops_cpu.cpp
-#: compiles the one walk (walk.h and its accumulators); bitmask_cpu.cpp (the GLSL article's variant) and
-#: soft_bitmask_cpu.cpp still walk with walk_cpu.h
-_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "ops_cpu.cpp",
-                                                             "soft_bitmask_cpu.cpp"))
+#: compiles the one walk (walk.h and its accumulators); bitmask_cpu.cpp (the GLSL article's variant) still
+#: walks with walk_cpu.h
+_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "ops_cpu.cpp"))
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
@@ -195,13 +194,3 @@ def _register_fake() -> None:
     def _(positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, 1, H, W), positions.new_empty(B if args[-1] else 0, 3, H, W)
-
-    @torch.library.register_fake("torch_ao_kernels::soft_bitmask")
-    def _(positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, slices, steps, *args):
-        B, H, W, _ = positions.shape  # the visibility, and one byte per 16 pixels, slice and step (live steps)
-        return positions.new_empty(B, 1, H, W), positions.new_empty(B, H, -(-W // 16), slices, 2 * steps,
-                                                                      dtype=torch.uint8)
-
-    @torch.library.register_fake("torch_ao_kernels::soft_bitmask_backward")
-    def _(grad, live, positions, normals, inverse_depth, depth, valid, intrinsics, radius, thickness, *args):
-        return radius.new_empty(()), thickness.new_empty(())

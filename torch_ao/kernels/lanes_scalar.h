@@ -50,6 +50,8 @@ TAO_FN float asin(float x) { return asinf(x); }
 TAO_FN float cos(float x) { return cosf(x); }
 TAO_FN float sin(float x) { return sinf(x); }
 TAO_FN float pow(float x, float y) { return powf(x, y); }
+TAO_FN float exp(float x) { return expf(x); }
+TAO_FN float expm1(float x) { return expm1f(x); }
 // NaN-propagating like ATen's maximum/minimum, which the SIMD lanes use
 TAO_FN float max(float a, float b) { return (a != a || b != b) ? a + b : (a > b ? a : b); }
 TAO_FN float min(float a, float b) { return (a != a || b != b) ? a + b : (a < b ? a : b); }

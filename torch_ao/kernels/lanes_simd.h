@@ -44,6 +44,8 @@ inline Vec asin(const Vec& x) { return x.asin(); }
 inline Vec cos(const Vec& x) { return x.cos(); }
 inline Vec sin(const Vec& x) { return x.sin(); }
 inline Vec pow(const Vec& x, const Vec& y) { return x.pow(y); }
+inline Vec exp(const Vec& x) { return x.exp(); }
+inline Vec expm1(const Vec& x) { return x.expm1(); }
 inline Vec max(const Vec& a, const Vec& b) { return at::vec::maximum(a, b); }
 inline Vec min(const Vec& a, const Vec& b) { return at::vec::minimum(a, b); }
 inline Vec clamp_min(const Vec& x, const Vec& lo) { return at::vec::clamp_min(x, lo); }

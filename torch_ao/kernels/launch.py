@@ -26,7 +26,7 @@ PLACEMENTS = ("power", "hdrp", "ue4")
 
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
-_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "packed.h", "walk_cuda.cu")
+_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "soft.h", "packed.h", "walk_cuda.cu")
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
 
 

@@ -67,7 +67,7 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
-// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact") over the frame,
+// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "soft", "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -109,8 +109,20 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
     run(unpack_exact(i, f));
+  } else if (name == "soft" || name == "soft_gradients") {
+    packed(3, 3);
+    TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
+    TORCH_CHECK(i[1] <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
+    if (name == "soft") {
+      run(unpack_soft<false>(i, f));
+    } else {
+      TORCH_CHECK(i[3] == 0 && f[3] <= 0 && !i[9] && !i[10] && !i[7],
+                  "soft_gradients: the radius' derivative is the power step placement's, without max_radius_px, "
+                  "edge-aware fetch, sphere extent or full circle");
+      run(unpack_soft<true>(i, f));
+    }
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask or exact, got ", name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, soft or soft_gradients, got ", name);
   }
   return out;
 }

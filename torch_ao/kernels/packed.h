@@ -6,6 +6,7 @@
 
 #include "bitmask.h"
 #include "horizon.h"
+#include "soft.h"
 
 namespace tao {
 
@@ -50,6 +51,22 @@ TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
   return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], i[3] != 0}, f[2], f[3], i[0] != 0, i[1] != 0,
                           i[2] != 0};
 }
+
+// ints: rounding, cosine, straight_through; floats: thickness, epsilon, tau
+template <bool kGradients> TAO_FN SoftAccumulator<kGradients> unpack_soft(const int64_t* i, const float* f) {
+  SoftAccumulator<kGradients> acc;
+  acc.walk = unpack_walk(i, f);
+  i += kAccInts, f += kAccFloats;
+  acc.rounding = i[0], acc.cosine = i[1] != 0, acc.straight_through = i[2] != 0;
+  acc.thickness = f[0], acc.epsilon = f[1], acc.tau = f[2];
+  acc.delta = acc.rounding == 0 ? 0.0f : acc.rounding == 1 ? 0.5f : 1.0f;
+  acc.reach = int(ceil(kSoftClamp * acc.tau)) + 1;  // sweeps.floor_window_width
+  acc.window = 2 * acc.reach < kSectors ? 2 * acc.reach : kSectors;
+  acc.windowed = acc.window <= kSoftWindowMax;
+  return acc;
+}
+TAO_FN SoftAccumulator<false> unpack_soft_forward(const int64_t* i, const float* f) { return unpack_soft<false>(i, f); }
+TAO_FN SoftAccumulator<true> unpack_soft_gradients(const int64_t* i, const float* f) { return unpack_soft<true>(i, f); }
 
 // A batch of B images channel-last (walk.h's Image per image; light, cells and backface may be null)
 struct Frame {

@@ -1,11 +1,13 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
-forward and backward in fused passes, differentiable with respect to the scalar ``radius`` and ``thickness``.
+on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``
+and ``thickness``.
 
 The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sectors.soft_union`, or the
-hard coverage in straight-through mode); the backward walks every pixel again and runs the soft union's
-reverse scan in registers, so forward+backward keep nothing per sample: their memory is the G-buffer's
-(channel-last copies) and the output. Gradients of the G-buffer (depth, normals, intrinsics) are not
-computed: such a call runs the tensor path (:func:`kernel_covers` says why).
+hard coverage in straight-through mode). When a gradient is wanted, the same walk also returns each pixel's
+derivatives of its visibility with respect to radius and thickness (the soft union's reverse scan per slice,
+in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per sample,
+two channels per pixel. Gradients of the G-buffer (depth, normals, intrinsics) are not computed: such a call
+runs the tensor path (:func:`kernel_covers` says why).
 """
 from __future__ import annotations
 
@@ -14,76 +16,77 @@ import torch
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from .bitmask import options_uncovered
-from .frame import walk_inputs
 from .build import cpu_kernels
+from .launch import run_walk, walk_settings
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
-
-_OP = "torch_ao_kernels::soft_bitmask"
-#: the op's arguments after its eight tensors, in order
-_SETTINGS = ("slices", "steps", "step_power", "min_step_px", "jitter", "seed", "bilinear", "drop", "rounding",
-             "epsilon", "tau", "cosine")
 
 
 def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, weighting: str = "uniform", straight_through: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
-                 sector_epsilon: float = 0.01) -> torch.Tensor:
+                 sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
     differentiable with respect to ``radius`` and ``thickness``.
 
     Args:
-        gbuffer: a float32 CPU G-buffer without gradients; normals: its ``(B,3,H,W)`` unit view-space
-            normals (without gradients).
-        slices, steps: directions per pixel and samples per side.
+        gbuffer: a float32 G-buffer (CPU, or CUDA) without gradients; normals: its ``(B,3,H,W)`` unit
+            view-space normals (without gradients).
+        slices, steps: directions per pixel and samples per side (at most 32).
         radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward.
         step_power, min_step_px (pixels), jitter, seed, fetch, border, rounding, sector_epsilon (sectors):
-            as :class:`~torch_ao.BitmaskAO`.
+            as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
     ``ValueError`` naming ``gbuffer``/``normals`` when they carry a gradient (the kernel does not compute it).
     """
-    ops = cpu_kernels()
-    _register_autograd()
     if torch.is_grad_enabled() and (normals.requires_grad or gbuffer.depth.requires_grad or (
             gbuffer.position is not None and gbuffer.position.requires_grad)):
         raise ValueError("gbuffer/normals: the soft kernel differentiates radius and thickness only; "
                          "detach the G-buffer or use backend='torch'")
+    if gbuffer.depth.device.type == "cpu":
+        cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
     scalars = []
     for name, t in (("radius", radius), ("thickness", thickness)):
         t = torch.as_tensor(t)
         if t.dim() != 0:
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
         scalars.append(t)
-    return ops.soft_bitmask(*walk_inputs(gbuffer, normals), *scalars, int(slices), int(steps), float(step_power),
-                            float(min_step_px), bool(jitter), int(seed), fetch == "bilinear", border == "drop",
-                            ROUNDINGS.index(rounding), float(sector_epsilon), float(tau), weighting == "cosine",
-                            bool(straight_through))[0]
+    options = dict(slices=int(slices), steps=int(steps), tau=float(tau), cosine=weighting == "cosine",
+                   straight_through=bool(straight_through), step_power=float(step_power),
+                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), fetch=fetch, border=border,
+                   rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes)
+    return _SoftWalk.apply(gbuffer, normals, *scalars, options)
 
 
-def _setup_context(ctx, inputs, output):
-    ctx.save_for_backward(output[1], *inputs[:8])  # the forward's marks of the live steps, then its tensors
-    ctx.settings = inputs[8:8 + len(_SETTINGS)]
+def _walk(gbuffer, normals, radius, thickness, o, gradients):
+    """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness."""
+    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius), jitter=o["jitter"],
+                             seed=o["seed"], fetch=o["fetch"], border=o["border"], step_power=o["step_power"],
+                             min_step_px=o["min_step_px"])
+    acc_ints = [o["rounding"], o["cosine"], o["straight_through"]]
+    acc_floats = [float(thickness), o["epsilon"], o["tau"]]
+    return run_walk("soft_gradients" if gradients else "soft", gbuffer, normals, settings, acc_ints, acc_floats, 3 if gradients else 1, lanes=o["lanes"])
 
 
-def _backward(ctx, grad, _):
-    live, *tensors = ctx.saved_tensors
-    g_radius, g_thickness = torch.ops.torch_ao_kernels.soft_bitmask_backward(grad, live, *tensors, *ctx.settings)
-    return (None,) * 6 + (g_radius, g_thickness) + (None,) * (len(_SETTINGS) + 1)
+class _SoftWalk(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, gbuffer, normals, radius, thickness, options):
+        wanted = bool(ctx.needs_input_grad[2] or ctx.needs_input_grad[3])
+        out = _walk(gbuffer, normals, radius, thickness, options, wanted)
+        if wanted:
+            ctx.save_for_backward(out[:, 1:].contiguous())
+        ctx.dtypes = (radius.dtype, thickness.dtype)
+        return out[:, :1].contiguous()
 
-
-_registered = False
-
-
-def _register_autograd() -> None:
-    """The op's backward: :func:`_backward` (the walk again, no stored samples). Once, after the build."""
-    global _registered
-    if not _registered:
-        torch.library.register_autograd(_OP, _backward, setup_context=_setup_context)
-        _registered = True
+    @staticmethod
+    def backward(ctx, grad):
+        (jacobian,) = ctx.saved_tensors  # (B, 2, H, W): d visibility / d radius, d thickness per pixel
+        sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
+        return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None
 
 
 #: options of a module the soft kernel reproduces (beyond the hard kernel's): the modes and weightings (hard
