@@ -212,3 +212,17 @@ def test_a_fit_whose_best_is_at_the_limit_goes_on_until_it_converges():
     assert capped.steps_done == capped.step_limit == 20 and not capped.converged and capped.best_at_limit
     with pytest.raises(ValueError, match="max_steps"):
         FitConfig(steps=10, max_steps=5)
+
+
+def test_hard_patience_waits_for_the_soft_loss_to_plateau():
+    # the start is the hard-mode optimum: hard scores never improve, yet the soft loss still falls
+    vs = views()
+    quick = fit(Toy(0.3), vs, FitConfig(steps=100, lr=0.05, hard_every=5, hard_patience=2, temperature_start=0.5),
+                progress=False)
+    assert quick.converged and quick.steps_done == 10 and quick.best_step == 0
+    toy = Toy(1.5)
+    waits = fit(toy, vs, FitConfig(steps=300, lr=0.05, hard_every=5, hard_patience=2, plateau=1e-3), progress=False)
+    losses = [r["loss"] for r in waits.history]
+    assert waits.converged and waits.steps_done < 300
+    assert sum(losses[-10:-5]) / 5 - sum(losses[-5:]) / 5 <= 1e-3 * abs(sum(losses[-10:-5]) / 5)
+    assert toy.thickness.item() == pytest.approx(0.3, abs=0.02)

@@ -86,6 +86,10 @@ class FitConfig:
     hard_every: int = 10
     #: Stop once this many hard-mode scores in a row have not improved on the best (0 = never).
     hard_patience: int = 0
+    #: With ``hard_patience``: stop only once the soft loss has plateaued too, i.e. its mean over the
+    #: last ``hard_every`` steps is less than this fraction below the mean over the ``hard_every``
+    #: before (0 = the hard-mode scores alone decide).
+    plateau: float = 0.0
     #: Largest number of steps: while the best hard-mode score is the latest one when the budget
     #: (``steps``, then each extension) is spent, the fit goes on, up to this many (0 = ``steps``).
     max_steps: int = 0
@@ -101,6 +105,8 @@ class FitConfig:
             raise ValueError("temperature_start/temperature_end: expected > 0")
         if self.hard_every < 0 or self.hard_patience < 0:
             raise ValueError(f"hard_every/hard_patience: expected integers >= 0, got {self.hard_every}, {self.hard_patience}")
+        if not self.plateau >= 0:
+            raise ValueError(f"plateau: expected a fraction >= 0, got {self.plateau}")
         if self.max_steps and self.max_steps < self.steps:
             raise ValueError(f"max_steps: expected 0 or at least steps ({self.steps}), got {self.max_steps}")
         self.param_lr = {str(k): float(v) for k, v in dict(self.param_lr).items()}
@@ -119,8 +125,9 @@ class FitResult:
     hard_history: list[dict] = field(default_factory=list)
     #: Step whose parameters the module holds at the end (``None``: the last ones).
     best_step: int | None = None
-    #: Whether the fit stopped because it converged (``hard_patience`` hard-mode scores, or ``patience``
-    #: soft-mode steps, without improvement) rather than at its step limit.
+    #: Whether the fit stopped because it converged (``hard_patience`` hard-mode scores without
+    #: improvement and the soft loss plateaued, or ``patience`` soft-mode steps without improvement)
+    #: rather than at its step limit.
     converged: bool = False
     #: The step budget at the end: ``steps``, or more where the fit was extended (``max_steps``).
     step_limit: int = 0
@@ -388,8 +395,18 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             state["hard_bad"] = 0
         else:
             state["hard_bad"] = state.get("hard_bad", 0) + 1
-            if cfg.hard_patience and state["hard_bad"] >= cfg.hard_patience:
+            if cfg.hard_patience and state["hard_bad"] >= cfg.hard_patience and soft_plateaued():
                 state["stopped_early"] = True
+
+    def soft_plateaued() -> bool:
+        """Whether the soft loss's mean over the last ``hard_every`` steps is within ``plateau`` of the one before."""
+        if not cfg.plateau:
+            return True
+        w, losses = cfg.hard_every, [r["loss"] for r in state["history"]]
+        if len(losses) < 2 * w:
+            return False
+        before, last = sum(losses[-2 * w:-w]) / w, sum(losses[-w:]) / w
+        return before - last <= cfg.plateau * abs(before)
 
     def extend() -> bool:
         """At the step limit: raise it when the latest hard-mode score is the best and ``max_steps`` allows."""

@@ -99,6 +99,9 @@ OPTIONS = (
             help="reference AO ray length R of the built-in views (finite)"),
     Option("steps", 60, "optimizer steps; a fit whose best hard-mode score is at the last step goes on, up to "
            "--max-steps", int, minimum=0),
+    Option("plateau", 0.01, "with --hard-patience, stop only once the soft loss has plateaued too: its mean over the "
+           "last --hard-every steps less than this fraction below the mean over the ones before (0 = hard scores alone)",
+           float, minimum=0.0),
     Option("max_steps", 300, "largest number of steps a fit still improving at --steps may take (0 = --steps)", int,
            minimum=0),
     Option("lr", FitConfig.lr, "Adam learning rate (times R for parameters in world units)", float, minimum=0.0,
@@ -312,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
                     seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
-                    max_steps=max(args.max_steps, args.steps), param_lr={k: args.lr * radius for k in params if k in LENGTHS})
+                    plateau=args.plateau, max_steps=max(args.max_steps, args.steps), param_lr={k: args.lr * radius for k in params if k in LENGTHS})
     result = _fit(module, train, cfg, args, checkpoint, settings)
     check_finite_outputs(f"{args.method} fit", {f"fitted {k}": v for k, v in result.parameters.items()})
 
@@ -438,7 +441,8 @@ def _convergence(result, cfg: FitConfig) -> str:
     """One sentence: whether the fit converged, or stopped at its step limit (and where its best step is)."""
     if result.converged:
         return (f"Converged: yes (best hard-mode score at step {result.best_step}; {cfg.hard_patience} scores "
-                f"without improvement after it; {result.steps_done} steps).")
+                f"without improvement after it and the soft loss within {cfg.plateau:g} of its previous mean; "
+                f"{result.steps_done} steps).")
     where = "at the limit (more steps would likely improve it)" if result.best_at_limit else f"at step {result.best_step}"
     return (f"Converged: no (stopped at the step limit {result.step_limit}: --steps {cfg.steps}, --max-steps "
             f"{cfg.max_steps or cfg.steps}; best hard-mode score {where}).")
