@@ -560,7 +560,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rows-json", default=None, help="also write every row to this JSON file")
     ap.add_argument("--no-convergence", action="store_true", help="skip the bitmask convergence study")
     ap.add_argument("--only-convergence", action="store_true", help="only the bitmask convergence study")
-    ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: " + ",".join(SCENES) + ")")
+    ap.add_argument("--scenes", default=None, help="comma-separated scenes or sets of them (procedural, meshes, fit, "
+                    "heldout, benchmark: torch_ao.datasets.SCENE_SETS; default: " + ",".join(SCENES) + ")")
     ap.add_argument("--presets", default=None, help="comma-separated presets of the method sweep (default: all)")
     ap.add_argument("--render-json", nargs="+", default=None,
                     help="only render the method tables and plot from the --rows-json files of earlier runs")
@@ -585,7 +586,12 @@ def main(argv=None) -> int:
     if args.rays is not None:
         s.rays = args.rays
     if args.scenes:
-        s.scenes = tuple(x.strip() for x in args.scenes.split(","))
+        from torch_ao.datasets import parse_scenes
+
+        try:
+            s.scenes = tuple(parse_scenes(args.scenes))
+        except ValueError as err:
+            raise SystemExit(f"error: {err}") from None
     if args.presets:
         s.presets = tuple(x.strip() for x in args.presets.split(","))
     start = time.perf_counter()

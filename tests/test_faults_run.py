@@ -13,7 +13,8 @@ from torch_ao.cli import main
 from torch_ao.fit import CheckpointMismatch, FitConfig, fingerprint_differences, fit, run_fingerprint
 from torch_ao.views import reference_path
 
-TINY = ["--size", "16x12", "--spp", "16", "--train-views", "1", "--steps", "3", "--hard-every", "2", "--no-progress"]
+TINY = ["--size", "16x12", "--spp", "16", "--train-views", "1", "--steps", "3", "--hard-every", "2", "--no-progress",
+        "--holdout-scenes", "none"]
 
 
 @pytest.fixture(scope="module")

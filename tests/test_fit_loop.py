@@ -159,3 +159,70 @@ def test_checkpoint_from_other_settings_is_refused(tmp_path):
     fit(Toy(), views(1), FitConfig(steps=2), checkpoint=ckpt, progress=False)
     with pytest.raises(ValueError, match="other settings"):
         fit(Toy(), views(1), FitConfig(steps=3), checkpoint=ckpt, progress=False)
+
+
+class NoMode(nn.Module):
+    """Toy without a soft mode (no ``mode`` attribute), as GTAO: scored in hard mode as it runs."""
+
+    def __init__(self, thickness=1.0):
+        super().__init__()
+        self.thickness = nn.Parameter(torch.tensor(float(thickness)))
+
+    def forward(self, gb):
+        return AOOutput(torch.exp(-self.thickness * (gb.safe_depth - 3).square() / 4))
+
+
+def test_a_module_without_a_soft_mode_is_scored_in_hard_mode_and_keeps_its_best():
+    toy = NoMode(1.5)
+    result = fit(toy, views(), FitConfig(steps=40, lr=0.05, hard_every=10), progress=False)
+    assert [h["step"] for h in result.hard_history] == [0, 10, 20, 30, 40]
+    best = min(result.hard_history, key=lambda h: h["loss"])
+    assert result.best_step == best["step"] and toy.thickness.item() == pytest.approx(best["thickness"][0])
+    assert evaluate(toy, views())["mae"] == pytest.approx(best["loss"], rel=1e-5)
+
+
+def test_gtao_fit_scores_in_hard_mode_and_keeps_its_best(tmp_path):
+    from torch_ao import GTAO
+    from torch_ao.datasets import reference_view
+
+    vs = [reference_view("room_corner", 1, height=16, width=24, spp=16, max_distance=0.8, cache_dir=tmp_path)]
+    gtao = GTAO(preset="low", radius=0.3, falloff_range=0.25)
+    start = evaluate(gtao, vs)["mae"]
+    result = fit(gtao, vs, FitConfig(params=("radius",), steps=12, lr=0.05, hard_every=4), progress=False)
+    assert [h["step"] for h in result.hard_history] == [0, 4, 8, 12]
+    assert result.hard_history[0]["loss"] == pytest.approx(start, rel=1e-5)
+    best = min(result.hard_history, key=lambda h: h["loss"])
+    assert result.best_step == best["step"] and gtao.radius.item() == pytest.approx(best["radius"][0])
+    assert evaluate(gtao, vs)["mae"] == pytest.approx(best["loss"], rel=1e-5) and best["loss"] <= start
+
+
+def test_a_fit_whose_best_is_at_the_limit_goes_on_until_it_converges():
+    # 10 steps from 1.5 at lr 0.05 do not reach the optimum 0.3: the best score is the last one
+    short = fit(Toy(1.5), views(), FitConfig(steps=10, lr=0.05, hard_every=5, hard_patience=2), progress=False)
+    assert short.steps_done == short.step_limit == 10 and not short.converged and short.best_at_limit
+    assert short.best_step == 10
+    toy = Toy(1.5)
+    long = fit(toy, views(), FitConfig(steps=10, lr=0.05, hard_every=5, hard_patience=2, max_steps=400), progress=False)
+    assert long.converged and not long.best_at_limit and 10 < long.steps_done < 400
+    assert long.steps_done == long.best_step + 2 * 5  # two scores without improvement after the best
+    assert toy.thickness.item() == pytest.approx(0.3, abs=0.02)
+    # a cap the fit reaches while still improving: extended up to it, not converged, reported as such
+    capped = fit(Toy(1.5), views(), FitConfig(steps=10, lr=0.05, hard_every=5, hard_patience=2, max_steps=20),
+                 progress=False)
+    assert capped.steps_done == capped.step_limit == 20 and not capped.converged and capped.best_at_limit
+    with pytest.raises(ValueError, match="max_steps"):
+        FitConfig(steps=10, max_steps=5)
+
+
+def test_hard_patience_waits_for_the_soft_loss_to_plateau():
+    # the start is the hard-mode optimum: hard scores never improve, yet the soft loss still falls
+    vs = views()
+    quick = fit(Toy(0.3), vs, FitConfig(steps=100, lr=0.05, hard_every=5, hard_patience=2, temperature_start=0.5),
+                progress=False)
+    assert quick.converged and quick.steps_done == 10 and quick.best_step == 0
+    toy = Toy(1.5)
+    waits = fit(toy, vs, FitConfig(steps=300, lr=0.05, hard_every=5, hard_patience=2, plateau=1e-3), progress=False)
+    losses = [r["loss"] for r in waits.history]
+    assert waits.converged and waits.steps_done < 300
+    assert sum(losses[-10:-5]) / 5 - sum(losses[-5:]) / 5 <= 1e-3 * abs(sum(losses[-10:-5]) / 5)
+    assert toy.thickness.item() == pytest.approx(0.3, abs=0.02)

@@ -238,8 +238,8 @@ def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
 
     out, cache = tmp_path / "out", tmp_path / "cache"
     assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--size", "32x24", "--spp", "16",
-                 "--preset", "low", "--steps", "6", "--hard-every", "2", "--hard-patience", "0", "--cache", str(cache), "--no-progress",
-                 "--out", str(out)]) == 0
+                 "--preset", "low", "--steps", "6", "--hard-every", "2", "--hard-patience", "0", "--max-steps", "0",
+                 "--holdout-scenes", "none", "--cache", str(cache), "--no-progress", "--out", str(out)]) == 0
     data = json.loads((out / "params.json").read_text())
     assert data["fitted"] == ["radius", "thickness"] and data["denoiser"] is not None
     assert data["options"]["weighting"] == "cosine" and data["options"]["mode"] == "hard"
@@ -262,7 +262,7 @@ def test_cli_fit_holdout_views_and_psnr_loss(tmp_path):
 
     out, cache = tmp_path / "out", tmp_path / "cache"
     assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--holdout-views", "2", "--size", "32x24",
-                 "--spp", "16", "--preset", "low", "--steps", "4", "--hard-every", "2", "--loss", "psnr", "--cache",
+                 "--spp", "16", "--preset", "low", "--steps", "4", "--hard-every", "2", "--loss", "psnr", "--holdout-scenes", "none", "--cache",
                  str(cache), "--no-progress", "--out", str(out)]) == 0
     data = json.loads((out / "params.json").read_text())
     assert data["loss"] == "psnr"
@@ -378,7 +378,7 @@ def test_cli_fit_thickness_models(views, backface_views, tmp_path, capsys):
     out = tmp_path / "o2"
     assert main(["fit", "--scenes", "fence,stairs", "--train-views", "1", "--size", "32x24", "--spp", "16",
                  "--max-distance", "0.8", "--preset", "low", "--steps", "2", "--hard-every", "1", "--thickness",
-                 "backface", "--cache", str(cache), "--no-progress", "--out", str(out)]) == 0
+                 "backface", "--holdout-scenes", "none", "--cache", str(cache), "--no-progress", "--out", str(out)]) == 0
     data = json.loads((out / "params.json").read_text())
     assert data["fitted"] == ["radius", "thickness_scale", "thickness"]
     assert data["options"]["thickness_model"] == "backface"

@@ -10,10 +10,23 @@ from typing import Sequence
 from .views import FitView, add_backface_layer, cached_reference, default_cache_dir, load_views
 
 __all__ = ["default_cache_dir", "reference_view", "reference_views", "train_and_holdout_views", "add_backface_layer",
-           "TRAIN_SCENES", "HOLDOUT_SEED"]
+           "TRAIN_SCENES", "MESH_TRAIN_SCENES", "FIT_SCENES", "HELDOUT_SCENES", "BENCHMARK_SCENES", "HOLDOUT_SEED",
+           "SCENE_SETS", "parse_scenes"]
 
-#: The scenes of the default fitting/benchmark set (the ones that break screen-space AO).
+#: The procedural scenes that break screen-space AO (the original fitting set).
 TRAIN_SCENES = ("sphere_on_plane", "fence", "room_corner", "stairs", "floating", "poles")
+
+#: Real meshes (assimp-testmodels) that fitting may use.
+MESH_TRAIN_SCENES = ("mesh_empty_mat", "mesh_sphere_hole", "mesh_3dsmax", "mesh_box_longline", "mesh_concave")
+
+#: Train scenes: the scenes ``torch-ao fit`` fits on by default (procedural and real meshes).
+FIT_SCENES = TRAIN_SCENES + MESH_TRAIN_SCENES
+
+#: Held-out scenes: never fitted on, only scored (real meshes and procedural scenes of other kinds).
+HELDOUT_SCENES = ("mesh_regr01", "mesh_clearcoat", "mesh_on_floor", "grazing_floor")
+
+#: The whole benchmark set: train scenes, then held-out scenes.
+BENCHMARK_SCENES = FIT_SCENES + HELDOUT_SCENES
 
 #: Seeds of held-out views: never used for training views (those are 1, 2, ...).
 HOLDOUT_SEED = 1000
@@ -49,3 +62,30 @@ def train_and_holdout_views(scenes: Sequence[str], train_views: int, holdout_vie
     train = reference_views(scenes, list(range(1, train_views + 1)), **kwargs)
     held = reference_views(scenes, list(range(HOLDOUT_SEED, HOLDOUT_SEED + holdout_views)), **kwargs)
     return train, held
+
+
+#: Names standing for a set of scenes in :func:`parse_scenes` (``--scenes``).
+SCENE_SETS = {"procedural": TRAIN_SCENES, "meshes": MESH_TRAIN_SCENES, "fit": FIT_SCENES, "heldout": HELDOUT_SCENES,
+              "benchmark": BENCHMARK_SCENES}
+
+
+def parse_scenes(text: str, flag: str = "--scenes") -> list[str]:
+    """Comma-separated built-in scene names and set names (:data:`SCENE_SETS`, expanded in place;
+    repeats dropped); ``ValueError`` naming ``flag`` for an unknown name, or for a mesh scene whose
+    file is missing (with the package to install)."""
+    from .reference import SCENES, scene_unavailable
+
+    names = []
+    for item in (x.strip() for x in str(text).split(",")):
+        if item:
+            names += SCENE_SETS.get(item, (item,))
+    unknown = [s for s in names if s not in SCENES]
+    if unknown:
+        raise ValueError(f"{flag}: unknown scene(s) {', '.join(unknown)}; built-in scenes: {', '.join(SCENES)}; "
+                         f"sets: {', '.join(SCENE_SETS)}")
+    missing = [why for why in map(scene_unavailable, dict.fromkeys(names)) if why]
+    if missing:
+        raise ValueError(f"{flag}: {missing[0]}" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+    if not names:
+        raise ValueError(f"{flag}: expected at least one scene name")
+    return list(dict.fromkeys(names))

@@ -8,10 +8,13 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
 * a temperature schedule for soft-mask modules (geometric from ``temperature_start`` to
   ``temperature_end``; the module is put in ``mode="soft"`` while fitting),
 * gradient clipping, projection onto each parameter's valid range, early stopping,
-* for modules with a hard mode, a hard-mode score of the parameters on all views at the start, every
-  ``hard_every`` steps and at the end; the best-scoring parameters are kept (the soft objective's
-  optimum is not always the shipped pipeline's), optionally stopping after ``hard_patience`` scores
-  without improvement,
+* a hard-mode score of the parameters on all views at the start, every ``hard_every`` steps and at
+  the end (modules with a soft mode are put in hard mode for it; others are scored as they run); the
+  best-scoring parameters are kept (the soft objective's optimum is not always the shipped
+  pipeline's), stopping after ``hard_patience`` scores without improvement (the fit has converged),
+* a step budget that grows while the fit improves: when ``steps`` are done and the best hard-mode
+  score is the latest one, the fit goes on (``hard_every * max(1, hard_patience)`` steps at a time) up
+  to ``max_steps``; :attr:`FitResult.converged` says whether it stopped by convergence,
 * atomic checkpoints (parameters, optimizer state, step, RNG state, history) every
   ``checkpoint_every`` steps; the same call with the same ``checkpoint`` path resumes and ends
   with the same result as an uninterrupted run. A checkpoint records the fingerprint of everything
@@ -77,12 +80,19 @@ class FitConfig:
     min_delta: float = 1e-6
     seed: int = 0
     checkpoint_every: int = 10
-    #: Modules with a hard mode (bitmask AO): every ``hard_every`` steps (and before the first and
-    #: after the last) the parameters are scored in hard mode on all training views, and the best
-    #: hard-mode parameters are kept (0 = keep the best soft-mode loss instead).
+    #: Every ``hard_every`` steps (and before the first and after the last) the parameters are scored
+    #: in hard mode (what ships) on all training views, and the best hard-mode parameters are kept
+    #: (0 = keep the best soft-mode loss instead).
     hard_every: int = 10
     #: Stop once this many hard-mode scores in a row have not improved on the best (0 = never).
     hard_patience: int = 0
+    #: With ``hard_patience``: stop only once the soft loss has plateaued too, i.e. its mean over the
+    #: last ``hard_every`` steps is less than this fraction below the mean over the ``hard_every``
+    #: before (0 = the hard-mode scores alone decide).
+    plateau: float = 0.0
+    #: Largest number of steps: while the best hard-mode score is the latest one when the budget
+    #: (``steps``, then each extension) is spent, the fit goes on, up to this many (0 = ``steps``).
+    max_steps: int = 0
     #: Learning rate per parameter name (last part, e.g. ``{"radius": 0.01}``) replacing ``lr``.
     param_lr: dict = field(default_factory=dict)
 
@@ -95,6 +105,10 @@ class FitConfig:
             raise ValueError("temperature_start/temperature_end: expected > 0")
         if self.hard_every < 0 or self.hard_patience < 0:
             raise ValueError(f"hard_every/hard_patience: expected integers >= 0, got {self.hard_every}, {self.hard_patience}")
+        if not self.plateau >= 0:
+            raise ValueError(f"plateau: expected a fraction >= 0, got {self.plateau}")
+        if self.max_steps and self.max_steps < self.steps:
+            raise ValueError(f"max_steps: expected 0 or at least steps ({self.steps}), got {self.max_steps}")
         self.param_lr = {str(k): float(v) for k, v in dict(self.param_lr).items()}
         if any(not v > 0 for v in self.param_lr.values()):
             raise ValueError(f"param_lr: expected learning rates > 0, got {self.param_lr}")
@@ -111,6 +125,19 @@ class FitResult:
     hard_history: list[dict] = field(default_factory=list)
     #: Step whose parameters the module holds at the end (``None``: the last ones).
     best_step: int | None = None
+    #: Whether the fit stopped because it converged (``hard_patience`` hard-mode scores without
+    #: improvement and the soft loss plateaued, or ``patience`` soft-mode steps without improvement)
+    #: rather than at its step limit.
+    converged: bool = False
+    #: The step budget at the end: ``steps``, or more where the fit was extended (``max_steps``).
+    step_limit: int = 0
+
+    @property
+    def best_at_limit(self) -> bool:
+        """Whether the kept parameters are the latest hard-mode score's of a fit that did not converge:
+        more steps would likely improve it."""
+        return not self.converged and self.best_step is not None and bool(self.hard_history) \
+            and self.best_step == self.hard_history[-1]["step"]
 
 
 def set_mode(module: nn.Module, mode: str | None, temperature: float | None = None) -> None:
@@ -144,10 +171,6 @@ def fittable_parameters(module: nn.Module) -> tuple[str, ...]:
     return tuple(name.rsplit(".", 1)[-1] for name, _ in module.named_parameters())
 
 
-def _has_hard_mode(module: nn.Module) -> bool:
-    return any(hasattr(m, "mode") for m in module.modules())
-
-
 def _loss(pred: torch.Tensor, view: FitView, kind: str, weight_by_stderr: bool) -> torch.Tensor:
     valid = view.gbuffer.valid
     diff = (pred - view.reference)[valid]
@@ -165,7 +188,7 @@ def _loss(pred: torch.Tensor, view: FitView, kind: str, weight_by_stderr: bool) 
 def _temperature(cfg: FitConfig, step: int) -> float:
     if cfg.steps <= 1:
         return cfg.temperature_end
-    t = step / (cfg.steps - 1)
+    t = min(1.0, step / (cfg.steps - 1))  # (steps past the budget keep the final temperature)
     return math.exp((1 - t) * math.log(cfg.temperature_start) + t * math.log(cfg.temperature_end))
 
 
@@ -304,7 +327,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
 
     Returns:
         :class:`FitResult` with the fitted parameter values, the loss history and timings.
-        At the end the module holds, for a module with a hard mode (and ``hard_every > 0``), the
+        At the end the module holds, when ``hard_every > 0``, the
         parameters with the lowest **hard-mode** loss on all views among the start, every
         ``hard_every``-th step and the end (so the result is never worse in hard mode on the training
         views than the start); otherwise the parameters of the lowest training loss, or the last ones
@@ -327,9 +350,9 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         p.requires_grad_(id(p) in chosen)
     optimizer = torch.optim.Adam([{"params": [p], "lr": cfg.param_lr.get(name.rsplit(".", 1)[-1], cfg.lr)}
                                   for name, p in params.items()])
-    hard = cfg.hard_every > 0 and _has_hard_mode(module)
+    hard = cfg.hard_every > 0
     state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False,
-             "hard": [], "best_hard": math.inf, "best_step": None}
+             "hard": [], "best_hard": math.inf, "best_step": None, "limit": cfg.steps}
     if ckpt_path is not None:
         remove_stale_temporaries(ckpt_path)
     if ckpt_path is not None and ckpt_path.exists():
@@ -344,6 +367,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             raise CheckpointMismatch(ckpt_path, ["module"]) from err
         set_rng_state(saved["rng"])
         state = saved["state"]
+        state.setdefault("limit", cfg.steps)
     else:
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
@@ -371,18 +395,45 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             state["hard_bad"] = 0
         else:
             state["hard_bad"] = state.get("hard_bad", 0) + 1
-            if cfg.hard_patience and state["hard_bad"] >= cfg.hard_patience:
+            if cfg.hard_patience and state["hard_bad"] >= cfg.hard_patience and soft_plateaued():
                 state["stopped_early"] = True
+
+    def soft_plateaued() -> bool:
+        """Whether the soft loss's mean over the last ``hard_every`` steps is within ``plateau`` of the one before."""
+        if not cfg.plateau:
+            return True
+        w, losses = cfg.hard_every, [r["loss"] for r in state["history"]]
+        if len(losses) < 2 * w:
+            return False
+        before, last = sum(losses[-2 * w:-w]) / w, sum(losses[-w:]) / w
+        return before - last <= cfg.plateau * abs(before)
+
+    def extend() -> bool:
+        """At the step limit: raise it when the latest hard-mode score is the best and ``max_steps`` allows."""
+        latest_is_best = hard and state["hard"] and state["best_step"] == state["hard"][-1]["step"]
+        if not latest_is_best or state["limit"] >= cfg.max_steps:
+            return False
+        state["limit"] = min(cfg.max_steps, state["limit"] + cfg.hard_every * max(1, cfg.hard_patience))
+        if bar is not None:
+            bar.total = state["limit"]
+            bar.refresh()
+        return True
 
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.steps, initial=state["step"], desc="fit", unit="step", leave=False)
+        bar = tqdm(total=state["limit"], initial=state["step"], desc="fit", unit="step", leave=False)
     start = time.perf_counter()
     partial = bool(cfg.batch_views) and cfg.batch_views < len(views)
     try:
-        while state["step"] < cfg.steps and not state["stopped_early"]:
+        while not state["stopped_early"]:
+            if state["step"] >= state["limit"]:
+                if hard:
+                    check_hard()  # the score at the limit decides whether to go on
+                if state["stopped_early"] or not extend():
+                    break
+                continue
             step = state["step"]
             if hard and step % cfg.hard_every == 0:
                 check_hard()
@@ -428,7 +479,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{total:.4f}")
-            if ckpt_path is not None and (state["step"] % cfg.checkpoint_every == 0 or state["step"] == cfg.steps):
+            if ckpt_path is not None and (state["step"] % cfg.checkpoint_every == 0 or state["step"] == state["limit"]):
                 save_checkpoint(ckpt_path, snapshot())
         if hard:
             check_hard()
@@ -444,7 +495,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     set_mode(module, "hard")
     values_out = {n: (p.detach().cpu().item() if p.numel() == 1 else p.detach().cpu().flatten().tolist()) for n, p in params.items()}
     return FitResult(values_out, state["history"], state["step"], state["stopped_early"], time.perf_counter() - start,
-                     hard_history=state["hard"], best_step=state["best_step"])
+                     hard_history=state["hard"], best_step=state["best_step"], converged=state["stopped_early"],
+                     step_limit=state["limit"])
 
 
 def _visibility(out) -> torch.Tensor:

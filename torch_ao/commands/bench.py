@@ -76,7 +76,8 @@ def register(sub) -> None:
                    help=f"comma-separated presets, some of: {', '.join(PRESETS)}, each optionally @{'/@'.join(RESOLUTIONS)} "
                    f"for the walk's resolution (e.g. high,high@half). Default: {','.join(DEFAULT.presets)}")
     p.add_argument("--scenes", type=_csv, metavar="A,B,...",
-                   help=f"comma-separated built-in scenes, some of: {', '.join(SCENES)}. "
+                   help=f"comma-separated built-in scenes, some of: {', '.join(SCENES)}, or sets of them "
+                   "(procedural, meshes, fit, heldout, benchmark). "
                    f"Default: {','.join(DEFAULT.scenes)}, none when --reference is given")
     p.add_argument("--reference", nargs="+", action="extend", default=[], metavar="FILE.npz",
                    help="reference files (G-buffer + 'ao', e.g. from `torch-ao render`), named by file stem. Default: none")
@@ -152,9 +153,13 @@ def run(args: argparse.Namespace) -> int:
             split_preset(preset)
         except ValueError as err:
             raise CommandError(f"--presets: {err}") from None
-    for s in scenes:
-        if s not in SCENES:
-            raise CommandError(f"--scenes: unknown scene {s!r}; built-in scenes: {', '.join(SCENES)}")
+    if scenes:
+        from ..datasets import parse_scenes
+
+        try:
+            scenes = parse_scenes(",".join(scenes))
+        except ValueError as err:
+            raise CommandError(str(err)) from None
     methods = available_methods(args.methods)
     if not methods:
         raise CommandError("--methods: none of the requested methods is available yet")

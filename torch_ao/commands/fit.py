@@ -1,9 +1,14 @@
 """``torch-ao fit``: fit an AO pipeline (method + denoiser) to ray-traced references (the main job).
 
-With no arguments: render (or load from the cache) randomised views of the built-in scene set, fit
-bitmask AO's parameters (thickness and radius) followed by the denoiser on the training views, keep
-the parameters that are best in hard mode, and compare on held-out views, per scene, the defaults, the
-engine defaults (thickness 0.25, 0.5, 1.0), GTAO with default parameters and the fitted pipeline.
+With no arguments: render (or load from the cache) randomised views of the built-in train scenes
+(:data:`~torch_ao.datasets.FIT_SCENES`: procedural scenes and real meshes), fit bitmask AO's parameters
+(thickness and radius) followed by the denoiser on the training views, keep the parameters that are
+best in hard mode, and compare on held-out views (other cameras of the train scenes, and the held-out
+scenes :data:`~torch_ao.datasets.HELDOUT_SCENES` that fitting never sees), per view, the defaults,
+the engine defaults (thickness 0.25, 0.5, 1.0), GTAO with default parameters and the fitted pipeline.
+
+``--leave-one-out`` adds, for each of ``--scenes``, a fit on the other scenes scored on the one left out
+(its held-out views): a score on scenes the fit has not seen, per scene and mean, in report.md.
 """
 from __future__ import annotations
 
@@ -18,7 +23,7 @@ import torch
 
 from ..checks import check_finite_outputs
 from ..cli import CommandError
-from ..datasets import TRAIN_SCENES, default_cache_dir, train_and_holdout_views
+from ..datasets import HOLDOUT_SEED, default_cache_dir, parse_scenes, reference_views, train_and_holdout_views
 from ..fit import (LOSSES, CheckpointMismatch, FitConfig, checkpoint_settings_differences, evaluate, fit,
                    fittable_parameters, load_views, set_mode)
 from ..fitted import THICKNESS_MODELS, FittedPipeline
@@ -42,7 +47,10 @@ BITMASK = ("bitmask", "ssilvb")
 MIN_SIZE = 4
 #: Flags that do not change the fit (where it writes, how it reports, the held-out views it is scored on
 #: afterwards): every other flag is in the checkpoint's fingerprint, so a resumed fit is the same fit.
-NOT_IN_CHECKPOINT = ("out", "restart", "cache", "progress", "holdout", "holdout_views")
+NOT_IN_CHECKPOINT = ("out", "restart", "cache", "progress", "holdout", "holdout_views", "holdout_scenes",
+                     "leave_one_out")
+#: Folder of the leave-one-out fits' checkpoints inside ``--out`` (one ``<scene>.pt`` each).
+LEAVE_ONE_OUT = "leave_one_out"
 
 
 def _method_option(method: str, name: str) -> Option:
@@ -76,7 +84,12 @@ OPTIONS = (
            unit="world units", minimum=0.0, open_minimum=True),
     Option("length_unit", "world units", "the unit of the G-buffers' lengths (e.g. m, cm), recorded in params.json as "
            "the unit of its lengths (`ao --fitted --scale` and `export --scale` convert to another)", str),
-    Option("scenes", ",".join(TRAIN_SCENES), "comma-separated built-in scenes (without --reference)", str),
+    Option("scenes", "fit", "comma-separated built-in scenes to fit on (without --reference), or sets of them: "
+           "procedural, meshes (assimp-testmodels), fit (both), heldout, benchmark", str),
+    Option("holdout_scenes", "heldout", "built-in scenes that are only scored, never fitted on (same forms as "
+           "--scenes; 'none' for none; scenes also in --scenes are left out)", str),
+    Option("leave_one_out", False, "also fit once per --scenes scene on the others and score it on the one left out "
+           "(report.md: held-out PSNR per scene and mean)", bool),
     Option("train_views", 2, "randomised training views per scene", int, minimum=1),
     Option("holdout_views", 1, "held-out views per scene (seeds 1000, 1001, ...; never trained on)", int, minimum=1),
     Option("size", "160x96", f"render size WxH of the built-in views (at least {MIN_SIZE}x{MIN_SIZE})", str,
@@ -84,7 +97,13 @@ OPTIONS = (
     options_by_name(RENDER_OPTIONS)["spp"],
     replace(options_by_name(RENDER_OPTIONS)["max_distance"], default=1.0,
             help="reference AO ray length R of the built-in views (finite)"),
-    Option("steps", 60, "optimizer steps", int, minimum=0),
+    Option("steps", 60, "optimizer steps; a fit whose best hard-mode score is at the last step goes on, up to "
+           "--max-steps", int, minimum=0),
+    Option("plateau", 0.01, "with --hard-patience, stop only once the soft loss has plateaued too: its mean over the "
+           "last --hard-every steps less than this fraction below the mean over the ones before (0 = hard scores alone)",
+           float, minimum=0.0),
+    Option("max_steps", 300, "largest number of steps a fit still improving at --steps may take (0 = --steps)", int,
+           minimum=0),
     Option("lr", FitConfig.lr, "Adam learning rate (times R for parameters in world units)", float, minimum=0.0,
            open_minimum=True),
     Option("hard_every", FitConfig.hard_every, "score the parameters in hard mode every N steps and keep the best "
@@ -190,24 +209,37 @@ def _views(args) -> tuple[list, list, float]:
             return train, train, radius
         n_hold = max(1, len(train) // 3)
         return train[:-n_hold], train[-n_hold:], radius
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
-    from ..reference import SCENES
-
-    unknown = [s for s in scenes if s not in SCENES]
-    if unknown:
-        raise CommandError(f"--scenes: unknown scene(s) {', '.join(unknown)}; see `torch-ao render --list`")
+    scenes, held_scenes = _scene_names(args)
     w, h = _size(args.size)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   progress=args.progress, device=device, backface=args.thickness == "backface")
-    print(f"references: {len(scenes)} scenes x ({args.train_views} training + {args.holdout_views} held-out) views at "
-          f"{w}x{h}, {args.spp} spp")
+    print(f"references: {len(scenes)} scenes x ({args.train_views} training + {args.holdout_views} held-out) views"
+          + (f", {len(held_scenes)} held-out scenes x {args.holdout_views} views" if held_scenes else "")
+          + f" at {w}x{h}, {args.spp} spp")
     train, held = train_and_holdout_views(scenes, args.train_views, args.holdout_views, **common)
+    held += reference_views(held_scenes, list(range(HOLDOUT_SEED, HOLDOUT_SEED + args.holdout_views)), **common)
     radius = args.max_distance
     if args.radius is not None:
         radius = reference_radius([], args.radius)
         if radius != args.max_distance:
             warnings.warn(f"--radius {radius:g} overrides the references' max_distance {args.max_distance:g}", stacklevel=2)
     return train, held, radius
+
+
+def _scene_names(args) -> tuple[list[str], list[str]]:
+    """``--scenes`` and ``--holdout-scenes`` (less those in ``--scenes``), checked (:func:`~torch_ao.datasets.parse_scenes`)."""
+    try:
+        scenes = parse_scenes(args.scenes, "--scenes")
+        text = args.holdout_scenes or "none"
+        held = [] if text.strip() == "none" else parse_scenes(text, "--holdout-scenes")
+    except ValueError as err:
+        raise CommandError(str(err)) from None
+    return scenes, [s for s in held if s not in scenes]
+
+
+def scene_of(view) -> str:
+    """The built-in scene of a view named ``<scene>/<layout>``."""
+    return view.name.split("/", 1)[0]
 
 
 def _init_values(text: str | None) -> dict[str, float]:
@@ -268,11 +300,73 @@ def run(args: argparse.Namespace) -> int:
     init = _init_values(args.init)
     parse_device(args.device)
     out = check_output_path("--out", args.out, folder=True)
+    if args.leave_one_out and args.reference:
+        raise CommandError("--leave-one-out: applies to the built-in --scenes, not to --reference files")
     checkpoint, settings = _checkpoint(args)
     denoise = not args.no_denoise
     train, held, radius = _views(args)
+    if args.leave_one_out and len({scene_of(v) for v in train}) < 2:
+        raise CommandError("--leave-one-out: expected at least two --scenes (each is scored by a fit on the others)")
     model = thickness_options(args, train + held, init)
+    default, module, params = _pipelines(args, radius, model, init, denoise)
+    denoised = " + denoiser" if denoise else ""
+    print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views, "
+          f"evaluating on {len(held)} held-out views")
 
+    cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
+                    seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
+                    plateau=args.plateau, max_steps=max(args.max_steps, args.steps), param_lr={k: args.lr * radius for k in params if k in LENGTHS})
+    result = _fit(module, train, cfg, args, checkpoint, settings)
+    check_finite_outputs(f"{args.method} fit", {f"fitted {k}": v for k, v in result.parameters.items()})
+
+    rows = {}
+    if args.method in BITMASK:
+        for t in (0.25, 0.5, 1.0):
+            engine = FittedPipeline(args.method, {"preset": args.preset, "radius": radius, "thickness": t,
+                                                  "weighting": "uniform"}, denoiser=denoise)
+            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True)
+    if args.method != "gtao":
+        rows[f"gtao (default parameters){denoised}"] = evaluate(_gtao(args, radius, denoise), held, per_view=True)
+    default_label = f"{args.method} default ({_describe(default, params)}){denoised}"
+    rows[default_label] = before = evaluate(default, held, per_view=True)
+    fitted_label = f"{args.method} fitted ({_describe(module, params)}){denoised}"
+    rows[fitted_label] = after = evaluate(module, held, per_view=True)
+    if denoise:
+        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, per_view=True)
+    train_start, train_best = _train_losses(result)
+
+    table = _table(rows)
+    scenes = _scene_table(held, rows[default_label], after,
+                          next((r for k, r in rows.items() if k.startswith("gtao (default")), None))
+    print(table)
+    print()
+    print(scenes)
+    loo_md, loo = "", None
+    if args.leave_one_out:
+        loo = _leave_one_out(args, train, held, radius, model, init, denoise, cfg, settings, out)
+        loo_md = "\n\n" + _leave_one_out_table(loo)
+        print()
+        print(loo_md.strip())
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: "
+                      f"{result.steps_done}; R = {radius:g}; hard mode{denoised}\n\n{_convergence(result, cfg)}\n\n"
+                      f"{table}\n\nPer held-out view:\n\n{scenes}{loo_md}\n")
+    module.save(out / "params.json", fitted=list(params), before=_summary(before), after=_summary(after),
+                loss=args.loss, train_loss_start=train_start, train_loss_fitted=train_best,
+                per_view={"default": before["views"], "fitted": after["views"]},
+                comparison={k: _summary(v) for k, v in rows.items()}, steps_done=result.steps_done,
+                best_step=result.best_step, converged=result.converged, step_limit=result.step_limit,
+                fit_seconds=result.seconds, history=result.history,
+                hard_history=result.hard_history, train_views=[v.name for v in train], holdout_views=[v.name for v in held],
+                **({"leave_one_out": loo} if loo is not None else {}))
+    _comparison_png(out / "comparison.png", held[0], default, module)
+    print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
+    return 0
+
+
+def _pipelines(args, radius: float, model: dict, init: dict, denoise: bool):
+    """``(default pipeline, pipeline to fit, fitted parameter names)``: the fitted one starts at the
+    defaults, ``--init``'s values and :data:`NO_GRADIENT_START` where a default has no gradient."""
     default = FittedPipeline(args.method, pipeline_options(args, radius, **model), denoiser=denoise).to(args.device)
     # a default without a gradient is a buffer: fittable once moved to its start value
     moved = {k: v for k, v in NO_GRADIENT_START.items() if k in default.method.options()
@@ -295,51 +389,63 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--init: {', '.join(sorted(unknown))} not among the fitted parameters ({', '.join(params)})")
     module = FittedPipeline(args.method, pipeline_options(args, radius, **model, **start), denoiser=denoise,
                             length_unit=args.length_unit).to(args.device)
-    denoised = " + denoiser" if denoise else ""
-    print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views, "
-          f"evaluating on {len(held)} held-out views")
+    return default, module, params
 
-    cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
-                    seed=args.seed, hard_every=args.hard_every, hard_patience=args.hard_patience,
-                    param_lr={k: args.lr * radius for k in params if k in LENGTHS})
-    result = _fit(module, train, cfg, args, checkpoint, settings)
-    check_finite_outputs(f"{args.method} fit", {f"fitted {k}": v for k, v in result.parameters.items()})
 
-    rows = {}
-    if args.method in BITMASK:
-        for t in (0.25, 0.5, 1.0):
-            engine = FittedPipeline(args.method, {"preset": args.preset, "radius": radius, "thickness": t,
-                                                  "weighting": "uniform"}, denoiser=denoise)
-            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True)
-    if args.method != "gtao":
-        gtao = FittedPipeline("gtao", {"preset": args.preset, "radius": radius}, denoiser=denoise)
-        rows[f"gtao (default parameters){denoised}"] = evaluate(gtao, held, per_view=True)
-    default_label = f"{args.method} default ({_describe(default, params)}){denoised}"
-    rows[default_label] = before = evaluate(default, held, per_view=True)
-    fitted_label = f"{args.method} fitted ({_describe(module, params)}){denoised}"
-    rows[fitted_label] = after = evaluate(module, held, per_view=True)
-    if denoise:
-        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, per_view=True)
-    train_start, train_best = _train_losses(result)
+def _gtao(args, radius: float, denoise: bool) -> FittedPipeline:
+    return FittedPipeline("gtao", {"preset": args.preset, "radius": radius}, denoiser=denoise)
 
-    table = _table(rows)
-    scenes = _scene_table(held, rows[default_label], after,
-                          next((r for k, r in rows.items() if k.startswith("gtao (default")), None))
-    print(table)
-    print()
-    print(scenes)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: "
-                      f"{result.steps_done}; R = {radius:g}; hard mode{denoised}\n\n{table}\n\nPer held-out view:\n\n{scenes}\n")
-    module.save(out / "params.json", fitted=list(params), before=_summary(before), after=_summary(after),
-                loss=args.loss, train_loss_start=train_start, train_loss_fitted=train_best,
-                per_view={"default": before["views"], "fitted": after["views"]},
-                comparison={k: _summary(v) for k, v in rows.items()}, steps_done=result.steps_done,
-                best_step=result.best_step, fit_seconds=result.seconds, history=result.history,
-                hard_history=result.hard_history, train_views=[v.name for v in train], holdout_views=[v.name for v in held])
-    _comparison_png(out / "comparison.png", held[0], default, module)
-    print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
-    return 0
+
+def _leave_one_out(args, train, held, radius, model, init, denoise, cfg, settings, out: Path) -> dict:
+    """For each scene of ``train``: a fit on the other scenes' training views, scored (hard mode) on the
+    scene's held-out views; each fold checkpointed in ``--out/leave_one_out/<scene>.pt`` (resumable as
+    the main fit). Returns ``{scene: {"default", "fitted", "gtao": PSNR, "steps", "best_step",
+    "converged", "parameters"}}``."""
+    folds = {}
+    scenes = list(dict.fromkeys(scene_of(v) for v in train))
+    for i, scene in enumerate(scenes):
+        others = [v for v in train if scene_of(v) != scene]
+        mine = [v for v in held if scene_of(v) == scene]
+        print(f"leave-one-out {i + 1}/{len(scenes)}: fitting without {scene} ({len(others)} views)")
+        default, module, _ = _pipelines(args, radius, model, dict(init), denoise)
+        path = out / LEAVE_ONE_OUT / f"{scene}.pt"
+        if args.restart:
+            path.unlink(missing_ok=True)
+        fold_settings = {**settings, "left_out": scene}
+        _refuse_checkpoint(args, path, fold_settings, checkpoint_settings_differences(path, fold_settings))
+        result = _fit(module, others, cfg, args, path, fold_settings)
+        check_finite_outputs(f"{args.method} fit without {scene}", {f"fitted {k}": v for k, v in result.parameters.items()})
+        folds[scene] = {"default": evaluate(default, mine)["psnr"], "fitted": evaluate(module, mine)["psnr"],
+                        "gtao": evaluate(_gtao(args, radius, denoise), mine)["psnr"], "steps": result.steps_done,
+                        "best_step": result.best_step, "converged": result.converged, "parameters": result.parameters}
+    return folds
+
+
+def _leave_one_out_table(folds: dict) -> str:
+    """Markdown: per left-out scene, held-out PSNR of the default, of the fit on the other scenes and of
+    default GTAO, the fit's steps and convergence, then the means."""
+    lines = ["Leave one scene out (each row: fitted on the other scenes, scored on this scene's held-out views; "
+             "PSNR in dB):", "",
+             "| left-out scene | default PSNR | fitted on the others PSNR | gtao PSNR | steps (best) | converged |",
+             "| --- | ---: | ---: | ---: | ---: | --- |"]
+    for scene, f in folds.items():
+        lines.append(f"| {scene} | {f['default']:.2f} | {f['fitted']:.2f} | {f['gtao']:.2f} | {f['steps']} "
+                     f"({f['best_step']}) | {'yes' if f['converged'] else 'no'} |")
+    mean = {k: float(np.mean([f[k] for f in folds.values()])) for k in ("default", "fitted", "gtao")}
+    lines.append(f"| **mean** | {mean['default']:.2f} | {mean['fitted']:.2f} | {mean['gtao']:.2f} | | "
+                 f"{sum(f['converged'] for f in folds.values())}/{len(folds)} |")
+    return "\n".join(lines)
+
+
+def _convergence(result, cfg: FitConfig) -> str:
+    """One sentence: whether the fit converged, or stopped at its step limit (and where its best step is)."""
+    if result.converged:
+        return (f"Converged: yes (best hard-mode score at step {result.best_step}; {cfg.hard_patience} scores "
+                f"without improvement after it and the soft loss within {cfg.plateau:g} of its previous mean; "
+                f"{result.steps_done} steps).")
+    where = "at the limit (more steps would likely improve it)" if result.best_at_limit else f"at step {result.best_step}"
+    return (f"Converged: no (stopped at the step limit {result.step_limit}: --steps {cfg.steps}, --max-steps "
+            f"{cfg.max_steps or cfg.steps}; best hard-mode score {where}).")
 
 
 def _checkpoint(args: argparse.Namespace) -> tuple[Path, dict]:
@@ -348,7 +454,7 @@ def _checkpoint(args: argparse.Namespace) -> tuple[Path, dict]:
     any reference is rendered."""
     checkpoint = Path(args.out) / "checkpoint.pt"
     if args.restart:
-        checkpoint.unlink(missing_ok=True)
+        checkpoint.unlink(missing_ok=True)  # (the leave-one-out folds' are removed as each is reached)
     settings = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_IN_CHECKPOINT and k not in ("command", "func")}
     _refuse_checkpoint(args, checkpoint, settings, checkpoint_settings_differences(checkpoint, settings))
     return checkpoint, settings

@@ -4,18 +4,25 @@ Each builder takes a ``torch.Generator`` or ``None``: ``None`` gives the documen
 parameters, a generator gives a randomised variant (sizes, placements, albedo, light and camera),
 for training. Use :func:`get_scene`\\ ``(name, seed=None)`` and :data:`SCENES`.
 The ground is ``y = 0`` and ``+Y`` is up; lengths are in metres-like units.
+
+The ``mesh_*`` scenes are real meshes from Debian's ``assimp-testmodels`` package (in
+:data:`MESH_DIR`), each normalised to unit size and resting on a floor; their randomised variants
+are orbit cameras around the mesh. :func:`scene_unavailable` says when a scene's files are missing.
 """
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import torch
 
 from ..scene import Box, Cylinder, Light, LookAt, Mesh, Plane, Scene, Sphere, rotation_y
 
-__all__ = ["SCENES", "SceneInfo", "get_scene", "list_scenes", "icosphere", "torus"]
+__all__ = ["SCENES", "SceneInfo", "get_scene", "list_scenes", "icosphere", "torus", "MESH_DIR", "MESH_SCENES",
+           "scene_unavailable"]
 
 
 class _P:
@@ -259,6 +266,68 @@ def mesh_on_floor(rng=None) -> Scene:
                  "triangle meshes (a tilted torus, an icosphere) on a floor; --mesh files are added here too")
 
 
+#: Folder of Debian's assimp-testmodels meshes (``$TORCH_AO_MESH_DIR`` when set).
+MESH_DIR = Path(os.environ.get("TORCH_AO_MESH_DIR") or "/usr/share/assimp/models")
+
+#: Built-in mesh scenes: name -> (file under :data:`MESH_DIR`, description). Small files (at most
+#: a few thousand triangles) that load in well under a second. The spider, duck, engine and wuson
+#: models are kept out of this set (they are for independent checks).
+MESH_SCENES: dict[str, tuple[str, str]] = {
+    "mesh_empty_mat": ("OBJ/empty_mat.obj", "assimp-testmodels OBJ/empty_mat.obj on a floor: a faceted solid"),
+    "mesh_sphere_hole": ("STL/sphereWithHole.stl", "assimp-testmodels STL/sphereWithHole.stl on a floor: a sphere with a hole into it"),
+    "mesh_3dsmax": ("STL/3DSMaxExport.STL", "assimp-testmodels STL/3DSMaxExport.STL on a floor: a curved exported model"),
+    "mesh_box_longline": ("OBJ/box_longline.obj", "assimp-testmodels OBJ/box_longline.obj on a floor: a box, sharp contact edges"),
+    "mesh_concave": ("OBJ/concave_polygon.obj", "assimp-testmodels OBJ/concave_polygon.obj on a floor: a concave polygon shape"),
+    "mesh_regr01": ("OBJ/regr01.obj", "assimp-testmodels OBJ/regr01.obj on a floor: a detailed model with creases"),
+    "mesh_clearcoat": ("glTF2/ClearCoat-glTF/ClearCoatTest.gltf", "assimp-testmodels glTF2 ClearCoatTest on a floor: "
+                       "rows of spheres and plates"),
+}
+
+
+def scene_unavailable(name: str) -> str | None:
+    """Why built-in scene ``name`` cannot be built here (its mesh file is missing), else ``None``."""
+    if name not in MESH_SCENES:
+        return None
+    path = MESH_DIR / MESH_SCENES[name][0]
+    if path.exists():
+        return None
+    return (f"scene {name!r} needs {path}, which is missing: install Debian's assimp-testmodels package "
+            "(apt-get install assimp-testmodels), or set TORCH_AO_MESH_DIR to a copy of its models folder")
+
+
+def _mesh_builder(name: str) -> Callable[..., Scene]:
+    def build(rng=None) -> Scene:
+        """The mesh on a floor; ``rng``: an orbit camera drawn from it (azimuth uniform, elevation
+        15-50 degrees, distance 0.9-1.3 times the one that frames the bounding sphere), else the
+        mesh's framing view."""
+        from ..io.mesh import mesh_scene
+
+        why = scene_unavailable(name)
+        if why is not None:
+            raise FileNotFoundError(why)
+        scene = mesh_scene([MESH_DIR / MESH_SCENES[name][0]], ground_plane=True, normalize=True)
+        scene.name, scene.description = name, MESH_SCENES[name][1]
+        if rng is not None:
+            lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in _object_bounds(scene))
+            centre, r = (lo + hi) / 2, float((hi - lo).norm()) / 2
+            az = 2 * math.pi * float(torch.rand((), generator=rng, dtype=torch.float64))
+            el = math.radians(15 + 35 * float(torch.rand((), generator=rng, dtype=torch.float64)))
+            d = (0.9 + 0.4 * float(torch.rand((), generator=rng, dtype=torch.float64))) * r / math.sin(math.radians(30))
+            eye = centre + d * torch.tensor([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)],
+                                            dtype=torch.float64)
+            scene.view = LookAt(eye=eye.tolist(), target=centre.tolist(), fov_y_degrees=60.0)
+        return scene
+
+    build.__name__ = name
+    return build
+
+
+def _object_bounds(scene: Scene):
+    """Bounds of the scene's meshes (the floor plane is unbounded and left out)."""
+    boxes = [b for b in (o.bounds() for o in scene.objects if isinstance(o, Mesh)) if b is not None]
+    return torch.stack([b[0] for b in boxes]).min(0).values, torch.stack([b[1] for b in boxes]).max(0).values
+
+
 @dataclass(frozen=True)
 class SceneInfo:
     name: str
@@ -274,6 +343,7 @@ def _info(builder) -> SceneInfo:
 SCENES: dict[str, SceneInfo] = {i.name: i for i in map(_info, (
     sphere_on_plane, fence, room_corner, stairs, floating, poles, grazing_floor, large_depth_range,
     mesh_on_floor, infinite_wall, infinite_plane, closed_box))}
+SCENES.update({name: SceneInfo(name, _mesh_builder(name), description) for name, (_, description) in MESH_SCENES.items()})
 
 
 def list_scenes() -> list[tuple[str, str]]:
@@ -285,6 +355,9 @@ def get_scene(name: str, seed: int | torch.Generator | None = None) -> Scene:
     """A built-in scene: default parameters when ``seed`` is None, else a randomised variant."""
     if name not in SCENES:
         raise ValueError(f"scene: unknown scene {name!r}; built-in scenes: {', '.join(SCENES)}")
+    why = scene_unavailable(name)
+    if why is not None:
+        raise FileNotFoundError(f"scene: {why}")
     if seed is None:
         rng = None
     elif isinstance(seed, torch.Generator):
