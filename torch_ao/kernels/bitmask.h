@@ -30,6 +30,22 @@ TAO_FN typename LaneTraits<F>::I sector_bits(const F& s, const F& w, int64_t rou
   return low_bits(k1) & bnot(low_bits(k0));
 }
 
+// cosine_sector_weights: each sector's share |n_p| int cos(theta - gamma) |sin theta| over it, as
+// H(e_k+1) - H(e_k), H(t) = sign(t) (G(t) - G(0)), G(t) = -cos(2t - gamma) / 4 + t sin(gamma) / 2
+// (ops.arc_measure), edges e_k = gamma - pi/2 + pi k / 32: cos(2 e_k - gamma) = -cos(gamma + pi k / 16)
+template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<F>& sl, Weights& omega) {
+  const F cg = sl.cos_gamma, sg = sl.sin_gamma;
+  const F G0 = neg(cg) / F(4.0f);
+  F H_prev = F(0.0f);
+  for (int k = 0; k <= kSectors; ++k) {
+    const F edge = sl.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
+    const F G = (cg * F(kEdgeCos[k]) - sg * F(kEdgeSin[k])) / F(4.0f) + edge * sg / F(2.0f);
+    const F H = sign(edge) * (G - G0);
+    if (k > 0) omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * sl.length;
+    H_prev = H;
+  }
+}
+
 struct BitmaskAccumulator {
   int64_t slices;
   float thickness;  // world units along the view ray
@@ -56,19 +72,7 @@ struct BitmaskAccumulator {
     st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
     for (int c = 0; c < 3; ++c) st.light[c] = F(0.0f);
     if (cosine) {
-      // cosine_sector_weights: each sector's share |n_p| int cos(theta - gamma) |sin theta| over it, as
-      // H(e_k+1) - H(e_k), H(t) = sign(t) (G(t) - G(0)), G(t) = -cos(2t - gamma) / 4 + t sin(gamma) / 2
-      // (ops.arc_measure), edges e_k = gamma - pi/2 + pi k / 32: cos(2 e_k - gamma) = -cos(gamma + pi k / 16)
-      const F cg = sl.cos_gamma, sg = sl.sin_gamma;
-      const F G0 = neg(cg) / F(4.0f);
-      F H_prev = F(0.0f);
-      for (int k = 0; k <= kSectors; ++k) {
-        const F edge = sl.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
-        const F G = (cg * F(kEdgeCos[k]) - sg * F(kEdgeSin[k])) / F(4.0f) + edge * sg / F(2.0f);
-        const F H = sign(edge) * (G - G0);
-        if (k > 0) st.omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * sl.length;
-        H_prev = H;
-      }
+      cosine_sector_weights(sl, st.omega);
     } else if (bent) {
       for (int k = 0; k < kSectors; ++k) st.omega[k] = F(1.0f / kSectors);
     }

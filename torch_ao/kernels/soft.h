@@ -113,18 +113,7 @@ template <bool kGradients> struct SoftAccumulator {
     st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
     st.n = 0;
     for (int k = 0; k < kSectors; ++k) st.P[k] = F(1.0f), st.omega[k] = F(1.0f / kSectors);
-    if (cosine) {  // BitmaskAccumulator's cosine_sector_weights
-      const F cg = sl.cos_gamma, sg = sl.sin_gamma;
-      const F G0 = neg(cg) / F(4.0f);
-      F H_prev = F(0.0f);
-      for (int k = 0; k <= kSectors; ++k) {
-        const F edge = sl.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
-        const F G = (cg * F(kEdgeCos[k]) - sg * F(kEdgeSin[k])) / F(4.0f) + edge * sg / F(2.0f);
-        const F H = sign(edge) * (G - G0);
-        if (k > 0) st.omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * sl.length;
-        H_prev = H;
-      }
-    }
+    if (cosine) cosine_sector_weights(sl, st.omega);
     return st;
   }
 
