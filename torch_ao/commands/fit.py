@@ -28,7 +28,7 @@ from ..fit import (LOSSES, CheckpointMismatch, FitConfig, checkpoint_settings_di
                    fittable_parameters, load_views, set_mode)
 from ..fitted import THICKNESS_MODELS, FittedPipeline
 from ..io import check_output_path, read_npz, write_text_atomic
-from ..methods import get_method
+from ..methods import DEFAULT_PRESET, get_method
 from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
 from .args import parse_device
@@ -74,7 +74,7 @@ OPTIONS = (
            "with it, --reference files must hold backface_depth)", str, choices=tuple(THICKNESS_MODELS)),
     Option("init", None, "start values, e.g. thickness=0.5,radius=1.2 (lengths in world units; a bare number is the "
            "thickness); when not given, the method's defaults", str),
-    replace(_method_option("bitmask", "preset"), default="high", help="quality preset of the fitted method"),
+    replace(_method_option("bitmask", "preset"), default=DEFAULT_PRESET, help="quality preset of the fitted method"),
     replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
             "(cosine matches the cosine-weighted reference)"),
     replace(_method_option("bitmask", "fetch"), default=None, help="depth fetch of the fitted method's walk (see "

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from .base import AOOutput, ScreenSpaceAO
 from .bitmask import SSILVB, BitmaskAO
-from .common import PRESETS, Sampling, resolve_preset
+from .common import DEFAULT_PRESET, PRESETS, Sampling, resolve_preset
 from .gtao import GTAO
 from .hbao import HBAO
 from .pssao import PSSAO
@@ -29,4 +29,4 @@ def get_method(name: str) -> type[ScreenSpaceAO]:
     return METHODS[name]
 
 
-__all__ = ["METHODS", "PRESETS", "AOOutput", "ScreenSpaceAO", "Sampling", "get_method", "resolve_preset"]
+__all__ = ["METHODS", "DEFAULT_PRESET", "PRESETS", "AOOutput", "ScreenSpaceAO", "Sampling", "get_method", "resolve_preset"]

@@ -28,7 +28,7 @@ from ..limits import check_limit, walk_bytes
 from ..options import Option, options_by_name
 from ..resolution import reduced_forward, resolution_factor
 from ..walk import Frame, SamplingPattern, SliceAccumulator, march
-from .common import (MODULE_OPTIONS, PRESETS, RADIUS, Sampling, declare_signature, make_parameter, register_parameters,
+from .common import (DEFAULT_PRESET, MODULE_OPTIONS, PRESETS, RADIUS, Sampling, declare_signature, make_parameter, register_parameters,
                      resolve_preset, split_preset)
 
 __all__ = ["AOOutput", "ScreenSpaceAO", "PRESETS", "resolve_preset", "make_parameter"]
@@ -73,7 +73,7 @@ class ScreenSpaceAO(nn.Module):
     #: call), or ``False``
     has_kernel: str | bool = False
     #: (slices, steps) when neither they nor a preset are given.
-    default_slices_steps: tuple[int, int] = (4, 8)
+    default_slices_steps: tuple[int, int] = PRESETS[DEFAULT_PRESET]
 
     def __init__(self, **options) -> None:
         super().__init__()

@@ -21,7 +21,7 @@ from ..options import Option, options_by_name
 from ..resolution import RESOLUTIONS
 from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, SlicePattern
 
-__all__ = ["PRESETS", "PRESET_NAMES", "split_preset", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
+__all__ = ["PRESETS", "DEFAULT_PRESET", "PRESET_NAMES", "split_preset", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
            "register_parameters", "functional_twin", "declare_signature"]
 
 #: Quality presets shared by every horizon/bitmask method: (slices, steps per side).
@@ -33,6 +33,9 @@ PRESETS: dict[str, tuple[int, int]] = {
     "extreme": (16, 8),
     "reference": (32, 32),
 }
+#: The preset every command and module uses when given neither a preset nor counts: ``torch-ao ao``,
+#: ``bench``, ``fit`` (and its report's default-parameter rows) and the modules themselves.
+DEFAULT_PRESET = "high"
 
 #: Largest ``slices`` and ``steps`` (per side) a method takes: 2x and 8x the ``reference`` preset's 32 x 32,
 #: already far past where more samples change the result; larger counts only run for minutes or
@@ -94,8 +97,8 @@ class Sampling:
     ``seed``, ``fetch``, ``border``, ``azimuth``; :attr:`OPTIONS` says what each does and why its default.
     """
 
-    slices: int = 4
-    steps: int = 8
+    slices: int = PRESETS[DEFAULT_PRESET][0]
+    steps: int = PRESETS[DEFAULT_PRESET][1]
     step_power: float = 1.0
     min_step_px: float = 1.0
     jitter: bool = True

@@ -107,8 +107,8 @@ class SSAO(ScreenSpaceAO):
     """Crytek-style SSAO with a normal-oriented hemisphere kernel; see the module docstring and :meth:`options`."""
 
     OPTIONS = (
-        Option("samples", None, "Kernel size K (default 2 x slices x steps: 64 with the default 4 x 8, the same "
-               "number of depth fetches as the slice methods)", kind=int, minimum=1),
+        Option("samples", None, "Kernel size K (default 2 x slices x steps: 18 with the default high preset's 3 x 3, the "
+               "same number of depth fetches as the slice methods)", kind=int, minimum=1),
         RADIUS,
         Option("bias", 0.025, "Depth bias: a kernel point is occluded when the surface is this much in front of it "
                "(LearnOpenGL's 0.025)", unit="world units", fitted=True),

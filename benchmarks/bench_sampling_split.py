@@ -1,0 +1,58 @@
+"""Slice/step splits at a fixed sample count (about the high preset's 3 slices x 3 steps x 2 sides), measured
+against the built-in scenes' ray-traced references (PSNR, dB; higher is better).
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_sampling_split.py --height 72 --width 96
+"""
+from __future__ import annotations
+
+import argparse
+import math
+
+import torch
+
+from torch_ao import Denoiser
+from torch_ao.methods import get_method
+from torch_ao.views import load_bench_views
+
+
+
+def psnr(pred, ref, mask=None):
+    err = (pred - ref) ** 2
+    mse = err.mean() if mask is None else err[mask.expand_as(err)].mean()
+    return -10.0 * math.log10(max(float(mse), 1e-12))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", default="sphere_on_plane,room_corner,fence,stairs,floating,poles")
+    p.add_argument("--methods", default="bitmask,gtao")
+    p.add_argument("--height", type=int, default=72)
+    p.add_argument("--width", type=int, default=96)
+    p.add_argument("--step-powers", default="1,2")
+    p.add_argument("--splits", default="3x3,2x5,1x9,5x2,9x1", help="slices x steps, comma-separated")
+    p.add_argument("--jitter", default="on", choices=("on", "off"), help="per-pixel rotation and step offsets")
+    a = p.parse_args(argv)
+    torch.set_grad_enabled(False)
+    views = load_bench_views(a.scenes.split(","), height=a.height, width=a.width, progress=False, log=None)
+    denoiser = Denoiser()
+    print(f"jitter {a.jitter}\n\n| method | slices x steps | step_power | " + " | ".join(v.name for v in views) + " | mean | mean denoised |")
+    print("| --- " * (4 + len(views)) + "| --- |")
+    for method in a.methods.split(","):
+        cls = get_method(method)
+        for sp in map(float, a.step_powers.split(",")):
+            for slices, steps in (tuple(map(int, x.split("x"))) for x in a.splits.split(",")):
+                m = cls(slices=slices, steps=steps, step_power=sp, radius=1.0, jitter=a.jitter == "on")
+                raw, den = [], []
+                for v in views:
+                    out = m(v.gbuffer)
+                    vis = out.visibility if hasattr(out, "visibility") else out
+                    mask = v.gbuffer.mask if getattr(v.gbuffer, "mask", None) is not None else None
+                    raw.append(psnr(vis, v.reference, mask))
+                    den.append(psnr(denoiser(vis, v.gbuffer).visibility, v.reference, mask))
+                print(f"| {method} | {slices}x{steps} | {sp:g} | " + " | ".join(f"{x:.2f}" for x in raw)
+                      + f" | {sum(raw)/len(raw):.2f} | {sum(den)/len(den):.2f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
