@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from sector_reference import plain_union
+from torch_ao.sectors.soft_union import UnionBlocks
 from torch_ao.sectors import (ROUNDINGS, SectorUnion, bits_to_mask, hard_coverage, hard_mask, mask_bits, popcount32,
                               sector_interval, sector_union, soft_coverage)
 
@@ -120,7 +121,7 @@ def test_soft_to_hard_convergence_table():
 def test_union_matches_plain_autograd_and_gradcheck(rounding, block, monkeypatch):
     # block: rows per block of the backward's table rebuild (None: the default, one block here)
     if block is not None:
-        monkeypatch.setattr(SectorUnion, "BACKWARD_BLOCK", block)
+        monkeypatch.setattr(UnionBlocks, "BACKWARD_BLOCK", block)
     g = torch.Generator().manual_seed(3)
     N, J = 6, 5
     lo = torch.rand(N, J, generator=g, dtype=torch.float64)

@@ -7,6 +7,7 @@ import torch
 
 from sector_reference import plain_union
 from torch_ao.sectors import SectorUnion, sector_interval, sector_union
+from torch_ao.sectors.soft_union import UnionBlocks
 from torch_ao.sectors.hard_union import coverage_union
 from torch_ao.sectors.live_steps import LiveSteps
 from torch_ao.sectors.sweeps import expm1_tanh
@@ -54,10 +55,10 @@ def test_union_block_and_group_sizes_agree(tau, monkeypatch):
     gn = torch.randn(37, 11, dtype=torch.float64)
     outs = []
     for fb, fg, bb, bg in [(4096, 4, 4096, 4), (5, 3, 8, 2), (1, 1, 1, 1), (16, 16, 7, 11), (37, 4, 36, 5)]:
-        monkeypatch.setattr(SectorUnion, "FORWARD_BLOCK", fb)
-        monkeypatch.setattr(SectorUnion, "FORWARD_GROUP", fg)
-        monkeypatch.setattr(SectorUnion, "BACKWARD_BLOCK", bb)
-        monkeypatch.setattr(SectorUnion, "BACKWARD_GROUP", bg)
+        monkeypatch.setattr(UnionBlocks, "FORWARD_BLOCK", fb)
+        monkeypatch.setattr(UnionBlocks, "FORWARD_GROUP", fg)
+        monkeypatch.setattr(UnionBlocks, "BACKWARD_BLOCK", bb)
+        monkeypatch.setattr(UnionBlocks, "BACKWARD_GROUP", bg)
         outs.append(_union_and_grads(s, w, weights, p0, tau, "ceil", gv, gn))
     for other in outs[1:]:
         for a, b in zip(outs[0], other):

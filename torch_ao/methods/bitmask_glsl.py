@@ -38,8 +38,8 @@ Quirks of the shader, all kept on purpose (a user porting it gets the same numbe
   to the driver. Mesa's GLSL compiler emits a polynomial ``acos`` (error ~1.6e-4 rad): ``"mesa"``
   reproduces it bit for bit (:func:`mesa_asin`), with the compiler folding ``acos``'s ``pi/2`` into the
   horizon's ``+ halfPi``, and llvmpipe's ``dot``/``normalize``/``sqrt`` roundings (:class:`GLSLVectorOps`):
-  99.995-100% of pixels match llvmpipe with 32-bit ints within 1e-3 (issue 15's fence frame: every
-  pixel bit for bit; the last few pixels elsewhere are not traced yet). llvmpipe also evaluates ``mediump`` in 16 bits:
+  99.995-100% of pixels match llvmpipe with 32-bit ints within 1e-3 (the 320x180 fence frame of
+  ``tests/test_glsl_parity.py``: every pixel bit for bit; the last few pixels elsewhere are not traced yet). llvmpipe also evaluates ``mediump`` in 16 bits:
   ``randf`` (``int`` arguments, ``mediump`` by default in a fragment shader) in float16, which
   ``"mesa_mediump"`` reproduces, and the ``uint`` masks (also ``mediump``!) in 16 bits, which no option
   reproduces: on such a driver the shader as written keeps only 16 of its 32 sectors (it should declare

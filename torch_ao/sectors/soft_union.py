@@ -65,6 +65,22 @@ class Wanted(NamedTuple):
     p0: bool
 
 
+class UnionBlocks:
+    """Block and group sizes of the soft union's sweeps (a plain class, so that ``torch.compile`` reads them
+    as constants: dynamo cannot read attributes of an autograd Function's class while tracing)."""
+
+    #: rows per block of the forward sweep (scratch: ``2 FORWARD_GROUP + 1`` rows of 32 per row, and
+    #: ``FORWARD_GROUP + 1`` more with weights)
+    FORWARD_BLOCK = 2048
+    #: steps per group (logistics evaluated together) in the forward sweep
+    FORWARD_GROUP = 4
+    #: rows per block of the backward (its transient memory: ``4 J + 6 BACKWARD_GROUP + 4`` rows of 32
+    #: per row)
+    BACKWARD_BLOCK = 1024
+    #: steps per group in the backward
+    BACKWARD_GROUP = 4
+
+
 class SectorUnion(torch.autograd.Function):
     """Union over the steps of one slice, per sector, with the newly covered share of each step.
 
@@ -79,22 +95,12 @@ class SectorUnion(torch.autograd.Function):
     come back as transposed views of ``(J, N)`` tensors. The module docstring derives the backward.
     """
 
-    #: rows per block of the forward sweep (scratch: ``2 FORWARD_GROUP + 1`` rows of 32 per row, and
-    #: ``FORWARD_GROUP + 1`` more with weights)
-    FORWARD_BLOCK = 2048
-    #: steps per group (logistics evaluated together) in the forward sweep
-    FORWARD_GROUP = 4
-    #: rows per block of the backward (its transient memory: ``4 J + 6 BACKWARD_GROUP + 4`` rows of 32
-    #: per row)
-    BACKWARD_BLOCK = 1024
-    #: steps per group in the backward
-    BACKWARD_GROUP = 4
-
     @staticmethod
     def forward(ctx, s, w, weights, p0, tau, rounding, hard_forward):
         delta = rounding_offset(rounding)
         visible, newly = union_forward(s, w, weights, p0, tau, delta, rounding if hard_forward else None)
         ctx.tau, ctx.delta = tau, delta
+        ctx.all_steps = torch.compiler.is_compiling()
         ctx.save_for_backward(s, w, weights, p0)
         return visible, newly
 
@@ -107,6 +113,12 @@ class SectorUnion(torch.autograd.Function):
         if not any(wanted):
             return None, None, None, None, None, None, None
         grad_newly = grad_newly if with_newly else None
+        if ctx.all_steps:
+            grads = _dense_backward(s, w.clamp_min(0), weights, p0, grad_visible, grad_newly, ctx.tau, ctx.delta,
+                                    wanted)
+            if wanted.w:
+                grads = grads._replace(w=grads.w.masked_fill(w < 0, 0.0))
+            return (*grads, None, None, None)
         layout = LiveSteps(w)
         if layout.dense:
             grads = _dense_backward(s, w, weights, p0, grad_visible, grad_newly, ctx.tau, ctx.delta, wanted)
@@ -123,6 +135,10 @@ def union_forward(s, w, weights, p0, tau, delta, hard_rounding=None):
         dense = lambda s, w, weights, p0: _dense_forward(s, w, weights, p0, tau, delta)  # noqa: E731
     else:
         dense = lambda s, w, weights, p0: coverage_union(s, w, weights, p0, hard_rounding)  # noqa: E731
+    if torch.compiler.is_compiling():
+        # every step, the dead ones at zero width (they cover nothing): the live-step layout has sizes
+        # that depend on the data, which the compiled graph cannot have
+        return dense(s, w.clamp_min(0), weights, p0)
     layout = LiveSteps(w)
     if layout.dense:
         return dense(s, w, weights, p0)
@@ -142,15 +158,15 @@ def union_forward(s, w, weights, p0, tau, delta, hard_rounding=None):
 
 def _dense_forward(s, w, weights, p0, tau, delta):
     """The soft forward over every step (widths ``w >= 0``), in blocks of
-    :attr:`SectorUnion.FORWARD_BLOCK` rows and groups of :attr:`SectorUnion.FORWARD_GROUP` steps."""
+    :attr:`UnionBlocks.FORWARD_BLOCK` rows and groups of :attr:`UnionBlocks.FORWARD_GROUP` steps."""
     N, J = s.shape
     with_newly = weights is not None
     ends = sector_ends(s, tau)
-    group = max(1, min(SectorUnion.FORWARD_GROUP, J))
+    group = max(1, min(UnionBlocks.FORWARD_GROUP, J))
     visible = s.new_empty(N, SECTORS)
     newly = s.new_empty(N, J) if with_newly else s.new_zeros(N, 0)
     make = lambda B: ForwardScratch(s, B, J, group, tau, with_newly)  # noqa: E731
-    for rows, scratch in blocks(N, SectorUnion.FORWARD_BLOCK, make):
+    for rows, scratch in blocks(N, UnionBlocks.FORWARD_BLOCK, make):
         load_block(scratch, s, w, p0, rows, tau, delta)
         if with_newly:
             scratch.weights.copy_(weights[rows].t())
@@ -163,7 +179,7 @@ def _dense_forward(s, w, weights, p0, tau, delta):
 
 def _dense_backward(s, w, weights, p0, grad_visible, grad_newly, tau, delta, wanted: Wanted) -> UnionGrads:
     """:class:`SectorUnion`'s backward over every step (widths ``w >= 0``), in blocks of
-    :attr:`SectorUnion.BACKWARD_BLOCK` rows; ``grad_newly`` is ``None`` when ``newly`` has no gradient."""
+    :attr:`UnionBlocks.BACKWARD_BLOCK` rows; ``grad_newly`` is ``None`` when ``newly`` has no gradient."""
     N, J = s.shape
     inv_tau = 1.0 / tau
     want_sums = wanted.s or wanted.w
@@ -175,11 +191,11 @@ def _dense_backward(s, w, weights, p0, grad_visible, grad_newly, tau, delta, wan
     gw_t = s.new_empty(J, N) if wanted.w else None
     gweights = s.new_empty(N, SECTORS) if wanted.weights else None
     gp0 = s.new_empty(N, SECTORS) if wanted.p0 else None
-    group = max(1, min(SectorUnion.BACKWARD_GROUP, J))
+    group = max(1, min(UnionBlocks.BACKWARD_GROUP, J))
     ends = sector_ends(s, tau)
     make = lambda B: BackwardScratch(s, B, J, group, tau, grad_newly is not None, wanted.weights,  # noqa: E731
                                      wanted.s, want_sums)
-    for rows, scratch in blocks(N, SectorUnion.BACKWARD_BLOCK, make):
+    for rows, scratch in blocks(N, UnionBlocks.BACKWARD_BLOCK, make):
         load_block(scratch, s, w, p0, rows, tau, delta)
         sweep(scratch, ends, tau)
         S0 = reverse_scan(scratch, grad_visible, grad_newly, weights, rows, wanted)

@@ -118,7 +118,7 @@ def edge_aware_taps(frame: Frame, index: torch.Tensor, fu: torch.Tensor, fv: tor
     gradient goes to it alone)."""
     proper = (index[:, 1] != index[:, 0]) & (index[:, 2] != index[:, 0])
     smooth = take(_cell_flags(frame), index[:, 0])
-    if not bool(proper.all()):
+    if torch.compiler.is_compiling() or not bool(proper.all()):  # (compiled: no data-dependent branch)
         inverse = torch.where(take(frame.valid, index), take(frame.inverse_depth, index), 0.0).detach()
         smooth = torch.where(proper, smooth, continuous_cells(inverse, EDGE_MIN_RATIO))
     corner = (fu.detach() >= 0.5).to(index.dtype) + 2 * (fv.detach() >= 0.5).to(index.dtype)
