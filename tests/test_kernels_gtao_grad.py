@@ -123,3 +123,20 @@ def test_threads_scatter_into_their_own_images(built):
         torch.set_num_threads(before)
     for name in one:
         assert torch.allclose(one[name], three[name], rtol=1e-5, atol=1e-6), name
+
+
+def test_zero_normals_give_the_tensor_paths_finite_gradients():
+    """Depths of 2e14 reconstruct zero normals in float32: the projected normal has zero length and
+    atan2(0, 0) its angle. The dual walk takes no derivative there (as torch's norm at 0), instead of
+    sqrt's and atan2's 0/0, and gives the tensor path's gradients."""
+    from stability_cases import extreme_camera
+
+    gb = extreme_camera(1.0, 0.0, 2e14, torch.float32)
+    assert not bool(gb.view_normals("improved").abs().amax())  # (the case: every normal is zero)
+    grads = []
+    for backend in ("kernel", "torch"):
+        depth = gb.depth.clone().requires_grad_(True)
+        GTAO(backend=backend)(GBuffer(depth, gb.camera)).visibility.sum().backward()
+        grads.append(depth.grad)
+    assert bool(torch.isfinite(grads[0]).all())
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-30)

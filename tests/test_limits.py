@@ -155,9 +155,9 @@ def test_walk_estimate_refuses_8192_squared_and_takes_2048_squared(monkeypatch):
             if refused:
                 with pytest.raises(ResourceLimitError, match=r"^GTAO: 1x8192x8192 pixels at 4 slices x 8 steps: needs 80 GiB, "
                                    r"above the limit of 8 GiB \(TORCH_AO_MAX_WALK_BYTES raises it; or give chunk_size"):
-                    torch_ao.GTAO().check_memory(gb)
+                    torch_ao.GTAO(slices=4, steps=8).check_memory(gb)
             else:
-                torch_ao.GTAO().check_memory(gb)
+                torch_ao.GTAO(slices=4, steps=8).check_memory(gb)
 
 
 def test_walk_estimate_formula():

@@ -83,8 +83,10 @@ template <class F, int N> TAO_FN Dual<F, N> fma(const Dual<F, N>& a, const Dual<
 }
 template <class F, int N> TAO_FN Dual<F, N> abs(const Dual<F, N>& x) { return select(x.v < F(0.0f), neg(x), x); }
 template <class F, int N> TAO_FN Dual<F, N> sqrt(const Dual<F, N>& x) {
+  // at 0, the derivative torch's norm takes there (0), not sqrt's infinite one: a zero-length vector
+  // (a normal with no component in the slice, a zero normal) has no gradient rather than NaN
   const F r = sqrt(x.v);
-  return Dual<F, N>::chain(r, F(0.5f) / r, x);
+  return Dual<F, N>::chain(r, select(r > F(0.0f), F(0.5f) / r, F(0.0f)), x);
 }
 template <class F, int N> TAO_FN Dual<F, N> rsqrt(const Dual<F, N>& x) {
   const F r = rsqrt(x.v);
@@ -98,8 +100,11 @@ template <class F, int N> TAO_FN Dual<F, N> floor(const Dual<F, N>& x) { return 
 template <class F, int N> TAO_FN Dual<F, N> ceil(const Dual<F, N>& x) { return Dual<F, N>(ceil(x.v)); }
 template <class F, int N> TAO_FN Dual<F, N> rint(const Dual<F, N>& x) { return Dual<F, N>(rint(x.v)); }
 template <class F, int N> TAO_FN Dual<F, N> atan2(const Dual<F, N>& y, const Dual<F, N>& x) {
-  const F r2 = x.v * x.v + y.v * y.v;  // torch's atan2 backward: 0 / 0 at the origin, as here
-  return Dual<F, N>::chain(atan2(y.v, x.v), x.v / r2, y, neg(y.v) / r2, x);
+  // at the origin (a zero projected normal), no derivative: atan2(0, 0) = 0 is a convention, not a limit
+  const F r2 = x.v * x.v + y.v * y.v;
+  const auto defined = r2 > F(0.0f);
+  const F inv = select(defined, reciprocal(r2), F(0.0f));
+  return Dual<F, N>::chain(atan2(y.v, x.v), x.v * inv, y, neg(y.v) * inv, x);
 }
 template <class F, int N> TAO_FN Dual<F, N> cos(const Dual<F, N>& x) { return Dual<F, N>::chain(cos(x.v), neg(sin(x.v)), x); }
 template <class F, int N> TAO_FN Dual<F, N> sin(const Dual<F, N>& x) { return Dual<F, N>::chain(sin(x.v), cos(x.v), x); }
