@@ -86,8 +86,8 @@ def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode):
 
     vis_e, grads_e = run(module)
     vis_c, grads_c = run(compiled)
-    # Inductor compiled the walk (in pieces: the flat list of valid pixels, nonzero, breaks the graph)
-    assert counters["stats"]["unique_graphs"] >= 1
+    # Inductor compiled the walk, forward and backward, as one graph (no graph break)
+    assert counters["stats"]["unique_graphs"] == 1, counters["stats"]
     assert torch.allclose(vis_c, vis_e, atol=1e-5, rtol=0), (vis_c - vis_e).abs().max()
     for name, ge, gc in zip(("depth", "radius", "thickness"), grads_e, grads_c):
         assert bool(ge.abs().max() > 0), name  # a gradient to compare
@@ -122,6 +122,8 @@ NO_BREAK_MODULES = {
     "bitmask_soft_exact": lambda: torch_ao.BitmaskAO(variant="exact", mode="soft", slices=2, steps=2, backend="torch"),
     "bitmask_straight_through": lambda: torch_ao.BitmaskAO(mode="straight_through", slices=2, steps=2,
                                                            backend="torch"),
+    "bitmask_straight_through_exact": lambda: torch_ao.BitmaskAO(variant="exact", mode="straight_through", slices=2,
+                                                                 steps=2, backend="torch"),
     "ssao": lambda: torch_ao.SSAO(radius=1.0, slices=2, steps=2),
     "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=2),
     "pssao": lambda: torch_ao.PSSAO(slices=2, steps=2),
@@ -133,38 +135,44 @@ def test_walk_traces_as_one_graph(name):
     """The tensor walk traces whole: no graph break (the soft union takes every step, dead ones at zero
     width, instead of its data-dependent live-step layout)."""
     graphs, breaks = _breaks(NO_BREAK_MODULES[name](), _sky_frame())
-    if name in ("bitmask_soft", "bitmask_straight_through"):
-        # with gradients, the default soft union's forward sweep writes into non-contiguous scratch views
-        # (`out=`), which dynamo does not trace: those breaks, and only those, remain
-        assert breaks and all(path.endswith("sectors/sweeps.py") and "out=" in reason
-                              for reason, path in breaks), breaks
-        return
     assert breaks == [] and graphs == 1, breaks
 
 
-@pytest.mark.parametrize("make", [lambda: torch_ao.GTAO(slices=2, steps=2, backend="torch", falloff_range=0.3),
-                                  lambda: torch_ao.BitmaskAO(mode="soft", slices=2, steps=2, backend="torch")],
-                         ids=["gtao", "bitmask_soft"])
-def test_compiled_walk_over_every_pixel_keeps_values_background_and_gradients(make):
+EVERY_PIXEL_MODULES = {
+    "gtao": lambda: torch_ao.GTAO(slices=2, steps=2, backend="torch", falloff_range=0.3),
+    "bitmask_soft": lambda: torch_ao.BitmaskAO(mode="soft", slices=2, steps=2, backend="torch"),
+    "bitmask_straight_through": lambda: torch_ao.BitmaskAO(mode="straight_through", slices=2, steps=2,
+                                                           backend="torch"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EVERY_PIXEL_MODULES))
+def test_compiled_walk_over_every_pixel_keeps_values_background_and_gradients(name):
     """Under torch.compile the walk queries every pixel (no data-dependent list of valid ones): the values
-    and gradients equal eager, the background stays 1 with zero gradient (aot_eager: the traced graphs
-    without Inductor's code generation)."""
+    and gradients (depth and every parameter: radius and thickness, or falloff range and final power) equal
+    eager, the background stays 1 with zero gradient (aot_eager: the traced graphs without Inductor's code
+    generation)."""
     gb = _sky_frame()
     results = []
     for compiled in (False, True):
         torch._dynamo.reset()
-        module = make().double()
+        module = EVERY_PIXEL_MODULES[name]().double()
         depth = gb.depth.double().clone().requires_grad_(True)
         g = torch_ao.GBuffer(depth, gb.camera.to(dtype=torch.float64), normals=gb.normals.double())
         run = torch.compile(module, backend="aot_eager", dynamic=False) if compiled else module
         vis = run(g).visibility
         (vis * torch.linspace(0.5, 1.5, vis.numel(), dtype=vis.dtype).reshape(vis.shape)).sum().backward()
-        results.append((vis.detach(), depth.grad, module.radius.grad))
-    (v0, d0, r0), (v1, d1, r1) = results
+        results.append((vis.detach(), depth.grad, {n: p.grad for n, p in module.named_parameters()}))
+    (v0, d0, p0), (v1, d1, p1) = results
     bg = ~gb.valid
     assert torch.equal(v1[bg], torch.ones_like(v1[bg])) and torch.equal(d1[bg], torch.zeros_like(d1[bg]))
     assert bool(torch.isfinite(d1).all()) and float(d1.abs().sum()) > 0
-    assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(d1, d0, atol=1e-10) and torch.allclose(r1, r0, atol=1e-10)
+    assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(d1, d0, atol=1e-10)
+    assert "radius" in p0 and sorted(p1) == sorted(p0)
+    for n in p0:
+        assert p0[n] is not None and p1[n] is not None, n
+        assert bool(p0[n].abs().max() > 0), n  # a gradient to compare
+        assert torch.allclose(p1[n], p0[n], atol=1e-10), (n, p1[n], p0[n])
 
 
 def test_gtao_second_call_on_the_same_gbuffer_reuses_the_graph():

@@ -41,7 +41,7 @@ from .blocks import BackwardScratch, ForwardScratch, blocks
 from .hard_union import coverage_union
 from .live_steps import LiveSteps
 from .rule import SECTORS, rounding_offset
-from .sweeps import load_block, reverse_scan, sector_ends, sweep
+from .sweeps import load_block, reverse_scan, sector_ends, sweep, write_into
 
 __all__ = ["SectorUnion"]
 
@@ -205,11 +205,12 @@ def _dense_backward(s, w, weights, p0, grad_visible, grad_newly, tau, delta, wan
             sum_y_not_b = torch.sub(sum_y, sum_yb)  # sum Y (1 - b)
             if wanted.w:
                 # -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau
-                torch.mul(g, g, out=gw_t[:, rows]).sub_(1).mul_(sum_y).sub_(sum_y_not_b.mul(g)).mul_(inv_tau)
+                write_into(torch.mul, g, g, out=gw_t[:, rows]).sub_(1).mul_(sum_y).sub_(sum_y_not_b.mul(g)) \
+                    .mul_(inv_tau)
             if wanted.s:
                 # -(g / tau) (F' sum Y (1 - b) - sum Y (1 - a))
-                torch.mul(sum_y_not_b, scratch.floor_slope, out=gs_t[:, rows]).sub_(sum_y).add_(sum_ya).mul_(g) \
-                    .mul_(-inv_tau)
+                write_into(torch.mul, sum_y_not_b, scratch.floor_slope, out=gs_t[:, rows]).sub_(sum_y).add_(sum_ya) \
+                    .mul_(g).mul_(-inv_tau)
         if wanted.weights:
             gweights[rows] = scratch.grad_weights.t()
         if wanted.p0:

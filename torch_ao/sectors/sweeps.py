@@ -33,6 +33,15 @@ TINY = 1e-30  # per-sector visibilities below this are flushed to 0 (no subnorma
 WINDOW_MAX = 8
 
 
+def write_into(op, *args, out: torch.Tensor, **kwargs) -> torch.Tensor:
+    """``op(*args, **kwargs)`` written into the scratch view ``out``, and returned: eagerly with ``out=`` (no
+    temporary); while compiling out of place and copied in (dynamo does not trace ``out=`` into a
+    non-contiguous view, and the compiled graph fuses the copy)."""
+    if torch.compiler.is_compiling():
+        return out.copy_(op(*args, **kwargs))
+    return op(*args, out=out, **kwargs)
+
+
 def _floor_reach(tau: float) -> int:
     return int(math.ceil(CLAMP * tau)) + 1
 
@@ -68,11 +77,11 @@ def _floor_window_into(starts, tau, terms, floor_s, floor_slope):
     lo = torch.floor(flat).sub_(reach - 1).clamp_(1, SECTORS - width + 1)
     z = torch.sub(flat, lo).mul_(inv_tau)
     offsets = torch.arange(width, dtype=starts.dtype, device=starts.device).mul_(inv_tau)[:, None]
-    x = torch.sub(z, offsets, out=terms[:width * M].view(width, M)).clamp_(-CLAMP, CLAMP).sigmoid_()
-    torch.sum(x, 0, out=floor_s.view(M)).add_(lo.sub_(1))
+    x = write_into(torch.sub, z, offsets, out=terms[:width * M].view(width, M)).clamp_(-CLAMP, CLAMP).sigmoid_()
+    write_into(torch.sum, x, 0, out=floor_s.view(M)).add_(lo.sub_(1))
     if floor_slope is not None:
-        y = torch.sub(1, x, out=terms[width * M:2 * width * M].view(width, M)).mul_(x)
-        torch.sum(y, 0, out=floor_slope.view(M))
+        y = write_into(torch.sub, 1, x, out=terms[width * M:2 * width * M].view(width, M)).mul_(x)
+        write_into(torch.sum, y, 0, out=floor_slope.view(M))
 
 
 def load_block(scratch, s, w, p0, rows, tau, delta):
@@ -80,11 +89,11 @@ def load_block(scratch, s, w, p0, rows, tau, delta):
     into ``scratch``, steps first: ``start_arg = -s / tau``, ``shifted_width = w - delta + 1``, the gate
     ``tanh(w / tau)``, ``visible = p0`` (or 1) and, on the window path, ``F(s)`` (and ``F' tau``)."""
     inv_tau = 1.0 / tau
-    torch.mul(s[rows].t(), -inv_tau, out=scratch.start_arg[:, 0])
+    write_into(torch.mul, s[rows].t(), -inv_tau, out=scratch.start_arg[:, 0])
     if scratch.windowed:
         _floor_window_into(s[rows].t().contiguous(), tau, scratch.floor_terms, scratch.floor_s, scratch.floor_slope)
-    torch.add(w[rows].t(), 1 - delta, out=scratch.shifted_width)
-    expm1_tanh(torch.mul(w[rows].t(), inv_tau, out=scratch.gate[:, 0]))
+    write_into(torch.add, w[rows].t(), 1 - delta, out=scratch.shifted_width)
+    expm1_tanh(write_into(torch.mul, w[rows].t(), inv_tau, out=scratch.gate[:, 0]))
     if p0 is None:
         scratch.visible.fill_(1)
     else:
@@ -95,17 +104,17 @@ def _logistics(grp, ends, inv_tau):
     """A group's ``a`` and ``b`` ``(q, 32, B)`` into ``grp.after_start`` and ``grp.within_count``, and on
     the complements path ``F = sum_k (1 - a_k)`` (and ``F' tau``)."""
     a, b = grp.after_start, grp.within_count
-    torch.add(ends, grp.start_arg, out=a).clamp_(-CLAMP, CLAMP).sigmoid_()
+    write_into(torch.add, ends, grp.start_arg, out=a).clamp_(-CLAMP, CLAMP).sigmoid_()
     floor_s = grp.floor_s
     if floor_s is None:
         # a sum of the complements, not 32 - sum a (that loses the precision of a small F); b's buffer
         # is the scratch
-        not_a = torch.sub(1, a, out=b)
-        floor_s = torch.sum(not_a, 1, out=grp.floor_scratch)
+        not_a = write_into(torch.sub, 1, a, out=b)
+        floor_s = write_into(torch.sum, not_a, 1, out=grp.floor_scratch)
         if grp.floor_slope is not None:  # F'(s) tau = sum_k a_k (1 - a_k)
-            torch.sum(not_a.mul_(a), 1, out=grp.floor_slope)
-    torch.add(grp.shifted_width, floor_s, out=grp.end_arg[:, 0]).mul_(inv_tau)
-    torch.sub(grp.end_arg, ends, out=b).clamp_(-CLAMP, CLAMP).sigmoid_()
+            write_into(torch.sum, not_a.mul_(a), 1, out=grp.floor_slope)
+    write_into(torch.add, grp.shifted_width, floor_s, out=grp.end_arg[:, 0]).mul_(inv_tau)
+    write_into(torch.sub, grp.end_arg, ends, out=b).clamp_(-CLAMP, CLAMP).sigmoid_()
 
 
 def sweep(scratch, ends, tau):
@@ -125,23 +134,24 @@ def sweep(scratch, ends, tau):
     for grp in scratch.groups:
         _logistics(grp, ends, inv_tau)
         if tables:
-            torch.mul(grp.after_start, grp.within_count, out=grp.ungated)  # a b
-            torch.mul(grp.ungated, grp.gate, out=grp.coverage)  # c = a b g
+            write_into(torch.mul, grp.after_start, grp.within_count, out=grp.ungated)  # a b
+            write_into(torch.mul, grp.ungated, grp.gate, out=grp.coverage)  # c = a b g
         else:
             grp.coverage.mul_(grp.after_start).mul_(grp.gate)  # c = a b g (in b's buffer)
         for i in range(grp.q):
             j = grp.steps.start + i
             if tables:
-                torch.mul(grp.ungated_rows[i], P, out=scratch.ab_visible_rows[j])  # H_j = a b P_j
+                write_into(torch.mul, grp.ungated_rows[i], P, out=scratch.ab_visible_rows[j])  # H_j = a b P_j
                 if j == last:
                     break
             if newly:
-                P.sub_(torch.mul(grp.coverage_rows[i], P, out=grp.share_rows[i]))  # newly covered share c_j P_j
+                # newly covered share c_j P_j
+                P.sub_(write_into(torch.mul, grp.coverage_rows[i], P, out=grp.share_rows[i]))
             else:
                 P.addcmul_(grp.coverage_rows[i], P, value=-1)  # P_j (1 - c_j), in [0, P_j]
             torch.nn.functional.threshold_(P, TINY, 0.0)  # flush tiny values (no subnormals)
         if newly:
-            torch.sum(grp.shares.mul_(scratch.weights), 1, out=scratch.newly[grp.steps])
+            write_into(torch.sum, grp.shares.mul_(scratch.weights), 1, out=scratch.newly[grp.steps])
     if scratch.floor_slope is not None:
         scratch.floor_slope.mul_(inv_tau)
 
@@ -167,7 +177,7 @@ def reverse_scan(scratch, grad_visible, grad_newly, weights, rows, wanted):
         weights_t = scratch.weights.copy_(weights[rows].t())
         gn = list(scratch.grad_newly.copy_(grad_newly[rows].t()).unbind(0))
     if wanted.weights:
-        gn_gate = list(torch.mul(scratch.grad_newly, scratch.gate[:, 0], out=scratch.gn_gate).unbind(0))
+        gn_gate = list(write_into(torch.mul, scratch.grad_newly, scratch.gate[:, 0], out=scratch.gn_gate).unbind(0))
         grad_weights = scratch.grad_weights.zero_()
         H = scratch.ab_visible_rows
     want_sums = wanted.s or wanted.w
@@ -179,14 +189,14 @@ def reverse_scan(scratch, grad_visible, grad_newly, weights, rows, wanted):
         for i in range(grp.q - 1, -1, -1):
             m = grp.steps.start + i
             if with_newly:
-                torch.addcmul(S_rows[i + 1], weights_t, gn[m], value=-1, out=D_rows[i])
+                write_into(torch.addcmul, S_rows[i + 1], weights_t, gn[m], value=-1, out=D_rows[i])
             if wanted.weights:
                 grad_weights.addcmul_(H[m], gn_gate[m])
             if m > 0 or wanted.p0:
-                torch.addcmul(S_rows[i + 1], grp.coverage_rows[i], D_rows[i], value=-1, out=S_rows[i])
+                write_into(torch.addcmul, S_rows[i + 1], grp.coverage_rows[i], D_rows[i], value=-1, out=S_rows[i])
         S = S_rows[0]
         if want_sums:
-            torch.mul(grp.ab_visible, grp.keep_grad, out=grp.y)  # Y = a b P D
-            torch.mul(grp.y_keepdim, grp.a_and_b, out=grp.y_ab)  # Y a, Y b
-            torch.sum(grp.terms, 2, out=grp.sector_sums)
+            write_into(torch.mul, grp.ab_visible, grp.keep_grad, out=grp.y)  # Y = a b P D
+            write_into(torch.mul, grp.y_keepdim, grp.a_and_b, out=grp.y_ab)  # Y a, Y b
+            write_into(torch.sum, grp.terms, 2, out=grp.sector_sums)
     return S
