@@ -62,19 +62,21 @@ def test_compiled_bitmask_with_the_kernel_is_bit_identical():
 
 # Soft and straight-through BitmaskAO under torch.compile: forward values and gradients (to depth, normals
 # by way of depth, radius and thickness) against eager. Tiny frame and walk: Inductor compiles forward and
-# backward graphs of every slice x step.
-SOFT_CASES = [(variant, mode) for variant in ("default", "exact") for mode in ("soft", "straight_through")]
+# backward graphs of every slice x step. Inductor's code generation for one case (about 2 minutes of
+# compiling on a 2-core CPU); the others run the same traced graphs without it (aot_eager).
+SOFT_CASES = [(variant, mode, "inductor" if (variant, mode) == ("default", "soft") else "aot_eager")
+              for variant in ("default", "exact") for mode in ("soft", "straight_through")]
 
 
-@pytest.mark.parametrize("variant,mode", SOFT_CASES, ids=[f"{v}-{m}" for v, m in SOFT_CASES])
-def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode):
+@pytest.mark.parametrize("variant,mode,backend", SOFT_CASES, ids=[f"{v}-{m}-{b}" for v, m, b in SOFT_CASES])
+def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode, backend):
     from torch._dynamo.utils import counters
 
     torch._dynamo.reset()
     counters.clear()
     gb = example_gbuffer(12, 16)
     module = torch_ao.BitmaskAO(variant=variant, mode=mode, slices=2, steps=2, backend="torch")
-    compiled = torch.compile(module, dynamic=False)
+    compiled = torch.compile(module, backend=backend, dynamic=False)
 
     def run(fn):
         depth = gb.depth.detach().clone().requires_grad_(True)
@@ -86,7 +88,7 @@ def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode):
 
     vis_e, grads_e = run(module)
     vis_c, grads_c = run(compiled)
-    # Inductor compiled the walk, forward and backward, as one graph (no graph break)
+    # the walk compiled, forward and backward, as one graph (no graph break)
     assert counters["stats"]["unique_graphs"] == 1, counters["stats"]
     assert torch.allclose(vis_c, vis_e, atol=1e-5, rtol=0), (vis_c - vis_e).abs().max()
     for name, ge, gc in zip(("depth", "radius", "thickness"), grads_e, grads_c):
