@@ -13,10 +13,12 @@ from torch_ao.datasets import (BENCHMARK_SCENES, FIT_SCENES, HELDOUT_SCENES, SCE
                                reference_view)
 from torch_ao.reference import MESH_SCENES, SCENES, get_scene
 import torch_ao.reference.scenes as scenes_module
+from conftest import mesh_scenes_missing
 
 RESERVED = ("spider", "duck", "engine", "wuson")
 
 
+@mesh_scenes_missing()
 def test_train_and_heldout_scenes_are_disjoint_known_and_exclude_the_reserved_models():
     assert not set(FIT_SCENES) & set(HELDOUT_SCENES)
     assert set(BENCHMARK_SCENES) <= set(SCENES) and set(MESH_SCENES) <= set(SCENES)
@@ -38,6 +40,19 @@ def test_unknown_or_missing_scenes_are_refused_by_name(tmp_path, monkeypatch):
     assert main(["fit", "--scenes", "mesh_concave", "--out", str(tmp_path / "o")]) == 2
 
 
+def test_a_set_keeps_the_scenes_this_machine_has(tmp_path, monkeypatch):
+    """Without assimp-testmodels the default `--scenes fit` is its procedural scenes, with a warning naming
+    the package; a set of meshes alone is refused naming it."""
+    from torch_ao.datasets import TRAIN_SCENES
+
+    monkeypatch.setattr(scenes_module, "MESH_DIR", tmp_path)
+    with pytest.warns(RuntimeWarning, match=r"--scenes: 5 mesh scene\(s\) of the set left out .*assimp-testmodels"):
+        assert parse_scenes("fit") == list(TRAIN_SCENES)
+    with pytest.raises(ValueError, match="--scenes: scene 'mesh_empty_mat' needs .*assimp-testmodels"):
+        parse_scenes("meshes")
+
+
+@mesh_scenes_missing("mesh_concave")
 def test_mesh_scene_orbits_differ_per_seed_and_frame_the_mesh(tmp_path):
     views = [get_scene("mesh_concave", seed).view for seed in (None, 1, 2)]
     assert len({tuple(round(x, 6) for x in v.eye) for v in views}) == 3

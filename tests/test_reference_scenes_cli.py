@@ -7,7 +7,9 @@ import torch
 
 from torch_ao.cli import main
 from torch_ao.io import load_gbuffer, read_npz
-from torch_ao.reference import SCENES, Mesh, get_scene, list_scenes, render_reference
+from torch_ao.reference import MESH_SCENES, SCENES, Mesh, get_scene, list_scenes, render_reference
+
+from conftest import mesh_scenes_missing
 
 STRESS = ["sphere_on_plane", "fence", "room_corner", "stairs", "floating", "poles", "grazing_floor", "large_depth_range"]
 
@@ -18,7 +20,7 @@ def test_registry_has_the_stress_scenes_and_test_scenes():
         assert name in names and SCENES[name].description
 
 
-@pytest.mark.parametrize("name", list(SCENES))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=mesh_scenes_missing(n) if n in MESH_SCENES else ()) for n in SCENES])
 def test_scene_defaults_randomisation_and_gbuffer(name):
     default = get_scene(name)
     assert default.name == name

@@ -5,6 +5,7 @@ files ``torch-ao bench`` uses), so a scene set is ray-traced the first time only
 """
 from __future__ import annotations
 
+import warnings
 from typing import Sequence
 
 from .views import FitView, add_backface_layer, cached_reference, default_cache_dir, load_views
@@ -72,13 +73,22 @@ SCENE_SETS = {"procedural": TRAIN_SCENES, "meshes": MESH_TRAIN_SCENES, "fit": FI
 def parse_scenes(text: str, flag: str = "--scenes") -> list[str]:
     """Comma-separated built-in scene names and set names (:data:`SCENE_SETS`, expanded in place;
     repeats dropped); ``ValueError`` naming ``flag`` for an unknown name, or for a mesh scene whose
-    file is missing (with the package to install)."""
+    file is missing (with the package to install). A set stands for those of its scenes whose files
+    are here: the others are left out with a warning naming the package (refused when none is here)."""
     from .reference import SCENES, scene_unavailable
 
-    names = []
+    names, left_out = [], []
     for item in (x.strip() for x in str(text).split(",")):
-        if item:
-            names += SCENE_SETS.get(item, (item,))
+        if item in SCENE_SETS:  # a set: those of its scenes this machine has (mesh files may be missing)
+            for name in SCENE_SETS[item]:
+                (left_out if scene_unavailable(name) else names).append(name)
+        elif item:
+            names.append(item)
+    if left_out and names:
+        warnings.warn(f"{flag}: {len(left_out)} mesh scene(s) of the set left out ({scene_unavailable(left_out[0])})",
+                      RuntimeWarning, stacklevel=2)
+    elif left_out:
+        names = left_out  # (refused below, naming the package)
     unknown = [s for s in names if s not in SCENES]
     if unknown:
         raise ValueError(f"{flag}: unknown scene(s) {', '.join(unknown)}; built-in scenes: {', '.join(SCENES)}; "
