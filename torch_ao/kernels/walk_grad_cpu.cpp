@@ -22,6 +22,7 @@
 
 #include "lanes_simd.h"
 #include "lanes_dual.h"
+#include "frame_cpu.h"
 #include "packed.h"
 #include "rows_cpu.h"
 
@@ -151,10 +152,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
     const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
   TORCH_CHECK(std::string(accumulator) == "gtao", "accumulator: the backward covers gtao, got ", std::string(accumulator));
-  for (auto [x, name] : {std::pair{&grad, "grad"}, {&positions, "positions"}, {&normals, "normals"},
-                         {&inverse_depth, "inverse_depth"}, {&depth, "depth"}, {&intrinsics, "intrinsics"}, {&floats, "floats"}})
-    check_input(*x, name);
-  TORCH_CHECK(valid.scalar_type() == at::kBool && valid.is_contiguous(), "valid: expected contiguous bool");
+  const at::Tensor none = at::empty({0}, positions.options());
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  for (auto [x, name] : {std::pair{&grad, "grad"}, {&floats, "floats"}}) check_input(*x, name);
   TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() == kAccInts + 3 &&
                   floats.numel() == kAccFloats + 3, "ints, floats: expected gtao's packed settings");
   const int64_t* i = ints.data_ptr<int64_t>();
@@ -167,9 +167,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
   const int C = acc.channels();
   TORCH_CHECK(grad.dim() == 4 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == H && grad.size(3) == W,
               "grad: expected (B, ", C, ", H, W)");
-  const Frame fr{positions.data_ptr<float>(), normals.data_ptr<float>(), inverse_depth.data_ptr<float>(),
-                 depth.data_ptr<float>(), intrinsics.data_ptr<float>(), nullptr, nullptr, nullptr,
-                 valid.data_ptr<bool>(), B, H, W};
   at::Tensor g_pos = at::zeros({B, H, W, 3}, positions.options()), g_nrm = at::zeros({B, H, W, 3}, positions.options());
   at::Tensor g_depth = at::zeros({B, H, W}, positions.options());
   const int64_t threads = at::get_num_threads();

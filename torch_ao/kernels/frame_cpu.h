@@ -1,0 +1,36 @@
+// The walk's CPU inputs as torch_ao/kernels/launch.py passes them, checked and read as packed.h's Frame:
+// the CPU operators' (ops_cpu.cpp, walk_grad_cpu.cpp) one definition.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+
+#include "packed.h"
+
+namespace tao {
+
+// An optional image: empty, or contiguous float32 of `numel` values
+inline const float* optional_image(const at::Tensor& t, int64_t numel, const char* name) {
+  if (t.numel() == 0) return nullptr;
+  TORCH_CHECK(t.numel() == numel && t.scalar_type() == at::kFloat && t.is_contiguous() && t.device().is_cpu(), name,
+              ": expected empty or contiguous float32 of ", numel, " values");
+  return t.data_ptr<float>();
+}
+
+// positions, normals (B, H, W, 3), the inverse depth (NaN where invalid), depth, valid (B, H, W),
+// intrinsics (B, 4) (fx, fy, cx, cy); light (B, H, W, 3), cells and backface (B, H, W), each possibly empty
+inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+                      const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
+                      const at::Tensor& light, const at::Tensor& cells, const at::Tensor& backface) {
+  TORCH_CHECK(positions.dim() == 4 && positions.size(3) == 3, "positions: expected (B, H, W, 3)");
+  for (const at::Tensor* t : {&positions, &normals, &inverse_depth, &depth, &intrinsics})
+    TORCH_CHECK(t->scalar_type() == at::kFloat && t->is_contiguous() && t->device().is_cpu(),
+                "expected contiguous float32 CPU inputs");
+  TORCH_CHECK(valid.scalar_type() == at::kBool && valid.is_contiguous(), "valid: expected contiguous bool");
+  const int64_t pixels = depth.numel();
+  return Frame{positions.data_ptr<float>(), normals.data_ptr<float>(), inverse_depth.data_ptr<float>(),
+               depth.data_ptr<float>(), intrinsics.data_ptr<float>(), optional_image(light, 3 * pixels, "light"),
+               optional_image(cells, pixels, "cells"), optional_image(backface, pixels, "backface"),
+               valid.data_ptr<bool>(), positions.size(0), positions.size(1), positions.size(2)};
+}
+
+}  // namespace tao
