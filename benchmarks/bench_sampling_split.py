@@ -1,7 +1,10 @@
-"""Slice/step splits at a fixed sample count (about the high preset's 3 slices x 3 steps x 2 sides), measured
-against the built-in scenes' ray-traced references (PSNR, dB; higher is better).
+"""Slice/step splits and per-pixel noise at a fixed sample count (about the high preset's 3 slices x 3 steps x 2
+sides), measured against the built-in scenes' ray-traced references (PSNR, dB; higher is better), raw and after
+``Denoiser()``.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_sampling_split.py --height 72 --width 96
+    OMP_NUM_THREADS=1 python benchmarks/bench_sampling_split.py --scenes fit --height 96 --width 128 \\
+        --splits 3x3 --step-powers 1 --noises ign,hilbert_r2
 """
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ import math
 import torch
 
 from torch_ao import Denoiser
+from torch_ao.datasets import parse_scenes
 from torch_ao.methods import get_method
 from torch_ao.views import load_bench_views
 
@@ -24,33 +28,38 @@ def psnr(pred, ref, mask=None):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", default="sphere_on_plane,room_corner,fence,stairs,floating,poles")
+    p.add_argument("--scenes", default="procedural", help="built-in scenes and sets (fit, heldout, ...), comma-separated")
     p.add_argument("--methods", default="bitmask,gtao")
     p.add_argument("--height", type=int, default=72)
     p.add_argument("--width", type=int, default=96)
+    p.add_argument("--spp", type=int, default=64, help="rays per pixel of the references")
     p.add_argument("--step-powers", default="1,2")
     p.add_argument("--splits", default="3x3,2x5,1x9,5x2,9x1", help="slices x steps, comma-separated")
     p.add_argument("--jitter", default="on", choices=("on", "off"), help="per-pixel rotation and step offsets")
+    p.add_argument("--noises", default="ign", help="per-pixel noise kinds (the noise option), comma-separated")
     a = p.parse_args(argv)
     torch.set_grad_enabled(False)
-    views = load_bench_views(a.scenes.split(","), height=a.height, width=a.width, progress=False, log=None)
+    views = load_bench_views(parse_scenes(a.scenes), height=a.height, width=a.width, spp=a.spp, progress=False, log=None)
     denoiser = Denoiser()
-    print(f"jitter {a.jitter}\n\n| method | slices x steps | step_power | " + " | ".join(v.name for v in views) + " | mean | mean denoised |")
-    print("| --- " * (4 + len(views)) + "| --- |")
+    print(f"jitter {a.jitter}; per scene: raw / denoised\n\n| method | slices x steps | step_power | noise | "
+          + " | ".join(v.name for v in views) + " | mean | mean denoised |")
+    print("| --- " * (6 + len(views)) + "|")
     for method in a.methods.split(","):
         cls = get_method(method)
         for sp in map(float, a.step_powers.split(",")):
             for slices, steps in (tuple(map(int, x.split("x"))) for x in a.splits.split(",")):
-                m = cls(slices=slices, steps=steps, step_power=sp, radius=1.0, jitter=a.jitter == "on")
-                raw, den = [], []
-                for v in views:
-                    out = m(v.gbuffer)
-                    vis = out.visibility if hasattr(out, "visibility") else out
-                    mask = v.gbuffer.mask if getattr(v.gbuffer, "mask", None) is not None else None
-                    raw.append(psnr(vis, v.reference, mask))
-                    den.append(psnr(denoiser(vis, v.gbuffer).visibility, v.reference, mask))
-                print(f"| {method} | {slices}x{steps} | {sp:g} | " + " | ".join(f"{x:.2f}" for x in raw)
-                      + f" | {sum(raw)/len(raw):.2f} | {sum(den)/len(den):.2f} |", flush=True)
+                for noise in a.noises.split(","):
+                    m = cls(slices=slices, steps=steps, step_power=sp, radius=1.0, jitter=a.jitter == "on", noise=noise)
+                    raw, den = [], []
+                    for v in views:
+                        out = m(v.gbuffer)
+                        vis = out.visibility if hasattr(out, "visibility") else out
+                        mask = v.gbuffer.mask if getattr(v.gbuffer, "mask", None) is not None else None
+                        raw.append(psnr(vis, v.reference, mask))
+                        den.append(psnr(denoiser(vis, v.gbuffer).visibility, v.reference, mask))
+                    print(f"| {method} | {slices}x{steps} | {sp:g} | {noise} | "
+                          + " | ".join(f"{x:.2f} / {y:.2f}" for x, y in zip(raw, den))
+                          + f" | {sum(raw)/len(raw):.2f} | {sum(den)/len(den):.2f} |", flush=True)
     return 0
 
 

@@ -46,6 +46,31 @@ TAO_FN float ign(float u, float v, int64_t seed) {
   return float(g - double(int64_t(g)));
 }
 
+// The 64x64 Hilbert curve's index of pixel (u, v) modulo 64 (torch_ao.walk.hilbert_index, XeGTAO's HilbertIndex)
+TAO_FN int64_t hilbert_index(int64_t u, int64_t v) {
+  int64_t x = ((u % 64) + 64) % 64, y = ((v % 64) + 64) % 64, index = 0;
+  for (int64_t level = 32; level > 0; level /= 2) {
+    const int64_t rx = (x & level) > 0, ry = (y & level) > 0;
+    index += level * level * ((3 * rx) ^ ry);
+    if (ry == 0) {
+      if (rx == 1) x = 63 - x, y = 63 - y;
+      const int64_t t = x;
+      x = y, y = t;
+    }
+  }
+  return index;
+}
+
+// Value k (0: the slice rotation, 1: the step offset) of torch_ao.walk.hilbert_r2_noise, in double as there
+TAO_FN float hilbert_r2(int64_t u, int64_t v, int64_t seed, int k) {
+  const double i = double(hilbert_index(u, v) + 288 * seed);
+  const double x = 0.5 + i * (k == 0 ? 0.75487766624669276005 : 0.5698402909980532659114);
+  return float(x - double(int64_t(x)));
+}
+
+// Per-pixel noise (SlicePattern._noise; noise: 0 ign, 1 hilbert_r2)
+enum class Noise : int64_t { ign = 0, hilbert_r2 = 1 };
+
 // Step placement (SlicePattern.step_offsets, or ShaderStepPattern's)
 enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2 };
 
@@ -56,6 +81,7 @@ struct WalkSettings {
   float max_radius_px;  // <= 0: none
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
   int64_t seed;
+  Noise noise;
   Steps placement;
   bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
   bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
@@ -75,12 +101,14 @@ struct Image {
 };
 
 // L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth, u, v, the step noise xi, and the
-// basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its
+// basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise
+// (SlicePattern._noise: 0 without jitter). Lanes past the row's end repeat its
 // last pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
   F P[3], N[3], V[3], e1[3], e2[3], depth, distance, u, v, xi;  // distance: |P|
+  float rotation[L];
   M live;
   int64_t row, u0;
 
@@ -95,7 +123,15 @@ template <class F> struct Pixels {
       lane[6][l] = img.depth[p];
       lane[7][l] = float(u0 + l);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
-      lane[9][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
+      const int64_t col = u0 + l;
+      if (!cfg.jitter) {
+        lane[9][l] = 0.5f, rotation[l] = 0.0f;
+      } else if (cfg.noise == Noise::hilbert_r2) {
+        lane[9][l] = hilbert_r2(col, row, cfg.seed, 1), rotation[l] = hilbert_r2(col, row, cfg.seed, 0);
+      } else {
+        lane[9][l] = ign(float(col) + 37.0f, float(row) + 59.0f, cfg.seed + 1);
+        rotation[l] = ign(float(col), float(row), cfg.seed);
+      }
     }
     const F like(0.0f);
     for (int c = 0; c < 3; ++c) {
@@ -123,11 +159,10 @@ template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
 
   TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
-    // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's jitter
+    // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
     float lane[LaneTraits<F>::L];
     const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
-    for (int l = 0; l < LaneTraits<F>::L; ++l)
-      lane[l] = ((cfg.jitter ? ign(float(px.u0 + l), float(px.row), cfg.seed) : 0.0f) + float(s)) * step;
+    for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = (px.rotation[l] + float(s)) * step;
     const F angle = from_lanes(lane, F(0.0f));
     const F cs = cos(angle), sn = sin(angle);
     if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V

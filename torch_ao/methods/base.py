@@ -118,6 +118,7 @@ class ScreenSpaceAO(nn.Module):
     min_step_px = property(lambda self: self.sampling.min_step_px)
     jitter = property(lambda self: self.sampling.jitter)
     seed = property(lambda self: self.sampling.seed)
+    noise = property(lambda self: self.sampling.noise)
     fetch = property(lambda self: self.sampling.fetch)
     border = property(lambda self: self.sampling.border)
     azimuth = property(lambda self: self.sampling.azimuth)

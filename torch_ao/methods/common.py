@@ -19,7 +19,7 @@ from torch import nn
 
 from ..options import Option, options_by_name
 from ..resolution import RESOLUTIONS
-from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, SlicePattern
+from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, NOISES, SlicePattern
 
 __all__ = ["PRESETS", "DEFAULT_PRESET", "PRESET_NAMES", "split_preset", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
            "register_parameters", "functional_twin", "declare_signature"]
@@ -94,7 +94,7 @@ class Sampling:
     """Where the walk goes, validated on construction (see :class:`~torch_ao.walk.SlicePattern`).
 
     Attributes: ``slices``, ``steps`` (counts), ``step_power``, ``min_step_px`` (pixels), ``jitter``,
-    ``seed``, ``fetch``, ``border``, ``azimuth``; :attr:`OPTIONS` says what each does and why its default.
+    ``seed``, ``noise``, ``fetch``, ``border``, ``azimuth``; :attr:`OPTIONS` says what each does and why its default.
     """
 
     slices: int = PRESETS[DEFAULT_PRESET][0]
@@ -103,6 +103,7 @@ class Sampling:
     min_step_px: float = 1.0
     jitter: bool = True
     seed: int = 0
+    noise: str = "ign"
     fetch: str = "bilinear"
     border: str = "drop"
     azimuth: str = "view"
@@ -125,6 +126,10 @@ class Sampling:
         Option("jitter", True, "Rotate the directions and offset the steps per pixel by interleaved gradient "
                "noise (banding becomes noise that a denoiser removes)", kind=bool),
         Option("seed", 0, "Seed of the per-pixel noise (each seed is a new, reproducible pattern)", kind=int, minimum=0),
+        Option("noise", "ign", "Per-pixel noise of the jitter: ign (interleaved gradient noise, tuned for a 3x3 "
+               "window: the default) or hilbert_r2 (XeGTAO's R2 low-discrepancy sequence along a 64x64 Hilbert "
+               "curve: the slice and step values decorrelated, well spread over any block of pixels)", kind=str,
+               choices=NOISES),
         Option("fetch", "bilinear", "Depth fetch: nearest texel, perspective-correct bilinear (interpolates "
                "1/depth, so planes are reproduced exactly: the default), or edge_aware (bilinear inside a surface, "
                "the nearest texel across a depth edge: no skirts joining a near and a far surface)", kind=str,
@@ -153,7 +158,7 @@ class Sampling:
         (or the subclass ``pattern``, given the ``extra`` arguments it takes)."""
         return pattern(self.slices, self.steps, radius, step_power=self.step_power, min_step_px=self.min_step_px,
                        jitter=self.jitter, seed=self.seed, fetch=self.fetch, border=self.border, azimuth=self.azimuth,
-                       **extra)
+                       noise=self.noise, **extra)
 
     @classmethod
     def options_for(cls, names: tuple[str, ...] | None = None, **defaults) -> tuple[Option, ...]:

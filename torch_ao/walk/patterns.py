@@ -15,7 +15,8 @@ from ..checks import check_choice, check_float, check_int
 from .frame import Queries
 from .protocol import SamplingPattern
 
-__all__ = ["SlicePattern", "FETCH_MODES", "BORDER_MODES", "AZIMUTHS", "interleaved_gradient_noise",
+__all__ = ["SlicePattern", "FETCH_MODES", "BORDER_MODES", "AZIMUTHS", "NOISES", "interleaved_gradient_noise",
+           "hilbert_index", "hilbert_r2_noise",
            "tangent_from_screen_angle", "tangent_from_view_azimuth", "radius_px", "step_direction"]
 
 #: Depth fetch: the nearest texel, perspective-correct bilinear (interpolates 1/depth), or bilinear inside
@@ -25,6 +26,13 @@ FETCH_MODES = ("nearest", "bilinear", "edge_aware")
 BORDER_MODES = ("clamp", "drop")
 #: Slice spacing: evenly around the view vector, or evenly in screen angle.
 AZIMUTHS = ("view", "screen")
+#: Per-pixel noise of the slice rotation and the step offset: Jimenez's interleaved gradient noise, or
+#: XeGTAO's R2 low-discrepancy sequence indexed along a 64x64 Hilbert curve (``"hilbert_r2"``).
+NOISES = ("ign", "hilbert_r2")
+#: Side of the Hilbert tile of ``"hilbert_r2"`` (XeGTAO's XE_HILBERT_WIDTH) and the index shift of one seed.
+HILBERT_WIDTH, HILBERT_SEED_SHIFT = 64, 288
+#: The R2 sequence's generators ``1 / g``, ``1 / g**2`` (g the plastic number, g**3 = g + 1).
+R2_ALPHA = (0.75487766624669276005, 0.5698402909980532659114)
 
 
 def interleaved_gradient_noise(u: torch.Tensor, v: torch.Tensor, seed: int = 0) -> torch.Tensor:
@@ -37,6 +45,34 @@ def interleaved_gradient_noise(u: torch.Tensor, v: torch.Tensor, seed: int = 0) 
     x = u.double() + 5.588238 * seed
     y = v.double() + 5.588238 * seed
     return torch.frac(52.9829189 * torch.frac(0.06711056 * x + 0.00583715 * y))
+
+
+def hilbert_index(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Index ``(N,)`` int64 in ``[0, 4096)`` of integer pixel ``(u, v)`` (taken modulo 64) along the 64x64
+    Hilbert curve (XeGTAO's ``HilbertIndex``): pixels close on the curve are close on screen."""
+    x = u.long() % HILBERT_WIDTH
+    y = v.long() % HILBERT_WIDTH
+    index = torch.zeros_like(x)
+    level = HILBERT_WIDTH // 2
+    while level > 0:
+        rx, ry = (x & level) > 0, (y & level) > 0
+        index = index + level * level * ((3 * rx.long()) ^ ry.long())
+        flip = ~ry & rx
+        x, y = torch.where(flip, HILBERT_WIDTH - 1 - x, x), torch.where(flip, HILBERT_WIDTH - 1 - y, y)
+        x, y = torch.where(ry, x, y), torch.where(ry, y, x)  # swap where ry == 0
+        level //= 2
+    return index
+
+
+def hilbert_r2_noise(u: torch.Tensor, v: torch.Tensor, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """XeGTAO's spatio-temporal noise: two values in ``[0, 1)`` (float64) per integer pixel, the R2
+    sequence ``frac(0.5 + i * (1/g, 1/g^2))`` at ``i`` = the pixel's :func:`hilbert_index` ``+ 288 * seed``.
+
+    Along the Hilbert curve consecutive pixels take consecutive points of a low-discrepancy sequence, so
+    any compact block of pixels (a denoiser's window) holds well-spread pairs, and both values are
+    decorrelated from each other (unlike one hash shifted)."""
+    i = (hilbert_index(u, v) + HILBERT_SEED_SHIFT * int(seed)).double()
+    return tuple(torch.frac(0.5 + i * alpha) for alpha in R2_ALPHA)
 
 
 def tangent_from_screen_angle(q: Queries, phi: torch.Tensor) -> torch.Tensor:
@@ -63,15 +99,16 @@ class SlicePattern(SamplingPattern):
 
     Step ``j`` lies at ``min_step_px + (R_px - min_step_px) * ((j + xi) / steps) ** step_power``
     pixels, where ``R_px`` is ``radius`` (world units, scalar or ``(N,)``) projected at the pixel
-    along the slice. With ``jitter``, the slice angle and ``xi`` come from interleaved gradient
-    noise seeded by ``seed``; without, the slice angles start at 0 and ``xi = 0.5``.
+    along the slice. With ``jitter``, the slice angle and ``xi`` come from per-pixel ``noise`` seeded by
+    ``seed``; without, the slice angles start at 0 and ``xi = 0.5``.
 
     Args:
         slices, steps: counts (>= 1).
         radius: world-space radius, a float, a 0-d tensor (e.g. an ``nn.Parameter``) or ``(N,)``.
         step_power: 1 = linear, 2 = quadratic (denser near the pixel), etc.
         min_step_px: the first sample is at least this many pixels away.
-        jitter, seed: per-pixel noise.
+        jitter, seed: per-pixel noise; noise: its kind (:data:`NOISES`): ``"ign"`` interleaved gradient
+            noise, ``"hilbert_r2"`` the R2 sequence along a Hilbert curve (:func:`hilbert_r2_noise`).
         fetch: ``"nearest"`` texel, ``"bilinear"`` (perspective-correct: interpolates 1/depth, so
             planes are reproduced exactly), or ``"edge_aware"`` (bilinear inside a surface, the nearest
             texel across a depth edge; :mod:`~torch_ao.walk.fetch`); border: ``"clamp"`` to the edge or ``"drop"`` off-screen samples.
@@ -82,16 +119,18 @@ class SlicePattern(SamplingPattern):
 
     def __init__(self, slices: int, steps: int, radius, *, step_power: float = 1.0, min_step_px: float = 1.0,
                  jitter: bool = True, seed: int = 0, fetch: str = "nearest", border: str = "clamp",
-                 full_circle: bool = False, azimuth: str = "view", max_radius_px: float | None = None) -> None:
+                 full_circle: bool = False, azimuth: str = "view", max_radius_px: float | None = None,
+                 noise: str = "ign") -> None:
         check_int("slices", slices, 1)
         check_int("steps", steps, 1)
         check_choice("fetch", fetch, FETCH_MODES)
         check_choice("border", border, BORDER_MODES)
         check_choice("azimuth", azimuth, AZIMUTHS)
+        check_choice("noise", noise, NOISES)
         check_float("step_power", step_power, 0.0, open_minimum=True)
         self.num_slices, self.steps, self.radius = slices, steps, radius
         self.step_power, self.min_step_px = float(step_power), float(min_step_px)
-        self.jitter, self.seed = jitter, int(seed)
+        self.jitter, self.seed, self.noise = jitter, int(seed), noise
         self.fetch, self.border, self.azimuth = fetch, border, azimuth
         self.full_circle = full_circle
         self.sides = (1,) if full_circle else (1, -1)
@@ -102,6 +141,8 @@ class SlicePattern(SamplingPattern):
         if not self.jitter:
             zero = torch.zeros_like(q.u)
             return zero, zero + 0.5
+        if self.noise == "hilbert_r2":
+            return tuple(x.to(q.u.dtype) for x in hilbert_r2_noise(q.u, q.v, self.seed))
         a = interleaved_gradient_noise(q.u, q.v, self.seed).to(q.u.dtype)
         b = interleaved_gradient_noise(q.u + 37.0, q.v + 59.0, self.seed + 1).to(q.u.dtype)
         return a, b
