@@ -18,6 +18,7 @@ SETTINGS = [
     dict(slices=3, steps=5, radius=0.6, falloff_range=0.5, bent_normals=True),
     dict(slices=2, steps=5, jitter=False, step_power=2.0, min_step_px=2.0, final_power=1.7),
     dict(slices=2, steps=4, azimuth="screen", search_scale=1.5, max_radius_px=8.0, step_power=1.5),
+    dict(slices=3, steps=3, noise="hilbert_r2", stagger=True, seed=4),
 ]
 FRAMES = {"example": lambda: example_gbuffer(24, 40), "rough": lambda: rough_gbuffer(20, 28)}
 

@@ -34,7 +34,7 @@ def _value(x) -> float:
 def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact", slices: int, steps: int,
               walk_radius: float, radius: float | torch.Tensor, falloff: float = 0.0, thickness: float = 1.0,
               step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
-              jitter: bool = True, seed: int = 0, noise: str = "ign", fetch: str = "bilinear", border: str = "drop",
+              jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop",
               azimuth: str = "view", projected_normal_weight: bool = True,
               bent_normals: bool = False, lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over slices of GTAO's walk ``(B,C,H,W)`` (0 on background).
@@ -46,7 +46,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
             (``radius * search_scale``); radius: world units within which samples count.
         falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
-            (pixels, ``None``: none), jitter, seed, noise, fetch, border, azimuth, projected_normal_weight: as
+            (pixels, ``None``: none), jitter, seed, noise, stagger, fetch, border, azimuth, projected_normal_weight: as
             :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
             body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer (the
             exact variant, bilinear fetch, dropped border, on CPU) the sums carry gradients to its depth and
@@ -57,7 +57,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
     kernel cannot be built.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=walk_radius, step_power=step_power,
-                             min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed, noise=noise,
+                             min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
                              fetch=fetch, border=border, azimuth=azimuth,
                              placement="power" if variant == "exact" else variant)
     walk, options = run_walk, {}
@@ -77,16 +77,16 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
 def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
               angle_bias: float, falloff: str = "linear", accumulate: str = "incremental", elevation: str = "image",
               step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
-              noise: str = "ign", fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen", lanes: str = "simd") -> torch.Tensor:
+              noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen", lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sum over directions of HBAO's weighted horizon rise ``(B,1,H,W)`` (0 on background).
 
     Args:
         gbuffer, normals: as :func:`gtao_sums`. slices: directions over the full circle; steps: samples
         per direction; radius: world units; angle_bias: radians; falloff, accumulate, elevation,
-        step_power, min_step_px (pixels), jitter, seed, noise, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
+        step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
-                             jitter=jitter, seed=seed, noise=noise, fetch=fetch, border=border, azimuth=azimuth,
+                             jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border, azimuth=azimuth,
                              full_circle=True)
     return run_walk("hbao", gbuffer, normals, settings,
                     [falloff == "quadratic", accumulate == "incremental", elevation == "view"], [radius, angle_bias], 1,
@@ -117,7 +117,7 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
         radius=m.radius if m.variant == "exact" else _value(m.radius), falloff=falloff,
         thickness=_value(m.thickness_heuristic),
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
-        seed=m.seed, noise=m.noise, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
+        seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
         projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, sums.shape[1])
     flat = {"vis": sums[:, 0:1], "free": sums[:, 1:2]}
@@ -134,14 +134,14 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=_value(m.radius),
                      angle_bias=_value(m.angle_bias), falloff=m.falloff, accumulate=m.accumulate,
                      elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
-                     seed=m.seed, noise=m.noise, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
+                     seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
     return _finish(m, gbuffer, {"ao": sums.reshape(-1, 1)}, normals)
 
 
 #: options of every module the horizon kernels know: ``None`` for any value, else the values covered
-_WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed", "noise",
+_WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed", "noise", "stagger",
                                "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
-                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest")}
+                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest"), "slice_sampling": ("uniform",)}
 _GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))

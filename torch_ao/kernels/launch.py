@@ -34,18 +34,18 @@ _THREADS = 128  # per block: a walk holds a few hundred registers' worth of stat
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
                   step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
                   placement: str = "power", full_circle: bool = False, azimuth: str = "view",
-                  sphere_extent: bool = False, noise: str = "ign") -> tuple[list[int], list[float]]:
+                  sphere_extent: bool = False, noise: str = "ign", stagger: bool = False) -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
     slices, steps: counts; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
     ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
     ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions), azimuth
     ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent), noise
-    (:data:`~torch_ao.walk.NOISES`: the jitter's kind).
+    (:data:`~torch_ao.walk.NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice).
     """
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
-            NOISES.index(noise)]
+            NOISES.index(noise), bool(stagger)]
     floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
     return [int(v) for v in ints], floats
 

@@ -141,7 +141,7 @@ template <bool kGradients> struct SoftAccumulator {
       const int64_t j = m % walk.steps;
       const F reach_px = sl.radius_px - F(walk.min_step_px);
       const F span_slope = select(reach_px >= F(0.0f), sl.radius_px / F(walk.radius), F(0.0f));
-      const F dist = step_distance(walk, sl, px.xi, j);  // min_step_px + span frac
+      const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);  // min_step_px + span frac
       const F dd = span_slope * ((dist - F(walk.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f)));
       const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
       const F dsu = dd * sl.unit_u * F(float(side)), dsv = dd * sl.unit_v * F(float(side));

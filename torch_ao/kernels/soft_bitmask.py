@@ -25,6 +25,7 @@ __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, weighting: str = "uniform", straight_through: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0, noise: str = "ign",
+                 stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
@@ -37,7 +38,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward.
-        step_power, min_step_px (pixels), jitter, seed, noise, fetch, border, rounding, sector_epsilon (sectors):
+        step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors):
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
@@ -57,7 +58,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         scalars.append(t)
     options = dict(slices=int(slices), steps=int(steps), tau=float(tau), cosine=weighting == "cosine",
                    straight_through=bool(straight_through), step_power=float(step_power),
-                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise, fetch=fetch, border=border,
+                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise, stagger=bool(stagger), fetch=fetch, border=border,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes)
     return _SoftWalk.apply(gbuffer, normals, *scalars, options)
 
@@ -65,7 +66,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
 def _walk(gbuffer, normals, radius, thickness, o, gradients):
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness."""
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius), jitter=o["jitter"],
-                             seed=o["seed"], noise=o["noise"], fetch=o["fetch"], border=o["border"], step_power=o["step_power"],
+                             seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"], step_power=o["step_power"],
                              min_step_px=o["min_step_px"])
     acc_ints = [o["rounding"], o["cosine"], o["straight_through"]]
     acc_floats = [float(thickness), o["epsilon"], o["tau"]]
@@ -118,6 +119,6 @@ def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
     return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, tau=module.tau, weighting=module.weighting,
                         straight_through=module.mode != "soft", step_power=module.step_power,
-                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
+                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise, stagger=module.stagger,
                         fetch=module.fetch,
                         border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)

@@ -80,6 +80,7 @@ struct WalkSettings {
   float step_power, min_step_px;
   float max_radius_px;  // <= 0: none
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
+  bool stagger;  // the step offset shifted per half-slice (SlicePattern.step_noise)
   int64_t seed;
   Noise noise;
   Steps placement;
@@ -157,8 +158,9 @@ template <class F> struct Pixels {
 // from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
 template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+  int64_t index;
 
-  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
+  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) : index(s) {
     // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
     float lane[LaneTraits<F>::L];
     const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
@@ -207,6 +209,14 @@ template <class F> struct Slice {
     }
   }
 };
+
+// SlicePattern.step_noise: the pixel's step offset xi, with stagger frac(xi + (s + [side < 0] / 2) / slices)
+// (staggered_offset; the shift in double, as Python's float)
+template <class F> TAO_FN F step_noise(const WalkSettings& cfg, const Pixels<F>& px, const Slice<F>& sl, int side) {
+  if (!cfg.stagger) return px.xi;
+  const F x = px.xi + F(float((double(sl.index) + (side < 0 ? 0.5 : 0.0)) / double(cfg.slices)));
+  return x - floor(x);
+}
 
 // The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern)
 template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, int64_t j) {
@@ -321,8 +331,9 @@ TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc
       const Slice<F> sl(cfg, img, px, s);
       typename Acc::template State<F> state = acc.begin_slice(px, sl);
       for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
-        for (int64_t j = 0; j < cfg.steps; ++j) {                          // for each sample
-          const Sample<F> sample(cfg, img, px, sl, float(side), step_distance(cfg, sl, px.xi, j));
+        const F xi = step_noise(cfg, px, sl, side);
+        for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
+          const Sample<F> sample(cfg, img, px, sl, float(side), step_distance(cfg, sl, xi, j));
           acc.step(state, side, px, sl, sample);
         }
       }

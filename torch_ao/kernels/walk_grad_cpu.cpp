@@ -85,8 +85,9 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
       const int k = side > 0 ? 0 : 1;
       Winner<B>& w = win[k];
+      const D xi = step_noise(cfg, px, sl, side);
       for (int64_t j = 0; j < cfg.steps; ++j) {
-        Sample<D> smp(cfg, img, px, sl, float(side), step_distance(cfg, sl, px.xi, j));
+        Sample<D> smp(cfg, img, px, sl, float(side), step_distance(cfg, sl, xi, j));
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kOwn + c] = B(1.0f);
         const B before = state.best[k].v;
         acc.step(state, side, px, sl, smp);

@@ -119,6 +119,8 @@ class ScreenSpaceAO(nn.Module):
     jitter = property(lambda self: self.sampling.jitter)
     seed = property(lambda self: self.sampling.seed)
     noise = property(lambda self: self.sampling.noise)
+    slice_sampling = property(lambda self: self.sampling.slice_sampling)
+    stagger = property(lambda self: self.sampling.stagger)
     fetch = property(lambda self: self.sampling.fetch)
     border = property(lambda self: self.sampling.border)
     azimuth = property(lambda self: self.sampling.azimuth)
