@@ -10,6 +10,7 @@ sides), measured against the built-in scenes' ray-traced references (PSNR, dB; h
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 
 import torch
@@ -30,7 +31,8 @@ def psnr(pred, ref, mask=None):
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default="procedural", help="built-in scenes and sets (fit, heldout, ...), comma-separated")
-    p.add_argument("--methods", default="bitmask,gtao")
+    p.add_argument("--methods", default="bitmask,gtao",
+                   help="methods, comma-separated; bitmask_cosine is bitmask with weighting='cosine' (torch-ao fit's)")
     p.add_argument("--height", type=int, default=72)
     p.add_argument("--width", type=int, default=96)
     p.add_argument("--spp", type=int, default=64, help="rays per pixel of the references")
@@ -61,7 +63,9 @@ def main(argv=None) -> int:
           + " | ".join(v.name for v in views) + " | mean | mean denoised |")
     print("| --- " * (8 + len(views)) + "|")
     for method in a.methods.split(","):
-        cls = get_method(method)
+        cls = get_method(method.removesuffix("_cosine"))
+        if method.endswith("_cosine"):
+            cls = functools.partial(cls, weighting="cosine")
         for sp in map(float, a.step_powers.split(",")):
             for slices, steps in (tuple(map(int, x.split("x"))) for x in a.splits.split(",")):
                 for noise, sampling, stagger in ((n, d, t) for n in a.noises.split(",")
