@@ -125,8 +125,8 @@ class Sampling:
                "(where occluders matter most)", minimum=0.0, open_minimum=True),
         Option("min_step_px", 1.0, "Distance of the first step at least; 1 keeps it off the pixel's own texel",
                unit="pixels", minimum=0.0),
-        Option("jitter", True, "Rotate the directions and offset the steps per pixel by interleaved gradient "
-               "noise (banding becomes noise that a denoiser removes)", kind=bool),
+        Option("jitter", True, "Rotate the directions and offset the steps per pixel by noise (see noise; "
+               "banding becomes noise that a denoiser removes)", kind=bool),
         Option("seed", 0, "Seed of the per-pixel noise (each seed is a new, reproducible pattern)", kind=int, minimum=0),
         Option("noise", "ign", "Per-pixel noise of the jitter: ign (interleaved gradient noise, tuned for a 3x3 "
                "window: the default) or hilbert_r2 (XeGTAO's R2 low-discrepancy sequence along a 64x64 Hilbert "
