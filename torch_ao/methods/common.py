@@ -154,6 +154,9 @@ class Sampling:
         spec = options_by_name(self.OPTIONS)
         for f in dataclasses.fields(self):
             spec[f.name].check(getattr(self, f.name))
+        if self.slice_sampling != "uniform" and self.azimuth != "view":
+            raise ValueError(f"slice_sampling: {self.slice_sampling!r} draws slices around the view vector: it needs "
+                             f"azimuth='view' (got {self.azimuth!r})")
 
     @classmethod
     def from_values(cls, values: dict[str, Any], default_counts: tuple[int, int]) -> "Sampling":
