@@ -404,10 +404,13 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         if state["hard"] and state["hard"][-1]["step"] == state["step"]:
             return  # already scored (a resumed, finished run)
         set_mode(module, "hard")
-        mine = range(len(views))
+        indices = list(range(len(views)))
+        loss = 0.0
         with torch.no_grad():
-            loss = sum(float(_loss(_visibility(module(v.gbuffer)), v, cfg.loss, cfg.weight_by_stderr))
-                       for v in map(views.__getitem__, shard(list(mine)) if parallel else mine))
+            for i in (shard(indices) if parallel else indices):
+                view = views[i]
+                loss += float(_loss(_visibility(module(view.gbuffer)), view, cfg.loss, cfg.weight_by_stderr))
+                del view
         if parallel:
             loss = float(sum_over_ranks(torch.tensor([loss], dtype=torch.float64))[0])
         loss /= len(views)
@@ -473,7 +476,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
                 loss = _loss(_visibility(module(view.gbuffer)), view, cfg.loss, cfg.weight_by_stderr) / len(batch)
                 loss.backward()
                 total += float(loss.detach())
-            view = None  # (dropped before the next read)
+                del view  # (before the next read: one view in memory at a time, besides a sequence's cache)
             if parallel:
                 total = _sum_gradients_over_ranks(params, total)
             grads = [p.grad for p in params.values() if p.grad is not None]
@@ -590,6 +593,7 @@ def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = 
             out = module(view.gbuffer)
             times.append(time.perf_counter() - t0)
         scored[i] = (view.name or str(i), error_metrics(_visibility(out), view.reference, view.gbuffer.valid), times)
+        del view, out
     if parallel:
         for part in gather_objects(scored):
             scored.update(part)

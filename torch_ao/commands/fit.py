@@ -195,7 +195,11 @@ def _check_files(views, backface: bool) -> None:
     """Read each reference file once, so that a bad one is named before the fit starts (one at a time:
     memory does not grow with their number); with ``backface``, ``CommandError`` naming the files without a
     ``backface_depth`` layer."""
-    missing = [v.name for v in views if v.gbuffer.backface_depth is None]
+    missing = []
+    for view in views:
+        if view.gbuffer.backface_depth is None:
+            missing.append(view.name)
+        del view  # (before the next read)
     if backface and missing:
         raise CommandError(f"--thickness backface: {', '.join(missing)} has no backface_depth layer; render it with "
                            "`torch-ao render --backface` (or choose another --thickness)")
