@@ -7,8 +7,10 @@ It writes ``--frames`` G-buffer files (a floor and a wall under varied cameras, 
 another final power) to a temporary folder, then fits GTAO's radius and final power (preset low, every
 view each step, hard-mode scores at the start and the end) in fresh processes:
 
-* ``in memory``: :func:`~torch_ao.views.load_views` of every file, then :func:`~torch_ao.fit.fit`;
-* ``streamed``: a :class:`~torch_ao.fit_data.ViewFiles` of the files (cache of 2);
+* ``in memory``: :func:`~torch_ao.views.load_views` of every file, then :func:`~torch_ao.fit.fit`, on all
+  cores' threads;
+* ``streamed``: a :class:`~torch_ao.fit_data.ViewFiles` of the files (cache of 2), on all cores' threads,
+  and on one;
 * ``streamed, N ranks``: the same under ``torchrun --nproc_per_node N`` (gloo), each rank on
   ``cores / N`` threads.
 
@@ -82,11 +84,12 @@ def child(folder: str, mode: str, steps: int) -> None:
         torch.distributed.destroy_process_group()
 
 
-def _run(cmd: list[str]) -> list[dict]:
-    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+def _run(cmd: list[str], threads: int) -> list[dict]:
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+           "OMP_NUM_THREADS": str(threads)}
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     if proc.returncode:
-        raise SystemExit(proc.stdout[-3000:] + proc.stderr[:3000])
+        raise SystemExit(proc.stdout[-3000:] + proc.stderr[-3000:])
     return [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
 
 
@@ -106,11 +109,12 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         write_frames(Path(tmp), args.frames, width, height)
         me = [sys.executable, __file__, "--steps", str(args.steps), "--child", tmp]
-        one = {"OMP_NUM_THREADS": str(cores)}
-        os.environ.update(one)
-        runs = {"in memory": _run([*me, "memory"]), "streamed": _run([*me, "streamed"]),
-                f"streamed, {args.ranks} ranks": _run([sys.executable, "-m", "torch.distributed.run", "--standalone",
-                                                       f"--nproc_per_node={args.ranks}", *me[1:], "streamed"])}
+        runs = {f"in memory, {cores} threads": _run([*me, "memory"], cores),
+                f"streamed, {cores} threads": _run([*me, "streamed"], cores),
+                "streamed, 1 thread": _run([*me, "streamed"], 1),
+                f"streamed, {args.ranks} ranks x {max(1, cores // args.ranks)} threads": _run(
+                    [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.ranks}",
+                     *me[1:], "streamed"], max(1, cores // args.ranks))}
     print(f"{args.frames} frames at {width}x{height}, GTAO low, {args.steps} steps; {cores} cores, "
           f"load average {os.getloadavg()[0]:.1f}")
     print("| run | peak memory above imports (MB) | fit wall (s) | radius | final_power |")

@@ -20,7 +20,11 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
   with the same result as an uninterrupted run. A checkpoint records the fingerprint of everything
   that determines the result (:func:`run_fingerprint`: the config, the caller's settings, the module's
   structure and start values, the training views' data); one written by a run that differs in any
-  of them is refused with :class:`CheckpointMismatch`, which names what differs.
+  of them is refused with :class:`CheckpointMismatch`, which names what differs,
+* views taken one at a time (``views[i]``), so a sequence that reads them on access
+  (:class:`~torch_ao.fit_data.ViewFiles`) holds a few in memory, with the same losses as a list,
+* data-parallel ranks under ``torchrun`` (:mod:`torch_ao.distributed`): each rank runs its shard of a
+  step's views and of the hard-mode scores, and the gradients and losses are summed over the ranks.
 
 Evaluation is always in **hard** mode (what an engine ships) with :func:`evaluate`.
 """

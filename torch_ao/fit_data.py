@@ -38,6 +38,10 @@ class ViewFiles(Sequence[FitView]):
     ``views[i:j]`` is a :class:`ViewFiles` of those files (own cache). :attr:`reads` counts the files read,
     :attr:`resident` the views of this sequence still in memory, :attr:`peak_resident` its largest value
     at any read.
+
+    Shape:
+        - Output: ``views[i]``, a :class:`~torch_ao.FitView` whose ``gbuffer`` images are ``(B, C, H, W)`` and
+          ``reference``/``stderr`` ``(B, 1, H, W)``, as :func:`~torch_ao.views.load_views` gives.
     """
 
     def __init__(self, paths: Iterable[str | os.PathLike], *, names: Sequence[str] | None = None, device=None,

@@ -163,12 +163,11 @@ def _size(text: str) -> tuple[int, int]:
 
 def reference_radius(paths, override: float | None) -> float:
     """R of reference files: their common ``max_distance``; files that disagree are refused (named),
-    ``override`` wins with a warning when it differs."""
-    found = {}
-    for path in paths:
-        md = read_npz(path).get("max_distance")
-        if md is not None and md.size == 1 and math.isfinite(float(md)) and float(md) > 0:
-            found[str(path)] = float(np.float32(md))  # files store float32 or float64: compare at float32
+    ``override`` wins with a warning when it differs. Under ``torchrun`` each rank reads its shard of the files."""
+    read = {}
+    for part in distributed.gather_objects(_radii(distributed.shard(list(paths)))):
+        read.update(part)
+    found = {str(p): read[str(p)] for p in paths if str(p) in read}
     values = sorted(set(found.values()))
     if override is not None:
         if not (math.isfinite(override) and override > 0):
@@ -191,15 +190,28 @@ def reference_radius(paths, override: float | None) -> float:
     return values[0]
 
 
-def _check_files(views, backface: bool) -> None:
-    """Read each reference file once, so that a bad one is named before the fit starts (one at a time:
-    memory does not grow with their number); with ``backface``, ``CommandError`` naming the files without a
-    ``backface_depth`` layer."""
+def _radii(paths) -> dict[str, float]:
+    """``{path: max_distance}`` of the files holding a finite one > 0, at float32 (files store float32 or float64)."""
+    found = {}
+    for path in paths:
+        md = read_npz(path).get("max_distance")
+        if md is not None and md.size == 1 and math.isfinite(float(md)) and float(md) > 0:
+            found[str(path)] = float(np.float32(md))
+    return found
+
+
+def _check_files(sources, backface: bool) -> None:
+    """Read each file of the view sequences ``sources`` once (each rank its shard under ``torchrun``), so
+    that a bad one is named before the fit starts, one at a time (memory does not grow with their number);
+    with ``backface``, ``CommandError`` naming the files without a ``backface_depth`` layer."""
     missing = []
-    for view in views:
-        if view.gbuffer.backface_depth is None:
-            missing.append(view.name)
-        del view  # (before the next read)
+    for views in sources:
+        for i in distributed.shard(list(range(len(views)))):
+            view = views[i]
+            if view.gbuffer.backface_depth is None:
+                missing.append(view.name)
+            del view  # (before the next read)
+    missing = [name for part in distributed.gather_objects(missing) for name in part]
     if backface and missing:
         raise CommandError(f"--thickness backface: {', '.join(missing)} has no backface_depth layer; render it with "
                            "`torch-ao render --backface` (or choose another --thickness)")
@@ -217,7 +229,7 @@ def _views(args) -> tuple[list, list, float]:
         train = ViewFiles(files, device=device, reading=reading)
         held = ViewFiles(held_files, device=device, reading=reading) if held_files else None
         with flag_errors():
-            _check_files(itertools.chain(train, held or []), args.thickness == "backface")
+            _check_files([train, held or []], args.thickness == "backface")
         radius = reference_radius([*files, *(held_files or [])], args.radius)
         if held is not None:
             return train, held, radius
