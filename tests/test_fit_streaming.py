@@ -141,5 +141,6 @@ def test_cli_fit_under_torchrun_writes_one_process_result(rendered, tmp_path):
     for name in one["fitted"]:
         assert two["parameters"][name] == pytest.approx(one["parameters"][name], rel=1e-5)
     assert [r["loss"] for r in two["hard_history"]] == pytest.approx([r["loss"] for r in one["hard_history"]], rel=1e-5)
-    assert two["after"] == pytest.approx(one["after"], rel=1e-5, abs=1e-3)  # (forward time in 'seconds')
+    for metric in ("mae", "rmse", "psnr", "ssim"):  # held-out scores, sharded over the ranks
+        assert two["after"][metric] == pytest.approx(one["after"][metric], rel=1e-5)
     assert two["per_view"]["fitted"].keys() == one["per_view"]["fitted"].keys()
