@@ -14,6 +14,7 @@ typedef long long int64_t;
 #define TAO_CONST static constexpr
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #endif
 
 namespace tao {
@@ -74,5 +75,21 @@ TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
 #endif
 TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
+// a float's bits and back
+#ifdef __CUDACC_RTC__
+TAO_FN uint32_t float_bits(float x) { return __float_as_uint(x); }
+TAO_FN float bits_float(uint32_t b) { return __uint_as_float(b); }
+#else
+TAO_FN uint32_t float_bits(float x) {
+  uint32_t b;
+  std::memcpy(&b, &x, sizeof b);
+  return b;
+}
+TAO_FN float bits_float(uint32_t b) {
+  float x;
+  std::memcpy(&x, &b, sizeof x);
+  return x;
+}
+#endif
 
 }  // namespace tao
