@@ -29,6 +29,7 @@ extern "C" {
 float fabsf(float); float sqrtf(float); float floorf(float); float ceilf(float); float rintf(float);
 float atan2f(float, float); float acosf(float); float asinf(float); float cosf(float); float sinf(float);
 float powf(float, float); float fmaf(float, float, float); float expf(float); float expm1f(float);
+double cos(double); double sin(double);
 struct tao_dim3 { unsigned x, y, z; };
 tao_dim3 blockIdx, blockDim, threadIdx;
 }

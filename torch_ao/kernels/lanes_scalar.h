@@ -50,6 +50,12 @@ TAO_FN float acos(float x) { return acosf(x); }
 TAO_FN float asin(float x) { return asinf(x); }
 TAO_FN float cos(float x) { return cosf(x); }
 TAO_FN float sin(float x) { return sinf(x); }
+// cos and sin correctly rounded (from double: but for double rounding, which needs the value within a double
+// ulp of a float midpoint), as torch's float32 cos and sin on an MKL build
+TAO_FN void cos_sin_rounded(float x, float& c, float& s) {
+  c = float(::cos(double(x)));
+  s = float(::sin(double(x)));
+}
 TAO_FN float pow(float x, float y) { return powf(x, y); }
 TAO_FN float exp(float x) { return expf(x); }
 TAO_FN float expm1(float x) { return expm1f(x); }

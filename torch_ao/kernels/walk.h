@@ -169,7 +169,12 @@ template <class F> struct Slice {
         lane[l] = ((cfg.jitter ? ign(float(px.u0 + l), float(px.row), cfg.seed) : 0.0f) + float(s)) * step;
       angle = from_lanes(lane, F(0.0f));
     }
-    const F cs = cos(angle), sn = sin(angle);
+    F cs, sn;
+    if (cfg.placement == Steps::glsl) {  // (the shader's directions pick texels: as torch's and llvmpipe's, 1 ulp matters)
+      cos_sin_rounded(angle, cs, sn);
+    } else {
+      cs = cos(angle), sn = sin(angle);
+    }
     dir_u = cs, dir_v = sn;
     if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V
       const F d[3] = {cs, sn, F(0.0f)};
