@@ -81,6 +81,7 @@ TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
 #endif
 TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
+TAO_FN bool gather_flag(const bool* base, uint32_t index) { return base[index]; }
 // a float's bits and back
 #ifdef __CUDACC_RTC__
 TAO_FN uint32_t float_bits(float x) { return __float_as_uint(x); }

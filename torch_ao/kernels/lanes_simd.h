@@ -85,5 +85,13 @@ inline IVec popcount(const IVec& v) {
   return (x * IVec(0x01010101)) >> IVec(24);
 }
 inline Vec gather(const float* base, const IVec& index) { return at::vec::gather<4>(base, index); }
+inline Vec gather_flag(const bool* base, const IVec& index) {
+  constexpr int L = Vec::size();
+  alignas(64) int32_t at[L];
+  alignas(64) float flag[L];
+  index.store(at);
+  for (int l = 0; l < L; ++l) flag[l] = base[at[l]] ? 1.0f : 0.0f;
+  return Vec::loadu(flag) > Vec(0.5f);
+}
 
 }  // namespace tao

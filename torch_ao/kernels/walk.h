@@ -103,14 +103,14 @@ struct Image {
   const float *cells, *backface;
 };
 
-// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth, u, v, the step noise xi (with the
+// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step noise xi (with the
 // GLSL noise, the shader's jitter: also the slice angles'), and the
 // basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its
 // last pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
-  F P[3], N[3], V[3], e1[3], e2[3], depth, distance, u, v, xi;  // distance: |P|
+  F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
   M live;
   int64_t row, u0;
 
@@ -137,6 +137,7 @@ template <class F> struct Pixels {
     }
     depth = from_lanes(lane[6], like);
     seed_pixel(P, N, depth);
+    inverse_depth = F(1.0f) / depth;
     u = from_lanes(lane[7], like);
     v = F(float(row));
     live = from_lanes(lane[8], like) > F(0.5f);
@@ -330,8 +331,7 @@ template <class F> struct Sample {
       const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);
       index[0] = iv * Wi + iu;
       index[1] = index[2] = index[3] = index[0];
-      const F t = tao::gather(img.inverse, index[0]);
-      valid = t == t;
+      valid = gather_flag(img.valid, index[0]);  // (as the inverse depth's NaN: 4x fewer bytes to fetch)
       if (cfg.drop) valid = land(valid, land(land(fu0 >= F(0.0f), fu0 < Wf), land(fv0 >= F(0.0f), fv0 < Hf)));
       for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
     }
@@ -339,7 +339,7 @@ template <class F> struct Sample {
     // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
     // (relative to the depth, so that no square of a large depth is taken)
     F rel[3];
-    for (int c = 0; c < 3; ++c) rel[c] = delta[c] / px.depth;
+    for (int c = 0; c < 3; ++c) rel[c] = delta[c] * px.inverse_depth;
     valid = land(valid, dot3(rel, rel) > F(1e-20f));
     if (cfg.edge_aware) valid = land(valid, lnot(own));
     for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], neg(px.V[c]));
