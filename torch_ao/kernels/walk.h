@@ -103,10 +103,10 @@ struct Image {
   const float *cells, *backface;
 };
 
-// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step noise xi (with the
-// GLSL noise, the shader's jitter: also the slice angles'), and the
-// basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its
-// last pixel and are not live.
+// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
+// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), and the basis
+// e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its last
+// pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
