@@ -1,14 +1,13 @@
 """Fused kernels for the walk: one pixel's whole walk in registers, SIMD across pixels, on every core.
 
 The tensor-op walk (:mod:`torch_ao.walk`) stays the reference and serves whatever a kernel does
-not cover; a kernel is tested against it by tolerance (tests/kernel_agreement.py). GTAO, HBAO and hard
-bitmask AO (the default variant and the exact union) are one walk (``walk.h``) for every backend: the CPU
-(SIMD lanes) and CUDA (NVRTC, one thread per pixel). Covered:
+not cover; a kernel is tested against it by tolerance (tests/kernel_agreement.py). Every kernel is one
+walk (``walk.h``) for every backend: the CPU (SIMD lanes) and CUDA (NVRTC, one thread per pixel). Covered:
 
 * hard visibility-bitmask AO, the ``"default"`` variant with uniform or cosine sectors, indirect light
   and bent normals (:func:`bitmask_hard`, :func:`bitmask_outputs`); the ``"exact"`` variant's union with
   a scalar or back-face thickness and every fetch (:func:`exact_hard`); the ``"ssilvb_glsl"`` variant's
-  AO and indirect light (:func:`ssilvb_glsl_hard`, CPU only);
+  AO and indirect light (:func:`ssilvb_glsl_hard`);
 * soft / straight-through bitmask AO forward and backward, gradients of radius and thickness
   (:func:`bitmask_soft`);
 * ``GTAO`` (every variant, bent normals too) and ``HBAO`` forward (:func:`gtao_sums`, :func:`hbao_sums`);

@@ -5,9 +5,10 @@ walks (the same slice directions around the view vector, jitter, step placement,
 sector rule; see :mod:`torch_ao.methods.bitmask`), with uniform or cosine sector weights, and return the
 same visibility, indirect light and bent normals. :func:`ssilvb_glsl_hard` is the ``"ssilvb_glsl"``
 variant (the SSILVB GLSL article's shader, :mod:`torch_ao.methods.bitmask_glsl`): AO and indirect light.
-The default variant is the one walk of ``walk.h`` with the accumulator of ``bitmask.h``; it agrees with
-the tensor path by tolerance (hard masks on all but a few pixels where an angle lies within rounding of a
-sector edge; tests/test_kernels.py), not by reproducing torch's float operations.
+Both are the one walk of ``walk.h``, with the accumulator of ``bitmask.h`` or, with the shader's step
+placement and jitter, of ``bitmask_glsl.h``; they agree with the tensor path by tolerance (hard masks on
+all but a few pixels where an angle lies within rounding of a sector edge; tests/test_kernels.py,
+tests/test_kernels_glsl.py), not by reproducing torch's float operations.
 """
 from __future__ import annotations
 
@@ -18,7 +19,6 @@ import torch
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from ..thickness import BackfaceThickness, ScalarThickness
-from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
 from .frame import light_input, walk_inputs
 from .launch import run_walk, walk_settings
@@ -26,10 +26,6 @@ from .launch import run_walk, walk_settings
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
            "kernel_covers", "options_uncovered",
            "KernelOutputs"]
-
-#: ``glsl_numerics`` values in the order the C++ source numbers them
-_NUMERICS = ("ieee", "mesa", "mesa_mediump")
-
 
 class KernelOutputs(NamedTuple):
     """A kernel's outputs: ``visibility`` ``(B,1,H,W)``; ``indirect``, ``bent_normal`` ``(B,3,H,W)`` or ``None``."""
@@ -110,26 +106,25 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 
 def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
                      thickness: float, jitter: bool = True, rounding: str = "ceil", numerics: str = "ieee",
-                     indirect: bool = False) -> KernelOutputs:
+                     indirect: bool = False, lanes: str = "simd") -> KernelOutputs:
     """The ``"ssilvb_glsl"`` variant in hard mode: visibility ``(B,1,H,W)`` (background 1; may exceed 1,
     as the shader's) and, with ``indirect``, its light ``(B,3,H,W)`` (background 0).
 
     Args:
-        gbuffer, normals: as :func:`bitmask_outputs`; slices, steps: the shader's ``sliceCount`` (>= 2) and
-            ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world units),
-            jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+        gbuffer, normals: as :func:`bitmask_outputs` (CPU or CUDA); slices, steps: the shader's ``sliceCount``
+            (>= 2) and ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world
+            units), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+        lanes: on CPU, ``"simd"`` or ``"scalar"``.
     """
-    ops = cpu_kernels()
-    W = gbuffer.depth.shape[-1]
-    # sampleScale's numerator -radius P[0][0] per image, as GLSLPattern forms it
-    p00 = (2 * gbuffer.camera.fx / W).to(torch.float32)
-    scale = ((-torch.as_tensor(radius, dtype=torch.float32).detach()) * p00).contiguous()
-    with torch.no_grad():  # no backward: the dispatch sends calls that want gradients to the tensor path
-        vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale,
-                                   light_input(gbuffer, indirect, records=True), int(slices), int(steps),
-                                   float(thickness), bool(jitter), _NUMERICS.index(numerics),
-                                   ROUNDINGS.index(rounding), bool(indirect))
-    return KernelOutputs(vis, light if indirect else None)
+    # the shader's loops run sliceCount + 1 slices of sampleCount + 1 steps, one side each
+    settings = walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=float(torch.as_tensor(radius).detach()),
+                             jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl",
+                             full_circle=True, azimuth="screen",
+                             noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
+    out = run_walk("glsl", gbuffer, normals, settings, [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee"],
+                   [thickness], 4 if indirect else 1, light=light_input(gbuffer, indirect) if indirect else None,
+                   lanes=lanes)
+    return KernelOutputs(out[:, :1], out[:, 1:] if indirect else None)
 
 
 #: options of a module the kernels reproduce: ``None`` for any value, else the values they cover
@@ -162,7 +157,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "ssilvb_glsl"), outputs=True,
-                               devices=("cpu", "cuda") if module.variant == "default" else ("cpu",))
+                               devices=("cpu", "cuda"))
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),

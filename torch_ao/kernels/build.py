@@ -12,10 +12,9 @@ import torch
 
 __all__ = ["KernelUnavailable", "cpu_kernels", "grad_kernels", "load_cpu_library", "load_cached_library"]
 
-#: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``): ops_cpu.cpp
-#: compiles the one walk (walk.h and its accumulators); bitmask_cpu.cpp (the GLSL article's variant) still
-#: walks with walk_cpu.h
-_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "ops_cpu.cpp"))
+#: the C++ sources of the one extension (registering its ops in ``torch_ao_kernels``): ops_cpu.cpp
+#: compiles the one walk (walk.h and its accumulators)
+_SOURCES = tuple(Path(__file__).with_name(name) for name in ("ops_cpu.cpp",))
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
@@ -189,8 +188,3 @@ def _register_fake() -> None:
     def _(accumulator, positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, args[-2], H, W)  # args[-2]: channels
-
-    @torch.library.register_fake("torch_ao_kernels::glsl_walk")
-    def _(positions, *args):
-        B, H, W, _ = positions.shape
-        return positions.new_empty(B, 1, H, W), positions.new_empty(B if args[-1] else 0, 3, H, W)

@@ -108,6 +108,11 @@ template <class F, int N> TAO_FN Dual<F, N> atan2(const Dual<F, N>& y, const Dua
 }
 template <class F, int N> TAO_FN Dual<F, N> cos(const Dual<F, N>& x) { return Dual<F, N>::chain(cos(x.v), neg(sin(x.v)), x); }
 template <class F, int N> TAO_FN Dual<F, N> sin(const Dual<F, N>& x) { return Dual<F, N>::chain(sin(x.v), cos(x.v), x); }
+template <class F, int N> TAO_FN void cos_sin_rounded(const Dual<F, N>& x, Dual<F, N>& c, Dual<F, N>& s) {
+  F cv, sv;
+  cos_sin_rounded(x.v, cv, sv);
+  c = Dual<F, N>::chain(cv, neg(sv), x), s = Dual<F, N>::chain(sv, cv, x);
+}
 template <class F, int N> TAO_FN Dual<F, N> asin(const Dual<F, N>& x) {
   return Dual<F, N>::chain(asin(x.v), rsqrt(F(1.0f) - x.v * x.v), x);
 }

@@ -19,30 +19,35 @@ from .build import KernelUnavailable, cpu_kernels
 from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
-__all__ = ["PLACEMENTS", "walk_settings", "run_walk", "packed_inputs", "cuda_source"]
+__all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs", "cuda_source"]
 
-#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern)
-PLACEMENTS = ("power", "hdrp", "ue4")
+#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's)
+PLACEMENTS = ("power", "hdrp", "ue4", "glsl")
+#: the noise of the slice angles and steps in packed.h's numbering: the walk's interleaved gradient noise,
+#: the GLSL shader's jitter in float32 or in float16 (``glsl_numerics="mesa_mediump"``)
+NOISES = ("ign", "glsl", "glsl_mediump")
 
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
-_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "soft.h", "packed.h", "walk_cuda.cu")
+_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "packed.h", "walk_cuda.cu")
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
 
 
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
                   step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
                   placement: str = "power", full_circle: bool = False, azimuth: str = "view",
-                  sphere_extent: bool = False) -> tuple[list[int], list[float]]:
+                  sphere_extent: bool = False, noise: str = "ign") -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
-    slices, steps: counts; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
+    slices, steps: counts walked; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
     ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
-    ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions), azimuth
-    ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent).
+    ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions; one side per slice),
+    azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
+    noise (:data:`NOISES`).
     """
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
-            border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent)]
+            border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
+            NOISES.index(noise)]
     floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
     return [int(v) for v in ints], floats
 
@@ -50,7 +55,7 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
 def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]],
              acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
              backface: torch.Tensor | None = None, lanes: str = "simd") -> torch.Tensor:
-    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``) over ``gbuffer`` (float32, CPU or
+    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``, ``"exact"``, ``"glsl"``, ``"soft"``) over ``gbuffer`` (float32, CPU or
     CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
 
     ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);

@@ -1,5 +1,5 @@
-// The CPU operator of the one walk (walk.h with the accumulators of horizon.h and bitmask.h, settings
-// unpacked by packed.h): rows over torch's threads, each row's pixels in SIMD lanes (lanes_simd.h) or,
+// The CPU operator of the one walk (walk.h with the accumulators of horizon.h, bitmask.h, bitmask_glsl.h
+// and soft.h, settings unpacked by packed.h): rows over torch's threads, each row's pixels in SIMD lanes (lanes_simd.h) or,
 // with scalar=True, one pixel at a time through walk_pixel in float lanes (lanes_scalar.h): the body of
 // the CUDA kernel's threads (walk_cuda.cu), run on the CPU.
 #include <ATen/core/Tensor.h>
@@ -42,7 +42,8 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
-// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "soft", "soft_gradients") over the frame,
+// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "glsl", "soft",
+// "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -84,6 +85,12 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
     run(unpack_exact(i, f));
+  } else if (name == "glsl") {
+    packed(3, 1);
+    TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,
+                "glsl: expected the GLSL step placement over sliceCount + 1 >= 3 slices and sampleCount + 1 >= 2 steps");
+    TORCH_CHECK(!i[kAccInts + 1] || fr.light, "light: indirect light needs the light buffer");
+    run(unpack_glsl(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
     packed(3, 3);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
@@ -97,14 +104,14 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
       run(unpack_soft<true>(i, f));
     }
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, soft or soft_gradients, got ", name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, glsl, soft or soft_gradients, got ", name);
   }
   return out;
 }
 
 }  // namespace
 
-TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
+TORCH_LIBRARY(torch_ao_kernels, m) {
   m.def("walk(str accumulator, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, "
         "bool scalar) -> Tensor");

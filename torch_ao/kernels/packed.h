@@ -5,21 +5,22 @@
 #pragma once
 
 #include "bitmask.h"
+#include "bitmask_glsl.h"
 #include "horizon.h"
 #include "soft.h"
 
 namespace tao {
 
 // ints: slices, steps, seed, placement, jitter, bilinear, drop, full_circle, screen_azimuth, edge_aware,
-// sphere_extent, then the accumulator's from kAccInts; floats: radius, step_power, min_step_px,
+// sphere_extent, noise, then the accumulator's from kAccInts; floats: radius, step_power, min_step_px,
 // max_radius_px, then from kAccFloats
-constexpr int kAccInts = 11, kAccFloats = 4;
+constexpr int kAccInts = 12, kAccFloats = 4;
 
 TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   WalkSettings c;
   c.slices = i[0], c.steps = i[1], c.seed = i[2], c.placement = Steps(i[3]);
   c.jitter = i[4] != 0, c.bilinear = i[5] != 0, c.drop = i[6] != 0, c.full_circle = i[7] != 0, c.screen_azimuth = i[8] != 0;
-  c.edge_aware = i[9] != 0, c.sphere_extent = i[10] != 0;
+  c.edge_aware = i[9] != 0, c.sphere_extent = i[10] != 0, c.noise = Noise(i[11]);
   c.radius = f[0], c.step_power = f[1], c.min_step_px = f[2], c.max_radius_px = f[3];
   return c;
 }
@@ -41,6 +42,14 @@ TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
   return BitmaskAccumulator{slices, f[0], f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
+}
+
+// ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"); floats: thickness. The walk's
+// slices are sliceCount + 1
+TAO_FN GlslAccumulator unpack_glsl(const int64_t* i, const float* f) {
+  const int64_t slices = i[0];
+  i += kAccInts, f += kAccFloats;
+  return GlslAccumulator{slices - 1, f[0], i[0], i[1] != 0, GlslVectorOps{i[2] != 0}};
 }
 
 // ints: cosine, along_ray, clip, backface; floats: thickness (or the back-face offset), the back-face

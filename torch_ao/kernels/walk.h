@@ -10,6 +10,8 @@
 //   State begin_slice(px, sl); void step(State&, int side, px, sl, sample);
 //   void end_slice(const State&, px, sl, Sums&); void finish(const Sums&, px, F out[channels]).
 // Sums start at zero; finish gives every lane its value, background lanes included (select on px.live).
+// An accumulator whose state carries across slices (the GLSL shader's occlusion mask) takes the sums so
+// far instead: State begin_slice(px, sl, const Sums&).
 #pragma once
 
 #include "lanes_scalar.h"
@@ -46,8 +48,34 @@ TAO_FN float ign(float u, float v, int64_t seed) {
   return float(g - double(int64_t(g)));
 }
 
-// Step placement (SlicePattern.step_offsets, or ShaderStepPattern's)
-enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2 };
+// Float rounded to float16 and back (round half to even), |x| < 65520: the GLSL mediump evaluation
+TAO_FN float half_round(float x) {
+  if (fabsf(x) < 6.103515625e-05f) return rintf(x * 16777216.0f) / 16777216.0f;  // float16 subnormals: 2^-24 steps
+  uint32_t bits = float_bits(x);
+  bits += 0xfffu + ((bits >> 13) & 1u);  // 13 mantissa bits dropped, to nearest even
+  return bits_float(bits & ~0x1fffu);
+}
+
+// The SSILVB GLSL shader's randf(int(gl_FragCoord.x), int(gl_FragCoord.y)) - 0.5 at column u, GL row
+// y_gl (from the bottom), in float32 or, mediump, each operation in float16 (bitmask_glsl.glsl_jitter)
+TAO_FN float glsl_jitter(float u, float y_gl, bool mediump) {
+  if (!mediump) {
+    const float s = 0.06711056f * u + 0.00583715f * y_gl;
+    const float g = 52.9829189f * (s - floorf(s));
+    return (g - floorf(g)) - 0.5f;
+  }
+  const float x = half_round(u), y = half_round(y_gl);
+  const float a = half_round(half_round(0.06711056f) * x), b = half_round(half_round(0.00583715f) * y);
+  const float s = half_round(a + b), inner = half_round(s - floorf(s));
+  const float g = half_round(half_round(52.9829189f) * inner);
+  return half_round(g - floorf(g)) - 0.5f;
+}
+
+// Step placement (SlicePattern.step_offsets, ShaderStepPattern's, or the GLSL shader's: GLSLPattern)
+enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3 };
+// The noise of the slice angles and steps: Jimenez's interleaved gradient noise (ign), or the GLSL
+// shader's one jitter for both (glsl_jitter, in float32 or float16)
+enum class Noise : int64_t { ign = 0, glsl = 1, glsl_mediump = 2 };
 
 struct WalkSettings {
   int64_t slices, steps;
@@ -57,6 +85,7 @@ struct WalkSettings {
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
   int64_t seed;
   Steps placement;
+  Noise noise;
   bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
   bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
 };
@@ -74,13 +103,14 @@ struct Image {
   const float *cells, *backface;
 };
 
-// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth, u, v, the step noise xi, and the
-// basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its
-// last pixel and are not live.
+// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
+// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), and the basis
+// e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its last
+// pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
-  F P[3], N[3], V[3], e1[3], e2[3], depth, distance, u, v, xi;  // distance: |P|
+  F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
   M live;
   int64_t row, u0;
 
@@ -95,7 +125,10 @@ template <class F> struct Pixels {
       lane[6][l] = img.depth[p];
       lane[7][l] = float(u0 + l);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
-      lane[9][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
+      if (cfg.noise == Noise::ign)
+        lane[9][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
+      else
+        lane[9][l] = cfg.jitter ? glsl_jitter(float(u0 + l), float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
     }
     const F like(0.0f);
     for (int c = 0; c < 3; ++c) {
@@ -104,6 +137,7 @@ template <class F> struct Pixels {
     }
     depth = from_lanes(lane[6], like);
     seed_pixel(P, N, depth);
+    inverse_depth = F(1.0f) / depth;
     u = from_lanes(lane[7], like);
     v = F(float(row));
     live = from_lanes(lane[8], like) > F(0.5f);
@@ -119,17 +153,30 @@ template <class F> struct Pixels {
 
 // slice_geometry: the slice tangent T, its plane's axis, the projected normal's length, its angle gamma
 // from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
+// (with the GLSL placement only the screen direction and T: the shader places its steps from the
+// direction and measures its own angles)
 template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+  F dir_u, dir_v;  // the slice's screen angle's cos and sin
 
   TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
-    // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's jitter
-    float lane[LaneTraits<F>::L];
-    const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
-    for (int l = 0; l < LaneTraits<F>::L; ++l)
-      lane[l] = ((cfg.jitter ? ign(float(px.u0 + l), float(px.row), cfg.seed) : 0.0f) + float(s)) * step;
-    const F angle = from_lanes(lane, F(0.0f));
-    const F cs = cos(angle), sn = sin(angle);
+    F angle;
+    if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
+      angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
+    } else {  // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's jitter
+      float lane[LaneTraits<F>::L];
+      const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
+      for (int l = 0; l < LaneTraits<F>::L; ++l)
+        lane[l] = ((cfg.jitter ? ign(float(px.u0 + l), float(px.row), cfg.seed) : 0.0f) + float(s)) * step;
+      angle = from_lanes(lane, F(0.0f));
+    }
+    F cs, sn;
+    if (cfg.placement == Steps::glsl) {  // (the shader's directions pick texels: as torch's and llvmpipe's, 1 ulp matters)
+      cos_sin_rounded(angle, cs, sn);
+    } else {
+      cs = cos(angle), sn = sin(angle);
+    }
+    dir_u = cs, dir_v = sn;
     if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V
       const F d[3] = {cs, sn, F(0.0f)};
       const F along = dot3(d, px.V);
@@ -139,6 +186,7 @@ template <class F> struct Slice {
     } else {  // tangent_from_view_azimuth
       for (int c = 0; c < 3; ++c) T[c] = cs * px.e1[c] + sn * px.e2[c];
     }
+    if (cfg.placement == Steps::glsl) return;
     cross(T, px.V, axis);
     const F nd = dot3(px.N, axis);
     F np[3];
@@ -186,6 +234,27 @@ template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F
   return F(cfg.min_step_px) + sl.span * frac;
 }
 
+// Where step j of a slice's side samples, in screen pixels (su, sv): step_distance along the slice's
+// screen direction, or GLSLPattern's texel: uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale
+// (cos, sin) (aspect H / W on x), sampleScale = -radius P[0][0] / position.z, P[0][0] = 2 fx / W, the
+// nearest texel floor(uv * size) clamped to the image (GL rows from the bottom; sampleCount = steps - 1)
+template <class F>
+TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
+                        int64_t j, F& su, F& sv) {
+  if (cfg.placement != Steps::glsl) {
+    const F dist = step_distance(cfg, sl, px.xi, j);
+    su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
+    return;
+  }
+  const float Wf = float(img.W), Hf = float(img.H);
+  const F scale = F(-cfg.radius * (2.0f * img.fx / Wf)) / px.P[2];
+  const F frag_u = (px.u + F(0.5f)) / F(Wf), frag_v = ((F(Hf - 1.0f) - px.v) + F(0.5f)) / F(Hf);
+  const F f = ((F(float(j)) + px.xi) / F(float(cfg.steps - 1)) + F(0.01f)) * scale;
+  const F uv_u = frag_u - (f * sl.dir_u) * F(Hf / Wf), uv_v = frag_v - f * sl.dir_v;
+  su = clamp(floor(uv_u * F(Wf)), F(0.0f), F(Wf - 1.0f));
+  sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
+}
+
 // One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
 // perspective-correct bilinear footprint of four taps (walk.fetch.bilinear_taps: inverse depth
 // interpolated, then unprojected) — delta = position - P where valid, else -V (away from the camera: it
@@ -209,11 +278,15 @@ template <class F> struct Sample {
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 
+  // the sample dist pixels from the pixel along the slice's side
   TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
-                const F& dist) {
+                const F& dist)
+      : Sample(cfg, img, px, px.u + dist * (sl.unit_u * F(side)), px.v + dist * (sl.unit_v * F(side))) {}
+
+  // the sample at screen (su, sv)
+  TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv) {
     const F Wf = F(float(img.W)), Hf = F(float(img.H));
     const I zero = I(0), Wi = I(int32_t(img.W)), Wlast = I(int32_t(img.W - 1)), Hlast = I(int32_t(img.H - 1)), one = I(1);
-    const F su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
     F pos[3];
     bilinear = cfg.bilinear;
     image = &img;
@@ -258,8 +331,7 @@ template <class F> struct Sample {
       const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);
       index[0] = iv * Wi + iu;
       index[1] = index[2] = index[3] = index[0];
-      const F t = tao::gather(img.inverse, index[0]);
-      valid = t == t;
+      valid = gather_flag(img.valid, index[0]);  // (as the inverse depth's NaN: 4x fewer bytes to fetch)
       if (cfg.drop) valid = land(valid, land(land(fu0 >= F(0.0f), fu0 < Wf), land(fv0 >= F(0.0f), fv0 < Hf)));
       for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
     }
@@ -267,12 +339,24 @@ template <class F> struct Sample {
     // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
     // (relative to the depth, so that no square of a large depth is taken)
     F rel[3];
-    for (int c = 0; c < 3; ++c) rel[c] = delta[c] / px.depth;
+    for (int c = 0; c < 3; ++c) rel[c] = delta[c] * px.inverse_depth;
     valid = land(valid, dot3(rel, rel) > F(1e-20f));
     if (cfg.edge_aware) valid = land(valid, lnot(own));
     for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], neg(px.V[c]));
   }
 };
+
+// acc.begin_slice(px, sl, sums) where the accumulator takes the sums so far, else acc.begin_slice(px, sl)
+template <class Acc, class F, class S>
+TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& sl, const S& sums, int)
+    -> decltype(acc.begin_slice(px, sl, sums)) {
+  return acc.begin_slice(px, sl, sums);
+}
+template <class Acc, class F, class S>
+TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& sl, const S&, long)
+    -> decltype(acc.begin_slice(px, sl)) {
+  return acc.begin_slice(px, sl);
+}
 
 // GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: for each slice, each side (one
 // with full_circle), each step; out[c] receives channel c of every lane.
@@ -284,10 +368,12 @@ TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   if (any(px.live)) {
     for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
       const Slice<F> sl(cfg, img, px, s);
-      typename Acc::template State<F> state = acc.begin_slice(px, sl);
+      typename Acc::template State<F> state = begin_slice_of(acc, px, sl, sums, 0);
       for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
         for (int64_t j = 0; j < cfg.steps; ++j) {                          // for each sample
-          const Sample<F> sample(cfg, img, px, sl, float(side), step_distance(cfg, sl, px.xi, j));
+          F su, sv;
+          step_screen(cfg, img, px, sl, float(side), j, su, sv);
+          const Sample<F> sample(cfg, img, px, su, sv);
           acc.step(state, side, px, sl, sample);
         }
       }
