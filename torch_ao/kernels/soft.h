@@ -55,15 +55,27 @@ template <bool kGradients> struct SoftAccumulator {
   static constexpr int kKept = kGradients ? kSoftMaxSteps : 1;  // steps kept per slice
 
   template <class F> struct State {
+    using B = typename ValueOf<F>::type;
     using I = typename LaneTraits<F>::I;
+    using M = typename LaneTraits<F>::M;
+    static constexpr int kFetches = ValueOf<F>::dual ? kKept : 1;  // the backward's: each step's fetch
     I occ;  // straight-through: the hard coverage
     F shift;
-    LaneArray<F, kSectors> omega, P;
+    LaneArray<F, kSectors> omega;
+    LaneArray<B, kSectors> P;
     int n;
-    // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius
-    LaneArray<F, kKept> s, w, av, at, dav, dat;
+    // with gradients: each step's interval (with the backward's tangents), its angles' coordinates and
+    // their derivatives along the radius
+    LaneArray<F, kKept> s, w;
+    LaneArray<B, kKept> av, at, dav, dat;
+    // the backward: each step's taps, bilinear weights, fetched position and validity
+    LaneArray<I, kFetches> index[4];
+    LaneArray<B, kFetches> fu, fv, pos[3];
+    LaneArray<M, kFetches> valid;
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
+  // d visibility / d of one step's s and w, and of its angles' coordinates av, at; d / d thickness
+  template <class B> struct StepAdjoint { B s, w, av, at, thickness; };
   TAO_FN int channels() const { return kGradients ? 3 : 1; }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
@@ -96,23 +108,24 @@ template <bool kGradients> struct SoftAccumulator {
   }
 
   // P <- P - a b g P over the sectors (P_m kept in before, if given)
-  template <class F> TAO_FN void cover(const F& s, const F& w, F* P, F* before) const {
-    SoftCoverage<F> cv;
+  template <class B> TAO_FN void cover(const B& s, const B& w, B* P, B* before) const {
+    SoftCoverage<B> cv;
     coverage(s, w, cv);
     for (int k = 0; k < kSectors; ++k) {
       if (before) before[k] = P[k];
-      const F c = cv.b[k] * cv.a[k] * cv.gate;
+      const B c = cv.b[k] * cv.a[k] * cv.gate;
       P[k] = P[k] - c * P[k];
-      P[k] = select(P[k] > F(kSoftTiny), P[k], F(0.0f));
+      P[k] = select(P[k] > B(kSoftTiny), P[k], B(0.0f));
     }
   }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+    using B = typename ValueOf<F>::type;
     State<F> st;
     st.occ = typename LaneTraits<F>::I(0);
     st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
     st.n = 0;
-    for (int k = 0; k < kSectors; ++k) st.P[k] = F(1.0f), st.omega[k] = F(1.0f / kSectors);
+    for (int k = 0; k < kSectors; ++k) st.P[k] = B(1.0f), st.omega[k] = F(1.0f / kSectors);
     if (cosine) cosine_sector_weights(sl, st.omega);
     return st;
   }
@@ -128,94 +141,163 @@ template <bool kGradients> struct SoftAccumulator {
     F w = (hi - lo) * F(float(kSectors));
     if (epsilon > 0) w = w - F(epsilon);
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
-    if (straight_through) st.occ = st.occ | sector_bits(s, w, rounding);
+    if (straight_through) st.occ = st.occ | sector_bits(value(s), value(w), rounding);
     if (!kGradients) {
-      if (!straight_through && any(w >= F(0.0f))) cover(s, w, &st.P[0], static_cast<F*>(nullptr));
+      if (!straight_through && any(w >= F(0.0f))) cover(value(s), value(w), &st.P[0], static_cast<decltype(&st.P[0])>(nullptr));
       return;
     }
     const int m = st.n++;
-    st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at;
-    // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
-    F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    if (smp.bilinear && any(w >= F(0.0f))) {  // (an empty step has no gradient)
-      const int64_t j = m % walk.steps;
-      const F reach_px = sl.radius_px - F(walk.min_step_px);
-      const F span_slope = select(reach_px >= F(0.0f), sl.radius_px / F(walk.radius), F(0.0f));
-      const F dist = step_distance(walk, sl, px.xi, j);  // min_step_px + span frac
-      const F dd = span_slope * ((dist - F(walk.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f)));
-      const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
-      const F dsu = dd * sl.unit_u * F(float(side)), dsv = dd * sl.unit_v * F(float(side));
-      const Image& img = *smp.image;
-      const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
-      const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
-      const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
-      const F dS = lerp(t1 - t0, t3 - t2, smp.fv) * dsu + (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu)) * dsv;
-      const F ddepth = neg(depth * depth * dS);
-      const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
-      const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
-      const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
-      const F dxh = select(su_c == su, dsu / F(img.fx), F(0.0f)), dyh = select(sv_c == sv, dsv / F(-img.fy), F(0.0f));
-      d_pos[0] = select(smp.valid, ddepth * xh + depth * dxh, F(0.0f));
-      d_pos[1] = select(smp.valid, ddepth * yh + depth * dyh, F(0.0f));
-      d_pos[2] = select(smp.valid, neg(ddepth), F(0.0f));
-    }  // the nearest texel does not move with the radius
-    st.dav[m] = dot3(d_pos, px.V);
-    st.dat[m] = F(float(side)) * dot3(d_pos, sl.T);
+    st.s[m] = s, st.w[m] = w, st.av[m] = value(av), st.at[m] = value(at);
+    if constexpr (ValueOf<F>::dual) {  // the backward: the fetch, for its taps' gradients
+      for (int i = 0; i < 4; ++i) st.index[i][m] = smp.index[i];
+      st.fu[m] = value(smp.fu), st.fv[m] = value(smp.fv), st.valid[m] = smp.valid;
+      for (int c = 0; c < 3; ++c) st.pos[c][m] = value(smp.delta[c]) + value(px.P[c]);
+    } else {  // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
+      F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
+      if (smp.bilinear && any(w >= F(0.0f))) {  // (an empty step has no gradient)
+        const int64_t j = m % walk.steps;
+        const F reach_px = sl.radius_px - F(walk.min_step_px);
+        const F span_slope = select(reach_px >= F(0.0f), sl.radius_px / F(walk.radius), F(0.0f));
+        const F dist = step_distance(walk, sl, px.xi, j);  // min_step_px + span frac
+        const F dd = span_slope * ((dist - F(walk.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f)));
+        const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
+        const F dsu = dd * sl.unit_u * F(float(side)), dsv = dd * sl.unit_v * F(float(side));
+        const Image& img = *smp.image;
+        const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
+        const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
+        const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
+        const F dS = lerp(t1 - t0, t3 - t2, smp.fv) * dsu + (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu)) * dsv;
+        const F ddepth = neg(depth * depth * dS);
+        const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
+        const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
+        const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
+        const F dxh = select(su_c == su, dsu / F(img.fx), F(0.0f)), dyh = select(sv_c == sv, dsv / F(-img.fy), F(0.0f));
+        d_pos[0] = select(smp.valid, ddepth * xh + depth * dxh, F(0.0f));
+        d_pos[1] = select(smp.valid, ddepth * yh + depth * dyh, F(0.0f));
+        d_pos[2] = select(smp.valid, neg(ddepth), F(0.0f));
+      }  // the nearest texel does not move with the radius
+      st.dav[m] = dot3(d_pos, px.V);
+      st.dat[m] = F(float(side)) * dot3(d_pos, sl.T);
+    }
   }
 
-  template <class F>
-  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
-    const int M = st.n;
-    LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients): before[m * 32 + k]
-    if (kGradients)
-      for (int m = 0; m < M; ++m)
-        if (any(st.w[m] >= F(0.0f))) cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors]);
-    F visible = F(0.0f);
+  // With gradients: the slice's union over its kept steps, P_m before each step kept in before[m * 32 + k]
+  template <class F> TAO_FN void sweep(State<F>& st, typename ValueOf<F>::type* before) const {
+    using B = typename ValueOf<F>::type;
+    for (int m = 0; m < st.n; ++m)
+      if (any(value(st.w[m]) >= B(0.0f))) cover(value(st.s[m]), value(st.w[m]), &st.P[0], &before[m * kSectors]);
+  }
+
+  // The slice's visible share sum_k free_k omega_k (the cosine weights' sum added to sums.den)
+  template <class F> TAO_FN F visible(const State<F>& st, Sums<F>& sums) const {
+    using B = typename ValueOf<F>::type;
+    F share = F(0.0f);
     for (int k = 0; k < kSectors; ++k) {
-      const F free = straight_through ? F(1.0f) - bit(st.occ, k) : st.P[k];
-      visible = visible + free * st.omega[k];
+      const B free = straight_through ? B(1.0f) - bit(st.occ, k) : st.P[k];
+      share = share + F(free) * st.omega[k];
       if (cosine) sums.den = sums.den + st.omega[k];
     }
-    sums.num = sums.num + visible;
-    if (!kGradients) return;
+    return share;
+  }
+
+  // soft_union's reverse scan over the slice's kept steps (after sweep): fn(m, StepAdjoint) for each step
+  // with a live lane, last to first
+  template <class F, class Fn>
+  TAO_FN void reverse_scan(const State<F>& st, const typename ValueOf<F>::type* before, const Fn& fn) const {
+    using B = typename ValueOf<F>::type;
     const float inv_tau = float(1.0 / double(tau));
-    F S[kSectors];
-    for (int k = 0; k < kSectors; ++k) S[k] = st.omega[k];
-    for (int m = M - 1; m >= 0; --m) {  // the reverse scan
-      const auto live = st.w[m] >= F(0.0f);
+    B S[kSectors];
+    for (int k = 0; k < kSectors; ++k) S[k] = value(st.omega[k]);
+    for (int m = st.n - 1; m >= 0; --m) {
+      const B s = value(st.s[m]), w = value(st.w[m]);
+      const auto live = w >= B(0.0f);
       if (!any(live)) continue;
-      SoftCoverage<F> cv;
-      coverage(st.s[m], st.w[m], cv);
-      F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
+      SoftCoverage<B> cv;
+      coverage(s, w, cv);
+      B sum_y = B(0.0f), sum_ya = B(0.0f), sum_yb = B(0.0f);
       for (int k = 0; k < kSectors; ++k) {
-        const F ab = cv.a[k] * cv.b[k];
-        const F y = ab * before[m * kSectors + k] * S[k];  // Y = a b P_m S_{m+1}
+        const B ab = cv.a[k] * cv.b[k];
+        const B y = ab * before[m * kSectors + k] * S[k];  // Y = a b P_m S_{m+1}
         sum_y = sum_y + y;
         sum_ya = sum_ya + y * cv.a[k];
         sum_yb = sum_yb + y * cv.b[k];
         S[k] = S[k] - ab * cv.gate * S[k];
       }
-      const F g = cv.gate, not_b = sum_y - sum_yb;
+      const B g = cv.gate, not_b = sum_y - sum_yb;
+      StepAdjoint<B> adj;
       // dL/dw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau;
       // dL/ds = -(g / tau) (F' sum Y (1 - b) - sum Y (1 - a))
-      const F gw = select(live, ((g * g - F(1.0f)) * sum_y - g * not_b) * F(inv_tau), F(0.0f));
-      const F gs = select(live, (not_b * cv.slope - sum_y + sum_ya) * g * F(-inv_tau), F(0.0f));
+      adj.w = select(live, ((g * g - B(1.0f)) * sum_y - g * not_b) * B(inv_tau), B(0.0f));
+      adj.s = select(live, (not_b * cv.slope - sum_y + sum_ya) * g * B(-inv_tau), B(0.0f));
       // SectorInterval.backward: s = 32 lo, w = 32 (hi - lo) - epsilon, the clamps pass inside [0, 1]
       const int side = m < walk.steps ? 1 : -1;
-      const F scale = F(float(side) / kPi);
-      const F av = st.av[m], at = st.at[m], bv = av - F(thickness);
-      const F front = fma(atan2(at, av), scale, st.shift), back = fma(atan2(at, bv), scale, st.shift);
-      const F g_lo = (gs - gw) * F(float(kSectors)), g_hi = gw * F(float(kSectors));
-      F g_f = side > 0 ? g_lo : g_hi, g_b = side > 0 ? g_hi : g_lo;
-      g_f = select(land(front >= F(0.0f), front <= F(1.0f)), g_f, F(0.0f));
-      g_b = select(land(back >= F(0.0f), back <= F(1.0f)), g_b, F(0.0f));
+      const B scale = B(float(side) / kPi);
+      const B av = st.av[m], at = st.at[m], bv = av - B(thickness);
+      const B shift = value(st.shift);
+      const B front = fma(atan2(at, av), scale, shift), back = fma(atan2(at, bv), scale, shift);
+      const B g_lo = (adj.s - adj.w) * B(float(kSectors)), g_hi = adj.w * B(float(kSectors));
+      B g_f = side > 0 ? g_lo : g_hi, g_b = side > 0 ? g_hi : g_lo;
+      g_f = select(land(front >= B(0.0f), front <= B(1.0f)), g_f, B(0.0f));
+      g_b = select(land(back >= B(0.0f), back <= B(1.0f)), g_b, B(0.0f));
       // theta = atan2(y, x): d theta = (x dy - y dx) / (x^2 + y^2)
-      const F inv_f = g_f * scale / fma(av, av, at * at);
-      const F inv_b = g_b * scale / fma(bv, bv, at * at);
-      const F g_at = av * inv_f + bv * inv_b, g_av = neg((inv_f + inv_b) * at);
-      sums.thickness = sums.thickness + select(px.live, at * inv_b, F(0.0f));
-      sums.radius = sums.radius + select(px.live, g_av * st.dav[m] + g_at * st.dat[m], F(0.0f));
+      const B inv_f = g_f * scale / fma(av, av, at * at);
+      const B inv_b = g_b * scale / fma(bv, bv, at * at);
+      adj.at = av * inv_f + bv * inv_b, adj.av = neg((inv_f + inv_b) * at);
+      adj.thickness = at * inv_b;
+      fn(m, adj);
     }
+  }
+
+  template <class F>
+  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
+    using B = typename ValueOf<F>::type;
+    LaneArray<B, kKept * kSectors> before;  // P_m of each step (with gradients)
+    if (kGradients) sweep(st, &before[0]);
+    sums.num = sums.num + visible(st, sums);
+    if (!kGradients) return;
+    reverse_scan(st, &before[0], [&](int m, const StepAdjoint<B>& g) {
+      sums.thickness = sums.thickness + select(px.live, g.thickness, F(0.0f));
+      sums.radius = sums.radius + select(px.live, g.av * st.dav[m] + g.at * st.dat[m], F(0.0f));
+    });
+  }
+
+  // The backward's slice, F with tangents on the pixel's own inputs: sums.num gains the slice's visible share
+  // with its tangents (the cosine weights' and, through the reverse scan, the steps' intervals'), and each
+  // step's d visibility / d delta times weight (the upstream gradient over the denominator) goes to
+  // sink.scatter(g_delta, st, m, lanes), which chains it to the step's taps
+  template <class F, class Sink>
+  TAO_FN void end_slice_adjoint(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums,
+                                const typename ValueOf<F>::type& weight, Sink& sink) const {
+    using B = typename ValueOf<F>::type;
+    LaneArray<B, kKept * kSectors> before;
+    sweep(st, &before[0]);
+    sums.num = sums.num + visible(st, sums);
+    B V[3], T[3];
+    for (int c = 0; c < 3; ++c) V[c] = value(px.V[c]), T[c] = value(sl.T[c]);
+    reverse_scan(st, &before[0], [&](int m, const StepAdjoint<B>& g) {
+      const F &s = st.s[m], &w = st.w[m];
+      sums.num = sums.num + F(g.s) * (s - F(value(s))) + F(g.w) * (w - F(value(w)));  // (tangents only)
+      sums.thickness = sums.thickness + F(select(px.live, g.thickness, B(0.0f)));
+      const B along_t = g.at * B(m < walk.steps ? 1.0f : -1.0f);
+      B g_delta[3];
+      for (int c = 0; c < 3; ++c) g_delta[c] = (g.av * V[c] + along_t * T[c]) * weight;
+      sink.scatter(g_delta, st, m, land(px.live, st.valid[m]));
+    });
+  }
+
+  // The visibility's denominator at the pixels of walk_block(row, u0, n): the slices, or the cosine
+  // weights' sum over them
+  template <class B> TAO_FN B denominator(const Image& img, int64_t row, int64_t u0, int n) const {
+    if (!cosine) return B(float(walk.slices));
+    const Pixels<B> px(walk, img, row, u0, n);
+    B den = B(0.0f);
+    for (int64_t s = 0; s < walk.slices; ++s) {
+      const Slice<B> sl(walk, img, px, s);
+      LaneArray<B, kSectors> omega;
+      cosine_sector_weights(sl, omega);
+      for (int k = 0; k < kSectors; ++k) den = den + omega[k];
+    }
+    return clamp_min(den, B(1e-30f));
   }
 
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
@@ -225,6 +307,30 @@ template <bool kGradients> struct SoftAccumulator {
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
     }
+  }
+};
+
+// The backward's accumulator (walk_block's interface): SoftAccumulator<true>'s walk with B lanes of
+// weight (the upstream gradient over the denominator) and its slices ended by end_slice_adjoint into sink
+template <class B, class Sink> struct SoftAdjoint {
+  const SoftAccumulator<true>& acc;
+  B weight;
+  Sink& sink;
+  template <class F> using State = typename SoftAccumulator<true>::template State<F>;
+  template <class F> using Sums = typename SoftAccumulator<true>::template Sums<F>;
+  TAO_FN int channels() const { return 3; }
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
+    return acc.begin_slice(px, sl);
+  }
+  template <class F>
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    acc.step(st, side, px, sl, smp);
+  }
+  template <class F> TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
+    acc.end_slice_adjoint(st, px, sl, sums, weight, sink);
+  }
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    acc.finish(sums, px, out);
   }
 };
 

@@ -145,6 +145,52 @@ void check_input(const at::Tensor& x, const char* name) {
               ": expected contiguous float32 on the CPU");
 }
 
+// Where a backward's gradients go: the pixels' own (positions, normals, depth) and the taps' (per thread)
+struct Gradients {
+  at::Tensor positions, normals, depth, tap_positions, tap_inverse;
+
+  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W) {
+    const int64_t threads = at::get_num_threads();
+    positions = at::zeros({B, H, W, 3}, like.options()), normals = at::zeros({B, H, W, 3}, like.options());
+    depth = at::zeros({B, H, W}, like.options());
+    tap_positions = at::zeros({threads, B, H, W, 3}, like.options());
+    tap_inverse = at::zeros({threads, B, H, W}, like.options());
+  }
+  Targets targets(int64_t b, int64_t B, int64_t plane, int64_t thread) {
+    return Targets{positions.data_ptr<float>() + 3 * b * plane, normals.data_ptr<float>() + 3 * b * plane,
+                   depth.data_ptr<float>() + b * plane,
+                   tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
+                   tap_inverse.data_ptr<float>() + (thread * B + b) * plane};
+  }
+  // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image
+  at::Tensor reduce() {
+    float *pos = positions.data_ptr<float>(), *tp = tap_positions.data_ptr<float>(), *ti = tap_inverse.data_ptr<float>();
+    const int64_t threads = tap_positions.size(0), n_pos = positions.numel(), n_inv = depth.numel();
+    for (int64_t k = 1; k < threads; ++k) {
+      for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
+      for (int64_t q = 0; q < n_inv; ++q) ti[q] += ti[k * n_inv + q];
+    }
+    for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
+    return tap_inverse[0];
+  }
+};
+
+// A backward's packed settings: n_ints and n_floats of the accumulator's after the walk's
+void check_settings(const at::Tensor& ints, const at::Tensor& floats, int64_t n_ints, int64_t n_floats,
+                    const char* name) {
+  check_input(floats, "floats");
+  TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() == kAccInts + n_ints &&
+                  floats.numel() == kAccFloats + n_floats, "ints, floats: expected ", name, "'s packed settings");
+}
+
+// The upstream gradient: (B, C, H, W) of positions' B, H, W
+void check_grad(const at::Tensor& grad, const at::Tensor& positions, int C) {
+  check_input(grad, "grad");
+  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2);
+  TORCH_CHECK(grad.dim() == 4 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == H && grad.size(3) == W,
+              "grad: expected (B, ", C, ", H, W)");
+}
+
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W); grad (B, C, H, W)
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
@@ -154,9 +200,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
   TORCH_CHECK(std::string(accumulator) == "gtao", "accumulator: the backward covers gtao, got ", std::string(accumulator));
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
-  for (auto [x, name] : {std::pair{&grad, "grad"}, {&floats, "floats"}}) check_input(*x, name);
-  TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() == kAccInts + 3 &&
-                  floats.numel() == kAccFloats + 3, "ints, floats: expected gtao's packed settings");
+  check_settings(ints, floats, 3, 3, "gtao");
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
@@ -165,23 +209,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
   TORCH_CHECK(!cfg.edge_aware && !cfg.full_circle, "the backward covers the bilinear and nearest fetch, one half circle");
   const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
   const int C = acc.channels();
-  TORCH_CHECK(grad.dim() == 4 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == H && grad.size(3) == W,
-              "grad: expected (B, ", C, ", H, W)");
-  at::Tensor g_pos = at::zeros({B, H, W, 3}, positions.options()), g_nrm = at::zeros({B, H, W, 3}, positions.options());
-  at::Tensor g_depth = at::zeros({B, H, W}, positions.options());
-  const int64_t threads = at::get_num_threads();
-  at::Tensor tap_pos = at::zeros({threads, B, H, W, 3}, positions.options());
-  at::Tensor tap_inv = at::zeros({threads, B, H, W}, positions.options());
+  check_grad(grad, positions, C);
+  Gradients out(positions, B, H, W);
   const float* gp = grad.data_ptr<float>();
   torch_ao_rows::for_each_row(B, H, [&](int64_t b, int64_t row) {
-    const int64_t thread = at::get_thread_num();
     const Image img = fr.image(b);
     const float* upstream[8];
     for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
-    const Targets t{g_pos.data_ptr<float>() + 3 * b * plane, g_nrm.data_ptr<float>() + 3 * b * plane,
-                    g_depth.data_ptr<float>() + b * plane,
-                    tap_pos.data_ptr<float>() + (thread * B + b) * 3 * plane,
-                    tap_inv.data_ptr<float>() + (thread * B + b) * plane};
+    const Targets t = out.targets(b, B, plane, at::get_thread_num());
     if (scalar) {
       for (int64_t u = 0; u < W; ++u) grad_block<float>(cfg, img, acc, row, u, 1, upstream, C, t);
       return;
@@ -190,15 +225,101 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     for (int64_t u0 = 0; u0 < W; u0 += L)
       grad_block<Vec>(cfg, img, acc, row, u0, int(std::min<int64_t>(L, W - u0)), upstream, C, t);
   });
-  // the threads' tap images summed (into the first)
-  float *pos = g_pos.data_ptr<float>(), *tp = tap_pos.data_ptr<float>(), *ti = tap_inv.data_ptr<float>();
-  const int64_t n_pos = 3 * B * plane, n_inv = B * plane;
-  for (int64_t k = 1; k < threads; ++k) {
-    for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
-    for (int64_t q = 0; q < n_inv; ++q) ti[q] += ti[k * n_inv + q];
+  at::Tensor g_inv = out.reduce();
+  return {out.positions, out.normals, g_inv, out.depth};
+}
+
+// The soft backward's scatter of a step's d L / d delta to its taps (soft.h's end_slice_adjoint): a
+// bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k), a nearest fetch's position
+template <class B> struct TapSink {
+  bool bilinear;
+  int n;
+  const Targets& t;
+
+  template <class State> void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on) {
+    if (!any(on)) return;
+    constexpr int L = LaneTraits<B>::L;
+    float gl[3][L], pl[3][L], ful[L], fvl[L];
+    int32_t il[4][L];
+    for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(st.pos[c][m], pl[c]);
+    to_lanes(st.fu[m], ful), to_lanes(st.fv[m], fvl);
+    for (int i = 0; i < 4; ++i) store_lanes(st.index[i][m], il[i]);
+    for (int l = 0; l < n; ++l) {
+      if (!mask_lane(on, l)) continue;
+      if (bilinear) {
+        const float fu = ful[l], fv = fvl[l];
+        const float weight[4] = {(1.0f - fu) * (1.0f - fv), fu * (1.0f - fv), (1.0f - fu) * fv, fu * fv};
+        const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
+        for (int i = 0; i < 4; ++i) t.tap_inverse[il[i][l]] += along * weight[i];
+      } else {
+        for (int c = 0; c < 3; ++c) t.tap_positions[3 * il[0][l] + c] += gl[c][l];
+      }
+    }
   }
-  for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
-  return {g_pos, g_nrm, tap_inv[0], g_depth};
+};
+
+// The soft backward of the n <= L pixels of a row from u0: the walk in dual lanes (tangents on the pixel's
+// own P, N, depth) with SoftAdjoint's slices; the pixel's own gradients and d L / d thickness written per pixel
+template <class B>
+void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true>& acc, int64_t row,
+                     int64_t u0, int n, const float* upstream, const Targets& t, float* g_thickness) {
+  using D = Dual<B, kOwn>;
+  constexpr int L = LaneTraits<B>::L;
+  float lane[L];
+  for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
+  const B g = from_lanes(lane, B(0.0f));
+  TapSink<B> sink{cfg.bilinear, n, t};
+  const SoftAdjoint<B, TapSink<B>> adjoint{acc, g / acc.denominator<B>(img, row, u0, n), sink};
+  D outs[3];
+  walk_block(cfg, img, adjoint, row, u0, n, outs);
+  float ol[kOwn][L], tl[L];
+  for (int k = 0; k < kOwn; ++k) to_lanes(g * outs[0].d[k], ol[k]);
+  to_lanes(g * outs[2].v, tl);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * img.W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l];
+    g_thickness[p] = tl[l];
+  }
+}
+
+// torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
+// walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
+// depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W)
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
+    const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& ints,
+    const at::Tensor& floats, bool scalar) {
+  const at::Tensor none = at::empty({0}, positions.options());
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  check_settings(ints, floats, 3, 3, "soft");
+  check_grad(grad, positions, 1);
+  const int64_t* i = ints.data_ptr<int64_t>();
+  const float* f = floats.data_ptr<float>();
+  const WalkSettings cfg = unpack_walk(i, f);
+  TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
+  TORCH_CHECK(cfg.steps <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
+  TORCH_CHECK(cfg.placement == Steps::power && !cfg.edge_aware && !cfg.full_circle,
+              "soft_backward: the power step placement, the bilinear or nearest fetch, one half circle");
+  const SoftAccumulator<true> acc = unpack_soft<true>(i, f);
+  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
+  Gradients out(positions, B, H, W);
+  at::Tensor g_thickness = at::zeros({B, H, W}, positions.options());
+  const float* gp = grad.data_ptr<float>();
+  torch_ao_rows::for_each_row(B, H, [&](int64_t b, int64_t row) {
+    const Image img = fr.image(b);
+    const Targets t = out.targets(b, B, plane, at::get_thread_num());
+    float* gt = g_thickness.data_ptr<float>() + b * plane;
+    if (scalar) {
+      for (int64_t u = 0; u < W; ++u) soft_grad_block<float>(cfg, img, acc, row, u, 1, gp + b * plane, t, gt);
+      return;
+    }
+    constexpr int L = LaneTraits<Vec>::L;
+    for (int64_t u0 = 0; u0 < W; u0 += L)
+      soft_grad_block<Vec>(cfg, img, acc, row, u0, int(std::min<int64_t>(L, W - u0)), gp + b * plane, t, gt);
+  });
+  at::Tensor g_inv = out.reduce();
+  return {out.positions, out.normals, g_inv, out.depth, g_thickness};
 }
 
 }  // namespace
@@ -208,4 +329,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "Tensor depth, Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
+  m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
+        "Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, bool scalar) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+  m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
 }
