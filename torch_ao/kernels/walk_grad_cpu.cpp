@@ -258,10 +258,11 @@ template <class B> struct TapSink {
   }
 };
 
-// The soft backward of the n <= L pixels of a row from u0: the walk in dual lanes (tangents on the pixel's
-// own P, N, depth) with SoftAdjoint's slices; the pixel's own gradients and d L / d thickness written per pixel
+// The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
+// slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
+// d L / d thickness written per pixel
 template <class B>
-void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true>& acc, int64_t row,
+void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc, int64_t row,
                      int64_t u0, int n, const float* upstream, const Targets& t, float* g_thickness) {
   using D = Dual<B, kOwn>;
   constexpr int L = LaneTraits<B>::L;
@@ -269,17 +270,17 @@ void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumu
   for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
   const B g = from_lanes(lane, B(0.0f));
   TapSink<B> sink{cfg.bilinear, n, t};
-  const SoftAdjoint<B, TapSink<B>> adjoint{acc, g / acc.denominator<B>(img, row, u0, n), sink};
-  D outs[3];
+  const Pixels<D> pd(cfg, img, row, u0, n);
+  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
+  B outs[8];
   walk_block(cfg, img, adjoint, row, u0, n, outs);
-  float ol[kOwn][L], tl[L];
-  for (int k = 0; k < kOwn; ++k) to_lanes(g * outs[0].d[k], ol[k]);
-  to_lanes(g * outs[2].v, tl);
+  float ol[8][L];
+  for (int k = 0; k < 8; ++k) to_lanes(g * outs[k], ol[k]);
   for (int l = 0; l < n; ++l) {
     const int64_t p = row * img.W + u0 + l;
     for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
     t.depth[p] = ol[6][l];
-    g_thickness[p] = tl[l];
+    g_thickness[p] = ol[7][l];
   }
 }
 
@@ -301,7 +302,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
   TORCH_CHECK(cfg.steps <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
   TORCH_CHECK(cfg.placement == Steps::power && !cfg.edge_aware && !cfg.full_circle,
               "soft_backward: the power step placement, the bilinear or nearest fetch, one half circle");
-  const SoftAccumulator<true> acc = unpack_soft<true>(i, f);
+  const SoftAccumulator<true, true> acc = unpack_soft<true, true>(i, f);
   const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
   Gradients out(positions, B, H, W);
   at::Tensor g_thickness = at::zeros({B, H, W}, positions.options());
