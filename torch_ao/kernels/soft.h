@@ -16,6 +16,13 @@
 // derivatives give the thickness's gradient, and the fetch's derivative along the step (su, sv move with
 // the radius through the step placement) the radius's. Straight-through: the hard coverage's visibility
 // with these (the soft union's) gradients.
+//
+// The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
+// value lanes keeping each step's fetch, runs the same reverse scan, and chains each step's d vis / d s,
+// d w by hand: through SectorInterval's atan2 to d / d delta (scattered, times the upstream gradient, to the
+// fetch's taps by the caller's sink) and on to the slice's quantities (V, T, P, the screen direction, the
+// span, gamma), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
+// lanes (lanes_dual.h); the cosine weights carry their own tangents.
 #pragma once
 
 #include "bitmask.h"
