@@ -9,6 +9,9 @@
 //    bilinear fetch delta = pos - P with pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a
 //    nearest fetch reads the tap's position itself. Scattered into per-thread images, summed at the end.
 // The outputs' upstream gradient is read per pixel before the walk, so nothing per sample is stored.
+// The soft / straight-through bitmask walk's backward (torch_ao_kernels::soft_backward) is soft.h's
+// SoftAdjoint over the same walk: value lanes with the pixel and its slices in dual lanes (tangents 0..6),
+// each step's d / d delta scattered to its taps as above.
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -52,6 +55,32 @@ template <class B> struct Winner {
   B fu, fv, pos[3];
   M has;
 };
+
+// d L / d delta of a sample (g_delta) scattered to its fetch's taps, on the lanes in `on` of the first n: a
+// bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k, pos the fetched position, w_k the
+// weights of fu, fv), a nearest fetch's position (index[0])
+template <class B>
+void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, const B* pos, const B& fu, const B& fv,
+                  const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on) {
+  if (!any(on)) return;
+  constexpr int L = LaneTraits<B>::L;
+  float gl[3][L], pl[3][L], ful[L], fvl[L];
+  int32_t il[4][L];
+  for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(pos[c], pl[c]);
+  to_lanes(fu, ful), to_lanes(fv, fvl);
+  for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
+  for (int l = 0; l < n; ++l) {
+    if (!mask_lane(on, l)) continue;
+    if (bilinear) {
+      const float u = ful[l], v = fvl[l];
+      const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
+      const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
+      for (int i = 0; i < 4; ++i) t.tap_inverse[il[i][l]] += along * weight[i];
+    } else {
+      for (int c = 0; c < 3; ++c) t.tap_positions[3 * il[0][l] + c] += gl[c][l];
+    }
+  }
+}
 
 template <class B, class Acc>
 void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
@@ -113,22 +142,7 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
       for (int ch = 0; ch < C; ++ch) along_best = along_best + g[ch] * outs[ch].d[kOwn + k];
       for (int c = 0; c < 3; ++c) gd[c] = along_best * along_delta[k][c];
       const Winner<B>& w = win[k];
-      float gl[3][L], pl[3][L], ful[L], fvl[L];
-      int32_t il[4][L];
-      for (int c = 0; c < 3; ++c) to_lanes(gd[c], gl[c]), to_lanes(w.pos[c], pl[c]);
-      to_lanes(w.fu, ful), to_lanes(w.fv, fvl);
-      for (int i = 0; i < 4; ++i) store_lanes(w.index[i], il[i]);
-      for (int l = 0; l < n; ++l) {
-        if (!mask_lane(w.has, l) || !mask_lane(px.live, l)) continue;
-        if (cfg.bilinear) {
-          const float fu = ful[l], fv = fvl[l];
-          const float weight[4] = {(1.0f - fu) * (1.0f - fv), fu * (1.0f - fv), (1.0f - fu) * fv, fu * fv};
-          const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
-          for (int i = 0; i < 4; ++i) t.tap_inverse[il[i][l]] += along * weight[i];
-        } else {
-          for (int c = 0; c < 3; ++c) t.tap_positions[3 * il[0][l] + c] += gl[c][l];
-        }
-      }
+      scatter_taps(cfg.bilinear, n, t, gd, w.pos, w.fu, w.fv, w.index, land(w.has, px.live));
     }
   }
   float ol[kOwn][L];
@@ -229,32 +243,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
   return {out.positions, out.normals, g_inv, out.depth};
 }
 
-// The soft backward's scatter of a step's d L / d delta to its taps (soft.h's end_slice_adjoint): a
-// bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k), a nearest fetch's position
+// The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
 template <class B> struct TapSink {
   bool bilinear;
   int n;
   const Targets& t;
 
   template <class State> void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on) {
-    if (!any(on)) return;
-    constexpr int L = LaneTraits<B>::L;
-    float gl[3][L], pl[3][L], ful[L], fvl[L];
-    int32_t il[4][L];
-    for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(st.pos[c][m], pl[c]);
-    to_lanes(st.fu[m], ful), to_lanes(st.fv[m], fvl);
-    for (int i = 0; i < 4; ++i) store_lanes(st.index[i][m], il[i]);
-    for (int l = 0; l < n; ++l) {
-      if (!mask_lane(on, l)) continue;
-      if (bilinear) {
-        const float fu = ful[l], fv = fvl[l];
-        const float weight[4] = {(1.0f - fu) * (1.0f - fv), fu * (1.0f - fv), (1.0f - fu) * fv, fu * fv};
-        const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
-        for (int i = 0; i < 4; ++i) t.tap_inverse[il[i][l]] += along * weight[i];
-      } else {
-        for (int c = 0; c < 3; ++c) t.tap_positions[3 * il[0][l] + c] += gl[c][l];
-      }
-    }
+    const B pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
+    const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
+    scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on);
   }
 };
 
