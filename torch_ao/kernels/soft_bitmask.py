@@ -27,8 +27,8 @@ from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from .bitmask import options_uncovered
 from .build import cpu_kernels, grad_kernels
-from .frame import scalar_lanes
-from .launch import packed_inputs, run_walk, walk_settings
+from .frame import scalar_lanes, walk_inputs
+from .launch import packed_settings, run_walk, walk_settings
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
@@ -115,21 +115,20 @@ def _walk(gbuffer, normals, radius, thickness, o, gradients):
 
 def _gbuffer_walk(gbuffer, normals, radius, thickness, o):
     """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), radius and thickness."""
-    settings, acc_ints, acc_floats = _settings(radius, thickness, o)
-    inputs, _, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
-    return _GBufferWalk.apply(*inputs, ints, floats, scalar_lanes(o["lanes"]), radius, thickness)
+    return _GBufferWalk.apply(*walk_inputs(gbuffer, normals), radius, thickness, o)
 
 
 class _GBufferWalk(torch.autograd.Function):
     """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` and ``soft_backward``."""
 
     @staticmethod
-    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, ints, floats, scalar, radius, thickness):
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, radius, thickness, o):
+        ints, floats = packed_settings(*_settings(radius, thickness, o), device=depth.device)
         none = torch.empty(0)
-        ctx.scalar = scalar
+        ctx.scalar = scalar_lanes(o["lanes"])
         ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, thickness)
         return cpu_kernels().walk("soft", positions, normals, inverse, depth, valid, intrinsics, none, none, none,
-                                  ints, floats, 1, scalar)
+                                  ints, floats, 1, ctx.scalar)
 
     @staticmethod
     def backward(ctx, grad):
@@ -139,12 +138,12 @@ class _GBufferWalk(torch.autograd.Function):
             ctx.scalar)
         g_thickness = g_thick.double().sum()
         g_radius = None
-        if ctx.needs_input_grad[9]:  # Euler's identity (module docstring); invalid texels hold NaN
+        if ctx.needs_input_grad[6]:  # Euler's identity (module docstring); invalid texels hold NaN
             along = ((g_pos.double() * positions).sum() + (g_depth.double() * depth).sum()
                      - torch.where(valid, g_inv.double() * inverse, 0.0).sum())
-            g_radius = (-(along + float(thickness) * g_thickness) / float(radius)).to(radius.dtype)
-        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, g_radius,
-                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[10] else None)
+            g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
+        return (g_pos, g_nrm, g_inv, g_depth, None, None, g_radius,
+                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[7] else None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
