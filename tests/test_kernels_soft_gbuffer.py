@@ -157,3 +157,21 @@ def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypat
     vis = BitmaskAO(mode="soft", slices=2, steps=3)(graph).visibility
     (g_depth,) = torch.autograd.grad(vis.sum(), [depth])
     assert calls == [1] and g_depth.abs().sum() > 0
+
+
+def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
+    """The taps' gradients go to per-thread images summed after the rows: the same gradients on any number
+    of threads, up to the order of the float32 sums."""
+    gb = FRAMES["rough"]()
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            results.append(_values_and_grads(gb, torch.float32, "simd", SETTINGS[0]))
+    finally:
+        torch.set_num_threads(threads)
+    (vis1, grads1), (vis2, grads2) = results
+    assert torch.equal(vis1, vis2)
+    for a, b in zip(grads1, grads2):
+        assert _relative(b, a) <= 1e-6
