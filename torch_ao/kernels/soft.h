@@ -77,6 +77,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3];
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
+    LaneArray<SoftCoverage<F>, kFetches> coverages;  // the backward's sweep's, for its reverse scan
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
   // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d thickness
@@ -112,9 +113,11 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     for (int k = 0; k < kSectors; ++k) cv.b[k] = soft_sigmoid(end_arg - F(float(k + 1) * inv_tau));
   }
 
-  // P <- P - a b g P over the sectors (P_m kept in before, if given)
-  template <class B> TAO_FN void cover(const B& s, const B& w, B* P, B* before) const {
-    SoftCoverage<B> cv;
+  // P <- P - a b g P over the sectors (P_m kept in before, if given; the coverage in keep, if given)
+  template <class B>
+  TAO_FN void cover(const B& s, const B& w, B* P, B* before, SoftCoverage<B>* keep = nullptr) const {
+    SoftCoverage<B> local;
+    SoftCoverage<B>& cv = keep ? *keep : local;
     coverage(s, w, cv);
     for (int k = 0; k < kSectors; ++k) {
       if (before) before[k] = P[k];
@@ -203,7 +206,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   // With gradients: the slice's union over its kept steps, P_m before each step kept in before[m * 32 + k]
   template <class F> TAO_FN void sweep(State<F>& st, F* before) const {
     for (int m = 0; m < st.n; ++m)
-      if (any(st.w[m] >= F(0.0f))) cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors]);
+      if (any(st.w[m] >= F(0.0f)))
+        cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors], kAdjoint ? &st.coverages[m] : nullptr);
   }
 
   // The slice's visible share sum_k free_k omega_k (the weights' sum added to sums.den with cosine
@@ -228,8 +232,9 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     for (int m = st.n - 1; m >= 0; --m) {
       const auto live = st.w[m] >= F(0.0f);
       if (!any(live)) continue;
-      SoftCoverage<F> cv;
-      coverage(st.s[m], st.w[m], cv);
+      SoftCoverage<F> local;
+      if (!kAdjoint) coverage(st.s[m], st.w[m], local);
+      const SoftCoverage<F>& cv = kAdjoint ? st.coverages[m] : local;
       F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
       for (int k = 0; k < kSectors; ++k) {
         const F ab = cv.a[k] * cv.b[k];
