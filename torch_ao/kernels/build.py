@@ -44,7 +44,7 @@ def cpu_kernels():
 
 @functools.lru_cache(maxsize=None)
 def grad_kernels():
-    """The namespace with the walk's backward (``walk_backward``, walk_grad_cpu.cpp), built on first use
+    """The namespace with the walk's backwards (``walk_backward``, ``soft_backward``, walk_grad_cpu.cpp), built on first use
     as a library of its own: its dual-number walk takes longer to compile than the forward kernels, and
     only calls that want gradients need it. Raises :class:`KernelUnavailable` as :func:`cpu_kernels`."""
     cpu_kernels()
@@ -54,6 +54,12 @@ def grad_kernels():
     def _(accumulator, grad, positions, normals, inverse_depth, depth, *args):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape))
+
+    @torch.library.register_fake("torch_ao_kernels::soft_backward")
+    def _(grad, positions, normals, inverse_depth, depth, *args):
+        return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
+                depth.new_empty(depth.shape))
 
     return torch.ops.torch_ao_kernels
 

@@ -64,6 +64,12 @@ template <class F, int N> struct LaneTraits<Dual<F, N>> {
   static constexpr int L = LaneTraits<F>::L;
 };
 
+template <class F, int N> struct ValueOf<Dual<F, N>> {
+  using type = F;
+  static constexpr bool dual = true;
+};
+template <class F, int N> TAO_FN const F& value(const Dual<F, N>& x) { return x.v; }
+
 template <class F, int N> TAO_FN Dual<F, N> from_lanes(const float* x, const Dual<F, N>&) {
   return Dual<F, N>(from_lanes(x, F(0.0f)));
 }

@@ -21,6 +21,14 @@ namespace tao {
 
 template <class F> struct LaneTraits;
 
+// The value lanes of a lane type and whether it carries tangents (lanes_dual.h's Dual<F, N>: F's and N
+// tangents); value(x) its value lanes
+template <class F> struct ValueOf {
+  using type = F;
+  static constexpr bool dual = false;
+};
+template <class F> TAO_FN const F& value(const F& x) { return x; }
+
 template <> struct LaneTraits<float> {
   using M = bool;      // a lane mask
   using I = uint32_t;  // integer lanes (sector masks, texel indices)

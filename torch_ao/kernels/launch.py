@@ -19,7 +19,7 @@ from .build import KernelUnavailable, cpu_kernels
 from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
-__all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs", "cuda_source"]
+__all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs", "packed_settings", "cuda_source"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's)
 PLACEMENTS = ("power", "hdrp", "ue4", "glsl")
@@ -96,9 +96,16 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
         inverse, valid = inputs[2], inputs[4]
         cells = cell_flags(torch.where(valid, inverse, 0.0)).to(torch.float32).contiguous()
     layer = none if backface is None else backface[:, 0].to(torch.float32).contiguous()
+    return inputs, (none if light is None else light, cells, layer), *packed_settings(settings, acc_ints, acc_floats,
+                                                                                      device)
+
+
+def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list,
+                    device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The walk's and the accumulator's settings as packed.h reads them: ``ints`` (int64), ``floats`` (float32)."""
     ints = torch.tensor(settings[0] + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
     floats = torch.tensor(settings[1] + [float(v) for v in acc_floats], dtype=torch.float32, device=device)
-    return inputs, (none if light is None else light, cells, layer), ints, floats
+    return ints, floats
 
 
 def cuda_source() -> str:

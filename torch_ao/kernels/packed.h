@@ -62,8 +62,9 @@ TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
 }
 
 // ints: rounding, cosine, straight_through; floats: thickness, epsilon, tau
-template <bool kGradients> TAO_FN SoftAccumulator<kGradients> unpack_soft(const int64_t* i, const float* f) {
-  SoftAccumulator<kGradients> acc;
+template <bool kGradients, bool kAdjoint = false>
+TAO_FN SoftAccumulator<kGradients, kAdjoint> unpack_soft(const int64_t* i, const float* f) {
+  SoftAccumulator<kGradients, kAdjoint> acc;
   acc.walk = unpack_walk(i, f);
   i += kAccInts, f += kAccFloats;
   acc.rounding = i[0], acc.cosine = i[1] != 0, acc.straight_through = i[2] != 0;
