@@ -48,6 +48,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--methods", default="gtao,hbao", help=f"comma-separated, of {', '.join(METHODS)}")
+    parser.add_argument("--no-torch", action="store_true", help="skip the tensor path's rows (its column reads nan)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     W, H = map(int, args.size.split("x"))
@@ -78,7 +79,7 @@ def main() -> None:
 
             fwd = _median_seconds(forward, args.repeat)
             kernel = _median_seconds(forward_backward("kernel"), args.repeat)
-            tensor = _median_seconds(forward_backward("torch"), args.repeat)
+            tensor = float("nan") if args.no_torch else _median_seconds(forward_backward("torch"), args.repeat)
             print(f"{method} | {slices} x {steps} | {1e3 * fwd:.1f} | {1e3 * kernel:.1f} | {1e3 * tensor:.1f} | "
                   f"{kernel / fwd:.1f} | {tensor / fwd:.1f}")
 

@@ -7,7 +7,9 @@ side, the clamped arc integral of :func:`torch_ao.ops.arc_integral`), and return
 over slices; the module's own ``GTAOAccumulator.finish`` turns them into the outputs, so the
 normalisation, final power and multi-bounce fit are the tensor path's code; the sums agree with the
 tensor path's to float rounding (tests/test_kernels_gtao.py). ``HBAO`` is the same walk over the full circle with its accumulator
-(:mod:`torch_ao.methods.hbao`), finished the same way.
+(:mod:`torch_ao.methods.hbao`), finished the same way. Where autograd records (CPU), both run with the
+walk's backward (:mod:`torch_ao.kernels.walk_grad`); :func:`gradient_uncovered` says which gradients it
+does not give.
 """
 from __future__ import annotations
 
