@@ -53,7 +53,7 @@ def grad_kernels():
     @torch.library.register_fake("torch_ao_kernels::walk_backward")
     def _(accumulator, grad, positions, normals, inverse_depth, depth, *args):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
-                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape))
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape), depth.new_empty(depth.shape))
 
     @torch.library.register_fake("torch_ao_kernels::soft_backward")
     def _(grad, positions, normals, inverse_depth, depth, *args):

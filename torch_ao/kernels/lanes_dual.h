@@ -1,7 +1,7 @@
 // Forward-mode dual numbers over any lane type of lanes_scalar.h / lanes_simd.h: Dual<F, N> carries a
 // value and its derivatives along N tangents, lane by lane, so the one walk (walk.h) run with
 // F = Dual<Vec, N> (or Dual<float, N>) gives its outputs' derivatives with respect to whatever the caller
-// seeds (seed_pixel: the pixel's own position, normal and depth).
+// seeds (seed_pixel: the pixel's own position, normal and depth; seed_setting: an accumulator's setting).
 //
 // Derivatives at non-differentiable points follow torch's autograd of the tensor path: floor, rint and
 // comparisons have none; clamp passes the gradient where lo <= x <= hi; min / max pass the chosen
@@ -158,6 +158,14 @@ template <class F, int N> TAO_FN void seed_pixel(Dual<F, N>* P, Dual<F, N>* Nrm,
     Nrm[c].d[3 + c] = F(1.0f);
   }
   depth.d[6] = F(1.0f);
+}
+
+// tangent 7: an accumulator's differentiable setting (walk.h's seed_setting)
+template <class F, int N> TAO_FN Dual<F, N> seed_setting(const Dual<F, N>& x) {
+  static_assert(N >= 8, "seed_setting: the setting's tangent is the 8th");
+  Dual<F, N> r(x);
+  r.d[7] = F(1.0f);
+  return r;
 }
 
 }  // namespace tao

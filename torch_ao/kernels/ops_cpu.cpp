@@ -21,19 +21,15 @@ using namespace tao;
 template <class Acc>
 void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* dst, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
-  const int64_t B = fr.B, H = fr.H, W = fr.W;
+  const int64_t H = fr.H, W = fr.W;
   const int C = acc.channels();
-  torch_ao_rows::for_each_row(B, H, [&](int64_t b, int64_t row) {
-    if (scalar) {
-      for (int64_t u = 0; u < W; ++u) walk_pixel(cfg, acc, fr, dst, (b * H + row) * W + u);
-      return;
-    }
-    const Image img = fr.image(b);
-    Vec values[8];
-    alignas(64) float lanes[L];
-    for (int64_t u0 = 0; u0 < W; u0 += L) {
-      const int n = int(std::min<int64_t>(L, W - u0));
-      walk_block(cfg, img, acc, row, u0, n, values);
+  torch_ao_rows::for_each_block<L>(fr.B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+    if constexpr (!decltype(simd)::value) {
+      walk_pixel(cfg, acc, fr, dst, (b * H + row) * W + u0);
+    } else {
+      Vec values[8];
+      alignas(64) float lanes[L];
+      walk_block(cfg, fr.image(b), acc, row, u0, n, values);
       for (int c = 0; c < C; ++c) {
         to_lanes(values[c], lanes);
         std::copy(lanes, lanes + n, dst + ((b * C + c) * H + row) * W + u0);

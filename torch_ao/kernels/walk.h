@@ -36,6 +36,8 @@ template <class F> TAO_FN void normalize3(const F* x, F* out) {
 }
 // The walk's derivatives' seed on a pixel's own inputs: nothing for plain lanes (lanes_dual.h's for duals)
 template <class F> TAO_FN void seed_pixel(F*, F*, F&) {}
+// and on an accumulator's one differentiable setting (GTAO's falloff or thickness, HBAO's angle bias)
+template <class F> TAO_FN F seed_setting(const F& x) { return x; }
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)
 template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
@@ -221,17 +223,21 @@ template <class F> struct Slice {
   }
 };
 
-// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern)
-template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, int64_t j) {
-  if (cfg.placement == Steps::hdrp) return (F(float(j + 1)) + xi) * sl.span;
-  if (cfg.placement == Steps::ue4) return clamp_min((F(float(j)) + xi) * sl.span, F(float(j + 1)));
-  F frac = (F(float(j)) + xi) / F(float(cfg.steps));
+// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern); j in
+// lanes (each lane its own step), or one step for every lane
+template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, const F& j) {
+  if (cfg.placement == Steps::hdrp) return ((j + F(1.0f)) + xi) * sl.span;
+  if (cfg.placement == Steps::ue4) return clamp_min((j + xi) * sl.span, j + F(1.0f));
+  F frac = (j + xi) / F(float(cfg.steps));
   if (cfg.step_power == 2.0f) {
     frac = frac * frac;
   } else if (cfg.step_power != 1.0f) {
     frac = pow(frac, F(cfg.step_power));
   }
   return F(cfg.min_step_px) + sl.span * frac;
+}
+template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, int64_t j) {
+  return step_distance(cfg, sl, xi, F(float(j)));
 }
 
 // Where step j of a slice's side samples, in screen pixels (su, sv): step_distance along the slice's
@@ -358,25 +364,41 @@ TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& 
   return acc.begin_slice(px, sl);
 }
 
-// GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: for each slice, each side (one
-// with full_circle), each step; out[c] receives channel c of every lane.
+// Nothing to do after a step (walk_slice's visitor of the plain walk)
+struct NoVisit {
+  template <class... T> TAO_FN void operator()(const T&...) const {}
+};
+
+// One slice of GTAO's Algorithm 1 (march's loop): for each side (one with full_circle), each step; after
+// each step visit(side, j, sample, state before the step, state after it)
+template <class F, class Acc, class Visit>
+TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc, const Pixels<F>& px,
+                       const Slice<F>& sl, typename Acc::template State<F>& state, Visit& visit) {
+  for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
+    for (int64_t j = 0; j < cfg.steps; ++j) {                          // for each sample
+      F su, sv;
+      step_screen(cfg, img, px, sl, float(side), j, su, sv);
+      const Sample<F> sample(cfg, img, px, su, sv);
+      const typename Acc::template State<F> before = state;
+      acc.step(state, side, px, sl, sample);
+      visit(side, j, sample, before, state);
+    }
+  }
+}
+
+// GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: every slice's walk (walk_slice);
+// out[c] receives channel c of every lane.
 template <class F, class Acc>
 TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
                        F* out) {
   const Pixels<F> px(cfg, img, row, u0, n);
   typename Acc::template Sums<F> sums;
   if (any(px.live)) {
+    NoVisit none;
     for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
       const Slice<F> sl(cfg, img, px, s);
       typename Acc::template State<F> state = begin_slice_of(acc, px, sl, sums, 0);
-      for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
-        for (int64_t j = 0; j < cfg.steps; ++j) {                          // for each sample
-          F su, sv;
-          step_screen(cfg, img, px, sl, float(side), j, su, sv);
-          const Sample<F> sample(cfg, img, px, su, sv);
-          acc.step(state, side, px, sl, sample);
-        }
-      }
+      walk_slice(cfg, img, acc, px, sl, state, none);
       acc.end_slice(state, px, sl, sums);
     }
   }

@@ -111,7 +111,7 @@ class HBAO(ScreenSpaceAO):
                "in the slice plane, rotation-invariant around V", kind=str, choices=("image", "view")),
     )
     SAMPLING = Sampling.options_for(azimuth="screen")
-    has_kernel = "hbao"  # forward without gradients in torch_ao.kernels (hbao_covers says which calls)
+    has_kernel = "hbao"  # forward and backward in torch_ao.kernels (hbao_covers says which calls)
 
     def __init__(self, **options) -> None:
         super().__init__(**options)
