@@ -129,8 +129,9 @@ def cases(gb):
     yield "gtao", walk_settings(**common, placement="hdrp"), [1, True, True], [1.0, 0.0, 1.0], 5, None
     yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2, None
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
-    yield "bitmask", walk_settings(**common), [0, True, True, True], [0.5, 0.01], 7, light
-    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False], [0.3, 0.01], 1, None
+    yield "bitmask", walk_settings(**common), [0, True, True, True, False], [0.5, 0.01, 1.0], 7, light
+    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False], [0.3, 0.01, 1.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False], [0.3, 0.01, 1.0], 4, light
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None

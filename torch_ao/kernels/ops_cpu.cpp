@@ -73,8 +73,9 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     packed(3, 2);
     run(unpack_hbao(i, f));
   } else if (name == "bitmask") {
-    packed(4, 2);
+    packed(5, 3);
     TORCH_CHECK(!i[kAccInts + 2] || fr.light, "light: indirect light needs the light buffer");
+    TORCH_CHECK(!i[kAccInts + 4] || fr.backface, "backface: the back-face thickness needs its layer");
     run(unpack_bitmask(i, f));
   } else if (name == "exact") {
     packed(4, 4);

@@ -37,11 +37,12 @@ TAO_FN HBAOAccumulator unpack_hbao(const int64_t* i, const float* f) {
   return HBAOAccumulator{f[0], f[1], i[0] != 0, i[1] != 0, i[2] != 0};
 }
 
-// ints: rounding, cosine, indirect, bent; floats: thickness, epsilon
+// ints: rounding, cosine, indirect, bent, backface; floats: thickness (or the back-face offset), epsilon,
+// the back-face scale
 TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
-  return BitmaskAccumulator{slices, f[0], f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
+  return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], i[4] != 0}, f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
 }
 
 // ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"); floats: thickness. The walk's
