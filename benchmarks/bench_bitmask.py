@@ -9,7 +9,8 @@ building the G-buffer). On CUDA, ``torch.cuda.max_memory_allocated`` is reported
     python benchmarks/bench_bitmask.py --size 160x90 --repeat 5   # any size (no 1280x720 row); warm, min of 4
     python benchmarks/bench_bitmask.py --scene stairs --no-720p   # a reference scene's ray-traced G-buffer
     python benchmarks/bench_bitmask.py --soft-kernel --repeat 3   # the soft kernel: gradients of radius and
-                                                                  # thickness only, 640x360 and 1280x720
+                                                                  # thickness, or of the G-buffer too, 640x360
+                                                                  # and 1280x720 (--steps 4: 4 x 4)
 
 The default frame is a floor meeting a wall (``torch_ao.examples.floor_wall_gbuffer``). The "dense" rows
 use ``thickness=1000, sector_epsilon=0``: every sample's interval is non-empty, the worst case for the
@@ -55,7 +56,7 @@ def child(args: dict) -> dict:
         extra.update(thickness=1000.0, sector_epsilon=0.0)
     if args.get("backend"):
         extra["backend"] = args["backend"]
-    module = BitmaskAO(mode=args["mode"], slices=4, steps=8, radius=1.0, **{"thickness": 0.5, **extra},
+    module = BitmaskAO(mode=args["mode"], slices=4, steps=args.get("steps", 8), radius=1.0, **{"thickness": 0.5, **extra},
                        indirect=args["indirect"], weighting=args.get("weighting", "uniform")).to(device)
 
     def rss_now_kb() -> int:
@@ -113,7 +114,8 @@ def main() -> None:
     parser.add_argument("--scene", default=None, help="a reference scene (torch_ao.reference.list_scenes()) instead "
                         "of the floor/wall frame: its G-buffer ray traced at the benchmark size")
     parser.add_argument("--soft-kernel", action="store_true", help="the soft kernel's table (gradients of radius and "
-                        "thickness, kernel against tensor path) at 640x360 and 1280x720 instead")
+                        "thickness, or of the G-buffer too; kernel against tensor path) at 640x360 and 1280x720 instead")
+    parser.add_argument("--steps", type=int, default=8, help="steps per side of the --soft-kernel table (4 slices)")
     a = parser.parse_args()
     if a.child:
         print(json.dumps(child(json.loads(a.child))))
@@ -167,25 +169,33 @@ def main() -> None:
 
 def soft_kernel_table(a) -> None:
     """The soft kernel's rows: forward+backward of the scalar radius and thickness (the G-buffer without
-    gradients, as ``torch-ao fit``) against the kernel's hard forward and the tensor path, CPU and wall time."""
+    gradients, as ``torch-ao fit``), and of depth and normals too ("G-buffer"), against the kernel's hard
+    forward and the tensor path, CPU and wall time."""
+    gbuffer = dict(params_only=False)
     rows = [
         ("hard forward (kernel)", dict(mode="hard", backward=False, backend="kernel")),
         ("soft fwd+bwd (kernel)", dict(mode="soft", backward=True, backend="kernel")),
         ("soft fwd+bwd, cosine (kernel)", dict(mode="soft", backward=True, backend="kernel", weighting="cosine")),
+        ("soft fwd+bwd, G-buffer (kernel)", dict(mode="soft", backward=True, backend="kernel", **gbuffer)),
+        ("soft fwd+bwd, G-buffer, cosine (kernel)", dict(mode="soft", backward=True, backend="kernel",
+                                                         weighting="cosine", **gbuffer)),
+        ("straight-through fwd+bwd, G-buffer (kernel)", dict(mode="straight_through", backward=True,
+                                                             backend="kernel", **gbuffer)),
+        ("soft fwd+bwd, G-buffer (tensor path)", dict(mode="soft", backward=True, backend="torch", **gbuffer)),
         ("straight-through fwd+bwd (kernel)", dict(mode="straight_through", backward=True, backend="kernel")),
         ("soft fwd+bwd (tensor path)", dict(mode="soft", backward=True, backend="torch")),
         ("soft fwd+bwd, cosine (tensor path)", dict(mode="soft", backward=True, backend="torch", weighting="cosine")),
     ]
     sizes = [(360, 640), (720, 1280)] if not a.size else [tuple(int(v) for v in reversed(a.size.lower().split("x")))]
     for H, W in sizes:
-        print(f"BitmaskAO, {W}x{H} (a floor meeting a wall), 4 slices x 8 steps per side, gradients of radius and "
-              f"thickness, torch threads={a.threads}")
+        print(f"BitmaskAO, {W}x{H} (a floor meeting a wall), 4 slices x {a.steps} steps per side, gradients of radius "
+              f"and thickness (G-buffer: of depth and normals too), torch threads={a.threads}")
         print("| case | CPU ms | wall ms | peak MB | / hard kernel (CPU) |")
         print("|---|---:|---:|---:|---:|")
         hard = None
         for name, args in rows:
             r = run_case(height=H, width=W, device="cpu", chunk_size=a.chunk_size, threads=a.threads, repeat=a.repeat,
-                         indirect=False, params_only=True, **args)
+                         indirect=False, steps=a.steps, **{"params_only": True, **args})
             hard = hard or r["cpu_seconds"]
             print(f"| {name} | {1e3 * r['cpu_seconds']:.0f} | {1e3 * r['seconds']:.0f} | {r['peak_mb']:.0f} | "
                   f"{r['cpu_seconds'] / hard:.2f}x |{'' if r['finite'] else '  NON-FINITE'}", flush=True)

@@ -29,10 +29,13 @@ extern "C" {
 float fabsf(float); float sqrtf(float); float floorf(float); float ceilf(float); float rintf(float);
 float atan2f(float, float); float acosf(float); float asinf(float); float cosf(float); float sinf(float);
 float powf(float, float); float fmaf(float, float, float); float expf(float); float expm1f(float);
+double cos(double); double sin(double);
 struct tao_dim3 { unsigned x, y, z; };
 tao_dim3 blockIdx, blockDim, threadIdx;
 }
 static inline int __popc(unsigned x) { return __builtin_popcount(x); }
+static inline unsigned __float_as_uint(float x) { unsigned b; __builtin_memcpy(&b, &x, sizeof b); return b; }
+static inline float __uint_as_float(unsigned b) { float x; __builtin_memcpy(&x, &b, sizeof x); return x; }
 """
 
 DRIVER = r"""
@@ -45,7 +48,8 @@ struct tao_dim3 { unsigned x, y, z; };
 extern tao_dim3 blockIdx, blockDim, threadIdx;
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
-Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_soft, tao_walk_soft_gradients;
+Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
+    tao_walk_soft_gradients;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -61,7 +65,7 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const unsigned threads = unsigned(std::atoi(argv[7]));
   Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao
-                 : name == "exact" ? tao_walk_exact : name == "soft" ? tao_walk_soft
+                 : name == "exact" ? tao_walk_exact : name == "glsl" ? tao_walk_glsl : name == "soft" ? tao_walk_soft
                  : name == "soft_gradients" ? tao_walk_soft_gradients : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
@@ -117,18 +121,28 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
 
 def cases(gb):
     """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
-    (hard, exact, soft: its forward, and with the radius and thickness derivatives)."""
+    (hard, exact, the GLSL shader's in its three numerics, soft: its forward, and with the radius and thickness
+    derivatives), and GTAO and HBAO with the Hilbert-indexed R2 noise and staggered steps."""
     light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
     common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
     yield "gtao", walk_settings(**common, placement="hdrp"), [1, True, True], [1.0, 0.0, 1.0], 5, None
     yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2, None
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
-    yield "bitmask", walk_settings(**common), [0, True, True, True], [0.5, 0.01], 7, light
-    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False], [0.3, 0.01], 1, None
+    yield "gtao", walk_settings(**common, noise="hilbert_r2", stagger=True), [0, True, True], [1.0, 0.3, 1.0], 5, None
+    yield ("hbao", walk_settings(**common, full_circle=True, noise="hilbert_r2", stagger=True), [False, True, False],
+           [1.0, 0.1], 1, None)
+    yield "bitmask", walk_settings(**common), [0, True, True, True, False], [0.5, 0.01, 1.0], 7, light
+    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False], [0.3, 0.01, 1.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False], [0.3, 0.01, 1.0], 4, light
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
+    glsl = dict(slices=4 + 1, steps=5 + 1, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp",
+                placement="glsl", full_circle=True, azimuth="screen")  # (the shader's sliceCount 4, sampleCount 5)
+    yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True], [0.3], 4, light
+    yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True], [0.3], 4, light
+    yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False], [0.0], 1, None
     yield "soft", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 1, None
     yield "soft_gradients", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 3, None
     yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True], [0.4, 0.01, 0.05], 3, None

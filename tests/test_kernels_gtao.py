@@ -135,12 +135,12 @@ def test_kernel_covers_names_what_it_does_not_cover():
         assert gtao_covers(GTAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
         assert hbao_covers(HBAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
         assert gtao_covers(GTAO(preset="high@half"), gb) is None
-    # gradients: the exact variant's backward (tests/test_kernels_gtao_grad.py); others run the tensor path
+    # gradients: the horizon accumulators' backward (tests/test_kernels_gtao_grad.py), but ue4's radius
     assert gtao_covers(GTAO(), gb) is None  # the trainable radius and final power, autograd on
-    assert "gradient" in gtao_covers(GTAO(variant="hdrp"), gb)
+    assert gtao_covers(GTAO(variant="hdrp"), gb) is None
+    assert "variant 'ue4'" in gtao_covers(GTAO(variant="ue4"), gb)
     assert gtao_covers(GTAO(trainable=False), gb) is None
-    assert "gradient" in hbao_covers(HBAO(trainable=False), GBuffer(depth=gb.depth.clone().requires_grad_(),
-                                                                    camera=gb.camera))
+    assert hbao_covers(HBAO(trainable=False), GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)) is None
 
 
 def _count_calls(monkeypatch, name):
@@ -168,8 +168,8 @@ def test_auto_runs_the_kernel_with_and_without_gradients(built, monkeypatch):
     torch_radius(gb).visibility.sum().backward()
     assert module.radius.grad.abs() > 0
     assert torch.allclose(module.radius.grad, torch_radius.radius.grad, rtol=1e-4)
-    variant = GTAO(slices=3, steps=4, variant="hdrp")
-    variant(gb).visibility.sum().backward()  # no backward for hdrp: the tensor path, with its gradient
+    variant = GTAO(slices=3, steps=4, variant="ue4")
+    variant(gb).visibility.sum().backward()  # no kernel gradient of ue4's radius: the tensor path, with its gradient
     assert calls == [1, 1] and variant.radius.grad.abs() > 0
 
 
@@ -189,7 +189,7 @@ def test_torch_backend_never_calls_the_kernels(monkeypatch):
 def test_kernel_backend_refuses_a_call_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     with pytest.raises(ValueError, match="backend.*gradient"):
-        GTAO(variant="hdrp", backend="kernel")(gb)
+        GTAO(variant="ue4", backend="kernel")(gb)
     with torch.no_grad(), pytest.raises(ValueError, match="backend.*float64"):
         HBAO(backend="kernel")(gb.to(dtype=torch.float64))
 

@@ -150,24 +150,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
     assert "thickness" in covers(BitmaskAO(mode="soft", thickness=torch.ones(3)), gb)
     assert "indirect" in covers(BitmaskAO(mode="soft", indirect=True), gb)
     assert "float64" in covers(BitmaskAO(mode="soft"), gb.to(dtype=torch.float64))
-    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
-    assert "G-buffer" in covers(BitmaskAO(mode="soft"), graph)
-    with torch.no_grad():
-        assert covers(BitmaskAO(mode="soft"), graph) is None
-
-
-def test_a_gbuffer_gradient_runs_the_tensor_path(built):
-    gb = example_gbuffer(16, 24)
-    depth = gb.depth.clone().requires_grad_()
-    graph = GBuffer(depth=depth, camera=gb.camera)
-    vis = BitmaskAO(mode="soft", slices=2, steps=3)(graph).visibility  # auto: the tensor path, with the depth's gradient
-    (g_depth,) = torch.autograd.grad(vis.sum(), [depth])
-    assert g_depth.abs().sum() > 0
-    with pytest.raises(ValueError, match="backend.*G-buffer"):
-        BitmaskAO(mode="soft", slices=2, steps=3, backend="kernel")(graph)
-    with pytest.raises(ValueError, match="gbuffer/normals"):
-        bitmask_soft(graph, graph.view_normals(), slices=2, steps=3, radius=torch.tensor(1.0),
-                     thickness=torch.tensor(0.5), tau=0.25)
+    # (G-buffer gradients: tests/test_kernels_soft_gbuffer.py)
 
 
 def test_auto_backend_runs_the_soft_kernel(built, monkeypatch):

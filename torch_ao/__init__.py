@@ -7,6 +7,7 @@ fitting, denoising and metrics. The API to write a new method (``SliceAccumulato
 from .camera import PinholeCamera
 from .denoise import Denoiser, denoise
 from .fit import FitConfig, FitView, evaluate, fit, load_views
+from .fit_data import ViewFiles
 from .fitted import FittedPipeline, load_fitted
 from .gbuffer import GBuffer, normals_from_depth
 from .io import load_gbuffer, save_npz
@@ -26,6 +27,6 @@ __all__ = [
     "METHODS", "PRESETS", "AOOutput", "ScreenSpaceAO", "get_method",
     "SSAO", "ssao", "HBAO", "hbao", "UE4SSAO", "ue4_ssao", "GTAO", "gtao", "PSSAO", "pssao",
     "BitmaskAO", "bitmask_ao", "SSILVB", "ssilvb",
-    "Denoiser", "denoise", "FitConfig", "FitView", "fit", "evaluate", "load_views", "error_metrics",
+    "Denoiser", "denoise", "FitConfig", "FitView", "fit", "evaluate", "load_views", "ViewFiles", "error_metrics",
     "FittedPipeline", "load_fitted",
 ]

@@ -20,7 +20,11 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
   with the same result as an uninterrupted run. A checkpoint records the fingerprint of everything
   that determines the result (:func:`run_fingerprint`: the config, the caller's settings, the module's
   structure and start values, the training views' data); one written by a run that differs in any
-  of them is refused with :class:`CheckpointMismatch`, which names what differs.
+  of them is refused with :class:`CheckpointMismatch`, which names what differs,
+* views taken one at a time (``views[i]``), so a sequence that reads them on access
+  (:class:`~torch_ao.fit_data.ViewFiles`) holds a few in memory, with the same losses as a list,
+* data-parallel ranks under ``torchrun`` (:mod:`torch_ao.distributed`): each rank runs its shard of a
+  step's views and of the hard-mode scores, and the gradients and losses are summed over the ranks.
 
 Evaluation is always in **hard** mode (what an engine ships) with :func:`evaluate`.
 """
@@ -40,6 +44,7 @@ import torch
 from torch import nn
 
 from .checks import check_choice
+from .distributed import broadcast_object, gather_objects, is_distributed, is_main, shard, sum_over_ranks
 from .io import remove_stale_temporaries as remove_stale_files
 from .io import write_atomic
 from .metrics import error_metrics
@@ -248,27 +253,35 @@ def _digest(items) -> str:
     return h.hexdigest()[:16]
 
 
-def run_fingerprint(module: nn.Module, views: Sequence[FitView], cfg: FitConfig, settings: dict | None = None) -> dict:
+def _view_digest(view: FitView) -> str:
+    gb = view.gbuffer
+    return _digest([view.name, gb.depth, gb.normals, gb.light, gb.mask, gb.object_id, gb.backface_depth, gb.position,
+                    gb.camera.intrinsics, view.reference, view.stderr])
+
+
+def run_fingerprint(module: nn.Module, views: Sequence[FitView], cfg: FitConfig, settings: dict | None = None, *,
+                    distributed: bool = False) -> dict:
     """What determines a :func:`fit`'s result, as values a checkpoint stores and compares.
 
     ``config``: ``cfg``'s fields (but ``checkpoint_every``); ``settings``: the caller's named settings
     (JSON values: what built the module and the views, e.g. scenes, size, preset); ``module``: a digest
     of the module's structure (its ``repr``) and start values (``state_dict``); ``views``: a digest of
-    the training views' names and data (G-buffer layers, intrinsics, references, standard errors);
-    ``torch_ao_version``.
+    the training views' names and data (G-buffer layers, intrinsics, references, standard errors: a digest
+    of each view's digest, each view read once); ``torch_ao_version``. ``distributed``: every rank of the
+    process group calls it and digests its shard of the views (:func:`~torch_ao.distributed.shard`); all
+    get the same value as one process.
     """
     from .version import __version__
 
     state = module.state_dict()
-    tensors = []
-    for v in views:
-        gb = v.gbuffer
-        tensors += [v.name, gb.depth, gb.normals, gb.light, gb.mask, gb.object_id, gb.backface_depth, gb.position,
-                    gb.camera.intrinsics, v.reference, v.stderr]
+    indices = list(range(len(views)))
+    digests = {}
+    for part in gather_objects({i: _view_digest(views[i]) for i in (shard(indices) if distributed else indices)}):
+        digests.update(part)
     return {"config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if k != "checkpoint_every"},
             "settings": dict(settings or {}),
             "module": _digest([repr(module), *(x for k, t in state.items() for x in (k, t))]),
-            "views": _digest(tensors), "torch_ao_version": __version__}
+            "views": _digest([digests[i] for i in indices]), "torch_ao_version": __version__}
 
 
 def fingerprint_differences(saved: dict | None, current: dict) -> list[str]:
@@ -311,19 +324,29 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = None, *,
-        checkpoint: str | os.PathLike | None = None, progress: bool = True, settings: dict | None = None) -> FitResult:
+        checkpoint: str | os.PathLike | None = None, progress: bool = True, settings: dict | None = None,
+        distributed: bool | None = None) -> FitResult:
     """Fit ``config.params`` of ``module`` to the reference visibility of ``views``.
 
     Args:
         module: any AO module returning :class:`~torch_ao.methods.AOOutput` (or a visibility tensor),
             e.g. a method or a :class:`~torch_ao.fitted.FittedPipeline` (method + denoiser).
-        views: training views (see :class:`FitView`, :func:`load_views`).
+        views: training views (see :class:`FitView`, :func:`load_views`): a list, or any sequence whose items
+            are read on access (:class:`~torch_ao.fit_data.ViewFiles`); each step takes ``views[i]`` once
+            per view, so only the view in use (and what the sequence caches) is in memory.
         config: :class:`FitConfig`.
         checkpoint: file to write checkpoints to and resume from; one written by a run with another
             :func:`run_fingerprint` raises :class:`CheckpointMismatch` before anything is changed.
         progress: show a tqdm progress bar.
         settings: named JSON values that built ``module`` and ``views`` (e.g. ``{"scenes": ...,
             "preset": ...}``), stored in the checkpoint's fingerprint so that a mismatch names them.
+        distributed: data-parallel over the ranks of the ``torch.distributed`` process group (``None``: when
+            one of more than one rank is running, e.g. under ``torchrun``; every rank then calls :func:`fit`
+            with the same arguments). Each rank runs its shard of each step's views
+            (:func:`~torch_ao.distributed.shard`) and of the hard-mode scores; gradients and losses are
+            summed over the ranks, so every rank takes the same step and the result is one process's up to
+            the order of the float sums. Only rank 0 shows progress and writes the checkpoint; on resume
+            rank 0 reads it and sends it to the others.
 
     Returns:
         :class:`FitResult` with the fitted parameter values, the loss history and timings.
@@ -342,9 +365,11 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     if not views:
         raise ValueError("views: expected at least one reference view")
     params = _named_fit_parameters(module, cfg.params)
+    parallel = is_distributed() if distributed is None else bool(distributed) and is_distributed()
+    main = not parallel or is_main()
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
-    if ckpt_path is not None:
-        fingerprint = run_fingerprint(module, views, cfg, settings)  # (before anything changes the module)
+    if ckpt_path is not None:  # (before anything changes the module)
+        fingerprint = run_fingerprint(module, views, cfg, settings, distributed=parallel)
     chosen = {id(p) for p in params.values()}
     for p in module.parameters():
         p.requires_grad_(id(p) in chosen)
@@ -353,10 +378,8 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
     hard = cfg.hard_every > 0
     state = {"step": 0, "history": [], "best_loss": math.inf, "best": None, "bad_steps": 0, "stopped_early": False,
              "hard": [], "best_hard": math.inf, "best_step": None, "limit": cfg.steps}
-    if ckpt_path is not None:
-        remove_stale_temporaries(ckpt_path)
-    if ckpt_path is not None and ckpt_path.exists():
-        saved = load_checkpoint(ckpt_path)
+    saved = _read_checkpoint(ckpt_path, main, parallel) if ckpt_path is not None else None
+    if saved is not None:
         differences = fingerprint_differences(saved.get("fingerprint"), fingerprint)
         if differences:
             raise CheckpointMismatch(ckpt_path, differences)
@@ -385,8 +408,15 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         if state["hard"] and state["hard"][-1]["step"] == state["step"]:
             return  # already scored (a resumed, finished run)
         set_mode(module, "hard")
+        indices = list(range(len(views)))
+        loss = 0.0
         with torch.no_grad():
-            loss = sum(float(_loss(_visibility(module(v.gbuffer)), v, cfg.loss, cfg.weight_by_stderr)) for v in views)
+            for i in (shard(indices) if parallel else indices):
+                view = views[i]
+                loss += float(_loss(_visibility(module(view.gbuffer)), view, cfg.loss, cfg.weight_by_stderr))
+                del view
+        if parallel:
+            loss = float(sum_over_ranks(torch.tensor([loss], dtype=torch.float64))[0])
         loss /= len(views)
         state["hard"].append({"step": state["step"], "loss": loss,
                               **{n: p.detach().cpu().flatten().tolist() for n, p in params.items()}})
@@ -420,7 +450,7 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         return True
 
     bar = None
-    if progress:
+    if progress and main:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=state["limit"], initial=state["step"], desc="fit", unit="step", leave=False)
@@ -445,11 +475,14 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             batch = order[: cfg.batch_views] if cfg.batch_views else order
             optimizer.zero_grad(set_to_none=True)
             total = 0.0
-            for i in batch:
-                vis = _visibility(module(views[i].gbuffer))
-                loss = _loss(vis, views[i], cfg.loss, cfg.weight_by_stderr) / len(batch)
+            for i in (shard(batch) if parallel else batch):
+                view = views[i]
+                loss = _loss(_visibility(module(view.gbuffer)), view, cfg.loss, cfg.weight_by_stderr) / len(batch)
                 loss.backward()
                 total += float(loss.detach())
+                del view  # (before the next read: one view in memory at a time, besides a sequence's cache)
+            if parallel:
+                total = _sum_gradients_over_ranks(params, total)
             grads = [p.grad for p in params.values() if p.grad is not None]
             if grads and not all(bool(torch.isfinite(g).all()) for g in grads):
                 raise FloatingPointError(f"fit: non-finite gradient at step {step}; lower lr or temperature_end")
@@ -479,14 +512,15 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{total:.4f}")
-            if ckpt_path is not None and (state["step"] % cfg.checkpoint_every == 0 or state["step"] == state["limit"]):
+            if main and ckpt_path is not None and (state["step"] % cfg.checkpoint_every == 0
+                                                   or state["step"] == state["limit"]):
                 save_checkpoint(ckpt_path, snapshot())
         if hard:
             check_hard()
     finally:
         if bar is not None:
             bar.close()
-    if ckpt_path is not None:
+    if main and ckpt_path is not None:
         save_checkpoint(ckpt_path, snapshot())
     if state["best"] is not None:
         with torch.no_grad():
@@ -499,17 +533,53 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
                      step_limit=state["limit"])
 
 
+def _read_checkpoint(path: Path, main: bool, parallel: bool) -> dict | None:
+    """The checkpoint at ``path`` (``None`` when there is none), read by rank 0 (which first removes stale
+    temporaries) and, in a data-parallel fit, sent to every rank; an unreadable file raises on every rank."""
+    saved = None
+    if main:
+        remove_stale_temporaries(path)
+        try:
+            saved = load_checkpoint(path) if path.exists() else None
+        except ValueError as err:
+            saved = err
+    if parallel:
+        saved = broadcast_object(saved)
+    if isinstance(saved, ValueError):
+        raise saved
+    return saved
+
+
+def _sum_gradients_over_ranks(params: dict[str, nn.Parameter], loss: float) -> float:
+    """Replace each parameter's gradient by its sum over the ranks (``None`` where no rank has one, as in
+    one process) and return the sum of ``loss`` over the ranks."""
+    ps = list(params.values())
+    device = ps[0].device
+    flat = torch.cat([torch.tensor([p.grad is not None for p in ps], dtype=torch.float64, device=device),
+                      *((p.grad if p.grad is not None else torch.zeros_like(p)).detach().flatten().double() for p in ps),
+                      torch.tensor([loss], dtype=torch.float64, device=device)])
+    summed = sum_over_ranks(flat)
+    offset = len(ps)
+    for k, p in enumerate(ps):
+        part = summed[offset:offset + p.numel()]
+        p.grad = part.reshape(p.shape).to(device=p.device, dtype=p.dtype) if summed[k] > 0 else None
+        offset += p.numel()
+    return float(summed[-1])
+
+
 def _visibility(out) -> torch.Tensor:
     return out.visibility if hasattr(out, "visibility") else out
 
 
 @torch.no_grad()
 def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = "hard", repeats: int = 1,
-             per_view: bool = False) -> dict:
+             per_view: bool = False, distributed: bool = False) -> dict:
     """Error of ``module`` (in ``mode``, hard by default) against the views' references, and run time.
 
     Returns mean ``mae``, ``rmse``, ``psnr``, ``ssim`` over views and ``seconds`` (median forward time
     per view over ``repeats`` runs of each); with ``per_view``, also ``views``: ``{view name: metrics}``.
+    ``views`` may be read on access (:class:`~torch_ao.fit_data.ViewFiles`). ``distributed``: every rank of
+    the process group calls it; each scores its shard of the views and all return the same dict.
 
     Shape:
         - views: as :func:`fit` (G-buffers ``(B, C, H, W)``, references ``(B, 1, H, W)``).
@@ -517,15 +587,23 @@ def evaluate(module: nn.Module, views: Sequence[FitView], *, mode: str | None = 
     """
     if mode is not None:
         set_mode(module, mode)
-    rows, times = [], []
-    for view in views:
+    indices = list(range(len(views)))
+    parallel = distributed and is_distributed()
+    scored = {}  # index -> (name, metrics, forward times)
+    for i in (shard(indices) if parallel else indices):
+        view, times = views[i], []
         for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
             out = module(view.gbuffer)
             times.append(time.perf_counter() - t0)
-        rows.append(error_metrics(_visibility(out), view.reference, view.gbuffer.valid))
+        scored[i] = (view.name or str(i), error_metrics(_visibility(out), view.reference, view.gbuffer.valid), times)
+        del view, out
+    if parallel:
+        for part in gather_objects(scored):
+            scored.update(part)
+    rows = [scored[i][1] for i in indices]
     result = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-    result["seconds"] = float(np.median(times))
+    result["seconds"] = float(np.median([t for i in indices for t in scored[i][2]]))
     if per_view:
-        result["views"] = {view.name or str(i): row for i, (view, row) in enumerate(zip(views, rows))}
+        result["views"] = {scored[i][0]: scored[i][1] for i in indices}
     return result

@@ -13,7 +13,10 @@ the engine defaults (thickness 0.25, 0.5, 1.0), GTAO with default parameters and
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import math
+import os
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -23,9 +26,11 @@ import torch
 
 from ..checks import check_finite_outputs
 from ..cli import CommandError
+from .. import distributed
 from ..datasets import HOLDOUT_SEED, default_cache_dir, parse_scenes, reference_views, train_and_holdout_views
 from ..fit import (LOSSES, CheckpointMismatch, FitConfig, checkpoint_settings_differences, evaluate, fit,
-                   fittable_parameters, load_views, set_mode)
+                   fittable_parameters, set_mode)
+from ..fit_data import ViewFiles, reference_files, view_names
 from ..fitted import THICKNESS_MODELS, FittedPipeline
 from ..io import check_output_path, read_npz, write_text_atomic
 from ..methods import DEFAULT_PRESET, get_method
@@ -62,8 +67,10 @@ def _method_option(method: str, name: str) -> Option:
 #: flags and ``torch-ao ao``'s method choice are reused with this command's defaults.
 OPTIONS = (
     Option("reference", None, "your own G-buffers with an 'ao' reference (and 'max_distance', the method's radius "
-           "R); when not given, randomised views of the built-in --scenes", str),
-    Option("holdout", None, "held-out references; when not given, the last third of --reference", str),
+           "R): files, folders (their .npz and .exr files), glob patterns or .txt lists of paths, read as each "
+           "step uses them; when not given, randomised views of the built-in --scenes", str),
+    Option("holdout", None, "held-out references (same forms as --reference); when not given, the last third of "
+           "--reference", str),
     replace(options_by_name(AO_OPTIONS)["method"], default="bitmask", help="method to fit"),
     Option("variant", None, "the method's variant; when not given, the method's default", str),
     Option("params", None, "comma-separated parameters to fit jointly, e.g. thickness,radius; when not given, every "
@@ -122,8 +129,8 @@ OPTIONS = (
 
 #: Flags whose form an Option cannot say: argparse keywords replacing the option's own.
 _FORMS = {
-    "reference": dict(nargs="+", metavar="FILE.npz"),
-    "holdout": dict(nargs="+", metavar="FILE.npz"),
+    "reference": dict(nargs="+", metavar="FILE|DIR|GLOB|LIST.txt"),
+    "holdout": dict(nargs="+", metavar="FILE|DIR|GLOB|LIST.txt"),
 }
 
 
@@ -156,12 +163,11 @@ def _size(text: str) -> tuple[int, int]:
 
 def reference_radius(paths, override: float | None) -> float:
     """R of reference files: their common ``max_distance``; files that disagree are refused (named),
-    ``override`` wins with a warning when it differs."""
-    found = {}
-    for path in paths:
-        md = read_npz(path).get("max_distance")
-        if md is not None and md.size == 1 and math.isfinite(float(md)) and float(md) > 0:
-            found[str(path)] = float(np.float32(md))  # files store float32 or float64: compare at float32
+    ``override`` wins with a warning when it differs. Under ``torchrun`` each rank reads its shard of the files."""
+    read = {}
+    for part in distributed.gather_objects(_radii(distributed.shard(list(paths)))):
+        read.update(part)
+    found = {str(p): read[str(p)] for p in paths if str(p) in read}
     values = sorted(set(found.values()))
     if override is not None:
         if not (math.isfinite(override) and override > 0):
@@ -184,10 +190,29 @@ def reference_radius(paths, override: float | None) -> float:
     return values[0]
 
 
-def _require_backface(views) -> None:
-    """``CommandError`` naming the reference files without a ``backface_depth`` layer."""
-    missing = [v.name for v in views if v.gbuffer.backface_depth is None]
-    if missing:
+def _radii(paths) -> dict[str, float]:
+    """``{path: max_distance}`` of the files holding a finite one > 0, at float32 (files store float32 or float64)."""
+    found = {}
+    for path in paths:
+        md = read_npz(path).get("max_distance")
+        if md is not None and md.size == 1 and math.isfinite(float(md)) and float(md) > 0:
+            found[str(path)] = float(np.float32(md))
+    return found
+
+
+def _check_files(sources, backface: bool) -> None:
+    """Read each file of the view sequences ``sources`` once (each rank its shard under ``torchrun``), so
+    that a bad one is named before the fit starts, one at a time (memory does not grow with their number);
+    with ``backface``, ``CommandError`` naming the files without a ``backface_depth`` layer."""
+    missing = []
+    for views in sources:
+        for i in distributed.shard(list(range(len(views)))):
+            view = views[i]
+            if view.gbuffer.backface_depth is None:
+                missing.append(view.name)
+            del view  # (before the next read)
+    missing = [name for part in distributed.gather_objects(missing) for name in part]
+    if backface and missing:
         raise CommandError(f"--thickness backface: {', '.join(missing)} has no backface_depth layer; render it with "
                            "`torch-ao render --backface` (or choose another --thickness)")
 
@@ -196,12 +221,16 @@ def _views(args) -> tuple[list, list, float]:
     device = torch.device(args.device)
     reading = input_options(args, args.reference, "--reference files")
     if args.reference:
+        try:
+            files = reference_files(args.reference, "--reference")
+            held_files = reference_files(args.holdout, "--holdout") if args.holdout else None
+        except ValueError as err:
+            raise CommandError(str(err)) from None
+        train = ViewFiles(files, device=device, reading=reading)
+        held = ViewFiles(held_files, device=device, reading=reading) if held_files else None
         with flag_errors():
-            train = load_views(args.reference, device=device, **reading)
-            held = load_views(args.holdout, device=device, **reading) if args.holdout else None
-        if args.thickness == "backface":
-            _require_backface(train + (held or []))
-        radius = reference_radius([*args.reference, *(args.holdout or [])], args.radius)
+            _check_files([train, held or []], args.thickness == "backface")
+        radius = reference_radius([*files, *(held_files or [])], args.radius)
         if held is not None:
             return train, held, radius
         if len(train) == 1:
@@ -287,30 +316,52 @@ def thickness_options(args, views, init: dict[str, float]) -> dict:
                            f"{', '.join(BITMASK)} do)")
     options = {"thickness_model": args.thickness}
     if args.thickness == "object":
-        if any(v.gbuffer.object_id is None for v in views):
-            raise CommandError("--thickness object: " + ", ".join(v.name for v in views if v.gbuffer.object_id is None)
-                               + " has no object_id layer")
-        K = max(int(v.gbuffer.object_id.max()) for v in views) + 1
+        missing, K = [], 0
+        for v in views:  # (one pass: views may be read from files as they come)
+            if v.gbuffer.object_id is None:
+                missing.append(v.name)
+            else:
+                K = max(K, int(v.gbuffer.object_id.max()) + 1)
+        if missing:
+            raise CommandError("--thickness object: " + ", ".join(missing) + " has no object_id layer")
         t = init.pop("thickness", _method_option(args.method, "thickness").default)
         options["thickness"] = torch.full((K,), float(t))
     return options
 
 
 def run(args: argparse.Namespace) -> int:
-    init = _init_values(args.init)
+    """The command; under ``torchrun`` each process is a rank of one data-parallel fit (only rank 0 prints
+    and writes files)."""
     parse_device(args.device)
+    started = distributed.init_from_environment(args.device)
+    quiet = open(os.devnull, "w") if not distributed.is_main() else None  # noqa: SIM115
+    try:
+        with contextlib.redirect_stdout(quiet) if quiet else contextlib.nullcontext():
+            return _run(args)
+    finally:
+        if quiet:
+            quiet.close()
+        if started:
+            torch.distributed.destroy_process_group()
+
+
+def _run(args: argparse.Namespace) -> int:
+    init = _init_values(args.init)
     out = check_output_path("--out", args.out, folder=True)
     if args.leave_one_out and args.reference:
         raise CommandError("--leave-one-out: applies to the built-in --scenes, not to --reference files")
     checkpoint, settings = _checkpoint(args)
+    args.device = str(distributed.rank_device(args.device))  # (after the settings: every rank's are the same)
+    main = distributed.is_main()
     denoise = not args.no_denoise
     train, held, radius = _views(args)
     if args.leave_one_out and len({scene_of(v) for v in train}) < 2:
         raise CommandError("--leave-one-out: expected at least two --scenes (each is scored by a fit on the others)")
-    model = thickness_options(args, train + held, init)
+    model = thickness_options(args, itertools.chain(train, held), init)
     default, module, params = _pipelines(args, radius, model, init, denoise)
     denoised = " + denoiser" if denoise else ""
-    print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views, "
+    ranks = f" on {distributed.world_size()} ranks" if distributed.is_distributed() else ""
+    print(f"fitting {args.method}{denoised} {', '.join(params)} (R = {radius:g}) on {len(train)} views{ranks}, "
           f"evaluating on {len(held)} held-out views")
 
     cfg = FitConfig(params=params, steps=args.steps, lr=args.lr, loss=args.loss, batch_views=args.batch_views,
@@ -324,15 +375,15 @@ def run(args: argparse.Namespace) -> int:
         for t in (0.25, 0.5, 1.0):
             engine = FittedPipeline(args.method, {"preset": args.preset, "radius": radius, "thickness": t,
                                                   "weighting": "uniform"}, denoiser=denoise)
-            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True)
+            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True, distributed=True)
     if args.method != "gtao":
-        rows[f"gtao (default parameters){denoised}"] = evaluate(_gtao(args, radius, denoise), held, per_view=True)
+        rows[f"gtao (default parameters){denoised}"] = evaluate(_gtao(args, radius, denoise), held, per_view=True, distributed=True)
     default_label = f"{args.method} default ({_describe(default, params)}){denoised}"
-    rows[default_label] = before = evaluate(default, held, per_view=True)
+    rows[default_label] = before = evaluate(default, held, per_view=True, distributed=True)
     fitted_label = f"{args.method} fitted ({_describe(module, params)}){denoised}"
-    rows[fitted_label] = after = evaluate(module, held, per_view=True)
+    rows[fitted_label] = after = evaluate(module, held, per_view=True, distributed=True)
     if denoise:
-        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, per_view=True)
+        rows[f"{args.method} fitted, without the denoiser"] = evaluate(module.method, held, per_view=True, distributed=True)
     train_start, train_best = _train_losses(result)
 
     table = _table(rows)
@@ -347,6 +398,8 @@ def run(args: argparse.Namespace) -> int:
         loo_md = "\n\n" + _leave_one_out_table(loo)
         print()
         print(loo_md.strip())
+    if not main:
+        return 0
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "report.md", f"Held-out views: {len(held)}; training views: {len(train)}; steps: "
                       f"{result.steps_done}; R = {radius:g}; hard mode{denoised}\n\n{_convergence(result, cfg)}\n\n"
@@ -357,7 +410,7 @@ def run(args: argparse.Namespace) -> int:
                 comparison={k: _summary(v) for k, v in rows.items()}, steps_done=result.steps_done,
                 best_step=result.best_step, converged=result.converged, step_limit=result.step_limit,
                 fit_seconds=result.seconds, history=result.history,
-                hard_history=result.hard_history, train_views=[v.name for v in train], holdout_views=[v.name for v in held],
+                hard_history=result.hard_history, train_views=view_names(train), holdout_views=view_names(held),
                 **({"leave_one_out": loo} if loo is not None else {}))
     _comparison_png(out / "comparison.png", held[0], default, module)
     print(f"wrote {out / 'params.json'}, {out / 'report.md'}, {out / 'comparison.png'}")
@@ -415,8 +468,9 @@ def _leave_one_out(args, train, held, radius, model, init, denoise, cfg, setting
         _refuse_checkpoint(args, path, fold_settings, checkpoint_settings_differences(path, fold_settings))
         result = _fit(module, others, cfg, args, path, fold_settings)
         check_finite_outputs(f"{args.method} fit without {scene}", {f"fitted {k}": v for k, v in result.parameters.items()})
-        folds[scene] = {"default": evaluate(default, mine)["psnr"], "fitted": evaluate(module, mine)["psnr"],
-                        "gtao": evaluate(_gtao(args, radius, denoise), mine)["psnr"], "steps": result.steps_done,
+        folds[scene] = {"default": evaluate(default, mine, distributed=True)["psnr"],
+                        "fitted": evaluate(module, mine, distributed=True)["psnr"],
+                        "gtao": evaluate(_gtao(args, radius, denoise), mine, distributed=True)["psnr"], "steps": result.steps_done,
                         "best_step": result.best_step, "converged": result.converged, "parameters": result.parameters}
     return folds
 
@@ -519,13 +573,13 @@ def _scene_table(views, default: dict, fitted: dict, gtao: dict | None) -> str:
     """Per held-out view: MAE and PSNR of the default and the fitted pipeline (and default GTAO)."""
     head = "| view | default MAE | fitted MAE | default PSNR | fitted PSNR |" + (" gtao MAE | gtao PSNR |" if gtao else "")
     lines = [head, "| --- |" + " ---: |" * (head.count("|") - 2)]
-    for v in views:
-        d, f = default["views"][v.name], fitted["views"][v.name]
+    for name in view_names(views):
+        d, f = default["views"][name], fitted["views"][name]
         cells = [f"{d['mae']:.4f}", f"{f['mae']:.4f}", f"{d['psnr']:.2f}", f"{f['psnr']:.2f}"]
         if gtao:
-            g = gtao["views"][v.name]
+            g = gtao["views"][name]
             cells += [f"{g['mae']:.4f}", f"{g['psnr']:.2f}"]
-        lines.append(f"| {v.name} | " + " | ".join(cells) + " |")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -1,21 +1,20 @@
 """Fused kernels for the walk: one pixel's whole walk in registers, SIMD across pixels, on every core.
 
 The tensor-op walk (:mod:`torch_ao.walk`) stays the reference and serves whatever a kernel does
-not cover; a kernel is tested against it by tolerance (tests/kernel_agreement.py). GTAO, HBAO and hard
-bitmask AO (the default variant and the exact union) are one walk (``walk.h``) for every backend: the CPU
-(SIMD lanes) and CUDA (NVRTC, one thread per pixel). Covered:
+not cover; a kernel is tested against it by tolerance (tests/kernel_agreement.py). Every kernel is one
+walk (``walk.h``) for every backend: the CPU (SIMD lanes) and CUDA (NVRTC, one thread per pixel). Covered:
 
 * hard visibility-bitmask AO, the ``"default"`` variant with uniform or cosine sectors, indirect light
   and bent normals (:func:`bitmask_hard`, :func:`bitmask_outputs`); the ``"exact"`` variant's union with
   a scalar or back-face thickness and every fetch (:func:`exact_hard`); the ``"ssilvb_glsl"`` variant's
-  AO and indirect light (:func:`ssilvb_glsl_hard`, CPU only);
+  AO and indirect light (:func:`ssilvb_glsl_hard`);
 * soft / straight-through bitmask AO forward and backward, gradients of radius and thickness
   (:func:`bitmask_soft`);
-* ``GTAO`` (every variant, bent normals too) and ``HBAO`` forward (:func:`gtao_sums`, :func:`hbao_sums`);
-  ``GTAO``'s exact variant with the bilinear fetch and dropped border forward and backward on CPU:
-  gradients of depth, normals and radius (the walk in forward-mode dual lanes, ``lanes_dual.h``;
-  ``walk_grad.py``). At 640x360 on one thread its forward + backward costs 11x its forward at 4 x 4
-  and 4 x 8, the tensor path's about 36x (``benchmarks/bench_gtao_grad.py --threads 1``).
+* ``GTAO`` (every variant, bent normals too) and ``HBAO`` forward (:func:`gtao_sums`, :func:`hbao_sums`), and
+  on CPU their backward: gradients of depth, normals and the parameters (not ``ue4``'s radius, not the
+  intrinsics), for either fetch and border (each slice recorded in plain lanes, then the steps that changed
+  its state replayed in forward-mode dual lanes, ``lanes_dual.h``; ``walk_grad.py``). See docs/performance.md
+  for its cost (``benchmarks/bench_gtao_grad.py --threads 1``).
 
 C++ sources built on first use with the compiler PyTorch's extensions use (``torch.utils.cpp_extension``)
 and cached, CUDA ones on first use with NVRTC; see docs/performance.md for how it was chosen and what it

@@ -46,9 +46,20 @@ template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<
   }
 }
 
+// The thickness at a sample (thickness.py): a scalar, or the back-face layer's t = scale * layer + offset
+struct ThicknessModel {
+  float offset;  // the scalar thickness, or the back-face model's offset (world units)
+  float scale;   // the back-face model's thickness_scale (unitless)
+  bool backface;
+
+  template <class F> TAO_FN F at(const Sample<F>& smp) const {
+    return backface ? F(scale) * smp.gather(smp.image->backface, 0, 1) + F(offset) : F(offset);
+  }
+};
+
 struct BitmaskAccumulator {
   int64_t slices;
-  float thickness;  // world units along the view ray
+  ThicknessModel thickness;  // world units along the view ray
   float epsilon;    // sector_epsilon: sectors taken off each interval's width
   int64_t rounding;
   bool cosine, indirect, bent;
@@ -87,7 +98,7 @@ struct BitmaskAccumulator {
     const F scale = F(float(side) / kPi);
     const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
     const F front = clamp(fma(atan2(along_tangent, along_view), scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(atan2(along_tangent, along_view - F(thickness)), scale, st.shift), F(0.0f), F(1.0f));
+    const F back = clamp(fma(atan2(along_tangent, along_view - thickness.at(smp)), scale, st.shift), F(0.0f), F(1.0f));
     const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
     F width = (hi - lo) * F(float(kSectors));
     if (epsilon > 0) width = width - F(epsilon);
@@ -162,16 +173,6 @@ struct BitmaskAccumulator {
   }
 };
 
-// The thickness at a sample (thickness.py): a scalar, or the back-face layer's t = scale * layer + offset
-struct ThicknessModel {
-  float offset;  // the scalar thickness, or the back-face model's offset (world units)
-  float scale;   // the back-face model's thickness_scale (unitless)
-  bool backface;
-
-  template <class F> TAO_FN F at(const Sample<F>& smp) const {
-    return backface ? F(scale) * smp.gather(smp.image->backface, 0, 1) + F(offset) : F(offset);
-  }
-};
 
 // H(theta) = int_0^theta cos(t - gamma) |sin t| dt (ops.arc_measure) of the slice's hemisphere from its
 // edge at x = 0 to position x (sector units): theta(x) = gamma - pi/2 + pi x / 32

@@ -5,9 +5,10 @@ walks (the same slice directions around the view vector, jitter, step placement,
 sector rule; see :mod:`torch_ao.methods.bitmask`), with uniform or cosine sector weights, and return the
 same visibility, indirect light and bent normals. :func:`ssilvb_glsl_hard` is the ``"ssilvb_glsl"``
 variant (the SSILVB GLSL article's shader, :mod:`torch_ao.methods.bitmask_glsl`): AO and indirect light.
-The default variant is the one walk of ``walk.h`` with the accumulator of ``bitmask.h``; it agrees with
-the tensor path by tolerance (hard masks on all but a few pixels where an angle lies within rounding of a
-sector edge; tests/test_kernels.py), not by reproducing torch's float operations.
+Both are the one walk of ``walk.h``, with the accumulator of ``bitmask.h`` or, with the shader's step
+placement and jitter, of ``bitmask_glsl.h``; they agree with the tensor path by tolerance (hard masks on
+all but a few pixels where an angle lies within rounding of a sector edge; tests/test_kernels.py,
+tests/test_kernels_glsl.py), not by reproducing torch's float operations.
 """
 from __future__ import annotations
 
@@ -18,18 +19,13 @@ import torch
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from ..thickness import BackfaceThickness, ScalarThickness
-from .build import cpu_kernels
 from .coverage import gbuffer_uncovered, option_uncovered
 from .frame import light_input, walk_inputs
 from .launch import run_walk, walk_settings
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
-           "kernel_covers", "options_uncovered",
+           "kernel_covers", "options_uncovered", "backface_scale_of",
            "KernelOutputs"]
-
-#: ``glsl_numerics`` values in the order the C++ source numbers them
-_NUMERICS = ("ieee", "mesa", "mesa_mediump")
-
 
 class KernelOutputs(NamedTuple):
     """A kernel's outputs: ``visibility`` ``(B,1,H,W)``; ``indirect``, ``bent_normal`` ``(B,3,H,W)`` or ``None``."""
@@ -43,19 +39,22 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
                     seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
-                    bent_normals: bool = False, lanes: str = "simd") -> KernelOutputs:
+                    bent_normals: bool = False, backface_scale: float | None = None,
+                    lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
     pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
 
     Args:
-        gbuffer: a float32 CPU G-buffer (with ``light`` for ``indirect``); normals: its ``(B,3,H,W)``
-            unit view-space normals (as the module uses them, e.g. ``gbuffer.view_normals()``).
+        gbuffer: a float32 G-buffer, CPU or CUDA (with ``light`` for ``indirect``, ``backface_depth`` for
+            the back-face model); normals: its ``(B,3,H,W)`` unit view-space normals (as the module uses
+            them, e.g. ``gbuffer.view_normals()``).
         slices, steps: directions per pixel (uniform around the view vector) and samples per side.
-        radius, thickness: world units (scalars); step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch
-            (``"bilinear"``/``"nearest"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon
-            (sectors), weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as
-            :class:`~torch_ao.BitmaskAO`.
+        radius, thickness: world units (scalars; with ``backface_scale`` the back-face model's offset, the
+            layer scaled by ``backface_scale``: :class:`~torch_ao.thickness.BackfaceThickness`);
+            step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
+            ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
+            weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as :class:`~torch_ao.BitmaskAO`.
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
 
@@ -63,10 +62,13 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border)
+    backface = _backface_layer(gbuffer, backface_scale)
     out = run_walk("bitmask", gbuffer, normals, settings,
-                   [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals)],
-                   [thickness, sector_epsilon], 1 + 3 * bool(indirect) + 3 * bool(bent_normals),
-                   light=light_input(gbuffer, indirect) if indirect else None, lanes=lanes)
+                   [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
+                    backface is not None],
+                   [thickness, sector_epsilon, 1.0 if backface_scale is None else backface_scale],
+                   1 + 3 * bool(indirect) + 3 * bool(bent_normals),
+                   light=light_input(gbuffer, indirect) if indirect else None, backface=backface, lanes=lanes)
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
@@ -92,13 +94,25 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border,
                              sphere_extent=sample_extent == "sphere")
-    backface = None
-    if backface_scale is not None:
-        backface = BackfaceThickness().buffers(gbuffer, None)["backface_thickness"]
+    backface = _backface_layer(gbuffer, backface_scale)
     return run_walk("exact", gbuffer, normals, settings,
                     [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius), backface is not None],
                     [thickness, 1.0 if backface_scale is None else backface_scale, radius, sector_epsilon], 1,
                     backface=backface, lanes=lanes)
+
+
+def _backface_layer(gbuffer: GBuffer, backface_scale: float | None) -> torch.Tensor | None:
+    """The back-face thickness layer ``(B,1,H,W)`` the kernels read (``None`` without the back-face model)."""
+    if backface_scale is None:
+        return None
+    return BackfaceThickness().buffers(gbuffer, None)["backface_thickness"]
+
+
+def backface_scale_of(module) -> float | None:
+    """The back-face model's ``thickness_scale`` of a bitmask module, or ``None`` for another thickness."""
+    if not isinstance(module.thickness_model, BackfaceThickness):
+        return None
+    return float(module.thickness_scale.detach())
 
 
 def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
@@ -110,26 +124,25 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 
 def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
                      thickness: float, jitter: bool = True, rounding: str = "ceil", numerics: str = "ieee",
-                     indirect: bool = False) -> KernelOutputs:
+                     indirect: bool = False, lanes: str = "simd") -> KernelOutputs:
     """The ``"ssilvb_glsl"`` variant in hard mode: visibility ``(B,1,H,W)`` (background 1; may exceed 1,
     as the shader's) and, with ``indirect``, its light ``(B,3,H,W)`` (background 0).
 
     Args:
-        gbuffer, normals: as :func:`bitmask_outputs`; slices, steps: the shader's ``sliceCount`` (>= 2) and
-            ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world units),
-            jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+        gbuffer, normals: as :func:`bitmask_outputs` (CPU or CUDA); slices, steps: the shader's ``sliceCount``
+            (>= 2) and ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world
+            units), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+        lanes: on CPU, ``"simd"`` or ``"scalar"``.
     """
-    ops = cpu_kernels()
-    W = gbuffer.depth.shape[-1]
-    # sampleScale's numerator -radius P[0][0] per image, as GLSLPattern forms it
-    p00 = (2 * gbuffer.camera.fx / W).to(torch.float32)
-    scale = ((-torch.as_tensor(radius, dtype=torch.float32).detach()) * p00).contiguous()
-    with torch.no_grad():  # no backward: the dispatch sends calls that want gradients to the tensor path
-        vis, light = ops.glsl_walk(*walk_inputs(gbuffer, normals, records=True), scale,
-                                   light_input(gbuffer, indirect, records=True), int(slices), int(steps),
-                                   float(thickness), bool(jitter), _NUMERICS.index(numerics),
-                                   ROUNDINGS.index(rounding), bool(indirect))
-    return KernelOutputs(vis, light if indirect else None)
+    # the shader's loops run sliceCount + 1 slices of sampleCount + 1 steps, one side each
+    settings = walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=float(torch.as_tensor(radius).detach()),
+                             jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl",
+                             full_circle=True, azimuth="screen",
+                             noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
+    out = run_walk("glsl", gbuffer, normals, settings, [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee"],
+                   [thickness], 4 if indirect else 1, light=light_input(gbuffer, indirect) if indirect else None,
+                   lanes=lanes)
+    return KernelOutputs(out[:, :1], out[:, 1:] if indirect else None)
 
 
 #: options of a module the kernels reproduce: ``None`` for any value, else the values they cover
@@ -161,8 +174,9 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     values, soft gradients) only for uniform visibility without a gradient.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
-                               variants=("default", "ssilvb_glsl"), outputs=True,
-                               devices=("cpu", "cuda") if module.variant == "default" else ("cpu",))
+                               variants=("default", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
+                               extra=_HARD if module.variant == "default" else None,
+                               models=_BACKFACE if module.variant == "default" else (ScalarThickness,))
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
@@ -180,6 +194,10 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     return None
 
 
+#: what the hard kernel of the ``"default"`` variant covers beyond the options every bitmask kernel does
+_HARD = {"fetch": ("nearest", "bilinear", "edge_aware")}
+#: the thickness models the ``"default"`` variant's hard kernel and the exact union's read per sample
+_BACKFACE = (ScalarThickness, BackfaceThickness)
 #: what the exact union's kernel covers beyond the hard kernels' options
 _EXACT = {"variant": ("default", "exact"), "union": ("exact",), "clip_to_radius": (False, True),
           "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere"),
@@ -195,7 +213,7 @@ def exact_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the hard kernels')"
     reason = options_uncovered(module, gbuffer, modes=("hard",), weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT)
+                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, models=_BACKFACE)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
@@ -208,13 +226,12 @@ def exact_covers(module, gbuffer: GBuffer) -> str | None:
 
 def exact_forward(module, gbuffer: GBuffer) -> dict:
     """``module(gbuffer)``'s ``{"visibility": (B,1,H,W)}`` for a module :func:`exact_covers` accepts."""
-    backface = isinstance(module.thickness_model, BackfaceThickness)
     value = lambda name: float(getattr(module, name).detach())  # noqa: E731
     vis = exact_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                      radius=value("radius"), thickness=value("thickness"),
-                     backface_scale=value("thickness_scale") if backface else None, step_power=module.step_power,
-                     min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise, stagger=module.stagger,
-                     fetch=module.fetch,
+                     backface_scale=backface_scale_of(module), step_power=module.step_power,
+                     min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
+                     stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
                      clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,
                      sector_epsilon=module.sector_epsilon)
@@ -227,7 +244,8 @@ _VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (
 
 def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
                       variants: tuple[str, ...] = ("default",), outputs: bool = False,
-                      devices: tuple[str, ...] = ("cpu",), extra: dict | None = None) -> str | None:
+                      devices: tuple[str, ...] = ("cpu",), extra: dict | None = None,
+                      models: tuple[type, ...] = (ScalarThickness,)) -> str | None:
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness
@@ -248,16 +266,15 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     if reason is not None:
         return reason
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
-    models = (ScalarThickness, BackfaceThickness) if extra is _EXACT else (ScalarThickness,)
     if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
             model is not None and (type(model) not in models or model.growth is not None)):
         return ("a thickness other than one scalar or the back-face layer (a table, a map, a model, a growth)"
-                if extra is _EXACT else "a thickness other than one scalar (a table, a map, a model, a growth)")
+                if BackfaceThickness in models else "a thickness other than one scalar (a table, a map, a model, a growth)")
     reason = gbuffer_uncovered(gbuffer, devices)
     if reason is not None:
         return reason
-    if gbuffer.position is not None and module.variant == "default" and module.fetch == "bilinear":
-        return "bilinear reads of a position buffer"  # (the kernel interpolates depth)
+    if gbuffer.position is not None and module.variant == "default" and module.fetch in ("bilinear", "edge_aware"):
+        return f"{module.fetch} reads of a position buffer"  # (the kernel interpolates depth)
     return None
 
 

@@ -12,10 +12,9 @@ import torch
 
 __all__ = ["KernelUnavailable", "cpu_kernels", "grad_kernels", "load_cpu_library", "load_cached_library"]
 
-#: the C++ sources of the one extension (each registers its ops in ``torch_ao_kernels``): ops_cpu.cpp
-#: compiles the one walk (walk.h and its accumulators); bitmask_cpu.cpp (the GLSL article's variant) still
-#: walks with walk_cpu.h
-_SOURCES = tuple(Path(__file__).with_name(name) for name in ("bitmask_cpu.cpp", "ops_cpu.cpp"))
+#: the C++ sources of the one extension (registering its ops in ``torch_ao_kernels``): ops_cpu.cpp
+#: compiles the one walk (walk.h and its accumulators)
+_SOURCES = tuple(Path(__file__).with_name(name) for name in ("ops_cpu.cpp",))
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions
@@ -45,7 +44,7 @@ def cpu_kernels():
 
 @functools.lru_cache(maxsize=None)
 def grad_kernels():
-    """The namespace with the walk's backward (``walk_backward``, walk_grad_cpu.cpp), built on first use
+    """The namespace with the walk's backwards (``walk_backward``, ``soft_backward``, walk_grad_cpu.cpp), built on first use
     as a library of its own: its dual-number walk takes longer to compile than the forward kernels, and
     only calls that want gradients need it. Raises :class:`KernelUnavailable` as :func:`cpu_kernels`."""
     cpu_kernels()
@@ -54,7 +53,13 @@ def grad_kernels():
     @torch.library.register_fake("torch_ao_kernels::walk_backward")
     def _(accumulator, grad, positions, normals, inverse_depth, depth, *args):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
-                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape))
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape), depth.new_empty(depth.shape))
+
+    @torch.library.register_fake("torch_ao_kernels::soft_backward")
+    def _(grad, positions, normals, inverse_depth, depth, *args):
+        return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
+                depth.new_empty(depth.shape))
 
     return torch.ops.torch_ao_kernels
 
@@ -189,8 +194,3 @@ def _register_fake() -> None:
     def _(accumulator, positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, args[-2], H, W)  # args[-2]: channels
-
-    @torch.library.register_fake("torch_ao_kernels::glsl_walk")
-    def _(positions, *args):
-        B, H, W, _ = positions.shape
-        return positions.new_empty(B, 1, H, W), positions.new_empty(B if args[-1] else 0, 3, H, W)

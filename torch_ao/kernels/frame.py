@@ -5,7 +5,7 @@ import torch
 
 from ..gbuffer import GBuffer
 
-__all__ = ["LANES", "channels_last", "walk_inputs", "light_input", "padded"]
+__all__ = ["LANES", "channels_last", "walk_inputs", "light_input"]
 
 #: the kernels' lane types: ``"simd"`` (the CPU's vector lanes, the default) or ``"scalar"`` (one pixel at a
 #: time in float lanes: the arithmetic of the CUDA kernel, which compiles the same walk)
@@ -17,36 +17,26 @@ def channels_last(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 2, 3, 1).to(torch.float32).contiguous()
 
 
-def padded(x: torch.Tensor) -> torch.Tensor:
-    """``(B,H,W,3)`` -> contiguous ``(B,H,W,4)`` (a zero fourth channel)."""
-    return torch.nn.functional.pad(x, (0, 1))
-
-
-def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor, records: bool = False) -> tuple[torch.Tensor, ...]:
+def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Channel-last positions and normals ``(B,H,W,3)``, the inverse depth (NaN where invalid: the kernels
     read a texel's validity from it), depth and validity ``(B,H,W)``, and the intrinsics ``(B,4)``
-    ``(fx, fy, cx, cy)`` in pixels. With ``records``, positions and normals are ``(B,H,W,4)``: the
-    positions with the inverse depth as fourth channel, the normals padded."""
+    ``(fx, fy, cx, cy)`` in pixels."""
     depth = gbuffer.safe_depth[:, 0].to(torch.float32).contiguous()
     valid = gbuffer.valid[:, 0].contiguous()
     inverse = torch.where(valid, depth.reciprocal(), torch.nan)
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    positions, normals = channels_last(gbuffer.positions()), channels_last(normals)
-    if records:
-        positions, normals = torch.cat((positions, inverse[..., None]), -1), padded(normals)
-    return positions, normals, inverse, depth, valid, intrinsics
+    return channels_last(gbuffer.positions()), channels_last(normals), inverse, depth, valid, intrinsics
 
 
-def light_input(gbuffer: GBuffer, wanted: bool, records: bool = False) -> torch.Tensor:
-    """The direct light channel-last ``(B,H,W,3)`` (``(B,H,W,4)`` with ``records``), or an empty tensor when
-    not ``wanted``; a ``ValueError`` naming ``gbuffer.light`` when it is wanted and missing."""
+def light_input(gbuffer: GBuffer, wanted: bool) -> torch.Tensor:
+    """The direct light channel-last ``(B,H,W,3)``, or an empty tensor when not ``wanted``; a ``ValueError``
+    naming ``gbuffer.light`` when it is wanted and missing."""
     if not wanted:
         return torch.empty(0)
     if gbuffer.light is None:
         raise ValueError("gbuffer.light: indirect light needs a (B,3,H,W) direct-light buffer")
-    light = channels_last(gbuffer.light)
-    return padded(light) if records else light
+    return channels_last(gbuffer.light)
 
 
 def scalar_lanes(lanes: str) -> bool:

@@ -7,7 +7,9 @@ side, the clamped arc integral of :func:`torch_ao.ops.arc_integral`), and return
 over slices; the module's own ``GTAOAccumulator.finish`` turns them into the outputs, so the
 normalisation, final power and multi-bounce fit are the tensor path's code; the sums agree with the
 tensor path's to float rounding (tests/test_kernels_gtao.py). ``HBAO`` is the same walk over the full circle with its accumulator
-(:mod:`torch_ao.methods.hbao`), finished the same way.
+(:mod:`torch_ao.methods.hbao`), finished the same way. Where autograd records (CPU), both run with the
+walk's backward (:mod:`torch_ao.kernels.walk_grad`); :func:`gradient_uncovered` says which gradients it
+does not give.
 """
 from __future__ import annotations
 
@@ -32,10 +34,11 @@ def _value(x) -> float:
 
 
 def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact", slices: int, steps: int,
-              walk_radius: float, radius: float | torch.Tensor, falloff: float = 0.0, thickness: float = 1.0,
-              step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
-              jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop",
-              azimuth: str = "view", projected_normal_weight: bool = True,
+              walk_radius: float, radius: float | torch.Tensor, falloff: float | torch.Tensor = 0.0,
+              thickness: float | torch.Tensor = 1.0, step_power: float = 1.0, min_step_px: float = 1.0,
+              max_radius_px: float | None = None, jitter: bool = True, seed: int = 0, noise: str = "ign",
+              stagger: bool = False, fetch: str = "bilinear", border: str = "drop", azimuth: str = "view",
+              projected_normal_weight: bool = True,
               bent_normals: bool = False, lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over slices of GTAO's walk ``(B,C,H,W)`` (0 on background).
 
@@ -43,54 +46,69 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
         gbuffer: a float32 CPU G-buffer; normals: its ``(B,3,H,W)`` unit view-space normals.
         variant: ``"exact"``, ``"hdrp"`` or ``"ue4"`` (the accumulator and, for the shaders, their step
             placement). slices, steps: counts; walk_radius: world units the walk covers on screen
-            (``radius * search_scale``); radius: world units within which samples count.
+            (``radius * search_scale``, a number: with a ``radius`` tensor it must be proportional to it);
+            radius: world units within which samples count.
         falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
             (pixels, ``None``: none), jitter, seed, noise, stagger, fetch, border, azimuth, projected_normal_weight: as
             :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
-            body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer (the
-            exact variant, bilinear fetch, dropped border, on CPU) the sums carry gradients to its depth and
-            normals (walk_grad.py).
+            body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer or
+            the tensors ``radius``, ``falloff`` (exact) or ``thickness`` (ue4), on CPU, the sums carry their
+            gradients (walk_grad.py; not ue4's radius', see there).
 
     Channels: the slice integrals and the unoccluded integrals summed over slices, then with
     ``bent_normals`` the bent-normal sum (3). Raises :class:`~torch_ao.kernels.KernelUnavailable` when the
     kernel cannot be built.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=walk_radius, step_power=step_power,
-                             min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
-                             fetch=fetch, border=border, azimuth=azimuth,
+                             min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed,
+                             noise=noise, stagger=stagger, fetch=fetch, border=border, azimuth=azimuth,
                              placement="power" if variant == "exact" else variant)
+    setting = {"exact": falloff, "ue4": thickness}.get(variant, 0.0)
     walk, options = run_walk, {}
-    if wants_gradient(gbuffer, normals, radius):
-        if variant != "exact" or gbuffer.depth.device.type != "cpu" or fetch != "bilinear" or border != "drop":
-            raise ValueError("gbuffer: gradients through the kernel cover the exact variant's bilinear fetch and "
-                             f"dropped border on CPU, not variant={variant!r}, fetch={fetch!r}, border={border!r} on "
-                             f"{gbuffer.depth.device.type}")
-        # every length setting is proportional to the radius (walk_radius = radius * search_scale, falloff =
-        # falloff_range * radius): its gradient by the walk's scale invariance (walk_grad.py)
-        walk, options = differentiable_walk, {"radius": radius}
+    if wants_gradient(gbuffer, normals, radius, setting):
+        _check_gradient(gbuffer, fetch)
+        if variant == "ue4" and isinstance(radius, torch.Tensor) and radius.requires_grad:
+            raise ValueError("radius: variant 'ue4' has no kernel gradient of the radius (its rsqrt(|d|^2 + 1e-4) "
+                             "is not scale-invariant)")
+        walk, options = differentiable_walk, {"radius": radius, "setting": setting,
+                                              "setting_is_length": variant == "exact"}
     return walk("gtao", gbuffer, normals, settings,
-                    [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
-                    [_value(radius), falloff, thickness], 5 if bent_normals else 2, lanes=lanes, **options)
+                [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
+                [_value(radius), _value(falloff), _value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
 
 
-def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
-              angle_bias: float, falloff: str = "linear", accumulate: str = "incremental", elevation: str = "image",
-              step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
-              noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen", lanes: str = "simd") -> torch.Tensor:
+def _check_gradient(gbuffer: GBuffer, fetch: str) -> None:
+    """A ``ValueError`` for a gradient the walk's backward cannot give (:func:`gradient_uncovered`)."""
+    if gbuffer.depth.device.type != "cpu" or fetch not in _BACKWARD_FETCHES:
+        raise ValueError(f"gbuffer: gradients through the kernel cover the fetches {_BACKWARD_FETCHES} on CPU, not "
+                         f"fetch={fetch!r} on {gbuffer.depth.device.type}")
+
+
+def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float | torch.Tensor,
+              angle_bias: float | torch.Tensor, falloff: str = "linear", accumulate: str = "incremental",
+              elevation: str = "image", step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
+              seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop",
+              azimuth: str = "screen", lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sum over directions of HBAO's weighted horizon rise ``(B,1,H,W)`` (0 on background).
 
     Args:
         gbuffer, normals: as :func:`gtao_sums`. slices: directions over the full circle; steps: samples
         per direction; radius: world units; angle_bias: radians; falloff, accumulate, elevation,
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
+        With autograd recording through the G-buffer, ``radius`` or ``angle_bias`` (CPU), the sums carry
+        their gradients (walk_grad.py).
     """
-    settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
-                             jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border, azimuth=azimuth,
-                             full_circle=True)
-    return run_walk("hbao", gbuffer, normals, settings,
-                    [falloff == "quadratic", accumulate == "incremental", elevation == "view"], [radius, angle_bias], 1,
-                    lanes=lanes)
+    settings = walk_settings(slices=slices, steps=steps, radius=_value(radius), step_power=step_power,
+                             min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
+                             fetch=fetch, border=border, azimuth=azimuth, full_circle=True)
+    walk, options = run_walk, {}
+    if wants_gradient(gbuffer, normals, radius, angle_bias):
+        _check_gradient(gbuffer, fetch)
+        walk, options = differentiable_walk, {"radius": radius, "setting": angle_bias}
+    return walk("hbao", gbuffer, normals, settings,
+                [falloff == "quadratic", accumulate == "incremental", elevation == "view"],
+                [_value(radius), _value(angle_bias)], 1, lanes=lanes, **options)
 
 
 def _finish(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -110,12 +128,11 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     normals = gbuffer.view_normals(m.normals_method)
     falloff = 0.0
     if m.variant == "exact" and _value(m.falloff_range) > 0:
-        falloff = _value((m.falloff_range * m.radius).clamp_min(1e-12))
+        falloff = (m.falloff_range * m.radius).clamp_min(1e-12)
     sums = gtao_sums(
         gbuffer, normals, variant=m.variant, slices=m.slices, steps=m.steps,
         walk_radius=_value(m.radius * m.search_scale) if m.variant == "exact" else _value(m.radius),
-        radius=m.radius if m.variant == "exact" else _value(m.radius), falloff=falloff,
-        thickness=_value(m.thickness_heuristic),
+        radius=m.radius, falloff=falloff, thickness=m.thickness_heuristic,
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
         seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
         projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
@@ -131,9 +148,8 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     covers (:func:`hbao_covers`)."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
-    sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=_value(m.radius),
-                     angle_bias=_value(m.angle_bias), falloff=m.falloff, accumulate=m.accumulate,
-                     elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
+    sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=m.radius, angle_bias=m.angle_bias,
+                     falloff=m.falloff, accumulate=m.accumulate, elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
                      seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
     return _finish(m, gbuffer, {"ao": sums.reshape(-1, 1)}, normals)
 
@@ -146,6 +162,15 @@ _GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))
 _HBAO_OPTIONS = _WALK_OPTIONS | dict.fromkeys(("angle_bias", "falloff", "accumulate", "elevation"))
+
+
+#: the fetches the walk's backward differentiates (walk_grad_cpu.cpp: the edge-aware fetch's taps switch by
+#: cell flags it is not given)
+_BACKWARD_FETCHES = ("bilinear", "nearest")
+#: per module, the parameters whose gradients the walk's backward gives: the radius by scale invariance, the
+#: setting it seeds (walk_grad.py), and those the module's finish applies with torch ops
+_BACKWARD_PARAMETERS = {"gtao": ("radius", "falloff_range", "thickness_heuristic", "final_power", "albedo"),
+                        "hbao": ("radius", "angle_bias")}
 
 
 def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]) -> str | None:
@@ -167,29 +192,33 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
-        differentiable = ("radius", "final_power", "albedo")  # the radius by scale invariance; the others: torch ops
-        if any(t.requires_grad for name, t in zip(parameters, tensors) if name not in differentiable):
-            return "a gradient of a parameter other than radius, final_power, albedo is asked for"
-        if any(t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, *tensors)):
-            return gradient_uncovered(module, gbuffer)
+        asked = [name for name, t in zip(parameters, tensors) if t.requires_grad]
+        if asked or any(t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position)):
+            return gradient_uncovered(module, gbuffer, asked)
     return None
 
 
-def gradient_uncovered(module, gbuffer: GBuffer) -> str | None:
-    """Why the walk's backward cannot give ``module(gbuffer)``'s gradients to the G-buffer, or ``None``."""
-    if getattr(module, "has_kernel", None) != "gtao" or module.variant != "exact":
-        return "a gradient is asked for (the kernel's backward covers GTAO's exact variant)"
-    # a nearest fetch (texel positions on a plane) and a clamped border (steps past it reading one footprint)
-    # give samples whose horizon angles tie exactly: torch.minimum splits the gradient between them, the
-    # backward's horizon keeps the first sample's
-    if module.fetch != "bilinear" or module.border != "drop":
-        return ("a gradient is asked for with fetch, border = "
-                f"{module.fetch!r}, {module.border!r} (the kernel's backward covers 'bilinear', 'drop')")
+def gradient_uncovered(module, gbuffer: GBuffer, parameters=()) -> str | None:
+    """Why the walk's backward cannot give ``module(gbuffer)``'s gradients to the G-buffer and to the
+    ``parameters`` (names) asked for, or ``None``."""
+    kind = getattr(module, "has_kernel", None)
+    if kind not in _BACKWARD_PARAMETERS:
+        return f"a gradient is asked for (the kernel's backward covers the horizon accumulators {tuple(_BACKWARD_PARAMETERS)})"
+    if module.fetch not in _BACKWARD_FETCHES:
+        return f"a gradient is asked for with fetch={module.fetch!r} (the kernel's backward covers {_BACKWARD_FETCHES})"
     if gbuffer.depth.device.type != "cpu":
         return "a gradient is asked for on CUDA (the kernel's backward runs on CPU)"
     cam = gbuffer.camera
     if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
-        return "a gradient of the intrinsics is asked for (the kernel's backward covers depth and normals)"
+        return ("a gradient of the intrinsics is asked for (the kernel's backward holds them constant; the "
+                "G-buffer's depth, normals and positions get theirs)")
+    others = [name for name in parameters if name not in _BACKWARD_PARAMETERS[kind]]
+    if others:
+        return (f"a gradient of {', '.join(others)} is asked for (the kernel's backward gives "
+                f"{', '.join(_BACKWARD_PARAMETERS[kind])})")
+    if kind == "gtao" and module.variant == "ue4" and "radius" in parameters:
+        return ("a gradient of the radius with variant 'ue4' is asked for (its rsqrt(|d|^2 + 1e-4) is not "
+                "scale-invariant, which the backward's radius gradient rests on)")
     return None
 
 

@@ -36,6 +36,12 @@ struct GTAOAccumulator {
   template <class F> struct State { F best[2]; };  // [0]: side +1, [1]: side -1
   template <class F> struct Sums { F vis = F(0.0f), free = F(0.0f), bent[3] = {F(0.0f), F(0.0f), F(0.0f)}; };
   TAO_FN int channels() const { return bent ? 5 : 2; }
+  // whether a step that changes a side's state replaces it (the state after depends on the slice and the
+  // sample alone): the exact variant's minimum; the shaders' updates blend the sample into the horizon
+  TAO_FN bool replaces() const { return variant == GTAOVariant::exact; }
+  // whether every valid sample's step carries a derivative, even one that leaves the state's value as it
+  // was (ue4's thickness blend: at thickness 1 its value stays, its derivative in the thickness does not)
+  TAO_FN bool blends_every_sample() const { return variant == GTAOVariant::ue4; }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
     if (variant == GTAOVariant::exact)  // the smallest angle from V per side, from the hemisphere boundary
@@ -51,7 +57,8 @@ struct GTAOAccumulator {
       const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
       const F theta = clamp(atan2(along_tangent, along_view), F(0.0f), F(kPi));
       const F distance = norm3(smp.delta);
-      F w = falloff > 0 ? clamp((R - distance) / F(falloff), F(0.0f), F(1.0f)) : select(distance < R, F(1.0f), F(0.0f));
+      F w = falloff > 0 ? clamp((R - distance) / seed_setting(F(falloff)), F(0.0f), F(1.0f))
+                        : select(distance < R, F(1.0f), F(0.0f));
       w = select(smp.valid, w, F(0.0f));
       const F bound = F(kHalfPi) + F(float(side)) * sl.gamma;
       best = min(best, bound + w * (theta - bound));
@@ -66,7 +73,7 @@ struct GTAOAccumulator {
       F ang = dot3(smp.delta, px.V) * rsqrt(len_sq + F(1e-4f));
       const F falloff_w = clamp(len_sq * (F(2.0f) / (R * R)), F(0.0f), F(1.0f));
       ang = ang + falloff_w * (best - ang);
-      const F upd = select(ang > best, ang, ang + F(thickness) * (best - ang));
+      const F upd = select(ang > best, ang, ang + seed_setting(F(thickness)) * (best - ang));
       best = select(smp.valid, upd, best);
     }
   }
@@ -138,6 +145,10 @@ struct HBAOAccumulator {
   template <class F> struct State { F sin_t, sin_h, ao, w; };
   template <class F> struct Sums { F ao = F(0.0f); };
   TAO_FN int channels() const { return 1; }
+  // whether a step that changes the state replaces it: the highest sample's rise alone (max), not the
+  // incremental sum of every rise
+  TAO_FN bool replaces() const { return !incremental; }
+  TAO_FN bool blends_every_sample() const { return false; }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
     F t;
@@ -148,7 +159,7 @@ struct HBAOAccumulator {
       const F z = neg(sl.sin_gamma) * px.V[2] + sl.cos_gamma * sl.T[2];
       t = asin(clamp(z, F(float(-1 + 1e-7)), F(float(1 - 1e-7))));
     }
-    const F sin_t = sin(clamp_max(t + F(angle_bias), F(kHalfPi)));
+    const F sin_t = sin(clamp_max(t + seed_setting(F(angle_bias)), F(kHalfPi)));
     return State<F>{sin_t, sin_t, F(0.0f), F(0.0f)};
   }
 

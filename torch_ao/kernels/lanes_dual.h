@@ -1,7 +1,7 @@
 // Forward-mode dual numbers over any lane type of lanes_scalar.h / lanes_simd.h: Dual<F, N> carries a
 // value and its derivatives along N tangents, lane by lane, so the one walk (walk.h) run with
 // F = Dual<Vec, N> (or Dual<float, N>) gives its outputs' derivatives with respect to whatever the caller
-// seeds (seed_pixel: the pixel's own position, normal and depth).
+// seeds (seed_pixel: the pixel's own position, normal and depth; seed_setting: an accumulator's setting).
 //
 // Derivatives at non-differentiable points follow torch's autograd of the tensor path: floor, rint and
 // comparisons have none; clamp passes the gradient where lo <= x <= hi; min / max pass the chosen
@@ -64,6 +64,12 @@ template <class F, int N> struct LaneTraits<Dual<F, N>> {
   static constexpr int L = LaneTraits<F>::L;
 };
 
+template <class F, int N> struct ValueOf<Dual<F, N>> {
+  using type = F;
+  static constexpr bool dual = true;
+};
+template <class F, int N> TAO_FN const F& value(const Dual<F, N>& x) { return x.v; }
+
 template <class F, int N> TAO_FN Dual<F, N> from_lanes(const float* x, const Dual<F, N>&) {
   return Dual<F, N>(from_lanes(x, F(0.0f)));
 }
@@ -108,6 +114,11 @@ template <class F, int N> TAO_FN Dual<F, N> atan2(const Dual<F, N>& y, const Dua
 }
 template <class F, int N> TAO_FN Dual<F, N> cos(const Dual<F, N>& x) { return Dual<F, N>::chain(cos(x.v), neg(sin(x.v)), x); }
 template <class F, int N> TAO_FN Dual<F, N> sin(const Dual<F, N>& x) { return Dual<F, N>::chain(sin(x.v), cos(x.v), x); }
+template <class F, int N> TAO_FN void cos_sin_rounded(const Dual<F, N>& x, Dual<F, N>& c, Dual<F, N>& s) {
+  F cv, sv;
+  cos_sin_rounded(x.v, cv, sv);
+  c = Dual<F, N>::chain(cv, neg(sv), x), s = Dual<F, N>::chain(sv, cv, x);
+}
 template <class F, int N> TAO_FN Dual<F, N> asin(const Dual<F, N>& x) {
   return Dual<F, N>::chain(asin(x.v), rsqrt(F(1.0f) - x.v * x.v), x);
 }
@@ -147,6 +158,14 @@ template <class F, int N> TAO_FN void seed_pixel(Dual<F, N>* P, Dual<F, N>* Nrm,
     Nrm[c].d[3 + c] = F(1.0f);
   }
   depth.d[6] = F(1.0f);
+}
+
+// tangent 7: an accumulator's differentiable setting (walk.h's seed_setting)
+template <class F, int N> TAO_FN Dual<F, N> seed_setting(const Dual<F, N>& x) {
+  static_assert(N >= 8, "seed_setting: the setting's tangent is the 8th");
+  Dual<F, N> r(x);
+  r.d[7] = F(1.0f);
+  return r;
 }
 
 }  // namespace tao

@@ -14,11 +14,20 @@ typedef long long int64_t;
 #define TAO_CONST static constexpr
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #endif
 
 namespace tao {
 
 template <class F> struct LaneTraits;
+
+// The value lanes of a lane type and whether it carries tangents (lanes_dual.h's Dual<F, N>: F's and N
+// tangents); value(x) its value lanes
+template <class F> struct ValueOf {
+  using type = F;
+  static constexpr bool dual = false;
+};
+template <class F> TAO_FN const F& value(const F& x) { return x; }
 
 template <> struct LaneTraits<float> {
   using M = bool;      // a lane mask
@@ -49,6 +58,12 @@ TAO_FN float acos(float x) { return acosf(x); }
 TAO_FN float asin(float x) { return asinf(x); }
 TAO_FN float cos(float x) { return cosf(x); }
 TAO_FN float sin(float x) { return sinf(x); }
+// cos and sin correctly rounded (from double: but for double rounding, which needs the value within a double
+// ulp of a float midpoint), as torch's float32 cos and sin on an MKL build
+TAO_FN void cos_sin_rounded(float x, float& c, float& s) {
+  c = float(::cos(double(x)));
+  s = float(::sin(double(x)));
+}
 TAO_FN float pow(float x, float y) { return powf(x, y); }
 TAO_FN float exp(float x) { return expf(x); }
 TAO_FN float expm1(float x) { return expm1f(x); }
@@ -74,5 +89,22 @@ TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
 #endif
 TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
+TAO_FN bool gather_flag(const bool* base, uint32_t index) { return base[index]; }
+// a float's bits and back
+#ifdef __CUDACC_RTC__
+TAO_FN uint32_t float_bits(float x) { return __float_as_uint(x); }
+TAO_FN float bits_float(uint32_t b) { return __uint_as_float(b); }
+#else
+TAO_FN uint32_t float_bits(float x) {
+  uint32_t b;
+  std::memcpy(&b, &x, sizeof b);
+  return b;
+}
+TAO_FN float bits_float(uint32_t b) {
+  float x;
+  std::memcpy(&x, &b, sizeof x);
+  return x;
+}
+#endif
 
 }  // namespace tao

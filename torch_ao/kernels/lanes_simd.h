@@ -43,6 +43,22 @@ inline Vec acos(const Vec& x) { return x.acos(); }
 inline Vec asin(const Vec& x) { return x.asin(); }
 inline Vec cos(const Vec& x) { return x.cos(); }
 inline Vec sin(const Vec& x) { return x.sin(); }
+// (lanes_scalar.h's, in SLEEF's double vectors: 1 ulp of double)
+inline void cos_sin_rounded(const Vec& x, Vec& c, Vec& s) {
+  using D = at::vec::Vectorized<double>;
+  constexpr int L = Vec::size();
+  alignas(64) float in[L], out_c[L], out_s[L];
+  alignas(64) double wide[L], wide_c[L], wide_s[L];
+  x.store(in);
+  for (int l = 0; l < L; ++l) wide[l] = double(in[l]);
+  for (int k = 0; k < L; k += D::size()) {
+    const D v = D::loadu(wide + k);
+    v.cos().store(wide_c + k);
+    v.sin().store(wide_s + k);
+  }
+  for (int l = 0; l < L; ++l) out_c[l] = float(wide_c[l]), out_s[l] = float(wide_s[l]);
+  c = Vec::loadu(out_c), s = Vec::loadu(out_s);
+}
 inline Vec pow(const Vec& x, const Vec& y) { return x.pow(y); }
 inline Vec exp(const Vec& x) { return x.exp(); }
 inline Vec expm1(const Vec& x) { return x.expm1(); }
@@ -69,5 +85,13 @@ inline IVec popcount(const IVec& v) {
   return (x * IVec(0x01010101)) >> IVec(24);
 }
 inline Vec gather(const float* base, const IVec& index) { return at::vec::gather<4>(base, index); }
+inline Vec gather_flag(const bool* base, const IVec& index) {
+  constexpr int L = Vec::size();
+  alignas(64) int32_t at[L];
+  alignas(64) float flag[L];
+  index.store(at);
+  for (int l = 0; l < L; ++l) flag[l] = base[at[l]] ? 1.0f : 0.0f;
+  return Vec::loadu(flag) > Vec(0.5f);
+}
 
 }  // namespace tao

@@ -16,18 +16,22 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import KernelUnavailable, cpu_kernels
-from ..walk import NOISES
+from ..walk import NOISES as SLICE_NOISES
 from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
-__all__ = ["PLACEMENTS", "walk_settings", "run_walk", "packed_inputs", "cuda_source"]
+__all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs", "packed_settings", "cuda_source"]
 
-#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern)
-PLACEMENTS = ("power", "hdrp", "ue4")
+#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's)
+PLACEMENTS = ("power", "hdrp", "ue4", "glsl")
+#: the noise of the slice angles and steps in packed.h's numbering (walk.h's Noise): SlicePattern's
+#: (:data:`torch_ao.walk.NOISES`: interleaved gradient noise, the Hilbert-indexed R2 sequence), then the GLSL
+#: shader's one jitter in float32 or in float16 (``glsl_numerics="mesa_mediump"``)
+NOISES = (*SLICE_NOISES, "glsl", "glsl_mediump")
 
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
-_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "soft.h", "packed.h", "walk_cuda.cu")
+_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "packed.h", "walk_cuda.cu")
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
 
 
@@ -37,11 +41,11 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
                   sphere_extent: bool = False, noise: str = "ign", stagger: bool = False) -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
-    slices, steps: counts; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
+    slices, steps: counts walked; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
     ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
-    ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions), azimuth
-    ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent), noise
-    (:data:`~torch_ao.walk.NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice).
+    ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions; one side per slice),
+    azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
+    noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice).
     """
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
@@ -53,7 +57,7 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
 def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]],
              acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
              backface: torch.Tensor | None = None, lanes: str = "simd") -> torch.Tensor:
-    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``) over ``gbuffer`` (float32, CPU or
+    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``, ``"exact"``, ``"glsl"``, ``"soft"``) over ``gbuffer`` (float32, CPU or
     CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
 
     ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);
@@ -94,9 +98,16 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
         inverse, valid = inputs[2], inputs[4]
         cells = cell_flags(torch.where(valid, inverse, 0.0)).to(torch.float32).contiguous()
     layer = none if backface is None else backface[:, 0].to(torch.float32).contiguous()
+    return inputs, (none if light is None else light, cells, layer), *packed_settings(settings, acc_ints, acc_floats,
+                                                                                      device)
+
+
+def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list,
+                    device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The walk's and the accumulator's settings as packed.h reads them: ``ints`` (int64), ``floats`` (float32)."""
     ints = torch.tensor(settings[0] + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
     floats = torch.tensor(settings[1] + [float(v) for v in acc_floats], dtype=torch.float32, device=device)
-    return inputs, (none if light is None else light, cells, layer), ints, floats
+    return ints, floats
 
 
 def cuda_source() -> str:

@@ -1,5 +1,5 @@
-// The CPU operator of the one walk (walk.h with the accumulators of horizon.h and bitmask.h, settings
-// unpacked by packed.h): rows over torch's threads, each row's pixels in SIMD lanes (lanes_simd.h) or,
+// The CPU operator of the one walk (walk.h with the accumulators of horizon.h, bitmask.h, bitmask_glsl.h
+// and soft.h, settings unpacked by packed.h): rows over torch's threads, each row's pixels in SIMD lanes (lanes_simd.h) or,
 // with scalar=True, one pixel at a time through walk_pixel in float lanes (lanes_scalar.h): the body of
 // the CUDA kernel's threads (walk_cuda.cu), run on the CPU.
 #include <ATen/core/Tensor.h>
@@ -21,19 +21,15 @@ using namespace tao;
 template <class Acc>
 void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* dst, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
-  const int64_t B = fr.B, H = fr.H, W = fr.W;
+  const int64_t H = fr.H, W = fr.W;
   const int C = acc.channels();
-  torch_ao_rows::for_each_row(B, H, [&](int64_t b, int64_t row) {
-    if (scalar) {
-      for (int64_t u = 0; u < W; ++u) walk_pixel(cfg, acc, fr, dst, (b * H + row) * W + u);
-      return;
-    }
-    const Image img = fr.image(b);
-    Vec values[8];
-    alignas(64) float lanes[L];
-    for (int64_t u0 = 0; u0 < W; u0 += L) {
-      const int n = int(std::min<int64_t>(L, W - u0));
-      walk_block(cfg, img, acc, row, u0, n, values);
+  torch_ao_rows::for_each_block<L>(fr.B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+    if constexpr (!decltype(simd)::value) {
+      walk_pixel(cfg, acc, fr, dst, (b * H + row) * W + u0);
+    } else {
+      Vec values[8];
+      alignas(64) float lanes[L];
+      walk_block(cfg, fr.image(b), acc, row, u0, n, values);
       for (int c = 0; c < C; ++c) {
         to_lanes(values[c], lanes);
         std::copy(lanes, lanes + n, dst + ((b * C + c) * H + row) * W + u0);
@@ -42,7 +38,8 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
-// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "soft", "soft_gradients") over the frame,
+// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "glsl", "soft",
+// "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -59,8 +56,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   };
   TORCH_CHECK(ints.numel() >= kAccInts && floats.numel() >= kAccFloats, "ints, floats: the walk's settings are missing");
   TORCH_CHECK(!ints.data_ptr<int64_t>()[9] || fr.cells, "cells: the edge-aware fetch needs the cell flags");
-  TORCH_CHECK(ints.data_ptr<int64_t>()[11] >= 0 && ints.data_ptr<int64_t>()[11] <= 1,
-              "noise: expected 0 (ign) or 1 (hilbert_r2)");
+  TORCH_CHECK(ints.data_ptr<int64_t>()[11] >= 0 && ints.data_ptr<int64_t>()[11] <= 3,
+              "noise: expected 0 (ign), 1 (hilbert_r2), 2 (glsl) or 3 (glsl_mediump)");
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
@@ -78,14 +75,21 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     packed(3, 2);
     run(unpack_hbao(i, f));
   } else if (name == "bitmask") {
-    packed(4, 2);
+    packed(5, 3);
     TORCH_CHECK(!i[kAccInts + 2] || fr.light, "light: indirect light needs the light buffer");
+    TORCH_CHECK(!i[kAccInts + 4] || fr.backface, "backface: the back-face thickness needs its layer");
     run(unpack_bitmask(i, f));
   } else if (name == "exact") {
     packed(4, 4);
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
     run(unpack_exact(i, f));
+  } else if (name == "glsl") {
+    packed(3, 1);
+    TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,
+                "glsl: expected the GLSL step placement over sliceCount + 1 >= 3 slices and sampleCount + 1 >= 2 steps");
+    TORCH_CHECK(!i[kAccInts + 1] || fr.light, "light: indirect light needs the light buffer");
+    run(unpack_glsl(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
     packed(3, 3);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
@@ -99,14 +103,14 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
       run(unpack_soft<true>(i, f));
     }
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, soft or soft_gradients, got ", name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, glsl, soft or soft_gradients, got ", name);
   }
   return out;
 }
 
 }  // namespace
 
-TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
+TORCH_LIBRARY(torch_ao_kernels, m) {
   m.def("walk(str accumulator, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, "
         "bool scalar) -> Tensor");

@@ -5,6 +5,7 @@
 #pragma once
 
 #include "bitmask.h"
+#include "bitmask_glsl.h"
 #include "horizon.h"
 #include "soft.h"
 
@@ -37,11 +38,20 @@ TAO_FN HBAOAccumulator unpack_hbao(const int64_t* i, const float* f) {
   return HBAOAccumulator{f[0], f[1], i[0] != 0, i[1] != 0, i[2] != 0};
 }
 
-// ints: rounding, cosine, indirect, bent; floats: thickness, epsilon
+// ints: rounding, cosine, indirect, bent, backface; floats: thickness (or the back-face offset), epsilon,
+// the back-face scale
 TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
-  return BitmaskAccumulator{slices, f[0], f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
+  return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], i[4] != 0}, f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
+}
+
+// ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"); floats: thickness. The walk's
+// slices are sliceCount + 1
+TAO_FN GlslAccumulator unpack_glsl(const int64_t* i, const float* f) {
+  const int64_t slices = i[0];
+  i += kAccInts, f += kAccFloats;
+  return GlslAccumulator{slices - 1, f[0], i[0], i[1] != 0, GlslVectorOps{i[2] != 0}};
 }
 
 // ints: cosine, along_ray, clip, backface; floats: thickness (or the back-face offset), the back-face
@@ -54,8 +64,9 @@ TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
 }
 
 // ints: rounding, cosine, straight_through; floats: thickness, epsilon, tau
-template <bool kGradients> TAO_FN SoftAccumulator<kGradients> unpack_soft(const int64_t* i, const float* f) {
-  SoftAccumulator<kGradients> acc;
+template <bool kGradients, bool kAdjoint = false>
+TAO_FN SoftAccumulator<kGradients, kAdjoint> unpack_soft(const int64_t* i, const float* f) {
+  SoftAccumulator<kGradients, kAdjoint> acc;
   acc.walk = unpack_walk(i, f);
   i += kAccInts, f += kAccFloats;
   acc.rounding = i[0], acc.cosine = i[1] != 0, acc.straight_through = i[2] != 0;

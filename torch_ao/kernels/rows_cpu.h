@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cstdint>
+#include <type_traits>
 
 #include "mkl_vml.h"
 
@@ -33,6 +34,19 @@ void over_rows(int64_t rows, const Fn& fn) {
 template <class Fn>
 void for_each_row(int64_t B, int64_t H, const Fn& fn) {
   over_rows(B * H, [&](int64_t r) { fn(r / H, r % H); });
+}
+
+// fn(b, row, u0, n, lanes) for every block of a row: n = 1 pixel at a time with lanes = std::false_type
+// (scalar), else blocks of up to L pixels with lanes = std::true_type (SIMD lanes of width L)
+template <int L, class Fn>
+void for_each_block(int64_t B, int64_t H, int64_t W, bool scalar, const Fn& fn) {
+  for_each_row(B, H, [&](int64_t b, int64_t row) {
+    if (scalar) {
+      for (int64_t u = 0; u < W; ++u) fn(b, row, u, 1, std::false_type{});
+      return;
+    }
+    for (int64_t u0 = 0; u0 < W; u0 += L) fn(b, row, u0, int(std::min<int64_t>(L, W - u0)), std::true_type{});
+  });
 }
 
 }  // namespace torch_ao_rows

@@ -16,6 +16,13 @@
 // derivatives give the thickness's gradient, and the fetch's derivative along the step (su, sv move with
 // the radius through the step placement) the radius's. Straight-through: the hard coverage's visibility
 // with these (the soft union's) gradients.
+//
+// The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
+// value lanes keeping each step's fetch, runs the same reverse scan, and chains each step's d vis / d s,
+// d w by hand: through SectorInterval's atan2 to d / d delta (scattered, times the upstream gradient, to the
+// fetch's taps by the caller's sink) and on to the slice's quantities (V, T, P, the screen direction, the
+// span, gamma), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
+// lanes (lanes_dual.h); the cosine weights carry their own tangents.
 #pragma once
 
 #include "bitmask.h"
@@ -45,8 +52,9 @@ template <class F> struct SoftCoverage {
   F gate, slope;
 };
 
-// kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays)
-template <bool kGradients> struct SoftAccumulator {
+// kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays);
+// kAdjoint (with kGradients): the backward's, which keeps each step's fetch for end_slice_adjoint
+template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   WalkSettings walk;  // the step placement (the radius' gradient moves the steps)
   float thickness, epsilon, tau, delta;  // delta: sectors.rule.rounding_offset
   int64_t rounding;
@@ -56,14 +64,24 @@ template <bool kGradients> struct SoftAccumulator {
 
   template <class F> struct State {
     using I = typename LaneTraits<F>::I;
+    using M = typename LaneTraits<F>::M;
+    static constexpr int kFetches = kAdjoint ? kKept : 1;  // the backward's: each step's fetch
     I occ;  // straight-through: the hard coverage
     F shift;
     LaneArray<F, kSectors> omega, P;
     int n;
     // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius
     LaneArray<F, kKept> s, w, av, at, dav, dat;
+    // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
+    // pixels, and d position / d su, d sv
+    LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3];
+    LaneArray<I, kFetches> index[4];
+    LaneArray<M, kFetches> valid;
+    LaneArray<SoftCoverage<F>, kFetches> coverages;  // the backward's sweep's, for its reverse scan
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
+  // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d thickness
+  template <class B> struct StepAdjoint { B s, w, av, at, shift, thickness; };
   TAO_FN int channels() const { return kGradients ? 3 : 1; }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
@@ -95,15 +113,17 @@ template <bool kGradients> struct SoftAccumulator {
     for (int k = 0; k < kSectors; ++k) cv.b[k] = soft_sigmoid(end_arg - F(float(k + 1) * inv_tau));
   }
 
-  // P <- P - a b g P over the sectors (P_m kept in before, if given)
-  template <class F> TAO_FN void cover(const F& s, const F& w, F* P, F* before) const {
-    SoftCoverage<F> cv;
+  // P <- P - a b g P over the sectors (P_m kept in before, if given; the coverage in keep, if given)
+  template <class B>
+  TAO_FN void cover(const B& s, const B& w, B* P, B* before, SoftCoverage<B>* keep = nullptr) const {
+    SoftCoverage<B> local;
+    SoftCoverage<B>& cv = keep ? *keep : local;
     coverage(s, w, cv);
     for (int k = 0; k < kSectors; ++k) {
       if (before) before[k] = P[k];
-      const F c = cv.b[k] * cv.a[k] * cv.gate;
+      const B c = cv.b[k] * cv.a[k] * cv.gate;
       P[k] = P[k] - c * P[k];
-      P[k] = select(P[k] > F(kSoftTiny), P[k], F(0.0f));
+      P[k] = select(P[k] > B(kSoftTiny), P[k], B(0.0f));
     }
   }
 
@@ -115,6 +135,25 @@ template <bool kGradients> struct SoftAccumulator {
     for (int k = 0; k < kSectors; ++k) st.P[k] = F(1.0f), st.omega[k] = F(1.0f / kSectors);
     if (cosine) cosine_sector_weights(sl, st.omega);
     return st;
+  }
+
+  // d position / d su and d sv of a sample's bilinear fetch at (su, sv) (perspective-correct depth, the
+  // clamped unprojection; 0 where the sample is not valid)
+  template <class F>
+  TAO_FN void fetch_motion(const Sample<F>& smp, const F& su, const F& sv, F* d_su, F* d_sv) const {
+    const Image& img = *smp.image;
+    const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
+    const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
+    const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
+    const F square = neg(depth * depth);
+    const F dz_u = square * lerp(t1 - t0, t3 - t2, smp.fv), dz_v = square * (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu));
+    const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
+    const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
+    const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
+    const F dxh = select(su_c == su, F(1.0f / img.fx), F(0.0f)), dyh = select(sv_c == sv, F(-1.0f / img.fy), F(0.0f));
+    d_su[0] = select(smp.valid, dz_u * xh + depth * dxh, F(0.0f)), d_sv[0] = select(smp.valid, dz_v * xh, F(0.0f));
+    d_su[1] = select(smp.valid, dz_u * yh, F(0.0f)), d_sv[1] = select(smp.valid, dz_v * yh + depth * dyh, F(0.0f));
+    d_su[2] = select(smp.valid, neg(dz_u), F(0.0f)), d_sv[2] = select(smp.valid, neg(dz_v), F(0.0f));
   }
 
   template <class F>
@@ -135,57 +174,67 @@ template <bool kGradients> struct SoftAccumulator {
     }
     const int m = st.n++;
     st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at;
+    F d_su[3] = {F(0.0f), F(0.0f), F(0.0f)}, d_sv[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), m % walk.steps);
+    const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
+    if (moves) {
+      const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
+      fetch_motion(smp, su, sv, d_su, d_sv);
+    }
+    if (kAdjoint) {  // the backward: the fetch, for the pixel's and the taps' gradients (end_slice_adjoint)
+      for (int c = 0; c < 3; ++c) {
+        st.delta[c][m] = smp.delta[c], st.pos[c][m] = smp.delta[c] + px.P[c];
+        st.d_su[c][m] = d_su[c], st.d_sv[c][m] = d_sv[c];
+      }
+      for (int i = 0; i < 4; ++i) st.index[i][m] = smp.index[i];
+      st.fu[m] = smp.fu, st.fv[m] = smp.fv, st.valid[m] = smp.valid, st.dist[m] = dist;
+      return;
+    }
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
     F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    if (smp.bilinear && any(w >= F(0.0f))) {  // (an empty step has no gradient)
-      const int64_t j = m % walk.steps;
+    if (moves) {
       const F reach_px = sl.radius_px - F(walk.min_step_px);
       const F span_slope = select(reach_px >= F(0.0f), sl.radius_px / F(walk.radius), F(0.0f));
-      const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);  // min_step_px + span frac
       const F dd = span_slope * ((dist - F(walk.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f)));
-      const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
       const F dsu = dd * sl.unit_u * F(float(side)), dsv = dd * sl.unit_v * F(float(side));
-      const Image& img = *smp.image;
-      const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
-      const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
-      const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
-      const F dS = lerp(t1 - t0, t3 - t2, smp.fv) * dsu + (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu)) * dsv;
-      const F ddepth = neg(depth * depth * dS);
-      const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
-      const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
-      const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
-      const F dxh = select(su_c == su, dsu / F(img.fx), F(0.0f)), dyh = select(sv_c == sv, dsv / F(-img.fy), F(0.0f));
-      d_pos[0] = select(smp.valid, ddepth * xh + depth * dxh, F(0.0f));
-      d_pos[1] = select(smp.valid, ddepth * yh + depth * dyh, F(0.0f));
-      d_pos[2] = select(smp.valid, neg(ddepth), F(0.0f));
-    }  // the nearest texel does not move with the radius
+      for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
+    }
     st.dav[m] = dot3(d_pos, px.V);
     st.dat[m] = F(float(side)) * dot3(d_pos, sl.T);
   }
 
-  template <class F>
-  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
-    const int M = st.n;
-    LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients): before[m * 32 + k]
-    if (kGradients)
-      for (int m = 0; m < M; ++m)
-        if (any(st.w[m] >= F(0.0f))) cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors]);
-    F visible = F(0.0f);
+  // With gradients: the slice's union over its kept steps, P_m before each step kept in before[m * 32 + k]
+  template <class F> TAO_FN void sweep(State<F>& st, F* before) const {
+    for (int m = 0; m < st.n; ++m)
+      if (any(st.w[m] >= F(0.0f)))
+        cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors], kAdjoint ? &st.coverages[m] : nullptr);
+  }
+
+  // The slice's visible share sum_k free_k omega_k (the weights' sum added to sums.den with cosine
+  // weights); omega: st.omega, or the same weights with tangents (G: their lane type)
+  template <class F, class Weights, class G>
+  TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums) const {
+    G share = G(0.0f);
     for (int k = 0; k < kSectors; ++k) {
       const F free = straight_through ? F(1.0f) - bit(st.occ, k) : st.P[k];
-      visible = visible + free * st.omega[k];
-      if (cosine) sums.den = sums.den + st.omega[k];
+      share = share + G(free) * omega[k];
+      if (cosine) sums.den = sums.den + omega[k];
     }
-    sums.num = sums.num + visible;
-    if (!kGradients) return;
+    return share;
+  }
+
+  // soft_union's reverse scan over the slice's kept steps (after sweep): fn(m, StepAdjoint) for each step
+  // with a live lane, last to first
+  template <class F, class Fn> TAO_FN void reverse_scan(const State<F>& st, const F* before, const Fn& fn) const {
     const float inv_tau = float(1.0 / double(tau));
     F S[kSectors];
     for (int k = 0; k < kSectors; ++k) S[k] = st.omega[k];
-    for (int m = M - 1; m >= 0; --m) {  // the reverse scan
+    for (int m = st.n - 1; m >= 0; --m) {
       const auto live = st.w[m] >= F(0.0f);
       if (!any(live)) continue;
-      SoftCoverage<F> cv;
-      coverage(st.s[m], st.w[m], cv);
+      SoftCoverage<F> local;
+      if (!kAdjoint) coverage(st.s[m], st.w[m], local);
+      const SoftCoverage<F>& cv = kAdjoint ? st.coverages[m] : local;
       F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
       for (int k = 0; k < kSectors; ++k) {
         const F ab = cv.a[k] * cv.b[k];
@@ -196,26 +245,97 @@ template <bool kGradients> struct SoftAccumulator {
         S[k] = S[k] - ab * cv.gate * S[k];
       }
       const F g = cv.gate, not_b = sum_y - sum_yb;
+      StepAdjoint<F> adj;
       // dL/dw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau;
       // dL/ds = -(g / tau) (F' sum Y (1 - b) - sum Y (1 - a))
-      const F gw = select(live, ((g * g - F(1.0f)) * sum_y - g * not_b) * F(inv_tau), F(0.0f));
-      const F gs = select(live, (not_b * cv.slope - sum_y + sum_ya) * g * F(-inv_tau), F(0.0f));
+      adj.w = select(live, ((g * g - F(1.0f)) * sum_y - g * not_b) * F(inv_tau), F(0.0f));
+      adj.s = select(live, (not_b * cv.slope - sum_y + sum_ya) * g * F(-inv_tau), F(0.0f));
       // SectorInterval.backward: s = 32 lo, w = 32 (hi - lo) - epsilon, the clamps pass inside [0, 1]
       const int side = m < walk.steps ? 1 : -1;
       const F scale = F(float(side) / kPi);
       const F av = st.av[m], at = st.at[m], bv = av - F(thickness);
       const F front = fma(atan2(at, av), scale, st.shift), back = fma(atan2(at, bv), scale, st.shift);
-      const F g_lo = (gs - gw) * F(float(kSectors)), g_hi = gw * F(float(kSectors));
+      const F g_lo = (adj.s - adj.w) * F(float(kSectors)), g_hi = adj.w * F(float(kSectors));
       F g_f = side > 0 ? g_lo : g_hi, g_b = side > 0 ? g_hi : g_lo;
       g_f = select(land(front >= F(0.0f), front <= F(1.0f)), g_f, F(0.0f));
       g_b = select(land(back >= F(0.0f), back <= F(1.0f)), g_b, F(0.0f));
       // theta = atan2(y, x): d theta = (x dy - y dx) / (x^2 + y^2)
       const F inv_f = g_f * scale / fma(av, av, at * at);
       const F inv_b = g_b * scale / fma(bv, bv, at * at);
-      const F g_at = av * inv_f + bv * inv_b, g_av = neg((inv_f + inv_b) * at);
-      sums.thickness = sums.thickness + select(px.live, at * inv_b, F(0.0f));
-      sums.radius = sums.radius + select(px.live, g_av * st.dav[m] + g_at * st.dat[m], F(0.0f));
+      adj.at = av * inv_f + bv * inv_b, adj.av = neg((inv_f + inv_b) * at);
+      adj.shift = g_f + g_b, adj.thickness = at * inv_b;
+      fn(m, adj);
     }
+  }
+
+  template <class F>
+  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
+    LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients)
+    if (kGradients) sweep(st, &before[0]);
+    sums.num = sums.num + visible(st, st.omega, sums);
+    if (!kGradients) return;
+    reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
+      sums.thickness = sums.thickness + select(px.live, g.thickness, F(0.0f));
+      sums.radius = sums.radius + select(px.live, g.av * st.dav[m] + g.at * st.dat[m], F(0.0f));
+    });
+  }
+
+  // The backward's slice (kAdjoint): the reverse scan's d visibility / d delta of each step, times weight
+  // (the upstream gradient over the denominator), goes to sink.scatter(g_delta, st, m, lanes), which
+  // chains it to the step's taps; the same adjoints chained by hand through the step (delta = pos(su, sv)
+  // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, av = delta . V, at = side delta
+  // . T, the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the
+  // pixel and slice in dual lanes) sums.num gains, with the cosine weights' own
+  template <class F, class D, class Sink>
+  TAO_FN void end_slice_adjoint(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, const Pixels<D>& pd,
+                                const Slice<D>& sd, Sums<D>& sums, const F& weight, Sink& sink) const {
+    LaneArray<F, kKept * kSectors> before;
+    sweep(st, &before[0]);
+    LaneArray<D, kSectors> omega;  // the weights with their tangents
+    for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
+    if (cosine) cosine_sector_weights(sd, omega);
+    sums.num = sums.num + visible(st, omega, sums);
+    F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    F g_unit_u = F(0.0f), g_unit_v = F(0.0f), g_span = F(0.0f), g_shift = F(0.0f);
+    const F frac_of = reciprocal(select(sl.span > F(0.0f), sl.span, F(1.0f)));
+    reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
+      const F side = F(m < walk.steps ? 1.0f : -1.0f), g_dt = g.at * side;  // d / d (delta . T)
+      const auto valid = st.valid[m];
+      F g_delta[3];
+      for (int c = 0; c < 3; ++c) {
+        g_delta[c] = g.av * px.V[c] + g_dt * sl.T[c];
+        g_V[c] = g_V[c] + g.av * st.delta[c][m] - select(valid, F(0.0f), g_delta[c]);
+        g_T[c] = g_T[c] + g_dt * st.delta[c][m];
+        g_P[c] = g_P[c] - select(valid, g_delta[c], F(0.0f));
+      }
+      const F g_su = side * (g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m]);
+      const F g_sv = side * (g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m]);
+      g_unit_u = g_unit_u + g_su * st.dist[m], g_unit_v = g_unit_v + g_sv * st.dist[m];
+      g_span = g_span + (g_su * sl.unit_u + g_sv * sl.unit_v) * ((st.dist[m] - F(walk.min_step_px)) * frac_of);
+      g_shift = g_shift + g.shift;
+      sums.thickness = sums.thickness + D(select(px.live, g.thickness, F(0.0f)));
+      for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] * weight;
+      sink.scatter(g_delta, st, m, land(px.live, valid));
+    });
+    D along = D(g_unit_u) * sd.unit_u + D(g_unit_v) * sd.unit_v + D(g_span) * sd.span +
+              D(g_shift) * ((D(kHalfPi) - sd.gamma) / D(kPi));
+    for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
+    sums.num = sums.num + (along - D(along.v));  // (its tangents only)
+  }
+
+  // The visibility's denominator at the pixels of walk_block(row, u0, n): the slices, or the cosine
+  // weights' sum over them
+  template <class F> TAO_FN F denominator(const Image& img, int64_t row, int64_t u0, int n) const {
+    if (!cosine) return F(float(walk.slices));
+    const Pixels<F> px(walk, img, row, u0, n);
+    F den = F(0.0f);
+    for (int64_t s = 0; s < walk.slices; ++s) {
+      const Slice<F> sl(walk, img, px, s);
+      LaneArray<F, kSectors> omega;
+      cosine_sector_weights(sl, omega);
+      for (int k = 0; k < kSectors; ++k) den = den + omega[k];
+    }
+    return clamp_min(den, F(1e-30f));
   }
 
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
@@ -225,6 +345,41 @@ template <bool kGradients> struct SoftAccumulator {
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
     }
+  }
+};
+
+// The backward's accumulator (walk_block's interface) over value lanes F: SoftAccumulator<true, true>'s
+// slices ended by end_slice_adjoint into sink, with the pixels pd in dual lanes D (tangents on their own
+// P, N, depth) and each slice's in D; sums in D. finish writes the visibility's 7 tangents, then
+// d visibility / d thickness.
+template <class F, class D, class Sink> struct SoftAdjoint {
+  using Acc = SoftAccumulator<true, true>;
+  const Acc& acc;
+  const Image& img;
+  const Pixels<D>& pd;
+  F weight;
+  Sink& sink;
+  mutable int64_t slice = 0;
+  template <class G> struct State {
+    typename Acc::template State<G> base;
+    Slice<D> sd;
+  };
+  template <class G> using Sums = typename Acc::template Sums<D>;
+  TAO_FN int channels() const { return 8; }
+  TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
+    return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
+  }
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    acc.step(st.base, side, px, sl, smp);
+  }
+  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
+    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, sink);
+  }
+  TAO_FN void finish(const Sums<F>& sums, const Pixels<F>&, F* out) const {
+    D vis[3];
+    acc.finish(sums, pd, vis);
+    for (int k = 0; k < 7; ++k) out[k] = vis[0].d[k];
+    out[7] = vis[2].v;
   }
 };
 

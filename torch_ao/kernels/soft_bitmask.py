@@ -1,13 +1,23 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
 on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``
-and ``thickness``.
+and ``thickness`` and, on the CPU, to the G-buffer (depth or positions, normals).
 
 The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sectors.soft_union`, or the
-hard coverage in straight-through mode). When a gradient is wanted, the same walk also returns each pixel's
-derivatives of its visibility with respect to radius and thickness (the soft union's reverse scan per slice,
-in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per sample,
-two channels per pixel. Gradients of the G-buffer (depth, normals, intrinsics) are not computed: such a call
-runs the tensor path (:func:`kernel_covers` says why).
+hard coverage in straight-through mode). When only radius and thickness want a gradient, the same walk also
+returns each pixel's derivatives of its visibility with respect to them (the soft union's reverse scan per
+slice, in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per
+sample, two channels per pixel.
+
+When the G-buffer wants one, the forward is the plain walk over the channel-last inputs of
+:func:`~torch_ao.kernels.frame.walk_inputs` (so that autograd chains their gradients to depth, positions
+and normals through its torch ops), and the backward (``torch_ao_kernels::soft_backward``) walks again in
+dual lanes (``lanes_dual.h``: tangents on each pixel's own position, normal and depth), runs the reverse
+scan per slice, contracts each step's d visibility / d (s, w) with the tangents of its interval, and
+scatters its d visibility / d delta to the step's fetch taps (bilinear: the four inverse depths; nearest:
+the tap's position). The radius needs no tangent: the walk is scale-invariant (positions, depth, radius and
+thickness scaled together leave it as it is), so Euler's identity gives
+``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - T dL/dT``. Gradients of the
+intrinsics are not computed (:func:`kernel_covers` sends such a call to the tensor path).
 """
 from __future__ import annotations
 
@@ -16,24 +26,26 @@ import torch
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from .bitmask import options_uncovered
-from .build import cpu_kernels
-from .launch import run_walk, walk_settings
+from .build import cpu_kernels, grad_kernels
+from .frame import scalar_lanes, walk_inputs
+from .launch import packed_settings, run_walk, walk_settings
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
 
 def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, weighting: str = "uniform", straight_through: bool = False,
-                 step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0, noise: str = "ign",
-                 stagger: bool = False,
+                 step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
+                 noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
-    differentiable with respect to ``radius`` and ``thickness``.
+    differentiable with respect to ``radius``, ``thickness`` and (CPU) the G-buffer's depth, positions and
+    ``normals``.
 
     Args:
-        gbuffer: a float32 G-buffer (CPU, or CUDA) without gradients; normals: its ``(B,3,H,W)`` unit
-            view-space normals (without gradients).
+        gbuffer: a float32 G-buffer (CPU, or CUDA without gradients of its own); normals: its ``(B,3,H,W)``
+            unit view-space normals.
         slices, steps: directions per pixel and samples per side (at most 32).
         radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
@@ -42,14 +54,17 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
-    ``ValueError`` naming ``gbuffer``/``normals`` when they carry a gradient (the kernel does not compute it).
+    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient, or its buffers one on CUDA (the
+    kernel does not compute those).
     """
-    if torch.is_grad_enabled() and (normals.requires_grad or gbuffer.depth.requires_grad or (
-            gbuffer.position is not None and gbuffer.position.requires_grad)):
-        raise ValueError("gbuffer/normals: the soft kernel differentiates radius and thickness only; "
-                         "detach the G-buffer or use backend='torch'")
+    uncovered = _gbuffer_gradient_uncovered(gbuffer)
+    if uncovered is not None:
+        raise ValueError(f"gbuffer: the soft kernel does not compute {uncovered}; detach it or use backend='torch'")
+    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals)
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
+        if of_gbuffer:
+            grad_kernels()
     scalars = []
     for name, t in (("radius", radius), ("thickness", thickness)):
         t = torch.as_tensor(t)
@@ -58,19 +73,79 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         scalars.append(t)
     options = dict(slices=int(slices), steps=int(steps), tau=float(tau), cosine=weighting == "cosine",
                    straight_through=bool(straight_through), step_power=float(step_power),
-                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise, stagger=bool(stagger), fetch=fetch, border=border,
+                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
+                   stagger=bool(stagger), fetch=fetch, border=border,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes)
+    if of_gbuffer:
+        return _gbuffer_walk(gbuffer, normals, *scalars, options)
     return _SoftWalk.apply(gbuffer, normals, *scalars, options)
+
+
+def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
+    """Whether autograd records through the G-buffer's depth, positions or ``normals``."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                           for t in (gbuffer.depth, gbuffer.position, gbuffer.normals, normals))
+
+
+def _gbuffer_gradient_uncovered(gbuffer: GBuffer) -> str | None:
+    """The G-buffer gradient asked for that the kernel does not compute (the intrinsics', any on CUDA), or ``None``."""
+    if not torch.is_grad_enabled():
+        return None
+    cam = gbuffer.camera
+    if any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+        return "a gradient of the intrinsics (fx, fy, cx, cy)"
+    buffers = (gbuffer.depth, gbuffer.normals, gbuffer.position)
+    if gbuffer.depth.device.type != "cpu" and any(t is not None and t.requires_grad for t in buffers):
+        return "a gradient of the G-buffer on CUDA (its backward runs on the CPU only)"
+    return None
+
+
+def _settings(radius, thickness, o):
+    """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of ``soft.h``'s walk."""
+    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius.detach()), jitter=o["jitter"],
+                             seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
+                             step_power=o["step_power"], min_step_px=o["min_step_px"])
+    return settings, [o["rounding"], o["cosine"], o["straight_through"]], [float(thickness.detach()), o["epsilon"], o["tau"]]
 
 
 def _walk(gbuffer, normals, radius, thickness, o, gradients):
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness."""
-    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius), jitter=o["jitter"],
-                             seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"], step_power=o["step_power"],
-                             min_step_px=o["min_step_px"])
-    acc_ints = [o["rounding"], o["cosine"], o["straight_through"]]
-    acc_floats = [float(thickness), o["epsilon"], o["tau"]]
-    return run_walk("soft_gradients" if gradients else "soft", gbuffer, normals, settings, acc_ints, acc_floats, 3 if gradients else 1, lanes=o["lanes"])
+    settings, acc_ints, acc_floats = _settings(radius, thickness, o)
+    return run_walk("soft_gradients" if gradients else "soft", gbuffer, normals, settings, acc_ints, acc_floats,
+                    3 if gradients else 1, lanes=o["lanes"])
+
+
+def _gbuffer_walk(gbuffer, normals, radius, thickness, o):
+    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), radius and thickness."""
+    return _GBufferWalk.apply(*walk_inputs(gbuffer, normals), radius, thickness, o)
+
+
+class _GBufferWalk(torch.autograd.Function):
+    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` and ``soft_backward``."""
+
+    @staticmethod
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, radius, thickness, o):
+        ints, floats = packed_settings(*_settings(radius, thickness, o), device=depth.device)
+        none = torch.empty(0)
+        ctx.scalar = scalar_lanes(o["lanes"])
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, thickness)
+        return cpu_kernels().walk("soft", positions, normals, inverse, depth, valid, intrinsics, none, none, none,
+                                  ints, floats, 1, ctx.scalar)
+
+    @staticmethod
+    def backward(ctx, grad):
+        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, thickness = ctx.saved_tensors
+        g_pos, g_nrm, g_inv, g_depth, g_thick = grad_kernels().soft_backward(
+            grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid, intrinsics, ints, floats,
+            ctx.scalar)
+        g_thickness = g_thick.double().sum()
+        g_radius = None
+        if ctx.needs_input_grad[6]:  # Euler's identity (module docstring); invalid texels hold NaN
+            along = ((g_pos.double() * positions).sum() + (g_depth.double() * depth).sum()
+                     - torch.where(valid, g_inv.double() * inverse, 0.0).sum())
+            g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
+        return (g_pos, g_nrm, g_inv, g_depth, None, None, g_radius,
+                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[7] else None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
@@ -98,18 +173,17 @@ _WEIGHTINGS = ("uniform", "cosine")
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
-    in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's options (any slices, steps, radius,
-    jitter, rounding, fetch, border... one scalar thickness, visibility only, a float32 CPU G-buffer) with
-    either weighting, and no gradient asked of the G-buffer (depth, position, normals, intrinsics)."""
+    in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
+    options (any slices, steps, radius, jitter, rounding, fetch, border... one scalar thickness, visibility
+    only, a float32 CPU G-buffer) with either weighting; gradients of radius, thickness, depth, positions and
+    normals, not of the intrinsics."""
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS)
     if reason is not None:
         return reason
-    if torch.is_grad_enabled():
-        cam = gbuffer.camera
-        buffers = [gbuffer.depth, gbuffer.normals, gbuffer.position, cam.fx, cam.fy, cam.cx, cam.cy]
-        if any(t is not None and t.requires_grad for t in buffers):
-            return "a gradient of the G-buffer (the kernel differentiates radius and thickness only)"
-    return None
+    if module.mode == "hard" and _gbuffer_wants_gradient(gbuffer, gbuffer.normals):
+        return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
+    reason = _gbuffer_gradient_uncovered(gbuffer)
+    return None if reason is None else f"{reason} (the kernel differentiates radius, thickness, depth, positions and normals)"
 
 
 def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
@@ -119,6 +193,6 @@ def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
     return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, tau=module.tau, weighting=module.weighting,
                         straight_through=module.mode != "soft", step_power=module.step_power,
-                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise, stagger=module.stagger,
-                        fetch=module.fetch,
-                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)
+                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
+                        stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
+                        sector_epsilon=module.sector_epsilon)

@@ -10,6 +10,8 @@
 //   State begin_slice(px, sl); void step(State&, int side, px, sl, sample);
 //   void end_slice(const State&, px, sl, Sums&); void finish(const Sums&, px, F out[channels]).
 // Sums start at zero; finish gives every lane its value, background lanes included (select on px.live).
+// An accumulator whose state carries across slices (the GLSL shader's occlusion mask) takes the sums so
+// far instead: State begin_slice(px, sl, const Sums&).
 #pragma once
 
 #include "lanes_scalar.h"
@@ -34,6 +36,8 @@ template <class F> TAO_FN void normalize3(const F* x, F* out) {
 }
 // The walk's derivatives' seed on a pixel's own inputs: nothing for plain lanes (lanes_dual.h's for duals)
 template <class F> TAO_FN void seed_pixel(F*, F*, F&) {}
+// and on an accumulator's one differentiable setting (GTAO's falloff or thickness, HBAO's angle bias)
+template <class F> TAO_FN F seed_setting(const F& x) { return x; }
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)
 template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
@@ -68,11 +72,35 @@ TAO_FN float hilbert_r2(int64_t u, int64_t v, int64_t seed, int k) {
   return float(x - double(int64_t(x)));
 }
 
-// Per-pixel noise (SlicePattern._noise; noise: 0 ign, 1 hilbert_r2)
-enum class Noise : int64_t { ign = 0, hilbert_r2 = 1 };
+// Float rounded to float16 and back (round half to even), |x| < 65520: the GLSL mediump evaluation
+TAO_FN float half_round(float x) {
+  if (fabsf(x) < 6.103515625e-05f) return rintf(x * 16777216.0f) / 16777216.0f;  // float16 subnormals: 2^-24 steps
+  uint32_t bits = float_bits(x);
+  bits += 0xfffu + ((bits >> 13) & 1u);  // 13 mantissa bits dropped, to nearest even
+  return bits_float(bits & ~0x1fffu);
+}
 
-// Step placement (SlicePattern.step_offsets, or ShaderStepPattern's)
-enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2 };
+// The SSILVB GLSL shader's randf(int(gl_FragCoord.x), int(gl_FragCoord.y)) - 0.5 at column u, GL row
+// y_gl (from the bottom), in float32 or, mediump, each operation in float16 (bitmask_glsl.glsl_jitter)
+TAO_FN float glsl_jitter(float u, float y_gl, bool mediump) {
+  if (!mediump) {
+    const float s = 0.06711056f * u + 0.00583715f * y_gl;
+    const float g = 52.9829189f * (s - floorf(s));
+    return (g - floorf(g)) - 0.5f;
+  }
+  const float x = half_round(u), y = half_round(y_gl);
+  const float a = half_round(half_round(0.06711056f) * x), b = half_round(half_round(0.00583715f) * y);
+  const float s = half_round(a + b), inner = half_round(s - floorf(s));
+  const float g = half_round(half_round(52.9829189f) * inner);
+  return half_round(g - floorf(g)) - 0.5f;
+}
+
+// Step placement (SlicePattern.step_offsets, ShaderStepPattern's, or the GLSL shader's: GLSLPattern)
+enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3 };
+// The noise of the slice angles and steps (launch.NOISES): Jimenez's interleaved gradient noise (ign),
+// XeGTAO's R2 sequence along a Hilbert curve (hilbert_r2: SlicePattern._noise), or the GLSL shader's one
+// jitter for both (glsl_jitter, in float32 or float16)
+enum class Noise : int64_t { ign = 0, hilbert_r2 = 1, glsl = 2, glsl_mediump = 3 };
 
 struct WalkSettings {
   int64_t slices, steps;
@@ -82,8 +110,8 @@ struct WalkSettings {
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
   bool stagger;  // the step offset shifted per half-slice (SlicePattern.step_noise)
   int64_t seed;
-  Noise noise;
   Steps placement;
+  Noise noise;
   bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
   bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
 };
@@ -101,14 +129,14 @@ struct Image {
   const float *cells, *backface;
 };
 
-// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth, u, v, the step noise xi, and the
-// basis e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise
-// (SlicePattern._noise: 0 without jitter). Lanes past the row's end repeat its
-// last pixel and are not live.
+// L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
+// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), the basis
+// e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise (SlicePattern._noise:
+// 0 without jitter). Lanes past the row's end repeat its last pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
-  F P[3], N[3], V[3], e1[3], e2[3], depth, distance, u, v, xi;  // distance: |P|
+  F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
   float rotation[L];
   M live;
   int64_t row, u0;
@@ -125,7 +153,10 @@ template <class F> struct Pixels {
       lane[7][l] = float(u0 + l);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
       const int64_t col = u0 + l;
-      if (!cfg.jitter) {
+      if (cfg.noise == Noise::glsl || cfg.noise == Noise::glsl_mediump) {  // one jitter, no rotation of its own
+        lane[9][l] = cfg.jitter ? glsl_jitter(float(col), float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
+        rotation[l] = 0.0f;
+      } else if (!cfg.jitter) {
         lane[9][l] = 0.5f, rotation[l] = 0.0f;
       } else if (cfg.noise == Noise::hilbert_r2) {
         lane[9][l] = hilbert_r2(col, row, cfg.seed, 1), rotation[l] = hilbert_r2(col, row, cfg.seed, 0);
@@ -141,6 +172,7 @@ template <class F> struct Pixels {
     }
     depth = from_lanes(lane[6], like);
     seed_pixel(P, N, depth);
+    inverse_depth = F(1.0f) / depth;
     u = from_lanes(lane[7], like);
     v = F(float(row));
     live = from_lanes(lane[8], like) > F(0.5f);
@@ -156,17 +188,30 @@ template <class F> struct Pixels {
 
 // slice_geometry: the slice tangent T, its plane's axis, the projected normal's length, its angle gamma
 // from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
+// (with the GLSL placement only the screen direction and T: the shader places its steps from the
+// direction and measures its own angles)
 template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+  F dir_u, dir_v;  // the slice's screen angle's cos and sin
   int64_t index;
 
   TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) : index(s) {
-    // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
-    float lane[LaneTraits<F>::L];
-    const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
-    for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = (px.rotation[l] + float(s)) * step;
-    const F angle = from_lanes(lane, F(0.0f));
-    const F cs = cos(angle), sn = sin(angle);
+    F angle;
+    if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
+      angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
+    } else {  // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
+      float lane[LaneTraits<F>::L];
+      const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
+      for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = (px.rotation[l] + float(s)) * step;
+      angle = from_lanes(lane, F(0.0f));
+    }
+    F cs, sn;
+    if (cfg.placement == Steps::glsl) {  // (the shader's directions pick texels: as torch's and llvmpipe's, 1 ulp matters)
+      cos_sin_rounded(angle, cs, sn);
+    } else {
+      cs = cos(angle), sn = sin(angle);
+    }
+    dir_u = cs, dir_v = sn;
     if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V
       const F d[3] = {cs, sn, F(0.0f)};
       const F along = dot3(d, px.V);
@@ -176,6 +221,7 @@ template <class F> struct Slice {
     } else {  // tangent_from_view_azimuth
       for (int c = 0; c < 3; ++c) T[c] = cs * px.e1[c] + sn * px.e2[c];
     }
+    if (cfg.placement == Steps::glsl) return;
     cross(T, px.V, axis);
     const F nd = dot3(px.N, axis);
     F np[3];
@@ -218,17 +264,43 @@ template <class F> TAO_FN F step_noise(const WalkSettings& cfg, const Pixels<F>&
   return x - floor(x);
 }
 
-// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern)
-template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, int64_t j) {
-  if (cfg.placement == Steps::hdrp) return (F(float(j + 1)) + xi) * sl.span;
-  if (cfg.placement == Steps::ue4) return clamp_min((F(float(j)) + xi) * sl.span, F(float(j + 1)));
-  F frac = (F(float(j)) + xi) / F(float(cfg.steps));
+// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern) for the
+// step offset xi (step_noise); j in lanes (each lane its own step), or one step for every lane
+template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, const F& j) {
+  if (cfg.placement == Steps::hdrp) return ((j + F(1.0f)) + xi) * sl.span;
+  if (cfg.placement == Steps::ue4) return clamp_min((j + xi) * sl.span, j + F(1.0f));
+  F frac = (j + xi) / F(float(cfg.steps));
   if (cfg.step_power == 2.0f) {
     frac = frac * frac;
   } else if (cfg.step_power != 1.0f) {
     frac = pow(frac, F(cfg.step_power));
   }
   return F(cfg.min_step_px) + sl.span * frac;
+}
+template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, int64_t j) {
+  return step_distance(cfg, sl, xi, F(float(j)));
+}
+
+// Where step j of a slice's side samples, in screen pixels (su, sv), for the side's step offset xi
+// (step_noise): step_distance along the slice's screen direction, or GLSLPattern's texel:
+// uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale (cos, sin) (aspect H / W on x),
+// sampleScale = -radius P[0][0] / position.z, P[0][0] = 2 fx / W, the nearest texel floor(uv * size)
+// clamped to the image (GL rows from the bottom; sampleCount = steps - 1)
+template <class F>
+TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
+                        const F& xi, int64_t j, F& su, F& sv) {
+  if (cfg.placement != Steps::glsl) {
+    const F dist = step_distance(cfg, sl, xi, j);
+    su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
+    return;
+  }
+  const float Wf = float(img.W), Hf = float(img.H);
+  const F scale = F(-cfg.radius * (2.0f * img.fx / Wf)) / px.P[2];
+  const F frag_u = (px.u + F(0.5f)) / F(Wf), frag_v = ((F(Hf - 1.0f) - px.v) + F(0.5f)) / F(Hf);
+  const F f = ((F(float(j)) + xi) / F(float(cfg.steps - 1)) + F(0.01f)) * scale;
+  const F uv_u = frag_u - (f * sl.dir_u) * F(Hf / Wf), uv_v = frag_v - f * sl.dir_v;
+  su = clamp(floor(uv_u * F(Wf)), F(0.0f), F(Wf - 1.0f));
+  sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
 }
 
 // One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
@@ -254,11 +326,15 @@ template <class F> struct Sample {
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 
+  // the sample dist pixels from the pixel along the slice's side
   TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
-                const F& dist) {
+                const F& dist)
+      : Sample(cfg, img, px, px.u + dist * (sl.unit_u * F(side)), px.v + dist * (sl.unit_v * F(side))) {}
+
+  // the sample at screen (su, sv)
+  TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv) {
     const F Wf = F(float(img.W)), Hf = F(float(img.H));
     const I zero = I(0), Wi = I(int32_t(img.W)), Wlast = I(int32_t(img.W - 1)), Hlast = I(int32_t(img.H - 1)), one = I(1);
-    const F su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
     F pos[3];
     bilinear = cfg.bilinear;
     image = &img;
@@ -303,8 +379,7 @@ template <class F> struct Sample {
       const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);
       index[0] = iv * Wi + iu;
       index[1] = index[2] = index[3] = index[0];
-      const F t = tao::gather(img.inverse, index[0]);
-      valid = t == t;
+      valid = gather_flag(img.valid, index[0]);  // (as the inverse depth's NaN: 4x fewer bytes to fetch)
       if (cfg.drop) valid = land(valid, land(land(fu0 >= F(0.0f), fu0 < Wf), land(fv0 >= F(0.0f), fv0 < Hf)));
       for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
     }
@@ -312,31 +387,61 @@ template <class F> struct Sample {
     // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
     // (relative to the depth, so that no square of a large depth is taken)
     F rel[3];
-    for (int c = 0; c < 3; ++c) rel[c] = delta[c] / px.depth;
+    for (int c = 0; c < 3; ++c) rel[c] = delta[c] * px.inverse_depth;
     valid = land(valid, dot3(rel, rel) > F(1e-20f));
     if (cfg.edge_aware) valid = land(valid, lnot(own));
     for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], neg(px.V[c]));
   }
 };
 
-// GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: for each slice, each side (one
-// with full_circle), each step; out[c] receives channel c of every lane.
+// acc.begin_slice(px, sl, sums) where the accumulator takes the sums so far, else acc.begin_slice(px, sl)
+template <class Acc, class F, class S>
+TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& sl, const S& sums, int)
+    -> decltype(acc.begin_slice(px, sl, sums)) {
+  return acc.begin_slice(px, sl, sums);
+}
+template <class Acc, class F, class S>
+TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& sl, const S&, long)
+    -> decltype(acc.begin_slice(px, sl)) {
+  return acc.begin_slice(px, sl);
+}
+
+// Nothing to do after a step (walk_slice's visitor of the plain walk)
+struct NoVisit {
+  template <class... T> TAO_FN void operator()(const T&...) const {}
+};
+
+// One slice of GTAO's Algorithm 1 (march's loop): for each side (one with full_circle), each step; after
+// each step visit(side, j, sample, state before the step, state after it)
+template <class F, class Acc, class Visit>
+TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc, const Pixels<F>& px,
+                       const Slice<F>& sl, typename Acc::template State<F>& state, Visit& visit) {
+  for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
+    const F xi = step_noise(cfg, px, sl, side);
+    for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
+      F su, sv;
+      step_screen(cfg, img, px, sl, float(side), xi, j, su, sv);
+      const Sample<F> sample(cfg, img, px, su, sv);
+      const typename Acc::template State<F> before = state;
+      acc.step(state, side, px, sl, sample);
+      visit(side, j, sample, before, state);
+    }
+  }
+}
+
+// GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: every slice's walk (walk_slice);
+// out[c] receives channel c of every lane.
 template <class F, class Acc>
 TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
                        F* out) {
   const Pixels<F> px(cfg, img, row, u0, n);
   typename Acc::template Sums<F> sums;
   if (any(px.live)) {
+    NoVisit none;
     for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
       const Slice<F> sl(cfg, img, px, s);
-      typename Acc::template State<F> state = acc.begin_slice(px, sl);
-      for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
-        const F xi = step_noise(cfg, px, sl, side);
-        for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
-          const Sample<F> sample(cfg, img, px, sl, float(side), step_distance(cfg, sl, xi, j));
-          acc.step(state, side, px, sl, sample);
-        }
-      }
+      typename Acc::template State<F> state = begin_slice_of(acc, px, sl, sums, 0);
+      walk_slice(cfg, img, acc, px, sl, state, none);
       acc.end_slice(state, px, sl, sums);
     }
   }

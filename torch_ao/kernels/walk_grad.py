@@ -1,16 +1,21 @@
-"""The one walk with a backward: GTAO's exact variant as a ``torch.autograd.Function`` over the walk's
-channel-last inputs (positions, normals, inverse depth, depth), so that autograd chains its gradients to
-the G-buffer through :func:`~torch_ao.kernels.frame.walk_inputs`' torch ops.
+"""The one walk with a backward: the horizon accumulators (GTAO's variants, HBAO) as a
+``torch.autograd.Function`` over the walk's channel-last inputs (positions, normals, inverse depth, depth),
+so that autograd chains its gradients to the G-buffer through :func:`~torch_ao.kernels.frame.walk_inputs`'
+torch ops.
 
-The backward (``torch_ao_kernels::walk_backward``, walk_grad_cpu.cpp) walks again in dual lanes
-(lanes_dual.h): forward-mode tangents on each pixel's own position, normal and depth, and on each
-horizon's winning sample, whose taps it scatters into (bilinear: the inverse depth of its four taps;
-nearest: the tap's position).
+The backward (``torch_ao_kernels::walk_backward``, walk_grad_cpu.cpp) walks each slice in plain lanes,
+recording the steps that changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises),
+then replays the slice through those steps alone in dual lanes (lanes_dual.h): forward-mode tangents on
+each pixel's own position, normal and depth, on the accumulator's setting (``setting``: GTAO's falloff or
+thickness, HBAO's angle bias) and on each replayed sample, whose taps it scatters into (bilinear: the
+inverse depth of its four taps; nearest: the tap's position).
 
 The radius needs no tangent of its own: the walk is scale-invariant (scaling positions, depth and every
 length setting by s leaves its outputs as they are: screen positions, angles and the falloff ratio do not
 change; step settings are in pixels), so for L = sum(grad * out) Euler's identity gives
-``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)`` over the walk's inputs.
+``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - [falloff dL/dfalloff]`` over the
+walk's inputs, the last term where the setting is a length (GTAO's falloff, which has its own input).
+UE4's variant is not scale-invariant (its ``rsqrt(|d|^2 + 1e-4)``): its radius has no gradient here.
 """
 from __future__ import annotations
 
@@ -29,40 +34,50 @@ class _Walk(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, ints, floats, channels,
-                scalar, radius):
+                scalar, radius, setting, setting_is_length):
         none = torch.empty(0)
-        ctx.accumulator, ctx.scalar = accumulator, scalar
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius)
+        ctx.accumulator, ctx.scalar, ctx.setting_is_length = accumulator, scalar, setting_is_length
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting)
         return cpu_kernels().walk(accumulator, positions, normals, inverse, depth, valid, intrinsics, none, none,
                                   none, ints, floats, channels, scalar)
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius = ctx.saved_tensors
-        g_pos, g_nrm, g_inv, g_depth = grad_kernels().walk_backward(
+        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting = ctx.saved_tensors
+        g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
             ctx.accumulator, grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid,
             intrinsics, ints, floats, ctx.scalar)
+        along_setting = g_setting.to(torch.float64).sum()
         g_radius = None
-        if ctx.needs_input_grad[-1]:  # Euler's identity (module docstring); invalid texels hold NaN
+        if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN
             along = (g_pos * positions).sum() + (g_depth * depth).sum() - torch.where(valid, g_inv * inverse, 0.0).sum()
+            if ctx.setting_is_length:
+                along = along + setting.to(torch.float64) * along_setting
             g_radius = (-along / radius).to(radius.dtype)
-        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, g_radius
+        g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[12] else None
+        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, g_radius, g_out, None
 
 
-def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, radius=None) -> bool:
-    """Whether autograd records through the walk's inputs (grad mode on, the depth, normals or the
-    ``radius`` tensor requiring it)."""
+def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool:
+    """Whether autograd records through the walk's inputs (grad mode on, the depth, normals or one of the
+    ``parameters`` tensors requiring it)."""
     return torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and t.requires_grad
-                                           for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, normals, radius))
+                                           for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, normals,
+                                                     *parameters))
 
 
 def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor,
                         settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list, channels: int,
-                        *, radius: torch.Tensor | float, lanes: str = "simd") -> torch.Tensor:
+                        *, radius: torch.Tensor | float, setting: torch.Tensor | float = 0.0,
+                        setting_is_length: bool = False, lanes: str = "simd") -> torch.Tensor:
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU G-buffer with autograd history: gradients reach
     ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs. ``accumulator``:
-    ``"gtao"`` (the exact variant, bilinear fetch, dropped border). ``radius``: the 0-d tensor every length
-    setting is proportional to (GTAO's radius), which receives its gradient, or a number."""
+    ``"gtao"`` or ``"hbao"`` (any fetch but the edge-aware one, either border). ``radius``: the 0-d tensor
+    every length setting is proportional to, which receives its gradient, or a number. ``setting``: the 0-d
+    tensor (or number) of the accumulator's one differentiable setting, whose value ``acc_floats`` holds
+    (GTAO's falloff in world units, ``setting_is_length``, or thickness; HBAO's angle bias), which
+    receives its gradient."""
     inputs, _, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
-    radius = torch.as_tensor(radius)
-    return _Walk.apply(accumulator, *inputs, ints, floats, int(channels), scalar_lanes(lanes), radius)
+    radius, setting = torch.as_tensor(radius), torch.as_tensor(setting)
+    return _Walk.apply(accumulator, *inputs, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
+                       bool(setting_is_length))

@@ -1,14 +1,26 @@
-// The backward of the one walk for GTAO's exact variant (torch_ao_kernels::walk_backward): the walk of
-// walk.h run once more in dual lanes (lanes_dual.h), which gives
-//  - each pixel's outputs' derivatives with respect to its own position, normal and depth (tangents
-//    0..6, seeded in Pixels), the sample positions' and bilinear weights' dependence on them included;
-//  - per slice and side, the derivatives with respect to the horizon's winning sample's offset delta
-//    (tangents 7..9, seeded on every sample: the horizon is a minimum, so the tangents that survive are
-//    the winner's; each side's horizon keeps its own, taken out before the slice's integral, which then
-//    runs with tangents 7 and 8 on the two horizons). They are chained to the winner's taps: for a
-//    bilinear fetch delta = pos - P with pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a
-//    nearest fetch reads the tap's position itself. Scattered into per-thread images, summed at the end.
-// The outputs' upstream gradient is read per pixel before the walk, so nothing per sample is stored.
+// The backward of the one walk (torch_ao_kernels::walk_backward) for the horizon accumulators of
+// horizon.h (GTAO's three variants, HBAO), any fetch but the edge-aware one, either border. Per slice:
+//  1. the plain walk (walk.h's walk_slice in plain lanes) records, per lane and side, the steps that
+//     changed the accumulator's state (its "takes"; every valid step where acc.blends_every_sample(): UE4's
+//     thickness blend): a step that leaves the state as it was is the identity, so only the takes carry
+//     gradients. Where a take replaces the state (acc.replaces(): GTAO's
+//     exact minimum, HBAO's highest rise), only each side's last take is kept.
+//  2. the slice is replayed in dual lanes (lanes_dual.h) through those takes alone (each lane its own step,
+//     step_distance in lanes): begin_slice, the takes' samples and steps, end_slice. Tangents 0..6 are the
+//     pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's setting (seed_setting:
+//     GTAO's falloff or thickness, HBAO's angle bias), which give its outputs' derivatives with respect to them, the samples' screen positions and bilinear weights included; before every take the
+//     state's S components and the sample's delta get fresh tangents, so that the step's local Jacobians
+//     d state' / d state (S x S) and d state' / d delta (S x 3) come out of it.
+//  3. the outputs' derivatives with respect to the final state, swept back through the takes' Jacobians,
+//     give each take's d loss / d delta, chained to its taps: for a bilinear fetch delta = pos - P with
+//     pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's
+//     position itself. Scattered into per-thread images, summed at the end.
+// Ties: a step whose candidate equals the state leaves it unchanged, so the earlier sample keeps the
+// gradient (the tensor path's torch.minimum splits it between them; tied samples of one texel give both
+// the same total).
+// The soft / straight-through bitmask walk's backward (torch_ao_kernels::soft_backward) is soft.h's
+// SoftAdjoint over the same walk: value lanes with the pixel and its slices in dual lanes (tangents 0..6),
+// each step's d / d delta scattered to its taps as above.
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -19,6 +31,7 @@
 #include <algorithm>
 #include <string>
 #include <tuple>
+#include <vector>
 
 #include "lanes_simd.h"
 #include "lanes_dual.h"
@@ -30,37 +43,109 @@ namespace {
 
 using namespace tao;
 
-constexpr int kOwn = 7;                  // tangents of the pixel's own P (3), N (3), depth (1)
-constexpr int kTangents = kOwn + 3;      // and of a side's winning sample's delta
+// tangents of the pixel's own P (3), N (3), depth (1) (seed_pixel) and of the accumulator's setting
+// (seed_setting: the horizon accumulators')
+constexpr int kPixel = 7, kOwn = kPixel + 1;
 
 inline bool mask_lane(bool m, int) { return m; }
 inline bool mask_lane(const Vec& m, int l) { return lane_on(m, l); }
 inline void store_lanes(uint32_t x, int32_t* out) { out[0] = int32_t(x); }
 inline void store_lanes(const IVec& x, int32_t* out) { x.store(out); }
 
+// An accumulator's state as its S components (its State is an aggregate of lane values)
+template <class Acc, class F> constexpr int state_size() {
+  static_assert(sizeof(typename Acc::template State<F>) % sizeof(F) == 0, "State: lane values only");
+  return int(sizeof(typename Acc::template State<F>) / sizeof(F));
+}
+template <class State, class F> F* components(State& s) { return reinterpret_cast<F*>(&s); }
+
 // Where the gradients go: the pixel's own (written once per pixel) and the taps' (this thread's images)
 struct Targets {
-  float *positions, *normals, *depth;  // own: (H, W, 3), (H, W, 3), (H, W) of image b
+  float *positions, *normals, *depth, *setting;  // own: (H, W, 3), (H, W, 3), (H, W), (H, W) of image b
   float *tap_positions, *tap_inverse;  // scattered: (H, W, 3), (H, W) of image b, this thread's
 };
 
-// The horizon's winner on one side: its taps and weights, its position (values only)
-template <class B> struct Winner {
-  using M = typename LaneTraits<B>::M;
+// Pass 1's record of a slice: per side and lane the steps that changed the state (the last one alone
+// where a take replaces the state)
+template <class B, class Acc> struct Takes {
+  using State = typename Acc::template State<B>;
+  static constexpr int L = LaneTraits<B>::L;
+  static constexpr int S = state_size<Acc, B>();
+  const Acc& acc;
+  const typename LaneTraits<B>::M& live;
+  int64_t steps;
+  std::vector<float>& step;  // [side][take][lane]: the take's step j
+  int count[2][L];
+
+  Takes(const Acc& a, const typename LaneTraits<B>::M& l, int64_t n, std::vector<float>& scratch)
+      : acc(a), live(l), steps(n), step(scratch) {
+    for (auto& side : count) std::fill(side, side + L, 0);
+  }
+  int most(int k) const { return *std::max_element(count[k], count[k] + L); }
+  float* at(int k, int t) { return step.data() + (k * steps + t) * L; }
+
+  void operator()(int side, int64_t j, const Sample<B>& sample, const State& before, const State& after) {
+    auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
+    const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
+    for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
+    changed = land(changed, live);
+    if (!any(changed)) return;
+    const int k = side > 0 ? 0 : 1;
+    for (int l = 0; l < L; ++l) {
+      if (!mask_lane(changed, l)) continue;
+      const int t = acc.replaces() ? 0 : count[k][l]++;
+      if (acc.replaces()) count[k][l] = 1;
+      at(k, t)[l] = float(j);
+    }
+  }
+};
+
+// One take replayed: its step's Jacobians and its fetch (values only)
+template <class B, int S> struct Take {
   using I = typename LaneTraits<B>::I;
+  B along_state[S][S], along_delta[S][3];  // d state'[m] / d state[m'], d state'[m] / d delta[c]
   I index[4];
   B fu, fv, pos[3];
-  M has;
+  typename LaneTraits<B>::M has;
 };
+
+// d L / d delta of a sample (g_delta) scattered to its fetch's taps, on the lanes in `on` of the first n: a
+// bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k, pos the fetched position, w_k the
+// weights of fu, fv), a nearest fetch's position (index[0])
+template <class B>
+void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, const B* pos, const B& fu, const B& fv,
+                  const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on) {
+  if (!any(on)) return;
+  constexpr int L = LaneTraits<B>::L;
+  float gl[3][L], pl[3][L], ful[L], fvl[L];
+  int32_t il[4][L];
+  for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(pos[c], pl[c]);
+  to_lanes(fu, ful), to_lanes(fv, fvl);
+  for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
+  for (int l = 0; l < n; ++l) {
+    if (!mask_lane(on, l)) continue;
+    if (bilinear) {
+      const float u = ful[l], v = fvl[l];
+      const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
+      const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
+      for (int i = 0; i < 4; ++i) t.tap_inverse[il[i][l]] += along * weight[i];
+    } else {
+      for (int c = 0; c < 3; ++c) t.tap_positions[3 * il[0][l] + c] += gl[c][l];
+    }
+  }
+}
 
 template <class B, class Acc>
 void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
-                const float* const* upstream, int C, const Targets& t) {
-  using D = Dual<B, kTangents>;
-  using M = typename LaneTraits<B>::M;
+                const float* const* upstream, int C, const Targets& t, std::vector<float>& take_steps,
+                std::vector<Take<B, state_size<Acc, B>()>>& replayed) {
+  constexpr int S = state_size<Acc, B>(), kState = kOwn, kDelta = kOwn + S, N = kDelta + 3;
   constexpr int L = LaneTraits<B>::L;
-  const Pixels<D> px(cfg, img, row, u0, n);
+  using D = Dual<B, N>;
+  using StateD = typename Acc::template State<D>;
+  const Pixels<B> px(cfg, img, row, u0, n);
   if (!any(px.live)) return;
+  const Pixels<D> pxd(cfg, img, row, u0, n);
   B g[8];
   {
     float lane[L];
@@ -71,65 +156,74 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
   }
   B own[kOwn];
   for (int k = 0; k < kOwn; ++k) own[k] = B(0.0f);
-  const M none = B(0.0f) > B(1.0f);
-  for (int64_t s = 0; s < cfg.slices; ++s) {
-    const Slice<D> sl(cfg, img, px, s);
-    typename Acc::template State<D> state = acc.begin_slice(px, sl);
-    Winner<B> win[2];
-    for (int k = 0; k < 2; ++k) {
-      win[k].has = none;
-      for (int i = 0; i < 4; ++i) win[k].index[i] = typename LaneTraits<B>::I(0);
-      win[k].fu = win[k].fv = B(0.0f);
-      for (int c = 0; c < 3; ++c) win[k].pos[c] = B(0.0f);
+  // fresh tangents on the state's components (and none on a delta)
+  auto reseed = [&](StateD& st) {
+    D* x = components<StateD, D>(st);
+    for (int m = 0; m < S; ++m) {
+      for (int q = kState; q < N; ++q) x[m].d[q] = B(0.0f);
+      x[m].d[kState + m] = B(1.0f);
     }
+  };
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    Takes<B, Acc> takes(acc, px.live, cfg.steps, take_steps);
+    {
+      const Slice<B> sl(cfg, img, px, s);
+      typename Acc::template State<B> state = acc.begin_slice(px, sl);
+      walk_slice(cfg, img, acc, px, sl, state, takes);
+    }
+    const Slice<D> sl(cfg, img, pxd, s);
+    StateD state = acc.begin_slice(pxd, sl);
+    replayed.clear();
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
       const int k = side > 0 ? 0 : 1;
-      Winner<B>& w = win[k];
-      const D xi = step_noise(cfg, px, sl, side);
-      for (int64_t j = 0; j < cfg.steps; ++j) {
-        Sample<D> smp(cfg, img, px, sl, float(side), step_distance(cfg, sl, xi, j));
-        for (int c = 0; c < 3; ++c) smp.delta[c].d[kOwn + c] = B(1.0f);
-        const B before = state.best[k].v;
-        acc.step(state, side, px, sl, smp);
-        const M took = state.best[k].v < before;
-        for (int i = 0; i < 4; ++i) w.index[i] = select(took, smp.index[i], w.index[i]);
-        w.fu = select(took, smp.fu.v, w.fu), w.fv = select(took, smp.fv.v, w.fv);
-        for (int c = 0; c < 3; ++c) w.pos[c] = select(took, smp.delta[c].v + px.P[c].v, w.pos[c]);
-        w.has = lor(w.has, took);
+      const D xi = step_noise(cfg, pxd, sl, side);
+      for (int q = 0, most = takes.most(k); q < most; ++q) {
+        float has_lane[L];
+        for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
+        const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
+        const D j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
+        Sample<D> smp(cfg, img, pxd, sl, float(side), step_distance(cfg, sl, xi, j));
+        smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
+        for (int c = 0; c < 3; ++c) smp.delta[c].d[kDelta + c] = B(1.0f);
+        reseed(state);
+        acc.step(state, side, pxd, sl, smp);
+        Take<B, S> take;
+        const D* x = components<StateD, D>(state);
+        for (int m = 0; m < S; ++m) {
+          for (int q2 = 0; q2 < S; ++q2) take.along_state[m][q2] = x[m].d[kState + q2];
+          for (int c = 0; c < 3; ++c) take.along_delta[m][c] = x[m].d[kDelta + c];
+        }
+        for (int i = 0; i < 4; ++i) take.index[i] = smp.index[i];
+        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, px.live);
+        for (int c = 0; c < 3; ++c) take.pos[c] = smp.delta[c].v + pxd.P[c].v;
+        replayed.push_back(take);
       }
     }
-    B along_delta[2][3];  // d best[k] / d delta of its winner; then tangents kOwn + k probe best[k]
-    for (int k = 0; k < 2; ++k)
-      for (int c = 0; c < 3; ++c) along_delta[k][c] = state.best[k].d[kOwn + c], state.best[k].d[kOwn + c] = B(0.0f);
-    state.best[0].d[kOwn] = state.best[1].d[kOwn + 1] = B(1.0f);
+    reseed(state);  // tangents kState.. now probe the final state
     typename Acc::template Sums<D> part;
-    acc.end_slice(state, px, sl, part);
+    acc.end_slice(state, pxd, sl, part);
     D outs[8];
-    acc.finish(part, px, outs);  // linear in the sums: the slice's share of the outputs
+    acc.finish(part, pxd, outs);  // linear in the sums: the slice's share of the outputs
     for (int k = 0; k < kOwn; ++k)
       for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
-    for (int k = 0; k < 2; ++k) {  // the winners' taps
+    B adjoint[S];  // d loss / d state after the take being swept
+    for (int m = 0; m < S; ++m) {
+      adjoint[m] = B(0.0f);
+      for (int c = 0; c < C; ++c) adjoint[m] = adjoint[m] + g[c] * outs[c].d[kState + m];
+    }
+    for (auto take = replayed.rbegin(); take != replayed.rend(); ++take) {
       B gd[3];
-      B along_best = B(0.0f);
-      for (int ch = 0; ch < C; ++ch) along_best = along_best + g[ch] * outs[ch].d[kOwn + k];
-      for (int c = 0; c < 3; ++c) gd[c] = along_best * along_delta[k][c];
-      const Winner<B>& w = win[k];
-      float gl[3][L], pl[3][L], ful[L], fvl[L];
-      int32_t il[4][L];
-      for (int c = 0; c < 3; ++c) to_lanes(gd[c], gl[c]), to_lanes(w.pos[c], pl[c]);
-      to_lanes(w.fu, ful), to_lanes(w.fv, fvl);
-      for (int i = 0; i < 4; ++i) store_lanes(w.index[i], il[i]);
-      for (int l = 0; l < n; ++l) {
-        if (!mask_lane(w.has, l) || !mask_lane(px.live, l)) continue;
-        if (cfg.bilinear) {
-          const float fu = ful[l], fv = fvl[l];
-          const float weight[4] = {(1.0f - fu) * (1.0f - fv), fu * (1.0f - fv), (1.0f - fu) * fv, fu * fv};
-          const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
-          for (int i = 0; i < 4; ++i) t.tap_inverse[il[i][l]] += along * weight[i];
-        } else {
-          for (int c = 0; c < 3; ++c) t.tap_positions[3 * il[0][l] + c] += gl[c][l];
-        }
+      for (int c = 0; c < 3; ++c) {
+        gd[c] = B(0.0f);
+        for (int m = 0; m < S; ++m) gd[c] = gd[c] + adjoint[m] * take->along_delta[m][c];
       }
+      B before[S];
+      for (int q = 0; q < S; ++q) {
+        before[q] = B(0.0f);
+        for (int m = 0; m < S; ++m) before[q] = before[q] + adjoint[m] * take->along_state[m][q];
+      }
+      std::copy(before, before + S, adjoint);
+      scatter_taps(cfg.bilinear, n, t, gd, take->pos, take->fu, take->fv, take->index, take->has);
     }
   }
   float ol[kOwn][L];
@@ -137,7 +231,7 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
   for (int l = 0; l < n; ++l) {
     const int64_t p = row * img.W + u0 + l;
     for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l];
+    t.depth[p] = ol[6][l], t.setting[p] = ol[7][l];
   }
 }
 
@@ -146,60 +240,170 @@ void check_input(const at::Tensor& x, const char* name) {
               ": expected contiguous float32 on the CPU");
 }
 
+// Where a backward's gradients go: the pixels' own (positions, normals, depth, the accumulator's setting)
+// and the taps' (per thread)
+struct Gradients {
+  at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse;
+
+  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W) {
+    const int64_t threads = at::get_num_threads();
+    positions = at::zeros({B, H, W, 3}, like.options()), normals = at::zeros({B, H, W, 3}, like.options());
+    depth = at::zeros({B, H, W}, like.options()), setting = at::zeros({B, H, W}, like.options());
+    tap_positions = at::zeros({threads, B, H, W, 3}, like.options());
+    tap_inverse = at::zeros({threads, B, H, W}, like.options());
+  }
+  Targets targets(int64_t b, int64_t B, int64_t plane, int64_t thread) {
+    return Targets{positions.data_ptr<float>() + 3 * b * plane, normals.data_ptr<float>() + 3 * b * plane,
+                   depth.data_ptr<float>() + b * plane, setting.data_ptr<float>() + b * plane,
+                   tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
+                   tap_inverse.data_ptr<float>() + (thread * B + b) * plane};
+  }
+  // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image
+  at::Tensor reduce() {
+    float *pos = positions.data_ptr<float>(), *tp = tap_positions.data_ptr<float>(), *ti = tap_inverse.data_ptr<float>();
+    const int64_t threads = tap_positions.size(0), n_pos = positions.numel(), n_inv = depth.numel();
+    for (int64_t k = 1; k < threads; ++k) {
+      for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
+      for (int64_t q = 0; q < n_inv; ++q) ti[q] += ti[k * n_inv + q];
+    }
+    for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
+    return tap_inverse[0];
+  }
+};
+
+// A backward's packed settings: n_ints and n_floats of the accumulator's after the walk's
+void check_settings(const at::Tensor& ints, const at::Tensor& floats, int64_t n_ints, int64_t n_floats,
+                    const char* name) {
+  check_input(floats, "floats");
+  TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() == kAccInts + n_ints &&
+                  floats.numel() == kAccFloats + n_floats, "ints, floats: expected ", name, "'s packed settings");
+}
+
+// The upstream gradient: (B, C, H, W) of positions' B, H, W
+void check_grad(const at::Tensor& grad, const at::Tensor& positions, int C) {
+  check_input(grad, "grad");
+  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2);
+  TORCH_CHECK(grad.dim() == 4 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == H && grad.size(3) == W,
+              "grad: expected (B, ", C, ", H, W)");
+}
+
+// The gradients of every row's blocks: SIMD or scalar lanes, a record of the takes per row
+template <class Acc>
+void grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, Gradients& out,
+                bool scalar) {
+  constexpr int L = LaneTraits<Vec>::L;
+  const int64_t B = fr.B, plane = fr.H * fr.W;
+  torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+    thread_local std::vector<float> take_steps;
+    thread_local std::vector<Take<Lane, state_size<Acc, Lane>()>> replayed;
+    take_steps.resize(size_t(2 * cfg.steps * LaneTraits<Lane>::L));
+    const float* upstream[8];
+    for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
+    grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, upstream, C, out.targets(b, B, plane, at::get_thread_num()),
+                     take_steps, replayed);
+  });
+}
+
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
-// positions, normals (B, H, W, 3), inverse depth and depth (B, H, W); grad (B, C, H, W)
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
+// positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
+// accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao" or "hbao" with walk()'s packed settings
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
     const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  TORCH_CHECK(std::string(accumulator) == "gtao", "accumulator: the backward covers gtao, got ", std::string(accumulator));
+  const std::string name(accumulator);
+  TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: the backward covers gtao and hbao, got ", name);
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
-  for (auto [x, name] : {std::pair{&grad, "grad"}, {&floats, "floats"}}) check_input(*x, name);
-  TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() == kAccInts + 3 &&
-                  floats.numel() == kAccFloats + 3, "ints, floats: expected gtao's packed settings");
+  check_settings(ints, floats, 3, name == "gtao" ? 3 : 2, name.c_str());
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
-  const GTAOAccumulator acc = unpack_gtao(i, f);
-  TORCH_CHECK(acc.variant == GTAOVariant::exact, "variant: the backward covers the exact variant");
-  TORCH_CHECK(!cfg.edge_aware && !cfg.full_circle, "the backward covers the bilinear and nearest fetch, one half circle");
-  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
-  const int C = acc.channels();
-  TORCH_CHECK(grad.dim() == 4 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == H && grad.size(3) == W,
-              "grad: expected (B, ", C, ", H, W)");
-  at::Tensor g_pos = at::zeros({B, H, W, 3}, positions.options()), g_nrm = at::zeros({B, H, W, 3}, positions.options());
-  at::Tensor g_depth = at::zeros({B, H, W}, positions.options());
-  const int64_t threads = at::get_num_threads();
-  at::Tensor tap_pos = at::zeros({threads, B, H, W, 3}, positions.options());
-  at::Tensor tap_inv = at::zeros({threads, B, H, W}, positions.options());
-  const float* gp = grad.data_ptr<float>();
-  torch_ao_rows::for_each_row(B, H, [&](int64_t b, int64_t row) {
-    const int64_t thread = at::get_thread_num();
-    const Image img = fr.image(b);
-    const float* upstream[8];
-    for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
-    const Targets t{g_pos.data_ptr<float>() + 3 * b * plane, g_nrm.data_ptr<float>() + 3 * b * plane,
-                    g_depth.data_ptr<float>() + b * plane,
-                    tap_pos.data_ptr<float>() + (thread * B + b) * 3 * plane,
-                    tap_inv.data_ptr<float>() + (thread * B + b) * plane};
-    if (scalar) {
-      for (int64_t u = 0; u < W; ++u) grad_block<float>(cfg, img, acc, row, u, 1, upstream, C, t);
-      return;
-    }
-    constexpr int L = LaneTraits<Vec>::L;
-    for (int64_t u0 = 0; u0 < W; u0 += L)
-      grad_block<Vec>(cfg, img, acc, row, u0, int(std::min<int64_t>(L, W - u0)), upstream, C, t);
-  });
-  // the threads' tap images summed (into the first)
-  float *pos = g_pos.data_ptr<float>(), *tp = tap_pos.data_ptr<float>(), *ti = tap_inv.data_ptr<float>();
-  const int64_t n_pos = 3 * B * plane, n_inv = B * plane;
-  for (int64_t k = 1; k < threads; ++k) {
-    for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
-    for (int64_t q = 0; q < n_inv; ++q) ti[q] += ti[k * n_inv + q];
+  TORCH_CHECK(!cfg.edge_aware, "fetch: the backward covers the bilinear and nearest fetch, not the edge-aware one");
+  Gradients out(positions, fr.B, fr.H, fr.W);
+  auto run = [&](const auto& acc) {
+    check_grad(grad, positions, acc.channels());
+    grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), out, scalar);
+  };
+  if (name == "gtao") {
+    TORCH_CHECK(i[kAccInts] >= 0 && i[kAccInts] <= 2, "variant: expected 0 (exact), 1 (hdrp) or 2 (ue4)");
+    run(unpack_gtao(i, f));
+  } else {
+    run(unpack_hbao(i, f));
   }
-  for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
-  return {g_pos, g_nrm, tap_inv[0], g_depth};
+  at::Tensor g_inv = out.reduce();
+  return {out.positions, out.normals, g_inv, out.depth, out.setting};
+}
+
+// The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
+template <class B> struct TapSink {
+  bool bilinear;
+  int n;
+  const Targets& t;
+
+  template <class State> void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on) {
+    const B pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
+    const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
+    scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on);
+  }
+};
+
+// The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
+// slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
+// d L / d thickness written per pixel
+template <class B>
+void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc, int64_t row,
+                     int64_t u0, int n, const float* upstream, const Targets& t) {
+  using D = Dual<B, kPixel>;
+  constexpr int L = LaneTraits<B>::L;
+  float lane[L];
+  for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
+  const B g = from_lanes(lane, B(0.0f));
+  TapSink<B> sink{cfg.bilinear, n, t};
+  const Pixels<D> pd(cfg, img, row, u0, n);
+  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
+  B outs[8];
+  walk_block(cfg, img, adjoint, row, u0, n, outs);
+  float ol[8][L];
+  for (int k = 0; k < 8; ++k) to_lanes(g * outs[k], ol[k]);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * img.W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l];
+    t.setting[p] = ol[7][l];  // d L / d thickness
+  }
+}
+
+// torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
+// walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
+// depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W)
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
+    const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& ints,
+    const at::Tensor& floats, bool scalar) {
+  const at::Tensor none = at::empty({0}, positions.options());
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  check_settings(ints, floats, 3, 3, "soft");
+  check_grad(grad, positions, 1);
+  const int64_t* i = ints.data_ptr<int64_t>();
+  const float* f = floats.data_ptr<float>();
+  const WalkSettings cfg = unpack_walk(i, f);
+  TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
+  TORCH_CHECK(cfg.steps <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
+  TORCH_CHECK(cfg.placement == Steps::power && !cfg.edge_aware && !cfg.full_circle,
+              "soft_backward: the power step placement, the bilinear or nearest fetch, one half circle");
+  const SoftAccumulator<true, true> acc = unpack_soft<true, true>(i, f);
+  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
+  Gradients out(positions, B, H, W);
+  const float* gp = grad.data_ptr<float>();
+  constexpr int L = LaneTraits<Vec>::L;
+  torch_ao_rows::for_each_block<L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+    soft_grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, gp + b * plane, out.targets(b, B, plane, at::get_thread_num()));
+  });
+  at::Tensor g_inv = out.reduce();
+  return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
 
 }  // namespace
@@ -207,6 +411,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.def("walk_backward(str accumulator, Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, "
         "Tensor depth, Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, bool scalar) "
-        "-> (Tensor, Tensor, Tensor, Tensor)");
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
+  m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
+        "Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, bool scalar) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+  m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
 }

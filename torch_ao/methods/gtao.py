@@ -311,7 +311,7 @@ class GTAO(ScreenSpaceAO):
                "radius in 3D (exact convergence needs >= depth(pixel) / depth(occluder))", minimum=1.0),
     )
     SAMPLING = Sampling.options_for(fetch=None, border=None, azimuth=None)
-    has_kernel = "gtao"  # forward without gradients in torch_ao.kernels (gtao_covers says which calls)
+    has_kernel = "gtao"  # forward and backward in torch_ao.kernels (gtao_covers says which calls)
 
     @classmethod
     def parse_options(cls, options):

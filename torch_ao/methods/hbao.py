@@ -113,7 +113,7 @@ class HBAO(ScreenSpaceAO):
     # (directions over the full circle: no projected-normal slice density, which covers a half circle)
     SAMPLING = Sampling.options_for(tuple(o.name for o in Sampling.OPTIONS if o.name != "slice_sampling"),
                                     azimuth="screen")
-    has_kernel = "hbao"  # forward without gradients in torch_ao.kernels (hbao_covers says which calls)
+    has_kernel = "hbao"  # forward and backward in torch_ao.kernels (hbao_covers says which calls)
 
     def __init__(self, **options) -> None:
         super().__init__(**options)

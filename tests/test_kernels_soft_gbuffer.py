@@ -1,0 +1,178 @@
+"""The soft / straight-through kernel's G-buffer gradients (walk_grad_cpu.cpp's soft_backward: the walk with
+soft.h's end_slice_adjoint) against the tensor-op walk's autograd in float64: values within 1e-5, gradients of
+depth, normals, a position buffer, radius and thickness within 1e-4 relative, in SIMD and scalar lanes; directional
+derivatives against central differences (gradcheck's fast mode); what it covers."""
+import pytest
+import torch
+
+from test_kernels import FRAMES, built, pytestmark  # noqa: F401 (the fixture, the skip)
+from test_kernels_soft import SETTINGS, _loss_weights
+from torch_ao.camera import PinholeCamera
+from torch_ao.examples import example_gbuffer, floor_wall_gbuffer
+from torch_ao.gbuffer import GBuffer
+from torch_ao.kernels import bitmask_soft
+import torch_ao.kernels.soft_bitmask as soft_module
+from torch_ao.methods.bitmask import BitmaskAO
+
+
+def _soft(gb: GBuffer, normals: torch.Tensor, m: BitmaskAO, lanes: str) -> torch.Tensor:
+    """The kernel's visibility with ``m``'s options (its radius and thickness parameters)."""
+    return bitmask_soft(gb, normals, slices=m.slices, steps=m.steps, radius=m.radius, thickness=m.thickness,
+                        tau=m.tau, weighting=m.weighting, straight_through=m.mode != "soft", step_power=m.step_power,
+                        min_step_px=m.min_step_px, jitter=m.jitter, seed=m.seed, noise=m.noise, stagger=m.stagger,
+                        fetch=m.fetch, border=m.border, rounding=m.rounding, sector_epsilon=m.sector_epsilon,
+                        lanes=lanes)
+
+
+def _values_and_grads(gb0: GBuffer, dtype: torch.dtype, lanes: str | None, settings: dict):
+    """Visibility and d(weighted visibility)/d(depth, normals, radius, thickness): the tensor path in
+    ``dtype`` (``lanes=None``) or the kernel (float32) in ``lanes``."""
+    gb0 = gb0.to(dtype=dtype)
+    depth = gb0.depth.detach().clone().requires_grad_()
+    normals = gb0.view_normals().detach().clone().requires_grad_()
+    gb = GBuffer(depth=depth, normals=normals, camera=gb0.camera)
+    module = BitmaskAO(backend="torch", **settings).to(dtype)
+    vis = module(gb).visibility if lanes is None else _soft(gb, normals, module, lanes)
+    grads = torch.autograd.grad((vis * _loss_weights(vis).to(dtype)).sum(),
+                                [depth, normals, module.radius, module.thickness], allow_unused=True)
+    return vis.detach().double(), [None if g is None else g.double() for g in grads]
+
+
+def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
+    finite = torch.isfinite(b)
+    return float((a - b)[finite].norm() / b[finite].norm().clamp_min(1e-30))
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("setting", [0, 1, 2, 4, 5, 6])
+def test_gbuffer_gradients_equal_the_float64_tensor_walk(built, lanes, setting):
+    """Soft and straight-through, uniform and cosine, bilinear and nearest, dropped and clamped borders, the
+    Hilbert-indexed R2 noise with staggered steps (the settings of test_kernels_soft; setting 3, without jitter, puts steps on texel boundaries, where float32
+    and float64 floor differently: the float32 test below covers it). Measured: up to 9e-5 relative in the
+    depth's gradient at tau = 0.1 (float32 against float64; 1/tau^2 terms)."""
+    gb = FRAMES["rough"]()
+    settings = SETTINGS[setting]
+    reference, (ref_depth, ref_normals, ref_radius, ref_thickness) = _values_and_grads(gb, torch.float64, None,
+                                                                                       settings)
+    out, (depth, normals, radius, thickness) = _values_and_grads(gb, torch.float32, lanes, settings)
+    assert reference.min() < 1 and ref_depth.abs().sum() > 0 and ref_normals.abs().sum() > 0
+    assert (out - reference).abs().max() <= 1e-5
+    assert _relative(depth, ref_depth) <= 1e-4
+    assert _relative(normals, ref_normals) <= 1e-4
+    assert abs(float(thickness - ref_thickness)) <= 1e-4 * abs(float(ref_thickness))
+    if ref_radius is None:  # a nearest fetch does not move with the radius: Euler's identity gives ~0
+        assert settings.get("fetch") == "nearest"
+        assert abs(float(radius)) <= 1e-4 * abs(float(ref_thickness))
+    else:
+        assert ref_radius != 0
+        assert abs(float(radius - ref_radius)) <= 1e-4 * abs(float(ref_radius))
+
+
+def test_gbuffer_gradients_without_jitter_equal_the_float32_tensor_walk(built):
+    gb = FRAMES["rough"]()
+    settings = SETTINGS[3]
+    reference, ref = _values_and_grads(gb, torch.float32, None, settings)
+    out, got = _values_and_grads(gb, torch.float32, "simd", settings)
+    assert (out - reference).abs().max() <= 1e-5
+    for g, r in zip(got[:2], ref[:2]):
+        assert _relative(g, r) <= 1e-4
+    for g, r in zip(got[2:], ref[2:]):
+        assert abs(float(g - r)) <= 1e-4 * abs(float(r))
+
+
+def test_position_buffer_gradient_equals_the_tensor_walk(built):
+    """A position buffer read by the nearest fetch: its gradient reaches the buffer (the pixels' own and
+    the taps' positions)."""
+    gb0 = FRAMES["rough"]()
+    settings = dict(mode="soft", slices=3, steps=4, fetch="nearest", border="clamp", tau=0.3)
+    grads = []
+    for dtype, lanes in ((torch.float64, None), (torch.float32, "simd")):
+        g = gb0.to(dtype=dtype)
+        position = g.positions().detach().clone().requires_grad_()
+        gb = GBuffer(g.depth, position=position, normals=g.view_normals().detach(), camera=g.camera)
+        module = BitmaskAO(backend="torch", **settings).to(dtype)
+        vis = module(gb).visibility if lanes is None else _soft(gb, gb.normals, module, lanes)
+        (grad,) = torch.autograd.grad((vis * _loss_weights(vis).to(dtype)).sum(), [position])
+        grads.append(grad.double())
+    assert grads[0].abs().sum() > 0
+    assert _relative(grads[1], grads[0]) <= 1e-4
+
+
+@pytest.mark.parametrize("mode", ["soft", "straight_through"])
+def test_gradients_match_central_differences_on_a_small_frame(built, mode):
+    """gradcheck's fast mode by hand: the kernel's derivative along random directions of depth and normals
+    against central differences (eps = 1e-6) of the float64 tensor-op forward, on an 8x10 frame (a floor
+    meeting a wall, clamped borders: a dropped sample is a step in the forward). The float32 kernel's own
+    differences cannot be taken that close, and farther out (eps >= 1e-4) the bilinear fetch's kinks at
+    texel edges (its slope jumps there) enter them. Straight-through: the soft union's gradient, so the
+    differences are those of the soft forward."""
+    gb0 = floor_wall_gbuffer(8, 10, wall_distance=1.0)[0]
+    settings = dict(slices=2, steps=3, tau=0.5, border="clamp", radius=0.8, thickness=0.4)
+
+    def tensor_walk(depth, normals):
+        gb = GBuffer(depth=depth, normals=normals, camera=gb0.camera.to(dtype=torch.float64))
+        return BitmaskAO(backend="torch", mode="soft", **settings).double()(gb).visibility
+
+    depth = gb0.depth.detach().clone().requires_grad_()
+    normals = gb0.view_normals().detach().clone().requires_grad_()
+    module = BitmaskAO(mode=mode, **settings)
+    vis = _soft(GBuffer(depth=depth, normals=normals, camera=gb0.camera), normals, module, "simd")
+    weights = _loss_weights(vis).double()
+    g_depth, g_normals = torch.autograd.grad((vis * weights.float()).sum(), [depth, normals])
+    eps = 1e-6
+    g = torch.Generator().manual_seed(1)
+    for _ in range(4):
+        u_depth = torch.randn(depth.shape, generator=g, dtype=torch.float64)
+        u_normals = torch.randn(normals.shape, generator=g, dtype=torch.float64)
+        with torch.no_grad():
+            d64, n64 = depth.double(), normals.double()
+            loss = lambda t: float((tensor_walk(d64 + t * u_depth, n64 + t * u_normals) * weights).sum())  # noqa: E731
+            numerical = (loss(eps) - loss(-eps)) / (2 * eps)
+        terms = torch.cat(((g_depth.double() * u_depth).flatten(), (g_normals.double() * u_normals).flatten()))
+        analytical, scale = float(terms.sum()), float(terms.abs().sum())  # (the sum cancels: relative to its terms)
+        assert abs(numerical) > 1e-2
+        assert abs(analytical - numerical) <= 1e-4 * scale, (analytical, numerical, scale)
+
+
+# ------------------------------------------------------------------------------- what it covers
+def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypatch):
+    import torch_ao.kernels.dispatch as dispatch
+
+    gb = example_gbuffer(12, 16)
+    covers = soft_module.kernel_covers
+    depth = gb.depth.clone().requires_grad_()
+    graph = GBuffer(depth=depth, camera=gb.camera)
+    for mode in ("soft", "straight_through"):
+        assert covers(BitmaskAO(mode=mode), graph) is None
+    assert "hard mode" in covers(BitmaskAO(mode="hard", weighting="cosine"), graph)
+    intrinsics = gb.camera.intrinsics.clone().requires_grad_()
+    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width))
+    assert "intrinsics" in covers(BitmaskAO(mode="soft"), moving)
+    with pytest.raises(ValueError, match="gbuffer.*intrinsics"):
+        bitmask_soft(moving, moving.view_normals(), slices=2, steps=3, radius=torch.tensor(1.0),
+                     thickness=torch.tensor(0.5), tau=0.25)
+    # the auto backend takes the kernel for a depth gradient
+    calls = []
+    *others, soft = dispatch.KERNELS["bitmask"]
+    monkeypatch.setitem(dispatch.KERNELS, "bitmask", (*others, (soft[0], lambda *a: calls.append(1) or soft[1](*a))))
+    vis = BitmaskAO(mode="soft", slices=2, steps=3)(graph).visibility
+    (g_depth,) = torch.autograd.grad(vis.sum(), [depth])
+    assert calls == [1] and g_depth.abs().sum() > 0
+
+
+def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
+    """The taps' gradients go to per-thread images summed after the rows: the same gradients on any number
+    of threads, up to the order of the float32 sums."""
+    gb = FRAMES["rough"]()
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            results.append(_values_and_grads(gb, torch.float32, "simd", SETTINGS[0]))
+    finally:
+        torch.set_num_threads(threads)
+    (vis1, grads1), (vis2, grads2) = results
+    assert torch.equal(vis1, vis2)
+    for a, b in zip(grads1, grads2):
+        assert _relative(b, a) <= 1e-6

@@ -1,0 +1,143 @@
+// The "ssilvb_glsl" variant's accumulator (methods/bitmask_glsl.py GLSLAccumulator, hard mode) for walk.h
+// with the GLSL step placement and noise: the SSILVB GLSL article's shader per step, its quirks kept
+// (the occlusion mask and the light carried across slices, the unnormalised slice axis, the light
+// weight 1 - newly / 32, sums over sliceCount + 1 slices divided by sliceCount), and the driver's
+// numerics of glsl_numerics="mesa": Mesa's asin polynomial and llvmpipe's dot / length / normalize.
+#pragma once
+
+#include "bitmask.h"
+
+namespace tao {
+
+// Mesa's GLSL asin polynomial (bitmask_glsl.mesa_asin), x in [-1, 1]
+template <class F> TAO_FN F mesa_asin(const F& x) {
+  const F ax = abs(x);
+  const F poly = F(kHalfPi) + ax * (F(kPi / 4.0f - 1.0f) + ax * (F(0.08132463f) + ax * F(-0.02363318f)));
+  return sign(x) * (F(kHalfPi) - sqrt(F(1.0f) - ax) * poly);
+}
+
+// The shader's dot / length / normalize as its driver evaluates them (bitmask_glsl.GLSLVectorOps):
+// llvmpipe's with exact (each product and sum rounded, dot = (a.y b.y + a.z b.z) + a.x b.x,
+// normalize = v (1 / sqrt(dot(v, v)))), else the walk's dot3 / norm3 / normalize3
+struct GlslVectorOps {
+  bool exact;
+  template <class F> TAO_FN F dot(const F* a, const F* b) const {
+    return exact ? (a[1] * b[1] + a[2] * b[2]) + a[0] * b[0] : dot3(a, b);
+  }
+  template <class F> TAO_FN F length(const F* a) const { return exact ? sqrt(dot(a, a)) : norm3(a); }
+  template <class F> TAO_FN void normalize(const F* a, F* out) const {
+    if (!exact) return normalize3(a, out);
+    const F inv = F(1.0f) / sqrt(dot(a, a));
+    for (int c = 0; c < 3; ++c) out[c] = a[c] * inv;
+  }
+};
+
+struct GlslAccumulator {
+  int64_t slice_count;  // the shader's sliceCount: the sums' divisor (the walk walks sliceCount + 1)
+  float thickness;      // hitThickness, world units
+  int64_t rounding;
+  bool indirect;
+  GlslVectorOps gl;
+
+  template <class F> struct Sums {
+    typename LaneTraits<F>::I occ = typename LaneTraits<F>::I(0);  // never reset (as written)
+    F visibility = F(0.0f), light[3] = {F(0.0f), F(0.0f), F(0.0f)};
+  };
+  template <class F> struct State {
+    typename LaneTraits<F>::I occ;
+    F light[3], camera[3], normal[3];
+    F n;            // the projected normal's signed angle
+    F centre_back;  // the back horizon of a sample on the pixel's own texel
+  };
+  TAO_FN int channels() const { return indirect ? 4 : 1; }
+
+  // _horizon: clamp((acos(c) + n + halfPi) / pi, 0, 1), 0 where acos is NaN (|c| > 1 or NaN); Mesa folds
+  // acos's pi/2 into the + halfPi: (pi - asin(c)) + n
+  template <class F> TAO_FN F horizon(const F& cosine, const F& n) const {
+    const auto good = abs(cosine) <= F(1.0f);
+    const F c = select(good, cosine, F(0.0f));
+    const F value = gl.exact ? ((F(kPi) - mesa_asin(c)) + n) / F(kPi) : ((acos(c) + n) + F(kHalfPi)) / F(kPi);
+    return select(good, clamp(value, F(0.0f), F(1.0f)), F(0.0f));
+  }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl, const Sums<F>& sums) const {
+    State<F> st;
+    st.occ = sums.occ;
+    for (int c = 0; c < 3; ++c) st.light[c] = sums.light[c];
+    if (gl.exact) {
+      const F minus[3] = {neg(px.P[0]), neg(px.P[1]), neg(px.P[2])};
+      gl.normalize(minus, st.camera);
+    } else {
+      for (int c = 0; c < 3; ++c) st.camera[c] = px.V[c];
+    }
+    gl.normalize(px.N, st.normal);
+    const F* camera = st.camera;
+    const F direction[3] = {sl.dir_u, sl.dir_v, F(0.0f)};
+    const F along = gl.dot(direction, camera);
+    F ortho[3], axis[3], proj[3];
+    for (int c = 0; c < 3; ++c) ortho[c] = direction[c] - along * camera[c];
+    cross(direction, camera, axis);  // not normalised (as written)
+    const F na = gl.dot(st.normal, axis);
+    for (int c = 0; c < 3; ++c) proj[c] = st.normal[c] - axis[c] * na;
+    const F cos_n = clamp(gl.dot(proj, camera) / gl.length(proj), F(0.0f), F(1.0f));
+    st.n = sign(gl.dot(ortho, proj)) * (gl.exact ? F(kHalfPi) - mesa_asin(cos_n) : acos(cos_n));
+    if (gl.exact) {  // dot(normalize(-camera t), camera): -1, or by llvmpipe's rounding just below (NaN: 0)
+      F back[3], dir[3];
+      for (int c = 0; c < 3; ++c) back[c] = neg(camera[c] * F(thickness));
+      gl.normalize(back, dir);
+      st.centre_back = horizon(gl.dot(dir, camera), st.n);
+    } else {
+      st.centre_back = F(thickness > 0 ? 1.0f : 0.0f);
+    }
+    return st;
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
+    using I = typename LaneTraits<F>::I;
+    const F* camera = st.camera;
+    const F dl = gl.length(smp.delta);
+    F h[3], behind[3], back_dir[3];
+    for (int c = 0; c < 3; ++c) {
+      h[c] = smp.delta[c] / dl;
+      behind[c] = smp.delta[c] - camera[c] * F(thickness);
+    }
+    gl.normalize(behind, back_dir);
+    // background samples occlude nothing; a sample on the pixel's own texel (sampleDistance 0) has the
+    // front horizon 0 (NaN clamped) and the back one of -camera
+    const auto centre = ieq(smp.index[0], I(int32_t(px.row * smp.image->W)) + to_int(px.u));
+    const F x = select(centre, F(0.0f), select(smp.valid, horizon(gl.dot(h, camera), st.n), F(1.0f)));
+    const F y = select(centre, st.centre_back, select(smp.valid, horizon(gl.dot(back_dir, camera), st.n), F(1.0f)));
+    const I bits = sector_bits(x * F(float(kSectors)), (y - x) * F(float(kSectors)), rounding);
+    if (indirect) {
+      F raw_n[3], sender_n[3], away[3];
+      for (int c = 0; c < 3; ++c) {
+        raw_n[c] = smp.gather(smp.image->normals, c);
+        away[c] = neg(h[c]);
+      }
+      gl.normalize(raw_n, sender_n);
+      const F c1 = clamp(gl.dot(st.normal, h), F(0.0f), F(1.0f));
+      const F c2 = select(smp.valid, clamp(gl.dot(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
+      const F weight = F(1.0f) - to_float(popcount(bits & bnot(st.occ))) / F(float(kSectors));
+      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + weight * ((smp.gather(smp.image->light, c) * c1) * c2);
+    }
+    st.occ = st.occ | bits;
+  }
+
+  template <class F>
+  TAO_FN void end_slice(const State<F>& st, const Pixels<F>&, const Slice<F>&, Sums<F>& sums) const {
+    sums.occ = st.occ;
+    for (int c = 0; c < 3; ++c) sums.light[c] = st.light[c];
+    sums.visibility = sums.visibility + (F(1.0f) - to_float(popcount(st.occ)) / F(float(kSectors)));
+  }
+
+  // visibility (background 1; up to (sliceCount + 1) / sliceCount, as the shader's), the light (background 0)
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    const F count = F(float(slice_count));
+    out[0] = select(px.live, sums.visibility / count, F(1.0f));
+    if (indirect)
+      for (int c = 0; c < 3; ++c) out[1 + c] = select(px.live, sums.light[c] / count, F(0.0f));
+  }
+};
+
+}  // namespace tao
