@@ -185,6 +185,10 @@ def test_export_command_writes_the_shader(tmp_path, capsys):
     ("bitmask", {"preset": "high", "thickness": {"shape": [3], "values": [0.1, 0.2, 0.3]}},
      "thickness_model: ObjectThickness is not exported (scalar, linear and backface are)"),
     ("ssilvb", {"preset": "high"}, "method: 'ssilvb' is not exported (bitmask and gtao are)"),
+    ("bitmask", {"preset": "high", "noise": "hilbert_r2"},
+     "noise: the exported pass jitters by interleaved gradient noise (got 'hilbert_r2')"),
+    ("gtao", {"preset": "high", "stagger": True}, "stagger/slice_sampling: the exported pass walks evenly spaced "
+     "slices with one step offset (got stagger=True, slice_sampling='uniform')"),
 ])
 def test_export_refuses_what_it_cannot_express(method, options, message, tmp_path, capsys):
     params = tmp_path / "params.json"

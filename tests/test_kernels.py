@@ -40,7 +40,8 @@ def rough_gbuffer(height=40, width=56, batch=2, seed=0) -> GBuffer:
 def kernel_of(module: BitmaskAO, gb: GBuffer, lanes: str = "simd") -> torch.Tensor:
     return bitmask_hard(gb, gb.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=module.radius.item(), thickness=module.thickness.item(), step_power=module.step_power,
-                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
+                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
+                        stagger=module.stagger, fetch=module.fetch,
                         border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
                         lanes=lanes)
 
@@ -58,6 +59,8 @@ SETTINGS = [
     dict(slices=2, steps=5, jitter=False, rounding="round", step_power=2.0, min_step_px=2.0),
     dict(slices=3, steps=3, fetch="nearest", border="clamp", rounding="floor", seed=3),
     dict(slices=2, steps=4, border="clamp", sector_epsilon=0.0, thickness=3.0),
+    dict(slices=3, steps=4, noise="hilbert_r2", stagger=True, seed=2),
+    dict(slices=2, steps=3, stagger=True, jitter=False),
 ]
 
 

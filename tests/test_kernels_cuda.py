@@ -122,13 +122,16 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
 def cases(gb):
     """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
     (hard, exact, the GLSL shader's in its three numerics, soft: its forward, and with the radius and thickness
-    derivatives)."""
+    derivatives), and GTAO and HBAO with the Hilbert-indexed R2 noise and staggered steps."""
     light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
     common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
     yield "gtao", walk_settings(**common, placement="hdrp"), [1, True, True], [1.0, 0.0, 1.0], 5, None
     yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2, None
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
+    yield "gtao", walk_settings(**common, noise="hilbert_r2", stagger=True), [0, True, True], [1.0, 0.3, 1.0], 5, None
+    yield ("hbao", walk_settings(**common, full_circle=True, noise="hilbert_r2", stagger=True), [False, True, False],
+           [1.0, 0.1], 1, None)
     yield "bitmask", walk_settings(**common), [0, True, True, True, False], [0.5, 0.01, 1.0], 7, light
     yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False], [0.3, 0.01, 1.0], 1, None
     yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False], [0.3, 0.01, 1.0], 4, light

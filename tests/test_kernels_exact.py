@@ -25,6 +25,7 @@ SETTINGS = [
          sample_extent="radius", fetch="nearest", border="clamp", seed=2),
     dict(slices=2, steps=5, thickness=BackfaceThickness(scale=0.8, thickness=0.05)),
     dict(slices=4, steps=3, thickness=BackfaceThickness(), step_power=2.0, min_step_px=1.0, sector_epsilon=0.01),
+    dict(slices=3, steps=4, noise="hilbert_r2", stagger=True, seed=3),
 ]
 
 
@@ -47,7 +48,8 @@ def _scalar(module, gb):
     return exact_hard(gb, gb.view_normals(), slices=module.slices, steps=module.steps, radius=float(module.radius),
                       thickness=float(module.thickness), backface_scale=float(module.thickness_scale) if back else None,
                       step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
-                      seed=module.seed, fetch=module.fetch, border=module.border, weighting=module.weighting,
+                      seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
+                      border=module.border, weighting=module.weighting,
                       thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
                       sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon, lanes="scalar")
 

@@ -27,12 +27,15 @@ GTAO_SETTINGS = [
     dict(variant="hdrp", slices=3, steps=4, bent_normals=True),
     dict(variant="hdrp", slices=2, steps=3, projected_normal_weight=False, max_radius_px=6.0),
     dict(variant="ue4", slices=2, steps=4, thickness_heuristic=0.6, final_power=0.8),
+    dict(slices=3, steps=4, noise="hilbert_r2", stagger=True, seed=1, bent_normals=True),
+    dict(variant="hdrp", slices=2, steps=3, noise="hilbert_r2", stagger=True),
 ]
 HBAO_SETTINGS = [
     dict(slices=4, steps=4),
     dict(slices=3, steps=5, falloff="quadratic", accumulate="max", radius=0.7),
     dict(slices=5, steps=3, elevation="view", jitter=False),
     dict(slices=4, steps=4, fetch="nearest", border="clamp", azimuth="view", angle_bias=0.3, step_power=2.0, seed=2),
+    dict(slices=3, steps=3, noise="hilbert_r2", stagger=True),
 ]
 
 

@@ -18,7 +18,8 @@ from torch_ao.methods.hbao import HBAO
 
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401
 
-#: (module, options, frozen parameters): every accumulator of horizon.h, both fetches and borders
+#: (module, options, frozen parameters): every accumulator of horizon.h, both fetches and borders, both noises
+#: and staggered steps
 CASES = {
     "exact": (GTAO, dict(slices=4, steps=4), ()),
     "exact-falloff-bent": (GTAO, dict(slices=3, steps=5, radius=0.6, falloff_range=0.5, bent_normals=True), ()),
@@ -27,14 +28,17 @@ CASES = {
                                 step_power=1.5), ()),
     "exact-nearest-clamp": (GTAO, dict(slices=3, steps=6, fetch="nearest", border="clamp", falloff_range=0.3), ()),
     "exact-bilinear-clamp": (GTAO, dict(slices=3, steps=6, border="clamp", radius=1.5), ()),
+    "exact-hilbert-stagger": (GTAO, dict(slices=3, steps=3, noise="hilbert_r2", stagger=True, seed=4), ()),
     "hdrp": (GTAO, dict(variant="hdrp", slices=3, steps=5, multibounce=True), ()),
     "hdrp-nearest": (GTAO, dict(variant="hdrp", slices=2, steps=6, fetch="nearest", projected_normal_weight=False), ()),
     "ue4": (GTAO, dict(variant="ue4", slices=3, steps=5, thickness_heuristic=0.4), ("radius",)),
     "ue4-nearest-clamp": (GTAO, dict(variant="ue4", slices=2, steps=6, fetch="nearest", border="clamp"), ("radius",)),
+    "ue4-stagger": (GTAO, dict(variant="ue4", slices=3, steps=4, stagger=True, seed=2), ("radius",)),
     "hbao": (HBAO, dict(slices=6, steps=4), ()),
     "hbao-max-quadratic": (HBAO, dict(slices=5, steps=5, accumulate="max", falloff="quadratic"), ()),
     "hbao-view": (HBAO, dict(slices=4, steps=5, elevation="view", radius=0.8), ()),
     "hbao-nearest-clamp": (HBAO, dict(slices=4, steps=6, fetch="nearest", border="clamp"), ()),
+    "hbao-hilbert-stagger": (HBAO, dict(slices=4, steps=4, noise="hilbert_r2", stagger=True, seed=1), ()),
 }
 FRAMES = {"example": lambda: example_gbuffer(24, 40), "rough": lambda: rough_gbuffer(20, 28)}
 
@@ -134,8 +138,8 @@ def _requiring(gb: GBuffer) -> GBuffer:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ["exact-falloff-bent", "exact-nearest-clamp", "hdrp", "ue4", "hbao",
-                                  "hbao-max-quadratic"])
+@pytest.mark.parametrize("case", ["exact-falloff-bent", "exact-nearest-clamp", "exact-hilbert-stagger", "hdrp", "ue4",
+                                  "hbao", "hbao-max-quadratic", "hbao-hilbert-stagger"])
 def test_kernel_gradient_matches_finite_differences(built, case):
     """The gradcheck of a small frame: the kernel's float32 depth gradient against central differences (1e-6)
     of the tensor path's float64 forward, on every 6th pixel. Normals are given (the reconstruction from depth

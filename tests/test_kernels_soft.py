@@ -22,6 +22,7 @@ SETTINGS = [
     dict(mode="straight_through", slices=3, steps=3, fetch="nearest", border="clamp", rounding="floor", seed=3),
     dict(mode="soft", slices=2, steps=4, border="clamp", sector_epsilon=0.0, thickness=0.9, radius=0.6, tau=0.1,
          weighting="cosine"),
+    dict(mode="soft", slices=3, steps=3, noise="hilbert_r2", stagger=True, seed=1),
 ]
 
 

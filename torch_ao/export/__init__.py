@@ -78,6 +78,11 @@ def _walk_defines(m) -> dict[str, str]:
     """The walk's constants (:class:`~torch_ao.methods.common.Sampling` of module ``m``)."""
     if m.resolution != "full":
         raise ExportError(f"resolution: the exported pass walks the full-resolution frame (got {m.resolution!r})")
+    if m.jitter and m.noise != "ign":
+        raise ExportError(f"noise: the exported pass jitters by interleaved gradient noise (got {m.noise!r})")
+    if m.stagger or m.slice_sampling != "uniform":
+        raise ExportError("stagger/slice_sampling: the exported pass walks evenly spaced slices with one step offset "
+                          f"(got stagger={m.stagger!r}, slice_sampling={m.slice_sampling!r})")
     seed = int(m.seed)
     ah, al = _split(_NOISE_A)
     bh, bl = _split(_NOISE_B)

@@ -37,7 +37,7 @@ class KernelOutputs(NamedTuple):
 
 def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
                     thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
-                    seed: int = 0, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
+                    seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
                     bent_normals: bool = False, backface_scale: float | None = None,
                     lanes: str = "simd") -> KernelOutputs:
@@ -52,7 +52,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
         slices, steps: directions per pixel (uniform around the view vector) and samples per side.
         radius, thickness: world units (scalars; with ``backface_scale`` the back-face model's offset, the
             layer scaled by ``backface_scale``: :class:`~torch_ao.thickness.BackfaceThickness`);
-            step_power, min_step_px (pixels), jitter, seed, fetch (``"bilinear"``, ``"nearest"``,
+            step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as :class:`~torch_ao.BitmaskAO`.
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
@@ -61,7 +61,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
-                             jitter=jitter, seed=seed, fetch=fetch, border=border)
+                             jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border)
     backface = _backface_layer(gbuffer, backface_scale)
     out = run_walk("bitmask", gbuffer, normals, settings,
                    [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
@@ -76,7 +76,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
                backface_scale: float | None = None, step_power: float = 1.0, min_step_px: float = 0.25,
-               jitter: bool = True, seed: int = 0, fetch: str = "edge_aware", border: str = "drop",
+               jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "edge_aware", border: str = "drop",
                weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
                sample_extent: str = "sphere", sector_epsilon: float = 0.0, lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` (background 1) of the exact union of a slice's occluder intervals
@@ -87,12 +87,12 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             normals: its ``(B,3,H,W)`` unit view-space normals.
         slices, steps (<= 32 per side); radius, thickness: world units (with ``backface_scale`` the
             back-face model's offset, the layer scaled by ``backface_scale``); step_power, min_step_px
-            (pixels), jitter, seed, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
+            (pixels), jitter, seed, noise, stagger, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
             thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
-                             jitter=jitter, seed=seed, fetch=fetch, border=border,
+                             jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border,
                              sphere_extent=sample_extent == "sphere")
     backface = _backface_layer(gbuffer, backface_scale)
     return run_walk("exact", gbuffer, normals, settings,
@@ -149,7 +149,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
 _COVERED = {
     # the walk's and every module's options
     "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
-    "jitter": None, "seed": None, "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view",), "normals": None,
+    "jitter": None, "seed": None, "noise": None, "stagger": None, "slice_sampling": ("uniform",), "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view",), "normals": None,
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
     "resolution": None,  # the kernel walks the (smaller) G-buffer it is given
     # the bitmask family's
@@ -230,7 +230,8 @@ def exact_forward(module, gbuffer: GBuffer) -> dict:
     vis = exact_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                      radius=value("radius"), thickness=value("thickness"),
                      backface_scale=backface_scale_of(module), step_power=module.step_power,
-                     min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
+                     min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
+                     stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
                      clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,
                      sector_epsilon=module.sector_epsilon)

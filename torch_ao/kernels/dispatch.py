@@ -38,9 +38,9 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
         return {"visibility": vis, "indirect": indirect}
     options = dict(slices=module.slices, steps=module.steps, radius=radius, thickness=thickness,
                    step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
-                   seed=module.seed, fetch=module.fetch, border=module.border, rounding=module.rounding,
-                   sector_epsilon=module.sector_epsilon, weighting=module.weighting,
-                   backface_scale=backface_scale_of(module))
+                   seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
+                   border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
+                   weighting=module.weighting, backface_scale=backface_scale_of(module))
     if not (module.want_indirect or module.want_bent):
         vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
     else:

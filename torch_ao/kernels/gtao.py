@@ -36,8 +36,9 @@ def _value(x) -> float:
 def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact", slices: int, steps: int,
               walk_radius: float, radius: float | torch.Tensor, falloff: float | torch.Tensor = 0.0,
               thickness: float | torch.Tensor = 1.0, step_power: float = 1.0, min_step_px: float = 1.0,
-              max_radius_px: float | None = None, jitter: bool = True, seed: int = 0, fetch: str = "bilinear",
-              border: str = "drop", azimuth: str = "view", projected_normal_weight: bool = True,
+              max_radius_px: float | None = None, jitter: bool = True, seed: int = 0, noise: str = "ign",
+              stagger: bool = False, fetch: str = "bilinear", border: str = "drop", azimuth: str = "view",
+              projected_normal_weight: bool = True,
               bent_normals: bool = False, lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over slices of GTAO's walk ``(B,C,H,W)`` (0 on background).
 
@@ -49,7 +50,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
             radius: world units within which samples count.
         falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
-            (pixels, ``None``: none), jitter, seed, fetch, border, azimuth, projected_normal_weight: as
+            (pixels, ``None``: none), jitter, seed, noise, stagger, fetch, border, azimuth, projected_normal_weight: as
             :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
             body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer or
             the tensors ``radius``, ``falloff`` (exact) or ``thickness`` (ue4), on CPU, the sums carry their
@@ -61,7 +62,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
     """
     settings = walk_settings(slices=slices, steps=steps, radius=walk_radius, step_power=step_power,
                              min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed,
-                             fetch=fetch, border=border, azimuth=azimuth,
+                             noise=noise, stagger=stagger, fetch=fetch, border=border, azimuth=azimuth,
                              placement="power" if variant == "exact" else variant)
     setting = {"exact": falloff, "ue4": thickness}.get(variant, 0.0)
     walk, options = run_walk, {}
@@ -87,20 +88,20 @@ def _check_gradient(gbuffer: GBuffer, fetch: str) -> None:
 def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float | torch.Tensor,
               angle_bias: float | torch.Tensor, falloff: str = "linear", accumulate: str = "incremental",
               elevation: str = "image", step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
-              seed: int = 0, fetch: str = "bilinear", border: str = "drop", azimuth: str = "screen",
-              lanes: str = "simd") -> torch.Tensor:
+              seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop",
+              azimuth: str = "screen", lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sum over directions of HBAO's weighted horizon rise ``(B,1,H,W)`` (0 on background).
 
     Args:
         gbuffer, normals: as :func:`gtao_sums`. slices: directions over the full circle; steps: samples
         per direction; radius: world units; angle_bias: radians; falloff, accumulate, elevation,
-        step_power, min_step_px (pixels), jitter, seed, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
+        step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, azimuth: as :class:`~torch_ao.HBAO`.
         With autograd recording through the G-buffer, ``radius`` or ``angle_bias`` (CPU), the sums carry
         their gradients (walk_grad.py).
     """
     settings = walk_settings(slices=slices, steps=steps, radius=_value(radius), step_power=step_power,
-                             min_step_px=min_step_px, jitter=jitter, seed=seed, fetch=fetch, border=border,
-                             azimuth=azimuth, full_circle=True)
+                             min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
+                             fetch=fetch, border=border, azimuth=azimuth, full_circle=True)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, angle_bias):
         _check_gradient(gbuffer, fetch)
@@ -133,7 +134,7 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
         walk_radius=_value(m.radius * m.search_scale) if m.variant == "exact" else _value(m.radius),
         radius=m.radius, falloff=falloff, thickness=m.thickness_heuristic,
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
-        seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
+        seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
         projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, sums.shape[1])
     flat = {"vis": sums[:, 0:1], "free": sums[:, 1:2]}
@@ -147,16 +148,16 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     covers (:func:`hbao_covers`)."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
-    sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=m.radius, angle_bias=m.angle_bias, falloff=m.falloff, accumulate=m.accumulate,
-                     elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
-                     seed=m.seed, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
+    sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=m.radius, angle_bias=m.angle_bias,
+                     falloff=m.falloff, accumulate=m.accumulate, elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
+                     seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
     return _finish(m, gbuffer, {"ao": sums.reshape(-1, 1)}, normals)
 
 
 #: options of every module the horizon kernels know: ``None`` for any value, else the values covered
-_WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed",
+_WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed", "noise", "stagger",
                                "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
-                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest")}
+                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest"), "slice_sampling": ("uniform",)}
 _GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))

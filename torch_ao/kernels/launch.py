@@ -16,6 +16,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import KernelUnavailable, cpu_kernels
+from ..walk import NOISES as SLICE_NOISES
 from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
@@ -23,9 +24,10 @@ __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs",
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's)
 PLACEMENTS = ("power", "hdrp", "ue4", "glsl")
-#: the noise of the slice angles and steps in packed.h's numbering: the walk's interleaved gradient noise,
-#: the GLSL shader's jitter in float32 or in float16 (``glsl_numerics="mesa_mediump"``)
-NOISES = ("ign", "glsl", "glsl_mediump")
+#: the noise of the slice angles and steps in packed.h's numbering (walk.h's Noise): SlicePattern's
+#: (:data:`torch_ao.walk.NOISES`: interleaved gradient noise, the Hilbert-indexed R2 sequence), then the GLSL
+#: shader's one jitter in float32 or in float16 (``glsl_numerics="mesa_mediump"``)
+NOISES = (*SLICE_NOISES, "glsl", "glsl_mediump")
 
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
@@ -36,18 +38,18 @@ _THREADS = 128  # per block: a walk holds a few hundred registers' worth of stat
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
                   step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
                   placement: str = "power", full_circle: bool = False, azimuth: str = "view",
-                  sphere_extent: bool = False, noise: str = "ign") -> tuple[list[int], list[float]]:
+                  sphere_extent: bool = False, noise: str = "ign", stagger: bool = False) -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
     slices, steps: counts walked; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
     ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
     ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions; one side per slice),
     azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
-    noise (:data:`NOISES`).
+    noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice).
     """
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
-            NOISES.index(noise)]
+            NOISES.index(noise), bool(stagger)]
     floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
     return [int(v) for v in ints], floats
 

@@ -56,6 +56,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   };
   TORCH_CHECK(ints.numel() >= kAccInts && floats.numel() >= kAccFloats, "ints, floats: the walk's settings are missing");
   TORCH_CHECK(!ints.data_ptr<int64_t>()[9] || fr.cells, "cells: the edge-aware fetch needs the cell flags");
+  TORCH_CHECK(ints.data_ptr<int64_t>()[11] >= 0 && ints.data_ptr<int64_t>()[11] <= 3,
+              "noise: expected 0 (ign), 1 (hilbert_r2), 2 (glsl) or 3 (glsl_mediump)");
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);

@@ -12,15 +12,16 @@
 namespace tao {
 
 // ints: slices, steps, seed, placement, jitter, bilinear, drop, full_circle, screen_azimuth, edge_aware,
-// sphere_extent, noise, then the accumulator's from kAccInts; floats: radius, step_power, min_step_px,
+// sphere_extent, noise, stagger, then the accumulator's from kAccInts; floats: radius, step_power, min_step_px,
 // max_radius_px, then from kAccFloats
-constexpr int kAccInts = 12, kAccFloats = 4;
+constexpr int kAccInts = 13, kAccFloats = 4;
 
 TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   WalkSettings c;
   c.slices = i[0], c.steps = i[1], c.seed = i[2], c.placement = Steps(i[3]);
   c.jitter = i[4] != 0, c.bilinear = i[5] != 0, c.drop = i[6] != 0, c.full_circle = i[7] != 0, c.screen_azimuth = i[8] != 0;
   c.edge_aware = i[9] != 0, c.sphere_extent = i[10] != 0, c.noise = Noise(i[11]);
+  c.stagger = i[12] != 0;
   c.radius = f[0], c.step_power = f[1], c.min_step_px = f[2], c.max_radius_px = f[3];
   return c;
 }

@@ -175,7 +175,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     const int m = st.n++;
     st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at;
     F d_su[3] = {F(0.0f), F(0.0f), F(0.0f)}, d_sv[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    const F dist = step_distance(walk, sl, px.xi, m % walk.steps);
+    const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), m % walk.steps);
     const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
     if (moves) {
       const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));

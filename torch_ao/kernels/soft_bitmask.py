@@ -36,6 +36,7 @@ __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, weighting: str = "uniform", straight_through: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
+                 noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
@@ -49,7 +50,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward.
-        step_power, min_step_px (pixels), jitter, seed, fetch, border, rounding, sector_epsilon (sectors):
+        step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors):
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
@@ -72,7 +73,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         scalars.append(t)
     options = dict(slices=int(slices), steps=int(steps), tau=float(tau), cosine=weighting == "cosine",
                    straight_through=bool(straight_through), step_power=float(step_power),
-                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), fetch=fetch, border=border,
+                   min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
+                   stagger=bool(stagger), fetch=fetch, border=border,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes)
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, options)
@@ -101,8 +103,8 @@ def _gbuffer_gradient_uncovered(gbuffer: GBuffer) -> str | None:
 def _settings(radius, thickness, o):
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of ``soft.h``'s walk."""
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius.detach()), jitter=o["jitter"],
-                             seed=o["seed"], fetch=o["fetch"], border=o["border"], step_power=o["step_power"],
-                             min_step_px=o["min_step_px"])
+                             seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
+                             step_power=o["step_power"], min_step_px=o["min_step_px"])
     return settings, [o["rounding"], o["cosine"], o["straight_through"]], [float(thickness.detach()), o["epsilon"], o["tau"]]
 
 
@@ -191,5 +193,6 @@ def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
     return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, tau=module.tau, weighting=module.weighting,
                         straight_through=module.mode != "soft", step_power=module.step_power,
-                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
-                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon)
+                        min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
+                        stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
+                        sector_epsilon=module.sector_epsilon)

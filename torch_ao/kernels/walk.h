@@ -50,6 +50,28 @@ TAO_FN float ign(float u, float v, int64_t seed) {
   return float(g - double(int64_t(g)));
 }
 
+// The 64x64 Hilbert curve's index of pixel (u, v) modulo 64 (torch_ao.walk.hilbert_index, XeGTAO's HilbertIndex)
+TAO_FN int64_t hilbert_index(int64_t u, int64_t v) {
+  int64_t x = ((u % 64) + 64) % 64, y = ((v % 64) + 64) % 64, index = 0;
+  for (int64_t level = 32; level > 0; level /= 2) {
+    const int64_t rx = (x & level) > 0, ry = (y & level) > 0;
+    index += level * level * ((3 * rx) ^ ry);
+    if (ry == 0) {
+      if (rx == 1) x = 63 - x, y = 63 - y;
+      const int64_t t = x;
+      x = y, y = t;
+    }
+  }
+  return index;
+}
+
+// Value k (0: the slice rotation, 1: the step offset) of torch_ao.walk.hilbert_r2_noise, in double as there
+TAO_FN float hilbert_r2(int64_t u, int64_t v, int64_t seed, int k) {
+  const double i = double(hilbert_index(u, v) + 288 * seed);
+  const double x = 0.5 + i * (k == 0 ? 0.75487766624669276005 : 0.5698402909980532659114);
+  return float(x - double(int64_t(x)));
+}
+
 // Float rounded to float16 and back (round half to even), |x| < 65520: the GLSL mediump evaluation
 TAO_FN float half_round(float x) {
   if (fabsf(x) < 6.103515625e-05f) return rintf(x * 16777216.0f) / 16777216.0f;  // float16 subnormals: 2^-24 steps
@@ -75,9 +97,10 @@ TAO_FN float glsl_jitter(float u, float y_gl, bool mediump) {
 
 // Step placement (SlicePattern.step_offsets, ShaderStepPattern's, or the GLSL shader's: GLSLPattern)
 enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3 };
-// The noise of the slice angles and steps: Jimenez's interleaved gradient noise (ign), or the GLSL
-// shader's one jitter for both (glsl_jitter, in float32 or float16)
-enum class Noise : int64_t { ign = 0, glsl = 1, glsl_mediump = 2 };
+// The noise of the slice angles and steps (launch.NOISES): Jimenez's interleaved gradient noise (ign),
+// XeGTAO's R2 sequence along a Hilbert curve (hilbert_r2: SlicePattern._noise), or the GLSL shader's one
+// jitter for both (glsl_jitter, in float32 or float16)
+enum class Noise : int64_t { ign = 0, hilbert_r2 = 1, glsl = 2, glsl_mediump = 3 };
 
 struct WalkSettings {
   int64_t slices, steps;
@@ -85,6 +108,7 @@ struct WalkSettings {
   float step_power, min_step_px;
   float max_radius_px;  // <= 0: none
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
+  bool stagger;  // the step offset shifted per half-slice (SlicePattern.step_noise)
   int64_t seed;
   Steps placement;
   Noise noise;
@@ -106,13 +130,14 @@ struct Image {
 };
 
 // L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
-// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), and the basis
-// e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V. Lanes past the row's end repeat its last
-// pixel and are not live.
+// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), the basis
+// e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise (SlicePattern._noise:
+// 0 without jitter). Lanes past the row's end repeat its last pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
   F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
+  float rotation[L];
   M live;
   int64_t row, u0;
 
@@ -127,10 +152,18 @@ template <class F> struct Pixels {
       lane[6][l] = img.depth[p];
       lane[7][l] = float(u0 + l);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
-      if (cfg.noise == Noise::ign)
-        lane[9][l] = cfg.jitter ? ign(float(u0 + l) + 37.0f, float(row) + 59.0f, cfg.seed + 1) : 0.5f;
-      else
-        lane[9][l] = cfg.jitter ? glsl_jitter(float(u0 + l), float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
+      const int64_t col = u0 + l;
+      if (cfg.noise == Noise::glsl || cfg.noise == Noise::glsl_mediump) {  // one jitter, no rotation of its own
+        lane[9][l] = cfg.jitter ? glsl_jitter(float(col), float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
+        rotation[l] = 0.0f;
+      } else if (!cfg.jitter) {
+        lane[9][l] = 0.5f, rotation[l] = 0.0f;
+      } else if (cfg.noise == Noise::hilbert_r2) {
+        lane[9][l] = hilbert_r2(col, row, cfg.seed, 1), rotation[l] = hilbert_r2(col, row, cfg.seed, 0);
+      } else {
+        lane[9][l] = ign(float(col) + 37.0f, float(row) + 59.0f, cfg.seed + 1);
+        rotation[l] = ign(float(col), float(row), cfg.seed);
+      }
     }
     const F like(0.0f);
     for (int c = 0; c < 3; ++c) {
@@ -160,16 +193,16 @@ template <class F> struct Pixels {
 template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
   F dir_u, dir_v;  // the slice's screen angle's cos and sin
+  int64_t index;
 
-  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
+  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) : index(s) {
     F angle;
     if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
       angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
-    } else {  // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's jitter
+    } else {  // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
       float lane[LaneTraits<F>::L];
       const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
-      for (int l = 0; l < LaneTraits<F>::L; ++l)
-        lane[l] = ((cfg.jitter ? ign(float(px.u0 + l), float(px.row), cfg.seed) : 0.0f) + float(s)) * step;
+      for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = (px.rotation[l] + float(s)) * step;
       angle = from_lanes(lane, F(0.0f));
     }
     F cs, sn;
@@ -223,8 +256,16 @@ template <class F> struct Slice {
   }
 };
 
-// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern); j in
-// lanes (each lane its own step), or one step for every lane
+// SlicePattern.step_noise: the pixel's step offset xi, with stagger frac(xi + (s + [side < 0] / 2) / slices)
+// (staggered_offset; the shift in double, as Python's float)
+template <class F> TAO_FN F step_noise(const WalkSettings& cfg, const Pixels<F>& px, const Slice<F>& sl, int side) {
+  if (!cfg.stagger) return px.xi;
+  const F x = px.xi + F(float((double(sl.index) + (side < 0 ? 0.5 : 0.0)) / double(cfg.slices)));
+  return x - floor(x);
+}
+
+// The distance in pixels of step j from the pixel (SlicePattern.step_offsets / ShaderStepPattern) for the
+// step offset xi (step_noise); j in lanes (each lane its own step), or one step for every lane
 template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, const F& j) {
   if (cfg.placement == Steps::hdrp) return ((j + F(1.0f)) + xi) * sl.span;
   if (cfg.placement == Steps::ue4) return clamp_min((j + xi) * sl.span, j + F(1.0f));
@@ -240,22 +281,23 @@ template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F
   return step_distance(cfg, sl, xi, F(float(j)));
 }
 
-// Where step j of a slice's side samples, in screen pixels (su, sv): step_distance along the slice's
-// screen direction, or GLSLPattern's texel: uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale
-// (cos, sin) (aspect H / W on x), sampleScale = -radius P[0][0] / position.z, P[0][0] = 2 fx / W, the
-// nearest texel floor(uv * size) clamped to the image (GL rows from the bottom; sampleCount = steps - 1)
+// Where step j of a slice's side samples, in screen pixels (su, sv), for the side's step offset xi
+// (step_noise): step_distance along the slice's screen direction, or GLSLPattern's texel:
+// uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale (cos, sin) (aspect H / W on x),
+// sampleScale = -radius P[0][0] / position.z, P[0][0] = 2 fx / W, the nearest texel floor(uv * size)
+// clamped to the image (GL rows from the bottom; sampleCount = steps - 1)
 template <class F>
 TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
-                        int64_t j, F& su, F& sv) {
+                        const F& xi, int64_t j, F& su, F& sv) {
   if (cfg.placement != Steps::glsl) {
-    const F dist = step_distance(cfg, sl, px.xi, j);
+    const F dist = step_distance(cfg, sl, xi, j);
     su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
     return;
   }
   const float Wf = float(img.W), Hf = float(img.H);
   const F scale = F(-cfg.radius * (2.0f * img.fx / Wf)) / px.P[2];
   const F frag_u = (px.u + F(0.5f)) / F(Wf), frag_v = ((F(Hf - 1.0f) - px.v) + F(0.5f)) / F(Hf);
-  const F f = ((F(float(j)) + px.xi) / F(float(cfg.steps - 1)) + F(0.01f)) * scale;
+  const F f = ((F(float(j)) + xi) / F(float(cfg.steps - 1)) + F(0.01f)) * scale;
   const F uv_u = frag_u - (f * sl.dir_u) * F(Hf / Wf), uv_v = frag_v - f * sl.dir_v;
   su = clamp(floor(uv_u * F(Wf)), F(0.0f), F(Wf - 1.0f));
   sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
@@ -375,9 +417,10 @@ template <class F, class Acc, class Visit>
 TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc, const Pixels<F>& px,
                        const Slice<F>& sl, typename Acc::template State<F>& state, Visit& visit) {
   for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {  // for each side
-    for (int64_t j = 0; j < cfg.steps; ++j) {                          // for each sample
+    const F xi = step_noise(cfg, px, sl, side);
+    for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
       F su, sv;
-      step_screen(cfg, img, px, sl, float(side), j, su, sv);
+      step_screen(cfg, img, px, sl, float(side), xi, j, su, sv);
       const Sample<F> sample(cfg, img, px, su, sv);
       const typename Acc::template State<F> before = state;
       acc.step(state, side, px, sl, sample);

@@ -176,12 +176,13 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
     replayed.clear();
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
       const int k = side > 0 ? 0 : 1;
+      const D xi = step_noise(cfg, pxd, sl, side);
       for (int q = 0, most = takes.most(k); q < most; ++q) {
         float has_lane[L];
         for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
         const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
         const D j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
-        Sample<D> smp(cfg, img, pxd, sl, float(side), step_distance(cfg, sl, pxd.xi, j));
+        Sample<D> smp(cfg, img, pxd, sl, float(side), step_distance(cfg, sl, xi, j));
         smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kDelta + c] = B(1.0f);
         reseed(state);

@@ -306,6 +306,9 @@ class SphereExtent(SamplingPattern):
     def slice_tangent(self, frame, q, s):
         return self.pattern.slice_tangent(frame, q, s)
 
+    def slice_direction(self, frame, q, s):
+        return self.pattern.slice_direction(frame, q, s)
+
     def step_offsets(self, q, geom, side):
         stretch = sphere_stretch(q.position.norm(dim=-1), self.radius)
         return self.pattern.step_offsets(q, replace(geom, pixels_per_unit=geom.pixels_per_unit * stretch[:, None]), side)

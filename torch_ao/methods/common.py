@@ -19,7 +19,7 @@ from torch import nn
 
 from ..options import Option, options_by_name
 from ..resolution import RESOLUTIONS
-from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, SlicePattern
+from ..walk import AZIMUTHS, BORDER_MODES, FETCH_MODES, NOISES, SLICE_SAMPLINGS, SlicePattern
 
 __all__ = ["PRESETS", "DEFAULT_PRESET", "PRESET_NAMES", "split_preset", "Sampling", "MODULE_OPTIONS", "RADIUS", "resolve_preset", "make_parameter",
            "register_parameters", "functional_twin", "declare_signature"]
@@ -94,7 +94,7 @@ class Sampling:
     """Where the walk goes, validated on construction (see :class:`~torch_ao.walk.SlicePattern`).
 
     Attributes: ``slices``, ``steps`` (counts), ``step_power``, ``min_step_px`` (pixels), ``jitter``,
-    ``seed``, ``fetch``, ``border``, ``azimuth``; :attr:`OPTIONS` says what each does and why its default.
+    ``seed``, ``noise``, ``slice_sampling``, ``stagger``, ``fetch``, ``border``, ``azimuth``; :attr:`OPTIONS` says what each does and why its default.
     """
 
     slices: int = PRESETS[DEFAULT_PRESET][0]
@@ -103,6 +103,9 @@ class Sampling:
     min_step_px: float = 1.0
     jitter: bool = True
     seed: int = 0
+    noise: str = "ign"
+    slice_sampling: str = "uniform"
+    stagger: bool = False
     fetch: str = "bilinear"
     border: str = "drop"
     azimuth: str = "view"
@@ -122,9 +125,21 @@ class Sampling:
                "(where occluders matter most)", minimum=0.0, open_minimum=True),
         Option("min_step_px", 1.0, "Distance of the first step at least; 1 keeps it off the pixel's own texel",
                unit="pixels", minimum=0.0),
-        Option("jitter", True, "Rotate the directions and offset the steps per pixel by interleaved gradient "
-               "noise (banding becomes noise that a denoiser removes)", kind=bool),
+        Option("jitter", True, "Rotate the directions and offset the steps per pixel by noise (see noise; "
+               "banding becomes noise that a denoiser removes)", kind=bool),
         Option("seed", 0, "Seed of the per-pixel noise (each seed is a new, reproducible pattern)", kind=int, minimum=0),
+        Option("noise", "ign", "Per-pixel noise of the jitter: ign (interleaved gradient noise, tuned for a 3x3 "
+               "window: the default) or hilbert_r2 (XeGTAO's R2 low-discrepancy sequence along a 64x64 Hilbert "
+               "curve: the slice and step values decorrelated, well spread over any block of pixels)", kind=str,
+               choices=NOISES),
+        Option("slice_sampling", "uniform", "Slice directions: uniform around the view vector (the default), or "
+               "projected_normal (drawn by the cosine-weighted density of the projected normal, GTAO's unoccluded "
+               "slice integral, each slice weighted by 1/(pi p): the same limit, more slices where the normal's "
+               "hemisphere has its measure; needs azimuth view and a half circle of slices)", kind=str,
+               choices=SLICE_SAMPLINGS),
+        Option("stagger", False, "Shift each half-slice's steps by 1/(2 slices) of a step, so that a pixel's slices "
+               "sample 2 x slices x steps distinct distances instead of the same steps distances (each still "
+               "uniformly jittered)", kind=bool),
         Option("fetch", "bilinear", "Depth fetch: nearest texel, perspective-correct bilinear (interpolates "
                "1/depth, so planes are reproduced exactly: the default), or edge_aware (bilinear inside a surface, "
                "the nearest texel across a depth edge: no skirts joining a near and a far surface)", kind=str,
@@ -139,6 +154,9 @@ class Sampling:
         spec = options_by_name(self.OPTIONS)
         for f in dataclasses.fields(self):
             spec[f.name].check(getattr(self, f.name))
+        if self.slice_sampling != "uniform" and self.azimuth != "view":
+            raise ValueError(f"slice_sampling: {self.slice_sampling!r} draws slices around the view vector: it needs "
+                             f"azimuth='view' (got {self.azimuth!r})")
 
     @classmethod
     def from_values(cls, values: dict[str, Any], default_counts: tuple[int, int]) -> "Sampling":
@@ -153,7 +171,8 @@ class Sampling:
         (or the subclass ``pattern``, given the ``extra`` arguments it takes)."""
         return pattern(self.slices, self.steps, radius, step_power=self.step_power, min_step_px=self.min_step_px,
                        jitter=self.jitter, seed=self.seed, fetch=self.fetch, border=self.border, azimuth=self.azimuth,
-                       **extra)
+                       noise=self.noise, slice_sampling=self.slice_sampling,
+                       stagger=self.stagger, **extra)
 
     @classmethod
     def options_for(cls, names: tuple[str, ...] | None = None, **defaults) -> tuple[Option, ...]:

@@ -105,7 +105,7 @@ class ShaderStepPattern(SlicePattern):
         self.shader = check_choice("shader", shader, ("hdrp", "ue4"))
 
     def step_offsets(self, q, geom, side):
-        xi = self._noise(q)[1]
+        xi = self.step_noise(q, geom, side)
         unit = step_direction(geom, side)
         r_px = radius_px(self.radius, geom).clamp_min(float(self.steps))
         if self.max_radius_px is not None:

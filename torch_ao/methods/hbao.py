@@ -110,7 +110,9 @@ class HBAO(ScreenSpaceAO):
         Option("elevation", "image", "image: elevation above the view-space image plane (the article); view: "
                "in the slice plane, rotation-invariant around V", kind=str, choices=("image", "view")),
     )
-    SAMPLING = Sampling.options_for(azimuth="screen")
+    # (directions over the full circle: no projected-normal slice density, which covers a half circle)
+    SAMPLING = Sampling.options_for(tuple(o.name for o in Sampling.OPTIONS if o.name != "slice_sampling"),
+                                    azimuth="screen")
     has_kernel = "hbao"  # forward and backward in torch_ao.kernels (hbao_covers says which calls)
 
     def __init__(self, **options) -> None:

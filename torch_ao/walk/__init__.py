@@ -38,8 +38,9 @@ optionally ``begin_walk``, ``batch_steps``, ``paired_sides`` + ``step_pair``), t
 """
 from .fetch import Footprint, GradientRows, PerspectiveBilinearDepth, SampleAlong
 from .frame import Frame, Queries
-from .patterns import (AZIMUTHS, BORDER_MODES, FETCH_MODES, SlicePattern, interleaved_gradient_noise, radius_px,
-                       step_direction, tangent_from_screen_angle, tangent_from_view_azimuth)
+from .patterns import (AZIMUTHS, BORDER_MODES, FETCH_MODES, NOISES, SLICE_SAMPLINGS, SlicePattern, hilbert_index,
+                       hilbert_r2_noise, interleaved_gradient_noise, projected_normal_azimuths, staggered_offset,
+                       unoccluded_slice_integral, view_basis, radius_px, step_direction, tangent_from_screen_angle, tangent_from_view_azimuth)
 from .protocol import SamplingPattern, SliceAccumulator
 from .sample import Sample, fetch_sample
 from .walk import SliceGeometry, march, march_chunks, slice_geometry
@@ -47,7 +48,8 @@ from .walk import SliceGeometry, march, march_chunks, slice_geometry
 __all__ = [
     "Frame", "Queries", "SliceGeometry", "Sample", "SliceAccumulator", "SamplingPattern", "SlicePattern",
     "march", "march_chunks", "slice_geometry", "fetch_sample", "interleaved_gradient_noise",
+    "hilbert_index", "hilbert_r2_noise", "projected_normal_azimuths", "staggered_offset", "unoccluded_slice_integral", "view_basis",
     "tangent_from_screen_angle", "tangent_from_view_azimuth", "radius_px", "step_direction",
-    "FETCH_MODES", "BORDER_MODES", "AZIMUTHS", "Footprint", "GradientRows", "PerspectiveBilinearDepth",
+    "FETCH_MODES", "BORDER_MODES", "AZIMUTHS", "NOISES", "SLICE_SAMPLINGS", "Footprint", "GradientRows", "PerspectiveBilinearDepth",
     "SampleAlong",
 ]

@@ -46,6 +46,11 @@ class SamplingPattern(abc.ABC):
     def slice_tangent(self, frame: "Frame", q: "Queries", s: int) -> torch.Tensor:
         """``(N,3)`` unit slice tangent ``T`` of slice ``s``, orthogonal to ``V``."""
 
+    def slice_direction(self, frame: "Frame", q: "Queries", s: int) -> "tuple[torch.Tensor, torch.Tensor | None]":
+        """``(T, weight)``: :meth:`slice_tangent` and the slice's weight in the estimator ``(N,)`` (``1 / (pi p)``
+        for slices drawn with density ``p`` over the half circle), ``None`` for evenly spaced slices (default)."""
+        return self.slice_tangent(frame, q, s), None
+
     @abc.abstractmethod
     def step_offsets(self, q: "Queries", geom: "SliceGeometry", side: int) -> list[torch.Tensor]:
         """Pixel offsets ``(N,2)`` ``(du, dv)`` of the steps on ``side`` (``geom.pixels_per_unit``

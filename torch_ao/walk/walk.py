@@ -7,7 +7,7 @@ and the arc integrated) maps onto this module and the accumulator as follows:
 =======================================================  ==============================================
 Algorithm 1                                              here
 =======================================================  ==============================================
-slice direction ``phi`` (with per-pixel jitter)          ``pattern.slice_tangent`` in :func:`slice_geometry`
+slice direction ``phi`` (with per-pixel jitter)          ``pattern.slice_direction`` in :func:`slice_geometry`
 ``axis``, projected normal, its length and angle ``n``   :func:`slice_geometry` (``SliceGeometry``)
 per side: initial horizon                                ``method.begin_slice``
 per step: sample position, ``normalize(s - p)``          :func:`~torch_ao.walk.sample.fetch_sample`, ``Sample``
@@ -42,11 +42,12 @@ class SliceGeometry:
     normal_angle: torch.Tensor  # (N,) signed angle of the projected normal from V (toward +T)
     normal_length: torch.Tensor  # (N,) length of the projected normal
     pixels_per_unit: torch.Tensor  # (N,2) screen motion (du, dv) in pixels per world unit along +T
+    weight: torch.Tensor | None = None  # (N,) the slice's weight in the estimator (None: evenly spaced slices)
 
     def map_rows(self, fn) -> "SliceGeometry":
         """The geometry with ``fn`` applied to every per-row tensor."""
         return SliceGeometry(self.index, fn(self.tangent), fn(self.axis), fn(self.normal_angle), fn(self.normal_length),
-                             fn(self.pixels_per_unit))
+                             fn(self.pixels_per_unit), None if self.weight is None else fn(self.weight))
 
     def repeat(self, times: int) -> "SliceGeometry":
         """The rows repeated ``times`` times, block-major (as :meth:`Queries.repeat`)."""
@@ -57,7 +58,7 @@ class SliceGeometry:
 def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -> SliceGeometry:
     """The frame of slice ``s`` at every query pixel: GTAO's Algorithm 1 from the slice direction to the
     projected normal's angle ``n``."""
-    T = pattern.slice_tangent(frame, q, s)  # the slice direction, made orthogonal to V
+    T, weight = pattern.slice_direction(frame, q, s)  # the slice direction, made orthogonal to V
     V = q.view
     axis = torch.cross(T, V, dim=-1)  # the slice plane's normal; below, the normal projected into the plane
     n_proj = q.normal - axis * (q.normal * axis).sum(-1, keepdim=True)
@@ -69,7 +70,7 @@ def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -
     x, y = q.position[:, 0], q.position[:, 1]
     du = frame.fx[b] * (T[:, 0] + x * T[:, 2] / d) / d
     dv = -frame.fy[b] * (T[:, 1] + y * T[:, 2] / d) / d
-    return SliceGeometry(s, T, axis, normal_angle, normal_length, torch.stack((du, dv), -1))
+    return SliceGeometry(s, T, axis, normal_angle, normal_length, torch.stack((du, dv), -1), weight)
 
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
     """The outputs ``{name: (N, C)}`` of ``method`` walked over the queries ``q`` (one chunk)."""
@@ -98,6 +99,8 @@ def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccum
                     for j, offset in enumerate(offsets):  # Algorithm 1: for each sample
                         state = method.step(state, q, geom, fetch(q, geom, side, j, offset))
         for name, value in method.end_slice(state, q, geom).items():
+            if geom.weight is not None:  # slices drawn by a density: each weighted so the sum stays unbiased
+                value = value * geom.weight.to(value.dtype)[:, None]
             sums[name] = value if name not in sums else sums[name] + value
     return method.finish(sums, q, pattern.num_slices)
 
