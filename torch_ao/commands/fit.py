@@ -48,6 +48,9 @@ LENGTHS = ("radius", "thickness", "fade_distance")
 #: hard cut: neither radius nor falloff has a gradient there).
 NO_GRADIENT_START = {"falloff_range": 0.25}
 BITMASK = ("bitmask", "ssilvb")
+#: The fetch of a bitmask pipeline fitted without --fetch and --variant: the edge-aware one scored best of
+#: the candidate pipelines on the fit set's training views (benchmarks/pipeline_candidates.py, docs/fitting.md)
+BITMASK_FETCH = "edge_aware"
 #: Smallest width and height of the built-in views (``--size``).
 MIN_SIZE = 4
 #: Flags that do not change the fit (where it writes, how it reports, the held-out views it is scored on
@@ -85,7 +88,8 @@ OPTIONS = (
     replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
             "(cosine matches the cosine-weighted reference)"),
     replace(_method_option("bitmask", "fetch"), default=None, help="depth fetch of the fitted method's walk (see "
-            "`torch-ao ao --help`); when not given, the method's default"),
+            f"`torch-ao ao --help`); when not given, {BITMASK_FETCH} for a bitmask method's default variant (the "
+            "best on the fit set), else the method's default"),
     Option("no_denoise", False, "fit and score the method alone, without the denoiser", bool),
     Option("radius", None, "the method's radius R; when not given, the references' max_distance", float,
            unit="world units", minimum=0.0, open_minimum=True),
@@ -301,6 +305,8 @@ def pipeline_options(args, radius: float, **values) -> dict:
         options["weighting"] = args.weighting
     if args.fetch is not None:
         options["fetch"] = args.fetch
+    elif args.method in BITMASK and args.variant is None:
+        options["fetch"] = BITMASK_FETCH
     options.update(values)
     return options
 

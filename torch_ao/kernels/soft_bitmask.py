@@ -169,18 +169,24 @@ class _SoftWalk(torch.autograd.Function):
 #: mode is the straight-through forward without a graph: the hard kernel's masks with cosine weights too)
 _MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
+#: the fetches of the walk without a gradient of the G-buffer
+_EDGE_AWARE = {"fetch": ("nearest", "bilinear", "edge_aware")}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
     in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... one scalar thickness, visibility
-    only, a float32 CPU G-buffer) with either weighting; gradients of radius, thickness, depth, positions and
-    normals, not of the intrinsics."""
-    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS)
+    only, a float32 CPU G-buffer) with either weighting; gradients of radius, thickness (any fetch), depth,
+    positions and normals (the bilinear and nearest fetch), not of the intrinsics."""
+    of_gbuffer = _gbuffer_wants_gradient(gbuffer, gbuffer.normals)
+    # the edge-aware fetch: its taps differentiate as the bilinear ones, the radius and thickness' (the
+    # G-buffer's backward, soft_backward, scatters to the bilinear and nearest taps only)
+    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS,
+                               extra=None if of_gbuffer else _EDGE_AWARE)
     if reason is not None:
-        return reason
-    if module.mode == "hard" and _gbuffer_wants_gradient(gbuffer, gbuffer.normals):
+        return reason + (" with a gradient of the G-buffer" if of_gbuffer and module.fetch == "edge_aware" else "")
+    if module.mode == "hard" and of_gbuffer:
         return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
     reason = _gbuffer_gradient_uncovered(gbuffer)
     return None if reason is None else f"{reason} (the kernel differentiates radius, thickness, depth, positions and normals)"
