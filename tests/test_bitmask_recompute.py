@@ -82,7 +82,8 @@ def test_graph_estimate_bounds_what_autograd_keeps(indirect):
     gb = GBuffer(depth, gb.camera, normals=gb.normals.clone().requires_grad_(True), light=gb.light.clone().requires_grad_(True))
     # every step live (thick occluders, no narrowing): the most indirect light keeps
     dense = dict(thickness=1000.0, sector_epsilon=0.0) if indirect else {}
-    module = BitmaskAO(mode="soft", slices=4, steps=8, indirect=indirect, chunk_size=None, recompute=False, **dense)
+    module = BitmaskAO(mode="soft", slices=4, steps=8, indirect=indirect, chunk_size=None, recompute=False, backend="torch",
+                       **dense)  # (the tensor path: the kernel keeps no graph)
     per_sample = _saved_bytes_per_sample(module, gb)
     estimate = module.graph_bytes_per_sample_indirect if indirect else module.graph_bytes_per_sample
     assert 0.5 * estimate < per_sample <= estimate
