@@ -408,11 +408,13 @@ TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& 
 
 // Nothing to do after a step (walk_slice's visitor of the plain walk)
 struct NoVisit {
+  static constexpr bool kBefore = false;  // (a visitor that reads the state before the step says so)
   template <class... T> TAO_FN void operator()(const T&...) const {}
 };
 
 // One slice of GTAO's Algorithm 1 (march's loop): for each side (one with full_circle), each step; after
-// each step visit(side, j, sample, state before the step, state after it)
+// each step visit(side, j, sample, state before the step, state after it) (where Visit::kBefore; else the
+// state after it twice)
 template <class F, class Acc, class Visit>
 TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc, const Pixels<F>& px,
                        const Slice<F>& sl, typename Acc::template State<F>& state, Visit& visit) {
@@ -422,9 +424,14 @@ TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc
       F su, sv;
       step_screen(cfg, img, px, sl, float(side), xi, j, su, sv);
       const Sample<F> sample(cfg, img, px, su, sv);
-      const typename Acc::template State<F> before = state;
-      acc.step(state, side, px, sl, sample);
-      visit(side, j, sample, before, state);
+      if constexpr (Visit::kBefore) {  // (a copy of the state per step only for a visitor that reads it)
+        const typename Acc::template State<F> before = state;
+        acc.step(state, side, px, sl, sample);
+        visit(side, j, sample, before, state);
+      } else {
+        acc.step(state, side, px, sl, sample);
+        visit(side, j, sample, state, state);
+      }
     }
   }
 }

@@ -68,6 +68,7 @@ struct Targets {
 // Pass 1's record of a slice: per side and lane the steps that changed the state (the last one alone
 // where a take replaces the state)
 template <class B, class Acc> struct Takes {
+  static constexpr bool kBefore = true;
   using State = typename Acc::template State<B>;
   static constexpr int L = LaneTraits<B>::L;
   static constexpr int S = state_size<Acc, B>();
