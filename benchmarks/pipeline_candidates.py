@@ -33,6 +33,17 @@ CANDIDATES = (
 )
 
 
+def fit_view_groups(size: str = "160x96", spp: int = 256, train_views: int = 2) -> dict:
+    """``torch-ao fit``'s views at ``size`` (``"WxH"``), in three groups ``{label: [FitView]}``: the fit scenes'
+    ``train_views`` training views, their held-out views, and the held-out scenes' views (R = 1, back-face
+    layers, ``spp`` rays per pixel)."""
+    w, h = (int(x) for x in size.split("x"))
+    common = dict(height=h, width=w, spp=spp, max_distance=1.0, backface=True, device=torch.device("cpu"))
+    train, held = train_and_holdout_views(parse_scenes("fit"), train_views, 1, **common)
+    other = reference_views(parse_scenes("heldout"), [HOLDOUT_SEED], **common)
+    return {"fit scenes, training views": train, "fit scenes, held-out views": held, "held-out scenes": other}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--size", default="160x96")
@@ -41,12 +52,7 @@ def main() -> None:
     p.add_argument("--preset", default=DEFAULT_PRESET)
     p.add_argument("--repeats", type=int, default=1)
     args = p.parse_args()
-    w, h = (int(x) for x in args.size.split("x"))
-    common = dict(height=h, width=w, spp=args.spp, max_distance=1.0, backface=True, device=torch.device("cpu"))
-    scenes, held_scenes = parse_scenes("fit"), parse_scenes("heldout")
-    train, held = train_and_holdout_views(scenes, args.train_views, 1, **common)
-    other = reference_views(held_scenes, [HOLDOUT_SEED], **common)
-    groups = {"fit scenes, training views": train, "fit scenes, held-out views": held, "held-out scenes": other}
+    groups = fit_view_groups(args.size, args.spp, args.train_views)
     print(f"| pipeline (+ denoiser, `{args.preset}`) | " + " | ".join(groups) + " | ms |")
     print("| --- |" + " ---: |" * (len(groups) + 1))
     for label, method, options in CANDIDATES:
