@@ -73,30 +73,30 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     return run_walk("pssao", gbuffer, normals, settings, [], [float(distance_bias)], 3, lanes=lanes)
 
 
-def ue4_ssao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
+def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
     """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for a :class:`~torch_ao.UE4SSAO` the kernel
-    covers (:func:`ue4_ssao_covers`)."""
+    covers (:func:`ue4_ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
     sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=_value(m.radius),
                          fade_distance=_value(m.fade_distance), flat_surface_bias=_value(m.flat_surface_bias),
                          flat_softness=m.flat_softness, accurate_angle=m.accurate_angle,
                          offsets=m.pattern_for(None).offsets,
-                         jitter=m.jitter, seed=m.seed, fetch=m.fetch, border=m.border)
+                         jitter=m.jitter, seed=m.seed, fetch=m.fetch, border=m.border, lanes=lanes)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, 2)
     return _finish(m, gbuffer, {"num": sums[:, 0:1], "den": sums[:, 1:2]}, normals)
 
 
-def pssao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
+def pssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
     """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for a :class:`~torch_ao.PSSAO` the kernel
-    covers (:func:`pssao_covers`)."""
+    covers (:func:`pssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
     pattern = m.pattern_for(None)
     offsets = [[pattern.pixel_offset(s, k) for k in range(m.steps)] for s in range(m.slices)]
     sums = pssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, offsets=offsets,
                       distance_bias=_value(m.distance_bias),
-                      fetch=m.fetch, border=m.border)
+                      fetch=m.fetch, border=m.border, lanes=lanes)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, 3)
     return _finish(m, gbuffer, {"sum": sums[:, 0:1], "count": sums[:, 1:2], "dirs": sums[:, 2:3]}, normals)
 

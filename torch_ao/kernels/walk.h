@@ -386,8 +386,11 @@ template <class F> struct Sample {
         for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
         t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
         t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
-        // the nearest texel being the pixel's own: no occluder, as the nearest fetch's centre texel
-        own = land(lnot(smooth), ieq(nearest, I(int32_t(px.row * img.W)) + to_int(px.u)));
+        // four copies of the pixel's own texel (its nearest, or a footprint clamped onto it at the border):
+        // no occluder, as the nearest fetch's centre texel (Footprint.on_own_texel)
+        const I own_index = I(int32_t(px.row * img.W)) + to_int(px.u);
+        own = land(land(ieq(index[0], own_index), ieq(index[1], own_index)),
+                   land(ieq(index[2], own_index), ieq(index[3], own_index)));
       }
       valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
       if (cfg.drop)
