@@ -11,7 +11,8 @@
 //   void end_slice(const State&, px, sl, Sums&); void finish(const Sums&, px, F out[channels]).
 // Sums start at zero; finish gives every lane its value, background lanes included (select on px.live).
 // An accumulator whose state carries across slices (the GLSL shader's occlusion mask) takes the sums so
-// far instead: State begin_slice(px, sl, const Sums&).
+// far instead: State begin_slice(px, sl, const Sums&). One that takes step j of both sides together (ssao.h's
+// UE4 wedge pairs: kPairedSides) has void step_pair(State&, px, sl, plus, minus) instead of step (walk_pairs).
 #pragma once
 
 #include "lanes_scalar.h"
