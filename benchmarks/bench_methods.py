@@ -20,6 +20,12 @@ tensor operations, and extra threads mostly add contention on a shared machine).
 
     python benchmarks/bench_methods.py             # 320x180, 640x360, 1280x720
     python benchmarks/bench_methods.py --quick     # 320x180 only, 2 repeats
+
+``--backend`` picks the modules' backend (default ``auto``: the fused kernel where one covers the call, as
+GTAO, HBAO, UE4 SSAO and PSSAO forward do); the kernel against the tensor path, forward, one thread::
+
+    python benchmarks/bench_methods.py --sizes 640x360 --methods ue4_ssao pssao gtao --no-backward --backend torch
+    python benchmarks/bench_methods.py --sizes 640x360 --methods ue4_ssao pssao gtao --no-backward --backend kernel
 """
 from __future__ import annotations
 
@@ -35,14 +41,14 @@ SIZES = {"320x180": (180, 320), "640x360": (360, 640), "1280x720": (720, 1280)}
 METHODS = ("ssao", "hbao", "ue4_ssao", "gtao", "pssao")
 
 
-def build(name: str, chunk_size):
+def build(name: str, chunk_size, backend: str = "auto"):
     from torch_ao.methods.gtao import GTAO
     from torch_ao.methods.hbao import HBAO
     from torch_ao.methods.pssao import PSSAO
     from torch_ao.methods.ssao import SSAO
     from torch_ao.methods.ue4_ssao import UE4SSAO
 
-    mem = {} if chunk_size is None else {"chunk_size": chunk_size, "recompute": True}
+    mem = {"backend": backend} | ({} if chunk_size is None else {"chunk_size": chunk_size, "recompute": True})
     if name == "ssao":
         return SSAO(samples=64, radius=1.0, **mem)
     if name == "hbao":
@@ -69,7 +75,7 @@ def child(args: dict) -> dict:
     device = args["device"]
     H, W = args["height"], args["width"]
     gb, _ = floor_wall_gbuffer(H, W, wall_distance=1.0)
-    module = build(args["method"], args["chunk_size"]).to(device)
+    module = build(args["method"], args["chunk_size"], args.get("backend", "auto")).to(device)
     grad = args["backward"]
 
     def rss_kb() -> int:
@@ -116,7 +122,7 @@ def chunk_for(size: str, backward: bool, setting: str):
 def run_case(method, size, backward, opts) -> dict:
     H, W = SIZES[size]
     payload = dict(method=method, height=H, width=W, backward=backward, repeats=opts.repeats, threads=opts.threads,
-                   device=opts.device, chunk_size=chunk_for(size, backward, opts.chunk_size))
+                   device=opts.device, chunk_size=chunk_for(size, backward, opts.chunk_size), backend=opts.backend)
     proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(payload)], capture_output=True, text=True)
     if proc.returncode != 0:
         return {"error": (proc.stderr.strip().splitlines() or [f"exit {proc.returncode}"])[-1]}
@@ -131,6 +137,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3, help="timed calls after one warm-up (median reported)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--backend", default="auto", choices=("auto", "kernel", "torch"),
+                   help="the modules' backend (auto: a fused kernel where one covers the call)")
     p.add_argument("--chunk-size", default="auto",
                    help="forward+backward: process this many pixels at a time, recomputing the walk in backward "
                         "(bounds memory); 'auto' = 32768 from 640x360 up, 'none' = never")
@@ -148,6 +156,7 @@ def main(argv=None) -> int:
     import torch
 
     print(f"# torch {torch.__version__}, {platform.processor() or platform.machine()}, device {opts.device}, "
+          f"backend {opts.backend}, "
           f"{opts.threads} thread(s), median of {opts.repeats} after 1 warm-up; fwd+bwd chunking: {opts.chunk_size} "
           f"(* = chunks of that many pixels with recomputation in backward)")
     print()

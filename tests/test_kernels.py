@@ -144,13 +144,13 @@ def test_torch_backend_never_calls_the_kernel(monkeypatch):
 
 
 def test_kernel_backend_refuses_a_call_it_does_not_cover():
-    from torch_ao.methods.pssao import PSSAO
+    from torch_ao.methods.ssao import SSAO
 
     gb = example_gbuffer(8, 8)
     with pytest.raises(ValueError, match="backend.*union='exact'"):
         BitmaskAO(union="exact", backend="kernel")(gb)
-    with pytest.raises(ValueError, match="backend.*no kernel for PSSAO"):
-        PSSAO(backend="kernel")(gb)
+    with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
+        SSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):
         BitmaskAO(backend="cuda")
 

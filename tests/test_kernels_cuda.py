@@ -5,6 +5,7 @@ of blocks. Its output must be the CPU operator's scalar lanes' (the same walk_pi
 path's by tests/kernel_agreement.py. On a machine with CUDA, the kernels themselves run against the CPU
 operator.
 """
+import math
 import shutil
 import subprocess
 
@@ -15,6 +16,8 @@ import torch
 from kernel_agreement import assert_masks_agree, assert_values_agree
 from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
 from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
+from torch_ao.methods.pssao import PSSAOPattern
+from torch_ao.methods.ue4_ssao import SAMPLE_SETS
 
 COMPILER = shutil.which("g++") or shutil.which("c++")
 pytestmark = pytest.mark.skipif(COMPILER is None, reason="needs a C++ compiler")
@@ -49,7 +52,7 @@ extern tao_dim3 blockIdx, blockDim, threadIdx;
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
 Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
-    tao_walk_soft_gradients;
+    tao_walk_soft_gradients, tao_walk_wedge, tao_walk_pssao;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -66,7 +69,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   const unsigned threads = unsigned(std::atoi(argv[7]));
   Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao
                  : name == "exact" ? tao_walk_exact : name == "glsl" ? tao_walk_glsl : name == "soft" ? tao_walk_soft
-                 : name == "soft_gradients" ? tao_walk_soft_gradients : tao_walk_bitmask;
+                 : name == "soft_gradients" ? tao_walk_soft_gradients : name == "wedge" ? tao_walk_wedge
+                 : name == "pssao" ? tao_walk_pssao : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
   auto Ce = load<float>(dir, "cells"), Bf = load<float>(dir, "backface");
@@ -122,7 +126,8 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
 def cases(gb):
     """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
     (hard, exact, the GLSL shader's in its three numerics, soft: its forward, and with the radius and thickness
-    derivatives), and GTAO and HBAO with the Hilbert-indexed R2 noise and staggered steps."""
+    derivatives), GTAO and HBAO with the Hilbert-indexed R2 noise and staggered steps, UE4 SSAO's wedge pairs
+    (a sample set's table, evenly spaced directions) and PSSAO's pixel offsets (their table)."""
     light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
     common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
@@ -146,6 +151,17 @@ def cases(gb):
     yield "soft", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 1, None
     yield "soft_gradients", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 3, None
     yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True], [0.4, 0.01, 0.05], 3, None
+    wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
+    table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
+    yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
+           [0.4, 0.025, 0.0], 2, None)
+    yield "wedge", walk_settings(**dict(wedge, fetch="edge_aware")), [True], [0.3, 0.05, 0.02], 2, None
+    pattern = PSSAOPattern(6, 5)
+    offsets = [v for s in range(6) for k in range(5) for v in pattern.pixel_offset(s, k)]
+    pixels = dict(slices=6, steps=5, radius=0.0, jitter=False, seed=0, placement="pixels", full_circle=True,
+                  azimuth="screen", table=offsets)
+    yield "pssao", walk_settings(**pixels, fetch="nearest", border="drop"), [], [1.0], 3, None
+    yield "pssao", walk_settings(**pixels, fetch="bilinear", border="clamp"), [], [0.5], 3, None
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])

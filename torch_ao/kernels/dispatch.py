@@ -10,6 +10,7 @@ from . import soft_bitmask
 from .bitmask import backface_scale_of, bitmask_hard, bitmask_outputs, exact_covers, exact_forward, kernel_covers, ssilvb_glsl_hard
 from .build import KernelUnavailable
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
+from .ssao import pssao_covers, pssao_forward, ue4_ssao_covers, ue4_ssao_forward
 
 __all__ = ["BACKENDS", "kernel_forward"]
 
@@ -64,6 +65,8 @@ KERNELS = {
     "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (soft_bitmask.kernel_covers, _bitmask_soft)),
     "gtao": ((gtao_covers, gtao_forward),),
     "hbao": ((hbao_covers, hbao_forward),),
+    "ue4_ssao": ((ue4_ssao_covers, ue4_ssao_forward),),
+    "pssao": ((pssao_covers, pssao_forward),),
 }
 
 

@@ -22,8 +22,9 @@ from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs", "packed_settings", "cuda_source"]
 
-#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's)
-PLACEMENTS = ("power", "hdrp", "ue4", "glsl")
+#: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
+#: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets)
+PLACEMENTS = ("power", "hdrp", "ue4", "glsl", "wedge", "pixels")
 #: the noise of the slice angles and steps in packed.h's numbering (walk.h's Noise): SlicePattern's
 #: (:data:`torch_ao.walk.NOISES`: interleaved gradient noise, the Hilbert-indexed R2 sequence), then the GLSL
 #: shader's one jitter in float32 or in float16 (``glsl_numerics="mesa_mediump"``)
@@ -31,34 +32,47 @@ NOISES = (*SLICE_NOISES, "glsl", "glsl_mediump")
 
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
-_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "packed.h", "walk_cuda.cu")
+_CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "ssao.h", "packed.h",
+               "walk_cuda.cu")
+_WALK_FLOATS = 4  # packed.h's kAccFloats: the walk's own floats
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
 
 
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
                   step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
                   placement: str = "power", full_circle: bool = False, azimuth: str = "view",
-                  sphere_extent: bool = False, noise: str = "ign", stagger: bool = False) -> tuple[list[int], list[float]]:
+                  sphere_extent: bool = False, noise: str = "ign", stagger: bool = False,
+                  table: list[float] | None = None) -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
     slices, steps: counts walked; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
     ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
     ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions; one side per slice),
     azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
-    noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice).
+    noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice), table: the
+    ``"wedge"`` placement's per slice (screen angle in radians, length) of a sample set (``None``: slices evenly
+    over the half circle, length 1), the ``"pixels"`` placement's per slice and step ``(du, dv)`` in pixels (its
+    floats follow the walk's four here; :func:`packed_settings` moves them after the accumulator's).
     """
+    if placement == "pixels" and (table is None or len(table) != 2 * slices * steps):
+        raise ValueError(f"table: the 'pixels' placement needs (du, dv) per slice and step ({2 * slices * steps} floats)")
+    if placement == "wedge" and table is not None and len(table) != 2 * slices:
+        raise ValueError(f"table: the 'wedge' placement takes (angle, length) per slice ({2 * slices} floats)")
+    if table is not None and placement not in ("wedge", "pixels"):
+        raise ValueError(f"table: only the 'wedge' and 'pixels' placements read one, not {placement!r}")
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
-            NOISES.index(noise), bool(stagger)]
+            NOISES.index(noise), bool(stagger), 0]
     floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
+    floats += [float(v) for v in table or ()]
     return [int(v) for v in ints], floats
 
 
 def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]],
              acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
              backface: torch.Tensor | None = None, lanes: str = "simd") -> torch.Tensor:
-    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``, ``"exact"``, ``"glsl"``, ``"soft"``) over ``gbuffer`` (float32, CPU or
-    CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
+    """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``, ``"exact"``, ``"glsl"``, ``"wedge"``,
+    ``"pssao"``, ``"soft"``) over ``gbuffer`` (float32, CPU or CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
 
     ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);
     ``light``: the channel-last ``(B,H,W,3)`` light or ``None``; ``backface``: the back-face thickness
@@ -104,9 +118,12 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
 
 def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list,
                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """The walk's and the accumulator's settings as packed.h reads them: ``ints`` (int64), ``floats`` (float32)."""
-    ints = torch.tensor(settings[0] + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
-    floats = torch.tensor(settings[1] + [float(v) for v in acc_floats], dtype=torch.float32, device=device)
+    """The walk's and the accumulator's settings as packed.h reads them: ``ints`` (int64), ``floats`` (float32):
+    the walk's, the accumulator's, then the walk's table (its start in ``ints[13]``)."""
+    walk_ints, walk_floats, table = list(settings[0]), settings[1][:_WALK_FLOATS], settings[1][_WALK_FLOATS:]
+    walk_ints[13] = _WALK_FLOATS + len(acc_floats) if table else 0
+    ints = torch.tensor(walk_ints + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
+    floats = torch.tensor(walk_floats + [float(v) for v in acc_floats] + table, dtype=torch.float32, device=device)
     return ints, floats
 
 

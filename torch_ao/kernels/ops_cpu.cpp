@@ -1,5 +1,5 @@
-// The CPU operator of the one walk (walk.h with the accumulators of horizon.h, bitmask.h, bitmask_glsl.h
-// and soft.h, settings unpacked by packed.h): rows over torch's threads, each row's pixels in SIMD lanes (lanes_simd.h) or,
+// The CPU operator of the one walk (walk.h with the accumulators of horizon.h, bitmask.h, bitmask_glsl.h,
+// ssao.h and soft.h, settings unpacked by packed.h): rows over torch's threads, each row's pixels in SIMD lanes (lanes_simd.h) or,
 // with scalar=True, one pixel at a time through walk_pixel in float lanes (lanes_scalar.h): the body of
 // the CUDA kernel's threads (walk_cuda.cu), run on the CPU.
 #include <ATen/core/Tensor.h>
@@ -38,8 +38,8 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
-// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "glsl", "soft",
-// "soft_gradients") over the frame,
+// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "glsl", "wedge",
+// "pssao", "soft", "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -49,12 +49,20 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && floats.scalar_type() == at::kFloat &&
                   floats.is_contiguous() && ints.device().is_cpu() && floats.device().is_cpu(),
               "ints, floats: expected the packed int64 and float32 settings on the CPU");
-  // the accumulator's own count after the walk's (packed.h)
-  auto packed = [&](int64_t n_ints, int64_t n_floats) {
-    TORCH_CHECK(ints.numel() == kAccInts + n_ints && floats.numel() == kAccFloats + n_floats, accumulator,
-                ": expected ", kAccInts + n_ints, " ints and ", kAccFloats + n_floats, " floats");
-  };
   TORCH_CHECK(ints.numel() >= kAccInts && floats.numel() >= kAccFloats, "ints, floats: the walk's settings are missing");
+  // the accumulator's own count after the walk's, then the walk's table (packed.h): a sample set's per slice
+  // (Steps::wedge, optional), the pixel offsets per slice and step (Steps::pixels)
+  const int64_t placement = ints.data_ptr<int64_t>()[3], table_start = ints.data_ptr<int64_t>()[13];
+  const int64_t slices = ints.data_ptr<int64_t>()[0], steps = ints.data_ptr<int64_t>()[1];
+  const int64_t table = placement == int64_t(Steps::pixels)                   ? 2 * slices * steps
+                        : placement == int64_t(Steps::wedge) && table_start > 0 ? 2 * slices
+                                                                                : 0;
+  auto packed = [&](int64_t n_ints, int64_t n_floats) {
+    TORCH_CHECK(ints.numel() == kAccInts + n_ints && floats.numel() == kAccFloats + n_floats + table, accumulator,
+                ": expected ", kAccInts + n_ints, " ints and ", kAccFloats + n_floats + table, " floats");
+    TORCH_CHECK(table_start == (table > 0 ? kAccFloats + n_floats : 0),
+                "ints: the walk's table starts after the accumulator's floats, or is none");
+  };
   TORCH_CHECK(!ints.data_ptr<int64_t>()[9] || fr.cells, "cells: the edge-aware fetch needs the cell flags");
   TORCH_CHECK(ints.data_ptr<int64_t>()[11] >= 0 && ints.data_ptr<int64_t>()[11] <= 3,
               "noise: expected 0 (ign), 1 (hilbert_r2), 2 (glsl) or 3 (glsl_mediump)");
@@ -90,6 +98,14 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 "glsl: expected the GLSL step placement over sliceCount + 1 >= 3 slices and sampleCount + 1 >= 2 steps");
     TORCH_CHECK(!i[kAccInts + 1] || fr.light, "light: indirect light needs the light buffer");
     run(unpack_glsl(i, f));
+  } else if (name == "wedge") {
+    packed(1, 3);
+    TORCH_CHECK(i[3] == int64_t(Steps::wedge) && f[kAccFloats] > 0, "wedge: expected the wedge step placement and fade_distance > 0");
+    run(unpack_wedge(i, f));
+  } else if (name == "pssao") {
+    packed(0, 1);
+    TORCH_CHECK(i[3] == int64_t(Steps::pixels), "pssao: expected the pixel-offset step placement");
+    run(unpack_pssao(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
     packed(3, 3);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
@@ -103,7 +119,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
       run(unpack_soft<true>(i, f));
     }
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, glsl, soft or soft_gradients, got ", name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, glsl, wedge, pssao, soft or soft_gradients, got ",
+                name);
   }
   return out;
 }

@@ -8,13 +8,15 @@
 #include "bitmask_glsl.h"
 #include "horizon.h"
 #include "soft.h"
+#include "ssao.h"
 
 namespace tao {
 
 // ints: slices, steps, seed, placement, jitter, bilinear, drop, full_circle, screen_azimuth, edge_aware,
-// sphere_extent, noise, stagger, then the accumulator's from kAccInts; floats: radius, step_power, min_step_px,
-// max_radius_px, then from kAccFloats
-constexpr int kAccInts = 13, kAccFloats = 4;
+// sphere_extent, noise, stagger, the walk's table's start in the floats (0: none), then the accumulator's from
+// kAccInts; floats: radius, step_power, min_step_px, max_radius_px, then from kAccFloats the accumulator's, then
+// the walk's table (WalkSettings::table)
+constexpr int kAccInts = 14, kAccFloats = 4;
 
 TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   WalkSettings c;
@@ -22,6 +24,7 @@ TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   c.jitter = i[4] != 0, c.bilinear = i[5] != 0, c.drop = i[6] != 0, c.full_circle = i[7] != 0, c.screen_azimuth = i[8] != 0;
   c.edge_aware = i[9] != 0, c.sphere_extent = i[10] != 0, c.noise = Noise(i[11]);
   c.stagger = i[12] != 0;
+  c.table = i[13] > 0 ? f + i[13] : nullptr;
   c.radius = f[0], c.step_power = f[1], c.min_step_px = f[2], c.max_radius_px = f[3];
   return c;
 }
@@ -79,6 +82,15 @@ TAO_FN SoftAccumulator<kGradients, kAdjoint> unpack_soft(const int64_t* i, const
 }
 TAO_FN SoftAccumulator<false> unpack_soft_forward(const int64_t* i, const float* f) { return unpack_soft<false>(i, f); }
 TAO_FN SoftAccumulator<true> unpack_soft_gradients(const int64_t* i, const float* f) { return unpack_soft<true>(i, f); }
+
+// floats: fade_distance (clamped to 1e-30), flat_surface_bias, flat_softness; ints: accurate_angle
+TAO_FN WedgeAccumulator unpack_wedge(const int64_t* i, const float* f) {
+  i += kAccInts, f += kAccFloats;
+  return WedgeAccumulator{f[0], f[1], f[2], i[0] != 0};
+}
+
+// floats: distance_bias
+TAO_FN PSSAOAccumulator unpack_pssao(const int64_t*, const float* f) { return PSSAOAccumulator{f[kAccFloats]}; }
 
 // A batch of B images channel-last (walk.h's Image per image; light, cells and backface may be null)
 struct Frame {

@@ -11,7 +11,8 @@
 //   void end_slice(const State&, px, sl, Sums&); void finish(const Sums&, px, F out[channels]).
 // Sums start at zero; finish gives every lane its value, background lanes included (select on px.live).
 // An accumulator whose state carries across slices (the GLSL shader's occlusion mask) takes the sums so
-// far instead: State begin_slice(px, sl, const Sums&).
+// far instead: State begin_slice(px, sl, const Sums&). One that takes step j of both sides together (ssao.h's
+// UE4 wedge pairs: kPairedSides) has void step_pair(State&, px, sl, plus, minus) instead of step (walk_pairs).
 #pragma once
 
 #include "lanes_scalar.h"
@@ -95,8 +96,9 @@ TAO_FN float glsl_jitter(float u, float y_gl, bool mediump) {
   return half_round(g - floorf(g)) - 0.5f;
 }
 
-// Step placement (SlicePattern.step_offsets, ShaderStepPattern's, or the GLSL shader's: GLSLPattern)
-enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3 };
+// Step placement (SlicePattern.step_offsets, ShaderStepPattern's, the GLSL shader's: GLSLPattern, UE4 SSAO's
+// WedgePattern, or PSSAOPattern's integer pixel offsets, read from the walk's table)
+enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3, wedge = 4, pixels = 5 };
 // The noise of the slice angles and steps (launch.NOISES): Jimenez's interleaved gradient noise (ign),
 // XeGTAO's R2 sequence along a Hilbert curve (hilbert_r2: SlicePattern._noise), or the GLSL shader's one
 // jitter for both (glsl_jitter, in float32 or float16)
@@ -114,6 +116,9 @@ struct WalkSettings {
   Noise noise;
   bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
   bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
+  // Steps::wedge: per slice its screen angle and length (a UE4 sample set; null: slices evenly spaced, length
+  // 1); Steps::pixels: per slice and step (du, dv), at 2 (s steps + j); else null
+  const float* table;
 };
 
 // One image of the batch, channel-last: intrinsics in pixels, positions and normals (H, W, 3), the
@@ -199,6 +204,11 @@ template <class F> struct Slice {
     F angle;
     if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
       angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
+    } else if (cfg.placement == Steps::wedge) {  // WedgePattern: the direction's angle + 2 pi a
+      float lane[LaneTraits<F>::L];
+      const float base = cfg.table ? cfg.table[2 * s] : float(double(s) * 3.14159265358979323846 / double(cfg.slices));
+      for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = 2.0f * kPi * px.rotation[l] + base;
+      angle = from_lanes(lane, F(0.0f));
     } else {  // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
       float lane[LaneTraits<F>::L];
       const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
@@ -246,6 +256,9 @@ template <class F> struct Slice {
     if (cfg.placement == Steps::power) {
       if (cfg.max_radius_px > 0) radius_px = clamp_max(radius_px, F(cfg.max_radius_px));
       span = clamp_min(radius_px - F(cfg.min_step_px), F(0.0f));
+    } else if (cfg.placement == Steps::wedge || cfg.placement == Steps::pixels) {  // the direction's length
+      if (cfg.placement == Steps::wedge && cfg.table) radius_px = radius_px * F(cfg.table[2 * s + 1]);
+      span = radius_px;
     } else {  // ShaderStepPattern: R_px clamped to [steps, max_radius_px], dt = R_px / (steps + 1)
       const F steps = F(float(cfg.steps));
       radius_px = clamp_min(radius_px, steps);
@@ -269,6 +282,7 @@ template <class F> TAO_FN F step_noise(const WalkSettings& cfg, const Pixels<F>&
 template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F>& sl, const F& xi, const F& j) {
   if (cfg.placement == Steps::hdrp) return ((j + F(1.0f)) + xi) * sl.span;
   if (cfg.placement == Steps::ue4) return clamp_min((j + xi) * sl.span, j + F(1.0f));
+  if (cfg.placement == Steps::wedge) return ((j + F(1.0f)) / F(float(cfg.steps))) * sl.span;  // (j + 1) / steps R_px
   F frac = (j + xi) / F(float(cfg.steps));
   if (cfg.step_power == 2.0f) {
     frac = frac * frac;
@@ -289,6 +303,11 @@ template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F
 template <class F>
 TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
                         const F& xi, int64_t j, F& su, F& sv) {
+  if (cfg.placement == Steps::pixels) {  // PSSAOPattern.pixel_offset, from the table
+    const float* o = cfg.table + 2 * (sl.index * cfg.steps + j);
+    su = px.u + F(o[0]), sv = px.v + F(o[1]);
+    return;
+  }
   if (cfg.placement != Steps::glsl) {
     const F dist = step_distance(cfg, sl, xi, j);
     su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
@@ -314,6 +333,7 @@ template <class F> struct Sample {
   M valid;
   I index[4];  // the taps' texels (index[0] only for a nearest fetch), to read other buffers
   F fu, fv;
+  F su, sv;  // where it samples, in screen pixels
   bool bilinear;
   const Image* image;
 
@@ -326,13 +346,19 @@ template <class F> struct Sample {
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 
+  // whether the screen position lies in the image, pixel centres [0, W-1] x [0, H-1] (Sample.inside)
+  TAO_FN M inside() const {
+    return land(land(su >= F(0.0f), su <= F(float(image->W - 1))), land(sv >= F(0.0f), sv <= F(float(image->H - 1))));
+  }
+
   // the sample dist pixels from the pixel along the slice's side
   TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
                 const F& dist)
       : Sample(cfg, img, px, px.u + dist * (sl.unit_u * F(side)), px.v + dist * (sl.unit_v * F(side))) {}
 
   // the sample at screen (su, sv)
-  TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv) {
+  TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv)
+      : su(su), sv(sv) {
     const F Wf = F(float(img.W)), Hf = F(float(img.H));
     const I zero = I(0), Wi = I(int32_t(img.W)), Wlast = I(int32_t(img.W - 1)), Hlast = I(int32_t(img.H - 1)), one = I(1);
     F pos[3];
@@ -361,8 +387,11 @@ template <class F> struct Sample {
         for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
         t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
         t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
-        // the nearest texel being the pixel's own: no occluder, as the nearest fetch's centre texel
-        own = land(lnot(smooth), ieq(nearest, I(int32_t(px.row * img.W)) + to_int(px.u)));
+        // four copies of the pixel's own texel (its nearest, or a footprint clamped onto it at the border):
+        // no occluder, as the nearest fetch's centre texel (Footprint.on_own_texel)
+        const I own_index = I(int32_t(px.row * img.W)) + to_int(px.u);
+        own = land(land(ieq(index[0], own_index), ieq(index[1], own_index)),
+                   land(ieq(index[2], own_index), ieq(index[3], own_index)));
       }
       valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
       if (cfg.drop)
@@ -406,6 +435,14 @@ TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& 
   return acc.begin_slice(px, sl);
 }
 
+// Whether an accumulator takes step j of both sides together (Acc::kPairedSides: walk_pairs)
+template <class Acc, class = void> struct PairedSides {
+  static constexpr bool value = false;
+};
+template <class Acc> struct PairedSides<Acc, decltype(void(Acc::kPairedSides))> {
+  static constexpr bool value = Acc::kPairedSides;
+};
+
 // Nothing to do after a step (walk_slice's visitor of the plain walk)
 struct NoVisit {
   static constexpr bool kBefore = false;  // (a visitor that reads the state before the step says so)
@@ -436,6 +473,22 @@ TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc
   }
 }
 
+// One slice of a paired accumulator (march's paired_sides: SliceAccumulator.paired_sides, UE4 SSAO's
+// symmetric pairs): step j of side +1 and of side -1 taken together, acc.step_pair(state, px, sl, plus, minus)
+template <class F, class Acc>
+TAO_FN void walk_pairs(const WalkSettings& cfg, const Image& img, const Acc& acc, const Pixels<F>& px,
+                       const Slice<F>& sl, typename Acc::template State<F>& state) {
+  const F xi_plus = step_noise(cfg, px, sl, 1), xi_minus = step_noise(cfg, px, sl, -1);
+  for (int64_t j = 0; j < cfg.steps; ++j) {
+    F su, sv;
+    step_screen(cfg, img, px, sl, 1.0f, xi_plus, j, su, sv);
+    const Sample<F> plus(cfg, img, px, su, sv);
+    step_screen(cfg, img, px, sl, -1.0f, xi_minus, j, su, sv);
+    const Sample<F> minus(cfg, img, px, su, sv);
+    acc.step_pair(state, px, sl, plus, minus);
+  }
+}
+
 // GTAO's Algorithm 1 for the n <= L pixels of a row from column u0: every slice's walk (walk_slice);
 // out[c] receives channel c of every lane.
 template <class F, class Acc>
@@ -448,7 +501,11 @@ TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
       const Slice<F> sl(cfg, img, px, s);
       typename Acc::template State<F> state = begin_slice_of(acc, px, sl, sums, 0);
-      walk_slice(cfg, img, acc, px, sl, state, none);
+      if constexpr (PairedSides<Acc>::value) {
+        walk_pairs(cfg, img, acc, px, sl, state);
+      } else {
+        walk_slice(cfg, img, acc, px, sl, state, none);
+      }
       acc.end_slice(state, px, sl, sums);
     }
   }

@@ -19,5 +19,7 @@ TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao)
 TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask)
 TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact)
 TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl)
+TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge)
+TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao)
 TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward)
 TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility / d radius, thickness too

@@ -111,6 +111,7 @@ class PSSAO(ScreenSpaceAO):
     )
     SAMPLING = Sampling.options_for(("preset", "slices", "steps", "fetch", "border"), fetch="nearest")
     default_slices_steps = (8, 8)
+    has_kernel = "pssao"  # forward in torch_ao.kernels (pssao_covers says which calls)
 
     @classmethod
     def parse_options(cls, options):

@@ -154,6 +154,7 @@ class UE4SSAO(ScreenSpaceAO):
     SAMPLING = Sampling.options_for(("preset", "slices", "steps", "jitter", "seed", "fetch", "border"),
                                     fetch="nearest", border="clamp")
     default_slices_steps = (3, 3)
+    has_kernel = "ue4_ssao"  # forward in torch_ao.kernels (ue4_ssao_covers says which calls)
 
     @classmethod
     def parse_options(cls, options):

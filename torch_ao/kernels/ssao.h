@@ -1,0 +1,103 @@
+// The accumulators of torch_ao/methods/ue4_ssao.py (WedgeAccumulator: UE4's WedgeNoNormal of each symmetric
+// pair of samples, Steps::wedge) and torch_ao/methods/pssao.py (PSSAOAccumulator: the largest sample
+// occlusion per direction, Steps::pixels), for walk.h. Like horizon.h's, they finish into per-pixel sums over
+// slices (0 on background) that the modules' own Python finish turns into the visibility.
+#pragma once
+
+#include "walk.h"
+
+namespace tao {
+
+// WedgeAccumulator: per direction the running (x, y) of acc = lerp(acc, (max(acc.x, x), 1), Weight)
+struct WedgeAccumulator {
+  static constexpr bool kPairedSides = true;  // step_pair: both sides of step j together (walk_pairs)
+  float fade_distance;      // D of the halo weight, clamped to 1e-30 (world units)
+  float flat_surface_bias;  // world units
+  float flat_softness;      // > 0: the logistic blend of the flat-surface test
+  bool accurate_angle;      // acos(cos) / pi instead of UE4's (1 - cos) 0.45
+
+  template <class F> struct State { F x, y; };
+  template <class F> struct Sums { F num = F(0.0f), den = F(0.0f); };
+  TAO_FN int channels() const { return 2; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {
+    return State<F>{F(0.0f), F(0.0f)};
+  }
+
+  template <class F>
+  TAO_FN void step_pair(State<F>& st, const Pixels<F>& px, const Slice<F>&, const Sample<F>& plus,
+                        const Sample<F>& minus) const {
+    const F* dl = plus.delta;
+    const F* dr = minus.delta;
+    const F denom = sqrt(clamp_min(dot3(dl, dl) * dot3(dr, dr), F(1e-30f)));
+    const F cos_lr = clamp(dot3(dl, dr) / denom, F(-1.0f), F(1.0f));
+    F norm_angle = accurate_angle ? acos(clamp(cos_lr, F(float(-1 + 1e-7)), F(float(1 - 1e-7)))) / F(kPi)
+                                  : clamp((F(1.0f) - cos_lr) * F(0.45f), F(0.0f), F(1.0f));
+    // zc - zL, zc - zR: the samples' depths -(P + delta).z (an invalid sample's delta is -V, as the tensor
+    // path's position P - V)
+    const F left = px.depth + (px.P[2] + dl[2]), right = px.depth + (px.P[2] + dr[2]);
+    const F bias = F(flat_surface_bias), one = F(1.0f);
+    if (flat_softness > 0) {
+      const F flat = one / (one + exp((left + right - bias) / F(flat_softness)));  // sigmoid((bias - (l + r)) / s)
+      norm_angle = norm_angle + flat * (one - norm_angle);
+    } else {
+      norm_angle = select(left + right < bias, one, norm_angle);
+    }
+    const F D = F(fade_distance);
+    F weight = clamp(one - left / D, F(0.0f), one) * clamp(one - right / D, F(0.0f), one);
+    weight = select(land(plus.valid, minus.valid), weight, F(0.0f));
+    const F x = (one - norm_angle) / (weight + F(0.001f));
+    st.x = st.x + weight * (max(st.x, x) - st.x);
+    st.y = st.y + weight * (one - st.y);
+  }
+
+  template <class F> TAO_FN void end_slice(const State<F>& st, const Pixels<F>&, const Slice<F>&, Sums<F>& sums) const {
+    const F occluded = F(1.0f) - st.x;
+    sums.num = sums.num + (occluded * occluded) * st.y;
+    sums.den = sums.den + st.y;
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    out[0] = select(px.live, sums.num, F(0.0f));
+    out[1] = select(px.live, sums.den, F(0.0f));
+  }
+};
+
+// PSSAOAccumulator: per direction the largest occlusion a / (1 + a), a = max(n . d, 0) / (bias + |d|), of its
+// samples in the image, and how many there are (the gist's toInclude)
+struct PSSAOAccumulator {
+  float distance_bias;  // world units: the gist's 1.0 in a /= 1.0 + distance
+
+  template <class F> struct State { F best, count; };
+  template <class F> struct Sums { F sum = F(0.0f), count = F(0.0f), dirs = F(0.0f); };
+  TAO_FN int channels() const { return 3; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {
+    return State<F>{F(-100000.0f), F(0.0f)};
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
+    const auto inside = smp.inside();
+    F a = clamp_min(dot3(px.N, smp.delta), F(0.0f));
+    a = a / (F(distance_bias) + norm3(smp.delta));
+    const F occ = select(smp.valid, a / (F(1.0f) + a), F(0.0f));
+    st.best = select(inside, max(st.best, occ), st.best);
+    st.count = st.count + select(inside, F(1.0f), F(0.0f));
+  }
+
+  template <class F> TAO_FN void end_slice(const State<F>& st, const Pixels<F>&, const Slice<F>&, Sums<F>& sums) const {
+    const auto has = st.count > F(0.0f);
+    sums.sum = sums.sum + select(has, st.best, F(0.0f));
+    sums.count = sums.count + st.count;
+    sums.dirs = sums.dirs + select(has, F(1.0f), F(0.0f));
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    out[0] = select(px.live, sums.sum, F(0.0f));
+    out[1] = select(px.live, sums.count, F(0.0f));
+    out[2] = select(px.live, sums.dirs, F(0.0f));
+  }
+};
+
+}  // namespace tao

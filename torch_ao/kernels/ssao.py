@@ -1,0 +1,147 @@
+"""The SSAO family's kernels: ``UE4SSAO`` and ``PSSAO`` forward in one fused pass (the one walk of ``walk.h``
+with the accumulators of ``ssao.h``).
+
+``UE4SSAO`` walks :class:`~torch_ao.methods.ue4_ssao.WedgePattern`'s directions (a sample set's, rotated per
+pixel, or evenly spaced) with both sides of each step taken together (``walk_pairs``: the tensor walk's
+``paired_sides``) and UE4's ``WedgeNoNormal`` per pair; ``PSSAO`` walks
+:class:`~torch_ao.methods.pssao.PSSAOPattern`'s integer pixel offsets (the module's pattern computes them; the
+kernel reads them as a table) with the largest occlusion per direction. Both return per-pixel sums over
+slices that the module's own accumulator's ``finish`` turns into the visibility (UE4's final power and
+intensity, PSSAO's normalisation), so those have one definition. Forward only: a call that wants a gradient
+through what the kernel computes runs on the tensor path (:func:`ue4_ssao_covers`, :func:`pssao_covers`).
+
+``SSAO`` (the hemisphere kernel) has no kernel: its samples are 3-D points around the normal, projected one by
+one, not steps along a screen direction, so it is not a pattern of this walk.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..gbuffer import GBuffer
+from .coverage import gbuffer_uncovered, option_uncovered
+from .gtao import _finish, _value
+from .launch import run_walk, walk_settings
+
+__all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums", "pssao_forward", "pssao_covers"]
+
+#: the fetches the walk reads (walk.h's Sample)
+_FETCHES = ("nearest", "bilinear", "edge_aware")
+
+
+def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
+                  fade_distance: float, flat_surface_bias: float, flat_softness: float = 0.0,
+                  accurate_angle: bool = False, offsets=None, jitter: bool = True, seed: int = 0,
+                  fetch: str = "nearest", border: str = "clamp", lanes: str = "simd") -> torch.Tensor:
+    """Per-pixel sums over directions of UE4 SSAO's ``(1 - acc.x)^2 acc.y`` and ``acc.y`` ``(B,2,H,W)`` (0 on
+    background).
+
+    Args:
+        gbuffer: a float32 G-buffer (CPU or CUDA); normals: its ``(B,3,H,W)`` view-space normals (the walk's
+            basis; the accumulator reads none). slices: directions evenly over the half circle, or ``offsets``:
+            a sample set's 2-D offsets ``((x, y), ...)``, one direction each (its angle and length:
+            :data:`~torch_ao.methods.ue4_ssao.SAMPLE_SETS`); steps: pairs per direction; radius, fade_distance,
+            flat_surface_bias, flat_softness: world units; accurate_angle, jitter, seed, fetch, border: as
+            :class:`~torch_ao.UE4SSAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's body).
+    """
+    table = None
+    if offsets is not None:  # WedgePattern._direction: the offset's angle and length
+        slices = len(offsets)
+        table = [v for x, y in offsets for v in (math.atan2(y, x), math.hypot(x, y))]
+    settings = walk_settings(slices=slices, steps=steps, radius=radius, jitter=jitter, seed=seed, fetch=fetch,
+                             border=border, placement="wedge", azimuth="screen", table=table)
+    return run_walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
+                    [max(float(fade_distance), 1e-30), float(flat_surface_bias), float(flat_softness)], 2, lanes=lanes)
+
+
+def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, offsets, distance_bias: float,
+               fetch: str = "nearest", border: str = "drop", lanes: str = "simd") -> torch.Tensor:
+    """Per-pixel sums over directions of PSSAO's largest occlusion, in-image samples and directions with one
+    ``(B,3,H,W)`` (0 on background).
+
+    Args:
+        gbuffer, normals: as :func:`ue4_ssao_sums` (the normals occlude: ``a = max(n . d, 0)``). slices,
+            steps: the gist's angular and radius steps; offsets: ``offsets[s][k]`` the ``(du, dv)`` pixels of step
+            ``k`` on direction ``s`` (:meth:`~torch_ao.methods.pssao.PSSAOPattern.pixel_offset`);
+            distance_bias: world units; fetch, border: as
+            :class:`~torch_ao.PSSAO`. lanes: as :func:`ue4_ssao_sums`.
+    """
+    table = [float(v) for s in range(slices) for k in range(steps) for v in offsets[s][k]]
+    settings = walk_settings(slices=slices, steps=steps, radius=0.0, jitter=False, seed=0, fetch=fetch, border=border,
+                             placement="pixels", full_circle=True, azimuth="screen", table=table)
+    return run_walk("pssao", gbuffer, normals, settings, [], [float(distance_bias)], 3, lanes=lanes)
+
+
+def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
+    """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for a :class:`~torch_ao.UE4SSAO` the kernel
+    covers (:func:`ue4_ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
+    m = module
+    normals = gbuffer.view_normals(m.normals_method)
+    sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=_value(m.radius),
+                         fade_distance=_value(m.fade_distance), flat_surface_bias=_value(m.flat_surface_bias),
+                         flat_softness=m.flat_softness, accurate_angle=m.accurate_angle,
+                         offsets=m.pattern_for(None).offsets,
+                         jitter=m.jitter, seed=m.seed, fetch=m.fetch, border=m.border, lanes=lanes)
+    sums = sums.permute(0, 2, 3, 1).reshape(-1, 2)
+    return _finish(m, gbuffer, {"num": sums[:, 0:1], "den": sums[:, 1:2]}, normals)
+
+
+def pssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
+    """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for a :class:`~torch_ao.PSSAO` the kernel
+    covers (:func:`pssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
+    m = module
+    normals = gbuffer.view_normals(m.normals_method)
+    pattern = m.pattern_for(None)
+    offsets = [[pattern.pixel_offset(s, k) for k in range(m.steps)] for s in range(m.slices)]
+    sums = pssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, offsets=offsets,
+                      distance_bias=_value(m.distance_bias),
+                      fetch=m.fetch, border=m.border, lanes=lanes)
+    sums = sums.permute(0, 2, 3, 1).reshape(-1, 3)
+    return _finish(m, gbuffer, {"sum": sums[:, 0:1], "count": sums[:, 1:2], "dirs": sums[:, 2:3]}, normals)
+
+
+#: the options of every module these kernels know: ``None`` for any value, else the values covered
+_MODULE_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "border", "normals", "chunk_size", "recompute", "trainable",
+                                 "backend", "resolution")) | {"fetch": _FETCHES}
+_UE4_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("radius", "fade_distance", "flat_surface_bias", "final_power", "intensity",
+                                                "sample_set", "accurate_angle", "flat_softness", "jitter", "seed")) | {
+    "azimuth": ("screen",)}
+_PSSAO_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("distance_bias", "normalize")) | {"jitter": (False,)}
+
+
+def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...], finished: tuple[str, ...]) -> str | None:
+    """Why the kernel cannot compute ``module(gbuffer)`` (``None``: it can): an option it does not know or
+    cover, a ``parameter`` other than a scalar, a G-buffer other than float32 on CPU or CUDA, bilinear reads of
+    a position buffer, or, where autograd records, a gradient through the kernel's sums (those of the
+    ``finished`` parameters, which the module's finish applies with torch ops, are kept)."""
+    reason = option_uncovered(getattr(module, "values", {}), options)
+    if reason is not None:
+        return reason
+    tensors = [getattr(module, name) for name in parameters]
+    if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in tensors):
+        return "a parameter other than a scalar"
+    if gbuffer.position is not None and module.fetch != "nearest":
+        return f"fetch={module.fetch!r} of a position buffer (the kernel unprojects the interpolated depth)"
+    reason = gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))
+    if reason is not None:
+        return reason
+    if torch.is_grad_enabled():
+        asked = [name for name, t in zip(parameters, tensors) if t.requires_grad and name not in finished]
+        cam = gbuffer.camera
+        inputs = (gbuffer.depth, gbuffer.normals, gbuffer.position, cam.fx, cam.fy, cam.cx, cam.cy)
+        if asked or any(isinstance(t, torch.Tensor) and t.requires_grad for t in inputs):
+            what = ", ".join(asked) if asked else "the G-buffer"
+            return f"a gradient of {what} is asked for (the {type(module).__name__} kernel is forward only)"
+    return None
+
+
+def ue4_ssao_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`ue4_ssao_forward` computes ``module(gbuffer)`` (a ``UE4SSAO``), else why not."""
+    return _covers(module, gbuffer, _UE4_OPTIONS, ("radius", "fade_distance", "flat_surface_bias", "final_power",
+                                                   "intensity"), finished=("final_power", "intensity"))
+
+
+def pssao_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`pssao_forward` computes ``module(gbuffer)`` (a ``PSSAO``), else why not."""
+    return _covers(module, gbuffer, _PSSAO_OPTIONS, ("distance_bias",), finished=())
