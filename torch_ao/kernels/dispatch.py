@@ -60,10 +60,10 @@ def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,
 #: gbuffer)`` is ``None`` when that kernel computes the call, else why not; ``run(module, gbuffer)`` gives the
 #: outputs ``{AOOutput field: tensor}``. Bitmask AO has the hard kernel, the exact union's (the ``"exact"``
-#: variant), the soft / straight-through one (with its backward) and the exact union's with its gradients.
+#: variant), the exact union's with its gradients and the soft / straight-through one (with its backward).
 KERNELS = {
-    "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (soft_bitmask.kernel_covers, _bitmask_soft),
-                (exact_soft_covers, exact_soft_forward)),
+    "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (exact_soft_covers, exact_soft_forward),
+                (soft_bitmask.kernel_covers, _bitmask_soft)),
     "gtao": ((gtao_covers, gtao_forward),),
     "hbao": ((hbao_covers, hbao_forward),),
 }
