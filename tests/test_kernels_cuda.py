@@ -52,7 +52,7 @@ extern tao_dim3 blockIdx, blockDim, threadIdx;
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
 Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
-    tao_walk_soft_gradients, tao_walk_wedge, tao_walk_pssao;
+    tao_walk_soft_gradients, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -69,7 +69,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   const unsigned threads = unsigned(std::atoi(argv[7]));
   Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao
                  : name == "exact" ? tao_walk_exact : name == "glsl" ? tao_walk_glsl : name == "soft" ? tao_walk_soft
-                 : name == "soft_gradients" ? tao_walk_soft_gradients : name == "wedge" ? tao_walk_wedge
+                 : name == "soft_gradients" ? tao_walk_soft_gradients
+                 : name == "exact_gradients" ? tao_walk_exact_gradients : name == "wedge" ? tao_walk_wedge
                  : name == "pssao" ? tao_walk_pssao : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
@@ -125,9 +126,10 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
 
 def cases(gb):
     """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
-    (hard, exact, the GLSL shader's in its three numerics, soft: its forward, and with the radius and thickness
-    derivatives), GTAO and HBAO with the Hilbert-indexed R2 noise and staggered steps, UE4 SSAO's wedge pairs
-    (a sample set's table, evenly spaced directions) and PSSAO's pixel offsets (their table)."""
+    (hard, exact and with its parameters' derivatives, the GLSL shader's in its three numerics, soft: its forward,
+    and with the radius and thickness derivatives), GTAO and HBAO with the Hilbert-indexed R2 noise and staggered
+    steps, UE4 SSAO's wedge pairs (a sample set's table, evenly spaced directions) and PSSAO's pixel offsets (their
+    table)."""
     light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
     common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
@@ -143,6 +145,10 @@ def cases(gb):
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
+    yield ("exact_gradients", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False],
+           [0.4, 1.0, 1.0, 0.0], 4, None)
+    yield ("exact_gradients", walk_settings(**dict(exact, fetch="bilinear", border="clamp")), [False, False, False, False],
+           [0.4, 1.0, 1.0, 0.01], 4, None)
     glsl = dict(slices=4 + 1, steps=5 + 1, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp",
                 placement="glsl", full_circle=True, azimuth="screen")  # (the shader's sliceCount 4, sampleCount 5)
     yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True], [0.3], 4, light
@@ -173,7 +179,7 @@ def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_
         scalar = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
         assert (cuda != -7.0).all()  # every pixel written, by exactly its thread
         simd = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light)
-        if accumulator == "soft_gradients":  # (derivatives up to ~1 / tau^2: relative to their scale)
+        if accumulator in ("soft_gradients", "exact_gradients"):  # (derivatives: relative to their scale)
             scale = scalar[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
             assert (cuda[:, :1] - scalar[:, :1]).abs().max() <= 1e-6
             assert ((cuda[:, 1:] - scalar[:, 1:]) / scale).abs().max() <= 1e-5, accumulator

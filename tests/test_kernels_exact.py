@@ -65,7 +65,7 @@ def test_the_edge_aware_fetch_is_what_the_kernel_reads():
     assert (edge - bilinear).abs().max() > 0.01
 
 
-def test_auto_runs_the_exact_kernel_without_a_gradient_and_the_tensor_path_with_one(built, monkeypatch):
+def test_auto_runs_the_exact_kernel_without_a_gradient_and_its_gradients_kernel_with_one(built, monkeypatch):
     import torch_ao.kernels.dispatch as dispatch
 
     calls = []
@@ -77,7 +77,9 @@ def test_auto_runs_the_exact_kernel_without_a_gradient_and_the_tensor_path_with_
         module(gb)
     assert calls == ["exact_forward"]
     out = module(gb).visibility  # trainable thickness and radius: the exact union has a gradient in hard mode
-    assert out.requires_grad and calls == ["exact_forward"]
+    assert out.requires_grad and calls == ["exact_forward", "exact_soft_forward"]
+    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, backface_depth=gb.backface_depth)
+    assert module(graph).visibility.requires_grad and len(calls) == 2  # a G-buffer gradient: the tensor path
 
 
 def test_exact_covers_names_what_it_does_not_cover():

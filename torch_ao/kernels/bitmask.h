@@ -175,19 +175,24 @@ struct BitmaskAccumulator {
 
 
 // H(theta) = int_0^theta cos(t - gamma) |sin t| dt (ops.arc_measure) of the slice's hemisphere from its
-// edge at x = 0 to position x (sector units): theta(x) = gamma - pi/2 + pi x / 32
-template <class F> TAO_FN F arc_measure_at(const F& x, const Slice<F>& sl) {
-  const F theta = sl.gamma - F(kHalfPi) + x * F(kPi / float(kSectors));
-  const F G = neg(cos(F(2.0f) * theta - sl.gamma)) / F(4.0f) + theta * sl.sin_gamma / F(2.0f);
-  const F G0 = neg(sl.cos_gamma) / F(4.0f);
-  return sign(theta) * (G - G0);
+// edge at x = 0 to position x (sector units): theta(x) = gamma - pi/2 + pi x / 32 (G: F, or duals over F)
+template <class G, class F> TAO_FN G arc_measure_at(const G& x, const Slice<F>& sl) {
+  const G theta = G(sl.gamma) - G(kHalfPi) + x * G(kPi / float(kSectors));
+  const G H = neg(cos(G(2.0f) * theta - G(sl.gamma))) / G(4.0f) + theta * G(sl.sin_gamma) / G(2.0f);
+  const G H0 = G(neg(sl.cos_gamma) / F(4.0f));
+  return sign(theta) * (H - H0);
 }
+
+// a / b (lanes_dual.h's overload keeps the quotient's value that of the plain lanes)
+template <class F> TAO_FN F quotient(const F& a, const F& b) { return a / b; }
 
 // The "exact" variant's accumulator (methods/bitmask.py DefaultAccumulator with union="exact",
 // bitmask_common's end_slice): each sample's occluder segment from its front point to its back point
 // (thickness along the view vector, or along its own camera ray: intervals.back_point), clipped to the
 // radius' sphere (intervals.clip_to_sphere), as an interval of the hemisphere; a slice's visible share is
 // the exact (uniform or cosine) measure of what the union of its intervals leaves (intervals.union_measure).
+// interval, union_measure and add_slice take value lanes G = F, or duals over F carrying derivatives
+// (exact_soft.h), whose values are the plain lanes'.
 constexpr int kMaxIntervals = 64;  // both sides' steps of a slice: steps <= 32
 
 struct ExactAccumulator {
@@ -211,68 +216,86 @@ struct ExactAccumulator {
     return st;
   }
 
-  template <class F>
-  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
-    const F t = thickness.at(smp);
-    F fv = dot3(smp.delta, px.V), ft = F(float(side)) * dot3(smp.delta, sl.T), bv, bt;
+  // The interval [lo, hi] of the hemisphere (sector units, clipped to [0, 32]; [0, 0] where empty or not
+  // live) that a sample at offset delta from the pixel occludes on side, with thickness t and the sphere's
+  // radius (shift: the slice's (pi/2 - gamma) / pi)
+  template <class F, class G>
+  TAO_FN void interval(int side, const Pixels<F>& px, const Slice<F>& sl, const F& shift, const G* delta, const G& t,
+                       const G& radius, typename LaneTraits<F>::M live, G& lo_out, G& hi_out) const {
+    const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
+    G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T), bv, bt;
     if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
-      const F k = t / clamp_min(neg(smp.delta[2] + px.P[2]), F(1e-30f));
-      bv = fv + k * (fv - px.distance), bt = ft * (F(1.0f) + k);
+      const G k = quotient(t, clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f)));
+      bv = fv + k * (fv - G(px.distance)), bt = ft * (G(1.0f) + k);
     } else {
       bv = fv - t, bt = ft;
     }
-    auto live = smp.valid;
     if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
-      const F ev = bv - fv, et = bt - ft;
-      const F a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - F(radius * radius);
-      const F disc = b * b - a * c;
-      const auto degenerate = a <= F(1e-30f) * clamp_min(fv * fv + ft * ft, F(1e-30f));  // a point occluder
-      const auto hit = land(disc > F(0.0f), lnot(degenerate));
-      const F safe_a = select(hit, a, F(1.0f)), root = sqrt(select(hit, disc, F(1.0f)));
-      const F u0 = select(hit, clamp((neg(b) - root) / safe_a, F(0.0f), F(1.0f)), F(0.0f));
-      const F u1 = select(hit, clamp((neg(b) + root) / safe_a, F(0.0f), F(1.0f)), F(1.0f));
-      live = land(live, select(degenerate, c <= F(0.0f), land(hit, u1 > u0)));
-      const F fv0 = fv, ft0 = ft;
+      const G ev = bv - fv, et = bt - ft;
+      const G a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - radius * radius;
+      const G disc = b * b - a * c;
+      const auto degenerate = a <= G(1e-30f) * clamp_min(fv * fv + ft * ft, G(1e-30f));  // a point occluder
+      const auto hit = land(disc > G(0.0f), lnot(degenerate));
+      const G safe_a = select(hit, a, G(1.0f)), root = sqrt(select(hit, disc, G(1.0f)));
+      const G u0 = select(hit, clamp(quotient(neg(b) - root, safe_a), G(0.0f), G(1.0f)), G(0.0f));
+      const G u1 = select(hit, clamp(quotient(neg(b) + root, safe_a), G(0.0f), G(1.0f)), G(1.0f));
+      live = land(live, select(degenerate, c <= G(0.0f), land(hit, u1 > u0)));
+      const G fv0 = fv, ft0 = ft;
       fv = fv0 + u0 * ev, ft = ft0 + u0 * et, bv = fv0 + u1 * ev, bt = ft0 + u1 * et;
     }
     const F scale = F(float(side) / kPi);
-    const F front = clamp(fma(atan2(ft, fv), scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(atan2(bt, bv), scale, st.shift), F(0.0f), F(1.0f));
-    const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
-    F width = (hi - lo) * F(float(kSectors));
-    if (epsilon > 0) width = width - F(epsilon);
-    const F start = lo * F(float(kSectors));
+    const G front = clamp(fma(atan2(ft, fv), scale, shift), G(0.0f), G(1.0f));
+    const G back = clamp(fma(atan2(bt, bv), scale, shift), G(0.0f), G(1.0f));
+    const G lo = side > 0 ? front : back, hi = side > 0 ? back : front;
+    G width = (hi - lo) * G(float(kSectors));
+    if (epsilon > 0) width = width - G(epsilon);
+    const G start = lo * G(float(kSectors));
     // union_measure's clipped ends; an empty (or dead) interval is [0, 0]
-    const auto open = land(live, width > F(0.0f));
-    st.lo[st.n] = select(open, clamp(start, F(0.0f), F(float(kSectors))), F(0.0f));
-    st.hi[st.n] = select(open, clamp(start + width, F(0.0f), F(float(kSectors))), F(0.0f));
+    const auto open = land(live, width > G(0.0f));
+    lo_out = select(open, clamp(start, G(0.0f), G(float(kSectors))), G(0.0f));
+    hi_out = select(open, clamp(start + width, G(0.0f), G(float(kSectors))), G(0.0f));
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    interval(side, px, sl, st.shift, smp.delta, thickness.at(smp), F(radius), smp.valid, st.lo[st.n], st.hi[st.n]);
     ++st.n;
+  }
+
+  // The measure of the union of the n intervals [lo, hi] (sorted in place): sector units, or with cosine
+  // weights the arc measure. Sorted by start (lane by lane: compare-exchanges), each interval adds what
+  // lies beyond the reach of those before it.
+  template <class F, class G> TAO_FN G union_measure(G* lo, G* hi, int n, const Slice<F>& sl) const {
+    for (int i = 1; i < n; ++i)
+      for (int j = i; j > 0; --j) {
+        const auto swap = lo[j] < lo[j - 1];
+        const G l = select(swap, lo[j - 1], lo[j]), h = select(swap, hi[j - 1], hi[j]);
+        lo[j - 1] = select(swap, lo[j], lo[j - 1]), hi[j - 1] = select(swap, hi[j], hi[j - 1]);
+        lo[j] = l, hi[j] = h;
+      }
+    G reach = G(0.0f), covered = G(0.0f);
+    for (int j = 0; j < n; ++j) {
+      const G a = max(lo[j], reach), b = max(hi[j], reach);
+      covered = covered + (cosine ? (arc_measure_at(b, sl) - arc_measure_at(a, sl)) * G(sl.length) : b - a);
+      reach = b;
+    }
+    return covered;
+  }
+
+  // A slice's visible share into num (with cosine weights its whole measure into den) from the covered one
+  template <class F, class G> TAO_FN void add_slice(const G& covered, const Slice<F>& sl, G& num, F& den) const {
+    if (cosine) {
+      const F total = (arc_measure_at(F(float(kSectors)), sl) - arc_measure_at(F(0.0f), sl)) * sl.length;
+      num = num + (G(total) - covered);
+      den = den + total;
+    } else {
+      num = num + (G(1.0f) - covered / G(float(kSectors)));
+    }
   }
 
   template <class F>
   TAO_FN void end_slice(State<F>& st, const Pixels<F>&, const Slice<F>& sl, Sums<F>& sums) const {
-    // sorted by start (lane by lane: compare-exchanges), each interval adds what lies beyond the reach
-    // of those before it
-    for (int i = 1; i < st.n; ++i)
-      for (int j = i; j > 0; --j) {
-        const auto swap = st.lo[j] < st.lo[j - 1];
-        const F lo = select(swap, st.lo[j - 1], st.lo[j]), hi = select(swap, st.hi[j - 1], st.hi[j]);
-        st.lo[j - 1] = select(swap, st.lo[j], st.lo[j - 1]), st.hi[j - 1] = select(swap, st.hi[j], st.hi[j - 1]);
-        st.lo[j] = lo, st.hi[j] = hi;
-      }
-    F reach = F(0.0f), covered = F(0.0f);
-    for (int j = 0; j < st.n; ++j) {
-      const F a = max(st.lo[j], reach), b = max(st.hi[j], reach);
-      covered = covered + (cosine ? (arc_measure_at(b, sl) - arc_measure_at(a, sl)) * sl.length : b - a);
-      reach = b;
-    }
-    if (cosine) {
-      const F total = (arc_measure_at(F(float(kSectors)), sl) - arc_measure_at(F(0.0f), sl)) * sl.length;
-      sums.num = sums.num + (total - covered);
-      sums.den = sums.den + total;
-    } else {
-      sums.num = sums.num + (F(1.0f) - covered / F(float(kSectors)));
-    }
+    add_slice(union_measure(st.lo, st.hi, st.n, sl), sl, sums.num, sums.den);
   }
 
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {

@@ -7,6 +7,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from . import soft_bitmask
+from .soft_exact import exact_soft_covers, exact_soft_forward
 from .bitmask import backface_scale_of, bitmask_hard, bitmask_outputs, exact_covers, exact_forward, kernel_covers, ssilvb_glsl_hard
 from .build import KernelUnavailable
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
@@ -60,9 +61,10 @@ def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,
 #: gbuffer)`` is ``None`` when that kernel computes the call, else why not; ``run(module, gbuffer)`` gives the
 #: outputs ``{AOOutput field: tensor}``. Bitmask AO has the hard kernel, the exact union's (the ``"exact"``
-#: variant) and the soft / straight-through one (with its backward).
+#: variant), the exact union's with its gradients and the soft / straight-through one (with its backward).
 KERNELS = {
-    "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (soft_bitmask.kernel_covers, _bitmask_soft)),
+    "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (exact_soft_covers, exact_soft_forward),
+                (soft_bitmask.kernel_covers, _bitmask_soft)),
     "gtao": ((gtao_covers, gtao_forward),),
     "hbao": ((hbao_covers, hbao_forward),),
     "ue4_ssao": ((ue4_ssao_covers, ue4_ssao_forward),),

@@ -87,6 +87,17 @@ template <class F, int N> TAO_FN Dual<F, N> neg(const Dual<F, N>& x) {
 template <class F, int N> TAO_FN Dual<F, N> fma(const Dual<F, N>& a, const Dual<F, N>& b, const Dual<F, N>& c) {
   return a * b + c;
 }
+// a b + c for a constant b and c, its value fused as the value lanes' fma (a walk in duals keeps their values)
+template <class F, int N> TAO_FN Dual<F, N> fma(const Dual<F, N>& a, const F& b, const F& c) {
+  Dual<F, N> r(fma(a.v, b, c));
+  for (int k = 0; k < N; ++k) r.d[k] = a.d[k] * b;
+  return r;
+}
+// a / b with the value lanes' quotient as its value (operator/ multiplies by the reciprocal)
+template <class F, int N> TAO_FN Dual<F, N> quotient(const Dual<F, N>& a, const Dual<F, N>& b) {
+  const F inv = F(1.0f) / b.v, q = a.v / b.v;
+  return Dual<F, N>::chain(q, inv, a, neg(q * inv), b);
+}
 template <class F, int N> TAO_FN Dual<F, N> abs(const Dual<F, N>& x) { return select(x.v < F(0.0f), neg(x), x); }
 template <class F, int N> TAO_FN Dual<F, N> sqrt(const Dual<F, N>& x) {
   // at 0, the derivative torch's norm takes there (0), not sqrt's infinite one: a zero-length vector

@@ -38,8 +38,8 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
-// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "glsl", "wedge",
-// "pssao", "soft", "soft_gradients") over the frame,
+// torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "exact_gradients",
+// "glsl", "wedge", "pssao", "soft", "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -92,6 +92,13 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
     run(unpack_exact(i, f));
+  } else if (name == "exact_gradients") {
+    packed(4, 4);
+    TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
+    TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
+    TORCH_CHECK(i[3] == int64_t(Steps::power) && !i[7], "exact_gradients: the radius' derivative is the power step "
+                "placement's, without full circle");
+    run(unpack_exact_gradients(i, f));
   } else if (name == "glsl") {
     packed(3, 1);
     TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,
@@ -119,8 +126,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
       run(unpack_soft<true>(i, f));
     }
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, glsl, wedge, pssao, soft or soft_gradients, got ",
-                name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, exact_gradients, glsl, wedge, pssao, soft or "
+                "soft_gradients, got ", name);
   }
   return out;
 }

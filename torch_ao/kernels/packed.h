@@ -6,6 +6,7 @@
 
 #include "bitmask.h"
 #include "bitmask_glsl.h"
+#include "exact_soft.h"
 #include "horizon.h"
 #include "soft.h"
 #include "ssao.h"
@@ -64,6 +65,11 @@ TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
   i += kAccInts, f += kAccFloats;
   return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], i[3] != 0}, f[2], f[3], i[0] != 0, i[1] != 0,
                           i[2] != 0};
+}
+
+// unpack_exact's settings: the exact union with d visibility / d radius, thickness, thickness_scale
+TAO_FN ExactGradAccumulator unpack_exact_gradients(const int64_t* i, const float* f) {
+  return ExactGradAccumulator{unpack_exact(i, f), unpack_walk(i, f)};
 }
 
 // ints: rounding, cosine, straight_through; floats: thickness, epsilon, tau

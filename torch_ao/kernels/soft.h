@@ -52,6 +52,43 @@ template <class F> struct SoftCoverage {
   F gate, slope;
 };
 
+// d position / d su and d sv of a sample's bilinear fetch at (su, sv) (perspective-correct depth, the
+// clamped unprojection; 0 where the sample is not valid)
+template <class F> TAO_FN void fetch_motion(const Sample<F>& smp, const F& su, const F& sv, F* d_su, F* d_sv) {
+  const Image& img = *smp.image;
+  const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
+  const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
+  const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
+  const F square = neg(depth * depth);
+  const F dz_u = square * lerp(t1 - t0, t3 - t2, smp.fv), dz_v = square * (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu));
+  const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
+  const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
+  const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
+  const F dxh = select(su_c == su, F(1.0f / img.fx), F(0.0f)), dyh = select(sv_c == sv, F(-1.0f / img.fy), F(0.0f));
+  d_su[0] = select(smp.valid, dz_u * xh + depth * dxh, F(0.0f)), d_sv[0] = select(smp.valid, dz_v * xh, F(0.0f));
+  d_su[1] = select(smp.valid, dz_u * yh, F(0.0f)), d_sv[1] = select(smp.valid, dz_v * yh + depth * dyh, F(0.0f));
+  d_su[2] = select(smp.valid, neg(dz_u), F(0.0f)), d_sv[2] = select(smp.valid, neg(dz_v), F(0.0f));
+}
+
+// d su / d radius and d sv / d radius of the step dist pixels out on a slice's side (SlicePattern.step_offsets,
+// the power placement: dist = min_step_px + span frac, span = clamp_min(radius_px - min_step_px, 0),
+// radius_px = R |ppu|, with the sphere's extent times intervals.sphere_stretch, clamped to max_radius_px)
+template <class F>
+TAO_FN void step_motion(const WalkSettings& walk, const Pixels<F>& px, const Slice<F>& sl, float side, const F& dist,
+                        F& dsu, F& dsv) {
+  F slope = sl.radius_px / F(walk.radius);  // d radius_px / d R
+  if (walk.sphere_extent) {  // stretch = rsqrt(clamp_min(q, 1/100)), q = 1 - r^2, r = R / |P|: d (R stretch) / dR = stretch (1 + r^2 / q)
+    const F ratio = F(walk.radius) / px.distance;
+    const F square = ratio * ratio, q = F(1.0f) - square;
+    slope = slope * select(q >= F(1.0f / 100.0f), F(1.0f) + square / q, F(1.0f));
+  }
+  if (walk.max_radius_px > 0) slope = select(sl.radius_px < F(walk.max_radius_px), slope, F(0.0f));
+  const F reach_px = sl.radius_px - F(walk.min_step_px);
+  const F span_slope = select(reach_px >= F(0.0f), slope, F(0.0f));
+  const F dd = span_slope * ((dist - F(walk.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f)));
+  dsu = dd * sl.unit_u * F(side), dsv = dd * sl.unit_v * F(side);
+}
+
 // kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays);
 // kAdjoint (with kGradients): the backward's, which keeps each step's fetch for end_slice_adjoint
 template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
@@ -137,25 +174,6 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     return st;
   }
 
-  // d position / d su and d sv of a sample's bilinear fetch at (su, sv) (perspective-correct depth, the
-  // clamped unprojection; 0 where the sample is not valid)
-  template <class F>
-  TAO_FN void fetch_motion(const Sample<F>& smp, const F& su, const F& sv, F* d_su, F* d_sv) const {
-    const Image& img = *smp.image;
-    const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
-    const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
-    const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
-    const F square = neg(depth * depth);
-    const F dz_u = square * lerp(t1 - t0, t3 - t2, smp.fv), dz_v = square * (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu));
-    const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
-    const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
-    const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
-    const F dxh = select(su_c == su, F(1.0f / img.fx), F(0.0f)), dyh = select(sv_c == sv, F(-1.0f / img.fy), F(0.0f));
-    d_su[0] = select(smp.valid, dz_u * xh + depth * dxh, F(0.0f)), d_sv[0] = select(smp.valid, dz_v * xh, F(0.0f));
-    d_su[1] = select(smp.valid, dz_u * yh, F(0.0f)), d_sv[1] = select(smp.valid, dz_v * yh + depth * dyh, F(0.0f));
-    d_su[2] = select(smp.valid, neg(dz_u), F(0.0f)), d_sv[2] = select(smp.valid, neg(dz_v), F(0.0f));
-  }
-
   template <class F>
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     const F scale = F(float(side) / kPi);
@@ -193,10 +211,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
     F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
     if (moves) {
-      const F reach_px = sl.radius_px - F(walk.min_step_px);
-      const F span_slope = select(reach_px >= F(0.0f), sl.radius_px / F(walk.radius), F(0.0f));
-      const F dd = span_slope * ((dist - F(walk.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f)));
-      const F dsu = dd * sl.unit_u * F(float(side)), dsv = dd * sl.unit_v * F(float(side));
+      F dsu, dsv;
+      step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
     }
     st.dav[m] = dot3(d_pos, px.V);

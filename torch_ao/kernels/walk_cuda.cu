@@ -18,6 +18,7 @@ TAO_CUDA_ENTRY(tao_walk_gtao, unpack_gtao)
 TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao)
 TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask)
 TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact)
+TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients)  // d visibility / d radius, thickness, scale too
 TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl)
 TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge)
 TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao)

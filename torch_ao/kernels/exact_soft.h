@@ -1,0 +1,88 @@
+// The "exact" variant's accumulator with its derivatives (BitmaskAO(variant="exact") in soft,
+// straight-through or hard mode, whose exact union is differentiable as it is: the modes are one walk) for
+// walk.h: bitmask.h's ExactAccumulator walked in dual lanes Dual<F, 3> whose tangents are the derivatives
+// with respect to the radius, the thickness (the back-face model's offset) and the back-face model's
+// thickness_scale. Channels: the visibility (ExactAccumulator's, value for value), then d visibility /
+// d radius, d thickness, d thickness_scale of the pixel (the caller multiplies by the upstream gradient and
+// sums).
+//
+// A sample's tangents: along the radius its fetched position moves with the step (dist = min_step_px +
+// span frac, span from radius_px: soft.h's step_motion and fetch_motion), and so does the back-face layer
+// read at its taps; the thickness t = scale * layer + offset. ExactAccumulator::interval then carries them
+// through the back point, the clip to the sphere (whose radius has tangent 1 along the radius), the atan2s
+// and clamps, and union_measure through the sort and the running reach (at a tie max passes the first
+// operand's: torch's maximum splits it, which only a measure-zero set of frames sees).
+#pragma once
+
+#include "lanes_dual.h"
+#include "soft.h"
+
+namespace tao {
+
+struct ExactGradAccumulator {
+  ExactAccumulator exact;
+  WalkSettings walk;  // the step placement (the radius moves the steps)
+  static constexpr int kTangents = 3;  // radius, thickness, thickness_scale
+
+  template <class F> using D = Dual<F, kTangents>;
+  template <class F> struct State {
+    F shift;
+    LaneArray<D<F>, kMaxIntervals> lo, hi;
+    int n;
+  };
+  template <class F> struct Sums {
+    D<F> num;
+    F den = F(0.0f);
+  };
+  TAO_FN int channels() const { return 1 + kTangents; }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+    State<F> st;
+    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    st.n = 0;
+    return st;
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+    const ThicknessModel& model = exact.thickness;
+    D<F> delta[3];
+    for (int c = 0; c < 3; ++c) delta[c] = D<F>(smp.delta[c]);
+    D<F> t(model.at(smp));
+    t.d[1] = F(1.0f);
+    if (model.backface) t.d[2] = smp.gather(smp.image->backface, 0, 1);
+    if (smp.bilinear && any(smp.valid)) {  // (the nearest texel does not move with the radius)
+      const int64_t j = st.n % walk.steps;
+      const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);
+      const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
+      F d_su[3], d_sv[3], dsu, dsv;
+      fetch_motion(smp, su, sv, d_su, d_sv);
+      step_motion(walk, px, sl, float(side), dist, dsu, dsv);
+      for (int c = 0; c < 3; ++c) delta[c].d[0] = d_su[c] * dsu + d_sv[c] * dsv;
+      if (model.backface) {  // the layer's bilinear read at the moving taps (Sample.gather)
+        const float* layer = smp.image->backface;
+        const F l0 = gather(layer, smp.index[0]), l1 = gather(layer, smp.index[1]);
+        const F l2 = gather(layer, smp.index[2]), l3 = gather(layer, smp.index[3]);
+        const F dl_u = lerp(l1 - l0, l3 - l2, smp.fv), dl_v = lerp(l2, l3, smp.fu) - lerp(l0, l1, smp.fu);
+        t.d[0] = F(model.scale) * (dl_u * dsu + dl_v * dsv);
+      }
+    }
+    D<F> radius(F(exact.radius));
+    radius.d[0] = F(1.0f);
+    exact.interval(side, px, sl, st.shift, delta, t, radius, smp.valid, st.lo[st.n], st.hi[st.n]);
+    ++st.n;
+  }
+
+  template <class F>
+  TAO_FN void end_slice(State<F>& st, const Pixels<F>&, const Slice<F>& sl, Sums<F>& sums) const {
+    exact.add_slice(exact.union_measure(&st.lo[0], &st.hi[0], st.n, sl), sl, sums.num, sums.den);
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    exact.finish(typename ExactAccumulator::template Sums<F>{sums.num.v, sums.den}, px, out);
+    const F den = exact.cosine ? clamp_min(sums.den, F(1e-30f)) : F(float(exact.slices));
+    for (int k = 0; k < kTangents; ++k) out[1 + k] = select(px.live, sums.num.d[k] / den, F(0.0f));
+  }
+};
+
+}  // namespace tao
