@@ -49,31 +49,23 @@ def _reference(make, gb):
         return make(backend="torch")(gb.to(dtype=torch.float64)).visibility
 
 
+#: (method, its kernel's covers and forward, settings) of each kernel
+KERNEL_CASES = {"ue4_ssao": (UE4SSAO, ue4_ssao_covers, ue4_ssao_forward, UE4_SETTINGS),
+                "pssao": (PSSAO, pssao_covers, pssao_forward, PSSAO_SETTINGS)}
+
+
 @pytest.mark.parametrize("lanes", ["simd", "scalar"])
 @pytest.mark.parametrize("frame", sorted(FRAMES))
-@pytest.mark.parametrize("setting", range(len(UE4_SETTINGS)))
-def test_ue4_ssao_kernel_equals_the_tensor_walk(built, frame, setting, lanes):
-    gb, options = FRAMES[frame](), UE4_SETTINGS[setting]
-    reference = _reference(lambda **kw: UE4SSAO(**options, **kw), gb)
-    module = UE4SSAO(**options, backend="kernel")
+@pytest.mark.parametrize("method, setting", [(m, k) for m, case in KERNEL_CASES.items() for k in range(len(case[3]))])
+def test_kernel_equals_the_tensor_walk(built, method, frame, setting, lanes):
+    cls, covers, forward, settings = KERNEL_CASES[method]
+    gb, options = FRAMES[frame](), settings[setting]
+    reference = _reference(lambda **kw: cls(**options, **kw), gb)
+    module = cls(**options, backend="kernel")
     with torch.no_grad():
-        assert ue4_ssao_covers(module, gb) is None
-        out = ue4_ssao_forward(module, gb, lanes=lanes)["visibility"]
+        assert covers(module, gb) is None
+        out = forward(module, gb, lanes=lanes)["visibility"]
     assert reference.min() < 0.99  # something is occluded: the comparison means something
-    assert_values_agree(out.double(), reference, gb.valid, atol=ATOL, bound=BOUND, share=SHARE)
-
-
-@pytest.mark.parametrize("lanes", ["simd", "scalar"])
-@pytest.mark.parametrize("frame", sorted(FRAMES))
-@pytest.mark.parametrize("setting", range(len(PSSAO_SETTINGS)))
-def test_pssao_kernel_equals_the_tensor_walk(built, frame, setting, lanes):
-    gb, options = FRAMES[frame](), PSSAO_SETTINGS[setting]
-    reference = _reference(lambda **kw: PSSAO(**options, **kw), gb)
-    module = PSSAO(**options, backend="kernel")
-    with torch.no_grad():
-        assert pssao_covers(module, gb) is None
-        out = pssao_forward(module, gb, lanes=lanes)["visibility"]
-    assert reference.min() < 0.99
     assert_values_agree(out.double(), reference, gb.valid, atol=ATOL, bound=BOUND, share=SHARE)
 
 

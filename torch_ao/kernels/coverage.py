@@ -5,7 +5,7 @@ import torch
 
 from ..gbuffer import GBuffer
 
-__all__ = ["option_uncovered", "gbuffer_uncovered"]
+__all__ = ["option_uncovered", "gbuffer_uncovered", "call_uncovered"]
 
 
 def option_uncovered(values: dict, covered: dict) -> str | None:
@@ -28,3 +28,19 @@ def gbuffer_uncovered(gbuffer: GBuffer, devices: tuple[str, ...] = ("cpu",)) -> 
         return (f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 "
                 f"{' or '.join(d.upper() for d in devices)})")
     return None
+
+
+def call_uncovered(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...],
+                   position_fetches: tuple[str, ...]) -> str | None:
+    """What a forward kernel checks of every call, said as the reason, or ``None``: the module's options
+    (:func:`option_uncovered` against ``options``), its ``parameters`` (names) scalar tensors, a position
+    buffer read with one of ``position_fetches`` (the kernels unproject the interpolated depth otherwise), a
+    float32 G-buffer on CPU or CUDA."""
+    reason = option_uncovered(getattr(module, "values", {}), options)
+    if reason is not None:
+        return reason
+    if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in (getattr(module, name) for name in parameters)):
+        return "a parameter other than a scalar"
+    if gbuffer.position is not None and module.fetch not in position_fetches:
+        return f"{module.fetch} reads of a position buffer (the kernel unprojects the interpolated depth)"
+    return gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))

@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import torch
 
 from ..gbuffer import GBuffer
-from .coverage import gbuffer_uncovered, option_uncovered
+from .coverage import call_uncovered
 from .launch import run_walk, walk_settings
 from .walk_grad import differentiable_walk, wants_gradient
 
@@ -28,7 +28,7 @@ __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forwar
 VARIANTS = ("exact", "hdrp", "ue4")
 
 
-def _value(x) -> float:
+def float32_value(x) -> float:
     """A 0-d parameter (or a number) as the float32 value the tensor path computes with."""
     return float(torch.as_tensor(x).detach().to(torch.float32))
 
@@ -75,7 +75,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
                                               "setting_is_length": variant == "exact"}
     return walk("gtao", gbuffer, normals, settings,
                 [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
-                [_value(radius), _value(falloff), _value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
+                [float32_value(radius), float32_value(falloff), float32_value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
 
 
 def _check_gradient(gbuffer: GBuffer, fetch: str) -> None:
@@ -99,7 +99,7 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
         With autograd recording through the G-buffer, ``radius`` or ``angle_bias`` (CPU), the sums carry
         their gradients (walk_grad.py).
     """
-    settings = walk_settings(slices=slices, steps=steps, radius=_value(radius), step_power=step_power,
+    settings = walk_settings(slices=slices, steps=steps, radius=float32_value(radius), step_power=step_power,
                              min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
                              fetch=fetch, border=border, azimuth=azimuth, full_circle=True)
     walk, options = run_walk, {}
@@ -108,10 +108,10 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
         walk, options = differentiable_walk, {"radius": radius, "setting": angle_bias}
     return walk("hbao", gbuffer, normals, settings,
                 [falloff == "quadratic", accumulate == "incremental", elevation == "view"],
-                [_value(radius), _value(angle_bias)], 1, lanes=lanes, **options)
+                [float32_value(radius), float32_value(angle_bias)], 1, lanes=lanes, **options)
 
 
-def _finish(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
+def finish_sums(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
     """The module's accumulator's ``finish`` of per-pixel ``sums`` ``{name: (B*H*W, C)}`` on every pixel (rows
     are independent), as images, with the background put back (visibility 1, the G-buffer's normal)."""
     B, _, H, W = gbuffer.depth.shape
@@ -127,11 +127,11 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     m = module
     normals = gbuffer.view_normals(m.normals_method)
     falloff = 0.0
-    if m.variant == "exact" and _value(m.falloff_range) > 0:
+    if m.variant == "exact" and float32_value(m.falloff_range) > 0:
         falloff = (m.falloff_range * m.radius).clamp_min(1e-12)
     sums = gtao_sums(
         gbuffer, normals, variant=m.variant, slices=m.slices, steps=m.steps,
-        walk_radius=_value(m.radius * m.search_scale) if m.variant == "exact" else _value(m.radius),
+        walk_radius=float32_value(m.radius * m.search_scale) if m.variant == "exact" else float32_value(m.radius),
         radius=m.radius, falloff=falloff, thickness=m.thickness_heuristic,
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
         seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
@@ -140,7 +140,7 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     flat = {"vis": sums[:, 0:1], "free": sums[:, 1:2]}
     if m.bent_normals:
         flat["bent"] = sums[:, 2:5].contiguous()
-    return _finish(m, gbuffer, flat, normals)
+    return finish_sums(m, gbuffer, flat, normals)
 
 
 def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
@@ -151,7 +151,7 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     sums = hbao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=m.radius, angle_bias=m.angle_bias,
                      falloff=m.falloff, accumulate=m.accumulate, elevation=m.elevation, step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter,
                      seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth)
-    return _finish(m, gbuffer, {"ao": sums.reshape(-1, 1)}, normals)
+    return finish_sums(m, gbuffer, {"ao": sums.reshape(-1, 1)}, normals)
 
 
 #: options of every module the horizon kernels know: ``None`` for any value, else the values covered
@@ -180,19 +180,11 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
     G-buffer float32 on CPU, and, where autograd records, a gradient the backward covers (:func:`gradient_uncovered`).
     """
-    reason = option_uncovered(getattr(module, "values", {}), options)
-    if reason is not None:
-        return reason
-    tensors = [getattr(module, name) for name in parameters]
-    if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in tensors):
-        return "a parameter other than a scalar"
-    if gbuffer.position is not None and module.fetch == "bilinear":
-        return "bilinear reads of a position buffer (the kernel unprojects the interpolated depth)"
-    reason = gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))
+    reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest", "edge_aware"))
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
-        asked = [name for name, t in zip(parameters, tensors) if t.requires_grad]
+        asked = [name for name in parameters if getattr(module, name).requires_grad]
         if asked or any(t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position)):
             return gradient_uncovered(module, gbuffer, asked)
     return None

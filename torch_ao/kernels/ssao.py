@@ -20,8 +20,8 @@ import math
 import torch
 
 from ..gbuffer import GBuffer
-from .coverage import gbuffer_uncovered, option_uncovered
-from .gtao import _finish, _value
+from .coverage import call_uncovered
+from .gtao import finish_sums, float32_value
 from .launch import run_walk, walk_settings
 
 __all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums", "pssao_forward", "pssao_covers"]
@@ -78,13 +78,13 @@ def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str,
     covers (:func:`ue4_ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
-    sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=_value(m.radius),
-                         fade_distance=_value(m.fade_distance), flat_surface_bias=_value(m.flat_surface_bias),
+    sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=float32_value(m.radius),
+                         fade_distance=float32_value(m.fade_distance), flat_surface_bias=float32_value(m.flat_surface_bias),
                          flat_softness=m.flat_softness, accurate_angle=m.accurate_angle,
                          offsets=m.pattern_for(None).offsets,
                          jitter=m.jitter, seed=m.seed, fetch=m.fetch, border=m.border, lanes=lanes)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, 2)
-    return _finish(m, gbuffer, {"num": sums[:, 0:1], "den": sums[:, 1:2]}, normals)
+    return finish_sums(m, gbuffer, {"num": sums[:, 0:1], "den": sums[:, 1:2]}, normals)
 
 
 def pssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
@@ -95,10 +95,10 @@ def pssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, to
     pattern = m.pattern_for(None)
     offsets = [[pattern.pixel_offset(s, k) for k in range(m.steps)] for s in range(m.slices)]
     sums = pssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, offsets=offsets,
-                      distance_bias=_value(m.distance_bias),
+                      distance_bias=float32_value(m.distance_bias),
                       fetch=m.fetch, border=m.border, lanes=lanes)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, 3)
-    return _finish(m, gbuffer, {"sum": sums[:, 0:1], "count": sums[:, 1:2], "dirs": sums[:, 2:3]}, normals)
+    return finish_sums(m, gbuffer, {"sum": sums[:, 0:1], "count": sums[:, 1:2], "dirs": sums[:, 2:3]}, normals)
 
 
 #: the options of every module these kernels know: ``None`` for any value, else the values covered
@@ -115,19 +115,11 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     cover, a ``parameter`` other than a scalar, a G-buffer other than float32 on CPU or CUDA, bilinear reads of
     a position buffer, or, where autograd records, a gradient through the kernel's sums (those of the
     ``finished`` parameters, which the module's finish applies with torch ops, are kept)."""
-    reason = option_uncovered(getattr(module, "values", {}), options)
-    if reason is not None:
-        return reason
-    tensors = [getattr(module, name) for name in parameters]
-    if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in tensors):
-        return "a parameter other than a scalar"
-    if gbuffer.position is not None and module.fetch != "nearest":
-        return f"fetch={module.fetch!r} of a position buffer (the kernel unprojects the interpolated depth)"
-    reason = gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))
+    reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest",))
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
-        asked = [name for name, t in zip(parameters, tensors) if t.requires_grad and name not in finished]
+        asked = [name for name in parameters if getattr(module, name).requires_grad and name not in finished]
         cam = gbuffer.camera
         inputs = (gbuffer.depth, gbuffer.normals, gbuffer.position, cam.fx, cam.fy, cam.cx, cam.cy)
         if asked or any(isinstance(t, torch.Tensor) and t.requires_grad for t in inputs):
