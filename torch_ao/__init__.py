@@ -19,6 +19,7 @@ from .methods.pssao import PSSAO, pssao
 from .methods.ssao import SSAO, ssao
 from .methods.ue4_ssao import UE4SSAO, ue4_ssao
 from .metrics import error_metrics
+from .temporal import TemporalAO, accumulate_still
 
 from .version import __version__  # noqa: F401  (torch_ao.__version__)
 
@@ -28,5 +29,5 @@ __all__ = [
     "SSAO", "ssao", "HBAO", "hbao", "UE4SSAO", "ue4_ssao", "GTAO", "gtao", "PSSAO", "pssao",
     "BitmaskAO", "bitmask_ao", "SSILVB", "ssilvb",
     "Denoiser", "denoise", "FitConfig", "FitView", "fit", "evaluate", "load_views", "ViewFiles", "error_metrics",
-    "FittedPipeline", "load_fitted",
+    "FittedPipeline", "load_fitted", "TemporalAO", "accumulate_still",
 ]
