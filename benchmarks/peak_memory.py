@@ -1,0 +1,51 @@
+"""Peak memory of one call on the CPU, as the benchmarks measure it: in a process of its own, the peak resident
+set size (``ru_maxrss``) after the call minus the resident size just before it (after the imports and the
+inputs' set-up). A fresh process per case keeps the peak honest: ``ru_maxrss`` never falls, and a process that
+ran other cases before would have their freed pages to reuse.
+
+    from peak_memory import PeakMemory       # a benchmark script's sibling (its folder is on sys.path)
+
+    with PeakMemory() as peak:
+        out = module(gbuffer); out.visibility.sum().backward()
+    peak.mb                                  # MiB above the resident size at entry
+"""
+from __future__ import annotations
+
+import os
+import resource
+
+
+def resident_kb() -> int:
+    """The process's resident set size now, KiB (``/proc/PID/statm``)."""
+    with open(f"/proc/{os.getpid()}/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // 1024
+
+
+def peak_resident_kb() -> int:
+    """The process's peak resident set size so far, KiB (``ru_maxrss``, KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+class PeakMemory:
+    """The peak resident set above the resident size at ``start`` (MiB: ``mb``, set by ``stop``; ``baseline_mb``
+    that resident size); a context manager too. Meaningful for the first measured span of a process (see the
+    module docstring)."""
+
+    def start(self) -> "PeakMemory":
+        self.baseline_kb = resident_kb()
+        self.mb = float("nan")
+        return self
+
+    def stop(self) -> float:
+        self.mb = (peak_resident_kb() - self.baseline_kb) / 1024.0
+        return self.mb
+
+    def __enter__(self) -> "PeakMemory":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def baseline_mb(self) -> float:
+        return self.baseline_kb / 1024.0
