@@ -1,7 +1,7 @@
 """Memory and time of BitmaskAO / SSILVB forward(+backward) on CPU (or CUDA if asked).
 
 Each case runs in its own subprocess, so peak memory is honest: the peak resident set size
-(``ru_maxrss``) of the child minus its resident size just before the timed call (after imports and
+of the child's address space (``peak_memory.py``: ``VmHWM``) minus its resident size just before the timed call (after imports and
 building the G-buffer). On CUDA, ``torch.cuda.max_memory_allocated`` is reported instead.
 
     python benchmarks/bench_bitmask.py                 # 640x360 table + 1280x720 soft fwd+bwd

@@ -20,7 +20,7 @@ Rows:
   ``requires_grad``); ``GTAO`` and ``HBAO`` with the G-buffer's gradients; ratio to the hard forward of the
   same module (``BitmaskAO`` uniform, ``GTAO``, ``HBAO``) in this run;
 * peak memory of each forward + backward at ``--memory-sizes`` (default: the largest size), each case in a
-  process of its own (``peak_memory.py``: peak resident set above the resident size before the call).
+  process of its own (``peak_memory.py``: the peak resident set above the resident size before the call).
 
 Times are the best of ``--repeat`` calls after a warm-up, process CPU time by default (``--clock wall``: wall
 time; process time counts llvmpipe's threads too: they run in this process). Machines are noisy: read the

@@ -1,7 +1,9 @@
 """Peak memory of one call on the CPU, as the benchmarks measure it: in a process of its own, the peak resident
-set size (``ru_maxrss``) after the call minus the resident size just before it (after the imports and the
-inputs' set-up). A fresh process per case keeps the peak honest: ``ru_maxrss`` never falls, and a process that
-ran other cases before would have their freed pages to reuse.
+set size of its address space (``VmHWM``) after the call minus the resident size just before it (after the
+imports and the inputs' set-up). A fresh process per case keeps the peak honest: the peak never falls, and a
+process that ran other cases before would have their freed pages to reuse. ``VmHWM``, not ``ru_maxrss``:
+Linux carries ``ru_maxrss`` over ``execve`` from the address space the child was forked from, so a case
+started by a large parent would report the parent's resident size as its own peak.
 
     from peak_memory import PeakMemory       # a benchmark script's sibling (its folder is on sys.path)
 
@@ -12,7 +14,6 @@ ran other cases before would have their freed pages to reuse.
 from __future__ import annotations
 
 import os
-import resource
 
 
 def resident_kb() -> int:
@@ -22,8 +23,12 @@ def resident_kb() -> int:
 
 
 def peak_resident_kb() -> int:
-    """The process's peak resident set size so far, KiB (``ru_maxrss``, KiB on Linux)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    """The peak resident set size of the process's address space so far, KiB (``VmHWM``)."""
+    with open(f"/proc/{os.getpid()}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    raise RuntimeError("/proc/PID/status has no VmHWM line")
 
 
 class PeakMemory:
