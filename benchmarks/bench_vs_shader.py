@@ -276,8 +276,12 @@ def frame_table(frame: str, cases: dict[str, Case], columns: list, shader: dict,
     it misses the target; the peak memory of the forward+backward rows last (target: at most 1 GB)."""
     head = ["case", "target"] + [_size_label(*c) for c in columns]
     if memory_columns:
-        head.append("peak MB of fwd+bwd (≤ 1024), " + " / ".join(_size_label(*c) for c in memory_columns))
-    lines = [f"**{FRAMES[frame]}**, {clock} ms (ratio)", "", "| " + " | ".join(head) + " |",
+        by_size = {}
+        for size, setting in memory_columns:
+            by_size.setdefault(size, []).append(f"{setting[0]} × {setting[1]}")
+        head.append("peak MB of fwd+bwd (≤ 1024), " + "; ".join(f"{W}×{H}: " + " / ".join(s)
+                                                                 for (W, H), s in by_size.items()))
+    lines = [f"**{FRAMES[frame]}**, {'CPU' if clock == 'cpu' else 'wall'} ms (ratio)", "", "| " + " | ".join(head) + " |",
              "|---|---|" + "---:|" * (len(head) - 2)]
     cells = [f"{_ms(shader[c])}" for c in columns]
     lines.append("| shader on llvmpipe | | " + " | ".join(cells) + (" | |" if memory_columns else " |"))
