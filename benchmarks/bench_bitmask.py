@@ -1,7 +1,7 @@
 """Memory and time of BitmaskAO / SSILVB forward(+backward) on CPU (or CUDA if asked).
 
 Each case runs in its own subprocess, so peak memory is honest: the peak resident set size
-(``ru_maxrss``) of the child minus its resident size just before the timed call (after imports and
+of the child's address space (``peak_memory.py``: ``VmHWM``) minus its resident size just before the timed call (after imports and
 building the G-buffer). On CUDA, ``torch.cuda.max_memory_allocated`` is reported instead.
 
     python benchmarks/bench_bitmask.py                 # 640x360 table + 1280x720 soft fwd+bwd
@@ -27,10 +27,9 @@ from pathlib import Path
 
 
 def child(args: dict) -> dict:
-    import os
-    import resource
-
     import torch
+
+    from peak_memory import PeakMemory
 
     from torch_ao.examples import floor_wall_gbuffer
     from torch_ao.gbuffer import GBuffer
@@ -59,11 +58,7 @@ def child(args: dict) -> dict:
     module = BitmaskAO(mode=args["mode"], slices=4, steps=args.get("steps", 8), radius=1.0, **{"thickness": 0.5, **extra},
                        indirect=args["indirect"], weighting=args.get("weighting", "uniform")).to(device)
 
-    def rss_now_kb() -> int:
-        with open(f"/proc/{os.getpid()}/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // 1024
-
-    baseline = rss_now_kb()
+    peak = PeakMemory().start()  # the resident size now; the peak is read after the calls
     if device != "cpu":
         torch.cuda.reset_peak_memory_stats()
         torch.cuda.synchronize()
@@ -82,9 +77,8 @@ def child(args: dict) -> dict:
     seconds, cpu, out = call()
     if args.get("repeat", 1) > 1:  # warm: the first call above is the warm-up; report the fastest of the rest
         seconds, cpu = min(call()[:2] for _ in range(args["repeat"] - 1))
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    result = {"seconds": seconds, "cpu_seconds": cpu, "peak_mb": (peak - baseline) / 1024.0,
-              "baseline_mb": baseline / 1024.0}
+    peak.stop()
+    result = {"seconds": seconds, "cpu_seconds": cpu, "peak_mb": peak.mb, "baseline_mb": peak.baseline_mb}
     if device != "cpu":
         result["peak_mb"] = torch.cuda.max_memory_allocated() / 2**20
     valid = gbuf.valid

@@ -1,26 +1,49 @@
-"""The SSILVB GLSL article's shader on Mesa llvmpipe against torch_ao, side by side in one process.
+"""The CPU targets table: torch_ao's kernels against the SSILVB GLSL article's shader on Mesa llvmpipe, and
+their forward+backward against their own forward, in one run.
 
-Same G-buffer (``torch_ao.examples.example_gbuffer``: a floor meeting a wall), same settings. The
-shader runs through moderngl's EGL backend exactly as ``tests/test_glsl_parity.py`` runs it (view-space
-position/normal/light as RGBA32F textures); it is compiled and its textures uploaded once, then each
-timed call draws the full-screen quad and reads the result back (``fbo.read`` waits for the GPU, here
-llvmpipe's threads). torch_ao's calls are whole module forwards without autograd (``SSILVB(variant="ssilvb_glsl")``, the
-shader's own rules, ``BitmaskAO`` and ``GTAO`` each twice: the fused kernel, ``backend="kernel"``, and the
-tensor-op walk, ``backend="torch"``). Best of ``--repeat``
-calls after a warm-up, wall and CPU (process) time; machines are noisy, so read the ratios.
+Frames (``--frames``): ``floor_wall``, a floor meeting a wall (``torch_ao.examples.example_gbuffer``, every
+surface given a back face 0.3 world units behind it), and ``room_corner``, the built-in scene's ray-traced
+G-buffer (``render_reference(..., backface=True)``: depth, normals, light and the back-face layer, read back
+as the reference views are). Each frame at each ``--sizes`` and ``--settings`` (slices x steps per side).
 
-    python benchmarks/bench_vs_shader.py                       # 640x360 and 1280x720, 4x4 and 4x8
-    python benchmarks/bench_vs_shader.py --sizes 320x180 --repeat 3 --threads 1
+Rows:
 
-llvmpipe uses ``LP_NUM_THREADS`` threads (default: the number of cores); torch uses ``--threads``.
+* the shader: the article's fragment shader through moderngl's EGL backend exactly as
+  ``tests/test_glsl_parity.py`` runs it (view-space position/normal/light as RGBA32F textures), compiled and
+  its textures uploaded once; each timed call draws the full-screen quad and reads the result back
+  (``fbo.read`` waits for llvmpipe's threads);
+* hard forwards without autograd, ``backend="kernel"`` (an uncovered call raises): ``SSILVB(variant=
+  "ssilvb_glsl")`` AO + indirect light, ``BitmaskAO`` (uniform, cosine, cosine + bent normals, the exact
+  union with ``BackfaceThickness`` and ``fetch="edge_aware"``), ``GTAO``, ``HBAO``; ratio to the shader;
+* forwards + backwards (the loss is the visibility's sum): soft and straight-through ``BitmaskAO`` with
+  the gradients of radius and thickness, and with those of depth and normals too (the G-buffer's tensors
+  ``requires_grad``); ``GTAO`` and ``HBAO`` with the G-buffer's gradients; ratio to the hard forward of the
+  same module (``BitmaskAO`` uniform, ``GTAO``, ``HBAO``) in this run;
+* peak memory of each forward + backward at ``--memory-sizes`` (default: the largest size), each case in a
+  process of its own (``peak_memory.py``: the peak resident set above the resident size before the call).
+
+Times are the best of ``--repeat`` calls after a warm-up, process CPU time by default (``--clock wall``: wall
+time; process time counts llvmpipe's threads too: they run in this process). Machines are noisy: read the
+ratios. One table per frame, Markdown, on stdout (progress on stderr):
+
+    LP_NUM_THREADS=1 OMP_NUM_THREADS=1 python benchmarks/bench_vs_shader.py --threads 1 --kernels-only --repeat 3
+    python benchmarks/bench_vs_shader.py --sizes 320x180 --settings 4x4 --repeat 2 --threads 1
+
+llvmpipe uses ``LP_NUM_THREADS`` threads (default: the number of cores); torch uses ``--threads``. Without
+``--kernels-only`` the tensor-op walk's hard forwards are added (seconds per call).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
 import sys
+import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -28,6 +51,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "glsl"))
 sys.path.insert(0, str(ROOT))  # this checkout's torch_ao, not an installed copy
+
+FRAMES = {"floor_wall": "a floor meeting a wall (`torch_ao.examples.example_gbuffer`, back faces 0.3 behind)",
+          "room_corner": "the `room_corner` scene (floor, two walls, boxes; ray-traced G-buffer with its back-face layer)"}
 
 
 class ShaderRun:
@@ -74,10 +100,135 @@ class ShaderRun:
         self.vao.render(self.mode)
         return self.fbo.read(components=4, dtype="f4")
 
+    def release(self) -> None:
+        for obj in (*self.textures, self.fbo, self.vao, self.vbo, self.prog):
+            obj.release()
+
+
+# ------------------------------------------------------------------ the cases
+
+@dataclass(frozen=True)
+class Case:
+    """One row: ``make(settings)`` builds the module; ``gradients``: ``None`` (a forward under ``no_grad``),
+    ``"parameters"`` (radius and thickness) or ``"gbuffer"`` (depth and normals, and the parameters);
+    ``against``: ``"shader"`` or the key of the hard forward this row is a multiple of; ``target``: the ratio
+    the project aims at (at most)."""
+
+    label: str
+    make: Callable[[dict], torch.nn.Module]
+    gradients: str | None
+    against: str
+    target: float
+    kernel: bool = True
+
+
+def _without_thickness(settings: dict) -> dict:
+    return {k: v for k, v in settings.items() if k != "thickness"}
+
+
+def _cases() -> dict[str, Case]:
+    import torch_ao
+    from torch_ao.thickness import BackfaceThickness
+
+    def bitmask(**options):
+        return lambda s: torch_ao.BitmaskAO(backend="kernel", **s, **options)
+
+    def horizon(cls, backend="kernel"):
+        return lambda s: cls(backend=backend, **_without_thickness(s))
+
+    def exact(backend):
+        return lambda s: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), fetch="edge_aware",
+                                            trainable=False, backend=backend, **_without_thickness(s))
+
+    return {
+        "ssilvb_glsl": Case("`ssilvb_glsl` hard AO + indirect", lambda s: torch_ao.SSILVB(
+            variant="ssilvb_glsl", mode="hard", backend="kernel", **s), None, "shader", 1.0),
+        "bitmask": Case("`BitmaskAO` hard", bitmask(mode="hard"), None, "shader", 1.0),
+        "cosine": Case("`BitmaskAO` hard, cosine", bitmask(mode="hard", weighting="cosine"), None, "shader", 1.0),
+        "cosine_bent": Case("`BitmaskAO` hard, cosine + bent normals",
+                            bitmask(mode="hard", weighting="cosine", bent_normals=True), None, "shader", 1.0),
+        "exact": Case("`BitmaskAO` exact + `BackfaceThickness` + edge-aware fetch", exact("kernel"), None, "shader", 1.0),
+        "gtao": Case("`GTAO`", horizon(torch_ao.GTAO), None, "shader", 1.0),
+        "hbao": Case("`HBAO`", horizon(torch_ao.HBAO), None, "shader", 1.0),
+        "ssilvb_glsl_torch": Case("`ssilvb_glsl`, tensor ops", lambda s: torch_ao.SSILVB(
+            variant="ssilvb_glsl", mode="hard", backend="torch", **s), None, "shader", 1.0, kernel=False),
+        "bitmask_torch": Case("`BitmaskAO` hard, tensor ops", lambda s: torch_ao.BitmaskAO(
+            mode="hard", backend="torch", **s), None, "shader", 1.0, kernel=False),
+        "exact_torch": Case("`BitmaskAO` exact + back-face + edge-aware, tensor ops", exact("torch"), None, "shader",
+                            1.0, kernel=False),
+        "gtao_torch": Case("`GTAO`, tensor ops", horizon(torch_ao.GTAO, "torch"), None, "shader", 1.0, kernel=False),
+        "soft_parameters": Case("soft `BitmaskAO` fwd+bwd, radius + thickness", bitmask(mode="soft"),
+                                "parameters", "bitmask", 3.0),
+        "soft_gbuffer": Case("soft `BitmaskAO` fwd+bwd, depth + normals", bitmask(mode="soft"),
+                             "gbuffer", "bitmask", 3.0),
+        "straight_parameters": Case("straight-through `BitmaskAO` fwd+bwd, radius + thickness",
+                                    bitmask(mode="straight_through"), "parameters", "bitmask", 3.0),
+        "straight_gbuffer": Case("straight-through `BitmaskAO` fwd+bwd, depth + normals",
+                                 bitmask(mode="straight_through"), "gbuffer", "bitmask", 3.0),
+        "gtao_gbuffer": Case("`GTAO` fwd+bwd, depth + normals", horizon(torch_ao.GTAO), "gbuffer", "gtao", 3.0),
+        "hbao_gbuffer": Case("`HBAO` fwd+bwd, depth + normals", horizon(torch_ao.HBAO), "gbuffer", "hbao", 3.0),
+    }
+
+
+def frame_gbuffer(frame: str, height: int, width: int, cache: Path | None = None):
+    """The frame's G-buffer at ``height x width``. ``room_corner`` is ray traced once and kept as a reference
+    file in ``cache`` (the memory cases' processes read it back)."""
+    import torch_ao
+    from torch_ao.io import load_gbuffer
+
+    if frame == "floor_wall":
+        from torch_ao.examples import example_gbuffer
+
+        gb = example_gbuffer(height, width)
+        # every surface 0.3 world units thick (the back-face model's cost does not depend on the values)
+        return torch_ao.GBuffer(depth=gb.depth, camera=gb.camera, normals=gb.normals, light=gb.light,
+                                backface_depth=gb.depth + 0.3)
+    if frame != "room_corner":
+        raise ValueError(f"--frames: expected floor_wall or room_corner, got {frame!r}")
+    path = (cache or Path(tempfile.gettempdir())) / f"room_corner_{width}x{height}.npz"
+    if not path.exists():
+        from torch_ao.reference import get_scene, render_reference
+
+        ref = render_reference(get_scene("room_corner"), height=height, width=width, spp=2, uniform=False,
+                               progress=False, backface=True)
+        ref.save(path)
+    return load_gbuffer(path)[0]
+
+
+def with_gradients(gbuffer, gradients: str | None):
+    """The G-buffer whose depth and normals require gradients (``gradients == "gbuffer"``), else itself."""
+    if gradients != "gbuffer":
+        return gbuffer
+    import torch_ao
+
+    return torch_ao.GBuffer(depth=gbuffer.depth.detach().clone().requires_grad_(True), camera=gbuffer.camera,
+                            normals=gbuffer.normals.detach().clone().requires_grad_(True), light=gbuffer.light,
+                            mask=gbuffer.mask, backface_depth=gbuffer.backface_depth)
+
+
+def case_call(case: Case, gbuffer, settings: dict) -> Callable[[], None]:
+    """One call of the case: the forward under ``no_grad``, or forward + backward of the visibility's sum."""
+    module = case.make(settings)
+    if case.gradients is None:
+        def forward():
+            with torch.no_grad():
+                module(gbuffer)
+        return forward
+    gb = with_gradients(gbuffer, case.gradients)
+    leaves = [gb.depth, gb.normals] if case.gradients == "gbuffer" else []
+    if not any(p.requires_grad for p in module.parameters()):
+        raise ValueError(f"{case.label}: the module has no trainable parameter")
+
+    def forward_backward():
+        module.zero_grad(set_to_none=True)
+        for x in leaves:
+            x.grad = None
+        module(gb).visibility.sum().backward()
+    return forward_backward
+
 
 def best_ms(fn, repeat: int) -> tuple[float, float]:
-    """Best wall and best CPU milliseconds of ``repeat`` calls after a warm-up (CPU: process time, which
-    counts llvmpipe's threads too: they run in this process)."""
+    """Best wall and best CPU milliseconds of ``repeat`` calls after a warm-up (CPU: process time)."""
     fn()  # warm-up
     wall, cpu = [], []
     for _ in range(repeat):
@@ -88,69 +239,128 @@ def best_ms(fn, repeat: int) -> tuple[float, float]:
     return 1e3 * min(wall), 1e3 * min(cpu)
 
 
+# ------------------------------------------------------------------ peak memory, one process per case
+
+def memory_child(spec: dict) -> dict:
+    from peak_memory import PeakMemory
+
+    torch.set_num_threads(spec["threads"])
+    gbuffer = frame_gbuffer(spec["frame"], spec["height"], spec["width"], Path(spec["cache"]))
+    call = case_call(_cases()[spec["case"]], gbuffer, spec["settings"])
+    with PeakMemory() as peak:
+        call()
+    return {"peak_mb": peak.mb, "baseline_mb": peak.baseline_mb}
+
+
+def peak_mb(**spec) -> float:
+    cmd = [sys.executable, __file__, "--memory-child", json.dumps(spec)]
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode:
+        raise RuntimeError(f"memory of {spec['case']} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])["peak_mb"]
+
+
+# ------------------------------------------------------------------ the table
+
+def _size_label(size: tuple[int, int], setting: tuple[int, int]) -> str:
+    return f"{size[0]}×{size[1]}, {setting[0]} × {setting[1]}"
+
+
+def _ms(ms: float) -> str:
+    return f"{ms:.0f}" if ms < 10_000 else f"{ms / 1e3:.1f} s"
+
+
+def frame_table(frame: str, cases: dict[str, Case], columns: list, shader: dict, times: dict, memory: dict,
+                memory_columns: list, clock: str) -> str:
+    """Markdown: a row per case, a column per (size, setting); a cell is ``ms (ratio)``, the ratio in bold where
+    it misses the target; the peak memory of the forward+backward rows last (target: at most 1 GB)."""
+    head = ["case", "target"] + [_size_label(*c) for c in columns]
+    if memory_columns:
+        by_size = {}
+        for size, setting in memory_columns:
+            by_size.setdefault(size, []).append(f"{setting[0]} × {setting[1]}")
+        head.append("peak MB of fwd+bwd (≤ 1024), " + "; ".join(f"{W}×{H}: " + " / ".join(s)
+                                                                 for (W, H), s in by_size.items()))
+    lines = [f"**{FRAMES[frame]}**, {'CPU' if clock == 'cpu' else 'wall'} ms (ratio)", "", "| " + " | ".join(head) + " |",
+             "|---|---|" + "---:|" * (len(head) - 2)]
+    cells = [f"{_ms(shader[c])}" for c in columns]
+    lines.append("| shader on llvmpipe | | " + " | ".join(cells) + (" | |" if memory_columns else " |"))
+    for key, case in cases.items():
+        against = "the shader" if case.against == "shader" else cases[case.against].label
+        row = [case.label, f"≤ {case.target:g}× {against}"]
+        for c in columns:
+            ms = times[key, c]
+            base = shader[c] if case.against == "shader" else times[case.against, c]
+            ratio = f"{ms / base:.2f}×"
+            ratio = ratio if float(ratio[:-1]) <= case.target else f"**{ratio}**"
+            row.append(f"{_ms(ms)} ({ratio})")
+        if memory_columns:
+            row.append(" / ".join(f"{memory[key, c]:.0f}" for c in memory_columns) if case.gradients else "")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def _pairs(values: list[str], sep: str) -> list[tuple[int, int]]:
+    return [tuple(int(v) for v in value.lower().split(sep.lower())) for value in values]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--memory-child", help=argparse.SUPPRESS)
+    ap.add_argument("--frames", nargs="+", default=list(FRAMES), choices=list(FRAMES), help="frames (default: both)")
     ap.add_argument("--sizes", nargs="+", default=["640x360", "1280x720"], help="WxH frame sizes")
     ap.add_argument("--settings", nargs="+", default=["4x4", "4x8"], help="SLICESxSTEPS sample counts")
     ap.add_argument("--radius", type=float, default=1.0, help="sample radius, world units")
     ap.add_argument("--thickness", type=float, default=0.5, help="hit thickness, world units")
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per case (best is reported)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads")
-    ap.add_argument("--kernels-only", action="store_true", help="leave out the tensor-op columns (seconds per call)")
+    ap.add_argument("--clock", choices=["cpu", "wall"], default="cpu", help="the time tabled and divided")
+    ap.add_argument("--kernels-only", action="store_true", help="leave out the tensor-op rows (seconds per call)")
+    ap.add_argument("--memory-sizes", nargs="*", default=None,
+                    help="WxH sizes (of --sizes) whose forward+backward peak memory is measured (default: the "
+                         "largest; the flag alone: no memory column)")
     args = ap.parse_args(argv)
+    if args.memory_child:
+        print(json.dumps(memory_child(json.loads(args.memory_child))))
+        return 0
 
-    import torch_ao
     from runner import create_context
-    from torch_ao.examples import example_gbuffer
 
+    sizes, settings = _pairs(args.sizes, "x"), _pairs(args.settings, "x")
+    memory_sizes = [max(sizes, key=lambda s: s[0] * s[1])] if args.memory_sizes is None else _pairs(args.memory_sizes, "x")
+    if not set(memory_sizes) <= set(sizes):
+        ap.error("--memory-sizes: expected sizes of --sizes")
     torch.set_num_threads(args.threads)
     ctx = create_context()
     print(f"shader: {ctx.info['GL_RENDERER']} (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'default')}); "
-          f"torch {torch.__version__}, {args.threads} threads")
-    # (column, kernel?, module factory); the tensor-op columns take seconds per call
-    columns = [
-        ("ssilvb_glsl hard AO+indirect, kernel", True,
-         lambda c: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="kernel", **c)),
-        ("ssilvb_glsl, tensor ops", False, lambda c: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="torch", **c)),
-        ("BitmaskAO hard AO, kernel", True, lambda c: torch_ao.BitmaskAO(mode="hard", backend="kernel", **c)),
-        ("BitmaskAO hard AO, tensor ops", False, lambda c: torch_ao.BitmaskAO(mode="hard", backend="torch", **c)),
-        ("BitmaskAO cosine hard AO, kernel", True,
-         lambda c: torch_ao.BitmaskAO(mode="hard", weighting="cosine", backend="kernel", **c)),
-        ("BitmaskAO cosine hard AO + bent normals, kernel", True,
-         lambda c: torch_ao.BitmaskAO(mode="hard", weighting="cosine", bent_normals=True, backend="kernel", **c)),
-        ("BitmaskAO exact + back-face + edge_aware, kernel", True,
-         lambda c: torch_ao.BitmaskAO(variant="exact", thickness=torch_ao.thickness.BackfaceThickness(), trainable=False,
-                                      backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
-        ("BitmaskAO exact + back-face + edge_aware, tensor ops", False,
-         lambda c: torch_ao.BitmaskAO(variant="exact", thickness=torch_ao.thickness.BackfaceThickness(), trainable=False,
-                                      backend="torch", **{k: v for k, v in c.items() if k != "thickness"})),
-        ("GTAO, kernel", True, lambda c: torch_ao.GTAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
-        ("GTAO, tensor ops", False, lambda c: torch_ao.GTAO(backend="torch", **{k: v for k, v in c.items() if k != "thickness"})),
-        ("HBAO, kernel", True, lambda c: torch_ao.HBAO(backend="kernel", **{k: v for k, v in c.items() if k != "thickness"})),
-    ]
-    columns = [col for col in columns if col[1] or not args.kernels_only]
-    print("| size, slices x steps | shader on llvmpipe (ms) | " + " | ".join(col[0] for col in columns) + " |")
-    print("|---|---:|" + "---:|" * len(columns))
-    for size in args.sizes:
-        W, H = map(int, size.split("x"))
-        gb = example_gbuffer(H, W)
-        # a back-face layer for the exact pipeline: every surface 0.3 world units thick (its cost does not
-        # depend on the values)
-        gb = torch_ao.GBuffer(depth=gb.depth, camera=gb.camera, normals=gb.normals, light=gb.light,
-                              backface_depth=gb.depth + 0.3)
-        for setting in args.settings:
-            slices, steps = map(int, setting.split("x"))
-            shader = ShaderRun(ctx, gb, slices=slices, steps=steps, radius=args.radius, thickness=args.thickness)
-            ms_shader, cpu_shader = best_ms(shader, args.repeat)
-            common = dict(slices=slices, steps=steps, radius=args.radius, thickness=args.thickness)
-            cells = []
-            with torch.no_grad():
-                for _, _, make in columns:
-                    module = make(common)
-                    ms, cpu = best_ms(lambda: module(gb), args.repeat)
-                    cells.append(f"{ms:.0f} ms ({ms / ms_shader:.1f}x; CPU {cpu:.0f}, {cpu / cpu_shader:.1f}x)")
-            print(f"| {W}x{H}, {slices} x {steps} | {ms_shader:.0f} (CPU {cpu_shader:.0f}) | " + " | ".join(cells) + " |",
-                  flush=True)
+          f"torch {torch.__version__}, {args.threads} threads; best of {args.repeat}, {args.clock} time", flush=True)
+    cases = {k: c for k, c in _cases().items() if c.kernel or not args.kernels_only}
+    columns = [(size, setting) for size in sizes for setting in settings]
+    memory_columns = [c for c in columns if c[0] in memory_sizes]
+    clock = 1 if args.clock == "cpu" else 0
+    cache = Path(tempfile.mkdtemp(prefix="bench_vs_shader_"))
+    for frame in args.frames:
+        shader, times, memory = {}, {}, {}
+        for size in sizes:
+            W, H = size
+            gb = frame_gbuffer(frame, H, W, cache)
+            for setting in settings:
+                column = (size, setting)
+                common = dict(slices=setting[0], steps=setting[1], radius=args.radius, thickness=args.thickness)
+                run = ShaderRun(ctx, gb, **common)
+                shader[column] = best_ms(run, args.repeat)[clock]
+                run.release()
+                print(f"{frame} {_size_label(*column)}: shader {shader[column]:.0f} ms", file=sys.stderr, flush=True)
+                for key, case in cases.items():
+                    times[key, column] = best_ms(case_call(case, gb, common), args.repeat)[clock]
+                    line = f"{frame} {_size_label(*column)}: {case.label} {times[key, column]:.0f} ms"
+                    if case.gradients and column in memory_columns:
+                        memory[key, column] = peak_mb(case=key, frame=frame, height=H, width=W, settings=common,
+                                                      threads=args.threads, cache=str(cache))
+                        line += f", peak {memory[key, column]:.0f} MB"
+                    print(line, file=sys.stderr, flush=True)
+        print()
+        print(frame_table(frame, cases, columns, shader, times, memory, memory_columns, args.clock), flush=True)
     return 0
 
 
