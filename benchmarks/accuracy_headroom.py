@@ -18,7 +18,6 @@ training views, their held-out views, the held-out scenes). ``--study``:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import itertools
 
 import numpy as np
@@ -28,6 +27,7 @@ from pipeline_candidates import fit_view_groups
 from torch_ao.fit import set_mode
 from torch_ao.fitted import FittedPipeline
 from torch_ao.metrics import error_metrics
+from torch_ao.temporal import accumulate_still
 
 SHIPPED = ("bitmask cosine edge_aware (shipped)", "bitmask", {"weighting": "cosine", "fetch": "edge_aware"})
 EXACT = ("bitmask exact backface edge_aware", "bitmask",
@@ -36,22 +36,17 @@ GTAO = ("gtao", "gtao", {})
 
 
 def score(method: str, options: dict, groups: dict, frames: int = 1) -> list[float]:
-    """Mean PSNR per group of ``method(**options)`` + ``Denoiser()``, the method's output averaged over
-    ``frames`` noise seeds before the denoiser (the denoiser is linear in its input: the same as denoising
+    """Mean PSNR per group of ``method(**options)`` + ``Denoiser()``, the method's output accumulated over
+    ``frames`` still frames (:func:`~torch_ao.accumulate_still`) before the denoiser (the denoiser is linear in its input: the same as denoising
     each frame and averaging)."""
     pipe = FittedPipeline(method, {"radius": 1.0, **options}, denoiser=True)
     set_mode(pipe, "hard")
-    base = pipe.method.sampling
     scores = []
     for views in groups.values():
         psnr = []
         for view in views:
             with torch.no_grad():
-                total = 0
-                for seed in range(frames):
-                    pipe.method.sampling = dataclasses.replace(base, seed=base.seed + seed)
-                    total = total + pipe.method(view.gbuffer).visibility
-                vis = pipe.denoiser(total / frames, view.gbuffer).visibility
+                vis = pipe.denoiser(accumulate_still(pipe.method, view.gbuffer, frames).visibility, view.gbuffer).visibility
             psnr.append(error_metrics(vis, view.reference, view.gbuffer.valid)["psnr"])
         scores.append(float(np.mean(psnr)))
     return scores
