@@ -49,6 +49,9 @@ constexpr int kPixel = 7, kOwn = kPixel + 1;
 
 inline bool mask_lane(bool m, int) { return m; }
 inline bool mask_lane(const Vec& m, int l) { return lane_on(m, l); }
+// a lane mask as bits (lane l: bit l)
+inline uint32_t lane_bits(bool m) { return m ? 1u : 0u; }
+inline uint32_t lane_bits(const Vec& m) { return ~uint32_t(m.zero_mask()) & ((1u << Vec::size()) - 1u); }
 inline void store_lanes(uint32_t x, int32_t* out) { out[0] = int32_t(x); }
 inline void store_lanes(const IVec& x, int32_t* out) { x.store(out); }
 
@@ -87,12 +90,9 @@ template <class B, class Acc> struct Takes {
     auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
     const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
     for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
-    changed = land(changed, live);
-    if (!any(changed)) return;
     const int k = side > 0 ? 0 : 1;
-    for (int l = 0; l < L; ++l) {
-      if (!mask_lane(changed, l)) continue;
-      uint64_t* b = of(k, l);
+    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) {
+      uint64_t* b = of(k, __builtin_ctz(lanes));
       if (acc.replaces()) std::fill(b, b + words, uint64_t(0));
       b[j / 64] |= uint64_t(1) << (j % 64);
     }
@@ -184,8 +184,12 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
     }
     if (none) return;  // (no gradient flows: the outputs' zeros stand)
   }
-  const Pixels<D> pxd(cfg, img, row, u0, n);
-  if (!any(pxd.live)) return;
+  // the pixel and its slices in the own tangents alone, widened for the takes' state and delta tangents
+  using Own = Dual<B, kOwn>;
+  const auto wide = [](const Own& x) { return widen<N>(x); };
+  const Pixels<Own> px_own(cfg, img, row, u0, n);
+  if (!any(px_own.live)) return;
+  const Pixels<D> pxd(px_own, wide);
   B own[kOwn];
   for (int k = 0; k < kOwn; ++k) own[k] = B(0.0f);
   // fresh tangents on the state's components (and none on a delta)
@@ -199,7 +203,7 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
     takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
-    const Slice<D> sl(cfg, img, pxd, s);
+    const Slice<D> sl(Slice<Own>(cfg, img, px_own, s), wide);
     StateD state = acc.begin_slice(pxd, sl);
     replayed.clear();
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
