@@ -1,16 +1,18 @@
 // The backward of the one walk (torch_ao_kernels::walk_backward) for the horizon accumulators of
 // horizon.h (GTAO's three variants, HBAO), any fetch but the edge-aware one, either border. Per slice:
-//  1. the plain walk (walk.h's walk_slice in plain lanes) records, per lane and side, the steps that
-//     changed the accumulator's state (its "takes"; every valid step where acc.blends_every_sample(): UE4's
-//     thickness blend): a step that leaves the state as it was is the identity, so only the takes carry
-//     gradients. Where a take replaces the state (acc.replaces(): GTAO's
-//     exact minimum, HBAO's highest rise), only each side's last take is kept.
-//  2. the slice is replayed in dual lanes (lanes_dual.h) through those takes alone (each lane its own step,
-//     step_distance in lanes): begin_slice, the takes' samples and steps, end_slice. Tangents 0..6 are the
-//     pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's setting (seed_setting:
-//     GTAO's falloff or thickness, HBAO's angle bias), which give its outputs' derivatives with respect to them, the samples' screen positions and bilinear weights included; before every take the
-//     state's S components and the sample's delta get fresh tangents, so that the step's local Jacobians
-//     d state' / d state (S x S) and d state' / d delta (S x 3) come out of it.
+//  1. the forward (torch_ao_kernels::walk_record: walk.h's walk_slice in plain lanes with the Takes visitor)
+//     records, per pixel and side, the steps that changed the accumulator's state (its "takes", a bit per
+//     step; every valid step where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the
+//     state as it was is the identity, so only the takes carry gradients. Where a take replaces the state
+//     (acc.replaces(): GTAO's exact minimum, HBAO's highest rise), only each side's last take is kept.
+//  2. the backward replays the slice in dual lanes (lanes_dual.h) through those takes alone (each lane its
+//     own step, step_distance in lanes): begin_slice, the takes' samples and steps, end_slice. Tangents 0..6
+//     are the pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's setting
+//     (seed_setting: GTAO's falloff or thickness, HBAO's angle bias), which give its outputs' derivatives
+//     with respect to them, the samples' screen positions and bilinear weights included (Pixels and Slice
+//     in those 8 alone, widened); before every take the state's S components and the sample's delta get
+//     fresh tangents, so that the step's local Jacobians d state' / d state (S x S) and d state' / d delta
+//     (S x 3) come out of it.
 //  3. the outputs' derivatives with respect to the final state, swept back through the takes' Jacobians,
 //     give each take's d loss / d delta, chained to its taps: for a bilinear fetch delta = pos - P with
 //     pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's
