@@ -58,6 +58,14 @@ template <class F, int N> struct Dual {
   friend TAO_FN M operator==(const Dual& a, const Dual& b) { return a.v == b.v; }
 };
 
+// x with M >= N tangents: its own, then zeros
+template <int M, class F, int N> TAO_FN Dual<F, M> widen(const Dual<F, N>& x) {
+  static_assert(M >= N, "widen: to at least as many tangents");
+  Dual<F, M> r(x.v);
+  for (int k = 0; k < N; ++k) r.d[k] = x.d[k];
+  return r;
+}
+
 template <class F, int N> struct LaneTraits<Dual<F, N>> {
   using M = typename LaneTraits<F>::M;
   using I = typename LaneTraits<F>::I;

@@ -189,6 +189,16 @@ template <class F> struct Pixels {
     normalize3(c1, e1);
     cross(V, e1, e2);
   }
+
+  // the same pixels in another lane type, each value through to(x) (walk_grad_cpu.cpp: into a dual with more tangents)
+  template <class G, class To>
+  TAO_FN Pixels(const Pixels<G>& o, const To& to)
+      : depth(to(o.depth)), inverse_depth(to(o.inverse_depth)), distance(to(o.distance)), u(to(o.u)), v(to(o.v)),
+        xi(to(o.xi)), live(o.live), row(o.row), u0(o.u0) {
+    for (int c = 0; c < 3; ++c)
+      P[c] = to(o.P[c]), N[c] = to(o.N[c]), V[c] = to(o.V[c]), e1[c] = to(o.e1[c]), e2[c] = to(o.e2[c]);
+    for (int l = 0; l < L; ++l) rotation[l] = o.rotation[l];
+  }
 };
 
 // slice_geometry: the slice tangent T, its plane's axis, the projected normal's length, its angle gamma
@@ -266,6 +276,15 @@ template <class F> struct Slice {
         radius_px = clamp_max(radius_px, F(cfg.max_radius_px > float(cfg.steps) ? cfg.max_radius_px : float(cfg.steps)));
       span = radius_px / F(float(cfg.steps + 1));
     }
+  }
+
+  // the same slice in another lane type, each value through to(x) (as Pixels')
+  template <class G, class To>
+  TAO_FN Slice(const Slice<G>& o, const To& to)
+      : length(to(o.length)), gamma(to(o.gamma)), cos_gamma(to(o.cos_gamma)), sin_gamma(to(o.sin_gamma)),
+        unit_u(to(o.unit_u)), unit_v(to(o.unit_v)), radius_px(to(o.radius_px)), span(to(o.span)), dir_u(to(o.dir_u)),
+        dir_v(to(o.dir_v)), index(o.index) {
+    for (int c = 0; c < 3; ++c) T[c] = to(o.T[c]), axis[c] = to(o.axis[c]);
   }
 };
 

@@ -3,9 +3,10 @@
 so that autograd chains its gradients to the G-buffer through :func:`~torch_ao.kernels.frame.walk_inputs`'
 torch ops.
 
-The backward (``torch_ao_kernels::walk_backward``, walk_grad_cpu.cpp) walks each slice in plain lanes,
-recording the steps that changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises),
-then replays the slice through those steps alone in dual lanes (lanes_dual.h): forward-mode tangents on
+The forward (``torch_ao_kernels::walk_record``, walk_grad_cpu.cpp) is the walk, which also records per pixel,
+slice and side the steps that changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises:
+a bit per step); the backward (``torch_ao_kernels::walk_backward``) replays each slice through those steps
+alone in dual lanes (lanes_dual.h): forward-mode tangents on
 each pixel's own position, normal and depth, on the accumulator's setting (``setting``: GTAO's falloff or
 thickness, HBAO's angle bias) and on each replayed sample, whose taps it scatters into (bilinear: the
 inverse depth of its four taps; nearest: the tap's position).
@@ -22,7 +23,7 @@ from __future__ import annotations
 import torch
 
 from ..gbuffer import GBuffer
-from .build import cpu_kernels, grad_kernels
+from .build import grad_kernels
 from .frame import scalar_lanes
 from .launch import packed_inputs
 
@@ -35,18 +36,19 @@ class _Walk(torch.autograd.Function):
     @staticmethod
     def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, ints, floats, channels,
                 scalar, radius, setting, setting_is_length):
-        none = torch.empty(0)
         ctx.accumulator, ctx.scalar, ctx.setting_is_length = accumulator, scalar, setting_is_length
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting)
-        return cpu_kernels().walk(accumulator, positions, normals, inverse, depth, valid, intrinsics, none, none,
-                                  none, ints, floats, channels, scalar)
+        out, record = grad_kernels().walk_record(accumulator, positions, normals, inverse, depth, valid, intrinsics,
+                                                 ints, floats, channels, scalar)
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting,
+                              record)
+        return out
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting = ctx.saved_tensors
+        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting, record = ctx.saved_tensors
         g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
             ctx.accumulator, grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid,
-            intrinsics, ints, floats, ctx.scalar)
+            intrinsics, ints, floats, record, ctx.scalar)
         along_setting = g_setting.to(torch.float64).sum()
         g_radius = None
         if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN

@@ -1,16 +1,18 @@
 // The backward of the one walk (torch_ao_kernels::walk_backward) for the horizon accumulators of
 // horizon.h (GTAO's three variants, HBAO), any fetch but the edge-aware one, either border. Per slice:
-//  1. the plain walk (walk.h's walk_slice in plain lanes) records, per lane and side, the steps that
-//     changed the accumulator's state (its "takes"; every valid step where acc.blends_every_sample(): UE4's
-//     thickness blend): a step that leaves the state as it was is the identity, so only the takes carry
-//     gradients. Where a take replaces the state (acc.replaces(): GTAO's
-//     exact minimum, HBAO's highest rise), only each side's last take is kept.
-//  2. the slice is replayed in dual lanes (lanes_dual.h) through those takes alone (each lane its own step,
-//     step_distance in lanes): begin_slice, the takes' samples and steps, end_slice. Tangents 0..6 are the
-//     pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's setting (seed_setting:
-//     GTAO's falloff or thickness, HBAO's angle bias), which give its outputs' derivatives with respect to them, the samples' screen positions and bilinear weights included; before every take the
-//     state's S components and the sample's delta get fresh tangents, so that the step's local Jacobians
-//     d state' / d state (S x S) and d state' / d delta (S x 3) come out of it.
+//  1. the forward (torch_ao_kernels::walk_record: walk.h's walk_slice in plain lanes with the Takes visitor)
+//     records, per pixel and side, the steps that changed the accumulator's state (its "takes", a bit per
+//     step; every valid step where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the
+//     state as it was is the identity, so only the takes carry gradients. Where a take replaces the state
+//     (acc.replaces(): GTAO's exact minimum, HBAO's highest rise), only each side's last take is kept.
+//  2. the backward replays the slice in dual lanes (lanes_dual.h) through those takes alone (each lane its
+//     own step, step_distance in lanes): begin_slice, the takes' samples and steps, end_slice. Tangents 0..6
+//     are the pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's setting
+//     (seed_setting: GTAO's falloff or thickness, HBAO's angle bias), which give its outputs' derivatives
+//     with respect to them, the samples' screen positions and bilinear weights included (Pixels and Slice
+//     in those 8 alone, widened); before every take the state's S components and the sample's delta get
+//     fresh tangents, so that the step's local Jacobians d state' / d state (S x S) and d state' / d delta
+//     (S x 3) come out of it.
 //  3. the outputs' derivatives with respect to the final state, swept back through the takes' Jacobians,
 //     give each take's d loss / d delta, chained to its taps: for a bilinear fetch delta = pos - P with
 //     pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's
@@ -49,6 +51,9 @@ constexpr int kPixel = 7, kOwn = kPixel + 1;
 
 inline bool mask_lane(bool m, int) { return m; }
 inline bool mask_lane(const Vec& m, int l) { return lane_on(m, l); }
+// a lane mask as bits (lane l: bit l)
+inline uint32_t lane_bits(bool m) { return m ? 1u : 0u; }
+inline uint32_t lane_bits(const Vec& m) { return ~uint32_t(m.zero_mask()) & ((1u << Vec::size()) - 1u); }
 inline void store_lanes(uint32_t x, int32_t* out) { out[0] = int32_t(x); }
 inline void store_lanes(const IVec& x, int32_t* out) { x.store(out); }
 
@@ -65,8 +70,8 @@ struct Targets {
   float *tap_positions, *tap_inverse;  // scattered: (H, W, 3), (H, W) of image b, this thread's
 };
 
-// Pass 1's record of a slice: per side and lane the steps that changed the state (the last one alone
-// where a take replaces the state)
+// The record of a slice (the forward's visitor): per side and lane the steps that changed the state (the
+// last one alone where a take replaces the state), as bits: step j is bit j % 64 of word j / 64
 template <class B, class Acc> struct Takes {
   static constexpr bool kBefore = true;
   using State = typename Acc::template State<B>;
@@ -74,32 +79,30 @@ template <class B, class Acc> struct Takes {
   static constexpr int S = state_size<Acc, B>();
   const Acc& acc;
   const typename LaneTraits<B>::M& live;
-  int64_t steps;
-  std::vector<float>& step;  // [side][take][lane]: the take's step j
-  int count[2][L];
+  int64_t words;
+  uint64_t* bits;  // [side][lane][word]
 
-  Takes(const Acc& a, const typename LaneTraits<B>::M& l, int64_t n, std::vector<float>& scratch)
-      : acc(a), live(l), steps(n), step(scratch) {
-    for (auto& side : count) std::fill(side, side + L, 0);
+  Takes(const Acc& a, const typename LaneTraits<B>::M& l, int64_t w, uint64_t* scratch)
+      : acc(a), live(l), words(w), bits(scratch) {
+    std::fill(bits, bits + 2 * L * words, uint64_t(0));
   }
-  int most(int k) const { return *std::max_element(count[k], count[k] + L); }
-  float* at(int k, int t) { return step.data() + (k * steps + t) * L; }
+  uint64_t* of(int k, int l) { return bits + (k * L + l) * words; }
 
   void operator()(int side, int64_t j, const Sample<B>& sample, const State& before, const State& after) {
     auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
     const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
     for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
-    changed = land(changed, live);
-    if (!any(changed)) return;
     const int k = side > 0 ? 0 : 1;
-    for (int l = 0; l < L; ++l) {
-      if (!mask_lane(changed, l)) continue;
-      const int t = acc.replaces() ? 0 : count[k][l]++;
-      if (acc.replaces()) count[k][l] = 1;
-      at(k, t)[l] = float(j);
+    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) {
+      uint64_t* b = of(k, __builtin_ctz(lanes));
+      if (acc.replaces()) std::fill(b, b + words, uint64_t(0));
+      b[j / 64] |= uint64_t(1) << (j % 64);
     }
   }
 };
+
+// The words of a record per (pixel, slice, side)
+inline int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
 
 // One take replayed: its step's Jacobians and its fetch (values only)
 template <class B, int S> struct Take {
@@ -136,25 +139,59 @@ void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, cons
   }
 }
 
+// A slice's record read back (the forward's Takes, image b's from record): per side, the lanes' takes in
+// order as each lane's step j, step[k][q][l], count[k][l] of them
+template <int L> struct Replay {
+  std::vector<float>& step;  // [side][take][lane]
+  int64_t steps;
+  int count[2][L];
+
+  Replay(std::vector<float>& scratch, int64_t n) : step(scratch), steps(n) {}
+  float* at(int k, int q) { return step.data() + (k * steps + q) * L; }
+  int most(int k) const { return *std::max_element(count[k], count[k] + L); }
+  // the record of slice s of the n pixels from p (words per side and pixel)
+  void read(const int64_t* record, int64_t p, int n, int64_t slices, int64_t s, int64_t words) {
+    for (int k = 0; k < 2; ++k) {
+      for (int l = 0; l < L; ++l) {
+        int q = 0;
+        if (l < n) {
+          const auto* b = reinterpret_cast<const uint64_t*>(record) + (((p + l) * slices + s) * 2 + k) * words;
+          for (int64_t w = 0; w < words; ++w)
+            for (uint64_t x = b[w]; x; x &= x - 1) at(k, q++)[l] = float(64 * w + __builtin_ctzll(x));
+        }
+        count[k][l] = q;
+      }
+    }
+  }
+};
+
 template <class B, class Acc>
 void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
-                const float* const* upstream, int C, const Targets& t, std::vector<float>& take_steps,
-                std::vector<Take<B, state_size<Acc, B>()>>& replayed) {
+                const float* const* upstream, int C, const int64_t* record, const Targets& t,
+                std::vector<float>& take_steps, std::vector<Take<B, state_size<Acc, B>()>>& replayed) {
   constexpr int S = state_size<Acc, B>(), kState = kOwn, kDelta = kOwn + S, N = kDelta + 3;
   constexpr int L = LaneTraits<B>::L;
   using D = Dual<B, N>;
   using StateD = typename Acc::template State<D>;
-  const Pixels<B> px(cfg, img, row, u0, n);
-  if (!any(px.live)) return;
-  const Pixels<D> pxd(cfg, img, row, u0, n);
   B g[8];
   {
     float lane[L];
+    bool none = true;
     for (int c = 0; c < C; ++c) {
-      for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[c][row * img.W + u0 + l] : 0.0f;
+      for (int l = 0; l < L; ++l) {
+        lane[l] = l < n ? upstream[c][row * img.W + u0 + l] : 0.0f;
+        none = none && lane[l] == 0.0f;
+      }
       g[c] = from_lanes(lane, B(0.0f));
     }
+    if (none) return;  // (no gradient flows: the outputs' zeros stand)
   }
+  // the pixel and its slices in the own tangents alone, widened for the takes' state and delta tangents
+  using Own = Dual<B, kOwn>;
+  const auto wide = [](const Own& x) { return widen<N>(x); };
+  const Pixels<Own> px_own(cfg, img, row, u0, n);
+  if (!any(px_own.live)) return;
+  const Pixels<D> pxd(px_own, wide);
   B own[kOwn];
   for (int k = 0; k < kOwn; ++k) own[k] = B(0.0f);
   // fresh tangents on the state's components (and none on a delta)
@@ -165,14 +202,10 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
       x[m].d[kState + m] = B(1.0f);
     }
   };
+  Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
-    Takes<B, Acc> takes(acc, px.live, cfg.steps, take_steps);
-    {
-      const Slice<B> sl(cfg, img, px, s);
-      typename Acc::template State<B> state = acc.begin_slice(px, sl);
-      walk_slice(cfg, img, acc, px, sl, state, takes);
-    }
-    const Slice<D> sl(cfg, img, pxd, s);
+    takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
+    const Slice<D> sl(Slice<Own>(cfg, img, px_own, s), wide);
     StateD state = acc.begin_slice(pxd, sl);
     replayed.clear();
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
@@ -195,7 +228,7 @@ void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64
           for (int c = 0; c < 3; ++c) take.along_delta[m][c] = x[m].d[kDelta + c];
         }
         for (int i = 0; i < 4; ++i) take.index[i] = smp.index[i];
-        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, px.live);
+        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, pxd.live);
         for (int c = 0; c < 3; ++c) take.pos[c] = smp.delta[c].v + pxd.P[c].v;
         replayed.push_back(take);
       }
@@ -288,12 +321,49 @@ void check_grad(const at::Tensor& grad, const at::Tensor& positions, int C) {
               "grad: expected (B, ", C, ", H, W)");
 }
 
-// The gradients of every row's blocks: SIMD or scalar lanes, a record of the takes per row
+// The walk of every row's blocks (SIMD or scalar lanes) with the Takes visitor: the outputs (B, C, H, W), as
+// the walk's, and the record (B, H, W, slices, 2, take_words) of every pixel's takes
 template <class Acc>
-void grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, Gradients& out,
-                bool scalar) {
+void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* dst, int64_t* record, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
-  const int64_t B = fr.B, plane = fr.H * fr.W;
+  const int64_t H = fr.H, W = fr.W, words = take_words(cfg);
+  const int C = acc.channels();
+  torch_ao_rows::for_each_block<L>(fr.B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+    constexpr int LL = LaneTraits<Lane>::L;
+    thread_local std::vector<uint64_t> bits;
+    bits.resize(size_t(2 * LL * words));
+    const Image img = fr.image(b);
+    const Pixels<Lane> px(cfg, img, row, u0, n);
+    typename Acc::template Sums<Lane> sums;
+    auto* out = reinterpret_cast<uint64_t*>(record) + ((b * H + row) * W + u0) * cfg.slices * 2 * words;
+    for (int64_t s = 0; s < cfg.slices; ++s) {
+      Takes<Lane, Acc> takes(acc, px.live, words, bits.data());
+      if (any(px.live)) {
+        const Slice<Lane> sl(cfg, img, px, s);
+        typename Acc::template State<Lane> state = acc.begin_slice(px, sl);
+        walk_slice(cfg, img, acc, px, sl, state, takes);
+        acc.end_slice(state, px, sl, sums);
+      }
+      for (int l = 0; l < n; ++l)
+        for (int k = 0; k < 2; ++k) std::copy(takes.of(k, l), takes.of(k, l) + words, out + ((l * cfg.slices + s) * 2 + k) * words);
+    }
+    Lane values[8];
+    acc.finish(sums, px, values);
+    alignas(64) float lanes[LL];
+    for (int c = 0; c < C; ++c) {
+      to_lanes(values[c], lanes);
+      std::copy(lanes, lanes + n, dst + ((b * C + c) * H + row) * W + u0);
+    }
+  });
+}
+
+// The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes
+template <class Acc>
+void grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
+                Gradients& out, bool scalar) {
+  constexpr int L = LaneTraits<Vec>::L;
+  const int64_t B = fr.B, plane = fr.H * fr.W, per_image = plane * cfg.slices * 2 * take_words(cfg);
   torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
     using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
     thread_local std::vector<float> take_steps;
@@ -301,38 +371,71 @@ void grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
     take_steps.resize(size_t(2 * cfg.steps * LaneTraits<Lane>::L));
     const float* upstream[8];
     for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
-    grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, upstream, C, out.targets(b, B, plane, at::get_thread_num()),
-                     take_steps, replayed);
+    grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, upstream, C, record + b * per_image,
+                     out.targets(b, B, plane, at::get_thread_num()), take_steps, replayed);
   });
+}
+
+// The horizon accumulator `name` ("gtao", "hbao") of the packed settings, to fn
+template <class Fn> void with_horizon(const std::string& name, const int64_t* i, const float* f, const Fn& fn) {
+  if (name == "gtao") {
+    TORCH_CHECK(i[kAccInts] >= 0 && i[kAccInts] <= 2, "variant: expected 0 (exact), 1 (hdrp) or 2 (ue4)");
+    fn(unpack_gtao(i, f));
+  } else {
+    fn(unpack_hbao(i, f));
+  }
+}
+
+// The walk's settings of a horizon accumulator's call (walk_record, walk_backward)
+WalkSettings horizon_settings(const std::string& name, const at::Tensor& ints, const at::Tensor& floats) {
+  TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: the backward covers gtao and hbao, got ", name);
+  check_settings(ints, floats, 3, name == "gtao" ? 3 : 2, name.c_str());
+  const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
+  TORCH_CHECK(!cfg.edge_aware, "fetch: the backward covers the bilinear and nearest fetch, not the edge-aware one");
+  return cfg;
+}
+
+// torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of a horizon
+// accumulator ("gtao", "hbao"), and the record of its takes (B, H, W, slices, 2, words) int64, for
+// walk_backward
+std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, const at::Tensor& positions,
+                                               const at::Tensor& normals, const at::Tensor& inverse_depth,
+                                               const at::Tensor& depth, const at::Tensor& valid,
+                                               const at::Tensor& intrinsics, const at::Tensor& ints,
+                                               const at::Tensor& floats, int64_t channels, bool scalar) {
+  const std::string name(accumulator);
+  const WalkSettings cfg = horizon_settings(name, ints, floats);
+  const at::Tensor none = at::empty({0}, positions.options());
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  at::Tensor out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
+  at::Tensor record = at::empty({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}, ints.options());
+  with_horizon(name, ints.data_ptr<int64_t>(), floats.data_ptr<float>(), [&](const auto& acc) {
+    TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
+    record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
+  });
+  return {out, record};
 }
 
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
-// accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao" or "hbao" with walk()'s packed settings
+// accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao" or "hbao" with walk()'s packed
+// settings; record: walk_record's of the same call
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
-    const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
+    const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool scalar) {
   const std::string name(accumulator);
-  TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: the backward covers gtao and hbao, got ", name);
+  const WalkSettings cfg = horizon_settings(name, ints, floats);
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
-  check_settings(ints, floats, 3, name == "gtao" ? 3 : 2, name.c_str());
-  const int64_t* i = ints.data_ptr<int64_t>();
-  const float* f = floats.data_ptr<float>();
-  const WalkSettings cfg = unpack_walk(i, f);
-  TORCH_CHECK(!cfg.edge_aware, "fetch: the backward covers the bilinear and nearest fetch, not the edge-aware one");
+  TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
+                  record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}),
+              "record: expected walk_record's (B, H, W, slices, 2, words) of the same call");
   Gradients out(positions, fr.B, fr.H, fr.W);
-  auto run = [&](const auto& acc) {
+  with_horizon(name, ints.data_ptr<int64_t>(), floats.data_ptr<float>(), [&](const auto& acc) {
     check_grad(grad, positions, acc.channels());
-    grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), out, scalar);
-  };
-  if (name == "gtao") {
-    TORCH_CHECK(i[kAccInts] >= 0 && i[kAccInts] <= 2, "variant: expected 0 (exact), 1 (hdrp) or 2 (ue4)");
-    run(unpack_gtao(i, f));
-  } else {
-    run(unpack_hbao(i, f));
-  }
+    grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar);
+  });
   at::Tensor g_inv = out.reduce();
   return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
@@ -410,8 +513,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
+  m.def("walk_record(str accumulator, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
+        "Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, int channels, bool scalar) -> (Tensor, Tensor)");
+  m.impl("walk_record", c10::DispatchKey::CPU, TORCH_FN(walk_record));
   m.def("walk_backward(str accumulator, Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, "
-        "Tensor depth, Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, bool scalar) "
+        "Tensor depth, Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, Tensor record, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
