@@ -13,6 +13,7 @@ from torch_ao.kernels import KernelUnavailable, gtao_covers, hbao_covers
 from torch_ao.methods.gtao import GTAO
 from torch_ao.methods.hbao import HBAO
 
+from kernel_calls import count_kernel_calls
 from kernel_agreement import ATOL, assert_values_agree
 
 # the frames of the hard bitmask kernel's tests, and its build fixture
@@ -143,17 +144,9 @@ def test_kernel_covers_names_what_it_does_not_cover():
     assert hbao_covers(HBAO(trainable=False), GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)) is None
 
 
-def _count_calls(monkeypatch, name):
-    import torch_ao.kernels.dispatch as dispatch
-
-    calls = []
-    ((covers, run),) = dispatch.KERNELS[name]
-    monkeypatch.setitem(dispatch.KERNELS, name, ((covers, lambda *a: calls.append(1) or run(*a)),))
-    return calls
-
 
 def test_auto_runs_the_kernel_with_and_without_gradients(built, monkeypatch):
-    calls = _count_calls(monkeypatch, "gtao")
+    calls = count_kernel_calls(monkeypatch, "gtao")
     gb = rough_gbuffer()
     module = GTAO(slices=3, steps=4, bent_normals=True)
     with torch.no_grad():

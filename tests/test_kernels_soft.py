@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from kernel_agreement import assert_values_agree
+from kernel_calls import count_kernel_calls
 from test_kernels import FRAMES, built, kernel_of, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
@@ -160,11 +161,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
 
 
 def test_auto_backend_runs_the_soft_kernel(built, monkeypatch):
-    import torch_ao.kernels.dispatch as dispatch
-
-    calls = []
-    *others, soft = dispatch.KERNELS["bitmask"]
-    monkeypatch.setitem(dispatch.KERNELS, "bitmask", (*others, (soft[0], lambda *a: calls.append(1) or soft[1](*a))))
+    calls = count_kernel_calls(monkeypatch, "bitmask")
     gb = rough_gbuffer()
     auto = BitmaskAO(mode="soft", slices=3, steps=4)(gb).visibility
     assert calls == [1] and auto.requires_grad

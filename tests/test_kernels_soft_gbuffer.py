@@ -5,6 +5,7 @@ derivatives against central differences (gradcheck's fast mode); what it covers.
 import pytest
 import torch
 
+from kernel_calls import count_kernel_calls
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft import SETTINGS, _loss_weights
 from torch_ao.camera import PinholeCamera
@@ -136,8 +137,6 @@ def test_gradients_match_central_differences_on_a_small_frame(built, mode):
 
 # ------------------------------------------------------------------------------- what it covers
 def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypatch):
-    import torch_ao.kernels.dispatch as dispatch
-
     gb = example_gbuffer(12, 16)
     covers = soft_module.kernel_covers
     depth = gb.depth.clone().requires_grad_()
@@ -152,9 +151,7 @@ def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypat
         bitmask_soft(moving, moving.view_normals(), slices=2, steps=3, radius=torch.tensor(1.0),
                      thickness=torch.tensor(0.5), tau=0.25)
     # the auto backend takes the kernel for a depth gradient
-    calls = []
-    *others, soft = dispatch.KERNELS["bitmask"]
-    monkeypatch.setitem(dispatch.KERNELS, "bitmask", (*others, (soft[0], lambda *a: calls.append(1) or soft[1](*a))))
+    calls = count_kernel_calls(monkeypatch, "bitmask")
     vis = BitmaskAO(mode="soft", slices=2, steps=3)(graph).visibility
     (g_depth,) = torch.autograd.grad(vis.sum(), [depth])
     assert calls == [1] and g_depth.abs().sum() > 0

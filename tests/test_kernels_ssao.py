@@ -17,6 +17,7 @@ from torch_ao.kernels.ssao import pssao_forward, ue4_ssao_forward
 from torch_ao.methods.pssao import PSSAO
 from torch_ao.methods.ue4_ssao import UE4SSAO
 
+from kernel_calls import count_kernel_calls
 from kernel_agreement import assert_values_agree
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401,E402
 
@@ -102,17 +103,9 @@ def test_kernel_covers_names_what_it_does_not_cover():
     assert "G-buffer" in pssao_covers(PSSAO(trainable=False), depth)
 
 
-def _count_calls(monkeypatch, name):
-    import torch_ao.kernels.dispatch as dispatch
-
-    calls = []
-    ((covers, run),) = dispatch.KERNELS[name]
-    monkeypatch.setitem(dispatch.KERNELS, name, ((covers, lambda *a: calls.append(1) or run(*a)),))
-    return calls
-
 
 def test_auto_runs_the_kernel_without_gradients_and_the_tensor_walk_with(built, monkeypatch):
-    calls = _count_calls(monkeypatch, "ue4_ssao")
+    calls = count_kernel_calls(monkeypatch, "ue4_ssao")
     gb = rough_gbuffer()
     module = UE4SSAO(steps=2)
     with torch.no_grad():
@@ -145,7 +138,7 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover_and_auto_falls_back(mon
         UE4SSAO(backend="kernel")(gb)
     with torch.no_grad(), pytest.raises(ValueError, match="backend.*float64"):
         PSSAO(backend="kernel")(gb.to(dtype=torch.float64))
-    calls = _count_calls(monkeypatch, "pssao")
+    calls = count_kernel_calls(monkeypatch, "pssao")
     with torch.no_grad():
         out = PSSAO()(gb.to(dtype=torch.float64)).visibility  # auto: the tensor path
         assert calls == [] and out.dtype == torch.float64
