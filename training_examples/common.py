@@ -33,6 +33,32 @@ def add_view_options(parser: argparse.ArgumentParser, *, size: str, spp: int = 1
     parser.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
 
 
+def add_bitmask_fit_options(parser: argparse.ArgumentParser, *, init_help: str, steps_help: str) -> None:
+    """The options both bitmask thickness fits share: sampling (``--preset``, ``--weighting``), the
+    optimizer (``--init``, ``--steps``, ``--lr``, ``--batch-views``), the denoiser and the hard-mode
+    scoring."""
+    parser.add_argument("--preset", default="medium", help="quality preset (slices x steps per side)")
+    parser.add_argument("--weighting", default="cosine", choices=("uniform", "cosine"), help="bitmask sector weighting")
+    parser.add_argument("--init", type=float, default=1.0, help=init_help)
+    parser.add_argument("--steps", type=int, default=30, help=steps_help)
+    parser.add_argument("--lr", type=float, default=0.05)
+    parser.add_argument("--batch-views", type=int, default=0,
+                        help="views per step (0 = all: the best step is then chosen on the whole set)")
+
+
+def add_run_options(parser: argparse.ArgumentParser, *, out: str, hard_every: bool = True) -> None:
+    """The options every fitting script's run shares: the denoiser, hard-mode scoring, the seed, the output
+    folder, the device and the progress bar."""
+    parser.add_argument("--no-denoise", action="store_true", help="fit and score the method alone, without the denoiser")
+    if hard_every:
+        parser.add_argument("--hard-every", type=int, default=5,
+                            help="score in hard mode every N steps and keep the best (0 = off)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=out, help="output folder")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--no-progress", action="store_true")
+
+
 def build_views(args: argparse.Namespace) -> tuple[list[FitView], list[FitView]]:
     """Training and held-out views: the user's ``--reference``/``--holdout`` files, else randomised
     views of the built-in ``--scenes`` (seeds 1.. for training, 1000.. held out), cached."""

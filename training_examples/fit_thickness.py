@@ -43,7 +43,7 @@ from torch_ao.fit import FitConfig, evaluate, fit
 from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
 
-from common import add_view_options, apply_tiny, build_views
+from common import add_bitmask_fit_options, add_run_options, add_view_options, apply_tiny, build_views
 
 ENGINE_DEFAULTS = (0.25, 0.5, 1.0)
 
@@ -55,19 +55,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--scenes", default=",".join(TRAIN_SCENES), help="built-in scenes")
     p.add_argument("--train-views", type=int, default=2, help="randomised training views per scene")
     add_view_options(p, size="96x64")
-    p.add_argument("--preset", default="medium", help="quality preset (slices x steps per side)")
-    p.add_argument("--weighting", default="cosine", choices=("uniform", "cosine"), help="bitmask sector weighting")
-    p.add_argument("--init", type=float, default=1.0, help="initial thickness")
-    p.add_argument("--steps", type=int, default=30, help="optimizer steps")
-    p.add_argument("--lr", type=float, default=0.05)
-    p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
+    add_bitmask_fit_options(p, init_help="initial thickness", steps_help="optimizer steps")
     p.add_argument("--params", default="thickness", help="parameters fitted jointly (thickness, radius)")
-    p.add_argument("--no-denoise", action="store_true", help="fit and score bitmask AO alone, without the denoiser")
-    p.add_argument("--hard-every", type=int, default=5, help="score in hard mode every N steps and keep the best (0 = off)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="runs/fit_thickness", help="output folder")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--no-progress", action="store_true")
+    add_run_options(p, out="runs/fit_thickness")
     p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 6 steps from thickness 0.2")
     return apply_tiny(p, p.parse_args(argv), scenes="fence,room_corner", train_views=1, size="32x24", spp=16, steps=6, preset="low",
                       init=0.2, hard_every=2)

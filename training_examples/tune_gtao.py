@@ -44,7 +44,7 @@ from torch_ao.fit import FitConfig, evaluate, fit, fittable_parameters
 from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
 
-from common import add_view_options, apply_tiny, build_views
+from common import add_run_options, add_view_options, apply_tiny, build_views
 
 #: XeGTAO's auto-tuned defaults (XeGTAO.h: XE_GTAO_DEFAULT_RADIUS_MULTIPLIER, _FALLOFF_RANGE, _FINAL_VALUE_POWER).
 XEGTAO = {"radius_multiplier": 1.457, "falloff_range": 0.615, "final_power": 2.2}
@@ -68,11 +68,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=30, help="optimizer steps")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--batch-views", type=int, default=0, help="views per step (0 = all: the best step is then chosen on the whole set)")
-    p.add_argument("--no-denoise", action="store_true", help="fit and score the method alone, without the denoiser")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="runs/tune_gtao", help="output folder")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--no-progress", action="store_true")
+    add_run_options(p, out="runs/tune_gtao", hard_every=False)
     p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 8 steps")
     return apply_tiny(p, p.parse_args(argv), scenes="sphere_on_plane,room_corner", train_views=1, size="32x24", spp=16, steps=8, preset="medium")
 
