@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-
 from torch_ao.datasets import TRAIN_SCENES
 from torch_ao.fit import FitConfig, evaluate, fit
 from torch_ao.fitted import FittedPipeline
