@@ -8,9 +8,9 @@ from kernel_agreement import assert_values_agree
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fixture)
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import exact_covers, kernel_forward
-from torch_ao.kernels.bitmask import exact_hard
+from torch_ao.kernels.bitmask import exact_hard, module_thickness, thickness_options
 from torch_ao.methods.bitmask import BitmaskAO
-from torch_ao.thickness import BackfaceThickness
+from torch_ao.thickness import BackfaceThickness, LinearThickness
 
 
 def with_backface(gb: GBuffer, depth: float = 0.3) -> GBuffer:
@@ -44,10 +44,8 @@ def test_exact_kernel_agrees_with_the_tensor_walk(built, frame, setting, lanes):
 
 
 def _scalar(module, gb):
-    back = isinstance(module.thickness_model, BackfaceThickness)
     return exact_hard(gb, gb.view_normals(), slices=module.slices, steps=module.steps, radius=float(module.radius),
-                      thickness=float(module.thickness), backface_scale=float(module.thickness_scale) if back else None,
-                      step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
+                      **thickness_options(module_thickness(module, gb)), step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                       seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                       border=module.border, weighting=module.weighting,
                       thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
@@ -90,7 +88,8 @@ def test_exact_covers_names_what_it_does_not_cover():
         cases = {"union": BitmaskAO(trainable=False), "mode": BitmaskAO(variant="exact", mode="soft", trainable=False),
                  "azimuth": BitmaskAO(variant="exact", azimuth="screen", trainable=False),
                  "steps=40": BitmaskAO(variant="exact", steps=40, trainable=False),
-                 "thickness other than": BitmaskAO(variant="exact", thickness=torch.ones(3), trainable=False),
+                 "nearest texel only": BitmaskAO(variant="exact", thickness=torch.ones(3), trainable=False),
+                 "not of the form": BitmaskAO(variant="exact", thickness=LinearThickness(), trainable=False),
                  "float64": BitmaskAO(variant="exact", trainable=False)}
         for word, module in cases.items():
             frame = gb.to(dtype=torch.float64) if word == "float64" else gb

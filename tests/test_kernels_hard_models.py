@@ -8,7 +8,7 @@ from kernel_agreement import assert_masks_agree, assert_values_agree
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fixture)
 from test_kernels_exact import with_backface
 from torch_ao.kernels import kernel_covers, kernel_forward
-from torch_ao.kernels.bitmask import backface_scale_of, bitmask_outputs
+from torch_ao.kernels.bitmask import bitmask_outputs, module_thickness, thickness_options
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import BackfaceThickness
 
@@ -23,8 +23,8 @@ def _kernel(module: BitmaskAO, gb, lanes: str):
     if lanes == "simd":
         return kernel_forward(module, gb, "kernel")
     out = bitmask_outputs(gb, gb.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                          radius=float(module.radius), thickness=float(module.thickness),
-                          backface_scale=backface_scale_of(module), step_power=module.step_power,
+                          radius=float(module.radius), **thickness_options(module_thickness(module, gb)),
+                          step_power=module.step_power,
                           min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
                           border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
                           weighting=module.weighting, indirect=module.want_indirect, lanes="scalar")
@@ -82,4 +82,4 @@ def test_coverage_reasons():
         assert "edge_aware reads of a position buffer" in kernel_covers(BitmaskAO(fetch="edge_aware", trainable=False),
                                                                          position)
         glsl = BitmaskAO(variant="ssilvb_glsl", thickness=BackfaceThickness(), trainable=False)
-        assert "thickness other than one scalar" in kernel_covers(glsl, gb)
+        assert "reads one scalar thickness" in kernel_covers(glsl, gb)

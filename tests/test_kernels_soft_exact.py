@@ -11,6 +11,7 @@ from test_kernels_exact import with_backface
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import exact_hard
+from torch_ao.kernels.bitmask import module_thickness, thickness_options
 from torch_ao.kernels.soft_exact import exact_soft, exact_soft_covers
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import BackfaceThickness
@@ -50,9 +51,9 @@ def visibility_and_grads(gb: GBuffer, lanes: str, setting: dict, dtype=torch.flo
 
 
 def _kernel(module, gb, lanes, **overrides):
-    back = isinstance(module.thickness_model, BackfaceThickness)
-    args = dict(slices=module.slices, steps=module.steps, radius=module.radius, thickness=module.thickness,
-                backface_scale=module.thickness_scale if back else None, step_power=module.step_power,
+    form = module_thickness(module, gb)
+    args = dict(slices=module.slices, steps=module.steps, radius=module.radius, thickness=form.offset, layer=form.layer,
+                layer_scale=None if form.layer is None else form.scale, step_power=module.step_power,
                 min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                 stagger=module.stagger, fetch=module.fetch, border=module.border, weighting=module.weighting,
                 thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
@@ -103,7 +104,7 @@ def test_gradients_match_finite_differences(built, setting):
     def mean(values):
         kwargs = dict(radius=values["radius"], thickness=values["thickness"])
         if "thickness_scale" in values:
-            kwargs["backface_scale"] = values["thickness_scale"]
+            kwargs["layer_scale"] = values["thickness_scale"]
         return _kernel(module, gb, "simd", **kwargs).double().mean()
 
     grads = torch.autograd.grad(mean(params), list(params.values()))
@@ -127,9 +128,8 @@ def test_straight_through_and_soft_forwards_are_the_hard_exact_kernels(built, se
         with torch.no_grad():
             hard = _kernel(module, gb, "simd")
             plain = exact_hard(gb, gb.view_normals(), slices=module.slices, steps=module.steps,
-                               radius=float(module.radius), thickness=float(module.thickness),
-                               backface_scale=float(module.thickness_scale) if "thickness_scale" in _parameters(module)
-                               else None, step_power=module.step_power, min_step_px=module.min_step_px,
+                               radius=float(module.radius), **thickness_options(module_thickness(module, gb)),
+                               step_power=module.step_power, min_step_px=module.min_step_px,
                                jitter=module.jitter, seed=module.seed, noise=module.noise, stagger=module.stagger,
                                fetch=module.fetch, border=module.border, weighting=module.weighting,
                                thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
@@ -161,7 +161,9 @@ def test_covers_names_what_it_does_not_cover():
     cases = {"union": (BitmaskAO(mode="soft"), gb),
              "G-buffer": (BitmaskAO(variant="exact", mode="soft"), graph),
              "steps=40": (BitmaskAO(variant="exact", mode="soft", steps=40), gb),
-             "thickness other than": (BitmaskAO(variant="exact", mode="soft", thickness=torch.ones(3)), gb),
+             "nearest texel only": (BitmaskAO(variant="exact", mode="soft", thickness=torch.ones(3)), gb),
+             "a gradient of thickness": (BitmaskAO(variant="exact", mode="soft", fetch="nearest",
+                                                   thickness=torch.ones(3)), gb),
              "azimuth": (BitmaskAO(variant="exact", mode="soft", azimuth="screen"), gb),
              "float64": (BitmaskAO(variant="exact", mode="soft"), gb.to(dtype=torch.float64))}
     for word, (module, frame) in cases.items():

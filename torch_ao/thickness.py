@@ -34,11 +34,11 @@ from dataclasses import dataclass
 
 import torch
 
-from .thickness_base import Parameter, Thickness, checked_growth
+from .thickness_base import Parameter, Thickness, ThicknessLayer, checked_growth
 from .thickness_net import NetThickness
 
 __all__ = ["Thickness", "ScalarThickness", "ObjectThickness", "MapThickness", "LinearThickness",
-           "BackfaceThickness", "NetThickness", "BoundThickness", "as_thickness"]
+           "BackfaceThickness", "NetThickness", "BoundThickness", "ThicknessLayer", "as_thickness"]
 
 #: the back-face thickness of a pixel whose object has no exit along its camera ray (``backface_depth =
 #: inf``), in world units: a finite stand-in for "as thick as the scene", so that gradients stay finite
@@ -69,9 +69,14 @@ class ScalarThickness(_TensorThickness):
     """One thickness ``thickness`` (world units, 0-d) for every occluder: the paper's."""
 
     dims, expected = 0, "a scalar"
+    kernel_read = "constant"
 
     def __init__(self, thickness: float | torch.Tensor = 0.5, **kwargs) -> None:
         super().__init__(thickness, **kwargs)
+
+    def layer(self, gbuffer, params):
+        t = params["thickness"]
+        return ThicknessLayer(None, torch.ones_like(t), t)
 
     def at(self, sample, params):
         return params["thickness"].to(sample.dtype)
@@ -82,11 +87,18 @@ class ObjectThickness(_TensorThickness):
     the table use its last entry)."""
 
     dims, expected = 1, "a (K,) per-object table"
+    kernel_read = "first_tap"
 
     def buffers(self, gbuffer, params):
         if gbuffer.object_id is None:
             raise ValueError("gbuffer.object_id: a per-object thickness table needs an object_id buffer")
         return {"object_id": gbuffer.object_id}
+
+    def layer(self, gbuffer, params):
+        table = params["thickness"]
+        ids = self.buffers(gbuffer, params)["object_id"].long().clamp(0, table.shape[0] - 1)
+        one = torch.ones((), dtype=table.dtype, device=table.device)
+        return ThicknessLayer(table[ids], one, torch.zeros_like(one), first_tap=True)
 
     def at(self, sample, params):
         table = params["thickness"]
@@ -105,6 +117,13 @@ class MapThickness(_TensorThickness):
         if t.shape[-2:] != (H, W) or t.shape[0] not in (1, B):
             raise ValueError(f"thickness: map of shape {tuple(t.shape)} does not match the G-buffer (B={B}, H={H}, W={W})")
         return {"thickness": t.to(gbuffer.depth.dtype).expand(B, 1, H, W)}
+
+    kernel_read = "layer"
+
+    def layer(self, gbuffer, params):
+        t = self.buffers(gbuffer, params)["thickness"]
+        one = torch.ones((), dtype=t.dtype, device=t.device)
+        return ThicknessLayer(t, one, torch.zeros_like(one))
 
     def at(self, sample, params):
         return sample.gather("thickness")[:, 0]
@@ -150,6 +169,12 @@ class BackfaceThickness(Thickness):
         depth = gbuffer.safe_depth
         layer = torch.where(gbuffer.valid, back - depth, torch.zeros_like(depth))
         return {"backface_thickness": layer.clamp(0.0, BACKFACE_CAP)}
+
+    kernel_read = "layer"
+
+    def layer(self, gbuffer, params):
+        return ThicknessLayer(self.buffers(gbuffer, params)["backface_thickness"], params["thickness_scale"],
+                              params["thickness"])
 
     def at(self, sample, params):
         layer = sample.gather("backface_thickness")[:, 0]
@@ -199,4 +224,8 @@ class BoundThickness:
 
     def buffers(self, gbuffer) -> dict[str, torch.Tensor]:
         return self.model.buffers(gbuffer, self.params)
+
+    def layer(self, gbuffer) -> ThicknessLayer | None:
+        """:meth:`Thickness.layer` with these parameters; ``None`` with a growth (it reads the sample's distance)."""
+        return None if self.model.growth is not None else self.model.layer(gbuffer, self.params)
 

@@ -10,7 +10,7 @@ import torch
 
 from .checks import check_float
 
-__all__ = ["Parameter", "Thickness", "checked_growth"]
+__all__ = ["Parameter", "Thickness", "ThicknessLayer", "checked_growth"]
 
 
 @dataclass(frozen=True)
@@ -19,6 +19,22 @@ class Parameter:
 
     value: torch.Tensor
     minimum: float | None = 0.0
+
+
+@dataclass(frozen=True)
+class ThicknessLayer:
+    """A model's thickness in the one form the fused kernels read: ``t = scale * layer + offset`` at a sample.
+
+    ``layer`` ``(B,1,H,W)`` is read at the sample as the walk reads depth (nearest, bilinear or edge-aware),
+    or with ``first_tap`` at the footprint's first tap alone (an integer buffer's read: a per-object table
+    looked up by ``object_id``); ``None``: ``t = offset`` everywhere. ``scale`` (unitless) and ``offset``
+    (world units) are 0-d tensors, the model's parameters where they are ones (their gradients then reach
+    them)."""
+
+    layer: torch.Tensor | None
+    scale: torch.Tensor
+    offset: torch.Tensor
+    first_tap: bool = False
 
 
 def checked_growth(growth: float | torch.Tensor | None) -> float | torch.Tensor | None:
@@ -57,6 +73,15 @@ class Thickness(abc.ABC):
     def buffers(self, gbuffer, params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """``(B,C,H,W)`` images the samples read (default none); ``ValueError`` if the G-buffer lacks one."""
         return {}
+
+    #: how :meth:`layer` reads the model (``None``: it cannot be put in that form): ``"constant"`` (no image),
+    #: ``"layer"`` (an image read as depth is) or ``"first_tap"`` (an image read at the first tap)
+    kernel_read: str | None = None
+
+    def layer(self, gbuffer, params: dict[str, torch.Tensor]) -> ThicknessLayer | None:
+        """The model as :class:`ThicknessLayer` (growth aside), or ``None`` when it is not of that form (the
+        fused kernels then leave it to the tensor path)."""
+        return None
 
     @abc.abstractmethod
     def at(self, sample, params: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -23,7 +23,7 @@ from torch import nn
 from torch.func import functional_call
 
 from .checks import check_float, check_int
-from .thickness_base import Parameter, Thickness
+from .thickness_base import Parameter, Thickness, ThicknessLayer
 
 __all__ = ["FEATURES", "net_features", "ThicknessCNN", "NetThickness"]
 
@@ -131,6 +131,12 @@ class NetThickness(Thickness):
 
     def buffers(self, gbuffer, params):
         return {"net_thickness": self.predict(gbuffer, params, offset=False)}
+
+    kernel_read = "layer"
+
+    def layer(self, gbuffer, params):
+        t = self.buffers(gbuffer, params)["net_thickness"]
+        return ThicknessLayer(t, torch.ones((), dtype=t.dtype, device=t.device), params["thickness"])
 
     def at(self, sample, params):
         return sample.gather("net_thickness")[:, 0] + params["thickness"].to(sample.dtype)

@@ -18,13 +18,13 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
-from ..thickness import BackfaceThickness, ScalarThickness
+from ..thickness import ThicknessLayer, matching
 from .coverage import gbuffer_uncovered, option_uncovered
 from .frame import light_input, walk_inputs
 from .launch import run_walk, walk_settings
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
-           "kernel_covers", "options_uncovered", "backface_scale_of",
+           "kernel_covers", "options_uncovered", "module_thickness",
            "KernelOutputs"]
 
 class KernelOutputs(NamedTuple):
@@ -39,19 +39,19 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     thickness: float, step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True,
                     seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
-                    bent_normals: bool = False, backface_scale: float | None = None,
+                    bent_normals: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
                     lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
     pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
 
     Args:
-        gbuffer: a float32 G-buffer, CPU or CUDA (with ``light`` for ``indirect``, ``backface_depth`` for
-            the back-face model); normals: its ``(B,3,H,W)`` unit view-space normals (as the module uses
+        gbuffer: a float32 G-buffer, CPU or CUDA (with ``light`` for ``indirect``); normals: its ``(B,3,H,W)`` unit view-space normals (as the module uses
             them, e.g. ``gbuffer.view_normals()``).
         slices, steps: directions per pixel (uniform around the view vector) and samples per side.
-        radius, thickness: world units (scalars; with ``backface_scale`` the back-face model's offset, the
-            layer scaled by ``backface_scale``: :class:`~torch_ao.thickness.BackfaceThickness`);
+        radius, thickness: world units (scalars); with ``layer`` ``(B,1,H,W)``, read at each sample as depth
+            is, the thickness there is ``layer_scale * layer + thickness`` (a model's
+            :class:`~torch_ao.thickness.ThicknessLayer`: the back-face layer, a map, the net's map);
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as :class:`~torch_ao.BitmaskAO`.
@@ -62,20 +62,20 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border)
-    backface = _backface_layer(gbuffer, backface_scale)
     out = run_walk("bitmask", gbuffer, normals, settings,
                    [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
-                    backface is not None],
-                   [thickness, sector_epsilon, 1.0 if backface_scale is None else backface_scale],
+                    layer is not None],
+                   [thickness, sector_epsilon, float(layer_scale)],
                    1 + 3 * bool(indirect) + 3 * bool(bent_normals),
-                   light=light_input(gbuffer, indirect) if indirect else None, backface=backface, lanes=lanes)
+                   light=light_input(gbuffer, indirect) if indirect else None, backface=layer, lanes=lanes)
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
-               backface_scale: float | None = None, step_power: float = 1.0, min_step_px: float = 0.25,
+               layer: torch.Tensor | None = None, layer_scale: float = 1.0, step_power: float = 1.0,
+               min_step_px: float = 0.25,
                jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "edge_aware", border: str = "drop",
                weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
                sample_extent: str = "sphere", sector_epsilon: float = 0.0, lanes: str = "simd") -> torch.Tensor:
@@ -83,10 +83,9 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     (``union="exact"``, the ``"exact"`` variant's rule; its defaults here), in one fused pass.
 
     Args:
-        gbuffer: a float32 G-buffer (CPU or CUDA; with ``backface_depth`` for the back-face model);
-            normals: its ``(B,3,H,W)`` unit view-space normals.
-        slices, steps (<= 32 per side); radius, thickness: world units (with ``backface_scale`` the
-            back-face model's offset, the layer scaled by ``backface_scale``); step_power, min_step_px
+        gbuffer: a float32 G-buffer (CPU or CUDA); normals: its ``(B,3,H,W)`` unit view-space normals.
+        slices, steps (<= 32 per side); radius, thickness, layer, layer_scale: as :func:`bitmask_outputs`;
+            step_power, min_step_px
             (pixels), jitter, seed, noise, stagger, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
             thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
@@ -94,25 +93,21 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border,
                              sphere_extent=sample_extent == "sphere")
-    backface = _backface_layer(gbuffer, backface_scale)
     return run_walk("exact", gbuffer, normals, settings,
-                    [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius), backface is not None],
-                    [thickness, 1.0 if backface_scale is None else backface_scale, radius, sector_epsilon], 1,
-                    backface=backface, lanes=lanes)
+                    [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius), layer is not None],
+                    [thickness, float(layer_scale), radius, sector_epsilon], 1, backface=layer, lanes=lanes)
 
 
-def _backface_layer(gbuffer: GBuffer, backface_scale: float | None) -> torch.Tensor | None:
-    """The back-face thickness layer ``(B,1,H,W)`` the kernels read (``None`` without the back-face model)."""
-    if backface_scale is None:
-        return None
-    return BackfaceThickness().buffers(gbuffer, None)["backface_thickness"]
+def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
+    """A bitmask module's thickness model with its current parameters as the kernels read it (a model
+    :func:`options_uncovered` accepted: ``t = scale * layer + offset``)."""
+    return module.bound_thickness().layer(gbuffer)
 
 
-def backface_scale_of(module) -> float | None:
-    """The back-face model's ``thickness_scale`` of a bitmask module, or ``None`` for another thickness."""
-    if not isinstance(module.thickness_model, BackfaceThickness):
-        return None
-    return float(module.thickness_scale.detach())
+def thickness_options(form: ThicknessLayer) -> dict:
+    """The kernels' ``thickness``, ``layer``, ``layer_scale`` arguments (floats and an image) of ``form``."""
+    return dict(thickness=float(form.offset.detach()), layer=None if form.layer is None else form.layer.detach(),
+                layer_scale=float(form.scale.detach()))
 
 
 def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
@@ -176,7 +171,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
                                extra=_HARD if module.variant == "default" else None,
-                               models=_BACKFACE if module.variant == "default" else (ScalarThickness,))
+                               layers=module.variant == "default")
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
@@ -196,8 +191,6 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 
 #: what the hard kernel of the ``"default"`` variant covers beyond the options every bitmask kernel does
 _HARD = {"fetch": ("nearest", "bilinear", "edge_aware")}
-#: the thickness models the ``"default"`` variant's hard kernel and the exact union's read per sample
-_BACKFACE = (ScalarThickness, BackfaceThickness)
 #: what the exact union's kernel covers beyond the hard kernels' options
 _EXACT = {"variant": ("default", "exact"), "union": ("exact",), "clip_to_radius": (False, True),
           "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere"),
@@ -208,12 +201,13 @@ EXACT_MAX_STEPS = 32
 
 def exact_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`exact_hard` computes ``module(gbuffer)`` (a ``BitmaskAO`` with ``union="exact"``:
-    the ``"exact"`` variant), else why not. Visibility only, hard mode, a scalar or back-face thickness;
+    the ``"exact"`` variant), else why not. Visibility only, hard mode, a thickness of the form ``scale * layer +
+    offset`` (:class:`~torch_ao.thickness.ThicknessLayer`);
     the exact union has gradients in hard mode too, so only when no gradient is asked for."""
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the hard kernels')"
     reason = options_uncovered(module, gbuffer, modes=("hard",), weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, models=_BACKFACE)
+                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, layers=True)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
@@ -226,10 +220,9 @@ def exact_covers(module, gbuffer: GBuffer) -> str | None:
 
 def exact_forward(module, gbuffer: GBuffer) -> dict:
     """``module(gbuffer)``'s ``{"visibility": (B,1,H,W)}`` for a module :func:`exact_covers` accepts."""
-    value = lambda name: float(getattr(module, name).detach())  # noqa: E731
     vis = exact_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                     radius=value("radius"), thickness=value("thickness"),
-                     backface_scale=backface_scale_of(module), step_power=module.step_power,
+                     radius=float(module.radius.detach()), **thickness_options(module_thickness(module, gbuffer)),
+                     step_power=module.step_power,
                      min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                      stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
@@ -245,12 +238,12 @@ _VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (
 def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
                       variants: tuple[str, ...] = ("default",), outputs: bool = False,
                       devices: tuple[str, ...] = ("cpu",), extra: dict | None = None,
-                      models: tuple[type, ...] = (ScalarThickness,)) -> str | None:
+                      layers: bool = False) -> str | None:
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
-    reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness
-    other than one scalar, a G-buffer other than float32 CPU, bilinear reads of a position buffer), or
-    ``None``."""
+    reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
+    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 CPU, bilinear reads of a
+    position buffer), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample."""
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
                  "azimuth", "thickness_growth", "ambient"):
@@ -265,16 +258,36 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = option_uncovered(values, covered)
     if reason is not None:
         return reason
-    thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
-    if not isinstance(thickness, torch.Tensor) or thickness.dim() != 0 or (
-            model is not None and (type(model) not in models or model.growth is not None)):
-        return ("a thickness other than one scalar or the back-face layer (a table, a map, a model, a growth)"
-                if BackfaceThickness in models else "a thickness other than one scalar (a table, a map, a model, a growth)")
+    reason = thickness_uncovered(module, layers)
+    if reason is not None:
+        return reason
     reason = gbuffer_uncovered(gbuffer, devices)
     if reason is not None:
         return reason
     if gbuffer.position is not None and module.variant == "default" and module.fetch in ("bilinear", "edge_aware"):
         return f"{module.fetch} reads of a position buffer"  # (the kernel interpolates depth)
+    return None
+
+
+def thickness_uncovered(module, layers: bool) -> str | None:
+    """Why a bitmask kernel cannot read ``module``'s thickness model, or ``None``. Every kernel reads one
+    scalar; one that reads ``layers`` also every model of the form ``scale * layer + offset``
+    (:attr:`~torch_ao.thickness.Thickness.kernel_read`: the back-face layer, a map, the net's map, and a
+    per-object table with the nearest fetch). A growth reads each sample's distance: never."""
+    thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
+    if model is None:
+        scalar = isinstance(thickness, torch.Tensor) and thickness.dim() == 0
+        return None if scalar else "a thickness other than one scalar"
+    model = matching(model, thickness)
+    name = type(model).__name__
+    if model.growth is not None:
+        return "a thickness growth (it reads each sample's distance)"
+    if model.kernel_read is None:
+        return f"thickness model {name} (not of the form scale * layer + offset)"
+    if model.kernel_read != "constant" and not layers:
+        return f"thickness model {name} (this kernel reads one scalar thickness)"
+    if model.kernel_read == "first_tap" and module.fetch != "nearest":
+        return f"thickness model {name} with fetch={module.fetch!r} (its table is read at the nearest texel only)"
     return None
 
 

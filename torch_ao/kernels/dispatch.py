@@ -8,7 +8,8 @@ import torch
 from ..gbuffer import GBuffer
 from . import soft_bitmask
 from .soft_exact import exact_soft_covers, exact_soft_forward
-from .bitmask import backface_scale_of, bitmask_hard, bitmask_outputs, exact_covers, exact_forward, kernel_covers, ssilvb_glsl_hard
+from .bitmask import (bitmask_hard, bitmask_outputs, exact_covers, exact_forward, kernel_covers, module_thickness,
+                      ssilvb_glsl_hard, thickness_options)
 from .build import KernelUnavailable
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
 from .ssao import pssao_covers, pssao_forward, ue4_ssao_covers, ue4_ssao_forward
@@ -31,18 +32,20 @@ def _warn_once(message: str) -> None:
 def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     """A covered hard ``BitmaskAO`` call through its variant's kernel: ``{AOOutput field: tensor}``."""
     normals = gbuffer.view_normals(module.normals_method)
-    radius, thickness = float(module.radius.detach()), float(module.thickness.detach())
+    radius = float(module.radius.detach())
     if module.variant == "ssilvb_glsl":
+        thickness = float(module.thickness.detach())
         vis, indirect, _ = ssilvb_glsl_hard(gbuffer, normals, slices=module.slices, steps=module.steps,
                                             radius=module.radius, thickness=thickness, jitter=module.jitter,
                                             rounding=module.rounding, numerics=module.glsl_numerics,
                                             indirect=module.want_indirect)
         return {"visibility": vis, "indirect": indirect}
-    options = dict(slices=module.slices, steps=module.steps, radius=radius, thickness=thickness,
+    options = dict(slices=module.slices, steps=module.steps, radius=radius,
+                   **thickness_options(module_thickness(module, gbuffer)),
                    step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                    seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                    border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
-                   weighting=module.weighting, backface_scale=backface_scale_of(module))
+                   weighting=module.weighting)
     if not (module.want_indirect or module.want_bent):
         vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
     else:

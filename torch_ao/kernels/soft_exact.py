@@ -14,29 +14,30 @@ from __future__ import annotations
 import torch
 
 from ..gbuffer import GBuffer
-from .bitmask import EXACT_MAX_STEPS, _BACKFACE, _EXACT, _backface_layer, options_uncovered
+from .bitmask import EXACT_MAX_STEPS, _EXACT, module_thickness, options_uncovered
 from .build import cpu_kernels
 from .launch import run_walk, walk_settings
-from ..thickness import BackfaceThickness
 
 __all__ = ["exact_soft", "exact_soft_covers", "exact_soft_forward"]
 
 
 def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
-               thickness: torch.Tensor, backface_scale: torch.Tensor | None = None, step_power: float = 1.0,
+               thickness: torch.Tensor, layer: torch.Tensor | None = None, layer_scale: torch.Tensor | None = None,
+               step_power: float = 1.0,
                min_step_px: float = 0.25, jitter: bool = True, seed: int = 0, noise: str = "ign",
                stagger: bool = False, fetch: str = "edge_aware", border: str = "drop", weighting: str = "cosine",
                thickness_direction: str = "depth", clip_to_radius: bool = True, sample_extent: str = "sphere",
                sector_epsilon: float = 0.0, lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` of the exact union (background 1; :func:`~torch_ao.kernels.exact_hard`'s),
-    differentiable with respect to ``radius``, ``thickness`` and ``backface_scale``.
+    differentiable with respect to ``radius``, ``thickness`` and ``layer_scale``.
 
     Args:
-        gbuffer: a float32 G-buffer (CPU or CUDA; with ``backface_depth`` for the back-face model), whose
-            tensors want no gradient; normals: its ``(B,3,H,W)`` unit view-space normals.
-        radius, thickness: 0-d tensors, world units (``nn.Parameter``\\ s get gradients); with
-            ``backface_scale`` (a 0-d tensor, unitless) the back-face model: thickness
-            ``backface_scale * layer + thickness``.
+        gbuffer: a float32 G-buffer (CPU or CUDA), whose tensors want no gradient; normals: its ``(B,3,H,W)``
+            unit view-space normals.
+        radius, thickness: 0-d tensors, world units (``nn.Parameter``\\ s get gradients); with ``layer``
+            ``(B,1,H,W)`` (a model's :class:`~torch_ao.thickness.ThicknessLayer`, read at each sample as depth
+            is; no gradient reaches it) the thickness there is ``layer_scale * layer + thickness``, with
+            ``layer_scale`` a 0-d tensor (unitless; default 1, e.g. the back-face model's ``thickness_scale``).
         slices, steps (<= 32 per side), step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch,
             border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
@@ -46,7 +47,9 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     if int(steps) > EXACT_MAX_STEPS:
         raise ValueError(f"steps: the exact union's kernel holds at most {EXACT_MAX_STEPS} per side, got {steps}")
     scalars = []
-    for name, t in (("radius", radius), ("thickness", thickness), ("backface_scale", backface_scale)):
+    if layer is not None and layer_scale is None:
+        layer_scale = torch.ones(())
+    for name, t in (("radius", radius), ("thickness", thickness), ("layer_scale", layer_scale)):
         if t is None:
             scalars.append(None)
             continue
@@ -60,29 +63,28 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                    jitter=bool(jitter), seed=int(seed), noise=noise, stagger=bool(stagger), fetch=fetch, border=border,
                    cosine=weighting == "cosine", along_ray=thickness_direction == "depth", clip=bool(clip_to_radius),
                    sphere=sample_extent == "sphere", epsilon=float(sector_epsilon), lanes=lanes)
-    return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2])
+    return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2], None if layer is None else layer.detach())
 
 
-def _walk(gbuffer, normals, radius, thickness, scale, o, gradients: bool) -> torch.Tensor:
+def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients: bool) -> torch.Tensor:
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness,
     d thickness_scale."""
     r = float(radius.detach())
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=r, step_power=o["step_power"],
                              min_step_px=o["min_step_px"], jitter=o["jitter"], seed=o["seed"], noise=o["noise"],
                              stagger=o["stagger"], fetch=o["fetch"], border=o["border"], sphere_extent=o["sphere"])
-    backface = _backface_layer(gbuffer, None if scale is None else float(scale.detach()))
     return run_walk("exact_gradients" if gradients else "exact", gbuffer, normals, settings,
-                    [o["cosine"], o["along_ray"], o["clip"], backface is not None],
+                    [o["cosine"], o["along_ray"], o["clip"], layer is not None],
                     [float(thickness.detach()), 1.0 if scale is None else float(scale.detach()), r, o["epsilon"]],
-                    4 if gradients else 1, backface=backface, lanes=o["lanes"])
+                    4 if gradients else 1, backface=layer, lanes=o["lanes"])
 
 
 class _ExactWalk(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, gbuffer, normals, radius, thickness, options, scale):
+    def forward(ctx, gbuffer, normals, radius, thickness, options, scale, layer):
         wanted = bool(ctx.needs_input_grad[2] or ctx.needs_input_grad[3]
                       or (scale is not None and ctx.needs_input_grad[5]))
-        out = _walk(gbuffer, normals, radius, thickness, scale, options, wanted)
+        out = _walk(gbuffer, normals, radius, thickness, scale, layer, options, wanted)
         if wanted:
             ctx.save_for_backward(out[:, 1:].contiguous())
         ctx.dtypes = (radius.dtype, thickness.dtype, None if scale is None else scale.dtype)
@@ -93,7 +95,7 @@ class _ExactWalk(torch.autograd.Function):
         (jacobian,) = ctx.saved_tensors  # (B, 3, H, W): d visibility / d radius, thickness, thickness_scale
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
         g_scale = None if ctx.dtypes[2] is None else sums[2].to(ctx.dtypes[2])
-        return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None, g_scale
+        return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None, g_scale, None
 
 
 #: what this kernel covers beyond the exact union's hard kernel: every mode (one forward, one gradient)
@@ -102,13 +104,15 @@ _MODES = ("hard", "soft", "straight_through")
 
 def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`exact_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO`` with
-    ``union="exact"``, any mode: visibility only, a scalar or back-face thickness, a float32 CPU or CUDA
-    G-buffer), else why not. Gradients of the radius, the thickness and ``thickness_scale``; not of the
-    G-buffer (depth, positions, normals, the back-face layer), which the tensor path computes."""
+    ``union="exact"``, any mode: visibility only, a thickness of the form ``scale * layer + offset``, a float32
+    CPU or CUDA G-buffer), else why not. Gradients of the radius and of the model's scalar parameters (the
+    offset ``thickness``, the back-face model's ``thickness_scale``); not of the G-buffer (depth, positions,
+    normals, the back-face layer) nor of what makes a layer (a map, a table, the net's weights), which the
+    tensor path computes."""
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the sector kernels')"
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, models=_BACKFACE)
+                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, layers=True)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
@@ -117,14 +121,20 @@ def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
             gbuffer.depth, gbuffer.normals, gbuffer.position, gbuffer.backface_depth, cam.fx, cam.fy, cam.cx, cam.cy)):
         return "a gradient of the G-buffer (the kernel differentiates radius, thickness and thickness_scale)"
+    if torch.is_grad_enabled():
+        layered = [name for name in module.thickness_model.parameters()
+                   if getattr(module, name).dim() != 0 and getattr(module, name).requires_grad]
+        if layered:
+            return f"a gradient of {layered[0]} (the kernel differentiates the thickness model's scalars only)"
     return None
 
 
 def exact_soft_forward(module, gbuffer: GBuffer) -> dict:
     """``module(gbuffer)``'s ``{"visibility": (B,1,H,W)}`` for a module :func:`exact_soft_covers` accepts."""
-    scale = module.thickness_scale if isinstance(module.thickness_model, BackfaceThickness) else None
+    form = module_thickness(module, gbuffer)
     vis = exact_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                     radius=module.radius, thickness=module.thickness, backface_scale=scale,
+                     radius=module.radius, thickness=form.offset, layer=form.layer,
+                     layer_scale=None if form.layer is None else form.scale,
                      step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                      seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
