@@ -11,6 +11,7 @@ from torch_ao.examples import crease_gbuffer, example_gbuffer, floor_wall_gbuffe
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kernel_covers
 from torch_ao.methods.bitmask import BitmaskAO
+from torch_ao.thickness import LinearThickness
 
 from kernel_agreement import SHARE, assert_masks_agree, degenerate
 
@@ -95,6 +96,12 @@ def test_flat_plane_is_unoccluded(built):
     assert torch.equal(out, torch.ones_like(out))
 
 
+class _UnreadThickness(LinearThickness):
+    """A model the kernels cannot read (a user's, not of ``ThicknessLayer``'s form)."""
+
+    kernel_read = None
+
+
 def test_kernel_covers_names_what_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
@@ -102,7 +109,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
     cases = {"variant": BitmaskAO(variant="hdrp", azimuth="view"), "mode": BitmaskAO(mode="soft"),
              "weighting": BitmaskAO(weighting="cosine", mode="straight_through"),
              "indirect": BitmaskAO(indirect=True, mode="straight_through"), "ambient": BitmaskAO(ambient=lambda d: d),
-             "azimuth": BitmaskAO(azimuth="screen"), "thickness": BitmaskAO(thickness=torch.ones(3)),
+             "azimuth": BitmaskAO(azimuth="screen"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
              "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
              "thickness_direction": BitmaskAO(thickness_direction="depth"),
              "sample_extent": BitmaskAO(sample_extent="sphere"), "growth": BitmaskAO(thickness_growth=0.5)}

@@ -10,7 +10,7 @@ from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import exact_covers, kernel_forward
 from torch_ao.kernels.bitmask import exact_hard, module_thickness, thickness_options
 from torch_ao.methods.bitmask import BitmaskAO
-from torch_ao.thickness import BackfaceThickness, LinearThickness
+from torch_ao.thickness import BackfaceThickness
 
 
 def with_backface(gb: GBuffer, depth: float = 0.3) -> GBuffer:
@@ -88,8 +88,7 @@ def test_exact_covers_names_what_it_does_not_cover():
         cases = {"union": BitmaskAO(trainable=False), "mode": BitmaskAO(variant="exact", mode="soft", trainable=False),
                  "azimuth": BitmaskAO(variant="exact", azimuth="screen", trainable=False),
                  "steps=40": BitmaskAO(variant="exact", steps=40, trainable=False),
-                 "nearest texel only": BitmaskAO(variant="exact", thickness=torch.ones(3), trainable=False),
-                 "not of the form": BitmaskAO(variant="exact", thickness=LinearThickness(), trainable=False),
+                 "growth": BitmaskAO(variant="exact", thickness_growth=0.5, trainable=False),
                  "float64": BitmaskAO(variant="exact", trainable=False)}
         for word, module in cases.items():
             frame = gb.to(dtype=torch.float64) if word == "float64" else gb

@@ -161,9 +161,8 @@ def test_covers_names_what_it_does_not_cover():
     cases = {"union": (BitmaskAO(mode="soft"), gb),
              "G-buffer": (BitmaskAO(variant="exact", mode="soft"), graph),
              "steps=40": (BitmaskAO(variant="exact", mode="soft", steps=40), gb),
-             "nearest texel only": (BitmaskAO(variant="exact", mode="soft", thickness=torch.ones(3)), gb),
-             "a gradient of thickness": (BitmaskAO(variant="exact", mode="soft", fetch="nearest",
-                                                   thickness=torch.ones(3)), gb),
+             "growth": (BitmaskAO(variant="exact", mode="soft", thickness_growth=0.5), gb),
+             "a gradient of thickness": (BitmaskAO(variant="exact", mode="soft", thickness=torch.ones(3)), gb),
              "azimuth": (BitmaskAO(variant="exact", mode="soft", azimuth="screen"), gb),
              "float64": (BitmaskAO(variant="exact", mode="soft"), gb.to(dtype=torch.float64))}
     for word, (module, frame) in cases.items():

@@ -1,5 +1,6 @@
-"""Thickness models the kernels read as one layer per sample (``ThicknessLayer``: ``t = scale * layer +
-offset``): a map, the net's map and a per-object table, in the ``"default"`` variant's hard kernel, the exact
+"""Thickness models the kernels read as ``ThicknessLayer`` (``t = scale * value + offset`` at a sample, the
+value a layer read as depth is, a layer at the first tap, or the sample's depth): a map, the net's map, a
+per-object table and the linear model, in the ``"default"`` variant's hard kernel, the exact
 union's hard kernel and its kernel with gradients, against the tensor-op walk by the tolerance of
 tests/kernel_agreement.py, in SIMD and scalar lanes."""
 import pytest
@@ -12,7 +13,7 @@ from torch_ao.kernels import exact_covers, kernel_covers, kernel_forward
 from torch_ao.kernels.bitmask import bitmask_outputs, exact_hard, module_thickness, thickness_options
 from torch_ao.kernels.soft_exact import exact_soft_covers
 from torch_ao.methods.bitmask import BitmaskAO
-from torch_ao.thickness import LinearThickness, MapThickness, NetThickness, ObjectThickness
+from torch_ao.thickness import LinearThickness, MapThickness, NetThickness, ObjectThickness, ScalarThickness
 
 
 def _frame(name: str) -> GBuffer:
@@ -35,9 +36,15 @@ MODELS = {
     "map": lambda gb: MapThickness(_map(gb)),
     "net": lambda gb: NetThickness(scale=1.0, init=0.3, thickness=0.05),
     "object": lambda gb: ObjectThickness(torch.tensor([0.05, 0.8])),
+    "linear": lambda gb: LinearThickness(0.02, 0.15),
 }
-#: the per-object table is read at the nearest texel (an integer buffer's read)
-FETCH = {"map": "bilinear", "net": "edge_aware", "object": "nearest"}
+FETCH = {"map": "bilinear", "net": "edge_aware", "object": "bilinear", "linear": "edge_aware"}
+
+
+def _value_map(module, gb) -> torch.Tensor:
+    """The thickness a sample on each texel reads (to take its mean as one scalar)."""
+    form = module_thickness(module, gb)
+    return form.layer if form.read != "depth" else form.scale * gb.depth + form.offset
 
 
 def _module(model: str, gb: GBuffer, **options) -> BitmaskAO:
@@ -63,7 +70,7 @@ def test_hard_kernel_reads_the_layer_as_the_tensor_walk(built, model, frame, lan
                                       **thickness_options(module_thickness(module, gb)), fetch=module.fetch,
                                       weighting=weighting, min_step_px=module.min_step_px, lanes="scalar").visibility
             # the layer matters on this frame: its mean as one scalar gives other masks
-            mean = float(module_thickness(module, gb).layer[gb.valid].mean())
+            mean = float(_value_map(module, gb)[gb.valid].mean())
             scalar = BitmaskAO(slices=3, steps=4, weighting=weighting, fetch=module.fetch, thickness=mean,
                                backend="kernel", trainable=False)(gb).visibility
         assert reference.min() < 0.9 and (scalar - reference).abs().max() > 0.02
@@ -112,13 +119,36 @@ def test_exact_kernel_differentiates_the_nets_offset(built):
         assert kernel.item() == pytest.approx(torch_path.item(), rel=1e-4, abs=1e-6)
 
 
+def test_exact_kernel_differentiates_the_linear_models_slope_and_offset(built):
+    """``LinearThickness`` reads the sample's depth: its slope and offset are the kernel's scale and offset,
+    differentiated as the tensor path's autograd does (the sample's depth moving with the radius too)."""
+    gb = _frame("rough")
+    grads = {}
+    for backend in ("torch", "kernel"):
+        module = BitmaskAO(variant="exact", mode="soft", slices=3, steps=4, fetch="bilinear", backend=backend,
+                           thickness=LinearThickness(0.02, 0.15))
+        if backend == "kernel":
+            assert exact_soft_covers(module, gb) is None
+        vis = module(gb).visibility
+        weights = torch.linspace(0.5, 1.5, vis.numel()).view_as(vis)
+        names = ("radius", "thickness", "thickness_slope")
+        grads[backend] = torch.autograd.grad((vis * weights).sum(), [getattr(module, n) for n in names])
+    for kernel, torch_path in zip(grads["kernel"], grads["torch"]):
+        assert torch_path.abs() > 1e-2
+        assert kernel.item() == pytest.approx(torch_path.item(), rel=1e-4, abs=1e-6)
+
+
+def test_every_models_layer_reads_as_it_says(built):
+    gb = _frame("example")
+    for model in [*(make(gb) for make in MODELS.values()), ScalarThickness(0.3)]:
+        module = BitmaskAO(thickness=model, trainable=False)
+        assert module_thickness(module, gb).read == model.kernel_read
+
+
 def test_coverage_reasons(built):
     gb = _frame("example")
     with torch.no_grad():
-        assert "not of the form" in kernel_covers(BitmaskAO(thickness=LinearThickness(), trainable=False), gb)
         assert "growth" in kernel_covers(BitmaskAO(thickness=0.3, thickness_growth=0.5, trainable=False), gb)
-        table = BitmaskAO(thickness=torch.tensor([0.1, 0.5]), fetch="bilinear", trainable=False)
-        assert "nearest texel only" in kernel_covers(table, gb)
         glsl = BitmaskAO(variant="ssilvb_glsl", thickness=MapThickness(_map(gb)), trainable=False)
         assert "reads one scalar thickness" in kernel_covers(glsl, gb)
     # a gradient of the map itself: the tensor path

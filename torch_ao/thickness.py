@@ -76,7 +76,7 @@ class ScalarThickness(_TensorThickness):
 
     def layer(self, gbuffer, params):
         t = params["thickness"]
-        return ThicknessLayer(None, torch.ones_like(t), t)
+        return ThicknessLayer(None, torch.ones_like(t), t, read="constant")
 
     def at(self, sample, params):
         return params["thickness"].to(sample.dtype)
@@ -98,7 +98,7 @@ class ObjectThickness(_TensorThickness):
         table = params["thickness"]
         ids = self.buffers(gbuffer, params)["object_id"].long().clamp(0, table.shape[0] - 1)
         one = torch.ones((), dtype=table.dtype, device=table.device)
-        return ThicknessLayer(table[ids], one, torch.zeros_like(one), first_tap=True)
+        return ThicknessLayer(table[ids], one, torch.zeros_like(one), read="first_tap")
 
     def at(self, sample, params):
         table = params["thickness"]
@@ -142,6 +142,11 @@ class LinearThickness(Thickness):
 
     def own_parameters(self):
         return {"thickness": Parameter(self.initial), "thickness_slope": Parameter(self.slope)}
+
+    kernel_read = "depth"
+
+    def layer(self, gbuffer, params):
+        return ThicknessLayer(None, params["thickness_slope"], params["thickness"], read="depth")
 
     def at(self, sample, params):
         depth = -sample.position[:, 2]

@@ -23,18 +23,18 @@ class Parameter:
 
 @dataclass(frozen=True)
 class ThicknessLayer:
-    """A model's thickness in the one form the fused kernels read: ``t = scale * layer + offset`` at a sample.
+    """A model's thickness in the one form the fused kernels read: ``t = scale * value + offset`` at a sample.
 
-    ``layer`` ``(B,1,H,W)`` is read at the sample as the walk reads depth (nearest, bilinear or edge-aware),
-    or with ``first_tap`` at the footprint's first tap alone (an integer buffer's read: a per-object table
-    looked up by ``object_id``); ``None``: ``t = offset`` everywhere. ``scale`` (unitless) and ``offset``
-    (world units) are 0-d tensors, the model's parameters where they are ones (their gradients then reach
-    them)."""
+    The value, by ``read``: ``"constant"`` none (``t = offset``); ``"layer"`` the image ``layer`` ``(B,1,H,W)``
+    read at the sample as the walk reads depth (nearest, bilinear or edge-aware); ``"first_tap"`` that image at
+    the footprint's first tap alone (an integer buffer's read: a per-object table looked up by ``object_id``);
+    ``"depth"`` the sample's own depth (world units). ``scale`` and ``offset`` (world units) are 0-d tensors, the
+    model's parameters where they are ones (their gradients then reach them)."""
 
     layer: torch.Tensor | None
     scale: torch.Tensor
     offset: torch.Tensor
-    first_tap: bool = False
+    read: str = "layer"
 
 
 def checked_growth(growth: float | torch.Tensor | None) -> float | torch.Tensor | None:
@@ -74,8 +74,8 @@ class Thickness(abc.ABC):
         """``(B,C,H,W)`` images the samples read (default none); ``ValueError`` if the G-buffer lacks one."""
         return {}
 
-    #: how :meth:`layer` reads the model (``None``: it cannot be put in that form): ``"constant"`` (no image),
-    #: ``"layer"`` (an image read as depth is) or ``"first_tap"`` (an image read at the first tap)
+    #: the ``read`` of the :class:`ThicknessLayer` that :meth:`layer` returns (``None``: the model is not of
+    #: that form), known without computing it
     kernel_read: str | None = None
 
     def layer(self, gbuffer, params: dict[str, torch.Tensor]) -> ThicknessLayer | None:

@@ -6,7 +6,7 @@ walk (``walk.h``) for every backend: the CPU (SIMD lanes) and CUDA (NVRTC, one t
 
 * hard visibility-bitmask AO, the ``"default"`` variant with uniform or cosine sectors, indirect light
   and bent normals (:func:`bitmask_hard`, :func:`bitmask_outputs`); the ``"exact"`` variant's union with
-  a thickness of the form ``scale * layer + offset`` (:class:`~torch_ao.thickness.ThicknessLayer`) and every
+  a thickness of the form ``scale * value + offset`` (:class:`~torch_ao.thickness.ThicknessLayer`) and every
   fetch (:func:`exact_hard`); the ``"ssilvb_glsl"`` variant's
   AO and indirect light (:func:`ssilvb_glsl_hard`);
 * soft / straight-through bitmask AO forward and backward, gradients of radius and thickness

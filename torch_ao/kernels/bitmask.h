@@ -46,14 +46,31 @@ template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<
   }
 }
 
-// The thickness at a sample (thickness.py): a scalar, or the back-face layer's t = scale * layer + offset
-struct ThicknessModel {
-  float offset;  // the scalar thickness, or the back-face model's offset (world units)
-  float scale;   // the back-face model's thickness_scale (unitless)
-  bool backface;
+// The thickness at a sample (thickness.ThicknessLayer): t = scale * value + offset, the value by `read`
+enum class ThicknessRead : int64_t {
+  constant = 0,   // none: t = offset
+  layer = 1,      // the layer image read as depth is (Sample.gather): back-face, map, the net's map
+  first_tap = 2,  // the layer at the footprint's first tap (an integer buffer's read: a per-object table)
+  depth = 3,      // the sample's own depth (LinearThickness)
+};
 
-  template <class F> TAO_FN F at(const Sample<F>& smp) const {
-    return backface ? F(scale) * smp.gather(smp.image->backface, 0, 1) + F(offset) : F(offset);
+struct ThicknessModel {
+  float offset;  // world units
+  float scale;   // unitless (the layer's) or per world unit (the depth's)
+  ThicknessRead read;
+
+  TAO_FN bool reads_layer() const { return read == ThicknessRead::layer || read == ThicknessRead::first_tap; }
+  // what scale multiplies at the sample (0 for a constant)
+  template <class F> TAO_FN F value(const Pixels<F>& px, const Sample<F>& smp) const {
+    switch (read) {
+      case ThicknessRead::layer: return smp.gather(smp.image->backface, 0, 1);
+      case ThicknessRead::first_tap: return gather(smp.image->backface, smp.index[0]);
+      case ThicknessRead::depth: return neg(smp.delta[2] + px.P[2]);
+      default: return F(0.0f);
+    }
+  }
+  template <class F> TAO_FN F at(const Pixels<F>& px, const Sample<F>& smp) const {
+    return read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
   }
 };
 
@@ -98,7 +115,7 @@ struct BitmaskAccumulator {
     const F scale = F(float(side) / kPi);
     const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
     const F front = clamp(fma(atan2(along_tangent, along_view), scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(atan2(along_tangent, along_view - thickness.at(smp)), scale, st.shift), F(0.0f), F(1.0f));
+    const F back = clamp(fma(atan2(along_tangent, along_view - thickness.at(px, smp)), scale, st.shift), F(0.0f), F(1.0f));
     const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
     F width = (hi - lo) * F(float(kSectors));
     if (epsilon > 0) width = width - F(epsilon);
@@ -258,7 +275,7 @@ struct ExactAccumulator {
 
   template <class F>
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
-    interval(side, px, sl, st.shift, smp.delta, thickness.at(smp), F(radius), smp.valid, st.lo[st.n], st.hi[st.n]);
+    interval(side, px, sl, st.shift, smp.delta, thickness.at(px, smp), F(radius), smp.valid, st.lo[st.n], st.hi[st.n]);
     ++st.n;
   }
 

@@ -40,7 +40,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
                     bent_normals: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
-                    lanes: str = "simd") -> KernelOutputs:
+                    thickness_read: str | None = None, lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
     pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
@@ -50,8 +50,10 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             them, e.g. ``gbuffer.view_normals()``).
         slices, steps: directions per pixel (uniform around the view vector) and samples per side.
         radius, thickness: world units (scalars); with ``layer`` ``(B,1,H,W)``, read at each sample as depth
-            is, the thickness there is ``layer_scale * layer + thickness`` (a model's
-            :class:`~torch_ao.thickness.ThicknessLayer`: the back-face layer, a map, the net's map);
+            is, the thickness there is ``layer_scale * layer + thickness`` (the back-face layer, a map, the
+            net's map). ``thickness_read`` (default ``"layer"`` with a layer, else ``"constant"``) reads another
+            value in place of the layer's: ``"first_tap"`` the layer at the first tap, ``"depth"`` the sample's
+            depth (:class:`~torch_ao.thickness.ThicknessLayer`; :func:`thickness_options` gives all four from it);
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as :class:`~torch_ao.BitmaskAO`.
@@ -64,7 +66,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border)
     out = run_walk("bitmask", gbuffer, normals, settings,
                    [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
-                    layer is not None],
+                    thickness_read_index(thickness_read, layer)],
                    [thickness, sector_epsilon, float(layer_scale)],
                    1 + 3 * bool(indirect) + 3 * bool(bent_normals),
                    light=light_input(gbuffer, indirect) if indirect else None, backface=layer, lanes=lanes)
@@ -74,7 +76,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
-               layer: torch.Tensor | None = None, layer_scale: float = 1.0, step_power: float = 1.0,
+               layer: torch.Tensor | None = None, layer_scale: float = 1.0, thickness_read: str | None = None,
+               step_power: float = 1.0,
                min_step_px: float = 0.25,
                jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "edge_aware", border: str = "drop",
                weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
@@ -84,7 +87,8 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
 
     Args:
         gbuffer: a float32 G-buffer (CPU or CUDA); normals: its ``(B,3,H,W)`` unit view-space normals.
-        slices, steps (<= 32 per side); radius, thickness, layer, layer_scale: as :func:`bitmask_outputs`;
+        slices, steps (<= 32 per side); radius, thickness, layer, layer_scale, thickness_read: as
+            :func:`bitmask_outputs`;
             step_power, min_step_px
             (pixels), jitter, seed, noise, stagger, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
             thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as :class:`~torch_ao.BitmaskAO`.
@@ -94,20 +98,36 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border,
                              sphere_extent=sample_extent == "sphere")
     return run_walk("exact", gbuffer, normals, settings,
-                    [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius), layer is not None],
+                    [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius),
+                     thickness_read_index(thickness_read, layer)],
                     [thickness, float(layer_scale), radius, sector_epsilon], 1, backface=layer, lanes=lanes)
 
 
 def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
     """A bitmask module's thickness model with its current parameters as the kernels read it (a model
-    :func:`options_uncovered` accepted: ``t = scale * layer + offset``)."""
+    :func:`options_uncovered` accepted: ``t = scale * value + offset``)."""
     return module.bound_thickness().layer(gbuffer)
 
 
 def thickness_options(form: ThicknessLayer) -> dict:
-    """The kernels' ``thickness``, ``layer``, ``layer_scale`` arguments (floats and an image) of ``form``."""
+    """The kernels' ``thickness``, ``layer``, ``layer_scale``, ``thickness_read`` arguments of ``form``."""
     return dict(thickness=float(form.offset.detach()), layer=None if form.layer is None else form.layer.detach(),
-                layer_scale=float(form.scale.detach()))
+                layer_scale=float(form.scale.detach()), thickness_read=form.read)
+
+
+#: bitmask.h's ThicknessRead, in its order
+THICKNESS_READS = ("constant", "layer", "first_tap", "depth")
+
+
+def thickness_read_index(read: str | None, layer: torch.Tensor | None) -> int:
+    """The packed int of ``read`` (``None``: ``"layer"`` with a ``layer``, else ``"constant"``); ``ValueError``
+    naming the argument for an unknown read or a layer read without its layer."""
+    read = read or ("layer" if layer is not None else "constant")
+    if read not in THICKNESS_READS:
+        raise ValueError(f"thickness_read: expected one of {THICKNESS_READS}, got {read!r}")
+    if read in ("layer", "first_tap") and layer is None:
+        raise ValueError(f"layer: thickness_read={read!r} reads a (B,1,H,W) layer; none was given")
+    return THICKNESS_READS.index(read)
 
 
 def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
@@ -201,7 +221,7 @@ EXACT_MAX_STEPS = 32
 
 def exact_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`exact_hard` computes ``module(gbuffer)`` (a ``BitmaskAO`` with ``union="exact"``:
-    the ``"exact"`` variant), else why not. Visibility only, hard mode, a thickness of the form ``scale * layer +
+    the ``"exact"`` variant), else why not. Visibility only, hard mode, a thickness of the form ``scale * value +
     offset`` (:class:`~torch_ao.thickness.ThicknessLayer`);
     the exact union has gradients in hard mode too, so only when no gradient is asked for."""
     if getattr(module, "union", None) != "exact":
@@ -271,9 +291,9 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
 
 def thickness_uncovered(module, layers: bool) -> str | None:
     """Why a bitmask kernel cannot read ``module``'s thickness model, or ``None``. Every kernel reads one
-    scalar; one that reads ``layers`` also every model of the form ``scale * layer + offset``
-    (:attr:`~torch_ao.thickness.Thickness.kernel_read`: the back-face layer, a map, the net's map, and a
-    per-object table with the nearest fetch). A growth reads each sample's distance: never."""
+    scalar; one that reads ``layers`` also every model of the form ``scale * value + offset``
+    (:attr:`~torch_ao.thickness.Thickness.kernel_read`: the back-face layer, a map, the net's map, a
+    per-object table, the linear model in depth). A growth reads each sample's distance: never."""
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
     if model is None:
         scalar = isinstance(thickness, torch.Tensor) and thickness.dim() == 0
@@ -283,11 +303,9 @@ def thickness_uncovered(module, layers: bool) -> str | None:
     if model.growth is not None:
         return "a thickness growth (it reads each sample's distance)"
     if model.kernel_read is None:
-        return f"thickness model {name} (not of the form scale * layer + offset)"
+        return f"thickness model {name} (not of the form scale * value + offset)"
     if model.kernel_read != "constant" and not layers:
         return f"thickness model {name} (this kernel reads one scalar thickness)"
-    if model.kernel_read == "first_tap" and module.fetch != "nearest":
-        return f"thickness model {name} with fetch={module.fetch!r} (its table is read at the nearest texel only)"
     return None
 
 

@@ -1,14 +1,14 @@
 // The "exact" variant's accumulator with its derivatives (BitmaskAO(variant="exact") in soft,
 // straight-through or hard mode, whose exact union is differentiable as it is: the modes are one walk) for
 // walk.h: bitmask.h's ExactAccumulator walked in dual lanes Dual<F, 3> whose tangents are the derivatives
-// with respect to the radius, the thickness (the back-face model's offset) and the back-face model's
-// thickness_scale. Channels: the visibility (ExactAccumulator's, value for value), then d visibility /
+// with respect to the radius, the thickness model's offset and its scale (the back-face model's
+// thickness_scale, LinearThickness' slope). Channels: the visibility (ExactAccumulator's, value for value), then d visibility /
 // d radius, d thickness, d thickness_scale of the pixel (the caller multiplies by the upstream gradient and
 // sums).
 //
 // A sample's tangents: along the radius its fetched position moves with the step (dist = min_step_px +
-// span frac, span from radius_px: soft.h's step_motion and fetch_motion), and so does the back-face layer
-// read at its taps; the thickness t = scale * layer + offset. ExactAccumulator::interval then carries them
+// span frac, span from radius_px: soft.h's step_motion and fetch_motion), and so do a layer read at its
+// taps and its depth (a first tap's read is piecewise constant); the thickness t = scale * value + offset. ExactAccumulator::interval then carries them
 // through the back point, the clip to the sphere (whose radius has tangent 1 along the radius), the atan2s
 // and clamps, and union_measure through the sort and the running reach (at a tie max passes the first
 // operand's: torch's maximum splits it, which only a measure-zero set of frames sees).
@@ -22,7 +22,7 @@ namespace tao {
 struct ExactGradAccumulator {
   ExactAccumulator exact;
   WalkSettings walk;  // the step placement (the radius moves the steps)
-  static constexpr int kTangents = 3;  // radius, thickness, thickness_scale
+  static constexpr int kTangents = 3;  // radius, the thickness' offset, its scale
 
   template <class F> using D = Dual<F, kTangents>;
   template <class F> struct State {
@@ -48,9 +48,9 @@ struct ExactGradAccumulator {
     const ThicknessModel& model = exact.thickness;
     D<F> delta[3];
     for (int c = 0; c < 3; ++c) delta[c] = D<F>(smp.delta[c]);
-    D<F> t(model.at(smp));
+    D<F> t(model.at(px, smp));
     t.d[1] = F(1.0f);
-    if (model.backface) t.d[2] = smp.gather(smp.image->backface, 0, 1);
+    if (model.read != ThicknessRead::constant) t.d[2] = model.value(px, smp);
     if (smp.bilinear && any(smp.valid)) {  // (the nearest texel does not move with the radius)
       const int64_t j = st.n % walk.steps;
       const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);
@@ -59,7 +59,8 @@ struct ExactGradAccumulator {
       fetch_motion(smp, su, sv, d_su, d_sv);
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) delta[c].d[0] = d_su[c] * dsu + d_sv[c] * dsv;
-      if (model.backface) {  // the layer's bilinear read at the moving taps (Sample.gather)
+      if (model.read == ThicknessRead::depth) t.d[0] = F(model.scale) * neg(delta[2].d[0]);
+      if (model.read == ThicknessRead::layer) {  // the layer's bilinear read at the moving taps (Sample.gather)
         const float* layer = smp.image->backface;
         const F l0 = gather(layer, smp.index[0]), l1 = gather(layer, smp.index[1]);
         const F l2 = gather(layer, smp.index[2]), l3 = gather(layer, smp.index[3]);

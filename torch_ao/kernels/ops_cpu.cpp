@@ -38,6 +38,14 @@ void walk_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float*
   });
 }
 
+// A thickness read (ThicknessRead) the kernels know, with its layer where it reads one
+void check_thickness(int64_t read, const Frame& fr) {
+  TORCH_CHECK(read >= 0 && read <= 3, "thickness read: expected 0 (constant), 1 (layer), 2 (first tap) or 3 (depth)");
+  const auto r = ThicknessRead(read);
+  TORCH_CHECK((r != ThicknessRead::layer && r != ThicknessRead::first_tap) || fr.backface,
+              "layer: the thickness model reads a layer; none was given");
+}
+
 // torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "exact_gradients",
 // "glsl", "wedge", "pssao", "soft", "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
@@ -85,17 +93,17 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   } else if (name == "bitmask") {
     packed(5, 3);
     TORCH_CHECK(!i[kAccInts + 2] || fr.light, "light: indirect light needs the light buffer");
-    TORCH_CHECK(!i[kAccInts + 4] || fr.backface, "backface: the back-face thickness needs its layer");
+    check_thickness(i[kAccInts + 4], fr);
     run(unpack_bitmask(i, f));
   } else if (name == "exact") {
     packed(4, 4);
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
-    TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
+    check_thickness(i[kAccInts + 3], fr);
     run(unpack_exact(i, f));
   } else if (name == "exact_gradients") {
     packed(4, 4);
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
-    TORCH_CHECK(!i[kAccInts + 3] || fr.backface, "backface: the back-face thickness model needs its layer");
+    check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(i[3] == int64_t(Steps::power) && !i[7], "exact_gradients: the radius' derivative is the power step "
                 "placement's, without full circle");
     run(unpack_exact_gradients(i, f));

@@ -42,12 +42,12 @@ TAO_FN HBAOAccumulator unpack_hbao(const int64_t* i, const float* f) {
   return HBAOAccumulator{f[0], f[1], i[0] != 0, i[1] != 0, i[2] != 0};
 }
 
-// ints: rounding, cosine, indirect, bent, backface; floats: thickness (or the back-face offset), epsilon,
-// the back-face scale
+// ints: rounding, cosine, indirect, bent, the thickness' read (ThicknessRead); floats: the thickness' offset,
+// epsilon, its scale
 TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
-  return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], i[4] != 0}, f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
+  return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], ThicknessRead(i[4])}, f[1], i[0], i[1] != 0, i[2] != 0, i[3] != 0};
 }
 
 // ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"); floats: thickness. The walk's
@@ -58,12 +58,12 @@ TAO_FN GlslAccumulator unpack_glsl(const int64_t* i, const float* f) {
   return GlslAccumulator{slices - 1, f[0], i[0], i[1] != 0, GlslVectorOps{i[2] != 0}};
 }
 
-// ints: cosine, along_ray, clip, backface; floats: thickness (or the back-face offset), the back-face
+// ints: cosine, along_ray, clip, the thickness' read (ThicknessRead); floats: the thickness' offset, its
 // scale, radius, epsilon
 TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
   const int64_t slices = i[0], steps = i[1];
   i += kAccInts, f += kAccFloats;
-  return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], i[3] != 0}, f[2], f[3], i[0] != 0, i[1] != 0,
+  return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], ThicknessRead(i[3])}, f[2], f[3], i[0] != 0, i[1] != 0,
                           i[2] != 0};
 }
 
