@@ -108,7 +108,7 @@ def _bitmask_defines(m) -> dict[str, str]:
         raise ExportError(f"variant: bitmask AO's {m.variant!r} variant is not exported (default and exact are)")
     if m.mode != "hard":
         raise ExportError(f"mode: the shader computes hard sector masks (got {m.mode!r})")
-    if m.want_indirect or m.want_bent or m.ambient is not None or getattr(m, "_ambient_constant", False):
+    if m.want_indirect or m.want_bent or m.ambient is not None or getattr(m, "ambient_constant", None) is not None:
         raise ExportError("indirect/bent_normals/ambient: the exported pass writes visibility only")
     model = m.bound_thickness().model
     kinds = {ScalarThickness: 0, LinearThickness: 1, BackfaceThickness: 2}

@@ -270,7 +270,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
         values[name] = getattr(module, name, "?")  # resolved per variant, kept as attributes
     values["indirect"] = getattr(module, "want_indirect", "?")
     values["bent_normals"] = getattr(module, "want_bent", "?")
-    if getattr(module, "_ambient_constant", False):
+    if getattr(module, "ambient_constant", None) is not None:
         values["ambient"] = "a colour"
     covered = {**_COVERED, "mode": modes, "weighting": weightings, "variant": variants,
                **({} if outputs else _VISIBILITY_ONLY), **(_GLSL if values["variant"] == "ssilvb_glsl" else {}),

@@ -52,8 +52,8 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
         vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
                                               bent_normals=module.want_bent, **options)
     ambient = None
-    if module._ambient_constant:  # SectorAccumulator.finish: visibility times the colour; 0 on background
-        ambient = torch.where(gbuffer.valid, vis * module.ambient_colour.to(vis.dtype).view(1, 3, 1, 1), 0.0)
+    if module.ambient_constant is not None:  # SectorAccumulator.finish: visibility times the colour; 0 on background
+        ambient = torch.where(gbuffer.valid, vis * module.ambient_constant.to(vis.dtype).view(1, 3, 1, 1), 0.0)
     return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": ambient}
 
 

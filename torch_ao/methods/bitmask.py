@@ -441,6 +441,11 @@ class BitmaskAO(ScreenSpaceAO):
             self.ambient = None
         self._ambient_constant = ambient is not None and not callable(ambient)
 
+    @property
+    def ambient_constant(self) -> torch.Tensor | None:
+        """The constant ambient colour ``(3,)`` (linear RGB) when ``ambient`` was a colour, else ``None``."""
+        return self.ambient_colour if self._ambient_constant else None
+
     def no_gradient(self, values):
         if self.variant == "ssilvb_glsl":
             return {"radius": "the 'ssilvb_glsl' shader's walk reads nearest texels, which the radius only picks "
@@ -514,7 +519,7 @@ class BitmaskAO(ScreenSpaceAO):
                                    jitter=self.jitter, numerics=self.glsl_numerics)
         common = dict(mode=self.mode, rounding=self.rounding, tau=self.tau, weighting=self.weighting,
                       thickness=self.bound_thickness(), indirect=self.want_indirect, bent_normals=self.want_bent,
-                      ambient=self.ambient_colour if self._ambient_constant else self.ambient,
+                      ambient=self.ambient if self.ambient_constant is None else self.ambient_constant,
                       ambient_directions=self.ambient_directions, sector_epsilon=self.sector_epsilon, union=self.union)
         if self.variant == "hdrp":
             return HDRPAccumulator(**common)
