@@ -23,7 +23,7 @@ def degenerate(options: dict) -> bool:
     """Whether ``options`` take no margin off the sector intervals (``sector_epsilon=0``): then a sample on
     the pixel's own plane gives an interval of zero width give or take rounding, which ``ceil`` makes zero
     or one sector, on each side. On planar frames both paths then decide by their rounding, so only the
-    bound holds (one sector per side of a slice)."""
+    bound holds (one sector per side of each slice: ``2 * slices`` sectors in all)."""
     return options.get("sector_epsilon", 0.01) == 0
 
 

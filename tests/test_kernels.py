@@ -76,7 +76,8 @@ def test_kernel_agrees_with_the_tensor_walk(built, frame, setting, lanes):
         out = kernel_of(module, gb, lanes)
     assert reference.min() < 1  # something is occluded: the comparison means something
     if frame != "rough" and degenerate(SETTINGS[setting]):
-        assert_masks_agree(out, reference, gb.valid, module.slices, share=0.0, sectors=2)
+        # (each side of each slice may take its own sector: kernel_agreement.degenerate)
+        assert_masks_agree(out, reference, gb.valid, module.slices, share=0.0, sectors=2 * module.slices)
     else:
         assert_masks_agree(out, reference, gb.valid, module.slices)
 

@@ -95,3 +95,18 @@ def test_exact_covers_names_what_it_does_not_cover():
             reason = exact_covers(module, frame)
             assert reason is not None and word in reason, (word, reason)
     assert "gradient" in exact_covers(BitmaskAO(variant="exact"), gb)
+
+
+def test_a_footprint_clamped_onto_the_pixel_is_not_an_occluder(built):
+    """float32 kernel against the float64 tensor walk on a tilted plane with the clamped border: a corner
+    pixel's samples beyond the image read its own texel back through the inverse depth, a few ulp off its
+    position, which must not occlude (walk.sample.MIN_OFFSET); in float64 it is exact."""
+    from torch_ao.examples import plane_gbuffer
+
+    for distance in torch.linspace(1.0, 20.0, 12).tolist():
+        gb = plane_gbuffer(8, 10, tilt_degrees=35.0, distance=distance)
+        options = dict(variant="exact", border="clamp", fetch="bilinear", slices=3, steps=4, radius=1.0)
+        with torch.no_grad():
+            out = BitmaskAO(backend="kernel", **options)(gb).visibility.double()
+            reference = BitmaskAO(backend="torch", **options).double()(gb.to(dtype=torch.float64)).visibility
+        assert (out - reference).abs().max() < 1e-2, distance

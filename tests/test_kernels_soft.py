@@ -1,6 +1,7 @@
 """The soft / straight-through bitmask walk (walk.h with soft.h) against the tensor-op walk: values to 1e-5,
 gradients of radius and thickness to 1e-4 relative, in both lane types; finite differences; the hard limit;
 what it does not cover."""
+import math
 import warnings
 
 import pytest
@@ -35,6 +36,12 @@ def _loss_weights(vis: torch.Tensor) -> torch.Tensor:
     return torch.linspace(0.5, 1.5, vis.numel()).view_as(vis)
 
 
+def _one_sector(slices: int) -> float:
+    """The most one flipped cosine-weighted sector of one slice moves the visibility: a sector's weight is at
+    most pi/2 times the uniform 1/32 (the weight's density peaks at pi/2 times its mean)."""
+    return (math.pi / 2) / (32 * slices) + 1e-6
+
+
 def visibility_and_grads(gb: GBuffer, backend: str, **settings):
     module = BitmaskAO(backend=backend, **settings)
     vis = module(gb).visibility
@@ -55,7 +62,10 @@ def test_values_and_gradients_equal_the_tensor_walk(built, frame, setting):
     # The walk's float32 operations are not the tensor walk's in the same order (slice directions, the
     # radius' slope of a step as radius_px / radius): a few ulp apart, which the 1/tau^2 terms of a small
     # tau amplify (measured: up to 3e-6 in a value at tau = 0.05, 1.6e-5 relative in a radius gradient).
-    assert (out - reference).abs().max() <= 1e-5
+    if settings["mode"] == "soft":
+        assert (out - reference).abs().max() <= 1e-5
+    else:  # a hard forward: a sector at the edge of rounding may flip (kernel_agreement)
+        assert_values_agree(out, reference, gb.valid, bound=_one_sector(settings["slices"]))
     assert ref_thickness != 0
     for got, want in ((radius, ref_radius), (thickness, ref_thickness)):
         assert abs(got - want) <= 1e-4 * abs(want) + 1e-7, (got, want)
@@ -72,7 +82,7 @@ def test_hard_mode_with_cosine_weights_equals_the_tensor_walk(built):
         reference = BitmaskAO(backend="torch", **settings)(gb).visibility
         out = BitmaskAO(backend="kernel", **settings)(gb).visibility
         assert not out.requires_grad and reference.min() < 1
-        assert (out - reference).abs().max() <= 1e-6
+        assert_values_agree(out, reference, gb.valid, atol=1e-6, bound=_one_sector(settings["slices"]))
 
 
 def test_straight_through_forward_is_the_hard_kernels_visibility_bit_for_bit(built):

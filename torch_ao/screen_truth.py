@@ -368,13 +368,14 @@ def _unblocked(surfaces, P, n, w, jitter, nsteps, s_max, radius, proj, disc=None
         own = (texel(gx, W) == texel(own_gx, W)) & (texel(gy, H) == texel(own_gy, H))
         inside &= ~own if nearest is True else ~(own & nearest)
     inv = sampled[0]  # <= 0 wherever a background texel takes part
-    # Behind the front surface: dz >= 1/inv; in front of the back one: dz - T <= 1/inv (inv > 0).
+    # Behind the front surface: dz >= 1/inv; in front of the back one: dz - T < 1/inv (inv > 0). The slab is
+    # half-open, [front, front + T), so that zero thickness occludes nothing whatever the rounding of dz * inv.
     hit = inside & (dz * inv >= 1)
     scalar_T = surfaces[3]
     if scalar_T is None:
-        hit &= (dz - sampled[1]) * inv <= 1
+        hit &= (dz - sampled[1]) * inv < 1
     elif scalar_T < _BIG:
-        hit &= (dz - scalar_T) * inv <= 1
+        hit &= (dz - scalar_T) * inv < 1
     return ~hit.any(-1)
 
 

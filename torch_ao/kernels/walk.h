@@ -22,6 +22,7 @@ namespace tao {
 constexpr float kPi = 3.14159265358979323846f;
 constexpr float kEdgeMinRatio = 1.02f;  // walk.fetch.EDGE_MIN_RATIO
 constexpr float kHalfPi = 1.57079632679489661923f;
+constexpr float kMinOffset = 1e-5f;  // walk.sample.MIN_OFFSET
 
 template <class F> TAO_FN F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 template <class F> TAO_FN F norm3(const F* a) { return sqrt(dot3(a, a)); }
@@ -432,11 +433,11 @@ template <class F> struct Sample {
       for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
     }
     for (int c = 0; c < 3; ++c) delta[c] = pos[c] - px.P[c];
-    // a sample on the centre texel (or a degenerate one) would give 0/0 angles: it never occludes
-    // (relative to the depth, so that no square of a large depth is taken)
+    // a sample on the centre texel, or within float rounding of the pixel's own position (Sample's MIN_OFFSET),
+    // would occlude in a direction made of noise: it never occludes
     F rel[3];
     for (int c = 0; c < 3; ++c) rel[c] = delta[c] * px.inverse_depth;
-    valid = land(valid, dot3(rel, rel) > F(1e-20f));
+    valid = land(valid, dot3(rel, rel) > F(kMinOffset * kMinOffset));
     if (cfg.edge_aware) valid = land(valid, lnot(own));
     for (int c = 0; c < 3; ++c) delta[c] = select(valid, delta[c], neg(px.V[c]));
   }

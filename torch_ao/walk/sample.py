@@ -12,7 +12,12 @@ from .frame import Frame, Queries, take
 if TYPE_CHECKING:
     from .walk import SliceGeometry
 
-__all__ = ["Sample", "fetch_sample"]
+__all__ = ["MIN_OFFSET", "Sample", "fetch_sample"]
+
+#: the shortest offset of a sample from its pixel, as a fraction of the pixel's depth, that can occlude: float32
+#: rounding of the pixel's own position is ~1e-7 of the depth, and a step 0.005 pixels long at a focal length of
+#: 500 pixels is 1e-5 of it
+MIN_OFFSET = 1e-5
 
 
 class cached_property:  # noqa: N801 (functools' name)
@@ -71,9 +76,10 @@ class Sample:
         with torch.no_grad():
             position = footprint.position(frame)
             delta = position - queries.position
-            # A sample on the centre texel (or a degenerate one) would give 0/0 angles: drop it.
-            # (relative to the depth, so that no square of a large depth is taken)
-            self.valid = valid = valid & ((delta / queries.depth[:, None]).square().sum(-1) > 1e-20)
+            # A sample on the centre texel, or one whose offset is the rounding of the pixel's own position
+            # (a footprint clamped onto it at the border, read back through the inverse depth: ~1e-7 of the
+            # depth in float32), would occlude in a direction made of noise: drop it.
+            self.valid = valid = valid & ((delta / queries.depth[:, None]).square().sum(-1) > MIN_OFFSET ** 2)
             self._delta_values = torch.where(valid[:, None], delta, -queries.view)  # away from the camera
         base_q, base_g = self._base
         self._inputs = footprint.inputs(frame) + (base_q.position, base_q.view) + (() if base_g is None else (base_g.tangent,))
