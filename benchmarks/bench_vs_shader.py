@@ -316,6 +316,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch threads")
     ap.add_argument("--clock", choices=["cpu", "wall"], default="cpu", help="the time tabled and divided")
     ap.add_argument("--kernels-only", action="store_true", help="leave out the tensor-op rows (seconds per call)")
+    ap.add_argument("--cases", nargs="+", default=None, metavar="CASE",
+                    help="only these rows (default: all): " + ", ".join(_cases()))
     ap.add_argument("--memory-sizes", nargs="*", default=None,
                     help="WxH sizes (of --sizes) whose forward+backward peak memory is measured (default: the "
                          "largest; the flag alone: no memory column)")
@@ -335,6 +337,13 @@ def main(argv=None) -> int:
     print(f"shader: {ctx.info['GL_RENDERER']} (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'default')}); "
           f"torch {torch.__version__}, {args.threads} threads; best of {args.repeat}, {args.clock} time", flush=True)
     cases = {k: c for k, c in _cases().items() if c.kernel or not args.kernels_only}
+    if args.cases:
+        unknown = sorted(set(args.cases) - set(_cases()))
+        if unknown:
+            ap.error(f"--cases: unknown {', '.join(unknown)}; expected some of {', '.join(_cases())}")
+        # a row that is a multiple of another keeps that other row
+        wanted = set(args.cases) | {cases[k].against for k in args.cases if k in cases and cases[k].against != "shader"}
+        cases = {k: c for k, c in cases.items() if k in wanted}
     columns = [(size, setting) for size in sizes for setting in settings]
     memory_columns = [c for c in columns if c[0] in memory_sizes]
     clock = 1 if args.clock == "cpu" else 0

@@ -132,6 +132,12 @@ def test_kernel_gradients_equal_the_tensor_walk(built, monkeypatch, lanes, case,
     # one pixel's gradient to another sample: the same 1% is left out there
     trim = 0.01 if CASES[case][1].get("variant") == "hdrp" or frame == "example" else 0.0
     for name in reference:
+        if name == "radius" and float(reference[name]) == 0:
+            # the radius clamped in pixels everywhere (max_radius_px) has no effect; the kernel's gradient is
+            # Euler's sum of the G-buffer's terms (walk_grad), which cancel to their float32 rounding
+            terms = float((reference["depth"].abs() * gb.depth.double()).nansum())
+            assert abs(float(grads[name])) <= 1e-8 * terms, (float(grads[name]), terms)
+            continue
         assert _relative(grads[name], reference[name], trim) < 2e-4, name
 
 

@@ -280,16 +280,21 @@ struct ExactAccumulator {
   }
 
   // The measure of the union of the n intervals [lo, hi] (sorted in place): sector units, or with cosine
-  // weights the arc measure. Sorted by start (lane by lane: compare-exchanges), each interval adds what
-  // lies beyond the reach of those before it.
+  // weights the arc measure. Sorted by start (lane by lane: Batcher's odd-even merge sort, a fixed sequence of
+  // compare-exchanges for any n: 19 for 8 intervals, 63 for 16, where an insertion sort's lanes take all 28
+  // and 120), each interval adds what lies beyond the reach of those before it.
   template <class F, class G> TAO_FN G union_measure(G* lo, G* hi, int n, const Slice<F>& sl) const {
-    for (int i = 1; i < n; ++i)
-      for (int j = i; j > 0; --j) {
-        const auto swap = lo[j] < lo[j - 1];
-        const G l = select(swap, lo[j - 1], lo[j]), h = select(swap, hi[j - 1], hi[j]);
-        lo[j - 1] = select(swap, lo[j], lo[j - 1]), hi[j - 1] = select(swap, hi[j], hi[j - 1]);
-        lo[j] = l, hi[j] = h;
-      }
+    for (int p = 1; p < n; p += p)
+      for (int k = p; k >= 1; k /= 2)
+        for (int j = k % p; j + k < n; j += 2 * k)
+          for (int i = 0; i < k && i + j + k < n; ++i) {
+            const int a = i + j, b = i + j + k;
+            if (a / (2 * p) != b / (2 * p)) continue;
+            const auto swap = lo[b] < lo[a];
+            const G l = select(swap, lo[b], lo[a]), h = select(swap, hi[b], hi[a]);
+            lo[b] = select(swap, lo[a], lo[b]), hi[b] = select(swap, hi[a], hi[b]);
+            lo[a] = l, hi[a] = h;
+          }
     G reach = G(0.0f), covered = G(0.0f);
     for (int j = 0; j < n; ++j) {
       const G a = max(lo[j], reach), b = max(hi[j], reach);

@@ -1,5 +1,5 @@
 // The pixels of a row in SIMD lanes: ATen's Vectorized<float> (AVX2 / AVX-512 as torch dispatches,
-// SLEEF's vector atan2, cos, sin, pow), the CPU kernels' lane type. Same names as lanes_scalar.h.
+// SLEEF's vector cos, sin, pow; atan2 our polynomial below), the CPU kernels' lane type. Same names as lanes_scalar.h.
 #pragma once
 
 #include <ATen/cpu/vec/functional.h>
@@ -38,7 +38,27 @@ inline Vec sqrt(const Vec& x) { return x.sqrt(); }
 inline Vec floor(const Vec& x) { return x.floor(); }
 inline Vec ceil(const Vec& x) { return x.ceil(); }
 inline Vec rint(const Vec& x) { return x.round(); }  // half to even
-inline Vec atan2(const Vec& y, const Vec& x) { return y.atan2(x); }
+// atan2 within 2.5e-7 rad: atan(t) = t P(t^2) for t = min(|x|, |y|) / max(|x|, |y|) in [0, 1] (P a degree-8
+// least-squares fit in relative error: |atan(t) - t P(t^2)| <= 1.1e-7 in float32), then the octant. SLEEF's
+// 1-ulp atan2 (Vectorized::atan2) costs about twice as much, where the walk agrees with its tensor-op
+// specification by tolerance anyway. Signed zeros as IEEE's (atan2(+-0, -0) = +-pi); NaN in gives NaN; both
+// infinite gives NaN (IEEE: an odd multiple of pi/4), which the walk never takes.
+inline Vec atan2(const Vec& y, const Vec& x) {
+  constexpr float c[9] = {0.9999998807907104f, -0.33332598209381104f, 0.19985906779766083f, -0.14161229133605957f,
+                          0.1049894392490387f, -0.07234849035739899f, 0.03978109732270241f, -0.01440126821398735f,
+                          0.0024566997308284044f};
+  const Vec ax = x.abs(), ay = y.abs();
+  const Vec hi = at::vec::maximum(ax, ay), lo = at::vec::minimum(ax, ay);
+  const Vec t = Vec::blendv(lo / hi, Vec(0.0f), hi == Vec(0.0f));
+  const Vec s = t * t;
+  Vec p(c[8]);
+  for (int k = 7; k >= 0; --k) p = at::vec::fmadd(p, s, Vec(c[k]));
+  Vec r = t * p;
+  r = Vec::blendv(r, Vec(1.57079632679489661923f) - r, ay > ax);
+  const Vec x_negative = at::vec::cast<float>(at::vec::cast<int32_t>(x) < IVec(0));  // (its sign bit: -0 too)
+  r = Vec::blendv(r, Vec(3.14159265358979323846f) - r, x_negative);
+  return r | (y & Vec(-0.0f));  // y's sign (r >= 0)
+}
 inline Vec acos(const Vec& x) { return x.acos(); }
 inline Vec asin(const Vec& x) { return x.asin(); }
 inline Vec cos(const Vec& x) { return x.cos(); }

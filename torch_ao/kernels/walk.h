@@ -398,20 +398,26 @@ template <class F> struct Sample {
         // edge_aware_taps: the four taps where their cell is one surface (a footprint clamped at the
         // border, whose taps repeat, by the ratio rule alone), else four copies of the nearest tap
         const auto proper = land(lnot(ieq(index[1], index[0])), lnot(ieq(index[2], index[0])));
-        const F lo = min(min(t0, t1), min(t2, t3)), hi = max(max(t0, t1), max(t2, t3));
-        const auto by_ratio = land(lo > F(0.0f), hi <= F(kEdgeMinRatio) * lo);  // (NaN taps: never)
-        const auto smooth = select(proper, tao::gather(img.cells, index[0]) > F(0.5f), by_ratio);
-        const auto right = fu >= F(0.5f), down = fv >= F(0.5f);
-        const I nearest = select(down, select(right, index[3], index[2]), select(right, index[1], index[0]));
-        const F t_near = select(down, select(right, t3, t2), select(right, t1, t0));
-        for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
-        t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
-        t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
-        // four copies of the pixel's own texel (its nearest, or a footprint clamped onto it at the border):
-        // no occluder, as the nearest fetch's centre texel (Footprint.on_own_texel)
-        const I own_index = I(int32_t(px.row * img.W)) + to_int(px.u);
-        own = land(land(ieq(index[0], own_index), ieq(index[1], own_index)),
-                   land(ieq(index[2], own_index), ieq(index[3], own_index)));
+        const bool all_proper = !any(lnot(proper));
+        auto smooth = tao::gather(img.cells, index[0]) > F(0.5f);
+        if (!all_proper) {
+          const F lo = min(min(t0, t1), min(t2, t3)), hi = max(max(t0, t1), max(t2, t3));
+          smooth = select(proper, smooth, land(lo > F(0.0f), hi <= F(kEdgeMinRatio) * lo));  // (NaN taps: never)
+        }
+        // (where every lane's footprint is four distinct taps of one surface, nothing changes: most steps)
+        if (!all_proper || any(lnot(smooth))) {
+          const auto right = fu >= F(0.5f), down = fv >= F(0.5f);
+          const I nearest = select(down, select(right, index[3], index[2]), select(right, index[1], index[0]));
+          const F t_near = select(down, select(right, t3, t2), select(right, t1, t0));
+          for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
+          t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
+          t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
+          // four copies of the pixel's own texel (its nearest, or a footprint clamped onto it at the border):
+          // no occluder, as the nearest fetch's centre texel (Footprint.on_own_texel)
+          const I own_index = I(int32_t(px.row * img.W)) + to_int(px.u);
+          own = land(land(ieq(index[0], own_index), ieq(index[1], own_index)),
+                     land(ieq(index[2], own_index), ieq(index[3], own_index)));
+        }
       }
       valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
       if (cfg.drop)

@@ -52,7 +52,10 @@ class _Walk(torch.autograd.Function):
         along_setting = g_setting.to(torch.float64).sum()
         g_radius = None
         if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN
-            along = (g_pos * positions).sum() + (g_depth * depth).sum() - torch.where(valid, g_inv * inverse, 0.0).sum()
+            # (in float64: the terms cancel to the gradient, which may be 0 where the radius is clamped in pixels)
+            def dot(g, x):
+                return (g.to(torch.float64) * x.to(torch.float64)).sum()
+            along = dot(g_pos, positions) + dot(g_depth, depth) - dot(torch.where(valid, g_inv, 0.0), torch.where(valid, inverse, 0.0))
             if ctx.setting_is_length:
                 along = along + setting.to(torch.float64) * along_setting
             g_radius = (-along / radius).to(radius.dtype)
