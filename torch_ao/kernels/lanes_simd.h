@@ -43,7 +43,7 @@ inline Vec rint(const Vec& x) { return x.round(); }  // half to even
 // 1-ulp atan2 (Vectorized::atan2) costs about twice as much, where the walk agrees with its tensor-op
 // specification by tolerance anyway. Signed zeros as IEEE's (atan2(+-0, -0) = +-pi); NaN in gives NaN; both
 // infinite gives NaN (IEEE: an odd multiple of pi/4), which the walk never takes.
-inline Vec atan2(const Vec& y, const Vec& x) {
+__attribute__((always_inline)) inline Vec atan2(const Vec& y, const Vec& x) {
   constexpr float c[9] = {0.9999998807907104f, -0.33332598209381104f, 0.19985906779766083f, -0.14161229133605957f,
                           0.1049894392490387f, -0.07234849035739899f, 0.03978109732270241f, -0.01440126821398735f,
                           0.0024566997308284044f};
@@ -80,6 +80,28 @@ inline void cos_sin_rounded(const Vec& x, Vec& c, Vec& s) {
   c = Vec::loadu(out_c), s = Vec::loadu(out_s);
 }
 inline Vec pow(const Vec& x, const Vec& y) { return x.pow(y); }
+// The logistic 1 / (1 + e^-x), inline: e^-x = 2^n e^r (n = round(-x log2 e), r by Cody and Waite's two-part
+// ln 2, |r| <= ln 2 / 2, e^r by its degree-6 Taylor polynomial: 1.2e-7 relative), then the hardware's
+// reciprocal estimate refined by one Newton step (within 2 ulp). SLEEF's exp is an out-of-line call and a
+// division's latency stalls the soft union's 64 logistics per step. x is clamped to [-87, 87] (2^n normal).
+__attribute__((always_inline)) inline Vec logistic(const Vec& x) {
+  const Vec z = at::vec::clamp(x.neg(), Vec(-87.0f), Vec(87.0f));
+  const Vec n = (z * Vec(1.44269504088896341f)).round();
+  const Vec r = at::vec::fmadd(n, Vec(2.12194440e-4f), at::vec::fmadd(n, Vec(-0.693359375f), z));
+  constexpr float c[7] = {1.0f, 1.0f, 1.0f / 2, 1.0f / 6, 1.0f / 24, 1.0f / 120, 1.0f / 720};
+  Vec p(c[6]);
+  for (int k = 5; k >= 0; --k) p = at::vec::fmadd(p, r, Vec(c[k]));
+  const IVec exponent = (at::vec::convert_to_int_of_same_size<float>(n) + IVec(127)) << IVec(23);
+  const Vec d = Vec(1.0f) + p * at::vec::cast<float>(exponent);  // in [1, 2^126]
+#if defined(CPU_CAPABILITY_AVX512)
+  const Vec e(_mm512_rcp14_ps(d));  // 14 bits
+#elif defined(CPU_CAPABILITY_AVX2)
+  const Vec e(_mm256_rcp_ps(d));  // 12 bits
+#else
+  return d.reciprocal();
+#endif
+  return e * at::vec::fmadd(d.neg(), e, Vec(2.0f));
+}
 inline Vec exp(const Vec& x) { return x.exp(); }
 inline Vec expm1(const Vec& x) { return x.expm1(); }
 inline Vec max(const Vec& a, const Vec& b) { return at::vec::maximum(a, b); }

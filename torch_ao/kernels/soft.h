@@ -43,7 +43,7 @@ template <class F, int N> struct LaneArray {
 };
 
 template <class F> TAO_FN F soft_sigmoid(const F& x) {
-  return reciprocal(F(1.0f) + exp(neg(clamp(x, F(-kSoftClamp), F(kSoftClamp)))));
+  return logistic(clamp(x, F(-kSoftClamp), F(kSoftClamp)));
 }
 
 // One step's soft coverage: a[k], b[k], the gate tanh(w / tau) (0 where empty), F'(s)
@@ -98,6 +98,14 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
   bool windowed, cosine, straight_through;
   static constexpr int kKept = kGradients ? kSoftMaxSteps : 1;  // steps kept per slice
+  // whether the sweep keeps each step's coverage for the reverse scan (64 logistics a step, else computed again):
+  // the CPU's do (a slice's are L2-resident), a CUDA thread's forward recomputes them (its local memory is
+  // global memory)
+#ifdef __CUDACC_RTC__
+  static constexpr bool kKeepCoverage = kAdjoint;
+#else
+  static constexpr bool kKeepCoverage = kGradients;
+#endif
 
   template <class F> struct State {
     using I = typename LaneTraits<F>::I;
@@ -114,7 +122,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3];
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
-    LaneArray<SoftCoverage<F>, kFetches> coverages;  // the backward's sweep's, for its reverse scan
+    LaneArray<SoftCoverage<F>, kKeepCoverage ? kKept : 1> coverages;  // the sweep's, for the reverse scan
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
   // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d thickness
@@ -223,7 +231,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   template <class F> TAO_FN void sweep(State<F>& st, F* before) const {
     for (int m = 0; m < st.n; ++m)
       if (any(st.w[m] >= F(0.0f)))
-        cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors], kAdjoint ? &st.coverages[m] : nullptr);
+        cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors], kKeepCoverage ? &st.coverages[m] : nullptr);
   }
 
   // The slice's visible share sum_k free_k omega_k (the weights' sum added to sums.den with cosine
@@ -249,8 +257,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       const auto live = st.w[m] >= F(0.0f);
       if (!any(live)) continue;
       SoftCoverage<F> local;
-      if (!kAdjoint) coverage(st.s[m], st.w[m], local);
-      const SoftCoverage<F>& cv = kAdjoint ? st.coverages[m] : local;
+      if (!kKeepCoverage) coverage(st.s[m], st.w[m], local);
+      const SoftCoverage<F>& cv = kKeepCoverage ? st.coverages[m] : local;
       F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
       for (int k = 0; k < kSectors; ++k) {
         const F ab = cv.a[k] * cv.b[k];
