@@ -220,7 +220,8 @@ struct ExactAccumulator {
   bool cosine, along_ray, clip;
 
   template <class F> struct State {
-    F shift, lo[kMaxIntervals], hi[kMaxIntervals];
+    F shift;
+    LaneArray<F, kMaxIntervals> lo, hi;
     int n;
   };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f); };
@@ -317,7 +318,7 @@ struct ExactAccumulator {
 
   template <class F>
   TAO_FN void end_slice(State<F>& st, const Pixels<F>&, const Slice<F>& sl, Sums<F>& sums) const {
-    add_slice(union_measure(st.lo, st.hi, st.n, sl), sl, sums.num, sums.den);
+    add_slice(union_measure(&st.lo[0], &st.hi[0], st.n, sl), sl, sums.num, sums.den);
   }
 
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {

@@ -34,14 +34,6 @@ constexpr float kSoftTiny = 1e-30f;  // visibilities at or below are flushed to 
 constexpr int kSoftWindowMax = 8;    // sweeps.WINDOW_MAX
 constexpr int kSoftMaxSteps = 64;    // both sides' steps of a slice: steps <= 32
 
-// N lanes values left uninitialised (ATen's Vectorized zeroes itself on construction: the per-step arrays
-// of every slice would be cleared for nothing)
-template <class F, int N> struct LaneArray {
-  alignas(F) unsigned char bytes[N * sizeof(F)];
-  TAO_FN F& operator[](int i) { return reinterpret_cast<F*>(bytes)[i]; }
-  TAO_FN const F& operator[](int i) const { return reinterpret_cast<const F*>(bytes)[i]; }
-};
-
 template <class F> TAO_FN F soft_sigmoid(const F& x) {
   return logistic(clamp(x, F(-kSoftClamp), F(kSoftClamp)));
 }

@@ -36,6 +36,14 @@ template <class F> TAO_FN void normalize3(const F* x, F* out) {
   const F len = clamp_min(norm3(x), F(1e-12f));
   for (int c = 0; c < 3; ++c) out[c] = x[c] / len;
 }
+// N lanes values left uninitialised (ATen's Vectorized zeroes itself on construction: the per-step arrays
+// of every slice would be cleared for nothing)
+template <class F, int N> struct LaneArray {
+  alignas(F) unsigned char bytes[N * sizeof(F)];
+  TAO_FN F& operator[](int i) { return reinterpret_cast<F*>(bytes)[i]; }
+  TAO_FN const F& operator[](int i) const { return reinterpret_cast<const F*>(bytes)[i]; }
+};
+
 // The walk's derivatives' seed on a pixel's own inputs: nothing for plain lanes (lanes_dual.h's for duals)
 template <class F> TAO_FN void seed_pixel(F*, F*, F&) {}
 // and on an accumulator's one differentiable setting (GTAO's falloff or thickness, HBAO's angle bias)
