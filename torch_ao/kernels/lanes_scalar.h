@@ -46,6 +46,8 @@ TAO_FN bool lor(bool a, bool b) { return a || b; }
 TAO_FN bool lnot(bool a) { return !a; }
 TAO_FN bool any(bool m) { return m; }
 TAO_FN bool lane_on(bool m, int) { return m; }
+TAO_FN float reduce_min(float x) { return x; }  // over the lanes
+TAO_FN float reduce_max(float x) { return x; }
 TAO_FN float neg(float x) { return -x; }
 TAO_FN float fma(float a, float b, float c) { return fmaf(a, b, c); }
 TAO_FN float abs(float x) { return fabsf(x); }

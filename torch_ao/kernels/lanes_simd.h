@@ -31,6 +31,15 @@ inline Vec lor(const Vec& a, const Vec& b) { return a | b; }
 inline Vec lnot(const Vec& a) { return a ^ Vec(at::vec::cast<float>(IVec(-1))); }
 inline bool any(const Vec& m) { return m.zero_mask() != (1 << Vec::size()) - 1; }
 inline bool lane_on(const Vec& m, int l) { return !((m.zero_mask() >> l) & 1); }
+// the least and the greatest of the lanes (NaN lanes: either)
+inline float reduce_min(const Vec& x) {
+  alignas(64) float v[Vec::size()];
+  x.store(v);
+  float m = v[0];
+  for (int l = 1; l < Vec::size(); ++l) m = v[l] < m ? v[l] : m;
+  return m;
+}
+inline float reduce_max(const Vec& x) { return -reduce_min(x.neg()); }
 inline Vec neg(const Vec& x) { return x.neg(); }
 inline Vec fma(const Vec& a, const Vec& b, const Vec& c) { return at::vec::fmadd(a, b, c); }
 inline Vec abs(const Vec& x) { return x.abs(); }

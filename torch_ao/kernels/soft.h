@@ -33,15 +33,20 @@ constexpr float kSoftClamp = 30.0f;  // logistic arguments are clamped to +-30 (
 constexpr float kSoftTiny = 1e-30f;  // visibilities at or below are flushed to 0 (sweeps.TINY)
 constexpr int kSoftWindowMax = 8;    // sweeps.WINDOW_MAX
 constexpr int kSoftMaxSteps = 64;    // both sides' steps of a slice: steps <= 32
+// a step's sectors whose a b is below logistic(-kSoftSkip) = 2e-9 for every lane are left out of its sweep
+// and reverse scan (below the interval a ~ 0, above it b ~ 0): at tau = 0.25, 5 sectors either side of it
+constexpr float kSoftSkip = 20.0f;
 
 template <class F> TAO_FN F soft_sigmoid(const F& x) {
   return logistic(clamp(x, F(-kSoftClamp), F(kSoftClamp)));
 }
 
-// One step's soft coverage: a[k], b[k], the gate tanh(w / tau) (0 where empty), F'(s)
+// One step's soft coverage: a[k], b[k] for the sectors k0 <= k < k1 where they overlap (kSoftSkip), the gate
+// tanh(w / tau) (0 where empty), F'(s)
 template <class F> struct SoftCoverage {
   LaneArray<F, kSectors> a, b;
   F gate, slope;
+  int k0, k1;
 };
 
 // d position / d su and d sv of a sample's bilinear fetch at (su, sv) (perspective-correct depth, the
@@ -126,8 +131,16 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     const F wc = clamp_min(w, F(0.0f));  // an empty step: zero width, zero gate
     const F t = expm1(wc * F(inv_tau) * F(-2.0f));  // sweeps.expm1_tanh
     cv.gate = neg(t / (t + F(2.0f)));
+    // the sectors where some live lane's a b can exceed logistic(-kSoftSkip): a < 2e-9 below s - 1 - margin,
+    // b < 2e-9 above s + w + 1 + margin (the smooth floor F(s) <= s + 1/2), margin = kSoftSkip tau
+    const auto live = w >= F(0.0f);
+    const float margin = kSoftSkip * tau;
+    const float first = reduce_min(select(live, s, F(float(kSectors)))) - 1.0f - margin;
+    const float last = reduce_max(select(live, s + wc, F(0.0f))) + 2.0f + margin;
+    cv.k0 = first > 0.0f ? (first < float(kSectors) ? int(first) : kSectors) : 0;  // (NaN: every sector)
+    cv.k1 = last < float(kSectors) ? (last > float(cv.k0) ? int(last) + 1 : cv.k0) : kSectors;
     const F start_arg = s * F(-inv_tau);
-    for (int k = 0; k < kSectors; ++k) cv.a[k] = soft_sigmoid(F(float(k + 1) * inv_tau) + start_arg);
+    for (int k = cv.k0; k < cv.k1; ++k) cv.a[k] = soft_sigmoid(F(float(k + 1) * inv_tau) + start_arg);
     F floor_s = F(0.0f), slope = F(0.0f);
     if (windowed) {
       const F lo = clamp(floor(s) - F(float(reach - 1)), F(1.0f), F(float(kSectors - window + 1)));
@@ -138,8 +151,9 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
         slope = slope + (F(1.0f) - x) * x;
       }
       floor_s = floor_s + (lo - F(1.0f));
-    } else {
-      for (int k = 0; k < kSectors; ++k) {
+    } else {  // (each sector below k0 adds 1 - a = 1, each from k1 on 0)
+      floor_s = F(float(cv.k0));
+      for (int k = cv.k0; k < cv.k1; ++k) {
         const F not_a = F(1.0f) - cv.a[k];
         floor_s = floor_s + not_a;
         slope = slope + not_a * cv.a[k];
@@ -147,7 +161,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     }
     cv.slope = slope * F(inv_tau);
     const F end_arg = (wc + F(1.0f - delta) + floor_s) * F(inv_tau);
-    for (int k = 0; k < kSectors; ++k) cv.b[k] = soft_sigmoid(end_arg - F(float(k + 1) * inv_tau));
+    for (int k = cv.k0; k < cv.k1; ++k) cv.b[k] = soft_sigmoid(end_arg - F(float(k + 1) * inv_tau));
   }
 
   // P <- P - a b g P over the sectors (P_m kept in before, if given; the coverage in keep, if given)
@@ -156,7 +170,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     SoftCoverage<B> local;
     SoftCoverage<B>& cv = keep ? *keep : local;
     coverage(s, w, cv);
-    for (int k = 0; k < kSectors; ++k) {
+    for (int k = cv.k0; k < cv.k1; ++k) {
       if (before) before[k] = P[k];
       const B c = cv.b[k] * cv.a[k] * cv.gate;
       P[k] = P[k] - c * P[k];
@@ -252,7 +266,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       if (!kKeepCoverage) coverage(st.s[m], st.w[m], local);
       const SoftCoverage<F>& cv = kKeepCoverage ? st.coverages[m] : local;
       F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
-      for (int k = 0; k < kSectors; ++k) {
+      for (int k = cv.k0; k < cv.k1; ++k) {
         const F ab = cv.a[k] * cv.b[k];
         const F y = ab * before[m * kSectors + k] * S[k];  // Y = a b P_m S_{m+1}
         sum_y = sum_y + y;
