@@ -131,8 +131,9 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     const F wc = clamp_min(w, F(0.0f));  // an empty step: zero width, zero gate
     const F t = expm1(wc * F(inv_tau) * F(-2.0f));  // sweeps.expm1_tanh
     cv.gate = neg(t / (t + F(2.0f)));
-    // the sectors where some live lane's a b can exceed logistic(-kSoftSkip): a < 2e-9 below s - 1 - margin,
-    // b < 2e-9 above s + w + 1 + margin (the smooth floor F(s) <= s + 1/2), margin = kSoftSkip tau
+    // the sectors where some live lane's a b can exceed logistic(-kSoftSkip), margin = kSoftSkip tau: a < 2e-9
+    // below s - 1 - margin, b < 2e-9 above s + w + 2 + margin (the smooth floor F(s) < s + 1/2 + tau ln 2, under
+    // s + 2 wherever the margin leaves a sector out: tau < 32 / kSoftSkip)
     const auto live = w >= F(0.0f);
     const float margin = kSoftSkip * tau;
     const float first = reduce_min(select(live, s, F(float(kSectors)))) - 1.0f - margin;
