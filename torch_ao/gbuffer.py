@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
 
 from .camera import PinholeCamera
+from .ops import channel_norm, normalize_channels
 
 __all__ = ["GBuffer", "normals_from_depth", "BACKGROUND_DEPTH", "geometry_depth"]
 
@@ -146,7 +147,7 @@ class GBuffer:
             setattr(self, name, x)
         if self.normals is not None:
             with torch.no_grad():
-                if bool(((self.normals.norm(dim=1, keepdim=True) < 1e-6) & valid).any()):
+                if bool(((channel_norm(self.normals) < 1e-6) & valid).any()):
                     raise ValueError("normals: zero-length normals on valid pixels")
         if self.position is not None and bool((~(self.position[:, 2:3] < 0) & valid).any()):
             raise ValueError(_POSITION_IN_FRONT)
@@ -223,13 +224,13 @@ class GBuffer:
 
     def _view_normals(self, method: str) -> torch.Tensor:
         if self.normals is not None:
-            n = F.normalize(torch.where(self._valid, self.normals, _toward_camera(self.positions())), dim=1, eps=1e-12)
+            n = normalize_channels(torch.where(self._valid, self.normals, _toward_camera(self.positions())))
             return _face_camera(n, self.positions())
         return normals_from_depth(self.depth, self.camera, method=method, valid=self._valid)
 
 
 def _toward_camera(positions: torch.Tensor) -> torch.Tensor:
-    return F.normalize(-positions, dim=1, eps=1e-12)
+    return normalize_channels(-positions)
 
 
 def _face_camera(normals: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
@@ -267,7 +268,7 @@ def normals_from_depth(
     else:
         n = _improved_normals(d, pos, valid)
     n = torch.where(valid, n, _toward_camera(pos))
-    return _face_camera(F.normalize(n, dim=1, eps=1e-12), pos)
+    return _face_camera(normalize_channels(n), pos)
 
 
 def _improved_normals(d: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -300,7 +301,7 @@ def _improved_normals(d: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -
     dpdx = one_axis(0, 1)  # toward +u (right)
     dpdy = -one_axis(1, 0)  # toward -v (up)
     n = torch.cross(dpdx, dpdy, dim=1)
-    degenerate = n.norm(dim=1, keepdim=True) < 1e-20
+    degenerate = channel_norm(n) < 1e-20
     return torch.where(degenerate, _toward_camera(pos), n)
 
 

@@ -32,6 +32,7 @@ from .camera import PinholeCamera
 from .checks import check_choice
 from .denoise import denoise_guide
 from .gbuffer import GBuffer
+from .ops import normalize_channels
 
 __all__ = ["RESOLUTIONS", "resolution_factor", "downsample_gbuffer", "upsample", "reduced_forward"]
 
@@ -161,7 +162,7 @@ def reduced_forward(forward, gbuffer: GBuffer, factor: int, normals_method: str 
     if out.bent_normal is not None:
         facing = gbuffer.view_normals(normals_method)
         bent = up(out.bent_normal, facing)
-        bent = torch.where(gbuffer.valid, F.normalize(bent, dim=1, eps=1e-12), facing)
+        bent = torch.where(gbuffer.valid, normalize_channels(bent), facing)
     # the forward's own output type (an AOOutput), every field upsampled
     return dataclasses.replace(out, visibility=up(out.visibility, 1.0), indirect=up(out.indirect, 0.0),
                                bent_normal=bent, ambient=up(out.ambient, 0.0))
