@@ -67,8 +67,7 @@ def main() -> int:
         json.dump({"world": distributed.world_size(), "parameters": result.parameters,
                    "history": [r["loss"] for r in result.history], "hard": [r["loss"] for r in result.hard_history],
                    "best_step": result.best_step, "reads": views.reads}, f)
-    if distributed.is_distributed():
-        torch.distributed.destroy_process_group()
+    distributed.finish()
     return 0
 
 

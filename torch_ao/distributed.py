@@ -17,8 +17,8 @@ import os
 import torch
 import torch.distributed as dist
 
-__all__ = ["is_distributed", "rank", "world_size", "is_main", "init_from_environment", "rank_device", "shard",
-           "sum_over_ranks", "gather_objects", "broadcast_object"]
+__all__ = ["is_distributed", "rank", "world_size", "is_main", "init_from_environment", "finish", "rank_device",
+           "shard", "sum_over_ranks", "gather_objects", "broadcast_object"]
 
 
 def is_distributed() -> bool:
@@ -55,6 +55,18 @@ def init_from_environment(device: str | torch.device = "cpu") -> bool:
             torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ["WORLD_SIZE"])))
         dist.init_process_group("nccl" if cuda else "gloo")
     return is_distributed()
+
+
+def finish(completed: bool = True) -> None:
+    """End the process group :func:`init_from_environment` started (nothing without one). A rank that
+    ``completed`` first waits for the others (a barrier): a rank must not close its connections while a peer
+    still uses them, which gloo answers by aborting that peer's process ("terminate called without an active
+    exception"). A rank that failed does not wait (``torchrun`` stops the others)."""
+    if not dist.is_initialized():
+        return
+    if completed:
+        dist.barrier()
+    dist.destroy_process_group()
 
 
 def rank_device(device: str | torch.device) -> torch.device:

@@ -341,14 +341,17 @@ def run(args: argparse.Namespace) -> int:
     parse_device(args.device)
     started = distributed.init_from_environment(args.device)
     quiet = open(os.devnull, "w") if not distributed.is_main() else None  # noqa: SIM115
+    completed = False
     try:
         with contextlib.redirect_stdout(quiet) if quiet else contextlib.nullcontext():
-            return _run(args)
+            code = _run(args)
+        completed = True
+        return code
     finally:
         if quiet:
             quiet.close()
         if started:
-            torch.distributed.destroy_process_group()
+            distributed.finish(completed)
 
 
 def _run(args: argparse.Namespace) -> int:
