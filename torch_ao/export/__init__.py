@@ -32,6 +32,7 @@ import os
 from pathlib import Path
 
 from ..walk.fetch import EDGE_MIN_RATIO, EDGE_SLOPE_TOLERANCE
+from ..walk.sample import MIN_OFFSET
 from .body import BODY
 
 __all__ = ["ExportError", "FORMATS", "export_shader", "write_shader", "shader_defines", "NOISE_SPLIT_BITS"]
@@ -98,6 +99,7 @@ def _walk_defines(m) -> dict[str, str]:
         "AO_FETCH": str({"nearest": 0, "bilinear": 1, "edge_aware": 2}[m.fetch]),
         "AO_EDGE_MIN_RATIO": _literal(EDGE_MIN_RATIO), "AO_EDGE_SLOPE_TOLERANCE": _literal(EDGE_SLOPE_TOLERANCE),
         "AO_BORDER_DROP": str(int(m.border == "drop")), "AO_AZIMUTH_VIEW": str(int(m.azimuth == "view")),
+        "AO_MIN_OFFSET": _literal(MIN_OFFSET),
     }
 
 

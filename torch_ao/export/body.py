@@ -294,7 +294,7 @@ float aoVisibility(int px, int py)
                 float2 offset = (AO_MIN_STEP_PX + span * fraction) * (dir * side);
                 AOSample f = aoFetch(u + offset.x, v + offset.y, px, py, intr);
                 float3 delta = f.position - P;
-                if (!(f.valid && dot(delta, delta) > 1e-10 * d * d)) continue;  // invalid samples, and the pixel's own position, occlude nothing
+                if (!(f.valid && dot(delta, delta) > AO_MIN_OFFSET * AO_MIN_OFFSET * d * d)) continue;  // (Sample.valid)
                 float av = dot(delta, V);
                 float at = side * dot(delta, T);
 #if AO_METHOD == 1

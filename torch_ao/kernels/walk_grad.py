@@ -55,7 +55,8 @@ class _Walk(torch.autograd.Function):
             # (in float64: the terms cancel to the gradient, which may be 0 where the radius is clamped in pixels)
             def dot(g, x):
                 return (g.to(torch.float64) * x.to(torch.float64)).sum()
-            along = dot(g_pos, positions) + dot(g_depth, depth) - dot(torch.where(valid, g_inv, 0.0), torch.where(valid, inverse, 0.0))
+            along = (dot(g_pos, positions) + dot(g_depth, depth)
+                     - torch.where(valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum())
             if ctx.setting_is_length:
                 along = along + setting.to(torch.float64) * along_setting
             g_radius = (-along / radius).to(radius.dtype)
