@@ -133,8 +133,8 @@ def _cases() -> dict[str, Case]:
     def bitmask(**options):
         return lambda s: torch_ao.BitmaskAO(backend="kernel", **s, **options)
 
-    def horizon(cls, backend="kernel"):
-        return lambda s: cls(backend=backend, **_without_thickness(s))
+    def horizon(cls, backend="kernel", **options):
+        return lambda s: cls(backend=backend, **_without_thickness(s), **options)
 
     def exact(backend):
         return lambda s: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), fetch="edge_aware",
@@ -150,6 +150,7 @@ def _cases() -> dict[str, Case]:
         "exact": Case("`BitmaskAO` exact + `BackfaceThickness` + edge-aware fetch", exact("kernel"), None, "shader", 1.0),
         "gtao": Case("`GTAO`", horizon(torch_ao.GTAO), None, "shader", 1.0),
         "hbao": Case("`HBAO`", horizon(torch_ao.HBAO), None, "shader", 1.0),
+        "gtao_edge": Case("`GTAO` edge-aware fetch", horizon(torch_ao.GTAO, fetch="edge_aware"), None, "shader", 1.0),
         "ssilvb_glsl_torch": Case("`ssilvb_glsl`, tensor ops", lambda s: torch_ao.SSILVB(
             variant="ssilvb_glsl", mode="hard", backend="torch", **s), None, "shader", 1.0, kernel=False),
         "bitmask_torch": Case("`BitmaskAO` hard, tensor ops", lambda s: torch_ao.BitmaskAO(
@@ -165,7 +166,12 @@ def _cases() -> dict[str, Case]:
                                     bitmask(mode="straight_through"), "parameters", "bitmask", 3.0),
         "straight_gbuffer": Case("straight-through `BitmaskAO` fwd+bwd, depth + normals",
                                  bitmask(mode="straight_through"), "gbuffer", "bitmask", 3.0),
+        "cosine_edge_gbuffer": Case("soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals",
+                                    bitmask(mode="soft", weighting="cosine", fetch="edge_aware"), "gbuffer", "bitmask",
+                                    3.0),
         "gtao_gbuffer": Case("`GTAO` fwd+bwd, depth + normals", horizon(torch_ao.GTAO), "gbuffer", "gtao", 3.0),
+        "gtao_edge_gbuffer": Case("`GTAO` edge-aware fetch fwd+bwd, depth + normals",
+                                  horizon(torch_ao.GTAO, fetch="edge_aware"), "gbuffer", "gtao_edge", 3.0),
         "hbao_gbuffer": Case("`HBAO` fwd+bwd, depth + normals", horizon(torch_ao.HBAO), "gbuffer", "hbao", 3.0),
     }
 

@@ -30,6 +30,9 @@ GTAO_SETTINGS = [
     dict(variant="ue4", slices=2, steps=4, thickness_heuristic=0.6, final_power=0.8),
     dict(slices=3, steps=4, noise="hilbert_r2", stagger=True, seed=1, bent_normals=True),
     dict(variant="hdrp", slices=2, steps=3, noise="hilbert_r2", stagger=True),
+    dict(slices=4, steps=5, fetch="edge_aware", bent_normals=True),
+    dict(variant="hdrp", slices=3, steps=4, fetch="edge_aware", border="clamp"),
+    dict(variant="ue4", slices=2, steps=4, fetch="edge_aware"),
 ]
 HBAO_SETTINGS = [
     dict(slices=4, steps=4),
@@ -37,6 +40,7 @@ HBAO_SETTINGS = [
     dict(slices=5, steps=3, elevation="view", jitter=False),
     dict(slices=4, steps=4, fetch="nearest", border="clamp", azimuth="view", angle_bias=0.3, step_power=2.0, seed=2),
     dict(slices=3, steps=3, noise="hilbert_r2", stagger=True),
+    dict(slices=4, steps=4, fetch="edge_aware", accumulate="max"),
 ]
 
 
@@ -132,9 +136,10 @@ def test_kernel_covers_names_what_it_does_not_cover():
         positions = GBuffer(depth=gb.depth, camera=gb.camera, position=gb.positions())
         assert "position buffer" in gtao_covers(GTAO(), positions)
         assert gtao_covers(GTAO(fetch="nearest"), positions) is None  # nearest reads the texel's position
-        # the edge-aware fetch is the tensor path's only; a reduced resolution is a smaller G-buffer to the kernel
-        assert gtao_covers(GTAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
-        assert hbao_covers(HBAO(fetch="edge_aware"), gb) == "fetch='edge_aware'"
+        # the edge-aware fetch interpolates depth too: not of a position buffer
+        assert gtao_covers(GTAO(fetch="edge_aware"), gb) is None and hbao_covers(HBAO(fetch="edge_aware"), gb) is None
+        assert "position buffer" in gtao_covers(GTAO(fetch="edge_aware"), positions)
+        # a reduced resolution is a smaller G-buffer to the kernel
         assert gtao_covers(GTAO(preset="high@half"), gb) is None
     # gradients: the horizon accumulators' backward (tests/test_kernels_gtao_grad.py), but ue4's radius
     assert gtao_covers(GTAO(), gb) is None  # the trainable radius and final power, autograd on

@@ -67,7 +67,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
     setting = {"exact": falloff, "ue4": thickness}.get(variant, 0.0)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, setting):
-        _check_gradient(gbuffer, fetch)
+        _check_gradient(gbuffer)
         if variant == "ue4" and isinstance(radius, torch.Tensor) and radius.requires_grad:
             raise ValueError("radius: variant 'ue4' has no kernel gradient of the radius (its rsqrt(|d|^2 + 1e-4) "
                              "is not scale-invariant)")
@@ -78,11 +78,11 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
                 [float32_value(radius), float32_value(falloff), float32_value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
 
 
-def _check_gradient(gbuffer: GBuffer, fetch: str) -> None:
+def _check_gradient(gbuffer: GBuffer) -> None:
     """A ``ValueError`` for a gradient the walk's backward cannot give (:func:`gradient_uncovered`)."""
-    if gbuffer.depth.device.type != "cpu" or fetch not in _BACKWARD_FETCHES:
-        raise ValueError(f"gbuffer: gradients through the kernel cover the fetches {_BACKWARD_FETCHES} on CPU, not "
-                         f"fetch={fetch!r} on {gbuffer.depth.device.type}")
+    if gbuffer.depth.device.type != "cpu":
+        raise ValueError(f"gbuffer: gradients through the kernel are computed on CPU, not on "
+                         f"{gbuffer.depth.device.type}")
 
 
 def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float | torch.Tensor,
@@ -104,7 +104,7 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
                              fetch=fetch, border=border, azimuth=azimuth, full_circle=True)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, angle_bias):
-        _check_gradient(gbuffer, fetch)
+        _check_gradient(gbuffer)
         walk, options = differentiable_walk, {"radius": radius, "setting": angle_bias}
     return walk("hbao", gbuffer, normals, settings,
                 [falloff == "quadratic", accumulate == "incremental", elevation == "view"],
@@ -157,16 +157,14 @@ def hbao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
 #: options of every module the horizon kernels know: ``None`` for any value, else the values covered
 _WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_power", "min_step_px", "jitter", "seed", "noise", "stagger",
                                "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
-                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest"), "slice_sampling": ("uniform",)}
+                               "backend", "resolution")) | {"fetch": ("bilinear", "nearest", "edge_aware"),
+                                                           "slice_sampling": ("uniform",)}
 _GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))
 _HBAO_OPTIONS = _WALK_OPTIONS | dict.fromkeys(("angle_bias", "falloff", "accumulate", "elevation"))
 
 
-#: the fetches the walk's backward differentiates (walk_grad_cpu.cpp: the edge-aware fetch's taps switch by
-#: cell flags it is not given)
-_BACKWARD_FETCHES = ("bilinear", "nearest")
 #: per module, the parameters whose gradients the walk's backward gives: the radius by scale invariance, the
 #: setting it seeds (walk_grad.py), and those the module's finish applies with torch ops
 _BACKWARD_PARAMETERS = {"gtao": ("radius", "falloff_range", "thickness_heuristic", "final_power", "albedo"),
@@ -180,7 +178,7 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
     G-buffer float32 on CPU, and, where autograd records, a gradient the backward covers (:func:`gradient_uncovered`).
     """
-    reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest", "edge_aware"))
+    reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest",))
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
@@ -196,8 +194,6 @@ def gradient_uncovered(module, gbuffer: GBuffer, parameters=()) -> str | None:
     kind = getattr(module, "has_kernel", None)
     if kind not in _BACKWARD_PARAMETERS:
         return f"a gradient is asked for (the kernel's backward covers the horizon accumulators {tuple(_BACKWARD_PARAMETERS)})"
-    if module.fetch not in _BACKWARD_FETCHES:
-        return f"a gradient is asked for with fetch={module.fetch!r} (the kernel's backward covers {_BACKWARD_FETCHES})"
     if gbuffer.depth.device.type != "cpu":
         return "a gradient is asked for on CUDA (the kernel's backward runs on CPU)"
     cam = gbuffer.camera

@@ -108,9 +108,10 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
     inputs = walk_inputs(gbuffer, normals)
     none = torch.empty(0, device=device)
     cells = none
-    if settings[0][9]:  # edge_aware
+    if settings[0][9]:  # edge_aware (the flags have no gradient: kept with the G-buffer between calls)
         inverse, valid = inputs[2], inputs[4]
-        cells = cell_flags(torch.where(valid, inverse, 0.0)).to(torch.float32).contiguous()
+        cells = gbuffer.derived("edge_aware_cells", lambda: cell_flags(torch.where(valid, inverse.detach(), 0.0))
+                                .to(torch.float32).contiguous())
     layer = none if backface is None else backface[:, 0].to(torch.float32).contiguous()
     return inputs, (none if light is None else light, cells, layer), *packed_settings(settings, acc_ints, acc_floats,
                                                                                       device)

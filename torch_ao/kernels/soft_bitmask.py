@@ -27,8 +27,8 @@ from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from .bitmask import options_uncovered
 from .build import cpu_kernels, grad_kernels
-from .frame import scalar_lanes, walk_inputs
-from .launch import packed_settings, run_walk, walk_settings
+from .frame import scalar_lanes
+from .launch import packed_inputs, run_walk, walk_settings
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
@@ -117,35 +117,38 @@ def _walk(gbuffer, normals, radius, thickness, o, gradients):
 
 def _gbuffer_walk(gbuffer, normals, radius, thickness, o):
     """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), radius and thickness."""
-    return _GBufferWalk.apply(*walk_inputs(gbuffer, normals), radius, thickness, o)
+    inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, o))
+    return _GBufferWalk.apply(*inputs, cells, ints, floats, radius, thickness, scalar_lanes(o["lanes"]))
 
 
 class _GBufferWalk(torch.autograd.Function):
-    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` and ``soft_backward``."""
+    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the edge-aware
+    fetch's ``cells``) and ``soft_backward``."""
 
     @staticmethod
-    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, radius, thickness, o):
-        ints, floats = packed_settings(*_settings(radius, thickness, o), device=depth.device)
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, thickness,
+                scalar):
         none = torch.empty(0)
-        ctx.scalar = scalar_lanes(o["lanes"])
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, thickness)
-        return cpu_kernels().walk("soft", positions, normals, inverse, depth, valid, intrinsics, none, none, none,
-                                  ints, floats, 1, ctx.scalar)
+        ctx.scalar = scalar
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius,
+                              thickness)
+        return cpu_kernels().walk("soft", positions, normals, inverse, depth, valid, intrinsics, none, cells, none,
+                                  ints, floats, 1, scalar)
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, thickness = ctx.saved_tensors
+        positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, thickness = ctx.saved_tensors
         g_pos, g_nrm, g_inv, g_depth, g_thick = grad_kernels().soft_backward(
-            grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid, intrinsics, ints, floats,
-            ctx.scalar)
+            grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid, intrinsics, cells, ints,
+            floats, ctx.scalar)
         g_thickness = g_thick.double().sum()
         g_radius = None
-        if ctx.needs_input_grad[6]:  # Euler's identity (module docstring); invalid texels hold NaN
+        if ctx.needs_input_grad[9]:  # Euler's identity (module docstring); invalid texels hold NaN
             along = ((g_pos.double() * positions).sum() + (g_depth.double() * depth).sum()
                      - torch.where(valid, g_inv.double() * inverse, 0.0).sum())
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
-        return (g_pos, g_nrm, g_inv, g_depth, None, None, g_radius,
-                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[7] else None, None)
+        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, g_radius,
+                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[10] else None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
@@ -169,23 +172,20 @@ class _SoftWalk(torch.autograd.Function):
 #: mode is the straight-through forward without a graph: the hard kernel's masks with cosine weights too)
 _MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
-#: the fetches of the walk without a gradient of the G-buffer
-_EDGE_AWARE = {"fetch": ("nearest", "bilinear", "edge_aware")}
+#: the fetches (the edge-aware one beyond what every bitmask kernel covers)
+_FETCHES = {"fetch": ("nearest", "bilinear", "edge_aware")}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
     in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... one scalar thickness, visibility
-    only, a float32 CPU G-buffer) with either weighting; gradients of radius, thickness (any fetch), depth,
-    positions and normals (the bilinear and nearest fetch), not of the intrinsics."""
+    only, a float32 CPU G-buffer) with either weighting; gradients of radius, thickness, depth, positions and
+    normals, not of the intrinsics."""
     of_gbuffer = _gbuffer_wants_gradient(gbuffer, gbuffer.normals)
-    # the edge-aware fetch: its taps differentiate as the bilinear ones, the radius and thickness' (the
-    # G-buffer's backward, soft_backward, scatters to the bilinear and nearest taps only)
-    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS,
-                               extra=None if of_gbuffer else _EDGE_AWARE)
+    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES)
     if reason is not None:
-        return reason + (" with a gradient of the G-buffer" if of_gbuffer and module.fetch == "edge_aware" else "")
+        return reason
     if module.mode == "hard" and of_gbuffer:
         return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
     reason = _gbuffer_gradient_uncovered(gbuffer)

@@ -34,24 +34,25 @@ class _Walk(torch.autograd.Function):
     """``walk(accumulator, positions, normals, inverse, depth, ...)`` ``(B,C,H,W)`` and its backward."""
 
     @staticmethod
-    def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, ints, floats, channels,
-                scalar, radius, setting, setting_is_length):
+    def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats,
+                channels, scalar, radius, setting, setting_is_length):
         ctx.accumulator, ctx.scalar, ctx.setting_is_length = accumulator, scalar, setting_is_length
         out, record = grad_kernels().walk_record(accumulator, positions, normals, inverse, depth, valid, intrinsics,
-                                                 ints, floats, channels, scalar)
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting,
-                              record)
+                                                 cells, ints, floats, channels, scalar)
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius,
+                              setting, record)
         return out
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, ints, floats, radius, setting, record = ctx.saved_tensors
+        (positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, setting,
+         record) = ctx.saved_tensors
         g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
             ctx.accumulator, grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid,
-            intrinsics, ints, floats, record, ctx.scalar)
+            intrinsics, cells, ints, floats, record, ctx.scalar)
         along_setting = g_setting.to(torch.float64).sum()
         g_radius = None
-        if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN
+        if ctx.needs_input_grad[12]:  # Euler's identity (module docstring); invalid texels hold NaN
             # (in float64: the terms cancel to the gradient, which may be 0 where the radius is clamped in pixels)
             def dot(g, x):
                 return (g.to(torch.float64) * x.to(torch.float64)).sum()
@@ -60,8 +61,8 @@ class _Walk(torch.autograd.Function):
             if ctx.setting_is_length:
                 along = along + setting.to(torch.float64) * along_setting
             g_radius = (-along / radius).to(radius.dtype)
-        g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[12] else None
-        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, g_radius, g_out, None
+        g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
+        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, None, g_radius, g_out, None
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool:
@@ -78,12 +79,12 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
                         setting_is_length: bool = False, lanes: str = "simd") -> torch.Tensor:
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU G-buffer with autograd history: gradients reach
     ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs. ``accumulator``:
-    ``"gtao"`` or ``"hbao"`` (any fetch but the edge-aware one, either border). ``radius``: the 0-d tensor
+    ``"gtao"`` or ``"hbao"`` (any fetch, either border). ``radius``: the 0-d tensor
     every length setting is proportional to, which receives its gradient, or a number. ``setting``: the 0-d
     tensor (or number) of the accumulator's one differentiable setting, whose value ``acc_floats`` holds
     (GTAO's falloff in world units, ``setting_is_length``, or thickness; HBAO's angle bias), which
     receives its gradient."""
-    inputs, _, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
+    inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
     radius, setting = torch.as_tensor(radius), torch.as_tensor(setting)
-    return _Walk.apply(accumulator, *inputs, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
+    return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
                        bool(setting_is_length))

@@ -1,5 +1,5 @@
 // The backward of the one walk (torch_ao_kernels::walk_backward) for the horizon accumulators of
-// horizon.h (GTAO's three variants, HBAO), any fetch but the edge-aware one, either border. Per slice:
+// horizon.h (GTAO's three variants, HBAO), any fetch, either border. Per slice:
 //  1. the forward (torch_ao_kernels::walk_record: walk.h's walk_slice in plain lanes with the Takes visitor)
 //     records, per pixel and side, the steps that changed the accumulator's state (its "takes", a bit per
 //     step; every valid step where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the
@@ -16,7 +16,10 @@
 //  3. the outputs' derivatives with respect to the final state, swept back through the takes' Jacobians,
 //     give each take's d loss / d delta, chained to its taps: for a bilinear fetch delta = pos - P with
 //     pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's
-//     position itself. Scattered into per-thread images, summed at the end.
+//     position itself. The edge-aware fetch is the bilinear one whose taps across a depth edge are four
+//     copies of the nearest: their weights sum to 1 on that texel, and the interpolation's d / d (fu, fv)
+//     is 0 (the cell flags, like every comparison, have no derivative). Scattered into per-thread images,
+//     summed at the end.
 // Ties: a step whose candidate equals the state leaves it unchanged, so the earlier sample keeps the
 // gradient (the tensor path's torch.minimum splits it between them; tied samples of one texel give both
 // the same total).
@@ -386,12 +389,16 @@ template <class Fn> void with_horizon(const std::string& name, const int64_t* i,
   }
 }
 
+// The edge-aware fetch reads the cell flags (walk.h's Image::cells)
+void check_cells(const WalkSettings& cfg, const Frame& fr) {
+  TORCH_CHECK(!cfg.edge_aware || fr.cells, "cells: the edge-aware fetch needs the cell flags (B, H, W)");
+}
+
 // The walk's settings of a horizon accumulator's call (walk_record, walk_backward)
 WalkSettings horizon_settings(const std::string& name, const at::Tensor& ints, const at::Tensor& floats) {
   TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: the backward covers gtao and hbao, got ", name);
   check_settings(ints, floats, 3, name == "gtao" ? 3 : 2, name.c_str());
   const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
-  TORCH_CHECK(!cfg.edge_aware, "fetch: the backward covers the bilinear and nearest fetch, not the edge-aware one");
   return cfg;
 }
 
@@ -401,12 +408,14 @@ WalkSettings horizon_settings(const std::string& name, const at::Tensor& ints, c
 std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, const at::Tensor& positions,
                                                const at::Tensor& normals, const at::Tensor& inverse_depth,
                                                const at::Tensor& depth, const at::Tensor& valid,
-                                               const at::Tensor& intrinsics, const at::Tensor& ints,
-                                               const at::Tensor& floats, int64_t channels, bool scalar) {
+                                               const at::Tensor& intrinsics, const at::Tensor& cells,
+                                               const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
+                                               bool scalar) {
   const std::string name(accumulator);
   const WalkSettings cfg = horizon_settings(name, ints, floats);
   const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
+  check_cells(cfg, fr);
   at::Tensor out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
   at::Tensor record = at::empty({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}, ints.options());
   with_horizon(name, ints.data_ptr<int64_t>(), floats.data_ptr<float>(), [&](const auto& acc) {
@@ -419,15 +428,17 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
 // accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao" or "hbao" with walk()'s packed
-// settings; record: walk_record's of the same call
+// settings; cells: the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the
+// same call
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
-    const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool scalar) {
+    const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool scalar) {
   const std::string name(accumulator);
   const WalkSettings cfg = horizon_settings(name, ints, floats);
   const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
+  check_cells(cfg, fr);
   TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
                   record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}),
               "record: expected walk_record's (B, H, W, slices, 2, words) of the same call");
@@ -481,22 +492,23 @@ void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumu
 
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
 // walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
-// depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W)
+// depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W); cells: the
+// edge-aware fetch's cell flags (B, H, W), else empty
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
-    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& ints,
-    const at::Tensor& floats, bool scalar) {
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
+    const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, none, none);
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
   check_settings(ints, floats, 3, 3, "soft");
   check_grad(grad, positions, 1);
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
+  check_cells(cfg, fr);
   TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
   TORCH_CHECK(cfg.steps <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
-  TORCH_CHECK(cfg.placement == Steps::power && !cfg.edge_aware && !cfg.full_circle,
-              "soft_backward: the power step placement, the bilinear or nearest fetch, one half circle");
+  TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, "soft_backward: the power step placement, one half circle");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(i, f);
   const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
   Gradients out(positions, B, H, W);
@@ -514,14 +526,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
 
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.def("walk_record(str accumulator, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, int channels, bool scalar) -> (Tensor, Tensor)");
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, int channels, bool scalar) "
+        "-> (Tensor, Tensor)");
   m.impl("walk_record", c10::DispatchKey::CPU, TORCH_FN(walk_record));
   m.def("walk_backward(str accumulator, Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, "
-        "Tensor depth, Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, Tensor record, bool scalar) "
+        "Tensor depth, Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, Tensor record, "
+        "bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor ints, Tensor floats, bool scalar) "
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
 }
