@@ -27,9 +27,13 @@ def test_values_and_gradients_are_f_normalize(layout):
     assert torch.allclose(channel_norm(x), x.norm(dim=1, keepdim=True), rtol=1e-15, atol=0)
 
 
-def test_gradcheck():
-    x = torch.randn(1, 3, 2, 3, dtype=torch.float64, requires_grad=True)
+@pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
+def test_gradcheck_and_gradgradcheck(layout):
+    """The closed-form backward, and autograd of it (second derivatives), against finite differences (the
+    clamped vectors' gradient, ``g / eps``, is the test above's: differences cannot be taken under ``eps``)."""
+    x = _image(torch.float64, layout)[:, :, 2:4, 2:5].clone().requires_grad_()
     assert torch.autograd.gradcheck(normalize_channels, (x,))
+    assert torch.autograd.gradgradcheck(normalize_channels, (x,))
 
 
 @pytest.mark.parametrize("dtype, big", [(torch.float32, 1e30), (torch.float64, 1e200)])

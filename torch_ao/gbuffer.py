@@ -224,8 +224,7 @@ class GBuffer:
 
     def _view_normals(self, method: str) -> torch.Tensor:
         if self.normals is not None:
-            n = normalize_channels(torch.where(self._valid, self.normals, _toward_camera(self.positions())))
-            return _face_camera(n, self.positions())
+            return _unit_facing(self.normals, self.positions(), self._valid)
         return normals_from_depth(self.depth, self.camera, method=method, valid=self._valid)
 
 
@@ -233,9 +232,13 @@ def _toward_camera(positions: torch.Tensor) -> torch.Tensor:
     return normalize_channels(-positions)
 
 
-def _face_camera(normals: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
-    facing = (normals * positions).sum(1, keepdim=True) <= 0
-    return torch.where(facing, normals, -normals)
+def _unit_facing(normals: torch.Tensor, positions: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``normals`` ``(B,3,H,W)`` made unit length (the direction toward the camera where not ``valid``) and
+    turned to face the camera at ``positions`` ``(B,3,H,W)``."""
+    n = normalize_channels(torch.where(valid, normals, -positions))
+    with torch.no_grad():  # (which side faces is a decision: a sign without a gradient)
+        sign = torch.where((n * positions).sum(1, keepdim=True) <= 0, 1.0, -1.0).to(n.dtype)
+    return n * sign
 
 
 def normals_from_depth(
@@ -267,8 +270,7 @@ def normals_from_depth(
         n = depth_to_normals(d, K) * d.new_tensor((1.0, -1.0, -1.0)).view(1, 3, 1, 1)
     else:
         n = _improved_normals(d, pos, valid)
-    n = torch.where(valid, n, _toward_camera(pos))
-    return _face_camera(normalize_channels(n), pos)
+    return _unit_facing(n, pos, valid)
 
 
 def _improved_normals(d: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
