@@ -1,0 +1,55 @@
+"""The CUDA kernels compiled by NVIDIA's own compilers on a machine without a GPU (torch_ao.kernels.cuda_offline):
+NVRTC, as the kernels are compiled on a GPU, must accept the source for an H200 (compute capability 9.0) and
+an A100 (8.0) and give every entry point of walk_cuda.cu; ptxas must assemble it without spilling registers.
+tests/test_kernels_cuda.py runs the same source's logic on the CPU; on a GPU, the kernels run for real."""
+import pytest
+
+from torch_ao.kernels import cuda_offline
+
+pytestmark = pytest.mark.skipif(cuda_offline.nvrtc_library() is None,
+                                reason="needs NVRTC (pip install nvidia-cuda-nvrtc-cu12)")
+
+
+@pytest.fixture(scope="module")
+def ptx90():
+    return cuda_offline.compile_ptx(90)
+
+
+def test_entry_points_are_found():
+    assert len(cuda_offline.KERNEL_NAMES) >= 10 and "tao_walk_gtao" in cuda_offline.KERNEL_NAMES
+
+
+@pytest.mark.parametrize("arch", [80, 90])
+def test_nvrtc_compiles_every_kernel(ptx90, arch):
+    ptx = ptx90 if arch == 90 else cuda_offline.compile_ptx(arch)
+    assert f".target sm_{arch}" in ptx
+    for name in cuda_offline.KERNEL_NAMES:
+        assert f".entry {name}(" in ptx, name
+
+
+def test_a_compile_error_is_reported_with_the_log(monkeypatch):
+    monkeypatch.setattr(cuda_offline, "cuda_source", lambda: "__global__ void broken( { }")
+    with pytest.raises(RuntimeError, match="(?s)NVRTC could not compile.*walk_cuda.cu.1.: error"):
+        cuda_offline.compile_ptx(90)
+
+
+@pytest.mark.skipif(cuda_offline.ptxas_path() is None, reason="needs ptxas (pip install nvidia-cuda-nvcc-cu12)")
+def test_ptxas_assembles_every_kernel_without_spilling(ptx90):
+    report = cuda_offline.kernel_resources(ptx90, 90)
+    assert set(report) == set(cuda_offline.KERNEL_NAMES)
+    for name, used in report.items():
+        assert 32 <= used.registers <= 255, (name, used)
+        assert used.spill_stores == 0 and used.spill_loads == 0, (name, used)
+        assert 0 < used.occupancy(128) <= 1
+
+
+def test_occupancy_follows_the_registers():
+    """Closed forms on compute capability 9.0: 65536 registers per SM, allocated per warp in units of 256,
+    at most 64 warps and 32 blocks."""
+    def at(registers, threads=128):
+        return cuda_offline.KernelResources(registers, 0, 0, 0).occupancy(threads)
+    assert at(32) == 1.0  # 64 warps of 32 x 32 registers fill the SM exactly
+    assert at(128) == 0.25  # 16 warps: 4 blocks of 4
+    assert at(168) == 12 / 64  # 5376 registers a warp: 12 warps, 3 blocks
+    assert at(247) == 8 / 64  # 7936 (248 x 32) a warp: 8 warps, 2 blocks
+    assert at(32, threads=32) == 0.5  # 32 blocks of one warp at most
