@@ -39,6 +39,7 @@ tao_dim3 blockIdx, blockDim, threadIdx;
 static inline int __popc(unsigned x) { return __builtin_popcount(x); }
 static inline unsigned __float_as_uint(float x) { unsigned b; __builtin_memcpy(&b, &x, sizeof b); return b; }
 static inline float __uint_as_float(unsigned b) { float x; __builtin_memcpy(&x, &b, sizeof x); return x; }
+static inline float atomicAdd(float* to, float x) { float old = *to; *to = old + x; return old; }  // (one thread at a time)
 """
 
 DRIVER = r"""
@@ -97,6 +98,73 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
 """
 
 
+GRAD_DRIVER = r"""
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+#include <vector>
+extern "C" {
+struct tao_dim3 { unsigned x, y, z; };
+extern tao_dim3 blockIdx, blockDim, threadIdx;
+typedef void Record(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
+                    float*, long long*, const long long*, const float*, int, int, int);
+typedef void Backward(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
+                      const float*, const long long*, float*, float*, float*, float*, float*, float*,
+                      const long long*, const float*, int, int, int);
+Record tao_record_gtao, tao_record_hbao;
+Backward tao_backward_gtao, tao_backward_hbao;
+}
+template <class T> std::vector<T> load(const std::string& dir, const char* name) {
+  std::vector<T> v;
+  FILE* f = std::fopen((dir + "/" + name).c_str(), "rb");
+  if (!f) return v;
+  T x;
+  while (std::fread(&x, sizeof(T), 1, f) == 1) v.push_back(x);
+  std::fclose(f);
+  return v;
+}
+template <class T> void save(const std::string& dir, const char* name, const std::vector<T>& v) {
+  FILE* f = std::fopen((dir + "/" + name).c_str(), "wb");
+  std::fwrite(v.data(), sizeof(T), v.size(), f);
+  std::fclose(f);
+}
+template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) {  // every thread of <<<blocks, threads>>>
+  blockDim.x = threads;
+  for (unsigned b = 0; (long long)b * threads < pixels; ++b)
+    for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
+}
+int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
+  const std::string name = argv[1], dir = argv[2];
+  const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
+  const long long words = std::atoll(argv[7]);
+  const unsigned threads = unsigned(std::atoi(argv[8]));
+  Record* record = name == "gtao" ? tao_record_gtao : tao_record_hbao;
+  Backward* backward = name == "gtao" ? tao_backward_gtao : tao_backward_hbao;
+  auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
+  auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Ce = load<float>(dir, "cells");
+  auto V8 = load<unsigned char>(dir, "valid");
+  const bool* V = reinterpret_cast<const bool*>(V8.data());
+  auto ints = load<long long>(dir, "ints");
+  auto floats = load<float>(dir, "floats");
+  auto grad = load<float>(dir, "grad");
+  const long long pixels = (long long)B * H * W;
+  const float* cells = Ce.empty() ? nullptr : Ce.data();
+  std::vector<float> out(size_t(B) * C * H * W, -7.0f);
+  std::vector<long long> rec(size_t(pixels * words), -1);
+  grid(pixels, threads, [&] { record(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, out.data(), rec.data(),
+                                     ints.data(), floats.data(), B, H, W); });
+  const size_t n = size_t(pixels);
+  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n);
+  grid(pixels, threads, [&] { backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(),
+                                       rec.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(),
+                                       ints.data(), floats.data(), B, H, W); });
+  save(dir, "out", out), save(dir, "record", rec), save(dir, "g_positions", gp), save(dir, "g_normals", gn);
+  save(dir, "g_depth", gd), save(dir, "g_setting", gs), save(dir, "tap_positions", taps), save(dir, "tap_inverse", ti);
+  return 0;
+}
+"""
+
+
 @pytest.fixture(scope="module")
 def cuda_on_cpu(tmp_path_factory):
     """The CUDA source compiled for the host and linked with the driver: the program's path."""
@@ -106,6 +174,9 @@ def cuda_on_cpu(tmp_path_factory):
     flags = ["-std=c++17", "-O2", "-ffp-contract=off", "-fno-math-errno"]
     subprocess.run([COMPILER, *flags, "-D__CUDACC_RTC__", "-c", "kernels.cpp", "-o", "kernels.o"], cwd=folder, check=True)
     subprocess.run([COMPILER, *flags, "driver.cpp", "kernels.o", "-lm", "-o", "driver"], cwd=folder, check=True)
+    (folder / "grad_driver.cpp").write_text(GRAD_DRIVER)
+    subprocess.run([COMPILER, *flags, "grad_driver.cpp", "kernels.o", "-lm", "-o", "grad_driver"], cwd=folder,
+                   check=True)
     return folder / "driver"
 
 
@@ -203,3 +274,85 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
         gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
                        light=None if light is None else light.cuda())
         assert_values_agree(gpu.cpu(), cpu, gb.valid, atol=1e-4, bound=0.5)
+
+
+def _backward_cases():
+    """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants and HBAO (incremental and
+    max), every fetch, either border."""
+    common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
+    yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5
+    yield "gtao", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, False], [1.0, 0.3, 1.0], 2
+    yield "gtao", walk_settings(**common, placement="hdrp"), [1, True, False], [1.0, 0.0, 1.0], 2
+    yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2
+    yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
+    yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
+           [True, True, False], [1.0, 0.1], 1)
+
+
+@pytest.mark.parametrize("frame", ["rough", "tiny"])
+def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cuda_on_cpu, frame):
+    """The CUDA record and backward kernels (walk_grad.h's record_block and grad_block, one thread a pixel, the
+    taps scattered with atomicAdd) launched thread by thread on the CPU: the CPU operators' scalar lanes, which
+    run the same functions, to float rounding (the scatters' order differs)."""
+    from torch_ao.kernels.build import grad_kernels
+
+    gb = FRAMES[frame]()
+    normals = gb.view_normals()
+    for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
+        inputs, (_, cells, _), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats)
+        B, H, W = inputs[3].shape
+        grad = torch.linspace(0.5, 1.5, B * channels * H * W).view(B, channels, H, W)
+        folder = cuda_on_cpu.parent / f"grad_{accumulator}"
+        folder.mkdir(exist_ok=True)
+        for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "cells", "grad"),
+                           (*inputs, cells, grad)):
+            t.numpy().tofile(folder / name)
+        ints.numpy().tofile(folder / "ints")
+        floats.numpy().tofile(folder / "floats")
+        words = settings[0][0] * 2 * ((settings[0][1] + 63) // 64)
+        subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), accumulator, str(folder), str(B), str(H), str(W),
+                        str(channels), str(words), str(_THREADS)], check=True)
+
+        def read(name, *shape, dtype=np.float32):
+            return torch.from_numpy(np.fromfile(folder / name, dtype=dtype).reshape(*shape))
+
+        out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
+        assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
+        assert (read("out", *out.shape) - out).abs().max() <= 1e-6
+        g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
+            accumulator, grad, *inputs, cells, ints, floats, record, True)
+        cuda = {"positions": read("g_positions", *g_pos.shape) + read("tap_positions", *g_pos.shape),
+                "normals": read("g_normals", *g_nrm.shape), "inverse": read("tap_inverse", *g_inv.shape),
+                "depth": read("g_depth", *g_depth.shape), "setting": read("g_setting", *g_setting.shape)}
+        cpu = {"positions": g_pos, "normals": g_nrm, "inverse": g_inv, "depth": g_depth, "setting": g_setting}
+        assert g_pos.abs().max() > 0 and g_nrm.abs().max() > 0  # (the comparison means something)
+        for name, reference in cpu.items():
+            finite = torch.isfinite(reference)
+            scale = reference[finite].abs().max().clamp_min(1e-6)
+            assert ((cuda[name] - reference)[finite].abs().max() / scale) <= 1e-5, (accumulator, name)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao"])
+def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
+    """GTAO / HBAO with depth and parameter gradients on a CUDA G-buffer (tao_record_*, tao_backward_*) against
+    the same call on the CPU."""
+    import torch_ao
+
+    module = {"gtao": lambda: torch_ao.GTAO(slices=3, steps=5, fetch="edge_aware"),
+              "hdrp": lambda: torch_ao.GTAO(variant="hdrp", slices=3, steps=4),
+              "hbao": lambda: torch_ao.HBAO(slices=4, steps=4)}[method]
+    gb = FRAMES["rough"]()
+    results = []
+    for device in ("cpu", "cuda"):
+        m = module().to(device)
+        depth = gb.depth.to(device).clone().requires_grad_()
+        g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device))
+        out = m(g).visibility
+        out.sum().backward()
+        results.append((out.detach().cpu(), depth.grad.cpu(), m.radius.grad.cpu()))
+    (v0, d0, r0), (v1, d1, r1) = results
+    assert (v1 - v0).abs().max() <= 1e-4
+    finite = torch.isfinite(d0)
+    assert ((d1 - d0)[finite].norm() / d0[finite].norm()) <= 1e-4
+    assert abs(float(r1 - r0)) <= 1e-4 * abs(float(r0))

@@ -7,7 +7,7 @@ side, the clamped arc integral of :func:`torch_ao.ops.arc_integral`), and return
 over slices; the module's own ``GTAOAccumulator.finish`` turns them into the outputs, so the
 normalisation, final power and multi-bounce fit are the tensor path's code; the sums agree with the
 tensor path's to float rounding (tests/test_kernels_gtao.py). ``HBAO`` is the same walk over the full circle with its accumulator
-(:mod:`torch_ao.methods.hbao`), finished the same way. Where autograd records (CPU), both run with the
+(:mod:`torch_ao.methods.hbao`), finished the same way. Where autograd records (CPU, CUDA), both run with the
 walk's backward (:mod:`torch_ao.kernels.walk_grad`); :func:`gradient_uncovered` says which gradients it
 does not give.
 """
@@ -20,7 +20,7 @@ import torch
 from ..gbuffer import GBuffer
 from .coverage import call_uncovered
 from .launch import run_walk, walk_settings
-from .walk_grad import differentiable_walk, wants_gradient
+from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, wants_gradient
 
 __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
 
@@ -80,8 +80,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
 
 def _check_gradient(gbuffer: GBuffer) -> None:
     """A ``ValueError`` for a gradient the walk's backward cannot give (:func:`gradient_uncovered`)."""
-    if gbuffer.depth.device.type != "cpu":
-        raise ValueError(f"gbuffer: gradients through the kernel are computed on CPU, not on "
+    if gbuffer.depth.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"gbuffer: gradients through the kernel are computed on CPU and CUDA, not on "
                          f"{gbuffer.depth.device.type}")
 
 
@@ -194,8 +194,8 @@ def gradient_uncovered(module, gbuffer: GBuffer, parameters=()) -> str | None:
     kind = getattr(module, "has_kernel", None)
     if kind not in _BACKWARD_PARAMETERS:
         return f"a gradient is asked for (the kernel's backward covers the horizon accumulators {tuple(_BACKWARD_PARAMETERS)})"
-    if gbuffer.depth.device.type != "cpu":
-        return "a gradient is asked for on CUDA (the kernel's backward runs on CPU)"
+    if gbuffer.depth.is_cuda and module.steps > MAX_CUDA_STEPS:
+        return f"a gradient is asked for on CUDA with {module.steps} steps per side (its backward replays at most {MAX_CUDA_STEPS})"
     cam = gbuffer.camera
     if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
         return ("a gradient of the intrinsics is asked for (the kernel's backward holds them constant; the "

@@ -9,6 +9,7 @@
 typedef int int32_t;
 typedef unsigned int uint32_t;
 typedef long long int64_t;
+typedef unsigned long long uint64_t;
 #else
 #define TAO_FN inline
 #define TAO_CONST static constexpr
@@ -46,6 +47,8 @@ TAO_FN bool lor(bool a, bool b) { return a || b; }
 TAO_FN bool lnot(bool a) { return !a; }
 TAO_FN bool any(bool m) { return m; }
 TAO_FN bool lane_on(bool m, int) { return m; }
+TAO_FN uint32_t lane_bits(bool m) { return m ? 1u : 0u; }  // a lane mask as bits (lane l: bit l)
+TAO_FN void store_lanes(uint32_t x, int32_t* out) { out[0] = int32_t(x); }
 TAO_FN float reduce_min(float x) { return x; }  // over the lanes
 TAO_FN float reduce_max(float x) { return x; }
 TAO_FN float neg(float x) { return -x; }
@@ -92,6 +95,12 @@ TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
 #endif
 TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
+// *to += x, by one thread at a time (on the CPU each thread adds into its own image; CUDA threads share one)
+#ifdef __CUDACC_RTC__
+TAO_FN void scatter_add(float* to, float x) { atomicAdd(to, x); }
+#else
+TAO_FN void scatter_add(float* to, float x) { *to += x; }
+#endif
 TAO_FN bool gather_flag(const bool* base, uint32_t index) { return base[index]; }
 // a float's bits and back
 #ifdef __CUDACC_RTC__

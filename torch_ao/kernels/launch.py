@@ -33,7 +33,7 @@ NOISES = (*SLICE_NOISES, "glsl", "glsl_mediump")
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
 _CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "ssao.h", "lanes_dual.h",
-               "exact_soft.h", "packed.h", "walk_cuda.cu")
+               "exact_soft.h", "packed.h", "walk_grad.h", "walk_cuda.cu")
 _WALK_FLOATS = 4  # packed.h's kAccFloats: the walk's own floats
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
 
@@ -92,10 +92,16 @@ def _run(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels
         raise KernelUnavailable(f"no kernel for a G-buffer on {device.type}")
     B, H, W = inputs[3].shape
     out = torch.empty(B, channels, H, W, device=device)
-    kernel = _cuda_kernel(f"tao_walk_{accumulator}", device.index if device.index is not None else torch.cuda.current_device())
-    blocks = -(-B * H * W // _THREADS)
-    kernel(grid=(blocks, 1, 1), block=(_THREADS, 1, 1), args=[*inputs, *extra, out, ints, floats, B, H, W])
+    launch_cuda(f"tao_walk_{accumulator}", device, [*inputs, *extra, out, ints, floats], (B, H, W))
     return out
+
+
+def launch_cuda(name: str, device: torch.device, args: list, shape: tuple[int, int, int]) -> None:
+    """The CUDA kernel ``name`` of walk_cuda.cu (compiled on first use) over the ``(B, H, W)`` pixels of
+    ``shape``, one thread each, with ``args`` (tensors as pointers, then the shape's three ints)."""
+    kernel = _cuda_kernel(name, device.index if device.index is not None else torch.cuda.current_device())
+    B, H, W = shape
+    kernel(grid=(-(-B * H * W // _THREADS), 1, 1), block=(_THREADS, 1, 1), args=[*args, B, H, W])
 
 
 def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]], acc_ints: list,

@@ -2,6 +2,7 @@
 // time by NVRTC (torch_ao/kernels/launch.py inlines the headers ahead of this file). Each thread runs
 // walk_pixel, which the CPU's scalar lanes run too (tests/test_kernels*.py, lanes="scalar").
 #include "packed.h"
+#include "walk_grad.h"
 
 #define TAO_CUDA_ENTRY(name, unpack)                                                                        \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
@@ -24,3 +25,35 @@ TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge)
 TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao)
 TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward)
 TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility / d radius, thickness too
+
+// The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
+// the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes
+// run the same record_block and grad_block
+#define TAO_CUDA_RECORD(name, unpack)                                                                       \
+  extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
+                                  const float* depth, const bool* valid, const float* intrinsics,        \
+                                  const float* cells, float* out, int64_t* record, const int64_t* ints,   \
+                                  const float* floats, int B, int H, int W) {                            \
+    const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                    \
+    if (p >= int64_t(B) * H * W) return;                                                                  \
+    const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, nullptr, valid, B, H, W}; \
+    tao::record_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, record, p);  \
+  }
+#define TAO_CUDA_BACKWARD(name, unpack)                                                                     \
+  extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
+                                  const float* depth, const bool* valid, const float* intrinsics,        \
+                                  const float* cells, const float* grad, const int64_t* record,           \
+                                  float* g_positions, float* g_normals, float* g_depth, float* g_setting, \
+                                  float* tap_positions, float* tap_inverse, const int64_t* ints,          \
+                                  const float* floats, int B, int H, int W) {                            \
+    const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                    \
+    if (p >= int64_t(B) * H * W) return;                                                                  \
+    const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, nullptr, valid, B, H, W}; \
+    tao::grad_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, grad, record, g_positions, \
+                    g_normals, g_depth, g_setting, tap_positions, tap_inverse, p);                        \
+  }
+
+TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
+TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
+TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao)
+TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao)

@@ -3,13 +3,14 @@
 so that autograd chains its gradients to the G-buffer through :func:`~torch_ao.kernels.frame.walk_inputs`'
 torch ops.
 
-The forward (``torch_ao_kernels::walk_record``, walk_grad_cpu.cpp) is the walk, which also records per pixel,
-slice and side the steps that changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises:
-a bit per step); the backward (``torch_ao_kernels::walk_backward``) replays each slice through those steps
-alone in dual lanes (lanes_dual.h): forward-mode tangents on
-each pixel's own position, normal and depth, on the accumulator's setting (``setting``: GTAO's falloff or
-thickness, HBAO's angle bias) and on each replayed sample, whose taps it scatters into (bilinear: the
-inverse depth of its four taps; nearest: the tap's position).
+The forward (walk_grad.h's ``record_block``: ``torch_ao_kernels::walk_record`` on the CPU, the
+``tao_record_*`` kernels on CUDA) is the walk, which also records per pixel, slice and side the steps that
+changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises: a bit per step); the backward
+(``grad_block``: ``torch_ao_kernels::walk_backward``, ``tao_backward_*``) replays each slice through those
+steps alone in dual lanes (lanes_dual.h): forward-mode tangents on each pixel's own position, normal and
+depth, on the accumulator's setting (``setting``: GTAO's falloff or thickness, HBAO's angle bias) and on each
+replayed sample, whose taps it scatters into (bilinear: the inverse depth of its four taps; nearest: the
+tap's position; on CUDA with atomic adds, so the sums' order, and their last bits, vary between runs).
 
 The radius needs no tangent of its own: the walk is scale-invariant (scaling positions, depth and every
 length setting by s leaves its outputs as they are: screen positions, angles and the falloff ratio do not
@@ -25,9 +26,12 @@ import torch
 from ..gbuffer import GBuffer
 from .build import grad_kernels
 from .frame import scalar_lanes
-from .launch import packed_inputs
+from .launch import launch_cuda, packed_inputs
 
-__all__ = ["differentiable_walk", "wants_gradient"]
+__all__ = ["differentiable_walk", "wants_gradient", "MAX_CUDA_STEPS"]
+
+#: the most steps per side of the CUDA backward (walk_grad.h's kGradMaxSteps: a thread's replay is a fixed array)
+MAX_CUDA_STEPS = 32
 
 
 class _Walk(torch.autograd.Function):
@@ -35,21 +39,35 @@ class _Walk(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats,
-                channels, scalar, radius, setting, setting_is_length):
+                channels, scalar, radius, setting, setting_is_length, record_shape):
         ctx.accumulator, ctx.scalar, ctx.setting_is_length = accumulator, scalar, setting_is_length
-        out, record = grad_kernels().walk_record(accumulator, positions, normals, inverse, depth, valid, intrinsics,
-                                                 cells, ints, floats, channels, scalar)
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius,
-                              setting, record)
+        frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
+        if positions.is_cuda:
+            B, H, W = depth.shape
+            out = torch.empty(B, channels, H, W, device=depth.device)
+            record = torch.empty(B, H, W, *record_shape, dtype=torch.int64, device=depth.device)
+            launch_cuda(f"tao_record_{accumulator}", depth.device, [*frame, out, record, ints, floats], (B, H, W))
+        else:
+            out, record = grad_kernels().walk_record(accumulator, *frame, ints, floats, channels, scalar)
+        ctx.save_for_backward(*frame, ints, floats, radius, setting, record)
         return out
 
     @staticmethod
     def backward(ctx, grad):
         (positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, setting,
          record) = ctx.saved_tensors
-        g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
-            ctx.accumulator, grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid,
-            intrinsics, cells, ints, floats, record, ctx.scalar)
+        frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
+        grad = grad.to(torch.float32).contiguous()
+        if positions.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
+            g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
+            g_depth, g_setting, g_inv = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            launch_cuda(f"tao_backward_{ctx.accumulator}", depth.device,
+                        [*frame, grad, record, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, ints, floats],
+                        tuple(depth.shape))
+            g_pos += taps
+        else:
+            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
+                ctx.accumulator, grad, *frame, ints, floats, record, ctx.scalar)
         along_setting = g_setting.to(torch.float64).sum()
         g_radius = None
         if ctx.needs_input_grad[12]:  # Euler's identity (module docstring); invalid texels hold NaN
@@ -62,7 +80,7 @@ class _Walk(torch.autograd.Function):
                 along = along + setting.to(torch.float64) * along_setting
             g_radius = (-along / radius).to(radius.dtype)
         g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
-        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, None, g_radius, g_out, None
+        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, None, g_radius, g_out, None, None
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool:
@@ -77,8 +95,9 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
                         settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list, channels: int,
                         *, radius: torch.Tensor | float, setting: torch.Tensor | float = 0.0,
                         setting_is_length: bool = False, lanes: str = "simd") -> torch.Tensor:
-    """:func:`~torch_ao.kernels.launch.run_walk` on a CPU G-buffer with autograd history: gradients reach
-    ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs. ``accumulator``:
+    """:func:`~torch_ao.kernels.launch.run_walk` on a CPU or CUDA G-buffer with autograd history: gradients
+    reach ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs (on CUDA at most
+    :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``:
     ``"gtao"`` or ``"hbao"`` (any fetch, either border). ``radius``: the 0-d tensor
     every length setting is proportional to, which receives its gradient, or a number. ``setting``: the 0-d
     tensor (or number) of the accumulator's one differentiable setting, whose value ``acc_floats`` holds
@@ -86,5 +105,8 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     receives its gradient."""
     inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
     radius, setting = torch.as_tensor(radius), torch.as_tensor(setting)
+    slices, steps = settings[0][0], settings[0][1]
+    if gbuffer.depth.is_cuda and steps > MAX_CUDA_STEPS:
+        raise ValueError(f"steps: the CUDA backward replays at most {MAX_CUDA_STEPS} steps per side, got {steps}")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
-                       bool(setting_is_length))
+                       bool(setting_is_length), (int(slices), 2, (int(steps) + 63) // 64))

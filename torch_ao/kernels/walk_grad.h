@@ -1,0 +1,324 @@
+// The backward of the one walk for the horizon accumulators of horizon.h (GTAO's three variants, HBAO), any
+// fetch, either border, written against the lane type as walk.h is: the CPU operators (walk_grad_cpu.cpp, SIMD
+// and scalar lanes, rows over torch's threads) and the CUDA kernels (walk_cuda.cu, one pixel a thread) run it.
+// Per slice:
+//  1. the forward (record_block: walk.h's walk_slice in plain lanes with the Takes visitor) records, per pixel
+//     and side, the steps that changed the accumulator's state (its "takes", a bit per step; every valid step
+//     where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the state as it was is the
+//     identity, so only the takes carry gradients. Where a take replaces the state (acc.replaces(): GTAO's
+//     exact minimum, HBAO's highest rise), only each side's last take is kept.
+//  2. the backward (grad_block) replays the slice in dual lanes (lanes_dual.h) through those takes alone (each
+//     lane its own step, step_distance in lanes): begin_slice, the takes' samples and steps, end_slice.
+//     Tangents 0..6 are the pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's
+//     setting (seed_setting: GTAO's falloff or thickness, HBAO's angle bias), which give its outputs'
+//     derivatives with respect to them, the samples' screen positions and bilinear weights included (Pixels and
+//     Slice in those 8 alone, widened); before every take the state's S components and the sample's delta get
+//     fresh tangents, so that the step's local Jacobians d state' / d state (S x S) and d state' / d delta
+//     (S x 3) come out of it.
+//  3. the outputs' derivatives with respect to the final state, swept back through the takes' Jacobians, give
+//     each take's d loss / d delta, chained to its taps: for a bilinear fetch delta = pos - P with
+//     pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's position
+//     itself. The edge-aware fetch is the bilinear one whose taps across a depth edge are four copies of the
+//     nearest: their weights sum to 1 on that texel, and the interpolation's d / d (fu, fv) is 0 (the cell
+//     flags, like every comparison, have no derivative). Scattered with scatter_add: into each CPU thread's
+//     own images, atomically into one image on CUDA.
+// Ties: a step whose candidate equals the state leaves it unchanged, so the earlier sample keeps the gradient
+// (the tensor path's torch.minimum splits it between them; tied samples of one texel give both the same total).
+#pragma once
+
+#include "lanes_dual.h"
+#include "packed.h"
+
+namespace tao {
+
+// tangents of the pixel's own P (3), N (3), depth (1) (seed_pixel) and of the accumulator's setting
+// (seed_setting: the horizon accumulators')
+constexpr int kPixel = 7, kOwn = kPixel + 1;
+// the most steps per side of a CUDA thread's backward (its record and replay are fixed arrays)
+constexpr int kGradMaxSteps = 32;
+
+// An accumulator's state as its S components (its State is an aggregate of lane values)
+template <class Acc, class F> TAO_FN constexpr int state_size() {
+  static_assert(sizeof(typename Acc::template State<F>) % sizeof(F) == 0, "State: lane values only");
+  return int(sizeof(typename Acc::template State<F>) / sizeof(F));
+}
+template <class State, class F> TAO_FN F* components(State& s) { return reinterpret_cast<F*>(&s); }
+
+// Where the gradients go: the pixel's own (written once per pixel) and the taps' (scatter_add)
+struct Targets {
+  float *positions, *normals, *depth, *setting;  // own: (H, W, 3), (H, W, 3), (H, W), (H, W) of image b
+  float *tap_positions, *tap_inverse;  // scattered: (H, W, 3), (H, W) of image b
+};
+
+// The words of a record per (pixel, slice, side)
+TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
+
+// the lowest set bit's index of x != 0
+template <class U> TAO_FN int lowest_bit(U x) {
+  int k = 0;
+  while (!((x >> k) & U(1))) ++k;
+  return k;
+}
+
+// The record of a slice (the forward's visitor): per side and lane the steps that changed the state (the
+// last one alone where a take replaces the state), as bits: step j is bit j % 64 of word j / 64
+template <class B, class Acc> struct Takes {
+  static constexpr bool kBefore = true;
+  using State = typename Acc::template State<B>;
+  static constexpr int L = LaneTraits<B>::L;
+  static constexpr int S = state_size<Acc, B>();
+  const Acc& acc;
+  const typename LaneTraits<B>::M& live;
+  int64_t words;
+  uint64_t* bits;  // [side][lane][word]
+
+  TAO_FN Takes(const Acc& a, const typename LaneTraits<B>::M& l, int64_t w, uint64_t* scratch)
+      : acc(a), live(l), words(w), bits(scratch) {
+    for (int64_t i = 0; i < 2 * L * words; ++i) bits[i] = 0;
+  }
+  TAO_FN uint64_t* of(int k, int l) { return bits + (k * L + l) * words; }
+
+  TAO_FN void operator()(int side, int64_t j, const Sample<B>& sample, const State& before, const State& after) {
+    auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
+    const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
+    for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
+    const int k = side > 0 ? 0 : 1;
+    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) {
+      uint64_t* b = of(k, lowest_bit(lanes));
+      if (acc.replaces())
+        for (int64_t w = 0; w < words; ++w) b[w] = 0;
+      b[j / 64] |= uint64_t(1) << (j % 64);
+    }
+  }
+};
+
+// The forward of the n <= L pixels of a row from u0 with the Takes visitor: the outputs' lanes in values, and
+// per lane, slice and side the takes' words at record + ((l * slices + s) * 2 + side) * words; bits: scratch of
+// 2 L take_words(cfg) words
+template <class B, class Acc>
+TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
+                         uint64_t* bits, uint64_t* record, B* values) {
+  const int64_t words = take_words(cfg);
+  const Pixels<B> px(cfg, img, row, u0, n);
+  typename Acc::template Sums<B> sums;
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    Takes<B, Acc> takes(acc, px.live, words, bits);
+    if (any(px.live)) {
+      const Slice<B> sl(cfg, img, px, s);
+      typename Acc::template State<B> state = acc.begin_slice(px, sl);
+      walk_slice(cfg, img, acc, px, sl, state, takes);
+      acc.end_slice(state, px, sl, sums);
+    }
+    for (int l = 0; l < n; ++l)
+      for (int k = 0; k < 2; ++k)
+        for (int64_t w = 0; w < words; ++w) record[((l * cfg.slices + s) * 2 + k) * words + w] = takes.of(k, l)[w];
+  }
+  acc.finish(sums, px, values);
+}
+
+// One take replayed: its step's Jacobians and its fetch (values only)
+template <class B, int S> struct Take {
+  using I = typename LaneTraits<B>::I;
+  B along_state[S][S], along_delta[S][3];  // d state'[m] / d state[m'], d state'[m] / d delta[c]
+  I index[4];
+  B fu, fv, pos[3];
+  typename LaneTraits<B>::M has;
+};
+
+// d L / d delta of a sample (g_delta) scattered to its fetch's taps, on the lanes in `on` of the first n: a
+// bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k, pos the fetched position, w_k the
+// weights of fu, fv), a nearest fetch's position (index[0])
+template <class B>
+TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, const B* pos, const B& fu,
+                         const B& fv, const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on) {
+  if (!any(on)) return;
+  constexpr int L = LaneTraits<B>::L;
+  float gl[3][L], pl[3][L], ful[L], fvl[L];
+  int32_t il[4][L];
+  for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(pos[c], pl[c]);
+  to_lanes(fu, ful), to_lanes(fv, fvl);
+  for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
+  for (int l = 0; l < n; ++l) {
+    if (!lane_on(on, l)) continue;
+    if (bilinear) {
+      const float u = ful[l], v = fvl[l];
+      const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
+      const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
+      for (int i = 0; i < 4; ++i) scatter_add(t.tap_inverse + il[i][l], along * weight[i]);
+    } else {
+      for (int c = 0; c < 3; ++c) scatter_add(t.tap_positions + 3 * il[0][l] + c, gl[c][l]);
+    }
+  }
+}
+
+// A slice's record read back (the forward's Takes, image b's from record): per side, the lanes' takes in
+// order as each lane's step j, at(k, q)[l], count[k][l] of them; step: 2 steps L floats of scratch
+template <int L> struct Replay {
+  float* step;  // [side][take][lane]
+  int64_t steps;
+  int count[2][L];
+
+  TAO_FN Replay(float* scratch, int64_t n_steps) : step(scratch), steps(n_steps) {}
+  TAO_FN float* at(int k, int q) { return step + (k * steps + q) * L; }
+  TAO_FN int most(int k) const {
+    int m = count[k][0];
+    for (int l = 1; l < L; ++l) m = count[k][l] > m ? count[k][l] : m;
+    return m;
+  }
+  // the record of slice s of the n pixels from p (words per side and pixel)
+  TAO_FN void read(const int64_t* record, int64_t p, int n, int64_t slices, int64_t s, int64_t words) {
+    for (int k = 0; k < 2; ++k) {
+      for (int l = 0; l < L; ++l) {
+        int q = 0;
+        if (l < n) {
+          const auto* b = reinterpret_cast<const uint64_t*>(record) + (((p + l) * slices + s) * 2 + k) * words;
+          for (int64_t w = 0; w < words; ++w)
+            for (uint64_t x = b[w]; x; x &= x - 1) at(k, q++)[l] = float(64 * w + lowest_bit(x));
+        }
+        count[k][l] = q;
+      }
+    }
+  }
+};
+
+// The backward of the n <= L pixels of a row from u0: upstream[c] the gradient of output channel c (H, W),
+// record the forward's (image b's), t where the gradients go; scratch: take_steps 2 steps L floats, replayed
+// 2 steps takes
+template <class B, class Acc>
+TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
+                       const float* const* upstream, int C, const int64_t* record, const Targets& t,
+                       float* take_steps, Take<B, state_size<Acc, B>()>* replayed) {
+  constexpr int S = state_size<Acc, B>(), kState = kOwn, kDelta = kOwn + S, N = kDelta + 3;
+  constexpr int L = LaneTraits<B>::L;
+  using D = Dual<B, N>;
+  using StateD = typename Acc::template State<D>;
+  B g[8];
+  {
+    float lane[L];
+    bool none = true;
+    for (int c = 0; c < C; ++c) {
+      for (int l = 0; l < L; ++l) {
+        lane[l] = l < n ? upstream[c][row * img.W + u0 + l] : 0.0f;
+        none = none && lane[l] == 0.0f;
+      }
+      g[c] = from_lanes(lane, B(0.0f));
+    }
+    if (none) return;  // (no gradient flows: the outputs' zeros stand)
+  }
+  // the pixel and its slices in the own tangents alone, widened for the takes' state and delta tangents
+  using Own = Dual<B, kOwn>;
+  const auto wide = [](const Own& x) { return widen<N>(x); };
+  const Pixels<Own> px_own(cfg, img, row, u0, n);
+  if (!any(px_own.live)) return;
+  const Pixels<D> pxd(px_own, wide);
+  B own[kOwn];
+  for (int k = 0; k < kOwn; ++k) own[k] = B(0.0f);
+  // fresh tangents on the state's components (and none on a delta)
+  auto reseed = [&](StateD& st) {
+    D* x = components<StateD, D>(st);
+    for (int m = 0; m < S; ++m) {
+      for (int q = kState; q < N; ++q) x[m].d[q] = B(0.0f);
+      x[m].d[kState + m] = B(1.0f);
+    }
+  };
+  Replay<L> takes(take_steps, cfg.steps);
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
+    const Slice<D> sl(Slice<Own>(cfg, img, px_own, s), wide);
+    StateD state = acc.begin_slice(pxd, sl);
+    int replays = 0;
+    for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
+      const int k = side > 0 ? 0 : 1;
+      const D xi = step_noise(cfg, pxd, sl, side);
+      for (int q = 0, most = takes.most(k); q < most; ++q) {
+        float has_lane[L];
+        for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
+        const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
+        const D j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
+        Sample<D> smp(cfg, img, pxd, sl, float(side), step_distance(cfg, sl, xi, j));
+        smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
+        for (int c = 0; c < 3; ++c) smp.delta[c].d[kDelta + c] = B(1.0f);
+        reseed(state);
+        acc.step(state, side, pxd, sl, smp);
+        Take<B, S>& take = replayed[replays++];
+        const D* x = components<StateD, D>(state);
+        for (int m = 0; m < S; ++m) {
+          for (int q2 = 0; q2 < S; ++q2) take.along_state[m][q2] = x[m].d[kState + q2];
+          for (int c = 0; c < 3; ++c) take.along_delta[m][c] = x[m].d[kDelta + c];
+        }
+        for (int i = 0; i < 4; ++i) take.index[i] = smp.index[i];
+        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, pxd.live);
+        for (int c = 0; c < 3; ++c) take.pos[c] = smp.delta[c].v + pxd.P[c].v;
+      }
+    }
+    reseed(state);  // tangents kState.. now probe the final state
+    typename Acc::template Sums<D> part;
+    acc.end_slice(state, pxd, sl, part);
+    D outs[8];
+    acc.finish(part, pxd, outs);  // linear in the sums: the slice's share of the outputs
+    for (int k = 0; k < kOwn; ++k)
+      for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
+    B adjoint[S];  // d loss / d state after the take being swept
+    for (int m = 0; m < S; ++m) {
+      adjoint[m] = B(0.0f);
+      for (int c = 0; c < C; ++c) adjoint[m] = adjoint[m] + g[c] * outs[c].d[kState + m];
+    }
+    for (int r = replays - 1; r >= 0; --r) {
+      const Take<B, S>& take = replayed[r];
+      B gd[3];
+      for (int c = 0; c < 3; ++c) {
+        gd[c] = B(0.0f);
+        for (int m = 0; m < S; ++m) gd[c] = gd[c] + adjoint[m] * take.along_delta[m][c];
+      }
+      B before[S];
+      for (int q = 0; q < S; ++q) {
+        before[q] = B(0.0f);
+        for (int m = 0; m < S; ++m) before[q] = before[q] + adjoint[m] * take.along_state[m][q];
+      }
+      for (int m = 0; m < S; ++m) adjoint[m] = before[m];
+      scatter_taps(cfg.bilinear, n, t, gd, take.pos, take.fu, take.fv, take.index, take.has);
+    }
+  }
+  float ol[kOwn][L];
+  for (int k = 0; k < kOwn; ++k) to_lanes(own[k], ol[k]);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * img.W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l], t.setting[p] = ol[7][l];
+  }
+}
+
+// Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
+// (B, H, W, slices, 2, take_words), at most kGradMaxSteps steps per side
+template <class Acc>
+TAO_FN void record_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* out, int64_t* record,
+                         int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  uint64_t bits[2];  // 2 L take_words: one word a side (steps <= 64)
+  float values[8];
+  record_block(cfg, fr.image(b), acc, row, u, 1, bits,
+               reinterpret_cast<uint64_t*>(record) + p * cfg.slices * 2 * take_words(cfg), values);
+  const int C = acc.channels();
+  for (int c = 0; c < C; ++c) out[((b * C + c) * fr.H + row) * fr.W + u] = values[c];
+}
+
+// Pixel p's backward (a CUDA thread): grad (B, C, H, W); the gradients of image b at its own pixel (positions,
+// normals (B, H, W, 3), depth and setting (B, H, W)) and scattered to its taps (tap_positions (B, H, W, 3),
+// tap_inverse (B, H, W), atomically)
+template <class Acc>
+TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* grad,
+                       const int64_t* record, float* positions, float* normals, float* depth, float* setting,
+                       float* tap_positions, float* tap_inverse, int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  const int C = acc.channels();
+  const float* upstream[8];
+  for (int c = 0; c < C; ++c) upstream[c] = grad + (b * C + c) * plane;
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, setting + b * plane,
+                  tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  float take_steps[2 * kGradMaxSteps];
+  Take<float, state_size<Acc, float>()> replayed[2 * kGradMaxSteps];
+  grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * plane * cfg.slices * 2 * take_words(cfg),
+                    t, take_steps, replayed);
+}
+
+}  // namespace tao
