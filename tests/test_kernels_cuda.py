@@ -111,8 +111,12 @@ typedef void Record(const float*, const float*, const float*, const float*, cons
 typedef void Backward(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                       const float*, const long long*, float*, float*, float*, float*, float*, float*,
                       const long long*, const float*, int, int, int);
+typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
+                          const float*, const float*, float*, float*, float*, float*, float*, float*,
+                          const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao;
+SoftBackward tao_soft_backward;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -134,6 +138,7 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
+                                   // (NAME soft: the soft walk's backward alone)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
@@ -151,13 +156,19 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   const float* cells = Ce.empty() ? nullptr : Ce.data();
   std::vector<float> out(size_t(B) * C * H * W, -7.0f);
   std::vector<long long> rec(size_t(pixels * words), -1);
-  grid(pixels, threads, [&] { record(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, out.data(), rec.data(),
-                                     ints.data(), floats.data(), B, H, W); });
   const size_t n = size_t(pixels);
   std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n);
-  grid(pixels, threads, [&] { backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(),
-                                       rec.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(),
-                                       ints.data(), floats.data(), B, H, W); });
+  if (name == "soft") {
+    grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+                                                  grad.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(),
+                                                  ti.data(), ints.data(), floats.data(), B, H, W); });
+  } else {
+    grid(pixels, threads, [&] { record(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, out.data(),
+                                       rec.data(), ints.data(), floats.data(), B, H, W); });
+    grid(pixels, threads, [&] { backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(),
+                                         rec.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(),
+                                         ints.data(), floats.data(), B, H, W); });
+  }
   save(dir, "out", out), save(dir, "record", rec), save(dir, "g_positions", gp), save(dir, "g_normals", gn);
   save(dir, "g_depth", gd), save(dir, "g_setting", gs), save(dir, "tap_positions", taps), save(dir, "tap_inverse", ti);
   return 0;
@@ -277,8 +288,8 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
 
 
 def _backward_cases():
-    """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants and HBAO (incremental and
-    max), every fetch, either border."""
+    """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
+    max) and the soft walk (uniform, cosine, straight-through), every fetch, either border."""
     common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5
     yield "gtao", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, False], [1.0, 0.3, 1.0], 2
@@ -287,13 +298,16 @@ def _backward_cases():
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
     yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
            [True, True, False], [1.0, 0.1], 1)
+    yield "soft", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 1  # (rounding, cosine, straight)
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True], [0.4, 0.01, 0.1], 1
+    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False], [0.5, 0.0, 0.3], 1
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
 def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cuda_on_cpu, frame):
-    """The CUDA record and backward kernels (walk_grad.h's record_block and grad_block, one thread a pixel, the
-    taps scattered with atomicAdd) launched thread by thread on the CPU: the CPU operators' scalar lanes, which
-    run the same functions, to float rounding (the scatters' order differs)."""
+    """The CUDA record and backward kernels (walk_grad.h's record_block and grad_block, soft_grad_block; one thread
+    a pixel, the taps scattered with atomicAdd) launched thread by thread on the CPU: the CPU operators' scalar
+    lanes, which run the same functions, to float rounding (the scatters' order differs)."""
     from torch_ao.kernels.build import grad_kernels
 
     gb = FRAMES[frame]()
@@ -316,11 +330,15 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         def read(name, *shape, dtype=np.float32):
             return torch.from_numpy(np.fromfile(folder / name, dtype=dtype).reshape(*shape))
 
-        out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
-        assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
-        assert (read("out", *out.shape) - out).abs().max() <= 1e-6
-        g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
-            accumulator, grad, *inputs, cells, ints, floats, record, True)
+        if accumulator == "soft":
+            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().soft_backward(grad, *inputs, cells, ints, floats,
+                                                                                   True)
+        else:
+            out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
+            assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
+            assert (read("out", *out.shape) - out).abs().max() <= 1e-6
+            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
+                accumulator, grad, *inputs, cells, ints, floats, record, True)
         cuda = {"positions": read("g_positions", *g_pos.shape) + read("tap_positions", *g_pos.shape),
                 "normals": read("g_normals", *g_nrm.shape), "inverse": read("tap_inverse", *g_inv.shape),
                 "depth": read("g_depth", *g_depth.shape), "setting": read("g_setting", *g_setting.shape)}
@@ -333,15 +351,17 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
-    """GTAO / HBAO with depth and parameter gradients on a CUDA G-buffer (tao_record_*, tao_backward_*) against
-    the same call on the CPU."""
+    """GTAO / HBAO (tao_record_*, tao_backward_*) and soft bitmask AO (tao_soft_backward) with depth and parameter
+    gradients on a CUDA G-buffer against the same call on the CPU."""
     import torch_ao
 
     module = {"gtao": lambda: torch_ao.GTAO(slices=3, steps=5, fetch="edge_aware"),
               "hdrp": lambda: torch_ao.GTAO(variant="hdrp", slices=3, steps=4),
-              "hbao": lambda: torch_ao.HBAO(slices=4, steps=4)}[method]
+              "hbao": lambda: torch_ao.HBAO(slices=4, steps=4),
+              "soft": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", slices=3,
+                                                 steps=4)}[method]
     gb = FRAMES["rough"]()
     results = []
     for device in ("cpu", "cuda"):

@@ -1,6 +1,6 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
 on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``
-and ``thickness`` and, on the CPU, to the G-buffer (depth or positions, normals).
+and ``thickness`` and to the G-buffer (depth or positions, normals), on the CPU and CUDA.
 
 The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sectors.soft_union`, or the
 hard coverage in straight-through mode). When only radius and thickness want a gradient, the same walk also
@@ -10,11 +10,12 @@ sample, two channels per pixel.
 
 When the G-buffer wants one, the forward is the plain walk over the channel-last inputs of
 :func:`~torch_ao.kernels.frame.walk_inputs` (so that autograd chains their gradients to depth, positions
-and normals through its torch ops), and the backward (``torch_ao_kernels::soft_backward``) walks again in
-dual lanes (``lanes_dual.h``: tangents on each pixel's own position, normal and depth), runs the reverse
+and normals through its torch ops), and the backward (walk_grad.h's ``soft_grad_block``:
+``torch_ao_kernels::soft_backward`` on the CPU, ``tao_soft_backward`` on CUDA) walks again in dual lanes
+(``lanes_dual.h``: tangents on each pixel's own position, normal and depth), runs the reverse
 scan per slice, contracts each step's d visibility / d (s, w) with the tangents of its interval, and
 scatters its d visibility / d delta to the step's fetch taps (bilinear: the four inverse depths; nearest:
-the tap's position). The radius needs no tangent: the walk is scale-invariant (positions, depth, radius and
+the tap's position; on CUDA atomically). The radius needs no tangent: the walk is scale-invariant (positions, depth, radius and
 thickness scaled together leave it as it is), so Euler's identity gives
 ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - T dL/dT``. Gradients of the
 intrinsics are not computed (:func:`kernel_covers` sends such a call to the tensor path).
@@ -28,7 +29,7 @@ from ..sectors import ROUNDINGS
 from .bitmask import options_uncovered
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
-from .launch import packed_inputs, run_walk, walk_settings
+from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
@@ -40,11 +41,11 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
-    differentiable with respect to ``radius``, ``thickness`` and (CPU) the G-buffer's depth, positions and
+    differentiable with respect to ``radius``, ``thickness`` and the G-buffer's depth, positions and
     ``normals``.
 
     Args:
-        gbuffer: a float32 G-buffer (CPU, or CUDA without gradients of its own); normals: its ``(B,3,H,W)``
+        gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
             unit view-space normals.
         slices, steps: directions per pixel and samples per side (at most 32).
         radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients).
@@ -54,8 +55,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
-    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient, or its buffers one on CUDA (the
-    kernel does not compute those).
+    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient (the kernel does not compute it).
     """
     uncovered = _gbuffer_gradient_uncovered(gbuffer)
     if uncovered is not None:
@@ -88,15 +88,12 @@ def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
 
 
 def _gbuffer_gradient_uncovered(gbuffer: GBuffer) -> str | None:
-    """The G-buffer gradient asked for that the kernel does not compute (the intrinsics', any on CUDA), or ``None``."""
+    """The G-buffer gradient asked for that the kernel does not compute (the intrinsics'), or ``None``."""
     if not torch.is_grad_enabled():
         return None
     cam = gbuffer.camera
     if any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
         return "a gradient of the intrinsics (fx, fy, cx, cy)"
-    buffers = (gbuffer.depth, gbuffer.normals, gbuffer.position)
-    if gbuffer.depth.device.type != "cpu" and any(t is not None and t.requires_grad for t in buffers):
-        return "a gradient of the G-buffer on CUDA (its backward runs on the CPU only)"
     return None
 
 
@@ -128,19 +125,31 @@ class _GBufferWalk(torch.autograd.Function):
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, thickness,
                 scalar):
-        none = torch.empty(0)
+        none = torch.empty(0, device=depth.device)
         ctx.scalar = scalar
         ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius,
                               thickness)
-        return cpu_kernels().walk("soft", positions, normals, inverse, depth, valid, intrinsics, none, cells, none,
-                                  ints, floats, 1, scalar)
+        frame = (positions, normals, inverse, depth, valid, intrinsics)
+        if depth.is_cuda:
+            out = torch.empty(depth.shape[0], 1, *depth.shape[1:], device=depth.device)
+            launch_cuda("tao_walk_soft", depth.device, [*frame, none, cells, none, out, ints, floats],
+                        tuple(depth.shape))
+            return out
+        return cpu_kernels().walk("soft", *frame, none, cells, none, ints, floats, 1, scalar)
 
     @staticmethod
     def backward(ctx, grad):
         positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, thickness = ctx.saved_tensors
-        g_pos, g_nrm, g_inv, g_depth, g_thick = grad_kernels().soft_backward(
-            grad.to(torch.float32).contiguous(), positions, normals, inverse, depth, valid, intrinsics, cells, ints,
-            floats, ctx.scalar)
+        frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
+        grad = grad.to(torch.float32).contiguous()
+        if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
+            g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
+            g_depth, g_thick, g_inv = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            launch_cuda("tao_soft_backward", depth.device,
+                        [*frame, grad, g_pos, g_nrm, g_depth, g_thick, taps, g_inv, ints, floats], tuple(depth.shape))
+            g_pos += taps
+        else:
+            g_pos, g_nrm, g_inv, g_depth, g_thick = grad_kernels().soft_backward(grad, *frame, ints, floats, ctx.scalar)
         g_thickness = g_thick.double().sum()
         g_radius = None
         if ctx.needs_input_grad[9]:  # Euler's identity (module docstring); invalid texels hold NaN

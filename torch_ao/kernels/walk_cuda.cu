@@ -57,3 +57,18 @@ TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
 TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
 TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao)
 TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao)
+
+// The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d thickness per pixel
+// in g_thickness
+extern "C" __global__ void tao_soft_backward(const float* positions, const float* normals, const float* inverse,
+                                             const float* depth, const bool* valid, const float* intrinsics,
+                                             const float* cells, const float* grad, float* g_positions,
+                                             float* g_normals, float* g_depth, float* g_thickness,
+                                             float* tap_positions, float* tap_inverse, const int64_t* ints,
+                                             const float* floats, int B, int H, int W) {
+  const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (p >= int64_t(B) * H * W) return;
+  const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, nullptr, valid, B, H, W};
+  tao::soft_grad_pixel(tao::unpack_walk(ints, floats), tao::unpack_soft<true, true>(ints, floats), frame, grad,
+                       g_positions, g_normals, g_depth, g_thickness, tap_positions, tap_inverse, p);
+}

@@ -1,7 +1,9 @@
-// The backward of the one walk for the horizon accumulators of horizon.h (GTAO's three variants, HBAO), any
-// fetch, either border, written against the lane type as walk.h is: the CPU operators (walk_grad_cpu.cpp, SIMD
-// and scalar lanes, rows over torch's threads) and the CUDA kernels (walk_cuda.cu, one pixel a thread) run it.
-// Per slice:
+// The backwards of the one walk, written against the lane type as walk.h is: the CPU operators
+// (walk_grad_cpu.cpp, SIMD and scalar lanes, rows over torch's threads) and the CUDA kernels (walk_cuda.cu, one
+// pixel a thread) run them. The soft / straight-through bitmask walk's (soft_grad_block) is soft.h's
+// SoftAdjoint over the walk: value lanes with the pixel and its slices in dual lanes (tangents 0..6), each
+// step's d / d delta scattered to its taps by scatter_taps (TapSink). The horizon accumulators' (horizon.h:
+// GTAO's three variants, HBAO; any fetch, either border), per slice:
 //  1. the forward (record_block: walk.h's walk_slice in plain lanes with the Takes visitor) records, per pixel
 //     and side, the steps that changed the accumulator's state (its "takes", a bit per step; every valid step
 //     where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the state as it was is the
@@ -288,6 +290,46 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   }
 }
 
+// The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
+template <class B> struct TapSink {
+  bool bilinear;
+  int n;
+  const Targets& t;
+
+  template <class State>
+  TAO_FN void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on) {
+    const B pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
+    const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
+    scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on);
+  }
+};
+
+// The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
+// slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
+// d L / d thickness written per pixel
+template <class B>
+TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc,
+                            int64_t row, int64_t u0, int n, const float* upstream, const Targets& t) {
+  using D = Dual<B, kPixel>;
+  constexpr int L = LaneTraits<B>::L;
+  float lane[L];
+  for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
+  const B g = from_lanes(lane, B(0.0f));
+  TapSink<B> sink{cfg.bilinear, n, t};
+  const Pixels<D> pd(cfg, img, row, u0, n);
+  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
+  B outs[8];
+  walk_block(cfg, img, adjoint, row, u0, n, outs);
+  float ol[8][L];
+  for (int k = 0; k < 8; ++k) to_lanes(g * outs[k], ol[k]);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * img.W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l];
+    t.setting[p] = ol[7][l];  // d L / d thickness
+  }
+}
+
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
 // (B, H, W, slices, 2, take_words), at most kGradMaxSteps steps per side
 template <class Acc>
@@ -319,6 +361,17 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   Take<float, state_size<Acc, float>()> replayed[2 * kGradMaxSteps];
   grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * plane * cfg.slices * 2 * take_words(cfg),
                     t, take_steps, replayed);
+}
+
+// Pixel p's soft backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals, depth and
+// d L / d thickness) and its steps' taps' (atomically) as grad_pixel's
+TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true>& acc, const Frame& fr,
+                            const float* grad, float* positions, float* normals, float* depth, float* thickness,
+                            float* tap_positions, float* tap_inverse, int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + b * plane,
+                  tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 
 }  // namespace tao

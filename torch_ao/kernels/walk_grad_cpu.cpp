@@ -190,45 +190,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_back
   return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
 
-// The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
-template <class B> struct TapSink {
-  bool bilinear;
-  int n;
-  const Targets& t;
-
-  template <class State> void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on) {
-    const B pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
-    const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
-    scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on);
-  }
-};
-
-// The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
-// slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
-// d L / d thickness written per pixel
-template <class B>
-void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc, int64_t row,
-                     int64_t u0, int n, const float* upstream, const Targets& t) {
-  using D = Dual<B, kPixel>;
-  constexpr int L = LaneTraits<B>::L;
-  float lane[L];
-  for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
-  const B g = from_lanes(lane, B(0.0f));
-  TapSink<B> sink{cfg.bilinear, n, t};
-  const Pixels<D> pd(cfg, img, row, u0, n);
-  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
-  B outs[8];
-  walk_block(cfg, img, adjoint, row, u0, n, outs);
-  float ol[8][L];
-  for (int k = 0; k < 8; ++k) to_lanes(g * outs[k], ol[k]);
-  for (int l = 0; l < n; ++l) {
-    const int64_t p = row * img.W + u0 + l;
-    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l];
-    t.setting[p] = ol[7][l];  // d L / d thickness
-  }
-}
-
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
 // walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
 // depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W); cells: the
