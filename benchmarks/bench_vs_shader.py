@@ -169,6 +169,10 @@ def _cases() -> dict[str, Case]:
         "cosine_edge_gbuffer": Case("soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals",
                                     bitmask(mode="soft", weighting="cosine", fetch="edge_aware"), "gbuffer", "bitmask",
                                     3.0),
+        "cosine_edge_gbuffer_torch": Case(
+            "soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals, tensor ops",
+            lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend="torch", **s),
+            "gbuffer", "bitmask", 3.0, kernel=False),
         "gtao_gbuffer": Case("`GTAO` fwd+bwd, depth + normals", horizon(torch_ao.GTAO), "gbuffer", "gtao", 3.0),
         "gtao_edge_gbuffer": Case("`GTAO` edge-aware fetch fwd+bwd, depth + normals",
                                   horizon(torch_ao.GTAO, fetch="edge_aware"), "gbuffer", "gtao_edge", 3.0),

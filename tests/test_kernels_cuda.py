@@ -37,6 +37,8 @@ struct tao_dim3 { unsigned x, y, z; };
 tao_dim3 blockIdx, blockDim, threadIdx;
 }
 static inline int __popc(unsigned x) { return __builtin_popcount(x); }
+static inline int __ffs(int x) { return __builtin_ffs(x); }
+static inline int __ffsll(long long x) { return __builtin_ffsll(x); }
 static inline unsigned __float_as_uint(float x) { unsigned b; __builtin_memcpy(&b, &x, sizeof b); return b; }
 static inline float __uint_as_float(unsigned b) { float x; __builtin_memcpy(&x, &b, sizeof x); return x; }
 static inline float atomicAdd(float* to, float x) { float old = *to; *to = old + x; return old; }  // (one thread at a time)

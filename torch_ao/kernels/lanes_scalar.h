@@ -89,10 +89,15 @@ TAO_FN uint32_t imax(uint32_t a, uint32_t b) { return int32_t(a) > int32_t(b) ? 
 TAO_FN uint32_t bnot(uint32_t x) { return ~x; }
 TAO_FN uint32_t low_bits(uint32_t k) { return k >= 32u ? 0xffffffffu : (1u << k) - 1u; }  // k in [0, 32]
 TAO_FN float bit(uint32_t mask, int k) { return float((mask >> k) & 1u); }
+// set bits, and the lowest set bit's index (of x != 0)
 #ifdef __CUDACC_RTC__
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
+TAO_FN int lowest_bit(uint32_t x) { return __ffs(int(x)) - 1; }
+TAO_FN int lowest_bit(uint64_t x) { return __ffsll((long long)x) - 1; }
 #else
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
+TAO_FN int lowest_bit(uint32_t x) { return __builtin_ctz(x); }
+TAO_FN int lowest_bit(uint64_t x) { return __builtin_ctzll(x); }
 #endif
 TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
 // *to += x, by one thread at a time (on the CPU each thread adds into its own image; CUDA threads share one)

@@ -55,13 +55,6 @@ struct Targets {
 // The words of a record per (pixel, slice, side)
 TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
 
-// the lowest set bit's index of x != 0
-template <class U> TAO_FN int lowest_bit(U x) {
-  int k = 0;
-  while (!((x >> k) & U(1))) ++k;
-  return k;
-}
-
 // The record of a slice (the forward's visitor): per side and lane the steps that changed the state (the
 // last one alone where a take replaces the state), as bits: step j is bit j % 64 of word j / 64
 template <class B, class Acc> struct Takes {
