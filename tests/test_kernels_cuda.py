@@ -44,7 +44,8 @@ static inline float __uint_as_float(unsigned b) { float x; __builtin_memcpy(&x, 
 static inline float atomicAdd(float* to, float x) { float old = *to; *to = old + x; return old; }  // (one thread at a time)
 """
 
-DRIVER = r"""
+# what both drivers share: the thread indices the kernels read, reading the inputs' files back
+DRIVER_COMMON = r"""
 #include <cstdio>
 #include <cstdlib>
 #include <string>
@@ -52,10 +53,6 @@ DRIVER = r"""
 extern "C" {
 struct tao_dim3 { unsigned x, y, z; };
 extern tao_dim3 blockIdx, blockDim, threadIdx;
-typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
-                    const float*, const float*, float*, const long long*, const float*, int, int, int);
-Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
-    tao_walk_soft_gradients, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao;
 }
 template <class T> std::vector<T> load(const std::string& dir, const char* name) {
   std::vector<T> v;
@@ -65,6 +62,15 @@ template <class T> std::vector<T> load(const std::string& dir, const char* name)
   while (std::fread(&x, sizeof(T), 1, f) == 1) v.push_back(x);
   std::fclose(f);
   return v;
+}
+"""
+
+DRIVER = DRIVER_COMMON + r"""
+extern "C" {
+typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
+                    const float*, const float*, float*, const long long*, const float*, int, int, int);
+Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
+    tao_walk_soft_gradients, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao;
 }
 int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch of <<<blocks, THREADS>>>
   const std::string name = argv[1], dir = argv[2];
@@ -100,14 +106,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
 """
 
 
-GRAD_DRIVER = r"""
-#include <cstdio>
-#include <cstdlib>
-#include <string>
-#include <vector>
+GRAD_DRIVER = DRIVER_COMMON + r"""
 extern "C" {
-struct tao_dim3 { unsigned x, y, z; };
-extern tao_dim3 blockIdx, blockDim, threadIdx;
 typedef void Record(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     float*, long long*, const long long*, const float*, int, int, int);
 typedef void Backward(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
@@ -119,15 +119,6 @@ typedef void SoftBackward(const float*, const float*, const float*, const float*
 Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao;
 SoftBackward tao_soft_backward;
-}
-template <class T> std::vector<T> load(const std::string& dir, const char* name) {
-  std::vector<T> v;
-  FILE* f = std::fopen((dir + "/" + name).c_str(), "rb");
-  if (!f) return v;
-  T x;
-  while (std::fread(&x, sizeof(T), 1, f) == 1) v.push_back(x);
-  std::fclose(f);
-  return v;
 }
 template <class T> void save(const std::string& dir, const char* name, const std::vector<T>& v) {
   FILE* f = std::fopen((dir + "/" + name).c_str(), "wb");
