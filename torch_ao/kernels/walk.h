@@ -379,6 +379,14 @@ template <class F> struct Sample {
     return land(land(su >= F(0.0f), su <= F(float(image->W - 1))), land(sv >= F(0.0f), sv <= F(float(image->H - 1))));
   }
 
+  // the same sample in another lane type, each value through to(x) (as Pixels')
+  template <class G, class To>
+  TAO_FN Sample(const Sample<G>& o, const To& to)
+      : valid(o.valid), fu(to(o.fu)), fv(to(o.fv)), su(to(o.su)), sv(to(o.sv)), bilinear(o.bilinear), image(o.image) {
+    for (int c = 0; c < 3; ++c) delta[c] = to(o.delta[c]);
+    for (int k = 0; k < 4; ++k) index[k] = o.index[k];
+  }
+
   // the sample dist pixels from the pixel along the slice's side
   TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
                 const F& dist)

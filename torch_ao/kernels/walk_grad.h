@@ -219,18 +219,20 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
     takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
-    const Slice<D> sl(Slice<Own>(cfg, img, px_own, s), wide);
+    const Slice<Own> sl_own(cfg, img, px_own, s);
+    const Slice<D> sl(sl_own, wide);
     StateD state = acc.begin_slice(pxd, sl);
     int replays = 0;
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
       const int k = side > 0 ? 0 : 1;
-      const D xi = step_noise(cfg, pxd, sl, side);
+      const Own xi = step_noise(cfg, px_own, sl_own, side);
       for (int q = 0, most = takes.most(k); q < most; ++q) {
         float has_lane[L];
         for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
         const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
-        const D j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
-        Sample<D> smp(cfg, img, pxd, sl, float(side), step_distance(cfg, sl, xi, j));
+        const Own j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
+        // (in the own tangents alone, as the pixel and slice: the state's and delta's are seeded below)
+        Sample<D> smp(Sample<Own>(cfg, img, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j)), wide);
         smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kDelta + c] = B(1.0f);
         reseed(state);
