@@ -37,3 +37,38 @@ def test_buffers_needing_gradients_are_recomputed_each_call():
     for _ in range(2):  # a second forward's graph is its own: backward twice works
         (gb.positions().sum() + denoise_guide(gb).sum()).backward()
     assert gb.depth.grad is not None and bool(torch.isfinite(gb.depth.grad).all())
+
+
+def test_one_call_computes_them_once_with_gradients_and_drops_them(monkeypatch):
+    """Within a method's call (GBuffer.one_call) the positions are unprojected once even while the depth needs
+    gradients (the normals from depth and the walk read the same), the gradients are those of a call without the
+    cache, and the next call builds its own graph."""
+    import contextlib
+
+    import torch_ao
+    from torch_ao.camera import PinholeCamera
+
+    calls = []
+    unproject = PinholeCamera.unproject
+    monkeypatch.setattr(PinholeCamera, "unproject", lambda self, d: calls.append(1) or unproject(self, d))
+    gb = _depth_only(crease_gbuffer(24, 32), requires_grad=True)
+    with gb.one_call():
+        a, b = gb.positions(), gb.positions()
+        assert a is b and a.requires_grad
+    assert gb.positions() is not a  # dropped at the end
+
+    def gradient(backend):
+        calls.clear()
+        gb.depth.grad = None
+        torch_ao.GTAO(slices=2, steps=3, backend=backend)(gb).visibility.sum().backward()
+        return len(calls), gb.depth.grad.clone()
+
+    for backend in ("kernel", "torch"):
+        (once, cached), (twice, _) = gradient(backend), gradient(backend)  # (a second call: a graph of its own)
+        assert once == twice == 1, backend
+        with monkeypatch.context() as m:
+            m.setattr(GBuffer, "one_call", lambda self: contextlib.nullcontext(self))
+            uncached_calls, uncached = gradient(backend)
+        assert uncached_calls > 1  # (without it, each reader unprojects again)
+        scale = float(cached.abs().max())  # (float32: the two orders of summing the gradients round apart)
+        assert scale > 0 and float((cached - uncached).abs().max()) <= 1e-6 * scale, backend

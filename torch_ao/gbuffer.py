@@ -10,6 +10,7 @@ mask them out with :attr:`GBuffer.valid`.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 
 import torch
@@ -89,6 +90,7 @@ class GBuffer:
     position: torch.Tensor | None = None
     _valid: torch.Tensor = field(init=False, repr=False)
     _derived: dict = field(init=False, repr=False, compare=False, default_factory=dict)
+    _call: dict | None = field(init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self) -> None:
         if self.depth is None and self.position is not None:
@@ -192,15 +194,35 @@ class GBuffer:
     def derived(self, key, compute):
         """``compute()``, a buffer derived from this G-buffer, computed once per ``key`` and kept for the
         next call (a fit evaluates the same views hundreds of times) while none of the G-buffer's
-        tensors needs gradients (then it is recomputed every time), nor under ``torch.compile`` (the cache's
-        content would be a guard: a second call on the same G-buffer would recompile the whole walk). Do not
-        modify the result in place."""
-        if torch.compiler.is_compiling() or any(x is not None and x.requires_grad for x in (
-                self.depth, self.normals, self.position, self.camera.intrinsics)):
+        tensors needs gradients (then it is computed once per :meth:`one_call`, else every time), nor under
+        ``torch.compile`` (the cache's content would be a guard: a second call on the same G-buffer would
+        recompile the whole walk). Do not modify the result in place."""
+        if torch.compiler.is_compiling():
             return compute()
-        if key not in self._derived:
-            self._derived[key] = compute()
-        return self._derived[key]
+        if any(x is not None and x.requires_grad for x in (self.depth, self.normals, self.position,
+                                                           self.camera.intrinsics)):
+            if self._call is None:
+                return compute()
+            cache = self._call
+        else:
+            cache = self._derived
+        if key not in cache:
+            cache[key] = compute()
+        return cache[key]
+
+    @contextlib.contextmanager
+    def one_call(self):
+        """Within it, the buffers :meth:`derived` computes (positions, normals, ...) are computed once even where
+        the G-buffer's tensors need gradients (one forward's graph may read a tensor twice) and dropped at its
+        end, with their graph. A method's ``forward`` runs in it; nested calls share the outermost."""
+        if self._call is not None:
+            yield self
+            return
+        self._call = {}
+        try:
+            yield self
+        finally:
+            self._call = None
 
     @property
     def safe_depth(self) -> torch.Tensor:
@@ -225,7 +247,8 @@ class GBuffer:
     def _view_normals(self, method: str) -> torch.Tensor:
         if self.normals is not None:
             return _unit_facing(self.normals, self.positions(), self._valid)
-        return normals_from_depth(self.depth, self.camera, method=method, valid=self._valid)
+        return normals_from_depth(self.depth, self.camera, method=method, valid=self._valid,
+                                  positions=self.positions() if self.position is None else None)
 
 
 def _toward_camera(positions: torch.Tensor) -> torch.Tensor:
@@ -246,6 +269,7 @@ def normals_from_depth(
     camera: PinholeCamera,
     method: str = "improved",
     valid: torch.Tensor | None = None,
+    positions: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Unit view-space normals ``(B,3,H,W)`` reconstructed from ``depth (B,1,H,W)``, facing the camera.
 
@@ -257,6 +281,8 @@ def normals_from_depth(
 
     Shape:
         - depth: ``(B, 1, H, W)`` float (world units); valid: optional ``(B, 1, H, W)`` bool.
+        - positions: optional ``(B, 3, H, W)``, the depth unprojected by ``camera`` with background at depth 1
+          (:meth:`GBuffer.positions` of a G-buffer without a position buffer), when the caller has it.
         - Output: ``(B, 3, H, W)`` unit view-space normals, the depth's dtype.
     """
     if method not in ("improved", "kornia"):
@@ -264,7 +290,7 @@ def normals_from_depth(
     if valid is None:
         valid = geometry_depth(depth)
     d = torch.where(valid, depth, torch.ones_like(depth))
-    pos = camera.unproject(d)
+    pos = camera.unproject(d) if positions is None else positions
     if method == "kornia":
         K = camera.intrinsics.expand(depth.shape[0], 3, 3).to(d.dtype)
         n = depth_to_normals(d, K) * d.new_tensor((1.0, -1.0, -1.0)).view(1, 3, 1, 1)

@@ -162,9 +162,10 @@ class ScreenSpaceAO(nn.Module):
         if not isinstance(gbuffer, GBuffer):
             raise TypeError(f"gbuffer: expected a torch_ao.GBuffer, got {type(gbuffer).__name__}")
         factor = resolution_factor(self.resolution)
-        if factor == 1:
-            return self._forward_full(gbuffer)
-        return reduced_forward(self._forward_full, gbuffer, factor, self.normals_method)
+        with gbuffer.one_call():  # (positions and normals computed once in the call, gradients or not)
+            if factor == 1:
+                return self._forward_full(gbuffer)
+            return reduced_forward(self._forward_full, gbuffer, factor, self.normals_method)
 
     def check_memory(self, gbuffer: GBuffer) -> None:
         """Refuse (:class:`~torch_ao.limits.ResourceLimitError`) a call whose estimated memory
@@ -179,6 +180,10 @@ class ScreenSpaceAO(nn.Module):
                     "or give chunk_size (and recompute=True), fewer slices or steps, or a smaller frame")
 
     def _forward_full(self, gbuffer: GBuffer) -> AOOutput:
+        with gbuffer.one_call():  # (a reduced resolution's G-buffer is a new one)
+            return self._walk_full(gbuffer)
+
+    def _walk_full(self, gbuffer: GBuffer) -> AOOutput:
         self.check_memory(gbuffer)
         fused = kernel_forward(self, gbuffer, self.backend)  # None: the tensor-op walk below
         if fused is not None:
