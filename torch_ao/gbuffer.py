@@ -214,8 +214,9 @@ class GBuffer:
     def one_call(self):
         """Within it, the buffers :meth:`derived` computes (positions, normals, ...) are computed once even where
         the G-buffer's tensors need gradients (one forward's graph may read a tensor twice) and dropped at its
-        end, with their graph. A method's ``forward`` runs in it; nested calls share the outermost."""
-        if self._call is not None:
+        end, with their graph. A method's ``forward`` runs in it; nested calls share the outermost. Under
+        ``torch.compile`` it does nothing (as :meth:`derived`: the G-buffer's state would be a guard)."""
+        if self._call is not None or torch.compiler.is_compiling():
             yield self
             return
         self._call = {}
