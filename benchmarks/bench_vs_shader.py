@@ -136,9 +136,9 @@ def _cases() -> dict[str, Case]:
     def horizon(cls, backend="kernel", **options):
         return lambda s: cls(backend=backend, **_without_thickness(s), **options)
 
-    def exact(backend):
+    def exact(backend, trainable=False):
         return lambda s: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), fetch="edge_aware",
-                                            trainable=False, backend=backend, **_without_thickness(s))
+                                            trainable=trainable, backend=backend, **_without_thickness(s))
 
     return {
         "ssilvb_glsl": Case("`ssilvb_glsl` hard AO + indirect", lambda s: torch_ao.SSILVB(
@@ -173,6 +173,10 @@ def _cases() -> dict[str, Case]:
             "soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend="torch", **s),
             "gbuffer", "bitmask", 3.0, kernel=False),
+        "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
+                              exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
+        "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
+                                    exact("torch", trainable=True), "gbuffer", "exact", 3.0, kernel=False),
         "gtao_gbuffer": Case("`GTAO` fwd+bwd, depth + normals", horizon(torch_ao.GTAO), "gbuffer", "gtao", 3.0),
         "gtao_edge_gbuffer": Case("`GTAO` edge-aware fetch fwd+bwd, depth + normals",
                                   horizon(torch_ao.GTAO, fetch="edge_aware"), "gbuffer", "gtao_edge", 3.0),

@@ -27,6 +27,25 @@ def test_recomputed_chunks_match_the_whole_frame(cls, mode):
         assert torch.allclose(a, b, atol=1e-12, rtol=1e-10)
 
 
+@pytest.mark.parametrize("variant", ["default", "exact"])
+def test_recomputed_chunks_with_the_edge_aware_fetch(variant):
+    """The edge-aware fetch's cell flags are computed once per frame, inside the first chunk: its recomputation
+    finds them cached and must save what the first pass saved (a graph for the flags did not: the backward
+    raised CheckpointError)."""
+    gb, _ = floor_wall_gbuffer(24, 32, dtype=torch.float64)
+    results = []
+    for options in (dict(chunk_size=None, recompute=False), dict(chunk_size=150, recompute=True)):
+        depth = gb.depth.clone().requires_grad_(True)
+        module = BitmaskAO(variant=variant, mode="soft", slices=2, steps=3, fetch="edge_aware", backend="torch",
+                           **options).double()
+        out = module(GBuffer(depth, gb.camera, normals=gb.normals))
+        out.visibility.sum().backward()
+        results.append([out.visibility.detach(), depth.grad])
+    (whole, g_whole), (chunked, g_chunked) = results
+    assert g_whole.abs().sum() > 0
+    assert torch.allclose(whole, chunked, atol=1e-12) and torch.allclose(g_whole, g_chunked, atol=1e-12, rtol=1e-10)
+
+
 def test_auto_chunking_follows_the_mode_at_call_time():
     module = BitmaskAO(mode="hard", slices=4, steps=8)
     vga, hd, small = 640 * 360, 1280 * 720, BitmaskAO.default_chunk
@@ -123,7 +142,7 @@ def test_graph_estimate_bounds_what_the_exact_variant_keeps():
     gb, _ = floor_wall_gbuffer(48, 64)
     depth = gb.depth.clone().requires_grad_(True)
     gb = GBuffer(depth, gb.camera, normals=gb.normals.clone().requires_grad_(True))
-    module = BitmaskAO(variant="exact", slices=4, steps=8, chunk_size=None, recompute=False)
+    module = BitmaskAO(variant="exact", slices=4, steps=8, chunk_size=None, recompute=False, backend="torch")
     per_sample = _saved_bytes_per_sample(module, gb)
     assert 0.5 * module.graph_bytes_per_sample_exact < per_sample <= module.graph_bytes_per_sample_exact
     # recorded in hard mode too (the exact union has gradients in every mode): chunks are recomputed when large

@@ -74,6 +74,10 @@ struct ThicknessModel {
   }
 };
 
+// The hemisphere's edge on side -1 as a fraction of the half circle from the view vector's side: (pi/2 - gamma) / pi
+// (the sector rule's shift: a sample's angle from the view vector, times side / pi, plus this)
+template <class F> TAO_FN F edge_shift(const Slice<F>& sl) { return (F(kHalfPi) - sl.gamma) / F(kPi); }
+
 struct BitmaskAccumulator {
   int64_t slices;
   ThicknessModel thickness;  // world units along the view ray
@@ -97,7 +101,7 @@ struct BitmaskAccumulator {
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
     State<F> st;
     st.occ = typename LaneTraits<F>::I(0);
-    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    st.shift = edge_shift(sl);
     for (int c = 0; c < 3; ++c) st.light[c] = F(0.0f);
     if (cosine) {
       cosine_sector_weights(sl, st.omega);
@@ -229,7 +233,7 @@ struct ExactAccumulator {
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
     State<F> st;
-    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    st.shift = edge_shift(sl);
     st.n = 0;
     return st;
   }
@@ -280,11 +284,10 @@ struct ExactAccumulator {
     ++st.n;
   }
 
-  // The measure of the union of the n intervals [lo, hi] (sorted in place): sector units, or with cosine
-  // weights the arc measure. Sorted by start (lane by lane: Batcher's odd-even merge sort, a fixed sequence of
-  // compare-exchanges for any n: 19 for 8 intervals, 63 for 16, where an insertion sort's lanes take all 28
-  // and 120), each interval adds what lies beyond the reach of those before it.
-  template <class F, class G> TAO_FN G union_measure(G* lo, G* hi, int n, const Slice<F>& sl) const {
+  // The n intervals [lo, hi] sorted by start, lane by lane: Batcher's odd-even merge sort, a fixed sequence of
+  // compare-exchanges for any n (19 for 8 intervals, 63 for 16, where an insertion sort's lanes take all 28 and
+  // 120); also(swap, a, b) exchanges what travels with intervals a and b where swap holds
+  template <class G, class Also> TAO_FN void sort_by_start(G* lo, G* hi, int n, const Also& also) const {
     for (int p = 1; p < n; p += p)
       for (int k = p; k >= 1; k /= 2)
         for (int j = k % p; j + k < n; j += 2 * k)
@@ -295,11 +298,26 @@ struct ExactAccumulator {
             const G l = select(swap, lo[b], lo[a]), h = select(swap, hi[b], hi[a]);
             lo[b] = select(swap, lo[a], lo[b]), hi[b] = select(swap, hi[a], hi[b]);
             lo[a] = l, hi[a] = h;
+            also(swap, a, b);
           }
+  }
+  struct Alone {  // (sort_by_start: nothing travels with the intervals)
+    template <class M> TAO_FN void operator()(const M&, int, int) const {}
+  };
+
+  // What [a, b] (a <= b, sector units) covers of the slice: b - a, or with cosine weights its arc measure
+  template <class F, class G> TAO_FN G measure(const G& a, const G& b, const Slice<F>& sl) const {
+    return cosine ? (arc_measure_at(b, sl) - arc_measure_at(a, sl)) * G(sl.length) : b - a;
+  }
+
+  // The measure of the union of the n intervals [lo, hi] (sorted in place): sorted by start, each interval adds
+  // what lies beyond the reach of those before it
+  template <class F, class G> TAO_FN G union_measure(G* lo, G* hi, int n, const Slice<F>& sl) const {
+    sort_by_start(lo, hi, n, Alone{});
     G reach = G(0.0f), covered = G(0.0f);
     for (int j = 0; j < n; ++j) {
       const G a = max(lo[j], reach), b = max(hi[j], reach);
-      covered = covered + (cosine ? (arc_measure_at(b, sl) - arc_measure_at(a, sl)) * G(sl.length) : b - a);
+      covered = covered + measure(a, b, sl);
       reach = b;
     }
     return covered;
@@ -324,6 +342,10 @@ struct ExactAccumulator {
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
     const F vis = cosine ? sums.num / clamp_min(sums.den, F(1e-30f)) : sums.num / F(float(slices));
     out[0] = select(px.live, vis, F(1.0f));
+  }
+  // finish's d visibility / d a slice's covered measure, the same for every slice (den: the sums' whole measure)
+  template <class F> TAO_FN F per_covered(const F& den) const {
+    return cosine ? neg(F(1.0f) / clamp_min(den, F(1e-30f))) : F(-1.0f / (float(kSectors) * float(slices)));
   }
 };
 

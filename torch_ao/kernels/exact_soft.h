@@ -38,7 +38,7 @@ struct ExactGradAccumulator {
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
     State<F> st;
-    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    st.shift = edge_shift(sl);
     st.n = 0;
     return st;
   }

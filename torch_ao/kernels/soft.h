@@ -182,7 +182,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
     State<F> st;
     st.occ = typename LaneTraits<F>::I(0);
-    st.shift = (F(kHalfPi) - sl.gamma) / F(kPi);
+    st.shift = edge_shift(sl);
     st.n = 0;
     for (int k = 0; k < kSectors; ++k) st.P[k] = F(1.0f), st.omega[k] = F(1.0f / kSectors);
     if (cosine) cosine_sector_weights(sl, st.omega);

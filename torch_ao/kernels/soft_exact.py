@@ -1,14 +1,24 @@
 """The exact union's kernel with gradients: ``BitmaskAO(variant="exact")`` (``union="exact"``) in soft,
-straight-through or hard mode, differentiable with respect to ``radius`` and the thickness model's scalars
-(``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``), on the one walk
-(``walk.h`` with ``exact_soft.h``'s accumulator).
+straight-through or hard mode, differentiable with respect to ``radius``, the thickness model's scalars
+(``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``), the G-buffer
+(depth, positions, normals) and the thickness layer the model reads (the back-face layer, and through it the
+back-face depth; a map; the net's map; a per-object table), on the one walk, CPU and CUDA.
 
 The exact union has no temperature: its measure is differentiable almost everywhere as it is, so the three
 modes have one forward (the hard kernel's, :func:`~torch_ao.kernels.exact_hard`, value for value) and one
-gradient. The walk runs in dual lanes carrying the derivatives of each sample's interval with respect to
-the three parameters through the union, and returns each pixel's derivatives of its visibility; the backward
-is their sum weighted by the upstream gradient (nothing is kept per sample: three channels per pixel).
-Gradients of the G-buffer are not computed (:func:`exact_soft_covers` sends such a call to the tensor path).
+gradient. For the scalars the walk runs in dual lanes (``exact_soft.h``) carrying the derivatives of each
+sample's interval with respect to them through the union, and returns each pixel's derivatives of its
+visibility; the backward is their sum weighted by the upstream gradient (nothing is kept per sample: three
+channels per pixel).
+
+When the G-buffer or the layer wants a gradient, the walk reads the channel-last inputs of
+:func:`~torch_ao.kernels.frame.walk_inputs` and the layer (so that autograd chains their gradients to depth,
+positions, normals and whatever made the layer through its torch ops), and the backward (walk_grad.h's
+``exact_grad_block``: ``torch_ao_kernels::exact_backward`` on the CPU, ``tao_exact_backward`` on CUDA) walks
+each slice again: the union's adjoint by hand (its sort, its running reach), then the intervals that carry one
+replayed in dual lanes, whose tangents reach the pixel's own position, normal and depth and, scattered, each
+sample's taps (inverse depth or position, and the layer's). Gradients of the intrinsics are not computed
+(:func:`exact_soft_covers` sends such a call to the tensor path).
 """
 from __future__ import annotations
 
@@ -16,8 +26,9 @@ import torch
 
 from ..gbuffer import GBuffer
 from .bitmask import EXACT_MAX_STEPS, _EXACT, module_thickness, options_uncovered, thickness_read_index
-from .build import cpu_kernels
-from .launch import run_walk, walk_settings
+from .build import cpu_kernels, grad_kernels
+from .frame import scalar_lanes
+from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 
 __all__ = ["exact_soft", "exact_soft_covers", "exact_soft_forward"]
 
@@ -30,22 +41,23 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                thickness_direction: str = "depth", clip_to_radius: bool = True, sample_extent: str = "sphere",
                sector_epsilon: float = 0.0, lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` of the exact union (background 1; :func:`~torch_ao.kernels.exact_hard`'s),
-    differentiable with respect to ``radius``, ``thickness`` and ``layer_scale``.
+    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, the G-buffer's depth, positions
+    and ``normals``, and ``layer``.
 
     Args:
-        gbuffer: a float32 G-buffer (CPU or CUDA), whose tensors want no gradient; normals: its ``(B,3,H,W)``
-            unit view-space normals.
+        gbuffer: a float32 G-buffer (CPU or CUDA); normals: its ``(B,3,H,W)`` unit view-space normals.
         radius, thickness: 0-d tensors, world units (``nn.Parameter``\\ s get gradients); with ``layer``
             ``(B,1,H,W)`` (a model's :class:`~torch_ao.thickness.ThicknessLayer`, read at each sample as depth
-            is; no gradient reaches it) the thickness there is ``layer_scale * layer + thickness``, with
-            ``layer_scale`` a 0-d tensor (default 1, e.g. the back-face model's ``thickness_scale``);
+            is) the thickness there is ``layer_scale * layer + thickness``, with ``layer_scale`` a 0-d tensor
+            (default 1, e.g. the back-face model's ``thickness_scale``);
             ``thickness_read``: as :func:`~torch_ao.kernels.bitmask_outputs` (``"depth"``: ``layer_scale``
             times the sample's depth, LinearThickness' slope).
         slices, steps (<= 32 per side), step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch,
             border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
-    Raises ``ValueError`` naming the argument for a parameter that is not 0-d, or ``steps`` beyond 32.
+    Raises ``ValueError`` naming the argument for a parameter that is not 0-d, ``steps`` beyond 32, or
+    intrinsics that want a gradient (``gbuffer``: the kernel does not compute it).
     """
     if int(steps) > EXACT_MAX_STEPS:
         raise ValueError(f"steps: the exact union's kernel holds at most {EXACT_MAX_STEPS} per side, got {steps}")
@@ -61,26 +73,103 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
         if t.dim() != 0:
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
         scalars.append(t)
+    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals, layer)
+    if of_gbuffer and _intrinsics_want_gradient(gbuffer):
+        raise ValueError("gbuffer: the exact kernel does not compute a gradient of the intrinsics (fx, fy, cx, cy); "
+                         "detach them or use backend='torch'")
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
+        if of_gbuffer:
+            grad_kernels()
     options = dict(slices=int(slices), steps=int(steps), step_power=float(step_power), min_step_px=float(min_step_px),
                    jitter=bool(jitter), seed=int(seed), noise=noise, stagger=bool(stagger), fetch=fetch, border=border,
                    cosine=weighting == "cosine", along_ray=thickness_direction == "depth", clip=bool(clip_to_radius),
                    sphere=sample_extent == "sphere", epsilon=float(sector_epsilon), read=read, lanes=lanes)
+    if of_gbuffer:
+        return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
     return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2], None if layer is None else layer.detach())
+
+
+def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, layer: torch.Tensor | None) -> bool:
+    """Whether autograd records through the G-buffer's depth, positions, ``normals`` or the thickness ``layer``."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
+        gbuffer.depth, gbuffer.position, gbuffer.normals, normals, layer))
+
+
+def _intrinsics_want_gradient(gbuffer: GBuffer) -> bool:
+    cam = gbuffer.camera
+    return torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy))
+
+
+def _settings(radius, thickness, scale, o) -> tuple:
+    """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of the exact union's walk."""
+    r = float(radius.detach())
+    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=r, step_power=o["step_power"],
+                             min_step_px=o["min_step_px"], jitter=o["jitter"], seed=o["seed"], noise=o["noise"],
+                             stagger=o["stagger"], fetch=o["fetch"], border=o["border"], sphere_extent=o["sphere"])
+    return (settings, [o["cosine"], o["along_ray"], o["clip"], o["read"]],
+            [float(thickness.detach()), 1.0 if scale is None else float(scale.detach()), r, o["epsilon"]])
 
 
 def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients: bool) -> torch.Tensor:
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d the
     thickness' offset, d its scale."""
-    r = float(radius.detach())
-    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=r, step_power=o["step_power"],
-                             min_step_px=o["min_step_px"], jitter=o["jitter"], seed=o["seed"], noise=o["noise"],
-                             stagger=o["stagger"], fetch=o["fetch"], border=o["border"], sphere_extent=o["sphere"])
-    return run_walk("exact_gradients" if gradients else "exact", gbuffer, normals, settings,
-                    [o["cosine"], o["along_ray"], o["clip"], o["read"]],
-                    [float(thickness.detach()), 1.0 if scale is None else float(scale.detach()), r, o["epsilon"]],
+    return run_walk("exact_gradients" if gradients else "exact", gbuffer, normals, *_settings(radius, thickness, scale, o),
                     4 if gradients else 1, backface=layer, lanes=o["lanes"])
+
+
+def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o) -> torch.Tensor:
+    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), the layer and the
+    scalars."""
+    inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o),
+                                                                  backface=layer)
+    scale = torch.ones(()) if scale is None else scale
+    return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale,
+                              scalar_lanes(o["lanes"]))
+
+
+class _GBufferWalk(torch.autograd.Function):
+    """The exact union's walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the edge-aware
+    fetch's ``cells`` and the thickness ``layer`` (each empty where unused), and ``exact_backward``."""
+
+    @staticmethod
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
+                thickness, scale, scalar):
+        wanted = any(ctx.needs_input_grad[10:13])  # the scalars': the walk's per-pixel derivatives
+        channels, name = (4, "exact_gradients") if wanted else (1, "exact")
+        frame = (positions, normals, inverse, depth, valid, intrinsics)
+        none = torch.empty(0, device=depth.device)
+        if depth.is_cuda:
+            out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
+            launch_cuda(f"tao_walk_{name}", depth.device, [*frame, none, cells, layer, out, ints, floats],
+                        tuple(depth.shape))
+        else:
+            out = cpu_kernels().walk(name, *frame, none, cells, layer, ints, floats, channels, scalar)
+        ctx.scalar, ctx.dtypes = scalar, (radius.dtype, thickness.dtype, scale.dtype)
+        ctx.save_for_backward(*frame, cells, layer, ints, floats, out[:, 1:] if wanted else none)
+        return out[:, :1].contiguous()
+
+    @staticmethod
+    def backward(ctx, grad):
+        *frame, cells, layer, ints, floats, jacobian = ctx.saved_tensors
+        grad = grad.to(torch.float32).contiguous()
+        depth = frame[3]
+        if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
+            g_pos, g_nrm, taps = torch.zeros_like(frame[0]), torch.zeros_like(frame[1]), torch.zeros_like(frame[0])
+            g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            launch_cuda("tao_exact_backward", depth.device,
+                        [*frame, cells, layer, grad, g_pos, g_nrm, g_depth, taps, g_inv, g_layer, ints, floats],
+                        tuple(depth.shape))
+            g_pos += taps
+        else:
+            g_pos, g_nrm, g_inv, g_depth, g_layer = grad_kernels().exact_backward(grad, *frame, cells, layer, ints,
+                                                                                  floats, ctx.scalar)
+        scalars = [None, None, None]
+        if jacobian.numel():  # (B, 3, H, W): d visibility / d radius, offset, scale
+            sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
+            scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None for k in range(3)]
+        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, g_layer if layer.numel() else None, None, None,
+                *scalars, None)
 
 
 class _ExactWalk(torch.autograd.Function):
@@ -109,10 +198,10 @@ _MODES = ("hard", "soft", "straight_through")
 def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`exact_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO`` with
     ``union="exact"``, any mode: visibility only, a thickness of the form ``scale * value + offset``, a float32
-    CPU or CUDA G-buffer), else why not. Gradients of the radius and of the model's scalar parameters (the
-    offset ``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``); not of the G-buffer (depth, positions,
-    normals, the back-face layer) nor of what makes a layer (a map, a table, the net's weights), which the
-    tensor path computes."""
+    CPU or CUDA G-buffer), else why not. Gradients of the radius, of the model's scalar parameters (the offset
+    ``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``), of the
+    G-buffer (depth, positions, normals, the back-face depth) and of what makes a layer (a map, a table, the
+    net's weights); not of the intrinsics, which the tensor path computes."""
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the sector kernels')"
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=("uniform", "cosine"),
@@ -121,15 +210,8 @@ def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
         return f"steps={module.steps} (the exact union's kernel holds {EXACT_MAX_STEPS} per side)"
-    cam = gbuffer.camera
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
-            gbuffer.depth, gbuffer.normals, gbuffer.position, gbuffer.backface_depth, cam.fx, cam.fy, cam.cx, cam.cy)):
-        return "a gradient of the G-buffer (the kernel differentiates the radius and the thickness model's scalars)"
-    if torch.is_grad_enabled():
-        layered = [name for name in module.thickness_model.parameters()
-                   if getattr(module, name).dim() != 0 and getattr(module, name).requires_grad]
-        if layered:
-            return f"a gradient of {layered[0]} (the kernel differentiates the thickness model's scalars only)"
+    if _intrinsics_want_gradient(gbuffer):
+        return "a gradient of the intrinsics (fx, fy, cx, cy) (the kernel differentiates the G-buffer's images)"
     return None
 
 

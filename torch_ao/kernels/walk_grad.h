@@ -50,6 +50,7 @@ template <class State, class F> TAO_FN F* components(State& s) { return reinterp
 struct Targets {
   float *positions, *normals, *depth, *setting;  // own: (H, W, 3), (H, W, 3), (H, W), (H, W) of image b
   float *tap_positions, *tap_inverse;  // scattered: (H, W, 3), (H, W) of image b
+  float* tap_layer = nullptr;          // scattered: the thickness layer's (H, W) of image b, where it is read
 };
 
 // The words of a record per (pixel, slice, side)
@@ -122,26 +123,35 @@ template <class B, int S> struct Take {
 
 // d L / d delta of a sample (g_delta) scattered to its fetch's taps, on the lanes in `on` of the first n: a
 // bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k, pos the fetched position, w_k the
-// weights of fu, fv), a nearest fetch's position (index[0])
+// weights of fu, fv), a nearest fetch's position (index[0]); with g_layer, d L / d the thickness layer's value
+// at the sample to the layer's taps (layer_bilinear: its four, weighted w_k, as Sample.gather reads it; else
+// index[0]: a nearest fetch's or a first tap's read)
 template <class B>
 TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, const B* pos, const B& fu,
-                         const B& fv, const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on) {
+                         const B& fv, const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on,
+                         const B* g_layer = nullptr, bool layer_bilinear = false) {
   if (!any(on)) return;
   constexpr int L = LaneTraits<B>::L;
-  float gl[3][L], pl[3][L], ful[L], fvl[L];
+  float gl[3][L], pl[3][L], ful[L], fvl[L], ll[L];
   int32_t il[4][L];
   for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(pos[c], pl[c]);
   to_lanes(fu, ful), to_lanes(fv, fvl);
+  if (g_layer) to_lanes(*g_layer, ll);
   for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
   for (int l = 0; l < n; ++l) {
     if (!lane_on(on, l)) continue;
+    const float u = ful[l], v = fvl[l];
+    const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
     if (bilinear) {
-      const float u = ful[l], v = fvl[l];
-      const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
       const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
       for (int i = 0; i < 4; ++i) scatter_add(t.tap_inverse + il[i][l], along * weight[i]);
     } else {
       for (int c = 0; c < 3; ++c) scatter_add(t.tap_positions + 3 * il[0][l] + c, gl[c][l]);
+    }
+    if (g_layer && layer_bilinear) {
+      for (int i = 0; i < 4; ++i) scatter_add(t.tap_layer + il[i][l], ll[l] * weight[i]);
+    } else if (g_layer) {
+      scatter_add(t.tap_layer + il[0][l], ll[l]);
     }
   }
 }
@@ -325,6 +335,129 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
   }
 }
 
+// The exact union's backward (bitmask.h's ExactAccumulator: variant="exact" in every mode) of the n <= L pixels
+// of a row from u0: d L / d the G-buffer for L = sum(upstream * visibility). The union is a sort and a running
+// maximum, so its adjoint is written out rather than carried in tangents (one set per interval would not fit).
+// Per slice:
+//  1. the forward's intervals, in value lanes (walk_slice with the accumulator: the forward's decisions);
+//  2. the union's adjoint: the intervals sorted by start with their indices, union_measure's sweep
+//     (a_j = max(lo_j, reach_j), b_j = max(hi_j, reach_j), reach_j+1 = b_j) run back from the last interval:
+//     d covered / d lo_i, d hi_i of each interval i (max passes its first operand at a tie, as the dual walk
+//     of exact_soft.h does); measure's d / d a, d / d b and its dependence on the slice with the ends held come
+//     from one evaluation in Dual<B, 9> (the pixel's own 7 tangents, then a, b);
+//  3. each interval with a non-zero adjoint replayed in Dual<B, 11> (the pixel's own 7, the sample's delta 3,
+//     the thickness layer's value at the sample 1): its ends' own tangents join the slice's covered measure,
+//     a dual in the own tangents taken through add_slice and finish (the pixel's own gradients); its delta's
+//     and layer value's, times d L / d covered (finish's per_covered: the same for every slice), go to its taps.
+// An interval of zero width has no tangents (empty, dead, or clamped at an end of the hemisphere): skipped.
+constexpr int kExactDelta = kPixel, kExactLayer = kPixel + 3, kExactTangents = kPixel + 4;
+
+template <class B>
+TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const ExactAccumulator& acc, int64_t row,
+                             int64_t u0, int n, const float* upstream, const Targets& t) {
+  constexpr int L = LaneTraits<B>::L;
+  using Own = Dual<B, kPixel>;
+  using Ends = Dual<B, kPixel + 2>;
+  using D = Dual<B, kExactTangents>;
+  using M = typename LaneTraits<B>::M;
+  float lane[L];
+  bool none = true;
+  for (int l = 0; l < L; ++l) {
+    lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
+    none = none && lane[l] == 0.0f;
+  }
+  if (none) return;  // (no gradient flows: the outputs' zeros stand)
+  const B g = from_lanes(lane, B(0.0f));
+  const Pixels<B> px(cfg, img, row, u0, n);
+  if (!any(px.live)) return;
+  const Pixels<Own> px_own(cfg, img, row, u0, n);
+  const auto wide = [](const Own& x) { return widen<kExactTangents>(x); };
+  const auto with_ends = [](const Own& x) { return widen<kPixel + 2>(x); };
+  const Pixels<D> pxd(px_own, wide);
+  B den(0.0f);  // the slices' whole measure (cosine weights), for finish's d visibility / d covered
+  if (acc.cosine) {
+    B num(0.0f);
+    for (int64_t s = 0; s < cfg.slices; ++s) acc.add_slice(B(0.0f), Slice<B>(cfg, img, px, s), num, den);
+  }
+  const B per_covered = g * acc.per_covered(den);  // d L / d a slice's covered measure
+  const bool layer_read = acc.thickness.reads_layer();
+  const bool layer_bilinear = cfg.bilinear && acc.thickness.read == ThicknessRead::layer;
+  typename ExactAccumulator::template Sums<Own> sums;
+  LaneArray<B, kMaxIntervals> order, reach;
+  float g_lo[kMaxIntervals][L], g_hi[kMaxIntervals][L];
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    // 1. the forward's intervals
+    const Slice<B> sl(cfg, img, px, s);
+    typename ExactAccumulator::template State<B> st = acc.begin_slice(px, sl);
+    NoVisit visit;
+    walk_slice(cfg, img, acc, px, sl, st, visit);
+    const int m = st.n;
+    // 2. the union's adjoint
+    for (int i = 0; i < m; ++i) order[i] = B(float(i));
+    acc.sort_by_start(&st.lo[0], &st.hi[0], m, [&](const M& swap, int a, int b) {
+      const B first = select(swap, order[b], order[a]);
+      order[b] = select(swap, order[a], order[b]), order[a] = first;
+    });
+    B r(0.0f);
+    for (int j = 0; j < m; ++j) reach[j] = r, r = max(st.hi[j], r);
+    const Slice<Own> sl_own(cfg, img, px_own, s);
+    const Slice<Ends> sl_ends(sl_own, with_ends);
+    Own covered;
+    B g_reach(0.0f);  // d covered / d reach_j+1
+    for (int j = m - 1; j >= 0; --j) {
+      const auto take_lo = lnot(reach[j] > st.lo[j]), take_hi = lnot(reach[j] > st.hi[j]);
+      Ends a(max(st.lo[j], reach[j])), b(max(st.hi[j], reach[j]));
+      a.d[kPixel] = B(1.0f), b.d[kPixel + 1] = B(1.0f);
+      const Ends part = acc.measure(a, b, sl_ends);
+      covered.v = covered.v + part.v;
+      for (int k = 0; k < kPixel; ++k) covered.d[k] = covered.d[k] + part.d[k];
+      const B ga = part.d[kPixel], gb = part.d[kPixel + 1] + g_reach;
+      g_reach = select(take_lo, B(0.0f), ga) + select(take_hi, B(0.0f), gb);
+      const auto open = st.hi[j] > st.lo[j];
+      float gl[L], gh[L], il[L];
+      to_lanes(select(land(open, take_lo), ga, B(0.0f)), gl), to_lanes(select(land(open, take_hi), gb, B(0.0f)), gh);
+      to_lanes(order[j], il);
+      for (int l = 0; l < L; ++l) g_lo[int(il[l])][l] = gl[l], g_hi[int(il[l])][l] = gh[l];
+    }
+    // 3. the intervals with an adjoint, replayed
+    const Slice<D> sld(sl_own, wide);
+    const D shift = edge_shift(sld);
+    for (int side = 1; side >= -1; side -= 2) {
+      const Own xi = step_noise(cfg, px_own, sl_own, side);
+      for (int64_t j = 0; j < cfg.steps; ++j) {
+        const int i = int((side > 0 ? 0 : cfg.steps) + j);  // (walk_slice's order)
+        const B glo = from_lanes(g_lo[i], B(0.0f)), ghi = from_lanes(g_hi[i], B(0.0f));
+        if (!any(lor(lnot(glo == B(0.0f)), lnot(ghi == B(0.0f))))) continue;
+        Sample<D> smp(Sample<Own>(cfg, img, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j)), wide);
+        for (int c = 0; c < 3; ++c) smp.delta[c].d[kExactDelta + c] = B(1.0f);
+        D thickness = acc.thickness.at(pxd, smp);
+        if (layer_read) thickness.d[kExactLayer] = B(acc.thickness.scale);
+        D lo, hi;
+        acc.interval(side, pxd, sld, shift, smp.delta, thickness, D(B(acc.radius)), smp.valid, lo, hi);
+        for (int k = 0; k < kPixel; ++k) covered.d[k] = covered.d[k] + glo * lo.d[k] + ghi * hi.d[k];
+        B gd[3], pos[3];
+        for (int c = 0; c < 3; ++c) {
+          gd[c] = per_covered * (glo * lo.d[kExactDelta + c] + ghi * hi.d[kExactDelta + c]);
+          pos[c] = smp.delta[c].v + pxd.P[c].v;
+        }
+        const B g_layer = per_covered * (glo * lo.d[kExactLayer] + ghi * hi.d[kExactLayer]);
+        scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, land(smp.valid, px.live),
+                     layer_read ? &g_layer : nullptr, layer_bilinear);
+      }
+    }
+    acc.add_slice(covered, sl_own, sums.num, sums.den);
+  }
+  Own vis;
+  acc.finish(sums, px_own, &vis);
+  float ol[kPixel][L];
+  for (int k = 0; k < kPixel; ++k) to_lanes(g * vis.d[k], ol[k]);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * img.W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l];
+  }
+}
+
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
 // (B, H, W, slices, 2, take_words), at most kGradMaxSteps steps per side
 template <class Acc>
@@ -367,6 +500,17 @@ TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true,
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + b * plane,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane};
   soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
+}
+
+// Pixel p's exact-union backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals,
+// depth) and its intervals' taps' (positions, inverse depth, the thickness layer's where it is read; atomically)
+TAO_FN void exact_grad_pixel(const WalkSettings& cfg, const ExactAccumulator& acc, const Frame& fr, const float* grad,
+                             float* positions, float* normals, float* depth, float* tap_positions, float* tap_inverse,
+                             float* tap_layer, int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
+                  tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr};
+  exact_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 
 }  // namespace tao

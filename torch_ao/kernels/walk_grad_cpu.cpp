@@ -2,7 +2,8 @@
 // record_block and grad_block for the horizon accumulators of horizon.h, SIMD or scalar lanes, rows over torch's
 // threads, each thread scattering into its own tap images) and soft_backward (soft.h's SoftAdjoint over the same
 // walk: value lanes with the pixel and its slices in dual lanes (tangents 0..6), each step's d / d delta
-// scattered to its taps as walk_grad.h's scatter_taps does).
+// scattered to its taps as walk_grad.h's scatter_taps does) and exact_backward (the exact union's adjoint:
+// walk_grad.h's exact_grad_block).
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -32,31 +33,47 @@ void check_input(const at::Tensor& x, const char* name) {
 // Where a backward's gradients go: the pixels' own (positions, normals, depth, the accumulator's setting)
 // and the taps' (per thread)
 struct Gradients {
-  at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse;
+  at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse, tap_layer;
 
-  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W) {
+  // layer: the thickness layer's taps too
+  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool layer = false) {
     const int64_t threads = at::get_num_threads();
     positions = at::zeros({B, H, W, 3}, like.options()), normals = at::zeros({B, H, W, 3}, like.options());
     depth = at::zeros({B, H, W}, like.options()), setting = at::zeros({B, H, W}, like.options());
     tap_positions = at::zeros({threads, B, H, W, 3}, like.options());
     tap_inverse = at::zeros({threads, B, H, W}, like.options());
+    tap_layer = at::zeros({layer ? threads : 1, B, H, W}, like.options());
+    has_layer = layer;
   }
   Targets targets(int64_t b, int64_t B, int64_t plane, int64_t thread) {
     return Targets{positions.data_ptr<float>() + 3 * b * plane, normals.data_ptr<float>() + 3 * b * plane,
                    depth.data_ptr<float>() + b * plane, setting.data_ptr<float>() + b * plane,
                    tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
-                   tap_inverse.data_ptr<float>() + (thread * B + b) * plane};
+                   tap_inverse.data_ptr<float>() + (thread * B + b) * plane,
+                   has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr};
   }
-  // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image
+  // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image (and
+  // the layer's: layer())
   at::Tensor reduce() {
-    float *pos = positions.data_ptr<float>(), *tp = tap_positions.data_ptr<float>(), *ti = tap_inverse.data_ptr<float>();
-    const int64_t threads = tap_positions.size(0), n_pos = positions.numel(), n_inv = depth.numel();
-    for (int64_t k = 1; k < threads; ++k) {
+    float *pos = positions.data_ptr<float>(), *tp = tap_positions.data_ptr<float>();
+    const int64_t threads = tap_positions.size(0), n_pos = positions.numel();
+    for (int64_t k = 1; k < threads; ++k)
       for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
-      for (int64_t q = 0; q < n_inv; ++q) ti[q] += ti[k * n_inv + q];
-    }
     for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
-    return tap_inverse[0];
+    if (has_layer) sum_threads(tap_layer);
+    return sum_threads(tap_inverse);
+  }
+  at::Tensor layer() const { return tap_layer[0]; }
+
+ private:
+  bool has_layer = false;
+  // a per-thread image (threads, B, H, W) summed into its first
+  static at::Tensor sum_threads(const at::Tensor& images) {
+    float* x = images.data_ptr<float>();
+    const int64_t n = images[0].numel();
+    for (int64_t k = 1; k < images.size(0); ++k)
+      for (int64_t q = 0; q < n; ++q) x[q] += x[k * n + q];
+    return images[0];
   }
 };
 
@@ -222,6 +239,38 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
   return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
 
+// torch_ao_kernels::exact_backward: the gradients of sum(grad * visibility) of the exact union's walk ("exact"'s
+// packed settings: walk_grad.h's exact_grad_block) with respect to its positions, normals (B, H, W, 3), inverse
+// depth, depth and the thickness layer (B, H, W; zeros where the model reads none); grad (B, 1, H, W); cells:
+// the edge-aware fetch's cell flags, backface: the thickness layer (B, H, W), each empty where unused
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_backward(
+    const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
+    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
+  const at::Tensor none = at::empty({0}, positions.options());
+  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, backface);
+  check_settings(ints, floats, 4, 4, "exact");
+  check_grad(grad, positions, 1);
+  const int64_t* i = ints.data_ptr<int64_t>();
+  const float* f = floats.data_ptr<float>();
+  const WalkSettings cfg = unpack_walk(i, f);
+  check_cells(cfg, fr);
+  TORCH_CHECK(cfg.steps <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
+  TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, "exact_backward: the power step placement, one half circle");
+  const ExactAccumulator acc = unpack_exact(i, f);
+  TORCH_CHECK(!acc.thickness.reads_layer() || fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
+  Gradients out(positions, B, H, W, acc.thickness.reads_layer());
+  const float* gp = grad.data_ptr<float>();
+  constexpr int L = LaneTraits<Vec>::L;
+  torch_ao_rows::for_each_block<L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+    exact_grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, gp + b * plane, out.targets(b, B, plane, at::get_thread_num()));
+  });
+  at::Tensor g_inv = out.reduce();
+  return {out.positions, out.normals, g_inv, out.depth, out.layer()};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
@@ -238,4 +287,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
+  m.def("exact_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+  m.impl("exact_backward", c10::DispatchKey::CPU, TORCH_FN(exact_backward));
 }

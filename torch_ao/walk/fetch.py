@@ -105,7 +105,10 @@ def _cell_flags(frame: Frame) -> torch.Tensor:
     flags = getattr(frame, "_edge_aware_cells", None)
     if flags is None:
         B, H, W = frame.shape
-        inverse = torch.where(frame.valid, frame.inverse_depth, 0.0).view(B, H, W)
+        # (no graph: the flags have no gradient, and a chunk's recomputation finds them cached, so it must
+        # save exactly what the first computation saved)
+        with torch.no_grad():
+            inverse = torch.where(frame.valid, frame.inverse_depth, 0.0).view(B, H, W)
         frame._edge_aware_cells = flags = cell_flags(inverse).view(-1)
     return flags
 
