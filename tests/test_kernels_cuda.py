@@ -116,9 +116,13 @@ typedef void Backward(const float*, const float*, const float*, const float*, co
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                           const float*, const float*, float*, float*, float*, float*, float*, float*,
                           const long long*, const float*, int, int, int);
+typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
+                           const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
+                           const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao;
 SoftBackward tao_soft_backward;
+ExactBackward tao_exact_backward;
 }
 template <class T> void save(const std::string& dir, const char* name, const std::vector<T>& v) {
   FILE* f = std::fopen((dir + "/" + name).c_str(), "wb");
@@ -131,7 +135,7 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
-                                   // (NAME soft: the soft walk's backward alone)
+                                   // (NAME soft, exact: that walk's backward alone)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
@@ -140,6 +144,7 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   Backward* backward = name == "gtao" ? tao_backward_gtao : tao_backward_hbao;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Ce = load<float>(dir, "cells");
+  auto Bf = load<float>(dir, "backface");
   auto V8 = load<unsigned char>(dir, "valid");
   const bool* V = reinterpret_cast<const bool*>(V8.data());
   auto ints = load<long long>(dir, "ints");
@@ -150,8 +155,13 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   std::vector<float> out(size_t(B) * C * H * W, -7.0f);
   std::vector<long long> rec(size_t(pixels * words), -1);
   const size_t n = size_t(pixels);
-  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n);
-  if (name == "soft") {
+  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n), tl(n);
+  if (name == "exact") {
+    grid(pixels, threads, [&] { tao_exact_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
+                                                   gd.data(), taps.data(), ti.data(), tl.data(), ints.data(),
+                                                   floats.data(), B, H, W); });
+  } else if (name == "soft") {
     grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                   grad.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(),
                                                   ti.data(), ints.data(), floats.data(), B, H, W); });
@@ -164,6 +174,7 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   }
   save(dir, "out", out), save(dir, "record", rec), save(dir, "g_positions", gp), save(dir, "g_normals", gn);
   save(dir, "g_depth", gd), save(dir, "g_setting", gs), save(dir, "tap_positions", taps), save(dir, "tap_inverse", ti);
+  save(dir, "tap_layer", tl);
   return 0;
 }
 """
@@ -282,7 +293,8 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
 
 def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
-    max) and the soft walk (uniform, cosine, straight-through), every fetch, either border."""
+    max), the soft walk (uniform, cosine, straight-through) and the exact union (cosine and uniform; a layer read
+    bilinearly, at its first tap, or none; along the ray or the view), every fetch, either border."""
     common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5
     yield "gtao", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, False], [1.0, 0.3, 1.0], 2
@@ -294,6 +306,11 @@ def _backward_cases():
     yield "soft", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 1  # (rounding, cosine, straight)
     yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True], [0.4, 0.01, 0.1], 1
     yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False], [0.5, 0.0, 0.3], 1
+    # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
+    exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
+    yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
+    yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0], [0.4, 1.0, 1.0, 0.01], 1
+    yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2], [0.1, 1.0, 1.0, 0.0], 1
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -305,14 +322,17 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
     gb = FRAMES[frame]()
     normals = gb.view_normals()
+    backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
     for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
-        inputs, (_, cells, _), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats)
+        layer = backface if accumulator == "exact" and acc_ints[3] else None
+        inputs, (_, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
+                                                                backface=layer)
         B, H, W = inputs[3].shape
         grad = torch.linspace(0.5, 1.5, B * channels * H * W).view(B, channels, H, W)
         folder = cuda_on_cpu.parent / f"grad_{accumulator}"
         folder.mkdir(exist_ok=True)
-        for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "cells", "grad"),
-                           (*inputs, cells, grad)):
+        for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "cells", "backface",
+                            "grad"), (*inputs, cells, layer, grad)):
             t.numpy().tofile(folder / name)
         ints.numpy().tofile(folder / "ints")
         floats.numpy().tofile(folder / "floats")
@@ -323,7 +343,12 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         def read(name, *shape, dtype=np.float32):
             return torch.from_numpy(np.fromfile(folder / name, dtype=dtype).reshape(*shape))
 
-        if accumulator == "soft":
+        cpu = {}
+        if accumulator == "exact":
+            g_pos, g_nrm, g_inv, g_depth, cpu["layer"] = grad_kernels().exact_backward(grad, *inputs, cells, layer, ints,
+                                                                                       floats, True)
+            g_setting = torch.zeros_like(g_depth)
+        elif accumulator == "soft":
             g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().soft_backward(grad, *inputs, cells, ints, floats,
                                                                                    True)
         else:
@@ -335,7 +360,10 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         cuda = {"positions": read("g_positions", *g_pos.shape) + read("tap_positions", *g_pos.shape),
                 "normals": read("g_normals", *g_nrm.shape), "inverse": read("tap_inverse", *g_inv.shape),
                 "depth": read("g_depth", *g_depth.shape), "setting": read("g_setting", *g_setting.shape)}
-        cpu = {"positions": g_pos, "normals": g_nrm, "inverse": g_inv, "depth": g_depth, "setting": g_setting}
+        cpu.update(positions=g_pos, normals=g_nrm, inverse=g_inv, depth=g_depth, setting=g_setting)
+        if "layer" in cpu:
+            cuda["layer"] = read("tap_layer", *g_depth.shape)
+            assert layer.numel() == 0 or cpu["layer"].abs().max() > 0
         assert g_pos.abs().max() > 0 and g_nrm.abs().max() > 0  # (the comparison means something)
         for name, reference in cpu.items():
             finite = torch.isfinite(reference)
@@ -344,23 +372,28 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
-    """GTAO / HBAO (tao_record_*, tao_backward_*) and soft bitmask AO (tao_soft_backward) with depth and parameter
-    gradients on a CUDA G-buffer against the same call on the CPU."""
+    """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward) and the exact union with the
+    back-face layer (tao_exact_backward) with depth and parameter gradients on a CUDA G-buffer against the same
+    call on the CPU."""
     import torch_ao
+    from torch_ao.thickness import BackfaceThickness
 
     module = {"gtao": lambda: torch_ao.GTAO(slices=3, steps=5, fetch="edge_aware"),
               "hdrp": lambda: torch_ao.GTAO(variant="hdrp", slices=3, steps=4),
               "hbao": lambda: torch_ao.HBAO(slices=4, steps=4),
               "soft": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", slices=3,
-                                                 steps=4)}[method]
+                                                 steps=4),
+              "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
+                                                  steps=4)}[method]
     gb = FRAMES["rough"]()
+    back = gb.depth * 1.3
     results = []
     for device in ("cpu", "cuda"):
         m = module().to(device)
         depth = gb.depth.to(device).clone().requires_grad_()
-        g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device))
+        g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device), backface_depth=back.to(device))
         out = m(g).visibility
         out.sum().backward()
         results.append((out.detach().cpu(), depth.grad.cpu(), m.radius.grad.cpu()))

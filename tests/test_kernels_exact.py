@@ -6,6 +6,7 @@ import torch
 
 from kernel_agreement import assert_values_agree
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fixture)
+from torch_ao.camera import PinholeCamera
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import exact_covers, kernel_forward
 from torch_ao.kernels.bitmask import exact_hard, module_thickness, thickness_options
@@ -63,7 +64,7 @@ def test_the_edge_aware_fetch_is_what_the_kernel_reads():
     assert (edge - bilinear).abs().max() > 0.01
 
 
-def test_auto_runs_the_exact_kernel_without_a_gradient_and_its_gradients_kernel_with_one(built, monkeypatch):
+def test_auto_runs_the_exact_kernel_without_a_gradient_and_its_gradients_kernels_with_one(built, monkeypatch):
     import torch_ao.kernels.dispatch as dispatch
 
     calls = []
@@ -77,7 +78,11 @@ def test_auto_runs_the_exact_kernel_without_a_gradient_and_its_gradients_kernel_
     out = module(gb).visibility  # trainable thickness and radius: the exact union has a gradient in hard mode
     assert out.requires_grad and calls == ["exact_forward", "exact_soft_forward"]
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, backface_depth=gb.backface_depth)
-    assert module(graph).visibility.requires_grad and len(calls) == 2  # a G-buffer gradient: the tensor path
+    assert module(graph).visibility.requires_grad and calls[2:] == ["exact_soft_forward"]  # (its exact_backward)
+    intrinsics = gb.camera.intrinsics.clone().requires_grad_()
+    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width),
+                     backface_depth=gb.backface_depth)
+    assert module(moving).visibility.requires_grad and len(calls) == 3  # the intrinsics' gradient: the tensor path
 
 
 def test_exact_covers_names_what_it_does_not_cover():

@@ -38,13 +38,15 @@ def test_a_compile_error_is_reported_with_the_log(monkeypatch):
 @pytest.mark.skipif(cuda_offline.ptxas_path() is None, reason="needs ptxas (pip install nvidia-cuda-nvcc-cu12)")
 def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills. The horizon backward's replay carries 13 to 15
-    tangents per value (lanes_dual.h): measured 184 (HBAO) and 356 (GTAO) bytes spilled and reloaded, bounded here."""
+    tangents per value (lanes_dual.h): measured 184 (HBAO) and 356 (GTAO) bytes spilled and reloaded, bounded here;
+    the exact union's replays an interval in 11 tangents: 1872 bytes."""
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
+    bounds = {"tao_backward_": 512, "tao_exact_backward": 2048}  # bytes spilled and reloaded
     for name, used in report.items():
         assert 32 <= used.registers <= 255, (name, used)
         spilled = used.spill_stores + used.spill_loads
-        assert spilled <= 512 if name.startswith("tao_backward_") else spilled == 0, (name, used)
+        assert spilled <= next((b for prefix, b in bounds.items() if name.startswith(prefix)), 0), (name, used)
         assert 0 < used.occupancy(128) <= 1
 
 

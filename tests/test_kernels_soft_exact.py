@@ -8,6 +8,7 @@ import torch
 from kernel_agreement import assert_values_agree
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fixture; the skip)
 from test_kernels_exact import with_backface
+from torch_ao.camera import PinholeCamera
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import exact_hard
@@ -158,11 +159,15 @@ def test_covers_names_what_it_does_not_cover():
     assert exact_soft_covers(BitmaskAO(variant="exact", mode="soft"), gb) is None
     assert exact_soft_covers(BitmaskAO(variant="exact", mode="straight_through", weighting="uniform"), gb) is None
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, backface_depth=gb.backface_depth)
+    assert exact_soft_covers(BitmaskAO(variant="exact", mode="soft"), graph) is None  # (exact_backward)
+    assert exact_soft_covers(BitmaskAO(variant="exact", mode="soft", thickness=torch.full((1, 1, 54, 96), 0.2)),
+                             graph) is None  # (a map: the layer's taps get its gradient)
+    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(gb.camera.intrinsics.clone().requires_grad_(),
+                                                          gb.camera.height, gb.camera.width))
     cases = {"union": (BitmaskAO(mode="soft"), gb),
-             "G-buffer": (BitmaskAO(variant="exact", mode="soft"), graph),
+             "intrinsics": (BitmaskAO(variant="exact", mode="soft"), moving),
              "steps=40": (BitmaskAO(variant="exact", mode="soft", steps=40), gb),
              "growth": (BitmaskAO(variant="exact", mode="soft", thickness_growth=0.5), gb),
-             "a gradient of thickness": (BitmaskAO(variant="exact", mode="soft", thickness=torch.ones(3)), gb),
              "azimuth": (BitmaskAO(variant="exact", mode="soft", azimuth="screen"), gb),
              "float64": (BitmaskAO(variant="exact", mode="soft"), gb.to(dtype=torch.float64))}
     for word, (module, frame) in cases.items():
