@@ -240,18 +240,36 @@ struct ExactAccumulator {
 
   // The interval [lo, hi] of the hemisphere (sector units, clipped to [0, 32]; [0, 0] where empty or not
   // live) that a sample at offset delta from the pixel occludes on side, with thickness t and the sphere's
-  // radius (shift: the slice's (pi/2 - gamma) / pi)
+  // radius (shift: the slice's edge_shift): segment, then segment_interval
   template <class F, class G>
   TAO_FN void interval(int side, const Pixels<F>& px, const Slice<F>& sl, const F& shift, const G* delta, const G& t,
                        const G& radius, typename LaneTraits<F>::M live, G& lo_out, G& hi_out) const {
+    G seg[4];
+    segment(side, px, sl, delta, t, seg);
+    segment_interval(side, seg, shift, radius, live, lo_out, hi_out);
+  }
+
+  // The occluder's segment from its front point to its back point (thickness t along the view vector, or
+  // along the sample's own camera ray) in the slice's half plane: seg = (front . V, side front . T, back . V,
+  // side back . T)
+  template <class F, class G>
+  TAO_FN void segment(int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta, const G& t, G* seg) const {
     const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
-    G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T), bv, bt;
+    const G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T);
+    seg[0] = fv, seg[1] = ft;
     if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
       const G k = quotient(t, clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f)));
-      bv = fv + k * (fv - G(px.distance)), bt = ft * (G(1.0f) + k);
+      seg[2] = fv + k * (fv - G(px.distance)), seg[3] = ft * (G(1.0f) + k);
     } else {
-      bv = fv - t, bt = ft;
+      seg[2] = fv - t, seg[3] = ft;
     }
+  }
+
+  // segment's interval: the part of the segment inside the radius' sphere (clip), seen from the pixel
+  template <class F, class G>
+  TAO_FN void segment_interval(int side, const G* seg, const F& shift, const G& radius,
+                               typename LaneTraits<F>::M live, G& lo_out, G& hi_out) const {
+    G fv = seg[0], ft = seg[1], bv = seg[2], bt = seg[3];
     if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
       const G ev = bv - fv, et = bt - ft;
       const G a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - radius * radius;

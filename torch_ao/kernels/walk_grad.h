@@ -345,8 +345,9 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
 //     d covered / d lo_i, d hi_i of each interval i (max passes its first operand at a tie, as the dual walk
 //     of exact_soft.h does); measure's d / d a, d / d b and its dependence on the slice with the ends held come
 //     from one evaluation in Dual<B, 9> (the pixel's own 7 tangents, then a, b);
-//  3. each interval with a non-zero adjoint replayed in Dual<B, 11> (the pixel's own 7, the sample's delta 3,
-//     the thickness layer's value at the sample 1): its ends' own tangents join the slice's covered measure,
+//  3. each interval with a non-zero adjoint replayed: its segment (ExactAccumulator::segment) in Dual<B, 11> (the
+//     pixel's own 7, the sample's delta 3, the thickness layer's value at the sample 1), the clip and the angles
+//     (segment_interval) in tangents of the segment's 4 values and the shift, chained: its ends' own tangents join the slice's covered measure,
 //     a dual in the own tangents taken through add_slice and finish (the pixel's own gradients); its delta's
 //     and layer value's, times d L / d covered (finish's per_covered: the same for every slice), go to its taps.
 // An interval of zero width has no tangents (empty, dead, or clamped at an end of the hemisphere): skipped.
@@ -359,6 +360,7 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   using Own = Dual<B, kPixel>;
   using Ends = Dual<B, kPixel + 2>;
   using D = Dual<B, kExactTangents>;
+  using Local = Dual<B, 5>;  // an interval's segment (4) and shift
   using M = typename LaneTraits<B>::M;
   float lane[L];
   bool none = true;
@@ -406,6 +408,15 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
     B g_reach(0.0f);  // d covered / d reach_j+1
     for (int j = m - 1; j >= 0; --j) {
       const auto take_lo = lnot(reach[j] > st.lo[j]), take_hi = lnot(reach[j] > st.hi[j]);
+      const auto open = st.hi[j] > st.lo[j];
+      // an interval within the reach (hi < reach) or of zero width measures nothing: it passes the reach's
+      // adjoint on (at or beyond the reach, an empty one takes it into its constant end), no measure to differentiate
+      if (!any(land(open, take_hi))) {
+        g_reach = select(take_lo, B(0.0f), g_reach);
+        to_lanes(order[j], lane);
+        for (int l = 0; l < L; ++l) g_lo[int(lane[l])][l] = 0.0f, g_hi[int(lane[l])][l] = 0.0f;
+        continue;
+      }
       Ends a(max(st.lo[j], reach[j])), b(max(st.hi[j], reach[j]));
       a.d[kPixel] = B(1.0f), b.d[kPixel + 1] = B(1.0f);
       const Ends part = acc.measure(a, b, sl_ends);
@@ -413,7 +424,6 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
       for (int k = 0; k < kPixel; ++k) covered.d[k] = covered.d[k] + part.d[k];
       const B ga = part.d[kPixel], gb = part.d[kPixel + 1] + g_reach;
       g_reach = select(take_lo, B(0.0f), ga) + select(take_hi, B(0.0f), gb);
-      const auto open = st.hi[j] > st.lo[j];
       float gl[L], gh[L], il[L];
       to_lanes(select(land(open, take_lo), ga, B(0.0f)), gl), to_lanes(select(land(open, take_hi), gb, B(0.0f)), gh);
       to_lanes(order[j], il);
@@ -421,7 +431,7 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
     }
     // 3. the intervals with an adjoint, replayed
     const Slice<D> sld(sl_own, wide);
-    const D shift = edge_shift(sld);
+    const Own shift = edge_shift(sl_own);
     for (int side = 1; side >= -1; side -= 2) {
       const Own xi = step_noise(cfg, px_own, sl_own, side);
       for (int64_t j = 0; j < cfg.steps; ++j) {
@@ -432,15 +442,25 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kExactDelta + c] = B(1.0f);
         D thickness = acc.thickness.at(pxd, smp);
         if (layer_read) thickness.d[kExactLayer] = B(acc.thickness.scale);
-        D lo, hi;
-        acc.interval(side, pxd, sld, shift, smp.delta, thickness, D(B(acc.radius)), smp.valid, lo, hi);
-        for (int k = 0; k < kPixel; ++k) covered.d[k] = covered.d[k] + glo * lo.d[k] + ghi * hi.d[k];
-        B gd[3], pos[3];
-        for (int c = 0; c < 3; ++c) {
-          gd[c] = per_covered * (glo * lo.d[kExactDelta + c] + ghi * hi.d[kExactDelta + c]);
-          pos[c] = smp.delta[c].v + pxd.P[c].v;
+        D seg[4];
+        acc.segment(side, pxd, sld, smp.delta, thickness, seg);
+        // the interval from its segment and the shift in tangents of their own (5, where the 11 would carry the
+        // clip and the atan2s), contracted with the ends' adjoints, then chained to the 11
+        Local local[4], lo, hi;
+        for (int q = 0; q < 4; ++q) local[q] = Local(seg[q].v), local[q].d[q] = B(1.0f);
+        Local shift_local(shift.v);
+        shift_local.d[4] = B(1.0f);
+        acc.segment_interval(side, local, shift_local, Local(B(acc.radius)), smp.valid, lo, hi);
+        B w[5], along[kExactTangents];
+        for (int q = 0; q < 5; ++q) w[q] = glo * lo.d[q] + ghi * hi.d[q];
+        for (int k = 0; k < kExactTangents; ++k) {
+          along[k] = w[0] * seg[0].d[k] + w[1] * seg[1].d[k] + w[2] * seg[2].d[k] + w[3] * seg[3].d[k];
+          if (k < kPixel) along[k] = along[k] + w[4] * shift.d[k];
         }
-        const B g_layer = per_covered * (glo * lo.d[kExactLayer] + ghi * hi.d[kExactLayer]);
+        for (int k = 0; k < kPixel; ++k) covered.d[k] = covered.d[k] + along[k];
+        B gd[3], pos[3];
+        for (int c = 0; c < 3; ++c) gd[c] = per_covered * along[kExactDelta + c], pos[c] = smp.delta[c].v + pxd.P[c].v;
+        const B g_layer = per_covered * along[kExactLayer];
         scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, land(smp.valid, px.live),
                      layer_read ? &g_layer : nullptr, layer_bilinear);
       }
