@@ -1,5 +1,21 @@
-"""Counting how often dispatch hands a call to a kernel (``backend="auto"`` tests)."""
+"""Counting how often dispatch hands a call to a kernel (``backend="auto"`` tests); a call on given numbers of
+torch's threads."""
+import torch
+
 import torch_ao.kernels.dispatch as dispatch
+
+
+def on_threads(fn, counts=(1, 2)) -> list:
+    """``[fn() with torch on n threads for n in counts]``, torch's thread count restored after."""
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n in counts:
+            torch.set_num_threads(n)
+            results.append(fn())
+    finally:
+        torch.set_num_threads(threads)
+    return results
 
 
 def count_kernel_calls(monkeypatch, name: str) -> list:

@@ -155,9 +155,10 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
     from torch_ao.methods.ssao import SSAO
 
     gb = example_gbuffer(8, 8)
-    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)  # (the exact union's: no G-buffer gradient)
-    with pytest.raises(ValueError, match="backend.*union='exact'.*G-buffer"):
-        BitmaskAO(union="exact", backend="kernel")(graph)
+    intrinsics = gb.camera.intrinsics.clone().requires_grad_()  # (no kernel differentiates the intrinsics)
+    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width))
+    with pytest.raises(ValueError, match="backend.*union='exact'.*intrinsics"):
+        BitmaskAO(union="exact", backend="kernel")(moving)
     with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
         SSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):

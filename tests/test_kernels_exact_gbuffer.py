@@ -10,6 +10,7 @@ tensor walk itself is 2-60 % (relative) off the float64 walk's depth gradient, a
 import pytest
 import torch
 
+from kernel_calls import on_threads
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft_exact import SETTINGS
 from torch_ao.camera import PinholeCamera
@@ -182,15 +183,7 @@ def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
     """The taps' gradients go to per-thread images summed after the rows: the same gradients on any number of
     threads, up to the order of the float32 sums."""
     gb = FRAMES["rough"]()
-    threads = torch.get_num_threads()
-    results = []
-    try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            results.append(values_and_grads(gb, torch.float32, "kernel", SETTINGS[1]))
-    finally:
-        torch.set_num_threads(threads)
-    (vis1, grads1, _), (vis2, grads2, _) = results
+    (vis1, grads1, _), (vis2, grads2, _) = on_threads(lambda: values_and_grads(gb, torch.float32, "kernel", SETTINGS[1]))
     assert torch.equal(vis1, vis2)
     for a, b in zip(grads1, grads2):
         assert _relative(b, a) <= 1e-6

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from kernel_agreement import assert_values_agree
-from kernel_calls import count_kernel_calls
+from kernel_calls import count_kernel_calls, on_threads
 from test_kernels import FRAMES, built, kernel_of, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
@@ -143,14 +143,7 @@ def test_background_is_unoccluded_and_batch_images_are_independent(built):
 
 def test_backward_is_deterministic_across_thread_counts(built):
     gb = rough_gbuffer()
-    threads = torch.get_num_threads()
-    grads = []
-    try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            grads.append(visibility_and_grads(gb, "kernel", mode="soft", slices=3, steps=4)[1])
-    finally:
-        torch.set_num_threads(threads)
+    grads = on_threads(lambda: visibility_and_grads(gb, "kernel", mode="soft", slices=3, steps=4)[1])
     assert all(torch.equal(a, b) for a, b in zip(*grads))
 
 

@@ -5,7 +5,7 @@ derivatives against central differences (gradcheck's fast mode); what it covers.
 import pytest
 import torch
 
-from kernel_calls import count_kernel_calls
+from kernel_calls import count_kernel_calls, on_threads
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft import SETTINGS, _loss_weights
 from torch_ao.camera import PinholeCamera
@@ -167,15 +167,7 @@ def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
     """The taps' gradients go to per-thread images summed after the rows: the same gradients on any number
     of threads, up to the order of the float32 sums."""
     gb = FRAMES["rough"]()
-    threads = torch.get_num_threads()
-    results = []
-    try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            results.append(_values_and_grads(gb, torch.float32, "simd", SETTINGS[0]))
-    finally:
-        torch.set_num_threads(threads)
-    (vis1, grads1), (vis2, grads2) = results
+    (vis1, grads1), (vis2, grads2) = on_threads(lambda: _values_and_grads(gb, torch.float32, "simd", SETTINGS[0]))
     assert torch.equal(vis1, vis2)
     for a, b in zip(grads1, grads2):
         assert _relative(b, a) <= 1e-6

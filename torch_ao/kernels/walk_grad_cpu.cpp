@@ -207,6 +207,50 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_back
   return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
 
+// A one-channel walk's backward call (soft_backward, exact_backward): its frame, and its packed settings
+// checked (n_ints, n_floats of the accumulator's; the power step placement on one half circle, at most
+// max_steps per side) and unpacked
+struct OneChannelCall {
+  Frame fr;
+  const int64_t* i;
+  const float* f;
+  WalkSettings cfg;
+
+  OneChannelCall(const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
+                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
+                 const at::Tensor& intrinsics, const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints,
+                 const at::Tensor& floats, int64_t n_ints, int64_t n_floats, const char* name, int64_t max_steps)
+      : fr(frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, at::empty({0}, positions.options()),
+                    cells, backface)) {
+    check_settings(ints, floats, n_ints, n_floats, name);
+    check_grad(grad, positions, 1);
+    i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
+    cfg = unpack_walk(i, f);
+    check_cells(cfg, fr);
+    TORCH_CHECK(cfg.steps <= max_steps, "steps: the ", name, " backward holds at most ", max_steps, " per side");
+    TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, name,
+                "'s backward: the power step placement, one half circle");
+  }
+
+  // block(lane, image, row, u0, n, upstream of the image, targets) over every row's blocks (SIMD or scalar
+  // lanes: lane is a value of the lane type), then the threads' tap images reduced: (positions, normals,
+  // inverse depth, depth, last) with last the setting's or the layer's image
+  template <class Block>
+  std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> run(const at::Tensor& grad, bool scalar,
+                                                                             Gradients& out, bool layer,
+                                                                             const Block& block) const {
+    const int64_t B = fr.B, plane = fr.H * fr.W;
+    const float* gp = grad.data_ptr<float>();
+    torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0,
+                                                                                  int n, auto simd) {
+      using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+      block(Lane(0.0f), fr.image(b), row, u0, n, gp + b * plane, out.targets(b, B, plane, at::get_thread_num()));
+    });
+    at::Tensor g_inv = out.reduce();
+    return {out.positions, out.normals, g_inv, out.depth, layer ? out.layer() : out.setting};
+  }
+};
+
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
 // walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
 // depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W); cells: the
@@ -215,28 +259,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
-  check_settings(ints, floats, 3, 3, "soft");
-  check_grad(grad, positions, 1);
-  const int64_t* i = ints.data_ptr<int64_t>();
-  const float* f = floats.data_ptr<float>();
-  const WalkSettings cfg = unpack_walk(i, f);
-  check_cells(cfg, fr);
-  TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
-  TORCH_CHECK(cfg.steps <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
-  TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, "soft_backward: the power step placement, one half circle");
-  const SoftAccumulator<true, true> acc = unpack_soft<true, true>(i, f);
-  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
-  Gradients out(positions, B, H, W);
-  const float* gp = grad.data_ptr<float>();
-  constexpr int L = LaneTraits<Vec>::L;
-  torch_ao_rows::for_each_block<L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
-    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
-    soft_grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, gp + b * plane, out.targets(b, B, plane, at::get_thread_num()));
+  const OneChannelCall call(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells,
+                            at::empty({0}, positions.options()), ints, floats, 3, 3, "soft", kSoftMaxSteps / 2);
+  TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
+  const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
+  return call.run(grad, scalar, out, false, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
+                                                const float* upstream, const Targets& t) {
+    soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
-  at::Tensor g_inv = out.reduce();
-  return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
 
 // torch_ao_kernels::exact_backward: the gradients of sum(grad * visibility) of the exact union's walk ("exact"'s
@@ -247,28 +278,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_bac
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, backface);
-  check_settings(ints, floats, 4, 4, "exact");
-  check_grad(grad, positions, 1);
-  const int64_t* i = ints.data_ptr<int64_t>();
-  const float* f = floats.data_ptr<float>();
-  const WalkSettings cfg = unpack_walk(i, f);
-  check_cells(cfg, fr);
-  TORCH_CHECK(cfg.steps <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
-  TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, "exact_backward: the power step placement, one half circle");
-  const ExactAccumulator acc = unpack_exact(i, f);
-  TORCH_CHECK(!acc.thickness.reads_layer() || fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  const int64_t B = positions.size(0), H = positions.size(1), W = positions.size(2), plane = H * W;
-  Gradients out(positions, B, H, W, acc.thickness.reads_layer());
-  const float* gp = grad.data_ptr<float>();
-  constexpr int L = LaneTraits<Vec>::L;
-  torch_ao_rows::for_each_block<L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
-    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
-    exact_grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, gp + b * plane, out.targets(b, B, plane, at::get_thread_num()));
+  const OneChannelCall call(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints,
+                            floats, 4, 4, "exact", kMaxIntervals / 2);
+  const ExactAccumulator acc = unpack_exact(call.i, call.f);
+  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
+  return call.run(grad, scalar, out, true, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
+                                               const float* upstream, const Targets& t) {
+    exact_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
-  at::Tensor g_inv = out.reduce();
-  return {out.positions, out.normals, g_inv, out.depth, out.layer()};
 }
 
 }  // namespace
