@@ -173,6 +173,13 @@ def _cases() -> dict[str, Case]:
             "soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend="torch", **s),
             "gbuffer", "bitmask", 3.0, kernel=False),
+        "cosine_hard_gbuffer": Case("`BitmaskAO` hard, cosine + bent normals fwd+bwd, depth + normals",
+                                    bitmask(mode="hard", weighting="cosine", bent_normals=True), "gbuffer",
+                                    "cosine_bent", 3.0),
+        "cosine_hard_gbuffer_torch": Case(
+            "`BitmaskAO` hard, cosine + bent normals fwd+bwd, depth + normals, tensor ops",
+            lambda s: torch_ao.BitmaskAO(mode="hard", weighting="cosine", bent_normals=True, backend="torch", **s),
+            "gbuffer", "cosine_bent", 3.0, kernel=False),
         "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
                               exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
         "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",

@@ -116,6 +116,9 @@ typedef void Backward(const float*, const float*, const float*, const float*, co
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                           const float*, const float*, float*, float*, float*, float*, float*, float*,
                           const long long*, const float*, int, int, int);
+typedef void HardBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
+                          const float*, const float*, const float*, float*, float*, float*, const long long*,
+                          const float*, int, int, int);
 typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            const long long*, const float*, int, int, int);
@@ -123,6 +126,7 @@ Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao;
 SoftBackward tao_soft_backward;
 ExactBackward tao_exact_backward;
+HardBackward tao_hard_backward;
 }
 template <class T> void save(const std::string& dir, const char* name, const std::vector<T>& v) {
   FILE* f = std::fopen((dir + "/" + name).c_str(), "wb");
@@ -135,7 +139,7 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
-                                   // (NAME soft, exact: that walk's backward alone)
+                                   // (NAME soft, exact, hard: that walk's backward alone)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
@@ -156,7 +160,11 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   std::vector<long long> rec(size_t(pixels * words), -1);
   const size_t n = size_t(pixels);
   std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n), tl(n);
-  if (name == "exact") {
+  if (name == "hard") {
+    grid(pixels, threads, [&] { tao_hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+                                                  Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
+                                                  gd.data(), ints.data(), floats.data(), B, H, W); });
+  } else if (name == "exact") {
     grid(pixels, threads, [&] { tao_exact_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                    Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
                                                    gd.data(), taps.data(), ti.data(), tl.data(), ints.data(),
@@ -293,8 +301,9 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
 
 def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
-    max), the soft walk (uniform, cosine, straight-through) and the exact union (cosine and uniform; a layer read
-    bilinearly, at its first tap, or none; along the ray or the view), every fetch, either border."""
+    max), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
+    bilinearly, at its first tap, or none; along the ray or the view) and the hard sector walk (cosine weights,
+    bent normals), every fetch, either border."""
     common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5
     yield "gtao", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, False], [1.0, 0.3, 1.0], 2
@@ -311,6 +320,9 @@ def _backward_cases():
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
     yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0], [0.4, 1.0, 1.0, 0.01], 1
     yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2], [0.1, 1.0, 1.0, 0.0], 1
+    # (rounding, cosine, indirect, bent, the layer's read); thickness, epsilon, the layer's scale
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1], [0.1, 0.01, 1.0], 4
+    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0], [0.4, 0.01, 1.0], 1
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -324,7 +336,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     normals = gb.view_normals()
     backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
     for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
-        layer = backface if accumulator == "exact" and acc_ints[3] else None
+        layer = backface if (accumulator == "exact" and acc_ints[3]) or (accumulator == "hard" and acc_ints[4]) else None
         inputs, (_, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
                                                                 backface=layer)
         B, H, W = inputs[3].shape
@@ -344,7 +356,10 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             return torch.from_numpy(np.fromfile(folder / name, dtype=dtype).reshape(*shape))
 
         cpu = {}
-        if accumulator == "exact":
+        if accumulator == "hard":
+            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *inputs, cells, layer, ints, floats, True)
+            g_inv, g_setting = torch.zeros_like(g_depth), torch.zeros_like(g_depth)
+        elif accumulator == "exact":
             g_pos, g_nrm, g_inv, g_depth, cpu["layer"] = grad_kernels().exact_backward(grad, *inputs, cells, layer, ints,
                                                                                        floats, True)
             g_setting = torch.zeros_like(g_depth)
@@ -372,10 +387,11 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact", "hard"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward) and the exact union with the
-    back-face layer (tao_exact_backward) with depth and parameter gradients on a CUDA G-buffer against the same
+    back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
+    (tao_hard_backward: the normals' gradient, through the normals from depth) on a CUDA G-buffer against the same
     call on the CPU."""
     import torch_ao
     from torch_ao.thickness import BackfaceThickness
@@ -386,7 +402,8 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
               "soft": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", slices=3,
                                                  steps=4),
               "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
-                                                  steps=4)}[method]
+                                                  steps=4),
+              "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4)}[method]
     gb = FRAMES["rough"]()
     back = gb.depth * 1.3
     results = []
@@ -396,9 +413,12 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
         g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device), backface_depth=back.to(device))
         out = m(g).visibility
         out.sum().backward()
-        results.append((out.detach().cpu(), depth.grad.cpu(), m.radius.grad.cpu()))
+        results.append((out.detach().cpu(), depth.grad.cpu(), m.radius.grad))
     (v0, d0, r0), (v1, d1, r1) = results
     assert (v1 - v0).abs().max() <= 1e-4
     finite = torch.isfinite(d0)
     assert ((d1 - d0)[finite].norm() / d0[finite].norm()) <= 1e-4
-    assert abs(float(r1 - r0)) <= 1e-4 * abs(float(r0))
+    if method == "hard":  # (hard masks: no gradient of the radius)
+        assert r0 is None and r1 is None
+    else:
+        assert abs(float(r1.cpu() - r0)) <= 1e-4 * abs(float(r0))

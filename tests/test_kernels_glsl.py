@@ -118,9 +118,11 @@ def test_coverage_of_the_new_outputs():
     assert kernel_covers(SSILVB(variant="ssilvb_glsl"), gb) is None  # the shader's radius only picks texels
     assert "ambient" in kernel_covers(BitmaskAO(ambient=lambda d: d), gb)
     assert "hard mode only" in kernel_covers(SSILVB(variant="ssilvb_glsl", mode="straight_through"), gb)
-    # gradients the hard outputs do have: through the normals (cosine weights) and the light
+    # gradients the hard outputs do have: through the normals (cosine weights: the hard kernel's backward) and
+    # the light (the tensor path's)
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, light=gb.light)
-    assert "gradient" in kernel_covers(BitmaskAO(weighting="cosine"), graph)
+    assert kernel_covers(BitmaskAO(weighting="cosine", bent_normals=True), graph) is None
+    assert "gradient" in kernel_covers(SSILVB(weighting="cosine"), graph)
     assert kernel_covers(BitmaskAO(), graph) is None  # uniform hard visibility has none
     light = GBuffer(depth=gb.depth, camera=gb.camera, light=gb.light.clone().requires_grad_())
     assert "gradient" in kernel_covers(SSILVB(variant="ssilvb_glsl"), light)

@@ -20,8 +20,9 @@ from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from ..thickness import ThicknessLayer, matching
 from .coverage import gbuffer_uncovered, option_uncovered
-from .frame import light_input, walk_inputs
-from .launch import run_walk, walk_settings
+from .build import cpu_kernels, grad_kernels
+from .frame import light_input, scalar_lanes, walk_inputs
+from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
            "kernel_covers", "options_uncovered", "module_thickness",
@@ -64,15 +65,69 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border)
-    out = run_walk("bitmask", gbuffer, normals, settings,
-                   [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
-                    thickness_read_index(thickness_read, layer)],
-                   [thickness, sector_epsilon, float(layer_scale)],
-                   1 + 3 * bool(indirect) + 3 * bool(bent_normals),
-                   light=light_input(gbuffer, indirect) if indirect else None, backface=layer, lanes=lanes)
+    acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
+                thickness_read_index(thickness_read, layer)]
+    acc_floats = [thickness, sector_epsilon, float(layer_scale)]
+    channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
+    weighted = weighting == "cosine" or bent_normals
+    cam = gbuffer.camera
+    if weighted and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+        raise ValueError("gbuffer: the hard kernel does not compute a gradient of the intrinsics (fx, fy, cx, cy); "
+                         "detach them or use backend='torch'")
+    if weighted and wants_gradient(gbuffer, normals):
+        if indirect:
+            raise ValueError("indirect: the hard kernel's backward covers visibility and bent normals; indirect "
+                             "light's gradient (to the light and the samples) is the tensor path's")
+        if gbuffer.depth.device.type == "cpu":
+            cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
+        inputs, (_, cells, layer_image), ints, floats = packed_inputs(
+            gbuffer, normals, settings, acc_ints, acc_floats, backface=None if layer is None else layer.detach())
+        out = _HardWalk.apply(*inputs, cells, layer_image, ints, floats, channels, scalar_lanes(lanes))
+    else:
+        out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels,
+                       light=light_input(gbuffer, indirect) if indirect else None, backface=layer, lanes=lanes)
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
+
+
+class _HardWalk(torch.autograd.Function):
+    """The hard sector walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the edge-aware
+    fetch's ``cells``, the thickness layer), with ``hard_backward``: the gradients of its cosine weights and bent
+    normals to the pixels' own positions, normals and depth (the masks have none, so no tap gets one)."""
+
+    @staticmethod
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, channels,
+                scalar):
+        frame = (positions, normals, inverse, depth, valid, intrinsics)
+        none = torch.empty(0, device=depth.device)
+        ctx.scalar = scalar
+        ctx.save_for_backward(*frame, cells, layer, ints, floats)
+        if depth.is_cuda:
+            out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
+            launch_cuda("tao_walk_bitmask", depth.device, [*frame, none, cells, layer, out, ints, floats],
+                        tuple(depth.shape))
+            return out
+        return cpu_kernels().walk("bitmask", *frame, none, cells, layer, ints, floats, channels, scalar)
+
+    @staticmethod
+    def backward(ctx, grad):
+        *frame, cells, layer, ints, floats = ctx.saved_tensors
+        grad = grad.to(torch.float32).contiguous()
+        depth = frame[3]
+        if depth.is_cuda:
+            g_pos, g_nrm, g_depth = torch.zeros_like(frame[0]), torch.zeros_like(frame[1]), torch.zeros_like(depth)
+            launch_cuda("tao_hard_backward", depth.device, [*frame, cells, layer, grad, g_pos, g_nrm, g_depth, ints,
+                                                            floats], tuple(depth.shape))
+        else:
+            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *frame, cells, layer, ints, floats, ctx.scalar)
+        return g_pos, g_nrm, None, g_depth, None, None, None, None, None, None, None, None
+
+
+def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
+    """Whether autograd records through the G-buffer's depth, positions or ``normals``."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                           for t in (gbuffer.depth, gbuffer.position, gbuffer.normals, normals))
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
@@ -183,10 +238,11 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 
     Every option of the module must be one the kernels know, at a value they reproduce (an option they
     do not know, e.g. one added to the module later, sends the call to the tensor path). Hard masks
-    have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights,
-    indirect light and bent normals have gradients in hard mode too (through the normals, the light and
-    the sample positions), so those only when no gradient is asked for; straight-through mode (hard
-    values, soft gradients) only for uniform visibility without a gradient.
+    have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights and bent
+    normals have gradients in hard mode too (through the slice: the normals and positions), which the hard
+    kernel's backward computes (not the intrinsics'); indirect light has one to the light and the sample
+    positions, so only when no gradient is asked for; straight-through mode (hard values, soft gradients)
+    only for uniform visibility without a gradient.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
@@ -201,11 +257,14 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
-    # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through
-    # the normals, the light through the light, normals and (default variant) the sample positions
-    weighted = module.want_indirect or (module.variant == "default" and (module.want_bent or module.weighting == "cosine"))
-    if weighted and _needs_grad(module, gbuffer, parameters=module.want_indirect and module.variant == "default"):
-        return "a gradient is asked for (cosine weights, indirect light and bent normals have one in hard mode)"
+    # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through the
+    # slice (the hard kernel's backward), the light through the light, normals and (default variant) the samples
+    if module.want_indirect and _needs_grad(module, gbuffer, parameters=module.variant == "default"):
+        return "a gradient is asked for (indirect light has one in hard mode: the light's, the samples')"
+    weighted = module.variant == "default" and (module.want_bent or module.weighting == "cosine")
+    cam = gbuffer.camera
+    if weighted and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+        return "a gradient of the intrinsics (fx, fy, cx, cy) (the kernel differentiates the G-buffer's images)"
     return None
 
 

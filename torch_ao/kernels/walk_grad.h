@@ -478,6 +478,60 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   }
 }
 
+// The hard sector walk's backward (bitmask.h's BitmaskAccumulator in hard mode, visibility and bent normals) of
+// the n <= L pixels of a row from u0: d L / d the pixel's own position, normal and depth for L = sum over the C
+// outputs of upstream[c] * output c. Hard masks have no derivative, but what weights them has: the cosine
+// weights and the bent normals' directions follow the slice (its projected normal, its tangent). So each slice is
+// walked in plain lanes for its occupied sectors, then ended in dual lanes (the pixel and slice in Dual<B, 7>:
+// tangents on its own position, normal, depth) with those sectors; no tap gets a gradient.
+template <class B>
+TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
+                            int64_t u0, int n, const float* upstream, const Targets& t) {
+  constexpr int L = LaneTraits<B>::L;
+  using Own = Dual<B, kPixel>;
+  const int C = acc.channels();
+  const int64_t plane = img.H * img.W;
+  B g[8];
+  bool none = true;
+  for (int c = 0; c < C; ++c) {
+    float lane[L];
+    for (int l = 0; l < L; ++l) {
+      lane[l] = l < n ? upstream[c * plane + row * img.W + u0 + l] : 0.0f;
+      none = none && lane[l] == 0.0f;
+    }
+    g[c] = from_lanes(lane, B(0.0f));
+  }
+  if (none) return;  // (no gradient flows: the outputs' zeros stand)
+  const Pixels<B> px(cfg, img, row, u0, n);
+  if (!any(px.live)) return;
+  const Pixels<Own> px_own(cfg, img, row, u0, n);
+  typename BitmaskAccumulator::template Sums<Own> sums;
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    const Slice<B> sl(cfg, img, px, s);
+    typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
+    NoVisit visit;
+    walk_slice(cfg, img, acc, px, sl, st, visit);
+    const Slice<Own> sl_own(cfg, img, px_own, s);
+    typename BitmaskAccumulator::template State<Own> ended = acc.begin_slice(px_own, sl_own);
+    ended.occ = st.occ;
+    acc.end_slice(ended, px_own, sl_own, sums);
+  }
+  Own outs[8];
+  acc.finish(sums, px_own, outs);
+  B own[kPixel];
+  for (int k = 0; k < kPixel; ++k) {
+    own[k] = B(0.0f);
+    for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
+  }
+  float ol[kPixel][L];
+  for (int k = 0; k < kPixel; ++k) to_lanes(own[k], ol[k]);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * img.W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l];
+  }
+}
+
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
 // (B, H, W, slices, 2, take_words), at most kGradMaxSteps steps per side
 template <class Acc>
@@ -531,6 +585,14 @@ TAO_FN void exact_grad_pixel(const WalkSettings& cfg, const ExactAccumulator& ac
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr};
   exact_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
+}
+
+// Pixel p's hard sector backward (a CUDA thread): grad (B, C, H, W); its own gradients (positions, normals, depth)
+TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, const float* grad,
+                            float* positions, float* normals, float* depth, int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr, nullptr, nullptr};
+  hard_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane, t);
 }
 
 }  // namespace tao

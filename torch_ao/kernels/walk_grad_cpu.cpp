@@ -12,6 +12,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <limits>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -207,23 +208,22 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_back
   return {out.positions, out.normals, g_inv, out.depth, out.setting};
 }
 
-// A one-channel walk's backward call (soft_backward, exact_backward): its frame, and its packed settings
-// checked (n_ints, n_floats of the accumulator's; the power step placement on one half circle, at most
+// A per-pixel walk's backward call (soft_backward, exact_backward, hard_backward): its frame, and its packed
+// settings checked (n_ints, n_floats of the accumulator's; the power step placement on one half circle, at most
 // max_steps per side) and unpacked
-struct OneChannelCall {
+struct BackwardCall {
   Frame fr;
   const int64_t* i;
   const float* f;
   WalkSettings cfg;
 
-  OneChannelCall(const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
+  BackwardCall(const at::Tensor& positions, const at::Tensor& normals,
                  const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
                  const at::Tensor& intrinsics, const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints,
                  const at::Tensor& floats, int64_t n_ints, int64_t n_floats, const char* name, int64_t max_steps)
       : fr(frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, at::empty({0}, positions.options()),
                     cells, backface)) {
     check_settings(ints, floats, n_ints, n_floats, name);
-    check_grad(grad, positions, 1);
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
     check_cells(cfg, fr);
@@ -232,19 +232,20 @@ struct OneChannelCall {
                 "'s backward: the power step placement, one half circle");
   }
 
-  // block(lane, image, row, u0, n, upstream of the image, targets) over every row's blocks (SIMD or scalar
-  // lanes: lane is a value of the lane type), then the threads' tap images reduced: (positions, normals,
-  // inverse depth, depth, last) with last the setting's or the layer's image
+  // block(lane, image, row, u0, n, upstream of the image (its C channels), targets) over every row's blocks
+  // (SIMD or scalar lanes: lane is a value of the lane type), then the threads' tap images reduced: (positions,
+  // normals, inverse depth, depth, last) with last the setting's or the layer's image; grad (B, C, H, W)
   template <class Block>
-  std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> run(const at::Tensor& grad, bool scalar,
+  std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> run(const at::Tensor& grad, int C, bool scalar,
                                                                              Gradients& out, bool layer,
                                                                              const Block& block) const {
+    check_grad(grad, out.positions, C);
     const int64_t B = fr.B, plane = fr.H * fr.W;
     const float* gp = grad.data_ptr<float>();
     torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0,
                                                                                   int n, auto simd) {
       using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
-      block(Lane(0.0f), fr.image(b), row, u0, n, gp + b * plane, out.targets(b, B, plane, at::get_thread_num()));
+      block(Lane(0.0f), fr.image(b), row, u0, n, gp + b * C * plane, out.targets(b, B, plane, at::get_thread_num()));
     });
     at::Tensor g_inv = out.reduce();
     return {out.positions, out.normals, g_inv, out.depth, layer ? out.layer() : out.setting};
@@ -259,12 +260,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const OneChannelCall call(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells,
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells,
                             at::empty({0}, positions.options()), ints, floats, 3, 3, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
-  return call.run(grad, scalar, out, false, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
+  return call.run(grad, 1, scalar, out, false, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
                                                 const float* upstream, const Targets& t) {
     soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
@@ -278,15 +279,36 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_bac
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const OneChannelCall call(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints,
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints,
                             floats, 4, 4, "exact", kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
-  return call.run(grad, scalar, out, true, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
+  return call.run(grad, 1, scalar, out, true, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
                                                const float* upstream, const Targets& t) {
     exact_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
+}
+
+// torch_ao_kernels::hard_backward: the gradients of sum(grad * outputs) of the hard sector walk ("bitmask"'s
+// packed settings: cosine weights and/or bent normals, no indirect light: walk_grad.h's hard_grad_block) with
+// respect to its positions, normals (B, H, W, 3) and depth (B, H, W); grad (B, C, H, W)
+std::tuple<at::Tensor, at::Tensor, at::Tensor> hard_backward(
+    const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
+    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints,
+                          floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
+  const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
+  TORCH_CHECK(!acc.indirect, "hard_backward: indirect light's gradient reaches the light and the samples (the tensor path's)");
+  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
+  const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, const Image& img, int64_t row,
+                                                                      int64_t u0, int n, const float* upstream,
+                                                                      const Targets& t) {
+    hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
+  });
+  return {std::get<0>(g), std::get<1>(g), std::get<3>(g)};
 }
 
 }  // namespace
@@ -309,4 +331,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("exact_backward", c10::DispatchKey::CPU, TORCH_FN(exact_backward));
+  m.def("hard_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
+        "-> (Tensor, Tensor, Tensor)");
+  m.impl("hard_backward", c10::DispatchKey::CPU, TORCH_FN(hard_backward));
 }

@@ -1,0 +1,129 @@
+"""The hard sector kernel's G-buffer gradients (walk_grad.h's hard_grad_block: ``torch_ao_kernels::hard_backward``).
+
+Hard masks have no derivative, but the cosine weights and the bent normals' directions follow the slice, so hard
+``BitmaskAO`` with cosine weights or bent normals has gradients to the normals (and, through the view vector,
+to a position buffer); the depth's is zero (scaling a pixel's depth moves it along its own ray). Against the
+tensor-op walk's autograd in float64 on the rough frame: values within 1e-5, gradients within 1e-4 relative, in
+SIMD and scalar lanes; directional derivatives against central differences; what it covers."""
+import pytest
+import torch
+
+from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
+from torch_ao.camera import PinholeCamera
+from torch_ao.gbuffer import GBuffer
+from torch_ao.kernels import dispatch
+from torch_ao.kernels.bitmask import kernel_covers
+from torch_ao.methods.bitmask import SSILVB, BitmaskAO
+from torch_ao.thickness import BackfaceThickness
+
+SETTINGS = [
+    dict(weighting="cosine"),
+    dict(weighting="cosine", bent_normals=True, fetch="edge_aware", border="clamp"),
+    dict(bent_normals=True, fetch="nearest", rounding="round", thickness=0.3),
+    dict(weighting="cosine", noise="hilbert_r2", stagger=True, step_power=2.0, thickness=BackfaceThickness()),
+]
+
+
+def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
+    finite = torch.isfinite(b)
+    return float((a - b)[finite].norm() / b[finite].norm().clamp_min(1e-30))
+
+
+def outputs_and_grads(gb0: GBuffer, dtype: torch.dtype, backend: str, setting: dict, lanes: str = "simd"):
+    """The visibility (and bent normals), and the gradients of a weighted sum of them with respect to depth and
+    normals."""
+    gb0 = gb0.to(dtype=dtype)
+    depth = gb0.depth.detach().clone().requires_grad_()
+    normals = gb0.view_normals().detach().clone().requires_grad_()
+    gb = GBuffer(depth=depth, normals=normals, camera=gb0.camera, backface_depth=gb0.depth.detach() * 1.3)
+    module = BitmaskAO(mode="hard", slices=3, steps=4, backend=backend, **setting).to(dtype)
+    if backend == "kernel":
+        assert kernel_covers(module, gb) is None
+    out = module(gb)
+    values = [out.visibility] + ([out.bent_normal] if out.bent_normal is not None else [])
+    loss = sum((v * torch.linspace(-0.5, 1.5, v.numel(), dtype=dtype).view_as(v)).sum() for v in values)
+    grads = torch.autograd.grad(loss, [depth, normals])
+    return torch.cat(values, 1).detach().double(), [g.double() for g in grads]
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("setting", range(len(SETTINGS)))
+def test_gradients_equal_the_float64_tensor_walk(built, setting, lanes, monkeypatch):
+    if lanes == "scalar":  # the CUDA thread's walk (what tao_hard_backward compiles), on the CPU
+        import torch_ao.kernels.bitmask as bitmask
+        monkeypatch.setattr(bitmask, "scalar_lanes", lambda lanes: True)
+    gb = FRAMES["rough"]()
+    ref, (ref_depth, ref_normals) = outputs_and_grads(gb, torch.float64, "torch", SETTINGS[setting])
+    out, (depth, normals) = outputs_and_grads(gb, torch.float32, "kernel", SETTINGS[setting])
+    assert (out - ref).abs().max() <= 1e-5
+    assert ref_normals.abs().sum() > 0 and _relative(normals, ref_normals) <= 1e-4
+    scale = float(ref_normals.norm())  # the depth's gradient is zero up to rounding, in both
+    assert float(ref_depth[torch.isfinite(ref_depth)].norm()) <= 1e-9 * scale
+    assert float(depth[torch.isfinite(depth)].norm()) <= 1e-5 * scale
+
+
+def test_position_buffer_gradient_equals_the_tensor_walk(built):
+    """A position buffer (nearest fetch): the view vector, so the slices, follow it."""
+    gb0 = FRAMES["rough"]()
+    grads = []
+    for dtype, backend in ((torch.float64, "torch"), (torch.float32, "kernel")):
+        g = gb0.to(dtype=dtype)
+        position = g.positions().detach().clone().requires_grad_()
+        gb = GBuffer(g.depth, position=position, normals=g.view_normals().detach(), camera=g.camera)
+        module = BitmaskAO(mode="hard", slices=3, steps=4, weighting="cosine", bent_normals=True, fetch="nearest",
+                           backend=backend).to(dtype)
+        out = module(gb)
+        (grad,) = torch.autograd.grad(out.visibility.sum() + out.bent_normal[:, 2].sum(), [position])
+        grads.append(grad.double())
+    assert grads[0].abs().sum() > 0
+    assert _relative(grads[1], grads[0]) <= 1e-4
+
+
+def test_gradients_match_central_differences(built):
+    """The kernel's derivative along random directions of the normals against central differences (eps = 1e-7)
+    of the float64 tensor-op forward on a small frame (no sector edge is crossed at that eps: the masks stay)."""
+    gb0 = rough_gbuffer(28, 40, seed=5)
+    normals0 = gb0.view_normals().detach()
+    settings = dict(mode="hard", slices=2, steps=3, weighting="cosine", bent_normals=True)
+
+    def tensor_walk(normals):
+        out = BitmaskAO(backend="torch", **settings).double()(
+            GBuffer(depth=gb0.depth.double(), normals=normals, camera=gb0.camera.to(dtype=torch.float64)))
+        return out.visibility.sum() + (out.bent_normal * torch.linspace(-1, 1, 3, dtype=torch.float64).view(1, 3, 1, 1)).sum()
+
+    normals = normals0.clone().requires_grad_()
+    out = BitmaskAO(backend="kernel", **settings)(GBuffer(depth=gb0.depth, normals=normals, camera=gb0.camera))
+    loss = out.visibility.sum() + (out.bent_normal * torch.linspace(-1, 1, 3).view(1, 3, 1, 1)).sum()
+    (grad,) = torch.autograd.grad(loss, [normals])
+    g = torch.Generator().manual_seed(2)
+    eps = 1e-7
+    for _ in range(4):
+        u = torch.randn(normals0.shape, generator=g, dtype=torch.float64)
+        with torch.no_grad():
+            n64 = normals0.double()
+            numerical = float(tensor_walk(n64 + eps * u) - tensor_walk(n64 - eps * u)) / (2 * eps)
+        terms = (grad.double() * u)[torch.isfinite(grad)]
+        assert abs(numerical) > 1e-2
+        assert abs(float(terms.sum()) - numerical) <= 1e-4 * float(terms.abs().sum()), (float(terms.sum()), numerical)
+
+
+# ------------------------------------------------------------------------------- what it covers
+def test_the_auto_backend_takes_the_kernel_but_not_for_indirect_light_or_the_intrinsics(built, monkeypatch):
+    gb = FRAMES["rough"]()
+    depth = gb.depth.clone().requires_grad_()
+    graph = GBuffer(depth=depth, camera=gb.camera)  # (normals from depth: their gradient reaches it)
+    calls = []
+    entries = list(dispatch.KERNELS["bitmask"])
+    hard_covers, hard_run = entries[0]  # (the hard kernel: tried first)
+    entries[0] = (hard_covers, lambda *a: calls.append("hard") or hard_run(*a))
+    monkeypatch.setitem(dispatch.KERNELS, "bitmask", tuple(entries))
+    module = BitmaskAO(mode="hard", slices=2, steps=3, weighting="cosine")
+    (g_depth,) = torch.autograd.grad(module(graph).visibility.sum(), [depth])
+    assert calls == ["hard"] and torch.isfinite(g_depth).all()
+    light = GBuffer(depth=depth, camera=gb.camera, light=torch.rand(2, 3, *gb.depth.shape[-2:]))
+    assert "indirect" in kernel_covers(SSILVB(mode="hard", slices=2, steps=3), light)
+    intrinsics = gb.camera.intrinsics.clone().requires_grad_()
+    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width))
+    assert "intrinsics" in kernel_covers(module, moving)
+    (g_fx,) = torch.autograd.grad(module(moving).visibility.sum(), [intrinsics])  # (the tensor path)
+    assert calls == ["hard"] and g_fx.abs().sum() > 0
