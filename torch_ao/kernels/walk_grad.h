@@ -483,7 +483,8 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
 // outputs of upstream[c] * output c. Hard masks have no derivative, but what weights them has: the cosine
 // weights and the bent normals' directions follow the slice (its projected normal, its tangent). So each slice is
 // walked in plain lanes for its occupied sectors, then ended in dual lanes (the pixel and slice in Dual<B, 7>:
-// tangents on its own position, normal, depth) with those sectors; no tap gets a gradient.
+// tangents on its own position, normal, depth) with those sectors, or, with cosine weights alone, in the 2
+// tangents of the slice's gamma and length that they follow, chained to the 7; no tap gets a gradient.
 template <class B>
 TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
                             int64_t u0, int n, const float* upstream, const Targets& t) {
@@ -505,6 +506,9 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   const Pixels<B> px(cfg, img, row, u0, n);
   if (!any(px.live)) return;
   const Pixels<Own> px_own(cfg, img, row, u0, n);
+  using Two = Dual<B, 2>;  // a slice's gamma and length
+  const auto constant = [](const B& x) { return Two(x); };
+  const Pixels<Two> px_two(px, constant);
   typename BitmaskAccumulator::template Sums<Own> sums;
   for (int64_t s = 0; s < cfg.slices; ++s) {
     const Slice<B> sl(cfg, img, px, s);
@@ -512,9 +516,25 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     NoVisit visit;
     walk_slice(cfg, img, acc, px, sl, st, visit);
     const Slice<Own> sl_own(cfg, img, px_own, s);
-    typename BitmaskAccumulator::template State<Own> ended = acc.begin_slice(px_own, sl_own);
+    if (acc.bent) {  // (the bent normal's directions follow V and T too)
+      typename BitmaskAccumulator::template State<Own> ended = acc.begin_slice(px_own, sl_own);
+      ended.occ = st.occ;
+      acc.end_slice(ended, px_own, sl_own, sums);
+      continue;
+    }
+    // cosine weights alone follow the slice's gamma and length: its end in their 2 tangents, chained to the 7
+    Slice<Two> sl_two(sl, constant);
+    sl_two.gamma.d[0] = B(1.0f), sl_two.cos_gamma.d[0] = neg(sl.sin_gamma), sl_two.sin_gamma.d[0] = sl.cos_gamma;
+    sl_two.length.d[1] = B(1.0f);
+    typename BitmaskAccumulator::template State<Two> ended = acc.begin_slice(px_two, sl_two);
     ended.occ = st.occ;
-    acc.end_slice(ended, px_own, sl_own, sums);
+    typename BitmaskAccumulator::template Sums<Two> part;
+    acc.end_slice(ended, px_two, sl_two, part);
+    const auto add = [&](Own& to, const Two& from) {
+      to.v = to.v + from.v;
+      for (int k = 0; k < kPixel; ++k) to.d[k] = to.d[k] + from.d[0] * sl_own.gamma.d[k] + from.d[1] * sl_own.length.d[k];
+    };
+    add(sums.num, part.num), add(sums.den, part.den);
   }
   Own outs[8];
   acc.finish(sums, px_own, outs);
