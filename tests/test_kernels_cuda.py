@@ -116,9 +116,11 @@ typedef void Backward(const float*, const float*, const float*, const float*, co
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                           const float*, const float*, float*, float*, float*, float*, float*, float*,
                           const long long*, const float*, int, int, int);
+typedef void HardRecord(const float*, const float*, const float*, const float*, const bool*, const float*,
+                        const float*, const float*, float*, int*, const long long*, const float*, int, int, int);
 typedef void HardBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
-                          const float*, const float*, const float*, float*, float*, float*, const long long*,
-                          const float*, int, int, int);
+                          const float*, const float*, const float*, const int*, float*, float*, float*,
+                          const long long*, const float*, int, int, int);
 typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            const long long*, const float*, int, int, int);
@@ -126,6 +128,7 @@ Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao;
 SoftBackward tao_soft_backward;
 ExactBackward tao_exact_backward;
+HardRecord tao_record_hard;
 HardBackward tao_hard_backward;
 }
 template <class T> void save(const std::string& dir, const char* name, const std::vector<T>& v) {
@@ -161,9 +164,15 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   const size_t n = size_t(pixels);
   std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n), tl(n);
   if (name == "hard") {
+    const long long slices = ints[0];
+    std::vector<int> occ(size_t(pixels * slices), -1);
+    grid(pixels, threads, [&] { tao_record_hard(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+                                                Bf.empty() ? nullptr : Bf.data(), out.data(), occ.data(), ints.data(),
+                                                floats.data(), B, H, W); });
     grid(pixels, threads, [&] { tao_hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
-                                                  Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
-                                                  gd.data(), ints.data(), floats.data(), B, H, W); });
+                                                  Bf.empty() ? nullptr : Bf.data(), grad.data(), occ.data(), gp.data(),
+                                                  gn.data(), gd.data(), ints.data(), floats.data(), B, H, W); });
+    save(dir, "occupied", occ);
   } else if (name == "exact") {
     grid(pixels, threads, [&] { tao_exact_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                    Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
@@ -357,7 +366,10 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
         cpu = {}
         if accumulator == "hard":
-            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *inputs, cells, layer, ints, floats, True)
+            out, record = grad_kernels().hard_record(*inputs, cells, layer, ints, floats, channels, True)
+            assert torch.equal(read("occupied", *record.shape, dtype=np.int32), record)
+            assert (read("out", *out.shape) - out).abs().max() <= 1e-6
+            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *inputs, cells, layer, ints, floats, record, True)
             g_inv, g_setting = torch.zeros_like(g_depth), torch.zeros_like(g_depth)
         elif accumulator == "exact":
             g_pos, g_nrm, g_inv, g_depth, cpu["layer"] = grad_kernels().exact_backward(grad, *inputs, cells, layer, ints,

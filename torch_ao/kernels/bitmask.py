@@ -82,7 +82,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         inputs, (_, cells, layer_image), ints, floats = packed_inputs(
             gbuffer, normals, settings, acc_ints, acc_floats, backface=None if layer is None else layer.detach())
-        out = _HardWalk.apply(*inputs, cells, layer_image, ints, floats, channels, scalar_lanes(lanes))
+        out = _HardWalk.apply(*inputs, cells, layer_image, ints, floats, channels, int(slices), scalar_lanes(lanes))
     else:
         out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels,
                        light=light_input(gbuffer, indirect) if indirect else None, backface=layer, lanes=lanes)
@@ -93,35 +93,38 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
 
 class _HardWalk(torch.autograd.Function):
     """The hard sector walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the edge-aware
-    fetch's ``cells``, the thickness layer), with ``hard_backward``: the gradients of its cosine weights and bent
-    normals to the pixels' own positions, normals and depth (the masks have none, so no tap gets one)."""
+    fetch's ``cells``, the thickness layer), recording each pixel's slices' occupied sectors, with
+    ``hard_backward``: the gradients of its cosine weights and bent normals to the pixels' own positions, normals
+    and depth (the masks have none, so no tap gets one)."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, channels,
-                scalar):
+                slices, scalar):
         frame = (positions, normals, inverse, depth, valid, intrinsics)
-        none = torch.empty(0, device=depth.device)
-        ctx.scalar = scalar
-        ctx.save_for_backward(*frame, cells, layer, ints, floats)
         if depth.is_cuda:
-            out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
-            launch_cuda("tao_walk_bitmask", depth.device, [*frame, none, cells, layer, out, ints, floats],
-                        tuple(depth.shape))
-            return out
-        return cpu_kernels().walk("bitmask", *frame, none, cells, layer, ints, floats, channels, scalar)
+            B, H, W = depth.shape
+            out = torch.empty(B, channels, H, W, device=depth.device)
+            record = torch.empty(B, H, W, slices, dtype=torch.int32, device=depth.device)
+            launch_cuda("tao_record_hard", depth.device, [*frame, cells, layer, out, record, ints, floats], (B, H, W))
+        else:
+            out, record = grad_kernels().hard_record(*frame, cells, layer, ints, floats, channels, scalar)
+        ctx.scalar = scalar
+        ctx.save_for_backward(*frame, cells, layer, ints, floats, record)
+        return out
 
     @staticmethod
     def backward(ctx, grad):
-        *frame, cells, layer, ints, floats = ctx.saved_tensors
+        *frame, cells, layer, ints, floats, record = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()
         depth = frame[3]
         if depth.is_cuda:
             g_pos, g_nrm, g_depth = torch.zeros_like(frame[0]), torch.zeros_like(frame[1]), torch.zeros_like(depth)
-            launch_cuda("tao_hard_backward", depth.device, [*frame, cells, layer, grad, g_pos, g_nrm, g_depth, ints,
-                                                            floats], tuple(depth.shape))
+            launch_cuda("tao_hard_backward", depth.device, [*frame, cells, layer, grad, record, g_pos, g_nrm, g_depth,
+                                                            ints, floats], tuple(depth.shape))
         else:
-            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *frame, cells, layer, ints, floats, ctx.scalar)
-        return g_pos, g_nrm, None, g_depth, None, None, None, None, None, None, None, None
+            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *frame, cells, layer, ints, floats, record,
+                                                                 ctx.scalar)
+        return g_pos, g_nrm, None, g_depth, None, None, None, None, None, None, None, None, None
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:

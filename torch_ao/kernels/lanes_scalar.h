@@ -49,6 +49,7 @@ TAO_FN bool any(bool m) { return m; }
 TAO_FN bool lane_on(bool m, int) { return m; }
 TAO_FN uint32_t lane_bits(bool m) { return m ? 1u : 0u; }  // a lane mask as bits (lane l: bit l)
 TAO_FN void store_lanes(uint32_t x, int32_t* out) { out[0] = int32_t(x); }
+TAO_FN uint32_t from_lanes(const int32_t* x, uint32_t) { return uint32_t(x[0]); }
 TAO_FN float reduce_min(float x) { return x; }  // over the lanes
 TAO_FN float reduce_max(float x) { return x; }
 TAO_FN float neg(float x) { return -x; }

@@ -33,6 +33,7 @@ inline bool any(const Vec& m) { return m.zero_mask() != (1 << Vec::size()) - 1; 
 inline bool lane_on(const Vec& m, int l) { return !((m.zero_mask() >> l) & 1); }
 inline uint32_t lane_bits(const Vec& m) { return ~uint32_t(m.zero_mask()) & ((1u << Vec::size()) - 1u); }
 inline void store_lanes(const IVec& x, int32_t* out) { x.store(out); }
+inline IVec from_lanes(const int32_t* x, IVec) { return IVec::loadu(x); }
 // the least and the greatest of the lanes (NaN lanes: either)
 inline float reduce_min(const Vec& x) {
   alignas(64) float v[Vec::size()];

@@ -478,18 +478,44 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   }
 }
 
+// The hard sector walk's forward with its record: each slice's occupied sectors, one word per pixel and slice
+// at record + (pixel * slices + slice) (image b's; pixel = row * W + u0 + lane), so that the backward ends the
+// slices without walking them again; the outputs' lanes in values
+template <class B>
+TAO_FN void hard_record_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
+                              int64_t u0, int n, int32_t* record, B* values) {
+  constexpr int L = LaneTraits<B>::L;
+  const Pixels<B> px(cfg, img, row, u0, n);
+  typename BitmaskAccumulator::template Sums<B> sums;
+  const bool live = any(px.live);
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    int32_t occ[L] = {};
+    if (live) {
+      const Slice<B> sl(cfg, img, px, s);
+      typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
+      NoVisit visit;
+      walk_slice(cfg, img, acc, px, sl, st, visit);
+      acc.end_slice(st, px, sl, sums);
+      store_lanes(st.occ, occ);
+    }
+    for (int l = 0; l < n; ++l) record[((row * img.W + u0 + l) * cfg.slices) + s] = occ[l];
+  }
+  acc.finish(sums, px, values);
+}
+
 // The hard sector walk's backward (bitmask.h's BitmaskAccumulator in hard mode, visibility and bent normals) of
 // the n <= L pixels of a row from u0: d L / d the pixel's own position, normal and depth for L = sum over the C
-// outputs of upstream[c] * output c. Hard masks have no derivative, but what weights them has: the cosine
-// weights and the bent normals' directions follow the slice (its projected normal, its tangent). So each slice is
-// walked in plain lanes for its occupied sectors, then ended in dual lanes (the pixel and slice in Dual<B, 7>:
-// tangents on its own position, normal, depth) with those sectors, or, with cosine weights alone, in the 2
-// tangents of the slice's gamma and length that they follow, chained to the 7; no tap gets a gradient.
+// outputs of upstream[c] * output c; record: hard_record_block's (image b's). Hard masks have no derivative, but
+// what weights them has: the cosine weights and the bent normals' directions follow the slice (its projected
+// normal, its tangent). So each slice is ended again with the recorded sectors in dual lanes (the pixel and slice
+// in Dual<B, 7>: tangents on its own position, normal, depth), or, with cosine weights alone, in the 2 tangents
+// of the slice's gamma and length that they follow, chained to the 7; no tap gets a gradient.
 template <class B>
 TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
-                            int64_t u0, int n, const float* upstream, const Targets& t) {
+                            int64_t u0, int n, const float* upstream, const int32_t* record, const Targets& t) {
   constexpr int L = LaneTraits<B>::L;
   using Own = Dual<B, kPixel>;
+  using I = typename LaneTraits<B>::I;
   const int C = acc.channels();
   const int64_t plane = img.H * img.W;
   B g[8];
@@ -511,14 +537,14 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   const Pixels<Two> px_two(px, constant);
   typename BitmaskAccumulator::template Sums<Own> sums;
   for (int64_t s = 0; s < cfg.slices; ++s) {
+    int32_t words[L] = {};
+    for (int l = 0; l < n; ++l) words[l] = record[(row * img.W + u0 + l) * cfg.slices + s];
+    const I occ = from_lanes(words, I(0));
     const Slice<B> sl(cfg, img, px, s);
-    typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
-    NoVisit visit;
-    walk_slice(cfg, img, acc, px, sl, st, visit);
     const Slice<Own> sl_own(cfg, img, px_own, s);
     if (acc.bent) {  // (the bent normal's directions follow V and T too)
       typename BitmaskAccumulator::template State<Own> ended = acc.begin_slice(px_own, sl_own);
-      ended.occ = st.occ;
+      ended.occ = occ;
       acc.end_slice(ended, px_own, sl_own, sums);
       continue;
     }
@@ -527,7 +553,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     sl_two.gamma.d[0] = B(1.0f), sl_two.cos_gamma.d[0] = neg(sl.sin_gamma), sl_two.sin_gamma.d[0] = sl.cos_gamma;
     sl_two.length.d[1] = B(1.0f);
     typename BitmaskAccumulator::template State<Two> ended = acc.begin_slice(px_two, sl_two);
-    ended.occ = st.occ;
+    ended.occ = occ;
     typename BitmaskAccumulator::template Sums<Two> part;
     acc.end_slice(ended, px_two, sl_two, part);
     const auto add = [&](Own& to, const Two& from) {
@@ -607,12 +633,25 @@ TAO_FN void exact_grad_pixel(const WalkSettings& cfg, const ExactAccumulator& ac
   exact_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 
-// Pixel p's hard sector backward (a CUDA thread): grad (B, C, H, W); its own gradients (positions, normals, depth)
+// Pixel p's hard sector forward with its record (a CUDA thread): its outputs into out (B, C, H, W), its slices'
+// occupied sectors into record (B, H, W, slices)
+TAO_FN void hard_record_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, float* out,
+                              int32_t* record, int64_t p) {
+  const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
+  float values[8];
+  hard_record_block<float>(cfg, fr.image(b), acc, row, u, 1, record + b * plane * cfg.slices, values);
+  const int C = acc.channels();
+  for (int c = 0; c < C; ++c) out[((b * C + c) * fr.H + row) * fr.W + u] = values[c];
+}
+
+// Pixel p's hard sector backward (a CUDA thread): grad (B, C, H, W), record hard_record_pixel's; its own gradients
+// (positions, normals, depth)
 TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, const float* grad,
-                            float* positions, float* normals, float* depth, int64_t p) {
+                            const int32_t* record, float* positions, float* normals, float* depth, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr, nullptr, nullptr};
-  hard_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane, t);
+  hard_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane,
+                         record + b * plane * cfg.slices, t);
 }
 
 }  // namespace tao

@@ -232,7 +232,7 @@ struct BackwardCall {
                 "'s backward: the power step placement, one half circle");
   }
 
-  // block(lane, image, row, u0, n, upstream of the image (its C channels), targets) over every row's blocks
+  // block(lane, b, image b, row, u0, n, upstream of the image (its C channels), targets) over every row's blocks
   // (SIMD or scalar lanes: lane is a value of the lane type), then the threads' tap images reduced: (positions,
   // normals, inverse depth, depth, last) with last the setting's or the layer's image; grad (B, C, H, W)
   template <class Block>
@@ -245,7 +245,7 @@ struct BackwardCall {
     torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0,
                                                                                   int n, auto simd) {
       using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
-      block(Lane(0.0f), fr.image(b), row, u0, n, gp + b * C * plane, out.targets(b, B, plane, at::get_thread_num()));
+      block(Lane(0.0f), b, fr.image(b), row, u0, n, gp + b * C * plane, out.targets(b, B, plane, at::get_thread_num()));
     });
     at::Tensor g_inv = out.reduce();
     return {out.positions, out.normals, g_inv, out.depth, layer ? out.layer() : out.setting};
@@ -265,8 +265,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
-  return call.run(grad, 1, scalar, out, false, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
-                                                const float* upstream, const Targets& t) {
+  return call.run(grad, 1, scalar, out, false, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
+                                                   int n, const float* upstream, const Targets& t) {
     soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
 }
@@ -284,29 +284,74 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_bac
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
-  return call.run(grad, 1, scalar, out, true, [&](auto lane, const Image& img, int64_t row, int64_t u0, int n,
-                                               const float* upstream, const Targets& t) {
+  return call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
+                                                  int n, const float* upstream, const Targets& t) {
     exact_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
 }
 
-// torch_ao_kernels::hard_backward: the gradients of sum(grad * outputs) of the hard sector walk ("bitmask"'s
-// packed settings: cosine weights and/or bent normals, no indirect light: walk_grad.h's hard_grad_block) with
-// respect to its positions, normals (B, H, W, 3) and depth (B, H, W); grad (B, C, H, W)
+// The hard sector walk's call (hard_record, hard_backward): "bitmask"'s packed settings with cosine weights and/or
+// bent normals, no indirect light
+BitmaskAccumulator hard_accumulator(const BackwardCall& call) {
+  const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
+  TORCH_CHECK(!acc.indirect, "hard: indirect light's gradient reaches the light and the samples (the tensor path's)");
+  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  return acc;
+}
+
+// torch_ao_kernels::hard_record: the hard sector walk (torch_ao_kernels::walk's "bitmask" outputs (B, channels, H,
+// W)) and the record of each pixel's slices' occupied sectors (B, H, W, slices) int32, for hard_backward
+std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, const at::Tensor& normals,
+                                               const at::Tensor& inverse_depth, const at::Tensor& depth,
+                                               const at::Tensor& valid, const at::Tensor& intrinsics,
+                                               const at::Tensor& cells, const at::Tensor& backface,
+                                               const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
+                                               bool scalar) {
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats,
+                          5, 3, "hard", std::numeric_limits<int64_t>::max());
+  const BitmaskAccumulator acc = hard_accumulator(call);
+  TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
+  const int64_t B = call.fr.B, H = call.fr.H, W = call.fr.W;
+  at::Tensor out = at::empty({B, channels, H, W}, positions.options());
+  at::Tensor record = at::empty({B, H, W, call.cfg.slices}, positions.options().dtype(at::kInt));
+  float* dst = out.data_ptr<float>();
+  int32_t* rec = record.data_ptr<int32_t>();
+  torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n,
+                                                                       auto simd) {
+    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+    constexpr int LL = LaneTraits<Lane>::L;
+    Lane values[8];
+    hard_record_block(call.cfg, call.fr.image(b), acc, row, u0, n, rec + b * H * W * call.cfg.slices, values);
+    alignas(64) float lanes[LL];
+    for (int c = 0; c < channels; ++c) {
+      to_lanes(values[c], lanes);
+      std::copy(lanes, lanes + n, dst + ((b * channels + c) * H + row) * W + u0);
+    }
+  });
+  return {out, record};
+}
+
+// torch_ao_kernels::hard_backward: the gradients of sum(grad * outputs) of the hard sector walk (walk_grad.h's
+// hard_grad_block) with respect to its positions, normals (B, H, W, 3) and depth (B, H, W); grad (B, C, H, W);
+// record: hard_record's of the same call
 std::tuple<at::Tensor, at::Tensor, at::Tensor> hard_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
-    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints,
-                          floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
-  const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
-  TORCH_CHECK(!acc.indirect, "hard_backward: indirect light's gradient reaches the light and the samples (the tensor path's)");
-  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record,
+    bool scalar) {
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats,
+                          5, 3, "hard", std::numeric_limits<int64_t>::max());
+  const BitmaskAccumulator acc = hard_accumulator(call);
+  TORCH_CHECK(record.scalar_type() == at::kInt && record.is_contiguous() &&
+                  record.sizes() == at::IntArrayRef({call.fr.B, call.fr.H, call.fr.W, call.cfg.slices}),
+              "record: expected hard_record's (B, H, W, slices) of the same call");
+  const int32_t* rec = record.data_ptr<int32_t>();
+  const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
-  const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, const Image& img, int64_t row,
-                                                                      int64_t u0, int n, const float* upstream,
-                                                                      const Targets& t) {
-    hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
+  const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
+                                                                      int64_t row, int64_t u0, int n,
+                                                                      const float* upstream, const Targets& t) {
+    hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, rec + b * per_image, t);
   });
   return {std::get<0>(g), std::get<1>(g), std::get<3>(g)};
 }
@@ -331,8 +376,12 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("exact_backward", c10::DispatchKey::CPU, TORCH_FN(exact_backward));
+  m.def("hard_record(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
+        "Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, bool scalar) "
+        "-> (Tensor, Tensor)");
+  m.impl("hard_record", c10::DispatchKey::CPU, TORCH_FN(hard_record));
   m.def("hard_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
-        "-> (Tensor, Tensor, Tensor)");
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, Tensor record, "
+        "bool scalar) -> (Tensor, Tensor, Tensor)");
   m.impl("hard_backward", c10::DispatchKey::CPU, TORCH_FN(hard_backward));
 }
