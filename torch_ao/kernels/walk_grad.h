@@ -507,9 +507,9 @@ TAO_FN void hard_record_block(const WalkSettings& cfg, const Image& img, const B
 // the n <= L pixels of a row from u0: d L / d the pixel's own position, normal and depth for L = sum over the C
 // outputs of upstream[c] * output c; record: hard_record_block's (image b's). Hard masks have no derivative, but
 // what weights them has: the cosine weights and the bent normals' directions follow the slice (its projected
-// normal, its tangent). So each slice is ended again with the recorded sectors in dual lanes (the pixel and slice
-// in Dual<B, 7>: tangents on its own position, normal, depth), or, with cosine weights alone, in the 2 tangents
-// of the slice's gamma and length that they follow, chained to the 7; no tap gets a gradient.
+// normal, its tangent). So each slice is ended again with the recorded sectors in the 2 tangents of the slice's
+// gamma and length, which its weights follow, chained to the pixel's own position, normal and depth (Dual<B, 7>,
+// with the bent normal's view vector and tangent); no tap gets a gradient.
 template <class B>
 TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
                             int64_t u0, int n, const float* upstream, const int32_t* record, const Targets& t) {
@@ -534,7 +534,8 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   const Pixels<Own> px_own(cfg, img, row, u0, n);
   using Two = Dual<B, 2>;  // a slice's gamma and length
   const auto constant = [](const B& x) { return Two(x); };
-  const Pixels<Two> px_two(px, constant);
+  Pixels<Two> px_axes(px, constant);
+  for (int c = 0; c < 3; ++c) px_axes.V[c] = Two(B(c == 0 ? 1.0f : 0.0f));
   typename BitmaskAccumulator::template Sums<Own> sums;
   for (int64_t s = 0; s < cfg.slices; ++s) {
     int32_t words[L] = {};
@@ -542,25 +543,28 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     const I occ = from_lanes(words, I(0));
     const Slice<B> sl(cfg, img, px, s);
     const Slice<Own> sl_own(cfg, img, px_own, s);
-    if (acc.bent) {  // (the bent normal's directions follow V and T too)
-      typename BitmaskAccumulator::template State<Own> ended = acc.begin_slice(px_own, sl_own);
-      ended.occ = occ;
-      acc.end_slice(ended, px_own, sl_own, sums);
-      continue;
-    }
-    // cosine weights alone follow the slice's gamma and length: its end in their 2 tangents, chained to the 7
+    // the slice's weights follow its gamma and length alone: its end in their 2 tangents, chained to the 7
     Slice<Two> sl_two(sl, constant);
     sl_two.gamma.d[0] = B(1.0f), sl_two.cos_gamma.d[0] = neg(sl.sin_gamma), sl_two.sin_gamma.d[0] = sl.cos_gamma;
     sl_two.length.d[1] = B(1.0f);
-    typename BitmaskAccumulator::template State<Two> ended = acc.begin_slice(px_two, sl_two);
+    // end_slice's bent normal is along_v V + along_t T: with V and T the first two axes it gives along_v and
+    // along_t, which are then chained and multiplied by V and T in the own tangents
+    for (int c = 0; c < 3; ++c) sl_two.T[c] = Two(B(c == 1 ? 1.0f : 0.0f));
+    typename BitmaskAccumulator::template State<Two> ended = acc.begin_slice(px_axes, sl_two);
     ended.occ = occ;
     typename BitmaskAccumulator::template Sums<Two> part;
-    acc.end_slice(ended, px_two, sl_two, part);
-    const auto add = [&](Own& to, const Two& from) {
-      to.v = to.v + from.v;
-      for (int k = 0; k < kPixel; ++k) to.d[k] = to.d[k] + from.d[0] * sl_own.gamma.d[k] + from.d[1] * sl_own.length.d[k];
+    acc.end_slice(ended, px_axes, sl_two, part);
+    const auto chained = [&](const Two& x) {
+      Own r(x.v);
+      for (int k = 0; k < kPixel; ++k) r.d[k] = x.d[0] * sl_own.gamma.d[k] + x.d[1] * sl_own.length.d[k];
+      return r;
     };
-    add(sums.num, part.num), add(sums.den, part.den);
+    sums.visible = sums.visible + chained(part.visible);
+    sums.num = sums.num + chained(part.num), sums.den = sums.den + chained(part.den);
+    if (acc.bent) {
+      const Own along_v = chained(part.bent[0]), along_t = chained(part.bent[1]);
+      for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + along_v * px_own.V[c] + along_t * sl_own.T[c];
+    }
   }
   Own outs[8];
   acc.finish(sums, px_own, outs);
