@@ -38,8 +38,8 @@ def test_a_compile_error_is_reported_with_the_log(monkeypatch):
 @pytest.mark.skipif(cuda_offline.ptxas_path() is None, reason="needs ptxas (pip install nvidia-cuda-nvcc-cu12)")
 def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills. The horizon backward's replay carries 13 to 15
-    tangents per value (lanes_dual.h): measured 184 (HBAO) and 356 (GTAO) bytes spilled and reloaded, bounded here;
-    the exact union's replays an interval's segment in 11 tangents: 1344 bytes; the hard sector walk's ends each
+    tangents per value (lanes_dual.h): measured 0 (HBAO) and 152 (GTAO) bytes spilled and reloaded, bounded here;
+    the exact union's replays an interval's segment in 11 tangents: 1244 bytes; the hard sector walk's ends each
     slice with its 32 sectors' weights in 2 tangents: 1644 bytes (once a slice, not per step)."""
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)

@@ -186,6 +186,27 @@ template <int L> struct Replay {
   }
 };
 
+// A replayed sample in dual lanes D whose first kPixel tangents are the pixel's own (those of px_own and sl_own,
+// Dual<B, kPixel>; the rest zero), dist (own tangents) pixels along the slice's side: fetched in plain lanes (px: the
+// pixel's values), its offset's own tangents chained through where it samples (soft.h's fetch_motion: a bilinear
+// fetch's d position / d su, d sv; a nearest one's texel does not move) and the pixel's own position, and fu, fv
+// carrying su, sv's (a layer read at the taps moves with them). The same sample as Sample<Dual>'s, at a fraction
+// of its dual arithmetic.
+template <class D, class B, class Own>
+TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, const Pixels<B>& px,
+                                 const Pixels<Own>& px_own, const Slice<Own>& sl_own, float side, const Own& dist) {
+  const Own su = px_own.u + dist * (sl_own.unit_u * Own(B(side))), sv = px_own.v + dist * (sl_own.unit_v * Own(B(side)));
+  const Sample<B> plain(cfg, img, px, su.v, sv.v);
+  Sample<D> smp(plain, [](const B& x) { return D(x); });
+  B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
+  if (cfg.bilinear) fetch_motion(plain, su.v, sv.v, d_su, d_sv);
+  for (int k = 0; k < kPixel; ++k) {
+    for (int c = 0; c < 3; ++c) smp.delta[c].d[k] = d_su[c] * su.d[k] + d_sv[c] * sv.d[k] - px_own.P[c].d[k];
+    if (cfg.bilinear) smp.fu.d[k] = su.d[k], smp.fv.d[k] = sv.d[k];
+  }
+  return smp;
+}
+
 // The backward of the n <= L pixels of a row from u0: upstream[c] the gradient of output channel c (H, W),
 // record the forward's (image b's), t where the gradients go; scratch: take_steps 2 steps L floats, replayed
 // 2 steps takes
@@ -216,6 +237,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   const Pixels<Own> px_own(cfg, img, row, u0, n);
   if (!any(px_own.live)) return;
   const Pixels<D> pxd(px_own, wide);
+  const Pixels<B> px_values(px_own, [](const Own& x) { return x.v; });
   B own[kOwn];
   for (int k = 0; k < kOwn; ++k) own[k] = B(0.0f);
   // fresh tangents on the state's components (and none on a delta)
@@ -242,7 +264,8 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
         const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
         const Own j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
         // (in the own tangents alone, as the pixel and slice: the state's and delta's are seeded below)
-        Sample<D> smp(Sample<Own>(cfg, img, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j)), wide);
+        Sample<D> smp = replayed_sample<D>(cfg, img, px_values, px_own, sl_own, float(side),
+                                           step_distance(cfg, sl_own, xi, j));
         smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kDelta + c] = B(1.0f);
         reseed(state);
@@ -438,7 +461,7 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         const int i = int((side > 0 ? 0 : cfg.steps) + j);  // (walk_slice's order)
         const B glo = from_lanes(g_lo[i], B(0.0f)), ghi = from_lanes(g_hi[i], B(0.0f));
         if (!any(lor(lnot(glo == B(0.0f)), lnot(ghi == B(0.0f))))) continue;
-        Sample<D> smp(Sample<Own>(cfg, img, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j)), wide);
+        Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j));
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kExactDelta + c] = B(1.0f);
         D thickness = acc.thickness.at(pxd, smp);
         if (layer_read) thickness.d[kExactLayer] = B(acc.thickness.scale);
