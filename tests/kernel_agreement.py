@@ -46,3 +46,19 @@ def assert_values_agree(out: torch.Tensor, ref: torch.Tensor, valid: torch.Tenso
     assert d.max() <= bound, d.max()
     background = ~valid.expand_as(out)
     assert torch.allclose(out[background], ref[background], atol=1e-6)
+
+
+def position_gradients(gb0, loss) -> list[torch.Tensor]:
+    """The gradients (float64) of ``loss(gbuffer, dtype, backend)`` with respect to a position buffer made of
+    ``gb0``'s positions: the tensor path's in float64 (``backend="torch"``), then the kernel's in float32
+    (``"kernel"``)."""
+    from torch_ao.gbuffer import GBuffer
+
+    grads = []
+    for dtype, backend in ((torch.float64, "torch"), (torch.float32, "kernel")):
+        g = gb0.to(dtype=dtype)
+        position = g.positions().detach().clone().requires_grad_()
+        gb = GBuffer(g.depth, position=position, normals=g.view_normals().detach(), camera=g.camera)
+        (grad,) = torch.autograd.grad(loss(gb, dtype, backend), [position])
+        grads.append(grad.double())
+    return grads

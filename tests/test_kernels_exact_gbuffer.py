@@ -10,6 +10,7 @@ tensor walk itself is 2-60 % (relative) off the float64 walk's depth gradient, a
 import pytest
 import torch
 
+from kernel_agreement import position_gradients
 from kernel_calls import on_threads
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft_exact import SETTINGS
@@ -105,17 +106,13 @@ def test_a_thickness_map_and_the_linear_models_slope_get_their_gradients(built, 
 def test_position_buffer_gradient_equals_the_tensor_walk(built):
     """A position buffer read by the nearest fetch: its gradient reaches the buffer (the pixels' own positions and
     the taps')."""
-    gb0 = FRAMES["rough"]()
-    grads = []
-    for dtype, backend in ((torch.float64, "torch"), (torch.float32, "kernel")):
-        g = gb0.to(dtype=dtype)
-        position = g.positions().detach().clone().requires_grad_()
-        gb = GBuffer(g.depth, position=position, normals=g.view_normals().detach(), camera=g.camera)
+    def loss(gb, dtype, backend):
         module = BitmaskAO(variant="exact", mode="soft", slices=3, steps=4, fetch="nearest", border="clamp",
                            backend=backend).to(dtype)
         vis = module(gb).visibility
-        (grad,) = torch.autograd.grad((vis * _weights(vis)).sum(), [position])
-        grads.append(grad.double())
+        return (vis * _weights(vis)).sum()
+
+    grads = position_gradients(FRAMES["rough"](), loss)
     assert grads[0].abs().sum() > 0
     assert _relative(grads[1], grads[0]) <= 1e-4
 

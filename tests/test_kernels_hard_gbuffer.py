@@ -8,6 +8,7 @@ SIMD and scalar lanes; directional derivatives against central differences; what
 import pytest
 import torch
 
+from kernel_agreement import position_gradients
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from torch_ao.camera import PinholeCamera
 from torch_ao.gbuffer import GBuffer
@@ -64,17 +65,13 @@ def test_gradients_equal_the_float64_tensor_walk(built, setting, lanes, monkeypa
 
 def test_position_buffer_gradient_equals_the_tensor_walk(built):
     """A position buffer (nearest fetch): the view vector, so the slices, follow it."""
-    gb0 = FRAMES["rough"]()
-    grads = []
-    for dtype, backend in ((torch.float64, "torch"), (torch.float32, "kernel")):
-        g = gb0.to(dtype=dtype)
-        position = g.positions().detach().clone().requires_grad_()
-        gb = GBuffer(g.depth, position=position, normals=g.view_normals().detach(), camera=g.camera)
+    def loss(gb, dtype, backend):
         module = BitmaskAO(mode="hard", slices=3, steps=4, weighting="cosine", bent_normals=True, fetch="nearest",
                            backend=backend).to(dtype)
         out = module(gb)
-        (grad,) = torch.autograd.grad(out.visibility.sum() + out.bent_normal[:, 2].sum(), [position])
-        grads.append(grad.double())
+        return out.visibility.sum() + out.bent_normal[:, 2].sum()
+
+    grads = position_gradients(FRAMES["rough"](), loss)
     assert grads[0].abs().sum() > 0
     assert _relative(grads[1], grads[0]) <= 1e-4
 

@@ -5,6 +5,7 @@ derivatives against central differences (gradcheck's fast mode); what it covers.
 import pytest
 import torch
 
+from kernel_agreement import position_gradients
 from kernel_calls import count_kernel_calls, on_threads
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft import SETTINGS, _loss_weights
@@ -86,17 +87,14 @@ def test_gbuffer_gradients_equal_the_float32_tensor_walk(built, setting):
 def test_position_buffer_gradient_equals_the_tensor_walk(built):
     """A position buffer read by the nearest fetch: its gradient reaches the buffer (the pixels' own and
     the taps' positions)."""
-    gb0 = FRAMES["rough"]()
     settings = dict(mode="soft", slices=3, steps=4, fetch="nearest", border="clamp", tau=0.3)
-    grads = []
-    for dtype, lanes in ((torch.float64, None), (torch.float32, "simd")):
-        g = gb0.to(dtype=dtype)
-        position = g.positions().detach().clone().requires_grad_()
-        gb = GBuffer(g.depth, position=position, normals=g.view_normals().detach(), camera=g.camera)
+
+    def loss(gb, dtype, backend):
         module = BitmaskAO(backend="torch", **settings).to(dtype)
-        vis = module(gb).visibility if lanes is None else _soft(gb, gb.normals, module, lanes)
-        (grad,) = torch.autograd.grad((vis * _loss_weights(vis).to(dtype)).sum(), [position])
-        grads.append(grad.double())
+        vis = module(gb).visibility if backend == "torch" else _soft(gb, gb.normals, module, "simd")
+        return (vis * _loss_weights(vis).to(dtype)).sum()
+
+    grads = position_gradients(FRAMES["rough"](), loss)
     assert grads[0].abs().sum() > 0
     assert _relative(grads[1], grads[0]) <= 1e-4
 
