@@ -56,7 +56,8 @@ def child(args: dict) -> dict:
     if args.get("backend"):
         extra["backend"] = args["backend"]
     module = BitmaskAO(mode=args["mode"], slices=4, steps=args.get("steps", 8), radius=1.0, **{"thickness": 0.5, **extra},
-                       indirect=args["indirect"], weighting=args.get("weighting", "uniform")).to(device)
+                       indirect=args["indirect"], weighting=args.get("weighting", "uniform"),
+                       variant=args.get("variant", "default")).to(device)
 
     peak = PeakMemory().start()  # the resident size now; the peak is read after the calls
     if device != "cpu":
@@ -163,8 +164,8 @@ def main() -> None:
 
 def soft_kernel_table(a) -> None:
     """The soft kernel's rows: forward+backward of the scalar radius and thickness (the G-buffer without
-    gradients, as ``torch-ao fit``), and of depth and normals too ("G-buffer"), against the kernel's hard
-    forward and the tensor path, CPU and wall time."""
+    gradients, as ``torch-ao fit``), and of depth and normals too ("G-buffer"; with them the hard cosine and the
+    exact union's kernels' backwards), against the kernel's hard forward and the tensor path, CPU and wall time."""
     gbuffer = dict(params_only=False)
     rows = [
         ("hard forward (kernel)", dict(mode="hard", backward=False, backend="kernel")),
@@ -175,6 +176,10 @@ def soft_kernel_table(a) -> None:
                                                          weighting="cosine", **gbuffer)),
         ("straight-through fwd+bwd, G-buffer (kernel)", dict(mode="straight_through", backward=True,
                                                              backend="kernel", **gbuffer)),
+        ("hard fwd+bwd, G-buffer, cosine (kernel)", dict(mode="hard", backward=True, backend="kernel",
+                                                         weighting="cosine", **gbuffer)),
+        ("exact fwd+bwd, G-buffer (kernel)", dict(mode="soft", backward=True, backend="kernel", variant="exact",
+                                                  **gbuffer)),
         ("soft fwd+bwd, G-buffer (tensor path)", dict(mode="soft", backward=True, backend="torch", **gbuffer)),
         ("straight-through fwd+bwd (kernel)", dict(mode="straight_through", backward=True, backend="kernel")),
         ("soft fwd+bwd (tensor path)", dict(mode="soft", backward=True, backend="torch")),

@@ -15,5 +15,6 @@ timeout 150 python3 -m pytest -q -x -k cuda tests || echo "gpu_check: CUDA tests
 # 1920x1080 high (3x3) hard bitmask AO, soft forward+backward, batch 8; horizon methods at 1280x720.
 timeout 60 python3 benchmarks/bench_bitmask.py --device cuda --size 1920x1080 --repeat 5 || echo "gpu_check: bench_bitmask failed"
 timeout 60 python3 benchmarks/bench_methods.py --device cuda --sizes 1280x720 --repeats 3 || echo "gpu_check: bench_methods failed"
-# the soft kernel with radius/thickness and with G-buffer gradients (tao_soft_backward) at 1920x1080, 4 x 3 (high's steps)
+# the soft kernel with radius/thickness and with G-buffer gradients (tao_soft_backward), and the hard cosine and exact
+# union kernels with G-buffer gradients (tao_hard_backward, tao_exact_backward) at 1920x1080, 4 x 3 (high's steps)
 timeout 90 python3 benchmarks/bench_bitmask.py --soft-kernel --device cuda --size 1920x1080 --steps 3 --repeat 5 || echo "gpu_check: soft kernel table failed"
