@@ -97,6 +97,33 @@ def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode, backe
         assert float((gc - ge).abs().max() / scale) <= 1e-4, (name, float((gc - ge).abs().max() / scale))
 
 
+@pytest.mark.parametrize("method", ["exact", "hard"])
+def test_compiled_kernel_gbuffer_gradients_match_eager(method):
+    """The exact union's and the hard cosine kernels with depth gradients (their backwards: exact_backward,
+    hard_record + hard_backward) under torch.compile (aot_eager): eager's values and gradients. (The kernels'
+    dispatch reads the radius as a number, so the graph breaks there, as for every kernel call.)"""
+    from torch_ao.thickness import BackfaceThickness
+
+    torch._dynamo.reset()
+    gb = example_gbuffer(12, 16)
+    module = (torch_ao.BitmaskAO(variant="exact", mode="soft", thickness=BackfaceThickness(), slices=2, steps=2)
+              if method == "exact" else torch_ao.BitmaskAO(mode="hard", weighting="cosine", slices=2, steps=2))
+    compiled = torch.compile(module, backend="aot_eager", dynamic=False)
+
+    def run(fn):
+        depth = gb.depth.detach().clone().requires_grad_(True)
+        frame = torch_ao.GBuffer(depth=depth, camera=gb.camera, mask=gb.mask, backface_depth=gb.depth * 1.3)
+        vis = fn(frame).visibility
+        (grad,) = torch.autograd.grad((vis * torch.linspace(0.5, 1.5, vis.numel()).reshape(vis.shape)).sum(), depth)
+        return vis.detach(), grad
+
+    (vis_e, grad_e), (vis_c, grad_c) = run(module), run(compiled)
+    assert torch.allclose(vis_c, vis_e, atol=1e-6, rtol=0)
+    finite = torch.isfinite(grad_e)
+    assert bool(grad_e[finite].abs().max() > 0)
+    assert float((grad_c - grad_e)[finite].abs().max() / grad_e[finite].abs().max()) <= 1e-5
+
+
 def _sky_frame():
     """8 x 12, a grazing floor and a wall under a background sky (the walk's all-pixel path must keep it)."""
     from torch_ao.examples import floor_wall_gbuffer

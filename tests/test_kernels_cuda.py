@@ -366,7 +366,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
         cpu = {}
         if accumulator == "hard":
-            out, record = grad_kernels().hard_record(*inputs, cells, layer, ints, floats, channels, True)
+            out, record = grad_kernels().hard_record(*inputs, cells, layer, ints, floats, channels, settings[0][0], True)
             assert torch.equal(read("occupied", *record.shape, dtype=np.int32), record)
             assert (read("out", *out.shape) - out).abs().max() <= 1e-6
             g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *inputs, cells, layer, ints, floats, record, True)

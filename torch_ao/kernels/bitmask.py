@@ -107,7 +107,7 @@ class _HardWalk(torch.autograd.Function):
             record = torch.empty(B, H, W, slices, dtype=torch.int32, device=depth.device)
             launch_cuda("tao_record_hard", depth.device, [*frame, cells, layer, out, record, ints, floats], (B, H, W))
         else:
-            out, record = grad_kernels().hard_record(*frame, cells, layer, ints, floats, channels, scalar)
+            out, record = grad_kernels().hard_record(*frame, cells, layer, ints, floats, channels, slices, scalar)
         ctx.scalar = scalar
         ctx.save_for_backward(*frame, cells, layer, ints, floats, record)
         return out

@@ -44,7 +44,8 @@ def cpu_kernels():
 
 @functools.lru_cache(maxsize=None)
 def grad_kernels():
-    """The namespace with the walk's backwards (``walk_backward``, ``soft_backward``, walk_grad_cpu.cpp), built on first use
+    """The namespace with the walk's backwards (``walk_backward``, ``soft_backward``, ``exact_backward``,
+    ``hard_backward``; walk_grad_cpu.cpp), built on first use
     as a library of its own: its dual-number walk takes longer to compile than the forward kernels, and
     only calls that want gradients need it. Raises :class:`KernelUnavailable` as :func:`cpu_kernels`."""
     cpu_kernels()
@@ -56,6 +57,22 @@ def grad_kernels():
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape), depth.new_empty(depth.shape))
 
     @torch.library.register_fake("torch_ao_kernels::soft_backward")
+    def _(grad, positions, normals, inverse_depth, depth, *args):
+        return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
+                depth.new_empty(depth.shape))
+
+    @torch.library.register_fake("torch_ao_kernels::hard_record")
+    def _(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats, channels, slices,
+          scalar):
+        B, H, W, _ = positions.shape
+        return positions.new_empty(B, channels, H, W), positions.new_empty((B, H, W, slices), dtype=torch.int32)
+
+    @torch.library.register_fake("torch_ao_kernels::hard_backward")
+    def _(grad, positions, normals, inverse_depth, depth, *args):
+        return positions.new_empty(positions.shape), normals.new_empty(normals.shape), depth.new_empty(depth.shape)
+
+    @torch.library.register_fake("torch_ao_kernels::exact_backward")
     def _(grad, positions, normals, inverse_depth, depth, *args):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),

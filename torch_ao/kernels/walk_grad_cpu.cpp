@@ -300,17 +300,19 @@ BitmaskAccumulator hard_accumulator(const BackwardCall& call) {
 }
 
 // torch_ao_kernels::hard_record: the hard sector walk (torch_ao_kernels::walk's "bitmask" outputs (B, channels, H,
-// W)) and the record of each pixel's slices' occupied sectors (B, H, W, slices) int32, for hard_backward
+// W)) and the record of each pixel's slices' occupied sectors (B, H, W, slices) int32, for hard_backward (channels
+// and slices as the settings say: the shapes of the outputs)
 std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, const at::Tensor& normals,
                                                const at::Tensor& inverse_depth, const at::Tensor& depth,
                                                const at::Tensor& valid, const at::Tensor& intrinsics,
                                                const at::Tensor& cells, const at::Tensor& backface,
                                                const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
-                                               bool scalar) {
+                                               int64_t slices, bool scalar) {
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats,
                           5, 3, "hard", std::numeric_limits<int64_t>::max());
   const BitmaskAccumulator acc = hard_accumulator(call);
   TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
+  TORCH_CHECK(call.cfg.slices == slices, "slices: expected the settings' ", call.cfg.slices);
   const int64_t B = call.fr.B, H = call.fr.H, W = call.fr.W;
   at::Tensor out = at::empty({B, channels, H, W}, positions.options());
   at::Tensor record = at::empty({B, H, W, call.cfg.slices}, positions.options().dtype(at::kInt));
@@ -377,8 +379,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("exact_backward", c10::DispatchKey::CPU, TORCH_FN(exact_backward));
   m.def("hard_record(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
-        "Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, bool scalar) "
-        "-> (Tensor, Tensor)");
+        "Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, int slices, "
+        "bool scalar) -> (Tensor, Tensor)");
   m.impl("hard_record", c10::DispatchKey::CPU, TORCH_FN(hard_record));
   m.def("hard_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, Tensor record, "
