@@ -2,8 +2,9 @@
 // (walk_grad_cpu.cpp, SIMD and scalar lanes, rows over torch's threads) and the CUDA kernels (walk_cuda.cu, one
 // pixel a thread) run them. The soft / straight-through bitmask walk's (soft_grad_block) is soft.h's
 // SoftAdjoint over the walk: value lanes with the pixel and its slices in dual lanes (tangents 0..6), each
-// step's d / d delta scattered to its taps by scatter_taps (TapSink). The horizon accumulators' (horizon.h:
-// GTAO's three variants, HBAO; any fetch, either border), per slice:
+// step's d / d delta scattered to its taps by scatter_taps (TapSink). The exact union's (exact_grad_block) and the
+// hard sector walk's (hard_record_block, hard_grad_block) are described where they are defined. The horizon
+// accumulators' (horizon.h: GTAO's three variants, HBAO; any fetch, either border), per slice:
 //  1. the forward (record_block: walk.h's walk_slice in plain lanes with the Takes visitor) records, per pixel
 //     and side, the steps that changed the accumulator's state (its "takes", a bit per step; every valid step
 //     where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the state as it was is the
