@@ -182,6 +182,13 @@ def _cases() -> dict[str, Case]:
             "`BitmaskAO` hard, cosine fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="hard", weighting="cosine", backend="torch", **s),
             "gbuffer", "cosine", 3.0, kernel=False),
+        "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
+            mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
+        "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(
+            mode="hard", weighting="cosine", backend="kernel", **s), "gbuffer", "ssilvb_cosine", 3.0),
+        "ssilvb_cosine_gbuffer_torch": Case(
+            "`SSILVB` hard, cosine fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
+                mode="hard", weighting="cosine", backend="torch", **s), "gbuffer", "ssilvb_cosine", 3.0, kernel=False),
         "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
                               exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
         "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
@@ -246,7 +253,8 @@ def case_call(case: Case, gbuffer, settings: dict) -> Callable[[], None]:
         module.zero_grad(set_to_none=True)
         for x in leaves:
             x.grad = None
-        module(gb).visibility.sum().backward()
+        out = module(gb)
+        (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
     return forward_backward
 
 

@@ -117,10 +117,11 @@ typedef void SoftBackward(const float*, const float*, const float*, const float*
                           const float*, const float*, float*, float*, float*, float*, float*, float*,
                           const long long*, const float*, int, int, int);
 typedef void HardRecord(const float*, const float*, const float*, const float*, const bool*, const float*,
-                        const float*, const float*, float*, int*, const long long*, const float*, int, int, int);
+                        const float*, const float*, const float*, float*, int*, const long long*, const float*, int,
+                        int, int);
 typedef void HardBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
-                          const float*, const float*, const float*, const int*, float*, float*, float*,
-                          const long long*, const float*, int, int, int);
+                          const float*, const float*, const float*, const float*, const int*, float*, float*, float*,
+                          float*, float*, float*, float*, const long long*, const float*, int, int, int);
 typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            const long long*, const float*, int, int, int);
@@ -166,13 +167,17 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   if (name == "hard") {
     const long long slices = ints[0];
     std::vector<int> occ(size_t(pixels * slices), -1);
-    grid(pixels, threads, [&] { tao_record_hard(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+    std::vector<float> senders(3 * n), tli(3 * n);
+    auto Li = load<float>(dir, "light");
+    const float* light = Li.empty() ? nullptr : Li.data();
+    grid(pixels, threads, [&] { tao_record_hard(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
                                                 Bf.empty() ? nullptr : Bf.data(), out.data(), occ.data(), ints.data(),
                                                 floats.data(), B, H, W); });
-    grid(pixels, threads, [&] { tao_hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+    grid(pixels, threads, [&] { tao_hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), occ.data(), gp.data(),
-                                                  gn.data(), gd.data(), ints.data(), floats.data(), B, H, W); });
-    save(dir, "occupied", occ);
+                                                  gn.data(), gd.data(), taps.data(), ti.data(), senders.data(),
+                                                  tli.data(), ints.data(), floats.data(), B, H, W); });
+    save(dir, "occupied", occ), save(dir, "tap_normals", senders), save(dir, "tap_light", tli);
   } else if (name == "exact") {
     grid(pixels, threads, [&] { tao_exact_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                    Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
@@ -332,6 +337,8 @@ def _backward_cases():
     # (rounding, cosine, indirect, bent, the layer's read); thickness, epsilon, the layer's scale
     yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1], [0.1, 0.01, 1.0], 4
     yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0], [0.4, 0.01, 1.0], 1
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0], [0.4, 0.01, 1.0], 7
+    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0], [0.4, 0.01, 1.0], 4
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -346,14 +353,16 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
     for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
         layer = backface if (accumulator == "exact" and acc_ints[3]) or (accumulator == "hard" and acc_ints[4]) else None
-        inputs, (_, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
-                                                                backface=layer)
+        light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
+        light = light if accumulator == "hard" and acc_ints[2] else None
+        inputs, (light, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
+                                                                    light=light, backface=layer)
         B, H, W = inputs[3].shape
         grad = torch.linspace(0.5, 1.5, B * channels * H * W).view(B, channels, H, W)
         folder = cuda_on_cpu.parent / f"grad_{accumulator}"
         folder.mkdir(exist_ok=True)
-        for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "cells", "backface",
-                            "grad"), (*inputs, cells, layer, grad)):
+        for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "light", "cells",
+                            "backface", "grad"), (*inputs, light, cells, layer, grad)):
             t.numpy().tofile(folder / name)
         ints.numpy().tofile(folder / "ints")
         floats.numpy().tofile(folder / "floats")
@@ -366,11 +375,13 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
         cpu = {}
         if accumulator == "hard":
-            out, record = grad_kernels().hard_record(*inputs, cells, layer, ints, floats, channels, settings[0][0], True)
+            out, record = grad_kernels().hard_record(*inputs, light, cells, layer, ints, floats, channels,
+                                                     settings[0][0], True)
             assert torch.equal(read("occupied", *record.shape, dtype=np.int32), record)
             assert (read("out", *out.shape) - out).abs().max() <= 1e-6
-            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *inputs, cells, layer, ints, floats, record, True)
-            g_inv, g_setting = torch.zeros_like(g_depth), torch.zeros_like(g_depth)
+            g_pos, g_nrm, g_inv, g_depth, cpu["light"] = grad_kernels().hard_backward(grad, *inputs, light, cells, layer,
+                                                                                      ints, floats, record, True)
+            g_setting = torch.zeros_like(g_depth)
         elif accumulator == "exact":
             g_pos, g_nrm, g_inv, g_depth, cpu["layer"] = grad_kernels().exact_backward(grad, *inputs, cells, layer, ints,
                                                                                        floats, True)
@@ -391,6 +402,10 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         if "layer" in cpu:
             cuda["layer"] = read("tap_layer", *g_depth.shape)
             assert layer.numel() == 0 or cpu["layer"].abs().max() > 0
+        if "light" in cpu:  # (the senders' normals join the pixels' own)
+            cuda["normals"] = cuda["normals"] + read("tap_normals", *g_nrm.shape)
+            cuda["light"] = read("tap_light", *g_nrm.shape)
+            assert light.numel() == 0 or cpu["light"].abs().max() > 0
         assert g_pos.abs().max() > 0 and g_nrm.abs().max() > 0  # (the comparison means something)
         for name, reference in cpu.items():
             finite = torch.isfinite(reference)
@@ -399,7 +414,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact", "hard"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact", "hard", "indirect"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
@@ -415,16 +430,20 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
                                                  steps=4),
               "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
                                                   steps=4),
-              "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4)}[method]
+              "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),
+              "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4)}[method]
     gb = FRAMES["rough"]()
     back = gb.depth * 1.3
     results = []
     for device in ("cpu", "cuda"):
         m = module().to(device)
         depth = gb.depth.to(device).clone().requires_grad_()
-        g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device), backface_depth=back.to(device))
-        out = m(g).visibility
-        out.sum().backward()
+        light = torch.rand(2, 3, *gb.depth.shape[-2:], generator=torch.Generator().manual_seed(1)).to(device)
+        g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device), backface_depth=back.to(device),
+                             light=light)
+        out = m(g)
+        (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
+        out = out.visibility
         results.append((out.detach().cpu(), depth.grad.cpu(), m.radius.grad))
     (v0, d0, r0), (v1, d1, r1) = results
     assert (v1 - v0).abs().max() <= 1e-4

@@ -40,10 +40,11 @@ def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills. The horizon backward's replay carries 13 to 15
     tangents per value (lanes_dual.h): measured 0 (HBAO) and 152 (GTAO) bytes spilled and reloaded, bounded here;
     the exact union's replays an interval's segment in 11 tangents: 1244 bytes; the hard sector walk's ends each
-    slice with its 32 sectors' weights in 2 tangents: 1644 bytes (once a slice, not per step)."""
+    slice with its 32 sectors' weights in 2 tangents and replays the steps that send indirect light in 16: 3808
+    bytes."""
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
-    bounds = {"tao_backward_": 512, "tao_exact_backward": 2048, "tao_hard_backward": 2048}  # bytes spilled, reloaded
+    bounds = {"tao_backward_": 512, "tao_exact_backward": 2048, "tao_hard_backward": 4096}  # bytes spilled, reloaded
     for name, used in report.items():
         assert 32 <= used.registers <= 255, (name, used)
         spilled = used.spill_stores + used.spill_loads

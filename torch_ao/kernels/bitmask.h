@@ -125,26 +125,39 @@ struct BitmaskAccumulator {
     if (epsilon > 0) width = width - F(epsilon);
     const I bits = sector_bits(lo * F(float(kSectors)), width, rounding);
     if (indirect) {  // SectorAccumulator.step: the light the sample sends, times the share it newly occludes
-      const I fresh = bits & bnot(st.occ);
-      F newly = F(0.0f);
-      if (cosine) {
-        for (int k = 0; k < kSectors; ++k) newly = newly + bit(fresh, k) * st.omega[k];
-      } else {
-        newly = to_float(popcount(fresh)) * F(1.0f / kSectors);
-      }
-      const F distance = clamp_min(norm3(smp.delta), F(1e-30f));
-      F ldir[3], away[3], sender_n[3];
-      for (int c = 0; c < 3; ++c) {
-        ldir[c] = smp.delta[c] / distance;
-        away[c] = neg(ldir[c]);
-        sender_n[c] = smp.gather(smp.image->normals, c);
-      }
-      F factor = select(smp.valid, clamp(dot3(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
-      if (!cosine) factor = factor * clamp(dot3(px.N, ldir), F(0.0f), F(1.0f));
+      F sender_n[3], light[3], sent[3];
+      for (int c = 0; c < 3; ++c) sender_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
+      light_sent(px, smp, newly_occluded(st, bits & bnot(st.occ)), sender_n, light, sent);
       const auto sends = width >= F(0.0f);  // only a non-empty interval gathers light
-      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + newly * select(sends, smp.gather(smp.image->light, c) * factor, F(0.0f));
+      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, sent[c], F(0.0f));
     }
     st.occ = st.occ | bits;
+  }
+
+  // The share of the hemisphere the sectors `fresh` cover (the sectors' weights, or their count / 32)
+  template <class F>
+  TAO_FN F newly_occluded(const State<F>& st, const typename LaneTraits<F>::I& fresh) const {
+    if (!cosine) return to_float(popcount(fresh)) * F(1.0f / kSectors);
+    F newly = F(0.0f);
+    for (int k = 0; k < kSectors; ++k) newly = newly + bit(fresh, k) * st.omega[k];
+    return newly;
+  }
+
+  // The light a sample at offset delta sends: the share it newly occludes (newly), times its light, times how
+  // much its surface (sender_n, its normal) faces the pixel (and, with uniform sectors, the pixel's normal
+  // faces it); 0 from an invalid sample
+  template <class F>
+  TAO_FN void light_sent(const Pixels<F>& px, const Sample<F>& smp, const F& newly, const F* sender_n, const F* light,
+                         F* sent) const {
+    const F distance = clamp_min(norm3(smp.delta), F(1e-30f));
+    F ldir[3], away[3];
+    for (int c = 0; c < 3; ++c) {
+      ldir[c] = smp.delta[c] / distance;
+      away[c] = neg(ldir[c]);
+    }
+    F factor = select(smp.valid, clamp(dot3(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
+    if (!cosine) factor = factor * clamp(dot3(px.N, ldir), F(0.0f), F(1.0f));
+    for (int c = 0; c < 3; ++c) sent[c] = newly * (light[c] * factor);
   }
 
   template <class F>
@@ -172,6 +185,11 @@ struct BitmaskAccumulator {
     }
     if (indirect)
       for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + st.light[c];
+  }
+
+  // finish's d indirect light / d a slice's light sum, the same for every slice (den: the sums' den)
+  template <class F> TAO_FN F per_light(const F& den) const {
+    return F(1.0f) / (cosine ? clamp_min(den, F(1e-30f)) : F(float(slices)));
   }
 
   // visibility (background 1), the indirect light (background 0), the bent normal (the pixel's normal

@@ -63,68 +63,87 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
-    settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
-                             jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border)
+    radius = torch.as_tensor(radius)
+    settings = walk_settings(slices=slices, steps=steps, radius=float(radius.detach()), step_power=step_power,
+                             min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
+                             fetch=fetch, border=border)
     acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
                 thickness_read_index(thickness_read, layer)]
     acc_floats = [thickness, sector_epsilon, float(layer_scale)]
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
-    weighted = weighting == "cosine" or bent_normals
+    light = light_input(gbuffer, indirect) if indirect else None
+    graded = weighting == "cosine" or bent_normals or indirect  # (what has a gradient in hard mode)
     cam = gbuffer.camera
-    if weighted and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+    if graded and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
         raise ValueError("gbuffer: the hard kernel does not compute a gradient of the intrinsics (fx, fy, cx, cy); "
                          "detach them or use backend='torch'")
-    if weighted and wants_gradient(gbuffer, normals):
-        if indirect:
-            raise ValueError("indirect: the hard kernel's backward covers visibility and bent normals; indirect "
-                             "light's gradient (to the light and the samples) is the tensor path's")
+    if graded and (wants_gradient(gbuffer, normals) or (indirect and torch.is_grad_enabled() and (
+            light.requires_grad or radius.requires_grad))):
         if gbuffer.depth.device.type == "cpu":
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
-        inputs, (_, cells, layer_image), ints, floats = packed_inputs(
-            gbuffer, normals, settings, acc_ints, acc_floats, backface=None if layer is None else layer.detach())
-        out = _HardWalk.apply(*inputs, cells, layer_image, ints, floats, channels, int(slices), scalar_lanes(lanes))
+        inputs, (light, cells, layer_image), ints, floats = packed_inputs(
+            gbuffer, normals, settings, acc_ints, acc_floats, light, None if layer is None else layer.detach())
+        out = _HardWalk.apply(*inputs, light, cells, layer_image, ints, floats, channels, int(slices),
+                              scalar_lanes(lanes), radius if indirect else None)
     else:
-        out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels,
-                       light=light_input(gbuffer, indirect) if indirect else None, backface=layer, lanes=lanes)
+        out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
+                       backface=layer, lanes=lanes)
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
 
 
 class _HardWalk(torch.autograd.Function):
-    """The hard sector walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the edge-aware
-    fetch's ``cells``, the thickness layer), recording each pixel's slices' occupied sectors, with
+    """The hard sector walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the light, the
+    edge-aware fetch's ``cells``, the thickness layer), recording each pixel's slices' occupied sectors, with
     ``hard_backward``: the gradients of its cosine weights and bent normals to the pixels' own positions, normals
-    and depth (the masks have none, so no tap gets one)."""
+    and depth (the masks have none), and of its indirect light to the senders' light, normals and positions at the
+    taps; the radius' by Euler's identity (the walk is scale-invariant: the masks' angles, the senders' directions
+    and the steps in pixels do not change when positions, depth and radius scale together; the thickness moves
+    only the masks, which have no gradient): ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)``."""
 
     @staticmethod
-    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, channels,
-                slices, scalar):
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, channels,
+                slices, scalar, radius):
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             B, H, W = depth.shape
             out = torch.empty(B, channels, H, W, device=depth.device)
             record = torch.empty(B, H, W, slices, dtype=torch.int32, device=depth.device)
-            launch_cuda("tao_record_hard", depth.device, [*frame, cells, layer, out, record, ints, floats], (B, H, W))
+            launch_cuda("tao_record_hard", depth.device, [*frame, light, cells, layer, out, record, ints, floats],
+                        (B, H, W))
         else:
-            out, record = grad_kernels().hard_record(*frame, cells, layer, ints, floats, channels, slices, scalar)
+            out, record = grad_kernels().hard_record(*frame, light, cells, layer, ints, floats, channels, slices, scalar)
         ctx.scalar = scalar
-        ctx.save_for_backward(*frame, cells, layer, ints, floats, record)
+        ctx.save_for_backward(*frame, light, cells, layer, ints, floats, record, radius)
         return out
 
     @staticmethod
     def backward(ctx, grad):
-        *frame, cells, layer, ints, floats, record = ctx.saved_tensors
+        *frame, light, cells, layer, ints, floats, record, radius = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()
-        depth = frame[3]
-        if depth.is_cuda:
-            g_pos, g_nrm, g_depth = torch.zeros_like(frame[0]), torch.zeros_like(frame[1]), torch.zeros_like(depth)
-            launch_cuda("tao_hard_backward", depth.device, [*frame, cells, layer, grad, record, g_pos, g_nrm, g_depth,
-                                                            ints, floats], tuple(depth.shape))
+        positions, depth, valid, inverse = frame[0], frame[3], frame[4], frame[2]
+        if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into images of their own
+            g_pos, g_nrm, g_depth = torch.zeros_like(positions), torch.zeros_like(frame[1]), torch.zeros_like(depth)
+            taps, senders, g_inv = torch.zeros_like(positions), torch.zeros_like(frame[1]), torch.zeros_like(depth)
+            g_light = torch.zeros(light.shape if light.numel() else (0,), device=depth.device)
+            launch_cuda("tao_hard_backward", depth.device, [*frame, light, cells, layer, grad, record, g_pos, g_nrm,
+                                                            g_depth, taps, g_inv, senders, g_light, ints, floats],
+                        tuple(depth.shape))
+            g_pos += taps
+            g_nrm += senders
         else:
-            g_pos, g_nrm, g_depth = grad_kernels().hard_backward(grad, *frame, cells, layer, ints, floats, record,
-                                                                 ctx.scalar)
-        return g_pos, g_nrm, None, g_depth, None, None, None, None, None, None, None, None, None
+            g_pos, g_nrm, g_inv, g_depth, g_light = grad_kernels().hard_backward(grad, *frame, light, cells, layer, ints,
+                                                                                 floats, record, ctx.scalar)
+        g_radius = None
+        if radius is not None and ctx.needs_input_grad[14]:  # Euler's identity (the class docstring)
+            def dot(g, x):
+                return (g.to(torch.float64) * x.to(torch.float64)).sum()
+            along = dot(g_pos, positions) + dot(g_depth, depth) - torch.where(
+                valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum()
+            g_radius = (-along / radius.to(torch.float64)).to(radius.dtype)
+        g_light = g_light if light.numel() else None
+        return (g_pos, g_nrm, g_inv, g_depth, None, None, g_light, None, None, None, None, None, None, None, g_radius)
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
@@ -262,11 +281,11 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through the
     # slice (the hard kernel's backward), the light through the light, normals and (default variant) the samples
-    if module.want_indirect and _needs_grad(module, gbuffer, parameters=module.variant == "default"):
-        return "a gradient is asked for (indirect light has one in hard mode: the light's, the samples')"
-    weighted = module.variant == "default" and (module.want_bent or module.weighting == "cosine")
+    if module.want_indirect and module.variant != "default" and _needs_grad(module, gbuffer, parameters=False):
+        return "a gradient is asked for (the shader's indirect light has one, to the light and normals)"
+    graded = module.variant == "default" and (module.want_bent or module.weighting == "cosine" or module.want_indirect)
     cam = gbuffer.camera
-    if weighted and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+    if graded and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
         return "a gradient of the intrinsics (fx, fy, cx, cy) (the kernel differentiates the G-buffer's images)"
     return None
 

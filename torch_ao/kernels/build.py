@@ -63,14 +63,16 @@ def grad_kernels():
                 depth.new_empty(depth.shape))
 
     @torch.library.register_fake("torch_ao_kernels::hard_record")
-    def _(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats, channels, slices,
-          scalar):
+    def _(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints, floats, channels,
+          slices, scalar):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, channels, H, W), positions.new_empty((B, H, W, slices), dtype=torch.int32)
 
     @torch.library.register_fake("torch_ao_kernels::hard_backward")
-    def _(grad, positions, normals, inverse_depth, depth, *args):
-        return positions.new_empty(positions.shape), normals.new_empty(normals.shape), depth.new_empty(depth.shape)
+    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, light, *args):
+        return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
+                positions.new_empty(positions.shape))  # (the light's: (B, H, W, 3), zeros without indirect light)
 
     @torch.library.register_fake("torch_ao_kernels::exact_backward")
     def _(grad, positions, normals, inverse_depth, depth, *args):

@@ -32,7 +32,7 @@ def _warn_once(message: str) -> None:
 def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     """A covered hard ``BitmaskAO`` call through its variant's kernel: ``{AOOutput field: tensor}``."""
     normals = gbuffer.view_normals(module.normals_method)
-    radius = float(module.radius.detach())
+    radius = module.radius  # (a tensor: indirect light's gradient reaches it)
     if module.variant == "ssilvb_glsl":
         thickness = float(module.thickness.detach())
         vis, indirect, _ = ssilvb_glsl_hard(gbuffer, normals, slices=module.slices, steps=module.steps,

@@ -52,7 +52,34 @@ struct Targets {
   float *positions, *normals, *depth, *setting;  // own: (H, W, 3), (H, W, 3), (H, W), (H, W) of image b
   float *tap_positions, *tap_inverse;  // scattered: (H, W, 3), (H, W) of image b
   float* tap_layer = nullptr;          // scattered: the thickness layer's (H, W) of image b, where it is read
+  float *tap_normals = nullptr, *tap_light = nullptr;  // scattered: (H, W, 3) of image b (a sender's normal, light)
 };
+
+// The adjoint of Sample.gather: g (channels lanes: d L / d the value gathered) into image (H, W, channels) at
+// the sample's taps (bilinear: weighted as fu, fv weight them; else index[0]), on the lanes in `on` of the first n
+template <class B>
+TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, const B* g, const B& fu, const B& fv,
+                           const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on) {
+  if (!any(on)) return;
+  constexpr int L = LaneTraits<B>::L;
+  float gl[3][L], ful[L], fvl[L];
+  int32_t il[4][L];
+  for (int c = 0; c < channels; ++c) to_lanes(g[c], gl[c]);
+  to_lanes(fu, ful), to_lanes(fv, fvl);
+  for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
+  for (int l = 0; l < n; ++l) {
+    if (!lane_on(on, l)) continue;
+    const float u = ful[l], v = fvl[l];
+    const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
+    for (int c = 0; c < channels; ++c) {
+      if (bilinear) {
+        for (int i = 0; i < 4; ++i) scatter_add(image + channels * il[i][l] + c, gl[c][l] * weight[i]);
+      } else {
+        scatter_add(image + channels * il[0][l] + c, gl[c][l]);
+      }
+    }
+  }
+}
 
 // The words of a record per (pixel, slice, side)
 TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
@@ -133,11 +160,10 @@ TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delt
                          const B* g_layer = nullptr, bool layer_bilinear = false) {
   if (!any(on)) return;
   constexpr int L = LaneTraits<B>::L;
-  float gl[3][L], pl[3][L], ful[L], fvl[L], ll[L];
+  float gl[3][L], pl[3][L], ful[L], fvl[L];
   int32_t il[4][L];
   for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(pos[c], pl[c]);
   to_lanes(fu, ful), to_lanes(fv, fvl);
-  if (g_layer) to_lanes(*g_layer, ll);
   for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
   for (int l = 0; l < n; ++l) {
     if (!lane_on(on, l)) continue;
@@ -149,12 +175,8 @@ TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delt
     } else {
       for (int c = 0; c < 3; ++c) scatter_add(t.tap_positions + 3 * il[0][l] + c, gl[c][l]);
     }
-    if (g_layer && layer_bilinear) {
-      for (int i = 0; i < 4; ++i) scatter_add(t.tap_layer + il[i][l], ll[l] * weight[i]);
-    } else if (g_layer) {
-      scatter_add(t.tap_layer + il[0][l], ll[l]);
-    }
   }
+  if (g_layer) scatter_gather(layer_bilinear, n, t.tap_layer, 1, g_layer, fu, fv, index, on);
 }
 
 // A slice's record read back (the forward's Takes, image b's from record): per side, the lanes' takes in
@@ -502,6 +524,18 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   }
 }
 
+// The sectors each step of a slice newly occludes (walk_slice's visitor): fresh[i] of step i in walk_slice's
+// order (side +1's steps, then side -1's)
+template <class B> struct FreshSectors {
+  static constexpr bool kBefore = true;
+  using State = typename BitmaskAccumulator::template State<B>;
+  typename LaneTraits<B>::I* fresh;
+  int64_t steps;
+  TAO_FN void operator()(int side, int64_t j, const Sample<B>&, const State& before, const State& after) {
+    fresh[(side > 0 ? 0 : steps) + j] = after.occ & bnot(before.occ);
+  }
+};
+
 // The hard sector walk's forward with its record: each slice's occupied sectors, one word per pixel and slice
 // at record + (pixel * slices + slice) (image b's; pixel = row * W + u0 + lane), so that the backward ends the
 // slices without walking them again; the outputs' lanes in values
@@ -556,6 +590,21 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   const Pixels<B> px(cfg, img, row, u0, n);
   if (!any(px.live)) return;
   const Pixels<Own> px_own(cfg, img, row, u0, n);
+  // indirect light: each newly occluding step replayed in Dual<B, 16> (the pixel's own 7, the sample's offset 3,
+  // the sender's normal 3 and light 3, both gathered at its taps)
+  constexpr int kDelta = kPixel, kSender = kPixel + 3, kLight = kPixel + 6, N = kPixel + 9;
+  using D = Dual<B, N>;
+  const Pixels<D> pxd(px_own, [](const Own& x) { return widen<N>(x); });
+  B per_light[3];  // d L / d a slice's light sum
+  if (acc.indirect) {
+    typename BitmaskAccumulator::template Sums<B> whole;  // (den: the slices' whole weight)
+    for (int64_t s = 0; s < cfg.slices; ++s) {
+      const Slice<B> sl(cfg, img, px, s);
+      acc.end_slice(acc.begin_slice(px, sl), px, sl, whole);
+    }
+    for (int c = 0; c < 3; ++c) per_light[c] = select(px.live, g[1 + c] * acc.per_light(whole.den), B(0.0f));
+  }
+  LaneArray<I, kMaxIntervals> fresh;
   using Two = Dual<B, 2>;  // a slice's gamma and length
   const auto constant = [](const B& x) { return Two(x); };
   Pixels<Two> px_axes(px, constant);
@@ -588,6 +637,45 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     if (acc.bent) {
       const Own along_v = chained(part.bent[0]), along_t = chained(part.bent[1]);
       for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + along_v * px_own.V[c] + along_t * sl_own.T[c];
+    }
+    if (!acc.indirect) continue;
+    // the light: the slice walked again for the sectors each step newly occludes, those steps replayed
+    typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
+    FreshSectors<B> visit{&fresh[0], cfg.steps};
+    walk_slice(cfg, img, acc, px, sl, st, visit);
+    for (int side = 1; side >= -1; side -= 2) {
+      const Own xi = step_noise(cfg, px_own, sl_own, side);
+      for (int64_t j = 0; j < cfg.steps; ++j) {
+        const I step_fresh = fresh[int((side > 0 ? 0 : cfg.steps) + j)];
+        if (!any(lnot(ieq(step_fresh, I(0))))) continue;
+        Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j));
+        D sender_n[3], light[3], sent[3];
+        for (int c = 0; c < 3; ++c) {
+          smp.delta[c].d[kDelta + c] = B(1.0f);
+          sender_n[c] = smp.gather(img.normals, c), sender_n[c].d[kSender + c] = B(1.0f);
+          light[c] = smp.gather(img.light, c), light[c].d[kLight + c] = B(1.0f);
+        }
+        acc.light_sent(pxd, smp, widen<N>(chained(acc.newly_occluded(ended, step_fresh))), sender_n, light, sent);
+        B gd[3], gn[3], gl[3], pos[3];
+        for (int q = 0; q < 3; ++q) {
+          gd[q] = gn[q] = gl[q] = B(0.0f);
+          for (int c = 0; c < 3; ++c) {
+            gd[q] = gd[q] + per_light[c] * sent[c].d[kDelta + q];
+            gn[q] = gn[q] + per_light[c] * sent[c].d[kSender + q];
+            gl[q] = gl[q] + per_light[c] * sent[c].d[kLight + q];
+          }
+          pos[q] = smp.delta[q].v + px.P[q];
+        }
+        for (int c = 0; c < 3; ++c) {  // its own tangents: through the light sums, finish's division
+          Own own(sent[c].v);
+          for (int k = 0; k < kPixel; ++k) own.d[k] = sent[c].d[k];
+          sums.light[c] = sums.light[c] + own;
+        }
+        const auto on = land(smp.valid, px.live);
+        scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, on);
+        scatter_gather(cfg.bilinear, n, t.tap_normals, 3, gn, smp.fu.v, smp.fv.v, smp.index, on);
+        scatter_gather(cfg.bilinear, n, t.tap_light, 3, gl, smp.fu.v, smp.fv.v, smp.index, on);
+      }
     }
   }
   Own outs[8];
@@ -673,11 +761,15 @@ TAO_FN void hard_record_pixel(const WalkSettings& cfg, const BitmaskAccumulator&
 }
 
 // Pixel p's hard sector backward (a CUDA thread): grad (B, C, H, W), record hard_record_pixel's; its own gradients
-// (positions, normals, depth)
+// (positions, normals, depth) and, with indirect light, its steps' taps' (positions, inverse depth, the senders'
+// normals and light; atomically)
 TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, const float* grad,
-                            const int32_t* record, float* positions, float* normals, float* depth, int64_t p) {
+                            const int32_t* record, float* positions, float* normals, float* depth, float* tap_positions,
+                            float* tap_inverse, float* tap_normals, float* tap_light, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr, nullptr, nullptr};
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
+                  tap_positions + 3 * b * plane, tap_inverse + b * plane, nullptr,
+                  acc.indirect ? tap_normals + 3 * b * plane : nullptr, acc.indirect ? tap_light + 3 * b * plane : nullptr};
   hard_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane,
                          record + b * plane * cfg.slices, t);
 }

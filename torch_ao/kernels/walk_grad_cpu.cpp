@@ -34,24 +34,28 @@ void check_input(const at::Tensor& x, const char* name) {
 // Where a backward's gradients go: the pixels' own (positions, normals, depth, the accumulator's setting)
 // and the taps' (per thread)
 struct Gradients {
-  at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse, tap_layer;
+  at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse, tap_layer, tap_normals, tap_light;
 
-  // layer: the thickness layer's taps too
-  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool layer = false) {
+  // layer: the thickness layer's taps too; light: the senders' normals and light at the taps too
+  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool layer = false, bool light = false) {
     const int64_t threads = at::get_num_threads();
     positions = at::zeros({B, H, W, 3}, like.options()), normals = at::zeros({B, H, W, 3}, like.options());
     depth = at::zeros({B, H, W}, like.options()), setting = at::zeros({B, H, W}, like.options());
     tap_positions = at::zeros({threads, B, H, W, 3}, like.options());
     tap_inverse = at::zeros({threads, B, H, W}, like.options());
     tap_layer = at::zeros({layer ? threads : 1, B, H, W}, like.options());
-    has_layer = layer;
+    tap_normals = at::zeros({light ? threads : 1, B, H, W, 3}, like.options());
+    tap_light = at::zeros({light ? threads : 1, B, H, W, 3}, like.options());
+    has_layer = layer, has_light = light;
   }
   Targets targets(int64_t b, int64_t B, int64_t plane, int64_t thread) {
     return Targets{positions.data_ptr<float>() + 3 * b * plane, normals.data_ptr<float>() + 3 * b * plane,
                    depth.data_ptr<float>() + b * plane, setting.data_ptr<float>() + b * plane,
                    tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
                    tap_inverse.data_ptr<float>() + (thread * B + b) * plane,
-                   has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr};
+                   has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr,
+                   has_light ? tap_normals.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
+                   has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr};
   }
   // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image (and
   // the layer's: layer())
@@ -62,12 +66,20 @@ struct Gradients {
       for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
     for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
     if (has_layer) sum_threads(tap_layer);
+    if (has_light) {  // the senders' normals into the pixels' own; the light's image
+      const at::Tensor senders = sum_threads(tap_normals);
+      const float* sn = senders.data_ptr<float>();
+      float* nrm = normals.data_ptr<float>();
+      for (int64_t q = 0; q < n_pos; ++q) nrm[q] += sn[q];
+      sum_threads(tap_light);
+    }
     return sum_threads(tap_inverse);
   }
   at::Tensor layer() const { return tap_layer[0]; }
+  at::Tensor light() const { return tap_light[0]; }
 
  private:
-  bool has_layer = false;
+  bool has_layer = false, has_light = false;
   // a per-thread image (threads, B, H, W) summed into its first
   static at::Tensor sum_threads(const at::Tensor& images) {
     float* x = images.data_ptr<float>();
@@ -217,12 +229,11 @@ struct BackwardCall {
   const float* f;
   WalkSettings cfg;
 
-  BackwardCall(const at::Tensor& positions, const at::Tensor& normals,
-                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
-                 const at::Tensor& intrinsics, const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints,
-                 const at::Tensor& floats, int64_t n_ints, int64_t n_floats, const char* name, int64_t max_steps)
-      : fr(frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, at::empty({0}, positions.options()),
-                    cells, backface)) {
+  BackwardCall(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+               const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
+               const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats,
+               int64_t n_ints, int64_t n_floats, const char* name, int64_t max_steps)
+      : fr(frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface)) {
     check_settings(ints, floats, n_ints, n_floats, name);
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
@@ -260,8 +271,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells,
-                            at::empty({0}, positions.options()), ints, floats, 3, 3, "soft", kSoftMaxSteps / 2);
+  const at::Tensor none = at::empty({0}, positions.options());
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none, ints, floats,
+                          3, 3, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
@@ -279,8 +291,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_bac
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints,
-                            floats, 4, 4, "exact", kMaxIntervals / 2);
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics,
+                          at::empty({0}, positions.options()), cells, backface, ints, floats, 4, 4, "exact",
+                          kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
@@ -290,11 +303,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_bac
   });
 }
 
-// The hard sector walk's call (hard_record, hard_backward): "bitmask"'s packed settings with cosine weights and/or
-// bent normals, no indirect light
+// The hard sector walk's call (hard_record, hard_backward): "bitmask"'s packed settings (with indirect light, its
+// light image)
 BitmaskAccumulator hard_accumulator(const BackwardCall& call) {
   const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
-  TORCH_CHECK(!acc.indirect, "hard: indirect light's gradient reaches the light and the samples (the tensor path's)");
+  TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
   return acc;
 }
@@ -305,11 +318,12 @@ BitmaskAccumulator hard_accumulator(const BackwardCall& call) {
 std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, const at::Tensor& normals,
                                                const at::Tensor& inverse_depth, const at::Tensor& depth,
                                                const at::Tensor& valid, const at::Tensor& intrinsics,
-                                               const at::Tensor& cells, const at::Tensor& backface,
-                                               const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
-                                               int64_t slices, bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats,
-                          5, 3, "hard", std::numeric_limits<int64_t>::max());
+                                               const at::Tensor& light, const at::Tensor& cells,
+                                               const at::Tensor& backface, const at::Tensor& ints,
+                                               const at::Tensor& floats, int64_t channels, int64_t slices,
+                                               bool scalar) {
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
+                          floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
   const BitmaskAccumulator acc = hard_accumulator(call);
   TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
   TORCH_CHECK(call.cfg.slices == slices, "slices: expected the settings' ", call.cfg.slices);
@@ -334,28 +348,28 @@ std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, cons
 }
 
 // torch_ao_kernels::hard_backward: the gradients of sum(grad * outputs) of the hard sector walk (walk_grad.h's
-// hard_grad_block) with respect to its positions, normals (B, H, W, 3) and depth (B, H, W); grad (B, C, H, W);
-// record: hard_record's of the same call
-std::tuple<at::Tensor, at::Tensor, at::Tensor> hard_backward(
+// hard_grad_block) with respect to its positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and
+// the light (B, H, W, 3; zeros without indirect light); grad (B, C, H, W); record: hard_record's of the same call
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> hard_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
-    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
-    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record,
-    bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats,
-                          5, 3, "hard", std::numeric_limits<int64_t>::max());
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
+    const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats,
+    const at::Tensor& record, bool scalar) {
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
+                          floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
   const BitmaskAccumulator acc = hard_accumulator(call);
   TORCH_CHECK(record.scalar_type() == at::kInt && record.is_contiguous() &&
                   record.sizes() == at::IntArrayRef({call.fr.B, call.fr.H, call.fr.W, call.cfg.slices}),
               "record: expected hard_record's (B, H, W, slices) of the same call");
   const int32_t* rec = record.data_ptr<int32_t>();
   const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, false, acc.indirect);
   const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
                                                                       int64_t row, int64_t u0, int n,
                                                                       const float* upstream, const Targets& t) {
     hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, rec + b * per_image, t);
   });
-  return {std::get<0>(g), std::get<1>(g), std::get<3>(g)};
+  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.light()};
 }
 
 }  // namespace
@@ -379,11 +393,11 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("exact_backward", c10::DispatchKey::CPU, TORCH_FN(exact_backward));
   m.def("hard_record(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
-        "Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, int slices, "
-        "bool scalar) -> (Tensor, Tensor)");
+        "Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, "
+        "int slices, bool scalar) -> (Tensor, Tensor)");
   m.impl("hard_record", c10::DispatchKey::CPU, TORCH_FN(hard_record));
   m.def("hard_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, Tensor record, "
-        "bool scalar) -> (Tensor, Tensor, Tensor)");
+        "Tensor valid, Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, "
+        "Tensor record, bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("hard_backward", c10::DispatchKey::CPU, TORCH_FN(hard_backward));
 }
