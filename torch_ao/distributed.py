@@ -13,6 +13,7 @@ input), so the same code runs under ``python`` and under ``torchrun --nproc_per_
 from __future__ import annotations
 
 import os
+import time
 
 import torch
 import torch.distributed as dist
@@ -59,14 +60,25 @@ def init_from_environment(device: str | torch.device = "cpu") -> bool:
 
 def finish(completed: bool = True) -> None:
     """End the process group :func:`init_from_environment` started (nothing without one). A rank that
-    ``completed`` first waits for the others (a barrier): a rank must not close its connections while a peer
-    still uses them, which gloo answers by aborting that peer's process ("terminate called without an active
+    ``completed`` first waits for the others (a barrier), ends its group, and then waits until every rank has
+    ended its own (a counter in the rendezvous store): a rank must not close its connections while a peer still
+    uses them, which gloo answers by aborting that peer's process ("terminate called without an active
     exception"). A rank that failed does not wait (``torchrun`` stops the others)."""
     if not dist.is_initialized():
         return
-    if completed:
-        dist.barrier()
+    if not completed:
+        dist.destroy_process_group()
+        return
+    store, world = dist.distributed_c10d._get_default_store(), dist.get_world_size()
+    dist.barrier()
     dist.destroy_process_group()
+    try:  # (the store outlives the group: torchrun's agent keeps it; at worst the wait ends at its deadline)
+        store.add("torch_ao/finished", 1)
+        deadline = time.monotonic() + 60.0
+        while store.add("torch_ao/finished", 0) < world and time.monotonic() < deadline:
+            time.sleep(0.01)
+    except RuntimeError:
+        pass
 
 
 def rank_device(device: str | torch.device) -> torch.device:

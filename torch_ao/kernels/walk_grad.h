@@ -594,7 +594,6 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   // the sender's normal 3 and light 3, both gathered at its taps)
   constexpr int kDelta = kPixel, kSender = kPixel + 3, kLight = kPixel + 6, N = kPixel + 9;
   using D = Dual<B, N>;
-  const Pixels<D> pxd(px_own, [](const Own& x) { return widen<N>(x); });
   B per_light[3];  // d L / d a slice's light sum
   if (acc.indirect) {
     typename BitmaskAccumulator::template Sums<B> whole;  // (den: the slices' whole weight)
@@ -640,6 +639,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     }
     if (!acc.indirect) continue;
     // the light: the slice walked again for the sectors each step newly occludes, those steps replayed
+    const Pixels<D> pxd(px_own, [](const Own& x) { return widen<N>(x); });
     typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
     FreshSectors<B> visit{&fresh[0], cfg.steps};
     walk_slice(cfg, img, acc, px, sl, st, visit);
