@@ -87,9 +87,10 @@ def test_indirect_and_bent_normals_only_when_asked(name, probe):
 
 
 def test_indirect_reads_light_when_asked(probe):
-    """The positive control: asking for indirect light hands the light buffer over and gathers it."""
+    """The positive control: asking for indirect light hands the light buffer over and gathers it (the tensor path:
+    a fused kernel gathers the light in its own walk)."""
     cls = importable_methods()["ssilvb"]
-    out = cls(preset="low", indirect=True)(_gbuffer())
+    out = cls(preset="low", indirect=True, backend="torch")(_gbuffer())
     assert out.indirect is not None and out.indirect.shape == (1, 3, H, W)
     assert any("light" in b for b in probe["buffers"]) and "light" in probe["gathered"]
 
