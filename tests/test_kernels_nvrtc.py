@@ -39,7 +39,7 @@ def test_a_compile_error_is_reported_with_the_log(monkeypatch):
 def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills. The horizon backward's replay carries 13 to 15
     tangents per value (lanes_dual.h): measured 0 (HBAO) and 152 (GTAO) bytes spilled and reloaded, bounded here;
-    the exact union's replays an interval's segment in 11 tangents: 1244 bytes; the hard sector walk's ends each
+    the exact union's replays an interval's segment in 11 tangents: 1224 bytes; the hard sector walk's ends each
     slice with its 32 sectors' weights in 2 tangents and replays the steps that send indirect light in 16: 3808
     bytes."""
     report = cuda_offline.kernel_resources(ptx90, 90)

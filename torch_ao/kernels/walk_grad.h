@@ -158,23 +158,11 @@ template <class B>
 TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, const B* pos, const B& fu,
                          const B& fv, const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on,
                          const B* g_layer = nullptr, bool layer_bilinear = false) {
-  if (!any(on)) return;
-  constexpr int L = LaneTraits<B>::L;
-  float gl[3][L], pl[3][L], ful[L], fvl[L];
-  int32_t il[4][L];
-  for (int c = 0; c < 3; ++c) to_lanes(g_delta[c], gl[c]), to_lanes(pos[c], pl[c]);
-  to_lanes(fu, ful), to_lanes(fv, fvl);
-  for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
-  for (int l = 0; l < n; ++l) {
-    if (!lane_on(on, l)) continue;
-    const float u = ful[l], v = fvl[l];
-    const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
-    if (bilinear) {
-      const float along = (gl[0][l] * pl[0][l] + gl[1][l] * pl[1][l] + gl[2][l] * pl[2][l]) * pl[2][l];
-      for (int i = 0; i < 4; ++i) scatter_add(t.tap_inverse + il[i][l], along * weight[i]);
-    } else {
-      for (int c = 0; c < 3; ++c) scatter_add(t.tap_positions + 3 * il[0][l] + c, gl[c][l]);
-    }
+  if (bilinear) {  // the interpolated inverse depth's d L / d t = (d L / d pos . pos) pos_z
+    const B along = dot3(g_delta, pos) * pos[2];
+    scatter_gather(true, n, t.tap_inverse, 1, &along, fu, fv, index, on);
+  } else {
+    scatter_gather(false, n, t.tap_positions, 3, g_delta, fu, fv, index, on);
   }
   if (g_layer) scatter_gather(layer_bilinear, n, t.tap_layer, 1, g_layer, fu, fv, index, on);
 }
