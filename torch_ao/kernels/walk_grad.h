@@ -84,6 +84,23 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
 // The words of a record per (pixel, slice, side)
 TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
 
+// The pixels' own gradients of the n <= L lanes of a row from u0 (own: d L / d P (3), N (3), depth) into t, and
+// with setting its per-pixel d L / d the accumulator's setting
+template <class B>
+TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int n, const B* own,
+                      const B* setting = nullptr) {
+  constexpr int L = LaneTraits<B>::L;
+  float ol[kPixel + 1][L];
+  for (int k = 0; k < kPixel; ++k) to_lanes(own[k], ol[k]);
+  if (setting) to_lanes(*setting, ol[kPixel]);
+  for (int l = 0; l < n; ++l) {
+    const int64_t p = row * W + u0 + l;
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
+    t.depth[p] = ol[6][l];
+    if (setting) t.setting[p] = ol[kPixel][l];
+  }
+}
+
 // The record of a slice (the forward's visitor): per side and lane the steps that changed the state (the
 // last one alone where a take replaces the state), as bits: step j is bit j % 64 of word j / 64
 template <class B, class Acc> struct Takes {
@@ -320,13 +337,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
       scatter_taps(cfg.bilinear, n, t, gd, take.pos, take.fu, take.fv, take.index, take.has);
     }
   }
-  float ol[kOwn][L];
-  for (int k = 0; k < kOwn; ++k) to_lanes(own[k], ol[k]);
-  for (int l = 0; l < n; ++l) {
-    const int64_t p = row * img.W + u0 + l;
-    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l], t.setting[p] = ol[7][l];
-  }
+  write_own(t, img.W, row, u0, n, own, &own[kPixel]);
 }
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
@@ -359,14 +370,9 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
   const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
   B outs[8];
   walk_block(cfg, img, adjoint, row, u0, n, outs);
-  float ol[8][L];
-  for (int k = 0; k < 8; ++k) to_lanes(g * outs[k], ol[k]);
-  for (int l = 0; l < n; ++l) {
-    const int64_t p = row * img.W + u0 + l;
-    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l];
-    t.setting[p] = ol[7][l];  // d L / d thickness
-  }
+  B own[8];
+  for (int k = 0; k < 8; ++k) own[k] = g * outs[k];
+  write_own(t, img.W, row, u0, n, own, &own[kPixel]);  // (the setting: d L / d thickness)
 }
 
 // The exact union's backward (bitmask.h's ExactAccumulator: variant="exact" in every mode) of the n <= L pixels
@@ -503,13 +509,9 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   }
   Own vis;
   acc.finish(sums, px_own, &vis);
-  float ol[kPixel][L];
-  for (int k = 0; k < kPixel; ++k) to_lanes(g * vis.d[k], ol[k]);
-  for (int l = 0; l < n; ++l) {
-    const int64_t p = row * img.W + u0 + l;
-    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l];
-  }
+  B own[kPixel];
+  for (int k = 0; k < kPixel; ++k) own[k] = g * vis.d[k];
+  write_own(t, img.W, row, u0, n, own);
 }
 
 // The sectors each step of a slice newly occludes (walk_slice's visitor): fresh[i] of step i in walk_slice's
@@ -673,13 +675,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     own[k] = B(0.0f);
     for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
   }
-  float ol[kPixel][L];
-  for (int k = 0; k < kPixel; ++k) to_lanes(own[k], ol[k]);
-  for (int l = 0; l < n; ++l) {
-    const int64_t p = row * img.W + u0 + l;
-    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l];
-  }
+  write_own(t, img.W, row, u0, n, own);
 }
 
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
