@@ -10,26 +10,26 @@
 //     where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the state as it was is the
 //     identity, so only the takes carry gradients. Where a take replaces the state (acc.replaces(): GTAO's
 //     exact minimum, HBAO's highest rise), only each side's last take is kept.
-//  2. the backward (grad_block) replays the slice in dual lanes (lanes_dual.h) through those takes alone (each
-//     lane its own step, step_distance in lanes): begin_slice, the takes' samples and steps, end_slice.
-//     Tangents 0..6 are the pixel's own position, normal and depth (seeded in Pixels), 7 the accumulator's
-//     setting (seed_setting: GTAO's falloff or thickness, HBAO's angle bias), which give its outputs'
-//     derivatives with respect to them, the samples' screen positions and bilinear weights included (Pixels and
-//     Slice in those 8 alone, widened); before every take the state's S components and the sample's delta get
-//     fresh tangents, so that the step's local Jacobians d state' / d state (S x S) and d state' / d delta
-//     (S x 3) come out of it.
-//  3. the outputs' derivatives with respect to the final state, swept back through the takes' Jacobians, give
-//     each take's d loss / d delta, chained to its taps: for a bilinear fetch delta = pos - P with
-//     pos = q / (sum_k w_k t_k), so d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's position
-//     itself. The edge-aware fetch is the bilinear one whose taps across a depth edge are four copies of the
-//     nearest: their weights sum to 1 on that texel, and the interpolation's d / d (fu, fv) is 0 (the cell
-//     flags, like every comparison, have no derivative). Scattered with scatter_add: into each CPU thread's
-//     own images, atomically into one image on CUDA.
+//  2. the backward (grad_block) replays the slice in reverse lanes (lanes_rev.h: the walk records its
+//     arithmetic on a tape) through those takes alone (each lane its own step, step_distance in lanes):
+//     begin_slice, the takes' samples (taped_sample: each fetched position a leaf) and steps, end_slice and
+//     finish. The pixel's own position, normal and depth are leaves (seed_pixel), recorded once per block
+//     before its slices; the accumulator's setting (seed_setting: GTAO's falloff or thickness, HBAO's angle
+//     bias) a leaf per use.
+//  3. the upstream gradients seeded on the slice's outputs and swept back over the slice's nodes give d loss /
+//     d each take's fetched position, chained to its taps: for a bilinear fetch pos = q / (sum_k w_k t_k), so
+//     d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's position itself. The edge-aware fetch is
+//     the bilinear one whose taps across a depth edge are four copies of the nearest: their weights sum to 1
+//     on that texel, and the interpolation's d / d (fu, fv) is 0 (the cell flags, like every comparison, have
+//     no derivative). Scattered with scatter_add: into each CPU thread's own images, atomically into one
+//     image on CUDA. The slice's nodes are then dropped; after the last slice the pixel's nodes are swept,
+//     which gives its own gradients.
 // Ties: a step whose candidate equals the state leaves it unchanged, so the earlier sample keeps the gradient
 // (the tensor path's torch.minimum splits it between them; tied samples of one texel give both the same total).
 #pragma once
 
 #include "lanes_dual.h"
+#include "lanes_rev.h"
 #include "packed.h"
 
 namespace tao {
@@ -157,15 +157,6 @@ TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& a
   acc.finish(sums, px, values);
 }
 
-// One take replayed: its step's Jacobians and its fetch (values only)
-template <class B, int S> struct Take {
-  using I = typename LaneTraits<B>::I;
-  B along_state[S][S], along_delta[S][3];  // d state'[m] / d state[m'], d state'[m] / d delta[c]
-  I index[4];
-  B fu, fv, pos[3];
-  typename LaneTraits<B>::M has;
-};
-
 // d L / d delta of a sample (g_delta) scattered to its fetch's taps, on the lanes in `on` of the first n: a
 // bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k, pos the fetched position, w_k the
 // weights of fu, fv), a nearest fetch's position (index[0]); with g_layer, d L / d the thickness layer's value
@@ -235,17 +226,59 @@ TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, cons
   return smp;
 }
 
+// A replayed sample on the tape (R = Rev<B>, lanes_rev.h), dist pixels along the slice's side: fetched in plain
+// lanes (px: the pixel's values), the fetched position a leaf per component (ids), moved as the fetch moves
+// with the screen position (soft.h's fetch_motion: a bilinear fetch's d position / d su, d sv; a nearest one's
+// texel does not move), less the pixel's own position; fu, fv carry su, sv's derivatives (a layer read at the
+// taps moves with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape.
+template <class B>
+TAO_FN Sample<Rev<B>> taped_sample(const WalkSettings& cfg, const Image& img, const Pixels<B>& px,
+                                   const Pixels<Rev<B>>& pr, const Slice<Rev<B>>& sl, float side, const Rev<B>& dist,
+                                   int32_t* ids) {
+  using R = Rev<B>;
+  const R su = pr.u + dist * (sl.unit_u * R(B(side))), sv = pr.v + dist * (sl.unit_v * R(B(side)));
+  const Sample<B> plain(cfg, img, px, su.v, sv.v);
+  Sample<R> smp(plain, [](const B& x) { return R(x); });
+  B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
+  if (cfg.bilinear) {
+    fetch_motion(plain, su.v, sv.v, d_su, d_sv);
+    smp.fu = R::link(plain.fu, su, B(1.0f)), smp.fv = R::link(plain.fv, sv, B(1.0f));
+  }
+  for (int c = 0; c < 3; ++c) {
+    const B pos = plain.delta[c] + px.P[c];
+    Tape<B>* tape = current_tape<B>();
+    ids[c] = tape->leaf();
+    R moved(pos, ids[c], tape);
+    if (cfg.bilinear) moved = R::link(pos, R::link(pos, moved, B(1.0f), su, d_su[c]), B(1.0f), sv, d_sv[c]);
+    smp.delta[c] = R::link(plain.delta[c], moved, B(1.0f), pr.P[c], B(-1.0f));
+  }
+  return smp;
+}
+
+// A replayed take's fetch: its position's leaves on the tape, and where its taps are
+template <class B> struct TapedTake {
+  int32_t ids[3];
+  typename LaneTraits<B>::I index[4];
+  B fu, fv, pos[3];
+  typename LaneTraits<B>::M has;
+};
+
+// The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
+// geometry, at most 2 steps takes, its end and finish); measured by tests/test_kernels_walk_grad.py's largest
+// settings (the most any lane set makes, SIMD lanes' takes the most of theirs), with room to spare
+constexpr int32_t kTapePixel = 160, kTapeSlice = 400, kTapeTake = 90;
+TAO_FN int32_t tape_capacity(int64_t steps) { return kTapePixel + kTapeSlice + int32_t(2 * steps) * kTapeTake; }
+
 // The backward of the n <= L pixels of a row from u0: upstream[c] the gradient of output channel c (H, W),
-// record the forward's (image b's), t where the gradients go; scratch: take_steps 2 steps L floats, replayed
-// 2 steps takes
+// record the forward's (image b's), t where the gradients go; scratch: take_steps 2 steps L floats, taken 2
+// steps takes, tape of tape_capacity(steps) nodes (overflow: the gradients are not written and tape.overflow
+// says so)
 template <class B, class Acc>
 TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
                        const float* const* upstream, int C, const int64_t* record, const Targets& t,
-                       float* take_steps, Take<B, state_size<Acc, B>()>* replayed) {
-  constexpr int S = state_size<Acc, B>(), kState = kOwn, kDelta = kOwn + S, N = kDelta + 3;
+                       float* take_steps, TapedTake<B>* taken, Tape<B>& tape) {
+  using R = Rev<B>;
   constexpr int L = LaneTraits<B>::L;
-  using D = Dual<B, N>;
-  using StateD = typename Acc::template State<D>;
   B g[8];
   {
     float lane[L];
@@ -259,85 +292,55 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     }
     if (none) return;  // (no gradient flows: the outputs' zeros stand)
   }
-  // the pixel and its slices in the own tangents alone, widened for the takes' state and delta tangents
-  using Own = Dual<B, kOwn>;
-  const auto wide = [](const Own& x) { return widen<N>(x); };
-  const Pixels<Own> px_own(cfg, img, row, u0, n);
-  if (!any(px_own.live)) return;
-  const Pixels<D> pxd(px_own, wide);
-  const Pixels<B> px_values(px_own, [](const Own& x) { return x.v; });
-  B own[kOwn];
-  for (int k = 0; k < kOwn; ++k) own[k] = B(0.0f);
-  // fresh tangents on the state's components (and none on a delta)
-  auto reseed = [&](StateD& st) {
-    D* x = components<StateD, D>(st);
-    for (int m = 0; m < S; ++m) {
-      for (int q = kState; q < N; ++q) x[m].d[q] = B(0.0f);
-      x[m].d[kState + m] = B(1.0f);
-    }
-  };
+  current_tape<B>() = &tape;
+  tape.cut(0);
+  const Pixels<R> px(cfg, img, row, u0, n);
+  if (!any(px.live) || tape.overflow) return;
+  const Pixels<B> px_values(px, [](const R& x) { return x.v; });
+  const int32_t pixel_nodes = tape.n;
+  B setting(0.0f);
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
     takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
-    const Slice<Own> sl_own(cfg, img, px_own, s);
-    const Slice<D> sl(sl_own, wide);
-    StateD state = acc.begin_slice(pxd, sl);
+    const Slice<R> sl(cfg, img, px, s);
+    typename Acc::template State<R> state = acc.begin_slice(px, sl);
     int replays = 0;
     for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
       const int k = side > 0 ? 0 : 1;
-      const Own xi = step_noise(cfg, px_own, sl_own, side);
+      const R xi = step_noise(cfg, px, sl, side);
       for (int q = 0, most = takes.most(k); q < most; ++q) {
         float has_lane[L];
         for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
         const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
-        const Own j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
-        // (in the own tangents alone, as the pixel and slice: the state's and delta's are seeded below)
-        Sample<D> smp = replayed_sample<D>(cfg, img, px_values, px_own, sl_own, float(side),
-                                           step_distance(cfg, sl_own, xi, j));
+        const R j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
+        TapedTake<B>& take = taken[replays++];
+        Sample<R> smp = taped_sample(cfg, img, px_values, px, sl, float(side), step_distance(cfg, sl, xi, j), take.ids);
         smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
-        for (int c = 0; c < 3; ++c) smp.delta[c].d[kDelta + c] = B(1.0f);
-        reseed(state);
-        acc.step(state, side, pxd, sl, smp);
-        Take<B, S>& take = replayed[replays++];
-        const D* x = components<StateD, D>(state);
-        for (int m = 0; m < S; ++m) {
-          for (int q2 = 0; q2 < S; ++q2) take.along_state[m][q2] = x[m].d[kState + q2];
-          for (int c = 0; c < 3; ++c) take.along_delta[m][c] = x[m].d[kDelta + c];
-        }
+        acc.step(state, side, px, sl, smp);
         for (int i = 0; i < 4; ++i) take.index[i] = smp.index[i];
-        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, pxd.live);
-        for (int c = 0; c < 3; ++c) take.pos[c] = smp.delta[c].v + pxd.P[c].v;
+        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, px.live);
+        for (int c = 0; c < 3; ++c) take.pos[c] = smp.delta[c].v + px_values.P[c];
       }
     }
-    reseed(state);  // tangents kState.. now probe the final state
-    typename Acc::template Sums<D> part;
-    acc.end_slice(state, pxd, sl, part);
-    D outs[8];
-    acc.finish(part, pxd, outs);  // linear in the sums: the slice's share of the outputs
-    for (int k = 0; k < kOwn; ++k)
-      for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
-    B adjoint[S];  // d loss / d state after the take being swept
-    for (int m = 0; m < S; ++m) {
-      adjoint[m] = B(0.0f);
-      for (int c = 0; c < C; ++c) adjoint[m] = adjoint[m] + g[c] * outs[c].d[kState + m];
-    }
-    for (int r = replays - 1; r >= 0; --r) {
-      const Take<B, S>& take = replayed[r];
-      B gd[3];
-      for (int c = 0; c < 3; ++c) {
-        gd[c] = B(0.0f);
-        for (int m = 0; m < S; ++m) gd[c] = gd[c] + adjoint[m] * take.along_delta[m][c];
-      }
-      B before[S];
-      for (int q = 0; q < S; ++q) {
-        before[q] = B(0.0f);
-        for (int m = 0; m < S; ++m) before[q] = before[q] + adjoint[m] * take.along_state[m][q];
-      }
-      for (int m = 0; m < S; ++m) adjoint[m] = before[m];
+    typename Acc::template Sums<R> part;
+    acc.end_slice(state, px, sl, part);
+    R outs[8];
+    acc.finish(part, px, outs);  // linear in the sums: the slice's share of the outputs
+    if (tape.overflow) return;
+    for (int c = 0; c < C; ++c) tape.seed(outs[c].id, g[c]);
+    tape.sweep(pixel_nodes);
+    setting = setting + tape.setting_adjoint(pixel_nodes);
+    for (int r = 0; r < replays; ++r) {
+      const TapedTake<B>& take = taken[r];
+      const B gd[3] = {tape.adjoint[take.ids[0]], tape.adjoint[take.ids[1]], tape.adjoint[take.ids[2]]};
       scatter_taps(cfg.bilinear, n, t, gd, take.pos, take.fu, take.fv, take.index, take.has);
     }
+    tape.cut(pixel_nodes);
   }
-  write_own(t, img.W, row, u0, n, own, &own[kPixel]);
+  tape.sweep(0);
+  B own[kPixel];
+  for (int k = 0; k < kPixel; ++k) own[k] = tape.adjoint[tape.own[k]];
+  write_own(t, img.W, row, u0, n, own, &setting);
 }
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
@@ -706,9 +709,17 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, setting + b * plane,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane};
   float take_steps[2 * kGradMaxSteps];
-  Take<float, state_size<Acc, float>()> replayed[2 * kGradMaxSteps];
+  TapedTake<float> taken[2 * kGradMaxSteps];
+  constexpr int32_t capacity = kTapePixel + kTapeSlice + 2 * kGradMaxSteps * kTapeTake;
+  float partials[2 * capacity], adjoints[capacity];
+  int32_t parents[2 * capacity];
+  Tape<float> tape(partials, parents, adjoints, capacity);
   grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * plane * cfg.slices * 2 * take_words(cfg),
-                    t, take_steps, replayed);
+                    t, take_steps, taken, tape);
+  if (tape.overflow) {  // (cannot happen below kGradMaxSteps steps: NaN rather than a silently partial gradient)
+    const float nan = bits_float(0x7fc00000u);
+    for (int c = 0; c < 3; ++c) t.positions[3 * (row * fr.W + u) + c] = nan;
+  }
 }
 
 // Pixel p's soft backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals, depth and

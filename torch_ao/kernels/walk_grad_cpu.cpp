@@ -12,6 +12,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <limits>
 #include <string>
 #include <tuple>
@@ -129,23 +130,32 @@ void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, floa
   });
 }
 
-// The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes
+// The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes, each thread's
+// tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten)
 template <class Acc>
-void grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
+bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
                 Gradients& out, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
   const int64_t B = fr.B, plane = fr.H * fr.W, per_image = plane * cfg.slices * 2 * take_words(cfg);
+  const int32_t capacity = tape_capacity(cfg.steps);
+  std::atomic<bool> overflow{false};
   torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
     using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
     thread_local std::vector<float> take_steps;
-    thread_local std::vector<Take<Lane, state_size<Acc, Lane>()>> replayed;
+    thread_local std::vector<TapedTake<Lane>> taken;
+    thread_local std::vector<Lane> partials, adjoints;
+    thread_local std::vector<int32_t> parents;
     take_steps.resize(size_t(2 * cfg.steps * LaneTraits<Lane>::L));
-    replayed.resize(size_t(2 * cfg.steps));
+    taken.resize(size_t(2 * cfg.steps));
+    partials.resize(size_t(2 * capacity)), adjoints.resize(size_t(capacity)), parents.resize(size_t(2 * capacity));
+    Tape<Lane> tape(partials.data(), parents.data(), adjoints.data(), capacity);
     const float* upstream[8];
     for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
     grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, upstream, C, record + b * per_image,
-                     out.targets(b, B, plane, at::get_thread_num()), take_steps.data(), replayed.data());
+                     out.targets(b, B, plane, at::get_thread_num()), take_steps.data(), taken.data(), tape);
+    if (tape.overflow) overflow = true;
   });
+  return !overflow;
 }
 
 // The horizon accumulator `name` ("gtao", "hbao") of the packed settings, to fn
@@ -214,7 +224,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_back
   Gradients out(positions, fr.B, fr.H, fr.W);
   with_horizon(name, ints.data_ptr<int64_t>(), floats.data_ptr<float>(), [&](const auto& acc) {
     check_grad(grad, positions, acc.channels());
-    grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar);
+    TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
+                "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
   });
   at::Tensor g_inv = out.reduce();
   return {out.positions, out.normals, g_inv, out.depth, out.setting};
