@@ -28,6 +28,7 @@ SHIM = """
 #define __device__
 #define __forceinline__ inline
 #define __global__
+#define __shared__
 extern "C" {
 float fabsf(float); float sqrtf(float); float floorf(float); float ceilf(float); float rintf(float);
 float atan2f(float, float); float acosf(float); float asinf(float); float cosf(float); float sinf(float);

@@ -1,5 +1,5 @@
 """The horizon kernels' backward through the one walk (walk_grad_cpu.cpp: the plain walk records the steps
-that changed each slice's state, a dual-lane replay of those differentiates them) against the tensor-op
+that changed each slice's state, a reverse-mode replay of those differentiates them: lanes_rev.h) against the tensor-op
 walk's autograd in float64, the specification: gradients of depth (through positions, normals and inverse
 depth), of given normals and of the parameters, for GTAO's three variants and HBAO, every fetch and
 border, SIMD and scalar lanes; and a finite-difference check of the kernel's own gradient."""
@@ -13,13 +13,15 @@ from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import gtao_covers, hbao_covers
 from torch_ao.kernels.gtao import gtao_sums
+from torch_ao.kernels.walk_grad import MAX_CUDA_STEPS
 from torch_ao.methods.gtao import GTAO
 from torch_ao.methods.hbao import HBAO
 
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401
 
 #: (module, options, frozen parameters): every accumulator of horizon.h, every fetch and border, both noises
-#: and staggered steps
+#: and staggered steps; the "-most" cases take as many steps as a CUDA thread's backward does (MAX_CUDA_STEPS),
+#: where its tape (walk_grad.h's tape_capacity) holds the most takes: scalar lanes run that thread's code
 CASES = {
     "exact": (GTAO, dict(slices=4, steps=4), ()),
     "exact-falloff-bent": (GTAO, dict(slices=3, steps=5, radius=0.6, falloff_range=0.5, bent_normals=True), ()),
@@ -38,7 +40,11 @@ CASES = {
     "ue4-nearest-clamp": (GTAO, dict(variant="ue4", slices=2, steps=6, fetch="nearest", border="clamp"), ("radius",)),
     "ue4-stagger": (GTAO, dict(variant="ue4", slices=3, steps=4, stagger=True, seed=2), ("radius",)),
     "ue4-edge-aware": (GTAO, dict(variant="ue4", slices=3, steps=5, fetch="edge_aware"), ("radius",)),
+    "ue4-edge-aware-most": (GTAO, dict(variant="ue4", slices=2, steps=MAX_CUDA_STEPS, fetch="edge_aware", stagger=True,
+                                       azimuth="screen"), ("radius",)),
+    "hdrp-most": (GTAO, dict(variant="hdrp", slices=2, steps=MAX_CUDA_STEPS, bent_normals=True), ()),
     "hbao": (HBAO, dict(slices=6, steps=4), ()),
+    "hbao-view-most": (HBAO, dict(slices=2, steps=MAX_CUDA_STEPS, elevation="view"), ()),
     "hbao-max-quadratic": (HBAO, dict(slices=5, steps=5, accumulate="max", falloff="quadratic"), ()),
     "hbao-view": (HBAO, dict(slices=4, steps=5, elevation="view", radius=0.8), ()),
     "hbao-nearest-clamp": (HBAO, dict(slices=4, steps=6, fetch="nearest", border="clamp"), ()),

@@ -36,7 +36,7 @@ namespace tao {
 
 // tangents of the pixel's own P (3), N (3), depth (1) (seed_pixel) and of the accumulator's setting
 // (seed_setting: the horizon accumulators')
-constexpr int kPixel = 7, kOwn = kPixel + 1;
+constexpr int kPixel = 7;
 // the most steps per side of a CUDA thread's backward (its record and replay are fixed arrays)
 constexpr int kGradMaxSteps = 32;
 
@@ -264,9 +264,10 @@ template <class B> struct TapedTake {
 };
 
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
-// geometry, at most 2 steps takes, its end and finish); measured by tests/test_kernels_walk_grad.py's largest
-// settings (the most any lane set makes, SIMD lanes' takes the most of theirs), with room to spare
-constexpr int32_t kTapePixel = 160, kTapeSlice = 400, kTapeTake = 90;
+// geometry, begin and end, at most 2 steps takes). Measured at 3 x 1..16 (every variant, fetch and azimuth; the
+// count follows the code, not the values): the pixel 46, a slice 136-211 besides its takes, a take 34-46; with
+// room to spare (tests/test_kernels_gtao_grad.py runs the most steps a CUDA thread takes)
+constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60;
 TAO_FN int32_t tape_capacity(int64_t steps) { return kTapePixel + kTapeSlice + int32_t(2 * steps) * kTapeTake; }
 
 // The backward of the n <= L pixels of a row from u0: upstream[c] the gradient of output channel c (H, W),
