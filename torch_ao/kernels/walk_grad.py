@@ -7,10 +7,11 @@ The forward (walk_grad.h's ``record_block``: ``torch_ao_kernels::walk_record`` o
 ``tao_record_*`` kernels on CUDA) is the walk, which also records per pixel, slice and side the steps that
 changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises: a bit per step); the backward
 (``grad_block``: ``torch_ao_kernels::walk_backward``, ``tao_backward_*``) replays each slice through those
-steps alone in dual lanes (lanes_dual.h): forward-mode tangents on each pixel's own position, normal and
-depth, on the accumulator's setting (``setting``: GTAO's falloff or thickness, HBAO's angle bias) and on each
-replayed sample, whose taps it scatters into (bilinear: the inverse depth of its four taps; nearest: the
-tap's position; on CUDA with atomic adds, so the sums' order, and their last bits, vary between runs).
+steps alone in reverse lanes (lanes_rev.h: the replay records its arithmetic on a tape, swept back once per
+slice), whose leaves are each pixel's own position, normal and depth, the accumulator's setting (``setting``:
+GTAO's falloff or thickness, HBAO's angle bias) and each replayed sample's fetched position, whose gradient
+goes to its taps (bilinear: the inverse depth of its four taps; nearest: the tap's position; on CUDA with
+atomic adds, so the sums' order, and their last bits, vary between runs).
 
 The radius needs no tangent of its own: the walk is scale-invariant (scaling positions, depth and every
 length setting by s leaves its outputs as they are: screen positions, angles and the falloff ratio do not
