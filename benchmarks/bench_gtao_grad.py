@@ -1,8 +1,8 @@
-"""The horizon kernels' forward + backward (gradients of depth and the parameters) against their forward,
-kernel and tensor path.
+"""The walk's backward (the horizon kernels' and the SSAO family's: gradients of depth and the parameters)
+against their forward, kernel and tensor path.
 
-``GTAO`` (``--methods``: ``gtao`` the exact variant, ``hdrp``, ``ue4``) and ``HBAO`` (``hbao``: incremental,
-``hbao-max``) on ``torch_ao.examples.example_gbuffer`` with ``depth.requires_grad``; the loss is the
+``GTAO`` (``--methods``: ``gtao`` the exact variant, ``hdrp``, ``ue4``), ``HBAO`` (``hbao``: incremental,
+``hbao-max``), ``UE4SSAO`` (``ue4ssao``: evenly spaced directions) and ``PSSAO`` (``pssao``) on ``torch_ao.examples.example_gbuffer`` with ``depth.requires_grad``; the loss is the
 visibility's sum. Rows per method and ``slices x steps``: the kernel's forward (no gradient), the kernel's
 forward + backward, the tensor path's forward + backward, and the ratios to the kernel's forward. Median of
 ``--repeat`` calls after one warm-up; the machine may be shared: read the ratios of one run.
@@ -25,10 +25,13 @@ from torch_ao.examples import example_gbuffer  # noqa: E402
 from torch_ao.gbuffer import GBuffer  # noqa: E402
 from torch_ao.methods.gtao import GTAO  # noqa: E402
 from torch_ao.methods.hbao import HBAO  # noqa: E402
+from torch_ao.methods.pssao import PSSAO  # noqa: E402
+from torch_ao.methods.ue4_ssao import UE4SSAO  # noqa: E402
 
 #: the modules benchmarked (GTAO's radius is frozen for ue4: its kernel gradient is not covered)
 METHODS = {"gtao": (GTAO, {}), "hdrp": (GTAO, {"variant": "hdrp"}), "ue4": (GTAO, {"variant": "ue4"}),
-           "hbao": (HBAO, {}), "hbao-max": (HBAO, {"accumulate": "max"})}
+           "hbao": (HBAO, {}), "hbao-max": (HBAO, {"accumulate": "max"}),
+           "ue4ssao": (UE4SSAO, {"sample_set": "uniform"}), "pssao": (PSSAO, {})}
 
 
 def _median_seconds(fn, repeat: int) -> float:

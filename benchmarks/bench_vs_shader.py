@@ -136,6 +136,12 @@ def _cases() -> dict[str, Case]:
     def horizon(cls, backend="kernel", **options):
         return lambda s: cls(backend=backend, **_without_thickness(s), **options)
 
+    def ue4_ssao(s):  # (its directions evenly spaced, as many as the shader's slices)
+        return torch_ao.UE4SSAO(sample_set="uniform", backend="kernel", **_without_thickness(s))
+
+    def pssao(s):  # (the gist's pixel offsets: no radius)
+        return torch_ao.PSSAO(slices=s["slices"], steps=s["steps"], backend="kernel")
+
     def exact(backend, trainable=False):
         return lambda s: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), fetch="edge_aware",
                                             trainable=trainable, backend=backend, **_without_thickness(s))
@@ -197,6 +203,10 @@ def _cases() -> dict[str, Case]:
         "gtao_edge_gbuffer": Case("`GTAO` edge-aware fetch fwd+bwd, depth + normals",
                                   horizon(torch_ao.GTAO, fetch="edge_aware"), "gbuffer", "gtao_edge", 3.0),
         "hbao_gbuffer": Case("`HBAO` fwd+bwd, depth + normals", horizon(torch_ao.HBAO), "gbuffer", "hbao", 3.0),
+        "ue4_ssao": Case("`UE4SSAO` (uniform directions)", ue4_ssao, None, "shader", 1.0),
+        "ue4_ssao_gbuffer": Case("`UE4SSAO` fwd+bwd, depth + normals", ue4_ssao, "gbuffer", "ue4_ssao", 3.0),
+        "pssao": Case("`PSSAO`", pssao, None, "shader", 1.0),
+        "pssao_gbuffer": Case("`PSSAO` fwd+bwd, depth + normals", pssao, "gbuffer", "pssao", 3.0),
     }
 
 

@@ -127,7 +127,7 @@ typedef void ExactBackward(const float*, const float*, const float*, const float
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
-Backward tao_backward_gtao, tao_backward_hbao;
+Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao;
 SoftBackward tao_soft_backward;
 ExactBackward tao_exact_backward;
 HardRecord tao_record_hard;
@@ -144,7 +144,7 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
-                                   // (NAME soft, exact, hard: that walk's backward alone)
+                                   // (NAME soft, exact, hard, wedge, pssao: that walk's backward alone)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
@@ -188,6 +188,11 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
     grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                   grad.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(),
                                                   ti.data(), ints.data(), floats.data(), B, H, W); });
+  } else if (name == "wedge" || name == "pssao") {  // (every step replayed: no record)
+    Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_pssao;
+    grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
+                                      gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(), ints.data(),
+                                      floats.data(), B, H, W); });
   } else {
     grid(pixels, threads, [&] { record(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, out.data(),
                                        rec.data(), ints.data(), floats.data(), B, H, W); });
@@ -316,7 +321,7 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
 
 def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
-    max), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
+    max), UE4 SSAO's wedge pairs and PSSAO (every step replayed), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
     bilinearly, at its first tap, or none; along the ray or the view) and the hard sector walk (cosine weights,
     bent normals), every fetch, either border."""
     common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
@@ -327,6 +332,15 @@ def _backward_cases():
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
     yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
            [True, True, False], [1.0, 0.1], 1)
+    # (accurate_angle); fade_distance, flat_surface_bias, flat_softness / distance_bias; PSSAO's offsets as a table
+    yield ("wedge", walk_settings(**dict(common, steps=3), placement="wedge", azimuth="screen"), [True],
+           [0.4, 0.05, 0.02], 2)
+    yield ("wedge", walk_settings(**dict(common, steps=2, fetch="nearest", border="clamp"), placement="wedge",
+                                  azimuth="screen", table=[0.3, 1.0, 1.9, 0.7, 3.5, 0.5]), [False], [0.3, 0.05, 0.0], 2)
+    offsets = [float(v) for s in range(3) for k in range(4) for v in (round((k + 1.5) * math.cos(2.1 * s + 0.3)),
+                                                                       round((k + 1.5) * math.sin(2.1 * s + 0.3)))]
+    yield ("pssao", walk_settings(**dict(common, steps=4, jitter=False), placement="pixels", full_circle=True,
+                                  azimuth="screen", table=offsets), [], [1.0], 3)
     yield "soft", walk_settings(**common), [0, False, False], [0.5, 0.01, 0.25], 1  # (rounding, cosine, straight)
     yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True], [0.4, 0.01, 0.1], 1
     yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False], [0.5, 0.0, 0.3], 1
@@ -390,6 +404,9 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         elif accumulator == "soft":
             g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().soft_backward(grad, *inputs, cells, ints, floats,
                                                                                    True)
+        elif accumulator in ("wedge", "pssao"):
+            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
+                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True)
         else:
             out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
             assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
@@ -407,7 +424,8 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             cuda["normals"] = cuda["normals"] + read("tap_normals", *g_nrm.shape)
             cuda["light"] = read("tap_light", *g_nrm.shape)
             assert light.numel() == 0 or cpu["light"].abs().max() > 0
-        assert g_pos.abs().max() > 0 and g_nrm.abs().max() > 0  # (the comparison means something)
+        # (the comparison means something; UE4's wedge reads no normal)
+        assert g_pos.abs().max() > 0 and (accumulator == "wedge" or g_nrm.abs().max() > 0)
         for name, reference in cpu.items():
             finite = torch.isfinite(reference)
             scale = reference[finite].abs().max().clamp_min(1e-6)

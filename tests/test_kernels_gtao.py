@@ -141,7 +141,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
         assert "position buffer" in gtao_covers(GTAO(fetch="edge_aware"), positions)
         # a reduced resolution is a smaller G-buffer to the kernel
         assert gtao_covers(GTAO(preset="high@half"), gb) is None
-    # gradients: the horizon accumulators' backward (tests/test_kernels_gtao_grad.py), but ue4's radius
+    # gradients: the horizon accumulators' backward (tests/test_kernels_walk_grad.py), but ue4's radius
     assert gtao_covers(GTAO(), gb) is None  # the trainable radius and final power, autograd on
     assert gtao_covers(GTAO(variant="hdrp"), gb) is None
     assert "variant 'ue4'" in gtao_covers(GTAO(variant="ue4"), gb)

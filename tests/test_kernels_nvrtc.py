@@ -39,7 +39,7 @@ def test_a_compile_error_is_reported_with_the_log(monkeypatch):
 def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills, nor does the horizon backward, whose replay
     keeps its tape in the thread's local memory (lanes_rev.h; stack 88 KB at 32 steps a side). The exact
-    union's backward replays an interval's segment in 11 tangents: 1224 bytes spilled and reloaded; the hard
+    union's backward replays an interval's segment in 11 tangents: 1188 bytes spilled and reloaded; the hard
     sector walk's ends each slice with its 32 sectors' weights in 2 tangents and replays the steps that send
     indirect light in 16: 3808 bytes; bounded here."""
     report = cuda_offline.kernel_resources(ptx90, 90)

@@ -54,7 +54,7 @@ struct ExactGradAccumulator {
     if (smp.bilinear && any(smp.valid)) {  // (the nearest texel does not move with the radius)
       const int64_t j = st.n % walk.steps;
       const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);
-      const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
+      const F su = along_u(px, sl, float(side), dist), sv = along_v(px, sl, float(side), dist);
       F d_su[3], d_sv[3], dsu, dsv;
       fetch_motion(smp, su, sv, d_su, d_sv);
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);

@@ -77,6 +77,7 @@ template <class F> struct Tape {
     return setting_id >= from ? adjoint[setting_id] : F(0.0f);
   }
   int32_t setting_id = -1;
+  void* fetches = nullptr;  // the caller's record of the leaves it makes outside the arithmetic (walk_grad.h)
 };
 
 #ifdef __CUDACC_RTC__
@@ -182,6 +183,10 @@ template <class F> TAO_FN void cos_sin_rounded(const Rev<F>& x, Rev<F>& c, Rev<F
   F cv, sv;
   cos_sin_rounded(x.v, cv, sv);
   c = Rev<F>::link(cv, x, neg(sv)), s = Rev<F>::link(sv, x, cv);
+}
+template <class F> TAO_FN_ALWAYS Rev<F> logistic(const Rev<F>& x) {  // (its slope s (1 - s): finite everywhere)
+  const F s = logistic(x.v);
+  return Rev<F>::link(s, x, s * (F(1.0f) - s));
 }
 template <class F> TAO_FN_ALWAYS Rev<F> asin(const Rev<F>& x) { return Rev<F>::link(asin(x.v), x, rsqrt(F(1.0f) - x.v * x.v)); }
 template <class F> TAO_FN_ALWAYS Rev<F> acos(const Rev<F>& x) {

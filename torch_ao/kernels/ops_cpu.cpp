@@ -60,11 +60,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   TORCH_CHECK(ints.numel() >= kAccInts && floats.numel() >= kAccFloats, "ints, floats: the walk's settings are missing");
   // the accumulator's own count after the walk's, then the walk's table (packed.h): a sample set's per slice
   // (Steps::wedge, optional), the pixel offsets per slice and step (Steps::pixels)
-  const int64_t placement = ints.data_ptr<int64_t>()[3], table_start = ints.data_ptr<int64_t>()[13];
-  const int64_t slices = ints.data_ptr<int64_t>()[0], steps = ints.data_ptr<int64_t>()[1];
-  const int64_t table = placement == int64_t(Steps::pixels)                   ? 2 * slices * steps
-                        : placement == int64_t(Steps::wedge) && table_start > 0 ? 2 * slices
-                                                                                : 0;
+  const int64_t table_start = ints.data_ptr<int64_t>()[13], table = table_floats(ints.data_ptr<int64_t>());
   auto packed = [&](int64_t n_ints, int64_t n_floats) {
     TORCH_CHECK(ints.numel() == kAccInts + n_ints && floats.numel() == kAccFloats + n_floats + table, accumulator,
                 ": expected ", kAccInts + n_ints, " ints and ", kAccFloats + n_floats + table, " floats");

@@ -95,6 +95,13 @@ TAO_FN WedgeAccumulator unpack_wedge(const int64_t* i, const float* f) {
   return WedgeAccumulator{f[0], f[1], f[2], i[0] != 0};
 }
 
+// The floats of the walk's table (after the accumulator's): a sample set's angle and length per slice
+// (Steps::wedge, where ints[13] says it has one), the pixel offsets per slice and step (Steps::pixels)
+TAO_FN int64_t table_floats(const int64_t* i) {
+  if (i[3] == int64_t(Steps::pixels)) return 2 * i[0] * i[1];
+  return i[3] == int64_t(Steps::wedge) && i[13] > 0 ? 2 * i[0] : 0;
+}
+
 // floats: distance_bias
 TAO_FN PSSAOAccumulator unpack_pssao(const int64_t*, const float* f) { return PSSAOAccumulator{f[kAccFloats]}; }
 

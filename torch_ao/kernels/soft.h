@@ -211,7 +211,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), m % walk.steps);
     const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
     if (moves) {
-      const F su = px.u + dist * (sl.unit_u * F(float(side))), sv = px.v + dist * (sl.unit_v * F(float(side)));
+      const F su = along_u(px, sl, float(side), dist), sv = along_v(px, sl, float(side), dist);
       fetch_motion(smp, su, sv, d_su, d_sv);
     }
     if (kAdjoint) {  // the backward: the fetch, for the pixel's and the taps' gradients (end_slice_adjoint)

@@ -1,7 +1,8 @@
 // The accumulators of torch_ao/methods/ue4_ssao.py (WedgeAccumulator: UE4's WedgeNoNormal of each symmetric
 // pair of samples, Steps::wedge) and torch_ao/methods/pssao.py (PSSAOAccumulator: the largest sample
 // occlusion per direction, Steps::pixels), for walk.h. Like horizon.h's, they finish into per-pixel sums over
-// slices (0 on background) that the modules' own Python finish turns into the visibility.
+// slices (0 on background) that the modules' own Python finish turns into the visibility. Their backward is
+// walk_grad.h's grad_block, which replays every step (seed_setting: UE4's fade distance, PSSAO's distance bias).
 #pragma once
 
 #include "walk.h"
@@ -38,12 +39,12 @@ struct WedgeAccumulator {
     const F left = px.depth + (px.P[2] + dl[2]), right = px.depth + (px.P[2] + dr[2]);
     const F bias = F(flat_surface_bias), one = F(1.0f);
     if (flat_softness > 0) {
-      const F flat = one / (one + exp((left + right - bias) / F(flat_softness)));  // sigmoid((bias - (l + r)) / s)
+      const F flat = logistic((bias - (left + right)) / F(flat_softness));
       norm_angle = norm_angle + flat * (one - norm_angle);
     } else {
       norm_angle = select(left + right < bias, one, norm_angle);
     }
-    const F D = F(fade_distance);
+    const F D = seed_setting(F(fade_distance));
     F weight = clamp(one - left / D, F(0.0f), one) * clamp(one - right / D, F(0.0f), one);
     weight = select(land(plus.valid, minus.valid), weight, F(0.0f));
     const F x = (one - norm_angle) / (weight + F(0.001f));
@@ -80,7 +81,7 @@ struct PSSAOAccumulator {
   TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
     const auto inside = smp.inside();
     F a = clamp_min(dot3(px.N, smp.delta), F(0.0f));
-    a = a / (F(distance_bias) + norm3(smp.delta));
+    a = a / (seed_setting(F(distance_bias)) + norm3(smp.delta));
     const F occ = select(smp.valid, a / (F(1.0f) + a), F(0.0f));
     st.best = select(inside, max(st.best, occ), st.best);
     st.count = st.count + select(inside, F(1.0f), F(0.0f));

@@ -7,8 +7,11 @@ pixel, or evenly spaced) with both sides of each step taken together (``walk_pai
 :class:`~torch_ao.methods.pssao.PSSAOPattern`'s integer pixel offsets (the module's pattern computes them; the
 kernel reads them as a table) with the largest occlusion per direction. Both return per-pixel sums over
 slices that the module's own accumulator's ``finish`` turns into the visibility (UE4's final power and
-intensity, PSSAO's normalisation), so those have one definition. Forward only: a call that wants a gradient
-through what the kernel computes runs on the tensor path (:func:`ue4_ssao_covers`, :func:`pssao_covers`).
+intensity, PSSAO's normalisation), so those have one definition. Where autograd records (CPU, CUDA), both run
+with the walk's backward (:mod:`torch_ao.kernels.walk_grad`, every step replayed in reverse lanes): gradients
+to the G-buffer's depth, normals and positions, to UE4's fade distance and PSSAO's distance bias; a gradient
+of UE4's radius or flat-surface bias, or of the intrinsics, runs on the tensor path (:func:`ue4_ssao_covers`,
+:func:`pssao_covers` say why).
 
 ``SSAO`` (the hemisphere kernel) has no kernel: its samples are 3-D points around the normal, projected one by
 one, not steps along a screen direction, so it is not a pattern of this walk.
@@ -23,6 +26,7 @@ from ..gbuffer import GBuffer
 from .coverage import call_uncovered
 from .gtao import finish_sums, float32_value
 from .launch import run_walk, walk_settings
+from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, wants_gradient
 
 __all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums", "pssao_forward", "pssao_covers"]
 
@@ -31,7 +35,7 @@ _FETCHES = ("nearest", "bilinear", "edge_aware")
 
 
 def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
-                  fade_distance: float, flat_surface_bias: float, flat_softness: float = 0.0,
+                  fade_distance: float | torch.Tensor, flat_surface_bias: float, flat_softness: float = 0.0,
                   accurate_angle: bool = False, offsets=None, jitter: bool = True, seed: int = 0,
                   fetch: str = "nearest", border: str = "clamp", lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over directions of UE4 SSAO's ``(1 - acc.x)^2 acc.y`` and ``acc.y`` ``(B,2,H,W)`` (0 on
@@ -44,6 +48,8 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
             :data:`~torch_ao.methods.ue4_ssao.SAMPLE_SETS`); steps: pairs per direction; radius, fade_distance,
             flat_surface_bias, flat_softness: world units; accurate_angle, jitter, seed, fetch, border: as
             :class:`~torch_ao.UE4SSAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's body).
+            With autograd recording through the G-buffer or a ``fade_distance`` tensor, the sums carry their
+            gradients.
     """
     table = None
     if offsets is not None:  # WedgePattern._direction: the offset's angle and length
@@ -51,11 +57,16 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
         table = [v for x, y in offsets for v in (math.atan2(y, x), math.hypot(x, y))]
     settings = walk_settings(slices=slices, steps=steps, radius=radius, jitter=jitter, seed=seed, fetch=fetch,
                              border=border, placement="wedge", azimuth="screen", table=table)
-    return run_walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
-                    [max(float(fade_distance), 1e-30), float(flat_surface_bias), float(flat_softness)], 2, lanes=lanes)
+    walk, options = run_walk, {}
+    if wants_gradient(gbuffer, normals, fade_distance):
+        walk, options = differentiable_walk, {"radius": radius, "setting": fade_distance}
+    return walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
+                [max(float32_value(fade_distance), 1e-30), float(flat_surface_bias), float(flat_softness)], 2,
+                lanes=lanes, **options)
 
 
-def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, offsets, distance_bias: float,
+def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, offsets,
+               distance_bias: float | torch.Tensor,
                fetch: str = "nearest", border: str = "drop", lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over directions of PSSAO's largest occlusion, in-image samples and directions with one
     ``(B,3,H,W)`` (0 on background).
@@ -65,12 +76,16 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             steps: the gist's angular and radius steps; offsets: ``offsets[s][k]`` the ``(du, dv)`` pixels of step
             ``k`` on direction ``s`` (:meth:`~torch_ao.methods.pssao.PSSAOPattern.pixel_offset`);
             distance_bias: world units; fetch, border: as
-            :class:`~torch_ao.PSSAO`. lanes: as :func:`ue4_ssao_sums`.
+            :class:`~torch_ao.PSSAO`. lanes: as :func:`ue4_ssao_sums`. With autograd recording through the
+            G-buffer or a ``distance_bias`` tensor, the sums carry their gradients.
     """
     table = [float(v) for s in range(slices) for k in range(steps) for v in offsets[s][k]]
     settings = walk_settings(slices=slices, steps=steps, radius=0.0, jitter=False, seed=0, fetch=fetch, border=border,
                              placement="pixels", full_circle=True, azimuth="screen", table=table)
-    return run_walk("pssao", gbuffer, normals, settings, [], [float(distance_bias)], 3, lanes=lanes)
+    walk, options = run_walk, {}
+    if wants_gradient(gbuffer, normals, distance_bias):
+        walk, options = differentiable_walk, {"radius": 0.0, "setting": distance_bias}
+    return walk("pssao", gbuffer, normals, settings, [], [float32_value(distance_bias)], 3, lanes=lanes, **options)
 
 
 def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
@@ -79,7 +94,7 @@ def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str,
     m = module
     normals = gbuffer.view_normals(m.normals_method)
     sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=float32_value(m.radius),
-                         fade_distance=float32_value(m.fade_distance), flat_surface_bias=float32_value(m.flat_surface_bias),
+                         fade_distance=m.fade_distance, flat_surface_bias=float32_value(m.flat_surface_bias),
                          flat_softness=m.flat_softness, accurate_angle=m.accurate_angle,
                          offsets=m.pattern_for(None).offsets,
                          jitter=m.jitter, seed=m.seed, fetch=m.fetch, border=m.border, lanes=lanes)
@@ -95,7 +110,7 @@ def pssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, to
     pattern = m.pattern_for(None)
     offsets = [[pattern.pixel_offset(s, k) for k in range(m.steps)] for s in range(m.slices)]
     sums = pssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, offsets=offsets,
-                      distance_bias=float32_value(m.distance_bias),
+                      distance_bias=m.distance_bias,
                       fetch=m.fetch, border=m.border, lanes=lanes)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, 3)
     return finish_sums(m, gbuffer, {"sum": sums[:, 0:1], "count": sums[:, 1:2], "dirs": sums[:, 2:3]}, normals)
@@ -110,30 +125,38 @@ _UE4_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("radius", "fade_distance", "flat
 _PSSAO_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("distance_bias", "normalize")) | {"jitter": (False,)}
 
 
-def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...], finished: tuple[str, ...]) -> str | None:
+def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...], given: tuple[str, ...]) -> str | None:
     """Why the kernel cannot compute ``module(gbuffer)`` (``None``: it can): an option it does not know or
     cover, a ``parameter`` other than a scalar, a G-buffer other than float32 on CPU or CUDA, bilinear reads of
-    a position buffer, or, where autograd records, a gradient through the kernel's sums (those of the
-    ``finished`` parameters, which the module's finish applies with torch ops, are kept)."""
+    a position buffer, or, where autograd records, a gradient the walk's backward does not give (it gives the
+    G-buffer's and the ``given`` parameters': its setting's, and those the module's finish applies with torch
+    ops), or one on CUDA with more than :data:`~torch_ao.kernels.walk_grad.MAX_CUDA_STEPS` steps."""
     reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest",))
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
-        asked = [name for name in parameters if getattr(module, name).requires_grad and name not in finished]
         cam = gbuffer.camera
-        inputs = (gbuffer.depth, gbuffer.normals, gbuffer.position, cam.fx, cam.fy, cam.cx, cam.cy)
-        if asked or any(isinstance(t, torch.Tensor) and t.requires_grad for t in inputs):
-            what = ", ".join(asked) if asked else "the G-buffer"
-            return f"a gradient of {what} is asked for (the {type(module).__name__} kernel is forward only)"
+        if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
+            return ("a gradient of the intrinsics is asked for (the kernel's backward holds them constant; the "
+                    "G-buffer's depth, normals and positions get theirs)")
+        others = [name for name in parameters if getattr(module, name).requires_grad and name not in given]
+        if others:
+            return (f"a gradient of {', '.join(others)} is asked for (the {type(module).__name__} kernel's backward "
+                    f"gives {', '.join(given)} and the G-buffer's)")
+        wanted = any(getattr(module, name).requires_grad for name in parameters) or any(
+            isinstance(t, torch.Tensor) and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position))
+        if wanted and gbuffer.depth.is_cuda and module.steps > MAX_CUDA_STEPS:
+            return (f"a gradient is asked for on CUDA with {module.steps} steps per side (its backward replays at "
+                    f"most {MAX_CUDA_STEPS})")
     return None
 
 
 def ue4_ssao_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`ue4_ssao_forward` computes ``module(gbuffer)`` (a ``UE4SSAO``), else why not."""
     return _covers(module, gbuffer, _UE4_OPTIONS, ("radius", "fade_distance", "flat_surface_bias", "final_power",
-                                                   "intensity"), finished=("final_power", "intensity"))
+                                                   "intensity"), given=("fade_distance", "final_power", "intensity"))
 
 
 def pssao_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`pssao_forward` computes ``module(gbuffer)`` (a ``PSSAO``), else why not."""
-    return _covers(module, gbuffer, _PSSAO_OPTIONS, ("distance_bias",), finished=())
+    return _covers(module, gbuffer, _PSSAO_OPTIONS, ("distance_bias",), given=("distance_bias",))

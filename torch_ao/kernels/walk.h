@@ -323,6 +323,14 @@ template <class F> TAO_FN F step_distance(const WalkSettings& cfg, const Slice<F
   return step_distance(cfg, sl, xi, F(float(j)));
 }
 
+// The screen position (along_u, along_v) dist pixels from the pixel along the slice's side
+template <class F> TAO_FN F along_u(const Pixels<F>& px, const Slice<F>& sl, float side, const F& dist) {
+  return px.u + dist * (sl.unit_u * F(side));
+}
+template <class F> TAO_FN F along_v(const Pixels<F>& px, const Slice<F>& sl, float side, const F& dist) {
+  return px.v + dist * (sl.unit_v * F(side));
+}
+
 // Where step j of a slice's side samples, in screen pixels (su, sv), for the side's step offset xi
 // (step_noise): step_distance along the slice's screen direction, or GLSLPattern's texel:
 // uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale (cos, sin) (aspect H / W on x),
@@ -338,7 +346,7 @@ TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<
   }
   if (cfg.placement != Steps::glsl) {
     const F dist = step_distance(cfg, sl, xi, j);
-    su = px.u + dist * (sl.unit_u * F(side)), sv = px.v + dist * (sl.unit_v * F(side));
+    su = along_u(px, sl, side, dist), sv = along_v(px, sl, side, dist);
     return;
   }
   const float Wf = float(img.W), Hf = float(img.H);
@@ -390,7 +398,7 @@ template <class F> struct Sample {
   // the sample dist pixels from the pixel along the slice's side
   TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
                 const F& dist)
-      : Sample(cfg, img, px, px.u + dist * (sl.unit_u * F(side)), px.v + dist * (sl.unit_v * F(side))) {}
+      : Sample(cfg, img, px, along_u(px, sl, side, dist), along_v(px, sl, side, dist)) {}
 
   // the sample at screen (su, sv)
   TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv)
@@ -465,6 +473,13 @@ template <class F> struct Sample {
   }
 };
 
+// A walk's sample at screen (su, sv): Sample's fetch (walk_grad.h's reverse lanes overload it: the fetched
+// position a leaf of their tape, its taps kept for the backward's scatter)
+template <class F>
+TAO_FN Sample<F> fetch_sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv) {
+  return Sample<F>(cfg, img, px, su, sv);
+}
+
 // acc.begin_slice(px, sl, sums) where the accumulator takes the sums so far, else acc.begin_slice(px, sl)
 template <class Acc, class F, class S>
 TAO_FN auto begin_slice_of(const Acc& acc, const Pixels<F>& px, const Slice<F>& sl, const S& sums, int)
@@ -502,7 +517,7 @@ TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc
     for (int64_t j = 0; j < cfg.steps; ++j) {  // for each sample
       F su, sv;
       step_screen(cfg, img, px, sl, float(side), xi, j, su, sv);
-      const Sample<F> sample(cfg, img, px, su, sv);
+      const Sample<F> sample = fetch_sample(cfg, img, px, su, sv);
       if constexpr (Visit::kBefore) {  // (a copy of the state per step only for a visitor that reads it)
         const typename Acc::template State<F> before = state;
         acc.step(state, side, px, sl, sample);
@@ -524,9 +539,9 @@ TAO_FN void walk_pairs(const WalkSettings& cfg, const Image& img, const Acc& acc
   for (int64_t j = 0; j < cfg.steps; ++j) {
     F su, sv;
     step_screen(cfg, img, px, sl, 1.0f, xi_plus, j, su, sv);
-    const Sample<F> plus(cfg, img, px, su, sv);
+    const Sample<F> plus = fetch_sample(cfg, img, px, su, sv);
     step_screen(cfg, img, px, sl, -1.0f, xi_minus, j, su, sv);
-    const Sample<F> minus(cfg, img, px, su, sv);
+    const Sample<F> minus = fetch_sample(cfg, img, px, su, sv);
     acc.step_pair(state, px, sl, plus, minus);
   }
 }

@@ -57,6 +57,8 @@ TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
 TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
 TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao)
 TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao)
+TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge)  // (every step replayed: no record)
+TAO_CUDA_BACKWARD(tao_backward_pssao, unpack_pssao)
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d thickness per pixel
 // in g_thickness

@@ -214,7 +214,7 @@ template <int L> struct Replay {
 template <class D, class B, class Own>
 TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, const Pixels<B>& px,
                                  const Pixels<Own>& px_own, const Slice<Own>& sl_own, float side, const Own& dist) {
-  const Own su = px_own.u + dist * (sl_own.unit_u * Own(B(side))), sv = px_own.v + dist * (sl_own.unit_v * Own(B(side)));
+  const Own su = along_u(px_own, sl_own, side, dist), sv = along_v(px_own, sl_own, side, dist);
   const Sample<B> plain(cfg, img, px, su.v, sv.v);
   Sample<D> smp(plain, [](const B& x) { return D(x); });
   B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
@@ -226,36 +226,7 @@ TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, cons
   return smp;
 }
 
-// A replayed sample on the tape (R = Rev<B>, lanes_rev.h), dist pixels along the slice's side: fetched in plain
-// lanes (px: the pixel's values), the fetched position a leaf per component (ids), moved as the fetch moves
-// with the screen position (soft.h's fetch_motion: a bilinear fetch's d position / d su, d sv; a nearest one's
-// texel does not move), less the pixel's own position; fu, fv carry su, sv's derivatives (a layer read at the
-// taps moves with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape.
-template <class B>
-TAO_FN Sample<Rev<B>> taped_sample(const WalkSettings& cfg, const Image& img, const Pixels<B>& px,
-                                   const Pixels<Rev<B>>& pr, const Slice<Rev<B>>& sl, float side, const Rev<B>& dist,
-                                   int32_t* ids) {
-  using R = Rev<B>;
-  const R su = pr.u + dist * (sl.unit_u * R(B(side))), sv = pr.v + dist * (sl.unit_v * R(B(side)));
-  const Sample<B> plain(cfg, img, px, su.v, sv.v);
-  Sample<R> smp(plain, [](const B& x) { return R(x); });
-  B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
-  if (cfg.bilinear) {
-    fetch_motion(plain, su.v, sv.v, d_su, d_sv);
-    smp.fu = R::link(plain.fu, su, B(1.0f)), smp.fv = R::link(plain.fv, sv, B(1.0f));
-  }
-  for (int c = 0; c < 3; ++c) {
-    const B pos = plain.delta[c] + px.P[c];
-    Tape<B>* tape = current_tape<B>();
-    ids[c] = tape->leaf();
-    R moved(pos, ids[c], tape);
-    if (cfg.bilinear) moved = R::link(pos, R::link(pos, moved, B(1.0f), su, d_su[c]), B(1.0f), sv, d_sv[c]);
-    smp.delta[c] = R::link(plain.delta[c], moved, B(1.0f), pr.P[c], B(-1.0f));
-  }
-  return smp;
-}
-
-// A replayed take's fetch: its position's leaves on the tape, and where its taps are
+// A replayed fetch: its position's leaves on the tape, and where its taps are
 template <class B> struct TapedTake {
   int32_t ids[3];
   typename LaneTraits<B>::I index[4];
@@ -263,10 +234,59 @@ template <class B> struct TapedTake {
   typename LaneTraits<B>::M has;
 };
 
+// A replay's fetches (Tape::fetches): the pixels' values they read and, in order, what each fetched
+template <class B> struct TapedFetches {
+  const Pixels<B>* px;
+  TapedTake<B>* taken;
+  int n;
+};
+
+// walk.h's fetch_sample in reverse lanes (R = Rev<B>), the replay's: fetched in plain lanes, the fetched
+// position a leaf per component, moved as the fetch moves with the screen position (soft.h's fetch_motion: a
+// bilinear fetch's d position / d su, d sv; a nearest one's texel does not move), less the pixel's own
+// position (an invalid sample's delta is -V, as Sample's); fu, fv carry su, sv's derivatives (a layer read at
+// the taps moves with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape; its
+// leaves and taps appended to the tape's fetches.
+template <class B>
+TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, const Pixels<Rev<B>>& pr,
+                                   const Rev<B>& su, const Rev<B>& sv) {
+  using R = Rev<B>;
+  Tape<B>* tape = current_tape<B>();
+  TapedFetches<B>& fetches = *static_cast<TapedFetches<B>*>(tape->fetches);
+  TapedTake<B>& take = fetches.taken[fetches.n++];
+  const Sample<B> plain(cfg, img, *fetches.px, su.v, sv.v);
+  Sample<R> smp(plain, [](const B& x) { return R(x); });
+  B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
+  if (cfg.bilinear) {
+    fetch_motion(plain, su.v, sv.v, d_su, d_sv);
+    smp.fu = R::link(plain.fu, su, B(1.0f)), smp.fv = R::link(plain.fv, sv, B(1.0f));
+  }
+  for (int c = 0; c < 3; ++c) {
+    take.pos[c] = plain.delta[c] + fetches.px->P[c];
+    take.ids[c] = tape->leaf();
+    R moved(take.pos[c], take.ids[c], tape);
+    if (cfg.bilinear)
+      moved = R::link(take.pos[c], R::link(take.pos[c], moved, B(1.0f), su, d_su[c]), B(1.0f), sv, d_sv[c]);
+    smp.delta[c] = select(plain.valid, R::link(plain.delta[c], moved, B(1.0f), pr.P[c], B(-1.0f)), neg(pr.V[c]));
+  }
+  for (int i = 0; i < 4; ++i) take.index[i] = plain.index[i];
+  take.fu = plain.fu, take.fv = plain.fv, take.has = land(plain.valid, pr.live);
+  return smp;
+}
+
+// Whether an accumulator's forward records its takes (record_block; the horizon accumulators': replaces()),
+// so that its backward replays those alone; else the backward replays every step of the walk
+template <class Acc, class = void> struct RecordsTakes {
+  static constexpr bool value = false;
+};
+template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
+  static constexpr bool value = true;
+};
+
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
 // geometry, begin and end, at most 2 steps takes). Measured at 3 x 1..16 (every variant, fetch and azimuth; the
 // count follows the code, not the values): the pixel 46, a slice 136-211 besides its takes, a take 34-46; with
-// room to spare (tests/test_kernels_gtao_grad.py runs the most steps a CUDA thread takes)
+// room to spare (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)
 constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60;
 TAO_FN int32_t tape_capacity(int64_t steps) { return kTapePixel + kTapeSlice + int32_t(2 * steps) * kTapeTake; }
 
@@ -298,30 +318,36 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   const Pixels<R> px(cfg, img, row, u0, n);
   if (!any(px.live) || tape.overflow) return;
   const Pixels<B> px_values(px, [](const R& x) { return x.v; });
+  TapedFetches<B> fetches{&px_values, taken, 0};
+  tape.fetches = &fetches;
   const int32_t pixel_nodes = tape.n;
   B setting(0.0f);
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
-    takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
     const Slice<R> sl(cfg, img, px, s);
     typename Acc::template State<R> state = acc.begin_slice(px, sl);
-    int replays = 0;
-    for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
-      const int k = side > 0 ? 0 : 1;
-      const R xi = step_noise(cfg, px, sl, side);
-      for (int q = 0, most = takes.most(k); q < most; ++q) {
-        float has_lane[L];
-        for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
-        const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
-        const R j(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f)));
-        TapedTake<B>& take = taken[replays++];
-        Sample<R> smp = taped_sample(cfg, img, px_values, px, sl, float(side), step_distance(cfg, sl, xi, j), take.ids);
-        smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
-        acc.step(state, side, px, sl, smp);
-        for (int i = 0; i < 4; ++i) take.index[i] = smp.index[i];
-        take.fu = smp.fu.v, take.fv = smp.fv.v, take.has = land(has, px.live);
-        for (int c = 0; c < 3; ++c) take.pos[c] = smp.delta[c].v + px_values.P[c];
+    fetches.n = 0;
+    if constexpr (RecordsTakes<Acc>::value) {  // the recorded takes alone
+      takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
+      for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
+        const int k = side > 0 ? 0 : 1;
+        const R xi = step_noise(cfg, px, sl, side);
+        for (int q = 0, most = takes.most(k); q < most; ++q) {
+          float has_lane[L];
+          for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
+          const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
+          const R dist = step_distance(cfg, sl, xi, R(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f))));
+          Sample<R> smp = fetch_sample(cfg, img, px, along_u(px, sl, float(side), dist), along_v(px, sl, float(side), dist));
+          smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
+          taken[fetches.n - 1].has = land(taken[fetches.n - 1].has, has);
+          acc.step(state, side, px, sl, smp);
+        }
       }
+    } else if constexpr (PairedSides<Acc>::value) {
+      walk_pairs(cfg, img, acc, px, sl, state);
+    } else {
+      NoVisit none;
+      walk_slice(cfg, img, acc, px, sl, state, none);
     }
     typename Acc::template Sums<R> part;
     acc.end_slice(state, px, sl, part);
@@ -331,7 +357,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     for (int c = 0; c < C; ++c) tape.seed(outs[c].id, g[c]);
     tape.sweep(pixel_nodes);
     setting = setting + tape.setting_adjoint(pixel_nodes);
-    for (int r = 0; r < replays; ++r) {
+    for (int r = 0; r < fetches.n; ++r) {
       const TapedTake<B>& take = taken[r];
       const B gd[3] = {tape.adjoint[take.ids[0]], tape.adjoint[take.ids[1]], tape.adjoint[take.ids[2]]};
       scatter_taps(cfg.bilinear, n, t, gd, take.pos, take.fu, take.fv, take.index, take.has);
@@ -715,8 +741,8 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   float partials[2 * capacity], adjoints[capacity];
   int32_t parents[2 * capacity];
   Tape<float> tape(partials, parents, adjoints, capacity);
-  grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * plane * cfg.slices * 2 * take_words(cfg),
-                    t, take_steps, taken, tape);
+  const int64_t per_image = RecordsTakes<Acc>::value ? plane * cfg.slices * 2 * take_words(cfg) : 0;
+  grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * per_image, t, take_steps, taken, tape);
   if (tape.overflow) {  // (cannot happen below kGradMaxSteps steps: NaN rather than a silently partial gradient)
     const float nan = bits_float(0x7fc00000u);
     for (int c = 0; c < 3; ++c) t.positions[3 * (row * fr.W + u) + c] = nan;

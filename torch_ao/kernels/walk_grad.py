@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 
 from ..gbuffer import GBuffer
-from .build import grad_kernels
+from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs
 
@@ -43,7 +43,19 @@ class _Walk(torch.autograd.Function):
                 channels, scalar, radius, setting, setting_is_length, record_shape):
         ctx.accumulator, ctx.scalar, ctx.setting_is_length = accumulator, scalar, setting_is_length
         frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
-        if positions.is_cuda:
+        if record_shape is None:  # every step replayed: the plain walk, no record
+            none = positions.new_empty(0)
+            record = torch.empty(0, dtype=torch.int64, device=depth.device)
+            if positions.is_cuda:
+                B, H, W = depth.shape
+                out = torch.empty(B, channels, H, W, device=depth.device)
+                launch_cuda(f"tao_walk_{accumulator}", depth.device,
+                            [positions, normals, inverse, depth, valid, intrinsics, none, cells, none, out, ints, floats],
+                            (B, H, W))
+            else:
+                out = cpu_kernels().walk(accumulator, positions, normals, inverse, depth, valid, intrinsics, none, cells,
+                                         none, ints, floats, channels, scalar)
+        elif positions.is_cuda:
             B, H, W = depth.shape
             out = torch.empty(B, channels, H, W, device=depth.device)
             record = torch.empty(B, H, W, *record_shape, dtype=torch.int64, device=depth.device)
@@ -98,16 +110,17 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
                         setting_is_length: bool = False, lanes: str = "simd") -> torch.Tensor:
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU or CUDA G-buffer with autograd history: gradients
     reach ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs (on CUDA at most
-    :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``:
-    ``"gtao"`` or ``"hbao"`` (any fetch, either border). ``radius``: the 0-d tensor
-    every length setting is proportional to, which receives its gradient, or a number. ``setting``: the 0-d
-    tensor (or number) of the accumulator's one differentiable setting, whose value ``acc_floats`` holds
-    (GTAO's falloff in world units, ``setting_is_length``, or thickness; HBAO's angle bias), which
-    receives its gradient."""
+    :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``: ``"gtao"`` or ``"hbao"`` (their forward records
+    the steps that carry gradients), ``"wedge"`` or ``"pssao"`` (every step replayed); any fetch, either
+    border. ``radius``: the 0-d tensor every length setting is proportional to, which receives its gradient, or
+    a number. ``setting``: the 0-d tensor (or number) of the accumulator's one differentiable setting, whose
+    value ``acc_floats`` holds (GTAO's falloff in world units, ``setting_is_length``, or thickness; HBAO's angle
+    bias; UE4 SSAO's fade distance; PSSAO's distance bias), which receives its gradient."""
     inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
     radius, setting = torch.as_tensor(radius), torch.as_tensor(setting)
     slices, steps = settings[0][0], settings[0][1]
     if gbuffer.depth.is_cuda and steps > MAX_CUDA_STEPS:
         raise ValueError(f"steps: the CUDA backward replays at most {MAX_CUDA_STEPS} steps per side, got {steps}")
+    takes = accumulator in ("gtao", "hbao")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
-                       bool(setting_is_length), (int(slices), 2, (int(steps) + 63) // 64))
+                       bool(setting_is_length), (int(slices), 2, (int(steps) + 63) // 64) if takes else None)

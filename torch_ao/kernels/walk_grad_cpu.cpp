@@ -91,12 +91,13 @@ struct Gradients {
   }
 };
 
-// A backward's packed settings: n_ints and n_floats of the accumulator's after the walk's
+// A backward's packed settings: n_ints and n_floats of the accumulator's after the walk's, then the walk's table
 void check_settings(const at::Tensor& ints, const at::Tensor& floats, int64_t n_ints, int64_t n_floats,
                     const char* name) {
   check_input(floats, "floats");
   TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() == kAccInts + n_ints &&
-                  floats.numel() == kAccFloats + n_floats, "ints, floats: expected ", name, "'s packed settings");
+                  floats.numel() == kAccFloats + n_floats + table_floats(ints.data_ptr<int64_t>()),
+              "ints, floats: expected ", name, "'s packed settings");
 }
 
 // The upstream gradient: (B, C, H, W) of positions' B, H, W
@@ -136,7 +137,8 @@ template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
                 Gradients& out, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
-  const int64_t B = fr.B, plane = fr.H * fr.W, per_image = plane * cfg.slices * 2 * take_words(cfg);
+  const int64_t B = fr.B, plane = fr.H * fr.W;
+  const int64_t per_image = RecordsTakes<Acc>::value ? plane * cfg.slices * 2 * take_words(cfg) : 0;
   const int32_t capacity = tape_capacity(cfg.steps);
   std::atomic<bool> overflow{false};
   torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
@@ -158,27 +160,36 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
   return !overflow;
 }
 
-// The horizon accumulator `name` ("gtao", "hbao") of the packed settings, to fn
-template <class Fn> void with_horizon(const std::string& name, const int64_t* i, const float* f, const Fn& fn) {
+// The accumulator `name` of walk_backward ("gtao", "hbao": their takes recorded by walk_record; "wedge", "pssao":
+// every step replayed) of the packed settings (checked), to fn
+template <class Fn> void with_replayed(const std::string& name, const at::Tensor& ints, const at::Tensor& floats,
+                                       const Fn& fn) {
+  const int64_t* i = ints.data_ptr<int64_t>();
+  const float* f = floats.data_ptr<float>();
   if (name == "gtao") {
+    check_settings(ints, floats, 3, 3, "gtao");
     TORCH_CHECK(i[kAccInts] >= 0 && i[kAccInts] <= 2, "variant: expected 0 (exact), 1 (hdrp) or 2 (ue4)");
     fn(unpack_gtao(i, f));
-  } else {
+  } else if (name == "hbao") {
+    check_settings(ints, floats, 3, 2, "hbao");
     fn(unpack_hbao(i, f));
+  } else if (name == "wedge") {
+    check_settings(ints, floats, 1, 3, "wedge");
+    TORCH_CHECK(i[3] == int64_t(Steps::wedge) && f[kAccFloats] > 0, "wedge: expected the wedge step placement and "
+                "fade_distance > 0");
+    fn(unpack_wedge(i, f));
+  } else if (name == "pssao") {
+    check_settings(ints, floats, 0, 1, "pssao");
+    TORCH_CHECK(i[3] == int64_t(Steps::pixels), "pssao: expected the pixel-offset step placement");
+    fn(unpack_pssao(i, f));
+  } else {
+    TORCH_CHECK(false, "accumulator: the walk's backward covers gtao, hbao, wedge and pssao, got ", name);
   }
 }
 
 // The edge-aware fetch reads the cell flags (walk.h's Image::cells)
 void check_cells(const WalkSettings& cfg, const Frame& fr) {
   TORCH_CHECK(!cfg.edge_aware || fr.cells, "cells: the edge-aware fetch needs the cell flags (B, H, W)");
-}
-
-// The walk's settings of a horizon accumulator's call (walk_record, walk_backward)
-WalkSettings horizon_settings(const std::string& name, const at::Tensor& ints, const at::Tensor& floats) {
-  TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: the backward covers gtao and hbao, got ", name);
-  check_settings(ints, floats, 3, name == "gtao" ? 3 : 2, name.c_str());
-  const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
-  return cfg;
 }
 
 // torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of a horizon
@@ -191,38 +202,45 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
                                                const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
                                                bool scalar) {
   const std::string name(accumulator);
-  const WalkSettings cfg = horizon_settings(name, ints, floats);
-  const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
-  check_cells(cfg, fr);
-  at::Tensor out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
-  at::Tensor record = at::empty({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}, ints.options());
-  with_horizon(name, ints.data_ptr<int64_t>(), floats.data_ptr<float>(), [&](const auto& acc) {
+  TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: walk_record records gtao's and hbao's takes, got ", name);
+  at::Tensor out, record;
+  with_replayed(name, ints, floats, [&](const auto& acc) {
+    const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
+    const at::Tensor none = at::empty({0}, positions.options());
+    const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
+    check_cells(cfg, fr);
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
-    record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
+    out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
+    record = at::empty({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}, ints.options());
+    if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value)
+      record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
   });
   return {out, record};
 }
 
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
-// accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao" or "hbao" with walk()'s packed
-// settings; cells: the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the
-// same call
+// accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with
+// walk()'s packed settings; cells: the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's
+// of the same call (gtao, hbao), else empty (every step is replayed)
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
     const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool scalar) {
   const std::string name(accumulator);
-  const WalkSettings cfg = horizon_settings(name, ints, floats);
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
-  check_cells(cfg, fr);
-  TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
-                  record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}),
-              "record: expected walk_record's (B, H, W, slices, 2, words) of the same call");
   Gradients out(positions, fr.B, fr.H, fr.W);
-  with_horizon(name, ints.data_ptr<int64_t>(), floats.data_ptr<float>(), [&](const auto& acc) {
+  with_replayed(name, ints, floats, [&](const auto& acc) {
+    const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
+    check_cells(cfg, fr);
+    if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value) {
+      TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
+                      record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}),
+                  "record: expected walk_record's (B, H, W, slices, 2, words) of the same call");
+    } else {
+      TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
+    }
     check_grad(grad, positions, acc.channels());
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
