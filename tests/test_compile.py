@@ -154,8 +154,8 @@ NO_BREAK_MODULES = {
     "bitmask_straight_through_exact": lambda: torch_ao.BitmaskAO(variant="exact", mode="straight_through", slices=2,
                                                                  steps=2, backend="torch"),
     "ssao": lambda: torch_ao.SSAO(radius=1.0, slices=2, steps=2),
-    "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=2),
-    "pssao": lambda: torch_ao.PSSAO(slices=2, steps=2),
+    "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=2, backend="torch"),
+    "pssao": lambda: torch_ao.PSSAO(slices=2, steps=2, backend="torch"),
 }
 
 
