@@ -112,7 +112,7 @@ extern "C" {
 typedef void Record(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     float*, long long*, const long long*, const float*, int, int, int);
 typedef void Backward(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
-                      const float*, const long long*, float*, float*, float*, float*, float*, float*,
+                      const float*, const long long*, float*, float*, float*, float*, float*, float*, float*,
                       const long long*, const float*, int, int, int);
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                           const float*, const float*, float*, float*, float*, float*, float*, float*,
@@ -164,7 +164,7 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   std::vector<float> out(size_t(B) * C * H * W, -7.0f);
   std::vector<long long> rec(size_t(pixels * words), -1);
   const size_t n = size_t(pixels);
-  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n), tl(n);
+  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n), tl(n), gc(4 * n);
   if (name == "hard") {
     const long long slices = ints[0];
     std::vector<int> occ(size_t(pixels * slices), -1);
@@ -191,18 +191,18 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   } else if (name == "wedge" || name == "pssao") {  // (every step replayed: no record)
     Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_pssao;
     grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
-                                      gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(), ints.data(),
-                                      floats.data(), B, H, W); });
+                                      gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(), gc.data(),
+                                      ints.data(), floats.data(), B, H, W); });
   } else {
     grid(pixels, threads, [&] { record(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, out.data(),
                                        rec.data(), ints.data(), floats.data(), B, H, W); });
     grid(pixels, threads, [&] { backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(),
                                          rec.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(),
-                                         ints.data(), floats.data(), B, H, W); });
+                                         gc.data(), ints.data(), floats.data(), B, H, W); });
   }
   save(dir, "out", out), save(dir, "record", rec), save(dir, "g_positions", gp), save(dir, "g_normals", gn);
   save(dir, "g_depth", gd), save(dir, "g_setting", gs), save(dir, "tap_positions", taps), save(dir, "tap_inverse", ti);
-  save(dir, "tap_layer", tl);
+  save(dir, "tap_layer", tl), save(dir, "g_camera", gc);
   return 0;
 }
 """
@@ -405,18 +405,21 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().soft_backward(grad, *inputs, cells, ints, floats,
                                                                                    True)
         elif accumulator in ("wedge", "pssao"):
-            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
-                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
+                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True, True)
         else:
             out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
             assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
             assert (read("out", *out.shape) - out).abs().max() <= 1e-6
-            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
-                accumulator, grad, *inputs, cells, ints, floats, record, True)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
+                accumulator, grad, *inputs, cells, ints, floats, record, True, True)
         cuda = {"positions": read("g_positions", *g_pos.shape) + read("tap_positions", *g_pos.shape),
                 "normals": read("g_normals", *g_nrm.shape), "inverse": read("tap_inverse", *g_inv.shape),
                 "depth": read("g_depth", *g_depth.shape), "setting": read("g_setting", *g_setting.shape)}
         cpu.update(positions=g_pos, normals=g_nrm, inverse=g_inv, depth=g_depth, setting=g_setting)
+        if "camera" in cpu:  # (the intrinsics' gradients per pixel: none where a nearest fetch reads the buffer)
+            cuda["camera"] = read("g_camera", *cpu["camera"].shape)
+            assert cpu["camera"].abs().max() > 0 or not settings[0][5]
         if "layer" in cpu:
             cuda["layer"] = read("tap_layer", *g_depth.shape)
             assert layer.numel() == 0 or cpu["layer"].abs().max() > 0

@@ -52,9 +52,12 @@ def grad_kernels():
     load_cpu_library("torch_ao_walk_grad", (Path(__file__).with_name("walk_grad_cpu.cpp"),))
 
     @torch.library.register_fake("torch_ao_kernels::walk_backward")
-    def _(accumulator, grad, positions, normals, inverse_depth, depth, *args):
+    def _(accumulator, grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, ints, floats, record,
+          camera, scalar):
+        B, H, W, _ = positions.shape
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
-                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape), depth.new_empty(depth.shape))
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape), depth.new_empty(depth.shape),
+                positions.new_empty((B, H, W, 4) if camera else (0,)))
 
     @torch.library.register_fake("torch_ao_kernels::soft_backward")
     def _(grad, positions, normals, inverse_depth, depth, *args):

@@ -20,7 +20,7 @@ import torch
 from ..gbuffer import GBuffer
 from .coverage import call_uncovered
 from .launch import run_walk, walk_settings
-from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, wants_gradient
+from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
 
 __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forward", "hbao_covers"]
 
@@ -183,7 +183,7 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
         return reason
     if torch.is_grad_enabled():
         asked = [name for name in parameters if getattr(module, name).requires_grad]
-        if asked or any(t is not None and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position)):
+        if asked or gbuffer_requires_grad(gbuffer):
             return gradient_uncovered(module, gbuffer, asked)
     return None
 
@@ -196,10 +196,6 @@ def gradient_uncovered(module, gbuffer: GBuffer, parameters=()) -> str | None:
         return f"a gradient is asked for (the kernel's backward covers the horizon accumulators {tuple(_BACKWARD_PARAMETERS)})"
     if gbuffer.depth.is_cuda and module.steps > MAX_CUDA_STEPS:
         return f"a gradient is asked for on CUDA with {module.steps} steps per side (its backward replays at most {MAX_CUDA_STEPS})"
-    cam = gbuffer.camera
-    if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
-        return ("a gradient of the intrinsics is asked for (the kernel's backward holds them constant; the "
-                "G-buffer's depth, normals and positions get theirs)")
     others = [name for name in parameters if name not in _BACKWARD_PARAMETERS[kind]]
     if others:
         return (f"a gradient of {', '.join(others)} is asked for (the kernel's backward gives "

@@ -6,8 +6,8 @@
 // (lanes_dual.h) costs one walk per tangent.
 //
 // Constants (id < 0) make no node, so what does not depend on a leaf costs nothing. The leaves: the pixel's
-// own position, normal and depth (seed_pixel: ids kept in Tape::own), the accumulator's setting (seed_setting:
-// Tape::setting) and whatever the caller makes with Tape::leaf. Derivatives at
+// own position, normal and depth (seed_pixel: ids kept in Tape::own), the accumulator's setting (seed_setting)
+// and the camera's intrinsics (seed_camera: Tape::parameter) and whatever the caller makes with Tape::leaf. Derivatives at
 // non-differentiable points are lanes_dual.h's (torch's autograd of the tensor path).
 //
 // A node's value carries its tape; leaves are made on the thread's (current_tape<F>(): a CPU thread's own, a
@@ -62,21 +62,25 @@ template <class F> struct Tape {
       if (p1 >= 0) adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
     }
   }
-  // the setting's leaf (seed_setting makes it once, again after a cut below it)
-  TAO_FN int32_t setting() {
-    if (setting_id < 0) setting_id = leaf();
-    return setting_id;
+  // the leaf of parameter k (kSetting: seed_setting's; kCamera + 0..3: seed_camera's fx, fy, cx, cy), made on
+  // first use, again after a cut below it
+  TAO_FN int32_t parameter(int k) {
+    if (parameter_id[k] < 0) parameter_id[k] = leaf();
+    return parameter_id[k];
   }
   // the nodes from `to` on dropped
   TAO_FN void cut(int32_t to) {
     n = to;
-    if (setting_id >= to) setting_id = -1;
+    for (int k = 0; k < kParameters; ++k)
+      if (parameter_id[k] >= to) parameter_id[k] = -1;
   }
-  // d L / d the setting, by the nodes from `from` on (after sweep)
-  TAO_FN F setting_adjoint(int32_t from) const {
-    return setting_id >= from ? adjoint[setting_id] : F(0.0f);
+  // d L / d parameter k, by the nodes from `from` on (after sweep)
+  TAO_FN F parameter_adjoint(int k, int32_t from) const {
+    return parameter_id[k] >= from ? adjoint[parameter_id[k]] : F(0.0f);
   }
-  int32_t setting_id = -1;
+  static constexpr int kSetting = 0, kCamera = 1, kParameters = 5;
+  int32_t parameter_id[kParameters] = {-1, -1, -1, -1, -1};
+  bool camera = false;  // whether seed_camera makes leaves (the intrinsics' gradients are asked for)
   void* fetches = nullptr;  // the caller's record of the leaves it makes outside the arithmetic (walk_grad.h)
 };
 
@@ -222,10 +226,15 @@ template <class F> TAO_FN void seed_pixel(Rev<F>* P, Rev<F>* Nrm, Rev<F>& depth)
   depth = Rev<F>(depth.v, tape->own[6] = tape->leaf(), tape);
 }
 
-// an accumulator's differentiable setting: the tape's setting leaf (Tape::setting, Tape::setting_adjoint)
+// an accumulator's differentiable setting: the tape's setting leaf (Tape::parameter(kSetting))
 template <class F> TAO_FN_ALWAYS Rev<F> seed_setting(const Rev<F>& x) {
   Tape<F>* tape = current_tape<F>();
-  return Rev<F>(x.v, tape->setting(), tape);
+  return Rev<F>(x.v, tape->parameter(Tape<F>::kSetting), tape);
+}
+// intrinsic k of the camera (fx, fy, cx, cy): its leaf where the tape asks for the intrinsics' gradients
+template <class F> TAO_FN_ALWAYS Rev<F> seed_camera(const Rev<F>& x, int k) {
+  Tape<F>* tape = current_tape<F>();
+  return tape->camera ? Rev<F>(x.v, tape->parameter(Tape<F>::kCamera + k), tape) : x;
 }
 
 }  // namespace tao

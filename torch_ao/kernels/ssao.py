@@ -9,8 +9,8 @@ kernel reads them as a table) with the largest occlusion per direction. Both ret
 slices that the module's own accumulator's ``finish`` turns into the visibility (UE4's final power and
 intensity, PSSAO's normalisation), so those have one definition. Where autograd records (CPU, CUDA), both run
 with the walk's backward (:mod:`torch_ao.kernels.walk_grad`, every step replayed in reverse lanes): gradients
-to the G-buffer's depth, normals and positions, to UE4's fade distance and PSSAO's distance bias; a gradient
-of UE4's radius or flat-surface bias, or of the intrinsics, runs on the tensor path (:func:`ue4_ssao_covers`,
+to the G-buffer's depth, normals, positions and intrinsics, to UE4's fade distance and PSSAO's distance bias; a
+gradient of UE4's radius or flat-surface bias runs on the tensor path (:func:`ue4_ssao_covers`,
 :func:`pssao_covers` say why).
 
 ``SSAO`` (the hemisphere kernel) has no kernel: its samples are 3-D points around the normal, projected one by
@@ -26,7 +26,7 @@ from ..gbuffer import GBuffer
 from .coverage import call_uncovered
 from .gtao import finish_sums, float32_value
 from .launch import run_walk, walk_settings
-from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, wants_gradient
+from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
 
 __all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums", "pssao_forward", "pssao_covers"]
 
@@ -135,16 +135,11 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     if reason is not None:
         return reason
     if torch.is_grad_enabled():
-        cam = gbuffer.camera
-        if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
-            return ("a gradient of the intrinsics is asked for (the kernel's backward holds them constant; the "
-                    "G-buffer's depth, normals and positions get theirs)")
         others = [name for name in parameters if getattr(module, name).requires_grad and name not in given]
         if others:
             return (f"a gradient of {', '.join(others)} is asked for (the {type(module).__name__} kernel's backward "
                     f"gives {', '.join(given)} and the G-buffer's)")
-        wanted = any(getattr(module, name).requires_grad for name in parameters) or any(
-            isinstance(t, torch.Tensor) and t.requires_grad for t in (gbuffer.depth, gbuffer.normals, gbuffer.position))
+        wanted = any(getattr(module, name).requires_grad for name in parameters) or gbuffer_requires_grad(gbuffer)
         if wanted and gbuffer.depth.is_cuda and module.steps > MAX_CUDA_STEPS:
             return (f"a gradient is asked for on CUDA with {module.steps} steps per side (its backward replays at "
                     f"most {MAX_CUDA_STEPS})")

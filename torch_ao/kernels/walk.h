@@ -46,8 +46,10 @@ template <class F, int N> struct LaneArray {
 
 // The walk's derivatives' seed on a pixel's own inputs: nothing for plain lanes (lanes_dual.h's for duals)
 template <class F> TAO_FN void seed_pixel(F*, F*, F&) {}
-// and on an accumulator's one differentiable setting (GTAO's falloff or thickness, HBAO's angle bias)
+// and on an accumulator's one differentiable setting (GTAO's falloff or thickness, HBAO's angle bias), and
+// on the camera's intrinsic k (fx, fy, cx, cy: lanes_rev.h's)
 template <class F> TAO_FN F seed_setting(const F& x) { return x; }
+template <class F> TAO_FN F seed_camera(const F& x, int) { return x; }
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)
 template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
@@ -262,8 +264,8 @@ template <class F> struct Slice {
     cos_gamma = select(flat, x / clamp_min(length, F(1e-30f)), F(1.0f));
     sin_gamma = select(flat, y / clamp_min(length, F(1e-30f)), F(0.0f));
     // screen motion (pixels per world unit along +T) of the projection (fx x/d + cx, -fy y/d + cy)
-    const F du = (F(img.fx) * (T[0] + (px.P[0] * T[2]) / px.depth)) / px.depth;
-    const F dv = (F(-img.fy) * (T[1] + (px.P[1] * T[2]) / px.depth)) / px.depth;
+    const F du = (seed_camera(F(img.fx), 0) * (T[0] + (px.P[0] * T[2]) / px.depth)) / px.depth;
+    const F dv = (neg(seed_camera(F(img.fy), 1)) * (T[1] + (px.P[1] * T[2]) / px.depth)) / px.depth;
     const F len = sqrt(du * du + dv * dv);
     unit_u = du / clamp_min(len, F(1e-12f));
     unit_v = dv / clamp_min(len, F(1e-12f));

@@ -44,13 +44,13 @@ TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility 
                                   const float* depth, const bool* valid, const float* intrinsics,        \
                                   const float* cells, const float* grad, const int64_t* record,           \
                                   float* g_positions, float* g_normals, float* g_depth, float* g_setting, \
-                                  float* tap_positions, float* tap_inverse, const int64_t* ints,          \
-                                  const float* floats, int B, int H, int W) {                            \
+                                  float* tap_positions, float* tap_inverse, float* g_camera,              \
+                                  const int64_t* ints, const float* floats, int B, int H, int W) {        \
     const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                    \
     if (p >= int64_t(B) * H * W) return;                                                                  \
     const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, nullptr, valid, B, H, W}; \
     tao::grad_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, grad, record, g_positions, \
-                    g_normals, g_depth, g_setting, tap_positions, tap_inverse, p);                        \
+                    g_normals, g_depth, g_setting, tap_positions, tap_inverse, g_camera, p);              \
   }
 
 TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)

@@ -53,6 +53,7 @@ struct Targets {
   float *tap_positions, *tap_inverse;  // scattered: (H, W, 3), (H, W) of image b
   float* tap_layer = nullptr;          // scattered: the thickness layer's (H, W) of image b, where it is read
   float *tap_normals = nullptr, *tap_light = nullptr;  // scattered: (H, W, 3) of image b (a sender's normal, light)
+  float* camera = nullptr;  // own: (H, W, 4) of image b, d L / d fx, fy, cx, cy (where asked for)
 };
 
 // The adjoint of Sample.gather: g (channels lanes: d L / d the value gathered) into image (H, W, channels) at
@@ -88,16 +89,20 @@ TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 6
 // with setting its per-pixel d L / d the accumulator's setting
 template <class B>
 TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int n, const B* own,
-                      const B* setting = nullptr) {
+                      const B* setting = nullptr, const B* camera = nullptr) {
   constexpr int L = LaneTraits<B>::L;
-  float ol[kPixel + 1][L];
+  float ol[kPixel + 5][L];
   for (int k = 0; k < kPixel; ++k) to_lanes(own[k], ol[k]);
   if (setting) to_lanes(*setting, ol[kPixel]);
+  if (camera)
+    for (int k = 0; k < 4; ++k) to_lanes(camera[k], ol[kPixel + 1 + k]);
   for (int l = 0; l < n; ++l) {
     const int64_t p = row * W + u0 + l;
     for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
     t.depth[p] = ol[6][l];
     if (setting) t.setting[p] = ol[kPixel][l];
+    if (camera)
+      for (int k = 0; k < 4; ++k) t.camera[4 * p + k] = ol[kPixel + 1 + k][l];
   }
 }
 
@@ -243,9 +248,10 @@ template <class B> struct TapedFetches {
 
 // walk.h's fetch_sample in reverse lanes (R = Rev<B>), the replay's: fetched in plain lanes, the fetched
 // position a leaf per component, moved as the fetch moves with the screen position (soft.h's fetch_motion: a
-// bilinear fetch's d position / d su, d sv; a nearest one's texel does not move), less the pixel's own
-// position (an invalid sample's delta is -V, as Sample's); fu, fv carry su, sv's derivatives (a layer read at
-// the taps moves with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape; its
+// bilinear fetch's d position / d su, d sv, and its unprojection's d / d the intrinsics where the tape asks; a
+// nearest one's texel does not move, and its position is the buffer's), less the pixel's own position (an
+// invalid sample's delta is -V, as Sample's); fu, fv carry su, sv's derivatives (a layer read at the taps moves
+// with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape; its
 // leaves and taps appended to the tape's fetches.
 template <class B>
 TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, const Pixels<Rev<B>>& pr,
@@ -265,8 +271,15 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
     take.pos[c] = plain.delta[c] + fetches.px->P[c];
     take.ids[c] = tape->leaf();
     R moved(take.pos[c], take.ids[c], tape);
-    if (cfg.bilinear)
+    if (cfg.bilinear) {
       moved = R::link(take.pos[c], R::link(take.pos[c], moved, B(1.0f), su, d_su[c]), B(1.0f), sv, d_sv[c]);
+      if (c < 2 && tape->camera) {  // the unprojection ((su - cx) / fx z, -(sv - cy) / fy z): its intrinsics
+        const B depth = neg(plain.delta[2] + fetches.px->P[2]), focal = B(c == 0 ? img.fx : img.fy);
+        const R f = seed_camera(R(focal), c), centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
+        moved = R::link(take.pos[c], moved, B(1.0f), f, neg(take.pos[c]) / focal);
+        moved = R::link(take.pos[c], moved, B(1.0f), centre, B(c == 0 ? -1.0f : 1.0f) * depth / focal);
+      }
+    }
     smp.delta[c] = select(plain.valid, R::link(plain.delta[c], moved, B(1.0f), pr.P[c], B(-1.0f)), neg(pr.V[c]));
   }
   for (int i = 0; i < 4; ++i) take.index[i] = plain.index[i];
@@ -315,13 +328,14 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   }
   current_tape<B>() = &tape;
   tape.cut(0);
+  tape.camera = t.camera != nullptr;
   const Pixels<R> px(cfg, img, row, u0, n);
   if (!any(px.live) || tape.overflow) return;
   const Pixels<B> px_values(px, [](const R& x) { return x.v; });
   TapedFetches<B> fetches{&px_values, taken, 0};
   tape.fetches = &fetches;
   const int32_t pixel_nodes = tape.n;
-  B setting(0.0f);
+  B setting(0.0f), camera[4] = {B(0.0f), B(0.0f), B(0.0f), B(0.0f)};
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
     const Slice<R> sl(cfg, img, px, s);
@@ -356,7 +370,8 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     if (tape.overflow) return;
     for (int c = 0; c < C; ++c) tape.seed(outs[c].id, g[c]);
     tape.sweep(pixel_nodes);
-    setting = setting + tape.setting_adjoint(pixel_nodes);
+    setting = setting + tape.parameter_adjoint(Tape<B>::kSetting, pixel_nodes);
+    for (int k = 0; k < 4; ++k) camera[k] = camera[k] + tape.parameter_adjoint(Tape<B>::kCamera + k, pixel_nodes);
     for (int r = 0; r < fetches.n; ++r) {
       const TapedTake<B>& take = taken[r];
       const B gd[3] = {tape.adjoint[take.ids[0]], tape.adjoint[take.ids[1]], tape.adjoint[take.ids[2]]};
@@ -367,7 +382,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   tape.sweep(0);
   B own[kPixel];
   for (int k = 0; k < kPixel; ++k) own[k] = tape.adjoint[tape.own[k]];
-  write_own(t, img.W, row, u0, n, own, &setting);
+  write_own(t, img.W, row, u0, n, own, &setting, t.camera ? camera : nullptr);
 }
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
@@ -723,18 +738,19 @@ TAO_FN void record_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& f
 }
 
 // Pixel p's backward (a CUDA thread): grad (B, C, H, W); the gradients of image b at its own pixel (positions,
-// normals (B, H, W, 3), depth and setting (B, H, W)) and scattered to its taps (tap_positions (B, H, W, 3),
-// tap_inverse (B, H, W), atomically)
+// normals (B, H, W, 3), depth and setting (B, H, W), and where camera is not null d L / d fx, fy, cx, cy
+// (B, H, W, 4)) and scattered to its taps (tap_positions (B, H, W, 3), tap_inverse (B, H, W), atomically)
 template <class Acc>
 TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* grad,
                        const int64_t* record, float* positions, float* normals, float* depth, float* setting,
-                       float* tap_positions, float* tap_inverse, int64_t p) {
+                       float* tap_positions, float* tap_inverse, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   const int C = acc.channels();
   const float* upstream[8];
   for (int c = 0; c < C; ++c) upstream[c] = grad + (b * C + c) * plane;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, setting + b * plane,
-                  tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, setting + b * plane,
+            tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  t.camera = camera ? camera + 4 * b * plane : nullptr;
   float take_steps[2 * kGradMaxSteps];
   TapedTake<float> taken[2 * kGradMaxSteps];
   constexpr int32_t capacity = kTapePixel + kTapeSlice + 2 * kGradMaxSteps * kTapeTake;

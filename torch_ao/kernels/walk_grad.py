@@ -11,7 +11,9 @@ steps alone in reverse lanes (lanes_rev.h: the replay records its arithmetic on 
 slice), whose leaves are each pixel's own position, normal and depth, the accumulator's setting (``setting``:
 GTAO's falloff or thickness, HBAO's angle bias) and each replayed sample's fetched position, whose gradient
 goes to its taps (bilinear: the inverse depth of its four taps; nearest: the tap's position; on CUDA with
-atomic adds, so the sums' order, and their last bits, vary between runs).
+atomic adds, so the sums' order, and their last bits, vary between runs). Where the intrinsics require
+gradients, the camera's fx, fy, cx, cy are leaves too (the slice's screen extent, a bilinear fetch's
+unprojection), their per-pixel adjoints summed per image.
 
 The radius needs no tangent of its own: the walk is scale-invariant (scaling positions, depth and every
 length setting by s leaves its outputs as they are: screen positions, angles and the falloff ratio do not
@@ -29,7 +31,7 @@ from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs
 
-__all__ = ["differentiable_walk", "wants_gradient", "MAX_CUDA_STEPS"]
+__all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "MAX_CUDA_STEPS"]
 
 #: the most steps per side of the CUDA backward (walk_grad.h's kGradMaxSteps: a thread's replay is a fixed array)
 MAX_CUDA_STEPS = 32
@@ -71,16 +73,19 @@ class _Walk(torch.autograd.Function):
          record) = ctx.saved_tensors
         frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
         grad = grad.to(torch.float32).contiguous()
+        camera = ctx.needs_input_grad[6]  # the intrinsics' gradients, per pixel (B, H, W, 4)
         if positions.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
             g_depth, g_setting, g_inv = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            g_camera = positions.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(f"tao_backward_{ctx.accumulator}", depth.device,
-                        [*frame, grad, record, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, ints, floats],
-                        tuple(depth.shape))
+                        [*frame, grad, record, g_pos, g_nrm, g_depth, g_setting, taps, g_inv,
+                         g_camera, ints, floats], tuple(depth.shape))
             g_pos += taps
         else:
-            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().walk_backward(
-                ctx.accumulator, grad, *frame, ints, floats, record, ctx.scalar)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, g_camera = grad_kernels().walk_backward(
+                ctx.accumulator, grad, *frame, ints, floats, record, camera, ctx.scalar)
+        g_intrinsics = g_camera.to(torch.float64).sum((1, 2)).to(intrinsics.dtype) if camera else None
         along_setting = g_setting.to(torch.float64).sum()
         g_radius = None
         if ctx.needs_input_grad[12]:  # Euler's identity (module docstring); invalid texels hold NaN
@@ -93,15 +98,22 @@ class _Walk(torch.autograd.Function):
                 along = along + setting.to(torch.float64) * along_setting
             g_radius = (-along / radius).to(radius.dtype)
         g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
-        return None, g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, None, None, g_radius, g_out, None, None
+        return (None, g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, None, None, None, None, g_radius, g_out,
+                None, None)
+
+
+def gbuffer_requires_grad(gbuffer: GBuffer) -> bool:
+    """Whether the G-buffer's depth, normals, position buffer or intrinsics require gradients."""
+    cam = gbuffer.camera
+    return any(isinstance(t, torch.Tensor) and t.requires_grad
+               for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool:
-    """Whether autograd records through the walk's inputs (grad mode on, the depth, normals or one of the
-    ``parameters`` tensors requiring it)."""
-    return torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and t.requires_grad
-                                           for t in (gbuffer.depth, gbuffer.normals, gbuffer.position, normals,
-                                                     *parameters))
+    """Whether autograd records through the walk's inputs (grad mode on, the G-buffer
+    (:func:`gbuffer_requires_grad`), the normals or one of the ``parameters`` tensors requiring it)."""
+    return torch.is_grad_enabled() and (gbuffer_requires_grad(gbuffer) or any(
+        isinstance(t, torch.Tensor) and t.requires_grad for t in (normals, *parameters)))
 
 
 def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor,

@@ -36,6 +36,7 @@ void check_input(const at::Tensor& x, const char* name) {
 // and the taps' (per thread)
 struct Gradients {
   at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse, tap_layer, tap_normals, tap_light;
+  at::Tensor camera;  // (B, H, W, 4) where the intrinsics' gradients are asked for (walk_backward), else undefined
 
   // layer: the thickness layer's taps too; light: the senders' normals and light at the taps too
   Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool layer = false, bool light = false) {
@@ -56,7 +57,8 @@ struct Gradients {
                    tap_inverse.data_ptr<float>() + (thread * B + b) * plane,
                    has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr,
                    has_light ? tap_normals.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
-                   has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr};
+                   has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
+                   camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr};
   }
   // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image (and
   // the layer's: layer())
@@ -220,17 +222,20 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
-// accumulator's setting (B, H, W); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with
-// walk()'s packed settings; cells: the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's
-// of the same call (gtao, hbao), else empty (every step is replayed)
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
+// accumulator's setting (B, H, W), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
+// empty); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with walk()'s packed settings; cells:
+// the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao), else
+// empty (every step is replayed)
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
-    const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool scalar) {
+    const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool camera,
+    bool scalar) {
   const std::string name(accumulator);
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
   Gradients out(positions, fr.B, fr.H, fr.W);
+  if (camera) out.camera = at::zeros({fr.B, fr.H, fr.W, 4}, positions.options());
   with_replayed(name, ints, floats, [&](const auto& acc) {
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
     check_cells(cfg, fr);
@@ -246,7 +251,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_back
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
   });
   at::Tensor g_inv = out.reduce();
-  return {out.positions, out.normals, g_inv, out.depth, out.setting};
+  return {out.positions, out.normals, g_inv, out.depth, out.setting, camera ? out.camera : none};
 }
 
 // A per-pixel walk's backward call (soft_backward, exact_backward, hard_backward): its frame, and its packed
@@ -410,8 +415,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.impl("walk_record", c10::DispatchKey::CPU, TORCH_FN(walk_record));
   m.def("walk_backward(str accumulator, Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, "
         "Tensor depth, Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, Tensor record, "
-        "bool scalar) "
-        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+        "bool camera, bool scalar) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, bool scalar) "
