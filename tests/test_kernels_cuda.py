@@ -5,6 +5,7 @@ of blocks. Its output must be the CPU operator's scalar lanes' (the same walk_pi
 path's by tests/kernel_agreement.py. On a machine with CUDA, the kernels themselves run against the CPU
 operator.
 """
+import dataclasses
 import math
 import shutil
 import subprocess
@@ -436,14 +437,21 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact", "hard", "indirect"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact", "hard", "indirect", "gtao_camera",
+                                    "ue4ssao", "pssao"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
-    (tao_hard_backward: the normals' gradient, through the normals from depth) on a CUDA G-buffer against the same
-    call on the CPU."""
+    (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
+    (tao_backward_wedge, tao_backward_pssao) on a CUDA G-buffer against the same call on the CPU; with the
+    intrinsics' gradients too for GTAO ("gtao_camera"), UE4 SSAO and PSSAO (the backward's g_camera)."""
     import torch_ao
     from torch_ao.thickness import BackfaceThickness
+
+    def ue4ssao():
+        m = torch_ao.UE4SSAO(sample_set="uniform", slices=3, steps=3, fetch="bilinear", border="drop")
+        m.radius.requires_grad_(False), m.flat_surface_bias.requires_grad_(False)  # (the tensor path's)
+        return m
 
     module = {"gtao": lambda: torch_ao.GTAO(slices=3, steps=5, fetch="edge_aware"),
               "hdrp": lambda: torch_ao.GTAO(variant="hdrp", slices=3, steps=4),
@@ -453,7 +461,11 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
               "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
                                                   steps=4),
               "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),
-              "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4)}[method]
+              "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4),
+              "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
+              "ue4ssao": ue4ssao,
+              "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear")}[method]
+    camera = method in ("gtao_camera", "ue4ssao", "pssao")
     gb = FRAMES["rough"]()
     back = gb.depth * 1.3
     results = []
@@ -461,17 +473,23 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
         m = module().to(device)
         depth = gb.depth.to(device).clone().requires_grad_()
         light = torch.rand(2, 3, *gb.depth.shape[-2:], generator=torch.Generator().manual_seed(1)).to(device)
-        g = torch_ao.GBuffer(depth=depth, camera=gb.camera.to(device=device), backface_depth=back.to(device),
-                             light=light)
+        cam = gb.camera.to(device=device)
+        if camera:
+            cam = dataclasses.replace(cam, intrinsics=cam.intrinsics.clone().requires_grad_())
+        g = torch_ao.GBuffer(depth=depth, camera=cam, backface_depth=back.to(device), light=light)
         out = m(g)
         (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
         out = out.visibility
-        results.append((out.detach().cpu(), depth.grad.cpu(), m.radius.grad))
-    (v0, d0, r0), (v1, d1, r1) = results
+        radius = getattr(m, "radius", None)
+        results.append((out.detach().cpu(), depth.grad.cpu(), None if radius is None else radius.grad,
+                        cam.intrinsics.grad.cpu() if camera else None))
+    (v0, d0, r0, k0), (v1, d1, r1, k1) = results
+    if camera:
+        assert ((k1 - k0).norm() / k0.norm()) <= 1e-4
     assert (v1 - v0).abs().max() <= 1e-4
     finite = torch.isfinite(d0)
     assert ((d1 - d0)[finite].norm() / d0[finite].norm()) <= 1e-4
-    if method == "hard":  # (hard masks: no gradient of the radius)
-        assert r0 is None and r1 is None
+    if r0 is None:  # (hard masks: no gradient of the radius; UE4 SSAO's is a frozen buffer, PSSAO has none)
+        assert r1 is None
     else:
         assert abs(float(r1.cpu() - r0)) <= 1e-4 * abs(float(r0))
