@@ -165,7 +165,7 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   std::vector<float> out(size_t(B) * C * H * W, -7.0f);
   std::vector<long long> rec(size_t(pixels * words), -1);
   const size_t n = size_t(pixels);
-  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(n), taps(3 * n), ti(n), tl(n), gc(4 * n);
+  std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(3 * n), taps(3 * n), ti(n), tl(n), gc(4 * n);  // (gs: 3 settings)
   if (name == "hard") {
     const long long slices = ints[0];
     std::vector<int> occ(size_t(pixels * slices), -1);
@@ -386,8 +386,8 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), accumulator, str(folder), str(B), str(H), str(W),
                         str(channels), str(words), str(_THREADS)], check=True)
 
-        def read(name, *shape, dtype=np.float32):
-            return torch.from_numpy(np.fromfile(folder / name, dtype=dtype).reshape(*shape))
+        def read(name, *shape, dtype=np.float32):  # (the first values: the driver's setting buffer holds 3 a pixel)
+            return torch.from_numpy(np.fromfile(folder / name, dtype=dtype, count=math.prod(shape)).reshape(*shape))
 
         cpu = {}
         if accumulator == "hard":

@@ -22,8 +22,6 @@ from torch_ao.methods.ue4_ssao import UE4SSAO
 
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401
 
-#: UE4 SSAO's parameters the kernel's backward does not give (radius, flat-surface bias: the tensor path's)
-_UE4_FROZEN = ("radius", "flat_surface_bias")
 #: (module, options, frozen parameters): every accumulator of horizon.h and ssao.h, every fetch and border, both noises
 #: and staggered steps; the "-most" cases take as many steps as a CUDA thread's backward does (MAX_CUDA_STEPS),
 #: where its tape (walk_grad.h's tape_capacity) holds the most takes: scalar lanes run that thread's code
@@ -56,15 +54,15 @@ CASES = {
     "hbao-edge-aware-clamp": (HBAO, dict(slices=4, steps=5, fetch="edge_aware", border="clamp"), ()),
     "hbao-max-edge-aware": (HBAO, dict(slices=4, steps=5, accumulate="max", fetch="edge_aware"), ()),
     "hbao-hilbert-stagger": (HBAO, dict(slices=4, steps=4, noise="hilbert_r2", stagger=True, seed=1), ()),
-    "ue4ssao": (UE4SSAO, dict(), _UE4_FROZEN),
+    "ue4ssao": (UE4SSAO, dict(), ()),
     "ue4ssao-bilinear-soft": (UE4SSAO, dict(sample_set="uniform", slices=4, steps=3, fetch="bilinear", border="drop",
-                                            flat_softness=0.05), _UE4_FROZEN),
+                                            flat_softness=0.05), ()),
     "ue4ssao-edge-aware-accurate": (UE4SSAO, dict(sample_set="uniform", slices=5, steps=2, fetch="edge_aware",
-                                                  accurate_angle=True, radius=0.6), _UE4_FROZEN),
+                                                  accurate_angle=True, radius=0.6), ()),
     "ue4ssao-ue4_6-clamp": (UE4SSAO, dict(sample_set="ue4_6", steps=3, fetch="bilinear", border="clamp",
-                                          accurate_angle=True, flat_softness=0.01, final_power=2.0), _UE4_FROZEN),
+                                          accurate_angle=True, flat_softness=0.01, final_power=2.0), ()),
     "ue4ssao-most": (UE4SSAO, dict(sample_set="uniform", slices=2, steps=MAX_CUDA_STEPS, fetch="bilinear",
-                                   border="drop", flat_softness=0.02), _UE4_FROZEN),
+                                   border="drop", flat_softness=0.02), ()),
     "pssao": (PSSAO, dict(), ()),
     "pssao-bilinear": (PSSAO, dict(normalize="directions", slices=6, steps=5, fetch="bilinear"), ()),
     "pssao-clamp": (PSSAO, dict(slices=5, steps=4, border="clamp", distance_bias=0.5), ()),
@@ -202,7 +200,10 @@ def test_kernel_gradients_equal_the_tensor_walk(built, monkeypatch, lanes, case,
             terms = float((reference["depth"].abs() * gb.depth.double()).nansum())
             assert abs(float(grads[name])) <= 1e-8 * terms, (float(grads[name]), terms)
             continue
-        assert _relative(grads[name], reference[name], trim) < (1e-3 if amplified else 2e-4), name
+        # (UE4 SSAO's radius: Euler's identity sums the G-buffer's and three lengths' terms, which cancel to it,
+        # so it carries their float32 rounding: up to 1.3e-3 on the scalar lanes, 1.9e-4 on the float32 tensor path)
+        tolerance = (3e-3 if name == "radius" else 1e-3) if amplified else 2e-4
+        assert _relative(grads[name], reference[name], trim) < tolerance, name
 
 
 def _requiring(gb: GBuffer) -> GBuffer:
@@ -255,11 +256,6 @@ def test_gradient_calls_run_on_the_kernel(built):
         gb.depth.grad = None
 
 
-def _with_radius_requiring(module):
-    module.radius.requires_grad_(True)  # (a buffer: fitted on the tensor path alone)
-    return module
-
-
 def _intrinsics_requiring(gb: GBuffer) -> GBuffer:
     camera = dataclasses.replace(gb.camera, intrinsics=gb.camera.intrinsics.clone().requires_grad_(True))
     return GBuffer(depth=gb.depth, camera=camera)
@@ -267,7 +263,6 @@ def _intrinsics_requiring(gb: GBuffer) -> GBuffer:
 
 @pytest.mark.parametrize("make, frame, reason", [
     (lambda: GTAO(variant="ue4"), _requiring, "radius with variant 'ue4'"),
-    (lambda: _with_radius_requiring(UE4SSAO()), _requiring, "gradient of radius is asked for"),
 ])
 def test_uncovered_gradients_say_why(make, frame, reason):
     gb = frame(example_gbuffer(8, 12))

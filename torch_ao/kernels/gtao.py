@@ -71,8 +71,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
         if variant == "ue4" and isinstance(radius, torch.Tensor) and radius.requires_grad:
             raise ValueError("radius: variant 'ue4' has no kernel gradient of the radius (its rsqrt(|d|^2 + 1e-4) "
                              "is not scale-invariant)")
-        walk, options = differentiable_walk, {"radius": radius, "setting": setting,
-                                              "setting_is_length": variant == "exact"}
+        walk, options = differentiable_walk, {"radius": radius, "setting": (setting,),
+                                              "setting_is_length": (variant == "exact",)}
     return walk("gtao", gbuffer, normals, settings,
                 [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
                 [float32_value(radius), float32_value(falloff), float32_value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
@@ -105,7 +105,7 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, angle_bias):
         _check_gradient(gbuffer)
-        walk, options = differentiable_walk, {"radius": radius, "setting": angle_bias}
+        walk, options = differentiable_walk, {"radius": radius, "setting": (angle_bias,)}
     return walk("hbao", gbuffer, normals, settings,
                 [falloff == "quadratic", accumulate == "incremental", elevation == "view"],
                 [float32_value(radius), float32_value(angle_bias)], 1, lanes=lanes, **options)

@@ -36,6 +36,7 @@ struct GTAOAccumulator {
   template <class F> struct State { F best[2]; };  // [0]: side +1, [1]: side -1
   template <class F> struct Sums { F vis = F(0.0f), free = F(0.0f), bent[3] = {F(0.0f), F(0.0f), F(0.0f)}; };
   TAO_FN int channels() const { return bent ? 5 : 2; }
+  TAO_FN int settings() const { return 1; }  // falloff (exact) or thickness (ue4) (seed_setting)
   // whether a step that changes a side's state replaces it (the state after depends on the slice and the
   // sample alone): the exact variant's minimum; the shaders' updates blend the sample into the horizon
   TAO_FN bool replaces() const { return variant == GTAOVariant::exact; }
@@ -145,6 +146,7 @@ struct HBAOAccumulator {
   template <class F> struct State { F sin_t, sin_h, ao, w; };
   template <class F> struct Sums { F ao = F(0.0f); };
   TAO_FN int channels() const { return 1; }
+  TAO_FN int settings() const { return 1; }  // angle_bias (seed_setting)
   // whether a step that changes the state replaces it: the highest sample's rise alone (max), not the
   // incremental sum of every rise
   TAO_FN bool replaces() const { return !incremental; }

@@ -62,8 +62,8 @@ template <class F> struct Tape {
       if (p1 >= 0) adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
     }
   }
-  // the leaf of parameter k (kSetting: seed_setting's; kCamera + 0..3: seed_camera's fx, fy, cx, cy), made on
-  // first use, again after a cut below it
+  // the leaf of parameter k (kSetting + 0..2: seed_setting's; kCamera + 0..3: seed_camera's fx, fy, cx, cy), made
+  // on first use, again after a cut below it
   TAO_FN int32_t parameter(int k) {
     if (parameter_id[k] < 0) parameter_id[k] = leaf();
     return parameter_id[k];
@@ -78,8 +78,8 @@ template <class F> struct Tape {
   TAO_FN F parameter_adjoint(int k, int32_t from) const {
     return parameter_id[k] >= from ? adjoint[parameter_id[k]] : F(0.0f);
   }
-  static constexpr int kSetting = 0, kCamera = 1, kParameters = 5;
-  int32_t parameter_id[kParameters] = {-1, -1, -1, -1, -1};
+  static constexpr int kSetting = 0, kSettings = 3, kCamera = kSetting + kSettings, kParameters = kCamera + 4;
+  int32_t parameter_id[kParameters] = {-1, -1, -1, -1, -1, -1, -1};
   bool camera = false;  // whether seed_camera makes leaves (the intrinsics' gradients are asked for)
   void* fetches = nullptr;  // the caller's record of the leaves it makes outside the arithmetic (walk_grad.h)
 };
@@ -226,10 +226,10 @@ template <class F> TAO_FN void seed_pixel(Rev<F>* P, Rev<F>* Nrm, Rev<F>& depth)
   depth = Rev<F>(depth.v, tape->own[6] = tape->leaf(), tape);
 }
 
-// an accumulator's differentiable setting: the tape's setting leaf (Tape::parameter(kSetting))
-template <class F> TAO_FN_ALWAYS Rev<F> seed_setting(const Rev<F>& x) {
+// an accumulator's differentiable setting k (< Tape::kSettings): its leaf (Tape::parameter(kSetting + k))
+template <class F> TAO_FN_ALWAYS Rev<F> seed_setting(const Rev<F>& x, int k = 0) {
   Tape<F>* tape = current_tape<F>();
-  return Rev<F>(x.v, tape->parameter(Tape<F>::kSetting), tape);
+  return Rev<F>(x.v, tape->parameter(Tape<F>::kSetting + k), tape);
 }
 // intrinsic k of the camera (fx, fy, cx, cy): its leaf where the tape asks for the intrinsics' gradients
 template <class F> TAO_FN_ALWAYS Rev<F> seed_camera(const Rev<F>& x, int k) {

@@ -2,7 +2,8 @@
 // pair of samples, Steps::wedge) and torch_ao/methods/pssao.py (PSSAOAccumulator: the largest sample
 // occlusion per direction, Steps::pixels), for walk.h. Like horizon.h's, they finish into per-pixel sums over
 // slices (0 on background) that the modules' own Python finish turns into the visibility. Their backward is
-// walk_grad.h's grad_block, which replays every step (seed_setting: UE4's fade distance, PSSAO's distance bias).
+// walk_grad.h's grad_block, which replays every step (seed_setting: UE4's fade distance, flat-surface bias and
+// softness, PSSAO's distance bias).
 #pragma once
 
 #include "walk.h"
@@ -20,6 +21,7 @@ struct WedgeAccumulator {
   template <class F> struct State { F x, y; };
   template <class F> struct Sums { F num = F(0.0f), den = F(0.0f); };
   TAO_FN int channels() const { return 2; }
+  TAO_FN int settings() const { return 3; }  // fade_distance, flat_surface_bias, flat_softness (seed_setting)
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {
     return State<F>{F(0.0f), F(0.0f)};
@@ -37,9 +39,9 @@ struct WedgeAccumulator {
     // zc - zL, zc - zR: the samples' depths -(P + delta).z (an invalid sample's delta is -V, as the tensor
     // path's position P - V)
     const F left = px.depth + (px.P[2] + dl[2]), right = px.depth + (px.P[2] + dr[2]);
-    const F bias = F(flat_surface_bias), one = F(1.0f);
+    const F bias = seed_setting(F(flat_surface_bias), 1), one = F(1.0f);
     if (flat_softness > 0) {
-      const F flat = logistic((bias - (left + right)) / F(flat_softness));
+      const F flat = logistic((bias - (left + right)) / seed_setting(F(flat_softness), 2));
       norm_angle = norm_angle + flat * (one - norm_angle);
     } else {
       norm_angle = select(left + right < bias, one, norm_angle);
@@ -72,6 +74,7 @@ struct PSSAOAccumulator {
   template <class F> struct State { F best, count; };
   template <class F> struct Sums { F sum = F(0.0f), count = F(0.0f), dirs = F(0.0f); };
   TAO_FN int channels() const { return 3; }
+  TAO_FN int settings() const { return 1; }  // distance_bias (seed_setting)
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {
     return State<F>{F(-100000.0f), F(0.0f)};

@@ -9,9 +9,9 @@ kernel reads them as a table) with the largest occlusion per direction. Both ret
 slices that the module's own accumulator's ``finish`` turns into the visibility (UE4's final power and
 intensity, PSSAO's normalisation), so those have one definition. Where autograd records (CPU, CUDA), both run
 with the walk's backward (:mod:`torch_ao.kernels.walk_grad`, every step replayed in reverse lanes): gradients
-to the G-buffer's depth, normals, positions and intrinsics, to UE4's fade distance and PSSAO's distance bias; a
-gradient of UE4's radius or flat-surface bias runs on the tensor path (:func:`ue4_ssao_covers`,
-:func:`pssao_covers` say why).
+to the G-buffer's depth, normals, positions and intrinsics, to every parameter of UE4 SSAO (the radius by
+Euler's identity) and PSSAO's distance bias; :func:`ue4_ssao_covers` and :func:`pssao_covers` say why a call
+runs on the tensor path (a float64 G-buffer, more than 32 steps on CUDA, ...).
 
 ``SSAO`` (the hemisphere kernel) has no kernel: its samples are 3-D points around the normal, projected one by
 one, not steps along a screen direction, so it is not a pattern of this walk.
@@ -34,8 +34,9 @@ __all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums",
 _FETCHES = ("nearest", "bilinear", "edge_aware")
 
 
-def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float,
-                  fade_distance: float | torch.Tensor, flat_surface_bias: float, flat_softness: float = 0.0,
+def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float | torch.Tensor,
+                  fade_distance: float | torch.Tensor, flat_surface_bias: float | torch.Tensor,
+                  flat_softness: float = 0.0,
                   accurate_angle: bool = False, offsets=None, jitter: bool = True, seed: int = 0,
                   fetch: str = "nearest", border: str = "clamp", lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over directions of UE4 SSAO's ``(1 - acc.x)^2 acc.y`` and ``acc.y`` ``(B,2,H,W)`` (0 on
@@ -48,20 +49,23 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
             :data:`~torch_ao.methods.ue4_ssao.SAMPLE_SETS`); steps: pairs per direction; radius, fade_distance,
             flat_surface_bias, flat_softness: world units; accurate_angle, jitter, seed, fetch, border: as
             :class:`~torch_ao.UE4SSAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's body).
-            With autograd recording through the G-buffer or a ``fade_distance`` tensor, the sums carry their
-            gradients.
+            With autograd recording through the G-buffer or a ``radius``, ``fade_distance`` or
+            ``flat_surface_bias`` tensor, the sums carry their gradients (the radius' by Euler's identity: the
+            walk is scale-invariant with its three lengths, :mod:`~torch_ao.kernels.walk_grad`).
     """
     table = None
     if offsets is not None:  # WedgePattern._direction: the offset's angle and length
         slices = len(offsets)
         table = [v for x, y in offsets for v in (math.atan2(y, x), math.hypot(x, y))]
-    settings = walk_settings(slices=slices, steps=steps, radius=radius, jitter=jitter, seed=seed, fetch=fetch,
-                             border=border, placement="wedge", azimuth="screen", table=table)
+    settings = walk_settings(slices=slices, steps=steps, radius=float32_value(radius), jitter=jitter, seed=seed,
+                             fetch=fetch, border=border, placement="wedge", azimuth="screen", table=table)
     walk, options = run_walk, {}
-    if wants_gradient(gbuffer, normals, fade_distance):
-        walk, options = differentiable_walk, {"radius": radius, "setting": fade_distance}
+    if wants_gradient(gbuffer, normals, radius, fade_distance, flat_surface_bias):
+        walk, options = differentiable_walk, {"radius": radius, "setting": (fade_distance, flat_surface_bias,
+                                                                            flat_softness),
+                                              "setting_is_length": (True, True, True)}
     return walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
-                [max(float32_value(fade_distance), 1e-30), float(flat_surface_bias), float(flat_softness)], 2,
+                [max(float32_value(fade_distance), 1e-30), float32_value(flat_surface_bias), float(flat_softness)], 2,
                 lanes=lanes, **options)
 
 
@@ -84,7 +88,7 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                              placement="pixels", full_circle=True, azimuth="screen", table=table)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, distance_bias):
-        walk, options = differentiable_walk, {"radius": 0.0, "setting": distance_bias}
+        walk, options = differentiable_walk, {"radius": 0.0, "setting": (distance_bias,)}
     return walk("pssao", gbuffer, normals, settings, [], [float32_value(distance_bias)], 3, lanes=lanes, **options)
 
 
@@ -93,8 +97,8 @@ def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str,
     covers (:func:`ue4_ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
-    sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=float32_value(m.radius),
-                         fade_distance=m.fade_distance, flat_surface_bias=float32_value(m.flat_surface_bias),
+    sums = ue4_ssao_sums(gbuffer, normals, slices=m.slices, steps=m.steps, radius=m.radius,
+                         fade_distance=m.fade_distance, flat_surface_bias=m.flat_surface_bias,
                          flat_softness=m.flat_softness, accurate_angle=m.accurate_angle,
                          offsets=m.pattern_for(None).offsets,
                          jitter=m.jitter, seed=m.seed, fetch=m.fetch, border=m.border, lanes=lanes)
@@ -148,8 +152,8 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
 
 def ue4_ssao_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`ue4_ssao_forward` computes ``module(gbuffer)`` (a ``UE4SSAO``), else why not."""
-    return _covers(module, gbuffer, _UE4_OPTIONS, ("radius", "fade_distance", "flat_surface_bias", "final_power",
-                                                   "intensity"), given=("fade_distance", "final_power", "intensity"))
+    parameters = ("radius", "fade_distance", "flat_surface_bias", "final_power", "intensity")
+    return _covers(module, gbuffer, _UE4_OPTIONS, parameters, given=parameters)
 
 
 def pssao_covers(module, gbuffer: GBuffer) -> str | None:

@@ -46,9 +46,9 @@ template <class F, int N> struct LaneArray {
 
 // The walk's derivatives' seed on a pixel's own inputs: nothing for plain lanes (lanes_dual.h's for duals)
 template <class F> TAO_FN void seed_pixel(F*, F*, F&) {}
-// and on an accumulator's one differentiable setting (GTAO's falloff or thickness, HBAO's angle bias), and
-// on the camera's intrinsic k (fx, fy, cx, cy: lanes_rev.h's)
-template <class F> TAO_FN F seed_setting(const F& x) { return x; }
+// and on an accumulator's differentiable setting k (its settings(): GTAO's falloff or thickness, HBAO's angle
+// bias; UE4 SSAO's three lengths), and on the camera's intrinsic k (fx, fy, cx, cy: lanes_rev.h's)
+template <class F> TAO_FN F seed_setting(const F& x, int = 0) { return x; }
 template <class F> TAO_FN F seed_camera(const F& x, int) { return x; }
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)

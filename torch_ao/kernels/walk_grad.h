@@ -54,6 +54,7 @@ struct Targets {
   float* tap_layer = nullptr;          // scattered: the thickness layer's (H, W) of image b, where it is read
   float *tap_normals = nullptr, *tap_light = nullptr;  // scattered: (H, W, 3) of image b (a sender's normal, light)
   float* camera = nullptr;  // own: (H, W, 4) of image b, d L / d fx, fy, cx, cy (where asked for)
+  int settings = 1;         // the setting's values per pixel: (H, W, settings) where more than one
 };
 
 // The adjoint of Sample.gather: g (channels lanes: d L / d the value gathered) into image (H, W, channels) at
@@ -86,23 +87,26 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
 TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
 
 // The pixels' own gradients of the n <= L lanes of a row from u0 (own: d L / d P (3), N (3), depth) into t, and
-// with setting its per-pixel d L / d the accumulator's setting
+// with setting its per-pixel d L / d the accumulator's t.settings settings, with camera d L / d the intrinsics
 template <class B>
 TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int n, const B* own,
                       const B* setting = nullptr, const B* camera = nullptr) {
   constexpr int L = LaneTraits<B>::L;
-  float ol[kPixel + 5][L];
+  constexpr int kMost = 3;  // settings
+  float ol[kPixel + kMost + 4][L];
   for (int k = 0; k < kPixel; ++k) to_lanes(own[k], ol[k]);
-  if (setting) to_lanes(*setting, ol[kPixel]);
+  if (setting)
+    for (int k = 0; k < t.settings; ++k) to_lanes(setting[k], ol[kPixel + k]);
   if (camera)
-    for (int k = 0; k < 4; ++k) to_lanes(camera[k], ol[kPixel + 1 + k]);
+    for (int k = 0; k < 4; ++k) to_lanes(camera[k], ol[kPixel + kMost + k]);
   for (int l = 0; l < n; ++l) {
     const int64_t p = row * W + u0 + l;
     for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
     t.depth[p] = ol[6][l];
-    if (setting) t.setting[p] = ol[kPixel][l];
+    if (setting)
+      for (int k = 0; k < t.settings; ++k) t.setting[t.settings * p + k] = ol[kPixel + k][l];
     if (camera)
-      for (int k = 0; k < 4; ++k) t.camera[4 * p + k] = ol[kPixel + 1 + k][l];
+      for (int k = 0; k < 4; ++k) t.camera[4 * p + k] = ol[kPixel + kMost + k][l];
   }
 }
 
@@ -335,7 +339,9 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   TapedFetches<B> fetches{&px_values, taken, 0};
   tape.fetches = &fetches;
   const int32_t pixel_nodes = tape.n;
-  B setting(0.0f), camera[4] = {B(0.0f), B(0.0f), B(0.0f), B(0.0f)};
+  B setting[Tape<B>::kSettings], camera[4];
+  for (int k = 0; k < Tape<B>::kSettings; ++k) setting[k] = B(0.0f);
+  for (int k = 0; k < 4; ++k) camera[k] = B(0.0f);
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
     const Slice<R> sl(cfg, img, px, s);
@@ -370,7 +376,8 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     if (tape.overflow) return;
     for (int c = 0; c < C; ++c) tape.seed(outs[c].id, g[c]);
     tape.sweep(pixel_nodes);
-    setting = setting + tape.parameter_adjoint(Tape<B>::kSetting, pixel_nodes);
+    for (int k = 0; k < acc.settings(); ++k)
+      setting[k] = setting[k] + tape.parameter_adjoint(Tape<B>::kSetting + k, pixel_nodes);
     for (int k = 0; k < 4; ++k) camera[k] = camera[k] + tape.parameter_adjoint(Tape<B>::kCamera + k, pixel_nodes);
     for (int r = 0; r < fetches.n; ++r) {
       const TapedTake<B>& take = taken[r];
@@ -382,7 +389,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   tape.sweep(0);
   B own[kPixel];
   for (int k = 0; k < kPixel; ++k) own[k] = tape.adjoint[tape.own[k]];
-  write_own(t, img.W, row, u0, n, own, &setting, t.camera ? camera : nullptr);
+  write_own(t, img.W, row, u0, n, own, setting, t.camera ? camera : nullptr);
 }
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
@@ -738,8 +745,9 @@ TAO_FN void record_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& f
 }
 
 // Pixel p's backward (a CUDA thread): grad (B, C, H, W); the gradients of image b at its own pixel (positions,
-// normals (B, H, W, 3), depth and setting (B, H, W), and where camera is not null d L / d fx, fy, cx, cy
-// (B, H, W, 4)) and scattered to its taps (tap_positions (B, H, W, 3), tap_inverse (B, H, W), atomically)
+// normals (B, H, W, 3), depth (B, H, W), settings (B, H, W, acc.settings()), and where camera is not null
+// d L / d fx, fy, cx, cy (B, H, W, 4)) and scattered to its taps (tap_positions (B, H, W, 3), tap_inverse
+// (B, H, W), atomically)
 template <class Acc>
 TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* grad,
                        const int64_t* record, float* positions, float* normals, float* depth, float* setting,
@@ -748,9 +756,10 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   const int C = acc.channels();
   const float* upstream[8];
   for (int c = 0; c < C; ++c) upstream[c] = grad + (b * C + c) * plane;
-  Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, setting + b * plane,
-            tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane,
+            setting + acc.settings() * b * plane, tap_positions + 3 * b * plane, tap_inverse + b * plane};
   t.camera = camera ? camera + 4 * b * plane : nullptr;
+  t.settings = acc.settings();
   float take_steps[2 * kGradMaxSteps];
   TapedTake<float> taken[2 * kGradMaxSteps];
   constexpr int32_t capacity = kTapePixel + kTapeSlice + 2 * kGradMaxSteps * kTapeTake;

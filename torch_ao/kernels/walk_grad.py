@@ -1,4 +1,5 @@
-"""The one walk with a backward: the horizon accumulators (GTAO's variants, HBAO) as a
+"""The one walk with a backward: the horizon accumulators (GTAO's variants, HBAO) and the SSAO family's (UE4
+SSAO, PSSAO: their forward records nothing, the backward replays every step) as a
 ``torch.autograd.Function`` over the walk's channel-last inputs (positions, normals, inverse depth, depth),
 so that autograd chains its gradients to the G-buffer through :func:`~torch_ao.kernels.frame.walk_inputs`'
 torch ops.
@@ -8,8 +9,9 @@ The forward (walk_grad.h's ``record_block``: ``torch_ao_kernels::walk_record`` o
 changed the accumulator's state (a GTAO exact horizon's winner, HBAO's rises: a bit per step); the backward
 (``grad_block``: ``torch_ao_kernels::walk_backward``, ``tao_backward_*``) replays each slice through those
 steps alone in reverse lanes (lanes_rev.h: the replay records its arithmetic on a tape, swept back once per
-slice), whose leaves are each pixel's own position, normal and depth, the accumulator's setting (``setting``:
-GTAO's falloff or thickness, HBAO's angle bias) and each replayed sample's fetched position, whose gradient
+slice), whose leaves are each pixel's own position, normal and depth, the accumulator's settings (``setting``:
+GTAO's falloff or thickness, HBAO's angle bias, UE4 SSAO's fade distance, flat-surface bias and softness,
+PSSAO's distance bias) and each replayed sample's fetched position, whose gradient
 goes to its taps (bilinear: the inverse depth of its four taps; nearest: the tap's position; on CUDA with
 atomic adds, so the sums' order, and their last bits, vary between runs). Where the intrinsics require
 gradients, the camera's fx, fy, cx, cy are leaves too (the slice's screen extent, a bilinear fetch's
@@ -18,8 +20,8 @@ unprojection), their per-pixel adjoints summed per image.
 The radius needs no tangent of its own: the walk is scale-invariant (scaling positions, depth and every
 length setting by s leaves its outputs as they are: screen positions, angles and the falloff ratio do not
 change; step settings are in pixels), so for L = sum(grad * out) Euler's identity gives
-``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - [falloff dL/dfalloff]`` over the
-walk's inputs, the last term where the setting is a length (GTAO's falloff, which has its own input).
+``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - sum_k [s_k dL/ds_k]`` over the
+walk's inputs, the last sum over the settings that are lengths (GTAO's falloff; UE4 SSAO's three).
 UE4's variant is not scale-invariant (its ``rsqrt(|d|^2 + 1e-4)``): its radius has no gradient here.
 """
 from __future__ import annotations
@@ -76,7 +78,8 @@ class _Walk(torch.autograd.Function):
         camera = ctx.needs_input_grad[6]  # the intrinsics' gradients, per pixel (B, H, W, 4)
         if positions.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
-            g_depth, g_setting, g_inv = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            g_depth, g_inv = torch.zeros_like(depth), torch.zeros_like(depth)
+            g_setting = positions.new_zeros((*depth.shape, len(setting)))
             g_camera = positions.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(f"tao_backward_{ctx.accumulator}", depth.device,
                         [*frame, grad, record, g_pos, g_nrm, g_depth, g_setting, taps, g_inv,
@@ -86,7 +89,7 @@ class _Walk(torch.autograd.Function):
             g_pos, g_nrm, g_inv, g_depth, g_setting, g_camera = grad_kernels().walk_backward(
                 ctx.accumulator, grad, *frame, ints, floats, record, camera, ctx.scalar)
         g_intrinsics = g_camera.to(torch.float64).sum((1, 2)).to(intrinsics.dtype) if camera else None
-        along_setting = g_setting.to(torch.float64).sum()
+        along_setting = g_setting.to(torch.float64).sum((0, 1, 2))  # d L / d each setting
         g_radius = None
         if ctx.needs_input_grad[12]:  # Euler's identity (module docstring); invalid texels hold NaN
             # (in float64: the terms cancel to the gradient, which may be 0 where the radius is clamped in pixels)
@@ -94,8 +97,8 @@ class _Walk(torch.autograd.Function):
                 return (g.to(torch.float64) * x.to(torch.float64)).sum()
             along = (dot(g_pos, positions) + dot(g_depth, depth)
                      - torch.where(valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum())
-            if ctx.setting_is_length:
-                along = along + setting.to(torch.float64) * along_setting
+            lengths = torch.tensor(ctx.setting_is_length, dtype=torch.float64, device=setting.device)
+            along = along + (lengths * setting.to(torch.float64) * along_setting).sum()
             g_radius = (-along / radius).to(radius.dtype)
         g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
         return (None, g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, None, None, None, None, g_radius, g_out,
@@ -118,21 +121,25 @@ def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool
 
 def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor,
                         settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list, channels: int,
-                        *, radius: torch.Tensor | float, setting: torch.Tensor | float = 0.0,
-                        setting_is_length: bool = False, lanes: str = "simd") -> torch.Tensor:
+                        *, radius: torch.Tensor | float, setting: tuple = (0.0,),
+                        setting_is_length: tuple = (False,), lanes: str = "simd") -> torch.Tensor:
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU or CUDA G-buffer with autograd history: gradients
     reach ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs (on CUDA at most
     :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``: ``"gtao"`` or ``"hbao"`` (their forward records
     the steps that carry gradients), ``"wedge"`` or ``"pssao"`` (every step replayed); any fetch, either
-    border. ``radius``: the 0-d tensor every length setting is proportional to, which receives its gradient, or
-    a number. ``setting``: the 0-d tensor (or number) of the accumulator's one differentiable setting, whose
-    value ``acc_floats`` holds (GTAO's falloff in world units, ``setting_is_length``, or thickness; HBAO's angle
-    bias; UE4 SSAO's fade distance; PSSAO's distance bias), which receives its gradient."""
+    border. ``radius``: the 0-d tensor the walk's extent is proportional to, which receives its gradient, or
+    a number. ``setting``: the accumulator's differentiable settings (its ``settings()``, in its order), 0-d
+    tensors or numbers whose values ``acc_floats`` holds (GTAO's falloff in world units or thickness; HBAO's
+    angle bias; UE4 SSAO's fade distance, flat-surface bias and softness; PSSAO's distance bias), which receive
+    their gradients; ``setting_is_length``: per setting, whether it is a length (the radius' gradient, Euler's
+    identity, needs every length's)."""
     inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
-    radius, setting = torch.as_tensor(radius), torch.as_tensor(setting)
+    radius = torch.as_tensor(radius)
+    setting = torch.stack([torch.as_tensor(v, dtype=torch.float32, device=gbuffer.depth.device) for v in setting])
     slices, steps = settings[0][0], settings[0][1]
     if gbuffer.depth.is_cuda and steps > MAX_CUDA_STEPS:
         raise ValueError(f"steps: the CUDA backward replays at most {MAX_CUDA_STEPS} steps per side, got {steps}")
     takes = accumulator in ("gtao", "hbao")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
-                       bool(setting_is_length), (int(slices), 2, (int(steps) + 63) // 64) if takes else None)
+                       tuple(bool(x) for x in setting_is_length),
+                       (int(slices), 2, (int(steps) + 63) // 64) if takes else None)

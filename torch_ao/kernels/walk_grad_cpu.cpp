@@ -37,6 +37,7 @@ void check_input(const at::Tensor& x, const char* name) {
 struct Gradients {
   at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse, tap_layer, tap_normals, tap_light;
   at::Tensor camera;  // (B, H, W, 4) where the intrinsics' gradients are asked for (walk_backward), else undefined
+  int settings = 1;   // setting's values per pixel: (B, H, W, settings) where more than one (walk_backward)
 
   // layer: the thickness layer's taps too; light: the senders' normals and light at the taps too
   Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool layer = false, bool light = false) {
@@ -52,13 +53,13 @@ struct Gradients {
   }
   Targets targets(int64_t b, int64_t B, int64_t plane, int64_t thread) {
     return Targets{positions.data_ptr<float>() + 3 * b * plane, normals.data_ptr<float>() + 3 * b * plane,
-                   depth.data_ptr<float>() + b * plane, setting.data_ptr<float>() + b * plane,
+                   depth.data_ptr<float>() + b * plane, setting.data_ptr<float>() + settings * b * plane,
                    tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
                    tap_inverse.data_ptr<float>() + (thread * B + b) * plane,
                    has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr,
                    has_light ? tap_normals.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
                    has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
-                   camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr};
+                   camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr, settings};
   }
   // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image (and
   // the layer's: layer())
@@ -222,7 +223,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
-// accumulator's setting (B, H, W), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
+// accumulator's settings (B, H, W, its settings(): 3 for "wedge", else 1), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
 // empty); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with walk()'s packed settings; cells:
 // the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao), else
 // empty (every step is replayed)
@@ -247,6 +248,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
     }
     check_grad(grad, positions, acc.channels());
+    out.settings = acc.settings();
+    out.setting = at::zeros({fr.B, fr.H, fr.W, out.settings}, positions.options());
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
   });
