@@ -6,9 +6,9 @@
 // (lanes_dual.h) costs one walk per tangent.
 //
 // Constants (id < 0) make no node, so what does not depend on a leaf costs nothing. The leaves: the pixel's
-// own position, normal and depth (seed_pixel: ids kept in Tape::own), the accumulator's setting (seed_setting)
-// and the camera's intrinsics (seed_camera: Tape::parameter) and whatever the caller makes with Tape::leaf. Derivatives at
-// non-differentiable points are lanes_dual.h's (torch's autograd of the tensor path).
+// own position, normal and depth (seed_pixel: ids kept in Tape::own), the accumulator's settings (seed_setting)
+// and the camera's intrinsics (seed_camera; both Tape::parameter), and whatever the caller makes with
+// Tape::leaf. Derivatives at non-differentiable points are lanes_dual.h's (torch's autograd of the tensor path).
 //
 // A node's value carries its tape; leaves are made on the thread's (current_tape<F>(): a CPU thread's own, a
 // CUDA thread's slot in its block's shared array, one pointer per thread of kTapeThreads), whose arrays are

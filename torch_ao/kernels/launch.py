@@ -20,7 +20,8 @@ from ..walk import NOISES as SLICE_NOISES
 from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
-__all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "packed_inputs", "packed_settings", "cuda_source"]
+__all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "run_packed", "packed_inputs", "packed_settings",
+           "cuda_source"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
 #: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets)
@@ -84,10 +85,18 @@ def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings
 
 
 def _run(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light, backface, lanes):
-    device = gbuffer.depth.device
     inputs, extra, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light, backface)
+    return run_packed(accumulator, inputs, extra, ints, floats, channels, scalar_lanes(lanes))
+
+
+def run_packed(accumulator: str, inputs, extra, ints: torch.Tensor, floats: torch.Tensor, channels: int,
+               scalar: bool) -> torch.Tensor:
+    """The walk with ``accumulator`` over :func:`packed_inputs`' ``inputs`` (six tensors), ``extra`` (light,
+    cells, back-face layer) and packed settings: the CPU operator (``scalar``: its scalar lanes) or the CUDA
+    kernel, ``(B, channels, H, W)``."""
+    device = inputs[3].device
     if device.type == "cpu":
-        return cpu_kernels().walk(accumulator, *inputs, *extra, ints, floats, int(channels), scalar_lanes(lanes))
+        return cpu_kernels().walk(accumulator, *inputs, *extra, ints, floats, int(channels), scalar)
     if device.type != "cuda":
         raise KernelUnavailable(f"no kernel for a G-buffer on {device.type}")
     B, H, W = inputs[3].shape

@@ -12,10 +12,10 @@
 //     exact minimum, HBAO's highest rise), only each side's last take is kept.
 //  2. the backward (grad_block) replays the slice in reverse lanes (lanes_rev.h: the walk records its
 //     arithmetic on a tape) through those takes alone (each lane its own step, step_distance in lanes):
-//     begin_slice, the takes' samples (taped_sample: each fetched position a leaf) and steps, end_slice and
+//     begin_slice, the takes' samples (fetch_sample: each fetched position a leaf) and steps, end_slice and
 //     finish. The pixel's own position, normal and depth are leaves (seed_pixel), recorded once per block
-//     before its slices; the accumulator's setting (seed_setting: GTAO's falloff or thickness, HBAO's angle
-//     bias) a leaf per use.
+//     before its slices; the accumulator's settings (seed_setting: GTAO's falloff or thickness, HBAO's angle
+//     bias) and, where asked, the intrinsics (seed_camera) a leaf each per slice.
 //  3. the upstream gradients seeded on the slice's outputs and swept back over the slice's nodes give d loss /
 //     d each take's fetched position, chained to its taps: for a bilinear fetch pos = q / (sum_k w_k t_k), so
 //     d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's position itself. The edge-aware fetch is
@@ -92,7 +92,7 @@ template <class B>
 TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int n, const B* own,
                       const B* setting = nullptr, const B* camera = nullptr) {
   constexpr int L = LaneTraits<B>::L;
-  constexpr int kMost = 3;  // settings
+  constexpr int kMost = Tape<B>::kSettings;
   float ol[kPixel + kMost + 4][L];
   for (int k = 0; k < kPixel; ++k) to_lanes(own[k], ol[k]);
   if (setting)

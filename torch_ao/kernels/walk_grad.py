@@ -29,9 +29,9 @@ from __future__ import annotations
 import torch
 
 from ..gbuffer import GBuffer
-from .build import cpu_kernels, grad_kernels
+from .build import grad_kernels
 from .frame import scalar_lanes
-from .launch import launch_cuda, packed_inputs
+from .launch import launch_cuda, packed_inputs, run_packed
 
 __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "MAX_CUDA_STEPS"]
 
@@ -50,15 +50,7 @@ class _Walk(torch.autograd.Function):
         if record_shape is None:  # every step replayed: the plain walk, no record
             none = positions.new_empty(0)
             record = torch.empty(0, dtype=torch.int64, device=depth.device)
-            if positions.is_cuda:
-                B, H, W = depth.shape
-                out = torch.empty(B, channels, H, W, device=depth.device)
-                launch_cuda(f"tao_walk_{accumulator}", depth.device,
-                            [positions, normals, inverse, depth, valid, intrinsics, none, cells, none, out, ints, floats],
-                            (B, H, W))
-            else:
-                out = cpu_kernels().walk(accumulator, positions, normals, inverse, depth, valid, intrinsics, none, cells,
-                                         none, ints, floats, channels, scalar)
+            out = run_packed(accumulator, frame[:6], (none, cells, none), ints, floats, channels, scalar)
         elif positions.is_cuda:
             B, H, W = depth.shape
             out = torch.empty(B, channels, H, W, device=depth.device)
