@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -231,7 +232,8 @@ def test_fit_keeps_the_best_hard_mode_parameters():
 
 
 def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
-    """The main job at a tiny size: bitmask + denoiser, thickness and radius by default; the kept
+    """The main job at a tiny size: bitmask + denoiser with the back-face thickness model (the built-in views
+    carry its layer), its radius, scale and offset by default; the kept
     parameters are never worse in hard mode on the training views than the defaults it started from,
     and params.json rebuilds the pipeline that was scored."""
     from torch_ao.datasets import train_and_holdout_views
@@ -241,12 +243,13 @@ def test_cli_fit_main_job_tiny_keeps_hard_mode_best_and_rebuilds(tmp_path):
                  "--preset", "low", "--steps", "6", "--hard-every", "2", "--hard-patience", "0", "--max-steps", "0",
                  "--holdout-scenes", "none", "--cache", str(cache), "--no-progress", "--out", str(out)]) == 0
     data = json.loads((out / "params.json").read_text())
-    assert data["fitted"] == ["radius", "thickness"] and data["denoiser"] is not None
+    assert data["fitted"] == ["radius", "thickness_scale", "thickness"] and data["denoiser"] is not None
     assert data["options"]["weighting"] == "cosine" and data["options"]["mode"] == "hard"
+    assert data["options"]["thickness_model"] == "backface"
     assert [h["step"] for h in data["hard_history"]] == [0, 2, 4, 6]
     assert data["train_loss_fitted"] == min(h["loss"] for h in data["hard_history"]) <= data["train_loss_start"]
     train, held = train_and_holdout_views(["fence", "stairs"], 1, 1, height=24, width=32, spp=16, max_distance=1.0,
-                                          cache_dir=cache)
+                                          cache_dir=cache, backface=True)
     pipeline = load_fitted(out / "params.json")
     assert evaluate(pipeline, held)["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
     assert evaluate(pipeline, train)["mae"] == pytest.approx(data["train_loss_fitted"], rel=1e-5)
@@ -314,6 +317,28 @@ def test_thickness_models_round_trip_after_a_fit(backface_views, tmp_path, model
         assert torch.equal(again.parameter_values()[k], v), k
     for v in vs:
         assert torch.equal(again(v.gbuffer).visibility, pipe(v.gbuffer).visibility)
+
+
+def test_cli_fit_chooses_the_backface_model_only_where_every_reference_holds_the_layer(backface_views, tmp_path,
+                                                                                      capsys):
+    """``torch-ao fit`` without ``--thickness``: ``backface`` on files that all hold ``backface_depth``; ``scalar``
+    with a note naming the file when one does not; ``--thickness backface`` on that file is refused by name."""
+    _, cache = backface_views
+    files = sorted(Path(cache).rglob("*.npz"))
+    assert len(files) == 2
+    bare = tmp_path / "bare.npz"
+    with np.load(files[1]) as arrays:
+        np.savez(bare, **{k: arrays[k] for k in arrays.files if k != "backface_depth"})
+    common = ["fit", "--preset", "low", "--steps", "1", "--max-steps", "1", "--hard-every", "1", "--no-progress"]
+    assert main([*common, "--reference", str(files[0]), str(files[1]), "--out", str(tmp_path / "layer")]) == 0
+    assert json.loads((tmp_path / "layer" / "params.json").read_text())["options"]["thickness_model"] == "backface"
+    capsys.readouterr()
+    assert main([*common, "--reference", str(files[0]), str(bare), "--out", str(tmp_path / "bare")]) == 0
+    assert "note: --thickness scalar: " + str(bare) in capsys.readouterr().out
+    assert "thickness_model" not in json.loads((tmp_path / "bare" / "params.json").read_text())["options"]
+    assert main([*common, "--thickness", "backface", "--reference", str(files[0]), str(bare),
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "bare.npz has no backface_depth layer" in capsys.readouterr().err
 
 
 def test_backface_model_reads_the_layer_and_the_offset_only_model_is_the_scalar(backface_views):

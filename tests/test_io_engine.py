@@ -281,3 +281,32 @@ def test_convert_view_matrix_accepts_negative_numbers(exr_files, style):
     expected = _hwc(gb.normals) * np.array([-1, 1, -1])
     valid = gb.valid[0, 0].numpy()
     assert np.allclose(n[valid], expected[valid], atol=1e-6)
+
+
+def test_a_backface_pass_reads_as_depth_does_and_feeds_the_backface_model(tmp_path, scene):
+    """A front-face-culled depth pass (``BackfaceDepth``), stored as distance from the eye like the depth, with
+    the background's far value where the ray never leaves: view-axis depth, ``inf`` there, and the back-face
+    thickness model reads it as it reads the same layer from an ``.npz``."""
+    from torch_ao import BitmaskAO
+    from torch_ao.thickness import BackfaceThickness
+
+    gb, _ = scene
+    back = gb.depth + 0.3
+    back[..., :, W // 2:] = float("inf")  # the floor's right half: no exit
+    expected = GBuffer(gb.depth, gb.camera, normals=gb.normals, backface_depth=back)
+    save_npz(tmp_path / "ref.npz", expected)
+    lengths = expected.camera.unproject(torch.ones_like(gb.depth)).norm(dim=1, keepdim=True)[0, 0].numpy()
+    as_distance = {k: np.where(np.isfinite(x), x * lengths, 1e10).astype(np.float32)
+                   for k, x in (("Depth.V", gb.depth[0, 0].numpy()), ("BackfaceDepth.V", back[0, 0].numpy()))}
+    _write_exr(tmp_path / "frame.exr", {**as_distance, **_vector("Normal", _hwc(gb.normals))})
+    got, _ = load_gbuffer(tmp_path / "frame.exr", intrinsics=(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
+                          depth_kind="distance", normal_space="view")
+    ref, _ = load_gbuffer(tmp_path / "ref.npz")
+    v = ref.valid
+    assert torch.equal(got.valid, v)
+    assert torch.equal(torch.isinf(got.backface_depth[v]), torch.isinf(ref.backface_depth[v]))
+    finite = v & torch.isfinite(ref.backface_depth)
+    assert torch.allclose(got.backface_depth[finite], ref.backface_depth[finite], rtol=1e-5, atol=0)
+    module = BitmaskAO(thickness=BackfaceThickness(), trainable=False)
+    with torch.no_grad():
+        assert (module(got).visibility - module(ref).visibility).abs().max() <= 1e-4

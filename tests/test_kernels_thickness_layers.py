@@ -3,17 +3,21 @@ value a layer read as depth is, a layer at the first tap, or the sample's depth)
 per-object table and the linear model, in the ``"default"`` variant's hard kernel, the exact
 union's hard kernel and its kernel with gradients, against the tensor-op walk by the tolerance of
 tests/kernel_agreement.py, in SIMD and scalar lanes."""
+import math
+
 import pytest
 import torch
 
 from kernel_agreement import assert_masks_agree, assert_values_agree
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fixture)
 from torch_ao.gbuffer import GBuffer
-from torch_ao.kernels import exact_covers, kernel_covers, kernel_forward
+from torch_ao.kernels import bitmask_soft, exact_covers, kernel_covers, kernel_forward
+import torch_ao.kernels.soft_bitmask as soft_module
 from torch_ao.kernels.bitmask import bitmask_outputs, exact_hard, module_thickness, thickness_options
 from torch_ao.kernels.soft_exact import exact_soft_covers
 from torch_ao.methods.bitmask import BitmaskAO
-from torch_ao.thickness import LinearThickness, MapThickness, NetThickness, ObjectThickness, ScalarThickness
+from torch_ao.thickness import (BackfaceThickness, LinearThickness, MapThickness, NetThickness, ObjectThickness,
+                                ScalarThickness)
 
 
 def _frame(name: str) -> GBuffer:
@@ -156,3 +160,102 @@ def test_coverage_reasons(built):
     assert exact_soft_covers(trainable, gb) is None
     with torch.no_grad():
         assert exact_soft_covers(trainable, gb) is None
+
+
+# ------------------------------------------------------------------ the soft / straight-through kernel with a layer
+def _backface(gb: GBuffer) -> GBuffer:
+    """``gb`` with a back-face layer: occluders from 0.05 to 0.65 thick in stripes, and a band with no exit."""
+    back = gb.depth + _map(gb)
+    back[..., : gb.depth.shape[-1] // 6] = torch.inf  # (the layer is BACKFACE_CAP thick there)
+    return GBuffer(depth=gb.depth, camera=gb.camera, normals=gb.normals, backface_depth=back)
+
+
+SOFT_LAYERS = {  # model -> (its thickness, the parameters the fit moves)
+    "backface": (lambda: BackfaceThickness(0.8, 0.1), ("radius", "thickness_scale", "thickness")),
+    "linear": (lambda: LinearThickness(0.02, 0.15), ("radius", "thickness_slope", "thickness")),
+}
+SOFT_SETTINGS = [
+    dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware"),  # what torch-ao fit fits
+    dict(mode="soft", slices=2, steps=3, tau=0.1, border="clamp"),
+    dict(mode="straight_through", slices=3, steps=3, weighting="cosine", fetch="bilinear"),
+    dict(mode="soft", slices=2, steps=4, fetch="nearest", rounding="round"),
+]
+
+
+def _soft_kernel(module, gb: GBuffer, lanes: str, names):
+    """The soft walk in ``lanes`` with ``module``'s options and thickness model, and the gradients of a weighted
+    sum of its visibility with respect to ``names``."""
+    form = module_thickness(module, gb)
+    vis = bitmask_soft(gb, gb.view_normals(), slices=module.slices, steps=module.steps, radius=module.radius,
+                       thickness=form.offset, layer=form.layer, layer_scale=form.scale, thickness_read=form.read,
+                       tau=module.tau, weighting=module.weighting, straight_through=module.mode != "soft",
+                       min_step_px=module.min_step_px, fetch=module.fetch, border=module.border,
+                       rounding=module.rounding, sector_epsilon=module.sector_epsilon, lanes=lanes)
+    weights = torch.linspace(0.5, 1.5, vis.numel(), dtype=vis.dtype).view_as(vis)
+    grads = torch.autograd.grad((vis * weights).sum(), [getattr(module, n) for n in names], allow_unused=True)
+    return vis.detach(), [torch.zeros(()) if g is None else g for g in grads]
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("setting", range(len(SOFT_SETTINGS)))
+@pytest.mark.parametrize("model", sorted(SOFT_LAYERS))
+def test_soft_kernel_reads_the_layer_and_differentiates_its_scale_as_the_float64_tensor_walk(built, model, setting,
+                                                                                              lanes):
+    """Values within 1e-5 (a straight-through forward: within one sector of one slice) and the gradients of the
+    radius, the model's scale and offset within 1e-4 relative of the float64 tensor walk's autograd."""
+    gb = _backface(FRAMES["rough"]())
+    make, names = SOFT_LAYERS[model]
+    settings = SOFT_SETTINGS[setting]
+    reference = BitmaskAO(thickness=make(), backend="torch", **settings).double()
+    g64 = gb.to(dtype=torch.float64)
+    want = reference(g64).visibility
+    weights = torch.linspace(0.5, 1.5, want.numel(), dtype=want.dtype).view_as(want)
+    want_grads = [torch.zeros(()) if g is None else g for g in
+                  torch.autograd.grad((want * weights).sum(), [getattr(reference, n) for n in names], allow_unused=True)]
+    module = BitmaskAO(thickness=make(), backend="kernel", **settings)
+    assert soft_module.kernel_covers(module, gb) is None
+    got, got_grads = _soft_kernel(module, gb, lanes, names)
+    assert want.min() < 0.9
+    if settings["mode"] == "soft":
+        assert (got.double() - want.detach()).abs().max() <= 1e-5
+    else:
+        assert_values_agree(got.double(), want.detach(), gb.valid, bound=math.pi / 2 / (32 * settings["slices"]) + 1e-6)
+    for name, g, w in zip(names, got_grads, want_grads):
+        assert abs(float(w)) > 1e-3 or (name == "radius" and settings["fetch"] == "nearest"), (name, float(w))
+        assert abs(float(g) - float(w)) <= 1e-4 * abs(float(w)) + 1e-6, (name, float(g), float(w))
+
+
+def test_soft_kernel_layer_matters_and_its_scale_gradient_matches_finite_differences(built):
+    """The back-face layer changes the soft visibility against its mean as one scalar, and the kernel's
+    d loss / d thickness_scale is the central difference of its own loss."""
+    gb = _backface(FRAMES["example"]())
+    module = BitmaskAO(thickness=BackfaceThickness(0.8, 0.1), mode="soft", slices=3, steps=4, weighting="cosine",
+                       fetch="edge_aware", backend="kernel")
+    vis = module(gb).visibility
+    weights = torch.linspace(0.5, 1.5, vis.numel()).view_as(vis)
+    (g,) = torch.autograd.grad((vis * weights).sum(), [module.thickness_scale])
+    h = 1e-2
+    with torch.no_grad():
+        mean = float((module_thickness(module, gb).layer * 0.8 + 0.1)[gb.valid].clamp(max=10).mean())
+        scalar = BitmaskAO(thickness=mean, mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware")(gb)
+        assert (scalar.visibility - vis).abs().max() > 0.02
+        losses = []
+        for sign in (1, -1):
+            module.thickness_scale.fill_(0.8 + sign * h)
+            losses.append(float((module(gb).visibility.double() * weights).sum()))
+    assert abs(float(g)) > 1e-2
+    assert float(g) == pytest.approx((losses[0] - losses[1]) / (2 * h), rel=2e-2)
+
+
+def test_soft_kernel_leaves_gbuffer_gradients_with_a_layer_to_the_tensor_path(built):
+    gb = _backface(FRAMES["example"]())
+    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, backface_depth=gb.backface_depth)
+    module = BitmaskAO(thickness=BackfaceThickness(), mode="soft", weighting="cosine")
+    assert "thickness layer" in soft_module.kernel_covers(module, graph)
+    assert soft_module.kernel_covers(BitmaskAO(thickness=BackfaceThickness(), mode="soft"), gb) is None
+    with pytest.raises(ValueError, match="one scalar thickness only"):
+        form = module_thickness(module, graph)
+        bitmask_soft(graph, graph.view_normals(), slices=2, steps=2, radius=module.radius, thickness=form.offset,
+                     layer=form.layer, layer_scale=form.scale, tau=0.25)
+    # a per-object table or a map that is itself trained is a layer wanting a gradient
+    assert "thickness layer" in soft_module.kernel_covers(BitmaskAO(thickness=MapThickness(_map(gb)), mode="soft"), gb)

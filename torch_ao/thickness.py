@@ -170,7 +170,8 @@ class BackfaceThickness(Thickness):
     def buffers(self, gbuffer, params):
         back = getattr(gbuffer, "backface_depth", None)
         if back is None:
-            raise ValueError("gbuffer.backface_depth: the back-face thickness model needs a (B,1,H,W) back-face depth layer")
+            raise ValueError("gbuffer.backface_depth: the back-face thickness model needs a (B,1,H,W) back-face depth layer "
+                             "(an engine's front-face-culled depth pass; `torch-ao render --backface`; docs/engines.md)")
         depth = gbuffer.safe_depth
         layer = torch.where(gbuffer.valid, back - depth, torch.zeros_like(depth))
         return {"backface_thickness": layer.clamp(0.0, BACKFACE_CAP)}

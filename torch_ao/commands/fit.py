@@ -78,10 +78,12 @@ OPTIONS = (
     Option("variant", None, "the method's variant; when not given, the method's default", str),
     Option("params", None, "comma-separated parameters to fit jointly, e.g. thickness,radius; when not given, every "
            "float parameter the method and variant use", str),
-    Option("thickness", "scalar", "thickness model of a bitmask method (torch_ao.thickness): one scalar; one per "
+    Option("thickness", None, "thickness model of a bitmask method (torch_ao.thickness): one scalar; one per "
            "object id (a table over the views' ids); linear in depth (thickness + thickness_slope * depth); the "
            "back-face layer (thickness_scale * (backface_depth - depth) + thickness: the built-in views are rendered "
-           "with it, --reference files must hold backface_depth)", str, choices=tuple(THICKNESS_MODELS)),
+           "with it, --reference files must hold backface_depth); when not given, backface where every view holds a "
+           "back-face layer (it scores best on the fit set, docs/accuracy.md), else scalar", str,
+           choices=tuple(THICKNESS_MODELS)),
     Option("init", None, "start values, e.g. thickness=0.5,radius=1.2 (lengths in world units; a bare number is the "
            "thickness); when not given, the method's defaults", str),
     replace(_method_option("bitmask", "preset"), default=DEFAULT_PRESET, help="quality preset of the fitted method"),
@@ -204,10 +206,11 @@ def _radii(paths) -> dict[str, float]:
     return found
 
 
-def _check_files(sources, backface: bool) -> None:
+def _check_files(sources, backface: bool) -> list[str]:
     """Read each file of the view sequences ``sources`` once (each rank its shard under ``torchrun``), so
     that a bad one is named before the fit starts, one at a time (memory does not grow with their number);
-    with ``backface``, ``CommandError`` naming the files without a ``backface_depth`` layer."""
+    returns the names of the views without a ``backface_depth`` layer (with ``backface``, ``CommandError``
+    naming them)."""
     missing = []
     for views in sources:
         for i in distributed.shard(list(range(len(views)))):
@@ -219,6 +222,20 @@ def _check_files(sources, backface: bool) -> None:
     if backface and missing:
         raise CommandError(f"--thickness backface: {', '.join(missing)} has no backface_depth layer; render it with "
                            "`torch-ao render --backface` (or choose another --thickness)")
+    return missing
+
+
+def _chosen_thickness(method: str, missing: list[str]) -> str:
+    """``--thickness`` when not given: ``backface`` for a bitmask method whose views all hold a back-face
+    layer (``missing`` names those that do not), else ``scalar``; says which, and why, when it matters."""
+    if method not in BITMASK:
+        return "scalar"
+    if missing:
+        print(f"note: --thickness scalar: {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} has no "
+              "backface_depth layer (the back-face model, which scores best on the built-in fit set, needs it in "
+              "every view: `torch-ao render --backface`, or your engine's front-face-culled depth pass)")
+        return "scalar"
+    return "backface"
 
 
 def _views(args) -> tuple[list, list, float]:
@@ -233,7 +250,9 @@ def _views(args) -> tuple[list, list, float]:
         train = ViewFiles(files, device=device, reading=reading)
         held = ViewFiles(held_files, device=device, reading=reading) if held_files else None
         with flag_errors():
-            _check_files([train, held or []], args.thickness == "backface")
+            missing = _check_files([train, held or []], args.thickness == "backface")
+        if args.thickness is None:
+            args.thickness = _chosen_thickness(args.method, missing)
         radius = reference_radius([*files, *(held_files or [])], args.radius)
         if held is not None:
             return train, held, radius
@@ -244,6 +263,8 @@ def _views(args) -> tuple[list, list, float]:
         return train[:-n_hold], train[-n_hold:], radius
     scenes, held_scenes = _scene_names(args)
     w, h = _size(args.size)
+    if args.thickness is None:
+        args.thickness = _chosen_thickness(args.method, [])  # (the built-in views are rendered with the layer)
     common = dict(height=h, width=w, spp=args.spp, max_distance=args.max_distance, cache_dir=args.cache,
                   progress=args.progress, device=device, backface=args.thickness == "backface")
     print(f"references: {len(scenes)} scenes x ({args.train_views} training + {args.holdout_views} held-out) views"

@@ -2,11 +2,13 @@
 library's conventions (the arrays of the ``.npz`` format, see :mod:`torch_ao.io.npz`).
 
 Everything here works on numpy arrays in the ``.npz`` layout (``depth (...,H,W)``, ``normal``/``position``
-/``light``/``albedo (...,H,W,3)``, ``object_id``/``mask (...,H,W)``, ``intrinsics (3,3)``), so a file read
+/``light``/``albedo (...,H,W,3)``, ``object_id``/``mask``/``backface_depth (...,H,W)``, ``intrinsics (3,3)``), so a file read
 from an engine and the same buffers stored as ``.npz`` build the same :class:`~torch_ao.GBuffer`.
 
 Conversions, in this order (:func:`apply_engine_options`):
 
+0. The back-face pass (``backface_depth``: a front-face-culled depth pass, for the back-face thickness model) is
+   depth: steps 1 and 4 and the device-depth decoding apply to it as to depth.
 1. ``depth_kind="distance"``: the depth channel holds the distance from the eye; view-axis depth is
    ``distance / |r|`` with ``r = ((u - cx)/fx, (v - cy)/fy, 1)`` the pixel's ray (needs the camera).
 2. ``normal_space="world"`` / ``position_space="world"``: ``n_view = normalize(A^-T n)`` and
@@ -59,6 +61,8 @@ CHANNEL_ALIASES: dict[str, tuple[int, tuple[str, ...]]] = {
     # Blender: IndexOB.X (object pass index); plain: object_id, ObjectId.
     "object_id": (1, ("object_id", "IndexOB", "ObjectId", "ObjectID")),
     "mask": (1, ("mask",)),
+    # A front-face-culled depth pass (the back-face thickness model's layer): same encoding and kind as depth.
+    "backface_depth": (1, ("backface_depth", "BackfaceDepth", "BackDepth")),
 }
 _COMPONENTS = (("X", "Y", "Z"), ("R", "G", "B"))
 _SCALAR_COMPONENTS = ("", "Z", "V", "R", "X", "Y")
@@ -524,19 +528,10 @@ def apply_engine_options(arrays: dict[str, np.ndarray], opts: EngineOptions) -> 
     arrays = dict(arrays)
     H, W = _size_of(arrays)
     _set_camera(arrays, opts)
-    if "depth" in arrays:
-        depth = np.asarray(arrays["depth"])
-        if not np.issubdtype(depth.dtype, np.floating):
-            raise ValueError(f"depth: expected a floating-point channel, got {depth.dtype}")
-        dtype = np.result_type(depth.dtype, np.float32)
-        if opts.depth_encoding != "linear":
-            depth = decode_device_depth(depth, opts.depth_encoding, opts.near, opts.far).astype(dtype)
-        if opts.depth_kind == "distance":
-            depth = (depth / _ray_lengths(arrays, H, W)).astype(dtype)
-        if math.isfinite(opts.background_depth):
-            depth = np.where(depth >= opts.background_depth, np.inf, depth).astype(depth.dtype)
-        arrays["depth"] = depth
-    elif "position" in arrays and math.isfinite(opts.background_depth):  # GBuffer derives depth = -z
+    for key in ("depth", "backface_depth"):  # (a back face at the background: no exit, inf)
+        if key in arrays:
+            arrays[key] = _view_depth(key, arrays, opts, H, W)
+    if "depth" not in arrays and "position" in arrays and math.isfinite(opts.background_depth):  # GBuffer derives depth = -z
         p = arrays["position"]
         arrays["position"] = np.where((-p[..., 2:] >= opts.background_depth), np.nan, p).astype(p.dtype)
     if "normal" in arrays:
@@ -573,6 +568,22 @@ def apply_engine_options(arrays: dict[str, np.ndarray], opts: EngineOptions) -> 
         if opts.fov is not None and H != W:
             _warn_if_fov_looks_horizontal(arrays, opts.fov)
     return arrays
+
+
+def _view_depth(key: str, arrays: dict, opts: EngineOptions, H: int, W: int) -> np.ndarray:
+    """``arrays[key]`` (depth, or the back-face pass's) as view-axis depth in world units: decoded from the
+    device encoding, divided by the ray length for a distance, ``inf`` at or beyond the background."""
+    depth = np.asarray(arrays[key])
+    if not np.issubdtype(depth.dtype, np.floating):
+        raise ValueError(f"{key}: expected a floating-point channel, got {depth.dtype}")
+    dtype = np.result_type(depth.dtype, np.float32)
+    if opts.depth_encoding != "linear":
+        depth = decode_device_depth(depth, opts.depth_encoding, opts.near, opts.far).astype(dtype)
+    if opts.depth_kind == "distance":
+        depth = (depth / _ray_lengths(arrays, H, W)).astype(dtype)
+    if math.isfinite(opts.background_depth):
+        depth = np.where(depth >= opts.background_depth, np.inf, depth).astype(depth.dtype)
+    return depth
 
 
 def _valid_depth(arrays: dict) -> np.ndarray:

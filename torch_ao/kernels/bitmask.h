@@ -72,6 +72,17 @@ struct ThicknessModel {
   template <class F> TAO_FN F at(const Pixels<F>& px, const Sample<F>& smp) const {
     return read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
   }
+  // d value as the sample's fetch moves by (dsu, dsv) pixels and its position by d_pos: the layer's bilinear
+  // read at the moving taps (Sample.gather), the sample's depth; a first tap's read is piecewise constant
+  template <class F>
+  TAO_FN F motion(const Sample<F>& smp, const F* d_pos, const F& dsu, const F& dsv) const {
+    if (read == ThicknessRead::depth) return neg(d_pos[2]);
+    if (read != ThicknessRead::layer) return F(0.0f);
+    const float* layer = smp.image->backface;
+    const F l0 = gather(layer, smp.index[0]), l1 = gather(layer, smp.index[1]);
+    const F l2 = gather(layer, smp.index[2]), l3 = gather(layer, smp.index[3]);
+    return lerp(l1 - l0, l3 - l2, smp.fv) * dsu + (lerp(l2, l3, smp.fu) - lerp(l0, l1, smp.fu)) * dsv;
+  }
 };
 
 // The hemisphere's edge on side -1 as a fraction of the half circle from the view vector's side: (pi/2 - gamma) / pi

@@ -58,15 +58,9 @@ struct ExactGradAccumulator {
       F d_su[3], d_sv[3], dsu, dsv;
       fetch_motion(smp, su, sv, d_su, d_sv);
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
-      for (int c = 0; c < 3; ++c) delta[c].d[0] = d_su[c] * dsu + d_sv[c] * dsv;
-      if (model.read == ThicknessRead::depth) t.d[0] = F(model.scale) * neg(delta[2].d[0]);
-      if (model.read == ThicknessRead::layer) {  // the layer's bilinear read at the moving taps (Sample.gather)
-        const float* layer = smp.image->backface;
-        const F l0 = gather(layer, smp.index[0]), l1 = gather(layer, smp.index[1]);
-        const F l2 = gather(layer, smp.index[2]), l3 = gather(layer, smp.index[3]);
-        const F dl_u = lerp(l1 - l0, l3 - l2, smp.fv), dl_v = lerp(l2, l3, smp.fu) - lerp(l0, l1, smp.fu);
-        t.d[0] = F(model.scale) * (dl_u * dsu + dl_v * dsv);
-      }
+      F d_pos[3];
+      for (int c = 0; c < 3; ++c) delta[c].d[0] = d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
+      t.d[0] = F(model.scale) * model.motion(smp, d_pos, dsu, dsv);
     }
     D<F> radius(F(exact.radius));
     radius.d[0] = F(1.0f);

@@ -118,7 +118,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     TORCH_CHECK(i[3] == int64_t(Steps::pixels), "pssao: expected the pixel-offset step placement");
     run(unpack_pssao(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
-    packed(3, 3);
+    packed(4, 4);
+    check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
     TORCH_CHECK(i[1] <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
     if (name == "soft") {
@@ -126,7 +127,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     } else {
       TORCH_CHECK(i[3] == 0 && f[3] <= 0 && !i[10] && !i[7],
                   "soft_gradients: the radius' derivative is the power step placement's, without max_radius_px, "
-                  "edge-aware fetch, sphere extent or full circle");
+                  "sphere extent or full circle");
       run(unpack_soft<true>(i, f));
     }
   } else {

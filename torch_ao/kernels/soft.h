@@ -8,13 +8,14 @@
 // where tau is small: sweeps.floor_window_width), and the visibility sum_slices sum_k P_k omega_k / den
 // (omega = 1/32, den = slices; or the cosine weights, den = their sum).
 //
-// With gradients, two more channels: d visibility / d radius and d visibility / d thickness of the pixel
-// (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
+// The thickness at a sample is bitmask.h's ThicknessModel (thickness.ThicknessLayer: scale * value + offset).
+// With gradients, three more channels: d visibility / d radius, d thickness (the model's offset) and d its
+// scale of the pixel (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
 // runs soft_union's reverse scan per sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
 // whose three sums per step give d/ds, d/dw (soft_union.py derives them); SectorInterval's atan2
 // derivatives give the thickness's gradient, and the fetch's derivative along the step (su, sv move with
-// the radius through the step placement) the radius's. Straight-through: the hard coverage's visibility
+// the radius through the step placement, and so does a layer's read) the radius's. Straight-through: the hard coverage's visibility
 // with these (the soft union's) gradients.
 //
 // The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
@@ -90,7 +91,8 @@ TAO_FN void step_motion(const WalkSettings& walk, const Pixels<F>& px, const Sli
 // kAdjoint (with kGradients): the backward's, which keeps each step's fetch for end_slice_adjoint
 template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   WalkSettings walk;  // the step placement (the radius' gradient moves the steps)
-  float thickness, epsilon, tau, delta;  // delta: sectors.rule.rounding_offset
+  ThicknessModel thickness;  // world units along the view ray
+  float epsilon, tau, delta;  // delta: sectors.rule.rounding_offset
   int64_t rounding;
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
   bool windowed, cosine, straight_through;
@@ -112,8 +114,9 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     F shift;
     LaneArray<F, kSectors> omega, P;
     int n;
-    // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius
-    LaneArray<F, kKept> s, w, av, at, dav, dat;
+    // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius, its
+    // thickness t, the value its scale multiplies and d t along the radius
+    LaneArray<F, kKept> s, w, av, at, dav, dat, t, tv, dt;
     // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
     // pixels, and d position / d su, d sv
     LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3];
@@ -121,10 +124,13 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     LaneArray<M, kFetches> valid;
     LaneArray<SoftCoverage<F>, kKeepCoverage ? kKept : 1> coverages;  // the sweep's, for the reverse scan
   };
-  template <class F> struct Sums { F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f); };
-  // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d thickness
+  template <class F> struct Sums {
+    F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f);
+  };
+  // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d its
+  // thickness t
   template <class B> struct StepAdjoint { B s, w, av, at, shift, thickness; };
-  TAO_FN int channels() const { return kGradients ? 3 : 1; }
+  TAO_FN int channels() const { return kGradients ? 4 : 1; }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
     const float inv_tau = float(1.0 / double(tau));
@@ -192,9 +198,9 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   template <class F>
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     const F scale = F(float(side) / kPi);
-    const F av = dot3(smp.delta, px.V), at = F(float(side)) * dot3(smp.delta, sl.T);
+    const F av = dot3(smp.delta, px.V), at = F(float(side)) * dot3(smp.delta, sl.T), t = thickness.at(px, smp);
     const F front = clamp(fma(atan2(at, av), scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(atan2(at, av - F(thickness)), scale, st.shift), F(0.0f), F(1.0f));
+    const F back = clamp(fma(atan2(at, av - t), scale, st.shift), F(0.0f), F(1.0f));
     const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
     const F s = lo * F(float(kSectors));
     F w = (hi - lo) * F(float(kSectors));
@@ -206,7 +212,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       return;
     }
     const int m = st.n++;
-    st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at;
+    st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at, st.t[m] = t, st.tv[m] = thickness.value(px, smp);
     F d_su[3] = {F(0.0f), F(0.0f), F(0.0f)}, d_sv[3] = {F(0.0f), F(0.0f), F(0.0f)};
     const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), m % walk.steps);
     const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
@@ -225,10 +231,12 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     }
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
     F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    st.dt[m] = F(0.0f);
     if (moves) {
       F dsu, dsv;
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
+      st.dt[m] = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
     }
     st.dav[m] = dot3(d_pos, px.V);
     st.dat[m] = F(float(side)) * dot3(d_pos, sl.T);
@@ -284,7 +292,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       // SectorInterval.backward: s = 32 lo, w = 32 (hi - lo) - epsilon, the clamps pass inside [0, 1]
       const int side = m < walk.steps ? 1 : -1;
       const F scale = F(float(side) / kPi);
-      const F av = st.av[m], at = st.at[m], bv = av - F(thickness);
+      const F av = st.av[m], at = st.at[m], bv = av - st.t[m];
       const F front = fma(atan2(at, av), scale, st.shift), back = fma(atan2(at, bv), scale, st.shift);
       const F g_lo = (adj.s - adj.w) * F(float(kSectors)), g_hi = adj.w * F(float(kSectors));
       F g_f = side > 0 ? g_lo : g_hi, g_b = side > 0 ? g_hi : g_lo;
@@ -306,8 +314,10 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     sums.num = sums.num + visible(st, st.omega, sums);
     if (!kGradients) return;
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
-      sums.thickness = sums.thickness + select(px.live, g.thickness, F(0.0f));
-      sums.radius = sums.radius + select(px.live, g.av * st.dav[m] + g.at * st.dat[m], F(0.0f));
+      const F g_t = select(px.live, g.thickness, F(0.0f));
+      sums.thickness = sums.thickness + g_t;
+      sums.scale = sums.scale + g_t * st.tv[m];
+      sums.radius = sums.radius + select(px.live, g.av * st.dav[m] + g.at * st.dat[m] + g.thickness * st.dt[m], F(0.0f));
     });
   }
 
@@ -375,6 +385,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     if (kGradients) {
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
+      out[3] = select(px.live, sums.scale / den, F(0.0f));
     }
   }
 };
@@ -407,7 +418,7 @@ template <class F, class D, class Sink> struct SoftAdjoint {
     acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, sink);
   }
   TAO_FN void finish(const Sums<F>& sums, const Pixels<F>&, F* out) const {
-    D vis[3];
+    D vis[4];
     acc.finish(sums, pd, vis);
     for (int k = 0; k < 7; ++k) out[k] = vis[0].d[k];
     out[7] = vis[2].v;

@@ -1,12 +1,14 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
-on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``
-and ``thickness`` and to the G-buffer (depth or positions, normals), on the CPU and CUDA.
+on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``,
+the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
+a map, the linear model in depth) and, with one scalar thickness, to the G-buffer (depth or positions, normals),
+on the CPU and CUDA.
 
 The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sectors.soft_union`, or the
-hard coverage in straight-through mode). When only radius and thickness want a gradient, the same walk also
+hard coverage in straight-through mode). When only radius and the thickness want a gradient, the same walk also
 returns each pixel's derivatives of its visibility with respect to them (the soft union's reverse scan per
 slice, in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per
-sample, two channels per pixel.
+sample, three channels per pixel.
 
 When the G-buffer wants one, the forward is the plain walk over the channel-last inputs of
 :func:`~torch_ao.kernels.frame.walk_inputs` (so that autograd chains their gradients to depth, positions
@@ -26,7 +28,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
-from .bitmask import options_uncovered
+from .bitmask import module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
@@ -35,38 +37,49 @@ __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
 
 def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
-                 thickness: torch.Tensor, tau: float, weighting: str = "uniform", straight_through: bool = False,
+                 thickness: torch.Tensor, tau: float, layer: torch.Tensor | None = None,
+                 layer_scale: torch.Tensor | None = None, thickness_read: str | None = None,
+                 weighting: str = "uniform", straight_through: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
-    differentiable with respect to ``radius``, ``thickness`` and the G-buffer's depth, positions and
-    ``normals``.
+    differentiable with respect to ``radius``, ``thickness``, ``layer_scale`` and (with no ``layer``) the
+    G-buffer's depth, positions and ``normals``.
 
     Args:
         gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
             unit view-space normals.
         slices, steps: directions per pixel and samples per side (at most 32).
-        radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients).
+        radius, thickness: 0-d float tensors, world units (``nn.Parameter``\\ s get gradients); with ``layer``
+            ``(B,1,H,W)`` (read at each sample as depth is) the thickness there is ``layer_scale * layer +
+            thickness``, ``layer_scale`` a 0-d tensor (default 1, e.g. the back-face model's
+            ``thickness_scale``); ``thickness_read``: as :func:`~torch_ao.kernels.bitmask_outputs`
+            (``"depth"``: ``layer_scale`` per world unit of the sample's depth, no layer).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward.
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors):
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
-    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient (the kernel does not compute it).
+    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient, or when the G-buffer or ``layer``
+    wants one while the thickness reads a layer or depth (the kernel computes neither).
     """
     uncovered = _gbuffer_gradient_uncovered(gbuffer)
     if uncovered is not None:
         raise ValueError(f"gbuffer: the soft kernel does not compute {uncovered}; detach it or use backend='torch'")
-    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals)
+    read = thickness_read_index(thickness_read, layer)
+    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals) or (layer is not None and layer.requires_grad)
+    if of_gbuffer and read != 0:
+        raise ValueError("gbuffer, layer: the soft kernel differentiates the G-buffer with one scalar thickness only; "
+                         "detach them or use backend='torch'")
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         if of_gbuffer:
             grad_kernels()
     scalars = []
-    for name, t in (("radius", radius), ("thickness", thickness)):
+    for name, t in (("radius", radius), ("thickness", thickness), ("layer_scale", 1.0 if layer_scale is None else layer_scale)):
         t = torch.as_tensor(t)
         if t.dim() != 0:
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
@@ -75,10 +88,10 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    straight_through=bool(straight_through), step_power=float(step_power),
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
                    stagger=bool(stagger), fetch=fetch, border=border,
-                   rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes)
+                   rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read)
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, options)
-    return _SoftWalk.apply(gbuffer, normals, *scalars, options)
+    return _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
 
 
 def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
@@ -97,24 +110,27 @@ def _gbuffer_gradient_uncovered(gbuffer: GBuffer) -> str | None:
     return None
 
 
-def _settings(radius, thickness, o):
+def _settings(radius, thickness, scale, o):
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of ``soft.h``'s walk."""
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius.detach()), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"])
-    return settings, [o["rounding"], o["cosine"], o["straight_through"]], [float(thickness.detach()), o["epsilon"], o["tau"]]
+    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"]],
+            [float(thickness.detach()), o["epsilon"], o["tau"], float(scale.detach())])
 
 
-def _walk(gbuffer, normals, radius, thickness, o, gradients):
-    """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness."""
-    settings, acc_ints, acc_floats = _settings(radius, thickness, o)
+def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients):
+    """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness,
+    d layer_scale."""
+    settings, acc_ints, acc_floats = _settings(radius, thickness, scale, o)
     return run_walk("soft_gradients" if gradients else "soft", gbuffer, normals, settings, acc_ints, acc_floats,
-                    3 if gradients else 1, lanes=o["lanes"])
+                    4 if gradients else 1, backface=layer, lanes=o["lanes"])
 
 
-def _gbuffer_walk(gbuffer, normals, radius, thickness, o):
-    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), radius and thickness."""
-    inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, o))
+def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, o):
+    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), radius and thickness
+    (one scalar: ``scale`` multiplies nothing)."""
+    inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o))
     return _GBufferWalk.apply(*inputs, cells, ints, floats, radius, thickness, scalar_lanes(o["lanes"]))
 
 
@@ -162,19 +178,19 @@ class _GBufferWalk(torch.autograd.Function):
 
 class _SoftWalk(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, gbuffer, normals, radius, thickness, options):
-        wanted = bool(ctx.needs_input_grad[2] or ctx.needs_input_grad[3])
-        out = _walk(gbuffer, normals, radius, thickness, options, wanted)
+    def forward(ctx, gbuffer, normals, radius, thickness, scale, layer, options):
+        wanted = any(ctx.needs_input_grad[2:5])
+        out = _walk(gbuffer, normals, radius, thickness, scale, layer, options, wanted)
         if wanted:
             ctx.save_for_backward(out[:, 1:].contiguous())
-        ctx.dtypes = (radius.dtype, thickness.dtype)
+        ctx.dtypes = (radius.dtype, thickness.dtype, scale.dtype)
         return out[:, :1].contiguous()
 
     @staticmethod
     def backward(ctx, grad):
-        (jacobian,) = ctx.saved_tensors  # (B, 2, H, W): d visibility / d radius, d thickness per pixel
+        (jacobian,) = ctx.saved_tensors  # (B, 3, H, W): d visibility / d radius, d thickness, d scale per pixel
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
-        return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None
+        return None, None, *(sums[k].to(ctx.dtypes[k]) for k in range(3)), None, None
 
 
 #: options of a module the soft kernel reproduces (beyond the hard kernel's): the modes and weightings (hard
@@ -188,15 +204,21 @@ _FETCHES = {"fetch": ("nearest", "bilinear", "edge_aware")}
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
     in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
-    options (any slices, steps, radius, jitter, rounding, fetch, border... one scalar thickness, visibility
-    only, a float32 CPU G-buffer) with either weighting; gradients of radius, thickness, depth, positions and
-    normals, not of the intrinsics."""
+    options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
+    value + offset``, visibility only, a float32 CPU G-buffer) with either weighting; gradients of radius and
+    the thickness' offset and scale, and with one scalar thickness of depth, positions and normals; not of
+    the intrinsics, nor of a layer the thickness reads."""
     of_gbuffer = _gbuffer_wants_gradient(gbuffer, gbuffer.normals)
-    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES)
+    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES, layers=True)
     if reason is not None:
         return reason
     if module.mode == "hard" and of_gbuffer:
         return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
+    if module.mode != "hard" and torch.is_grad_enabled():
+        form = module_thickness(module, gbuffer)
+        if form.read != "constant" and (of_gbuffer or (form.layer is not None and form.layer.requires_grad)):
+            return (f"a gradient of the G-buffer or of the thickness layer with thickness model "
+                    f"{type(module.thickness_model).__name__} (the kernel's G-buffer backward reads one scalar)")
     reason = _gbuffer_gradient_uncovered(gbuffer)
     return None if reason is None else f"{reason} (the kernel differentiates radius, thickness, depth, positions and normals)"
 
@@ -204,9 +226,14 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
     """``module(gbuffer).visibility`` by :func:`bitmask_soft` (a call :func:`kernel_covers` accepts)."""
     hard = module.mode == "hard"  # hard masks have no gradient: no graph
-    radius, thickness = (module.radius.detach(), module.thickness.detach()) if hard else (module.radius, module.thickness)
+    form = module_thickness(module, gbuffer)
+    radius, thickness, scale = module.radius, form.offset, form.scale
+    if hard:
+        radius, thickness, scale = radius.detach(), thickness.detach(), scale.detach()
+    layer = None if form.layer is None else form.layer.detach() if hard else form.layer
     return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                        radius=radius, thickness=thickness, tau=module.tau, weighting=module.weighting,
+                        radius=radius, thickness=thickness, layer=layer, layer_scale=scale, thickness_read=form.read,
+                        tau=module.tau, weighting=module.weighting,
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,

@@ -310,8 +310,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_back
     const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none, ints, floats,
-                          3, 3, "soft", kSoftMaxSteps / 2);
+                          4, 4, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
+  TORCH_CHECK(call.i[kAccInts + 3] == int64_t(ThicknessRead::constant),
+              "soft_backward: one scalar thickness (the G-buffer's backward does not chain a thickness layer)");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
   return call.run(grad, 1, scalar, out, false, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
