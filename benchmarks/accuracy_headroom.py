@@ -5,13 +5,14 @@ Every row is a pipeline (a method + ``Denoiser()``, hard mode) at fixed paramete
 against the ray-traced references in the three view groups of ``pipeline_candidates.py`` (the fit scenes'
 training views, their held-out views, the held-out scenes). ``--study``:
 
-* ``presets``: the shipped pipeline and the exact + back-face + edge-aware pipeline at ``high`` ... ``reference``:
+* ``presets``: the shipped pipeline, its scalar-thickness form and the exact + back-face + edge-aware pipeline at
+  ``high`` ... ``reference``:
   how much of the error is sampling (what converged sampling would reach);
 * ``temporal``: the mean of ``N`` frames whose per-pixel noise differs (seeds ``0 .. N-1``) before the denoiser:
   a still camera's temporal accumulation after ``N`` frames, each frame at the preset's cost;
 * ``steps``: the same sample count split into slices x steps, and denser steps near the pixel (``step_power``);
 * ``resolution``: more samples on a half- or quarter-resolution walk (``preset@half``), upsampled;
-* ``grid``: the shipped pipeline's scalar thickness and radius on a grid (is the fit's optimum the defaults'?).
+* ``grid``: the scalar-thickness pipeline's thickness and radius on a grid (is the fit's optimum the defaults'?).
 
     OMP_NUM_THREADS=1 python benchmarks/accuracy_headroom.py --study presets temporal steps resolution grid
 """
@@ -29,7 +30,11 @@ from torch_ao.fitted import FittedPipeline
 from torch_ao.metrics import error_metrics
 from torch_ao.temporal import accumulate_still
 
-SHIPPED = ("bitmask cosine edge_aware (shipped)", "bitmask", {"weighting": "cosine", "fetch": "edge_aware"})
+#: torch-ao fit's pipeline with the values its default run fits (docs/fitting.md)
+SHIPPED = ("bitmask cosine backface edge_aware, fitted (shipped)", "bitmask",
+           {"weighting": "cosine", "fetch": "edge_aware", "thickness_model": "backface", "radius": 0.992,
+            "thickness_scale": 0.919, "thickness": 0.303})
+SCALAR = ("bitmask cosine edge_aware, one scalar thickness", "bitmask", {"weighting": "cosine", "fetch": "edge_aware"})
 EXACT = ("bitmask exact backface edge_aware", "bitmask",
          {"variant": "exact", "thickness_model": "backface", "fetch": "edge_aware"})
 GTAO = ("gtao", "gtao", {})
@@ -71,7 +76,9 @@ def main() -> None:
     if "presets" in args.study:
         table("Presets (slices x steps): high 3x3, ultra 9x3, extreme 16x8, reference 32x32", "pipeline | preset",
               [(label, preset, m, {"preset": preset, **o}, 1) for label, m, o in (SHIPPED, EXACT, GTAO)
-               for preset in ("high", "ultra", "extreme", "reference")], groups)
+               for preset in ("high", "ultra", "extreme", "reference")] +
+              [(SCALAR[0], preset, SCALAR[1], {"preset": preset, **SCALAR[2]}, 1) for preset in ("high", "ultra", "extreme", "reference")],
+              groups)
     if "temporal" in args.study:
         table("A still camera's temporal accumulation at `high`: the mean of N frames of different noise",
               "pipeline | frames", [(label, f"{n} ({noise})", m, {"preset": "high", "noise": noise, **o}, n)
@@ -88,8 +95,8 @@ def main() -> None:
                for preset in ("ultra@half", "extreme@half", "extreme@quarter", "reference@quarter", "reference@half")],
               groups)
     if "grid" in args.study:
-        label, m, o = SHIPPED
-        table("The shipped pipeline's scalar parameters at `high` (defaults: thickness 0.5, radius 1)",
+        label, m, o = SCALAR
+        table("The scalar-thickness pipeline's parameters at `high` (defaults: thickness 0.5, radius 1)",
               "pipeline | thickness, radius",
               [(label, f"{t:g}, {r:g}", m, {"preset": "high", "thickness": t, **o, "radius": r}, 1)
                for t, r in itertools.product((0.2, 0.35, 0.5, 0.8), (0.85, 1.0, 1.2))], groups)

@@ -24,7 +24,7 @@ TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl)
 TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge)
 TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao)
 TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward)
-TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility / d radius, thickness too
+TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility / d radius, offset, scale too
 
 // The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
 // the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes

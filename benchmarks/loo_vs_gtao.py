@@ -1,0 +1,69 @@
+"""The shipped pipeline against the best GTAO a user could have, scene by scene, on scenes no fit saw.
+
+Runs ``torch-ao fit --leave-one-out`` three times (each resumable in its own ``--out`` folder): the default
+pipeline, GTAO with the bilinear fetch and GTAO with the edge-aware fetch. For each scene of the fit set it then
+compares the default pipeline fitted on the other scenes with the best of four GTAOs on that scene (each fetch at
+its defaults, and fitted on the other scenes); for the held-out scenes, which no fit trains on, with the main fits'
+held-out views. Prints the three numbers of docs/accuracy.md's report as Markdown:
+
+    OMP_NUM_THREADS=1 python benchmarks/loo_vs_gtao.py --out loo-runs      # about 10 minutes on one thread
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+
+from torch_ao.cli import main as cli
+
+RUNS = {"shipped": [], "gtao": ["--method", "gtao", "--fetch", "bilinear"],
+        "gtao edge_aware": ["--method", "gtao", "--fetch", "edge_aware"]}
+
+
+def run(out: str, extra: list[str]) -> dict:
+    """One ``torch-ao fit --leave-one-out`` (resumed when ``out`` holds it) and its params.json."""
+    if cli(["fit", "--leave-one-out", "--no-progress", "--out", out, *extra]) != 0:
+        raise SystemExit(f"torch-ao fit {' '.join(extra)} failed")
+    with open(os.path.join(out, "params.json")) as f:
+        return json.load(f)
+
+
+def per_scene(data: dict) -> tuple[dict[str, float], dict[str, float], dict[str, float], dict[str, float]]:
+    """``(fitted on the others, defaults)`` per fit-set scene, and ``(main fit, defaults)`` per held-out scene."""
+    loo = data["leave_one_out"]
+    fold_fit = {s: r["fitted"] for s, r in loo.items()}
+    fold_default = {s: r["default"] for s, r in loo.items()}
+    held = {}
+    for which in ("fitted", "default"):
+        held[which] = {name.split("/")[0]: m["psnr"] for name, m in data["per_view"][which].items()
+                       if name.split("/")[0] not in loo}
+    return fold_fit, fold_default, held["fitted"], held["default"]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="loo-runs", help="folder of the three runs (resumed when present)")
+    args = p.parse_args()
+    data = {label: run(os.path.join(args.out, label.replace(" ", "_")), extra) for label, extra in RUNS.items()}
+    results = {label: per_scene(d) for label, d in data.items()}
+    shipped = results["shipped"]
+    rows, margins = [], []
+    for group, (ours, gtao_index) in (("left out", (shipped[0], (0, 1))), ("held-out scene", (shipped[2], (2, 3)))):
+        for scene, psnr in ours.items():
+            candidates = {f"{label} {'fitted' if k % 2 == 0 else 'default'}": results[label][k][scene]
+                          for label in ("gtao", "gtao edge_aware") for k in gtao_index}
+            best = max(candidates, key=candidates.get)
+            margins.append(psnr - candidates[best])
+            rows.append(f"| {scene} ({group}) | {psnr:.2f} | {candidates[best]:.2f} ({best}) | {margins[-1]:+.2f} |")
+    print("| scene | shipped, fitted without it | best GTAO | difference |")
+    print("| --- | ---: | ---: | ---: |")
+    print("\n".join(rows))
+    folds = list(shipped[0].values())
+    print(f"\nleave-one-out mean {statistics.mean(folds):.2f} dB over {len(folds)} scenes; the one fit over all of "
+          f"them on the {len(data['shipped']['holdout_views'])} held-out views {data['shipped']['after']['psnr']:.2f} dB; "
+          f"worst scene against the best GTAO {min(margins):+.2f} dB")
+
+
+if __name__ == "__main__":
+    main()
