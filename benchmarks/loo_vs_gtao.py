@@ -4,7 +4,9 @@ Runs ``torch-ao fit --leave-one-out`` three times (each resumable in its own ``-
 pipeline, GTAO with the bilinear fetch and GTAO with the edge-aware fetch. For each scene of the fit set it then
 compares the default pipeline fitted on the other scenes with the best of four GTAOs on that scene (each fetch at
 its defaults, and fitted on the other scenes); for the held-out scenes, which no fit trains on, with the main fits'
-held-out views. Prints the three numbers of docs/accuracy.md's report as Markdown:
+held-out views. Last, the forward time of the fitted pipeline against GTAO ``high`` + denoiser on every view
+(interleaved, one thread: the median over views of each view's fastest of 5 runs). Prints the four numbers
+of docs/accuracy.md's report, the per-scene table as Markdown:
 
     OMP_NUM_THREADS=1 python benchmarks/loo_vs_gtao.py --out loo-runs      # about 10 minutes on one thread
 """
@@ -14,11 +16,17 @@ import argparse
 import json
 import os
 import statistics
+import time
 
+import torch
+
+from pipeline_candidates import fit_view_groups
 from torch_ao.cli import main as cli
+from torch_ao.fitted import FittedPipeline, load_fitted
 
-RUNS = {"shipped": [], "gtao": ["--method", "gtao", "--fetch", "bilinear"],
-        "gtao edge_aware": ["--method", "gtao", "--fetch", "edge_aware"]}
+#: the default pipeline; GTAO at ``high`` (its best split of the cost: docs/fitting.md) with either fetch
+RUNS = {"shipped": [], "gtao": ["--method", "gtao", "--fetch", "bilinear", "--preset", "high"],
+        "gtao edge_aware": ["--method", "gtao", "--fetch", "edge_aware", "--preset", "high"]}
 
 
 def run(out: str, extra: list[str]) -> dict:
@@ -39,6 +47,21 @@ def per_scene(data: dict) -> tuple[dict[str, float], dict[str, float], dict[str,
         held[which] = {name.split("/")[0]: m["psnr"] for name, m in data["per_view"][which].items()
                        if name.split("/")[0] not in loo}
     return fold_fit, fold_default, held["fitted"], held["default"]
+
+
+def time_ratio(pipeline, repeats: int = 5) -> tuple[float, float]:
+    """Median per-view forward seconds of ``pipeline`` and of GTAO ``high`` + denoiser, run interleaved."""
+    gtao = FittedPipeline("gtao", {"preset": "high", "radius": 1.0}, denoiser=True)
+    views = [v for group in fit_view_groups().values() for v in group]
+    best = {"pipeline": [float("inf")] * len(views), "gtao": [float("inf")] * len(views)}
+    with torch.no_grad():
+        for _ in range(repeats):
+            for i, view in enumerate(views):
+                for key, module in (("pipeline", pipeline), ("gtao", gtao)):
+                    start = time.perf_counter()
+                    module(view.gbuffer)
+                    best[key][i] = min(best[key][i], time.perf_counter() - start)
+    return statistics.median(best["pipeline"]), statistics.median(best["gtao"])
 
 
 def main() -> None:
@@ -63,6 +86,9 @@ def main() -> None:
     print(f"\nleave-one-out mean {statistics.mean(folds):.2f} dB over {len(folds)} scenes; the one fit over all of "
           f"them on the {len(data['shipped']['holdout_views'])} held-out views {data['shipped']['after']['psnr']:.2f} dB; "
           f"worst scene against the best GTAO {min(margins):+.2f} dB")
+    torch.set_num_threads(1)
+    ours, gtao = time_ratio(load_fitted(os.path.join(args.out, "shipped", "params.json")))
+    print(f"forward time {1000 * ours:.2f} ms against GTAO high + denoiser {1000 * gtao:.2f} ms: {ours / gtao:.2f}x")
 
 
 if __name__ == "__main__":

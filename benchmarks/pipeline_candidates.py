@@ -27,8 +27,11 @@ from torch_ao.methods import DEFAULT_PRESET
 
 #: (label, method, options): the pipeline `torch-ao fit` fits with no flags first
 CANDIDATES = (
-    ("bitmask cosine backface edge_aware (the default)", "bitmask",
+    ("bitmask cosine backface edge_aware high_steps (the default)", "bitmask",
+     {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware", "preset": "high_steps"}),
+    ("bitmask cosine backface edge_aware", "bitmask",
      {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware"}),
+    ("bitmask cosine edge_aware high_steps", "bitmask", {"weighting": "cosine", "fetch": "edge_aware", "preset": "high_steps"}),
     ("bitmask cosine", "bitmask", {"weighting": "cosine"}),
     ("bitmask cosine edge_aware", "bitmask", {"weighting": "cosine", "fetch": "edge_aware"}),
     ("bitmask cosine backface", "bitmask", {"weighting": "cosine", "thickness_model": "backface"}),
@@ -37,6 +40,7 @@ CANDIDATES = (
      {"variant": "exact", "thickness_model": "backface", "fetch": "edge_aware"}),
     ("gtao", "gtao", {}),
     ("gtao edge_aware", "gtao", {"fetch": "edge_aware"}),
+    ("gtao high_steps", "gtao", {"preset": "high_steps"}),
 )
 
 
@@ -67,7 +71,8 @@ def fitted_pipeline(method: str, options: dict, args, folder: str) -> FittedPipe
     """The candidate as ``torch-ao fit`` fits it on the training views of ``args``' size (its params.json,
     written under ``folder``)."""
     out = os.path.join(folder, f"{method}-{len(os.listdir(folder))}")
-    flags = ["fit", *fit_flags(method, options), "--preset", args.preset, "--size", args.size, "--spp", str(args.spp),
+    flags = ["fit", *fit_flags(method, options), "--preset", options.get("preset", args.preset), "--size", args.size,
+             "--spp", str(args.spp),
              "--train-views", str(args.train_views), "--no-progress", "--out", out]
     with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
         if cli(flags) != 0:
@@ -80,20 +85,20 @@ def main() -> None:
     p.add_argument("--size", default="160x96")
     p.add_argument("--spp", type=int, default=256)
     p.add_argument("--train-views", type=int, default=2)
-    p.add_argument("--preset", default=DEFAULT_PRESET)
+    p.add_argument("--preset", default=DEFAULT_PRESET, help="preset of every candidate but those that name theirs")
     p.add_argument("--repeats", type=int, default=1)
     p.add_argument("--fitted", action="store_true", help="score each candidate as torch-ao fit fits it")
     args = p.parse_args()
     groups = fit_view_groups(args.size, args.spp, args.train_views)
     state = "fitted by `torch-ao fit`" if args.fitted else "defaults"
-    print(f"| pipeline (+ denoiser, `{args.preset}`, {state}) | " + " | ".join(groups) + " | ms |")
+    print(f"| pipeline (+ denoiser, `{args.preset}` unless named, {state}) | " + " | ".join(groups) + " | ms |")
     print("| --- |" + " ---: |" * (len(groups) + 1))
     with tempfile.TemporaryDirectory() as folder:
         for label, method, options in CANDIDATES:
             if args.fitted:
                 pipe = fitted_pipeline(method, options, args, folder)
             else:
-                pipe = FittedPipeline(method, {"preset": args.preset, "radius": 1.0, **options}, denoiser=True)
+                pipe = FittedPipeline(method, {"preset": args.preset, "radius": 1.0, **options}, denoiser=True)  # (its own preset wins)
             with torch.no_grad():
                 scores = {g: evaluate(pipe, views, repeats=args.repeats) for g, views in groups.items()}
             ms = 1000 * sorted(s["seconds"] for s in scores.values())[1]

@@ -166,7 +166,7 @@ def test_fit_flags_are_its_options_with_the_same_defaults():
         assert _squash(opt.describe()) in _squash(action.help), opt.name
     args = build_parser().parse_args(["fit"])
     assert (args.method, args.preset, args.weighting, args.loss, args.size, args.out, args.device) == (
-        "bitmask", "high", "cosine", "l1", "160x96", "fit-out", "cpu")
+        "bitmask", None, "cosine", "l1", "160x96", "fit-out", "cpu")  # (preset: chosen with the pipeline)
     assert (args.steps, args.lr, args.hard_every, args.hard_patience, args.batch_views, args.seed) == (
         60, 0.05, 10, 2, 0, 0)
     assert (args.lr, args.hard_every, args.batch_views, args.seed, args.loss) == (

@@ -51,6 +51,9 @@ BITMASK = ("bitmask", "ssilvb")
 #: The fetch of a bitmask pipeline fitted without --fetch and --variant: the edge-aware one scored best of
 #: the candidate pipelines on the fit set's training views (benchmarks/pipeline_candidates.py, docs/fitting.md)
 BITMASK_FETCH = "edge_aware"
+#: The preset of the default pipeline (bitmask, default variant, back-face thickness) fitted without --preset:
+#: high's cost in 2 slices x 5 steps, which scored best fitted on the fit set's training views (docs/fitting.md)
+DEFAULT_PIPELINE_PRESET = "high_steps"
 #: Smallest width and height of the built-in views (``--size``).
 MIN_SIZE = 4
 #: Flags that do not change the fit (where it writes, how it reports, the held-out views it is scored on
@@ -86,7 +89,10 @@ OPTIONS = (
            choices=tuple(THICKNESS_MODELS)),
     Option("init", None, "start values, e.g. thickness=0.5,radius=1.2 (lengths in world units; a bare number is the "
            "thickness); when not given, the method's defaults", str),
-    replace(_method_option("bitmask", "preset"), default=DEFAULT_PRESET, help="quality preset of the fitted method"),
+    replace(_method_option("bitmask", "preset"), default=None, help="quality preset of the fitted method (the report's "
+            f"GTAO and engine-default rows run at it too); when not given, {DEFAULT_PRESET}, or {DEFAULT_PIPELINE_PRESET} "
+            "for the default pipeline (a bitmask method's default variant with the back-face thickness model: the same "
+            f"cost, chosen on the fit set; its rows of other methods stay at {DEFAULT_PRESET})"),
     replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
             "(cosine matches the cosine-weighted reference)"),
     replace(_method_option("bitmask", "fetch"), default=None, help="depth fetch of the fitted method's walk (see "
@@ -236,6 +242,12 @@ def _chosen_thickness(method: str, missing: list[str]) -> str:
               "every view: `torch-ao render --backface`, or your engine's front-face-culled depth pass)")
         return "scalar"
     return "backface"
+
+
+def _chosen_preset(args) -> str:
+    """``--preset`` when not given: :data:`DEFAULT_PIPELINE_PRESET` for the default pipeline, else the default preset."""
+    default_pipeline = args.method == "bitmask" and args.variant is None and args.thickness == "backface"
+    return DEFAULT_PIPELINE_PRESET if default_pipeline else DEFAULT_PRESET
 
 
 def _views(args) -> tuple[list, list, float]:
@@ -388,6 +400,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.leave_one_out and len({scene_of(v) for v in train}) < 2:
         raise CommandError("--leave-one-out: expected at least two --scenes (each is scored by a fit on the others)")
     model = thickness_options(args, itertools.chain(train, held), init)
+    args.compare_preset = args.preset or DEFAULT_PRESET  # (the report's other methods: their best split of the cost)
+    args.preset = args.preset or _chosen_preset(args)
     default, module, params = _pipelines(args, radius, model, init, denoise)
     denoised = " + denoiser" if denoise else ""
     ranks = f" on {distributed.world_size()} ranks" if distributed.is_distributed() else ""
@@ -403,7 +417,7 @@ def _run(args: argparse.Namespace) -> int:
     rows = {}
     if args.method in BITMASK:
         for t in (0.25, 0.5, 1.0):
-            engine = FittedPipeline(args.method, {"preset": args.preset, "radius": radius, "thickness": t,
+            engine = FittedPipeline(args.method, {"preset": args.compare_preset, "radius": radius, "thickness": t,
                                                   "weighting": "uniform"}, denoiser=denoise)
             rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True, distributed=True)
     if args.method != "gtao":
@@ -476,7 +490,7 @@ def _pipelines(args, radius: float, model: dict, init: dict, denoise: bool):
 
 
 def _gtao(args, radius: float, denoise: bool) -> FittedPipeline:
-    return FittedPipeline("gtao", {"preset": args.preset, "radius": radius}, denoiser=denoise)
+    return FittedPipeline("gtao", {"preset": args.compare_preset, "radius": radius}, denoiser=denoise)
 
 
 def _leave_one_out(args, train, held, radius, model, init, denoise, cfg, settings, out: Path) -> dict:

@@ -29,6 +29,9 @@ PRESETS: dict[str, tuple[int, int]] = {
     "low": (1, 2),
     "medium": (2, 2),
     "high": (3, 3),
+    # high's cost in longer steps: for thin occluders steps matter more than slices (the default torch-ao fit
+    # pipeline's sampling, chosen on the fit set: docs/fitting.md; GTAO scores best at high's 3 x 3)
+    "high_steps": (2, 5),
     "ultra": (9, 3),
     "extreme": (16, 8),
     "reference": (32, 32),
