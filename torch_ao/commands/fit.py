@@ -419,9 +419,9 @@ def _run(args: argparse.Namespace) -> int:
         for t in (0.25, 0.5, 1.0):
             engine = FittedPipeline(args.method, {"preset": args.compare_preset, "radius": radius, "thickness": t,
                                                   "weighting": "uniform"}, denoiser=denoise)
-            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors){denoised}"] = evaluate(engine, held, per_view=True, distributed=True)
+            rows[f"{args.method} thickness={t:g} (engine default: uniform sectors, {args.compare_preset}){denoised}"] = evaluate(engine, held, per_view=True, distributed=True)
     if args.method != "gtao":
-        rows[f"gtao (default parameters){denoised}"] = evaluate(_gtao(args, radius, denoise), held, per_view=True, distributed=True)
+        rows[f"gtao (default parameters, {args.compare_preset}){denoised}"] = evaluate(_gtao(args, radius, denoise), held, per_view=True, distributed=True)
     default_label = f"{args.method} default ({_describe(default, params)}){denoised}"
     rows[default_label] = before = evaluate(default, held, per_view=True, distributed=True)
     fitted_label = f"{args.method} fitted ({_describe(module, params)}){denoised}"
@@ -599,6 +599,9 @@ def _describe(pipeline: FittedPipeline, params) -> str:
         parts.append(f"{pipeline.options['weighting']} sectors")
     if "thickness_model" in pipeline.options:
         parts.append(f"{pipeline.options['thickness_model']} thickness")
+    method = pipeline.method
+    if getattr(method, "slices", None) is not None:  # (the report's rows may run at other presets)
+        parts.append(f"{pipeline.options.get('preset', 'explicit')} {method.slices}x{method.steps}")
     return ", ".join(parts)
 
 
