@@ -84,8 +84,8 @@ OPTIONS = (
     Option("thickness", None, "thickness model of a bitmask method (torch_ao.thickness): one scalar; one per "
            "object id (a table over the views' ids); linear in depth (thickness + thickness_slope * depth); the "
            "back-face layer (thickness_scale * (backface_depth - depth) + thickness: the built-in views are rendered "
-           "with it, --reference files must hold backface_depth); when not given, backface where every view holds a "
-           "back-face layer (it scores best on the fit set, docs/accuracy.md), else scalar", str,
+           "with it, --reference files must hold backface_depth); when not given, backface for bitmask where every view "
+           "holds a back-face layer (it scores best on the fit set, docs/fitting.md), else scalar", str,
            choices=tuple(THICKNESS_MODELS)),
     Option("init", None, "start values, e.g. thickness=0.5,radius=1.2 (lengths in world units; a bare number is the "
            "thickness); when not given, the method's defaults", str),
@@ -232,9 +232,10 @@ def _check_files(sources, backface: bool) -> list[str]:
 
 
 def _chosen_thickness(method: str, missing: list[str]) -> str:
-    """``--thickness`` when not given: ``backface`` for a bitmask method whose views all hold a back-face
-    layer (``missing`` names those that do not), else ``scalar``; says which, and why, when it matters."""
-    if method not in BITMASK:
+    """``--thickness`` when not given: ``backface`` for bitmask AO whose views all hold a back-face layer
+    (``missing`` names those that do not), else ``scalar`` (SSILVB too: the choice was measured for AO alone);
+    says which, and why, when it matters."""
+    if method != "bitmask":
         return "scalar"
     if missing:
         print(f"note: --thickness scalar: {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} has no "
