@@ -26,7 +26,7 @@ SETTINGS = [
     dict(mode="soft", slices=2, steps=4, border="clamp", sector_epsilon=0.0, thickness=0.9, radius=0.6, tau=0.1,
          weighting="cosine"),
     dict(mode="soft", slices=3, steps=3, noise="hilbert_r2", stagger=True, seed=1),
-    dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware"),  # what torch-ao fit fits
+    dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware"),  # torch-ao fit's pipeline with one scalar thickness
     dict(mode="straight_through", slices=3, steps=3, fetch="edge_aware", border="clamp", tau=0.2),
     dict(mode="soft", slices=2, steps=4, tau=1.5),  # a temperature whose sector window (soft.h) still leaves some out
 ]

@@ -155,7 +155,7 @@ def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypat
     vis = BitmaskAO(mode="soft", slices=2, steps=3)(graph).visibility
     (g_depth,) = torch.autograd.grad(vis.sum(), [depth])
     assert calls == [1] and g_depth.abs().sum() > 0
-    # and for the pipeline torch-ao fit fits by default (cosine sectors, the edge-aware fetch)
+    # and for the sectors and fetch of torch-ao fit's default pipeline (cosine, edge-aware)
     vis = BitmaskAO(mode="soft", slices=2, steps=3, weighting="cosine", fetch="edge_aware")(graph).visibility
     (g_depth,) = torch.autograd.grad(vis.sum(), [depth])
     assert calls == [1, 1] and g_depth.abs().sum() > 0

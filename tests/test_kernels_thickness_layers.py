@@ -175,7 +175,7 @@ SOFT_LAYERS = {  # model -> (its thickness, the parameters the fit moves)
     "linear": (lambda: LinearThickness(0.02, 0.15), ("radius", "thickness_slope", "thickness")),
 }
 SOFT_SETTINGS = [
-    dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware"),  # what torch-ao fit fits
+    dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware"),  # the sectors and fetch of torch-ao fit's default pipeline
     dict(mode="soft", slices=2, steps=3, tau=0.1, border="clamp"),
     dict(mode="straight_through", slices=3, steps=3, weighting="cosine", fetch="bilinear"),
     dict(mode="soft", slices=2, steps=4, fetch="nearest", rounding="round"),
