@@ -226,3 +226,17 @@ def test_hard_patience_waits_for_the_soft_loss_to_plateau():
     assert waits.converged and waits.steps_done < 300
     assert sum(losses[-10:-5]) / 5 - sum(losses[-5:]) / 5 <= 1e-3 * abs(sum(losses[-10:-5]) / 5)
     assert toy.thickness.item() == pytest.approx(0.3, abs=0.02)
+
+
+def test_a_limit_does_not_stop_a_fit_whose_patience_has_not_run_out():
+    """At the step limit the best hard-mode score is one check old (one miss, patience 2): the fit goes on
+    rather than stopping unconverged, and ends by its own rule, two misses after its best."""
+    vs = views()
+    cfg = dict(lr=0.05, hard_every=5, hard_patience=2)
+    probe = fit(Toy(1.5), vs, FitConfig(steps=400, **cfg), progress=False)
+    assert probe.converged and probe.steps_done == probe.best_step + 10
+    limit = probe.best_step + 5  # the limit falls one check after the best
+    limited = fit(Toy(1.5), vs, FitConfig(steps=limit, max_steps=400, **cfg), progress=False)
+    assert limited.converged and limited.steps_done == probe.steps_done and limited.best_step == probe.best_step
+    without = fit(Toy(1.5), vs, FitConfig(steps=limit, max_steps=limit, **cfg), progress=False)
+    assert not without.converged and without.steps_done == limit

@@ -13,8 +13,9 @@ The loop is plain Adam (by default) on the chosen ``nn.Parameter``s, with
   best-scoring parameters are kept (the soft objective's optimum is not always the shipped
   pipeline's), stopping after ``hard_patience`` scores without improvement (the fit has converged),
 * a step budget that grows while the fit improves: when ``steps`` are done and the best hard-mode
-  score is the latest one, the fit goes on (``hard_every * max(1, hard_patience)`` steps at a time) up
-  to ``max_steps``; :attr:`FitResult.converged` says whether it stopped by convergence,
+  score is the latest one, or fewer than ``hard_patience`` scores since the best have missed it, the fit
+  goes on (``hard_every * max(1, hard_patience)`` steps at a time) up to ``max_steps``;
+  :attr:`FitResult.converged` says whether it stopped by convergence,
 * atomic checkpoints (parameters, optimizer state, step, RNG state, history) every
   ``checkpoint_every`` steps; the same call with the same ``checkpoint`` path resumes and ends
   with the same result as an uninterrupted run. A checkpoint records the fingerprint of everything
@@ -95,8 +96,9 @@ class FitConfig:
     #: last ``hard_every`` steps is less than this fraction below the mean over the ``hard_every``
     #: before (0 = the hard-mode scores alone decide).
     plateau: float = 0.0
-    #: Largest number of steps: while the best hard-mode score is the latest one when the budget
-    #: (``steps``, then each extension) is spent, the fit goes on, up to this many (0 = ``steps``).
+    #: Largest number of steps: while the best hard-mode score is the latest one, or ``hard_patience`` has
+    #: not run out, when the budget (``steps``, then each extension) is spent, the fit goes on, up to this
+    #: many (0 = ``steps``).
     max_steps: int = 0
     #: Learning rate per parameter name (last part, e.g. ``{"radius": 0.01}``) replacing ``lr``.
     param_lr: dict = field(default_factory=dict)
@@ -439,9 +441,12 @@ def fit(module: nn.Module, views: Sequence[FitView], config: FitConfig | None = 
         return before - last <= cfg.plateau * abs(before)
 
     def extend() -> bool:
-        """At the step limit: raise it when the latest hard-mode score is the best and ``max_steps`` allows."""
+        """At the step limit: raise it while the fit has not converged by its own rule, so that a limit never
+        stops a fit that is still improving (the latest hard-mode score is the best, or fewer than
+        ``hard_patience`` scores since the best have failed to improve on it), as ``max_steps`` allows."""
         latest_is_best = hard and state["hard"] and state["best_step"] == state["hard"][-1]["step"]
-        if not latest_is_best or state["limit"] >= cfg.max_steps:
+        patient = hard and cfg.hard_patience and state.get("hard_bad", 0) < cfg.hard_patience
+        if not (latest_is_best or patient) or state["limit"] >= cfg.max_steps:
             return False
         state["limit"] = min(cfg.max_steps, state["limit"] + cfg.hard_every * max(1, cfg.hard_patience))
         if bar is not None:

@@ -116,8 +116,8 @@ OPTIONS = (
     options_by_name(RENDER_OPTIONS)["spp"],
     replace(options_by_name(RENDER_OPTIONS)["max_distance"], default=1.0,
             help="reference AO ray length R of the built-in views (finite)"),
-    Option("steps", 60, "optimizer steps; a fit whose best hard-mode score is at the last step goes on, up to "
-           "--max-steps", int, minimum=0),
+    Option("steps", 60, "optimizer steps; a fit still improving at the last step (its best hard-mode score the "
+           "latest, or --hard-patience not run out) goes on, up to --max-steps", int, minimum=0),
     Option("plateau", 0.01, "with --hard-patience, stop only once the soft loss has plateaued too: its mean over the "
            "last --hard-every steps less than this fraction below the mean over the ones before (0 = hard scores alone)",
            float, minimum=0.0),
