@@ -37,16 +37,14 @@ def run(out: str, extra: list[str]) -> dict:
         return json.load(f)
 
 
-def per_scene(data: dict) -> tuple[dict[str, float], dict[str, float], dict[str, float], dict[str, float]]:
-    """``(fitted on the others, defaults)`` per fit-set scene, and ``(main fit, defaults)`` per held-out scene."""
+def per_scene(data: dict) -> dict[str, dict[str, dict[str, float]]]:
+    """PSNR per scene ``{group: {"fitted" | "default": {scene: dB}}}``: group ``"left out"`` (fit-set scenes,
+    fitted on the others) and ``"held-out scene"`` (fitted on the fit set by the main fit)."""
     loo = data["leave_one_out"]
-    fold_fit = {s: r["fitted"] for s, r in loo.items()}
-    fold_default = {s: r["default"] for s, r in loo.items()}
-    held = {}
-    for which in ("fitted", "default"):
-        held[which] = {name.split("/")[0]: m["psnr"] for name, m in data["per_view"][which].items()
-                       if name.split("/")[0] not in loo}
-    return fold_fit, fold_default, held["fitted"], held["default"]
+    held = {which: {name.split("/")[0]: m["psnr"] for name, m in data["per_view"][which].items()
+                    if name.split("/")[0] not in loo} for which in ("fitted", "default")}
+    return {"left out": {which: {s: r[which] for s, r in loo.items()} for which in ("fitted", "default")},
+            "held-out scene": held}
 
 
 def time_ratio(pipeline, repeats: int = 5) -> tuple[float, float]:
@@ -72,17 +70,17 @@ def main() -> None:
     results = {label: per_scene(d) for label, d in data.items()}
     shipped = results["shipped"]
     rows, margins = [], []
-    for group, (ours, gtao_index) in (("left out", (shipped[0], (0, 1))), ("held-out scene", (shipped[2], (2, 3)))):
-        for scene, psnr in ours.items():
-            candidates = {f"{label} {'fitted' if k % 2 == 0 else 'default'}": results[label][k][scene]
-                          for label in ("gtao", "gtao edge_aware") for k in gtao_index}
+    for group, ours in shipped.items():
+        for scene, psnr in ours["fitted"].items():
+            candidates = {f"{label} {which}": results[label][group][which][scene]
+                          for label in ("gtao", "gtao edge_aware") for which in ("fitted", "default")}
             best = max(candidates, key=candidates.get)
             margins.append(psnr - candidates[best])
             rows.append(f"| {scene} ({group}) | {psnr:.2f} | {candidates[best]:.2f} ({best}) | {margins[-1]:+.2f} |")
     print("| scene | shipped, fitted without it | best GTAO | difference |")
     print("| --- | ---: | ---: | ---: |")
     print("\n".join(rows))
-    folds = list(shipped[0].values())
+    folds = list(shipped["left out"]["fitted"].values())
     print(f"\nleave-one-out mean {statistics.mean(folds):.2f} dB over {len(folds)} scenes; the one fit over all of "
           f"them on the {len(data['shipped']['holdout_views'])} held-out views {data['shipped']['after']['psnr']:.2f} dB; "
           f"worst scene against the best GTAO {min(margins):+.2f} dB")

@@ -60,8 +60,7 @@ def fit_flags(method: str, options: dict) -> list[str]:
     so that no default of the command's decides)."""
     flags = ["--method", method, "--fetch", options.get("fetch", "bilinear")]
     if method == "bitmask":
-        flags += ["--thickness", options.get("thickness_model", "scalar"), "--weighting", options["weighting"]
-                  if "weighting" in options else "cosine"]
+        flags += ["--thickness", options.get("thickness_model", "scalar"), "--weighting", options.get("weighting", "cosine")]
     if "variant" in options:
         flags += ["--variant", options["variant"]]
     return flags
@@ -72,8 +71,7 @@ def fitted_pipeline(method: str, options: dict, args, folder: str) -> FittedPipe
     written under ``folder``)."""
     out = os.path.join(folder, f"{method}-{len(os.listdir(folder))}")
     flags = ["fit", *fit_flags(method, options), "--preset", options.get("preset", args.preset), "--size", args.size,
-             "--spp", str(args.spp),
-             "--train-views", str(args.train_views), "--no-progress", "--out", out]
+             "--spp", str(args.spp), "--train-views", str(args.train_views), "--no-progress", "--out", out]
     with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
         if cli(flags) != 0:
             raise SystemExit(f"torch-ao {' '.join(flags)} failed")
