@@ -116,8 +116,8 @@ typedef void Backward(const float*, const float*, const float*, const float*, co
                       const float*, const long long*, float*, float*, float*, float*, float*, float*, float*,
                       const long long*, const float*, int, int, int);
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
-                          const float*, const float*, float*, float*, float*, float*, float*, float*,
-                          const long long*, const float*, int, int, int);
+                          const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
+                          float*, const long long*, const float*, int, int, int);
 typedef void HardRecord(const float*, const float*, const float*, const float*, const bool*, const float*,
                         const float*, const float*, const float*, float*, int*, const long long*, const float*, int,
                         int, int);
@@ -187,8 +187,9 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                    floats.data(), B, H, W); });
   } else if (name == "soft") {
     grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
-                                                  grad.data(), gp.data(), gn.data(), gd.data(), gs.data(), taps.data(),
-                                                  ti.data(), ints.data(), floats.data(), B, H, W); });
+                                                  Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
+                                                  gd.data(), gs.data(), taps.data(), ti.data(), tl.data(), ints.data(),
+                                                  floats.data(), B, H, W); });
   } else if (name == "wedge" || name == "pssao") {  // (every step replayed: no record)
     Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_pssao;
     grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
@@ -347,6 +348,10 @@ def _backward_cases():
     yield "soft", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 1  # (rounding, cosine, straight, read)
     yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0], [0.4, 0.01, 0.1, 0.0], 1
     yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0], [0.5, 0.0, 0.3, 0.0], 1
+    # (offset, epsilon, tau, scale): the back-face layer, a per-object table's first tap, the linear model
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1], [0.1, 0.01, 0.25, 0.8], 1
+    yield "soft", walk_settings(**common), [0, False, False, 2], [0.05, 0.01, 0.25, 1.0], 1
+    yield "soft", walk_settings(**common), [0, True, True, 3], [0.1, 0.01, 0.25, 0.05], 1
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
@@ -370,7 +375,8 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     normals = gb.view_normals()
     backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
     for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
-        layer = backface if (accumulator == "exact" and acc_ints[3]) or (accumulator == "hard" and acc_ints[4]) else None
+        reads = {"exact": 3, "soft": 3, "hard": 4}
+        layer = backface if accumulator in reads and acc_ints[reads[accumulator]] in (1, 2) else None
         light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
         light = light if accumulator == "hard" and acc_ints[2] else None
         inputs, (light, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
@@ -405,8 +411,10 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                                                                                        floats, True)
             g_setting = torch.zeros_like(g_depth)
         elif accumulator == "soft":
-            g_pos, g_nrm, g_inv, g_depth, g_setting = grad_kernels().soft_backward(grad, *inputs, cells, ints, floats,
-                                                                                   True)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad = grad_kernels().soft_backward(
+                grad, *inputs, cells, layer, ints, floats, True)
+            if layer.numel():
+                cpu["layer"] = layer_grad
         elif accumulator in ("wedge", "pssao"):
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
                 accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True, True)
@@ -439,10 +447,11 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "exact", "hard", "indirect", "gtao_camera",
-                                    "ue4ssao", "pssao"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "exact", "hard", "indirect",
+                                    "gtao_camera", "ue4ssao", "pssao"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
-    """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward) and the exact union with the
+    """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
+    back-face layer) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
     (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
     (tao_backward_wedge, tao_backward_pssao) on a CUDA G-buffer against the same call on the CPU; with the
@@ -460,6 +469,8 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
               "hbao": lambda: torch_ao.HBAO(slices=4, steps=4),
               "soft": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", slices=3,
                                                  steps=4),
+              "soft_backface": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware",
+                                                          thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
               "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
                                                   steps=4),
               "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),

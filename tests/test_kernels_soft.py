@@ -155,7 +155,9 @@ def test_kernel_covers_names_what_it_does_not_cover():
         for weighting in ("uniform", "cosine"):
             assert covers(BitmaskAO(mode=mode, weighting=weighting), gb) is None
     assert covers(BitmaskAO(mode="hard", weighting="cosine"), gb) is None  # (uniform: the hard kernel's first)
-    assert "thickness" in covers(BitmaskAO(mode="soft", thickness=torch.ones(3)), gb)
+    ids = GBuffer(depth=gb.depth, camera=gb.camera, object_id=torch.zeros(gb.depth.shape, dtype=torch.int64))
+    assert covers(BitmaskAO(mode="soft", thickness=torch.ones(3)), ids) is None  # (the table's gradient: autograd's)
+    assert "thickness" in covers(BitmaskAO(mode="soft", thickness=torch.ones(3), thickness_growth=0.5), ids)
     assert "indirect" in covers(BitmaskAO(mode="soft", indirect=True), gb)
     assert "float64" in covers(BitmaskAO(mode="soft"), gb.to(dtype=torch.float64))
     assert covers(BitmaskAO(mode="soft", fetch="edge_aware"), gb) is None

@@ -247,15 +247,89 @@ def test_soft_kernel_layer_matters_and_its_scale_gradient_matches_finite_differe
     assert float(g) == pytest.approx((losses[0] - losses[1]) / (2 * h), rel=2e-2)
 
 
-def test_soft_kernel_leaves_gbuffer_gradients_with_a_layer_to_the_tensor_path(built):
+SOFT_GBUFFER_MODELS = {  # model -> (its thickness for a frame, the parameters the fit moves)
+    **{model: (lambda gb, make=make: make(), names) for model, (make, names) in SOFT_LAYERS.items()},
+    "net": (lambda gb: NetThickness(scale=1.0, init=0.3, thickness=0.05), ("radius", "thickness")),
+    "map": (lambda gb: MapThickness(_map(gb)), ("radius", "thickness")),
+    "object": (lambda gb: ObjectThickness(torch.tensor([0.05, 0.8])), ("radius", "thickness")),
+}
+
+
+def _soft_gbuffer_grads(model: str, settings: dict, dtype: torch.dtype, lanes: str | None):
+    """The visibility and the gradients of a weighted sum of it with respect to depth, normals, the back-face depth,
+    the model's parameters and (the net) its weights: the tensor walk in ``dtype`` (``lanes=None``) or the soft
+    kernel (float32) in ``lanes``."""
+    gb0 = _backface(_frame("rough")).to(dtype=dtype)
+    depth = gb0.depth.detach().clone().requires_grad_()
+    normals = gb0.view_normals().detach().clone().requires_grad_()
+    back = gb0.backface_depth.detach().clone().requires_grad_()
+    gb = GBuffer(depth=depth, normals=normals, camera=gb0.camera, backface_depth=back, object_id=_frame("rough").object_id)
+    make, names = SOFT_GBUFFER_MODELS[model]
+    torch.manual_seed(0)  # (the net's initial weights)
+    module = BitmaskAO(thickness=make(gb0), backend="torch", **settings).to(dtype)
+    if lanes is None:
+        vis = module(gb).visibility
+    else:
+        assert soft_module.kernel_covers(module, gb) is None
+        form = module_thickness(module, gb)
+        vis = bitmask_soft(gb, normals, slices=module.slices, steps=module.steps, radius=module.radius,
+                           thickness=form.offset, layer=form.layer, layer_scale=form.scale, thickness_read=form.read,
+                           tau=module.tau, weighting=module.weighting, straight_through=module.mode != "soft",
+                           min_step_px=module.min_step_px, fetch=module.fetch, border=module.border,
+                           rounding=module.rounding, sector_epsilon=module.sector_epsilon, lanes=lanes)
+    weights = torch.linspace(0.5, 1.5, vis.numel(), dtype=dtype).view_as(vis)
+    leaves = {"depth": depth, "normals": normals, "backface_depth": back,
+              **{n: getattr(module, n) for n in names},
+              **{n: p for n, p in module.named_parameters() if n.startswith("thickness_net")}}
+    grads = torch.autograd.grad((vis * weights).sum(), list(leaves.values()), allow_unused=True)
+    return vis.detach().double(), {n: torch.zeros(()) if g is None else g.double() for n, g in zip(leaves, grads)}
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("setting", [0, 2])
+@pytest.mark.parametrize("model", sorted(SOFT_GBUFFER_MODELS))
+def test_soft_kernel_differentiates_the_gbuffer_and_the_layer_as_the_float64_tensor_walk(built, model, setting,
+                                                                                          lanes):
+    """With a thickness model that reads a layer (the back-face depth's, the net's map, a map, a per-object table
+    at the first tap) or the sample's depth, the soft kernel's G-buffer backward: d / d depth, normals and the
+    back-face depth, the model's parameters (the map and the table themselves) and the net's weights within 1e-4
+    relative of the float64 tensor walk's autograd (soft, and straight-through: the soft union's gradients)."""
+    settings = SOFT_SETTINGS[setting]
+    want_vis, want = _soft_gbuffer_grads(model, settings, torch.float64, None)
+    got_vis, got = _soft_gbuffer_grads(model, settings, torch.float32, lanes)
+    if settings["mode"] == "soft":
+        assert (got_vis - want_vis).abs().max() <= 1e-5
+    for name, w in want.items():
+        g = got[name]
+        finite = torch.isfinite(w)
+        if w[finite].abs().max() == 0:  # only the back-face model reads the back-face depth; the untrained net's
+            # hidden layers feed a head whose weights start at 0
+            assert (name == "backface_depth" and model != "backface") or name.startswith("thickness_net_body"), name
+            assert g.abs().max() == 0, name
+            continue
+        assert w[finite].abs().max() > 1e-4, name  # (each gradient means something)
+        error = float((g - w)[finite].norm() / w[finite].norm())
+        assert error <= 1e-4, (name, error)
+
+
+def test_soft_kernel_gbuffer_gradients_with_a_layer_match_finite_differences(built):
+    """The back-face model's soft kernel: d loss / d the back-face depth along a random direction against the
+    central difference of the kernel's own loss (float64 sums of a float32 walk; h = 1e-3 world units)."""
     gb = _backface(FRAMES["example"]())
-    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, backface_depth=gb.backface_depth)
-    module = BitmaskAO(thickness=BackfaceThickness(), mode="soft", weighting="cosine")
-    assert "thickness layer" in soft_module.kernel_covers(module, graph)
-    assert soft_module.kernel_covers(BitmaskAO(thickness=BackfaceThickness(), mode="soft"), gb) is None
-    with pytest.raises(ValueError, match="one scalar thickness only"):
-        form = module_thickness(module, graph)
-        bitmask_soft(graph, graph.view_normals(), slices=2, steps=2, radius=module.radius, thickness=form.offset,
-                     layer=form.layer, layer_scale=form.scale, tau=0.25)
-    # a per-object table or a map that is itself trained is a layer wanting a gradient
-    assert "thickness layer" in soft_module.kernel_covers(BitmaskAO(thickness=MapThickness(_map(gb)), mode="soft"), gb)
+    finite = torch.isfinite(gb.backface_depth)
+    direction = torch.where(finite, torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(5)), 0.0)
+    module = BitmaskAO(thickness=BackfaceThickness(0.8, 0.1), mode="soft", slices=3, steps=4, weighting="cosine",
+                       fetch="edge_aware", backend="kernel")
+
+    def loss(back):
+        vis = module(GBuffer(depth=gb.depth, camera=gb.camera, backface_depth=back)).visibility
+        return (vis.double() * torch.linspace(0.5, 1.5, vis.numel(), dtype=torch.float64).view_as(vis)).sum()
+
+    back = gb.backface_depth.clone().requires_grad_()
+    (g,) = torch.autograd.grad(loss(back), [back])
+    h = 1e-3
+    with torch.no_grad():
+        difference = (loss(gb.backface_depth + h * direction) - loss(gb.backface_depth - h * direction)) / (2 * h)
+    along = float((torch.where(finite, g, 0.0).double() * direction).sum())
+    assert abs(along) > 1e-2
+    assert along == pytest.approx(float(difference), rel=2e-2)

@@ -63,7 +63,7 @@ def grad_kernels():
     def _(grad, positions, normals, inverse_depth, depth, *args):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
-                depth.new_empty(depth.shape))
+                depth.new_empty((*depth.shape, 2)), depth.new_empty(depth.shape))  # (offset and scale; the layer's)
 
     @torch.library.register_fake("torch_ao_kernels::hard_record")
     def _(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints, floats, channels,

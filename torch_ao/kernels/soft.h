@@ -20,8 +20,9 @@
 //
 // The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
 // value lanes keeping each step's fetch, runs the same reverse scan, and chains each step's d vis / d s,
-// d w by hand: through SectorInterval's atan2 to d / d delta (scattered, times the upstream gradient, to the
-// fetch's taps by the caller's sink) and on to the slice's quantities (V, T, P, the screen direction, the
+// d w by hand: through SectorInterval's atan2 to d / d delta and d / d its thickness (scattered, times the
+// upstream gradient, to the fetch's taps by the caller's sink: the position's, and the layer's where the model
+// reads one; the linear model's value is the fetched position's depth) and on to the slice's quantities (V, T, P, the screen direction, the
 // span, gamma), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
 // lanes (lanes_dual.h); the cosine weights carry their own tangents.
 #pragma once
@@ -118,8 +119,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     // thickness t, the value its scale multiplies and d t along the radius
     LaneArray<F, kKept> s, w, av, at, dav, dat, t, tv, dt;
     // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
-    // pixels, and d position / d su, d sv
-    LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3];
+    // pixels, d position / d su, d sv and d / d su, d sv of the value the thickness' scale multiplies
+    LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3], dv_su, dv_sv;
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
     LaneArray<SoftCoverage<F>, kKeepCoverage ? kKept : 1> coverages;  // the sweep's, for the reverse scan
@@ -227,6 +228,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       }
       for (int i = 0; i < 4; ++i) st.index[i][m] = smp.index[i];
       st.fu[m] = smp.fu, st.fv[m] = smp.fv, st.valid[m] = smp.valid, st.dist[m] = dist;
+      st.dv_su[m] = moves ? thickness.motion(smp, d_su, F(1.0f), F(0.0f)) : F(0.0f);
+      st.dv_sv[m] = moves ? thickness.motion(smp, d_sv, F(0.0f), F(1.0f)) : F(0.0f);
       return;
     }
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
@@ -342,21 +345,32 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
       const F side = F(m < walk.steps ? 1.0f : -1.0f), g_dt = g.at * side;  // d / d (delta . T)
       const auto valid = st.valid[m];
+      const F g_value = g.thickness * F(thickness.scale);  // d visibility / d the value the scale multiplies
       F g_delta[3];
+      for (int c = 0; c < 3; ++c) g_delta[c] = g.av * px.V[c] + g_dt * sl.T[c];
+      // the fetch moves with (su, sv): its position, and the value the model reads there (ThicknessModel::motion)
+      const F g_su = side * (g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m] +
+                             g_value * st.dv_su[m]);
+      const F g_sv = side * (g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
+                             g_value * st.dv_sv[m]);
+      if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
+        g_delta[2] = g_delta[2] - g_value;
+        g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
+      }
       for (int c = 0; c < 3; ++c) {
-        g_delta[c] = g.av * px.V[c] + g_dt * sl.T[c];
         g_V[c] = g_V[c] + g.av * st.delta[c][m] - select(valid, F(0.0f), g_delta[c]);
         g_T[c] = g_T[c] + g_dt * st.delta[c][m];
         g_P[c] = g_P[c] - select(valid, g_delta[c], F(0.0f));
       }
-      const F g_su = side * (g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m]);
-      const F g_sv = side * (g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m]);
       g_unit_u = g_unit_u + g_su * st.dist[m], g_unit_v = g_unit_v + g_sv * st.dist[m];
       g_span = g_span + (g_su * sl.unit_u + g_sv * sl.unit_v) * ((st.dist[m] - F(walk.min_step_px)) * frac_of);
       g_shift = g_shift + g.shift;
-      sums.thickness = sums.thickness + D(select(px.live, g.thickness, F(0.0f)));
+      const F g_t = select(px.live, g.thickness, F(0.0f));
+      sums.thickness = sums.thickness + D(g_t);
+      sums.scale = sums.scale + D(g_t * st.tv[m]);
       for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] * weight;
-      sink.scatter(g_delta, st, m, land(px.live, valid));
+      const F g_layer = g_value * weight;  // (read by the layer's taps: scattered where the model reads a layer)
+      sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_layer : nullptr);
     });
     D along = D(g_unit_u) * sd.unit_u + D(g_unit_v) * sd.unit_v + D(g_span) * sd.span +
               D(g_shift) * ((D(kHalfPi) - sd.gamma) / D(kPi));
@@ -393,7 +407,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
 // The backward's accumulator (walk_block's interface) over value lanes F: SoftAccumulator<true, true>'s
 // slices ended by end_slice_adjoint into sink, with the pixels pd in dual lanes D (tangents on their own
 // P, N, depth) and each slice's in D; sums in D. finish writes the visibility's 7 tangents, then
-// d visibility / d thickness.
+// d visibility / d the thickness' offset and d its scale.
 template <class F, class D, class Sink> struct SoftAdjoint {
   using Acc = SoftAccumulator<true, true>;
   const Acc& acc;
@@ -407,7 +421,7 @@ template <class F, class D, class Sink> struct SoftAdjoint {
     Slice<D> sd;
   };
   template <class G> using Sums = typename Acc::template Sums<D>;
-  TAO_FN int channels() const { return 8; }
+  TAO_FN int channels() const { return 9; }
   TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
     return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
   }
@@ -421,7 +435,7 @@ template <class F, class D, class Sink> struct SoftAdjoint {
     D vis[4];
     acc.finish(sums, pd, vis);
     for (int k = 0; k < 7; ++k) out[k] = vis[0].d[k];
-    out[7] = vis[2].v;
+    out[7] = vis[2].v, out[8] = vis[3].v;
   }
 };
 

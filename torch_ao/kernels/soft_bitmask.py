@@ -1,26 +1,30 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
 on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``,
 the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
-a map, the linear model in depth) and, with one scalar thickness, to the G-buffer (depth or positions, normals),
+a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals)
+and the thickness layer the model reads (and through it the back-face depth, a map, a table, the net's weights),
 on the CPU and CUDA.
 
 The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sectors.soft_union`, or the
-hard coverage in straight-through mode). When only radius and the thickness want a gradient, the same walk also
-returns each pixel's derivatives of its visibility with respect to them (the soft union's reverse scan per
-slice, in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per
+hard coverage in straight-through mode). When only radius and the thickness' scalars want a gradient, the same
+walk also returns each pixel's derivatives of its visibility with respect to them (the soft union's reverse scan
+per slice, in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per
 sample, three channels per pixel.
 
-When the G-buffer wants one, the forward is the plain walk over the channel-last inputs of
-:func:`~torch_ao.kernels.frame.walk_inputs` (so that autograd chains their gradients to depth, positions
-and normals through its torch ops), and the backward (walk_grad.h's ``soft_grad_block``:
-``torch_ao_kernels::soft_backward`` on the CPU, ``tao_soft_backward`` on CUDA) walks again in dual lanes
-(``lanes_dual.h``: tangents on each pixel's own position, normal and depth), runs the reverse
-scan per slice, contracts each step's d visibility / d (s, w) with the tangents of its interval, and
-scatters its d visibility / d delta to the step's fetch taps (bilinear: the four inverse depths; nearest:
-the tap's position; on CUDA atomically). The radius needs no tangent: the walk is scale-invariant (positions, depth, radius and
-thickness scaled together leave it as it is), so Euler's identity gives
-``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - T dL/dT``. Gradients of the
-intrinsics are not computed (:func:`kernel_covers` sends such a call to the tensor path).
+When the G-buffer or the layer wants one, the forward is the plain walk over the channel-last inputs of
+:func:`~torch_ao.kernels.frame.walk_inputs` and the layer (so that autograd chains their gradients to depth,
+positions, normals and whatever made the layer through its torch ops), and the backward (walk_grad.h's
+``soft_grad_block``: ``torch_ao_kernels::soft_backward`` on the CPU, ``tao_soft_backward`` on CUDA) walks again
+with the pixel and its slices in dual lanes (``lanes_dual.h``: tangents on each pixel's own position, normal and
+depth), runs the reverse scan per slice, contracts each step's d visibility / d (s, w) with the tangents of its
+interval, and scatters its d visibility / d delta to the step's fetch taps (bilinear: the four inverse depths;
+nearest: the tap's position; on CUDA atomically) and d visibility / d its thickness, times the scale, to the
+layer's taps (the linear model's value is the sample's depth: it joins d / d delta). The offset's and the scale's
+gradients are per-pixel sums of the same adjoints. The radius needs no tangent: the walk is scale-invariant
+(positions, depth, a layer, radius and offset scaled together leave it as it is; the scale is unitless), so
+Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse + dL/dlayer layer)
+- T dL/dT``. Gradients of the intrinsics are not computed (:func:`kernel_covers` sends such a call to the
+tensor path).
 """
 from __future__ import annotations
 
@@ -45,8 +49,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
-    differentiable with respect to ``radius``, ``thickness``, ``layer_scale`` and (with no ``layer``) the
-    G-buffer's depth, positions and ``normals``.
+    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
+    positions and ``normals``.
 
     Args:
         gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
@@ -63,17 +67,14 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
-    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient, or when the G-buffer or ``layer``
-    wants one while the thickness reads a layer or depth (the kernel computes neither).
+    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient (the kernel does not compute it).
     """
     uncovered = _gbuffer_gradient_uncovered(gbuffer)
     if uncovered is not None:
         raise ValueError(f"gbuffer: the soft kernel does not compute {uncovered}; detach it or use backend='torch'")
     read = thickness_read_index(thickness_read, layer)
-    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals) or (layer is not None and layer.requires_grad)
-    if of_gbuffer and read != 0:
-        raise ValueError("gbuffer, layer: the soft kernel differentiates the G-buffer with one scalar thickness only; "
-                         "detach them or use backend='torch'")
+    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals) or (
+        layer is not None and layer.requires_grad and torch.is_grad_enabled())
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         if of_gbuffer:
@@ -90,7 +91,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    stagger=bool(stagger), fetch=fetch, border=border,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read)
     if of_gbuffer:
-        return _gbuffer_walk(gbuffer, normals, *scalars, options)
+        return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
     return _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
 
 
@@ -127,53 +128,62 @@ def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients):
                     4 if gradients else 1, backface=layer, lanes=o["lanes"])
 
 
-def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, o):
-    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), radius and thickness
-    (one scalar: ``scale`` multiplies nothing)."""
-    inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o))
-    return _GBufferWalk.apply(*inputs, cells, ints, floats, radius, thickness, scalar_lanes(o["lanes"]))
+def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o):
+    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), the thickness
+    ``layer`` and the scalars."""
+    inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o),
+                                                                  backface=layer)
+    return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale,
+                              scalar_lanes(o["lanes"]))
 
 
 class _GBufferWalk(torch.autograd.Function):
-    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the edge-aware
-    fetch's ``cells``) and ``soft_backward``."""
+    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the edge-aware fetch's
+    ``cells`` and the thickness ``layer`` (each empty where unused), and ``soft_backward``."""
 
     @staticmethod
-    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, thickness,
-                scalar):
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
+                thickness, scale, scalar):
         none = torch.empty(0, device=depth.device)
-        ctx.scalar = scalar
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius,
-                              thickness)
+        ctx.scalar, ctx.scale_dtype = scalar, scale.dtype
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats,
+                              radius, thickness)
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             out = torch.empty(depth.shape[0], 1, *depth.shape[1:], device=depth.device)
-            launch_cuda("tao_walk_soft", depth.device, [*frame, none, cells, none, out, ints, floats],
+            launch_cuda("tao_walk_soft", depth.device, [*frame, none, cells, layer, out, ints, floats],
                         tuple(depth.shape))
             return out
-        return cpu_kernels().walk("soft", *frame, none, cells, none, ints, floats, 1, scalar)
+        return cpu_kernels().walk("soft", *frame, none, cells, layer, ints, floats, 1, scalar)
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, thickness = ctx.saved_tensors
-        frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
+        positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius, thickness = \
+            ctx.saved_tensors
+        frame = (positions, normals, inverse, depth, valid, intrinsics, cells, layer)
         grad = grad.to(torch.float32).contiguous()
         if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
-            g_depth, g_thick, g_inv = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            g_setting = depth.new_zeros((*depth.shape, 2))
             launch_cuda("tao_soft_backward", depth.device,
-                        [*frame, grad, g_pos, g_nrm, g_depth, g_thick, taps, g_inv, ints, floats], tuple(depth.shape))
+                        [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, ints, floats],
+                        tuple(depth.shape))
             g_pos += taps
         else:
-            g_pos, g_nrm, g_inv, g_depth, g_thick = grad_kernels().soft_backward(grad, *frame, ints, floats, ctx.scalar)
-        g_thickness = g_thick.double().sum()
+            g_pos, g_nrm, g_inv, g_depth, g_setting, g_layer = grad_kernels().soft_backward(grad, *frame, ints, floats,
+                                                                                           ctx.scalar)
+        g_thickness, g_scale = g_setting.double().sum(dim=(0, 1, 2)).unbind()
         g_radius = None
-        if ctx.needs_input_grad[9]:  # Euler's identity (module docstring); invalid texels hold NaN
+        if ctx.needs_input_grad[10]:  # Euler's identity (module docstring); invalid texels hold NaN
             along = ((g_pos.double() * positions).sum() + (g_depth.double() * depth).sum()
                      - torch.where(valid, g_inv.double() * inverse, 0.0).sum())
+            if layer.numel():  # (a layer is world units: it scales with the scene)
+                along = along + torch.where(torch.isfinite(layer), g_layer.double() * layer, 0.0).sum()
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
-        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, None, None, g_radius,
-                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[10] else None, None)
+        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, g_layer if layer.numel() else None, None, None,
+                g_radius, g_thickness.to(thickness.dtype) if ctx.needs_input_grad[11] else None,
+                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
@@ -206,19 +216,14 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
     value + offset``, visibility only, a float32 CPU G-buffer) with either weighting; gradients of radius and
-    the thickness' offset and scale, and with one scalar thickness of depth, positions and normals; not of
-    the intrinsics, nor of a layer the thickness reads."""
+    the thickness' offset and scale, of depth, positions, normals and the layer the thickness reads; not of
+    the intrinsics."""
     of_gbuffer = _gbuffer_wants_gradient(gbuffer, gbuffer.normals)
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES, layers=True)
     if reason is not None:
         return reason
     if module.mode == "hard" and of_gbuffer:
         return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
-    if module.mode != "hard" and torch.is_grad_enabled():
-        form = module_thickness(module, gbuffer)
-        if form.read != "constant" and (of_gbuffer or (form.layer is not None and form.layer.requires_grad)):
-            return (f"a gradient of the G-buffer or of the thickness layer with thickness model "
-                    f"{type(module.thickness_model).__name__} (the kernel's G-buffer backward reads one scalar)")
     reason = _gbuffer_gradient_uncovered(gbuffer)
     return None if reason is None else f"{reason} (the kernel differentiates radius, thickness, depth, positions and normals)"
 

@@ -394,21 +394,22 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
 template <class B> struct TapSink {
-  bool bilinear;
+  bool bilinear, layer_bilinear;  // the fetch's; the layer's read (ThicknessModel::value: bilinear, or the first tap)
   int n;
   const Targets& t;
 
   template <class State>
-  TAO_FN void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on) {
+  TAO_FN void scatter(const B* g_delta, const State& st, int m, const typename LaneTraits<B>::M& on,
+                      const B* g_layer = nullptr) {
     const B pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
     const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
-    scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on);
+    scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on, g_layer, layer_bilinear);
   }
 };
 
 // The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
 // slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
-// d L / d thickness written per pixel
+// d L / d the thickness' offset and scale written per pixel (t.settings == 2), the layer's to its taps
 template <class B>
 TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc,
                             int64_t row, int64_t u0, int n, const float* upstream, const Targets& t) {
@@ -417,14 +418,14 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
   float lane[L];
   for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
   const B g = from_lanes(lane, B(0.0f));
-  TapSink<B> sink{cfg.bilinear, n, t};
+  TapSink<B> sink{cfg.bilinear, cfg.bilinear && acc.thickness.read == ThicknessRead::layer, n, t};
   const Pixels<D> pd(cfg, img, row, u0, n);
   const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
-  B outs[8];
+  B outs[9];
   walk_block(cfg, img, adjoint, row, u0, n, outs);
-  B own[8];
-  for (int k = 0; k < 8; ++k) own[k] = g * outs[k];
-  write_own(t, img.W, row, u0, n, own, &own[kPixel]);  // (the setting: d L / d thickness)
+  B own[9];
+  for (int k = 0; k < 9; ++k) own[k] = g * outs[k];
+  write_own(t, img.W, row, u0, n, own, &own[kPixel]);  // (the settings: d L / d the offset, d L / d the scale)
 }
 
 // The exact union's backward (bitmask.h's ExactAccumulator: variant="exact" in every mode) of the n <= L pixels
@@ -775,13 +776,15 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
 }
 
 // Pixel p's soft backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals, depth and
-// d L / d thickness) and its steps' taps' (atomically) as grad_pixel's
+// d L / d the thickness' offset and scale: thickness (B, H, W, 2)) and its steps' taps' (positions, inverse
+// depth, the layer's where the model reads one; atomically) as grad_pixel's
 TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true>& acc, const Frame& fr,
                             const float* grad, float* positions, float* normals, float* depth, float* thickness,
-                            float* tap_positions, float* tap_inverse, int64_t p) {
+                            float* tap_positions, float* tap_inverse, float* tap_layer, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + b * plane,
-                  tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 2 * b * plane,
+                  tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
+                  nullptr, nullptr, nullptr, 2};
   soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 

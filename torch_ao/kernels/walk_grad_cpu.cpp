@@ -302,24 +302,27 @@ struct BackwardCall {
 
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
 // walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
-// depth (B, H, W), and each pixel's share of the thickness' (B, H, W); grad (B, 1, H, W); cells: the
-// edge-aware fetch's cell flags (B, H, W), else empty
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
+// depth (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2) and the thickness layer
+// (B, H, W; zeros where the model reads none); grad (B, 1, H, W); cells: the edge-aware fetch's cell flags
+// (B, H, W), backface: the thickness layer (B, H, W), each empty where unused
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
-    const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
+    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none, ints, floats,
-                          4, 4, "soft", kSoftMaxSteps / 2);
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, backface, ints,
+                          floats, 4, 4, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
-  TORCH_CHECK(call.i[kAccInts + 3] == int64_t(ThicknessRead::constant),
-              "soft_backward: one scalar thickness (the G-buffer's backward does not chain a thickness layer)");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W);
-  return call.run(grad, 1, scalar, out, false, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
-                                                   int n, const float* upstream, const Targets& t) {
+  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
+  out.settings = 2;  // d L / d the offset, d L / d the scale
+  out.setting = at::zeros({call.fr.B, call.fr.H, call.fr.W, 2}, positions.options());
+  auto g = call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
+                                                    int n, const float* upstream, const Targets& t) {
     soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
+  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.setting, std::get<4>(g)};
 }
 
 // torch_ao_kernels::exact_backward: the gradients of sum(grad * visibility) of the exact union's walk ("exact"'s
@@ -424,8 +427,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, bool scalar) "
-        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
   m.def("exact_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
