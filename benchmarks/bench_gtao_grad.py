@@ -28,7 +28,7 @@ from torch_ao.methods.hbao import HBAO  # noqa: E402
 from torch_ao.methods.pssao import PSSAO  # noqa: E402
 from torch_ao.methods.ue4_ssao import UE4SSAO  # noqa: E402
 
-#: the modules benchmarked (GTAO's radius is frozen for ue4: its kernel gradient is not covered)
+#: the modules benchmarked
 METHODS = {"gtao": (GTAO, {}), "hdrp": (GTAO, {"variant": "hdrp"}), "ue4": (GTAO, {"variant": "ue4"}),
            "hbao": (HBAO, {}), "hbao-max": (HBAO, {"accumulate": "max"}),
            "ue4ssao": (UE4SSAO, {"sample_set": "uniform"}), "pssao": (PSSAO, {})}
@@ -65,10 +65,7 @@ def main() -> None:
             slices, steps = map(int, setting.split("x"))
 
             def module(backend):
-                m = make(slices=slices, steps=steps, backend=backend, **options)
-                if options.get("variant") == "ue4":
-                    m.radius.requires_grad_(False)
-                return m
+                return make(slices=slices, steps=steps, backend=backend, **options)
 
             def forward():
                 with torch.no_grad():

@@ -129,6 +129,7 @@ def _without_thickness(settings: dict) -> dict:
 def _cases() -> dict[str, Case]:
     import torch_ao
     from torch_ao.thickness import BackfaceThickness
+    from torch_ao.thickness_net import NetThickness
 
     def bitmask(**options):
         return lambda s: torch_ao.BitmaskAO(backend="kernel", **s, **options)
@@ -141,6 +142,17 @@ def _cases() -> dict[str, Case]:
 
     def pssao(s):  # (the gist's pixel offsets: no radius)
         return torch_ao.PSSAO(slices=s["slices"], steps=s["steps"], backend="kernel")
+
+    def backface(backend):
+        return lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend=backend,
+                                            thickness=BackfaceThickness(0.8, 0.15), **_without_thickness(s))
+
+    def net(backend):
+        def make(s):
+            torch.manual_seed(0)  # (the net's initial weights)
+            return torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend=backend,
+                                      thickness=NetThickness(scale=s["radius"], init=0.3), **_without_thickness(s))
+        return make
 
     def exact(backend, trainable=False):
         return lambda s: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), fetch="edge_aware",
@@ -179,6 +191,18 @@ def _cases() -> dict[str, Case]:
             "soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend="torch", **s),
             "gbuffer", "bitmask", 3.0, kernel=False),
+        # torch-ao fit's default pipeline (cosine, the back-face layer near its fitted scale and offset, edge-aware)
+        "backface_gbuffer": Case("soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals",
+                                 backface("kernel"), "gbuffer", "bitmask", 3.0),
+        "backface_gbuffer_torch": Case(
+            "soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
+            backface("torch"), "gbuffer", "bitmask", 3.0, kernel=False),
+        # the learned thickness trained end to end (training_examples/train_thickness_net.py --finetune-epochs)
+        "net_parameters": Case("soft `BitmaskAO` cosine + `NetThickness` + edge-aware fwd+bwd, the net's weights",
+                               net("kernel"), "parameters", "bitmask", 3.0),
+        "net_parameters_torch": Case(
+            "soft `BitmaskAO` cosine + `NetThickness` + edge-aware fwd+bwd, the net's weights, tensor ops",
+            net("torch"), "parameters", "bitmask", 3.0, kernel=False),
         "cosine_hard_gbuffer": Case("`BitmaskAO` hard, cosine fwd+bwd, depth + normals",
                                     bitmask(mode="hard", weighting="cosine"), "gbuffer", "cosine", 3.0),
         "cosine_bent_hard_gbuffer": Case("`BitmaskAO` hard, cosine + bent normals fwd+bwd, depth + normals",

@@ -7,7 +7,10 @@ from typing import Callable
 import torch
 
 __all__ = ["fast_acos", "safe_fast_acos", "clamped_gradient", "safe_acos", "safe_pow", "arc_integral", "arc_measure",
-           "channel_norm", "normalize_channels"]
+           "channel_norm", "normalize_channels", "UE4_EPSILON"]
+
+#: UE4's GTAO ``rsqrt(|delta|^2 + 1e-4)`` (``SearchForLargestAngleDual``): world units squared
+UE4_EPSILON = 1e-4
 
 
 def fast_acos(x: torch.Tensor) -> torch.Tensor:

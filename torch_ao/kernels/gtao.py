@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import torch
 
 from ..gbuffer import GBuffer
+from ..ops import UE4_EPSILON
 from .coverage import call_uncovered
 from .launch import run_walk, walk_settings
 from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
@@ -53,8 +54,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
             (pixels, ``None``: none), jitter, seed, noise, stagger, fetch, border, azimuth, projected_normal_weight: as
             :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
             body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer or
-            the tensors ``radius``, ``falloff`` (exact) or ``thickness`` (ue4), on CPU, the sums carry their
-            gradients (walk_grad.py; not ue4's radius', see there).
+            the tensors ``radius``, ``falloff`` (exact) or ``thickness`` (ue4), the sums carry their
+            gradients (walk_grad.py).
 
     Channels: the slice integrals and the unoccluded integrals summed over slices, then with
     ``bent_normals`` the bent-normal sum (3). Raises :class:`~torch_ao.kernels.KernelUnavailable` when the
@@ -64,15 +65,12 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
                              min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed,
                              noise=noise, stagger=stagger, fetch=fetch, border=border, azimuth=azimuth,
                              placement="power" if variant == "exact" else variant)
-    setting = {"exact": falloff, "ue4": thickness}.get(variant, 0.0)
+    # the backward's settings (horizon.h's seed_setting) and their world-unit dimensions (Euler's identity)
+    setting, dimension = {"exact": ((falloff,), (1,)), "ue4": ((thickness, UE4_EPSILON), (0, 2))}.get(variant, ((0.0,), (0,)))
     walk, options = run_walk, {}
-    if wants_gradient(gbuffer, normals, radius, setting):
+    if wants_gradient(gbuffer, normals, radius, *setting):
         _check_gradient(gbuffer)
-        if variant == "ue4" and isinstance(radius, torch.Tensor) and radius.requires_grad:
-            raise ValueError("radius: variant 'ue4' has no kernel gradient of the radius (its rsqrt(|d|^2 + 1e-4) "
-                             "is not scale-invariant)")
-        walk, options = differentiable_walk, {"radius": radius, "setting": (setting,),
-                                              "setting_is_length": (variant == "exact",)}
+        walk, options = differentiable_walk, {"radius": radius, "setting": setting, "setting_dimension": dimension}
     return walk("gtao", gbuffer, normals, settings,
                 [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
                 [float32_value(radius), float32_value(falloff), float32_value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
@@ -200,9 +198,6 @@ def gradient_uncovered(module, gbuffer: GBuffer, parameters=()) -> str | None:
     if others:
         return (f"a gradient of {', '.join(others)} is asked for (the kernel's backward gives "
                 f"{', '.join(_BACKWARD_PARAMETERS[kind])})")
-    if kind == "gtao" and module.variant == "ue4" and "radius" in parameters:
-        return ("a gradient of the radius with variant 'ue4' is asked for (its rsqrt(|d|^2 + 1e-4) is not "
-                "scale-invariant, which the backward's radius gradient rests on)")
     return None
 
 

@@ -25,6 +25,7 @@ template <class F> TAO_FN F arc_integral(const F& h1, const F& h2, const F& n, c
 }
 
 enum class GTAOVariant : int64_t { exact = 0, hdrp = 1, ue4 = 2 };
+constexpr float kUE4Epsilon = 1e-4f;  // ue4's rsqrt(|d|^2 + 1e-4), world units squared
 
 struct GTAOAccumulator {
   GTAOVariant variant;
@@ -36,7 +37,9 @@ struct GTAOAccumulator {
   template <class F> struct State { F best[2]; };  // [0]: side +1, [1]: side -1
   template <class F> struct Sums { F vis = F(0.0f), free = F(0.0f), bent[3] = {F(0.0f), F(0.0f), F(0.0f)}; };
   TAO_FN int channels() const { return bent ? 5 : 2; }
-  TAO_FN int settings() const { return 1; }  // falloff (exact) or thickness (ue4) (seed_setting)
+  // falloff (exact), or thickness and the length epsilon (ue4) (seed_setting): ue4's epsilon is an area, which
+  // breaks the walk's scale invariance unless its gradient joins Euler's identity (walk_grad.py)
+  TAO_FN int settings() const { return variant == GTAOVariant::ue4 ? 2 : 1; }
   // whether a step that changes a side's state replaces it (the state after depends on the slice and the
   // sample alone): the exact variant's minimum; the shaders' updates blend the sample into the horizon
   TAO_FN bool replaces() const { return variant == GTAOVariant::exact; }
@@ -71,7 +74,7 @@ struct GTAOAccumulator {
       best = select(smp.valid, upd, best);
     } else {  // SearchForLargestAngleDual
       const F len_sq = dot3(smp.delta, smp.delta);
-      F ang = dot3(smp.delta, px.V) * rsqrt(len_sq + F(1e-4f));
+      F ang = dot3(smp.delta, px.V) * rsqrt(len_sq + seed_setting(F(kUE4Epsilon), 1));
       const F falloff_w = clamp(len_sq * (F(2.0f) / (R * R)), F(0.0f), F(1.0f));
       ang = ang + falloff_w * (best - ang);
       const F upd = select(ang > best, ang, ang + seed_setting(F(thickness)) * (best - ang));

@@ -63,7 +63,7 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
     if wants_gradient(gbuffer, normals, radius, fade_distance, flat_surface_bias):
         walk, options = differentiable_walk, {"radius": radius, "setting": (fade_distance, flat_surface_bias,
                                                                             flat_softness),
-                                              "setting_is_length": (True, True, True)}
+                                              "setting_dimension": (1, 1, 1)}
     return walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
                 [max(float32_value(fade_distance), 1e-30), float32_value(flat_surface_bias), float(flat_softness)], 2,
                 lanes=lanes, **options)

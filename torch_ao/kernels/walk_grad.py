@@ -18,11 +18,11 @@ gradients, the camera's fx, fy, cx, cy are leaves too (the slice's screen extent
 unprojection), their per-pixel adjoints summed per image.
 
 The radius needs no tangent of its own: the walk is scale-invariant (scaling positions, depth and every
-length setting by s leaves its outputs as they are: screen positions, angles and the falloff ratio do not
-change; step settings are in pixels), so for L = sum(grad * out) Euler's identity gives
-``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - sum_k [s_k dL/ds_k]`` over the
-walk's inputs, the last sum over the settings that are lengths (GTAO's falloff; UE4 SSAO's three).
-UE4's variant is not scale-invariant (its ``rsqrt(|d|^2 + 1e-4)``): its radius has no gradient here.
+setting that is a length or an area by s, s^2 leaves its outputs as they are: screen positions, angles and the
+falloff ratio do not change; step settings are in pixels), so for L = sum(grad * out) Euler's identity gives
+``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse) - sum_k [d_k s_k dL/ds_k]`` over the
+walk's inputs, the last sum over the settings with their dimension d_k in world units (1: GTAO's falloff, UE4
+SSAO's three; 2: the constant of the ue4 variant's ``rsqrt(|d|^2 + 1e-4)``, a setting for this alone).
 """
 from __future__ import annotations
 
@@ -44,8 +44,8 @@ class _Walk(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats,
-                channels, scalar, radius, setting, setting_is_length, record_shape):
-        ctx.accumulator, ctx.scalar, ctx.setting_is_length = accumulator, scalar, setting_is_length
+                channels, scalar, radius, setting, setting_dimension, record_shape):
+        ctx.accumulator, ctx.scalar, ctx.setting_dimension = accumulator, scalar, setting_dimension
         frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
         if record_shape is None:  # every step replayed: the plain walk, no record
             none = positions.new_empty(0)
@@ -89,8 +89,8 @@ class _Walk(torch.autograd.Function):
                 return (g.to(torch.float64) * x.to(torch.float64)).sum()
             along = (dot(g_pos, positions) + dot(g_depth, depth)
                      - torch.where(valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum())
-            lengths = torch.tensor(ctx.setting_is_length, dtype=torch.float64, device=setting.device)
-            along = along + (lengths * setting.to(torch.float64) * along_setting).sum()
+            dimension = torch.tensor(ctx.setting_dimension, dtype=torch.float64, device=setting.device)
+            along = along + (dimension * setting.to(torch.float64) * along_setting).sum()
             g_radius = (-along / radius).to(radius.dtype)
         g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
         return (None, g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, None, None, None, None, g_radius, g_out,
@@ -114,7 +114,7 @@ def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool
 def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor,
                         settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list, channels: int,
                         *, radius: torch.Tensor | float, setting: tuple = (0.0,),
-                        setting_is_length: tuple = (False,), lanes: str = "simd") -> torch.Tensor:
+                        setting_dimension: tuple = (0,), lanes: str = "simd") -> torch.Tensor:
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU or CUDA G-buffer with autograd history: gradients
     reach ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs (on CUDA at most
     :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``: ``"gtao"`` or ``"hbao"`` (their forward records
@@ -123,8 +123,8 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     a number. ``setting``: the accumulator's differentiable settings (its ``settings()``, in its order), 0-d
     tensors or numbers whose values ``acc_floats`` holds (GTAO's falloff in world units or thickness; HBAO's
     angle bias; UE4 SSAO's fade distance, flat-surface bias and softness; PSSAO's distance bias), which receive
-    their gradients; ``setting_is_length``: per setting, whether it is a length (the radius' gradient, Euler's
-    identity, needs every length's)."""
+    their gradients; ``setting_dimension``: per setting, its power of world units (0: none, 1: a length, 2: an
+    area; the radius' gradient, Euler's identity, needs each)."""
     inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
     radius = torch.as_tensor(radius)
     setting = torch.stack([torch.as_tensor(v, dtype=torch.float32, device=gbuffer.depth.device) for v in setting])
@@ -133,5 +133,5 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
         raise ValueError(f"steps: the CUDA backward replays at most {MAX_CUDA_STEPS} steps per side, got {steps}")
     takes = accumulator in ("gtao", "hbao")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
-                       tuple(bool(x) for x in setting_is_length),
+                       tuple(int(x) for x in setting_dimension),
                        (int(slices), 2, (int(steps) + 63) // 64) if takes else None)

@@ -53,7 +53,7 @@ import torch
 import torch.nn.functional as F
 
 from ..checks import check_choice, scalar_value
-from ..ops import arc_integral, fast_acos, safe_pow
+from ..ops import UE4_EPSILON, arc_integral, fast_acos, safe_pow
 from ..options import Option
 from ..walk import Frame, SliceAccumulator, SlicePattern, radius_px, step_direction
 from .base import ScreenSpaceAO
@@ -247,7 +247,7 @@ class UE4GTAOAccumulator(_ShaderGTAOAccumulator):
     def step(self, state, q, geom, sample):
         best = state[sample.side]
         len_sq = sample.delta.square().sum(-1)
-        ang = sample.along_view * torch.rsqrt(len_sq + 1e-4)
+        ang = sample.along_view * torch.rsqrt(len_sq + UE4_EPSILON)
         falloff = (len_sq * (2.0 / self.radius.square())).clamp(0.0, 1.0)
         ang = ang + falloff * (best - ang)
         upd = torch.where(ang > best, ang, ang + self.thickness * (best - ang))
