@@ -117,7 +117,7 @@ typedef void Backward(const float*, const float*, const float*, const float*, co
                       const long long*, const float*, int, int, int);
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                           const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
-                          float*, const long long*, const float*, int, int, int);
+                          float*, float*, const long long*, const float*, int, int, int);
 typedef void HardRecord(const float*, const float*, const float*, const float*, const bool*, const float*,
                         const float*, const float*, const float*, float*, int*, const long long*, const float*, int,
                         int, int);
@@ -188,8 +188,8 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   } else if (name == "soft") {
     grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
-                                                  gd.data(), gs.data(), taps.data(), ti.data(), tl.data(), ints.data(),
-                                                  floats.data(), B, H, W); });
+                                                  gd.data(), gs.data(), taps.data(), ti.data(), tl.data(), gc.data(),
+                                                  ints.data(), floats.data(), B, H, W); });
   } else if (name == "wedge" || name == "pssao") {  // (every step replayed: no record)
     Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_pssao;
     grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
@@ -411,8 +411,8 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                                                                                        floats, True)
             g_setting = torch.zeros_like(g_depth)
         elif accumulator == "soft":
-            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad = grad_kernels().soft_backward(
-                grad, *inputs, cells, layer, ints, floats, True)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad, cpu["camera"] = grad_kernels().soft_backward(
+                grad, *inputs, cells, layer, ints, floats, True, True)
             if layer.numel():
                 cpu["layer"] = layer_grad
         elif accumulator in ("wedge", "pssao"):

@@ -135,8 +135,40 @@ def test_gradients_match_central_differences_on_a_small_frame(built, mode):
         assert abs(analytical - numerical) <= 1e-4 * scale, (analytical, numerical, scale)
 
 
+def _intrinsics_grads(gb0: GBuffer, dtype: torch.dtype, lanes: str | None, settings: dict):
+    """d(weighted visibility)/d(depth, the intrinsics (B, 4), radius): the tensor path in ``dtype``
+    (``lanes=None``) or the kernel (float32) in ``lanes``."""
+    gb0 = gb0.to(dtype=dtype)
+    depth = gb0.depth.detach().clone().requires_grad_()
+    intrinsics = gb0.camera.intrinsics.detach().clone().requires_grad_()
+    gb = GBuffer(depth=depth, normals=gb0.view_normals().detach(),
+                 camera=PinholeCamera(intrinsics, gb0.camera.height, gb0.camera.width))
+    module = BitmaskAO(backend="torch", **settings).to(dtype)
+    vis = module(gb).visibility if lanes is None else _soft(gb, gb.normals, module, lanes)
+    grads = torch.autograd.grad((vis * _loss_weights(vis).to(dtype)).sum(), [depth, intrinsics, module.radius],
+                                allow_unused=True)  # (a nearest fetch does not move with the radius)
+    return [torch.zeros((), dtype=torch.float64) if g is None else g.double() for g in grads]
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("setting", [0, 2, 4, 5, 7])
+def test_intrinsics_gradients_equal_the_float64_tensor_walk(built, lanes, setting):
+    """The intrinsics reach the walk through the positions (autograd of walk_inputs) and in the kernel: the
+    slice's screen motion (its direction places the steps, its length the span) and a bilinear fetch's
+    unprojection (soft.h's end_slice_adjoint chains both by hand). Their sum per image, the depth's gradient and
+    the radius' beside it, within 1e-4 relative of the float64 tensor walk's autograd (soft and
+    straight-through, bilinear, nearest and edge-aware fetches, dropped and clamped borders)."""
+    gb = FRAMES["rough"]()
+    ref_depth, ref_intrinsics, ref_radius = _intrinsics_grads(gb, torch.float64, None, SETTINGS[setting])
+    depth, intrinsics, radius = _intrinsics_grads(gb, torch.float32, lanes, SETTINGS[setting])
+    assert ref_intrinsics.abs().max() > 1e-3  # (the comparison means something)
+    assert _relative(intrinsics, ref_intrinsics) <= 1e-4
+    assert _relative(depth, ref_depth) <= 1e-4
+    assert abs(float(radius - ref_radius)) <= 1e-4 * abs(float(ref_radius)) + 1e-4 * float(ref_depth.abs().sum())
+
+
 # ------------------------------------------------------------------------------- what it covers
-def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypatch):
+def test_kernel_covers_gbuffer_gradients_and_the_intrinsics(built, monkeypatch):
     gb = example_gbuffer(12, 16)
     covers = soft_module.kernel_covers
     depth = gb.depth.clone().requires_grad_()
@@ -146,10 +178,8 @@ def test_kernel_covers_gbuffer_gradients_but_not_the_intrinsics(built, monkeypat
     assert "hard mode" in covers(BitmaskAO(mode="hard", weighting="cosine"), graph)
     intrinsics = gb.camera.intrinsics.clone().requires_grad_()
     moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width))
-    assert "intrinsics" in covers(BitmaskAO(mode="soft"), moving)
-    with pytest.raises(ValueError, match="gbuffer.*intrinsics"):
-        bitmask_soft(moving, moving.view_normals(), slices=2, steps=3, radius=torch.tensor(1.0),
-                     thickness=torch.tensor(0.5), tau=0.25)
+    assert covers(BitmaskAO(mode="soft"), moving) is None
+    assert "hard mode" in covers(BitmaskAO(mode="hard", weighting="cosine"), moving)
     # the auto backend takes the kernel for a depth gradient
     calls = count_kernel_calls(monkeypatch, "bitmask")
     vis = BitmaskAO(mode="soft", slices=2, steps=3)(graph).visibility

@@ -60,10 +60,12 @@ def grad_kernels():
                 positions.new_empty((B, H, W, 4) if camera else (0,)))
 
     @torch.library.register_fake("torch_ao_kernels::soft_backward")
-    def _(grad, positions, normals, inverse_depth, depth, *args):
+    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats, camera,
+          scalar):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
-                depth.new_empty((*depth.shape, 2)), depth.new_empty(depth.shape))  # (offset and scale; the layer's)
+                depth.new_empty((*depth.shape, 2)), depth.new_empty(depth.shape),  # (offset and scale; the layer's)
+                depth.new_empty((*depth.shape, 4) if camera else (0,)))
 
     @torch.library.register_fake("torch_ao_kernels::hard_record")
     def _(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints, floats, channels,

@@ -127,6 +127,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   };
   template <class F> struct Sums {
     F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f);
+    F camera[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // the backward's d num / d fx, fy, cx, cy (values only)
   };
   // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d its
   // thickness t
@@ -329,10 +330,14 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   // chains it to the step's taps; the same adjoints chained by hand through the step (delta = pos(su, sv)
   // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, av = delta . V, at = side delta
   // . T, the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the
-  // pixel and slice in dual lanes) sums.num gains, with the cosine weights' own
+  // pixel and slice in dual lanes) sums.num gains, with the cosine weights' own. With camera (the image whose
+  // intrinsics want gradients), also d num / d fx, fy, cx, cy into sums.camera: through the slice's screen motion (du, dv) = (fx a, -fy b) / depth
+  // (its direction unit_u, unit_v and the span from its length) and a bilinear fetch's unprojection
+  // ((su - cx) / fx, -(sv - cy) / fy) depth
   template <class F, class D, class Sink>
   TAO_FN void end_slice_adjoint(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, const Pixels<D>& pd,
-                                const Slice<D>& sd, Sums<D>& sums, const F& weight, Sink& sink) const {
+                                const Slice<D>& sd, Sums<D>& sums, const F& weight, Sink& sink,
+                                const Image* camera = nullptr) const {
     LaneArray<F, kKept * kSectors> before;
     sweep(st, &before[0]);
     LaneArray<D, kSectors> omega;  // the weights with their tangents
@@ -341,6 +346,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     sums.num = sums.num + visible(st, omega, sums);
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
     F g_unit_u = F(0.0f), g_unit_v = F(0.0f), g_span = F(0.0f), g_shift = F(0.0f);
+    F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d num / d fx, fy, cx, cy (with camera)
     const F frac_of = reciprocal(select(sl.span > F(0.0f), sl.span, F(1.0f)));
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
       const F side = F(m < walk.steps ? 1.0f : -1.0f), g_dt = g.at * side;  // d / d (delta . T)
@@ -368,10 +374,32 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       const F g_t = select(px.live, g.thickness, F(0.0f));
       sums.thickness = sums.thickness + D(g_t);
       sums.scale = sums.scale + D(g_t * st.tv[m]);
+      if (camera && walk.bilinear) {  // pos = ((su - cx) / fx, -(sv - cy) / fy) depth at the fetched depth
+        const auto on = land(px.live, valid);
+        const F x = st.pos[0][m], y = st.pos[1][m], z = neg(st.pos[2][m]);
+        g_cam[0] = g_cam[0] - select(on, g_delta[0] * x, F(0.0f)) / F(camera->fx);
+        g_cam[1] = g_cam[1] - select(on, g_delta[1] * y, F(0.0f)) / F(camera->fy);
+        g_cam[2] = g_cam[2] - select(on, g_delta[0] * z, F(0.0f)) / F(camera->fx);
+        g_cam[3] = g_cam[3] + select(on, g_delta[1] * z, F(0.0f)) / F(camera->fy);
+      }
       for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] * weight;
       const F g_layer = g_value * weight;  // (read by the layer's taps: scattered where the model reads a layer)
       sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_layer : nullptr);
     });
+    if (camera) {  // the screen motion: unit = (du, dv) / len, span = clamp(R len stretch, max) - min_step_px
+      const F len = sl.screen_length, inv = reciprocal(clamp_min(len, F(1e-12f)));
+      const F uu = sl.unit_u, uv = sl.unit_v;
+      F along_len = sl.radius_px * inv;  // d span / d len where neither clamp holds
+      if (walk.max_radius_px > 0) along_len = select(sl.radius_px < F(walk.max_radius_px), along_len, F(0.0f));
+      along_len = select(sl.radius_px - F(walk.min_step_px) >= F(0.0f), along_len, F(0.0f));
+      const auto moving = len > F(1e-12f);
+      const F g_len = g_span * along_len;
+      const F g_du = select(moving, (g_unit_u * (F(1.0f) - uu * uu) - g_unit_v * uu * uv) * inv, F(0.0f)) + g_len * uu;
+      const F g_dv = select(moving, (g_unit_v * (F(1.0f) - uv * uv) - g_unit_u * uu * uv) * inv, F(0.0f)) + g_len * uv;
+      g_cam[0] = g_cam[0] + g_du * (uu * len) / F(camera->fx);  // du = fx a / depth: d du / d fx = du / fx
+      g_cam[1] = g_cam[1] + g_dv * (uv * len) / F(camera->fy);
+      for (int k = 0; k < 4; ++k) sums.camera[k].v = sums.camera[k].v + select(px.live, g_cam[k], F(0.0f));
+    }
     D along = D(g_unit_u) * sd.unit_u + D(g_unit_v) * sd.unit_v + D(g_span) * sd.span +
               D(g_shift) * ((D(kHalfPi) - sd.gamma) / D(kPi));
     for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
@@ -406,8 +434,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
 
 // The backward's accumulator (walk_block's interface) over value lanes F: SoftAccumulator<true, true>'s
 // slices ended by end_slice_adjoint into sink, with the pixels pd in dual lanes D (tangents on their own
-// P, N, depth) and each slice's in D; sums in D. finish writes the visibility's 7 tangents, then
-// d visibility / d the thickness' offset and d its scale.
+// P, N, depth) and each slice's in D; sums in D. finish writes the visibility's 7 tangents, d visibility / d
+// the thickness' offset and d its scale, then (with camera; else zeros) d visibility / d fx, fy, cx, cy.
 template <class F, class D, class Sink> struct SoftAdjoint {
   using Acc = SoftAccumulator<true, true>;
   const Acc& acc;
@@ -415,13 +443,14 @@ template <class F, class D, class Sink> struct SoftAdjoint {
   const Pixels<D>& pd;
   F weight;
   Sink& sink;
+  bool camera;  // d visibility / d the intrinsics too (4 more channels)
   mutable int64_t slice = 0;
   template <class G> struct State {
     typename Acc::template State<G> base;
     Slice<D> sd;
   };
   template <class G> using Sums = typename Acc::template Sums<D>;
-  TAO_FN int channels() const { return 9; }
+  TAO_FN int channels() const { return 13; }
   TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
     return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
   }
@@ -429,13 +458,15 @@ template <class F, class D, class Sink> struct SoftAdjoint {
     acc.step(st.base, side, px, sl, smp);
   }
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
-    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, sink);
+    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, sink, camera ? &img : nullptr);
   }
   TAO_FN void finish(const Sums<F>& sums, const Pixels<F>&, F* out) const {
     D vis[4];
     acc.finish(sums, pd, vis);
     for (int k = 0; k < 7; ++k) out[k] = vis[0].d[k];
     out[7] = vis[2].v, out[8] = vis[3].v;
+    const F den = acc.cosine ? clamp_min(sums.den.v, F(1e-30f)) : F(float(acc.walk.slices));
+    for (int k = 0; k < 4; ++k) out[9 + k] = select(pd.live, sums.camera[k].v / den, F(0.0f));
   }
 };
 

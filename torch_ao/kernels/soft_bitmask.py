@@ -1,8 +1,8 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
 on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``,
 the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
-a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals)
-and the thickness layer the model reads (and through it the back-face depth, a map, a table, the net's weights),
+a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals,
+the intrinsics) and the thickness layer the model reads (and through it the back-face depth, a map, a table, the net's weights),
 on the CPU and CUDA.
 
 The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sectors.soft_union`, or the
@@ -23,8 +23,10 @@ layer's taps (the linear model's value is the sample's depth: it joins d / d del
 gradients are per-pixel sums of the same adjoints. The radius needs no tangent: the walk is scale-invariant
 (positions, depth, a layer, radius and offset scaled together leave it as it is; the scale is unitless), so
 Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse + dL/dlayer layer)
-- T dL/dT``. Gradients of the intrinsics are not computed (:func:`kernel_covers` sends such a call to the
-tensor path).
+- T dL/dT``. The intrinsics reach the walk twice: through the positions (``walk_inputs``' unprojection, by
+autograd) and in the kernel (the slice's screen motion ``(fx a, -fy b) / depth``, whose direction places the
+steps and whose length the span; a bilinear fetch's unprojection), whose adjoints the backward chains by hand
+per slice and step and sums per pixel.
 """
 from __future__ import annotations
 
@@ -50,7 +52,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
     differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
-    positions and ``normals``.
+    positions, intrinsics and ``normals``.
 
     Args:
         gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
@@ -66,12 +68,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors):
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
-    Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here, and
-    ``ValueError`` naming ``gbuffer`` when its intrinsics carry a gradient (the kernel does not compute it).
+    Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
-    uncovered = _gbuffer_gradient_uncovered(gbuffer)
-    if uncovered is not None:
-        raise ValueError(f"gbuffer: the soft kernel does not compute {uncovered}; detach it or use backend='torch'")
     read = thickness_read_index(thickness_read, layer)
     of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals) or (
         layer is not None and layer.requires_grad and torch.is_grad_enabled())
@@ -96,19 +94,10 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
 
 
 def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
-    """Whether autograd records through the G-buffer's depth, positions or ``normals``."""
-    return torch.is_grad_enabled() and any(t is not None and t.requires_grad
-                                           for t in (gbuffer.depth, gbuffer.position, gbuffer.normals, normals))
-
-
-def _gbuffer_gradient_uncovered(gbuffer: GBuffer) -> str | None:
-    """The G-buffer gradient asked for that the kernel does not compute (the intrinsics'), or ``None``."""
-    if not torch.is_grad_enabled():
-        return None
+    """Whether autograd records through the G-buffer's depth, positions, intrinsics or ``normals``."""
     cam = gbuffer.camera
-    if any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
-        return "a gradient of the intrinsics (fx, fy, cx, cy)"
-    return None
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
+        gbuffer.depth, gbuffer.position, gbuffer.normals, normals, cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def _settings(radius, thickness, scale, o):
@@ -162,17 +151,20 @@ class _GBufferWalk(torch.autograd.Function):
             ctx.saved_tensors
         frame = (positions, normals, inverse, depth, valid, intrinsics, cells, layer)
         grad = grad.to(torch.float32).contiguous()
+        camera = ctx.needs_input_grad[5]  # the intrinsics' gradients, per pixel (B, H, W, 4)
         if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
             g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
             g_setting = depth.new_zeros((*depth.shape, 2))
+            g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda("tao_soft_backward", depth.device,
-                        [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, ints, floats],
+                        [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, g_camera, ints, floats],
                         tuple(depth.shape))
             g_pos += taps
         else:
-            g_pos, g_nrm, g_inv, g_depth, g_setting, g_layer = grad_kernels().soft_backward(grad, *frame, ints, floats,
-                                                                                           ctx.scalar)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, g_layer, g_camera = grad_kernels().soft_backward(
+                grad, *frame, ints, floats, camera, ctx.scalar)
+        g_intrinsics = g_camera.double().sum((1, 2)).to(intrinsics.dtype) if camera else None
         g_thickness, g_scale = g_setting.double().sum(dim=(0, 1, 2)).unbind()
         g_radius = None
         if ctx.needs_input_grad[10]:  # Euler's identity (module docstring); invalid texels hold NaN
@@ -181,7 +173,7 @@ class _GBufferWalk(torch.autograd.Function):
             if layer.numel():  # (a layer is world units: it scales with the scene)
                 along = along + torch.where(torch.isfinite(layer), g_layer.double() * layer, 0.0).sum()
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
-        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, g_layer if layer.numel() else None, None, None,
+        return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
                 g_radius, g_thickness.to(thickness.dtype) if ctx.needs_input_grad[11] else None,
                 g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None)
 
@@ -216,16 +208,15 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
     value + offset``, visibility only, a float32 CPU G-buffer) with either weighting; gradients of radius and
-    the thickness' offset and scale, of depth, positions, normals and the layer the thickness reads; not of
-    the intrinsics."""
+    the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
+    reads."""
     of_gbuffer = _gbuffer_wants_gradient(gbuffer, gbuffer.normals)
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES, layers=True)
     if reason is not None:
         return reason
     if module.mode == "hard" and of_gbuffer:
         return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
-    reason = _gbuffer_gradient_uncovered(gbuffer)
-    return None if reason is None else f"{reason} (the kernel differentiates radius, thickness, depth, positions and normals)"
+    return None
 
 
 def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:

@@ -218,6 +218,7 @@ template <class F> struct Pixels {
 // direction and measures its own angles)
 template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+  F screen_length;  // pixels per world unit along T (|du, dv|: unit_u, unit_v are du, dv over it)
   F dir_u, dir_v;  // the slice's screen angle's cos and sin
   int64_t index;
 
@@ -267,6 +268,7 @@ template <class F> struct Slice {
     const F du = (seed_camera(F(img.fx), 0) * (T[0] + (px.P[0] * T[2]) / px.depth)) / px.depth;
     const F dv = (neg(seed_camera(F(img.fy), 1)) * (T[1] + (px.P[1] * T[2]) / px.depth)) / px.depth;
     const F len = sqrt(du * du + dv * dv);
+    screen_length = len;
     unit_u = du / clamp_min(len, F(1e-12f));
     unit_v = dv / clamp_min(len, F(1e-12f));
     radius_px = F(cfg.radius) * len;
@@ -293,7 +295,8 @@ template <class F> struct Slice {
   template <class G, class To>
   TAO_FN Slice(const Slice<G>& o, const To& to)
       : length(to(o.length)), gamma(to(o.gamma)), cos_gamma(to(o.cos_gamma)), sin_gamma(to(o.sin_gamma)),
-        unit_u(to(o.unit_u)), unit_v(to(o.unit_v)), radius_px(to(o.radius_px)), span(to(o.span)), dir_u(to(o.dir_u)),
+        unit_u(to(o.unit_u)), unit_v(to(o.unit_v)), radius_px(to(o.radius_px)), span(to(o.span)),
+        screen_length(to(o.screen_length)), dir_u(to(o.dir_u)),
         dir_v(to(o.dir_v)), index(o.index) {
     for (int c = 0; c < 3; ++c) T[c] = to(o.T[c]), axis[c] = to(o.axis[c]);
   }

@@ -61,19 +61,21 @@ TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge)  // (every step replayed: no
 TAO_CUDA_BACKWARD(tao_backward_pssao, unpack_pssao)
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d the thickness'
-// offset and scale per pixel in g_thickness (B, H, W, 2); the layer's taps' in tap_layer (backface: the model's layer)
+// offset and scale per pixel in g_thickness (B, H, W, 2); the layer's taps' in tap_layer (backface: the model's
+// layer); d L / d the intrinsics per pixel in g_camera (B, H, W, 4) where it is not null
 extern "C" __global__ void tao_soft_backward(const float* positions, const float* normals, const float* inverse,
                                              const float* depth, const bool* valid, const float* intrinsics,
                                              const float* cells, const float* backface, const float* grad,
                                              float* g_positions, float* g_normals, float* g_depth, float* g_thickness,
                                              float* tap_positions, float* tap_inverse, float* tap_layer,
-                                             const int64_t* ints, const float* floats, int B, int H, int W) {
+                                             float* g_camera, const int64_t* ints, const float* floats, int B, int H,
+                                             int W) {
   const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (p >= int64_t(B) * H * W) return;
   const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, backface, valid, B, H, W};
   const tao::SoftAccumulator<true, true> acc = tao::unpack_soft<true, true>(ints, floats);
   tao::soft_grad_pixel(tao::unpack_walk(ints, floats), acc, frame, grad, g_positions, g_normals, g_depth, g_thickness,
-                       tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, p);
+                       tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, g_camera, p);
 }
 
 // The exact union's backward (walk_grad.h's exact_grad_block): the pixel's own gradients, its intervals' taps'

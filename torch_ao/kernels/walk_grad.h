@@ -409,7 +409,8 @@ template <class B> struct TapSink {
 
 // The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
 // slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
-// d L / d the thickness' offset and scale written per pixel (t.settings == 2), the layer's to its taps
+// d L / d the thickness' offset and scale written per pixel (t.settings == 2) and, where t.camera, d L / d the
+// intrinsics; the layer's to its taps
 template <class B>
 TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc,
                             int64_t row, int64_t u0, int n, const float* upstream, const Targets& t) {
@@ -420,12 +421,14 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
   const B g = from_lanes(lane, B(0.0f));
   TapSink<B> sink{cfg.bilinear, cfg.bilinear && acc.thickness.read == ThicknessRead::layer, n, t};
   const Pixels<D> pd(cfg, img, row, u0, n);
-  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink};
-  B outs[9];
+  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink,
+                                              t.camera != nullptr};
+  B outs[13];
   walk_block(cfg, img, adjoint, row, u0, n, outs);
-  B own[9];
-  for (int k = 0; k < 9; ++k) own[k] = g * outs[k];
-  write_own(t, img.W, row, u0, n, own, &own[kPixel]);  // (the settings: d L / d the offset, d L / d the scale)
+  B own[13];
+  for (int k = 0; k < 13; ++k) own[k] = g * outs[k];
+  // (the settings: d L / d the offset, d L / d the scale; where asked, d L / d the intrinsics)
+  write_own(t, img.W, row, u0, n, own, &own[kPixel], t.camera ? &own[kPixel + 2] : nullptr);
 }
 
 // The exact union's backward (bitmask.h's ExactAccumulator: variant="exact" in every mode) of the n <= L pixels
@@ -775,16 +778,17 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   }
 }
 
-// Pixel p's soft backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals, depth and
-// d L / d the thickness' offset and scale: thickness (B, H, W, 2)) and its steps' taps' (positions, inverse
-// depth, the layer's where the model reads one; atomically) as grad_pixel's
+// Pixel p's soft backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals, depth,
+// d L / d the thickness' offset and scale: thickness (B, H, W, 2), and where camera d L / d the intrinsics:
+// (B, H, W, 4)) and its steps' taps' (positions, inverse depth, the layer's where the model reads one;
+// atomically) as grad_pixel's
 TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true>& acc, const Frame& fr,
                             const float* grad, float* positions, float* normals, float* depth, float* thickness,
-                            float* tap_positions, float* tap_inverse, float* tap_layer, int64_t p) {
+                            float* tap_positions, float* tap_inverse, float* tap_layer, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 2 * b * plane,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
-                  nullptr, nullptr, nullptr, 2};
+                  nullptr, nullptr, camera ? camera + 4 * b * plane : nullptr, 2};
   soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 
