@@ -185,8 +185,32 @@ def test_indirect_light_gradients_match_central_differences(built):
         assert abs(float(terms.sum()) - numerical) <= 1e-4 * float(terms.abs().sum()), (float(terms.sum()), numerical)
 
 
+@pytest.mark.parametrize("setting", [0, 1])
+def test_intrinsics_gradients_equal_the_float64_tensor_walk(built, setting):
+    """The slice's weights read the pixel's position, not the intrinsics (they move only the steps on screen, and
+    the masks have no gradient): the intrinsics' gradient is the positions' own, chained by autograd through
+    walk_inputs' unprojection. Cosine weights and bent normals, against the float64 tensor walk, on the pixels the
+    walk computes (the background's bent normal is the G-buffer's own normal, filled in by the tensor path with
+    that normal's history)."""
+    def grads(dtype, backend):
+        gb0 = FRAMES["rough"]().to(dtype=dtype)
+        intrinsics = gb0.camera.intrinsics.detach().clone().requires_grad_()
+        gb = GBuffer(depth=gb0.depth, camera=PinholeCamera(intrinsics, gb0.camera.height, gb0.camera.width))
+        module = BitmaskAO(mode="hard", slices=3, steps=4, backend=backend, **SETTINGS[setting]).to(dtype)
+        if backend == "kernel":
+            assert kernel_covers(module, gb) is None
+        out = module(gb)
+        values = [out.visibility] + ([out.bent_normal] if out.bent_normal is not None else [])
+        loss = sum((v * torch.linspace(-0.5, 1.5, v.numel(), dtype=dtype).view_as(v) * gb.valid).sum() for v in values)
+        return torch.autograd.grad(loss, [intrinsics])[0].double()
+
+    reference = grads(torch.float64, "torch")
+    assert reference.abs().max() > 1e-3
+    assert _relative(grads(torch.float32, "kernel"), reference) <= 1e-4
+
+
 # ------------------------------------------------------------------------------- what it covers
-def test_the_auto_backend_takes_the_kernel_but_not_for_the_shaders_light_or_the_intrinsics(built, monkeypatch):
+def test_the_auto_backend_takes_the_kernel_but_not_for_the_shaders_light(built, monkeypatch):
     gb = FRAMES["rough"]()
     depth = gb.depth.clone().requires_grad_()
     graph = GBuffer(depth=depth, camera=gb.camera)  # (normals from depth: their gradient reaches it)
@@ -202,7 +226,9 @@ def test_the_auto_backend_takes_the_kernel_but_not_for_the_shaders_light_or_the_
     assert kernel_covers(SSILVB(mode="hard", slices=2, steps=3), light) is None  # (indirect light: the kernel's)
     assert "indirect" in kernel_covers(SSILVB(variant="ssilvb_glsl", slices=3, steps=3), light)  # (the shader's)
     intrinsics = gb.camera.intrinsics.clone().requires_grad_()
-    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width))
-    assert "intrinsics" in kernel_covers(module, moving)
-    (g_fx,) = torch.autograd.grad(module(moving).visibility.sum(), [intrinsics])  # (the tensor path)
-    assert calls == ["hard"] and g_fx.abs().sum() > 0
+    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width),
+                     light=light.light)
+    assert kernel_covers(module, moving) is None
+    (g_fx,) = torch.autograd.grad(module(moving).visibility.sum(), [intrinsics])  # (the kernel: through the positions)
+    assert calls == ["hard", "hard"] and g_fx.abs().sum() > 0
+    assert "intrinsics" in kernel_covers(SSILVB(mode="hard", slices=2, steps=3), moving)

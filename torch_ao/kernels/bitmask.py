@@ -73,10 +73,9 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     graded = weighting == "cosine" or bent_normals or indirect  # (what has a gradient in hard mode)
-    cam = gbuffer.camera
-    if graded and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
-        raise ValueError("gbuffer: the hard kernel does not compute a gradient of the intrinsics (fx, fy, cx, cy); "
-                         "detach them or use backend='torch'")
+    if indirect and _intrinsics_want_gradient(gbuffer):
+        raise ValueError("gbuffer: the hard kernel's indirect light has no gradient of the intrinsics (fx, fy, cx, "
+                         "cy); detach them or use backend='torch'")
     if graded and (wants_gradient(gbuffer, normals) or (indirect and torch.is_grad_enabled() and (
             light.requires_grad or radius.requires_grad))):
         if gbuffer.depth.device.type == "cpu":
@@ -100,7 +99,9 @@ class _HardWalk(torch.autograd.Function):
     and depth (the masks have none), and of its indirect light to the senders' light, normals and positions at the
     taps; the radius' by Euler's identity (the walk is scale-invariant: the masks' angles, the senders' directions
     and the steps in pixels do not change when positions, depth and radius scale together; the thickness moves
-    only the masks, which have no gradient): ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)``."""
+    only the masks, which have no gradient): ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)``.
+    The intrinsics move only the steps on screen, so (without indirect light) their gradient is the positions' own,
+    which autograd chains through ``walk_inputs``' unprojection."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, channels,
@@ -147,9 +148,15 @@ class _HardWalk(torch.autograd.Function):
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
-    """Whether autograd records through the G-buffer's depth, positions or ``normals``."""
-    return torch.is_grad_enabled() and any(t is not None and t.requires_grad
-                                           for t in (gbuffer.depth, gbuffer.position, gbuffer.normals, normals))
+    """Whether autograd records through the G-buffer's depth, positions, intrinsics or ``normals``."""
+    return (torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                            for t in (gbuffer.depth, gbuffer.position, gbuffer.normals, normals))
+            or _intrinsics_want_gradient(gbuffer))
+
+
+def _intrinsics_want_gradient(gbuffer: GBuffer) -> bool:
+    cam = gbuffer.camera
+    return torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
@@ -262,8 +269,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     do not know, e.g. one added to the module later, sends the call to the tensor path). Hard masks
     have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights and bent
     normals have gradients in hard mode too (through the slice: the normals and positions), which the hard
-    kernel's backward computes (not the intrinsics'); indirect light has one to the light and the sample
-    positions, so only when no gradient is asked for; straight-through mode (hard values, soft gradients)
+    kernel's backward computes (the intrinsics' through the positions alone: the slice's weights do not read them);
+    indirect light has one to the light and the sample positions (not to the intrinsics, which move the samples); straight-through mode (hard values, soft gradients)
     only for uniform visibility without a gradient.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
@@ -283,10 +290,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     # slice (the hard kernel's backward), the light through the light, normals and (default variant) the samples
     if module.want_indirect and module.variant != "default" and _needs_grad(module, gbuffer, parameters=False):
         return "a gradient is asked for (the shader's indirect light has one, to the light and normals)"
-    graded = module.variant == "default" and (module.want_bent or module.weighting == "cosine" or module.want_indirect)
-    cam = gbuffer.camera
-    if graded and torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy)):
-        return "a gradient of the intrinsics (fx, fy, cx, cy) (the kernel differentiates the G-buffer's images)"
+    if module.want_indirect and module.variant == "default" and _intrinsics_want_gradient(gbuffer):
+        return "a gradient of the intrinsics with indirect light (its samples' positions on screen follow them)"
     return None
 
 
