@@ -10,7 +10,7 @@ from torch_ao.camera import PinholeCamera
 from torch_ao.examples import crease_gbuffer, example_gbuffer, floor_wall_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kernel_covers
-from torch_ao.methods.bitmask import BitmaskAO
+from torch_ao.methods.bitmask import SSILVB, BitmaskAO
 from torch_ao.thickness import LinearThickness
 
 from kernel_agreement import SHARE, assert_masks_agree, degenerate
@@ -155,10 +155,11 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
     from torch_ao.methods.ssao import SSAO
 
     gb = example_gbuffer(8, 8)
-    intrinsics = gb.camera.intrinsics.clone().requires_grad_()  # (no kernel differentiates the intrinsics)
-    moving = GBuffer(depth=gb.depth, camera=PinholeCamera(intrinsics, gb.camera.height, gb.camera.width))
-    with pytest.raises(ValueError, match="backend.*union='exact'.*intrinsics"):
-        BitmaskAO(union="exact", backend="kernel")(moving)
+    light = GBuffer(depth=gb.depth, camera=PinholeCamera(gb.camera.intrinsics.clone().requires_grad_(),
+                                                         gb.camera.height, gb.camera.width),
+                    light=torch.rand(1, 3, 8, 8))  # (hard indirect light: no kernel differentiates the intrinsics)
+    with pytest.raises(ValueError, match="backend.*intrinsics"):
+        SSILVB(mode="hard", weighting="cosine", backend="kernel")(light)
     with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
         SSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):

@@ -126,7 +126,7 @@ typedef void HardBackward(const float*, const float*, const float*, const float*
                           float*, float*, float*, float*, const long long*, const float*, int, int, int);
 typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
-                           const long long*, const float*, int, int, int);
+                           float*, const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao;
 SoftBackward tao_soft_backward;
@@ -183,8 +183,8 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   } else if (name == "exact") {
     grid(pixels, threads, [&] { tao_exact_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                    Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
-                                                   gd.data(), taps.data(), ti.data(), tl.data(), ints.data(),
-                                                   floats.data(), B, H, W); });
+                                                   gd.data(), taps.data(), ti.data(), tl.data(), gc.data(),
+                                                   ints.data(), floats.data(), B, H, W); });
   } else if (name == "soft") {
     grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
@@ -407,8 +407,8 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                                                                                       ints, floats, record, True)
             g_setting = torch.zeros_like(g_depth)
         elif accumulator == "exact":
-            g_pos, g_nrm, g_inv, g_depth, cpu["layer"] = grad_kernels().exact_backward(grad, *inputs, cells, layer, ints,
-                                                                                       floats, True)
+            g_pos, g_nrm, g_inv, g_depth, cpu["layer"], cpu["camera"] = grad_kernels().exact_backward(
+                grad, *inputs, cells, layer, ints, floats, True, True)
             g_setting = torch.zeros_like(g_depth)
         elif accumulator == "soft":
             g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad, cpu["camera"] = grad_kernels().soft_backward(

@@ -76,7 +76,10 @@ struct ThicknessModel {
   // read at the moving taps (Sample.gather), the sample's depth; a first tap's read is piecewise constant
   template <class F>
   TAO_FN F motion(const Sample<F>& smp, const F* d_pos, const F& dsu, const F& dsv) const {
-    if (read == ThicknessRead::depth) return neg(d_pos[2]);
+    return read == ThicknessRead::depth ? neg(d_pos[2]) : layer_motion(smp, dsu, dsv);
+  }
+  // the layer's part of motion: d value as the taps' weights move by (dsu, dsv) pixels (0 unless read == layer)
+  template <class F> TAO_FN F layer_motion(const Sample<F>& smp, const F& dsu, const F& dsv) const {
     if (read != ThicknessRead::layer) return F(0.0f);
     const float* layer = smp.image->backface;
     const F l0 = gather(layer, smp.index[0]), l1 = gather(layer, smp.index[1]);

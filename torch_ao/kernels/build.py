@@ -80,10 +80,11 @@ def grad_kernels():
                 positions.new_empty(positions.shape))  # (the light's: (B, H, W, 3), zeros without indirect light)
 
     @torch.library.register_fake("torch_ao_kernels::exact_backward")
-    def _(grad, positions, normals, inverse_depth, depth, *args):
+    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats, camera,
+          scalar):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
-                depth.new_empty(depth.shape))
+                depth.new_empty(depth.shape), depth.new_empty((*depth.shape, 4) if camera else (0,)))
 
     return torch.ops.torch_ao_kernels
 

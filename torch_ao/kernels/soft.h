@@ -119,7 +119,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     // thickness t, the value its scale multiplies and d t along the radius
     LaneArray<F, kKept> s, w, av, at, dav, dat, t, tv, dt;
     // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
-    // pixels, d position / d su, d sv and d / d su, d sv of the value the thickness' scale multiplies
+    // pixels, d position / d su, d sv and d / d su, d sv of a layer's read (ThicknessModel::layer_motion)
     LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3], dv_su, dv_sv;
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
@@ -229,8 +229,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       }
       for (int i = 0; i < 4; ++i) st.index[i][m] = smp.index[i];
       st.fu[m] = smp.fu, st.fv[m] = smp.fv, st.valid[m] = smp.valid, st.dist[m] = dist;
-      st.dv_su[m] = moves ? thickness.motion(smp, d_su, F(1.0f), F(0.0f)) : F(0.0f);
-      st.dv_sv[m] = moves ? thickness.motion(smp, d_sv, F(0.0f), F(1.0f)) : F(0.0f);
+      st.dv_su[m] = moves ? thickness.layer_motion(smp, F(1.0f), F(0.0f)) : F(0.0f);
+      st.dv_sv[m] = moves ? thickness.layer_motion(smp, F(0.0f), F(1.0f)) : F(0.0f);
       return;
     }
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
@@ -345,62 +345,47 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     if (cosine) cosine_sector_weights(sd, omega);
     sums.num = sums.num + visible(st, omega, sums);
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    F g_unit_u = F(0.0f), g_unit_v = F(0.0f), g_span = F(0.0f), g_shift = F(0.0f);
+    F g_shift = F(0.0f);
+    PlacementAdjoint<F> placement;
     F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d num / d fx, fy, cx, cy (with camera)
-    const F frac_of = reciprocal(select(sl.span > F(0.0f), sl.span, F(1.0f)));
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
       const F side = F(m < walk.steps ? 1.0f : -1.0f), g_dt = g.at * side;  // d / d (delta . T)
       const auto valid = st.valid[m];
       const F g_value = g.thickness * F(thickness.scale);  // d visibility / d the value the scale multiplies
       F g_delta[3];
       for (int c = 0; c < 3; ++c) g_delta[c] = g.av * px.V[c] + g_dt * sl.T[c];
-      // the fetch moves with (su, sv): its position, and the value the model reads there (ThicknessModel::motion)
-      const F g_su = side * (g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m] +
-                             g_value * st.dv_su[m]);
-      const F g_sv = side * (g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
-                             g_value * st.dv_sv[m]);
       if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
         g_delta[2] = g_delta[2] - g_value;
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
       }
+      // the fetch moves with (su, sv): its position, and a layer's read there
+      const F g_su = g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m] +
+                     g_value * st.dv_su[m];
+      const F g_sv = g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
+                     g_value * st.dv_sv[m];
       for (int c = 0; c < 3; ++c) {
         g_V[c] = g_V[c] + g.av * st.delta[c][m] - select(valid, F(0.0f), g_delta[c]);
         g_T[c] = g_T[c] + g_dt * st.delta[c][m];
         g_P[c] = g_P[c] - select(valid, g_delta[c], F(0.0f));
       }
-      g_unit_u = g_unit_u + g_su * st.dist[m], g_unit_v = g_unit_v + g_sv * st.dist[m];
-      g_span = g_span + (g_su * sl.unit_u + g_sv * sl.unit_v) * ((st.dist[m] - F(walk.min_step_px)) * frac_of);
+      placement.add(walk, sl, m < walk.steps ? 1.0f : -1.0f, st.dist[m], g_su, g_sv);
       g_shift = g_shift + g.shift;
       const F g_t = select(px.live, g.thickness, F(0.0f));
       sums.thickness = sums.thickness + D(g_t);
       sums.scale = sums.scale + D(g_t * st.tv[m]);
-      if (camera && walk.bilinear) {  // pos = ((su - cx) / fx, -(sv - cy) / fy) depth at the fetched depth
-        const auto on = land(px.live, valid);
-        const F x = st.pos[0][m], y = st.pos[1][m], z = neg(st.pos[2][m]);
-        g_cam[0] = g_cam[0] - select(on, g_delta[0] * x, F(0.0f)) / F(camera->fx);
-        g_cam[1] = g_cam[1] - select(on, g_delta[1] * y, F(0.0f)) / F(camera->fy);
-        g_cam[2] = g_cam[2] - select(on, g_delta[0] * z, F(0.0f)) / F(camera->fx);
-        g_cam[3] = g_cam[3] + select(on, g_delta[1] * z, F(0.0f)) / F(camera->fy);
+      if (camera && walk.bilinear) {
+        const F pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
+        unprojection_camera(*camera, pos, g_delta, land(px.live, valid), g_cam);
       }
       for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] * weight;
       const F g_layer = g_value * weight;  // (read by the layer's taps: scattered where the model reads a layer)
       sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_layer : nullptr);
     });
-    if (camera) {  // the screen motion: unit = (du, dv) / len, span = clamp(R len stretch, max) - min_step_px
-      const F len = sl.screen_length, inv = reciprocal(clamp_min(len, F(1e-12f)));
-      const F uu = sl.unit_u, uv = sl.unit_v;
-      F along_len = sl.radius_px * inv;  // d span / d len where neither clamp holds
-      if (walk.max_radius_px > 0) along_len = select(sl.radius_px < F(walk.max_radius_px), along_len, F(0.0f));
-      along_len = select(sl.radius_px - F(walk.min_step_px) >= F(0.0f), along_len, F(0.0f));
-      const auto moving = len > F(1e-12f);
-      const F g_len = g_span * along_len;
-      const F g_du = select(moving, (g_unit_u * (F(1.0f) - uu * uu) - g_unit_v * uu * uv) * inv, F(0.0f)) + g_len * uu;
-      const F g_dv = select(moving, (g_unit_v * (F(1.0f) - uv * uv) - g_unit_u * uu * uv) * inv, F(0.0f)) + g_len * uv;
-      g_cam[0] = g_cam[0] + g_du * (uu * len) / F(camera->fx);  // du = fx a / depth: d du / d fx = du / fx
-      g_cam[1] = g_cam[1] + g_dv * (uv * len) / F(camera->fy);
+    if (camera) {
+      placement.camera(walk, *camera, sl, g_cam);
       for (int k = 0; k < 4; ++k) sums.camera[k].v = sums.camera[k].v + select(px.live, g_cam[k], F(0.0f));
     }
-    D along = D(g_unit_u) * sd.unit_u + D(g_unit_v) * sd.unit_v + D(g_span) * sd.span +
+    D along = D(placement.unit_u) * sd.unit_u + D(placement.unit_v) * sd.unit_v + D(placement.span) * sd.span +
               D(g_shift) * ((D(kHalfPi) - sd.gamma) / D(kPi));
     for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
     sums.num = sums.num + (along - D(along.v));  // (its tangents only)

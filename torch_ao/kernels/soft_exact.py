@@ -17,8 +17,10 @@ positions, normals and whatever made the layer through its torch ops), and the b
 ``exact_grad_block``: ``torch_ao_kernels::exact_backward`` on the CPU, ``tao_exact_backward`` on CUDA) walks
 each slice again: the union's adjoint by hand (its sort, its running reach), then the intervals that carry one
 replayed in dual lanes, whose tangents reach the pixel's own position, normal and depth and, scattered, each
-sample's taps (inverse depth or position, and the layer's). Gradients of the intrinsics are not computed
-(:func:`exact_soft_covers` sends such a call to the tensor path).
+sample's taps (inverse depth or position, and the layer's). The intrinsics reach the walk through the positions
+(``walk_inputs``' unprojection, by autograd) and in the kernel, where each replayed sample's place on screen (the
+slice's screen motion) and a bilinear fetch's unprojection read them: walk.h's ``PlacementAdjoint`` and
+``unprojection_camera`` chain those per pixel, summed per image.
 """
 from __future__ import annotations
 
@@ -56,8 +58,7 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
-    Raises ``ValueError`` naming the argument for a parameter that is not 0-d, ``steps`` beyond 32, or
-    intrinsics that want a gradient (``gbuffer``: the kernel does not compute it).
+    Raises ``ValueError`` naming the argument for a parameter that is not 0-d, or ``steps`` beyond 32.
     """
     if int(steps) > EXACT_MAX_STEPS:
         raise ValueError(f"steps: the exact union's kernel holds at most {EXACT_MAX_STEPS} per side, got {steps}")
@@ -74,9 +75,6 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
         scalars.append(t)
     of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals, layer)
-    if of_gbuffer and _intrinsics_want_gradient(gbuffer):
-        raise ValueError("gbuffer: the exact kernel does not compute a gradient of the intrinsics (fx, fy, cx, cy); "
-                         "detach them or use backend='torch'")
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         if of_gbuffer:
@@ -91,14 +89,11 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
 
 
 def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, layer: torch.Tensor | None) -> bool:
-    """Whether autograd records through the G-buffer's depth, positions, ``normals`` or the thickness ``layer``."""
-    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
-        gbuffer.depth, gbuffer.position, gbuffer.normals, normals, layer))
-
-
-def _intrinsics_want_gradient(gbuffer: GBuffer) -> bool:
+    """Whether autograd records through the G-buffer's depth, positions, intrinsics, ``normals`` or the thickness
+    ``layer``."""
     cam = gbuffer.camera
-    return torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy))
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
+        gbuffer.depth, gbuffer.position, gbuffer.normals, normals, layer, cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def _settings(radius, thickness, scale, o) -> tuple:
@@ -153,22 +148,25 @@ class _GBufferWalk(torch.autograd.Function):
     def backward(ctx, grad):
         *frame, cells, layer, ints, floats, jacobian = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()
-        depth = frame[3]
+        depth, intrinsics = frame[3], frame[5]
+        camera = ctx.needs_input_grad[5]  # the intrinsics' gradients, per pixel (B, H, W, 4)
         if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
             g_pos, g_nrm, taps = torch.zeros_like(frame[0]), torch.zeros_like(frame[1]), torch.zeros_like(frame[0])
             g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda("tao_exact_backward", depth.device,
-                        [*frame, cells, layer, grad, g_pos, g_nrm, g_depth, taps, g_inv, g_layer, ints, floats],
-                        tuple(depth.shape))
+                        [*frame, cells, layer, grad, g_pos, g_nrm, g_depth, taps, g_inv, g_layer, g_camera, ints,
+                         floats], tuple(depth.shape))
             g_pos += taps
         else:
-            g_pos, g_nrm, g_inv, g_depth, g_layer = grad_kernels().exact_backward(grad, *frame, cells, layer, ints,
-                                                                                  floats, ctx.scalar)
+            g_pos, g_nrm, g_inv, g_depth, g_layer, g_camera = grad_kernels().exact_backward(
+                grad, *frame, cells, layer, ints, floats, camera, ctx.scalar)
+        g_intrinsics = g_camera.double().sum((1, 2)).to(intrinsics.dtype) if camera else None
         scalars = [None, None, None]
         if jacobian.numel():  # (B, 3, H, W): d visibility / d radius, offset, scale
             sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
             scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None for k in range(3)]
-        return (g_pos, g_nrm, g_inv, g_depth, None, None, None, g_layer if layer.numel() else None, None, None,
+        return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
                 *scalars, None)
 
 
@@ -200,8 +198,8 @@ def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
     ``union="exact"``, any mode: visibility only, a thickness of the form ``scale * value + offset``, a float32
     CPU or CUDA G-buffer), else why not. Gradients of the radius, of the model's scalar parameters (the offset
     ``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``), of the
-    G-buffer (depth, positions, normals, the back-face depth) and of what makes a layer (a map, a table, the
-    net's weights); not of the intrinsics, which the tensor path computes."""
+    G-buffer (depth, positions, normals, the intrinsics, the back-face depth) and of what makes a layer (a map, a
+    table, the net's weights)."""
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the sector kernels')"
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=("uniform", "cosine"),
@@ -210,8 +208,6 @@ def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
         return f"steps={module.steps} (the exact union's kernel holds {EXACT_MAX_STEPS} per side)"
-    if _intrinsics_want_gradient(gbuffer):
-        return "a gradient of the intrinsics (fx, fy, cx, cy) (the kernel differentiates the G-buffer's images)"
     return None
 
 

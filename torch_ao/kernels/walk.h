@@ -478,6 +478,48 @@ template <class F> struct Sample {
   }
 };
 
+// The hand-written backwards' adjoint of a slice's step placement (along_u, along_v over step_distance's power
+// placement) from each step's d L / d (su, sv): d L / d the slice's unit_u, unit_v and span; and on to the
+// intrinsics through the slice's screen motion (du, dv) = (fx a, -fy b) / depth, whose direction the unit is and
+// whose length len sets the span = clamp_min(min(R len stretch, max_radius_px) - min_step_px, 0)
+template <class F> struct PlacementAdjoint {
+  F unit_u = F(0.0f), unit_v = F(0.0f), span = F(0.0f);
+
+  // the step dist pixels out on side: (su, sv) = (u, v) + side dist (unit_u, unit_v), dist = min_step_px + span frac
+  TAO_FN void add(const WalkSettings& cfg, const Slice<F>& sl, float side, const F& dist, const F& g_su, const F& g_sv) {
+    const F gu = g_su * F(side), gv = g_sv * F(side);
+    unit_u = unit_u + gu * dist, unit_v = unit_v + gv * dist;
+    const F frac = (dist - F(cfg.min_step_px)) / select(sl.span > F(0.0f), sl.span, F(1.0f));
+    span = span + (gu * sl.unit_u + gv * sl.unit_v) * frac;
+  }
+  // d L / d fx, fy added to g_cam[0], g_cam[1]
+  TAO_FN void camera(const WalkSettings& cfg, const Image& img, const Slice<F>& sl, F* g_cam) const {
+    const F len = sl.screen_length, inv = reciprocal(clamp_min(len, F(1e-12f)));
+    const F uu = sl.unit_u, uv = sl.unit_v;
+    F along_len = sl.radius_px * inv;  // d span / d len where no clamp holds
+    if (cfg.max_radius_px > 0) along_len = select(sl.radius_px < F(cfg.max_radius_px), along_len, F(0.0f));
+    along_len = select(sl.radius_px - F(cfg.min_step_px) >= F(0.0f), along_len, F(0.0f));
+    const auto moving = len > F(1e-12f);
+    const F g_len = span * along_len;
+    const F g_du = select(moving, (unit_u * (F(1.0f) - uu * uu) - unit_v * uu * uv) * inv, F(0.0f)) + g_len * uu;
+    const F g_dv = select(moving, (unit_v * (F(1.0f) - uv * uv) - unit_u * uu * uv) * inv, F(0.0f)) + g_len * uv;
+    g_cam[0] = g_cam[0] + g_du * (uu * len) / F(img.fx);  // d du / d fx = du / fx
+    g_cam[1] = g_cam[1] + g_dv * (uv * len) / F(img.fy);
+  }
+};
+
+// d L / d fx, fy, cx, cy of a bilinear fetch's position ((su - cx) / fx, -(sv - cy) / fy, -1) depth from d L / d
+// the position g_pos, on the lanes `on`, added to g_cam
+template <class F>
+TAO_FN void unprojection_camera(const Image& img, const F* pos, const F* g_pos, const typename LaneTraits<F>::M& on,
+                                F* g_cam) {
+  const F z = neg(pos[2]);
+  g_cam[0] = g_cam[0] - select(on, g_pos[0] * pos[0], F(0.0f)) / F(img.fx);
+  g_cam[1] = g_cam[1] - select(on, g_pos[1] * pos[1], F(0.0f)) / F(img.fy);
+  g_cam[2] = g_cam[2] - select(on, g_pos[0] * z, F(0.0f)) / F(img.fx);
+  g_cam[3] = g_cam[3] + select(on, g_pos[1] * z, F(0.0f)) / F(img.fy);
+}
+
 // A walk's sample at screen (su, sv): Sample's fetch (walk_grad.h's reverse lanes overload it: the fetched
 // position a leaf of their tape, its taps kept for the backward's scatter)
 template <class F>

@@ -78,20 +78,22 @@ extern "C" __global__ void tao_soft_backward(const float* positions, const float
                        tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, g_camera, p);
 }
 
-// The exact union's backward (walk_grad.h's exact_grad_block): the pixel's own gradients, its intervals' taps'
-// (positions, inverse depth, the thickness layer's where the model reads one) atomically
+// The exact union's backward (walk_grad.h's exact_grad_block): the pixel's own gradients (d L / d the intrinsics in
+// g_camera where it is not null), its intervals' taps' (positions, inverse depth, the thickness layer's where the
+// model reads one) atomically
 extern "C" __global__ void tao_exact_backward(const float* positions, const float* normals, const float* inverse,
                                               const float* depth, const bool* valid, const float* intrinsics,
                                               const float* cells, const float* backface, const float* grad,
                                               float* g_positions, float* g_normals, float* g_depth,
                                               float* tap_positions, float* tap_inverse, float* tap_layer,
-                                              const int64_t* ints, const float* floats, int B, int H, int W) {
+                                              float* g_camera, const int64_t* ints, const float* floats, int B, int H,
+                                              int W) {
   const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (p >= int64_t(B) * H * W) return;
   const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, backface, valid, B, H, W};
   const tao::ExactAccumulator acc = tao::unpack_exact(ints, floats);
   tao::exact_grad_pixel(tao::unpack_walk(ints, floats), acc, frame, grad, g_positions, g_normals, g_depth,
-                        tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, p);
+                        tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, g_camera, p);
 }
 
 // The hard sector walk's forward with its record, and its backward (walk_grad.h's hard_record_block,

@@ -220,13 +220,18 @@ template <int L> struct Replay {
 // fetch's d position / d su, d sv; a nearest one's texel does not move) and the pixel's own position, and fu, fv
 // carrying su, sv's (a layer read at the taps moves with them). The same sample as Sample<Dual>'s, at a fraction
 // of its dual arithmetic.
+// d_su, d_sv (optional): the fetched position's d / d su, d sv.
 template <class D, class B, class Own>
 TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, const Pixels<B>& px,
-                                 const Pixels<Own>& px_own, const Slice<Own>& sl_own, float side, const Own& dist) {
+                                 const Pixels<Own>& px_own, const Slice<Own>& sl_own, float side, const Own& dist,
+                                 B* d_su_out = nullptr, B* d_sv_out = nullptr) {
   const Own su = along_u(px_own, sl_own, side, dist), sv = along_v(px_own, sl_own, side, dist);
   const Sample<B> plain(cfg, img, px, su.v, sv.v);
   Sample<D> smp(plain, [](const B& x) { return D(x); });
-  B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
+  B own_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, own_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
+  B* d_su = d_su_out ? d_su_out : own_su;
+  B* d_sv = d_sv_out ? d_sv_out : own_sv;
+  for (int c = 0; c < 3; ++c) d_su[c] = B(0.0f), d_sv[c] = B(0.0f);
   if (cfg.bilinear) fetch_motion(plain, su.v, sv.v, d_su, d_sv);
   for (int k = 0; k < kPixel; ++k) {
     for (int c = 0; c < 3; ++c) smp.delta[c].d[k] = d_su[c] * su.d[k] + d_sv[c] * sv.d[k] - px_own.P[c].d[k];
@@ -483,6 +488,7 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   typename ExactAccumulator::template Sums<Own> sums;
   LaneArray<B, kMaxIntervals> order, reach;
   float g_lo[kMaxIntervals][L], g_hi[kMaxIntervals][L];
+  B g_cam[4] = {B(0.0f), B(0.0f), B(0.0f), B(0.0f)};  // d L / d fx, fy, cx, cy (where t.camera)
   for (int64_t s = 0; s < cfg.slices; ++s) {
     // 1. the forward's intervals
     const Slice<B> sl(cfg, img, px, s);
@@ -528,13 +534,16 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
     // 3. the intervals with an adjoint, replayed
     const Slice<D> sld(sl_own, wide);
     const Own shift = edge_shift(sl_own);
+    PlacementAdjoint<B> placement;  // (where t.camera)
     for (int side = 1; side >= -1; side -= 2) {
       const Own xi = step_noise(cfg, px_own, sl_own, side);
       for (int64_t j = 0; j < cfg.steps; ++j) {
         const int i = int((side > 0 ? 0 : cfg.steps) + j);  // (walk_slice's order)
         const B glo = from_lanes(g_lo[i], B(0.0f)), ghi = from_lanes(g_hi[i], B(0.0f));
         if (!any(lor(lnot(glo == B(0.0f)), lnot(ghi == B(0.0f))))) continue;
-        Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j));
+        const Own dist = step_distance(cfg, sl_own, xi, j);
+        B d_su[3], d_sv[3];
+        Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), dist, d_su, d_sv);
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kExactDelta + c] = B(1.0f);
         D thickness = acc.thickness.at(pxd, smp);
         if (layer_read) thickness.d[kExactLayer] = B(acc.thickness.scale);
@@ -557,17 +566,29 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         B gd[3], pos[3];
         for (int c = 0; c < 3; ++c) gd[c] = per_covered * along[kExactDelta + c], pos[c] = smp.delta[c].v + pxd.P[c].v;
         const B g_layer = per_covered * along[kExactLayer];
-        scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, land(smp.valid, px.live),
+        const auto on = land(smp.valid, px.live);
+        if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (the slice's placement)
+          if (cfg.bilinear) unprojection_camera(img, pos, gd, on, g_cam);
+          const Sample<B> plain(smp, [](const D& x) { return x.v; });
+          const B g_su = gd[0] * d_su[0] + gd[1] * d_su[1] + gd[2] * d_su[2] +
+                         g_layer * acc.thickness.layer_motion(plain, B(1.0f), B(0.0f));
+          const B g_sv = gd[0] * d_sv[0] + gd[1] * d_sv[1] + gd[2] * d_sv[2] +
+                         g_layer * acc.thickness.layer_motion(plain, B(0.0f), B(1.0f));
+          placement.add(cfg, sl, float(side), dist.v, select(on, g_su, B(0.0f)), select(on, g_sv, B(0.0f)));
+        }
+        scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, on,
                      layer_read ? &g_layer : nullptr, layer_bilinear);
       }
     }
+    if (t.camera) placement.camera(cfg, img, sl, g_cam);
     acc.add_slice(covered, sl_own, sums.num, sums.den);
   }
   Own vis;
   acc.finish(sums, px_own, &vis);
   B own[kPixel];
   for (int k = 0; k < kPixel; ++k) own[k] = g * vis.d[k];
-  write_own(t, img.W, row, u0, n, own);
+  for (int k = 0; k < 4; ++k) g_cam[k] = select(px.live, g_cam[k], B(0.0f));
+  write_own(t, img.W, row, u0, n, own, static_cast<const B*>(nullptr), t.camera ? g_cam : nullptr);
 }
 
 // The sectors each step of a slice newly occludes (walk_slice's visitor): fresh[i] of step i in walk_slice's
@@ -793,13 +814,15 @@ TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true,
 }
 
 // Pixel p's exact-union backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals,
-// depth) and its intervals' taps' (positions, inverse depth, the thickness layer's where it is read; atomically)
+// depth; where camera, d L / d the intrinsics (B, H, W, 4)) and its intervals' taps' (positions, inverse depth,
+// the thickness layer's where it is read; atomically)
 TAO_FN void exact_grad_pixel(const WalkSettings& cfg, const ExactAccumulator& acc, const Frame& fr, const float* grad,
                              float* positions, float* normals, float* depth, float* tap_positions, float* tap_inverse,
-                             float* tap_layer, int64_t p) {
+                             float* tap_layer, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
-                  tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr};
+                  tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
+                  nullptr, nullptr, camera ? camera + 4 * b * plane : nullptr};
   exact_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 

@@ -330,22 +330,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 // torch_ao_kernels::exact_backward: the gradients of sum(grad * visibility) of the exact union's walk ("exact"'s
 // packed settings: walk_grad.h's exact_grad_block) with respect to its positions, normals (B, H, W, 3), inverse
-// depth, depth and the thickness layer (B, H, W; zeros where the model reads none); grad (B, 1, H, W); cells:
-// the edge-aware fetch's cell flags, backface: the thickness layer (B, H, W), each empty where unused
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_backward(
+// depth, depth and the thickness layer (B, H, W; zeros where the model reads none) and, with camera, each pixel's
+// share of the intrinsics' (B, H, W, 4; else empty); grad (B, 1, H, W); cells: the edge-aware fetch's cell flags,
+// backface: the thickness layer (B, H, W), each empty where unused
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> exact_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
-    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool scalar) {
+    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera, bool scalar) {
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics,
                           at::empty({0}, positions.options()), cells, backface, ints, floats, 4, 4, "exact",
                           kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
-  return call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
-                                                  int n, const float* upstream, const Targets& t) {
+  const at::Tensor none = at::empty({0}, positions.options());
+  if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
+  auto g = call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
+                                                    int n, const float* upstream, const Targets& t) {
     exact_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
+  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), std::get<4>(g), camera ? out.camera : none};
 }
 
 // The hard sector walk's call (hard_record, hard_backward): "bitmask"'s packed settings (with indirect light, its
@@ -434,8 +438,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
   m.def("exact_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool scalar) "
-        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool camera, "
+        "bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("exact_backward", c10::DispatchKey::CPU, TORCH_FN(exact_backward));
   m.def("hard_record(Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, Tensor valid, "
         "Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, int channels, "
