@@ -155,11 +155,10 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
     from torch_ao.methods.ssao import SSAO
 
     gb = example_gbuffer(8, 8)
-    light = GBuffer(depth=gb.depth, camera=PinholeCamera(gb.camera.intrinsics.clone().requires_grad_(),
-                                                         gb.camera.height, gb.camera.width),
-                    light=torch.rand(1, 3, 8, 8))  # (hard indirect light: no kernel differentiates the intrinsics)
-    with pytest.raises(ValueError, match="backend.*intrinsics"):
-        SSILVB(mode="hard", weighting="cosine", backend="kernel")(light)
+    light = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera,
+                    light=torch.rand(1, 3, 8, 8))  # (the shader's indirect light: no kernel differentiates it)
+    with pytest.raises(ValueError, match="backend.*shader's indirect light"):
+        SSILVB(variant="ssilvb_glsl", backend="kernel")(light)
     with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
         SSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):

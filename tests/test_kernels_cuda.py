@@ -123,7 +123,7 @@ typedef void HardRecord(const float*, const float*, const float*, const float*, 
                         int, int);
 typedef void HardBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                           const float*, const float*, const float*, const float*, const int*, float*, float*, float*,
-                          float*, float*, float*, float*, const long long*, const float*, int, int, int);
+                          float*, float*, float*, float*, float*, const long long*, const float*, int, int, int);
 typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            float*, const long long*, const float*, int, int, int);
@@ -178,7 +178,8 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
     grid(pixels, threads, [&] { tao_hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), occ.data(), gp.data(),
                                                   gn.data(), gd.data(), taps.data(), ti.data(), senders.data(),
-                                                  tli.data(), ints.data(), floats.data(), B, H, W); });
+                                                  tli.data(), light ? gc.data() : nullptr, ints.data(), floats.data(),
+                                                  B, H, W); });
     save(dir, "occupied", occ), save(dir, "tap_normals", senders), save(dir, "tap_light", tli);
   } else if (name == "exact") {
     grid(pixels, threads, [&] { tao_exact_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
@@ -403,8 +404,10 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                                                      settings[0][0], True)
             assert torch.equal(read("occupied", *record.shape, dtype=np.int32), record)
             assert (read("out", *out.shape) - out).abs().max() <= 1e-6
-            g_pos, g_nrm, g_inv, g_depth, cpu["light"] = grad_kernels().hard_backward(grad, *inputs, light, cells, layer,
-                                                                                      ints, floats, record, True)
+            g_pos, g_nrm, g_inv, g_depth, cpu["light"], camera = grad_kernels().hard_backward(
+                grad, *inputs, light, cells, layer, ints, floats, record, light.numel() > 0, True)
+            if light.numel():
+                cpu["camera"] = camera
             g_setting = torch.zeros_like(g_depth)
         elif accumulator == "exact":
             g_pos, g_nrm, g_inv, g_depth, cpu["layer"], cpu["camera"] = grad_kernels().exact_backward(

@@ -117,22 +117,24 @@ INDIRECT = [
 ]
 
 
-def indirect_and_grads(gb0: GBuffer, dtype: torch.dtype, backend: str, setting: dict):
+def indirect_and_grads(gb0: GBuffer, dtype: torch.dtype, backend: str, setting: dict, intrinsics: bool = False):
     """SSILVB's visibility and indirect light in hard mode, and the gradients of a weighted sum of them with respect
-    to depth, normals, the light and the radius."""
+    to depth, normals, the light and the radius (and with ``intrinsics`` the camera's (B, 3, 3))."""
     gb0 = gb0.to(dtype=dtype)
     depth = gb0.depth.detach().clone().requires_grad_()
     normals = gb0.view_normals().detach().clone().requires_grad_()
     light = torch.rand(gb0.depth.shape[0], 3, *gb0.depth.shape[-2:], generator=torch.Generator().manual_seed(1),
                        dtype=torch.float64).to(dtype).requires_grad_()
+    K = gb0.camera.intrinsics.detach().clone().requires_grad_(intrinsics)
     module = SSILVB(mode="hard", slices=3, steps=4, backend=backend, **setting).to(dtype)
-    gb = GBuffer(depth=depth, normals=normals, camera=gb0.camera, light=light)
+    gb = GBuffer(depth=depth, normals=normals, camera=PinholeCamera(K, gb0.camera.height, gb0.camera.width),
+                 light=light)
     if backend == "kernel":
         assert kernel_covers(module, gb) is None
     out = module(gb)
     values = torch.cat([out.visibility, out.indirect], 1)
     loss = (values * torch.linspace(-0.5, 1.5, values.numel(), dtype=dtype).view_as(values)).sum()
-    grads = torch.autograd.grad(loss, [depth, normals, light, module.radius])
+    grads = torch.autograd.grad(loss, [depth, normals, light, module.radius] + ([K] if intrinsics else []))
     return values.detach().double(), [g.double() for g in grads]
 
 
@@ -149,6 +151,23 @@ def test_indirect_light_gradients_equal_the_float64_tensor_walk(built, setting, 
     assert ref[:, 1:].abs().max() > 0.01 and (out - ref).abs().max() <= 1e-5
     for name, g, r in zip(("depth", "normals", "light", "radius"), grads, ref_grads):
         assert r.abs().sum() > 0, name
+        assert _relative(g, r) <= 1e-4, (name, _relative(g, r))
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("setting", range(len(INDIRECT)))
+def test_indirect_light_intrinsics_gradients_equal_the_float64_tensor_walk(built, setting, lanes, monkeypatch):
+    """Indirect light's samples move with the intrinsics (where they sample on screen: their positions, the
+    senders' normals and light; a bilinear fetch's unprojection): the backward chains them by hand (walk.h's
+    PlacementAdjoint, unprojection_camera, Sample::gather_slope), within 1e-4 relative of the float64 tensor walk."""
+    if lanes == "scalar":
+        import torch_ao.kernels.bitmask as bitmask
+        monkeypatch.setattr(bitmask, "scalar_lanes", lambda lanes: True)
+    gb = FRAMES["rough"]()
+    _, ref_grads = indirect_and_grads(gb, torch.float64, "torch", INDIRECT[setting], intrinsics=True)
+    _, grads = indirect_and_grads(gb, torch.float32, "kernel", INDIRECT[setting], intrinsics=True)
+    assert ref_grads[-1].abs().max() > 1e-3
+    for name, g, r in zip(("depth", "normals", "light", "radius", "intrinsics"), grads, ref_grads):
         assert _relative(g, r) <= 1e-4, (name, _relative(g, r))
 
 
@@ -231,4 +250,4 @@ def test_the_auto_backend_takes_the_kernel_but_not_for_the_shaders_light(built, 
     assert kernel_covers(module, moving) is None
     (g_fx,) = torch.autograd.grad(module(moving).visibility.sum(), [intrinsics])  # (the kernel: through the positions)
     assert calls == ["hard", "hard"] and g_fx.abs().sum() > 0
-    assert "intrinsics" in kernel_covers(SSILVB(mode="hard", slices=2, steps=3), moving)
+    assert kernel_covers(SSILVB(mode="hard", slices=2, steps=3), moving) is None

@@ -81,10 +81,9 @@ struct ThicknessModel {
   // the layer's part of motion: d value as the taps' weights move by (dsu, dsv) pixels (0 unless read == layer)
   template <class F> TAO_FN F layer_motion(const Sample<F>& smp, const F& dsu, const F& dsv) const {
     if (read != ThicknessRead::layer) return F(0.0f);
-    const float* layer = smp.image->backface;
-    const F l0 = gather(layer, smp.index[0]), l1 = gather(layer, smp.index[1]);
-    const F l2 = gather(layer, smp.index[2]), l3 = gather(layer, smp.index[3]);
-    return lerp(l1 - l0, l3 - l2, smp.fv) * dsu + (lerp(l2, l3, smp.fu) - lerp(l0, l1, smp.fu)) * dsv;
+    F d_su, d_sv;
+    smp.gather_slope(smp.image->backface, 0, 1, d_su, d_sv);
+    return d_su * dsu + d_sv * dsv;
   }
 };
 

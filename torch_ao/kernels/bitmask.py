@@ -73,9 +73,6 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     graded = weighting == "cosine" or bent_normals or indirect  # (what has a gradient in hard mode)
-    if indirect and _intrinsics_want_gradient(gbuffer):
-        raise ValueError("gbuffer: the hard kernel's indirect light has no gradient of the intrinsics (fx, fy, cx, "
-                         "cy); detach them or use backend='torch'")
     if graded and (wants_gradient(gbuffer, normals) or (indirect and torch.is_grad_enabled() and (
             light.requires_grad or radius.requires_grad))):
         if gbuffer.depth.device.type == "cpu":
@@ -100,8 +97,9 @@ class _HardWalk(torch.autograd.Function):
     taps; the radius' by Euler's identity (the walk is scale-invariant: the masks' angles, the senders' directions
     and the steps in pixels do not change when positions, depth and radius scale together; the thickness moves
     only the masks, which have no gradient): ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)``.
-    The intrinsics move only the steps on screen, so (without indirect light) their gradient is the positions' own,
-    which autograd chains through ``walk_inputs``' unprojection."""
+    The intrinsics move only the steps on screen, so the cosine weights' and bent normals' gradient to them is the
+    positions' own, which autograd chains through ``walk_inputs``' unprojection; indirect light's samples move with
+    them (its light, normals and position at the taps): its backward chains those to them per pixel."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, channels,
@@ -124,18 +122,21 @@ class _HardWalk(torch.autograd.Function):
         *frame, light, cells, layer, ints, floats, record, radius = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()
         positions, depth, valid, inverse = frame[0], frame[3], frame[4], frame[2]
+        camera = ctx.needs_input_grad[5] and light.numel() > 0  # indirect light's samples move with the intrinsics
         if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into images of their own
             g_pos, g_nrm, g_depth = torch.zeros_like(positions), torch.zeros_like(frame[1]), torch.zeros_like(depth)
             taps, senders, g_inv = torch.zeros_like(positions), torch.zeros_like(frame[1]), torch.zeros_like(depth)
             g_light = torch.zeros(light.shape if light.numel() else (0,), device=depth.device)
+            g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda("tao_hard_backward", depth.device, [*frame, light, cells, layer, grad, record, g_pos, g_nrm,
-                                                            g_depth, taps, g_inv, senders, g_light, ints, floats],
-                        tuple(depth.shape))
+                                                            g_depth, taps, g_inv, senders, g_light, g_camera, ints,
+                                                            floats], tuple(depth.shape))
             g_pos += taps
             g_nrm += senders
         else:
-            g_pos, g_nrm, g_inv, g_depth, g_light = grad_kernels().hard_backward(grad, *frame, light, cells, layer, ints,
-                                                                                 floats, record, ctx.scalar)
+            g_pos, g_nrm, g_inv, g_depth, g_light, g_camera = grad_kernels().hard_backward(
+                grad, *frame, light, cells, layer, ints, floats, record, camera, ctx.scalar)
+        g_intrinsics = g_camera.double().sum((1, 2)).to(frame[5].dtype) if camera else None
         g_radius = None
         if radius is not None and ctx.needs_input_grad[14]:  # Euler's identity (the class docstring)
             def dot(g, x):
@@ -144,7 +145,8 @@ class _HardWalk(torch.autograd.Function):
                 valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum()
             g_radius = (-along / radius.to(torch.float64)).to(radius.dtype)
         g_light = g_light if light.numel() else None
-        return (g_pos, g_nrm, g_inv, g_depth, None, None, g_light, None, None, None, None, None, None, None, g_radius)
+        return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light, None, None, None, None, None, None, None,
+                g_radius)
 
 
 def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
@@ -269,8 +271,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     do not know, e.g. one added to the module later, sends the call to the tensor path). Hard masks
     have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights and bent
     normals have gradients in hard mode too (through the slice: the normals and positions), which the hard
-    kernel's backward computes (the intrinsics' through the positions alone: the slice's weights do not read them);
-    indirect light has one to the light and the sample positions (not to the intrinsics, which move the samples); straight-through mode (hard values, soft gradients)
+    kernel's backward computes (the intrinsics' too); indirect light has one to the light, the sample positions and
+    the intrinsics; straight-through mode (hard values, soft gradients)
     only for uniform visibility without a gradient.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
@@ -290,8 +292,6 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     # slice (the hard kernel's backward), the light through the light, normals and (default variant) the samples
     if module.want_indirect and module.variant != "default" and _needs_grad(module, gbuffer, parameters=False):
         return "a gradient is asked for (the shader's indirect light has one, to the light and normals)"
-    if module.want_indirect and module.variant == "default" and _intrinsics_want_gradient(gbuffer):
-        return "a gradient of the intrinsics with indirect light (its samples' positions on screen follow them)"
     return None
 
 

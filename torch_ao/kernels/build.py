@@ -74,10 +74,12 @@ def grad_kernels():
         return positions.new_empty(B, channels, H, W), positions.new_empty((B, H, W, slices), dtype=torch.int32)
 
     @torch.library.register_fake("torch_ao_kernels::hard_backward")
-    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, light, *args):
+    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints, floats,
+          record, camera, scalar):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
-                positions.new_empty(positions.shape))  # (the light's: (B, H, W, 3), zeros without indirect light)
+                positions.new_empty(positions.shape),  # (the light's: (B, H, W, 3), zeros without indirect light)
+                depth.new_empty((*depth.shape, 4) if camera else (0,)))
 
     @torch.library.register_fake("torch_ao_kernels::exact_backward")
     def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats, camera,

@@ -387,6 +387,18 @@ template <class F> struct Sample {
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 
+  // d gather(image, c, channels) / d su and d sv: the taps' weights moving (0 for a nearest fetch)
+  TAO_FN void gather_slope(const float* image, int c, int channels, F& d_su, F& d_sv) const {
+    if (!bilinear) {
+      d_su = d_sv = F(0.0f);
+      return;
+    }
+    const I n = I(channels);
+    const F t0 = tao::gather(image + c, index[0] * n), t1 = tao::gather(image + c, index[1] * n);
+    const F t2 = tao::gather(image + c, index[2] * n), t3 = tao::gather(image + c, index[3] * n);
+    d_su = lerp(t1 - t0, t3 - t2, fv), d_sv = lerp(t2, t3, fu) - lerp(t0, t1, fu);
+  }
+
   // whether the screen position lies in the image, pixel centres [0, W-1] x [0, H-1] (Sample.inside)
   TAO_FN M inside() const {
     return land(land(su >= F(0.0f), su <= F(float(image->W - 1))), land(sv >= F(0.0f), sv <= F(float(image->H - 1))));

@@ -114,11 +114,11 @@ extern "C" __global__ void tao_hard_backward(const float* positions, const float
                                              const float* light, const float* cells, const float* backface,
                                              const float* grad, const int32_t* record, float* g_positions,
                                              float* g_normals, float* g_depth, float* tap_positions, float* tap_inverse,
-                                             float* tap_normals, float* tap_light, const int64_t* ints,
-                                             const float* floats, int B, int H, int W) {
+                                             float* tap_normals, float* tap_light, float* g_camera,
+                                             const int64_t* ints, const float* floats, int B, int H, int W) {
   const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (p >= int64_t(B) * H * W) return;
   const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, cells, backface, valid, B, H, W};
   tao::hard_grad_pixel(tao::unpack_walk(ints, floats), tao::unpack_bitmask(ints, floats), frame, grad, record,
-                       g_positions, g_normals, g_depth, tap_positions, tap_inverse, tap_normals, tap_light, p);
+                       g_positions, g_normals, g_depth, tap_positions, tap_inverse, tap_normals, tap_light, g_camera, p);
 }

@@ -671,6 +671,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     for (int c = 0; c < 3; ++c) per_light[c] = select(px.live, g[1 + c] * acc.per_light(whole.den), B(0.0f));
   }
   LaneArray<I, kMaxIntervals> fresh;
+  B g_cam[4] = {B(0.0f), B(0.0f), B(0.0f), B(0.0f)};  // d L / d fx, fy, cx, cy (indirect light, where t.camera)
   using Two = Dual<B, 2>;  // a slice's gamma and length
   const auto constant = [](const B& x) { return Two(x); };
   Pixels<Two> px_axes(px, constant);
@@ -710,12 +711,15 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
     FreshSectors<B> visit{&fresh[0], cfg.steps};
     walk_slice(cfg, img, acc, px, sl, st, visit);
+    PlacementAdjoint<B> placement;  // (where t.camera)
     for (int side = 1; side >= -1; side -= 2) {
       const Own xi = step_noise(cfg, px_own, sl_own, side);
       for (int64_t j = 0; j < cfg.steps; ++j) {
         const I step_fresh = fresh[int((side > 0 ? 0 : cfg.steps) + j)];
         if (!any(lnot(ieq(step_fresh, I(0))))) continue;
-        Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), step_distance(cfg, sl_own, xi, j));
+        const Own dist = step_distance(cfg, sl_own, xi, j);
+        B d_su[3], d_sv[3];
+        Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), dist, d_su, d_sv);
         D sender_n[3], light[3], sent[3];
         for (int c = 0; c < 3; ++c) {
           smp.delta[c].d[kDelta + c] = B(1.0f);
@@ -739,11 +743,25 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
           sums.light[c] = sums.light[c] + own;
         }
         const auto on = land(smp.valid, px.live);
+        if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (its position, the
+          // sender's normal and light all move with it)
+          if (cfg.bilinear) unprojection_camera(img, pos, gd, on, g_cam);
+          const Sample<B> plain(smp, [](const D& x) { return x.v; });
+          B g_su = gd[0] * d_su[0] + gd[1] * d_su[1] + gd[2] * d_su[2], g_sv = gd[0] * d_sv[0] + gd[1] * d_sv[1] + gd[2] * d_sv[2];
+          for (int c = 0; c < 3; ++c) {
+            B n_su, n_sv, l_su, l_sv;
+            plain.gather_slope(img.normals, c, 3, n_su, n_sv);
+            plain.gather_slope(img.light, c, 3, l_su, l_sv);
+            g_su = g_su + gn[c] * n_su + gl[c] * l_su, g_sv = g_sv + gn[c] * n_sv + gl[c] * l_sv;
+          }
+          placement.add(cfg, sl, float(side), dist.v, select(on, g_su, B(0.0f)), select(on, g_sv, B(0.0f)));
+        }
         scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, on);
         scatter_gather(cfg.bilinear, n, t.tap_normals, 3, gn, smp.fu.v, smp.fv.v, smp.index, on);
         scatter_gather(cfg.bilinear, n, t.tap_light, 3, gl, smp.fu.v, smp.fv.v, smp.index, on);
       }
     }
+    if (t.camera) placement.camera(cfg, img, sl, g_cam);
   }
   Own outs[8];
   acc.finish(sums, px_own, outs);
@@ -752,7 +770,8 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     own[k] = B(0.0f);
     for (int c = 0; c < C; ++c) own[k] = own[k] + g[c] * outs[c].d[k];
   }
-  write_own(t, img.W, row, u0, n, own);
+  for (int k = 0; k < 4; ++k) g_cam[k] = select(px.live, g_cam[k], B(0.0f));
+  write_own(t, img.W, row, u0, n, own, static_cast<const B*>(nullptr), t.camera ? g_cam : nullptr);
 }
 
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
@@ -839,14 +858,15 @@ TAO_FN void hard_record_pixel(const WalkSettings& cfg, const BitmaskAccumulator&
 
 // Pixel p's hard sector backward (a CUDA thread): grad (B, C, H, W), record hard_record_pixel's; its own gradients
 // (positions, normals, depth) and, with indirect light, its steps' taps' (positions, inverse depth, the senders'
-// normals and light; atomically)
+// normals and light; atomically); where camera, its d L / d the intrinsics (B, H, W, 4: indirect light's)
 TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, const float* grad,
                             const int32_t* record, float* positions, float* normals, float* depth, float* tap_positions,
-                            float* tap_inverse, float* tap_normals, float* tap_light, int64_t p) {
+                            float* tap_inverse, float* tap_normals, float* tap_light, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, nullptr,
-                  acc.indirect ? tap_normals + 3 * b * plane : nullptr, acc.indirect ? tap_light + 3 * b * plane : nullptr};
+                  acc.indirect ? tap_normals + 3 * b * plane : nullptr, acc.indirect ? tap_light + 3 * b * plane : nullptr,
+                  camera ? camera + 4 * b * plane : nullptr};
   hard_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane,
                          record + b * plane * cfg.slices, t);
 }

@@ -398,12 +398,14 @@ std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, cons
 
 // torch_ao_kernels::hard_backward: the gradients of sum(grad * outputs) of the hard sector walk (walk_grad.h's
 // hard_grad_block) with respect to its positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and
-// the light (B, H, W, 3; zeros without indirect light); grad (B, C, H, W); record: hard_record's of the same call
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> hard_backward(
+// the light (B, H, W, 3; zeros without indirect light) and, with camera, each pixel's share of the intrinsics'
+// (B, H, W, 4; else empty: indirect light's, the rest reads them through the positions alone); grad (B, C, H, W);
+// record: hard_record's of the same call
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> hard_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
     const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats,
-    const at::Tensor& record, bool scalar) {
+    const at::Tensor& record, bool camera, bool scalar) {
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
                           floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
   const BitmaskAccumulator acc = hard_accumulator(call);
@@ -413,12 +415,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> hard_back
   const int32_t* rec = record.data_ptr<int32_t>();
   const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
   Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, false, acc.indirect);
+  if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
   const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
                                                                       int64_t row, int64_t u0, int n,
                                                                       const float* upstream, const Targets& t) {
     hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, rec + b * per_image, t);
   });
-  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.light()};
+  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.light(),
+          camera ? out.camera : at::empty({0}, positions.options())};
 }
 
 }  // namespace
@@ -447,6 +451,6 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.impl("hard_record", c10::DispatchKey::CPU, TORCH_FN(hard_record));
   m.def("hard_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
         "Tensor valid, Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, "
-        "Tensor record, bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+        "Tensor record, bool camera, bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("hard_backward", c10::DispatchKey::CPU, TORCH_FN(hard_backward));
 }
