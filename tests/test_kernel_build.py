@@ -141,3 +141,38 @@ def test_a_real_build_completes_despite_a_stale_torch_lock(tmp_path):
     assert proc.returncode == 0, proc.stderr
     library = Path(proc.stdout.strip().splitlines()[-1])
     assert library.is_file() and library.parent == ext / "k_stale" and not (ext / "k_stale" / "lock").exists()
+
+
+RETRY_AFTER_FAILURE = """
+import sys
+from pathlib import Path
+from torch_ao.kernels import build
+source = Path(sys.argv[1])
+build.load_cached_library("k_retry", [source], [], [])  # a good build
+source.write_text("extern \\"C\\" int torch_ao_retry_test() { return }\\n")  # then one that cannot compile
+for attempt in range(2):  # (the second try in the same process must build again, not load the first build)
+    try:
+        build.load_cached_library("k_retry", [source], [], [])
+        print("loaded")
+    except RuntimeError:  # (cpp_extension's: the compiler's message)
+        print("failed")
+"""
+
+
+@pytest.mark.slow
+def test_a_retry_after_a_failed_build_builds_again(tmp_path):
+    """cpp_extension itself: a build that fails, tried again in the same process, fails again; it does not load the
+    library an earlier build left and record it as current (a later process would then load a stale library)."""
+    import os
+    import subprocess
+    import sys
+
+    source = tmp_path / "k.cpp"
+    source.write_text("extern \"C\" int torch_ao_retry_test() { return 1; }\n")
+    ext = tmp_path / "ext"
+    env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(ext), PYTHONPATH=str(Path(build.__file__).parents[2]))
+    proc = subprocess.run([sys.executable, "-c", RETRY_AFTER_FAILURE, str(source)], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["failed", "failed"]
+    assert not (ext / "k_retry" / build._STAMP).exists()

@@ -204,6 +204,9 @@ def _build(cpp_extension, name: str, folder: Path, fingerprint: str, sources, cf
     """``cpp_extension.load`` (build and load) in ``folder``, then the stamp of ``fingerprint``."""
     stamp = folder / _STAMP
     stamp.unlink(missing_ok=True)  # a build interrupted from here on leaves no stale stamp
+    # cpp_extension builds only when its in-process record of the sources changed: after a failed build, a second
+    # try in the same process would load the library left from an older build, which the stamp would then call current
+    cpp_extension.JIT_EXTENSION_VERSIONER.entries.pop(name, None)
     library = Path(cpp_extension.load(name=name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
                                       extra_ldflags=list(ldflags), is_python_module=False,
                                       build_directory=str(folder),
