@@ -520,16 +520,26 @@ template <class F> struct PlacementAdjoint {
   }
 };
 
-// d L / d fx, fy, cx, cy of a bilinear fetch's position ((su - cx) / fx, -(sv - cy) / fy, -1) depth from d L / d
-// the position g_pos, on the lanes `on`, added to g_cam
+// d pos[c] / d its focal length and centre (c = 0: fx, cx; 1: fy, cy) of a bilinear fetch's position
+// ((su - cx) / fx, -(sv - cy) / fy, -1) depth
+template <class F>
+TAO_FN void unprojection_partials(const Image& img, const F* pos, int c, F& d_focal, F& d_centre) {
+  const F focal = F(c == 0 ? img.fx : img.fy);
+  d_focal = neg(pos[c]) / focal;
+  d_centre = F(c == 0 ? 1.0f : -1.0f) * pos[2] / focal;  // (depth = -pos[2])
+}
+
+// d L / d fx, fy, cx, cy of a bilinear fetch's position from d L / d the position g_pos, on the lanes `on`, added
+// to g_cam
 template <class F>
 TAO_FN void unprojection_camera(const Image& img, const F* pos, const F* g_pos, const typename LaneTraits<F>::M& on,
                                 F* g_cam) {
-  const F z = neg(pos[2]);
-  g_cam[0] = g_cam[0] - select(on, g_pos[0] * pos[0], F(0.0f)) / F(img.fx);
-  g_cam[1] = g_cam[1] - select(on, g_pos[1] * pos[1], F(0.0f)) / F(img.fy);
-  g_cam[2] = g_cam[2] - select(on, g_pos[0] * z, F(0.0f)) / F(img.fx);
-  g_cam[3] = g_cam[3] + select(on, g_pos[1] * z, F(0.0f)) / F(img.fy);
+  for (int c = 0; c < 2; ++c) {
+    F d_focal, d_centre;
+    unprojection_partials(img, pos, c, d_focal, d_centre);
+    g_cam[c] = g_cam[c] + select(on, g_pos[c] * d_focal, F(0.0f));
+    g_cam[2 + c] = g_cam[2 + c] + select(on, g_pos[c] * d_centre, F(0.0f));
+  }
 }
 
 // A walk's sample at screen (su, sv): Sample's fetch (walk_grad.h's reverse lanes overload it: the fetched

@@ -214,6 +214,20 @@ template <int L> struct Replay {
   }
 };
 
+// A backward's replayed fetch at screen (su, sv): fetched in plain lanes, with its position's d / d su and d / d sv
+// (soft.h's fetch_motion: a bilinear fetch's; a nearest one's texel does not move). The dual and the reverse
+// lanes' replayed samples (replayed_sample, fetch_sample) are made of it.
+template <class B> struct MovingFetch {
+  Sample<B> plain;
+  B d_su[3], d_sv[3];
+
+  TAO_FN MovingFetch(const WalkSettings& cfg, const Image& img, const Pixels<B>& px, const B& su, const B& sv)
+      : plain(cfg, img, px, su, sv) {
+    for (int c = 0; c < 3; ++c) d_su[c] = B(0.0f), d_sv[c] = B(0.0f);
+    if (cfg.bilinear) fetch_motion(plain, su, sv, d_su, d_sv);
+  }
+};
+
 // A replayed sample in dual lanes D whose first kPixel tangents are the pixel's own (those of px_own and sl_own,
 // Dual<B, kPixel>; the rest zero), dist (own tangents) pixels along the slice's side: fetched in plain lanes (px: the
 // pixel's values), its offset's own tangents chained through where it samples (soft.h's fetch_motion: a bilinear
@@ -226,16 +240,16 @@ TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, cons
                                  const Pixels<Own>& px_own, const Slice<Own>& sl_own, float side, const Own& dist,
                                  B* d_su_out = nullptr, B* d_sv_out = nullptr) {
   const Own su = along_u(px_own, sl_own, side, dist), sv = along_v(px_own, sl_own, side, dist);
-  const Sample<B> plain(cfg, img, px, su.v, sv.v);
-  Sample<D> smp(plain, [](const B& x) { return D(x); });
-  B own_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, own_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
-  B* d_su = d_su_out ? d_su_out : own_su;
-  B* d_sv = d_sv_out ? d_sv_out : own_sv;
-  for (int c = 0; c < 3; ++c) d_su[c] = B(0.0f), d_sv[c] = B(0.0f);
-  if (cfg.bilinear) fetch_motion(plain, su.v, sv.v, d_su, d_sv);
+  const MovingFetch<B> fetch(cfg, img, px, su.v, sv.v);
+  Sample<D> smp(fetch.plain, [](const B& x) { return D(x); });
   for (int k = 0; k < kPixel; ++k) {
-    for (int c = 0; c < 3; ++c) smp.delta[c].d[k] = d_su[c] * su.d[k] + d_sv[c] * sv.d[k] - px_own.P[c].d[k];
+    for (int c = 0; c < 3; ++c)
+      smp.delta[c].d[k] = fetch.d_su[c] * su.d[k] + fetch.d_sv[c] * sv.d[k] - px_own.P[c].d[k];
     if (cfg.bilinear) smp.fu.d[k] = su.d[k], smp.fv.d[k] = sv.d[k];
+  }
+  for (int c = 0; c < 3; ++c) {
+    if (d_su_out) d_su_out[c] = fetch.d_su[c];
+    if (d_sv_out) d_sv_out[c] = fetch.d_sv[c];
   }
   return smp;
 }
@@ -269,24 +283,24 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
   Tape<B>* tape = current_tape<B>();
   TapedFetches<B>& fetches = *static_cast<TapedFetches<B>*>(tape->fetches);
   TapedTake<B>& take = fetches.taken[fetches.n++];
-  const Sample<B> plain(cfg, img, *fetches.px, su.v, sv.v);
+  const MovingFetch<B> fetch(cfg, img, *fetches.px, su.v, sv.v);
+  const Sample<B>& plain = fetch.plain;
+  const B* d_su = fetch.d_su;
+  const B* d_sv = fetch.d_sv;
   Sample<R> smp(plain, [](const B& x) { return R(x); });
-  B d_su[3] = {B(0.0f), B(0.0f), B(0.0f)}, d_sv[3] = {B(0.0f), B(0.0f), B(0.0f)};
-  if (cfg.bilinear) {
-    fetch_motion(plain, su.v, sv.v, d_su, d_sv);
-    smp.fu = R::link(plain.fu, su, B(1.0f)), smp.fv = R::link(plain.fv, sv, B(1.0f));
-  }
+  if (cfg.bilinear) smp.fu = R::link(plain.fu, su, B(1.0f)), smp.fv = R::link(plain.fv, sv, B(1.0f));
+  for (int c = 0; c < 3; ++c) take.pos[c] = plain.delta[c] + fetches.px->P[c];
   for (int c = 0; c < 3; ++c) {
-    take.pos[c] = plain.delta[c] + fetches.px->P[c];
     take.ids[c] = tape->leaf();
     R moved(take.pos[c], take.ids[c], tape);
     if (cfg.bilinear) {
       moved = R::link(take.pos[c], R::link(take.pos[c], moved, B(1.0f), su, d_su[c]), B(1.0f), sv, d_sv[c]);
-      if (c < 2 && tape->camera) {  // the unprojection ((su - cx) / fx z, -(sv - cy) / fy z): its intrinsics
-        const B depth = neg(plain.delta[2] + fetches.px->P[2]), focal = B(c == 0 ? img.fx : img.fy);
-        const R f = seed_camera(R(focal), c), centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
-        moved = R::link(take.pos[c], moved, B(1.0f), f, neg(take.pos[c]) / focal);
-        moved = R::link(take.pos[c], moved, B(1.0f), centre, B(c == 0 ? -1.0f : 1.0f) * depth / focal);
+      if (c < 2 && tape->camera) {  // the unprojection's intrinsics
+        B d_focal, d_centre;
+        unprojection_partials(img, take.pos, c, d_focal, d_centre);
+        const R f = seed_camera(R(B(c == 0 ? img.fx : img.fy)), c), centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
+        moved = R::link(take.pos[c], moved, B(1.0f), f, d_focal);
+        moved = R::link(take.pos[c], moved, B(1.0f), centre, d_centre);
       }
     }
     smp.delta[c] = select(plain.valid, R::link(plain.delta[c], moved, B(1.0f), pr.P[c], B(-1.0f)), neg(pr.V[c]));
