@@ -76,14 +76,18 @@ struct ThicknessModel {
   // read at the moving taps (Sample.gather), the sample's depth; a first tap's read is piecewise constant
   template <class F>
   TAO_FN F motion(const Sample<F>& smp, const F* d_pos, const F& dsu, const F& dsv) const {
-    return read == ThicknessRead::depth ? neg(d_pos[2]) : layer_motion(smp, dsu, dsv);
-  }
-  // the layer's part of motion: d value as the taps' weights move by (dsu, dsv) pixels (0 unless read == layer)
-  template <class F> TAO_FN F layer_motion(const Sample<F>& smp, const F& dsu, const F& dsv) const {
-    if (read != ThicknessRead::layer) return F(0.0f);
+    if (read == ThicknessRead::depth) return neg(d_pos[2]);
     F d_su, d_sv;
-    smp.gather_slope(smp.image->backface, 0, 1, d_su, d_sv);
+    layer_slope(smp, d_su, d_sv);
     return d_su * dsu + d_sv * dsv;
+  }
+  // the layer's part of motion: d value / d su and d sv as the taps' weights move (0 unless read == layer)
+  template <class F> TAO_FN void layer_slope(const Sample<F>& smp, F& d_su, F& d_sv) const {
+    if (read == ThicknessRead::layer) {
+      smp.gather_slope(smp.image->backface, 0, 1, d_su, d_sv);
+    } else {
+      d_su = d_sv = F(0.0f);
+    }
   }
 };
 

@@ -23,6 +23,7 @@ from .coverage import gbuffer_uncovered, option_uncovered
 from .build import cpu_kernels, grad_kernels
 from .frame import light_input, scalar_lanes, walk_inputs
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
+from .walk_grad import wants_gradient
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
            "kernel_covers", "options_uncovered", "module_thickness",
@@ -147,18 +148,6 @@ class _HardWalk(torch.autograd.Function):
         g_light = g_light if light.numel() else None
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light, None, None, None, None, None, None, None,
                 g_radius)
-
-
-def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
-    """Whether autograd records through the G-buffer's depth, positions, intrinsics or ``normals``."""
-    return (torch.is_grad_enabled() and any(t is not None and t.requires_grad
-                                            for t in (gbuffer.depth, gbuffer.position, gbuffer.normals, normals))
-            or _intrinsics_want_gradient(gbuffer))
-
-
-def _intrinsics_want_gradient(gbuffer: GBuffer) -> bool:
-    cam = gbuffer.camera
-    return torch.is_grad_enabled() and any(t.requires_grad for t in (cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,

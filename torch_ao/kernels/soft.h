@@ -119,7 +119,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     // thickness t, the value its scale multiplies and d t along the radius
     LaneArray<F, kKept> s, w, av, at, dav, dat, t, tv, dt;
     // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
-    // pixels, d position / d su, d sv and d / d su, d sv of a layer's read (ThicknessModel::layer_motion)
+    // pixels, d position / d su, d sv and d / d su, d sv of a layer's read (ThicknessModel::layer_slope)
     LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3], dv_su, dv_sv;
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
@@ -229,8 +229,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       }
       for (int i = 0; i < 4; ++i) st.index[i][m] = smp.index[i];
       st.fu[m] = smp.fu, st.fv[m] = smp.fv, st.valid[m] = smp.valid, st.dist[m] = dist;
-      st.dv_su[m] = moves ? thickness.layer_motion(smp, F(1.0f), F(0.0f)) : F(0.0f);
-      st.dv_sv[m] = moves ? thickness.layer_motion(smp, F(0.0f), F(1.0f)) : F(0.0f);
+      st.dv_su[m] = F(0.0f), st.dv_sv[m] = F(0.0f);
+      if (moves) thickness.layer_slope(smp, st.dv_su[m], st.dv_sv[m]);
       return;
     }
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)

@@ -38,6 +38,7 @@ from .bitmask import module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
+from .walk_grad import wants_gradient
 
 __all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
 
@@ -71,8 +72,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
     read = thickness_read_index(thickness_read, layer)
-    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals) or (
-        layer is not None and layer.requires_grad and torch.is_grad_enabled())
+    of_gbuffer = wants_gradient(gbuffer, normals, layer)
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         if of_gbuffer:
@@ -91,13 +91,6 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
     return _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
-
-
-def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor) -> bool:
-    """Whether autograd records through the G-buffer's depth, positions, intrinsics or ``normals``."""
-    cam = gbuffer.camera
-    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
-        gbuffer.depth, gbuffer.position, gbuffer.normals, normals, cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def _settings(radius, thickness, scale, o):
@@ -210,7 +203,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     value + offset``, visibility only, a float32 CPU G-buffer) with either weighting; gradients of radius and
     the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
     reads."""
-    of_gbuffer = _gbuffer_wants_gradient(gbuffer, gbuffer.normals)
+    of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES, layers=True)
     if reason is not None:
         return reason

@@ -31,6 +31,7 @@ from .bitmask import EXACT_MAX_STEPS, _EXACT, module_thickness, options_uncovere
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
+from .walk_grad import wants_gradient
 
 __all__ = ["exact_soft", "exact_soft_covers", "exact_soft_forward"]
 
@@ -74,7 +75,7 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
         if t.dim() != 0:
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
         scalars.append(t)
-    of_gbuffer = _gbuffer_wants_gradient(gbuffer, normals, layer)
+    of_gbuffer = wants_gradient(gbuffer, normals, layer)
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         if of_gbuffer:
@@ -86,14 +87,6 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
     return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2], None if layer is None else layer.detach())
-
-
-def _gbuffer_wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, layer: torch.Tensor | None) -> bool:
-    """Whether autograd records through the G-buffer's depth, positions, intrinsics, ``normals`` or the thickness
-    ``layer``."""
-    cam = gbuffer.camera
-    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (
-        gbuffer.depth, gbuffer.position, gbuffer.normals, normals, layer, cam.fx, cam.fy, cam.cx, cam.cy))
 
 
 def _settings(radius, thickness, scale, o) -> tuple:

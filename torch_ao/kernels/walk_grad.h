@@ -583,11 +583,10 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         const auto on = land(smp.valid, px.live);
         if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (the slice's placement)
           if (cfg.bilinear) unprojection_camera(img, pos, gd, on, g_cam);
-          const Sample<B> plain(smp, [](const D& x) { return x.v; });
-          const B g_su = gd[0] * d_su[0] + gd[1] * d_su[1] + gd[2] * d_su[2] +
-                         g_layer * acc.thickness.layer_motion(plain, B(1.0f), B(0.0f));
-          const B g_sv = gd[0] * d_sv[0] + gd[1] * d_sv[1] + gd[2] * d_sv[2] +
-                         g_layer * acc.thickness.layer_motion(plain, B(0.0f), B(1.0f));
+          B layer_su, layer_sv;
+          acc.thickness.layer_slope(Sample<B>(smp, [](const D& x) { return x.v; }), layer_su, layer_sv);
+          const B g_su = gd[0] * d_su[0] + gd[1] * d_su[1] + gd[2] * d_su[2] + g_layer * layer_su;
+          const B g_sv = gd[0] * d_sv[0] + gd[1] * d_sv[1] + gd[2] * d_sv[2] + g_layer * layer_sv;
           placement.add(cfg, sl, float(side), dist.v, select(on, g_su, B(0.0f)), select(on, g_sv, B(0.0f)));
         }
         scatter_taps(cfg.bilinear, n, t, gd, pos, smp.fu.v, smp.fv.v, smp.index, on,
