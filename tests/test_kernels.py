@@ -107,7 +107,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
     # (cosine weights and indirect light are covered since the kernel has them: see test_kernels_glsl.py)
-    cases = {"variant": BitmaskAO(variant="hdrp", azimuth="view"), "mode": BitmaskAO(mode="soft"),
+    cases = {"variant": BitmaskAO(variant="exact", union="sectors"), "mode": BitmaskAO(mode="soft"),
              "weighting": BitmaskAO(weighting="cosine", mode="straight_through"),
              "indirect": BitmaskAO(indirect=True, mode="straight_through"), "ambient": BitmaskAO(ambient=lambda d: d),
              "azimuth": BitmaskAO(azimuth="screen"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),

@@ -243,7 +243,8 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
 
 def cases(gb):
     """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
-    (hard, exact and with its parameters' derivatives, the GLSL shader's in its three numerics, soft: its forward,
+    (hard: the default and hdrp variants; exact and with its parameters' derivatives, the GLSL shader's in its three
+    numerics, soft: its forward,
     and with the radius and thickness derivatives), GTAO and HBAO with the Hilbert-indexed R2 noise and staggered
     steps, UE4 SSAO's wedge pairs (a sample set's table, evenly spaced directions) and PSSAO's pixel offsets (their
     table)."""
@@ -256,9 +257,12 @@ def cases(gb):
     yield "gtao", walk_settings(**common, noise="hilbert_r2", stagger=True), [0, True, True], [1.0, 0.3, 1.0], 5, None
     yield ("hbao", walk_settings(**common, full_circle=True, noise="hilbert_r2", stagger=True), [False, True, False],
            [1.0, 0.1], 1, None)
-    yield "bitmask", walk_settings(**common), [0, True, True, True, False], [0.5, 0.01, 1.0], 7, light
-    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False], [0.3, 0.01, 1.0], 1, None
-    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False], [0.3, 0.01, 1.0], 4, light
+    # (rounding, cosine, indirect, bent, the thickness' read, the variant: 0 default, 1 hdrp)
+    yield "bitmask", walk_settings(**common), [0, True, True, True, False, 0], [0.5, 0.01, 1.0], 7, light
+    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False, 0], [0.3, 0.01, 1.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False, 0], [0.3, 0.01, 1.0], 4, light
+    yield "bitmask", walk_settings(**common, azimuth="screen"), [0, False, False, False, 0, 1], [0.5, 0.0, 1.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="nearest"), azimuth="screen"), [1, True, True, True, 0, 1], [0.5, 0.0, 1.0], 7, light
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
@@ -358,11 +362,11 @@ def _backward_cases():
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
     yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0], [0.4, 1.0, 1.0, 0.01], 1
     yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2], [0.1, 1.0, 1.0, 0.0], 1
-    # (rounding, cosine, indirect, bent, the layer's read); thickness, epsilon, the layer's scale
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1], [0.1, 0.01, 1.0], 4
-    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0], [0.4, 0.01, 1.0], 1
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0], [0.4, 0.01, 1.0], 7
-    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0], [0.4, 0.01, 1.0], 4
+    # (rounding, cosine, indirect, bent, the layer's read, the variant); thickness, epsilon, the layer's scale
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1, 0], [0.1, 0.01, 1.0], 4
+    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0], 1
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0], [0.4, 0.01, 1.0], 7
+    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0], 4
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])

@@ -1,6 +1,6 @@
-// The hard visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" variant
-// (methods/bitmask.py DefaultAccumulator, methods/bitmask_common.py's SectorAccumulator) for walk.h:
-// 32 sectors per slice, each sample's occluded interval [front, back] (the sector rule of
+// The hard visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" and "hdrp" variants
+// (methods/bitmask.py DefaultAccumulator and HDRPAccumulator, methods/bitmask_common.py's SectorAccumulator) for
+// walk.h: 32 sectors per slice, each sample's occluded interval [front, back] (the sector rule of
 // torch_ao/sectors/rule.py), with uniform or cosine sector weights, and optionally the indirect light
 // of the newly occluded sectors and the bent normal of the visible ones.
 #pragma once
@@ -95,12 +95,24 @@ struct ThicknessModel {
 // (the sector rule's shift: a sample's angle from the view vector, times side / pi, plus this)
 template <class F> TAO_FN F edge_shift(const Slice<F>& sl) { return (F(kHalfPi) - sl.gamma) / F(kPi); }
 
+// Sample.cos_view: dot(normalize(delta - offset V), V), the shaders' horizon cosine (3D, not projected)
+template <class F> TAO_FN F cos_view(const F* delta, const F* V, const F& offset) {
+  F d[3];
+  for (int c = 0; c < 3; ++c) d[c] = delta[c] - offset * V[c];
+  return dot3(d, V) / clamp_min(norm3(d), F(1e-30f));
+}
+
+// Which published rule measures a sample's angles (methods/bitmask.py's accumulators): variant "default"'s exact
+// in-plane atan2 from V toward +T, or "hdrp"'s 3D cosines through fast_acos, from V toward -T
+enum class SectorAngles : int64_t { plane = 0, hdrp = 1 };
+
 struct BitmaskAccumulator {
   int64_t slices;
   ThicknessModel thickness;  // world units along the view ray
   float epsilon;    // sector_epsilon: sectors taken off each interval's width
   int64_t rounding;
   bool cosine, indirect, bent;
+  SectorAngles angles;
 
   template <class F> struct State {
     typename LaneTraits<F>::I occ;
@@ -115,7 +127,19 @@ struct BitmaskAccumulator {
   TAO_FN int channels() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
   TAO_FN bool weighted() const { return cosine || bent; }
 
-  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+  // The walk's slice in the frame the variant's angles are measured in (SectorAccumulator.slice_frame): as walked,
+  // or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame)
+  template <class F> TAO_FN Slice<F> frame(const Slice<F>& walked) const {
+    if (angles != SectorAngles::hdrp) return walked;
+    Slice<F> sl = walked;
+    sl.gamma = neg(sign(walked.sin_gamma)) * fast_acos(walked.cos_gamma);
+    sl.cos_gamma = cos(sl.gamma), sl.sin_gamma = sin(sl.gamma);
+    for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
+    return sl;
+  }
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& walked) const {
+    const Slice<F> sl = frame(walked);
     State<F> st;
     st.occ = typename LaneTraits<F>::I(0);
     st.shift = edge_shift(sl);
@@ -132,12 +156,21 @@ struct BitmaskAccumulator {
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
     // the sector rule: the sample's front (delta) and back (delta - thickness V) seen from the pixel,
-    // as fractions of the hemisphere from its edge on side -1
-    const F scale = F(float(side) / kPi);
-    const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
-    const F front = clamp(fma(atan2(along_tangent, along_view), scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(atan2(along_tangent, along_view - thickness.at(px, smp)), scale, st.shift), F(0.0f), F(1.0f));
-    const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
+    // as fractions of the hemisphere from its edge on the frame's side -1
+    const int turn = angles == SectorAngles::hdrp ? -side : side;  // (HDRP's tangent is -T: its yx swap)
+    const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
+    F front_angle, back_angle;
+    if (angles == SectorAngles::hdrp) {
+      front_angle = fast_acos(cos_view(smp.delta, px.V, F(0.0f)));
+      back_angle = fast_acos(cos_view(smp.delta, px.V, t));
+    } else {
+      const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
+      front_angle = atan2(along_tangent, along_view);
+      back_angle = atan2(along_tangent, along_view - t);
+    }
+    const F front = clamp(fma(front_angle, scale, st.shift), F(0.0f), F(1.0f));
+    const F back = clamp(fma(back_angle, scale, st.shift), F(0.0f), F(1.0f));
+    const F lo = turn > 0 ? front : back, hi = turn > 0 ? back : front;
     F width = (hi - lo) * F(float(kSectors));
     if (epsilon > 0) width = width - F(epsilon);
     const I bits = sector_bits(lo * F(float(kSectors)), width, rounding);
@@ -178,7 +211,7 @@ struct BitmaskAccumulator {
   }
 
   template <class F>
-  TAO_FN void end_slice(const State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
+  TAO_FN void end_slice(const State<F>& st, const Pixels<F>& px, const Slice<F>& walked, Sums<F>& sums) const {
     if (!cosine) sums.visible = sums.visible + to_float(typename LaneTraits<F>::I(kSectors) - popcount(st.occ));
     if (weighted()) {
       F wv[kSectors];
@@ -191,6 +224,7 @@ struct BitmaskAccumulator {
       if (bent) {
         // the visible sectors' centres phi_k = gamma - pi/2 + c_k in the slice's (V, T) frame:
         // cos phi_k = sin(gamma + c_k), sin phi_k = -cos(gamma + c_k)
+        const Slice<F> sl = frame(walked);
         const F cg = sl.cos_gamma, sg = sl.sin_gamma;
         F along_v = F(0.0f), along_t = F(0.0f);
         for (int k = 0; k < kSectors; ++k) {

@@ -1,9 +1,9 @@
-"""The hard bitmask kernels: ``BitmaskAO(variant="default" | "ssilvb_glsl", mode="hard")`` in one fused pass.
+"""The hard bitmask kernels: ``BitmaskAO(variant="default" | "hdrp" | "ssilvb_glsl", mode="hard")`` in one fused pass.
 
-:func:`bitmask_hard` / :func:`bitmask_outputs` walk exactly what the ``"default"`` variant's tensor path
-walks (the same slice directions around the view vector, jitter, step placement, fetch, border and
-sector rule; see :mod:`torch_ao.methods.bitmask`), with uniform or cosine sector weights, and return the
-same visibility, indirect light and bent normals. :func:`ssilvb_glsl_hard` is the ``"ssilvb_glsl"``
+:func:`bitmask_hard` / :func:`bitmask_outputs` walk exactly what the ``"default"`` and ``"hdrp"`` variants' tensor
+path walks (the same slice directions, jitter, step placement, fetch, border and the variant's sector rule; see
+:mod:`torch_ao.methods.bitmask`), with uniform or cosine sector weights, and return the same visibility, indirect
+light and bent normals. :func:`ssilvb_glsl_hard` is the ``"ssilvb_glsl"``
 variant (the SSILVB GLSL article's shader, :mod:`torch_ao.methods.bitmask_glsl`): AO and indirect light.
 Both are the one walk of ``walk.h``, with the accumulator of ``bitmask.h`` or, with the shader's step
 placement and jitter, of ``bitmask_glsl.h``; they agree with the tensor path by tolerance (hard masks on
@@ -42,9 +42,10 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
                     bent_normals: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
-                    thickness_read: str | None = None, lanes: str = "simd") -> KernelOutputs:
-    """The ``"default"`` variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded; background
-    pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
+                    thickness_read: str | None = None, variant: str = "default", azimuth: str = "view",
+                    lanes: str = "simd") -> KernelOutputs:
+    """The ``"default"`` (or ``"hdrp"``) variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded;
+    background pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
 
     Args:
@@ -58,24 +59,31 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             depth (:class:`~torch_ao.thickness.ThicknessLayer`; :func:`thickness_options` gives all four from it);
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
-            weighting (``"uniform"``/``"cosine"``), indirect, bent_normals: as :class:`~torch_ao.BitmaskAO`.
+            weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`), azimuth
+            (``"view"``/``"screen"``): as :class:`~torch_ao.BitmaskAO`. The ``"hdrp"`` variant has no backward here:
+            its cosine weights, bent normals and indirect light with autograd recording raise a ``ValueError``.
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
+    if variant not in HARD_VARIANTS:
+        raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
     radius = torch.as_tensor(radius)
     settings = walk_settings(slices=slices, steps=steps, radius=float(radius.detach()), step_power=step_power,
                              min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
-                             fetch=fetch, border=border)
+                             fetch=fetch, border=border, azimuth=azimuth)
     acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
-                thickness_read_index(thickness_read, layer)]
+                thickness_read_index(thickness_read, layer), HARD_VARIANTS.index(variant)]
     acc_floats = [thickness, sector_epsilon, float(layer_scale)]
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     graded = weighting == "cosine" or bent_normals or indirect  # (what has a gradient in hard mode)
     if graded and (wants_gradient(gbuffer, normals) or (indirect and torch.is_grad_enabled() and (
             light.requires_grad or radius.requires_grad))):
+        if variant != "default":
+            raise ValueError(f"variant: the hard kernel's backward is the 'default' variant's; {variant!r} with "
+                             "cosine weights, bent normals or indirect light runs without autograd here")
         if gbuffer.depth.device.type == "cpu":
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         inputs, (light, cells, layer_image), ints, floats = packed_inputs(
@@ -88,6 +96,10 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     light = out[:, 1:4] if indirect else None
     bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
     return KernelOutputs(out[:, :1], light, bent)
+
+
+#: the variants :func:`bitmask_outputs` walks, in bitmask.h's SectorAngles order
+HARD_VARIANTS = ("default", "hdrp")
 
 
 class _HardWalk(torch.autograd.Function):
@@ -206,8 +218,8 @@ def thickness_read_index(read: str | None, layer: torch.Tensor | None) -> int:
 
 
 def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
-    """Hard visibility ``(B,1,H,W)`` of the ``"default"`` variant: :func:`bitmask_outputs`'s first output
-    (same arguments, visibility only)."""
+    """Hard visibility ``(B,1,H,W)`` of the ``"default"`` (or ``"hdrp"``) variant: :func:`bitmask_outputs`'s first
+    output (same arguments, visibility only)."""
     options.update(indirect=False, bent_normals=False)
     return bitmask_outputs(gbuffer, normals, **options).visibility
 
@@ -262,16 +274,16 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     normals have gradients in hard mode too (through the slice: the normals and positions), which the hard
     kernel's backward computes (the intrinsics' too); indirect light has one to the light, the sample positions and
     the intrinsics; straight-through mode (hard values, soft gradients)
-    only for uniform visibility without a gradient.
+    only for uniform visibility without a gradient. The ``"hdrp"`` variant's cosine weights, bent normals and
+    indirect light only without a gradient (the hard backward ends the default variant's slices).
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
-                               variants=("default", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
-                               extra=_HARD if module.variant == "default" else None,
-                               layers=module.variant == "default")
+                               variants=("default", "hdrp", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
+                               extra=_HARD.get(module.variant), layers=module.variant in HARD_VARIANTS)
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
-                                    ("bent_normals", module.want_bent), ("variant='ssilvb_glsl'", module.variant != "default"))
+                                    ("bent_normals", module.want_bent), (f"variant={module.variant!r}", module.variant != "default"))
               if on]
     if beyond and module.mode != "hard":
         return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
@@ -279,13 +291,20 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through the
     # slice (the hard kernel's backward), the light through the light, normals and (default variant) the samples
-    if module.want_indirect and module.variant != "default" and _needs_grad(module, gbuffer, parameters=False):
+    if module.want_indirect and module.variant == "ssilvb_glsl" and _needs_grad(module, gbuffer, parameters=False):
         return "a gradient is asked for (the shader's indirect light has one, to the light and normals)"
+    graded = module.weighting == "cosine" or module.want_bent or module.want_indirect
+    if module.variant == "hdrp" and graded and wants_gradient(
+            gbuffer, None, *((gbuffer.light, module.radius) if module.want_indirect else ())):
+        return ("a gradient is asked for (the 'hdrp' variant's cosine weights, bent normals and indirect light have "
+                "one; the hard kernel's backward is the default variant's)")
     return None
 
 
-#: what the hard kernel of the ``"default"`` variant covers beyond the options every bitmask kernel does
-_HARD = {"fetch": ("nearest", "bilinear", "edge_aware")}
+#: what the hard kernel of the ``"default"`` and ``"hdrp"`` variants covers beyond the options every bitmask kernel
+#: does (``"hdrp"``'s slices default to screen directions)
+_HARD = {"default": {"fetch": ("nearest", "bilinear", "edge_aware")},
+         "hdrp": {"fetch": ("nearest", "bilinear", "edge_aware"), "azimuth": ("view", "screen")}}
 #: what the exact union's kernel covers beyond the hard kernels' options
 _EXACT = {"variant": ("default", "exact"), "union": ("exact",), "clip_to_radius": (False, True),
           "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere"),
@@ -359,7 +378,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = gbuffer_uncovered(gbuffer, devices)
     if reason is not None:
         return reason
-    if gbuffer.position is not None and module.variant == "default" and module.fetch in ("bilinear", "edge_aware"):
+    if gbuffer.position is not None and module.variant in HARD_VARIANTS and module.fetch in ("bilinear", "edge_aware"):
         return f"{module.fetch} reads of a position buffer"  # (the kernel interpolates depth)
     return None
 

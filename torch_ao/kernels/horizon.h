@@ -8,15 +8,6 @@
 
 namespace tao {
 
-// HDRP's GTAOFastAcos / UE4's acosFast (torch_ao.ops.fast_acos)
-template <class F> TAO_FN F fast_acos(const F& x) {
-  const F ax = abs(x);
-  const auto inside = ax < F(1.0f);
-  const F root = select(inside, sqrt(select(inside, F(1.0f) - ax, F(1.0f))), F(0.0f));
-  const F res = (F(-0.156583f) * ax + F(kHalfPi)) * root;
-  return select(x >= F(0.0f), res, F(kPi) - res);
-}
-
 // torch_ao.ops.arc_integral over [h1, h2] around the projected normal's angle n: both halves of
 // 1/4 (-cos(2h - n) + cos n + 2 h sin n)
 template <class F> TAO_FN F arc_integral(const F& h1, const F& h2, const F& n, const F& cos_n, const F& sin_n) {

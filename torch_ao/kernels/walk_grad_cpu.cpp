@@ -358,6 +358,7 @@ BitmaskAccumulator hard_accumulator(const BackwardCall& call) {
   const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
   TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  TORCH_CHECK(acc.angles == SectorAngles::plane, "variant: the hard backward ends the default variant's slices");
   return acc;
 }
 
@@ -372,7 +373,7 @@ std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, cons
                                                const at::Tensor& floats, int64_t channels, int64_t slices,
                                                bool scalar) {
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
+                          floats, 6, 3, "hard", std::numeric_limits<int64_t>::max());
   const BitmaskAccumulator acc = hard_accumulator(call);
   TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
   TORCH_CHECK(call.cfg.slices == slices, "slices: expected the settings' ", call.cfg.slices);
@@ -407,7 +408,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats,
     const at::Tensor& record, bool camera, bool scalar) {
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, 5, 3, "hard", std::numeric_limits<int64_t>::max());
+                          floats, 6, 3, "hard", std::numeric_limits<int64_t>::max());
   const BitmaskAccumulator acc = hard_accumulator(call);
   TORCH_CHECK(record.scalar_type() == at::kInt && record.is_contiguous() &&
                   record.sizes() == at::IntArrayRef({call.fr.B, call.fr.H, call.fr.W, call.cfg.slices}),
