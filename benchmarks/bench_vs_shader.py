@@ -13,8 +13,9 @@ Rows:
   its textures uploaded once; each timed call draws the full-screen quad and reads the result back
   (``fbo.read`` waits for llvmpipe's threads);
 * hard forwards without autograd, ``backend="kernel"`` (an uncovered call raises): ``SSILVB(variant=
-  "ssilvb_glsl")`` AO + indirect light, ``BitmaskAO`` (uniform, cosine, cosine + bent normals, the exact
-  union with ``BackfaceThickness`` and ``fetch="edge_aware"``), ``GTAO``, ``HBAO``; ratio to the shader;
+  "ssilvb_glsl")`` AO + indirect light, ``BitmaskAO`` (uniform, cosine, the ``"hdrp"`` variant, cosine + bent
+  normals, the exact union with ``BackfaceThickness`` and ``fetch="edge_aware"``), ``GTAO``, ``HBAO``; ratio to
+  the shader;
 * forwards + backwards (the loss is the visibility's sum): soft and straight-through ``BitmaskAO`` with
   the gradients of radius and thickness, and with those of depth and normals too (the G-buffer's tensors
   ``requires_grad``); ``GTAO`` and ``HBAO`` with the G-buffer's gradients; ratio to the hard forward of the
@@ -163,6 +164,8 @@ def _cases() -> dict[str, Case]:
             variant="ssilvb_glsl", mode="hard", backend="kernel", **s), None, "shader", 1.0),
         "bitmask": Case("`BitmaskAO` hard", bitmask(mode="hard"), None, "shader", 1.0),
         "cosine": Case("`BitmaskAO` hard, cosine", bitmask(mode="hard", weighting="cosine"), None, "shader", 1.0),
+        "bitmask_hdrp": Case("`BitmaskAO` hard, variant `hdrp`", bitmask(mode="hard", variant="hdrp"), None, "shader",
+                             1.0),
         "cosine_bent": Case("`BitmaskAO` hard, cosine + bent normals",
                             bitmask(mode="hard", weighting="cosine", bent_normals=True), None, "shader", 1.0),
         "exact": Case("`BitmaskAO` exact + `BackfaceThickness` + edge-aware fetch", exact("kernel"), None, "shader", 1.0),
