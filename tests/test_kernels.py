@@ -43,7 +43,7 @@ def kernel_of(module: BitmaskAO, gb: GBuffer, lanes: str = "simd") -> torch.Tens
                         radius=module.radius.item(), thickness=module.thickness.item(), step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch,
-                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
+                        border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
                         lanes=lanes)
 
 
@@ -62,6 +62,7 @@ SETTINGS = [
     dict(slices=2, steps=4, border="clamp", sector_epsilon=0.0, thickness=3.0),
     dict(slices=3, steps=4, noise="hilbert_r2", stagger=True, seed=2),
     dict(slices=2, steps=3, stagger=True, jitter=False),
+    dict(slices=3, steps=4, azimuth="screen", seed=1),
 ]
 
 
@@ -110,7 +111,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
     cases = {"variant": BitmaskAO(variant="exact", union="sectors"), "mode": BitmaskAO(mode="soft"),
              "weighting": BitmaskAO(weighting="cosine", mode="straight_through"),
              "indirect": BitmaskAO(indirect=True, mode="straight_through"), "ambient": BitmaskAO(ambient=lambda d: d),
-             "azimuth": BitmaskAO(azimuth="screen"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
+             "slice_sampling": BitmaskAO(slice_sampling="projected_normal"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
              "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
              "thickness_direction": BitmaskAO(thickness_direction="depth"),
              "sample_extent": BitmaskAO(sample_extent="sphere"), "growth": BitmaskAO(thickness_growth=0.5)}

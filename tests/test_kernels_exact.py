@@ -27,6 +27,7 @@ SETTINGS = [
     dict(slices=2, steps=5, thickness=BackfaceThickness(scale=0.8, thickness=0.05)),
     dict(slices=4, steps=3, thickness=BackfaceThickness(), step_power=2.0, min_step_px=1.0, sector_epsilon=0.01),
     dict(slices=3, steps=4, noise="hilbert_r2", stagger=True, seed=3),
+    dict(slices=3, steps=4, azimuth="screen", thickness=BackfaceThickness()),
 ]
 
 
@@ -50,7 +51,8 @@ def _scalar(module, gb):
                       seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                       border=module.border, weighting=module.weighting,
                       thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
-                      sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon, lanes="scalar")
+                      sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
+                      lanes="scalar")
 
 
 def test_the_edge_aware_fetch_is_what_the_kernel_reads():
@@ -91,7 +93,7 @@ def test_exact_covers_names_what_it_does_not_cover():
         assert exact_covers(BitmaskAO(variant="exact", trainable=False), gb) is None
         assert exact_covers(BitmaskAO(union="exact", trainable=False), gb) is None  # the union alone, default variant
         cases = {"union": BitmaskAO(trainable=False), "mode": BitmaskAO(variant="exact", mode="soft", trainable=False),
-                 "azimuth": BitmaskAO(variant="exact", azimuth="screen", trainable=False),
+                 "slice_sampling": BitmaskAO(variant="exact", slice_sampling="projected_normal", trainable=False),
                  "steps=40": BitmaskAO(variant="exact", steps=40, trainable=False),
                  "growth": BitmaskAO(variant="exact", thickness_growth=0.5, trainable=False),
                  "float64": BitmaskAO(variant="exact", trainable=False)}

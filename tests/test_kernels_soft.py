@@ -29,6 +29,7 @@ SETTINGS = [
     dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware"),  # torch-ao fit's pipeline with one scalar thickness
     dict(mode="straight_through", slices=3, steps=3, fetch="edge_aware", border="clamp", tau=0.2),
     dict(mode="soft", slices=2, steps=4, tau=1.5),  # a temperature whose sector window (soft.h) still leaves some out
+    dict(mode="soft", slices=3, steps=4, weighting="cosine", fetch="edge_aware", azimuth="screen"),
 ]
 
 
@@ -216,7 +217,7 @@ def _kernel_visibility_and_grads(gb: GBuffer, lanes: str, **settings):
     vis = bitmask_soft(gb, gb.view_normals(m.normals_method), slices=m.slices, steps=m.steps, radius=radius,
                        thickness=thickness, tau=m.tau, weighting=m.weighting, straight_through=m.mode != "soft",
                        step_power=m.step_power, min_step_px=m.min_step_px, jitter=m.jitter, seed=m.seed,
-                       fetch=m.fetch, border=m.border, rounding=m.rounding, sector_epsilon=m.sector_epsilon,
+                       fetch=m.fetch, border=m.border, rounding=m.rounding, sector_epsilon=m.sector_epsilon, azimuth=m.azimuth,
                        lanes=lanes)
     loss = (vis * _loss_weights(vis)).sum()
     return vis.detach(), torch.autograd.grad(loss, [radius, thickness])

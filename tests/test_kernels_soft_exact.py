@@ -25,6 +25,7 @@ SETTINGS = [
     dict(slices=2, steps=4, fetch="nearest", radius=0.6, thickness=0.2, jitter=False),
     dict(slices=3, steps=4, thickness=BackfaceThickness(), noise="hilbert_r2", stagger=True, seed=3, step_power=2.0,
          min_step_px=1.0, sector_epsilon=0.01, mode="straight_through"),
+    dict(slices=3, steps=4, azimuth="screen", thickness=BackfaceThickness(scale=0.9, thickness=0.05)),
 ]
 
 
@@ -58,7 +59,8 @@ def _kernel(module, gb, lanes, **overrides):
                 min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                 stagger=module.stagger, fetch=module.fetch, border=module.border, weighting=module.weighting,
                 thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
-                sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon, lanes=lanes)
+                sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
+                lanes=lanes)
     args.update(overrides)
     return exact_soft(gb, gb.view_normals(), **args)
 
@@ -134,7 +136,8 @@ def test_straight_through_and_soft_forwards_are_the_hard_exact_kernels(built, se
                                jitter=module.jitter, seed=module.seed, noise=module.noise, stagger=module.stagger,
                                fetch=module.fetch, border=module.border, weighting=module.weighting,
                                thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
-                               sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon)
+                               sample_extent=module.sample_extent, sector_epsilon=module.sector_epsilon,
+                               azimuth=module.azimuth)
         assert torch.equal(out.detach(), plain) and torch.equal(hard, plain)
 
 
@@ -168,7 +171,7 @@ def test_covers_names_what_it_does_not_cover():
     cases = {"union": (BitmaskAO(mode="soft"), gb),
              "steps=40": (BitmaskAO(variant="exact", mode="soft", steps=40), gb),
              "growth": (BitmaskAO(variant="exact", mode="soft", thickness_growth=0.5), gb),
-             "azimuth": (BitmaskAO(variant="exact", mode="soft", azimuth="screen"), gb),
+             "slice_sampling": (BitmaskAO(variant="exact", mode="soft", slice_sampling="projected_normal"), gb),
              "float64": (BitmaskAO(variant="exact", mode="soft"), gb.to(dtype=torch.float64))}
     for word, (module, frame) in cases.items():
         reason = exact_soft_covers(module, frame)

@@ -22,7 +22,7 @@ def _soft(gb: GBuffer, normals: torch.Tensor, m: BitmaskAO, lanes: str) -> torch
     return bitmask_soft(gb, normals, slices=m.slices, steps=m.steps, radius=m.radius, thickness=m.thickness,
                         tau=m.tau, weighting=m.weighting, straight_through=m.mode != "soft", step_power=m.step_power,
                         min_step_px=m.min_step_px, jitter=m.jitter, seed=m.seed, noise=m.noise, stagger=m.stagger,
-                        fetch=m.fetch, border=m.border, rounding=m.rounding, sector_epsilon=m.sector_epsilon,
+                        fetch=m.fetch, border=m.border, rounding=m.rounding, sector_epsilon=m.sector_epsilon, azimuth=m.azimuth,
                         lanes=lanes)
 
 
@@ -46,7 +46,7 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @pytest.mark.parametrize("lanes", ["simd", "scalar"])
-@pytest.mark.parametrize("setting", [0, 1, 2, 4, 5, 6, 7])
+@pytest.mark.parametrize("setting", [0, 1, 2, 4, 5, 6, 7, 10])
 def test_gbuffer_gradients_equal_the_float64_tensor_walk(built, lanes, setting):
     """Soft and straight-through, uniform and cosine, every fetch (the edge-aware one's taps switch to the nearest
     texel's across depth edges: most of the rough frame's cells are one surface, about a fifth are not),

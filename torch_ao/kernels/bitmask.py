@@ -168,7 +168,8 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                min_step_px: float = 0.25,
                jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "edge_aware", border: str = "drop",
                weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
-               sample_extent: str = "sphere", sector_epsilon: float = 0.0, lanes: str = "simd") -> torch.Tensor:
+               sample_extent: str = "sphere", sector_epsilon: float = 0.0, azimuth: str = "view",
+               lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` (background 1) of the exact union of a slice's occluder intervals
     (``union="exact"``, the ``"exact"`` variant's rule; its defaults here), in one fused pass.
 
@@ -178,12 +179,13 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             :func:`bitmask_outputs`;
             step_power, min_step_px
             (pixels), jitter, seed, noise, stagger, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
-            thickness_direction, clip_to_radius, sample_extent, sector_epsilon: as :class:`~torch_ao.BitmaskAO`.
+            thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth (``"view"``/``"screen"``):
+            as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border,
-                             sphere_extent=sample_extent == "sphere")
+                             sphere_extent=sample_extent == "sphere", azimuth=azimuth)
     return run_walk("exact", gbuffer, normals, settings,
                     [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius),
                      thickness_read_index(thickness_read, layer)],
@@ -251,7 +253,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
 _COVERED = {
     # the walk's and every module's options
     "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
-    "jitter": None, "seed": None, "noise": None, "stagger": None, "slice_sampling": ("uniform",), "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view",), "normals": None,
+    "jitter": None, "seed": None, "noise": None, "stagger": None, "slice_sampling": ("uniform",), "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view", "screen"), "normals": None,
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
     "resolution": None,  # the kernel walks the (smaller) G-buffer it is given
     # the bitmask family's
@@ -302,9 +304,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 
 
 #: what the hard kernel of the ``"default"`` and ``"hdrp"`` variants covers beyond the options every bitmask kernel
-#: does (``"hdrp"``'s slices default to screen directions)
-_HARD = {"default": {"fetch": ("nearest", "bilinear", "edge_aware")},
-         "hdrp": {"fetch": ("nearest", "bilinear", "edge_aware"), "azimuth": ("view", "screen")}}
+#: does
+_HARD = {variant: {"fetch": ("nearest", "bilinear", "edge_aware")} for variant in HARD_VARIANTS}
 #: what the exact union's kernel covers beyond the hard kernels' options
 _EXACT = {"variant": ("default", "exact"), "union": ("exact",), "clip_to_radius": (False, True),
           "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere"),
@@ -341,7 +342,7 @@ def exact_forward(module, gbuffer: GBuffer) -> dict:
                      stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
                      clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,
-                     sector_epsilon=module.sector_epsilon)
+                     sector_epsilon=module.sector_epsilon, azimuth=module.azimuth)
     return {"visibility": vis}
 
 

@@ -49,7 +49,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  weighting: str = "uniform", straight_through: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
-                 fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
+                 fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
                  sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
     differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
@@ -66,8 +66,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             (``"depth"``: ``layer_scale`` per world unit of the sample's depth, no layer).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward.
-        step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors):
-            as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
+        step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
+            azimuth (``"view"``/``"screen"``): as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
@@ -86,7 +86,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     options = dict(slices=int(slices), steps=int(steps), tau=float(tau), cosine=weighting == "cosine",
                    straight_through=bool(straight_through), step_power=float(step_power),
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
-                   stagger=bool(stagger), fetch=fetch, border=border,
+                   stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read)
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
@@ -97,7 +97,7 @@ def _settings(radius, thickness, scale, o):
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of ``soft.h``'s walk."""
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius.detach()), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
-                             step_power=o["step_power"], min_step_px=o["min_step_px"])
+                             step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"])
     return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"]],
             [float(thickness.detach()), o["epsilon"], o["tau"], float(scale.detach())])
 
@@ -226,4 +226,4 @@ def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
-                        sector_epsilon=module.sector_epsilon)
+                        sector_epsilon=module.sector_epsilon, azimuth=module.azimuth)
