@@ -1,11 +1,11 @@
-"""Where the shipped pipeline's remaining error is: what more samples, a still camera's temporal accumulation,
+"""Where the back-face pipeline's remaining error is: what more samples, a still camera's temporal accumulation,
 other step distributions and other scalar parameters would give, on ``torch-ao fit``'s views.
 
 Every row is a pipeline (a method + ``Denoiser()``, hard mode) at fixed parameters, scored by mean PSNR (dB)
 against the ray-traced references in the three view groups of ``pipeline_candidates.py`` (the fit scenes'
 training views, their held-out views, the held-out scenes). ``--study``:
 
-* ``presets``: the shipped pipeline, its scalar-thickness form and the exact + back-face + edge-aware pipeline at
+* ``presets``: the back-face pipeline (fitted at ``high_steps``), its scalar-thickness form and the exact + back-face + edge-aware pipeline at
   ``high`` ... ``reference``:
   how much of the error is sampling (what converged sampling would reach);
 * ``temporal``: the mean of ``N`` frames whose per-pixel noise differs (seeds ``0 .. N-1``) before the denoiser:
@@ -30,8 +30,8 @@ from torch_ao.fitted import FittedPipeline
 from torch_ao.metrics import error_metrics
 from torch_ao.temporal import accumulate_still
 
-#: torch-ao fit's pipeline with the values its default run fits at high_steps (docs/fitting.md)
-SHIPPED = ("bitmask cosine backface edge_aware, fitted (shipped)", "bitmask",
+#: torch-ao fit's pipeline with the values its default run fits at high_steps (docs/accuracy.md's headroom tables)
+BACKFACE = ("bitmask cosine backface edge_aware, fitted at high_steps", "bitmask",
            {"weighting": "cosine", "fetch": "edge_aware", "thickness_model": "backface", "radius": 0.974,
             "thickness_scale": 0.816, "thickness": 0.165})
 SCALAR = ("bitmask cosine edge_aware, one scalar thickness", "bitmask", {"weighting": "cosine", "fetch": "edge_aware"})
@@ -77,20 +77,20 @@ def main() -> None:
         presets = ("high", "high_steps", "ultra", "extreme", "reference")
         table("Presets (slices x steps): high 3x3, high_steps 2x5, ultra 9x3, extreme 16x8, reference 32x32",
               "pipeline | preset", [(label, preset, m, {"preset": preset, **o}, 1)
-                                    for label, m, o in (SHIPPED, SCALAR, EXACT, GTAO) for preset in presets], groups)
+                                    for label, m, o in (BACKFACE, SCALAR, EXACT, GTAO) for preset in presets], groups)
     if "temporal" in args.study:
         table("A still camera's temporal accumulation at `high`: the mean of N frames of different noise",
               "pipeline | frames", [(label, f"{n} ({noise})", m, {"preset": "high", "noise": noise, **o}, n)
-                                    for label, m, o in (SHIPPED, EXACT, GTAO) for noise in ("ign", "hilbert_r2")
+                                    for label, m, o in (BACKFACE, EXACT, GTAO) for noise in ("ign", "hilbert_r2")
                                     for n in (1, 4, 8, 16)], groups)
     if "steps" in args.study:
         table("About `high`'s samples split differently, and denser steps near the pixel", "pipeline | slices x steps, step_power",
               [(label, f"{a}x{b}, {power:g}", m, {"slices": a, "steps": b, "step_power": power, **o}, 1)
-               for label, m, o in (SHIPPED, EXACT) for (a, b), power in itertools.product(((3, 3), (2, 5), (1, 9)), (1.0, 1.5, 2.0))],
+               for label, m, o in (BACKFACE, EXACT) for (a, b), power in itertools.product(((3, 3), (2, 5), (1, 9)), (1.0, 1.5, 2.0))],
               groups)
     if "resolution" in args.study:
         table("More samples on a reduced-resolution walk", "pipeline | preset",
-              [(label, preset, m, {"preset": preset, **o}, 1) for label, m, o in (SHIPPED, EXACT)
+              [(label, preset, m, {"preset": preset, **o}, 1) for label, m, o in (BACKFACE, EXACT)
                for preset in ("ultra@half", "extreme@half", "extreme@quarter", "reference@quarter", "reference@half")],
               groups)
     if "grid" in args.study:

@@ -27,7 +27,9 @@ from torch_ao.methods import DEFAULT_PRESET
 
 #: (label, method, options): the pipeline `torch-ao fit` fits with no flags first
 CANDIDATES = (
-    ("bitmask cosine backface edge_aware high_steps (the default)", "bitmask",
+    ("bitmask cosine backface edge_aware very_high (the default)", "bitmask",
+     {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware", "preset": "very_high"}),
+    ("bitmask cosine backface edge_aware high_steps", "bitmask",
      {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware", "preset": "high_steps"}),
     ("bitmask cosine backface edge_aware", "bitmask",
      {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware"}),
@@ -41,6 +43,7 @@ CANDIDATES = (
     ("gtao", "gtao", {}),
     ("gtao edge_aware", "gtao", {"fetch": "edge_aware"}),
     ("gtao high_steps", "gtao", {"preset": "high_steps"}),
+    ("gtao very_high", "gtao", {"preset": "very_high"}),
 )
 
 

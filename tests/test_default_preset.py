@@ -1,5 +1,5 @@
 """Every command and module falls back on the same preset (DEFAULT_PRESET) when given neither a preset nor counts;
-``torch-ao fit``'s default pipeline is fitted at the same cost split otherwise (``high_steps``)."""
+``torch-ao fit``'s default pipeline is fitted at longer steps (``very_high``)."""
 import pytest
 
 from torch_ao.bench import DEFAULT, QUICK
@@ -27,15 +27,15 @@ def test_sampling_dataclass_default():
 
 def test_fit_command_default_preset():
     """``torch-ao fit`` without ``--preset``: the default preset for every pipeline but its default one (bitmask,
-    default variant, back-face thickness), which is fitted at ``high_steps``: the same cost split as 2 x 5,
-    chosen on the fit set (docs/fitting.md); the rows it is compared with stay at the default preset."""
+    default variant, back-face thickness), which is fitted at ``very_high``: 2 slices x 7 steps, chosen leave one
+    scene out on the fit set (docs/accuracy.md); the rows it is compared with stay at the default preset."""
     from torch_ao.commands.fit import DEFAULT_PIPELINE_PRESET, _chosen_preset
 
     args = _subparser("fit").parse_args([])
     assert args.preset is None
     args.thickness = "backface"
-    assert _chosen_preset(args) == DEFAULT_PIPELINE_PRESET == "high_steps"
-    assert PRESETS["high_steps"] == (2, 5) and 2 * 5 <= PRESETS[DEFAULT_PRESET][0] * PRESETS[DEFAULT_PRESET][1] + 1
+    assert _chosen_preset(args) == DEFAULT_PIPELINE_PRESET == "very_high"
+    assert PRESETS["very_high"] == (2, 7) and PRESETS["high_steps"] == (2, 5)
     for flags, thickness in ((["--method", "gtao"], "scalar"), (["--variant", "exact"], "backface"), ([], "scalar")):
         args = _subparser("fit").parse_args(flags)
         args.thickness = thickness

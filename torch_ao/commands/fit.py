@@ -52,8 +52,8 @@ BITMASK = ("bitmask", "ssilvb")
 #: the candidate pipelines on the fit set's training views (benchmarks/pipeline_candidates.py, docs/fitting.md)
 BITMASK_FETCH = "edge_aware"
 #: The preset of the default pipeline (bitmask, default variant, back-face thickness) fitted without --preset:
-#: high's cost in 2 slices x 5 steps, which scored best fitted on the fit set's training views (docs/fitting.md)
-DEFAULT_PIPELINE_PRESET = "high_steps"
+#: 2 slices x 7 steps, the best leave one scene out on the fit set within 2x GTAO high's time (docs/accuracy.md)
+DEFAULT_PIPELINE_PRESET = "very_high"
 #: Smallest width and height of the built-in views (``--size``).
 MIN_SIZE = 4
 #: Flags that do not change the fit (where it writes, how it reports, the held-out views it is scored on

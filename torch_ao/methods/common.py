@@ -29,9 +29,11 @@ PRESETS: dict[str, tuple[int, int]] = {
     "low": (1, 2),
     "medium": (2, 2),
     "high": (3, 3),
-    # high's cost in longer steps: for thin occluders steps matter more than slices (the default torch-ao fit
-    # pipeline's sampling, chosen on the fit set: docs/fitting.md; GTAO scores best at high's 3 x 3)
+    # high's cost in longer steps: for thin occluders steps matter more than slices (GTAO scores best at high's 3 x 3)
     "high_steps": (2, 5),
+    # longer steps still, 1.6x high's fetches: the default torch-ao fit pipeline's sampling, the best leave one scene
+    # out on the fit set within 2x GTAO high's time (2 x 9 adds 0.06 dB at 2x, 3 x 5 loses 0.3 dB: docs/accuracy.md)
+    "very_high": (2, 7),
     "ultra": (9, 3),
     "extreme": (16, 8),
     "reference": (32, 32),
