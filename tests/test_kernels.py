@@ -10,7 +10,7 @@ from torch_ao.camera import PinholeCamera
 from torch_ao.examples import crease_gbuffer, example_gbuffer, floor_wall_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kernel_covers
-from torch_ao.methods.bitmask import SSILVB, BitmaskAO
+from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import LinearThickness
 
 from kernel_agreement import SHARE, assert_masks_agree, degenerate
@@ -156,10 +156,9 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
     from torch_ao.methods.ssao import SSAO
 
     gb = example_gbuffer(8, 8)
-    light = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera,
-                    light=torch.rand(1, 3, 8, 8))  # (the shader's indirect light: no kernel differentiates it)
-    with pytest.raises(ValueError, match="backend.*shader's indirect light"):
-        SSILVB(variant="ssilvb_glsl", backend="kernel")(light)
+    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)  # (no kernel differentiates hdrp)
+    with pytest.raises(ValueError, match="backend.*'hdrp' variant's cosine weights"):
+        BitmaskAO(variant="hdrp", weighting="cosine", backend="kernel")(graph)
     with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
         SSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):

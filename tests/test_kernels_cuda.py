@@ -131,8 +131,8 @@ Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao;
 SoftBackward tao_soft_backward;
 ExactBackward tao_exact_backward;
-HardRecord tao_record_hard;
-HardBackward tao_hard_backward;
+HardRecord tao_record_hard, tao_record_hard_glsl;
+HardBackward tao_hard_backward, tao_hard_backward_glsl;
 }
 template <class T> void save(const std::string& dir, const char* name, const std::vector<T>& v) {
   FILE* f = std::fopen((dir + "/" + name).c_str(), "wb");
@@ -166,16 +166,18 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
   std::vector<long long> rec(size_t(pixels * words), -1);
   const size_t n = size_t(pixels);
   std::vector<float> gp(3 * n), gn(3 * n), gd(n), gs(3 * n), taps(3 * n), ti(n), tl(n), gc(4 * n);  // (gs: 3 settings)
-  if (name == "hard") {
+  if (name == "hard" || name == "hard_glsl") {  // (the "ssilvb_glsl" variant's: its GlslAccumulator)
+    HardRecord* hard_record = name == "hard" ? tao_record_hard : tao_record_hard_glsl;
+    HardBackward* hard_backward = name == "hard" ? tao_hard_backward : tao_hard_backward_glsl;
     const long long slices = ints[0];
     std::vector<int> occ(size_t(pixels * slices), -1);
     std::vector<float> senders(3 * n), tli(3 * n);
     auto Li = load<float>(dir, "light");
     const float* light = Li.empty() ? nullptr : Li.data();
-    grid(pixels, threads, [&] { tao_record_hard(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
+    grid(pixels, threads, [&] { hard_record(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
                                                 Bf.empty() ? nullptr : Bf.data(), out.data(), occ.data(), ints.data(),
                                                 floats.data(), B, H, W); });
-    grid(pixels, threads, [&] { tao_hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
+    grid(pixels, threads, [&] { hard_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), occ.data(), gp.data(),
                                                   gn.data(), gd.data(), taps.data(), ti.data(), senders.data(),
                                                   tli.data(), light ? gc.data() : nullptr, ints.data(), floats.data(),
@@ -367,6 +369,11 @@ def _backward_cases():
     yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0], 1
     yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0], [0.4, 0.01, 1.0], 7
     yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0], 4
+    # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics); thickness: its indirect light's backward
+    glsl = dict(slices=4, steps=5, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp", placement="glsl",
+                full_circle=True, azimuth="screen")
+    yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False], [0.3], 4
+    yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True], [0.0], 4
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -383,7 +390,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         reads = {"exact": 3, "soft": 3, "hard": 4}
         layer = backface if accumulator in reads and acc_ints[reads[accumulator]] in (1, 2) else None
         light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
-        light = light if accumulator == "hard" and acc_ints[2] else None
+        light = light if (accumulator == "hard" and acc_ints[2]) or (accumulator == "hard_glsl" and acc_ints[1]) else None
         inputs, (light, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
                                                                     light=light, backface=layer)
         B, H, W = inputs[3].shape
@@ -403,7 +410,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             return torch.from_numpy(np.fromfile(folder / name, dtype=dtype, count=math.prod(shape)).reshape(*shape))
 
         cpu = {}
-        if accumulator == "hard":
+        if accumulator in ("hard", "hard_glsl"):
             out, record = grad_kernels().hard_record(*inputs, light, cells, layer, ints, floats, channels,
                                                      settings[0][0], True)
             assert torch.equal(read("occupied", *record.shape, dtype=np.int32), record)

@@ -89,7 +89,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
         inputs, (light, cells, layer_image), ints, floats = packed_inputs(
             gbuffer, normals, settings, acc_ints, acc_floats, light, None if layer is None else layer.detach())
         out = _HardWalk.apply(*inputs, light, cells, layer_image, ints, floats, channels, int(slices),
-                              scalar_lanes(lanes), radius if indirect else None)
+                              scalar_lanes(lanes), radius if indirect else None, "")
     else:
         out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
                        backface=layer, lanes=lanes)
@@ -112,21 +112,27 @@ class _HardWalk(torch.autograd.Function):
     only the masks, which have no gradient): ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)``.
     The intrinsics move only the steps on screen, so the cosine weights' and bent normals' gradient to them is the
     positions' own, which autograd chains through ``walk_inputs``' unprojection; indirect light's samples move with
-    them (its light, normals and position at the taps): its backward chains those to them per pixel."""
+    them (its light, normals and position at the taps): its backward chains those to them per pixel.
+
+    ``kernel`` ``"_glsl"``: the ``"ssilvb_glsl"`` variant's walk (``ints``/``floats`` its packed settings) with indirect
+    light, whose record is its carried mask after each slice and whose backward is its light's (walk_grad.h's
+    ``hard_grad_block`` of ``GlslAccumulator``): to the light, the senders' normals and positions at the taps and
+    the pixel's own normal and position. Its texels are floored (they do not move): no radius (``None``) or
+    intrinsics gradient of its own (the positions carry the intrinsics')."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, channels,
-                slices, scalar, radius):
+                slices, scalar, radius, kernel):
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             B, H, W = depth.shape
             out = torch.empty(B, channels, H, W, device=depth.device)
             record = torch.empty(B, H, W, slices, dtype=torch.int32, device=depth.device)
-            launch_cuda("tao_record_hard", depth.device, [*frame, light, cells, layer, out, record, ints, floats],
-                        (B, H, W))
+            launch_cuda(f"tao_record_hard{kernel}", depth.device,
+                        [*frame, light, cells, layer, out, record, ints, floats], (B, H, W))
         else:
             out, record = grad_kernels().hard_record(*frame, light, cells, layer, ints, floats, channels, slices, scalar)
-        ctx.scalar = scalar
+        ctx.scalar, ctx.kernel = scalar, kernel
         ctx.save_for_backward(*frame, light, cells, layer, ints, floats, record, radius)
         return out
 
@@ -135,13 +141,14 @@ class _HardWalk(torch.autograd.Function):
         *frame, light, cells, layer, ints, floats, record, radius = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()
         positions, depth, valid, inverse = frame[0], frame[3], frame[4], frame[2]
-        camera = ctx.needs_input_grad[5] and light.numel() > 0  # indirect light's samples move with the intrinsics
+        # indirect light's samples move with the intrinsics (the default variant's; the shader's texels do not)
+        camera = ctx.needs_input_grad[5] and light.numel() > 0 and not ctx.kernel
         if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into images of their own
             g_pos, g_nrm, g_depth = torch.zeros_like(positions), torch.zeros_like(frame[1]), torch.zeros_like(depth)
             taps, senders, g_inv = torch.zeros_like(positions), torch.zeros_like(frame[1]), torch.zeros_like(depth)
             g_light = torch.zeros(light.shape if light.numel() else (0,), device=depth.device)
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
-            launch_cuda("tao_hard_backward", depth.device, [*frame, light, cells, layer, grad, record, g_pos, g_nrm,
+            launch_cuda(f"tao_hard_backward{ctx.kernel}", depth.device, [*frame, light, cells, layer, grad, record, g_pos, g_nrm,
                                                             g_depth, taps, g_inv, senders, g_light, g_camera, ints,
                                                             floats], tuple(depth.shape))
             g_pos += taps
@@ -159,7 +166,7 @@ class _HardWalk(torch.autograd.Function):
             g_radius = (-along / radius.to(torch.float64)).to(radius.dtype)
         g_light = g_light if light.numel() else None
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light, None, None, None, None, None, None, None,
-                g_radius)
+                g_radius, None)
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
@@ -237,15 +244,27 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
             (>= 2) and ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world
             units), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
+
+    With ``indirect`` and autograd recording through the G-buffer, the normals or the light, the light has a
+    backward (``_HardWalk``'s ``"_glsl"`` kernel): to the light, the normals and the positions (so depth and
+    intrinsics); the visibility (hard masks) and the radius (the texels are floored) have none.
     """
     # the shader's loops run sliceCount + 1 slices of sampleCount + 1 steps, one side each
     settings = walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=float(torch.as_tensor(radius).detach()),
                              jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl",
                              full_circle=True, azimuth="screen",
                              noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
-    out = run_walk("glsl", gbuffer, normals, settings, [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee"],
-                   [thickness], 4 if indirect else 1, light=light_input(gbuffer, indirect) if indirect else None,
-                   lanes=lanes)
+    acc_ints, channels = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee"], 4 if indirect else 1
+    light = light_input(gbuffer, indirect) if indirect else None
+    if indirect and wants_gradient(gbuffer, normals, light):
+        if gbuffer.depth.device.type == "cpu":
+            cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
+        inputs, (light, cells, layer), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, [thickness],
+                                                                    light)
+        out = _HardWalk.apply(*inputs, light, cells, layer, ints, floats, channels, int(slices) + 1,
+                              scalar_lanes(lanes), None, "_glsl")
+    else:
+        out = run_walk("glsl", gbuffer, normals, settings, acc_ints, [thickness], channels, light=light, lanes=lanes)
     return KernelOutputs(out[:, :1], out[:, 1:] if indirect else None)
 
 
@@ -275,7 +294,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights and bent
     normals have gradients in hard mode too (through the slice: the normals and positions), which the hard
     kernel's backward computes (the intrinsics' too); indirect light has one to the light, the sample positions and
-    the intrinsics; straight-through mode (hard values, soft gradients)
+    the intrinsics; the ``"ssilvb_glsl"`` shader's light to the light, the normals and the positions (its own
+    backward, :func:`ssilvb_glsl_hard`'s); straight-through mode (hard values, soft gradients)
     only for uniform visibility without a gradient. The ``"hdrp"`` variant's cosine weights, bent normals and
     indirect light only without a gradient (the hard backward ends the default variant's slices).
     """
@@ -292,9 +312,8 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through the
-    # slice (the hard kernel's backward), the light through the light, normals and (default variant) the samples
-    if module.want_indirect and module.variant == "ssilvb_glsl" and _needs_grad(module, gbuffer, parameters=False):
-        return "a gradient is asked for (the shader's indirect light has one, to the light and normals)"
+    # slice (the hard kernel's backward), the light through the light, normals and the samples (the shader's light:
+    # its own backward, ssilvb_glsl_hard's)
     graded = module.weighting == "cosine" or module.want_bent or module.want_indirect
     if module.variant == "hdrp" and graded and wants_gradient(
             gbuffer, None, *((gbuffer.light, module.radius) if module.want_indirect else ())):

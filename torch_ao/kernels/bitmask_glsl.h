@@ -96,12 +96,9 @@ struct GlslAccumulator {
   TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
     const F* camera = st.camera;
-    const F dl = gl.length(smp.delta);
     F h[3], behind[3], back_dir[3];
-    for (int c = 0; c < 3; ++c) {
-      h[c] = smp.delta[c] / dl;
-      behind[c] = smp.delta[c] - camera[c] * F(thickness);
-    }
+    unit(smp.delta, h);
+    for (int c = 0; c < 3; ++c) behind[c] = smp.delta[c] - camera[c] * F(thickness);
     gl.normalize(behind, back_dir);
     // background samples occlude nothing; a sample on the pixel's own texel (sampleDistance 0) has the
     // front horizon 0 (NaN clamped) and the back one of -camera
@@ -110,18 +107,38 @@ struct GlslAccumulator {
     const F y = select(centre, st.centre_back, select(smp.valid, horizon(gl.dot(back_dir, camera), st.n), F(1.0f)));
     const I bits = sector_bits(x * F(float(kSectors)), (y - x) * F(float(kSectors)), rounding);
     if (indirect) {
-      F raw_n[3], sender_n[3], away[3];
-      for (int c = 0; c < 3; ++c) {
-        raw_n[c] = smp.gather(smp.image->normals, c);
-        away[c] = neg(h[c]);
-      }
-      gl.normalize(raw_n, sender_n);
-      const F c1 = clamp(gl.dot(st.normal, h), F(0.0f), F(1.0f));
-      const F c2 = select(smp.valid, clamp(gl.dot(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
-      const F weight = F(1.0f) - to_float(popcount(bits & bnot(st.occ))) / F(float(kSectors));
-      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + weight * ((smp.gather(smp.image->light, c) * c1) * c2);
+      F raw_n[3], light[3], sent[3];
+      for (int c = 0; c < 3; ++c) raw_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
+      light_sent(st.normal, h, raw_n, light, smp.valid, weight(bits & bnot(st.occ)), sent);
+      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + sent[c];
     }
     st.occ = st.occ | bits;
+  }
+
+  // h = delta / length(delta): the sample's direction
+  template <class F> TAO_FN void unit(const F* delta, F* h) const {
+    const F dl = gl.length(delta);
+    for (int c = 0; c < 3; ++c) h[c] = delta[c] / dl;
+  }
+
+  // the light weight of a step whose sectors `fresh` are newly occluded: 1 - popcount(fresh) / 32
+  template <class I> TAO_FN auto weight(const I& fresh) const -> decltype(to_float(popcount(fresh))) {
+    using F = decltype(to_float(popcount(fresh)));
+    return F(1.0f) - to_float(popcount(fresh)) / F(float(kSectors));
+  }
+
+  // The light a step gathers: weight light c1 c2, c1 = clamp(dot(normal, h), 0, 1) (normal: the pixel's,
+  // normalised), c2 = clamp(dot(normalize(raw_n), -h), 0, 1) (raw_n: the sender's normal at the tap; 0 from an
+  // invalid sample). (walk_grad.h's hard_grad_block runs it in dual lanes.)
+  template <class F>
+  TAO_FN void light_sent(const F* normal, const F* h, const F* raw_n, const F* light,
+                         const typename LaneTraits<F>::M& valid, const F& weight, F* sent) const {
+    F sender_n[3], away[3];
+    for (int c = 0; c < 3; ++c) away[c] = neg(h[c]);
+    gl.normalize(raw_n, sender_n);
+    const F c1 = clamp(gl.dot(normal, h), F(0.0f), F(1.0f));
+    const F c2 = select(valid, clamp(gl.dot(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
+    for (int c = 0; c < 3; ++c) sent[c] = weight * ((light[c] * c1) * c2);
   }
 
   template <class F>

@@ -24,10 +24,20 @@ from .launch import cuda_source
 
 __all__ = ["nvrtc_library", "ptxas_path", "compile_ptx", "KernelResources", "kernel_resources", "KERNEL_NAMES"]
 
+
+
+def _entry_names(source: str) -> tuple[str, ...]:
+    """The ``__global__`` entry points ``source`` defines: one name per ``TAO_CUDA_ENTRY`` / ``RECORD`` /
+    ``BACKWARD`` macro or plain ``__global__`` function, two per ``TAO_CUDA_HARD`` (its record and backward)."""
+    names = re.findall(r"^(?:TAO_CUDA_(?:ENTRY|RECORD|BACKWARD)\(|extern \"C\" __global__ void )(\w+)", source, flags=re.M)
+    for pair in re.findall(r"^TAO_CUDA_HARD\((\w+), (\w+),", source, flags=re.M):
+        names += pair
+    return tuple(names)
+
+
 #: the ``__global__`` entry points of walk_cuda.cu: a walk per accumulator, the horizon accumulators' record and
-#: backward, the soft walk's backward
-KERNEL_NAMES = tuple(re.findall(r"^(?:TAO_CUDA_(?:ENTRY|RECORD|BACKWARD)\(|extern \"C\" __global__ void )(\w+)",
-                                cuda_source(), flags=re.M))
+#: backward, the soft walk's backward, the hard sector walks' record and backward
+KERNEL_NAMES = _entry_names(cuda_source())
 #: what an SM of compute capability 8.0 to 9.0 holds: registers, warps, blocks, and the registers of a warp are
 #: allocated in units of this many
 _SM = {"registers": 65536, "warps": 64, "blocks": 32, "register_unit": 256}

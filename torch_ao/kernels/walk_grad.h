@@ -619,18 +619,20 @@ template <class B> struct FreshSectors {
 // The hard sector walk's forward with its record: each slice's occupied sectors, one word per pixel and slice
 // at record + (pixel * slices + slice) (image b's; pixel = row * W + u0 + lane), so that the backward ends the
 // slices without walking them again; the outputs' lanes in values
-template <class B>
-TAO_FN void hard_record_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
+// (Acc: BitmaskAccumulator, or GlslAccumulator, whose mask is carried across slices: its record is the mask after
+// each slice, the next slice's start)
+template <class B, class Acc>
+TAO_FN void hard_record_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row,
                               int64_t u0, int n, int32_t* record, B* values) {
   constexpr int L = LaneTraits<B>::L;
   const Pixels<B> px(cfg, img, row, u0, n);
-  typename BitmaskAccumulator::template Sums<B> sums;
+  typename Acc::template Sums<B> sums;
   const bool live = any(px.live);
   for (int64_t s = 0; s < cfg.slices; ++s) {
     int32_t occ[L] = {};
     if (live) {
       const Slice<B> sl(cfg, img, px, s);
-      typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
+      typename Acc::template State<B> st = begin_slice_of(acc, px, sl, sums, 0);
       NoVisit visit;
       walk_slice(cfg, img, acc, px, sl, st, visit);
       acc.end_slice(st, px, sl, sums);
@@ -639,6 +641,24 @@ TAO_FN void hard_record_block(const WalkSettings& cfg, const Image& img, const B
     for (int l = 0; l < n; ++l) record[((row * img.W + u0 + l) * cfg.slices) + s] = occ[l];
   }
   acc.finish(sums, px, values);
+}
+
+// The upstream gradients of the n <= L pixels of a row from u0 in lanes, g[c] of channel c of upstream (C, H, W);
+// false where all are zero (no gradient flows)
+template <class B>
+TAO_FN bool upstream_lanes(const Image& img, int64_t row, int64_t u0, int n, const float* upstream, int C, B* g) {
+  constexpr int L = LaneTraits<B>::L;
+  const int64_t plane = img.H * img.W;
+  bool none = true;
+  for (int c = 0; c < C; ++c) {
+    float lane[L];
+    for (int l = 0; l < L; ++l) {
+      lane[l] = l < n ? upstream[c * plane + row * img.W + u0 + l] : 0.0f;
+      none = none && lane[l] == 0.0f;
+    }
+    g[c] = from_lanes(lane, B(0.0f));
+  }
+  return !none;
 }
 
 // The hard sector walk's backward (bitmask.h's BitmaskAccumulator in hard mode, visibility and bent normals) of
@@ -655,18 +675,8 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   using Own = Dual<B, kPixel>;
   using I = typename LaneTraits<B>::I;
   const int C = acc.channels();
-  const int64_t plane = img.H * img.W;
   B g[8];
-  bool none = true;
-  for (int c = 0; c < C; ++c) {
-    float lane[L];
-    for (int l = 0; l < L; ++l) {
-      lane[l] = l < n ? upstream[c * plane + row * img.W + u0 + l] : 0.0f;
-      none = none && lane[l] == 0.0f;
-    }
-    g[c] = from_lanes(lane, B(0.0f));
-  }
-  if (none) return;  // (no gradient flows: the outputs' zeros stand)
+  if (!upstream_lanes(img, row, u0, n, upstream, C, g)) return;  // (no gradient flows: the outputs' zeros stand)
   const Pixels<B> px(cfg, img, row, u0, n);
   if (!any(px.live)) return;
   const Pixels<Own> px_own(cfg, img, row, u0, n);
@@ -787,6 +797,81 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   write_own(t, img.W, row, u0, n, own, static_cast<const B*>(nullptr), t.camera ? g_cam : nullptr);
 }
 
+// The "ssilvb_glsl" variant's hard backward (hard_grad_block of bitmask_glsl.h's GlslAccumulator, indirect light) of the n <= L pixels
+// of a row from u0: d L / d its light, for L = sum over its 4 outputs of upstream[c] * output c; record:
+// hard_record_block's (image b's: the carried mask after each slice). The masks, and so each step's weight, have no
+// derivative, and the shader's texels (floored) do not move: each slice is walked again from its recorded start,
+// and each valid step's light_sent replayed in Dual<B, 12> (the pixel's own normal 3, the sample's offset 3, the
+// sender's normal 3 and light 3 at its tap): d L / d the pixel's normal and position (-the offset's) are its own,
+// the tap's position, normal and light scattered (nearest fetch: index[0]). No depth, intrinsics or radius
+// gradient of its own (the positions carry them, through walk_inputs).
+template <class B> struct GlslLightAdjoint {
+  static constexpr bool kBefore = true;
+  using State = typename GlslAccumulator::template State<B>;
+  using D = Dual<B, 12>;
+  const GlslAccumulator& acc;
+  const Pixels<B>& px;
+  const D* normal;       // normalize(N), in the tangents of N
+  const B* per_light;    // d L / d the light sums
+  const Targets& t;
+  int n;
+  B* own;                // d L / d P (3), N (3)
+
+  TAO_FN void operator()(int, int64_t, const Sample<B>& smp, const State& before, const State& after) {
+    const auto on = land(smp.valid, px.live);
+    if (!any(on)) return;
+    D delta[3], raw_n[3], light[3], h[3], sent[3];
+    for (int c = 0; c < 3; ++c) {
+      delta[c] = D(smp.delta[c]), delta[c].d[3 + c] = B(1.0f);
+      raw_n[c] = D(smp.gather(smp.image->normals, c)), raw_n[c].d[6 + c] = B(1.0f);
+      light[c] = D(smp.gather(smp.image->light, c)), light[c].d[9 + c] = B(1.0f);
+    }
+    acc.unit(delta, h);
+    acc.light_sent(normal, h, raw_n, light, smp.valid, D(acc.weight(after.occ & bnot(before.occ))), sent);
+    B g[12];
+    for (int k = 0; k < 12; ++k) {
+      g[k] = B(0.0f);
+      for (int c = 0; c < 3; ++c) g[k] = g[k] + per_light[c] * sent[c].d[k];
+      g[k] = select(on, g[k], B(0.0f));
+    }
+    for (int c = 0; c < 3; ++c) own[c] = own[c] - g[3 + c], own[3 + c] = own[3 + c] + g[c];
+    scatter_taps(false, n, t, g + 3, smp.delta, smp.fu, smp.fv, smp.index, on);
+    scatter_gather(false, n, t.tap_normals, 3, g + 6, smp.fu, smp.fv, smp.index, on);
+    scatter_gather(false, n, t.tap_light, 3, g + 9, smp.fu, smp.fv, smp.index, on);
+  }
+};
+
+template <class B>
+TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const GlslAccumulator& acc, int64_t row,
+                            int64_t u0, int n, const float* upstream, const int32_t* record, const Targets& t) {
+  constexpr int L = LaneTraits<B>::L;
+  using I = typename LaneTraits<B>::I;
+  using D = typename GlslLightAdjoint<B>::D;
+  B g[8];
+  if (!acc.indirect || !upstream_lanes(img, row, u0, n, upstream, acc.channels(), g)) return;
+  const Pixels<B> px(cfg, img, row, u0, n);
+  if (!any(px.live)) return;
+  B per_light[3];
+  for (int c = 0; c < 3; ++c) per_light[c] = select(px.live, g[1 + c] / B(float(acc.slice_count)), B(0.0f));
+  D raw[3], normal[3];
+  for (int c = 0; c < 3; ++c) raw[c] = D(px.N[c]), raw[c].d[c] = B(1.0f);
+  acc.gl.normalize(raw, normal);
+  B own[kPixel];
+  for (int k = 0; k < kPixel; ++k) own[k] = B(0.0f);
+  GlslLightAdjoint<B> visit{acc, px, normal, per_light, t, n, own};
+  typename GlslAccumulator::template Sums<B> sums;
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    int32_t words[L] = {};
+    if (s > 0)
+      for (int l = 0; l < n; ++l) words[l] = record[(row * img.W + u0 + l) * cfg.slices + s - 1];
+    sums.occ = from_lanes(words, I(0));
+    const Slice<B> sl(cfg, img, px, s);
+    typename GlslAccumulator::template State<B> st = acc.begin_slice(px, sl, sums);
+    walk_slice(cfg, img, acc, px, sl, st, visit);
+  }
+  write_own(t, img.W, row, u0, n, own);
+}
+
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
 // (B, H, W, slices, 2, take_words), at most kGradMaxSteps steps per side
 template <class Acc>
@@ -860,8 +945,9 @@ TAO_FN void exact_grad_pixel(const WalkSettings& cfg, const ExactAccumulator& ac
 
 // Pixel p's hard sector forward with its record (a CUDA thread): its outputs into out (B, C, H, W), its slices'
 // occupied sectors into record (B, H, W, slices)
-TAO_FN void hard_record_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, float* out,
-                              int32_t* record, int64_t p) {
+template <class Acc>
+TAO_FN void hard_record_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* out, int32_t* record,
+                              int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   float values[8];
   hard_record_block<float>(cfg, fr.image(b), acc, row, u, 1, record + b * plane * cfg.slices, values);
@@ -872,7 +958,8 @@ TAO_FN void hard_record_pixel(const WalkSettings& cfg, const BitmaskAccumulator&
 // Pixel p's hard sector backward (a CUDA thread): grad (B, C, H, W), record hard_record_pixel's; its own gradients
 // (positions, normals, depth) and, with indirect light, its steps' taps' (positions, inverse depth, the senders'
 // normals and light; atomically); where camera, its d L / d the intrinsics (B, H, W, 4: indirect light's)
-TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const BitmaskAccumulator& acc, const Frame& fr, const float* grad,
+template <class Acc>
+TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* grad,
                             const int32_t* record, float* positions, float* normals, float* depth, float* tap_positions,
                             float* tap_inverse, float* tap_normals, float* tap_light, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;

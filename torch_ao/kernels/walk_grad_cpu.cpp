@@ -269,15 +269,20 @@ struct BackwardCall {
   BackwardCall(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
                const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
                const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats,
-               int64_t n_ints, int64_t n_floats, const char* name, int64_t max_steps)
+               int64_t n_ints, int64_t n_floats, const char* name, int64_t max_steps, bool glsl = false)
       : fr(frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface)) {
     check_settings(ints, floats, n_ints, n_floats, name);
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
     check_cells(cfg, fr);
     TORCH_CHECK(cfg.steps <= max_steps, "steps: the ", name, " backward holds at most ", max_steps, " per side");
-    TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, name,
-                "'s backward: the power step placement, one half circle");
+    if (glsl) {  // (the shader's texels: no derivative of their own)
+      TORCH_CHECK(cfg.placement == Steps::glsl && cfg.full_circle && !cfg.bilinear, name,
+                  "'s backward: the GLSL step placement, nearest fetch");
+    } else {
+      TORCH_CHECK(cfg.placement == Steps::power && !cfg.full_circle, name,
+                  "'s backward: the power step placement, one half circle");
+    }
   }
 
   // block(lane, b, image b, row, u0, n, upstream of the image (its C channels), targets) over every row's blocks
@@ -353,18 +358,33 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 }
 
 // The hard sector walk's call (hard_record, hard_backward): "bitmask"'s packed settings (with indirect light, its
-// light image)
-BitmaskAccumulator hard_accumulator(const BackwardCall& call) {
+// light image), or, with the GLSL step placement, "glsl"'s (the "ssilvb_glsl" variant's; its backward: indirect
+// light's); fn(call, acc) with the accumulator unpacked
+template <class Fn>
+auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
+                           const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
+                           const at::Tensor& light, const at::Tensor& cells, const at::Tensor& backface,
+                           const at::Tensor& ints, const at::Tensor& floats, const Fn& fn) {
+  const bool glsl = ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() > 3 &&
+                    ints.data_ptr<int64_t>()[3] == int64_t(Steps::glsl);
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
+                          floats, glsl ? 3 : 6, glsl ? 1 : 3, glsl ? "glsl hard" : "hard",
+                          std::numeric_limits<int64_t>::max(), glsl);
+  if (glsl) {
+    const GlslAccumulator acc = unpack_glsl(call.i, call.f);
+    TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
+    return fn(call, acc);
+  }
   const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
   TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
   TORCH_CHECK(acc.angles == SectorAngles::plane, "variant: the hard backward ends the default variant's slices");
-  return acc;
+  return fn(call, acc);
 }
 
-// torch_ao_kernels::hard_record: the hard sector walk (torch_ao_kernels::walk's "bitmask" outputs (B, channels, H,
-// W)) and the record of each pixel's slices' occupied sectors (B, H, W, slices) int32, for hard_backward (channels
-// and slices as the settings say: the shapes of the outputs)
+// torch_ao_kernels::hard_record: the hard sector walk (torch_ao_kernels::walk's "bitmask" or "glsl" outputs (B,
+// channels, H, W)) and the record of each pixel's slices' occupied sectors (B, H, W, slices) int32, for
+// hard_backward (channels and slices as the settings say: the shapes of the outputs)
 std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, const at::Tensor& normals,
                                                const at::Tensor& inverse_depth, const at::Tensor& depth,
                                                const at::Tensor& valid, const at::Tensor& intrinsics,
@@ -372,58 +392,59 @@ std::tuple<at::Tensor, at::Tensor> hard_record(const at::Tensor& positions, cons
                                                const at::Tensor& backface, const at::Tensor& ints,
                                                const at::Tensor& floats, int64_t channels, int64_t slices,
                                                bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, 6, 3, "hard", std::numeric_limits<int64_t>::max());
-  const BitmaskAccumulator acc = hard_accumulator(call);
-  TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
-  TORCH_CHECK(call.cfg.slices == slices, "slices: expected the settings' ", call.cfg.slices);
-  const int64_t B = call.fr.B, H = call.fr.H, W = call.fr.W;
-  at::Tensor out = at::empty({B, channels, H, W}, positions.options());
-  at::Tensor record = at::empty({B, H, W, call.cfg.slices}, positions.options().dtype(at::kInt));
-  float* dst = out.data_ptr<float>();
-  int32_t* rec = record.data_ptr<int32_t>();
-  torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n,
-                                                                       auto simd) {
-    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
-    constexpr int LL = LaneTraits<Lane>::L;
-    Lane values[8];
-    hard_record_block(call.cfg, call.fr.image(b), acc, row, u0, n, rec + b * H * W * call.cfg.slices, values);
-    alignas(64) float lanes[LL];
-    for (int c = 0; c < channels; ++c) {
-      to_lanes(values[c], lanes);
-      std::copy(lanes, lanes + n, dst + ((b * channels + c) * H + row) * W + u0);
-    }
+  return with_hard_accumulator(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface,
+                               ints, floats, [&](const BackwardCall& call, const auto& acc) {
+    TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
+    TORCH_CHECK(call.cfg.slices == slices, "slices: expected the settings' ", call.cfg.slices);
+    const int64_t B = call.fr.B, H = call.fr.H, W = call.fr.W;
+    at::Tensor out = at::empty({B, channels, H, W}, positions.options());
+    at::Tensor record = at::empty({B, H, W, call.cfg.slices}, positions.options().dtype(at::kInt));
+    float* dst = out.data_ptr<float>();
+    int32_t* rec = record.data_ptr<int32_t>();
+    torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n,
+                                                                         auto simd) {
+      using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+      constexpr int LL = LaneTraits<Lane>::L;
+      Lane values[8];
+      hard_record_block(call.cfg, call.fr.image(b), acc, row, u0, n, rec + b * H * W * call.cfg.slices, values);
+      alignas(64) float lanes[LL];
+      for (int c = 0; c < channels; ++c) {
+        to_lanes(values[c], lanes);
+        std::copy(lanes, lanes + n, dst + ((b * channels + c) * H + row) * W + u0);
+      }
+    });
+    return std::tuple<at::Tensor, at::Tensor>{out, record};
   });
-  return {out, record};
 }
 
 // torch_ao_kernels::hard_backward: the gradients of sum(grad * outputs) of the hard sector walk (walk_grad.h's
 // hard_grad_block) with respect to its positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and
 // the light (B, H, W, 3; zeros without indirect light) and, with camera, each pixel's share of the intrinsics'
-// (B, H, W, 4; else empty: indirect light's, the rest reads them through the positions alone); grad (B, C, H, W);
-// record: hard_record's of the same call
+// (B, H, W, 4; else empty: indirect light's, the rest reads them through the positions alone; the "glsl"
+// accumulator's texels do not move: none); grad (B, C, H, W); record: hard_record's of the same call
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> hard_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
     const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats,
     const at::Tensor& record, bool camera, bool scalar) {
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, 6, 3, "hard", std::numeric_limits<int64_t>::max());
-  const BitmaskAccumulator acc = hard_accumulator(call);
-  TORCH_CHECK(record.scalar_type() == at::kInt && record.is_contiguous() &&
-                  record.sizes() == at::IntArrayRef({call.fr.B, call.fr.H, call.fr.W, call.cfg.slices}),
-              "record: expected hard_record's (B, H, W, slices) of the same call");
-  const int32_t* rec = record.data_ptr<int32_t>();
-  const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, false, acc.indirect);
-  if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
-  const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
-                                                                      int64_t row, int64_t u0, int n,
-                                                                      const float* upstream, const Targets& t) {
-    hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, rec + b * per_image, t);
+  return with_hard_accumulator(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface,
+                               ints, floats, [&](const BackwardCall& call, const auto& acc) {
+    TORCH_CHECK(record.scalar_type() == at::kInt && record.is_contiguous() &&
+                    record.sizes() == at::IntArrayRef({call.fr.B, call.fr.H, call.fr.W, call.cfg.slices}),
+                "record: expected hard_record's (B, H, W, slices) of the same call");
+    const int32_t* rec = record.data_ptr<int32_t>();
+    const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, false, acc.indirect);
+    if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
+    const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
+                                                                        int64_t row, int64_t u0, int n,
+                                                                        const float* upstream, const Targets& t) {
+      hard_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, rec + b * per_image, t);
+    });
+    return std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>{
+        std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.light(),
+        camera ? out.camera : at::empty({0}, positions.options())};
   });
-  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.light(),
-          camera ? out.camera : at::empty({0}, positions.options())};
 }
 
 }  // namespace
