@@ -39,16 +39,17 @@ def test_a_compile_error_is_reported_with_the_log(monkeypatch):
 def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills, nor does the horizon backward, whose replay
     keeps its tape in the thread's local memory (lanes_rev.h; stack 88 KB at 32 steps a side). The exact
-    union's backward replays an interval's segment in 11 tangents: 1188 bytes spilled and reloaded; the hard
+    union's backward replays an interval's segment in 11 tangents: 1644 bytes spilled and reloaded; the hard
     sector walk's ends each slice with its 32 sectors' weights in 2 tangents and replays the steps that send
-    indirect light in 16: 4296 bytes (3808 before its replay also chained the intrinsics); bounded here."""
+    indirect light in 16: 4336 bytes; bounded here (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward
+    (12 tangents) spills nothing."""
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
     bounds = {"tao_exact_backward": 2048, "tao_hard_backward": 4608}  # bytes spilled, reloaded
     for name, used in report.items():
         assert 32 <= used.registers <= 255, (name, used)
         spilled = used.spill_stores + used.spill_loads
-        assert spilled <= next((b for prefix, b in bounds.items() if name.startswith(prefix)), 0), (name, used)
+        assert spilled <= bounds.get(name, 0), (name, used)
         assert 0 < used.occupancy(128) <= 1
 
 
