@@ -91,8 +91,8 @@ OPTIONS = (
            "thickness); when not given, the method's defaults", str),
     replace(_method_option("bitmask", "preset"), default=None, help="quality preset of the fitted method (the report's "
             f"GTAO and engine-default rows run at it too); when not given, {DEFAULT_PRESET}, or {DEFAULT_PIPELINE_PRESET} "
-            "for the default pipeline (a bitmask method's default variant with the back-face thickness model: the same "
-            f"cost, chosen on the fit set; its rows of other methods stay at {DEFAULT_PRESET})"),
+            "for the default pipeline (a bitmask method's default variant with the back-face thickness model: longer "
+            f"steps, the best on the fit set within 2x GTAO's time; its rows of other methods stay at {DEFAULT_PRESET})"),
     replace(_method_option("bitmask", "weighting"), default="cosine", help="sector weighting of bitmask methods "
             "(cosine matches the cosine-weighted reference)"),
     replace(_method_option("bitmask", "fetch"), default=None, help="depth fetch of the fitted method's walk (see "
