@@ -222,6 +222,12 @@ def _cases() -> dict[str, Case]:
         "ssilvb_cosine_gbuffer_torch": Case(
             "`SSILVB` hard, cosine fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 mode="hard", weighting="cosine", backend="torch", **s), "gbuffer", "ssilvb_cosine", 3.0, kernel=False),
+        "ssilvb_glsl_gbuffer": Case("`ssilvb_glsl` hard AO + indirect fwd+bwd, depth + normals",
+                                    lambda s: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="kernel", **s),
+                                    "gbuffer", "ssilvb_glsl", 3.0),
+        "ssilvb_glsl_gbuffer_torch": Case(
+            "`ssilvb_glsl` hard AO + indirect fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
+                variant="ssilvb_glsl", mode="hard", backend="torch", **s), "gbuffer", "ssilvb_glsl", 3.0, kernel=False),
         "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
                               exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
         "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
