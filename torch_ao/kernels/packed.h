@@ -19,9 +19,12 @@ namespace tao {
 // the walk's table (WalkSettings::table)
 constexpr int kAccInts = 14, kAccFloats = 4;
 
+// The step placement of the walk's packed ints (a call can tell its accumulator by it before unpacking the rest)
+TAO_FN Steps packed_placement(const int64_t* i) { return Steps(i[3]); }
+
 TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   WalkSettings c;
-  c.slices = i[0], c.steps = i[1], c.seed = i[2], c.placement = Steps(i[3]);
+  c.slices = i[0], c.steps = i[1], c.seed = i[2], c.placement = packed_placement(i);
   c.jitter = i[4] != 0, c.bilinear = i[5] != 0, c.drop = i[6] != 0, c.full_circle = i[7] != 0, c.screen_azimuth = i[8] != 0;
   c.edge_aware = i[9] != 0, c.sphere_extent = i[10] != 0, c.noise = Noise(i[11]);
   c.stagger = i[12] != 0;

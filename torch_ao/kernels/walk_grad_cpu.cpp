@@ -365,8 +365,8 @@ auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normal
                            const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
                            const at::Tensor& light, const at::Tensor& cells, const at::Tensor& backface,
                            const at::Tensor& ints, const at::Tensor& floats, const Fn& fn) {
-  const bool glsl = ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() > 3 &&
-                    ints.data_ptr<int64_t>()[3] == int64_t(Steps::glsl);
+  const bool glsl = ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() >= kAccInts &&
+                    packed_placement(ints.data_ptr<int64_t>()) == Steps::glsl;
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
                           floats, glsl ? 3 : 6, glsl ? 1 : 3, glsl ? "glsl hard" : "hard",
                           std::numeric_limits<int64_t>::max(), glsl);
