@@ -1,20 +1,41 @@
 #!/usr/bin/env bash
-# The GPU check, for a machine with an NVIDIA GPU (the `device` tool's H200 or any CUDA box), in well
-# under 8 minutes: the CUDA tests (they skip without a GPU) and the CUDA benchmarks. Run from the repo
-# root. Everything it prints also goes to ${OUT:-gpu-check}/log.
+# The GPU check, for a machine with an NVIDIA GPU (the `device` tool's H200 or any CUDA box), in about five
+# minutes: the kernels built (the C++ ones for the tests' CPU side, the CUDA ones once by NVRTC), the CUDA tests
+# (they skip without a GPU), then benchmarks/bench_cuda.py's times against the GPU targets. Run from the repo
+# root. Everything it prints also goes to ${OUT:-gpu-check}/log, the timings to bench_cuda.json beside it.
+#
+# Packages the machine lacks (kornia on the device tool's image, which has no network) travel as wheels in
+# .whl/ (docs/performance.md, "GPU"): they are installed into /tmp/site.
 set -uo pipefail
 out=${OUT:-gpu-check}
 mkdir -p "$out"
 exec > >(tee "$out/log") 2>&1
-export PYTHONUNBUFFERED=1
-python3 -c "import torch; assert torch.cuda.is_available(), 'no CUDA device'; print(torch.__version__, torch.cuda.get_device_name())" || exit 1
-python3 -m pip install -q --no-deps -e . 2>/dev/null || export PYTHONPATH=$PWD
-python3 -c "import kornia" 2>/dev/null || python3 -m pip install -q kornia
-# CUDA tests: every test that names cuda (they skip cleanly on CPU-only machines).
-timeout 150 python3 -m pytest -q -x -k cuda tests || echo "gpu_check: CUDA tests failed or timed out"
-# 1920x1080 high (3x3) hard bitmask AO, soft forward+backward, batch 8; horizon methods at 1280x720.
-timeout 60 python3 benchmarks/bench_bitmask.py --device cuda --size 1920x1080 --repeat 5 || echo "gpu_check: bench_bitmask failed"
-timeout 60 python3 benchmarks/bench_methods.py --device cuda --sizes 1280x720 --repeats 3 || echo "gpu_check: bench_methods failed"
-# the soft kernel with radius/thickness and with G-buffer gradients (tao_soft_backward), and the hard cosine and exact
-# union kernels with G-buffer gradients (tao_hard_backward, tao_exact_backward) at 1920x1080, 4 x 3 (high's steps)
-timeout 150 python3 benchmarks/bench_bitmask.py --soft-kernel --device cuda --size 1920x1080 --steps 3 --repeat 5 || echo "gpu_check: soft kernel table failed"
+export PYTHONUNBUFFERED=1 PYTHONDONTWRITEBYTECODE=1 TORCH_AO_CUDA_CACHE=/tmp/torch_ao_cuda
+stage() { echo "== $(date +%T) $*"; }
+export PYTHONPATH=$PWD
+if compgen -G ".whl/*.whl" >/dev/null; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    && export PYTHONPATH=/tmp/site:$PWD
+fi
+python3 -c "import torch, kornia; assert torch.cuda.is_available(), 'no CUDA device'
+print('torch', torch.__version__, 'CUDA', torch.version.cuda, 'kornia', kornia.__version__, torch.cuda.get_device_name())" \
+  || exit 1
+nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,utilization.gpu --format=csv
+stage "build: the C++ forward and backward libraries and the CUDA kernels, side by side"
+python3 -c "from torch_ao.kernels.build import cpu_kernels; cpu_kernels()" > "$out/build_forward.txt" 2>&1 &
+forward=$!
+python3 -c "from pathlib import Path; from torch_ao.kernels import build
+build.load_cpu_library('torch_ao_walk_grad', (Path(build.__file__).with_name('walk_grad_cpu.cpp'),))" \
+  > "$out/build_backward.txt" 2>&1 &
+backward=$!
+timeout 240 python3 -c "import time; t = time.time(); from torch_ao.kernels import launch
+k = launch._cuda_kernels(0)
+if isinstance(k, Exception): raise k
+print(len(k), 'CUDA kernels compiled in', round(time.time() - t, 1), 's')" || echo "gpu_check: the CUDA kernels did not compile"
+wait $forward || { echo "gpu_check: C++ forward build failed"; tail -20 "$out/build_forward.txt"; }
+wait $backward || { echo "gpu_check: C++ backward build failed"; tail -20 "$out/build_backward.txt"; }
+stage "CUDA tests: every test that names cuda"
+timeout 240 python3 -m pytest -q -p no:cacheprovider -k cuda tests -rfEs --durations=8 || echo "gpu_check: CUDA tests failed or timed out"
+stage "timings: benchmarks/bench_cuda.py at 1920x1080"
+timeout 180 python3 benchmarks/bench_cuda.py --json "$out/bench_cuda.json" || echo "gpu_check: bench_cuda failed or timed out"
+stage done

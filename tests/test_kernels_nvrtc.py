@@ -63,3 +63,31 @@ def test_occupancy_follows_the_registers():
     assert at(168) == 12 / 64  # 5376 registers a warp: 12 warps, 3 blocks
     assert at(247) == 8 / 64  # 7936 (248 x 32) a warp: 8 warps, 2 blocks
     assert at(32, threads=32) == 0.5  # 32 blocks of one warp at most
+
+
+def test_the_compiled_kernels_are_kept_on_disk_once(tmp_path, monkeypatch):
+    """The CUDA binary is compiled once per source, architecture and CUDA version, then read from
+    ``$TORCH_AO_CUDA_CACHE``; a write is renamed into place, so nothing half-written is ever read."""
+    from torch_ao.kernels import launch
+
+    monkeypatch.setenv("TORCH_AO_CUDA_CACHE", str(tmp_path))
+    calls = []
+
+    def compile_source(blob=b"\x7fELF cubin"):
+        calls.append(1)
+        return blob
+
+    assert launch._cuda_binary("source a", "90", compile_source) == b"\x7fELF cubin"
+    assert launch._cuda_binary("source a", "90", lambda: pytest.fail("compiled twice")) == b"\x7fELF cubin"
+    assert launch._cuda_binary("source b", "90", lambda: compile_source(b"other")) == b"other"
+    assert launch._cuda_binary("source a", "80", lambda: compile_source(b"sm80")) == b"sm80"
+    assert len(calls) == 3
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".bin"] * 3  # (no temporary left behind)
+
+
+def test_the_cuda_entry_names_follow_the_macros():
+    from torch_ao.kernels.launch import cuda_entry_names
+
+    source = ('TAO_CUDA_ENTRY(tao_walk_x, X)\nTAO_CUDA_HARD(tao_record_y, tao_backward_y, Y)\n'
+              'extern "C" __global__ void tao_plain(int n) {}\n  TAO_CUDA_ENTRY(indented_is_a_use, Z)\n')
+    assert cuda_entry_names(source) == ("tao_walk_x", "tao_plain", "tao_record_y", "tao_backward_y")

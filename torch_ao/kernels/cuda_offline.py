@@ -20,24 +20,15 @@ import subprocess
 import tempfile
 from dataclasses import dataclass
 
-from .launch import cuda_source
+from .launch import _NVRTC_OPTIONS, cuda_entry_names, cuda_source
 
 __all__ = ["nvrtc_library", "ptxas_path", "compile_ptx", "KernelResources", "kernel_resources", "KERNEL_NAMES"]
 
 
 
-def _entry_names(source: str) -> tuple[str, ...]:
-    """The ``__global__`` entry points ``source`` defines: one name per ``TAO_CUDA_ENTRY`` / ``RECORD`` /
-    ``BACKWARD`` macro or plain ``__global__`` function, two per ``TAO_CUDA_HARD`` (its record and backward)."""
-    names = re.findall(r"^(?:TAO_CUDA_(?:ENTRY|RECORD|BACKWARD)\(|extern \"C\" __global__ void )(\w+)", source, flags=re.M)
-    for pair in re.findall(r"^TAO_CUDA_HARD\((\w+), (\w+),", source, flags=re.M):
-        names += pair
-    return tuple(names)
-
-
 #: the ``__global__`` entry points of walk_cuda.cu: a walk per accumulator, the horizon accumulators' record and
 #: backward, the soft walk's backward, the hard sector walks' record and backward
-KERNEL_NAMES = _entry_names(cuda_source())
+KERNEL_NAMES = cuda_entry_names()
 #: what an SM of compute capability 8.0 to 9.0 holds: registers, warps, blocks, and the registers of a warp are
 #: allocated in units of this many
 _SM = {"registers": 65536, "warps": 64, "blocks": 32, "register_unit": 256}
@@ -70,7 +61,7 @@ def ptxas_path() -> str | None:
     return found[0] if found else shutil.which("ptxas")
 
 
-def compile_ptx(arch: int = 90, options: tuple[str, ...] = ("-std=c++17",)) -> str:
+def compile_ptx(arch: int = 90, options: tuple[str, ...] = _NVRTC_OPTIONS) -> str:
     """The PTX of every CUDA kernel for compute capability ``arch`` (90: H100/H200), compiled by NVRTC with
     ``options`` (those :func:`~torch_ao.kernels.launch.run_walk` passes). Raises ``RuntimeError`` with the
     compiler's log when the source does not compile, and when NVRTC is not found."""

@@ -9,6 +9,8 @@ toolkit needed), one thread per pixel.
 from __future__ import annotations
 
 import functools
+import hashlib
+import os
 import re
 from pathlib import Path
 
@@ -21,7 +23,7 @@ from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "run_packed", "packed_inputs", "packed_settings",
-           "cuda_source"]
+           "cuda_source", "cuda_entry_names"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
 #: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets)
@@ -37,6 +39,7 @@ _CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_gl
                "exact_soft.h", "packed.h", "walk_grad.h", "walk_cuda.cu")
 _WALK_FLOATS = 4  # packed.h's kAccFloats: the walk's own floats
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
+_NVRTC_OPTIONS = ("-std=c++17",)
 
 
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
@@ -153,12 +156,80 @@ def cuda_source() -> str:
     return "\n".join(parts)
 
 
-@functools.lru_cache(maxsize=None)
+def cuda_entry_names(source: str | None = None) -> tuple[str, ...]:
+    """The ``__global__`` entry points of ``source`` (default :func:`cuda_source`): one name per
+    ``TAO_CUDA_ENTRY`` / ``RECORD`` / ``BACKWARD`` macro or plain ``__global__`` function, two per
+    ``TAO_CUDA_HARD`` (its record and backward)."""
+    source = cuda_source() if source is None else source
+    names = re.findall(r"^(?:TAO_CUDA_(?:ENTRY|RECORD|BACKWARD)\(|extern \"C\" __global__ void )(\w+)", source,
+                       flags=re.M)
+    for pair in re.findall(r"^TAO_CUDA_HARD\((\w+), (\w+),", source, flags=re.M):
+        names += pair
+    return tuple(names)
+
+
 def _cuda_kernel(name: str, device_index: int):
-    """The compiled CUDA kernel ``name`` for the device (compiled once per process and device)."""
+    """The compiled CUDA kernel ``name`` of walk_cuda.cu for the device."""
+    kernels = _cuda_kernels(device_index)
+    if isinstance(kernels, KernelUnavailable):
+        raise kernels
+    if name not in kernels:
+        raise KernelUnavailable(f"walk_cuda.cu has no kernel {name}")
+    return kernels[name]
+
+
+@functools.lru_cache(maxsize=None)
+def _cuda_kernels(device_index: int) -> dict | KernelUnavailable:
+    """Every kernel of walk_cuda.cu for the device, ``{name: kernel}``: one NVRTC compile of the whole source
+    (about half a minute; every kernel is in the one binary), kept on disk by :func:`_cuda_binary`, so that a
+    later process loads it in milliseconds. A failure is returned (and so kept) rather than raised: the
+    process does not compile again at every call."""
     try:
+        from torch.cuda._utils import _cuda_load_module, _nvrtc_compile
+
         with torch.cuda.device(device_index):
-            return torch.cuda._compile_kernel(cuda_source(), name, nvcc_options=["-std=c++17"])
+            major, minor = torch.cuda.get_device_capability(device_index)
+            source, names = cuda_source(), cuda_entry_names()
+
+            def compile_source() -> bytes:  # (torch < 2.9 returns the binary alone, later ones with a name)
+                out = _nvrtc_compile(source, names[0], compute_capability=f"{major}{minor}",
+                                     nvcc_options=list(_NVRTC_OPTIONS))
+                return out[0] if isinstance(out, tuple) else out
+
+            return _cuda_load_module(_cuda_binary(source, f"{major}{minor}", compile_source), list(names))
     except Exception as exc:  # no NVRTC in this build, a compile error...
-        raise KernelUnavailable(f"the CUDA kernel {name} could not be compiled ({type(exc).__name__}: "
-                                f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})") from exc
+        error = KernelUnavailable(f"the CUDA kernels could not be compiled ({type(exc).__name__}: "
+                                  f"{str(exc).strip()[-2000:] if str(exc).strip() else exc})")
+        error.__cause__ = exc
+        return error
+
+
+def cuda_cache_dir() -> Path:
+    """Where compiled CUDA kernels are kept: ``$TORCH_AO_CUDA_CACHE``, else ``torch_ao_cuda`` beside the C++
+    builds in ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``)."""
+    if os.environ.get("TORCH_AO_CUDA_CACHE"):
+        return Path(os.environ["TORCH_AO_CUDA_CACHE"])
+    from torch.utils.cpp_extension import get_default_build_root
+
+    return Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / "torch_ao_cuda"
+
+
+def _cuda_binary(source: str, arch: str, compile_source) -> bytes:
+    """The binary ``compile_source()`` makes of ``source`` for compute capability ``arch``, from the disk cache
+    when it holds one for the same source, options, architecture and CUDA/torch versions. Written to a
+    temporary name and renamed into place, so that a process killed while writing leaves nothing that a later
+    one would read."""
+    key = hashlib.sha256("\0".join((source, *_NVRTC_OPTIONS, arch, str(torch.version.cuda), torch.__version__))
+                         .encode()).hexdigest()[:24]
+    path = cuda_cache_dir() / f"walk_sm{arch}_{key}.bin"
+    if path.is_file():
+        return path.read_bytes()
+    binary = compile_source()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_bytes(binary)
+        os.replace(tmp, path)
+    except OSError:  # a read-only home: compiled again by the next process
+        pass
+    return binary
