@@ -156,9 +156,9 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
     from torch_ao.methods.ssao import SSAO
 
     gb = example_gbuffer(8, 8)
-    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)  # (no kernel differentiates hdrp)
-    with pytest.raises(ValueError, match="backend.*'hdrp' variant's cosine weights"):
-        BitmaskAO(variant="hdrp", weighting="cosine", backend="kernel")(graph)
+    graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
+    with pytest.raises(ValueError, match="backend.*thickness growth"):  # (no kernel reads each sample's distance)
+        BitmaskAO(thickness_growth=0.5, backend="kernel")(graph)
     with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
         SSAO(backend="kernel")(gb)
     with pytest.raises(ValueError, match="backend: expected one of"):

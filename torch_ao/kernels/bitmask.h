@@ -102,6 +102,18 @@ template <class F> TAO_FN F cos_view(const F* delta, const F* V, const F& offset
   return dot3(d, V) / clamp_min(norm3(d), F(1e-30f));
 }
 
+// HDRP's slice angle -sign(s) fast_acos(c) of a slice whose projected normal makes cosine c and sine s with V
+// (HDRPAccumulator.slice_frame), in any lane type. fast_acos' sqrt(1 - |c|) is taken as |s| / sqrt(1 + |c|): where
+// the normal nearly faces V, 1 - |c| would cancel in float32 (the angle's slope is unbounded in c there, not in the
+// slice's own angle). Its derivative is the tensor walk's (safe_fast_acos in float64): none where 1 - |c| < 1e-6.
+template <class F> TAO_FN F hdrp_slice_angle(const F& c, const F& s) {
+  const F ac = abs(c), as = abs(s);
+  const F res = (F(-0.156583f) * ac + F(kHalfPi)) * (as / sqrt(F(1.0f) + ac));
+  const F gamma = neg(sign(s)) * select(c >= F(0.0f), res, F(kPi) - res);
+  const auto sloped = as * as >= F(1e-6f) * (F(1.0f) + ac);  // 1 - |c| = s^2 / (1 + |c|)
+  return select(sloped, gamma, F(value(gamma)));
+}
+
 // Which published rule measures a sample's angles (methods/bitmask.py's accumulators): variant "default"'s exact
 // in-plane atan2 from V toward +T, or "hdrp"'s 3D cosines through fast_acos, from V toward -T
 enum class SectorAngles : int64_t { plane = 0, hdrp = 1 };
@@ -132,7 +144,7 @@ struct BitmaskAccumulator {
   template <class F> TAO_FN Slice<F> frame(const Slice<F>& walked) const {
     if (angles != SectorAngles::hdrp) return walked;
     Slice<F> sl = walked;
-    sl.gamma = neg(sign(walked.sin_gamma)) * fast_acos(walked.cos_gamma);
+    sl.gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
     sl.cos_gamma = cos(sl.gamma), sl.sin_gamma = sin(sl.gamma);
     for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
     return sl;

@@ -60,8 +60,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`), azimuth
-            (``"view"``/``"screen"``): as :class:`~torch_ao.BitmaskAO`. The ``"hdrp"`` variant has no backward here:
-            its cosine weights, bent normals and indirect light with autograd recording raise a ``ValueError``.
+            (``"view"``/``"screen"``): as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`, the
+            outputs have a backward (``_HardWalk``).
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
 
@@ -78,12 +78,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     acc_floats = [thickness, sector_epsilon, float(layer_scale)]
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
-    graded = weighting == "cosine" or bent_normals or indirect  # (what has a gradient in hard mode)
-    if graded and (wants_gradient(gbuffer, normals) or (indirect and torch.is_grad_enabled() and (
-            light.requires_grad or radius.requires_grad))):
-        if variant != "default":
-            raise ValueError(f"variant: the hard kernel's backward is the 'default' variant's; {variant!r} with "
-                             "cosine weights, bent normals or indirect light runs without autograd here")
+    if needs_hard_backward(gbuffer, normals, weighting=weighting, indirect=indirect, bent_normals=bent_normals,
+                           light=light, radius=radius):
         if gbuffer.depth.device.type == "cpu":
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         inputs, (light, cells, layer_image), ints, floats = packed_inputs(
@@ -102,6 +98,16 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
 HARD_VARIANTS = ("default", "hdrp")
 
 
+def needs_hard_backward(gbuffer: GBuffer, normals: torch.Tensor | None, *, weighting: str, indirect: bool,
+                        bent_normals: bool, light: torch.Tensor | None = None, radius=None) -> bool:
+    """Whether a hard walk's outputs have gradients that autograd records, so that :func:`bitmask_outputs` and
+    :func:`ssilvb_glsl_hard` run their backward (``_HardWalk``). Hard masks have none, but what they weight does:
+    the cosine weights and the bent normals follow the slice (through the G-buffer and the ``normals``), indirect
+    light also its ``light`` and, through the samples' extent, the ``radius``."""
+    graded = weighting == "cosine" or bool(bent_normals) or bool(indirect)
+    return graded and wants_gradient(gbuffer, normals, *((light, radius) if indirect else ()))
+
+
 class _HardWalk(torch.autograd.Function):
     """The hard sector walk over ``(positions, normals, inverse, depth, valid, intrinsics)`` (and the light, the
     edge-aware fetch's ``cells``, the thickness layer), recording each pixel's slices' occupied sectors, with
@@ -112,7 +118,8 @@ class _HardWalk(torch.autograd.Function):
     only the masks, which have no gradient): ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse)``.
     The intrinsics move only the steps on screen, so the cosine weights' and bent normals' gradient to them is the
     positions' own, which autograd chains through ``walk_inputs``' unprojection; indirect light's samples move with
-    them (its light, normals and position at the taps): its backward chains those to them per pixel.
+    them (its light, normals and position at the taps): its backward chains those to them per pixel. Both
+    :data:`HARD_VARIANTS` (their ``ints`` name the variant's angles: HDRP's slice frame in the backward's tangents).
 
     ``kernel`` ``"_glsl"``: the ``"ssilvb_glsl"`` variant's walk (``ints``/``floats`` its packed settings) with indirect
     light, whose record is its carried mask after each slice and whose backward is its light's (walk_grad.h's
@@ -256,7 +263,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
                              noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
     acc_ints, channels = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee"], 4 if indirect else 1
     light = light_input(gbuffer, indirect) if indirect else None
-    if indirect and wants_gradient(gbuffer, normals, light):
+    if needs_hard_backward(gbuffer, normals, weighting="uniform", indirect=indirect, bent_normals=False, light=light):
         if gbuffer.depth.device.type == "cpu":
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         inputs, (light, cells, layer), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, [thickness],
@@ -294,10 +301,9 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     have no gradient, so uniform hard visibility is covered with autograd on too; cosine weights and bent
     normals have gradients in hard mode too (through the slice: the normals and positions), which the hard
     kernel's backward computes (the intrinsics' too); indirect light has one to the light, the sample positions and
-    the intrinsics; the ``"ssilvb_glsl"`` shader's light to the light, the normals and the positions (its own
-    backward, :func:`ssilvb_glsl_hard`'s); straight-through mode (hard values, soft gradients)
-    only for uniform visibility without a gradient. The ``"hdrp"`` variant's cosine weights, bent normals and
-    indirect light only without a gradient (the hard backward ends the default variant's slices).
+    the intrinsics (either of :data:`HARD_VARIANTS`: the ``"hdrp"`` variant's too); the ``"ssilvb_glsl"`` shader's
+    light to the light, the normals and the positions (its own backward, :func:`ssilvb_glsl_hard`'s); straight-through
+    mode (hard values, soft gradients) only for uniform visibility without a gradient.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "hdrp", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
@@ -311,14 +317,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
-    # hard masks have no gradient, but what they weight does: the cosine weights and bent normals through the
-    # slice (the hard kernel's backward), the light through the light, normals and the samples (the shader's light:
-    # its own backward, ssilvb_glsl_hard's)
-    graded = module.weighting == "cosine" or module.want_bent or module.want_indirect
-    if module.variant == "hdrp" and graded and wants_gradient(
-            gbuffer, None, *((gbuffer.light, module.radius) if module.want_indirect else ())):
-        return ("a gradient is asked for (the 'hdrp' variant's cosine weights, bent normals and indirect light have "
-                "one; the hard kernel's backward is the default variant's)")
+    # in hard mode every variant's graded outputs (needs_hard_backward) have the kernel's backward
     return None
 
 

@@ -667,7 +667,8 @@ TAO_FN bool upstream_lanes(const Image& img, int64_t row, int64_t u0, int n, con
 // what weights them has: the cosine weights and the bent normals' directions follow the slice (its projected
 // normal, its tangent). So each slice is ended again with the recorded sectors in the 2 tangents of the slice's
 // gamma and length, which its weights follow, chained to the pixel's own position, normal and depth (Dual<B, 7>,
-// with the bent normal's view vector and tangent); no tap gets a gradient.
+// with the bent normal's view vector and tangent); no tap gets a gradient. Either variant's angles: begin_slice
+// and end_slice take the walked slice's frame to the variant's (HDRP's gamma of the walked one) in those tangents.
 template <class B>
 TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const BitmaskAccumulator& acc, int64_t row,
                             int64_t u0, int n, const float* upstream, const int32_t* record, const Targets& t) {

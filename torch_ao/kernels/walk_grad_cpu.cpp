@@ -378,7 +378,6 @@ auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normal
   const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
   TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  TORCH_CHECK(acc.angles == SectorAngles::plane, "variant: the hard backward ends the default variant's slices");
   return fn(call, acc);
 }
 
