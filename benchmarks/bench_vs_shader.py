@@ -215,6 +215,15 @@ def _cases() -> dict[str, Case]:
             "`BitmaskAO` hard, cosine fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="hard", weighting="cosine", backend="torch", **s),
             "gbuffer", "cosine", 3.0, kernel=False),
+        "cosine_hdrp": Case("`BitmaskAO` hard, variant `hdrp`, cosine",
+                            bitmask(mode="hard", variant="hdrp", weighting="cosine"), None, "shader", 1.0),
+        "bitmask_hdrp_gbuffer": Case("`BitmaskAO` hard, variant `hdrp`, cosine fwd+bwd, depth + normals",
+                                     bitmask(mode="hard", variant="hdrp", weighting="cosine"), "gbuffer",
+                                     "cosine_hdrp", 3.0),
+        "bitmask_hdrp_gbuffer_torch": Case(
+            "`BitmaskAO` hard, variant `hdrp`, cosine fwd+bwd, depth + normals, tensor ops",
+            lambda s: torch_ao.BitmaskAO(mode="hard", variant="hdrp", weighting="cosine", backend="torch", **s),
+            "gbuffer", "cosine_hdrp", 3.0, kernel=False),
         "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
             mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
         "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(

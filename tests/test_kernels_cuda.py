@@ -334,7 +334,7 @@ def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
     max), UE4 SSAO's wedge pairs and PSSAO (every step replayed), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
     bilinearly, at its first tap, or none; along the ray or the view) and the hard sector walk (cosine weights,
-    bent normals), every fetch, either border."""
+    bent normals, indirect light; the default and hdrp variants), every fetch, either border."""
     common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5
     yield "gtao", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, False], [1.0, 0.3, 1.0], 2
@@ -369,6 +369,8 @@ def _backward_cases():
     yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0], 1
     yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0], [0.4, 0.01, 1.0], 7
     yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0], 4
+    # the hdrp variant's (its slice angle in the backward's tangents), screen directions as its module's default
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware"), azimuth="screen"), [0, True, True, True, 1, 1], [0.1, 0.0, 1.0], 7
     # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics); thickness: its indirect light's backward
     glsl = dict(slices=4, steps=5, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp", placement="glsl",
                 full_circle=True, azimuth="screen")
