@@ -157,7 +157,7 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
 
     gb = example_gbuffer(8, 8)
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
-    with pytest.raises(ValueError, match="backend.*thickness growth"):  # (no kernel reads each sample's distance)
+    with pytest.raises(ValueError, match="backend.*thickness_growth"):  # (no kernel reads each sample's distance)
         BitmaskAO(thickness_growth=0.5, backend="kernel")(graph)
     with pytest.raises(ValueError, match="backend.*no kernel for SSAO"):
         SSAO(backend="kernel")(gb)

@@ -41,39 +41,47 @@ def kernel_of(module: BitmaskAO, gb: GBuffer, lanes: str = "simd"):
 @pytest.mark.parametrize("frame", sorted(FRAMES))
 @pytest.mark.parametrize("setting", range(len(SETTINGS)))
 def test_hdrp_masks_agree_with_the_tensor_walk(built, frame, setting, lanes):
+    """Against the float32 tensor walk (on planar frames the float64 one decides samples on the pixel's own plane
+    by its own rounding: kernel_agreement.degenerate). Where the kernel's mask is not the float32 walk's it is the
+    float64 walk's: the kernel rounds the slice angle as float64 does (bitmask.h's hdrp_slice_angle takes
+    ``fast_acos``' root from the slice's sine), which moves the hemisphere's edge on up to 2 of the crease frame's
+    1600 pixels (share 0.998; 0 to 2 pixels on every frame)."""
     gb = with_backface(FRAMES[frame]())
     module = BitmaskAO(variant="hdrp", mode="hard", backend="torch", trainable=False, **SETTINGS[setting])
     with torch.no_grad():
         reference = module(gb).visibility
-        assert kernel_covers(module, gb) is None
-        out = kernel_of(module, gb, lanes).visibility
+        float64 = module.double()(gb.to(dtype=torch.float64)).visibility
+        assert kernel_covers(module.float(), gb) is None
+        out = kernel_of(module.float(), gb, lanes).visibility
     assert reference.min() < 1  # something is occluded: the comparison means something
-    assert_masks_agree(out, reference, gb.valid, module.slices)
+    differ = (out != reference) & gb.valid
+    assert torch.allclose(out[differ].double(), float64[differ], atol=1e-6, rtol=0)
+    assert_masks_agree(out, reference, gb.valid, module.slices, share=0.998)
 
 
 @pytest.mark.parametrize("weighting", ["uniform", "cosine"])
 @pytest.mark.parametrize("frame", ["example", "rough", "crease"])
 @pytest.mark.parametrize("setting", [0, 3, 6])
 def test_hdrp_indirect_light_bent_normals_and_ambient_agree(built, weighting, frame, setting):
-    """Every output of the module through the kernel (``backend="kernel"``) and the scalar lanes, by tolerance.
-    HDRP's slice angle ``fast_acos(cos_n)`` has an unbounded slope where the normal faces the view vector
-    (``sqrt(1 - cos_n)``): a rounding of ``cos_n`` there turns the sector centres, so the bent normal agrees within
-    1e-3 (within 1e-5 on 99.6 % of pixels; the weights' sums, visibility and light, within 1e-5)."""
+    """Every output of the module through the kernel (``backend="kernel"``) and the scalar lanes, by tolerance,
+    against the float64 tensor walk. HDRP's slice angle ``fast_acos(cos_n)`` has an unbounded slope in ``cos_n`` where
+    the normal faces the view vector (``sqrt(1 - cos_n)``): the float32 tensor walk's rounding of ``cos_n`` there turns
+    the sector centres (its bent normals up to 0.03 off on the crease frame), the kernel's root from the slice's sine
+    does not (bitmask.h's hdrp_slice_angle)."""
     front = with_backface(FRAMES[frame]())
     gb = GBuffer(depth=front.depth, camera=front.camera, normals=front.normals, backface_depth=front.backface_depth,
                  light=lit(front).light)
     options = dict(variant="hdrp", mode="hard", trainable=False, weighting=weighting, indirect=True, bent_normals=True,
                    ambient=(0.2, 0.5, 1.0), **SETTINGS[setting])
     with torch.no_grad():
-        ref = BitmaskAO(backend="torch", **options)(gb)
+        ref = BitmaskAO(backend="torch", **options).double()(gb.to(dtype=torch.float64))
         out = BitmaskAO(backend="kernel", **options)(gb)
         scalar = kernel_of(BitmaskAO(**options), gb, "scalar")
     assert ref.indirect.max() > 0.01 and ref.visibility.min() < 1
     for lanes in (out, scalar):
-        for name in ("visibility", "indirect"):
-            assert_values_agree(getattr(lanes, name), getattr(ref, name), gb.valid, bound=0.2)
-        assert_values_agree(lanes.bent_normal, ref.bent_normal, gb.valid, atol=1e-3, bound=0.2)
-    assert_values_agree(out.ambient, ref.ambient, gb.valid, bound=0.2)
+        for name in ("visibility", "indirect", "bent_normal"):
+            assert_values_agree(getattr(lanes, name).double(), getattr(ref, name), gb.valid, bound=0.2)
+    assert_values_agree(out.ambient.double(), ref.ambient, gb.valid, bound=0.2)
 
 
 def test_the_variant_and_its_screen_directions_change_the_kernels_output(built):
