@@ -100,7 +100,7 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
 
 def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: torch.Tensor,
                           radius: float | torch.Tensor, bias: float | torch.Tensor, softness: float = 0.0,
-                          jitter: bool = True, seed: int = 0, fetch: str = "nearest", border: str = "clamp",
+                          jitter: bool = True, seed: int = 0, fetch: str = "bilinear", border: str = "drop",
                           lanes: str = "simd") -> torch.Tensor:
     """SSAO's visibility over the hemisphere kernel ``(B,1,H,W)`` (1 on background).
 
