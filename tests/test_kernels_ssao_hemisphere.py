@@ -7,7 +7,9 @@ the valid pixels; what may differ beyond is one decision taken at rounding (a ke
 rounding of a texel's edge, which the nearest fetch reads from the neighbour, or a depth comparison within
 rounding of the bias), which moves one sample's share 1/K: BOUND. With softness > 0 the logistic's slope
 1 / (4 softness) amplifies the float32 rounding of the depths (about 1e-7 of them); at softness 0.1 that stays
-within ATOL."""
+within ATOL. Measured: 4 of 162 024 comparisons beyond ATOL, two pixels of the rough frame with the edge-aware
+fetch (SIMD and scalar lanes), up to 0.024: the edge-aware tap choice decided at rounding, where the kernel gives
+the float32 tensor path's value."""
 import dataclasses
 
 import pytest
