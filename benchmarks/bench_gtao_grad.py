@@ -2,7 +2,9 @@
 against their forward, kernel and tensor path.
 
 ``GTAO`` (``--methods``: ``gtao`` the exact variant, ``hdrp``, ``ue4``), ``HBAO`` (``hbao``: incremental,
-``hbao-max``), ``UE4SSAO`` (``ue4ssao``: evenly spaced directions) and ``PSSAO`` (``pssao``) on ``torch_ao.examples.example_gbuffer`` with ``depth.requires_grad``; the loss is the
+``hbao-max``), ``UE4SSAO`` (``ue4ssao``: evenly spaced directions), ``PSSAO`` (``pssao``) and ``SSAO`` (``ssao``: the
+hemisphere kernel's 2 x slices x steps points, its logistic step) on ``torch_ao.examples.example_gbuffer`` with
+``depth.requires_grad``; the loss is the
 visibility's sum. Rows per method and ``slices x steps``: the kernel's forward (no gradient), the kernel's
 forward + backward, the tensor path's forward + backward, and the ratios to the kernel's forward. Median of
 ``--repeat`` calls after one warm-up; the machine may be shared: read the ratios of one run.
@@ -26,12 +28,13 @@ from torch_ao.gbuffer import GBuffer  # noqa: E402
 from torch_ao.methods.gtao import GTAO  # noqa: E402
 from torch_ao.methods.hbao import HBAO  # noqa: E402
 from torch_ao.methods.pssao import PSSAO  # noqa: E402
+from torch_ao.methods.ssao import SSAO  # noqa: E402
 from torch_ao.methods.ue4_ssao import UE4SSAO  # noqa: E402
 
 #: the modules benchmarked
 METHODS = {"gtao": (GTAO, {}), "hdrp": (GTAO, {"variant": "hdrp"}), "ue4": (GTAO, {"variant": "ue4"}),
            "hbao": (HBAO, {}), "hbao-max": (HBAO, {"accumulate": "max"}),
-           "ue4ssao": (UE4SSAO, {"sample_set": "uniform"}), "pssao": (PSSAO, {})}
+           "ue4ssao": (UE4SSAO, {"sample_set": "uniform"}), "pssao": (PSSAO, {}), "ssao": (SSAO, {"softness": 0.05})}
 
 
 def _median_seconds(fn, repeat: int) -> float:

@@ -22,10 +22,10 @@ tensor operations, and extra threads mostly add contention on a shared machine).
     python benchmarks/bench_methods.py --quick     # 320x180 only, 2 repeats
 
 ``--backend`` picks the modules' backend (default ``auto``: the fused kernel where one covers the call, as
-GTAO, HBAO, UE4 SSAO and PSSAO forward do); the kernel against the tensor path, forward, one thread::
+GTAO, HBAO, UE4 SSAO, PSSAO and SSAO forward do); the kernel against the tensor path, forward, one thread::
 
-    python benchmarks/bench_methods.py --sizes 640x360 --methods ue4_ssao pssao gtao --no-backward --backend torch
-    python benchmarks/bench_methods.py --sizes 640x360 --methods ue4_ssao pssao gtao --no-backward --backend kernel
+    python benchmarks/bench_methods.py --sizes 640x360 --methods ue4_ssao pssao gtao ssao --no-backward --backend torch
+    python benchmarks/bench_methods.py --sizes 640x360 --methods ue4_ssao pssao gtao ssao --no-backward --backend kernel
 """
 from __future__ import annotations
 

@@ -153,7 +153,7 @@ NO_BREAK_MODULES = {
                                                            backend="torch"),
     "bitmask_straight_through_exact": lambda: torch_ao.BitmaskAO(variant="exact", mode="straight_through", slices=2,
                                                                  steps=2, backend="torch"),
-    "ssao": lambda: torch_ao.SSAO(radius=1.0, slices=2, steps=2),
+    "ssao": lambda: torch_ao.SSAO(radius=1.0, slices=2, steps=2, backend="torch"),
     "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=2, backend="torch"),
     "pssao": lambda: torch_ao.PSSAO(slices=2, steps=2, backend="torch"),
 }

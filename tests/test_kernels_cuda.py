@@ -18,6 +18,7 @@ from kernel_agreement import assert_masks_agree, assert_values_agree
 from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
 from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
 from torch_ao.methods.pssao import PSSAOPattern
+from torch_ao.methods.ssao import hemisphere_kernel
 from torch_ao.methods.ue4_ssao import SAMPLE_SETS
 
 COMPILER = shutil.which("g++") or shutil.which("c++")
@@ -72,7 +73,7 @@ extern "C" {
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
 Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
-    tao_walk_soft_gradients, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao;
+    tao_walk_soft_gradients, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao, tao_walk_hemisphere;
 }
 int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch of <<<blocks, THREADS>>>
   const std::string name = argv[1], dir = argv[2];
@@ -82,7 +83,7 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
                  : name == "exact" ? tao_walk_exact : name == "glsl" ? tao_walk_glsl : name == "soft" ? tao_walk_soft
                  : name == "soft_gradients" ? tao_walk_soft_gradients
                  : name == "exact_gradients" ? tao_walk_exact_gradients : name == "wedge" ? tao_walk_wedge
-                 : name == "pssao" ? tao_walk_pssao : tao_walk_bitmask;
+                 : name == "pssao" ? tao_walk_pssao : name == "hemisphere" ? tao_walk_hemisphere : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
   auto Ce = load<float>(dir, "cells"), Bf = load<float>(dir, "backface");
@@ -128,7 +129,7 @@ typedef void ExactBackward(const float*, const float*, const float*, const float
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            float*, const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
-Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao;
+Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao, tao_backward_hemisphere;
 SoftBackward tao_soft_backward;
 ExactBackward tao_exact_backward;
 HardRecord tao_record_hard, tao_record_hard_glsl;
@@ -145,7 +146,7 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
-                                   // (NAME soft, exact, hard, wedge, pssao: that walk's backward alone)
+                                   // (NAME soft, exact, hard, wedge, pssao, hemisphere: that walk's backward alone)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
@@ -193,8 +194,9 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
                                                   gd.data(), gs.data(), taps.data(), ti.data(), tl.data(), gc.data(),
                                                   ints.data(), floats.data(), B, H, W); });
-  } else if (name == "wedge" || name == "pssao") {  // (every step replayed: no record)
-    Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_pssao;
+  } else if (name == "wedge" || name == "pssao" || name == "hemisphere") {  // (every step replayed: no record)
+    Backward* every = name == "wedge" ? tao_backward_wedge : name == "pssao" ? tao_backward_pssao
+                    : tao_backward_hemisphere;
     grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
                                       gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(), gc.data(),
                                       ints.data(), floats.data(), B, H, W); });
@@ -243,13 +245,21 @@ def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, ac
     return torch.from_numpy(np.fromfile(folder / "out", dtype=np.float32).reshape(B, channels, H, W))
 
 
+def _hemisphere_settings(samples: int, **walk) -> tuple[list[int], list[float]]:
+    """SSAO's walk settings: its ``samples`` kernel points (seed 2) as the table of one slice, radius 2 (pixels
+    away on the tiny frame too; on the rough one some behind the camera)."""
+    table = hemisphere_kernel(samples, 2).to(torch.float32).flatten().tolist()
+    return walk_settings(slices=1, steps=samples, radius=2.0, seed=2, placement="hemisphere", full_circle=True,
+                         table=table, **walk)
+
+
 def cases(gb):
     """(accumulator, walk settings, its ints, floats, channels, light) of GTAO (3 variants), HBAO, bitmask AO
     (hard: the default and hdrp variants; exact and with its parameters' derivatives, the GLSL shader's in its three
     numerics, soft: its forward,
     and with the radius and thickness derivatives), GTAO and HBAO with the Hilbert-indexed R2 noise and staggered
-    steps, UE4 SSAO's wedge pairs (a sample set's table, evenly spaced directions) and PSSAO's pixel offsets (their
-    table)."""
+    steps, UE4 SSAO's wedge pairs (a sample set's table, evenly spaced directions), PSSAO's pixel offsets (their
+    table) and SSAO's hemisphere kernel points (their table; the hard step and the logistic)."""
     light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
     common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
     yield "gtao", walk_settings(**common), [0, True, True], [1.0, 0.3, 1.0], 5, None
@@ -293,6 +303,10 @@ def cases(gb):
                   azimuth="screen", table=offsets)
     yield "pssao", walk_settings(**pixels, fetch="nearest", border="drop"), [], [1.0], 3, None
     yield "pssao", walk_settings(**pixels, fetch="bilinear", border="clamp"), [], [0.5], 3, None
+    for fetch, border, jitter, softness in (("nearest", "clamp", True, 0.0), ("bilinear", "drop", False, 0.05),
+                                            ("edge_aware", "clamp", True, 0.1)):
+        yield ("hemisphere", _hemisphere_settings(8, fetch=fetch, border=border, jitter=jitter), [], [0.025, softness],
+               1, None)
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -332,7 +346,7 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
 
 def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
-    max), UE4 SSAO's wedge pairs and PSSAO (every step replayed), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
+    max), UE4 SSAO's wedge pairs, PSSAO and SSAO's hemisphere points (every step replayed), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
     bilinearly, at its first tap, or none; along the ray or the view) and the hard sector walk (cosine weights,
     bent normals, indirect light; the default and hdrp variants), every fetch, either border."""
     common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
@@ -352,6 +366,10 @@ def _backward_cases():
                                                                        round((k + 1.5) * math.sin(2.1 * s + 0.3)))]
     yield ("pssao", walk_settings(**dict(common, steps=4, jitter=False), placement="pixels", full_circle=True,
                                   azimuth="screen", table=offsets), [], [1.0], 3)
+    # (bias, softness): the logistic (the hard step's gradients, rangeCheck's, vanish on these smooth frames)
+    yield "hemisphere", _hemisphere_settings(6, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
+    yield "hemisphere", _hemisphere_settings(5, fetch="nearest", border="clamp", jitter=False), [], [0.01, 0.1], 1
+    yield "hemisphere", _hemisphere_settings(6, fetch="edge_aware", border="clamp", jitter=True), [], [0.0, 0.05], 1
     yield "soft", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 1  # (rounding, cosine, straight, read)
     yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0], [0.4, 0.01, 0.1, 0.0], 1
     yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0], [0.5, 0.0, 0.3, 0.0], 1
@@ -431,7 +449,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                 grad, *inputs, cells, layer, ints, floats, True, True)
             if layer.numel():
                 cpu["layer"] = layer_grad
-        elif accumulator in ("wedge", "pssao"):
+        elif accumulator in ("wedge", "pssao", "hemisphere"):
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
                 accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True, True)
         else:
@@ -464,14 +482,15 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "exact", "hard", "indirect",
-                                    "gtao_camera", "ue4ssao", "pssao"])
+                                    "gtao_camera", "ue4ssao", "pssao", "ssao"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
     back-face layer) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
     (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
-    (tao_backward_wedge, tao_backward_pssao) on a CUDA G-buffer against the same call on the CPU; with the
-    intrinsics' gradients too for GTAO ("gtao_camera"), UE4 SSAO and PSSAO (the backward's g_camera)."""
+    (tao_backward_wedge, tao_backward_pssao) and SSAO's hemisphere (tao_walk_hemisphere, tao_backward_hemisphere:
+    with the radius' gradient) on a CUDA G-buffer against the same call on the CPU; with the intrinsics' gradients
+    too for GTAO ("gtao_camera"), UE4 SSAO, PSSAO and SSAO (the backward's g_camera)."""
     import torch_ao
     from torch_ao.thickness import BackfaceThickness
 
@@ -493,8 +512,9 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
               "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4),
               "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
               "ue4ssao": ue4ssao,
-              "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear")}[method]
-    camera = method in ("gtao_camera", "ue4ssao", "pssao")
+              "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear"),
+              "ssao": lambda: torch_ao.SSAO(softness=0.05)}[method]
+    camera = method in ("gtao_camera", "ue4ssao", "pssao", "ssao")
     gb = FRAMES["rough"]()
     back = gb.depth * 1.3
     results = []

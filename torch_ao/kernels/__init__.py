@@ -16,7 +16,8 @@ walk (``walk.h``) for every backend: the CPU (SIMD lanes) and CUDA (NVRTC, one t
   intrinsics), for either fetch and border (each slice recorded in plain lanes, then the steps that changed
   its state replayed in forward-mode dual lanes, ``lanes_dual.h``; ``walk_grad.py``). See docs/performance.md
   for its cost (``benchmarks/bench_gtao_grad.py --threads 1``);
-* ``UE4SSAO`` and ``PSSAO`` forward (:func:`ue4_ssao_sums`, :func:`pssao_sums`; no gradient through them).
+* ``UE4SSAO``, ``PSSAO`` and ``SSAO`` forward and backward (:func:`ue4_ssao_sums`, :func:`pssao_sums`,
+  :func:`hemisphere_visibility`).
 
 C++ sources built on first use with the compiler PyTorch's extensions use (``torch.utils.cpp_extension``)
 and cached, CUDA ones on first use with NVRTC; see docs/performance.md for how it was chosen and what it
@@ -27,12 +28,12 @@ from __future__ import annotations
 from .build import KernelUnavailable, cpu_kernels
 from .bitmask import KernelOutputs, bitmask_hard, bitmask_outputs, exact_covers, exact_hard, kernel_covers, ssilvb_glsl_hard
 from .gtao import gtao_covers, gtao_sums, hbao_covers, hbao_sums
-from .ssao import pssao_covers, pssao_sums, ue4_ssao_covers, ue4_ssao_sums
+from .ssao import hemisphere_visibility, pssao_covers, pssao_sums, ssao_covers, ue4_ssao_covers, ue4_ssao_sums
 from .soft_bitmask import bitmask_soft
 from .dispatch import BACKENDS, KERNELS, kernel_forward
 
 __all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers",
            "ssilvb_glsl_hard", "KernelOutputs",
            "bitmask_soft", "kernel_covers", "gtao_sums", "gtao_covers", "hbao_sums", "hbao_covers", "ue4_ssao_sums",
-           "ue4_ssao_covers", "pssao_sums", "pssao_covers", "BACKENDS",
+           "ue4_ssao_covers", "pssao_sums", "pssao_covers", "hemisphere_visibility", "ssao_covers", "BACKENDS",
            "KERNELS", "kernel_forward"]

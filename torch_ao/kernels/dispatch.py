@@ -12,7 +12,7 @@ from .bitmask import (bitmask_hard, bitmask_outputs, exact_covers, exact_forward
                       ssilvb_glsl_hard, thickness_options)
 from .build import KernelUnavailable
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
-from .ssao import pssao_covers, pssao_forward, ue4_ssao_covers, ue4_ssao_forward
+from .ssao import pssao_covers, pssao_forward, ssao_covers, ssao_forward, ue4_ssao_covers, ue4_ssao_forward
 
 __all__ = ["BACKENDS", "kernel_forward"]
 
@@ -72,6 +72,7 @@ KERNELS = {
     "hbao": ((hbao_covers, hbao_forward),),
     "ue4_ssao": ((ue4_ssao_covers, ue4_ssao_forward),),
     "pssao": ((pssao_covers, pssao_forward),),
+    "ssao": ((ssao_covers, ssao_forward),),
 }
 
 

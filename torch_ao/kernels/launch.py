@@ -26,8 +26,8 @@ __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "run_packed", "p
            "cuda_source", "cuda_entry_names"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
-#: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets)
-PLACEMENTS = ("power", "hdrp", "ue4", "glsl", "wedge", "pixels")
+#: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets, SSAO's hemisphere kernel points)
+PLACEMENTS = ("power", "hdrp", "ue4", "glsl", "wedge", "pixels", "hemisphere")
 #: the noise of the slice angles and steps in packed.h's numbering (walk.h's Noise): SlicePattern's
 #: (:data:`torch_ao.walk.NOISES`: interleaved gradient noise, the Hilbert-indexed R2 sequence), then the GLSL
 #: shader's one jitter in float32 or in float16 (``glsl_numerics="mesa_mediump"``)
@@ -55,15 +55,20 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
     azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
     noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice), table: the
     ``"wedge"`` placement's per slice (screen angle in radians, length) of a sample set (``None``: slices evenly
-    over the half circle, length 1), the ``"pixels"`` placement's per slice and step ``(du, dv)`` in pixels (its
-    floats follow the walk's four here; :func:`packed_settings` moves them after the accumulator's).
+    over the half circle, length 1), the ``"pixels"`` placement's per slice and step ``(du, dv)`` in pixels, the
+    ``"hemisphere"`` placement's per step its kernel point ``(x, y, z)`` (unit hemisphere, ``z`` along the normal;
+    one slice over the full circle) (its floats follow the walk's four here; :func:`packed_settings` moves them
+    after the accumulator's).
     """
     if placement == "pixels" and (table is None or len(table) != 2 * slices * steps):
         raise ValueError(f"table: the 'pixels' placement needs (du, dv) per slice and step ({2 * slices * steps} floats)")
     if placement == "wedge" and table is not None and len(table) != 2 * slices:
         raise ValueError(f"table: the 'wedge' placement takes (angle, length) per slice ({2 * slices} floats)")
-    if table is not None and placement not in ("wedge", "pixels"):
-        raise ValueError(f"table: only the 'wedge' and 'pixels' placements read one, not {placement!r}")
+    if placement == "hemisphere" and (table is None or len(table) != 3 * steps or slices != 1 or not full_circle):
+        raise ValueError(f"table: the 'hemisphere' placement needs (x, y, z) per step ({3 * steps} floats) over one "
+                         "slice on the full circle")
+    if table is not None and placement not in ("wedge", "pixels", "hemisphere"):
+        raise ValueError(f"table: only the 'wedge', 'pixels' and 'hemisphere' placements read one, not {placement!r}")
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
             NOISES.index(noise), bool(stagger), 0]
@@ -76,7 +81,7 @@ def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings
              acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
              backface: torch.Tensor | None = None, lanes: str = "simd") -> torch.Tensor:
     """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``, ``"exact"``, ``"glsl"``, ``"wedge"``,
-    ``"pssao"``, ``"soft"``) over ``gbuffer`` (float32, CPU or CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
+    ``"pssao"``, ``"hemisphere"``, ``"soft"``) over ``gbuffer`` (float32, CPU or CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
 
     ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);
     ``light``: the channel-last ``(B,H,W,3)`` light or ``None``; ``backface``: the back-face thickness

@@ -47,7 +47,7 @@ void check_thickness(int64_t read, const Frame& fr) {
 }
 
 // torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "exact_gradients",
-// "glsl", "wedge", "pssao", "soft", "soft_gradients") over the frame,
+// "glsl", "wedge", "pssao", "hemisphere", "soft", "soft_gradients") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -118,6 +118,11 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     packed(0, 1);
     TORCH_CHECK(i[3] == int64_t(Steps::pixels), "pssao: expected the pixel-offset step placement");
     run(unpack_pssao(i, f));
+  } else if (name == "hemisphere") {
+    packed(0, 2);
+    TORCH_CHECK(i[3] == int64_t(Steps::hemisphere) && i[0] == 1 && i[7], "hemisphere: expected the hemisphere step "
+                "placement over one slice, one side");
+    run(unpack_hemisphere(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
     packed(4, 4);
     check_thickness(i[kAccInts + 3], fr);
@@ -132,8 +137,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
       run(unpack_soft<true>(i, f));
     }
   } else {
-    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, exact_gradients, glsl, wedge, pssao, soft or "
-                "soft_gradients, got ", name);
+    TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, exact_gradients, glsl, wedge, pssao, "
+                "hemisphere, soft or soft_gradients, got ", name);
   }
   return out;
 }

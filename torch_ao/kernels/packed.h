@@ -101,14 +101,21 @@ TAO_FN WedgeAccumulator unpack_wedge(const int64_t* i, const float* f) {
 }
 
 // The floats of the walk's table (after the accumulator's): a sample set's angle and length per slice
-// (Steps::wedge, where ints[13] says it has one), the pixel offsets per slice and step (Steps::pixels)
+// (Steps::wedge, where ints[13] says it has one), the pixel offsets per slice and step (Steps::pixels), the
+// kernel points per step (Steps::hemisphere)
 TAO_FN int64_t table_floats(const int64_t* i) {
   if (i[3] == int64_t(Steps::pixels)) return 2 * i[0] * i[1];
+  if (i[3] == int64_t(Steps::hemisphere)) return 3 * i[1];
   return i[3] == int64_t(Steps::wedge) && i[13] > 0 ? 2 * i[0] : 0;
 }
 
 // floats: distance_bias
 TAO_FN PSSAOAccumulator unpack_pssao(const int64_t*, const float* f) { return PSSAOAccumulator{f[kAccFloats]}; }
+
+// floats: bias, softness; the radius is the walk's, the kernel's size its steps
+TAO_FN HemisphereAccumulator unpack_hemisphere(const int64_t* i, const float* f) {
+  return HemisphereAccumulator{f[0], f[kAccFloats], f[kAccFloats + 1], i[1]};
+}
 
 // A batch of B images channel-last (walk.h's Image per image; light, cells and backface may be null)
 struct Frame {

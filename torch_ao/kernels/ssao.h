@@ -1,9 +1,11 @@
 // The accumulators of torch_ao/methods/ue4_ssao.py (WedgeAccumulator: UE4's WedgeNoNormal of each symmetric
-// pair of samples, Steps::wedge) and torch_ao/methods/pssao.py (PSSAOAccumulator: the largest sample
-// occlusion per direction, Steps::pixels), for walk.h. Like horizon.h's, they finish into per-pixel sums over
-// slices (0 on background) that the modules' own Python finish turns into the visibility. Their backward is
-// walk_grad.h's grad_block, which replays every step (seed_setting: UE4's fade distance, flat-surface bias and
-// softness, PSSAO's distance bias).
+// pair of samples, Steps::wedge), torch_ao/methods/pssao.py (PSSAOAccumulator: the largest sample
+// occlusion per direction, Steps::pixels) and torch_ao/methods/ssao.py (HemisphereAccumulator: Crytek's SSAO
+// over the normal-oriented hemisphere kernel, Steps::hemisphere), for walk.h. Like horizon.h's, the first two
+// finish into per-pixel sums over slices (0 on background) that the modules' own Python finish turns into the
+// visibility; the hemisphere's finishes into the visibility. Their backward is walk_grad.h's grad_block, which
+// replays every step (seed_setting: UE4's fade distance, flat-surface bias and softness, PSSAO's distance bias,
+// SSAO's bias and softness).
 #pragma once
 
 #include "walk.h"
@@ -101,6 +103,45 @@ struct PSSAOAccumulator {
     out[0] = select(px.live, sums.sum, F(0.0f));
     out[1] = select(px.live, sums.count, F(0.0f));
     out[2] = select(px.live, sums.dirs, F(0.0f));
+  }
+};
+
+// HemisphereAccumulator: kernel_occlusion's visibility 1 - (1/K) sum_k occluded_k rangeCheck_k over the K kernel
+// points S_k (walk_points; a single slice)
+struct HemisphereAccumulator {
+  static constexpr bool kKernelPoints = true;
+  float radius;    // world units (the walk's)
+  float bias;      // world units: S is occluded when the surface is this much in front of it
+  float softness;  // > 0: the logistic of this width instead of the step
+  int64_t samples;
+
+  template <class F> struct State { F occlusion; };
+  template <class F> struct Sums { F occlusion = F(0.0f); };
+  TAO_FN int channels() const { return 1; }
+  TAO_FN int settings() const { return 2; }  // bias, softness (seed_setting)
+
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const { return State<F>{F(0.0f)}; }
+
+  template <class F>
+  TAO_FN void step_point(State<F>& st, const Pixels<F>& px, const F* S, const Sample<F>& smp) const {
+    using V = typename ValueOf<F>::type;
+    const F z_point = neg(S[2]), z_buffer = neg(px.P[2] + smp.delta[2]), one = F(1.0f);
+    const F diff = z_point - z_buffer - seed_setting(F(bias), 0);
+    const F occluded = softness > 0 ? logistic(diff / seed_setting(F(softness), 1))
+                                    : select(diff >= F(0.0f), one, F(0.0f));
+    const F x = clamp(F(radius) / clamp_min(abs(px.depth - z_buffer), F(1e-12f * radius)), F(0.0f), one);
+    const F range_check = x * x * (F(3.0f) - F(2.0f) * x);
+    // (a point behind the camera: its projection's depth was clamped)
+    const auto counts = land(smp.valid, value(z_point) > value(px.depth) * V(1e-6f));
+    st.occlusion = st.occlusion + select(counts, occluded * range_check, F(0.0f));
+  }
+
+  template <class F> TAO_FN void end_slice(const State<F>& st, const Pixels<F>&, const Slice<F>&, Sums<F>& sums) const {
+    sums.occlusion = sums.occlusion + st.occlusion;
+  }
+
+  template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
+    out[0] = select(px.live, F(1.0f) - sums.occlusion / F(float(samples)), F(1.0f));
   }
 };
 

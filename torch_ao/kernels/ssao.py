@@ -1,5 +1,5 @@
-"""The SSAO family's kernels: ``UE4SSAO`` and ``PSSAO`` forward in one fused pass (the one walk of ``walk.h``
-with the accumulators of ``ssao.h``).
+"""The SSAO family's kernels: ``UE4SSAO``, ``PSSAO`` and ``SSAO`` forward in one fused pass (the one walk of
+``walk.h`` with the accumulators of ``ssao.h``).
 
 ``UE4SSAO`` walks :class:`~torch_ao.methods.ue4_ssao.WedgePattern`'s directions (a sample set's, rotated per
 pixel, or evenly spaced) with both sides of each step taken together (``walk_pairs``: the tensor walk's
@@ -13,8 +13,13 @@ to the G-buffer's depth, normals, positions and intrinsics, to every parameter o
 Euler's identity) and PSSAO's distance bias; :func:`ue4_ssao_covers` and :func:`pssao_covers` say why a call
 runs on the tensor path (a float64 G-buffer, more than 32 steps on CUDA, ...).
 
-``SSAO`` (the hemisphere kernel) has no kernel: its samples are 3-D points around the normal, projected one by
-one, not steps along a screen direction, so it is not a pattern of this walk.
+``SSAO``'s samples are 3-D points around the normal, not steps along a screen direction: the walk's
+``"hemisphere"`` placement reads the module's kernel points as a table and walks one slice of them
+(walk.h's ``walk_points``: the per-pixel tangent frame, rotated by the pixel's interleaved gradient noise when
+jittered, each point projected and fetched), and ``ssao.h``'s ``HemisphereAccumulator`` finishes the visibility
+itself. Its backward replays every point: gradients to the G-buffer, the intrinsics, the bias (``softness > 0``)
+and the radius (Euler's identity, the bias and softness lengths too); :func:`ssao_covers` says which calls run
+on the tensor path.
 """
 from __future__ import annotations
 
@@ -28,7 +33,8 @@ from .gtao import finish_sums, float32_value
 from .launch import run_walk, walk_settings
 from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
 
-__all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums", "pssao_forward", "pssao_covers"]
+__all__ = ["ue4_ssao_sums", "ue4_ssao_forward", "ue4_ssao_covers", "pssao_sums", "pssao_forward", "pssao_covers",
+           "hemisphere_visibility", "ssao_forward", "ssao_covers"]
 
 #: the fetches the walk reads (walk.h's Sample)
 _FETCHES = ("nearest", "bilinear", "edge_aware")
@@ -92,6 +98,31 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     return walk("pssao", gbuffer, normals, settings, [], [float32_value(distance_bias)], 3, lanes=lanes, **options)
 
 
+def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: torch.Tensor,
+                          radius: float | torch.Tensor, bias: float | torch.Tensor, softness: float = 0.0,
+                          jitter: bool = True, seed: int = 0, fetch: str = "bilinear", border: str = "drop",
+                          lanes: str = "simd") -> torch.Tensor:
+    """SSAO's visibility over the hemisphere kernel ``(B,1,H,W)`` (1 on background).
+
+    Args:
+        gbuffer, normals: as :func:`ue4_ssao_sums` (the kernel is oriented along the normals). kernel: the
+            ``(K,3)`` unit-hemisphere points (:func:`~torch_ao.methods.ssao.hemisphere_kernel`); radius, bias,
+            softness: world units; jitter, seed, fetch, border: as :class:`~torch_ao.SSAO`. lanes: as
+            :func:`ue4_ssao_sums`. With autograd recording through the G-buffer or a ``radius`` or ``bias``
+            tensor, the visibility carries their gradients (the radius' by Euler's identity, the bias and
+            softness being lengths).
+    """
+    table = [float(v) for v in kernel.detach().to(torch.float32).flatten().tolist()]
+    settings = walk_settings(slices=1, steps=len(kernel), radius=float32_value(radius), jitter=jitter, seed=seed,
+                             fetch=fetch, border=border, placement="hemisphere", full_circle=True, table=table)
+    walk, options = run_walk, {}
+    if wants_gradient(gbuffer, normals, radius, bias):
+        walk, options = differentiable_walk, {"radius": radius, "setting": (bias, softness),
+                                              "setting_dimension": (1, 1)}
+    return walk("hemisphere", gbuffer, normals, settings, [], [float32_value(bias), float(softness)], 1,
+                lanes=lanes, **options)
+
+
 def ue4_ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
     """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for a :class:`~torch_ao.UE4SSAO` the kernel
     covers (:func:`ue4_ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
@@ -120,6 +151,16 @@ def pssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, to
     return finish_sums(m, gbuffer, {"sum": sums[:, 0:1], "count": sums[:, 1:2], "dirs": sums[:, 2:3]}, normals)
 
 
+def ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, torch.Tensor]:
+    """``module(gbuffer)``'s outputs ``{"visibility": (B,1,H,W)}`` for an :class:`~torch_ao.SSAO` the kernel
+    covers (:func:`ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
+    m = module
+    normals = gbuffer.view_normals(m.normals_method)
+    return {"visibility": hemisphere_visibility(gbuffer, normals, kernel=m.kernel, radius=m.radius, bias=m.bias,
+                                                softness=m.softness, jitter=m.jitter, seed=m.seed, fetch=m.fetch,
+                                                border=m.border, lanes=lanes)}
+
+
 #: the options of every module these kernels know: ``None`` for any value, else the values covered
 _MODULE_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "border", "normals", "chunk_size", "recompute", "trainable",
                                  "backend", "resolution")) | {"fetch": _FETCHES}
@@ -127,14 +168,17 @@ _UE4_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("radius", "fade_distance", "flat
                                                 "sample_set", "accurate_angle", "flat_softness", "jitter", "seed")) | {
     "azimuth": ("screen",)}
 _PSSAO_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("distance_bias", "normalize")) | {"jitter": (False,)}
+_SSAO_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("samples", "radius", "bias", "softness", "jitter", "seed"))
 
 
-def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...], given: tuple[str, ...]) -> str | None:
+def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...], given: tuple[str, ...],
+            steps: int | None = None) -> str | None:
     """Why the kernel cannot compute ``module(gbuffer)`` (``None``: it can): an option it does not know or
     cover, a ``parameter`` other than a scalar, a G-buffer other than float32 on CPU or CUDA, bilinear reads of
     a position buffer, or, where autograd records, a gradient the walk's backward does not give (it gives the
     G-buffer's and the ``given`` parameters': its setting's, and those the module's finish applies with torch
-    ops), or one on CUDA with more than :data:`~torch_ao.kernels.walk_grad.MAX_CUDA_STEPS` steps."""
+    ops), or one on CUDA with more than :data:`~torch_ao.kernels.walk_grad.MAX_CUDA_STEPS` ``steps`` (default the
+    module's) per side."""
     reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest",))
     if reason is not None:
         return reason
@@ -144,8 +188,9 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
             return (f"a gradient of {', '.join(others)} is asked for (the {type(module).__name__} kernel's backward "
                     f"gives {', '.join(given)} and the G-buffer's)")
         wanted = any(getattr(module, name).requires_grad for name in parameters) or gbuffer_requires_grad(gbuffer)
-        if wanted and gbuffer.depth.is_cuda and module.steps > MAX_CUDA_STEPS:
-            return (f"a gradient is asked for on CUDA with {module.steps} steps per side (its backward replays at "
+        steps = module.steps if steps is None else steps
+        if wanted and gbuffer.depth.is_cuda and steps > MAX_CUDA_STEPS:
+            return (f"a gradient is asked for on CUDA with {steps} steps per side (its backward replays at "
                     f"most {MAX_CUDA_STEPS})")
     return None
 
@@ -159,3 +204,10 @@ def ue4_ssao_covers(module, gbuffer: GBuffer) -> str | None:
 def pssao_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`pssao_forward` computes ``module(gbuffer)`` (a ``PSSAO``), else why not."""
     return _covers(module, gbuffer, _PSSAO_OPTIONS, ("distance_bias",), given=("distance_bias",))
+
+
+def ssao_covers(module, gbuffer: GBuffer) -> str | None:
+    """``None`` when :func:`ssao_forward` computes ``module(gbuffer)`` (an ``SSAO``), else why not (its kernel
+    points are the walk's steps: at most :data:`~torch_ao.kernels.walk_grad.MAX_CUDA_STEPS` with a gradient on
+    CUDA)."""
+    return _covers(module, gbuffer, _SSAO_OPTIONS, ("radius", "bias"), given=("radius", "bias"), steps=module.samples)

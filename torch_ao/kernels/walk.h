@@ -116,8 +116,9 @@ TAO_FN float glsl_jitter(float u, float y_gl, bool mediump) {
 }
 
 // Step placement (SlicePattern.step_offsets, ShaderStepPattern's, the GLSL shader's: GLSLPattern, UE4 SSAO's
-// WedgePattern, or PSSAOPattern's integer pixel offsets, read from the walk's table)
-enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3, wedge = 4, pixels = 5 };
+// WedgePattern, PSSAOPattern's integer pixel offsets, read from the walk's table, or SSAO's hemisphere kernel:
+// 3-D points around the normal, read from the table and projected, walk_points)
+enum class Steps : int64_t { power = 0, hdrp = 1, ue4 = 2, glsl = 3, wedge = 4, pixels = 5, hemisphere = 6 };
 // The noise of the slice angles and steps (launch.NOISES): Jimenez's interleaved gradient noise (ign),
 // XeGTAO's R2 sequence along a Hilbert curve (hilbert_r2: SlicePattern._noise), or the GLSL shader's one
 // jitter for both (glsl_jitter, in float32 or float16)
@@ -136,7 +137,8 @@ struct WalkSettings {
   bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
   bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
   // Steps::wedge: per slice its screen angle and length (a UE4 sample set; null: slices evenly spaced, length
-  // 1); Steps::pixels: per slice and step (du, dv), at 2 (s steps + j); else null
+  // 1); Steps::pixels: per slice and step (du, dv), at 2 (s steps + j); Steps::hemisphere: per step its kernel
+  // point (x, y, z) in the unit hemisphere z > 0 (z along the normal), at 3 j; else null
   const float* table;
 };
 
@@ -231,6 +233,7 @@ template <class F> struct Slice {
   int64_t index;
 
   TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) : index(s) {
+    if (cfg.placement == Steps::hemisphere) return;  // (walk_points: no slice geometry)
     F angle;
     if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
       angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
@@ -607,6 +610,71 @@ TAO_FN void walk_slice(const WalkSettings& cfg, const Image& img, const Acc& acc
   }
 }
 
+// SSAO's tangent frame around the pixel's normal N (methods/ssao.py's _tangent_frame): the screen direction
+// r = (cos, sin, 0) of the pixel's rotation 2 pi a (a its noise, 0 without jitter) made orthogonal to N, or +Z
+// made so where r is within 1e-3 of N's direction; t normalized, b = cross(N, t)
+template <class F> struct TangentFrame {
+  F t[3], b[3];
+
+  TAO_FN explicit TangentFrame(const Pixels<F>& px) {
+    float lane[LaneTraits<F>::L];
+    for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = 2.0f * kPi * px.rotation[l];
+    const F alpha = from_lanes(lane, F(0.0f));
+    const F r[3] = {cos(alpha), sin(alpha), F(0.0f)};
+    const F along = dot3(r, px.N);
+    F ortho[3], ortho_z[3];
+    for (int c = 0; c < 3; ++c) ortho[c] = r[c] - px.N[c] * along;
+    for (int c = 0; c < 3; ++c) ortho_z[c] = (c == 2 ? F(1.0f) : F(0.0f)) - px.N[c] * px.N[2];
+    const auto apart = norm3(ortho) > F(1e-3f);
+    F chosen[3];
+    for (int c = 0; c < 3; ++c) chosen[c] = select(apart, ortho[c], ortho_z[c]);
+    normalize3(chosen, t);
+    cross(px.N, t, b);
+  }
+};
+
+// Kernel point j of the hemisphere placement (methods/ssao.py's kernel_points): the table's (x, y, z) times the
+// radius, in the pixel's tangent frame (z along N), around its position
+template <class F>
+TAO_FN void kernel_point(const WalkSettings& cfg, const Pixels<F>& px, const TangentFrame<F>& frame, int64_t j, F* S) {
+  const float* k = cfg.table + 3 * j;
+  const F x = F(k[0] * cfg.radius), y = F(k[1] * cfg.radius), z = F(k[2] * cfg.radius);
+  for (int c = 0; c < 3; ++c) S[c] = px.P[c] + x * frame.t[c] + y * frame.b[c] + z * px.N[c];
+}
+
+// Where the view-space point S projects, in screen pixels (camera.view_to_pixels), its depth -S.z clamped to
+// 1e-6 of the pixel's (a point behind the camera: kernel_occlusion's, which then occludes nothing)
+template <class F>
+TAO_FN void project_point(const Image& img, const Pixels<F>& px, const F* S, F& su, F& sv) {
+  using V = typename ValueOf<F>::type;
+  const F d = clamp_min(neg(S[2]), F(value(px.depth) * V(1e-6f)));
+  su = (S[0] / d) * seed_camera(F(img.fx), 0) + seed_camera(F(img.cx), 2);
+  sv = (neg(S[1]) / d) * seed_camera(F(img.fy), 1) + seed_camera(F(img.cy), 3);
+}
+
+// Whether an accumulator takes the hemisphere placement's kernel points (Acc::kKernelPoints: walk_points)
+template <class Acc, class = void> struct KernelPoints {
+  static constexpr bool value = false;
+};
+template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))> {
+  static constexpr bool value = Acc::kKernelPoints;
+};
+
+// The hemisphere placement's one slice (SSAO's kernel_occlusion): each of the steps kernel points projected and
+// fetched there, acc.step_point(state, px, S, sample)
+template <class F, class Acc>
+TAO_FN void walk_points(const WalkSettings& cfg, const Image& img, const Acc& acc, const Pixels<F>& px,
+                        typename Acc::template State<F>& state) {
+  const TangentFrame<F> frame(px);
+  for (int64_t j = 0; j < cfg.steps; ++j) {
+    F S[3], su, sv;
+    kernel_point(cfg, px, frame, j, S);
+    project_point(img, px, S, su, sv);
+    const Sample<F> sample = fetch_sample(cfg, img, px, su, sv);
+    acc.step_point(state, px, S, sample);
+  }
+}
+
 // One slice of a paired accumulator (march's paired_sides: SliceAccumulator.paired_sides, UE4 SSAO's
 // symmetric pairs): step j of side +1 and of side -1 taken together, acc.step_pair(state, px, sl, plus, minus)
 template <class F, class Acc>
@@ -637,6 +705,8 @@ TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc
       typename Acc::template State<F> state = begin_slice_of(acc, px, sl, sums, 0);
       if constexpr (PairedSides<Acc>::value) {
         walk_pairs(cfg, img, acc, px, sl, state);
+      } else if constexpr (KernelPoints<Acc>::value) {
+        walk_points(cfg, img, acc, px, state);
       } else {
         walk_slice(cfg, img, acc, px, sl, state, none);
       }

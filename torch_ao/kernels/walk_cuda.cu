@@ -23,6 +23,7 @@ TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients)  // d visibilit
 TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl)
 TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge)
 TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao)
+TAO_CUDA_ENTRY(tao_walk_hemisphere, unpack_hemisphere)
 TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward)
 TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility / d radius, offset, scale too
 
@@ -59,6 +60,7 @@ TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao)
 TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao)
 TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge)  // (every step replayed: no record)
 TAO_CUDA_BACKWARD(tao_backward_pssao, unpack_pssao)
+TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere)
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d the thickness'
 // offset and scale per pixel in g_thickness (B, H, W, 2); the layer's taps' in tap_layer (backface: the model's

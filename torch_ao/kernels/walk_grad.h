@@ -384,6 +384,8 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
       }
     } else if constexpr (PairedSides<Acc>::value) {
       walk_pairs(cfg, img, acc, px, sl, state);
+    } else if constexpr (KernelPoints<Acc>::value) {
+      walk_points(cfg, img, acc, px, state);
     } else {
       NoVisit none;
       walk_slice(cfg, img, acc, px, sl, state, none);

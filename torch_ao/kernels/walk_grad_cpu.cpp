@@ -185,8 +185,13 @@ template <class Fn> void with_replayed(const std::string& name, const at::Tensor
     check_settings(ints, floats, 0, 1, "pssao");
     TORCH_CHECK(i[3] == int64_t(Steps::pixels), "pssao: expected the pixel-offset step placement");
     fn(unpack_pssao(i, f));
+  } else if (name == "hemisphere") {
+    check_settings(ints, floats, 0, 2, "hemisphere");
+    TORCH_CHECK(i[3] == int64_t(Steps::hemisphere) && i[0] == 1 && i[7], "hemisphere: expected the hemisphere step "
+                "placement over one slice, one side");
+    fn(unpack_hemisphere(i, f));
   } else {
-    TORCH_CHECK(false, "accumulator: the walk's backward covers gtao, hbao, wedge and pssao, got ", name);
+    TORCH_CHECK(false, "accumulator: the walk's backward covers gtao, hbao, wedge, pssao and hemisphere, got ", name);
   }
 }
 

@@ -21,6 +21,8 @@ construction.
 
 This is not a slice walk: :func:`kernel_occlusion` samples the kernel with the walk's fetch
 (:func:`~torch_ao.walk.fetch_sample`) and its chunking and recomputation (:func:`~torch_ao.walk.march_chunks`).
+The fused kernel (:func:`torch_ao.kernels.ssao.hemisphere_visibility`) computes the same, this being its
+specification.
 """
 from __future__ import annotations
 
@@ -116,6 +118,7 @@ class SSAO(ScreenSpaceAO):
                "through the comparison (0: the hard step)", unit="world units", minimum=0.0),
     )
     SAMPLING = Sampling.options_for(("preset", "slices", "steps", "jitter", "seed", "fetch", "border"))
+    has_kernel = "ssao"  # forward and backward in torch_ao.kernels (ssao_covers says which calls)
 
     def __init__(self, **options) -> None:
         super().__init__(**options)
