@@ -108,8 +108,7 @@ template <class F> TAO_FN F cos_view(const F* delta, const F* V, const F& offset
 // slice's own angle). Its derivative is the tensor walk's (safe_fast_acos in float64): none where 1 - |c| < 1e-6.
 template <class F> TAO_FN F hdrp_slice_angle(const F& c, const F& s) {
   const F ac = abs(c), as = abs(s);
-  const F res = (F(-0.156583f) * ac + F(kHalfPi)) * (as / sqrt(F(1.0f) + ac));
-  const F gamma = neg(sign(s)) * select(c >= F(0.0f), res, F(kPi) - res);
+  const F gamma = neg(sign(s)) * fast_acos_of_root(c, as / sqrt(F(1.0f) + ac));
   const auto sloped = as * as >= F(1e-6f) * (F(1.0f) + ac);  // 1 - |c| = s^2 / (1 + |c|)
   return select(sloped, gamma, F(value(gamma)));
 }

@@ -53,13 +53,15 @@ template <class F> TAO_FN F seed_camera(const F& x, int) { return x; }
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)
 template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
-// HDRP's GTAOFastAcos / UE4's acosFast (torch_ao.ops.fast_acos)
-template <class F> TAO_FN F fast_acos(const F& x) {
-  const F ax = abs(x);
-  const auto inside = ax < F(1.0f);
-  const F root = select(inside, sqrt(select(inside, F(1.0f) - ax, F(1.0f))), F(0.0f));
-  const F res = (F(-0.156583f) * ax + F(kHalfPi)) * root;
+// HDRP's GTAOFastAcos / UE4's acosFast (torch_ao.ops.fast_acos) of x, given root = sqrt(1 - |x|)
+template <class F> TAO_FN F fast_acos_of_root(const F& x, const F& root) {
+  const F res = (F(-0.156583f) * abs(x) + F(kHalfPi)) * root;
   return select(x >= F(0.0f), res, F(kPi) - res);
+}
+
+template <class F> TAO_FN F fast_acos(const F& x) {
+  const auto inside = abs(x) < F(1.0f);
+  return fast_acos_of_root(x, select(inside, sqrt(select(inside, F(1.0f) - abs(x), F(1.0f))), F(0.0f)));
 }
 
 // Jimenez's interleaved gradient noise, in double as torch_ao.walk.interleaved_gradient_noise
