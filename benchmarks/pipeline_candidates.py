@@ -7,6 +7,7 @@ views' column: fitting moves some candidates much more than others).
     python benchmarks/pipeline_candidates.py                  # 160x96, 256 spp: torch-ao fit's views
     python benchmarks/pipeline_candidates.py --fitted         # each fitted by torch-ao fit (a few minutes each)
     python benchmarks/pipeline_candidates.py --size 96x72 --spp 64 --train-views 1
+    python benchmarks/pipeline_candidates.py --fitted --only default     # the rows whose label has "default"
 
 Prints a Markdown table: mean PSNR (dB) per view group and the median forward time per view (ms).
 """
@@ -27,7 +28,10 @@ from torch_ao.methods import DEFAULT_PRESET
 
 #: (label, method, options): the pipeline `torch-ao fit` fits with no flags first
 CANDIDATES = (
-    ("bitmask cosine backface edge_aware very_high (the default)", "bitmask",
+    ("bitmask cosine backface edge_aware very_high_steps staggered screen (the default)", "bitmask",
+     {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware", "preset": "very_high_steps",
+      "stagger": True, "azimuth": "screen"}),
+    ("bitmask cosine backface edge_aware very_high", "bitmask",
      {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware", "preset": "very_high"}),
     ("bitmask cosine backface edge_aware high_steps", "bitmask",
      {"weighting": "cosine", "thickness_model": "backface", "fetch": "edge_aware", "preset": "high_steps"}),
@@ -61,7 +65,8 @@ def fit_view_groups(size: str = "160x96", spp: int = 256, train_views: int = 2) 
 def fit_flags(method: str, options: dict) -> list[str]:
     """The ``torch-ao fit`` flags that fit the candidate ``method`` with ``options`` (every choice spelled out,
     so that no default of the command's decides)."""
-    flags = ["--method", method, "--fetch", options.get("fetch", "bilinear")]
+    flags = ["--method", method, "--fetch", options.get("fetch", "bilinear"), "--azimuth", options.get("azimuth", "view"),
+             "--stagger" if options.get("stagger") else "--no-stagger"]
     if method == "bitmask":
         flags += ["--thickness", options.get("thickness_model", "scalar"), "--weighting", options.get("weighting", "cosine")]
     if "variant" in options:
@@ -89,6 +94,7 @@ def main() -> None:
     p.add_argument("--preset", default=DEFAULT_PRESET, help="preset of every candidate but those that name theirs")
     p.add_argument("--repeats", type=int, default=1)
     p.add_argument("--fitted", action="store_true", help="score each candidate as torch-ao fit fits it")
+    p.add_argument("--only", nargs="+", help="the candidates whose label contains one of these (default: all)")
     args = p.parse_args()
     groups = fit_view_groups(args.size, args.spp, args.train_views)
     state = "fitted by `torch-ao fit`" if args.fitted else "defaults"
@@ -96,6 +102,8 @@ def main() -> None:
     print("| --- |" + " ---: |" * (len(groups) + 1))
     with tempfile.TemporaryDirectory() as folder:
         for label, method, options in CANDIDATES:
+            if args.only and not any(part in label for part in args.only):
+                continue
             if args.fitted:
                 pipe = fitted_pipeline(method, options, args, folder)
             else:

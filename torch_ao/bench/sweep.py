@@ -65,8 +65,8 @@ class BenchSettings:
 
 # the @half presets walk a quarter of the pixels: the sweep shows where that pays (error against time)
 DEFAULT = BenchSettings(("sphere_on_plane", "room_corner", "fence", "stairs", "floating", "poles"),
-                        ("low", "medium", "high", "high_steps", "very_high", "ultra", "medium@half", "high@half",
-                         "ultra@half"),
+                        ("low", "medium", "high", "high_steps", "very_high", "very_high_steps", "ultra", "medium@half",
+                         "high@half", "ultra@half"),
                         **{o.name: o.default for o in SIZE_OPTIONS})
 QUICK = BenchSettings(("sphere_on_plane", "room_corner", "fence"), ("low", "medium", "high", "high@half"), 72, 96, 64, 3)
 

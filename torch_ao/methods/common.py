@@ -31,9 +31,11 @@ PRESETS: dict[str, tuple[int, int]] = {
     "high": (3, 3),
     # high's cost in longer steps: for thin occluders steps matter more than slices (GTAO scores best at high's 3 x 3)
     "high_steps": (2, 5),
-    # longer steps still, 1.6x high's fetches: the default torch-ao fit pipeline's sampling, the best leave one scene
-    # out on the fit set within 2x GTAO high's time (2 x 9 adds 0.06 dB at 2x, 3 x 5 loses 0.3 dB: docs/accuracy.md)
+    # longer steps still, 1.6x high's fetches (3 x 5, as many fetches in more slices, loses 0.3 dB: docs/accuracy.md)
     "very_high": (2, 7),
+    # one more step a side, 1.8x high's fetches: the default torch-ao fit pipeline's sampling (with staggered steps and
+    # screen-spaced slices), the first split over 30 dB leave one scene out on the fit set (docs/accuracy.md)
+    "very_high_steps": (2, 8),
     "ultra": (9, 3),
     "extreme": (16, 8),
     "reference": (32, 32),
