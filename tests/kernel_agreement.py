@@ -62,3 +62,54 @@ def position_gradients(gb0, loss) -> list[torch.Tensor]:
         (grad,) = torch.autograd.grad(loss(gb, dtype, backend), [position])
         grads.append(grad.double())
     return grads
+
+
+def relative_error(a: torch.Tensor, b: torch.Tensor, trim: float = 0.0) -> float:
+    """``|a - b| / |b|`` over ``b``'s finite entries, without the fraction ``trim`` of them that differ most."""
+    finite = torch.isfinite(b)
+    diff = (a - b)[finite].abs().flatten()
+    if trim:
+        diff = diff.sort().values[:len(diff) - int(trim * len(diff))]
+    return float(diff.norm() / b[finite].norm().clamp_min(1e-30))
+
+
+def use_scalar_lanes(monkeypatch, module) -> None:
+    """``module``'s kernels (a :mod:`torch_ao.kernels` module with ``scalar_lanes``) walk in scalar lanes: the
+    CUDA thread's body, on the CPU."""
+    monkeypatch.setattr(module, "scalar_lanes", lambda lanes: True)
+
+
+def central_differences(loss, base: torch.Tensor, indices, eps: float = 1e-6) -> torch.Tensor:
+    """``d loss / d base`` (float64, flat) by central differences at the flat ``indices`` (0 elsewhere);
+    ``loss(x)`` takes ``x`` shaped as ``base``."""
+    flat = base.detach().double().flatten()
+    numeric = torch.zeros_like(flat)
+    for i in indices:
+        step = torch.zeros_like(flat)
+        step[i] = eps
+        numeric[i] = (loss((flat + step).view_as(base)) - loss((flat - step).view_as(base))) / (2 * eps)
+    return numeric
+
+
+def assert_directional_derivatives(grads, base, forward, directions, eps: float = 1e-7, count: int = 4) -> None:
+    """The kernel's ``grads`` (of a loss at the float64 leaves ``base``) along ``count`` random directions
+    (``directions()``: one tensor per leaf) against central differences of the float64 ``forward(*leaves)``:
+    within 1e-4 of the sum of the terms' magnitudes."""
+    for _ in range(count):
+        us = directions()
+        with torch.no_grad():
+            numerical = float(forward(*(b + eps * u for b, u in zip(base, us)))
+                              - forward(*(b - eps * u for b, u in zip(base, us)))) / (2 * eps)
+        terms = torch.cat([(g.double() * u)[torch.isfinite(g)].flatten() for g, u in zip(grads, us)])
+        assert abs(numerical) > 1e-2
+        assert abs(float(terms.sum()) - numerical) <= 1e-4 * float(terms.abs().sum()), (float(terms.sum()), numerical)
+
+
+def assert_hard_gradients_agree(depth: torch.Tensor, normals: torch.Tensor, ref_depth: torch.Tensor,
+                                ref_normals: torch.Tensor) -> None:
+    """Hard masks' gradients, which come through the slice: the normals' within 1e-4 relative of the reference's;
+    the depth's zero up to rounding in both (scaling a pixel's depth moves it along its own ray)."""
+    assert ref_normals.abs().sum() > 0 and relative_error(normals, ref_normals) <= 1e-4, relative_error(normals, ref_normals)
+    scale = float(ref_normals.norm())
+    assert float(ref_depth[torch.isfinite(ref_depth)].norm()) <= 1e-9 * scale
+    assert float(depth[torch.isfinite(depth)].norm()) <= 1e-5 * scale

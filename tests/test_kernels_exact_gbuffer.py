@@ -10,7 +10,7 @@ tensor walk itself is 2-60 % (relative) off the float64 walk's depth gradient, a
 import pytest
 import torch
 
-from kernel_agreement import position_gradients
+from kernel_agreement import position_gradients, relative_error, use_scalar_lanes
 from kernel_calls import on_threads
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft_exact import SETTINGS
@@ -20,11 +20,6 @@ from torch_ao.kernels import dispatch
 from torch_ao.kernels.soft_exact import exact_soft, exact_soft_covers
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import BackfaceThickness, LinearThickness
-
-
-def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
-    finite = torch.isfinite(b)
-    return float((a - b)[finite].norm() / b[finite].norm().clamp_min(1e-30))
 
 
 def _weights(vis: torch.Tensor) -> torch.Tensor:
@@ -64,17 +59,17 @@ def test_gbuffer_gradients_equal_the_float64_tensor_walk(built, setting, lanes, 
     margin (straight-through mode). Measured: up to 1.1e-5 relative (depth), 5e-6 (values)."""
     if lanes == "scalar":  # the CUDA thread's walk (what tao_exact_backward compiles), on the CPU
         import torch_ao.kernels.soft_exact as soft_exact
-        monkeypatch.setattr(soft_exact, "scalar_lanes", lambda lanes: True)
+        use_scalar_lanes(monkeypatch, soft_exact)
     gb = FRAMES["rough"]()
     settings = SETTINGS[setting]
     ref, (ref_depth, ref_normals, ref_back), ref_scalars = values_and_grads(gb, torch.float64, "torch", settings)
     out, (depth, normals, back), scalars = values_and_grads(gb, torch.float32, "kernel", settings)
     assert ref.min() < 0.9 and ref_depth.abs().sum() > 0 and ref_normals.abs().sum() > 0
     assert (out - ref).abs().max() <= 1e-5
-    assert _relative(depth, ref_depth) <= 1e-4
-    assert _relative(normals, ref_normals) <= 1e-4
+    assert relative_error(depth, ref_depth) <= 1e-4
+    assert relative_error(normals, ref_normals) <= 1e-4
     if isinstance(settings.get("thickness"), BackfaceThickness):  # the layer back - depth reaches both
-        assert ref_back.abs().sum() > 0 and _relative(back, ref_back) <= 1e-4
+        assert ref_back.abs().sum() > 0 and relative_error(back, ref_back) <= 1e-4
     else:
         assert back is None and ref_back is None
     for name, want in ref_scalars.items():
@@ -100,7 +95,7 @@ def test_a_thickness_map_and_the_linear_models_slope_get_their_gradients(built, 
     ref, got = results
     for g, r in zip(got, ref):
         assert r.abs().sum() > 0
-        assert _relative(g, r) <= 1e-4
+        assert relative_error(g, r) <= 1e-4
 
 
 def test_position_buffer_gradient_equals_the_tensor_walk(built):
@@ -114,7 +109,7 @@ def test_position_buffer_gradient_equals_the_tensor_walk(built):
 
     grads = position_gradients(FRAMES["rough"](), loss)
     assert grads[0].abs().sum() > 0
-    assert _relative(grads[1], grads[0]) <= 1e-4
+    assert relative_error(grads[1], grads[0]) <= 1e-4
 
 
 def test_gradients_match_central_differences(built):
@@ -176,12 +171,12 @@ def test_intrinsics_gradients_equal_the_float64_tensor_walk(built, setting, lane
     sectors along the view without clipping, bilinear, clamped border)."""
     if lanes == "scalar":
         import torch_ao.kernels.soft_exact as soft_exact
-        monkeypatch.setattr(soft_exact, "scalar_lanes", lambda lanes: True)
+        use_scalar_lanes(monkeypatch, soft_exact)
     ref_depth, ref_intrinsics, ref_radius = _intrinsics_grads(torch.float64, "torch", SETTINGS[setting])
     depth, intrinsics, radius = _intrinsics_grads(torch.float32, "kernel", SETTINGS[setting])
     assert ref_intrinsics.abs().max() > 1e-3
-    assert _relative(intrinsics, ref_intrinsics) <= 1e-4
-    assert _relative(depth, ref_depth) <= 1e-4
+    assert relative_error(intrinsics, ref_intrinsics) <= 1e-4
+    assert relative_error(depth, ref_depth) <= 1e-4
     assert abs(float(radius - ref_radius)) <= 1e-4 * abs(float(ref_radius))
 
 
@@ -214,4 +209,4 @@ def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
     (vis1, grads1, _), (vis2, grads2, _) = on_threads(lambda: values_and_grads(gb, torch.float32, "kernel", SETTINGS[1]))
     assert torch.equal(vis1, vis2)
     for a, b in zip(grads1, grads2):
-        assert _relative(b, a) <= 1e-6
+        assert relative_error(b, a) <= 1e-6

@@ -14,6 +14,7 @@ On these frames and settings no mask flips between float32 and float64 (hard val
 import pytest
 import torch
 
+from kernel_agreement import relative_error
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from torch_ao.camera import PinholeCamera
 from torch_ao.gbuffer import GBuffer
@@ -28,10 +29,6 @@ SETTINGS = [
     dict(slices=4, steps=5, radius=0.8, thickness=0.3, rounding="round", glsl_numerics="ieee"),
     dict(slices=2, steps=5, jitter=False, rounding="floor", thickness=0.0, glsl_numerics="mesa"),
 ]
-
-
-def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a - b).norm() / b.norm().clamp_min(1e-30))
 
 
 def leaves(dtype: torch.dtype, intrinsics: bool = False):
@@ -76,7 +73,7 @@ def test_light_and_gradients_agree_with_the_tensor_walk(built, setting, lanes):
     assert (out - ref).abs().max() <= 1e-5
     for name, g, r in zip(("depth", "normals", "light", "intrinsics"), grads, ref_grads):
         assert r.abs().max() > 0, name  # (every leaf has a gradient)
-        assert _relative(g, r) <= 1e-4, (name, _relative(g, r))
+        assert relative_error(g, r) <= 1e-4, (name, relative_error(g, r))
 
 
 @pytest.mark.parametrize("name", ["depth", "normals", "light"])

@@ -14,7 +14,8 @@ float64 tensor walks 2-7 % apart, the left and right central differences of the 
 import pytest
 import torch
 
-from kernel_agreement import position_gradients
+from kernel_agreement import (assert_directional_derivatives, assert_hard_gradients_agree, position_gradients,
+                              relative_error, use_scalar_lanes)
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from torch_ao.camera import PinholeCamera
 from torch_ao.gbuffer import GBuffer
@@ -32,11 +33,6 @@ SETTINGS = [
     # flips, along view directions as well; a flipped sector moves the pixel's values by up to 0.03)
     dict(weighting="cosine", bent_normals=True, azimuth="screen", fetch="edge_aware", seed=2),
 ]
-
-
-def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
-    finite = torch.isfinite(b)
-    return float((a - b)[finite].norm() / b[finite].norm().clamp_min(1e-30))
 
 
 def outputs_and_grads(gb0: GBuffer, dtype: torch.dtype, backend: str, setting: dict, lanes: str = "simd"):
@@ -61,15 +57,12 @@ def outputs_and_grads(gb0: GBuffer, dtype: torch.dtype, backend: str, setting: d
 def test_gradients_equal_the_float64_tensor_walk(built, setting, lanes, monkeypatch):
     if lanes == "scalar":  # the CUDA thread's walk (what tao_hard_backward compiles), on the CPU
         import torch_ao.kernels.bitmask as bitmask
-        monkeypatch.setattr(bitmask, "scalar_lanes", lambda lanes: True)
+        use_scalar_lanes(monkeypatch, bitmask)
     gb = FRAMES["rough"]()
     ref, (ref_depth, ref_normals) = outputs_and_grads(gb, torch.float64, "torch", SETTINGS[setting])
     out, (depth, normals) = outputs_and_grads(gb, torch.float32, "kernel", SETTINGS[setting])
     assert (out - ref).abs().max() <= 1e-5
-    assert ref_normals.abs().sum() > 0 and _relative(normals, ref_normals) <= 1e-4
-    scale = float(ref_normals.norm())  # the depth's gradient is zero up to rounding, in both
-    assert float(ref_depth[torch.isfinite(ref_depth)].norm()) <= 1e-9 * scale
-    assert float(depth[torch.isfinite(depth)].norm()) <= 1e-5 * scale
+    assert_hard_gradients_agree(depth, normals, ref_depth, ref_normals)
 
 
 def test_position_buffer_gradient_equals_the_tensor_walk(built):
@@ -82,7 +75,7 @@ def test_position_buffer_gradient_equals_the_tensor_walk(built):
 
     grads = position_gradients(FRAMES["rough"](), loss)
     assert grads[0].abs().sum() > 0
-    assert _relative(grads[1], grads[0]) <= 1e-4
+    assert relative_error(grads[1], grads[0]) <= 1e-4
 
 
 def test_gradients_match_central_differences(built):
@@ -100,17 +93,10 @@ def test_gradients_match_central_differences(built):
     normals = normals0.clone().requires_grad_()
     out = BitmaskAO(backend="kernel", **settings)(GBuffer(depth=gb0.depth, normals=normals, camera=gb0.camera))
     loss = out.visibility.sum() + (out.bent_normal * torch.linspace(-1, 1, 3).view(1, 3, 1, 1)).sum()
-    (grad,) = torch.autograd.grad(loss, [normals])
+    grads = torch.autograd.grad(loss, [normals])
     g = torch.Generator().manual_seed(2)
-    eps = 1e-7
-    for _ in range(4):
-        u = torch.randn(normals0.shape, generator=g, dtype=torch.float64)
-        with torch.no_grad():
-            n64 = normals0.double()
-            numerical = float(tensor_walk(n64 + eps * u) - tensor_walk(n64 - eps * u)) / (2 * eps)
-        terms = (grad.double() * u)[torch.isfinite(grad)]
-        assert abs(numerical) > 1e-2
-        assert abs(float(terms.sum()) - numerical) <= 1e-4 * float(terms.abs().sum()), (float(terms.sum()), numerical)
+    assert_directional_derivatives(grads, [normals0.double()], tensor_walk,
+                                   lambda: [torch.randn(normals0.shape, generator=g, dtype=torch.float64)])
 
 
 INDIRECT = [
@@ -148,14 +134,14 @@ def test_indirect_light_gradients_equal_the_float64_tensor_walk(built, setting, 
     """Measured: at most 2.7e-6 relative."""
     if lanes == "scalar":
         import torch_ao.kernels.bitmask as bitmask
-        monkeypatch.setattr(bitmask, "scalar_lanes", lambda lanes: True)
+        use_scalar_lanes(monkeypatch, bitmask)
     gb = FRAMES["rough"]()
     ref, ref_grads = indirect_and_grads(gb, torch.float64, "torch", INDIRECT[setting])
     out, grads = indirect_and_grads(gb, torch.float32, "kernel", INDIRECT[setting])
     assert ref[:, 1:].abs().max() > 0.01 and (out - ref).abs().max() <= 1e-5
     for name, g, r in zip(("depth", "normals", "light", "radius"), grads, ref_grads):
         assert r.abs().sum() > 0, name
-        assert _relative(g, r) <= 1e-4, (name, _relative(g, r))
+        assert relative_error(g, r) <= 1e-4, (name, relative_error(g, r))
 
 
 @pytest.mark.parametrize("lanes", ["simd", "scalar"])
@@ -166,13 +152,13 @@ def test_indirect_light_intrinsics_gradients_equal_the_float64_tensor_walk(built
     PlacementAdjoint, unprojection_camera, Sample::gather_slope), within 1e-4 relative of the float64 tensor walk."""
     if lanes == "scalar":
         import torch_ao.kernels.bitmask as bitmask
-        monkeypatch.setattr(bitmask, "scalar_lanes", lambda lanes: True)
+        use_scalar_lanes(monkeypatch, bitmask)
     gb = FRAMES["rough"]()
     _, ref_grads = indirect_and_grads(gb, torch.float64, "torch", INDIRECT[setting], intrinsics=True)
     _, grads = indirect_and_grads(gb, torch.float32, "kernel", INDIRECT[setting], intrinsics=True)
     assert ref_grads[-1].abs().max() > 1e-3
     for name, g, r in zip(("depth", "normals", "light", "radius", "intrinsics"), grads, ref_grads):
-        assert _relative(g, r) <= 1e-4, (name, _relative(g, r))
+        assert relative_error(g, r) <= 1e-4, (name, relative_error(g, r))
 
 
 def test_indirect_light_gradients_match_central_differences(built):
@@ -196,16 +182,12 @@ def test_indirect_light_gradients_match_central_differences(built):
     grads = torch.autograd.grad(out.indirect.sum(), leaves)
     surface = torch.isfinite(gb0.depth) & (gb0.depth > 0)
     g = torch.Generator().manual_seed(3)
-    eps = 1e-7
-    for _ in range(4):
-        directions = [torch.where(surface, torch.randn(x.shape, generator=g, dtype=torch.float64), 0.0) for x in base]
-        directions[0] = torch.zeros_like(directions[0])
-        with torch.no_grad():
-            numerical = float(tensor_walk(*(b + eps * u for b, u in zip(base, directions)))
-                              - tensor_walk(*(b - eps * u for b, u in zip(base, directions)))) / (2 * eps)
-        terms = torch.cat([(gr.double() * u)[torch.isfinite(gr)].flatten() for gr, u in zip(grads, directions)])
-        assert abs(numerical) > 1e-2
-        assert abs(float(terms.sum()) - numerical) <= 1e-4 * float(terms.abs().sum()), (float(terms.sum()), numerical)
+
+    def directions():  # (normals and light; the depth stays)
+        us = [torch.where(surface, torch.randn(x.shape, generator=g, dtype=torch.float64), 0.0) for x in base]
+        return [torch.zeros_like(us[0])] + us[1:]
+
+    assert_directional_derivatives(grads, base, tensor_walk, directions)
 
 
 @pytest.mark.parametrize("setting", [0, 1])
@@ -229,7 +211,7 @@ def test_intrinsics_gradients_equal_the_float64_tensor_walk(built, setting):
 
     reference = grads(torch.float64, "torch")
     assert reference.abs().max() > 1e-3
-    assert _relative(grads(torch.float32, "kernel"), reference) <= 1e-4
+    assert relative_error(grads(torch.float32, "kernel"), reference) <= 1e-4
 
 
 # ------------------------------------------------------------------------------- what it covers

@@ -5,7 +5,7 @@ derivatives against central differences (gradcheck's fast mode); what it covers.
 import pytest
 import torch
 
-from kernel_agreement import position_gradients
+from kernel_agreement import position_gradients, relative_error
 from kernel_calls import count_kernel_calls, on_threads
 from test_kernels import FRAMES, built, pytestmark  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft import SETTINGS, _loss_weights
@@ -40,11 +40,6 @@ def _values_and_grads(gb0: GBuffer, dtype: torch.dtype, lanes: str | None, setti
     return vis.detach().double(), [None if g is None else g.double() for g in grads]
 
 
-def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
-    finite = torch.isfinite(b)
-    return float((a - b)[finite].norm() / b[finite].norm().clamp_min(1e-30))
-
-
 @pytest.mark.parametrize("lanes", ["simd", "scalar"])
 @pytest.mark.parametrize("setting", [0, 1, 2, 4, 5, 6, 7, 10])
 def test_gbuffer_gradients_equal_the_float64_tensor_walk(built, lanes, setting):
@@ -60,8 +55,8 @@ def test_gbuffer_gradients_equal_the_float64_tensor_walk(built, lanes, setting):
     out, (depth, normals, radius, thickness) = _values_and_grads(gb, torch.float32, lanes, settings)
     assert reference.min() < 1 and ref_depth.abs().sum() > 0 and ref_normals.abs().sum() > 0
     assert (out - reference).abs().max() <= 1e-5
-    assert _relative(depth, ref_depth) <= 1e-4
-    assert _relative(normals, ref_normals) <= 1e-4
+    assert relative_error(depth, ref_depth) <= 1e-4
+    assert relative_error(normals, ref_normals) <= 1e-4
     assert abs(float(thickness - ref_thickness)) <= 1e-4 * abs(float(ref_thickness))
     if ref_radius is None:  # a nearest fetch does not move with the radius: Euler's identity gives ~0
         assert settings.get("fetch") == "nearest"
@@ -79,7 +74,7 @@ def test_gbuffer_gradients_equal_the_float32_tensor_walk(built, setting):
     out, got = _values_and_grads(gb, torch.float32, "simd", settings)
     assert (out - reference).abs().max() <= 1e-5
     for g, r in zip(got[:2], ref[:2]):
-        assert _relative(g, r) <= 1e-4
+        assert relative_error(g, r) <= 1e-4
     for g, r in zip(got[2:], ref[2:]):
         assert abs(float(g - r)) <= 1e-4 * abs(float(r))
 
@@ -96,7 +91,7 @@ def test_position_buffer_gradient_equals_the_tensor_walk(built):
 
     grads = position_gradients(FRAMES["rough"](), loss)
     assert grads[0].abs().sum() > 0
-    assert _relative(grads[1], grads[0]) <= 1e-4
+    assert relative_error(grads[1], grads[0]) <= 1e-4
 
 
 @pytest.mark.parametrize("mode", ["soft", "straight_through"])
@@ -162,8 +157,8 @@ def test_intrinsics_gradients_equal_the_float64_tensor_walk(built, lanes, settin
     ref_depth, ref_intrinsics, ref_radius = _intrinsics_grads(gb, torch.float64, None, SETTINGS[setting])
     depth, intrinsics, radius = _intrinsics_grads(gb, torch.float32, lanes, SETTINGS[setting])
     assert ref_intrinsics.abs().max() > 1e-3  # (the comparison means something)
-    assert _relative(intrinsics, ref_intrinsics) <= 1e-4
-    assert _relative(depth, ref_depth) <= 1e-4
+    assert relative_error(intrinsics, ref_intrinsics) <= 1e-4
+    assert relative_error(depth, ref_depth) <= 1e-4
     assert abs(float(radius - ref_radius)) <= 1e-4 * abs(float(ref_radius)) + 1e-4 * float(ref_depth.abs().sum())
 
 
@@ -198,4 +193,4 @@ def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
     (vis1, grads1), (vis2, grads2) = on_threads(lambda: _values_and_grads(gb, torch.float32, "simd", SETTINGS[0]))
     assert torch.equal(vis1, vis2)
     for a, b in zip(grads1, grads2):
-        assert _relative(b, a) <= 1e-6
+        assert relative_error(b, a) <= 1e-6

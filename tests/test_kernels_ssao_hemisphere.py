@@ -22,7 +22,7 @@ from torch_ao.kernels.ssao import ssao_forward
 from torch_ao.kernels.walk_grad import MAX_CUDA_STEPS
 from torch_ao.methods.ssao import SSAO
 
-from kernel_agreement import assert_values_agree
+from kernel_agreement import assert_values_agree, central_differences, relative_error
 from kernel_calls import count_kernel_calls
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401
 
@@ -97,11 +97,6 @@ def _gradients(gb0: GBuffer, options: dict, backend: str, dtype: torch.dtype, la
     return out.detach().double(), {name: g.double() for name, g in grads.items()}
 
 
-def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
-    finite = torch.isfinite(b)
-    return float((a - b)[finite].norm() / b[finite].norm().clamp_min(1e-30))
-
-
 @pytest.mark.parametrize("lanes", ["simd", "scalar"])
 @pytest.mark.parametrize("case", sorted(GRADIENT_CASES))
 def test_kernel_gradients_equal_the_tensor_path(built, case, lanes):
@@ -121,7 +116,7 @@ def test_kernel_gradients_equal_the_tensor_path(built, case, lanes):
         {"bias"} if options.get("softness") else set())
     for name in reference:
         assert reference[name].abs().max() > 1e-3, name  # every gradient is there: the comparison means something
-        assert _relative(grads[name], reference[name]) < (2e-4 if name == "radius" else 1e-4), name
+        assert relative_error(grads[name], reference[name]) < (2e-4 if name == "radius" else 1e-4), name
 
 
 @pytest.mark.slow
@@ -141,13 +136,8 @@ def test_kernel_gradient_matches_finite_differences(built, case):
 
     depth = gb.depth.detach().clone().requires_grad_(True)
     analytic = torch.autograd.grad(loss(depth, "kernel"), depth)[0].double().flatten()
-    base = gb.depth.detach().double().flatten()
-    numeric = torch.zeros_like(analytic)
-    checked = torch.nonzero(torch.isfinite(base)).flatten()[::5]
-    for i in checked.tolist():
-        step = torch.zeros_like(base)
-        step[i] = 1e-6
-        numeric[i] = (loss((base + step).view_as(gb.depth), "torch") - loss((base - step).view_as(gb.depth), "torch")) / 2e-6
+    checked = torch.nonzero(torch.isfinite(gb.depth.flatten())).flatten()[::5]
+    numeric = central_differences(lambda depth: loss(depth, "torch"), gb.depth, checked.tolist())
     assert numeric.abs().max() > 0.1
     torch.testing.assert_close(analytic[checked], numeric[checked], rtol=1e-3, atol=1e-4)
 

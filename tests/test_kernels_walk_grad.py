@@ -20,6 +20,7 @@ from torch_ao.methods.hbao import HBAO
 from torch_ao.methods.pssao import PSSAO
 from torch_ao.methods.ue4_ssao import UE4SSAO
 
+from kernel_agreement import central_differences, relative_error
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401
 
 #: (module, options, frozen parameters): every accumulator of horizon.h and ssao.h, every fetch and border, both noises
@@ -145,15 +146,6 @@ def _gradients(gb0: GBuffer, case: str, backend: str, dtype: torch.dtype, given_
     return out.visibility.detach().double(), {name: g.double() for name, g in grads.items()}
 
 
-def _relative(a: torch.Tensor, b: torch.Tensor, trim: float = 0.0) -> float:
-    """|a - b| / |b| over b's finite entries, without the fraction ``trim`` of them that differ most."""
-    finite = torch.isfinite(b)
-    diff = (a - b)[finite].abs().flatten()
-    if trim:
-        diff = diff.sort().values[:len(diff) - int(trim * len(diff))]
-    return float(diff.norm() / b[finite].norm().clamp_min(1e-30))
-
-
 def _patch_lanes(monkeypatch, make, lanes: str) -> None:
     """The kernel sums of module ``make`` run on ``lanes``."""
     import importlib
@@ -203,7 +195,7 @@ def test_kernel_gradients_equal_the_tensor_walk(built, monkeypatch, lanes, case,
         # (UE4 SSAO's radius: Euler's identity sums the G-buffer's and three lengths' terms, which cancel to it,
         # so it carries their float32 rounding: up to 1.3e-3 on the scalar lanes, 1.9e-4 on the float32 tensor path)
         tolerance = (3e-3 if name == "radius" else 1e-3) if amplified else 2e-4
-        assert _relative(grads[name], reference[name], trim) < tolerance, name
+        assert relative_error(grads[name], reference[name], trim) < tolerance, name
 
 
 def _requiring(gb: GBuffer) -> GBuffer:
@@ -232,13 +224,8 @@ def test_kernel_gradient_matches_finite_differences(built, case):
 
     depth = gb.depth.detach().clone().requires_grad_(True)
     analytic = torch.autograd.grad(loss(depth, "kernel"), depth)[0].double().flatten()
-    base = gb.depth.detach().double().flatten()
-    numeric = torch.zeros_like(analytic)
-    checked = torch.nonzero(torch.isfinite(base)).flatten()[::6]  # every 6th pixel of the frame (41 of 246)
-    for i in checked.tolist():
-        step = torch.zeros_like(base)
-        step[i] = 1e-6
-        numeric[i] = (loss((base + step).view_as(gb.depth), "torch") - loss((base - step).view_as(gb.depth), "torch")) / 2e-6
+    checked = torch.nonzero(torch.isfinite(gb.depth.flatten())).flatten()[::6]  # every 6th pixel of the frame (41 of 246)
+    numeric = central_differences(lambda depth: loss(depth, "torch"), gb.depth, checked.tolist())
     assert numeric.abs().max() > 0.1
     torch.testing.assert_close(analytic[checked], numeric[checked], rtol=1e-3, atol=1e-4)
 
@@ -276,8 +263,8 @@ def test_kernel_intrinsics_gradients_equal_the_tensor_walk(built, monkeypatch, l
     _, grads = _gradients(gb, case, "kernel", torch.float32, False, intrinsics=True)
     assert reference["intrinsics"].abs().max() > 1e-3  # (the comparison means something)
     trim = 0.01 if CASES[case][1].get("variant") == "hdrp" else 0.0  # (fast_acos' slope: as the test above)
-    assert _relative(grads["depth"], reference["depth"], trim) < (1e-3 if make is UE4SSAO else 2e-4)
-    assert _relative(grads["intrinsics"], reference["intrinsics"]) < (1e-3 if make is UE4SSAO else 2e-4)
+    assert relative_error(grads["depth"], reference["depth"], trim) < (1e-3 if make is UE4SSAO else 2e-4)
+    assert relative_error(grads["intrinsics"], reference["intrinsics"]) < (1e-3 if make is UE4SSAO else 2e-4)
 
 
 def test_ue4_radius_gradient_carries_its_epsilon():
