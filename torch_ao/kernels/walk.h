@@ -234,8 +234,8 @@ template <class F> struct Slice {
   F dir_u, dir_v;  // the slice's screen angle's cos and sin
   int64_t index;
 
+  TAO_FN explicit Slice(int64_t s) : index(s) {}  // no geometry (walked_slice: the hemisphere's kernel points)
   TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) : index(s) {
-    if (cfg.placement == Steps::hemisphere) return;  // (walk_points: no slice geometry)
     F angle;
     if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
       angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
@@ -662,6 +662,16 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
   static constexpr bool value = Acc::kKernelPoints;
 };
 
+// Slice s of the walk as Acc takes it: its geometry, or none for an accumulator of kernel points (walk_points)
+template <class Acc, class F>
+TAO_FN Slice<F> walked_slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
+  if constexpr (KernelPoints<Acc>::value) {
+    return Slice<F>(s);
+  } else {
+    return Slice<F>(cfg, img, px, s);
+  }
+}
+
 // The hemisphere placement's one slice (SSAO's kernel_occlusion): each of the steps kernel points projected and
 // fetched there, acc.step_point(state, px, S, sample)
 template <class F, class Acc>
@@ -703,7 +713,7 @@ TAO_FN void walk_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   if (any(px.live)) {
     NoVisit none;
     for (int64_t s = 0; s < cfg.slices; ++s) {  // for each slice
-      const Slice<F> sl(cfg, img, px, s);
+      const Slice<F> sl = walked_slice<Acc>(cfg, img, px, s);
       typename Acc::template State<F> state = begin_slice_of(acc, px, sl, sums, 0);
       if constexpr (PairedSides<Acc>::value) {
         walk_pairs(cfg, img, acc, px, sl, state);

@@ -363,7 +363,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   for (int k = 0; k < 4; ++k) camera[k] = B(0.0f);
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
-    const Slice<R> sl(cfg, img, px, s);
+    const Slice<R> sl = walked_slice<Acc>(cfg, img, px, s);
     typename Acc::template State<R> state = acc.begin_slice(px, sl);
     fetches.n = 0;
     if constexpr (RecordsTakes<Acc>::value) {  // the recorded takes alone
