@@ -194,3 +194,33 @@ def test_gbuffer_gradients_on_two_threads_equal_one_thread(built):
     assert torch.equal(vis1, vis2)
     for a, b in zip(grads1, grads2):
         assert relative_error(b, a) <= 1e-6
+
+
+@pytest.mark.parametrize("mode", ["soft", "straight_through"])
+def test_a_constant_ambient_colour_runs_with_the_kernel(built, mode, monkeypatch):
+    """A constant ambient colour is the visibility times the colour (0 on background): the module's call runs the
+    soft kernel, and its ambient light and the gradients of a weighted sum of it (depth, normals, radius,
+    thickness) agree with the float64 tensor walk's."""
+    calls = count_kernel_calls(monkeypatch, "bitmask")  # (the soft kernel: the last of bitmask's)
+    colour = (0.2, 0.5, 1.0)
+    settings = dict(mode=mode, slices=3, steps=4, weighting="cosine", fetch="edge_aware", tau=0.3, ambient=colour)
+
+    def ambient_and_grads(dtype, backend):
+        gb0 = FRAMES["rough"]().to(dtype=dtype)
+        depth = gb0.depth.detach().clone().requires_grad_()
+        normals = gb0.view_normals().detach().clone().requires_grad_()
+        module = BitmaskAO(backend=backend, **settings).to(dtype)
+        out = module(GBuffer(depth=depth, normals=normals, camera=gb0.camera))
+        loss = (out.ambient * torch.linspace(-0.5, 1.5, out.ambient.numel(), dtype=dtype).view_as(out.ambient)).sum()
+        grads = torch.autograd.grad(loss, [depth, normals, module.radius, module.thickness])
+        return out, [g.double() for g in grads]
+
+    ref, ref_grads = ambient_and_grads(torch.float64, "torch")
+    out, grads = ambient_and_grads(torch.float32, "kernel")
+    assert calls == [1]
+    want = torch.where(FRAMES["rough"]().valid, out.visibility * torch.tensor(colour).view(1, 3, 1, 1), 0.0)
+    assert torch.equal(out.ambient, want)
+    assert (out.ambient.double() - ref.ambient).abs().max() <= 1e-5
+    for name, g, r in zip(("depth", "normals", "radius", "thickness"), grads, ref_grads):
+        assert r.abs().sum() > 0, name
+        assert relative_error(g, r) <= 1e-4, (name, relative_error(g, r))

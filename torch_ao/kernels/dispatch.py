@@ -51,14 +51,20 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     else:
         vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
                                               bent_normals=module.want_bent, **options)
-    ambient = None
-    if module.ambient_constant is not None:  # SectorAccumulator.finish: visibility times the colour; 0 on background
-        ambient = torch.where(gbuffer.valid, vis * module.ambient_constant.to(vis.dtype).view(1, 3, 1, 1), 0.0)
-    return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": ambient}
+    return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": _constant_ambient(module, gbuffer, vis)}
+
+
+def _constant_ambient(module, gbuffer: GBuffer, vis: torch.Tensor) -> torch.Tensor | None:
+    """A constant ambient colour's light ``(B,3,H,W)`` (SectorAccumulator.finish: the visibility times the colour;
+    0 on background), or ``None`` without one."""
+    if module.ambient_constant is None:
+        return None
+    return torch.where(gbuffer.valid, vis * module.ambient_constant.to(vis.dtype).view(1, 3, 1, 1), 0.0)
 
 
 def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
-    return {"visibility": soft_bitmask.module_forward(module, gbuffer)}
+    vis = soft_bitmask.module_forward(module, gbuffer)
+    return {"visibility": vis, "ambient": _constant_ambient(module, gbuffer, vis)}
 
 
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,

@@ -192,19 +192,20 @@ class _SoftWalk(torch.autograd.Function):
 #: mode is the straight-through forward without a graph: the hard kernel's masks with cosine weights too)
 _MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
-#: the fetches (the edge-aware one beyond what every bitmask kernel covers)
-_FETCHES = {"fetch": ("nearest", "bilinear", "edge_aware")}
+#: beyond what every bitmask kernel covers: the edge-aware fetch, and a constant ambient colour (the visibility times
+#: the colour, in torch: dispatch.py)
+_EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "ambient": (None, "a colour")}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
     in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
-    value + offset``, visibility only, a float32 CPU G-buffer) with either weighting; gradients of radius and
+    value + offset``, visibility and a constant ambient colour, a float32 CPU G-buffer) with either weighting; gradients of radius and
     the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
     reads."""
     of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)
-    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_FETCHES, layers=True)
+    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_EXTRA, layers=True)
     if reason is not None:
         return reason
     if module.mode == "hard" and of_gbuffer:
