@@ -239,3 +239,22 @@ def test_an_engine_sized_frame_walked_in_chunks(built):
         options = dict(variant="ssilvb_glsl", slices=4, steps=8, glsl_numerics="mesa")
         glsl_ref, glsl = SSILVB(backend="torch", **options)(gb), SSILVB(backend="kernel", **options)(gb)
     assert_glsl_agrees(glsl, glsl_ref, gb.valid, 4)
+
+
+@pytest.mark.parametrize("fetch, border", [("edge_aware", "drop"), ("bilinear", "clamp"), ("nearest", "drop")])
+def test_the_shaders_own_texel_fetch_whatever_fetch_and_border_say(built, fetch, border):
+    """The shader reads each sample's nearest texel, clamped to the image, whatever the module's ``fetch`` and
+    ``border`` (GLSLPattern's own): the kernel covers every such call and gives what it gives with the defaults,
+    which equals the tensor path's with these options."""
+    gb = lit(FRAMES["rough"]())
+    with torch.no_grad():
+        module = SSILVB(variant="ssilvb_glsl", fetch=fetch, border=border, backend="kernel")
+        assert kernel_covers(module, gb) is None
+        out = module(gb)
+        default = SSILVB(variant="ssilvb_glsl", backend="kernel")(gb)
+        ref = SSILVB(variant="ssilvb_glsl", fetch=fetch, border=border, backend="torch")(gb)
+    assert ref.visibility.min() < 0.9 and ref.indirect.max() > 0.01
+    for name in ("visibility", "indirect"):
+        assert_identical(getattr(out, name), getattr(default, name), name)
+    assert_values_agree(torch.cat([out.visibility, out.indirect], 1), torch.cat([ref.visibility, ref.indirect], 1),
+                        gb.valid, atol=1e-5, bound=1e-5)

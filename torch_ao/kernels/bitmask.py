@@ -289,8 +289,9 @@ _COVERED = {
     "indirect": (False, True), "bent_normals": (False, True), "ambient": (None, "a colour"),
     "ambient_directions": None, "sector_epsilon": None, "glsl_numerics": None,
 }
-#: what the ``"ssilvb_glsl"`` variant's walk ignores (its shader places its own samples)
-_GLSL = {"azimuth": None}
+#: what the ``"ssilvb_glsl"`` variant's walk ignores (its shader places its own samples and reads their nearest texel,
+#: clamped to the image)
+_GLSL = {"azimuth": None, "fetch": None, "border": None}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
