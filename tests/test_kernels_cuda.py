@@ -284,9 +284,10 @@ def cases(gb):
            [0.4, 1.0, 1.0, 0.01], 4, None)
     glsl = dict(slices=4 + 1, steps=5 + 1, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp",
                 placement="glsl", full_circle=True, azimuth="screen")  # (the shader's sliceCount 4, sampleCount 5)
-    yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True], [0.3], 4, light
-    yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True], [0.3], 4, light
-    yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False], [0.0], 1, None
+    # (rounding, indirect, exact numerics, the thickness' read: 3 the sample's depth); the thickness' offset, scale
+    yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0], 4, light
+    yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1], 4, light
+    yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0], 1, None
     # soft: ints rounding, cosine, straight-through, the thickness' read; floats offset, epsilon, tau, scale
     yield "soft", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 1, None
     yield "soft_gradients", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 4, None
@@ -389,11 +390,12 @@ def _backward_cases():
     yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0], 4
     # the hdrp variant's (its slice angle in the backward's tangents), screen directions as its module's default
     yield "hard", walk_settings(**dict(common, fetch="edge_aware"), azimuth="screen"), [0, True, True, True, 1, 1], [0.1, 0.0, 1.0], 7
-    # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics); thickness: its indirect light's backward
+    # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics, the layer's read); thickness, the layer's scale:
+    # its indirect light's backward
     glsl = dict(slices=4, steps=5, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp", placement="glsl",
                 full_circle=True, azimuth="screen")
-    yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False], [0.3], 4
-    yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True], [0.0], 4
+    yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0], [0.3, 1.0], 4
+    yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 1], [0.0, 1.2], 4
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -407,7 +409,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     normals = gb.view_normals()
     backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
     for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
-        reads = {"exact": 3, "soft": 3, "hard": 4}
+        reads = {"exact": 3, "soft": 3, "hard": 4, "hard_glsl": 3}
         layer = backface if accumulator in reads and acc_ints[reads[accumulator]] in (1, 2) else None
         light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
         light = light if (accumulator == "hard" and acc_ints[2]) or (accumulator == "hard_glsl" and acc_ints[1]) else None

@@ -21,6 +21,7 @@ from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import dispatch
 from torch_ao.kernels.bitmask import kernel_covers
 from torch_ao.methods.bitmask import SSILVB
+from torch_ao.thickness import BackfaceThickness, LinearThickness
 
 SETTINGS = [
     dict(slices=3, steps=4, glsl_numerics="ieee"),
@@ -28,6 +29,9 @@ SETTINGS = [
     # its mask flips between float32 and float64 and the light there moves by 0.07)
     dict(slices=4, steps=5, radius=0.8, thickness=0.3, rounding="round", glsl_numerics="ieee"),
     dict(slices=2, steps=5, jitter=False, rounding="floor", thickness=0.0, glsl_numerics="mesa"),
+    # hitThickness read at each sample's texel: the back-face layer, the linear model in depth
+    dict(slices=3, steps=4, thickness=BackfaceThickness(0.8, 0.05), glsl_numerics="ieee"),
+    dict(slices=3, steps=4, thickness=LinearThickness(0.05, 0.1), glsl_numerics="mesa"),
 ]
 
 
@@ -45,14 +49,15 @@ def leaves(dtype: torch.dtype, intrinsics: bool = False):
 
 def light_and_grads(dtype, backend, setting, lanes="simd", intrinsics=False):
     (depth, normals, light, K), cam = leaves(dtype, intrinsics)
-    gb = GBuffer(depth=depth, normals=normals, light=light, camera=PinholeCamera(K, cam.height, cam.width))
+    gb = GBuffer(depth=depth, normals=normals, light=light, camera=PinholeCamera(K, cam.height, cam.width),
+                 backface_depth=1.2 * depth.detach())
     module = SSILVB(mode="hard", backend=backend, variant="ssilvb_glsl", **setting).to(dtype)
     if backend == "kernel":
         assert kernel_covers(module, gb) is None
     if lanes == "scalar":  # the CUDA thread's arithmetic, on the CPU
-        from torch_ao.kernels.bitmask import ssilvb_glsl_hard
+        from torch_ao.kernels.bitmask import module_thickness, ssilvb_glsl_hard, thickness_options
         out = ssilvb_glsl_hard(gb, gb.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                               radius=module.radius, thickness=float(module.thickness.detach()), jitter=module.jitter,
+                               radius=module.radius, **thickness_options(module_thickness(module, gb)), jitter=module.jitter,
                                rounding=module.rounding, numerics=module.glsl_numerics, indirect=True, lanes="scalar")
     else:
         out = module(gb)

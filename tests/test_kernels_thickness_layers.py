@@ -13,7 +13,8 @@ from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fi
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import bitmask_soft, exact_covers, kernel_covers, kernel_forward
 import torch_ao.kernels.soft_bitmask as soft_module
-from torch_ao.kernels.bitmask import bitmask_outputs, exact_hard, module_thickness, thickness_options
+from torch_ao.kernels.bitmask import (bitmask_outputs, exact_hard, module_thickness, ssilvb_glsl_hard,
+                                      thickness_options)
 from torch_ao.kernels.soft_exact import exact_soft_covers
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import (BackfaceThickness, LinearThickness, MapThickness, NetThickness, ObjectThickness,
@@ -102,6 +103,29 @@ def test_exact_kernel_reads_the_layer_as_the_tensor_walk(built, model, frame, la
     assert_values_agree(out, reference, gb.valid, bound=0.05)
 
 
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("frame", ["example", "rough"])
+@pytest.mark.parametrize("model", sorted(MODELS))
+def test_the_glsl_shaders_kernel_reads_the_layer_as_the_tensor_walk(built, model, frame, lanes):
+    """The ``"ssilvb_glsl"`` variant's hitThickness read at each sample's texel (the shader fetches the nearest one),
+    AO and indirect light, by tests/test_kernels_glsl.py's agreement (its masks are never reset across slices)."""
+    from test_kernels_glsl import assert_glsl_agrees, lit
+
+    gb0 = _frame(frame)
+    gb = GBuffer(depth=gb0.depth, camera=gb0.camera, normals=gb0.normals, object_id=gb0.object_id, light=lit(gb0).light)
+    module = _module(model, gb, variant="ssilvb_glsl", indirect=True, slices=3, steps=4)
+    with torch.no_grad():
+        assert kernel_covers(module, gb) is None
+        reference = module(gb)
+        out = ssilvb_glsl_hard(gb, gb.view_normals(), slices=3, steps=4, radius=module.radius, indirect=True,
+                               **thickness_options(module_thickness(module, gb)), lanes=lanes)
+        # the layer matters on this frame: its mean as one scalar gives other masks
+        mean = float(_value_map(module, gb)[gb.valid].mean())
+        scalar = BitmaskAO(variant="ssilvb_glsl", slices=3, steps=4, thickness=mean, trainable=False)(gb).visibility
+    assert (scalar - reference.visibility).abs().max() > 0.02
+    assert_glsl_agrees(out, reference, gb.valid, slices=3)
+
+
 def test_exact_kernel_differentiates_the_nets_offset(built):
     """The net's map is a layer; its additive ``thickness`` is a scalar parameter the exact union's kernel
     differentiates (the net's weights frozen), as the tensor path's autograd does."""
@@ -154,7 +178,7 @@ def test_coverage_reasons(built):
     with torch.no_grad():
         assert "growth" in kernel_covers(BitmaskAO(thickness=0.3, thickness_growth=0.5, trainable=False), gb)
         glsl = BitmaskAO(variant="ssilvb_glsl", thickness=MapThickness(_map(gb)), trainable=False)
-        assert "reads one scalar thickness" in kernel_covers(glsl, gb)
+        assert kernel_covers(glsl, gb) is None  # (the shader's hitThickness read at each sample's texel)
     # a gradient of the map itself: the exact union's backward scatters it to the layer's taps
     trainable = BitmaskAO(variant="exact", mode="soft", thickness=MapThickness(_map(gb)))
     assert exact_soft_covers(trainable, gb) is None

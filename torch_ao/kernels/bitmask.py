@@ -242,14 +242,16 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 
 def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
                      thickness: float, jitter: bool = True, rounding: str = "ceil", numerics: str = "ieee",
-                     indirect: bool = False, lanes: str = "simd") -> KernelOutputs:
+                     indirect: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
+                     thickness_read: str | None = None, lanes: str = "simd") -> KernelOutputs:
     """The ``"ssilvb_glsl"`` variant in hard mode: visibility ``(B,1,H,W)`` (background 1; may exceed 1,
     as the shader's) and, with ``indirect``, its light ``(B,3,H,W)`` (background 0).
 
     Args:
         gbuffer, normals: as :func:`bitmask_outputs` (CPU or CUDA); slices, steps: the shader's ``sliceCount``
             (>= 2) and ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world
-            units), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+            units; with ``layer``, ``layer_scale`` and ``thickness_read`` a model read at each sample's texel, as
+            :func:`bitmask_outputs`'), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
     With ``indirect`` and autograd recording through the G-buffer, the normals or the light, the light has a
@@ -261,17 +263,20 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
                              jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl",
                              full_circle=True, azimuth="screen",
                              noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
-    acc_ints, channels = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee"], 4 if indirect else 1
+    acc_ints = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee", thickness_read_index(thickness_read, layer)]
+    acc_floats, channels = [thickness, float(layer_scale)], 4 if indirect else 1
     light = light_input(gbuffer, indirect) if indirect else None
+    layer = None if layer is None else layer.detach()  # (hard masks: the thickness has no gradient)
     if needs_hard_backward(gbuffer, normals, weighting="uniform", indirect=indirect, bent_normals=False, light=light):
         if gbuffer.depth.device.type == "cpu":
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
-        inputs, (light, cells, layer), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, [thickness],
-                                                                    light)
+        inputs, (light, cells, layer), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats,
+                                                                    light, layer)
         out = _HardWalk.apply(*inputs, light, cells, layer, ints, floats, channels, int(slices) + 1,
                               scalar_lanes(lanes), None, "_glsl")
     else:
-        out = run_walk("glsl", gbuffer, normals, settings, acc_ints, [thickness], channels, light=light, lanes=lanes)
+        out = run_walk("glsl", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light, backface=layer,
+                       lanes=lanes)
     return KernelOutputs(out[:, :1], out[:, 1:] if indirect else None)
 
 
@@ -308,7 +313,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "hdrp", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
-                               extra=_HARD.get(module.variant), layers=module.variant in HARD_VARIANTS)
+                               extra=_HARD.get(module.variant), layers=True)
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),

@@ -34,7 +34,7 @@ struct GlslVectorOps {
 
 struct GlslAccumulator {
   int64_t slice_count;  // the shader's sliceCount: the sums' divisor (the walk walks sliceCount + 1)
-  float thickness;      // hitThickness, world units
+  ThicknessModel thickness;  // hitThickness at a sample, world units (the shader's one number, or a layer)
   int64_t rounding;
   bool indirect;
   GlslVectorOps gl;
@@ -46,8 +46,7 @@ struct GlslAccumulator {
   template <class F> struct State {
     typename LaneTraits<F>::I occ;
     F light[3], camera[3], normal[3];
-    F n;            // the projected normal's signed angle
-    F centre_back;  // the back horizon of a sample on the pixel's own texel
+    F n;  // the projected normal's signed angle
   };
   TAO_FN int channels() const { return indirect ? 4 : 1; }
 
@@ -81,30 +80,35 @@ struct GlslAccumulator {
     for (int c = 0; c < 3; ++c) proj[c] = st.normal[c] - axis[c] * na;
     const F cos_n = clamp(gl.dot(proj, camera) / gl.length(proj), F(0.0f), F(1.0f));
     st.n = sign(gl.dot(ortho, proj)) * (gl.exact ? F(kHalfPi) - mesa_asin(cos_n) : acos(cos_n));
-    if (gl.exact) {  // dot(normalize(-camera t), camera): -1, or by llvmpipe's rounding just below (NaN: 0)
-      F back[3], dir[3];
-      for (int c = 0; c < 3; ++c) back[c] = neg(camera[c] * F(thickness));
-      gl.normalize(back, dir);
-      st.centre_back = horizon(gl.dot(dir, camera), st.n);
-    } else {
-      st.centre_back = F(thickness > 0 ? 1.0f : 0.0f);
-    }
     return st;
+  }
+
+  // The back horizon of a sample on the pixel's own texel (sampleDistance 0), of thickness t: the direction -camera,
+  // so the whole half circle where t > 0; with the driver's roundings dot(normalize(-camera t), camera) is -1 or
+  // just below (NaN: 0)
+  template <class F> TAO_FN F centre_back(const State<F>& st, const F& t) const {
+    if (!gl.exact) return select(t > F(0.0f), F(1.0f), F(0.0f));
+    F back[3], dir[3];
+    for (int c = 0; c < 3; ++c) back[c] = neg(st.camera[c] * t);
+    gl.normalize(back, dir);
+    return horizon(gl.dot(dir, st.camera), st.n);
   }
 
   template <class F>
   TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
     const F* camera = st.camera;
+    const F t = thickness.at(px, smp);
     F h[3], behind[3], back_dir[3];
     unit(smp.delta, h);
-    for (int c = 0; c < 3; ++c) behind[c] = smp.delta[c] - camera[c] * F(thickness);
+    for (int c = 0; c < 3; ++c) behind[c] = smp.delta[c] - camera[c] * t;
     gl.normalize(behind, back_dir);
     // background samples occlude nothing; a sample on the pixel's own texel (sampleDistance 0) has the
     // front horizon 0 (NaN clamped) and the back one of -camera
     const auto centre = ieq(smp.index[0], I(int32_t(px.row * smp.image->W)) + to_int(px.u));
     const F x = select(centre, F(0.0f), select(smp.valid, horizon(gl.dot(h, camera), st.n), F(1.0f)));
-    const F y = select(centre, st.centre_back, select(smp.valid, horizon(gl.dot(back_dir, camera), st.n), F(1.0f)));
+    F y = select(smp.valid, horizon(gl.dot(back_dir, camera), st.n), F(1.0f));
+    if (any(centre)) y = select(centre, centre_back(st, t), y);
     const I bits = sector_bits(x * F(float(kSectors)), (y - x) * F(float(kSectors)), rounding);
     if (indirect) {
       F raw_n[3], light[3], sent[3];

@@ -33,16 +33,15 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     """A covered hard ``BitmaskAO`` call through its variant's kernel: ``{AOOutput field: tensor}``."""
     normals = gbuffer.view_normals(module.normals_method)
     radius = module.radius  # (a tensor: indirect light's gradient reaches it)
+    thickness = thickness_options(module_thickness(module, gbuffer))
     if module.variant == "ssilvb_glsl":
-        thickness = float(module.thickness.detach())
         vis, indirect, _ = ssilvb_glsl_hard(gbuffer, normals, slices=module.slices, steps=module.steps,
-                                            radius=module.radius, thickness=thickness, jitter=module.jitter,
+                                            radius=module.radius, **thickness, jitter=module.jitter,
                                             rounding=module.rounding, numerics=module.glsl_numerics,
                                             indirect=module.want_indirect)
         return {"visibility": vis, "indirect": indirect}
     options = dict(slices=module.slices, steps=module.steps, radius=radius,
-                   **thickness_options(module_thickness(module, gbuffer)),
-                   step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
+                   **thickness, step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                    seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                    border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
                    weighting=module.weighting, variant=module.variant, azimuth=module.azimuth)

@@ -105,7 +105,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 "placement's, without full circle");
     run(unpack_exact_gradients(i, f));
   } else if (name == "glsl") {
-    packed(3, 1);
+    packed(4, 2);
+    check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,
                 "glsl: expected the GLSL step placement over sliceCount + 1 >= 3 slices and sampleCount + 1 >= 2 steps");
     TORCH_CHECK(!i[kAccInts + 1] || fr.light, "light: indirect light needs the light buffer");

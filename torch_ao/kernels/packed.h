@@ -54,12 +54,13 @@ TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
                             i[3] != 0, SectorAngles(i[5])};
 }
 
-// ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"); floats: thickness. The walk's
-// slices are sliceCount + 1
+// ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"), the thickness' read (ThicknessRead); floats:
+// the thickness' offset, its scale. The walk's slices are sliceCount + 1
 TAO_FN GlslAccumulator unpack_glsl(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
-  return GlslAccumulator{slices - 1, f[0], i[0], i[1] != 0, GlslVectorOps{i[2] != 0}};
+  return GlslAccumulator{slices - 1, ThicknessModel{f[0], f[1], ThicknessRead(i[3])}, i[0], i[1] != 0,
+                         GlslVectorOps{i[2] != 0}};
 }
 
 // ints: cosine, along_ray, clip, the thickness' read (ThicknessRead); floats: the thickness' offset, its

@@ -362,6 +362,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), std::get<4>(g), camera ? out.camera : none};
 }
 
+// The images a hard sector walk reads beyond the G-buffer: the light (indirect light), the thickness' layer
+inline void check_hard_inputs(const BackwardCall& call, bool indirect, const ThicknessModel& thickness) {
+  TORCH_CHECK(!indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
+  TORCH_CHECK(!thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+}
+
 // The hard sector walk's call (hard_record, hard_backward): "bitmask"'s packed settings (with indirect light, its
 // light image), or, with the GLSL step placement, "glsl"'s (the "ssilvb_glsl" variant's; its backward: indirect
 // light's); fn(call, acc) with the accumulator unpacked
@@ -373,16 +379,15 @@ auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normal
   const bool glsl = ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() >= kAccInts &&
                     packed_placement(ints.data_ptr<int64_t>()) == Steps::glsl;
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, glsl ? 3 : 6, glsl ? 1 : 3, glsl ? "glsl hard" : "hard",
+                          floats, glsl ? 4 : 6, glsl ? 2 : 3, glsl ? "glsl hard" : "hard",
                           std::numeric_limits<int64_t>::max(), glsl);
   if (glsl) {
     const GlslAccumulator acc = unpack_glsl(call.i, call.f);
-    TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
+    check_hard_inputs(call, acc.indirect, acc.thickness);
     return fn(call, acc);
   }
   const BitmaskAccumulator acc = unpack_bitmask(call.i, call.f);
-  TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light reads a light image (B, H, W, 3)");
-  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+  check_hard_inputs(call, acc.indirect, acc.thickness);
   return fn(call, acc);
 }
 
