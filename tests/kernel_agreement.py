@@ -113,3 +113,29 @@ def assert_hard_gradients_agree(depth: torch.Tensor, normals: torch.Tensor, ref_
     scale = float(ref_normals.norm())
     assert float(ref_depth[torch.isfinite(ref_depth)].norm()) <= 1e-9 * scale
     assert float(depth[torch.isfinite(depth)].norm()) <= 1e-5 * scale
+
+
+def upstream_weights(out: torch.Tensor) -> torch.Tensor:
+    """A fixed upstream gradient that is not uniform (every pixel and channel weighs differently)."""
+    return torch.linspace(0.5, 1.5, out.numel(), dtype=out.dtype).view_as(out)
+
+
+def assert_depth_gradient_matches_central_differences(make, gb, normals: torch.Tensor, every: int) -> None:
+    """The kernel's float32 gradient of the weighted visibility (:func:`upstream_weights`) of ``make(backend)``'s
+    module on ``gb`` with the normals given, to depth, against central differences (1e-6) of the tensor path's
+    float64 forward at every ``every``-th finite pixel."""
+    import dataclasses
+
+    from torch_ao.gbuffer import GBuffer
+
+    def loss(depth, backend):
+        camera = dataclasses.replace(gb.camera, intrinsics=gb.camera.intrinsics.to(depth.dtype))
+        out = make(backend)(GBuffer(depth=depth, normals=normals.to(depth.dtype), camera=camera)).visibility.double()
+        return (out * upstream_weights(out)).sum()
+
+    depth = gb.depth.detach().clone().requires_grad_(True)
+    analytic = torch.autograd.grad(loss(depth, "kernel"), depth)[0].double().flatten()
+    checked = torch.nonzero(torch.isfinite(gb.depth.flatten())).flatten()[::every]
+    numeric = central_differences(lambda x: loss(x, "torch"), gb.depth, checked.tolist())
+    assert numeric.abs().max() > 0.1
+    torch.testing.assert_close(analytic[checked], numeric[checked], rtol=1e-3, atol=1e-4)

@@ -1,5 +1,4 @@
 """The default bitmask variant's per-sample interval (front to back angle) and its hand-written backward."""
-import math
 
 import pytest
 import torch

@@ -41,7 +41,7 @@ def test_input_flags_without_files_or_contradicting_are_refused(argv, message, c
 
 
 # ----------------------------------------------------------------------------------- shared fixtures
-from torch_ao import GBuffer, gtao, load_gbuffer, save_npz  # noqa: E402
+from torch_ao import GBuffer, gtao, load_gbuffer  # noqa: E402
 from torch_ao.examples import example_gbuffer  # noqa: E402
 from torch_ao.io import read_npz  # noqa: E402
 

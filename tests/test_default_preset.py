@@ -5,7 +5,7 @@ import pytest
 
 from torch_ao.bench import DEFAULT, QUICK
 from torch_ao.cli import build_parser
-from torch_ao.methods import DEFAULT_PRESET, METHODS, PRESETS, get_method
+from torch_ao.methods import DEFAULT_PRESET, PRESETS, get_method
 from torch_ao.methods.common import Sampling
 
 

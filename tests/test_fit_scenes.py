@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 
 from torch_ao.cli import main
 from torch_ao.datasets import (BENCHMARK_SCENES, FIT_SCENES, HELDOUT_SCENES, SCENE_SETS, parse_scenes,
@@ -80,7 +79,7 @@ def test_leave_one_out_folds_are_fits_on_the_other_scenes(tmp_path):
     assert list(folds) == ["fence", "stairs", "mesh_concave"]
     report = (out / "report.md").read_text()
     mean = sum(f["fitted"] for f in folds.values()) / 3
-    assert f"| **mean** | " in report and f"| {mean:.2f} |" in report
+    assert "| **mean** | " in report and f"| {mean:.2f} |" in report
     for scene, f in folds.items():
         assert f"| {scene} | {f['default']:.2f} | {f['fitted']:.2f} | {f['gtao']:.2f} |" in report
     # the fold without stairs is the plain fit on fence and mesh_concave, scored on stairs as a held-out scene

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
-import math
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 import torch
 from torch import nn
 
-from torch_ao import BitmaskAO, Denoiser, GTAO
+from torch_ao import Denoiser, GTAO
 from torch_ao.cli import main
 from torch_ao.datasets import reference_view
 from torch_ao.fit import FitConfig, FitView, evaluate, fit, fittable_parameters

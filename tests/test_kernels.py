@@ -13,7 +13,7 @@ from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kerne
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import LinearThickness
 
-from kernel_agreement import SHARE, assert_masks_agree, degenerate
+from kernel_agreement import assert_masks_agree, degenerate
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="the kernels need a C++ compiler")

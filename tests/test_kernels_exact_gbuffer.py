@@ -17,7 +17,7 @@ from test_kernels_soft_exact import SETTINGS
 from torch_ao.camera import PinholeCamera
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import dispatch
-from torch_ao.kernels.soft_exact import exact_soft, exact_soft_covers
+from torch_ao.kernels.soft_exact import exact_soft_covers
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import BackfaceThickness, LinearThickness
 

@@ -21,7 +21,7 @@ from torch_ao.camera import PinholeCamera
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import bitmask, dispatch
 from torch_ao.kernels.bitmask import kernel_covers
-from torch_ao.methods.bitmask import SSILVB, BitmaskAO
+from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import BackfaceThickness
 
 SETTINGS = [

@@ -22,7 +22,8 @@ from torch_ao.kernels.ssao import ssao_forward
 from torch_ao.kernels.walk_grad import MAX_CUDA_STEPS
 from torch_ao.methods.ssao import SSAO
 
-from kernel_agreement import assert_values_agree, central_differences, relative_error
+from kernel_agreement import (assert_depth_gradient_matches_central_differences, assert_values_agree, relative_error,
+                              upstream_weights)
 from kernel_calls import count_kernel_calls
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401
 
@@ -74,10 +75,6 @@ GRADIENT_CASES = {
 GRADIENT_FRAMES = {"rough": lambda: rough_gbuffer(20, 28), "example": lambda: example_gbuffer(24, 40)}
 
 
-def _weights(out: torch.Tensor) -> torch.Tensor:
-    return torch.linspace(0.5, 1.5, out.numel(), dtype=out.dtype).view_as(out)
-
-
 def _gradients(gb0: GBuffer, options: dict, backend: str, dtype: torch.dtype, lanes: str = "simd"):
     """The visibility and d(weighted visibility) / d(depth, given normals, intrinsics, every parameter)."""
     depth = gb0.depth.detach().to(dtype).clone().requires_grad_(True)
@@ -91,7 +88,7 @@ def _gradients(gb0: GBuffer, options: dict, backend: str, dtype: torch.dtype, la
         out = ssao_forward(module, gb, lanes=lanes)["visibility"]
     else:
         out = module(gb).visibility
-    (out * _weights(out)).sum().backward()
+    (out * upstream_weights(out)).sum().backward()
     grads = {"depth": depth.grad, "normals": normals.grad, "intrinsics": camera.intrinsics.grad}
     grads |= {name: p.grad for name, p in parameters.items()}
     return out.detach().double(), {name: g.double() for name, g in grads.items()}
@@ -126,20 +123,8 @@ def test_kernel_gradient_matches_finite_differences(built, case):
     forward on a small rough frame (no ties), normals given, every 5th pixel."""
     options, _ = GRADIENT_CASES[case]
     gb = rough_gbuffer(10, 12)
-    normals = gb.view_normals().detach()
-
-    def loss(depth, backend):
-        camera = dataclasses.replace(gb.camera, intrinsics=gb.camera.intrinsics.to(depth.dtype))
-        out = SSAO(backend=backend, trainable=False, **options)(
-            GBuffer(depth=depth, normals=normals.to(depth.dtype), camera=camera)).visibility.double()
-        return (out * _weights(out)).sum()
-
-    depth = gb.depth.detach().clone().requires_grad_(True)
-    analytic = torch.autograd.grad(loss(depth, "kernel"), depth)[0].double().flatten()
-    checked = torch.nonzero(torch.isfinite(gb.depth.flatten())).flatten()[::5]
-    numeric = central_differences(lambda depth: loss(depth, "torch"), gb.depth, checked.tolist())
-    assert numeric.abs().max() > 0.1
-    torch.testing.assert_close(analytic[checked], numeric[checked], rtol=1e-3, atol=1e-4)
+    assert_depth_gradient_matches_central_differences(
+        lambda backend: SSAO(backend=backend, trainable=False, **options), gb, gb.view_normals().detach(), every=5)
 
 
 # ------------------------------------------------------------------------------------------------ dispatch

@@ -9,18 +9,16 @@ import dataclasses
 import pytest
 import torch
 
-from torch_ao.camera import PinholeCamera
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.kernels import gtao_covers, hbao_covers, pssao_covers, ue4_ssao_covers
-from torch_ao.kernels.gtao import gtao_sums
 from torch_ao.kernels.walk_grad import MAX_CUDA_STEPS
 from torch_ao.methods.gtao import GTAO
 from torch_ao.methods.hbao import HBAO
 from torch_ao.methods.pssao import PSSAO
 from torch_ao.methods.ue4_ssao import UE4SSAO
 
-from kernel_agreement import central_differences, relative_error
+from kernel_agreement import assert_depth_gradient_matches_central_differences, relative_error, upstream_weights
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401
 
 #: (module, options, frozen parameters): every accumulator of horizon.h and ssao.h, every fetch and border, both noises
@@ -95,11 +93,6 @@ PAIRS = [(case, "rough") for case in sorted(CASES)] + [
     if CASES[case][1].get("fetch", "bilinear") == "bilinear" and CASES[case][1].get("border", "drop") == "drop"
     and CASES[case][0] is not PSSAO]  # (PSSAO's max(n . d, 0) of a plane's own samples sits at its kink, n . d = 0)
 
-def _weights(out: torch.Tensor) -> torch.Tensor:
-    """A fixed upstream gradient that is not uniform (every pixel and channel weighs differently)."""
-    return torch.linspace(0.5, 1.5, out.numel(), dtype=out.dtype).view_as(out)
-
-
 def _module(case: str, backend: str):
     """The case's module on ``backend``, its frozen parameters not requiring gradients."""
     make, options, frozen = CASES[case]
@@ -133,9 +126,9 @@ def _gradients(gb0: GBuffer, case: str, backend: str, dtype: torch.dtype, given_
     module = _module(case, backend)
     parameters = {name: p for name, p in module.named_parameters() if p.requires_grad}
     out = module(gb)
-    loss = (out.visibility * _weights(out.visibility)).sum()
+    loss = (out.visibility * upstream_weights(out.visibility)).sum()
     if getattr(out, "bent_normal", None) is not None:
-        loss = loss + (out.bent_normal * _weights(out.bent_normal)).sum()
+        loss = loss + (out.bent_normal * upstream_weights(out.bent_normal)).sum()
     loss.backward()
     # (a parameter with no effect on this call, as UE4 SSAO's flat_softness at 0, has no gradient on either path)
     grads = {"depth": depth.grad} | {name: p.grad for name, p in parameters.items() if p.grad is not None}
@@ -214,20 +207,8 @@ def test_kernel_gradient_matches_finite_differences(built, case):
     rough depth has no ties: every derivative is defined."""
     make, options, _ = CASES[case]
     gb = rough_gbuffer(12, 14)
-    normals = _given_normals(gb, make)
-
-    def loss(depth, backend):
-        camera = dataclasses.replace(gb.camera, intrinsics=gb.camera.intrinsics.to(depth.dtype))
-        out = make(backend=backend, trainable=False, **options)(
-            GBuffer(depth=depth, normals=normals.to(depth.dtype), camera=camera)).visibility.double()
-        return (out * _weights(out)).sum()
-
-    depth = gb.depth.detach().clone().requires_grad_(True)
-    analytic = torch.autograd.grad(loss(depth, "kernel"), depth)[0].double().flatten()
-    checked = torch.nonzero(torch.isfinite(gb.depth.flatten())).flatten()[::6]  # every 6th pixel of the frame (41 of 246)
-    numeric = central_differences(lambda depth: loss(depth, "torch"), gb.depth, checked.tolist())
-    assert numeric.abs().max() > 0.1
-    torch.testing.assert_close(analytic[checked], numeric[checked], rtol=1e-3, atol=1e-4)
+    assert_depth_gradient_matches_central_differences(  # (every 6th pixel of the frame: 41 of 246)
+        lambda backend: make(backend=backend, trainable=False, **options), gb, _given_normals(gb, make), every=6)
 
 
 def test_gradient_calls_run_on_the_kernel(built):
@@ -277,7 +258,7 @@ def test_ue4_radius_gradient_carries_its_epsilon():
     for backend, dtype in (("torch", torch.float64), ("kernel", torch.float32)):
         module = GTAO(variant="ue4", slices=3, steps=5, radius=0.01, backend=backend).to(dtype)
         out = module(small.to(dtype=dtype)).visibility
-        (g,) = torch.autograd.grad((out * _weights(out)).sum(), [module.radius])
+        (g,) = torch.autograd.grad((out * upstream_weights(out)).sum(), [module.radius])
         grads.append(float(g))
     assert abs(grads[0]) > 1e-2
     assert grads[1] == pytest.approx(grads[0], rel=2e-4)

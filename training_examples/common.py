@@ -11,6 +11,7 @@ import torch
 
 from torch_ao.datasets import train_and_holdout_views
 from torch_ao.fit import FitView, load_views
+from torch_ao.fitted import FittedPipeline
 
 
 def apply_tiny(parser: argparse.ArgumentParser, args: argparse.Namespace, **settings) -> argparse.Namespace:
@@ -31,6 +32,14 @@ def add_view_options(parser: argparse.ArgumentParser, *, size: str, spp: int = 1
     parser.add_argument("--spp", type=int, default=spp, help="reference rays per pixel")
     parser.add_argument("--max-distance", type=float, default=max_distance, help="reference AO distance R" + radius_note)
     parser.add_argument("--cache", default=None, help="reference cache folder (default $TORCH_AO_CACHE or ~/.cache/torch_ao)")
+
+
+def bitmask(args: argparse.Namespace, thickness) -> FittedPipeline:
+    """The shipped pipeline the bitmask thickness fits tune: bitmask AO (hard mode) followed by the denoiser (unless
+    ``--no-denoise``), with ``add_bitmask_fit_options``' sampling and this ``thickness`` (a number, or a model's
+    value such as a per-object table)."""
+    options = dict(preset=args.preset, radius=args.max_distance, weighting=args.weighting, thickness=thickness)
+    return FittedPipeline("bitmask", options, denoiser=not args.no_denoise).to(args.device)
 
 
 def add_bitmask_fit_options(parser: argparse.ArgumentParser, *, init_help: str, steps_help: str) -> None:

@@ -43,11 +43,10 @@ import torch
 
 from torch_ao.datasets import HOLDOUT_SEED, TRAIN_SCENES
 from torch_ao.fit import FitConfig, FitView, evaluate, fit
-from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
 from torch_ao.reference import Box, Cylinder, Mesh, Plane, Sphere, get_scene
 
-from common import add_bitmask_fit_options, add_run_options, add_view_options, apply_tiny
+from common import add_bitmask_fit_options, add_run_options, add_view_options, apply_tiny, bitmask
 from common import build_views as shared_views
 
 CLASSES = ("background", "plane", "box", "thin box", "sphere", "cylinder", "thin cylinder", "mesh")
@@ -115,12 +114,6 @@ def build_views(args):
         train = [by_class(v, s, k, args.thin) for v, (s, k) in zip(train, pairs[0])]
         held = [by_class(v, s, k, args.thin) for v, (s, k) in zip(held, pairs[1])]
     return train, held
-
-
-def bitmask(args, thickness):
-    """The shipped pipeline: bitmask AO (hard mode) followed by the denoiser (unless ``--no-denoise``)."""
-    options = dict(preset=args.preset, radius=args.max_distance, weighting=args.weighting, thickness=thickness)
-    return FittedPipeline("bitmask", options, denoiser=not args.no_denoise).to(args.device)
 
 
 def main(argv=None) -> dict:

@@ -38,10 +38,9 @@ from pathlib import Path
 
 from torch_ao.datasets import TRAIN_SCENES
 from torch_ao.fit import FitConfig, evaluate, fit
-from torch_ao.fitted import FittedPipeline
 from torch_ao.io import save_json
 
-from common import add_bitmask_fit_options, add_run_options, add_view_options, apply_tiny, build_views
+from common import add_bitmask_fit_options, add_run_options, add_view_options, apply_tiny, bitmask, build_views
 
 ENGINE_DEFAULTS = (0.25, 0.5, 1.0)
 
@@ -59,12 +58,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--tiny", action="store_true", help="smoke-test settings (options left at their defaults are replaced): 2 scenes, 32x24, 16 spp, 6 steps from thickness 0.2")
     return apply_tiny(p, p.parse_args(argv), scenes="fence,room_corner", train_views=1, size="32x24", spp=16, steps=6, preset="low",
                       init=0.2, hard_every=2)
-
-
-def bitmask(args, thickness):
-    """The shipped pipeline: bitmask AO (hard mode) followed by the denoiser (unless ``--no-denoise``)."""
-    options = dict(preset=args.preset, radius=args.max_distance, weighting=args.weighting, thickness=thickness)
-    return FittedPipeline("bitmask", options, denoiser=not args.no_denoise).to(args.device)
 
 
 def main(argv=None) -> dict:

@@ -21,7 +21,7 @@ from ..sectors import ROUNDINGS
 from ..thickness import ThicknessLayer, matching
 from .coverage import gbuffer_uncovered, option_uncovered
 from .build import cpu_kernels, grad_kernels
-from .frame import light_input, scalar_lanes, walk_inputs
+from .frame import light_input, scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
