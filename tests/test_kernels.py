@@ -109,8 +109,8 @@ def test_kernel_covers_names_what_it_does_not_cover():
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
     # (cosine weights and indirect light are covered since the kernel has them: see test_kernels_glsl.py)
     cases = {"variant": BitmaskAO(variant="exact", union="sectors"), "mode": BitmaskAO(mode="soft"),
-             "weighting": BitmaskAO(weighting="cosine", mode="straight_through"),
-             "indirect": BitmaskAO(indirect=True, mode="straight_through"), "ambient": BitmaskAO(ambient=lambda d: d),
+             "straight-through gradient": BitmaskAO(weighting="cosine", indirect=True, mode="straight_through"),
+             "ambient": BitmaskAO(ambient=lambda d: d),
              "slice_sampling": BitmaskAO(slice_sampling="projected_normal"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
              "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
              "thickness_direction": BitmaskAO(thickness_direction="depth"),
@@ -122,8 +122,9 @@ def test_kernel_covers_names_what_it_does_not_cover():
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
     assert kernel_covers(BitmaskAO(mode="hard"), graph) is None
     assert "gradient" in kernel_covers(BitmaskAO(mode="straight_through"), graph)
-    with torch.no_grad():
+    with torch.no_grad():  # (its values are hard mode's, whatever the outputs)
         assert kernel_covers(BitmaskAO(mode="straight_through"), graph) is None
+        assert kernel_covers(BitmaskAO(weighting="cosine", indirect=True, mode="straight_through"), graph) is None
 
 
 # ------------------------------------------------------------------------------- dispatch

@@ -118,7 +118,7 @@ def test_coverage_of_the_new_outputs():
     assert kernel_covers(BitmaskAO(weighting="cosine", bent_normals=True), gb) is None  # (not with the radius)
     assert kernel_covers(SSILVB(variant="ssilvb_glsl"), gb) is None  # the shader's radius only picks texels
     assert "ambient" in kernel_covers(BitmaskAO(ambient=lambda d: d), gb)
-    assert "hard mode only" in kernel_covers(SSILVB(variant="ssilvb_glsl", mode="straight_through"), gb)
+    assert "straight-through gradient" in kernel_covers(SSILVB(variant="ssilvb_glsl", mode="straight_through"), gb)
     # gradients the hard outputs do have, through the normals (cosine weights) and the light: the hard kernel's
     # backward (the shader's light: tests/test_kernels_glsl_grad.py)
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera, light=gb.light)
@@ -258,3 +258,36 @@ def test_the_shaders_own_texel_fetch_whatever_fetch_and_border_say(built, fetch,
         assert_identical(getattr(out, name), getattr(default, name), name)
     assert_values_agree(torch.cat([out.visibility, out.indirect], 1), torch.cat([ref.visibility, ref.indirect], 1),
                         gb.valid, atol=1e-5, bound=1e-5)
+
+
+@pytest.mark.parametrize("variant, options", [("default", dict(weighting="cosine", bent_normals=True, ambient=0.5)),
+                                              ("hdrp", dict(weighting="uniform", bent_normals=True)),
+                                              ("ssilvb_glsl", dict())])
+def test_straight_through_without_a_gradient_is_hard_mode(built, variant, options, monkeypatch):
+    """Straight-through mode's values are hard mode's (its soft union only shapes gradients): without a gradient
+    the hard kernel computes every output of every variant, equal to its hard-mode call's and to the tensor path's
+    straight-through call by the hard kernels' tolerance."""
+    from kernel_calls import count_kernel_calls
+
+    gb = lit(FRAMES["rough"]())
+    with torch.no_grad():
+        module = SSILVB(variant=variant, mode="straight_through", backend="kernel", **options)
+        assert kernel_covers(module, gb) is None
+        out = module(gb)
+        hard = SSILVB(variant=variant, mode="hard", backend="kernel", **options)(gb)
+        # (the float64 walk but for the shader, whose numbers are float32's: hdrp's float32 slice angle is off where
+        # the normal faces the view vector, tests/test_kernels_hdrp.py)
+        dtype = torch.float32 if variant == "ssilvb_glsl" else torch.float64
+        ref = SSILVB(variant=variant, mode="straight_through", backend="torch", **options).to(dtype)(gb.to(dtype=dtype))
+    names = [n for n in ("visibility", "indirect", "bent_normal", "ambient") if getattr(ref, n) is not None]
+    for name in names:
+        assert_identical(getattr(out, name), getattr(hard, name), name)
+    if variant == "ssilvb_glsl":
+        assert_glsl_agrees(out, ref, gb.valid, module.slices)
+    else:
+        assert_values_agree(torch.cat([getattr(out, n) for n in names], 1).double(),
+                            torch.cat([getattr(ref, n) for n in names], 1), gb.valid, bound=0.2)
+    # with a gradient asked for, straight-through mode's own (soft) gradients: not the hard kernel's
+    calls = count_kernel_calls(monkeypatch, "bitmask")
+    assert "straight-through gradient" in kernel_covers(SSILVB(variant=variant, mode="straight_through", **options), gb)
+    assert calls == []

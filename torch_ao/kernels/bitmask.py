@@ -309,18 +309,13 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     kernel's backward computes (the intrinsics' too); indirect light has one to the light, the sample positions and
     the intrinsics (either of :data:`HARD_VARIANTS`: the ``"hdrp"`` variant's too); the ``"ssilvb_glsl"`` shader's
     light to the light, the normals and the positions (its own backward, :func:`ssilvb_glsl_hard`'s); straight-through
-    mode (hard values, soft gradients) only for uniform visibility without a gradient.
+    mode (hard values, soft gradients) without a gradient, every output and variant: its values are hard mode's.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "hdrp", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
                                extra=_HARD.get(module.variant), layers=True)
     if reason is not None:
         return reason
-    beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
-                                    ("bent_normals", module.want_bent), (f"variant={module.variant!r}", module.variant != "default"))
-              if on]
-    if beyond and module.mode != "hard":
-        return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
         return "a straight-through gradient is asked for"  # (hard mode has none: its values are the same)
     # in hard mode every variant's graded outputs (needs_hard_backward) have the kernel's backward
