@@ -114,7 +114,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
              "slice_sampling": BitmaskAO(slice_sampling="projected_normal"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
              "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
              "thickness_direction": BitmaskAO(thickness_direction="depth"),
-             "sample_extent": BitmaskAO(sample_extent="sphere"), "growth": BitmaskAO(thickness_growth=0.5)}
+             "sample_extent": BitmaskAO(sample_extent="sphere")}
     for word, module in cases.items():
         assert word in kernel_covers(module, gb), word
     assert "float64" in kernel_covers(BitmaskAO(mode="hard"), gb.to(dtype=torch.float64))
@@ -158,8 +158,8 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
 
     gb = example_gbuffer(8, 8)
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
-    with pytest.raises(ValueError, match="backend.*thickness_growth"):  # (no kernel reads each sample's distance)
-        BitmaskAO(thickness_growth=0.5, backend="kernel")(graph)
+    with pytest.raises(ValueError, match="backend.*thickness_growth"):  # (the soft kernel grows no thickness)
+        BitmaskAO(mode="soft", thickness_growth=0.5, backend="kernel")(graph)
     with pytest.raises(ValueError, match="backend.*float64"):
         SSAO(backend="kernel")(gb.to(dtype=torch.float64))
     with pytest.raises(ValueError, match="backend: expected one of"):

@@ -269,12 +269,13 @@ def cases(gb):
     yield "gtao", walk_settings(**common, noise="hilbert_r2", stagger=True), [0, True, True], [1.0, 0.3, 1.0], 5, None
     yield ("hbao", walk_settings(**common, full_circle=True, noise="hilbert_r2", stagger=True), [False, True, False],
            [1.0, 0.1], 1, None)
-    # (rounding, cosine, indirect, bent, the thickness' read, the variant: 0 default, 1 hdrp)
-    yield "bitmask", walk_settings(**common), [0, True, True, True, False, 0], [0.5, 0.01, 1.0], 7, light
-    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False, 0], [0.3, 0.01, 1.0], 1, None
-    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False, 0], [0.3, 0.01, 1.0], 4, light
-    yield "bitmask", walk_settings(**common, azimuth="screen"), [0, False, False, False, 0, 1], [0.5, 0.0, 1.0], 1, None
-    yield "bitmask", walk_settings(**dict(common, fetch="nearest"), azimuth="screen"), [1, True, True, True, 0, 1], [0.5, 0.0, 1.0], 7, light
+    # (rounding, cosine, indirect, bent, the thickness' read, the variant: 0 default, 1 hdrp); the thickness' offset,
+    # epsilon, its scale, its growth
+    yield "bitmask", walk_settings(**common), [0, True, True, True, False, 0], [0.5, 0.01, 1.0, 0.5], 7, light
+    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False, 0], [0.3, 0.01, 1.0, 0.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False, 0], [0.3, 0.01, 1.0, 0.0], 4, light
+    yield "bitmask", walk_settings(**common, azimuth="screen"), [0, False, False, False, 0, 1], [0.5, 0.0, 1.0, 0.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="nearest"), azimuth="screen"), [1, True, True, True, 0, 1], [0.5, 0.0, 1.0, 0.0], 7, light
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
@@ -284,10 +285,11 @@ def cases(gb):
            [0.4, 1.0, 1.0, 0.01], 4, None)
     glsl = dict(slices=4 + 1, steps=5 + 1, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp",
                 placement="glsl", full_circle=True, azimuth="screen")  # (the shader's sliceCount 4, sampleCount 5)
-    # (rounding, indirect, exact numerics, the thickness' read: 3 the sample's depth); the thickness' offset, scale
-    yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0], 4, light
-    yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1], 4, light
-    yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0], 1, None
+    # (rounding, indirect, exact numerics, the thickness' read: 3 the sample's depth); the thickness' offset, scale,
+    # growth
+    yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0, 0.0], 4, light
+    yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1, 0.4], 4, light
+    yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0, 0.0], 1, None
     # soft: ints rounding, cosine, straight-through, the thickness' read; floats offset, epsilon, tau, scale
     yield "soft", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 1, None
     yield "soft_gradients", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 4, None
@@ -383,19 +385,20 @@ def _backward_cases():
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
     yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0], [0.4, 1.0, 1.0, 0.01], 1
     yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2], [0.1, 1.0, 1.0, 0.0], 1
-    # (rounding, cosine, indirect, bent, the layer's read, the variant); thickness, epsilon, the layer's scale
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1, 0], [0.1, 0.01, 1.0], 4
-    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0], 1
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0], [0.4, 0.01, 1.0], 7
-    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0], 4
+    # (rounding, cosine, indirect, bent, the layer's read, the variant); thickness, epsilon, the layer's scale, growth
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1, 0], [0.1, 0.01, 1.0, 0.0], 4
+    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0, 0.0], 1
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0], [0.4, 0.01, 1.0, 0.5], 7
+    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0, 0.0], 4
     # the hdrp variant's (its slice angle in the backward's tangents), screen directions as its module's default
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware"), azimuth="screen"), [0, True, True, True, 1, 1], [0.1, 0.0, 1.0], 7
-    # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics, the layer's read); thickness, the layer's scale:
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware"), azimuth="screen"), [0, True, True, True, 1, 1], [0.1, 0.0, 1.0, 0.0], 7
+    # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics, the layer's read); thickness, the layer's scale,
+    # growth:
     # its indirect light's backward
     glsl = dict(slices=4, steps=5, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp", placement="glsl",
                 full_circle=True, azimuth="screen")
-    yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0], [0.3, 1.0], 4
-    yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 1], [0.0, 1.2], 4
+    yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0], [0.3, 1.0, 0.0], 4
+    yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 1], [0.0, 1.2, 0.4], 4
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])

@@ -9,7 +9,7 @@ from test_kernels import FRAMES, built, pytestmark  # noqa: F401  (built: the fi
 from test_kernels_exact import with_backface
 from torch_ao.kernels import kernel_covers, kernel_forward
 from torch_ao.kernels.bitmask import bitmask_outputs, module_thickness, thickness_options
-from torch_ao.methods.bitmask import BitmaskAO
+from torch_ao.methods.bitmask import SSILVB, BitmaskAO
 from torch_ao.thickness import BackfaceThickness
 
 SETTINGS = [
@@ -27,7 +27,8 @@ def _kernel(module: BitmaskAO, gb, lanes: str):
                           step_power=module.step_power,
                           min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, fetch=module.fetch,
                           border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
-                          weighting=module.weighting, indirect=module.want_indirect, lanes="scalar")
+                          weighting=module.weighting, indirect=module.want_indirect, variant=module.variant,
+                          azimuth=module.azimuth, noise=module.noise, stagger=module.stagger, lanes="scalar")
     return {"visibility": out.visibility, "indirect": out.indirect}
 
 
@@ -61,6 +62,55 @@ def test_cosine_visibility_and_indirect_light_agree_with_the_tensor_walk(built, 
     assert reference.visibility.min() < 0.9 and reference.indirect.max() > 0
     assert_values_agree(out["visibility"], reference.visibility, gb.valid, bound=1 / (32 * 3) + 1e-6)
     assert_values_agree(out["indirect"], reference.indirect, gb.valid, bound=0.05)
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("variant, model", [("default", "scalar"), ("default", "backface"), ("hdrp", "scalar")])
+def test_a_thickness_growth_agrees_with_the_tensor_walk(built, variant, model, lanes):
+    """``thickness_growth`` (the thickness times ``1 + g |sample - pixel|``) in the hard kernels: uniform visibility,
+    cosine weights with indirect light and bent normals; it changes the masks on this frame. Uniform masks against
+    the float32 walk (share 0.998 for ``hdrp``, as tests/test_kernels_hdrp.py), the rest against the float64 walk (the
+    float32 walk's ``hdrp`` slice angle is off where the normal faces the view vector)."""
+    gb = with_backface(FRAMES["rough"]())
+    gb = type(gb)(depth=gb.depth, camera=gb.camera, normals=gb.normals, backface_depth=gb.backface_depth,
+                  light=torch.rand(gb.depth.shape[0], 3, *gb.depth.shape[2:], generator=torch.Generator().manual_seed(1)))
+
+    def thickness():  # (a model takes the module's growth: one each)
+        return 0.3 if model == "scalar" else BackfaceThickness(scale=0.8, thickness=0.05)
+
+    for options in (dict(), dict(weighting="cosine", indirect=True, bent_normals=True)):
+        module = BitmaskAO(variant=variant, mode="hard", backend="torch", trainable=False, slices=3, steps=4,
+                           thickness=thickness(), thickness_growth=2.0, **options)
+        with torch.no_grad():
+            assert kernel_covers(module, gb) is None
+            reference = module(gb) if not options else module.double()(gb.to(dtype=torch.float64))
+            out = _kernel(module.float(), gb, lanes) if not options else kernel_forward(module.float(), gb, "kernel")
+            out = {name: value.to(reference.visibility.dtype) for name, value in out.items() if value is not None}
+            plain = BitmaskAO(variant=variant, slices=3, steps=4, thickness=thickness(), backend="kernel",
+                              trainable=False, **options)(gb)
+        assert (plain.visibility - reference.visibility).abs().max() > 0.02
+        if not options:
+            assert_masks_agree(out["visibility"], reference.visibility, gb.valid, slices=3,
+                               share=0.998 if variant == "hdrp" else 0.999)
+            continue
+        assert_values_agree(out["visibility"], reference.visibility, gb.valid, bound=1 / (32 * 3) + 1e-6)
+        assert_values_agree(out["indirect"], reference.indirect, gb.valid, bound=0.05)
+        assert_values_agree(out["bent_normal"], reference.bent_normal, gb.valid, bound=0.1)
+
+
+def test_the_glsl_shaders_thickness_grows_as_the_tensor_walks(built):
+    from test_kernels_glsl import assert_glsl_agrees, lit
+
+    gb = lit(FRAMES["rough"]())
+    options = dict(variant="ssilvb_glsl", slices=3, steps=4, thickness=0.2, thickness_growth=3.0, trainable=False)
+    with torch.no_grad():
+        module = SSILVB(backend="kernel", **options)
+        assert kernel_covers(module, gb) is None
+        out = module(gb)
+        reference = SSILVB(backend="torch", **options)(gb)
+        plain = SSILVB(backend="kernel", **dict(options, thickness_growth=None))(gb)
+    assert (plain.visibility - reference.visibility).abs().max() > 0.02
+    assert_glsl_agrees(out, reference, gb.valid, slices=3)
 
 
 def test_the_new_options_change_the_visibility(built):

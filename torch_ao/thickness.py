@@ -30,6 +30,7 @@ map, ``thickness_growth=``) onto these classes.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -232,6 +233,9 @@ class BoundThickness:
         return self.model.buffers(gbuffer, self.params)
 
     def layer(self, gbuffer) -> ThicknessLayer | None:
-        """:meth:`Thickness.layer` with these parameters; ``None`` with a growth (it reads the sample's distance)."""
-        return None if self.model.growth is not None else self.model.layer(gbuffer, self.params)
+        """:meth:`Thickness.layer` with these parameters, and the model's growth."""
+        form = self.model.layer(gbuffer, self.params)
+        if form is None or self.model.growth is None:
+            return form
+        return dataclasses.replace(form, growth=self.params["thickness_growth"])
 

@@ -29,12 +29,14 @@ class ThicknessLayer:
     read at the sample as the walk reads depth (nearest, bilinear or edge-aware); ``"first_tap"`` that image at
     the footprint's first tap alone (an integer buffer's read: a per-object table looked up by ``object_id``);
     ``"depth"`` the sample's own depth (world units). ``scale`` and ``offset`` (world units) are 0-d tensors, the
-    model's parameters where they are ones (their gradients then reach them)."""
+    model's parameters where they are ones (their gradients then reach them). ``growth`` (a 0-d tensor, per world
+    unit, or ``None``): ``t`` times ``1 + growth * |sample - pixel|``, the model's growth."""
 
     layer: torch.Tensor | None
     scale: torch.Tensor
     offset: torch.Tensor
     read: str = "layer"
+    growth: torch.Tensor | None = None
 
 
 def checked_growth(growth: float | torch.Tensor | None) -> float | torch.Tensor | None:

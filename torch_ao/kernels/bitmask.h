@@ -58,6 +58,7 @@ struct ThicknessModel {
   float offset;  // world units
   float scale;   // unitless (the layer's) or per world unit (the depth's)
   ThicknessRead read;
+  float growth = 0.0f;  // per world unit: t times 1 + growth |delta| (Thickness.value; the hard kernels')
 
   TAO_FN bool reads_layer() const { return read == ThicknessRead::layer || read == ThicknessRead::first_tap; }
   // what scale multiplies at the sample (0 for a constant)
@@ -70,7 +71,8 @@ struct ThicknessModel {
     }
   }
   template <class F> TAO_FN F at(const Pixels<F>& px, const Sample<F>& smp) const {
-    return read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
+    const F t = read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
+    return growth > 0.0f ? t * (F(1.0f) + F(growth) * norm3(smp.delta)) : t;
   }
   // d value as the sample's fetch moves by (dsu, dsv) pixels and its position by d_pos: the layer's bilinear
   // read at the moving taps (Sample.gather), the sample's depth; a first tap's read is piecewise constant

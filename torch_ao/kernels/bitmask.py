@@ -42,8 +42,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil",
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
                     bent_normals: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
-                    thickness_read: str | None = None, variant: str = "default", azimuth: str = "view",
-                    lanes: str = "simd") -> KernelOutputs:
+                    thickness_read: str | None = None, thickness_growth: float = 0.0, variant: str = "default",
+                    azimuth: str = "view", lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` (or ``"hdrp"``) variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded;
     background pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
@@ -57,6 +57,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             net's map). ``thickness_read`` (default ``"layer"`` with a layer, else ``"constant"``) reads another
             value in place of the layer's: ``"first_tap"`` the layer at the first tap, ``"depth"`` the sample's
             depth (:class:`~torch_ao.thickness.ThicknessLayer`; :func:`thickness_options` gives all four from it);
+            ``thickness_growth`` (per world unit, ``>= 0``) multiplies it by ``1 + growth * |sample - pixel|``;
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`), azimuth
@@ -75,7 +76,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                              fetch=fetch, border=border, azimuth=azimuth)
     acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
                 thickness_read_index(thickness_read, layer), HARD_VARIANTS.index(variant)]
-    acc_floats = [thickness, sector_epsilon, float(layer_scale)]
+    acc_floats = [thickness, sector_epsilon, float(layer_scale), float(thickness_growth)]
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     if needs_hard_backward(gbuffer, normals, weighting=weighting, indirect=indirect, bent_normals=bent_normals,
@@ -213,9 +214,11 @@ def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
 
 
 def thickness_options(form: ThicknessLayer) -> dict:
-    """The kernels' ``thickness``, ``layer``, ``layer_scale``, ``thickness_read`` arguments of ``form``."""
+    """The kernels' ``thickness``, ``layer``, ``layer_scale``, ``thickness_read`` arguments of ``form`` (and its
+    ``thickness_growth`` where it has one: the hard kernels')."""
+    growth = {} if form.growth is None else {"thickness_growth": float(form.growth.detach())}
     return dict(thickness=float(form.offset.detach()), layer=None if form.layer is None else form.layer.detach(),
-                layer_scale=float(form.scale.detach()), thickness_read=form.read)
+                layer_scale=float(form.scale.detach()), thickness_read=form.read, **growth)
 
 
 #: bitmask.h's ThicknessRead, in its order
@@ -243,15 +246,16 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
                      thickness: float, jitter: bool = True, rounding: str = "ceil", numerics: str = "ieee",
                      indirect: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
-                     thickness_read: str | None = None, lanes: str = "simd") -> KernelOutputs:
+                     thickness_read: str | None = None, thickness_growth: float = 0.0,
+                     lanes: str = "simd") -> KernelOutputs:
     """The ``"ssilvb_glsl"`` variant in hard mode: visibility ``(B,1,H,W)`` (background 1; may exceed 1,
     as the shader's) and, with ``indirect``, its light ``(B,3,H,W)`` (background 0).
 
     Args:
         gbuffer, normals: as :func:`bitmask_outputs` (CPU or CUDA); slices, steps: the shader's ``sliceCount``
             (>= 2) and ``sampleCount`` (>= 1); radius (world units, a float or 0-d tensor), thickness (world
-            units; with ``layer``, ``layer_scale`` and ``thickness_read`` a model read at each sample's texel, as
-            :func:`bitmask_outputs`'), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
+            units; with ``layer``, ``layer_scale``, ``thickness_read`` and ``thickness_growth`` a model read at each
+            sample's texel, as :func:`bitmask_outputs`'), jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
     With ``indirect`` and autograd recording through the G-buffer, the normals or the light, the light has a
@@ -264,7 +268,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
                              full_circle=True, azimuth="screen",
                              noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
     acc_ints = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee", thickness_read_index(thickness_read, layer)]
-    acc_floats, channels = [thickness, float(layer_scale)], 4 if indirect else 1
+    acc_floats, channels = [thickness, float(layer_scale), float(thickness_growth)], 4 if indirect else 1
     light = light_input(gbuffer, indirect) if indirect else None
     layer = None if layer is None else layer.detach()  # (hard masks: the thickness has no gradient)
     if needs_hard_backward(gbuffer, normals, weighting="uniform", indirect=indirect, bent_normals=False, light=light):
@@ -313,7 +317,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
                                variants=("default", "hdrp", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
-                               extra=_HARD.get(module.variant), layers=True)
+                               extra=_HARD.get(module.variant), layers=True, growth=True)
     if reason is not None:
         return reason
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
@@ -372,12 +376,13 @@ _VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (
 def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
                       variants: tuple[str, ...] = ("default",), outputs: bool = False,
                       devices: tuple[str, ...] = ("cpu",), extra: dict | None = None,
-                      layers: bool = False) -> str | None:
+                      layers: bool = False, growth: bool = False) -> str | None:
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
     does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 CPU, bilinear reads of a
-    position buffer), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample."""
+    position buffer), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
+    whether it grows the thickness with the sample's distance (values only: none of the kernels with gradients)."""
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
                  "azimuth", "thickness_growth", "ambient"):
@@ -388,11 +393,11 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
         values["ambient"] = "a colour"
     covered = {**_COVERED, "mode": modes, "weighting": weightings, "variant": variants,
                **({} if outputs else _VISIBILITY_ONLY), **(_GLSL if values["variant"] == "ssilvb_glsl" else {}),
-               **(extra or {})}
+               **(extra or {}), **({"thickness_growth": None} if growth else {})}
     reason = option_uncovered(values, covered)
     if reason is not None:
         return reason
-    reason = thickness_uncovered(module, layers)
+    reason = thickness_uncovered(module, layers, growth)
     if reason is not None:
         return reason
     reason = gbuffer_uncovered(gbuffer, devices)
@@ -403,19 +408,20 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     return None
 
 
-def thickness_uncovered(module, layers: bool) -> str | None:
+def thickness_uncovered(module, layers: bool, growth: bool = False) -> str | None:
     """Why a bitmask kernel cannot read ``module``'s thickness model, or ``None``. Every kernel reads one
     scalar; one that reads ``layers`` also every model of the form ``scale * value + offset``
     (:attr:`~torch_ao.thickness.Thickness.kernel_read`: the back-face layer, a map, the net's map, a
-    per-object table, the linear model in depth). A growth reads each sample's distance: never."""
+    per-object table, the linear model in depth); one that grows the thickness with the sample's distance (``growth``)
+    also a model's growth."""
     thickness, model = getattr(module, "thickness", None), getattr(module, "thickness_model", None)
     if model is None:
         scalar = isinstance(thickness, torch.Tensor) and thickness.dim() == 0
         return None if scalar else "a thickness other than one scalar"
     model = matching(model, thickness)
     name = type(model).__name__
-    if model.growth is not None:
-        return "a thickness growth (it reads each sample's distance)"
+    if model.growth is not None and not growth:
+        return "a thickness growth (the hard kernels grow it; this one does not)"
     if model.kernel_read is None:
         return f"thickness model {name} (not of the form scale * value + offset)"
     if model.kernel_read != "constant" and not layers:
@@ -425,10 +431,12 @@ def thickness_uncovered(module, layers: bool) -> str | None:
 
 def _needs_grad(module, gbuffer: GBuffer, parameters: bool = True) -> bool:
     """Whether autograd would record a gradient of the G-buffer's tensors (and, with ``parameters``, of
-    the module's radius and thickness)."""
+    the module's radius and its thickness model's parameters)."""
     if not torch.is_grad_enabled():
         return False
     tensors = [gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position]
     if parameters:
-        tensors += [module.radius, module.thickness]
-    return any(t is not None and t.requires_grad for t in tensors)
+        model = getattr(module, "thickness_model", None)
+        names = ["thickness"] if model is None else list(model.parameters())
+        tensors += [module.radius] + [getattr(module, name) for name in names]
+    return any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors)

@@ -87,7 +87,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     packed(3, 2);
     run(unpack_hbao(i, f));
   } else if (name == "bitmask") {
-    packed(6, 3);
+    packed(6, 4);
     TORCH_CHECK(!i[kAccInts + 2] || fr.light, "light: indirect light needs the light buffer");
     check_thickness(i[kAccInts + 4], fr);
     TORCH_CHECK(i[kAccInts + 5] == 0 || i[kAccInts + 5] == 1, "variant: expected 0 (default) or 1 (hdrp)");
@@ -105,7 +105,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 "placement's, without full circle");
     run(unpack_exact_gradients(i, f));
   } else if (name == "glsl") {
-    packed(4, 2);
+    packed(4, 3);
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,
                 "glsl: expected the GLSL step placement over sliceCount + 1 >= 3 slices and sampleCount + 1 >= 2 steps");

@@ -46,20 +46,20 @@ TAO_FN HBAOAccumulator unpack_hbao(const int64_t* i, const float* f) {
 }
 
 // ints: rounding, cosine, indirect, bent, the thickness' read (ThicknessRead), the variant's angles (SectorAngles);
-// floats: the thickness' offset, epsilon, its scale
+// floats: the thickness' offset, epsilon, its scale, its growth
 TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
-  return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], ThicknessRead(i[4])}, f[1], i[0], i[1] != 0, i[2] != 0,
+  return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], ThicknessRead(i[4]), f[3]}, f[1], i[0], i[1] != 0, i[2] != 0,
                             i[3] != 0, SectorAngles(i[5])};
 }
 
 // ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"), the thickness' read (ThicknessRead); floats:
-// the thickness' offset, its scale. The walk's slices are sliceCount + 1
+// the thickness' offset, its scale, its growth. The walk's slices are sliceCount + 1
 TAO_FN GlslAccumulator unpack_glsl(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
-  return GlslAccumulator{slices - 1, ThicknessModel{f[0], f[1], ThicknessRead(i[3])}, i[0], i[1] != 0,
+  return GlslAccumulator{slices - 1, ThicknessModel{f[0], f[1], ThicknessRead(i[3]), f[2]}, i[0], i[1] != 0,
                          GlslVectorOps{i[2] != 0}};
 }
 

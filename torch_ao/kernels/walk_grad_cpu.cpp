@@ -379,7 +379,7 @@ auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normal
   const bool glsl = ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() >= kAccInts &&
                     packed_placement(ints.data_ptr<int64_t>()) == Steps::glsl;
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, glsl ? 4 : 6, glsl ? 2 : 3, glsl ? "glsl hard" : "hard",
+                          floats, glsl ? 4 : 6, glsl ? 3 : 4, glsl ? "glsl hard" : "hard",
                           std::numeric_limits<int64_t>::max(), glsl);
   if (glsl) {
     const GlslAccumulator acc = unpack_glsl(call.i, call.f);
