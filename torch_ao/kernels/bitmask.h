@@ -117,6 +117,91 @@ template <class F> TAO_FN F hdrp_slice_angle(const F& c, const F& s) {
 // in-plane atan2 from V toward +T, or "hdrp"'s 3D cosines through fast_acos, from V toward -T
 enum class SectorAngles : int64_t { plane = 0, hdrp = 1 };
 
+// The walk's slice in the frame the variant's angles are measured in (SectorAccumulator.slice_frame): as walked,
+// or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame)
+template <class F> TAO_FN Slice<F> slice_frame(SectorAngles angles, const Slice<F>& walked) {
+  if (angles != SectorAngles::hdrp) return walked;
+  Slice<F> sl = walked;
+  sl.gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
+  sl.cos_gamma = cos(sl.gamma), sl.sin_gamma = sin(sl.gamma);
+  for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
+  return sl;
+}
+
+// The side of the frame's tangent a sample on the walk's side lies toward (HDRP's tangent is -T: its yx swap)
+TAO_FN int sector_turn(SectorAngles angles, int side) { return angles == SectorAngles::hdrp ? -side : side; }
+
+// The sector rule's angles of a sample at delta with thickness t on the walk's side: its front (delta) and back
+// (delta - t V) seen from the pixel, from V toward the frame's tangent on sector_turn's side (T: the walked slice's)
+template <class F>
+TAO_FN void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
+                          F& back) {
+  if (angles == SectorAngles::hdrp) {
+    front = fast_acos(cos_view(delta, V, F(0.0f)));
+    back = fast_acos(cos_view(delta, V, t));
+  } else {
+    const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T);
+    front = atan2(along_tangent, along_view);
+    back = atan2(along_tangent, along_view - t);
+  }
+}
+
+// The interval (start s, width w) in sector units between a sample's front and back positions (fractions of the
+// hemisphere from its edge: the angles times turn / pi plus the edge's shift), each clamped to it
+template <class F>
+TAO_FN void sample_interval(int turn, const F& front, const F& back, float epsilon, F& start, F& width) {
+  const F f = clamp(front, F(0.0f), F(1.0f)), b = clamp(back, F(0.0f), F(1.0f));
+  const F lo = turn > 0 ? f : b, hi = turn > 0 ? b : f;
+  start = lo * F(float(kSectors));
+  width = (hi - lo) * F(float(kSectors));
+  if (epsilon > 0) width = width - F(epsilon);
+}
+
+// d fast_acos(x) / d x as the tensor walk takes it (safe_fast_acos in float64): none where 1 - |x| < 1e-6
+template <class F> TAO_FN F fast_acos_slope(const F& x) {
+  const F ax = abs(x), root = sqrt(clamp_min(F(1.0f) - ax, F(1e-6f)));
+  const F slope = F(-0.156583f) * root - (F(-0.156583f) * ax + F(kHalfPi)) / (F(2.0f) * root);
+  return select(ax <= F(1.0f - 1e-6f), slope, F(0.0f));
+}
+
+// sample_angles' partial derivatives: of the front and back angles with respect to delta, V and T, of the back
+// angle with respect to t
+template <class F> struct AngleSlopes {
+  F front_delta[3], front_V[3], front_T[3], back_delta[3], back_V[3], back_T[3], back_t;
+};
+template <class F>
+TAO_FN AngleSlopes<F> angle_slopes(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t) {
+  AngleSlopes<F> sl;
+  if (angles == SectorAngles::hdrp) {
+    // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d|, dc/dV = d / |d| - o q, dc/do = -q . V
+    const auto cosine_slopes = [&](const F& o, F* g_delta, F* g_V) {
+      F d[3];
+      for (int c = 0; c < 3; ++c) d[c] = delta[c] - o * V[c];
+      const F length = clamp_min(norm3(d), F(1e-30f)), inv = F(1.0f) / length, cv = dot3(d, V) * inv;
+      const F slope = fast_acos_slope(cv);
+      F q[3];
+      for (int c = 0; c < 3; ++c) q[c] = (V[c] - cv * d[c] * inv) * inv;
+      for (int c = 0; c < 3; ++c) g_delta[c] = slope * q[c], g_V[c] = slope * (d[c] * inv - o * q[c]);
+      return neg(slope * dot3(q, V));
+    };
+    cosine_slopes(F(0.0f), sl.front_delta, sl.front_V);
+    sl.back_t = cosine_slopes(t, sl.back_delta, sl.back_V);
+    for (int c = 0; c < 3; ++c) sl.front_T[c] = sl.back_T[c] = F(0.0f);
+  } else {  // atan2(y, x): d = (x dy - y dx) / (x^2 + y^2), x = delta . V (- t), y = side delta . T
+    const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T), back_view = along_view - t;
+    const F inv_f = F(1.0f) / fma(along_view, along_view, along_tangent * along_tangent);
+    const F inv_b = F(1.0f) / fma(back_view, back_view, along_tangent * along_tangent);
+    const F fv = neg(along_tangent) * inv_f, ft = along_view * inv_f * F(float(side));
+    const F bv = neg(along_tangent) * inv_b, bt = back_view * inv_b * F(float(side));
+    for (int c = 0; c < 3; ++c) {
+      sl.front_delta[c] = fv * V[c] + ft * T[c], sl.front_V[c] = fv * delta[c], sl.front_T[c] = ft * delta[c];
+      sl.back_delta[c] = bv * V[c] + bt * T[c], sl.back_V[c] = bv * delta[c], sl.back_T[c] = bt * delta[c];
+    }
+    sl.back_t = along_tangent * inv_b;
+  }
+  return sl;
+}
+
 struct BitmaskAccumulator {
   int64_t slices;
   ThicknessModel thickness;  // world units along the view ray
@@ -138,16 +223,8 @@ struct BitmaskAccumulator {
   TAO_FN int channels() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
   TAO_FN bool weighted() const { return cosine || bent; }
 
-  // The walk's slice in the frame the variant's angles are measured in (SectorAccumulator.slice_frame): as walked,
-  // or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame)
-  template <class F> TAO_FN Slice<F> frame(const Slice<F>& walked) const {
-    if (angles != SectorAngles::hdrp) return walked;
-    Slice<F> sl = walked;
-    sl.gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
-    sl.cos_gamma = cos(sl.gamma), sl.sin_gamma = sin(sl.gamma);
-    for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
-    return sl;
-  }
+  // the walk's slice in the frame the variant's angles are measured in (slice_frame)
+  template <class F> TAO_FN Slice<F> frame(const Slice<F>& walked) const { return slice_frame(angles, walked); }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& walked) const {
     const Slice<F> sl = frame(walked);
@@ -168,23 +245,12 @@ struct BitmaskAccumulator {
     using I = typename LaneTraits<F>::I;
     // the sector rule: the sample's front (delta) and back (delta - thickness V) seen from the pixel,
     // as fractions of the hemisphere from its edge on the frame's side -1
-    const int turn = angles == SectorAngles::hdrp ? -side : side;  // (HDRP's tangent is -T: its yx swap)
+    const int turn = sector_turn(angles, side);
     const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
-    F front_angle, back_angle;
-    if (angles == SectorAngles::hdrp) {
-      front_angle = fast_acos(cos_view(smp.delta, px.V, F(0.0f)));
-      back_angle = fast_acos(cos_view(smp.delta, px.V, t));
-    } else {
-      const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
-      front_angle = atan2(along_tangent, along_view);
-      back_angle = atan2(along_tangent, along_view - t);
-    }
-    const F front = clamp(fma(front_angle, scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(back_angle, scale, st.shift), F(0.0f), F(1.0f));
-    const F lo = turn > 0 ? front : back, hi = turn > 0 ? back : front;
-    F width = (hi - lo) * F(float(kSectors));
-    if (epsilon > 0) width = width - F(epsilon);
-    const I bits = sector_bits(lo * F(float(kSectors)), width, rounding);
+    F front_angle, back_angle, start, width;
+    sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
+    sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
+    const I bits = sector_bits(start, width, rounding);
     if (indirect) {  // SectorAccumulator.step: the light the sample sends, times the share it newly occludes
       F sender_n[3], light[3], sent[3];
       for (int c = 0; c < 3; ++c) sender_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);

@@ -311,8 +311,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     if reason is not None:
         return reason
     beyond = [name for name, on in (("weighting='cosine'", module.weighting == "cosine"), ("indirect", module.want_indirect),
-                                    ("bent_normals", module.want_bent), (f"variant={module.variant!r}", module.variant != "default"))
-              if on]
+                                    ("bent_normals", module.want_bent)) if on]
     if beyond and module.mode != "hard":
         return f"mode={module.mode!r} with {', '.join(beyond)} (hard mode only)"
     if module.mode == "straight_through" and _needs_grad(module, gbuffer):
