@@ -95,11 +95,17 @@ struct ThicknessModel {
 // (the sector rule's shift: a sample's angle from the view vector, times side / pi, plus this)
 template <class F> TAO_FN F edge_shift(const Slice<F>& sl) { return (F(kHalfPi) - sl.gamma) / F(kPi); }
 
-// Sample.cos_view: dot(normalize(delta - offset V), V), the shaders' horizon cosine (3D, not projected)
-template <class F> TAO_FN F cos_view(const F* delta, const F* V, const F& offset) {
-  F d[3];
-  for (int c = 0; c < 3; ++c) d[c] = delta[c] - offset * V[c];
-  return dot3(d, V) / clamp_min(norm3(d), F(1e-30f));
+// Sample.cos_view: c = dot(normalize(d), V), d = delta - offset V, the shaders' horizon cosine (3D, not projected),
+// with root = sqrt(1 - |c|) for fast_acos_of_root taken as |d x V| / sqrt(|d| (|d| + |d . V|)) (V a unit vector): as
+// |c| -> 1, 1 - |c| would cancel in float32 (and acos' slope there is unbounded), where the cross product keeps its
+// relative precision
+template <class F> TAO_FN void cos_view(const F* delta, const F* V, const F& offset, F& c, F& root) {
+  F d[3], normal[3];
+  for (int k = 0; k < 3; ++k) d[k] = delta[k] - offset * V[k];
+  const F length = clamp_min(norm3(d), F(1e-30f)), along = dot3(d, V);
+  c = along / length;
+  cross(d, V, normal);
+  root = norm3(normal) / sqrt(length * (length + abs(along)));
 }
 
 // HDRP's slice angle -sign(s) fast_acos(c) of a slice whose projected normal makes cosine c and sine s with V
@@ -137,8 +143,11 @@ template <class F>
 TAO_FN void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
                           F& back) {
   if (angles == SectorAngles::hdrp) {
-    front = fast_acos(cos_view(delta, V, F(0.0f)));
-    back = fast_acos(cos_view(delta, V, t));
+    F c, root;
+    cos_view(delta, V, F(0.0f), c, root);
+    front = fast_acos_of_root(c, root);
+    cos_view(delta, V, t, c, root);
+    back = fast_acos_of_root(c, root);
   } else {
     const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T);
     front = atan2(along_tangent, along_view);
@@ -157,11 +166,12 @@ TAO_FN void sample_interval(int turn, const F& front, const F& back, float epsil
   if (epsilon > 0) width = width - F(epsilon);
 }
 
-// d fast_acos(x) / d x as the tensor walk takes it (safe_fast_acos in float64): none where 1 - |x| < 1e-6
-template <class F> TAO_FN F fast_acos_slope(const F& x) {
-  const F ax = abs(x), root = sqrt(clamp_min(F(1.0f) - ax, F(1e-6f)));
-  const F slope = F(-0.156583f) * root - (F(-0.156583f) * ax + F(kHalfPi)) / (F(2.0f) * root);
-  return select(ax <= F(1.0f - 1e-6f), slope, F(0.0f));
+// d fast_acos(x) / d x (given root = sqrt(1 - |x|)) as the tensor walk takes it (safe_fast_acos in float64): none
+// where 1 - |x| < 1e-6
+template <class F> TAO_FN F fast_acos_slope(const F& x, const F& root) {
+  const F ax = abs(x), safe = clamp_min(root, F(1e-3f));
+  const F slope = F(-0.156583f) * safe - (F(-0.156583f) * ax + F(kHalfPi)) / (F(2.0f) * safe);
+  return select(root * root >= F(1e-6f), slope, F(0.0f));
 }
 
 // sample_angles' partial derivatives: of the front and back angles with respect to delta, V and T, of the back
@@ -173,14 +183,16 @@ template <class F>
 TAO_FN AngleSlopes<F> angle_slopes(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t) {
   AngleSlopes<F> sl;
   if (angles == SectorAngles::hdrp) {
-    // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d|, dc/dV = d / |d| - o q, dc/do = -q . V
+    // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d| = ((d x V) x d) / |d|^3 (without
+    // cancellation as |c| -> 1), dc/dV = d / |d| - o q, dc/do = -q . V
     const auto cosine_slopes = [&](const F& o, F* g_delta, F* g_V) {
-      F d[3];
+      F d[3], normal[3], q[3], cv, root;
       for (int c = 0; c < 3; ++c) d[c] = delta[c] - o * V[c];
-      const F length = clamp_min(norm3(d), F(1e-30f)), inv = F(1.0f) / length, cv = dot3(d, V) * inv;
-      const F slope = fast_acos_slope(cv);
-      F q[3];
-      for (int c = 0; c < 3; ++c) q[c] = (V[c] - cv * d[c] * inv) * inv;
+      cos_view(delta, V, o, cv, root);
+      const F inv = F(1.0f) / clamp_min(norm3(d), F(1e-30f)), slope = fast_acos_slope(cv, root);
+      cross(d, V, normal);
+      cross(normal, d, q);
+      for (int c = 0; c < 3; ++c) q[c] = q[c] * inv * inv * inv;  // (left to right: 0 where d is)
       for (int c = 0; c < 3; ++c) g_delta[c] = slope * q[c], g_V[c] = slope * (d[c] * inv - o * q[c]);
       return neg(slope * dot3(q, V));
     };
