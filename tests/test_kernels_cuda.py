@@ -287,11 +287,13 @@ def cases(gb):
     yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True], [0.3], 4, light
     yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True], [0.3], 4, light
     yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False], [0.0], 1, None
-    # soft: ints rounding, cosine, straight-through, the thickness' read; floats offset, epsilon, tau, scale
+    # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1); floats
+    # offset, epsilon, tau, scale
     yield "soft", walk_settings(**common), [0, False, False, 0, 0], [0.5, 0.01, 0.25, 0.0], 1, None
     yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
     yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0], [0.4, 0.01, 0.05, 0.0], 4, None
     yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0], [0.05, 0.01, 0.25, 0.15], 4, None  # linear
+    yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1], [0.4, 0.0, 0.25, 0.0], 4, None
     wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
     table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
     yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
@@ -377,6 +379,7 @@ def _backward_cases():
     yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0], [0.1, 0.01, 0.25, 0.8], 1
     yield "soft", walk_settings(**common), [0, False, False, 2, 0], [0.05, 0.01, 0.25, 1.0], 1
     yield "soft", walk_settings(**common), [0, True, True, 3, 0], [0.1, 0.01, 0.25, 0.05], 1
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1], [0.1, 0.0, 0.25, 0.8], 1  # hdrp
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
