@@ -33,17 +33,23 @@ TAO_FN typename LaneTraits<F>::I sector_bits(const F& s, const F& w, int64_t rou
 // cosine_sector_weights: each sector's share |n_p| int cos(theta - gamma) |sin theta| over it, as
 // H(e_k+1) - H(e_k), H(t) = sign(t) (G(t) - G(0)), G(t) = -cos(2t - gamma) / 4 + t sin(gamma) / 2
 // (ops.arc_measure), edges e_k = gamma - pi/2 + pi k / 32: cos(2 e_k - gamma) = -cos(gamma + pi k / 16)
-template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<F>& sl, Weights& omega) {
-  const F cg = sl.cos_gamma, sg = sl.sin_gamma;
+// (of a slice's angle gamma with its cos and sin, and |n_p|: length)
+template <class F> struct FrameAngle { F gamma, cos_gamma, sin_gamma; };
+template <class F, class Weights>
+TAO_FN void cosine_sector_weights(const FrameAngle<F>& fa, const F& length, Weights& omega) {
+  const F cg = fa.cos_gamma, sg = fa.sin_gamma;
   const F G0 = neg(cg) / F(4.0f);
   F H_prev = F(0.0f);
   for (int k = 0; k <= kSectors; ++k) {
-    const F edge = sl.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
+    const F edge = fa.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
     const F G = (cg * F(kEdgeCos[k]) - sg * F(kEdgeSin[k])) / F(4.0f) + edge * sg / F(2.0f);
     const F H = sign(edge) * (G - G0);
-    if (k > 0) omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * sl.length;
+    if (k > 0) omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * length;
     H_prev = H;
   }
+}
+template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<F>& sl, Weights& omega) {
+  cosine_sector_weights(FrameAngle<F>{sl.gamma, sl.cos_gamma, sl.sin_gamma}, sl.length, omega);
 }
 
 // The thickness at a sample (thickness.ThicknessLayer): t = scale * value + offset, the value by `read`
@@ -124,12 +130,18 @@ template <class F> TAO_FN F hdrp_slice_angle(const F& c, const F& s) {
 enum class SectorAngles : int64_t { plane = 0, hdrp = 1 };
 
 // The walk's slice in the frame the variant's angles are measured in (SectorAccumulator.slice_frame): as walked,
-// or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame)
+// or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame);
+// frame_angle: its angle alone
+template <class F> TAO_FN FrameAngle<F> frame_angle(SectorAngles angles, const Slice<F>& walked) {
+  if (angles != SectorAngles::hdrp) return FrameAngle<F>{walked.gamma, walked.cos_gamma, walked.sin_gamma};
+  const F gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
+  return FrameAngle<F>{gamma, cos(gamma), sin(gamma)};
+}
 template <class F> TAO_FN Slice<F> slice_frame(SectorAngles angles, const Slice<F>& walked) {
   if (angles != SectorAngles::hdrp) return walked;
   Slice<F> sl = walked;
-  sl.gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
-  sl.cos_gamma = cos(sl.gamma), sl.sin_gamma = sin(sl.gamma);
+  const FrameAngle<F> fa = frame_angle(angles, walked);
+  sl.gamma = fa.gamma, sl.cos_gamma = fa.cos_gamma, sl.sin_gamma = fa.sin_gamma;
   for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
   return sl;
 }
@@ -174,44 +186,44 @@ template <class F> TAO_FN F fast_acos_slope(const F& x, const F& root) {
   return select(root * root >= F(1e-6f), slope, F(0.0f));
 }
 
-// sample_angles' partial derivatives: of the front and back angles with respect to delta, V and T, of the back
-// angle with respect to t
-template <class F> struct AngleSlopes {
-  F front_delta[3], front_V[3], front_T[3], back_delta[3], back_V[3], back_T[3], back_t;
-};
+// sample_angles' adjoint: of L with d L / d front = g_front and d L / d back = g_back (the angles), d L / d delta, V
+// and T added to g_delta, g_V and g_T, d L / d t returned (HDRP's angles: safe_fast_acos' slope, none where
+// 1 - |c| < 1e-6)
 template <class F>
-TAO_FN AngleSlopes<F> angle_slopes(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t) {
-  AngleSlopes<F> sl;
+TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t,
+                               const F& g_front, const F& g_back, F* g_delta, F* g_V, F* g_T) {
   if (angles == SectorAngles::hdrp) {
     // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d| = ((d x V) x d) / |d|^3 (without
     // cancellation as |c| -> 1), dc/dV = d / |d| - o q, dc/do = -q . V
-    const auto cosine_slopes = [&](const F& o, F* g_delta, F* g_V) {
-      F d[3], normal[3], q[3], cv, root;
-      for (int c = 0; c < 3; ++c) d[c] = delta[c] - o * V[c];
-      cos_view(delta, V, o, cv, root);
-      const F inv = F(1.0f) / clamp_min(norm3(d), F(1e-30f)), slope = fast_acos_slope(cv, root);
+    const auto add = [&](const F& o, const F& g) {
+      F d[3], normal[3], q[3], c, root;
+      for (int k = 0; k < 3; ++k) d[k] = delta[k] - o * V[k];
+      cos_view(delta, V, o, c, root);
+      const F inv = F(1.0f) / clamp_min(norm3(d), F(1e-30f)), g_c = g * fast_acos_slope(c, root);
       cross(d, V, normal);
       cross(normal, d, q);
-      for (int c = 0; c < 3; ++c) q[c] = q[c] * inv * inv * inv;  // (left to right: 0 where d is)
-      for (int c = 0; c < 3; ++c) g_delta[c] = slope * q[c], g_V[c] = slope * (d[c] * inv - o * q[c]);
-      return neg(slope * dot3(q, V));
+      for (int k = 0; k < 3; ++k) {
+        q[k] = q[k] * inv * inv * inv * g_c;  // (left to right: 0 where d is)
+        g_delta[k] = g_delta[k] + q[k];
+        g_V[k] = g_V[k] + g_c * d[k] * inv - o * q[k];
+      }
+      return neg(dot3(q, V));
     };
-    cosine_slopes(F(0.0f), sl.front_delta, sl.front_V);
-    sl.back_t = cosine_slopes(t, sl.back_delta, sl.back_V);
-    for (int c = 0; c < 3; ++c) sl.front_T[c] = sl.back_T[c] = F(0.0f);
-  } else {  // atan2(y, x): d = (x dy - y dx) / (x^2 + y^2), x = delta . V (- t), y = side delta . T
-    const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T), back_view = along_view - t;
-    const F inv_f = F(1.0f) / fma(along_view, along_view, along_tangent * along_tangent);
-    const F inv_b = F(1.0f) / fma(back_view, back_view, along_tangent * along_tangent);
-    const F fv = neg(along_tangent) * inv_f, ft = along_view * inv_f * F(float(side));
-    const F bv = neg(along_tangent) * inv_b, bt = back_view * inv_b * F(float(side));
-    for (int c = 0; c < 3; ++c) {
-      sl.front_delta[c] = fv * V[c] + ft * T[c], sl.front_V[c] = fv * delta[c], sl.front_T[c] = ft * delta[c];
-      sl.back_delta[c] = bv * V[c] + bt * T[c], sl.back_V[c] = bv * delta[c], sl.back_T[c] = bt * delta[c];
-    }
-    sl.back_t = along_tangent * inv_b;
+    add(F(0.0f), g_front);
+    return add(t, g_back);
   }
-  return sl;
+  // atan2(y, x): d = (x dy - y dx) / (x^2 + y^2), x = delta . V (- t), y = side delta . T
+  const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T), back_view = along_view - t;
+  const F inv_f = g_front / fma(along_view, along_view, along_tangent * along_tangent);
+  const F inv_b = g_back / fma(back_view, back_view, along_tangent * along_tangent);
+  const F g_view = neg((inv_f + inv_b) * along_tangent);
+  const F g_tangent = (along_view * inv_f + back_view * inv_b) * F(float(side));
+  for (int k = 0; k < 3; ++k) {
+    g_delta[k] = g_delta[k] + g_view * V[k] + g_tangent * T[k];
+    g_V[k] = g_V[k] + g_view * delta[k];
+    g_T[k] = g_T[k] + g_tangent * delta[k];
+  }
+  return along_tangent * inv_b;
 }
 
 struct BitmaskAccumulator {

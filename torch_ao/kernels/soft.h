@@ -1,7 +1,7 @@
-// The soft and straight-through visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" variant
-// (mode="soft" / "straight_through") for walk.h: per slice, each step's interval (s, w) in sector units
-// (the same float operations as BitmaskAccumulator, so that the straight-through forward's coverage is
-// the hard one bit for bit), then the soft union of torch_ao.sectors.soft_union per sector k,
+// The soft and straight-through visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" and "hdrp"
+// variants (mode="soft" / "straight_through") for walk.h: per slice (in the variant's frame, bitmask.h's
+// slice_frame), each step's interval (s, w) in sector units (BitmaskAccumulator's sample_angles and
+// sample_interval, so that the straight-through forward's coverage is the hard one bit for bit), then the soft union of torch_ao.sectors.soft_union per sector k,
 //     a = sigmoid((k + 1 - s) / tau),  b = sigmoid((w + F(s) - delta - k) / tau),  g = tanh(w / tau)
 //     P_{m+1} = P_m - a b g P_m           (P_0 = 1; a step with w < 0 is empty)
 // F the smooth floor sum_{m=1..32} sigmoid((s - m) / tau) (over a window of W <= 8 integers around s
@@ -13,17 +13,18 @@
 // scale of the pixel (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
 // runs soft_union's reverse scan per sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
-// whose three sums per step give d/ds, d/dw (soft_union.py derives them); SectorInterval's atan2
-// derivatives give the thickness's gradient, and the fetch's derivative along the step (su, sv move with
+// whose three sums per step give d/ds, d/dw (soft_union.py derives them), so d / d its front and back angles;
+// sample_angles_adjoint (atan2's derivatives, or HDRP's fast_acos(cos_view)'s) gives the thickness's gradient,
+// and the fetch's derivative along the step (su, sv move with
 // the radius through the step placement, and so does a layer's read) the radius's. Straight-through: the hard coverage's visibility
 // with these (the soft union's) gradients.
 //
 // The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
 // value lanes keeping each step's fetch, runs the same reverse scan, and chains each step's d vis / d s,
-// d w by hand: through SectorInterval's atan2 to d / d delta and d / d its thickness (scattered, times the
+// d w by hand: through the angles (sample_angles_adjoint) to d / d delta and d / d its thickness (scattered, times the
 // upstream gradient, to the fetch's taps by the caller's sink: the position's, and the layer's where the model
 // reads one; the linear model's value is the fetched position's depth) and on to the slice's quantities (V, T, P, the screen direction, the
-// span, gamma), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
+// span, gamma: HDRP's through hdrp_slice_angle), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
 // lanes (lanes_dual.h); the cosine weights carry their own tangents.
 #pragma once
 
@@ -241,10 +242,15 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
       dt = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
     }
-    const AngleSlopes<F> slopes = angle_slopes(angles, side, smp.delta, px.V, sl.T, t);
-    st.dfront[m] = dot3(slopes.front_delta, d_pos);
-    st.dback[m] = fma(slopes.back_t, dt, dot3(slopes.back_delta, d_pos));
-    st.back_t[m] = slopes.back_t;
+    // the angles' derivatives along the radius: sample_angles_adjoint of each angle alone
+    F front_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, back_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    F unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    sample_angles_adjoint(angles, side, smp.delta, px.V, sl.T, t, F(1.0f), F(0.0f), front_delta, unused_V, unused_T);
+    const F back_t = sample_angles_adjoint(angles, side, smp.delta, px.V, sl.T, t, F(0.0f), F(1.0f), back_delta,
+                                           unused_V, unused_T);
+    st.dfront[m] = dot3(front_delta, d_pos);
+    st.dback[m] = fma(back_t, dt, dot3(back_delta, d_pos));
+    st.back_t[m] = back_t;
   }
 
   // With gradients: the slice's union over its kept steps, P_m before each step kept in before[m * 32 + k]
@@ -322,9 +328,9 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   // The backward's slice (kAdjoint): the reverse scan's d visibility / d delta of each step, times weight
   // (the upstream gradient over the denominator), goes to sink.scatter(g_delta, st, m, lanes), which
   // chains it to the step's taps; the same adjoints chained by hand through the step (delta = pos(su, sv)
-  // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, av = delta . V, at = side delta
-  // . T, the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the
-  // pixel and slice in dual lanes) sums.num gains, with the cosine weights' own. With camera (the image whose
+  // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, the angles by sample_angles_adjoint,
+  // the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the pixel and slice
+  // in dual lanes; the variant's frame angle from sd) sums.num gains, with the cosine weights' own. With camera (the image whose
   // intrinsics want gradients), also d num / d fx, fy, cx, cy into sums.camera: through the slice's screen motion (du, dv) = (fx a, -fy b) / depth
   // (its direction unit_u, unit_v and the span from its length) and a bilinear fetch's unprojection
   // ((su - cx) / fx, -(sv - cy) / fy) depth
@@ -334,10 +340,10 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
                                 const Image* camera = nullptr) const {
     LaneArray<F, kKept * kSectors> before;
     sweep(st, &before[0]);
-    const Slice<D> frame = slice_frame(angles, sd);  // (gamma's tangents: the shift's and the weights')
+    const FrameAngle<D> frame = frame_angle(angles, sd);  // (the shift's and the weights' gamma, with tangents)
     LaneArray<D, kSectors> omega;  // the weights with their tangents
     for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
-    if (cosine) cosine_sector_weights(frame, omega);
+    if (cosine) cosine_sector_weights(frame, sd.length, omega);
     sums.num = sums.num + visible(st, omega, sums);
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
     F g_shift = F(0.0f);
@@ -345,12 +351,11 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d num / d fx, fy, cx, cy (with camera)
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
-      const AngleSlopes<F> slopes = angle_slopes(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m]);
       const auto valid = st.valid[m];
-      const F g_thickness = g.back * slopes.back_t;
+      F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
+      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m], g.front,
+                                                  g.back, g_delta, g_V, g_T);
       const F g_value = g_thickness * F(thickness.scale);  // d visibility / d the value the scale multiplies
-      F g_delta[3];
-      for (int c = 0; c < 3; ++c) g_delta[c] = g.front * slopes.front_delta[c] + g.back * slopes.back_delta[c];
       if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
         g_delta[2] = g_delta[2] - g_value;
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
@@ -361,8 +366,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       const F g_sv = g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
                      g_value * st.dv_sv[m];
       for (int c = 0; c < 3; ++c) {
-        g_V[c] = g_V[c] + g.front * slopes.front_V[c] + g.back * slopes.back_V[c] - select(valid, F(0.0f), g_delta[c]);
-        g_T[c] = g_T[c] + g.front * slopes.front_T[c] + g.back * slopes.back_T[c];
+        g_V[c] = g_V[c] - select(valid, F(0.0f), g_delta[c]);
         g_P[c] = g_P[c] - select(valid, g_delta[c], F(0.0f));
       }
       placement.add(walk, sl, m < walk.steps ? 1.0f : -1.0f, st.dist[m], g_su, g_sv);
@@ -383,7 +387,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       for (int k = 0; k < 4; ++k) sums.camera[k].v = sums.camera[k].v + select(px.live, g_cam[k], F(0.0f));
     }
     D along = D(placement.unit_u) * sd.unit_u + D(placement.unit_v) * sd.unit_v + D(placement.span) * sd.span +
-              D(g_shift) * edge_shift(frame);
+              D(g_shift) * ((D(kHalfPi) - frame.gamma) / D(kPi));
     for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
     sums.num = sums.num + (along - D(along.v));  // (its tangents only)
   }
