@@ -484,11 +484,11 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "exact", "hard", "indirect",
-                                    "gtao_camera", "ue4ssao", "pssao", "ssao"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard",
+                                    "indirect", "gtao_camera", "ue4ssao", "pssao", "ssao"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
-    back-face layer) and the exact union with the
+    back-face layer; the "hdrp" variant's sector rule and frame) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
     (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
     (tao_backward_wedge, tao_backward_pssao) and SSAO's hemisphere (tao_walk_hemisphere, tao_backward_hemisphere:
@@ -509,6 +509,8 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
                                                  steps=4),
               "soft_backface": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware",
                                                           thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
+              "soft_hdrp": lambda: torch_ao.BitmaskAO(variant="hdrp", mode="soft", weighting="cosine",
+                                                      thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
               "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
                                                   steps=4),
               "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),
