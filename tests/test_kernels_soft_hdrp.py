@@ -12,7 +12,7 @@ import torch
 from kernel_calls import count_kernel_calls
 from test_kernels import FRAMES, built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
 from test_kernels_soft import assert_agrees_with_the_float64_walk
-from test_kernels_soft_gbuffer import assert_gbuffer_gradients_agree
+from test_kernels_soft_gbuffer import assert_central_differences, assert_gbuffer_gradients_agree
 from test_kernels_thickness_layers import SOFT_SETTINGS, assert_layer_agrees, assert_layer_gbuffer_gradients_agree
 from torch_ao.examples import example_gbuffer
 from torch_ao.gbuffer import GBuffer
@@ -60,6 +60,18 @@ def test_a_layer_and_its_gradients_equal_the_float64_tensor_walk(built, model, s
     settings = dict(variant="hdrp", **SOFT_SETTINGS[setting])
     assert_layer_agrees(model, settings, lanes)
     assert_layer_gbuffer_gradients_agree(model, settings, lanes)
+
+
+@pytest.mark.parametrize("mode, weighting", [("soft", "uniform"), ("soft", "cosine"), ("straight_through", "uniform")])
+def test_gradients_match_central_differences(built, mode, weighting):
+    """The kernel's derivative along random directions of depth and normals against central differences of the
+    float64 tensor-op forward (tests/test_kernels_soft_gbuffer.py's check), on the frame of
+    tests/test_kernels_hdrp_grad.py's: no slice there has its normal within 1e-6 of V in cosine, where the tensor walk's
+    safe_fast_acos (and so the kernel) gives HDRP's slice angle no slope and it has one (on the 8 x 10 floor and wall
+    of the default variant's check, whose wall faces the camera, the float64 walk's own autograd is 1.86 along a
+    direction whose central difference is 2.44). Straight-through: with uniform weights (its cosine weights weigh the
+    hard coverage of its forward, so the soft forward's differences are not its gradient there)."""
+    assert_central_differences(rough_gbuffer(20, 28, seed=6), mode, dict(variant="hdrp", weighting=weighting))
 
 
 def test_straight_through_forward_is_the_hard_kernels_visibility_bit_for_bit(built):
