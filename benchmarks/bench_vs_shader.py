@@ -224,6 +224,18 @@ def _cases() -> dict[str, Case]:
             "`BitmaskAO` hard, variant `hdrp`, cosine fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="hard", variant="hdrp", weighting="cosine", backend="torch", **s),
             "gbuffer", "cosine_hdrp", 3.0, kernel=False),
+        "soft_hdrp_parameters": Case("soft `BitmaskAO`, variant `hdrp` fwd+bwd, radius + thickness",
+                                     bitmask(mode="soft", variant="hdrp"), "parameters", "bitmask_hdrp", 3.0),
+        "soft_hdrp_parameters_torch": Case(
+            "soft `BitmaskAO`, variant `hdrp` fwd+bwd, radius + thickness, tensor ops",
+            lambda s: torch_ao.BitmaskAO(mode="soft", variant="hdrp", backend="torch", **s), "parameters",
+            "bitmask_hdrp", 3.0, kernel=False),
+        "soft_hdrp_gbuffer": Case("soft `BitmaskAO`, variant `hdrp` fwd+bwd, depth + normals",
+                                  bitmask(mode="soft", variant="hdrp"), "gbuffer", "bitmask_hdrp", 3.0),
+        "soft_hdrp_gbuffer_torch": Case(
+            "soft `BitmaskAO`, variant `hdrp` fwd+bwd, depth + normals, tensor ops",
+            lambda s: torch_ao.BitmaskAO(mode="soft", variant="hdrp", backend="torch", **s), "gbuffer",
+            "bitmask_hdrp", 3.0, kernel=False),
         "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
             mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
         "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(

@@ -44,7 +44,7 @@ def kernel_of(module: BitmaskAO, gb: GBuffer, lanes: str = "simd") -> torch.Tens
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch,
                         border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
-                        lanes=lanes)
+                        variant=module.variant, lanes=lanes)
 
 
 FRAMES = {

@@ -290,11 +290,13 @@ def cases(gb):
     yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0, 0.0], 4, light
     yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1, 0.4], 4, light
     yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0, 0.0], 1, None
-    # soft: ints rounding, cosine, straight-through, the thickness' read; floats offset, epsilon, tau, scale
-    yield "soft", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 1, None
-    yield "soft_gradients", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0], [0.4, 0.01, 0.05, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**common), [0, True, False, 3], [0.05, 0.01, 0.25, 0.15], 4, None  # linear
+    # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1); floats
+    # offset, epsilon, tau, scale
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0], [0.5, 0.01, 0.25, 0.0], 1, None
+    yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0], [0.4, 0.01, 0.05, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0], [0.05, 0.01, 0.25, 0.15], 4, None  # linear
+    yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1], [0.4, 0.0, 0.25, 0.0], 4, None
     wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
     table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
     yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
@@ -373,13 +375,14 @@ def _backward_cases():
     yield "hemisphere", _hemisphere_settings(6, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     yield "hemisphere", _hemisphere_settings(5, fetch="nearest", border="clamp", jitter=False), [], [0.01, 0.1], 1
     yield "hemisphere", _hemisphere_settings(6, fetch="edge_aware", border="clamp", jitter=True), [], [0.0, 0.05], 1
-    yield "soft", walk_settings(**common), [0, False, False, 0], [0.5, 0.01, 0.25, 0.0], 1  # (rounding, cosine, straight, read)
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0], [0.4, 0.01, 0.1, 0.0], 1
-    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0], [0.5, 0.0, 0.3, 0.0], 1
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0], [0.5, 0.01, 0.25, 0.0], 1  # (rounding, cosine, straight, read)
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0], [0.4, 0.01, 0.1, 0.0], 1
+    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0, 0], [0.5, 0.0, 0.3, 0.0], 1
     # (offset, epsilon, tau, scale): the back-face layer, a per-object table's first tap, the linear model
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1], [0.1, 0.01, 0.25, 0.8], 1
-    yield "soft", walk_settings(**common), [0, False, False, 2], [0.05, 0.01, 0.25, 1.0], 1
-    yield "soft", walk_settings(**common), [0, True, True, 3], [0.1, 0.01, 0.25, 0.05], 1
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0], [0.1, 0.01, 0.25, 0.8], 1
+    yield "soft", walk_settings(**common), [0, False, False, 2, 0], [0.05, 0.01, 0.25, 1.0], 1
+    yield "soft", walk_settings(**common), [0, True, True, 3, 0], [0.1, 0.01, 0.25, 0.05], 1
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1], [0.1, 0.0, 0.25, 0.8], 1  # hdrp
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
@@ -486,11 +489,11 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "exact", "hard", "indirect",
-                                    "gtao_camera", "ue4ssao", "pssao", "ssao"])
+@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard",
+                                    "indirect", "gtao_camera", "ue4ssao", "pssao", "ssao"])
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
-    back-face layer) and the exact union with the
+    back-face layer; the "hdrp" variant's sector rule and frame) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
     (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
     (tao_backward_wedge, tao_backward_pssao) and SSAO's hemisphere (tao_walk_hemisphere, tao_backward_hemisphere:
@@ -511,6 +514,8 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
                                                  steps=4),
               "soft_backface": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware",
                                                           thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
+              "soft_hdrp": lambda: torch_ao.BitmaskAO(variant="hdrp", mode="soft", weighting="cosine",
+                                                      thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
               "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
                                                   steps=4),
               "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),

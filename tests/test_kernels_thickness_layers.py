@@ -215,7 +215,8 @@ def _soft_kernel(module, gb: GBuffer, lanes: str, names):
                        thickness=form.offset, layer=form.layer, layer_scale=form.scale, thickness_read=form.read,
                        tau=module.tau, weighting=module.weighting, straight_through=module.mode != "soft",
                        min_step_px=module.min_step_px, fetch=module.fetch, border=module.border,
-                       rounding=module.rounding, sector_epsilon=module.sector_epsilon, lanes=lanes)
+                       rounding=module.rounding, sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
+                       variant=module.variant, lanes=lanes)
     weights = torch.linspace(0.5, 1.5, vis.numel(), dtype=vis.dtype).view_as(vis)
     grads = torch.autograd.grad((vis * weights).sum(), [getattr(module, n) for n in names], allow_unused=True)
     return vis.detach(), [torch.zeros(()) if g is None else g for g in grads]
@@ -228,9 +229,15 @@ def test_soft_kernel_reads_the_layer_and_differentiates_its_scale_as_the_float64
                                                                                               lanes):
     """Values within 1e-5 (a straight-through forward: within one sector of one slice) and the gradients of the
     radius, the model's scale and offset within 1e-4 relative of the float64 tensor walk's autograd."""
+    assert_layer_agrees(model, SOFT_SETTINGS[setting], lanes)
+
+
+def assert_layer_agrees(model: str, settings: dict, lanes: str) -> dict:
+    """The soft kernel with thickness model ``model`` (SOFT_LAYERS) in ``lanes``: values and the gradients of the
+    model's parameters against the float64 tensor walk's (the tolerances of the test above); the largest errors
+    measured (value, relative gradients)."""
     gb = _backface(FRAMES["rough"]())
     make, names = SOFT_LAYERS[model]
-    settings = SOFT_SETTINGS[setting]
     reference = BitmaskAO(thickness=make(), backend="torch", **settings).double()
     g64 = gb.to(dtype=torch.float64)
     want = reference(g64).visibility
@@ -248,6 +255,8 @@ def test_soft_kernel_reads_the_layer_and_differentiates_its_scale_as_the_float64
     for name, g, w in zip(names, got_grads, want_grads):
         assert abs(float(w)) > 1e-3 or (name == "radius" and settings["fetch"] == "nearest"), (name, float(w))
         assert abs(float(g) - float(w)) <= 1e-4 * abs(float(w)) + 1e-6, (name, float(g), float(w))
+    return {"value": float((got.double() - want.detach()).abs().max()),
+            **{name: abs(float(g) - float(w)) / max(abs(float(w)), 1e-30) for name, g, w in zip(names, got_grads, want_grads)}}
 
 
 def test_soft_kernel_layer_matters_and_its_scale_gradient_matches_finite_differences(built):
@@ -301,7 +310,8 @@ def _soft_gbuffer_grads(model: str, settings: dict, dtype: torch.dtype, lanes: s
                            thickness=form.offset, layer=form.layer, layer_scale=form.scale, thickness_read=form.read,
                            tau=module.tau, weighting=module.weighting, straight_through=module.mode != "soft",
                            min_step_px=module.min_step_px, fetch=module.fetch, border=module.border,
-                           rounding=module.rounding, sector_epsilon=module.sector_epsilon, lanes=lanes)
+                           rounding=module.rounding, sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
+                           variant=module.variant, lanes=lanes)
     weights = torch.linspace(0.5, 1.5, vis.numel(), dtype=dtype).view_as(vis)
     leaves = {"depth": depth, "normals": normals, "backface_depth": back,
               **{n: getattr(module, n) for n in names},
@@ -319,11 +329,17 @@ def test_soft_kernel_differentiates_the_gbuffer_and_the_layer_as_the_float64_ten
     at the first tap) or the sample's depth, the soft kernel's G-buffer backward: d / d depth, normals and the
     back-face depth, the model's parameters (the map and the table themselves) and the net's weights within 1e-4
     relative of the float64 tensor walk's autograd (soft, and straight-through: the soft union's gradients)."""
-    settings = SOFT_SETTINGS[setting]
+    assert_layer_gbuffer_gradients_agree(model, SOFT_SETTINGS[setting], lanes)
+
+
+def assert_layer_gbuffer_gradients_agree(model: str, settings: dict, lanes: str) -> dict:
+    """The soft kernel's G-buffer backward with thickness model ``model`` (SOFT_GBUFFER_MODELS) in ``lanes`` against
+    the float64 tensor walk's autograd (the tolerances of the test above); the largest relative errors measured."""
     want_vis, want = _soft_gbuffer_grads(model, settings, torch.float64, None)
     got_vis, got = _soft_gbuffer_grads(model, settings, torch.float32, lanes)
     if settings["mode"] == "soft":
         assert (got_vis - want_vis).abs().max() <= 1e-5
+    errors = {"value": float((got_vis - want_vis).abs().max())}
     for name, w in want.items():
         g = got[name]
         finite = torch.isfinite(w)
@@ -335,6 +351,8 @@ def test_soft_kernel_differentiates_the_gbuffer_and_the_layer_as_the_float64_ten
         assert w[finite].abs().max() > 1e-4, name  # (each gradient means something)
         error = float((g - w)[finite].norm() / w[finite].norm())
         assert error <= 1e-4, (name, error)
+        errors[name] = error
+    return errors
 
 
 def test_soft_kernel_gbuffer_gradients_with_a_layer_match_finite_differences(built):

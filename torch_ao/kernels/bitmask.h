@@ -33,17 +33,23 @@ TAO_FN typename LaneTraits<F>::I sector_bits(const F& s, const F& w, int64_t rou
 // cosine_sector_weights: each sector's share |n_p| int cos(theta - gamma) |sin theta| over it, as
 // H(e_k+1) - H(e_k), H(t) = sign(t) (G(t) - G(0)), G(t) = -cos(2t - gamma) / 4 + t sin(gamma) / 2
 // (ops.arc_measure), edges e_k = gamma - pi/2 + pi k / 32: cos(2 e_k - gamma) = -cos(gamma + pi k / 16)
-template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<F>& sl, Weights& omega) {
-  const F cg = sl.cos_gamma, sg = sl.sin_gamma;
+// (of a slice's angle gamma with its cos and sin, and |n_p|: length)
+template <class F> struct FrameAngle { F gamma, cos_gamma, sin_gamma; };
+template <class F, class Weights>
+TAO_FN void cosine_sector_weights(const FrameAngle<F>& fa, const F& length, Weights& omega) {
+  const F cg = fa.cos_gamma, sg = fa.sin_gamma;
   const F G0 = neg(cg) / F(4.0f);
   F H_prev = F(0.0f);
   for (int k = 0; k <= kSectors; ++k) {
-    const F edge = sl.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
+    const F edge = fa.gamma - F(kHalfPi) + F(kPi * float(k) / float(kSectors));
     const F G = (cg * F(kEdgeCos[k]) - sg * F(kEdgeSin[k])) / F(4.0f) + edge * sg / F(2.0f);
     const F H = sign(edge) * (G - G0);
-    if (k > 0) omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * sl.length;
+    if (k > 0) omega[k - 1] = clamp_min(H - H_prev, F(0.0f)) * length;
     H_prev = H;
   }
+}
+template <class F, class Weights> TAO_FN void cosine_sector_weights(const Slice<F>& sl, Weights& omega) {
+  cosine_sector_weights(FrameAngle<F>{sl.gamma, sl.cos_gamma, sl.sin_gamma}, sl.length, omega);
 }
 
 // The thickness at a sample (thickness.ThicknessLayer): t = scale * value + offset, the value by `read`
@@ -97,11 +103,17 @@ struct ThicknessModel {
 // (the sector rule's shift: a sample's angle from the view vector, times side / pi, plus this)
 template <class F> TAO_FN F edge_shift(const Slice<F>& sl) { return (F(kHalfPi) - sl.gamma) / F(kPi); }
 
-// Sample.cos_view: dot(normalize(delta - offset V), V), the shaders' horizon cosine (3D, not projected)
-template <class F> TAO_FN F cos_view(const F* delta, const F* V, const F& offset) {
-  F d[3];
-  for (int c = 0; c < 3; ++c) d[c] = delta[c] - offset * V[c];
-  return dot3(d, V) / clamp_min(norm3(d), F(1e-30f));
+// Sample.cos_view: c = dot(normalize(d), V), d = delta - offset V, the shaders' horizon cosine (3D, not projected),
+// with root = sqrt(1 - |c|) for fast_acos_of_root taken as |d x V| / sqrt(|d| (|d| + |d . V|)) (V a unit vector): as
+// |c| -> 1, 1 - |c| would cancel in float32 (and acos' slope there is unbounded), where the cross product keeps its
+// relative precision
+template <class F> TAO_FN void cos_view(const F* delta, const F* V, const F& offset, F& c, F& root) {
+  F d[3], normal[3];
+  for (int k = 0; k < 3; ++k) d[k] = delta[k] - offset * V[k];
+  const F length = clamp_min(norm3(d), F(1e-30f)), along = dot3(d, V);
+  c = along / length;
+  cross(d, V, normal);
+  root = norm3(normal) / sqrt(length * (length + abs(along)));
 }
 
 // HDRP's slice angle -sign(s) fast_acos(c) of a slice whose projected normal makes cosine c and sine s with V
@@ -118,6 +130,103 @@ template <class F> TAO_FN F hdrp_slice_angle(const F& c, const F& s) {
 // Which published rule measures a sample's angles (methods/bitmask.py's accumulators): variant "default"'s exact
 // in-plane atan2 from V toward +T, or "hdrp"'s 3D cosines through fast_acos, from V toward -T
 enum class SectorAngles : int64_t { plane = 0, hdrp = 1 };
+
+// The walk's slice in the frame the variant's angles are measured in (SectorAccumulator.slice_frame): as walked,
+// or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame);
+// frame_angle: its angle alone
+template <class F> TAO_FN FrameAngle<F> frame_angle(SectorAngles angles, const Slice<F>& walked) {
+  if (angles != SectorAngles::hdrp) return FrameAngle<F>{walked.gamma, walked.cos_gamma, walked.sin_gamma};
+  const F gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
+  return FrameAngle<F>{gamma, cos(gamma), sin(gamma)};
+}
+template <class F> TAO_FN Slice<F> slice_frame(SectorAngles angles, const Slice<F>& walked) {
+  if (angles != SectorAngles::hdrp) return walked;
+  Slice<F> sl = walked;
+  const FrameAngle<F> fa = frame_angle(angles, walked);
+  sl.gamma = fa.gamma, sl.cos_gamma = fa.cos_gamma, sl.sin_gamma = fa.sin_gamma;
+  for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
+  return sl;
+}
+
+// The side of the frame's tangent a sample on the walk's side lies toward (HDRP's tangent is -T: its yx swap)
+TAO_FN int sector_turn(SectorAngles angles, int side) { return angles == SectorAngles::hdrp ? -side : side; }
+
+// The sector rule's angles of a sample at delta with thickness t on the walk's side: its front (delta) and back
+// (delta - t V) seen from the pixel, from V toward the frame's tangent on sector_turn's side (T: the walked slice's)
+template <class F>
+TAO_FN void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
+                          F& back) {
+  if (angles == SectorAngles::hdrp) {
+    F c, root;
+    cos_view(delta, V, F(0.0f), c, root);
+    front = fast_acos_of_root(c, root);
+    cos_view(delta, V, t, c, root);
+    back = fast_acos_of_root(c, root);
+  } else {
+    const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T);
+    front = atan2(along_tangent, along_view);
+    back = atan2(along_tangent, along_view - t);
+  }
+}
+
+// The interval (start s, width w) in sector units between a sample's front and back positions (fractions of the
+// hemisphere from its edge: the angles times turn / pi plus the edge's shift), each clamped to it
+template <class F>
+TAO_FN void sample_interval(int turn, const F& front, const F& back, float epsilon, F& start, F& width) {
+  const F f = clamp(front, F(0.0f), F(1.0f)), b = clamp(back, F(0.0f), F(1.0f));
+  const F lo = turn > 0 ? f : b, hi = turn > 0 ? b : f;
+  start = lo * F(float(kSectors));
+  width = (hi - lo) * F(float(kSectors));
+  if (epsilon > 0) width = width - F(epsilon);
+}
+
+// d fast_acos(x) / d x (given root = sqrt(1 - |x|)) as the tensor walk takes it (safe_fast_acos in float64): none
+// where 1 - |x| < 1e-6
+template <class F> TAO_FN F fast_acos_slope(const F& x, const F& root) {
+  const F ax = abs(x), safe = clamp_min(root, F(1e-3f));
+  const F slope = F(-0.156583f) * safe - (F(-0.156583f) * ax + F(kHalfPi)) / (F(2.0f) * safe);
+  return select(root * root >= F(1e-6f), slope, F(0.0f));
+}
+
+// sample_angles' adjoint: of L with d L / d front = g_front and d L / d back = g_back (the angles), d L / d delta, V
+// and T added to g_delta, g_V and g_T, d L / d t returned (HDRP's angles: safe_fast_acos' slope, none where
+// 1 - |c| < 1e-6)
+template <class F>
+TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t,
+                               const F& g_front, const F& g_back, F* g_delta, F* g_V, F* g_T) {
+  if (angles == SectorAngles::hdrp) {
+    // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d| = ((d x V) x d) / |d|^3 (without
+    // cancellation as |c| -> 1), dc/dV = d / |d| - o q, dc/do = -q . V
+    const auto add = [&](const F& o, const F& g) {
+      F d[3], normal[3], q[3], c, root;
+      for (int k = 0; k < 3; ++k) d[k] = delta[k] - o * V[k];
+      cos_view(delta, V, o, c, root);
+      const F inv = F(1.0f) / clamp_min(norm3(d), F(1e-30f)), g_c = g * fast_acos_slope(c, root);
+      cross(d, V, normal);
+      cross(normal, d, q);
+      for (int k = 0; k < 3; ++k) {
+        q[k] = q[k] * inv * inv * inv * g_c;  // (left to right: 0 where d is)
+        g_delta[k] = g_delta[k] + q[k];
+        g_V[k] = g_V[k] + g_c * d[k] * inv - o * q[k];
+      }
+      return neg(dot3(q, V));
+    };
+    add(F(0.0f), g_front);
+    return add(t, g_back);
+  }
+  // atan2(y, x): d = (x dy - y dx) / (x^2 + y^2), x = delta . V (- t), y = side delta . T
+  const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T), back_view = along_view - t;
+  const F inv_f = g_front / fma(along_view, along_view, along_tangent * along_tangent);
+  const F inv_b = g_back / fma(back_view, back_view, along_tangent * along_tangent);
+  const F g_view = neg((inv_f + inv_b) * along_tangent);
+  const F g_tangent = (along_view * inv_f + back_view * inv_b) * F(float(side));
+  for (int k = 0; k < 3; ++k) {
+    g_delta[k] = g_delta[k] + g_view * V[k] + g_tangent * T[k];
+    g_V[k] = g_V[k] + g_view * delta[k];
+    g_T[k] = g_T[k] + g_tangent * delta[k];
+  }
+  return along_tangent * inv_b;
+}
 
 struct BitmaskAccumulator {
   int64_t slices;
@@ -140,16 +249,8 @@ struct BitmaskAccumulator {
   TAO_FN int channels() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
   TAO_FN bool weighted() const { return cosine || bent; }
 
-  // The walk's slice in the frame the variant's angles are measured in (SectorAccumulator.slice_frame): as walked,
-  // or HDRP's gamma = -sign(n_p . T) fast_acos(cos_n) from V toward the tangent -T (HDRPAccumulator.slice_frame)
-  template <class F> TAO_FN Slice<F> frame(const Slice<F>& walked) const {
-    if (angles != SectorAngles::hdrp) return walked;
-    Slice<F> sl = walked;
-    sl.gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
-    sl.cos_gamma = cos(sl.gamma), sl.sin_gamma = sin(sl.gamma);
-    for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
-    return sl;
-  }
+  // the walk's slice in the frame the variant's angles are measured in (slice_frame)
+  template <class F> TAO_FN Slice<F> frame(const Slice<F>& walked) const { return slice_frame(angles, walked); }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& walked) const {
     const Slice<F> sl = frame(walked);
@@ -170,23 +271,12 @@ struct BitmaskAccumulator {
     using I = typename LaneTraits<F>::I;
     // the sector rule: the sample's front (delta) and back (delta - thickness V) seen from the pixel,
     // as fractions of the hemisphere from its edge on the frame's side -1
-    const int turn = angles == SectorAngles::hdrp ? -side : side;  // (HDRP's tangent is -T: its yx swap)
+    const int turn = sector_turn(angles, side);
     const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
-    F front_angle, back_angle;
-    if (angles == SectorAngles::hdrp) {
-      front_angle = fast_acos(cos_view(smp.delta, px.V, F(0.0f)));
-      back_angle = fast_acos(cos_view(smp.delta, px.V, t));
-    } else {
-      const F along_view = dot3(smp.delta, px.V), along_tangent = F(float(side)) * dot3(smp.delta, sl.T);
-      front_angle = atan2(along_tangent, along_view);
-      back_angle = atan2(along_tangent, along_view - t);
-    }
-    const F front = clamp(fma(front_angle, scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(back_angle, scale, st.shift), F(0.0f), F(1.0f));
-    const F lo = turn > 0 ? front : back, hi = turn > 0 ? back : front;
-    F width = (hi - lo) * F(float(kSectors));
-    if (epsilon > 0) width = width - F(epsilon);
-    const I bits = sector_bits(lo * F(float(kSectors)), width, rounding);
+    F front_angle, back_angle, start, width;
+    sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
+    sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
+    const I bits = sector_bits(start, width, rounding);
     if (indirect) {  // SectorAccumulator.step: the light the sample sends, times the share it newly occludes
       F sender_n[3], light[3], sent[3];
       for (int c = 0; c < 3; ++c) sender_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);

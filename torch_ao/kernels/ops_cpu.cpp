@@ -125,7 +125,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 "placement over one slice, one side");
     run(unpack_hemisphere(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
-    packed(4, 4);
+    packed(5, 4);
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
     TORCH_CHECK(i[1] <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");

@@ -1,7 +1,7 @@
-// The soft and straight-through visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" variant
-// (mode="soft" / "straight_through") for walk.h: per slice, each step's interval (s, w) in sector units
-// (the same float operations as BitmaskAccumulator, so that the straight-through forward's coverage is
-// the hard one bit for bit), then the soft union of torch_ao.sectors.soft_union per sector k,
+// The soft and straight-through visibility-bitmask accumulator of torch_ao.BitmaskAO's "default" and "hdrp"
+// variants (mode="soft" / "straight_through") for walk.h: per slice (in the variant's frame, bitmask.h's
+// slice_frame), each step's interval (s, w) in sector units (BitmaskAccumulator's sample_angles and
+// sample_interval, so that the straight-through forward's coverage is the hard one bit for bit), then the soft union of torch_ao.sectors.soft_union per sector k,
 //     a = sigmoid((k + 1 - s) / tau),  b = sigmoid((w + F(s) - delta - k) / tau),  g = tanh(w / tau)
 //     P_{m+1} = P_m - a b g P_m           (P_0 = 1; a step with w < 0 is empty)
 // F the smooth floor sum_{m=1..32} sigmoid((s - m) / tau) (over a window of W <= 8 integers around s
@@ -13,17 +13,18 @@
 // scale of the pixel (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
 // runs soft_union's reverse scan per sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
-// whose three sums per step give d/ds, d/dw (soft_union.py derives them); SectorInterval's atan2
-// derivatives give the thickness's gradient, and the fetch's derivative along the step (su, sv move with
+// whose three sums per step give d/ds, d/dw (soft_union.py derives them), so d / d its front and back angles;
+// sample_angles_adjoint (atan2's derivatives, or HDRP's fast_acos(cos_view)'s) gives the thickness's gradient,
+// and the fetch's derivative along the step (su, sv move with
 // the radius through the step placement, and so does a layer's read) the radius's. Straight-through: the hard coverage's visibility
 // with these (the soft union's) gradients.
 //
 // The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
 // value lanes keeping each step's fetch, runs the same reverse scan, and chains each step's d vis / d s,
-// d w by hand: through SectorInterval's atan2 to d / d delta and d / d its thickness (scattered, times the
+// d w by hand: through the angles (sample_angles_adjoint) to d / d delta and d / d its thickness (scattered, times the
 // upstream gradient, to the fetch's taps by the caller's sink: the position's, and the layer's where the model
 // reads one; the linear model's value is the fetched position's depth) and on to the slice's quantities (V, T, P, the screen direction, the
-// span, gamma), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
+// span, gamma: HDRP's through hdrp_slice_angle), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
 // lanes (lanes_dual.h); the cosine weights carry their own tangents.
 #pragma once
 
@@ -97,6 +98,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   int64_t rounding;
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
   bool windowed, cosine, straight_through;
+  SectorAngles angles;  // the variant's rule (bitmask.h's sample_angles, in slice_frame's frame)
   static constexpr int kKept = kGradients ? kSoftMaxSteps : 1;  // steps kept per slice
   // whether the sweep keeps each step's coverage for the reverse scan (64 logistics a step, else computed again):
   // the CPU's do (a slice's are L2-resident), a CUDA thread's forward recomputes them (its local memory is
@@ -115,9 +117,10 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     F shift;
     LaneArray<F, kSectors> omega, P;
     int n;
-    // with gradients: each step's interval, its angles' coordinates and their derivatives along the radius, its
-    // thickness t, the value its scale multiplies and d t along the radius
-    LaneArray<F, kKept> s, w, av, at, dav, dat, t, tv, dt;
+    // with gradients: each step's interval, its front and back positions (before their clamps), its thickness t
+    // and the value its scale multiplies; without kAdjoint, its angles' derivatives along the radius and d back
+    // angle / d t
+    LaneArray<F, kKept> s, w, front, back, t, tv, dfront, dback, back_t;
     // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
     // pixels, d position / d su, d sv and d / d su, d sv of a layer's read (ThicknessModel::layer_slope)
     LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3], dv_su, dv_sv;
@@ -129,9 +132,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f);
     F camera[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // the backward's d num / d fx, fy, cx, cy (values only)
   };
-  // d visibility / d of one step's s and w, of its angles' coordinates av, at, of the slice's shift; d / d its
-  // thickness t
-  template <class B> struct StepAdjoint { B s, w, av, at, shift, thickness; };
+  // d visibility / d of one step's s and w, of its front and back angles, of the slice's shift
+  template <class B> struct StepAdjoint { B s, w, front, back, shift; };
   TAO_FN int channels() const { return kGradients ? 4 : 1; }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
@@ -187,7 +189,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     }
   }
 
-  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
+  template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& walked) const {
+    const Slice<F> sl = slice_frame(angles, walked);
     State<F> st;
     st.occ = typename LaneTraits<F>::I(0);
     st.shift = edge_shift(sl);
@@ -199,14 +202,12 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
 
   template <class F>
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
-    const F scale = F(float(side) / kPi);
-    const F av = dot3(smp.delta, px.V), at = F(float(side)) * dot3(smp.delta, sl.T), t = thickness.at(px, smp);
-    const F front = clamp(fma(atan2(at, av), scale, st.shift), F(0.0f), F(1.0f));
-    const F back = clamp(fma(atan2(at, av - t), scale, st.shift), F(0.0f), F(1.0f));
-    const F lo = side > 0 ? front : back, hi = side > 0 ? back : front;
-    const F s = lo * F(float(kSectors));
-    F w = (hi - lo) * F(float(kSectors));
-    if (epsilon > 0) w = w - F(epsilon);
+    const int turn = sector_turn(angles, side);
+    const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
+    F front_angle, back_angle, s, w;
+    sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
+    const F front = fma(front_angle, scale, st.shift), back = fma(back_angle, scale, st.shift);
+    sample_interval(turn, front, back, epsilon, s, w);
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
     if (straight_through) st.occ = st.occ | sector_bits(s, w, rounding);
     if (!kGradients) {
@@ -214,7 +215,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       return;
     }
     const int m = st.n++;
-    st.s[m] = s, st.w[m] = w, st.av[m] = av, st.at[m] = at, st.t[m] = t, st.tv[m] = thickness.value(px, smp);
+    st.s[m] = s, st.w[m] = w, st.front[m] = front, st.back[m] = back, st.t[m] = t, st.tv[m] = thickness.value(px, smp);
     F d_su[3] = {F(0.0f), F(0.0f), F(0.0f)}, d_sv[3] = {F(0.0f), F(0.0f), F(0.0f)};
     const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), m % walk.steps);
     const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
@@ -234,16 +235,22 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       return;
     }
     // the sample's motion along the radius: dist' = frac span', span = radius_px - min_step_px (>= 0)
-    F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    st.dt[m] = F(0.0f);
+    F d_pos[3] = {F(0.0f), F(0.0f), F(0.0f)}, dt = F(0.0f);
     if (moves) {
       F dsu, dsv;
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
-      st.dt[m] = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
+      dt = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
     }
-    st.dav[m] = dot3(d_pos, px.V);
-    st.dat[m] = F(float(side)) * dot3(d_pos, sl.T);
+    // the angles' derivatives along the radius: sample_angles_adjoint of each angle alone
+    F front_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, back_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    F unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    sample_angles_adjoint(angles, side, smp.delta, px.V, sl.T, t, F(1.0f), F(0.0f), front_delta, unused_V, unused_T);
+    const F back_t = sample_angles_adjoint(angles, side, smp.delta, px.V, sl.T, t, F(0.0f), F(1.0f), back_delta,
+                                           unused_V, unused_T);
+    st.dfront[m] = dot3(front_delta, d_pos);
+    st.dback[m] = fma(back_t, dt, dot3(back_delta, d_pos));
+    st.back_t[m] = back_t;
   }
 
   // With gradients: the slice's union over its kept steps, P_m before each step kept in before[m * 32 + k]
@@ -294,19 +301,12 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       adj.w = select(live, ((g * g - F(1.0f)) * sum_y - g * not_b) * F(inv_tau), F(0.0f));
       adj.s = select(live, (not_b * cv.slope - sum_y + sum_ya) * g * F(-inv_tau), F(0.0f));
       // SectorInterval.backward: s = 32 lo, w = 32 (hi - lo) - epsilon, the clamps pass inside [0, 1]
-      const int side = m < walk.steps ? 1 : -1;
-      const F scale = F(float(side) / kPi);
-      const F av = st.av[m], at = st.at[m], bv = av - st.t[m];
-      const F front = fma(atan2(at, av), scale, st.shift), back = fma(atan2(at, bv), scale, st.shift);
+      const int turn = sector_turn(angles, m < walk.steps ? 1 : -1);
       const F g_lo = (adj.s - adj.w) * F(float(kSectors)), g_hi = adj.w * F(float(kSectors));
-      F g_f = side > 0 ? g_lo : g_hi, g_b = side > 0 ? g_hi : g_lo;
-      g_f = select(land(front >= F(0.0f), front <= F(1.0f)), g_f, F(0.0f));
-      g_b = select(land(back >= F(0.0f), back <= F(1.0f)), g_b, F(0.0f));
-      // theta = atan2(y, x): d theta = (x dy - y dx) / (x^2 + y^2)
-      const F inv_f = g_f * scale / fma(av, av, at * at);
-      const F inv_b = g_b * scale / fma(bv, bv, at * at);
-      adj.at = av * inv_f + bv * inv_b, adj.av = neg((inv_f + inv_b) * at);
-      adj.shift = g_f + g_b, adj.thickness = at * inv_b;
+      const F front = st.front[m], back = st.back[m];
+      const F g_f = select(land(front >= F(0.0f), front <= F(1.0f)), turn > 0 ? g_lo : g_hi, F(0.0f));
+      const F g_b = select(land(back >= F(0.0f), back <= F(1.0f)), turn > 0 ? g_hi : g_lo, F(0.0f));
+      adj.front = g_f * F(float(turn) / kPi), adj.back = g_b * F(float(turn) / kPi), adj.shift = g_f + g_b;
       fn(m, adj);
     }
   }
@@ -318,19 +318,19 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     sums.num = sums.num + visible(st, st.omega, sums);
     if (!kGradients) return;
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
-      const F g_t = select(px.live, g.thickness, F(0.0f));
+      const F g_t = select(px.live, g.back * st.back_t[m], F(0.0f));
       sums.thickness = sums.thickness + g_t;
       sums.scale = sums.scale + g_t * st.tv[m];
-      sums.radius = sums.radius + select(px.live, g.av * st.dav[m] + g.at * st.dat[m] + g.thickness * st.dt[m], F(0.0f));
+      sums.radius = sums.radius + select(px.live, g.front * st.dfront[m] + g.back * st.dback[m], F(0.0f));
     });
   }
 
   // The backward's slice (kAdjoint): the reverse scan's d visibility / d delta of each step, times weight
   // (the upstream gradient over the denominator), goes to sink.scatter(g_delta, st, m, lanes), which
   // chains it to the step's taps; the same adjoints chained by hand through the step (delta = pos(su, sv)
-  // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, av = delta . V, at = side delta
-  // . T, the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the
-  // pixel and slice in dual lanes) sums.num gains, with the cosine weights' own. With camera (the image whose
+  // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, the angles by sample_angles_adjoint,
+  // the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the pixel and slice
+  // in dual lanes; the variant's frame angle from sd) sums.num gains, with the cosine weights' own. With camera (the image whose
   // intrinsics want gradients), also d num / d fx, fy, cx, cy into sums.camera: through the slice's screen motion (du, dv) = (fx a, -fy b) / depth
   // (its direction unit_u, unit_v and the span from its length) and a bilinear fetch's unprojection
   // ((su - cx) / fx, -(sv - cy) / fy) depth
@@ -340,20 +340,22 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
                                 const Image* camera = nullptr) const {
     LaneArray<F, kKept * kSectors> before;
     sweep(st, &before[0]);
+    const FrameAngle<D> frame = frame_angle(angles, sd);  // (the shift's and the weights' gamma, with tangents)
     LaneArray<D, kSectors> omega;  // the weights with their tangents
     for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
-    if (cosine) cosine_sector_weights(sd, omega);
+    if (cosine) cosine_sector_weights(frame, sd.length, omega);
     sums.num = sums.num + visible(st, omega, sums);
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
     F g_shift = F(0.0f);
     PlacementAdjoint<F> placement;
     F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d num / d fx, fy, cx, cy (with camera)
     reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
-      const F side = F(m < walk.steps ? 1.0f : -1.0f), g_dt = g.at * side;  // d / d (delta . T)
+      const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       const auto valid = st.valid[m];
-      const F g_value = g.thickness * F(thickness.scale);  // d visibility / d the value the scale multiplies
-      F g_delta[3];
-      for (int c = 0; c < 3; ++c) g_delta[c] = g.av * px.V[c] + g_dt * sl.T[c];
+      F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
+      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m], g.front,
+                                                  g.back, g_delta, g_V, g_T);
+      const F g_value = g_thickness * F(thickness.scale);  // d visibility / d the value the scale multiplies
       if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
         g_delta[2] = g_delta[2] - g_value;
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
@@ -364,13 +366,12 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       const F g_sv = g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
                      g_value * st.dv_sv[m];
       for (int c = 0; c < 3; ++c) {
-        g_V[c] = g_V[c] + g.av * st.delta[c][m] - select(valid, F(0.0f), g_delta[c]);
-        g_T[c] = g_T[c] + g_dt * st.delta[c][m];
+        g_V[c] = g_V[c] - select(valid, F(0.0f), g_delta[c]);
         g_P[c] = g_P[c] - select(valid, g_delta[c], F(0.0f));
       }
       placement.add(walk, sl, m < walk.steps ? 1.0f : -1.0f, st.dist[m], g_su, g_sv);
       g_shift = g_shift + g.shift;
-      const F g_t = select(px.live, g.thickness, F(0.0f));
+      const F g_t = select(px.live, g_thickness, F(0.0f));
       sums.thickness = sums.thickness + D(g_t);
       sums.scale = sums.scale + D(g_t * st.tv[m]);
       if (camera && walk.bilinear) {
@@ -386,7 +387,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
       for (int k = 0; k < 4; ++k) sums.camera[k].v = sums.camera[k].v + select(px.live, g_cam[k], F(0.0f));
     }
     D along = D(placement.unit_u) * sd.unit_u + D(placement.unit_v) * sd.unit_v + D(placement.span) * sd.span +
-              D(g_shift) * ((D(kHalfPi) - sd.gamma) / D(kPi));
+              D(g_shift) * ((D(kHalfPi) - frame.gamma) / D(kPi));
     for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
     sums.num = sums.num + (along - D(along.v));  // (its tangents only)
   }
@@ -398,9 +399,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
     const Pixels<F> px(walk, img, row, u0, n);
     F den = F(0.0f);
     for (int64_t s = 0; s < walk.slices; ++s) {
-      const Slice<F> sl(walk, img, px, s);
       LaneArray<F, kSectors> omega;
-      cosine_sector_weights(sl, omega);
+      cosine_sector_weights(slice_frame(angles, Slice<F>(walk, img, px, s)), omega);
       for (int k = 0; k < kSectors; ++k) den = den + omega[k];
     }
     return clamp_min(den, F(1e-30f));

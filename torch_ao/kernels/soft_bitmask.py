@@ -1,5 +1,5 @@
-"""The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default", mode="soft" | "straight_through")``
-on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``,
+"""The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default" | "hdrp", mode="soft" |
+"straight_through")`` on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``,
 the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
 a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals,
 the intrinsics) and the thickness layer the model reads (and through it the back-face depth, a map, a table, the net's weights),
@@ -34,7 +34,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
-from .bitmask import module_thickness, options_uncovered, thickness_read_index
+from .bitmask import HARD_VARIANTS, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
@@ -50,7 +50,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
-                 sector_epsilon: float = 0.01, lanes: str = "simd") -> torch.Tensor:
+                 sector_epsilon: float = 0.01, variant: str = "default", lanes: str = "simd") -> torch.Tensor:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
     differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
     positions, intrinsics and ``normals``.
@@ -67,10 +67,13 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward.
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
-            azimuth (``"view"``/``"screen"``): as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
+            azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame):
+            as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
+    if variant not in HARD_VARIANTS:
+        raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
     read = thickness_read_index(thickness_read, layer)
     of_gbuffer = wants_gradient(gbuffer, normals, layer)
     if gbuffer.depth.device.type == "cpu":
@@ -87,7 +90,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    straight_through=bool(straight_through), step_power=float(step_power),
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
                    stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
-                   rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read)
+                   rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read,
+                   angles=HARD_VARIANTS.index(variant))
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
     return _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
@@ -98,7 +102,7 @@ def _settings(radius, thickness, scale, o):
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius.detach()), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"])
-    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"]],
+    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"]],
             [float(thickness.detach()), o["epsilon"], o["tau"], float(scale.detach())])
 
 
@@ -192,6 +196,8 @@ class _SoftWalk(torch.autograd.Function):
 #: mode is the straight-through forward without a graph: the hard kernel's masks with cosine weights too)
 _MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
+#: the variants (bitmask.h's sector rules and slice frames)
+_VARIANTS = HARD_VARIANTS
 #: beyond what every bitmask kernel covers: the edge-aware fetch, and a constant ambient colour (the visibility times
 #: the colour, in torch: dispatch.py)
 _EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "ambient": (None, "a colour")}
@@ -199,13 +205,15 @@ _EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "ambient": (None, "a c
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     """``None`` when :func:`bitmask_soft` computes ``module(gbuffer)`` and its gradients (a ``BitmaskAO``
-    in soft or straight-through mode, or hard mode, whose masks have none), else why not: the hard kernel's
+    of :data:`~torch_ao.kernels.bitmask.HARD_VARIANTS` in soft or straight-through mode, or hard mode, whose masks have
+    none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
     value + offset``, visibility and a constant ambient colour, a float32 CPU G-buffer) with either weighting; gradients of radius and
     the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
     reads."""
     of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)
-    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, extra=_EXTRA, layers=True)
+    reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, variants=_VARIANTS, extra=_EXTRA,
+                               layers=True)
     if reason is not None:
         return reason
     if module.mode == "hard" and of_gbuffer:
@@ -227,4 +235,4 @@ def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
-                        sector_epsilon=module.sector_epsilon, azimuth=module.azimuth)
+                        sector_epsilon=module.sector_epsilon, azimuth=module.azimuth, variant=module.variant)

@@ -322,7 +322,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera, bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, backface, ints,
-                          floats, 4, 4, "soft", kSoftMaxSteps / 2);
+                          floats, 5, 4, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
