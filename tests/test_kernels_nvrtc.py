@@ -41,7 +41,7 @@ def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     keeps its tape in the thread's local memory (lanes_rev.h; stack 88 KB at 32 steps a side). The exact
     union's backward replays an interval's segment in 11 tangents: 1644 bytes spilled and reloaded; the hard
     sector walk's ends each slice with its 32 sectors' weights in 2 tangents and replays the steps that send
-    indirect light in 16: 4344 bytes; bounded here (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward
+    indirect light in 16: 4356 bytes; bounded here (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward
     (12 tangents) spills nothing."""
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
