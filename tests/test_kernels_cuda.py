@@ -30,6 +30,7 @@ SHIM = """
 #define __device__
 #define __forceinline__ inline
 #define __global__
+#define __launch_bounds__(...)
 #define __shared__
 extern "C" {
 float fabsf(float); float sqrtf(float); float floorf(float); float ceilf(float); float rintf(float);

@@ -4,8 +4,9 @@
 #include "packed.h"
 #include "walk_grad.h"
 
-#define TAO_CUDA_ENTRY(name, unpack)                                                                        \
-  extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
+// (bounds: the kernel's __launch_bounds__, or nothing)
+#define TAO_CUDA_ENTRY(name, unpack, bounds)                                                                \
+  extern "C" __global__ void bounds name(const float* positions, const float* normals, const float* inverse,     \
                                   const float* depth, const bool* valid, const float* intrinsics,        \
                                   const float* light, const float* cells, const float* backface, float* out, \
                                   const int64_t* ints, const float* floats, int B, int H, int W) {        \
@@ -15,17 +16,19 @@
     tao::walk_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, p);            \
   }
 
-TAO_CUDA_ENTRY(tao_walk_gtao, unpack_gtao)
-TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao)
-TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask)
-TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact)
-TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients)  // d visibility / d radius, thickness, scale too
-TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl)
-TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge)
-TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao)
-TAO_CUDA_ENTRY(tao_walk_hemisphere, unpack_hemisphere)
-TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward)
-TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients)  // d visibility / d radius, offset, scale too
+TAO_CUDA_ENTRY(tao_walk_gtao, unpack_gtao, )
+TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao, )
+// (3 blocks of launch.py's 128 threads a multiprocessor, at most 170 registers a thread: the thickness growth's
+// sample distance would take the compiler to 186, and 2 blocks)
+TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask, __launch_bounds__(128, 3))
+TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact, )
+TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients, )  // d visibility / d radius, thickness, scale too
+TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl, )
+TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge, )
+TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao, )
+TAO_CUDA_ENTRY(tao_walk_hemisphere, unpack_hemisphere, )
+TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward, )
+TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients, )  // d visibility / d radius, offset, scale too
 
 // The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
 // the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes
