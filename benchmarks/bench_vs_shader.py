@@ -236,6 +236,20 @@ def _cases() -> dict[str, Case]:
             "soft `BitmaskAO`, variant `hdrp` fwd+bwd, depth + normals, tensor ops",
             lambda s: torch_ao.BitmaskAO(mode="soft", variant="hdrp", backend="torch", **s), "gbuffer",
             "bitmask_hdrp", 3.0, kernel=False),
+        # a thickness growth (the hard kernels'), the shader with the back-face layer, a soft ambient colour
+        "bitmask_growth": Case("`BitmaskAO` hard, thickness growth 0.5", bitmask(mode="hard", thickness_growth=0.5),
+                               None, "shader", 1.0),
+        "bitmask_growth_torch": Case("`BitmaskAO` hard, thickness growth 0.5, tensor ops", lambda s: torch_ao.BitmaskAO(
+            mode="hard", thickness_growth=0.5, backend="torch", **s), None, "shader", 1.0, kernel=False),
+        "ssilvb_glsl_backface": Case("`ssilvb_glsl` hard AO + indirect, `BackfaceThickness`", lambda s: torch_ao.SSILVB(
+            variant="ssilvb_glsl", mode="hard", backend="kernel", thickness=BackfaceThickness(0.8, 0.15),
+            **_without_thickness(s)), None, "shader", 1.0),
+        "ssilvb_glsl_backface_torch": Case(
+            "`ssilvb_glsl` hard AO + indirect, `BackfaceThickness`, tensor ops", lambda s: torch_ao.SSILVB(
+                variant="ssilvb_glsl", mode="hard", backend="torch", thickness=BackfaceThickness(0.8, 0.15),
+                **_without_thickness(s)), None, "shader", 1.0, kernel=False),
+        "soft_ambient_gbuffer": Case("soft `BitmaskAO` + ambient colour fwd+bwd, depth + normals",
+                                     bitmask(mode="soft", ambient=(0.2, 0.5, 1.0)), "gbuffer", "bitmask", 3.0),
         "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
             mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
         "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(
@@ -318,7 +332,7 @@ def case_call(case: Case, gbuffer, settings: dict) -> Callable[[], None]:
         for x in leaves:
             x.grad = None
         out = module(gb)
-        (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
+        sum(value.sum() for value in (out.visibility, out.indirect, out.ambient) if value is not None).backward()
     return forward_backward
 
 
