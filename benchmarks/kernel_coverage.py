@@ -1,0 +1,95 @@
+"""Which ``BitmaskAO`` / ``SSILVB`` calls a fused kernel computes, and why the others run on the tensor path.
+
+Every combination of variant (``default``, ``exact``, ``hdrp``, ``ssilvb_glsl``), mode (hard, soft,
+straight-through), weighting, thickness model (a scalar, the back-face layer, a map, the linear model, the net),
+fetch (nearest, bilinear, edge-aware), output (visibility, indirect light, bent normals, a constant ambient colour)
+and gradient (none, the parameters', the G-buffer's) that the modules accept is asked of the dispatch
+(``torch_ao.kernels.dispatch.KERNELS``: each kernel's ``covers``) on a small frame; nothing is run. Prints the count
+of covered calls and the reasons for the others, most frequent first:
+
+    python benchmarks/kernel_coverage.py
+"""
+from __future__ import annotations
+
+import collections
+import itertools
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's torch_ao, not an installed copy
+
+import torch_ao  # noqa: E402
+from torch_ao.examples import example_gbuffer  # noqa: E402
+from torch_ao.kernels.dispatch import KERNELS  # noqa: E402
+from torch_ao.thickness import BackfaceThickness, LinearThickness, MapThickness  # noqa: E402
+from torch_ao.thickness_net import NetThickness  # noqa: E402
+
+VARIANTS = ("default", "exact", "hdrp", "ssilvb_glsl")
+MODES = ("hard", "soft", "straight_through")
+WEIGHTINGS = ("uniform", "cosine")
+FETCHES = ("nearest", "bilinear", "edge_aware")
+OUTPUTS = ("visibility", "indirect", "bent normals", "ambient colour")
+GRADIENTS = ("none", "parameters", "gbuffer")
+
+
+def thickness_model(name: str, shape: tuple[int, ...]):
+    """A fresh model (a model takes its module's growth: one per module)."""
+    return {"scalar": lambda: 0.5, "backface": lambda: BackfaceThickness(0.8, 0.15),
+            "map": lambda: MapThickness(torch.full(shape, 0.4)), "linear": lambda: LinearThickness(0.1, 0.2),
+            "net": lambda: NetThickness(scale=1.0, init=0.3)}[name]()
+
+
+def module_for(variant, mode, weighting, thickness, fetch, output, gradient, shape):
+    """The module of one combination, or ``None`` where the module refuses it (its own rule, not a kernel's)."""
+    options = dict(variant=variant, mode=mode, weighting=weighting, fetch=fetch, slices=2, steps=2,
+                   thickness=thickness_model(thickness, shape), trainable=gradient != "none")
+    if output == "bent normals":
+        options["bent_normals"] = True
+    if output == "ambient colour":
+        options["ambient"] = (0.1, 0.2, 0.3)
+    try:
+        return (torch_ao.SSILVB if output == "indirect" else torch_ao.BitmaskAO)(**options)
+    except ValueError:
+        return None
+
+
+def uncovered(module, gbuffer) -> str | None:
+    """Why no kernel of ``module`` computes its call on ``gbuffer`` (each kernel's reason), or ``None``."""
+    reasons = []
+    for covers, _ in KERNELS[module.has_kernel]:
+        reason = covers(module, gbuffer)
+        if reason is None:
+            return None
+        reasons.append(reason)
+    return " / ".join(dict.fromkeys(reasons))
+
+
+def main() -> int:
+    plain = example_gbuffer(16, 24)
+    plain = torch_ao.GBuffer(depth=plain.depth, camera=plain.camera, normals=plain.normals, light=plain.light,
+                             backface_depth=plain.depth + 0.3)
+    graph = torch_ao.GBuffer(depth=plain.depth.clone().requires_grad_(), camera=plain.camera,
+                             normals=plain.normals.clone().requires_grad_(), light=plain.light,
+                             backface_depth=plain.backface_depth)
+    total, refused, reasons = 0, 0, collections.Counter()
+    for combination in itertools.product(VARIANTS, MODES, WEIGHTINGS, ("scalar", "backface", "map", "linear", "net"),
+                                         FETCHES, OUTPUTS, GRADIENTS):
+        module = module_for(*combination, shape=tuple(plain.depth.shape))
+        if module is None:
+            refused += 1
+            continue
+        total += 1
+        reason = uncovered(module, graph if combination[-1] == "gbuffer" else plain)
+        if reason is not None:
+            reasons[reason] += 1
+    print(f"{total} calls the modules accept ({refused} combinations they refuse): {total - sum(reasons.values())} "
+          f"covered by a kernel, {sum(reasons.values())} on the tensor path")
+    for reason, count in reasons.most_common():
+        print(f"{count:6d}  {reason}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
