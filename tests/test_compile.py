@@ -220,3 +220,32 @@ def test_gtao_second_call_on_the_same_gbuffer_reuses_the_graph():
         first = compiled(gb).visibility
         second = compiled(gb).visibility
     assert len(graphs) == 1 and torch.equal(first, second)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("method", ["bitmask", "soft"])
+def test_compiled_cuda_kernels_match_eager(method):
+    """On a CUDA G-buffer, ``torch.compile`` (Inductor, which writes Triton kernels for the ops around the walk)
+    of a module whose walk is a CUDA kernel gives eager's numbers: hard bitmask AO forward, and soft bitmask AO
+    with depth and normal gradients."""
+    torch._dynamo.reset()
+    gb = example_gbuffer(48, 64).to(device="cuda")
+    soft = method == "soft"
+    module = torch_ao.BitmaskAO(mode="soft" if soft else "hard", slices=3, steps=4, backend="kernel").cuda()
+    compiled = torch.compile(module, dynamic=False)
+
+    def run(fn):
+        depth = gb.depth.detach().clone().requires_grad_(soft)
+        normals = gb.normals.detach().clone().requires_grad_(soft)
+        vis = fn(torch_ao.GBuffer(depth=depth, camera=gb.camera, normals=normals, mask=gb.mask)).visibility
+        if not soft:
+            return vis.detach(), ()
+        weights = torch.linspace(0.5, 1.5, vis.numel(), device=vis.device).reshape(vis.shape)
+        return vis.detach(), torch.autograd.grad((vis * weights).sum(), (depth, normals))
+
+    (vis_e, grads_e), (vis_c, grads_c) = run(module), run(compiled)
+    assert torch.allclose(vis_c, vis_e, atol=1e-6, rtol=0), (vis_c - vis_e).abs().max()
+    for ge, gc in zip(grads_e, grads_c):
+        finite = torch.isfinite(ge)
+        assert bool(ge[finite].abs().max() > 0)
+        assert float((gc - ge)[finite].abs().max() / ge[finite].abs().max()) <= 1e-5
