@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The GPU check, for a machine with an NVIDIA GPU (the `device` tool's H200 or any CUDA box), in about five
 # minutes: the kernels built (the C++ ones for the tests' CPU side, the CUDA ones once by NVRTC), the CUDA tests
-# (they skip without a GPU), then benchmarks/bench_cuda.py's times against the GPU targets. Run from the repo
-# root. Everything it prints also goes to ${OUT:-gpu-check}/log, the timings to bench_cuda.json beside it.
+# (they skip without a GPU), then benchmarks/profile_cuda.py's times against the GPU targets (call, kernels, host waits). Run from the repo
+# root. Everything it prints also goes to ${OUT:-gpu-check}/log, the timings to profile_cuda.json beside it.
 #
 # Packages the machine lacks (kornia on the device tool's image, which has no network) travel as wheels in
 # .whl/ (docs/performance.md, "GPU"): they are installed into /tmp/site. A CUDA binary compiled elsewhere for the
@@ -47,8 +47,12 @@ timeout 200 python3 -m pytest -q -p no:cacheprovider -rfEs --durations=8 \
   tests/test_kernels_cuda.py::test_cuda_kernels_agree_with_the_cpu_operator \
   tests/test_kernels_cuda.py::test_cuda_gbuffer_gradients_agree_with_the_cpu tests/test_stability.py::test_cuda_matches_cpu \
   || echo "gpu_check: CUDA tests failed or timed out"
-stage "timings: benchmarks/bench_cuda.py at 1920x1080"
-timeout 150 python3 benchmarks/bench_cuda.py --json "$out/bench_cuda.json" || echo "gpu_check: bench_cuda failed or timed out"
+stage "timings at 1920x1080: each case's call, its kernels' time on the GPU, launches, host waits, peak memory"
+timeout 150 python3 benchmarks/profile_cuda.py --json "$out/profile_cuda.json" || echo "gpu_check: profile_cuda failed or timed out"
+if [ -n "${GPU_CHECK_TORCH_ROWS:-}" ]; then  # the tensor walk on the same GPU (a minute: seconds a call)
+  stage "the tensor walk's rows: benchmarks/bench_cuda.py"
+  timeout 150 python3 benchmarks/bench_cuda.py --cases "(torch)" --json "$out/bench_cuda.json" || echo "gpu_check: bench_cuda failed"
+fi
 nvidia-smi --query-gpu=clocks.sm,clocks.mem,temperature.gpu,power.draw --format=csv
 stage "torch.compile of CUDA kernel modules against eager"
 timeout 150 python3 -m pytest -q -p no:cacheprovider -rfEs tests/test_compile.py::test_compiled_cuda_kernels_match_eager \

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from kernel_agreement import assert_masks_agree, assert_values_agree
+from kernel_agreement import assert_masks_agree, assert_values_agree, relative_error
 from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
 from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
 from torch_ao.methods.pssao import PSSAOPattern
@@ -343,11 +343,16 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
     gb = FRAMES["rough"]()
     normals = gb.view_normals()
     device = gb.to(device="cuda")
-    for accumulator, settings, ints, floats, channels, light in cases(gb):
+    failed = []
+    for index, (accumulator, settings, ints, floats, channels, light) in enumerate(cases(gb)):
         cpu = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
         gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
                        light=None if light is None else light.cuda())
-        assert_values_agree(gpu.cpu(), cpu, gb.valid, atol=1e-4, bound=0.5)
+        try:
+            assert_values_agree(gpu.cpu(), cpu, gb.valid, atol=1e-4, bound=0.5)
+        except AssertionError as error:  # every case's verdict, not the first failure's alone
+            failed.append((index, accumulator, str(error).splitlines()[0]))
+    assert not failed, failed
 
 
 def _backward_cases():
@@ -489,9 +494,63 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             assert ((cuda[name] - reference)[finite].abs().max() / scale) <= 1e-5, (accumulator, name)
 
 
+def _ue4ssao():
+    import torch_ao
+
+    m = torch_ao.UE4SSAO(sample_set="uniform", slices=3, steps=3, fetch="bilinear", border="drop")
+    m.radius.requires_grad_(False), m.flat_surface_bias.requires_grad_(False)  # (the tensor path's)
+    return m
+
+
+def _gradient_modules() -> dict:
+    import torch_ao
+    from torch_ao.thickness import BackfaceThickness
+
+    return {"gtao": lambda: torch_ao.GTAO(slices=3, steps=5, fetch="edge_aware"),
+            "hdrp": lambda: torch_ao.GTAO(variant="hdrp", slices=3, steps=4),
+            "hbao": lambda: torch_ao.HBAO(slices=4, steps=4),
+            "soft": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", slices=3, steps=4),
+            "soft_backface": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware",
+                                                        thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
+            "soft_hdrp": lambda: torch_ao.BitmaskAO(variant="hdrp", mode="soft", weighting="cosine",
+                                                    thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
+            "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3, steps=4),
+            "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),
+            "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4),
+            "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
+            "ue4ssao": _ue4ssao,
+            "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear"),
+            "ssao": lambda: torch_ao.SSAO(softness=0.05)}
+
+
+GRADIENT_METHODS = ("gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard", "indirect",
+                    "gtao_camera", "ue4ssao", "pssao", "ssao")
+
+
+def gbuffer_gradients(method: str, device: str, dtype: torch.dtype = torch.float32, backend: str = "auto") -> tuple:
+    """``(visibility, d loss / d depth, d loss / d radius or None, d loss / d intrinsics or None)`` of ``method``
+    on the rough frame (a back-face layer and a light), loss the sum of the visibility and the indirect light."""
+    import torch_ao
+
+    camera = method in ("gtao_camera", "ue4ssao", "pssao", "ssao")
+    gb = FRAMES["rough"]().to(dtype=dtype)
+    m = _gradient_modules()[method]().to(device=device, dtype=dtype)
+    m.backend = backend
+    depth = gb.depth.to(device).clone().requires_grad_()
+    light = torch.rand(2, 3, *gb.depth.shape[-2:], generator=torch.Generator().manual_seed(1)).to(device, dtype)
+    cam = gb.camera.to(device=device)
+    if camera:
+        cam = dataclasses.replace(cam, intrinsics=cam.intrinsics.clone().requires_grad_())
+    g = torch_ao.GBuffer(depth=depth, camera=cam, backface_depth=(gb.depth * 1.3).to(device), light=light)
+    out = m(g)
+    (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
+    radius = getattr(m, "radius", None)
+    return (out.visibility.detach().cpu(), depth.grad.cpu(), None if radius is None or radius.grad is None
+            else radius.grad.cpu(), cam.intrinsics.grad.cpu() if camera else None)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("method", ["gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard",
-                                    "indirect", "gtao_camera", "ue4ssao", "pssao", "ssao"])
+@pytest.mark.parametrize("method", GRADIENT_METHODS)
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
     back-face layer; the "hdrp" variant's sector rule and frame) and the exact union with the
@@ -500,56 +559,14 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     (tao_backward_wedge, tao_backward_pssao) and SSAO's hemisphere (tao_walk_hemisphere, tao_backward_hemisphere:
     with the radius' gradient) on a CUDA G-buffer against the same call on the CPU; with the intrinsics' gradients
     too for GTAO ("gtao_camera"), UE4 SSAO, PSSAO and SSAO (the backward's g_camera)."""
-    import torch_ao
-    from torch_ao.thickness import BackfaceThickness
-
-    def ue4ssao():
-        m = torch_ao.UE4SSAO(sample_set="uniform", slices=3, steps=3, fetch="bilinear", border="drop")
-        m.radius.requires_grad_(False), m.flat_surface_bias.requires_grad_(False)  # (the tensor path's)
-        return m
-
-    module = {"gtao": lambda: torch_ao.GTAO(slices=3, steps=5, fetch="edge_aware"),
-              "hdrp": lambda: torch_ao.GTAO(variant="hdrp", slices=3, steps=4),
-              "hbao": lambda: torch_ao.HBAO(slices=4, steps=4),
-              "soft": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", slices=3,
-                                                 steps=4),
-              "soft_backface": lambda: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware",
-                                                          thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
-              "soft_hdrp": lambda: torch_ao.BitmaskAO(variant="hdrp", mode="soft", weighting="cosine",
-                                                      thickness=BackfaceThickness(0.8, 0.1), slices=3, steps=4),
-              "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
-                                                  steps=4),
-              "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),
-              "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4),
-              "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
-              "ue4ssao": ue4ssao,
-              "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear"),
-              "ssao": lambda: torch_ao.SSAO(softness=0.05)}[method]
-    camera = method in ("gtao_camera", "ue4ssao", "pssao", "ssao")
-    gb = FRAMES["rough"]()
-    back = gb.depth * 1.3
-    results = []
-    for device in ("cpu", "cuda"):
-        m = module().to(device)
-        depth = gb.depth.to(device).clone().requires_grad_()
-        light = torch.rand(2, 3, *gb.depth.shape[-2:], generator=torch.Generator().manual_seed(1)).to(device)
-        cam = gb.camera.to(device=device)
-        if camera:
-            cam = dataclasses.replace(cam, intrinsics=cam.intrinsics.clone().requires_grad_())
-        g = torch_ao.GBuffer(depth=depth, camera=cam, backface_depth=back.to(device), light=light)
-        out = m(g)
-        (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
-        out = out.visibility
-        radius = getattr(m, "radius", None)
-        results.append((out.detach().cpu(), depth.grad.cpu(), None if radius is None else radius.grad,
-                        cam.intrinsics.grad.cpu() if camera else None))
-    (v0, d0, r0, k0), (v1, d1, r1, k1) = results
-    if camera:
-        assert ((k1 - k0).norm() / k0.norm()) <= 1e-4
-    assert (v1 - v0).abs().max() <= 1e-4
-    finite = torch.isfinite(d0)
-    assert ((d1 - d0)[finite].norm() / d0[finite].norm()) <= 1e-4
-    if r0 is None:  # (hard masks: no gradient of the radius; UE4 SSAO's is a frozen buffer, PSSAO has none)
-        assert r1 is None
-    else:
-        assert abs(float(r1.cpu() - r0)) <= 1e-4 * abs(float(r0))
+    reference = gbuffer_gradients(method, "cpu", torch.float64, backend="torch")
+    cpu, cuda = (gbuffer_gradients(method, device, backend="kernel") for device in ("cpu", "cuda"))
+    for name, ref, on_cpu, on_cuda in zip(("visibility", "depth", "radius", "intrinsics"), reference, cpu, cuda):
+        if ref is None:  # (hard masks: no gradient of the radius; UE4 SSAO's is a frozen buffer, PSSAO has none)
+            assert on_cpu is None and on_cuda is None, name
+            continue
+        # float32 rounding, which some methods' decisions amplify (GTAO's hdrp steps, UE4 SSAO's wedges: a few
+        # 1e-4 on the CPU too), is what both kernels see against the float64 walk; the GPU's fused multiply-adds
+        # round differently, not worse
+        e_cpu, e_cuda = relative_error(on_cpu.double(), ref), relative_error(on_cuda.double(), ref)
+        assert e_cuda <= max(1e-4, 3 * e_cpu), (name, e_cuda, e_cpu)

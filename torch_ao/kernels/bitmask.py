@@ -316,7 +316,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     mode (hard values, soft gradients) without a gradient, every output and variant: its values are hard mode's.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
-                               variants=("default", "hdrp", "ssilvb_glsl"), outputs=True, devices=("cpu", "cuda"),
+                               variants=("default", "hdrp", "ssilvb_glsl"), outputs=True,
                                extra=_HARD.get(module.variant), layers=True, growth=True)
     if reason is not None:
         return reason
@@ -345,7 +345,7 @@ def exact_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the hard kernels')"
     reason = options_uncovered(module, gbuffer, modes=("hard",), weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, layers=True)
+                               variants=("default", "exact"), extra=_EXACT, layers=True)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
@@ -375,12 +375,12 @@ _VISIBILITY_ONLY = {"indirect": (False,), "bent_normals": (False,), "ambient": (
 
 def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weightings: tuple[str, ...],
                       variants: tuple[str, ...] = ("default",), outputs: bool = False,
-                      devices: tuple[str, ...] = ("cpu",), extra: dict | None = None,
+                      extra: dict | None = None,
                       layers: bool = False, growth: bool = False) -> str | None:
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
-    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 CPU, bilinear reads of a
+    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA, bilinear reads of a
     position buffer), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
     whether it grows the thickness with the sample's distance (values only: none of the kernels with gradients)."""
     values = dict(getattr(module, "values", {}))
@@ -400,7 +400,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = thickness_uncovered(module, layers, growth)
     if reason is not None:
         return reason
-    reason = gbuffer_uncovered(gbuffer, devices)
+    reason = gbuffer_uncovered(gbuffer)
     if reason is not None:
         return reason
     if gbuffer.position is not None and module.variant in HARD_VARIANTS and module.fetch in ("bilinear", "edge_aware"):

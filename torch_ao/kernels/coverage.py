@@ -22,11 +22,10 @@ def option_uncovered(values: dict, covered: dict) -> str | None:
     return None
 
 
-def gbuffer_uncovered(gbuffer: GBuffer, devices: tuple[str, ...] = ("cpu",)) -> str | None:
-    """Why a kernel for ``devices`` cannot read ``gbuffer`` (not float32 on one of them), or ``None``."""
-    if gbuffer.depth.device.type not in devices or gbuffer.depth.dtype != torch.float32:
-        return (f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernel is float32 "
-                f"{' or '.join(d.upper() for d in devices)})")
+def gbuffer_uncovered(gbuffer: GBuffer) -> str | None:
+    """Why the kernels cannot read ``gbuffer`` (not float32 on the CPU or CUDA), or ``None``."""
+    if gbuffer.depth.device.type not in ("cpu", "cuda") or gbuffer.depth.dtype != torch.float32:
+        return f"a {gbuffer.depth.dtype} G-buffer on {gbuffer.depth.device.type} (the kernels are float32 CPU or CUDA)"
     return None
 
 
@@ -43,4 +42,4 @@ def call_uncovered(module, gbuffer: GBuffer, options: dict, parameters: tuple[st
         return "a parameter other than a scalar"
     if gbuffer.position is not None and module.fetch not in position_fetches:
         return f"{module.fetch} reads of a position buffer (the kernel unprojects the interpolated depth)"
-    return gbuffer_uncovered(gbuffer, devices=("cpu", "cuda"))
+    return gbuffer_uncovered(gbuffer)

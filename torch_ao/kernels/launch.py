@@ -143,12 +143,19 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
 def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list,
                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The walk's and the accumulator's settings as packed.h reads them: ``ints`` (int64), ``floats`` (float32):
-    the walk's, the accumulator's, then the walk's table (its start in ``ints[13]``)."""
+    the walk's, the accumulator's, then the walk's table (its start in ``ints[13]``). Kept per device and value
+    (the kernels only read them): a CUDA call with the settings of an earlier one copies nothing to the GPU,
+    and so does not wait for it."""
     walk_ints, walk_floats, table = list(settings[0]), settings[1][:_WALK_FLOATS], settings[1][_WALK_FLOATS:]
     walk_ints[13] = _WALK_FLOATS + len(acc_floats) if table else 0
-    ints = torch.tensor(walk_ints + [int(v) for v in acc_ints], dtype=torch.int64, device=device)
-    floats = torch.tensor(walk_floats + [float(v) for v in acc_floats] + table, dtype=torch.float32, device=device)
-    return ints, floats
+    return _settings_tensors(tuple(walk_ints + [int(v) for v in acc_ints]),
+                             tuple(float(v) for v in [*walk_floats, *acc_floats, *table]), torch.device(device))
+
+
+@functools.lru_cache(maxsize=256)
+def _settings_tensors(ints: tuple, floats: tuple, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    return (torch.tensor(ints, dtype=torch.int64, device=device),
+            torch.tensor(floats, dtype=torch.float32, device=device))
 
 
 def cuda_source() -> str:

@@ -208,7 +208,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     of :data:`~torch_ao.kernels.bitmask.HARD_VARIANTS` in soft or straight-through mode, or hard mode, whose masks have
     none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
-    value + offset``, visibility and a constant ambient colour, a float32 CPU G-buffer) with either weighting; gradients of radius and
+    value + offset``, visibility and a constant ambient colour, a float32 CPU or CUDA G-buffer) with either weighting; gradients of radius and
     the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
     reads."""
     of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)

@@ -197,7 +197,7 @@ def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the sector kernels')"
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), devices=("cpu", "cuda"), extra=_EXACT, layers=True)
+                               variants=("default", "exact"), extra=_EXACT, layers=True)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
