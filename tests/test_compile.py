@@ -248,4 +248,6 @@ def test_compiled_cuda_kernels_match_eager(method):
     for ge, gc in zip(grads_e, grads_c):
         finite = torch.isfinite(ge)
         assert bool(ge[finite].abs().max() > 0)
-        assert float((gc - ge)[finite].abs().max() / ge[finite].abs().max()) <= 1e-5
+        # Inductor rounds the positions and normals it computes from depth its own way, and the backward adds its
+        # taps' gradients atomically in no fixed order: 2.3e-5 of the largest on an H200
+        assert float((gc - ge)[finite].abs().max() / ge[finite].abs().max()) <= 1e-4

@@ -188,3 +188,21 @@ def test_a_kernel_that_cannot_be_built_falls_back_with_one_warning(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert torch.equal(BitmaskAO(slices=2, steps=3)(gb).visibility, expected)  # warned once
+
+
+def test_packed_settings_take_parameters_as_tensors():
+    """A 0-d tensor among the settings (a parameter, which a CUDA call must not read back) packs to the float its
+    value would, and leaves the numbers kept for later calls as they were."""
+    from torch_ao.kernels.launch import packed_settings, walk_settings
+
+    def packed(radius, thickness):
+        settings = walk_settings(slices=2, steps=3, radius=radius, jitter=True, seed=0, fetch="bilinear", border="drop")
+        return packed_settings(settings, [1, 0], [thickness, 0.01, 1.0], "cpu")
+
+    ints, floats = packed(0.7, 0.1)
+    for radius, thickness in ((torch.tensor(0.7), 0.1), (0.7, torch.tensor(0.1, dtype=torch.float64)),
+                              (torch.tensor(0.7, requires_grad=True), torch.tensor(0.1))):
+        ints_t, floats_t = packed(radius, thickness)
+        assert torch.equal(ints_t, ints) and torch.equal(floats_t, floats)
+    packed(torch.tensor(0.7), torch.tensor(0.1))  # (its numbers, with zeros where the tensors go, are kept)
+    assert torch.equal(packed(0.0, 0.0)[1], floats.index_put((torch.tensor([0, 4]),), torch.zeros(2)))

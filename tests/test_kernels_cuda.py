@@ -328,14 +328,23 @@ def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_
             scale = scalar[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
             assert (cuda[:, :1] - scalar[:, :1]).abs().max() <= 1e-6
             assert ((cuda[:, 1:] - scalar[:, 1:]) / scale).abs().max() <= 1e-5, accumulator
-            assert ((cuda[:, 1:] - simd[:, 1:]) / scale).abs().max() <= 1e-3, accumulator
-            assert_values_agree(cuda[:, :1], simd[:, :1], gb.valid, atol=1e-4, bound=0.5)
-            continue
-        assert (cuda - scalar).abs().max() <= 1e-6, (accumulator, (cuda - scalar).abs().max())
-        if accumulator == "bitmask" and channels == 1:
-            assert_masks_agree(cuda, simd, gb.valid, settings[0][0])
         else:
-            assert_values_agree(cuda, simd, gb.valid, atol=1e-4, bound=0.5)
+            assert (cuda - scalar).abs().max() <= 1e-6, (accumulator, (cuda - scalar).abs().max())
+        assert_lanes_agree(cuda, simd, accumulator, settings[0][0], gb.valid)
+
+
+def assert_lanes_agree(out: torch.Tensor, ref: torch.Tensor, accumulator: str, slices: int, valid: torch.Tensor):
+    """A walk's outputs in other lanes than ``ref``'s (SIMD against scalar, a GPU's against the CPU's): each
+    rounds differently, which a decision can amplify. Uniform hard visibility as :func:`assert_masks_agree`, the
+    derivative channels of ``*_gradients`` within 1e-3 of their scale, values as :func:`assert_values_agree`."""
+    if accumulator in ("soft_gradients", "exact_gradients"):
+        scale = ref[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
+        assert ((out[:, 1:] - ref[:, 1:]) / scale).abs().max() <= 1e-3, accumulator
+        out, ref = out[:, :1], ref[:, :1]
+    if accumulator == "bitmask" and out.shape[1] == 1:
+        assert_masks_agree(out, ref, valid, slices)
+    else:
+        assert_values_agree(out, ref, valid, atol=1e-4, bound=0.5)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -349,7 +358,7 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
         gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
                        light=None if light is None else light.cuda())
         try:
-            assert_values_agree(gpu.cpu(), cpu, gb.valid, atol=1e-4, bound=0.5)
+            assert_lanes_agree(gpu.cpu(), cpu, accumulator, settings[0][0], gb.valid)
         except AssertionError as error:  # every case's verdict, not the first failure's alone
             failed.append((index, accumulator, str(error).splitlines()[0]))
     assert not failed, failed

@@ -71,12 +71,12 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     if variant not in HARD_VARIANTS:
         raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
     radius = torch.as_tensor(radius)
-    settings = walk_settings(slices=slices, steps=steps, radius=float(radius.detach()), step_power=step_power,
+    settings = walk_settings(slices=slices, steps=steps, radius=radius.detach(), step_power=step_power,
                              min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
                              fetch=fetch, border=border, azimuth=azimuth)
     acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
                 thickness_read_index(thickness_read, layer), HARD_VARIANTS.index(variant)]
-    acc_floats = [thickness, sector_epsilon, float(layer_scale), float(thickness_growth)]
+    acc_floats = [thickness, sector_epsilon, layer_scale, thickness_growth]
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     if needs_hard_backward(gbuffer, normals, weighting=weighting, indirect=indirect, bent_normals=bent_normals,
@@ -204,7 +204,7 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     return run_walk("exact", gbuffer, normals, settings,
                     [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius),
                      thickness_read_index(thickness_read, layer)],
-                    [thickness, float(layer_scale), radius, sector_epsilon], 1, backface=layer, lanes=lanes)
+                    [thickness, layer_scale, radius, sector_epsilon], 1, backface=layer, lanes=lanes)
 
 
 def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
@@ -216,9 +216,9 @@ def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
 def thickness_options(form: ThicknessLayer) -> dict:
     """The kernels' ``thickness``, ``layer``, ``layer_scale``, ``thickness_read`` arguments of ``form`` (and its
     ``thickness_growth`` where it has one: the hard kernels')."""
-    growth = {} if form.growth is None else {"thickness_growth": float(form.growth.detach())}
-    return dict(thickness=float(form.offset.detach()), layer=None if form.layer is None else form.layer.detach(),
-                layer_scale=float(form.scale.detach()), thickness_read=form.read, **growth)
+    growth = {} if form.growth is None else {"thickness_growth": form.growth.detach()}
+    return dict(thickness=form.offset.detach(), layer=None if form.layer is None else form.layer.detach(),
+                layer_scale=form.scale.detach(), thickness_read=form.read, **growth)
 
 
 #: bitmask.h's ThicknessRead, in its order
@@ -263,12 +263,12 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     intrinsics); the visibility (hard masks) and the radius (the texels are floored) have none.
     """
     # the shader's loops run sliceCount + 1 slices of sampleCount + 1 steps, one side each
-    settings = walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=float(torch.as_tensor(radius).detach()),
+    settings = walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=torch.as_tensor(radius).detach(),
                              jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl",
                              full_circle=True, azimuth="screen",
                              noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
     acc_ints = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee", thickness_read_index(thickness_read, layer)]
-    acc_floats, channels = [thickness, float(layer_scale), float(thickness_growth)], 4 if indirect else 1
+    acc_floats, channels = [thickness, layer_scale, thickness_growth], 4 if indirect else 1
     light = light_input(gbuffer, indirect) if indirect else None
     layer = None if layer is None else layer.detach()  # (hard masks: the thickness has no gradient)
     if needs_hard_backward(gbuffer, normals, weighting="uniform", indirect=indirect, bent_normals=False, light=light):
@@ -359,7 +359,7 @@ def exact_covers(module, gbuffer: GBuffer) -> str | None:
 def exact_forward(module, gbuffer: GBuffer) -> dict:
     """``module(gbuffer)``'s ``{"visibility": (B,1,H,W)}`` for a module :func:`exact_covers` accepts."""
     vis = exact_hard(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
-                     radius=float(module.radius.detach()), **thickness_options(module_thickness(module, gbuffer)),
+                     radius=module.radius.detach(), **thickness_options(module_thickness(module, gbuffer)),
                      step_power=module.step_power,
                      min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                      stagger=module.stagger, fetch=module.fetch,

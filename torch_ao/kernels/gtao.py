@@ -34,6 +34,12 @@ def float32_value(x) -> float:
     return float(torch.as_tensor(x).detach().to(torch.float32))
 
 
+def packed_value(x) -> float | torch.Tensor:
+    """A 0-d parameter detached (:func:`~torch_ao.kernels.launch.packed_settings` puts it among the floats on its
+    device, without reading it back from a GPU), or a number."""
+    return x.detach() if isinstance(x, torch.Tensor) else float(x)
+
+
 def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact", slices: int, steps: int,
               walk_radius: float, radius: float | torch.Tensor, falloff: float | torch.Tensor = 0.0,
               thickness: float | torch.Tensor = 1.0, step_power: float = 1.0, min_step_px: float = 1.0,
@@ -73,7 +79,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
         walk, options = differentiable_walk, {"radius": radius, "setting": setting, "setting_dimension": dimension}
     return walk("gtao", gbuffer, normals, settings,
                 [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
-                [float32_value(radius), float32_value(falloff), float32_value(thickness)], 5 if bent_normals else 2, lanes=lanes, **options)
+                [packed_value(radius), packed_value(falloff), packed_value(thickness)], 5 if bent_normals else 2, lanes=lanes,
+                **options)
 
 
 def _check_gradient(gbuffer: GBuffer) -> None:
@@ -97,7 +104,7 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
         With autograd recording through the G-buffer, ``radius`` or ``angle_bias`` (CPU), the sums carry
         their gradients (walk_grad.py).
     """
-    settings = walk_settings(slices=slices, steps=steps, radius=float32_value(radius), step_power=step_power,
+    settings = walk_settings(slices=slices, steps=steps, radius=packed_value(radius), step_power=step_power,
                              min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
                              fetch=fetch, border=border, azimuth=azimuth, full_circle=True)
     walk, options = run_walk, {}
@@ -106,7 +113,7 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
         walk, options = differentiable_walk, {"radius": radius, "setting": (angle_bias,)}
     return walk("hbao", gbuffer, normals, settings,
                 [falloff == "quadratic", accumulate == "incremental", elevation == "view"],
-                [float32_value(radius), float32_value(angle_bias)], 1, lanes=lanes, **options)
+                [packed_value(radius), packed_value(angle_bias)], 1, lanes=lanes, **options)
 
 
 def finish_sums(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -129,7 +136,7 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
         falloff = (m.falloff_range * m.radius).clamp_min(1e-12)
     sums = gtao_sums(
         gbuffer, normals, variant=m.variant, slices=m.slices, steps=m.steps,
-        walk_radius=float32_value(m.radius * m.search_scale) if m.variant == "exact" else float32_value(m.radius),
+        walk_radius=packed_value(m.radius * m.search_scale if m.variant == "exact" else m.radius),
         radius=m.radius, falloff=falloff, thickness=m.thickness_heuristic,
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
         seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth,

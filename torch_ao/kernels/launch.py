@@ -39,7 +39,11 @@ _CUDA_FILES = ("lanes_scalar.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_gl
                "exact_soft.h", "packed.h", "walk_grad.h", "walk_cuda.cu")
 _WALK_FLOATS = 4  # packed.h's kAccFloats: the walk's own floats
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel
-_NVRTC_OPTIONS = ("-std=c++17",)
+# --fmad=false: a * b + c rounded twice, as the CPU kernels (-ffp-contract=off) and the tensor walk round it. With
+# NVRTC's fused multiply-adds a sample's texel or the GLSL shader's hash (fract of a large product) can land on the
+# other side of a boundary: on an H200, 2 of 4,348 pixels of a hard mask 28 sectors apart and 119 of the shader's,
+# against none without; 9 % (hard bitmask AO) to 29 % (GTAO) of the walk's time at 1920x1080.
+_NVRTC_OPTIONS = ("-std=c++17", "--fmad=false")
 
 
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
@@ -72,7 +76,8 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
             NOISES.index(noise), bool(stagger), 0]
-    floats = [float(radius), float(step_power), float(min_step_px), float(max_radius_px or 0.0)]
+    floats = [radius if isinstance(radius, torch.Tensor) else float(radius), float(step_power), float(min_step_px),
+              float(max_radius_px or 0.0)]
     floats += [float(v) for v in table or ()]
     return [int(v) for v in ints], floats
 
@@ -143,13 +148,19 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
 def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list,
                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The walk's and the accumulator's settings as packed.h reads them: ``ints`` (int64), ``floats`` (float32):
-    the walk's, the accumulator's, then the walk's table (its start in ``ints[13]``). Kept per device and value
-    (the kernels only read them): a CUDA call with the settings of an earlier one copies nothing to the GPU,
-    and so does not wait for it."""
+    the walk's, the accumulator's, then the walk's table (its start in ``ints[13]``). A float may be a 0-d tensor
+    (a parameter). Nothing is read back from a GPU nor copied to it, so a CUDA call never waits for the GPU: the
+    numbers are kept on the device per value (the kernels only read them), and the tensors join them there."""
     walk_ints, walk_floats, table = list(settings[0]), settings[1][:_WALK_FLOATS], settings[1][_WALK_FLOATS:]
     walk_ints[13] = _WALK_FLOATS + len(acc_floats) if table else 0
-    return _settings_tensors(tuple(walk_ints + [int(v) for v in acc_ints]),
-                             tuple(float(v) for v in [*walk_floats, *acc_floats, *table]), torch.device(device))
+    ints, values, device = tuple(walk_ints + [int(v) for v in acc_ints]), [*walk_floats, *acc_floats, *table], torch.device(device)
+    given = tuple(k for k, v in enumerate(values) if isinstance(v, torch.Tensor))
+    if not given:
+        return _settings_tensors(ints, tuple(float(v) for v in values), device)
+    ints, floats = _settings_tensors(ints, tuple(0.0 if isinstance(v, torch.Tensor) else float(v) for v in values), device)
+    at = _settings_tensors(given, (), device)[0]
+    return ints, floats.index_put((at,), torch.stack([values[k].detach().reshape(()).to(device, torch.float32)
+                                                      for k in given]))
 
 
 @functools.lru_cache(maxsize=256)

@@ -35,7 +35,10 @@ namespace tao {
 constexpr float kSoftClamp = 30.0f;  // logistic arguments are clamped to +-30 (sectors.sweeps.CLAMP)
 constexpr float kSoftTiny = 1e-30f;  // visibilities at or below are flushed to 0 (sweeps.TINY)
 constexpr int kSoftWindowMax = 8;    // sweeps.WINDOW_MAX
-constexpr int kSoftMaxSteps = 64;    // both sides' steps of a slice: steps <= 32
+#ifndef TAO_SOFT_MAX_STEPS
+#define TAO_SOFT_MAX_STEPS 64
+#endif
+constexpr int kSoftMaxSteps = TAO_SOFT_MAX_STEPS;  // both sides' steps of a slice: steps <= 32
 // a step's sectors whose a b is below logistic(-kSoftSkip) = 2e-9 for every lane are left out of its sweep
 // and reverse scan (below the interval a ~ 0, above it b ~ 0): at tau = 0.25, 5 sectors either side of it
 constexpr float kSoftSkip = 20.0f;

@@ -99,11 +99,11 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
 
 def _settings(radius, thickness, scale, o):
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of ``soft.h``'s walk."""
-    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=float(radius.detach()), jitter=o["jitter"],
+    settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=radius.detach(), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"])
     return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"]],
-            [float(thickness.detach()), o["epsilon"], o["tau"], float(scale.detach())])
+            [thickness.detach(), o["epsilon"], o["tau"], scale.detach()])
 
 
 def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients):

@@ -91,13 +91,13 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
 
 def _settings(radius, thickness, scale, o) -> tuple:
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of the exact union's walk."""
-    r = float(radius.detach())
+    r = radius.detach()  # (0-d tensors: packed on the device, nothing read back)
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=r, step_power=o["step_power"],
                              min_step_px=o["min_step_px"], jitter=o["jitter"], seed=o["seed"], noise=o["noise"],
                              stagger=o["stagger"], fetch=o["fetch"], border=o["border"], sphere_extent=o["sphere"],
                              azimuth=o["azimuth"])
     return (settings, [o["cosine"], o["along_ray"], o["clip"], o["read"]],
-            [float(thickness.detach()), 1.0 if scale is None else float(scale.detach()), r, o["epsilon"]])
+            [thickness.detach(), 1.0 if scale is None else scale.detach(), r, o["epsilon"]])
 
 
 def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients: bool) -> torch.Tensor:

@@ -38,7 +38,10 @@ namespace tao {
 // (seed_setting: the horizon accumulators')
 constexpr int kPixel = 7;
 // the most steps per side of a CUDA thread's backward (its record and replay are fixed arrays)
-constexpr int kGradMaxSteps = 32;
+#ifndef TAO_GRAD_MAX_STEPS
+#define TAO_GRAD_MAX_STEPS 32
+#endif
+constexpr int kGradMaxSteps = TAO_GRAD_MAX_STEPS;
 
 // An accumulator's state as its S components (its State is an aggregate of lane values)
 template <class Acc, class F> TAO_FN constexpr int state_size() {
