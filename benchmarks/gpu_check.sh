@@ -48,13 +48,16 @@ timeout 200 python3 -m pytest -q -p no:cacheprovider -rfEs --durations=8 \
   tests/test_kernels_cuda.py::test_cuda_gbuffer_gradients_agree_with_the_cpu tests/test_stability.py::test_cuda_matches_cpu \
   || echo "gpu_check: CUDA tests failed or timed out"
 stage "timings at 1920x1080: each case's call, its kernels' time on the GPU, launches, host waits, peak memory"
-timeout 150 python3 benchmarks/profile_cuda.py --json "$out/profile_cuda.json" || echo "gpu_check: profile_cuda failed or timed out"
+# (a rerun of part of it: GPU_CHECK_CASES="soft high;gtao high" profiles the cases whose labels hold those)
+cases=(); [ -n "${GPU_CHECK_CASES:-}" ] && IFS=';' read -ra cases <<< "$GPU_CHECK_CASES" && cases=(--cases "${cases[@]}")
+timeout 150 python3 benchmarks/profile_cuda.py "${cases[@]}" --json "$out/profile_cuda.json" \
+  || echo "gpu_check: profile_cuda failed or timed out"
 if [ -n "${GPU_CHECK_TORCH_ROWS:-}" ]; then  # the tensor walk on the same GPU (a minute: seconds a call)
   stage "the tensor walk's rows: benchmarks/bench_cuda.py"
   timeout 150 python3 benchmarks/bench_cuda.py --cases "(torch)" --json "$out/bench_cuda.json" || echo "gpu_check: bench_cuda failed"
 fi
 nvidia-smi --query-gpu=clocks.sm,clocks.mem,temperature.gpu,power.draw --format=csv
-stage "torch.compile of CUDA kernel modules against eager"
-timeout 150 python3 -m pytest -q -p no:cacheprovider -rfEs tests/test_compile.py::test_compiled_cuda_kernels_match_eager \
+stage "torch.compile of CUDA kernel modules against eager (GPU_CHECK_COMPILE=0: not)"
+[ "${GPU_CHECK_COMPILE:-1}" = 0 ] || timeout 150 python3 -m pytest -q -p no:cacheprovider -rfEs tests/test_compile.py::test_compiled_cuda_kernels_match_eager \
   || echo "gpu_check: torch.compile tests failed or timed out"
 stage done

@@ -17,6 +17,7 @@ import torch
 from kernel_agreement import assert_masks_agree, assert_values_agree, relative_error
 from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
 from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
+from torch_ao.kernels.soft_bitmask import soft_backward_kernel
 from torch_ao.methods.pssao import PSSAOPattern
 from torch_ao.methods.ssao import hemisphere_kernel
 from torch_ao.methods.ue4_ssao import SAMPLE_SETS
@@ -131,7 +132,7 @@ typedef void ExactBackward(const float*, const float*, const float*, const float
                            float*, const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao, tao_backward_hemisphere;
-SoftBackward tao_soft_backward;
+SoftBackward tao_soft_backward, tao_soft_backward_short;
 ExactBackward tao_exact_backward;
 HardRecord tao_record_hard, tao_record_hard_glsl;
 HardBackward tao_hard_backward, tao_hard_backward_glsl;
@@ -190,8 +191,9 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                    Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
                                                    gd.data(), taps.data(), ti.data(), tl.data(), gc.data(),
                                                    ints.data(), floats.data(), B, H, W); });
-  } else if (name == "soft") {
-    grid(pixels, threads, [&] { tao_soft_backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+  } else if (name == "soft" || name == "soft_short") {  // (a slice's steps in soft.h's arrays of 64, or of 16)
+    SoftBackward* soft = name == "soft" ? tao_soft_backward : tao_soft_backward_short;
+    grid(pixels, threads, [&] { soft(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
                                                   gd.data(), gs.data(), taps.data(), ti.data(), tl.data(), gc.data(),
                                                   ints.data(), floats.data(), B, H, W); });
@@ -398,6 +400,8 @@ def _backward_cases():
     yield "soft", walk_settings(**common), [0, False, False, 2, 0], [0.05, 0.01, 0.25, 1.0], 1
     yield "soft", walk_settings(**common), [0, True, True, 3, 0], [0.1, 0.01, 0.25, 0.05], 1
     yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1], [0.1, 0.0, 0.25, 0.8], 1  # hdrp
+    # more steps than the short backward keeps (tao_soft_backward's arrays of 64)
+    yield "soft", walk_settings(**dict(common, steps=9)), [0, True, False, 0, 0], [0.3, 0.01, 0.25, 1.0], 1
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
@@ -446,7 +450,9 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         ints.numpy().tofile(folder / "ints")
         floats.numpy().tofile(folder / "floats")
         words = settings[0][0] * 2 * ((settings[0][1] + 63) // 64)
-        subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), accumulator, str(folder), str(B), str(H), str(W),
+        kernel = {"tao_soft_backward_short": "soft_short"}.get(soft_backward_kernel(settings[0][1]), "soft")
+        subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), kernel if accumulator == "soft" else accumulator,
+                        str(folder), str(B), str(H), str(W),
                         str(channels), str(words), str(_THREADS)], check=True)
 
         def read(name, *shape, dtype=np.float32):  # (the first values: the driver's setting buffer holds 3 a pixel)

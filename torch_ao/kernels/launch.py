@@ -181,10 +181,10 @@ def cuda_source() -> str:
 
 def cuda_entry_names(source: str | None = None) -> tuple[str, ...]:
     """The ``__global__`` entry points of ``source`` (default :func:`cuda_source`): one name per
-    ``TAO_CUDA_ENTRY`` / ``RECORD`` / ``BACKWARD`` macro or plain ``__global__`` function, two per
+    ``TAO_CUDA_ENTRY`` / ``RECORD`` / ``BACKWARD`` / ``SOFT_BACKWARD`` macro or plain ``__global__`` function, two per
     ``TAO_CUDA_HARD`` (its record and backward)."""
     source = cuda_source() if source is None else source
-    names = re.findall(r"^(?:TAO_CUDA_(?:ENTRY|RECORD|BACKWARD)\(|extern \"C\" __global__ void )(\w+)", source,
+    names = re.findall(r"^(?:TAO_CUDA_(?:ENTRY|RECORD|BACKWARD|SOFT_BACKWARD)\(|extern \"C\" __global__ void )(\w+)", source,
                        flags=re.M)
     for pair in re.findall(r"^TAO_CUDA_HARD\((\w+), (\w+),", source, flags=re.M):
         names += pair

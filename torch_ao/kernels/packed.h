@@ -79,9 +79,9 @@ TAO_FN ExactGradAccumulator unpack_exact_gradients(const int64_t* i, const float
 
 // ints: rounding, cosine, straight_through, the thickness' read (ThicknessRead), the variant's angles
 // (SectorAngles); floats: the thickness' offset, epsilon, tau, the thickness' scale
-template <bool kGradients, bool kAdjoint = false>
-TAO_FN SoftAccumulator<kGradients, kAdjoint> unpack_soft(const int64_t* i, const float* f) {
-  SoftAccumulator<kGradients, kAdjoint> acc;
+template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps>
+TAO_FN SoftAccumulator<kGradients, kAdjoint, kMostSteps> unpack_soft(const int64_t* i, const float* f) {
+  SoftAccumulator<kGradients, kAdjoint, kMostSteps> acc;
   acc.walk = unpack_walk(i, f);
   i += kAccInts, f += kAccFloats;
   acc.rounding = i[0], acc.cosine = i[1] != 0, acc.straight_through = i[2] != 0, acc.angles = SectorAngles(i[4]);

@@ -35,10 +35,8 @@ namespace tao {
 constexpr float kSoftClamp = 30.0f;  // logistic arguments are clamped to +-30 (sectors.sweeps.CLAMP)
 constexpr float kSoftTiny = 1e-30f;  // visibilities at or below are flushed to 0 (sweeps.TINY)
 constexpr int kSoftWindowMax = 8;    // sweeps.WINDOW_MAX
-#ifndef TAO_SOFT_MAX_STEPS
-#define TAO_SOFT_MAX_STEPS 64
-#endif
-constexpr int kSoftMaxSteps = TAO_SOFT_MAX_STEPS;  // both sides' steps of a slice: steps <= 32
+constexpr int kSoftMaxSteps = 64;    // both sides' steps of a slice: steps <= 32
+constexpr int kSoftShortSteps = 16;  // ... of a short slice (a CUDA backward's: walk_cuda.cu)
 // a step's sectors whose a b is below logistic(-kSoftSkip) = 2e-9 for every lane are left out of its sweep
 // and reverse scan (below the interval a ~ 0, above it b ~ 0): at tau = 0.25, 5 sectors either side of it
 constexpr float kSoftSkip = 20.0f;
@@ -94,7 +92,7 @@ TAO_FN void step_motion(const WalkSettings& walk, const Pixels<F>& px, const Sli
 
 // kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays);
 // kAdjoint (with kGradients): the backward's, which keeps each step's fetch for end_slice_adjoint
-template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
+template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps> struct SoftAccumulator {
   WalkSettings walk;  // the step placement (the radius' gradient moves the steps)
   ThicknessModel thickness;  // world units along the view ray
   float epsilon, tau, delta;  // delta: sectors.rule.rounding_offset
@@ -102,7 +100,7 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
   bool windowed, cosine, straight_through;
   SectorAngles angles;  // the variant's rule (bitmask.h's sample_angles, in slice_frame's frame)
-  static constexpr int kKept = kGradients ? kSoftMaxSteps : 1;  // steps kept per slice
+  static constexpr int kKept = kGradients ? kMostSteps : 1;  // steps kept per slice
   // whether the sweep keeps each step's coverage for the reverse scan (64 logistics a step, else computed again):
   // the CPU's do (a slice's are L2-resident), a CUDA thread's forward recomputes them (its local memory is
   // global memory)
@@ -424,8 +422,8 @@ template <bool kGradients, bool kAdjoint = false> struct SoftAccumulator {
 // slices ended by end_slice_adjoint into sink, with the pixels pd in dual lanes D (tangents on their own
 // P, N, depth) and each slice's in D; sums in D. finish writes the visibility's 7 tangents, d visibility / d
 // the thickness' offset and d its scale, then (with camera; else zeros) d visibility / d fx, fy, cx, cy.
-template <class F, class D, class Sink> struct SoftAdjoint {
-  using Acc = SoftAccumulator<true, true>;
+template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct SoftAdjoint {
+  using Acc = SoftAccumulator<true, true, kMostSteps>;
   const Acc& acc;
   const Image& img;
   const Pixels<D>& pd;

@@ -120,7 +120,17 @@ def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o):
     inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o),
                                                                   backface=layer)
     return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale,
-                              scalar_lanes(o["lanes"]))
+                              scalar_lanes(o["lanes"]), o["steps"])
+
+
+#: soft.h's kSoftShortSteps: the most steps of a slice (both sides) the short CUDA backward keeps
+SHORT_SLICE_STEPS = 16
+
+
+def soft_backward_kernel(steps: int) -> str:
+    """The CUDA soft backward for ``steps`` per side: ``tao_soft_backward_short`` where a slice's steps fit its
+    arrays (every preset's), whose thread keeps a quarter of ``tao_soft_backward``'s local memory."""
+    return "tao_soft_backward_short" if 2 * steps <= SHORT_SLICE_STEPS else "tao_soft_backward"
 
 
 class _GBufferWalk(torch.autograd.Function):
@@ -129,9 +139,9 @@ class _GBufferWalk(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
-                thickness, scale, scalar):
+                thickness, scale, scalar, steps):
         none = torch.empty(0, device=depth.device)
-        ctx.scalar, ctx.scale_dtype = scalar, scale.dtype
+        ctx.scalar, ctx.scale_dtype, ctx.steps = scalar, scale.dtype, steps
         ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats,
                               radius, thickness)
         frame = (positions, normals, inverse, depth, valid, intrinsics)
@@ -154,7 +164,7 @@ class _GBufferWalk(torch.autograd.Function):
             g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
             g_setting = depth.new_zeros((*depth.shape, 2))
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
-            launch_cuda("tao_soft_backward", depth.device,
+            launch_cuda(soft_backward_kernel(ctx.steps), depth.device,
                         [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, g_camera, ints, floats],
                         tuple(depth.shape))
             g_pos += taps
@@ -172,7 +182,7 @@ class _GBufferWalk(torch.autograd.Function):
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
                 g_radius, g_thickness.to(thickness.dtype) if ctx.needs_input_grad[11] else None,
-                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None)
+                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None, None)
 
 
 class _SoftWalk(torch.autograd.Function):

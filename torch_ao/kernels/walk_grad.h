@@ -435,8 +435,8 @@ template <class B> struct TapSink {
 // slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
 // d L / d the thickness' offset and scale written per pixel (t.settings == 2) and, where t.camera, d L / d the
 // intrinsics; the layer's to its taps
-template <class B>
-TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true>& acc,
+template <class B, int kMostSteps>
+TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true, kMostSteps>& acc,
                             int64_t row, int64_t u0, int n, const float* upstream, const Targets& t) {
   using D = Dual<B, kPixel>;
   constexpr int L = LaneTraits<B>::L;
@@ -445,8 +445,8 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
   const B g = from_lanes(lane, B(0.0f));
   TapSink<B> sink{cfg.bilinear, cfg.bilinear && acc.thickness.read == ThicknessRead::layer, n, t};
   const Pixels<D> pd(cfg, img, row, u0, n);
-  const SoftAdjoint<B, D, TapSink<B>> adjoint{acc, img, pd, g / acc.denominator<B>(img, row, u0, n), sink,
-                                              t.camera != nullptr};
+  const SoftAdjoint<B, D, TapSink<B>, kMostSteps> adjoint{acc, img, pd, g / acc.template denominator<B>(img, row, u0, n),
+                                                          sink, t.camera != nullptr};
   B outs[13];
   walk_block(cfg, img, adjoint, row, u0, n, outs);
   B own[13];
@@ -926,7 +926,8 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
 // d L / d the thickness' offset and scale: thickness (B, H, W, 2), and where camera d L / d the intrinsics:
 // (B, H, W, 4)) and its steps' taps' (positions, inverse depth, the layer's where the model reads one;
 // atomically) as grad_pixel's
-TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true>& acc, const Frame& fr,
+template <int kMostSteps>
+TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true, kMostSteps>& acc, const Frame& fr,
                             const float* grad, float* positions, float* normals, float* depth, float* thickness,
                             float* tap_positions, float* tap_inverse, float* tap_layer, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
