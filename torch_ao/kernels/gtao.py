@@ -79,8 +79,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
         walk, options = differentiable_walk, {"radius": radius, "setting": setting, "setting_dimension": dimension}
     return walk("gtao", gbuffer, normals, settings,
                 [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
-                [packed_value(radius), packed_value(falloff), packed_value(thickness)], 5 if bent_normals else 2, lanes=lanes,
-                **options)
+                [packed_value(radius), packed_value(falloff), packed_value(thickness)], 5 if bent_normals else 2,
+                lanes=lanes, **options)
 
 
 def _check_gradient(gbuffer: GBuffer) -> None:

@@ -153,14 +153,15 @@ def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc
     numbers are kept on the device per value (the kernels only read them), and the tensors join them there."""
     walk_ints, walk_floats, table = list(settings[0]), settings[1][:_WALK_FLOATS], settings[1][_WALK_FLOATS:]
     walk_ints[13] = _WALK_FLOATS + len(acc_floats) if table else 0
-    ints, values, device = tuple(walk_ints + [int(v) for v in acc_ints]), [*walk_floats, *acc_floats, *table], torch.device(device)
+    ints, values = tuple(walk_ints + [int(v) for v in acc_ints]), [*walk_floats, *acc_floats, *table]
+    device = torch.device(device)
     given = tuple(k for k, v in enumerate(values) if isinstance(v, torch.Tensor))
+    ints, floats = _settings_tensors(ints, tuple(0.0 if k in given else float(v) for k, v in enumerate(values)), device)
     if not given:
-        return _settings_tensors(ints, tuple(float(v) for v in values), device)
-    ints, floats = _settings_tensors(ints, tuple(0.0 if isinstance(v, torch.Tensor) else float(v) for v in values), device)
+        return ints, floats
     at = _settings_tensors(given, (), device)[0]
-    return ints, floats.index_put((at,), torch.stack([values[k].detach().reshape(()).to(device, torch.float32)
-                                                      for k in given]))
+    tensors = torch.stack([values[k].detach().reshape(()).to(device, torch.float32) for k in given])
+    return ints, floats.index_put((at,), tensors)
 
 
 @functools.lru_cache(maxsize=256)
