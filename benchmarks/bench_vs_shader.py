@@ -132,8 +132,8 @@ def _cases() -> dict[str, Case]:
     from torch_ao.thickness import BackfaceThickness
     from torch_ao.thickness_net import NetThickness
 
-    def bitmask(**options):
-        return lambda s: torch_ao.BitmaskAO(backend="kernel", **s, **options)
+    def bitmask(backend="kernel", **options):
+        return lambda s: torch_ao.BitmaskAO(backend=backend, **s, **options)
 
     def horizon(cls, backend="kernel", **options):
         return lambda s: cls(backend=backend, **_without_thickness(s), **options)
@@ -174,8 +174,8 @@ def _cases() -> dict[str, Case]:
         "gtao_edge": Case("`GTAO` edge-aware fetch", horizon(torch_ao.GTAO, fetch="edge_aware"), None, "shader", 1.0),
         "ssilvb_glsl_torch": Case("`ssilvb_glsl`, tensor ops", lambda s: torch_ao.SSILVB(
             variant="ssilvb_glsl", mode="hard", backend="torch", **s), None, "shader", 1.0, kernel=False),
-        "bitmask_torch": Case("`BitmaskAO` hard, tensor ops", lambda s: torch_ao.BitmaskAO(
-            mode="hard", backend="torch", **s), None, "shader", 1.0, kernel=False),
+        "bitmask_torch": Case("`BitmaskAO` hard, tensor ops", bitmask("torch", mode="hard"), None, "shader", 1.0,
+                              kernel=False),
         "exact_torch": Case("`BitmaskAO` exact + back-face + edge-aware, tensor ops", exact("torch"), None, "shader",
                             1.0, kernel=False),
         "gtao_torch": Case("`GTAO`, tensor ops", horizon(torch_ao.GTAO, "torch"), None, "shader", 1.0, kernel=False),
@@ -192,7 +192,7 @@ def _cases() -> dict[str, Case]:
                                     3.0),
         "cosine_edge_gbuffer_torch": Case(
             "soft `BitmaskAO` cosine + edge-aware fwd+bwd, depth + normals, tensor ops",
-            lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend="torch", **s),
+            bitmask("torch", mode="soft", weighting="cosine", fetch="edge_aware"),
             "gbuffer", "bitmask", 3.0, kernel=False),
         # torch-ao fit's default pipeline (cosine, the back-face layer near its fitted scale and offset, edge-aware)
         "backface_gbuffer": Case("soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals",
@@ -213,7 +213,7 @@ def _cases() -> dict[str, Case]:
                                          "cosine_bent", 3.0),
         "cosine_hard_gbuffer_torch": Case(
             "`BitmaskAO` hard, cosine fwd+bwd, depth + normals, tensor ops",
-            lambda s: torch_ao.BitmaskAO(mode="hard", weighting="cosine", backend="torch", **s),
+            bitmask("torch", mode="hard", weighting="cosine"),
             "gbuffer", "cosine", 3.0, kernel=False),
         "cosine_hdrp": Case("`BitmaskAO` hard, variant `hdrp`, cosine",
                             bitmask(mode="hard", variant="hdrp", weighting="cosine"), None, "shader", 1.0),
@@ -222,25 +222,26 @@ def _cases() -> dict[str, Case]:
                                      "cosine_hdrp", 3.0),
         "bitmask_hdrp_gbuffer_torch": Case(
             "`BitmaskAO` hard, variant `hdrp`, cosine fwd+bwd, depth + normals, tensor ops",
-            lambda s: torch_ao.BitmaskAO(mode="hard", variant="hdrp", weighting="cosine", backend="torch", **s),
+            bitmask("torch", mode="hard", variant="hdrp", weighting="cosine"),
             "gbuffer", "cosine_hdrp", 3.0, kernel=False),
         "soft_hdrp_parameters": Case("soft `BitmaskAO`, variant `hdrp` fwd+bwd, radius + thickness",
                                      bitmask(mode="soft", variant="hdrp"), "parameters", "bitmask_hdrp", 3.0),
         "soft_hdrp_parameters_torch": Case(
             "soft `BitmaskAO`, variant `hdrp` fwd+bwd, radius + thickness, tensor ops",
-            lambda s: torch_ao.BitmaskAO(mode="soft", variant="hdrp", backend="torch", **s), "parameters",
+            bitmask("torch", mode="soft", variant="hdrp"), "parameters",
             "bitmask_hdrp", 3.0, kernel=False),
         "soft_hdrp_gbuffer": Case("soft `BitmaskAO`, variant `hdrp` fwd+bwd, depth + normals",
                                   bitmask(mode="soft", variant="hdrp"), "gbuffer", "bitmask_hdrp", 3.0),
         "soft_hdrp_gbuffer_torch": Case(
             "soft `BitmaskAO`, variant `hdrp` fwd+bwd, depth + normals, tensor ops",
-            lambda s: torch_ao.BitmaskAO(mode="soft", variant="hdrp", backend="torch", **s), "gbuffer",
+            bitmask("torch", mode="soft", variant="hdrp"), "gbuffer",
             "bitmask_hdrp", 3.0, kernel=False),
         # a thickness growth (the hard kernels'), the shader with the back-face layer, a soft ambient colour
         "bitmask_growth": Case("`BitmaskAO` hard, thickness growth 0.5", bitmask(mode="hard", thickness_growth=0.5),
                                None, "shader", 1.0),
-        "bitmask_growth_torch": Case("`BitmaskAO` hard, thickness growth 0.5, tensor ops", lambda s: torch_ao.BitmaskAO(
-            mode="hard", thickness_growth=0.5, backend="torch", **s), None, "shader", 1.0, kernel=False),
+        "bitmask_growth_torch": Case("`BitmaskAO` hard, thickness growth 0.5, tensor ops",
+                                     bitmask("torch", mode="hard", thickness_growth=0.5), None, "shader", 1.0,
+                                     kernel=False),
         "ssilvb_glsl_backface": Case("`ssilvb_glsl` hard AO + indirect, `BackfaceThickness`", lambda s: torch_ao.SSILVB(
             variant="ssilvb_glsl", mode="hard", backend="kernel", thickness=BackfaceThickness(0.8, 0.15),
             **_without_thickness(s)), None, "shader", 1.0),
