@@ -29,7 +29,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .coverage import call_uncovered
-from .gtao import finish_sums, float32_value
+from .gtao import finish_sums, float32_value, packed_value
 from .launch import run_walk, walk_settings
 from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
 
@@ -63,7 +63,7 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
     if offsets is not None:  # WedgePattern._direction: the offset's angle and length
         slices = len(offsets)
         table = [v for x, y in offsets for v in (math.atan2(y, x), math.hypot(x, y))]
-    settings = walk_settings(slices=slices, steps=steps, radius=float32_value(radius), jitter=jitter, seed=seed,
+    settings = walk_settings(slices=slices, steps=steps, radius=packed_value(radius), jitter=jitter, seed=seed,
                              fetch=fetch, border=border, placement="wedge", azimuth="screen", table=table)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, fade_distance, flat_surface_bias):
@@ -71,7 +71,7 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
                                                                             flat_softness),
                                               "setting_dimension": (1, 1, 1)}
     return walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
-                [max(float32_value(fade_distance), 1e-30), float32_value(flat_surface_bias), float(flat_softness)], 2,
+                [max(float32_value(fade_distance), 1e-30), packed_value(flat_surface_bias), float(flat_softness)], 2,
                 lanes=lanes, **options)
 
 
@@ -95,7 +95,7 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, distance_bias):
         walk, options = differentiable_walk, {"radius": 0.0, "setting": (distance_bias,)}
-    return walk("pssao", gbuffer, normals, settings, [], [float32_value(distance_bias)], 3, lanes=lanes, **options)
+    return walk("pssao", gbuffer, normals, settings, [], [packed_value(distance_bias)], 3, lanes=lanes, **options)
 
 
 def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: torch.Tensor,
@@ -113,13 +113,13 @@ def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: to
             softness being lengths).
     """
     table = [float(v) for v in kernel.detach().to(torch.float32).flatten().tolist()]
-    settings = walk_settings(slices=1, steps=len(kernel), radius=float32_value(radius), jitter=jitter, seed=seed,
+    settings = walk_settings(slices=1, steps=len(kernel), radius=packed_value(radius), jitter=jitter, seed=seed,
                              fetch=fetch, border=border, placement="hemisphere", full_circle=True, table=table)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, bias):
         walk, options = differentiable_walk, {"radius": radius, "setting": (bias, softness),
                                               "setting_dimension": (1, 1)}
-    return walk("hemisphere", gbuffer, normals, settings, [], [float32_value(bias), float(softness)], 1,
+    return walk("hemisphere", gbuffer, normals, settings, [], [packed_value(bias), float(softness)], 1,
                 lanes=lanes, **options)
 
 
