@@ -29,11 +29,6 @@ __all__ = ["gtao_sums", "gtao_forward", "gtao_covers", "hbao_sums", "hbao_forwar
 VARIANTS = ("exact", "hdrp", "ue4")
 
 
-def float32_value(x) -> float:
-    """A 0-d parameter (or a number) as the float32 value the tensor path computes with."""
-    return float(torch.as_tensor(x).detach().to(torch.float32))
-
-
 def packed_value(x) -> float | torch.Tensor:
     """A 0-d parameter detached (:func:`~torch_ao.kernels.launch.packed_settings` puts it among the floats on its
     device, without reading it back from a GPU), or a number."""
@@ -132,8 +127,8 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
     m = module
     normals = gbuffer.view_normals(m.normals_method)
     falloff = 0.0
-    if m.variant == "exact" and float32_value(m.falloff_range) > 0:
-        falloff = (m.falloff_range * m.radius).clamp_min(1e-12)
+    if m.variant == "exact":  # (chosen on the device: a CUDA call reads nothing back, and can be captured in a graph)
+        falloff = torch.where(m.falloff_range > 0, (m.falloff_range * m.radius).clamp_min(1e-12), 0.0)
     sums = gtao_sums(
         gbuffer, normals, variant=m.variant, slices=m.slices, steps=m.steps,
         walk_radius=packed_value(m.radius * m.search_scale if m.variant == "exact" else m.radius),

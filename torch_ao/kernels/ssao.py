@@ -29,7 +29,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .coverage import call_uncovered
-from .gtao import finish_sums, float32_value, packed_value
+from .gtao import finish_sums, packed_value
 from .launch import run_walk, walk_settings
 from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
 
@@ -71,8 +71,16 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
                                                                             flat_softness),
                                               "setting_dimension": (1, 1, 1)}
     return walk("wedge", gbuffer, normals, settings, [bool(accurate_angle)],
-                [max(float32_value(fade_distance), 1e-30), packed_value(flat_surface_bias), float(flat_softness)], 2,
+                [packed_value(_floored(fade_distance)), packed_value(flat_surface_bias), float(flat_softness)], 2,
                 lanes=lanes, **options)
+
+
+def _floored(fade_distance: float | torch.Tensor) -> float | torch.Tensor:
+    """The fade distance at least 1e-30 (the kernel divides by it), a tensor kept on its device (read back from a
+    GPU it would make the call wait)."""
+    if isinstance(fade_distance, torch.Tensor):
+        return fade_distance.detach().to(torch.float32).clamp_min(1e-30)
+    return max(float(torch.tensor(fade_distance, dtype=torch.float32)), 1e-30)
 
 
 def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, offsets,
