@@ -75,7 +75,8 @@ extern "C" {
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
 Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
-    tao_walk_soft_gradients, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao, tao_walk_hemisphere;
+    tao_walk_soft_gradients, tao_walk_soft_gradients_short, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao,
+    tao_walk_hemisphere;
 }
 int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch of <<<blocks, THREADS>>>
   const std::string name = argv[1], dir = argv[2];
@@ -84,6 +85,7 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
   Kernel* kernel = name == "gtao" ? tao_walk_gtao : name == "hbao" ? tao_walk_hbao
                  : name == "exact" ? tao_walk_exact : name == "glsl" ? tao_walk_glsl : name == "soft" ? tao_walk_soft
                  : name == "soft_gradients" ? tao_walk_soft_gradients
+                 : name == "soft_gradients_short" ? tao_walk_soft_gradients_short
                  : name == "exact_gradients" ? tao_walk_exact_gradients : name == "wedge" ? tao_walk_wedge
                  : name == "pssao" ? tao_walk_pssao : name == "hemisphere" ? tao_walk_hemisphere : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
@@ -300,6 +302,9 @@ def cases(gb):
     yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0], [0.4, 0.01, 0.05, 0.0], 4, None
     yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0], [0.05, 0.01, 0.25, 0.15], 4, None  # linear
     yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1], [0.4, 0.0, 0.25, 0.0], 4, None
+    # the same walk with a short slice's arrays (CUDA only: the CPU operator runs "soft_gradients" for it, CPU_TWIN)
+    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
+    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1], [0.05, 0.01, 0.25, 0.15], 4, None
     wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
     table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
     yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
@@ -317,16 +322,22 @@ def cases(gb):
                1, None)
 
 
+#: the CPU operator's accumulator computing what a CUDA-only one does (the same walk in arrays of another size)
+CPU_TWIN = {"soft_gradients_short": "soft_gradients"}
+DERIVATIVES = ("soft_gradients", "soft_gradients_short", "exact_gradients")  # (their channels after the first)
+
+
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
 def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_cpu, frame):
     gb = FRAMES[frame]()
     normals = gb.view_normals()
     for accumulator, settings, ints, floats, channels, light in cases(gb):
         cuda = launch_on_cpu(cuda_on_cpu, accumulator, gb, normals, settings, ints, floats, channels, light)
-        scalar = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
+        twin = CPU_TWIN.get(accumulator, accumulator)
+        scalar = run_walk(twin, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
         assert (cuda != -7.0).all()  # every pixel written, by exactly its thread
-        simd = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light)
-        if accumulator in ("soft_gradients", "exact_gradients"):  # (derivatives: relative to their scale)
+        simd = run_walk(twin, gb, normals, settings, ints, floats, channels, light=light)
+        if accumulator in DERIVATIVES:  # (derivatives: relative to their scale)
             scale = scalar[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
             assert (cuda[:, :1] - scalar[:, :1]).abs().max() <= 1e-6
             assert ((cuda[:, 1:] - scalar[:, 1:]) / scale).abs().max() <= 1e-5, accumulator
@@ -339,7 +350,7 @@ def assert_lanes_agree(out: torch.Tensor, ref: torch.Tensor, accumulator: str, s
     """A walk's outputs in other lanes than ``ref``'s (SIMD against scalar, a GPU's against the CPU's): each
     rounds differently, which a decision can amplify. Uniform hard visibility as :func:`assert_masks_agree`, the
     derivative channels of ``*_gradients`` within 1e-3 of their scale, values as :func:`assert_values_agree`."""
-    if accumulator in ("soft_gradients", "exact_gradients"):
+    if accumulator in DERIVATIVES:
         scale = ref[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
         assert ((out[:, 1:] - ref[:, 1:]) / scale).abs().max() <= 1e-3, accumulator
         out, ref = out[:, :1], ref[:, :1]
@@ -356,7 +367,8 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
     device = gb.to(device="cuda")
     failed = []
     for index, (accumulator, settings, ints, floats, channels, light) in enumerate(cases(gb)):
-        cpu = run_walk(accumulator, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
+        cpu = run_walk(CPU_TWIN.get(accumulator, accumulator), gb, normals, settings, ints, floats, channels,
+                       light=light, lanes="scalar")
         gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
                        light=None if light is None else light.cuda())
         try:

@@ -94,6 +94,10 @@ TAO_FN SoftAccumulator<kGradients, kAdjoint, kMostSteps> unpack_soft(const int64
 }
 TAO_FN SoftAccumulator<false> unpack_soft_forward(const int64_t* i, const float* f) { return unpack_soft<false>(i, f); }
 TAO_FN SoftAccumulator<true> unpack_soft_gradients(const int64_t* i, const float* f) { return unpack_soft<true>(i, f); }
+// (a slice of at most kSoftShortSteps steps: the CUDA forward with gradients of every preset, walk_cuda.cu)
+TAO_FN SoftAccumulator<true, false, kSoftShortSteps> unpack_soft_gradients_short(const int64_t* i, const float* f) {
+  return unpack_soft<true, false, kSoftShortSteps>(i, f);
+}
 
 // floats: fade_distance (clamped to 1e-30), flat_surface_bias, flat_softness; ints: accurate_angle
 TAO_FN WedgeAccumulator unpack_wedge(const int64_t* i, const float* f) {

@@ -110,8 +110,11 @@ def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients):
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness,
     d layer_scale."""
     settings, acc_ints, acc_floats = _settings(radius, thickness, scale, o)
-    return run_walk("soft_gradients" if gradients else "soft", gbuffer, normals, settings, acc_ints, acc_floats,
-                    4 if gradients else 1, backface=layer, lanes=o["lanes"])
+    accumulator = "soft"
+    if gradients:  # (on CUDA, the short slice's arrays where its steps fit: soft_walk_short)
+        accumulator = "soft_gradients_short" if gbuffer.depth.is_cuda and soft_walk_short(o["steps"]) else "soft_gradients"
+    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 4 if gradients else 1,
+                    backface=layer, lanes=o["lanes"])
 
 
 def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o):
@@ -123,14 +126,20 @@ def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o):
                               scalar_lanes(o["lanes"]), o["steps"])
 
 
-#: soft.h's kSoftShortSteps: the most steps of a slice (both sides) the short CUDA backward keeps
+#: soft.h's kSoftShortSteps: the most steps of a slice (both sides) the short CUDA kernels keep
 SHORT_SLICE_STEPS = 16
 
 
+def soft_walk_short(steps: int) -> bool:
+    """Whether a slice of ``steps`` per side fits the short CUDA kernels' arrays (every preset's):
+    ``tao_walk_soft_gradients_short`` and ``tao_soft_backward_short``, whose threads keep a quarter of the local
+    memory of the kernels that take up to 32 steps a side."""
+    return 2 * steps <= SHORT_SLICE_STEPS
+
+
 def soft_backward_kernel(steps: int) -> str:
-    """The CUDA soft backward for ``steps`` per side: ``tao_soft_backward_short`` where a slice's steps fit its
-    arrays (every preset's), whose thread keeps a quarter of ``tao_soft_backward``'s local memory."""
-    return "tao_soft_backward_short" if 2 * steps <= SHORT_SLICE_STEPS else "tao_soft_backward"
+    """The CUDA soft backward for ``steps`` per side (:func:`soft_walk_short`)."""
+    return "tao_soft_backward_short" if soft_walk_short(steps) else "tao_soft_backward"
 
 
 class _GBufferWalk(torch.autograd.Function):

@@ -29,6 +29,9 @@ TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao, )
 TAO_CUDA_ENTRY(tao_walk_hemisphere, unpack_hemisphere, )
 TAO_CUDA_ENTRY(tao_walk_soft, unpack_soft_forward, )
 TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients, )  // d visibility / d radius, offset, scale too
+// the same where a slice's steps fit 16 (every preset's): its thread's steps' arrays a quarter as long (3.6 kB of local
+// memory a thread against 11.3 kB), as tao_soft_backward_short below
+TAO_CUDA_ENTRY(tao_walk_soft_gradients_short, unpack_soft_gradients_short, )
 
 // The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
 // the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes
