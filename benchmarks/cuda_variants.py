@@ -21,7 +21,6 @@ import ctypes
 import glob
 import json
 import os
-import statistics
 import sys
 from pathlib import Path
 
@@ -136,6 +135,7 @@ def run(directory: Path, warmup: int, repeat: int, variants: list[str] | None, c
     from torch.cuda._utils import _cuda_load_module
 
     sys.path.insert(0, str(Path(__file__).parent))
+    from bench_cuda import median_ms
     from bench_vs_shader import frame_gbuffer
 
     device = torch.device("cuda")
@@ -156,17 +156,7 @@ def run(directory: Path, warmup: int, repeat: int, variants: list[str] | None, c
             for name, grid, block, args in launches:
                 kernel = kernels[name]
                 go = lambda: kernel(grid=grid, block=block, args=args)  # noqa: E731
-                for _ in range(warmup):
-                    go()
-                samples = []
-                for _ in range(repeat):
-                    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                    start.record()
-                    go()
-                    end.record()
-                    end.synchronize()
-                    samples.append(start.elapsed_time(end))
-                times.append(statistics.median(samples))
+                times.append(median_ms(go, device, warmup=warmup, repeat=repeat))
                 outs.append(args[9].clone())  # (walk_cuda.cu's TAO_CUDA_ENTRY: out after the nine inputs)
             if reference is None:
                 reference = outs
