@@ -251,6 +251,11 @@ def _cases() -> dict[str, Case]:
                 **_without_thickness(s)), None, "shader", 1.0, kernel=False),
         "soft_ambient_gbuffer": Case("soft `BitmaskAO` + ambient colour fwd+bwd, depth + normals",
                                      bitmask(mode="soft", ambient=(0.2, 0.5, 1.0)), "gbuffer", "bitmask", 3.0),
+        "soft_bent_gbuffer": Case("soft `BitmaskAO` + bent normals fwd+bwd, depth + normals",
+                                  bitmask(mode="soft", bent_normals=True), "gbuffer", "bitmask", 3.0),
+        "soft_bent_gbuffer_torch": Case("soft `BitmaskAO` + bent normals fwd+bwd, depth + normals, tensor ops",
+                                        bitmask("torch", mode="soft", bent_normals=True), "gbuffer", "bitmask", 3.0,
+                                        kernel=False),
         "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
             mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
         "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(
@@ -316,7 +321,7 @@ def with_gradients(gbuffer, gradients: str | None):
 
 
 def case_call(case: Case, gbuffer, settings: dict) -> Callable[[], None]:
-    """One call of the case: the forward under ``no_grad``, or forward + backward of the visibility's sum."""
+    """One call of the case: the forward under ``no_grad``, or forward + backward of its outputs' sum."""
     module = case.make(settings)
     if case.gradients is None:
         def forward():
@@ -333,7 +338,8 @@ def case_call(case: Case, gbuffer, settings: dict) -> Callable[[], None]:
         for x in leaves:
             x.grad = None
         out = module(gb)
-        sum(value.sum() for value in (out.visibility, out.indirect, out.ambient) if value is not None).backward()
+        outputs = (out.visibility, out.indirect, out.ambient, out.bent_normal)
+        sum(value.sum() for value in outputs if value is not None).backward()
     return forward_backward
 
 

@@ -139,12 +139,16 @@ template <class F> TAO_FN FrameAngle<F> frame_angle(SectorAngles angles, const S
   const F gamma = hdrp_slice_angle(walked.cos_gamma, walked.sin_gamma);
   return FrameAngle<F>{gamma, cos(gamma), sin(gamma)};
 }
+// frame_tangent: a component of the frame's tangent, of the walked slice's
+template <class F> TAO_FN F frame_tangent(SectorAngles angles, const F& walked) {
+  return angles == SectorAngles::hdrp ? neg(walked) : walked;
+}
 template <class F> TAO_FN Slice<F> slice_frame(SectorAngles angles, const Slice<F>& walked) {
   if (angles != SectorAngles::hdrp) return walked;
   Slice<F> sl = walked;
   const FrameAngle<F> fa = frame_angle(angles, walked);
   sl.gamma = fa.gamma, sl.cos_gamma = fa.cos_gamma, sl.sin_gamma = fa.sin_gamma;
-  for (int c = 0; c < 3; ++c) sl.T[c] = neg(walked.T[c]);
+  for (int c = 0; c < 3; ++c) sl.T[c] = frame_tangent(angles, walked.T[c]);
   return sl;
 }
 
@@ -226,6 +230,27 @@ TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, co
     g_T[k] = g_T[k] + g_tangent * delta[k];
   }
   return along_tangent * inv_b;
+}
+
+// Sector k's centre phi_k = gamma - pi/2 + c_k (c_k = pi (k + 1/2) / 32) in a slice's (V, T) frame, of its
+// gamma's cos and sin: cos phi_k = sin(gamma + c_k), sin phi_k = -cos(gamma + c_k)
+template <class G> TAO_FN void sector_centre(int k, const G& cos_gamma, const G& sin_gamma, G& along_v, G& along_t) {
+  along_v = sin_gamma * G(kCentreCos[k]) + cos_gamma * G(kCentreSin[k]);
+  along_t = sin_gamma * G(kCentreSin[k]) - cos_gamma * G(kCentreCos[k]);
+}
+
+// A slice's bent-normal sum in its (V, T) frame: sum_k wv(k) (cos phi_k, sin phi_k), wv(k) the visible share of
+// sector k times its weight (SectorAccumulator.end_slice)
+template <class G, class Weight>
+TAO_FN void bent_axes(const Weight& wv, const G& cos_gamma, const G& sin_gamma, G& along_v, G& along_t) {
+  along_v = G(0.0f), along_t = G(0.0f);
+  for (int k = 0; k < kSectors; ++k) {
+    G v, t;
+    sector_centre(k, cos_gamma, sin_gamma, v, t);
+    const G w = wv(k);
+    along_v = along_v + w * v;
+    along_t = along_t + w * t;
+  }
 }
 
 struct BitmaskAccumulator {
@@ -325,15 +350,9 @@ struct BitmaskAccumulator {
           sums.den = sums.den + st.omega[k];
         }
       if (bent) {
-        // the visible sectors' centres phi_k = gamma - pi/2 + c_k in the slice's (V, T) frame:
-        // cos phi_k = sin(gamma + c_k), sin phi_k = -cos(gamma + c_k)
         const Slice<F> sl = frame(walked);
-        const F cg = sl.cos_gamma, sg = sl.sin_gamma;
-        F along_v = F(0.0f), along_t = F(0.0f);
-        for (int k = 0; k < kSectors; ++k) {
-          along_v = along_v + wv[k] * (sg * F(kCentreCos[k]) + cg * F(kCentreSin[k]));
-          along_t = along_t + wv[k] * (sg * F(kCentreSin[k]) - cg * F(kCentreCos[k]));
-        }
+        F along_v, along_t;
+        bent_axes([&](int k) { return wv[k]; }, sl.cos_gamma, sl.sin_gamma, along_v, along_t);
         for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + along_v * px.V[c] + along_t * sl.T[c];
       }
     }

@@ -6,7 +6,8 @@
 //     P_{m+1} = P_m - a b g P_m           (P_0 = 1; a step with w < 0 is empty)
 // F the smooth floor sum_{m=1..32} sigmoid((s - m) / tau) (over a window of W <= 8 integers around s
 // where tau is small: sweeps.floor_window_width), and the visibility sum_slices sum_k P_k omega_k / den
-// (omega = 1/32, den = slices; or the cosine weights, den = their sum).
+// (omega = 1/32, den = slices; or the cosine weights, den = their sum). With bent, also the bent normal's sum
+// sum_slices sum_k P_k omega_k (cos phi_k V + sin phi_k T) (bitmask.h's bent_axes; its direction is taken in torch).
 //
 // The thickness at a sample is bitmask.h's ThicknessModel (thickness.ThicknessLayer: scale * value + offset).
 // With gradients, three more channels: d visibility / d radius, d thickness (the model's offset) and d its
@@ -20,9 +21,11 @@
 // with these (the soft union's) gradients.
 //
 // The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
-// value lanes keeping each step's fetch, runs the same reverse scan, and chains each step's d vis / d s,
-// d w by hand: through the angles (sample_angles_adjoint) to d / d delta and d / d its thickness (scattered, times the
-// upstream gradient, to the fetch's taps by the caller's sink: the position's, and the layer's where the model
+// value lanes keeping each step's fetch, runs the same reverse scan seeded by the outputs' upstream gradients
+// (d loss / d each sector's free share: the visibility's, and the bent normal sum's through phi_k's direction),
+// and chains each step's d loss / d s,
+// d w by hand: through the angles (sample_angles_adjoint) to d / d delta and d / d its thickness (scattered to
+// the fetch's taps by the caller's sink: the position's, and the layer's where the model
 // reads one; the linear model's value is the fetched position's depth) and on to the slice's quantities (V, T, P, the screen direction, the
 // span, gamma: HDRP's through hdrp_slice_angle), whose tangents on the pixel's own P, N, depth come from the pixel and slice walked in dual
 // lanes (lanes_dual.h); the cosine weights carry their own tangents.
@@ -99,6 +102,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   int64_t rounding;
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
   bool windowed, cosine, straight_through;
+  bool bent;  // the bent normal's sum too (not with kGradients: its settings' gradients are the backward's)
   SectorAngles angles;  // the variant's rule (bitmask.h's sample_angles, in slice_frame's frame)
   static constexpr int kKept = kGradients ? kMostSteps : 1;  // steps kept per slice
   // whether the sweep keeps each step's coverage for the reverse scan (64 logistics a step, else computed again):
@@ -131,11 +135,16 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   };
   template <class F> struct Sums {
     F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f);
-    F camera[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // the backward's d num / d fx, fy, cx, cy (values only)
+    F bent[3] = {F(0.0f), F(0.0f), F(0.0f)};  // the forward's: the visible sectors' direction sum (with bent)
+    // the backward's: d L / d fx, fy, cx, cy (values only), and d L / d the pixel's own inputs but through the
+    // visibility (tangents only)
+    F camera[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};
+    F loss = F(0.0f);
   };
   // d visibility / d of one step's s and w, of its front and back angles, of the slice's shift
   template <class B> struct StepAdjoint { B s, w, front, back, shift; };
-  TAO_FN int channels() const { return kGradients ? 4 : 1; }
+  TAO_FN int outputs() const { return bent ? 4 : 1; }  // the visibility, the bent normal's sum
+  TAO_FN int channels() const { return kGradients && !kAdjoint ? 4 : outputs(); }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
     const float inv_tau = float(1.0 / double(tau));
@@ -267,19 +276,34 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums) const {
     G share = G(0.0f);
     for (int k = 0; k < kSectors; ++k) {
-      const F free = straight_through ? F(1.0f) - bit(st.occ, k) : st.P[k];
-      share = share + G(free) * omega[k];
+      share = share + G(free_share(st, k)) * omega[k];
       if (cosine) sums.den = sums.den + omega[k];
     }
     return share;
   }
 
-  // soft_union's reverse scan over the slice's kept steps (after sweep): fn(m, StepAdjoint) for each step
-  // with a live lane, last to first
-  template <class F, class Fn> TAO_FN void reverse_scan(const State<F>& st, const F* before, const Fn& fn) const {
+  // sector k's free share: 1 - the union's soft coverage, or the hard one's in straight-through mode
+  template <class F> TAO_FN F free_share(const State<F>& st, int k) const {
+    return straight_through ? F(1.0f) - bit(st.occ, k) : st.P[k];
+  }
+
+  // The slice's bent-normal sum (bent_axes of the free shares times omega) into bent, in the frame's V and T (of
+  // the walked slice's T: frame_tangent) at its angle fa
+  template <class F, class Weights, class G>
+  TAO_FN void slice_bent(const State<F>& st, const Weights& omega, const G* V, const G* walked_T, const FrameAngle<G>& fa,
+                         G* bent) const {
+    G along_v, along_t;
+    bent_axes([&](int k) { return G(free_share(st, k)) * omega[k]; }, fa.cos_gamma, fa.sin_gamma, along_v, along_t);
+    for (int c = 0; c < 3; ++c) bent[c] = along_v * V[c] + along_t * frame_tangent(angles, walked_T[c]);
+  }
+
+  // soft_union's reverse scan over the slice's kept steps (after sweep) from seed(k) (d the loss / d sector k's
+  // free share): fn(m, StepAdjoint) for each step with a live lane, last to first
+  template <class F, class Seed, class Fn>
+  TAO_FN void reverse_scan(const State<F>& st, const F* before, const Seed& seed, const Fn& fn) const {
     const float inv_tau = float(1.0 / double(tau));
     F S[kSectors];
-    for (int k = 0; k < kSectors; ++k) S[k] = st.omega[k];
+    for (int k = 0; k < kSectors; ++k) S[k] = seed(k);
     for (int m = st.n - 1; m >= 0; --m) {
       const auto live = st.w[m] >= F(0.0f);
       if (!any(live)) continue;
@@ -313,12 +337,17 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   }
 
   template <class F>
-  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>&, Sums<F>& sums) const {
+  TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& walked, Sums<F>& sums) const {
     LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients)
     if (kGradients) sweep(st, &before[0]);
     sums.num = sums.num + visible(st, st.omega, sums);
+    if (bent && !kGradients) {
+      F part[3];
+      slice_bent(st, st.omega, px.V, walked.T, frame_angle(angles, walked), part);
+      for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + part[c];
+    }
     if (!kGradients) return;
-    reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
+    reverse_scan(st, &before[0], [&](int k) { return st.omega[k]; }, [&](int m, const StepAdjoint<F>& g) {
       const F g_t = select(px.live, g.back * st.back_t[m], F(0.0f));
       sums.thickness = sums.thickness + g_t;
       sums.scale = sums.scale + g_t * st.tv[m];
@@ -326,18 +355,21 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     });
   }
 
-  // The backward's slice (kAdjoint): the reverse scan's d visibility / d delta of each step, times weight
-  // (the upstream gradient over the denominator), goes to sink.scatter(g_delta, st, m, lanes), which
-  // chains it to the step's taps; the same adjoints chained by hand through the step (delta = pos(su, sv)
-  // - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, the angles by sample_angles_adjoint,
-  // the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd: the pixel and slice
-  // in dual lanes; the variant's frame angle from sd) sums.num gains, with the cosine weights' own. With camera (the image whose
-  // intrinsics want gradients), also d num / d fx, fy, cx, cy into sums.camera: through the slice's screen motion (du, dv) = (fx a, -fy b) / depth
-  // (its direction unit_u, unit_v and the span from its length) and a bilinear fetch's unprojection
-  // ((su - cx) / fx, -(sv - cy) / fy) depth
+  // The backward's slice (kAdjoint), for the loss L = weight num + bent_weight . (the bent normal's sum) (weight: d L /
+  // d the visibility over its denominator; bent_weight: d L / d the bent normal's sum, or null): the reverse scan
+  // from d L / d each sector's free share gives d L / d delta of each step, which goes to sink.scatter(g_delta, st,
+  // m, lanes), which chains it to the step's taps; the same adjoints chained by hand through the step (delta =
+  // pos(su, sv) - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, the angles by
+  // sample_angles_adjoint, the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd:
+  // the pixel and slice in dual lanes; the variant's frame from sd) sums.loss gains. sums.num gains the slice's
+  // visible share (its value; sums.den the weights with their tangents), and sums.loss the tangents of its weights
+  // and frame through the share times weight and through the bent-normal sum times bent_weight. With camera
+  // (the image whose intrinsics want gradients), also d L / d fx, fy, cx, cy into sums.camera: through the slice's
+  // screen motion (du, dv) = (fx a, -fy b) / depth (its direction unit_u, unit_v and the span from its length) and
+  // a bilinear fetch's unprojection ((su - cx) / fx, -(sv - cy) / fy) depth
   template <class F, class D, class Sink>
   TAO_FN void end_slice_adjoint(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, const Pixels<D>& pd,
-                                const Slice<D>& sd, Sums<D>& sums, const F& weight, Sink& sink,
+                                const Slice<D>& sd, Sums<D>& sums, const F& weight, const F* bent_weight, Sink& sink,
                                 const Image* camera = nullptr) const {
     LaneArray<F, kKept * kSectors> before;
     sweep(st, &before[0]);
@@ -345,18 +377,37 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     LaneArray<D, kSectors> omega;  // the weights with their tangents
     for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
     if (cosine) cosine_sector_weights(frame, sd.length, omega);
-    sums.num = sums.num + visible(st, omega, sums);
+    const D share = visible(st, omega, sums);  // (its tangents, times weight, are the loss's through num)
+    sums.num = sums.num + D(share.v);
+    sums.loss = sums.loss + D(weight) * share;
+    // d L / d each sector's free share: the visibility's weight omega_k, and with bent normals omega_k times the
+    // upstream gradient's components along the sector centre's direction
+    F g_v = F(0.0f), g_t = F(0.0f);
+    if (bent_weight) {  // (the sum's own tangents, through its weights and frame, times the upstream gradient)
+      D part[3];
+      slice_bent(st, omega, pd.V, sd.T, frame, part);
+      for (int c = 0; c < 3; ++c) {
+        sums.loss = sums.loss + D(bent_weight[c]) * part[c];
+        g_v = g_v + bent_weight[c] * px.V[c], g_t = g_t + bent_weight[c] * frame_tangent(angles, sl.T[c]);
+      }
+    }
+    const F cos_gamma = frame.cos_gamma.v, sin_gamma = frame.sin_gamma.v;
+    const auto seed = [&](int k) {  // (g_v, g_t: 0 without bent normals)
+      F v, t;
+      sector_centre(k, cos_gamma, sin_gamma, v, t);
+      return st.omega[k] * (weight + g_v * v + g_t * t);
+    };
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
     F g_shift = F(0.0f);
     PlacementAdjoint<F> placement;
-    F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d num / d fx, fy, cx, cy (with camera)
-    reverse_scan(st, &before[0], [&](int m, const StepAdjoint<F>& g) {
+    F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d L / d fx, fy, cx, cy (with camera)
+    reverse_scan(st, &before[0], seed, [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       const auto valid = st.valid[m];
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
       const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m], g.front,
                                                   g.back, g_delta, g_V, g_T);
-      const F g_value = g_thickness * F(thickness.scale);  // d visibility / d the value the scale multiplies
+      const F g_value = g_thickness * F(thickness.scale);  // d L / d the value the scale multiplies
       if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
         g_delta[2] = g_delta[2] - g_value;
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
@@ -379,9 +430,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
         const F pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
         unprojection_camera(*camera, pos, g_delta, land(px.live, valid), g_cam);
       }
-      for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] * weight;
-      const F g_layer = g_value * weight;  // (read by the layer's taps: scattered where the model reads a layer)
-      sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_layer : nullptr);
+      // (g_value: read by the layer's taps, scattered where the model reads a layer)
+      sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_value : nullptr);
     });
     if (camera) {
       placement.camera(walk, *camera, sl, g_cam);
@@ -390,7 +440,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     D along = D(placement.unit_u) * sd.unit_u + D(placement.unit_v) * sd.unit_v + D(placement.span) * sd.span +
               D(g_shift) * ((D(kHalfPi) - frame.gamma) / D(kPi));
     for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
-    sums.num = sums.num + (along - D(along.v));  // (its tangents only)
+    sums.loss = sums.loss + (along - D(along.v));  // (its tangents only)
   }
 
   // The visibility's denominator at the pixels of walk_block(row, u0, n): the slices, or the cosine
@@ -410,26 +460,31 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   template <class F> TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
     const F den = cosine ? clamp_min(sums.den, F(1e-30f)) : F(float(walk.slices));
     out[0] = select(px.live, sums.num / den, F(1.0f));
-    if (kGradients) {
+    if (kGradients && !kAdjoint) {
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
       out[3] = select(px.live, sums.scale / den, F(0.0f));
+    } else if (bent) {  // (its direction is taken in torch: soft_bitmask.bent_normal)
+      for (int c = 0; c < 3; ++c) out[1 + c] = select(px.live, sums.bent[c], F(0.0f));
     }
   }
 };
 
 // The backward's accumulator (walk_block's interface) over value lanes F: SoftAccumulator<true, true>'s
 // slices ended by end_slice_adjoint into sink, with the pixels pd in dual lanes D (tangents on their own
-// P, N, depth) and each slice's in D; sums in D. finish writes the visibility's 7 tangents, d visibility / d
-// the thickness' offset and d its scale, then (with camera; else zeros) d visibility / d fx, fy, cx, cy.
+// P, N, depth) and each slice's in D; sums in D. The loss is upstream times the visibility plus bent_upstream (null
+// without bent normals) dotted with the bent normal's sum; weight: upstream over the visibility's denominator.
+// finish writes d L / d the pixel's own 7, d L / d the thickness' offset and d its scale, then (with camera; else
+// zeros) d L / d fx, fy, cx, cy.
 template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct SoftAdjoint {
   using Acc = SoftAccumulator<true, true, kMostSteps>;
   const Acc& acc;
   const Image& img;
   const Pixels<D>& pd;
-  F weight;
+  F upstream, weight;
+  const F* bent_upstream;
   Sink& sink;
-  bool camera;  // d visibility / d the intrinsics too (4 more channels)
+  bool camera;  // d L / d the intrinsics too (4 more channels)
   mutable int64_t slice = 0;
   template <class G> struct State {
     typename Acc::template State<G> base;
@@ -444,15 +499,14 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
     acc.step(st.base, side, px, sl, smp);
   }
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
-    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, sink, camera ? &img : nullptr);
+    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, bent_upstream, sink, camera ? &img : nullptr);
   }
-  TAO_FN void finish(const Sums<F>& sums, const Pixels<F>&, F* out) const {
+  TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
     D vis[4];
     acc.finish(sums, pd, vis);
-    for (int k = 0; k < 7; ++k) out[k] = vis[0].d[k];
-    out[7] = vis[2].v, out[8] = vis[3].v;
-    const F den = acc.cosine ? clamp_min(sums.den.v, F(1e-30f)) : F(float(acc.walk.slices));
-    for (int k = 0; k < 4; ++k) out[9 + k] = select(pd.live, sums.camera[k].v / den, F(0.0f));
+    for (int k = 0; k < 7; ++k) out[k] = select(px.live, upstream * vis[0].d[k] + sums.loss.d[k], F(0.0f));
+    out[7] = sums.thickness.v, out[8] = sums.scale.v;
+    for (int k = 0; k < 4; ++k) out[9 + k] = sums.camera[k].v;
   }
 };
 

@@ -1,5 +1,6 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default" | "hdrp", mode="soft" |
-"straight_through")`` on the one walk (``walk.h`` with ``soft.h``'s accumulator), differentiable with respect to the scalar ``radius``,
+"straight_through")``'s visibility and bent normals on the one walk (``walk.h`` with ``soft.h``'s accumulator),
+differentiable with respect to the scalar ``radius``,
 the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
 a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals,
 the intrinsics) and the thickness layer the model reads (and through it the back-face depth, a map, a table, the net's weights),
@@ -23,7 +24,9 @@ layer's taps (the linear model's value is the sample's depth: it joins d / d del
 gradients are per-pixel sums of the same adjoints. The radius needs no tangent: the walk is scale-invariant
 (positions, depth, a layer, radius and offset scaled together leave it as it is; the scale is unitless), so
 Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse + dL/dlayer layer)
-- T dL/dT``. The intrinsics reach the walk twice: through the positions (``walk_inputs``' unprojection, by
+- T dL/dT``. With bent normals the walk also returns the slices' bent-normal sum (3 channels; its direction is
+taken in torch), and the backward's reverse scan is seeded by both outputs' upstream gradients; their radius and
+thickness gradients take that backward too. The intrinsics reach the walk twice: through the positions (``walk_inputs``' unprojection, by
 autograd) and in the kernel (the slice's screen motion ``(fx a, -fy b) / depth``, whose direction places the
 steps and whose length the span; a bilinear fetch's unprojection), whose adjoints the backward chains by hand
 per slice and step and sums per pixel.
@@ -31,29 +34,37 @@ per slice and step and sums per pixel.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
-from .bitmask import HARD_VARIANTS, module_thickness, options_uncovered, thickness_read_index
+from .bitmask import HARD_VARIANTS, KernelOutputs, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
-__all__ = ["bitmask_soft", "kernel_covers", "module_forward"]
+__all__ = ["bitmask_soft", "soft_outputs", "kernel_covers", "module_forward"]
 
 
-def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
+def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Tensor:
+    """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1):
+    :func:`soft_outputs`' visibility (its keyword ``options``, without bent normals)."""
+    return soft_outputs(gbuffer, normals, **options).visibility
+
+
+def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, layer: torch.Tensor | None = None,
                  layer_scale: torch.Tensor | None = None, thickness_read: str | None = None,
-                 weighting: str = "uniform", straight_through: bool = False,
+                 weighting: str = "uniform", straight_through: bool = False, bent_normals: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
-                 sector_epsilon: float = 0.01, variant: str = "default", lanes: str = "simd") -> torch.Tensor:
-    """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1),
-    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
-    positions, intrinsics and ``normals``.
+                 sector_epsilon: float = 0.01, variant: str = "default", lanes: str = "simd") -> KernelOutputs:
+    """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1) and, with
+    ``bent_normals``, the bent normals ``(B,3,H,W)`` (unit view-space; ``normals`` where the visible sectors' sum is
+    about 0 and on background), differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer``
+    and the G-buffer's depth, positions, intrinsics and ``normals``.
 
     Args:
         gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
@@ -65,7 +76,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             ``thickness_scale``); ``thickness_read``: as :func:`~torch_ao.kernels.bitmask_outputs`
             (``"depth"``: ``layer_scale`` per world unit of the sample's depth, no layer).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
-            straight_through: hard coverage in the forward, the soft gradient in the backward.
+            straight_through: hard coverage in the forward, the soft gradient in the backward; bent_normals: the
+            visible sectors' mean direction too (its gradients are the backward's walk, as the G-buffer's).
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
             azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame):
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
@@ -75,26 +87,40 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     if variant not in HARD_VARIANTS:
         raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
     read = thickness_read_index(thickness_read, layer)
-    of_gbuffer = wants_gradient(gbuffer, normals, layer)
-    if gbuffer.depth.device.type == "cpu":
-        cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
-        if of_gbuffer:
-            grad_kernels()
     scalars = []
     for name, t in (("radius", radius), ("thickness", thickness), ("layer_scale", 1.0 if layer_scale is None else layer_scale)):
         t = torch.as_tensor(t)
         if t.dim() != 0:
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
         scalars.append(t)
+    # the backward's walk: the G-buffer's gradients, and the bent normals' (the settings' too: one reverse scan
+    # seeded by both outputs, where the forward's derivative channels would be 9 more)
+    backward_walk = wants_gradient(gbuffer, normals, layer, *(scalars if bent_normals else ()))
+    if gbuffer.depth.device.type == "cpu":
+        cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
+        if backward_walk:
+            grad_kernels()
     options = dict(slices=int(slices), steps=int(steps), tau=float(tau), cosine=weighting == "cosine",
                    straight_through=bool(straight_through), step_power=float(step_power),
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
                    stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read,
-                   angles=HARD_VARIANTS.index(variant))
-    if of_gbuffer:
-        return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
-    return _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
+                   angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals))
+    if backward_walk:
+        out = _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
+    elif bent_normals:  # (no gradient: the plain walk)
+        out = _walk(gbuffer, normals, *scalars, layer, options, False)
+    else:
+        out = _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
+    bent = bent_normal(out[:, 1:], normals, gbuffer.valid) if bent_normals else None
+    return KernelOutputs(out[:, :1], None, bent)
+
+
+def bent_normal(sums: torch.Tensor, normals: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """The bent normals ``(B,3,H,W)`` of the walk's bent-normal sums ``(B,3,H,W)``: their direction, or ``normals``
+    where a sum is about 0 (every sector occluded) and where not ``valid`` (SectorAccumulator.finish)."""
+    keep = valid & (torch.linalg.vector_norm(sums, dim=1, keepdim=True) > 1e-12)
+    return torch.where(keep, F.normalize(sums, dim=1, eps=1e-12), normals)
 
 
 def _settings(radius, thickness, scale, o):
@@ -102,28 +128,28 @@ def _settings(radius, thickness, scale, o):
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=radius.detach(), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"])
-    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"]],
+    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"], o["bent"]],
             [thickness.detach(), o["epsilon"], o["tau"], scale.detach()])
 
 
 def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients):
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness,
-    d layer_scale."""
+    d layer_scale, or (with bent normals) their sum."""
     settings, acc_ints, acc_floats = _settings(radius, thickness, scale, o)
     accumulator = "soft"
     if gradients:  # (on CUDA, the short slice's arrays where its steps fit: soft_walk_short)
         accumulator = "soft_gradients_short" if gbuffer.depth.is_cuda and soft_walk_short(o["steps"]) else "soft_gradients"
-    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 4 if gradients else 1,
+    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 4 if gradients or o["bent"] else 1,
                     backface=layer, lanes=o["lanes"])
 
 
 def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o):
-    """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), the thickness
-    ``layer`` and the scalars."""
+    """The visibility (and the bent normals' sum) with gradients to the walk's channel-last inputs (so to the
+    G-buffer), the thickness ``layer`` and the scalars."""
     inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o),
                                                                   backface=layer)
     return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale,
-                              scalar_lanes(o["lanes"]), o["steps"])
+                              scalar_lanes(o["lanes"]), o["steps"], 4 if o["bent"] else 1)
 
 
 #: soft.h's kSoftShortSteps: the most steps of a slice (both sides) the short CUDA kernels keep
@@ -144,22 +170,22 @@ def soft_backward_kernel(steps: int) -> str:
 
 class _GBufferWalk(torch.autograd.Function):
     """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the edge-aware fetch's
-    ``cells`` and the thickness ``layer`` (each empty where unused), and ``soft_backward``."""
+    ``cells`` and the thickness ``layer`` (each empty where unused), its ``channels`` outputs, and ``soft_backward``."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
-                thickness, scale, scalar, steps):
+                thickness, scale, scalar, steps, channels):
         none = torch.empty(0, device=depth.device)
         ctx.scalar, ctx.scale_dtype, ctx.steps = scalar, scale.dtype, steps
         ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats,
                               radius, thickness)
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
-            out = torch.empty(depth.shape[0], 1, *depth.shape[1:], device=depth.device)
+            out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
             launch_cuda("tao_walk_soft", depth.device, [*frame, none, cells, layer, out, ints, floats],
                         tuple(depth.shape))
             return out
-        return cpu_kernels().walk("soft", *frame, none, cells, layer, ints, floats, 1, scalar)
+        return cpu_kernels().walk("soft", *frame, none, cells, layer, ints, floats, channels, scalar)
 
     @staticmethod
     def backward(ctx, grad):
@@ -191,7 +217,7 @@ class _GBufferWalk(torch.autograd.Function):
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
                 g_radius, g_thickness.to(thickness.dtype) if ctx.needs_input_grad[11] else None,
-                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None, None)
+                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None, None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
@@ -217,9 +243,9 @@ _MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
 #: the variants (bitmask.h's sector rules and slice frames)
 _VARIANTS = HARD_VARIANTS
-#: beyond what every bitmask kernel covers: the edge-aware fetch, and a constant ambient colour (the visibility times
-#: the colour, in torch: dispatch.py)
-_EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "ambient": (None, "a colour")}
+#: beyond what every bitmask kernel covers: the edge-aware fetch, bent normals, and a constant ambient colour (the
+#: visibility times the colour, in torch: dispatch.py)
+_EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "bent_normals": (False, True), "ambient": (None, "a colour")}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
@@ -227,7 +253,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     of :data:`~torch_ao.kernels.bitmask.HARD_VARIANTS` in soft or straight-through mode, or hard mode, whose masks have
     none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
-    value + offset``, visibility and a constant ambient colour, a float32 CPU or CUDA G-buffer) with either weighting; gradients of radius and
+    value + offset``, visibility, bent normals and a constant ambient colour, a float32 CPU or CUDA G-buffer) with either weighting; gradients of radius and
     the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
     reads."""
     of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)
@@ -240,17 +266,18 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     return None
 
 
-def module_forward(module, gbuffer: GBuffer) -> torch.Tensor:
-    """``module(gbuffer).visibility`` by :func:`bitmask_soft` (a call :func:`kernel_covers` accepts)."""
+def module_forward(module, gbuffer: GBuffer) -> KernelOutputs:
+    """``module(gbuffer)``'s visibility and bent normals by :func:`soft_outputs` (a call :func:`kernel_covers`
+    accepts)."""
     hard = module.mode == "hard"  # hard masks have no gradient: no graph
     form = module_thickness(module, gbuffer)
     radius, thickness, scale = module.radius, form.offset, form.scale
     if hard:
         radius, thickness, scale = radius.detach(), thickness.detach(), scale.detach()
     layer = None if form.layer is None else form.layer.detach() if hard else form.layer
-    return bitmask_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
+    return soft_outputs(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, layer=layer, layer_scale=scale, thickness_read=form.read,
-                        tau=module.tau, weighting=module.weighting,
+                        tau=module.tau, weighting=module.weighting, bent_normals=module.want_bent,
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,

@@ -439,18 +439,14 @@ template <class B, int kMostSteps>
 TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true, kMostSteps>& acc,
                             int64_t row, int64_t u0, int n, const float* upstream, const Targets& t) {
   using D = Dual<B, kPixel>;
-  constexpr int L = LaneTraits<B>::L;
-  float lane[L];
-  for (int l = 0; l < L; ++l) lane[l] = l < n ? upstream[row * img.W + u0 + l] : 0.0f;
-  const B g = from_lanes(lane, B(0.0f));
+  B g[8];  // d L / d the visibility, then (with bent normals) d L / d the bent normal's sum
+  if (!upstream_lanes(img, row, u0, n, upstream, acc.outputs(), g)) return;  // (the outputs' zeros stand)
   TapSink<B> sink{cfg.bilinear, cfg.bilinear && acc.thickness.read == ThicknessRead::layer, n, t};
   const Pixels<D> pd(cfg, img, row, u0, n);
-  const SoftAdjoint<B, D, TapSink<B>, kMostSteps> adjoint{acc, img, pd, g / acc.template denominator<B>(img, row, u0, n),
-                                                          sink, t.camera != nullptr};
-  B outs[13];
-  walk_block(cfg, img, adjoint, row, u0, n, outs);
+  const SoftAdjoint<B, D, TapSink<B>, kMostSteps> adjoint{acc, img, pd, g[0], g[0] / acc.template denominator<B>(img, row, u0, n),
+                                                          acc.bent ? &g[1] : nullptr, sink, t.camera != nullptr};
   B own[13];
-  for (int k = 0; k < 13; ++k) own[k] = g * outs[k];
+  walk_block(cfg, img, adjoint, row, u0, n, own);
   // (the settings: d L / d the offset, d L / d the scale; where asked, d L / d the intrinsics)
   write_own(t, img.W, row, u0, n, own, &own[kPixel], t.camera ? &own[kPixel + 2] : nullptr);
 }
@@ -934,7 +930,7 @@ TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true,
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 2 * b * plane,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
                   nullptr, nullptr, camera ? camera + 4 * b * plane : nullptr, 2};
-  soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
+  soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.outputs() * plane, t);
 }
 
 // Pixel p's exact-union backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals,

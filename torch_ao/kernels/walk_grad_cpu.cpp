@@ -310,19 +310,19 @@ struct BackwardCall {
   }
 };
 
-// torch_ao_kernels::soft_backward: the gradients of sum(grad * visibility) of the soft / straight-through
-// walk ("soft"'s packed settings) with respect to its positions, normals (B, H, W, 3), inverse depth and
-// depth (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2), the thickness layer
+// torch_ao_kernels::soft_backward: the gradients of sum(grad * outputs) of the soft / straight-through walk
+// ("soft"'s packed settings; its outputs the visibility, and with bent normals their sum) with respect to its
+// positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2), the thickness layer
 // (B, H, W; zeros where the model reads none) and, with camera, each pixel's share of the intrinsics' (B, H, W, 4;
-// else empty); grad (B, 1, H, W); cells: the edge-aware fetch's cell flags (B, H, W), backface: the thickness layer
-// (B, H, W), each empty where unused
+// else empty); grad (B, 1 or 4, H, W); cells: the edge-aware fetch's cell flags (B, H, W), backface: the thickness
+// layer (B, H, W), each empty where unused
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera, bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, backface, ints,
-                          floats, 5, 4, "soft", kSoftMaxSteps / 2);
+                          floats, 6, 4, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
@@ -330,8 +330,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   out.settings = 2;  // d L / d the offset, d L / d the scale
   out.setting = at::zeros({call.fr.B, call.fr.H, call.fr.W, 2}, positions.options());
   if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
-  auto g = call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
-                                                    int n, const float* upstream, const Targets& t) {
+  auto g = call.run(grad, acc.outputs(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
+                                                                 int64_t u0, int n, const float* upstream,
+                                                                 const Targets& t) {
     soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
   return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.setting, std::get<4>(g),
