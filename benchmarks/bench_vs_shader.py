@@ -256,6 +256,11 @@ def _cases() -> dict[str, Case]:
         "soft_bent_gbuffer_torch": Case("soft `BitmaskAO` + bent normals fwd+bwd, depth + normals, tensor ops",
                                         bitmask("torch", mode="soft", bent_normals=True), "gbuffer", "bitmask", 3.0,
                                         kernel=False),
+        "ssilvb_soft_gbuffer": Case("soft `SSILVB` (AO + indirect) fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(
+            mode="soft", backend="kernel", **s), "gbuffer", "bitmask", 3.0),
+        "ssilvb_soft_gbuffer_torch": Case(
+            "soft `SSILVB` (AO + indirect) fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
+                mode="soft", backend="torch", **s), "gbuffer", "bitmask", 3.0, kernel=False),
         "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
             mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
         "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(

@@ -121,8 +121,9 @@ typedef void Backward(const float*, const float*, const float*, const float*, co
                       const float*, const long long*, float*, float*, float*, float*, float*, float*, float*,
                       const long long*, const float*, int, int, int);
 typedef void SoftBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
-                          const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
-                          float*, float*, const long long*, const float*, int, int, int);
+                          const float*, const float*, const float*, const float*, float*, float*, float*, float*,
+                          float*, float*, float*, float*, float*, float*, const long long*, const float*, int, int,
+                          int);
 typedef void HardRecord(const float*, const float*, const float*, const float*, const bool*, const float*,
                         const float*, const float*, const float*, float*, int*, const long long*, const float*, int,
                         int, int);
@@ -195,10 +196,15 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                    ints.data(), floats.data(), B, H, W); });
   } else if (name == "soft" || name == "soft_short") {  // (a slice's steps in soft.h's arrays of 64, or of 16)
     SoftBackward* soft = name == "soft" ? tao_soft_backward : tao_soft_backward_short;
-    grid(pixels, threads, [&] { soft(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells,
+    std::vector<float> senders(3 * n), tli(3 * n);
+    auto Li = load<float>(dir, "light");
+    const float* light = Li.empty() ? nullptr : Li.data();
+    grid(pixels, threads, [&] { soft(P.data(), N.data(), I.data(), D.data(), V, K.data(), light, cells,
                                                   Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
-                                                  gd.data(), gs.data(), taps.data(), ti.data(), tl.data(), gc.data(),
-                                                  ints.data(), floats.data(), B, H, W); });
+                                                  gd.data(), gs.data(), taps.data(), ti.data(), tl.data(),
+                                                  senders.data(), tli.data(), gc.data(), ints.data(), floats.data(),
+                                                  B, H, W); });
+    save(dir, "tap_normals", senders), save(dir, "tap_light", tli);
   } else if (name == "wedge" || name == "pssao" || name == "hemisphere") {  // (every step replayed: no record)
     Backward* every = name == "wedge" ? tao_backward_wedge : name == "pssao" ? tao_backward_pssao
                     : tao_backward_hemisphere;
@@ -295,18 +301,22 @@ def cases(gb):
     yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0, 0.0], 4, light
     yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1, 0.4], 4, light
     yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0, 0.0], 1, None
-    # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1), bent; floats
+    # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1), bent,
+    # indirect; floats
     # offset, epsilon, tau, scale
-    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 1, None
-    yield "soft", walk_settings(**common), [0, True, False, 3, 0, 1], [0.1, 0.01, 0.25, 0.05], 4, None  # bent normals
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1], [0.4, 0.0, 0.25, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0], [0.4, 0.01, 0.05, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0], [0.05, 0.01, 0.25, 0.15], 4, None  # linear
-    yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1, 0], [0.4, 0.0, 0.25, 0.0], 4, None
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 1, None
+    yield "soft", walk_settings(**common), [0, True, False, 3, 0, 1, 0], [0.1, 0.01, 0.25, 0.05], 4, None  # bent normals
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0], [0.4, 0.0, 0.25, 0.0], 4, None
+    # indirect light (and bent normals): soft, straight-through
+    yield "soft", walk_settings(**common), [0, True, False, 0, 0, 1, 1], [0.4, 0.01, 0.25, 0.0], 7, light
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, False, True, 0, 0, 0, 1], [0.4, 0.01, 0.25, 0.0], 4, light
+    yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0, 0], [0.4, 0.01, 0.05, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0, 0], [0.05, 0.01, 0.25, 0.15], 4, None  # linear
+    yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1, 0, 0], [0.4, 0.0, 0.25, 0.0], 4, None
     # the same walk with a short slice's arrays (CUDA only: the CPU operator runs "soft_gradients" for it, CPU_TWIN)
-    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
-    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1, 0], [0.05, 0.01, 0.25, 0.15], 4, None
+    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 4, None
+    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1, 0, 0], [0.05, 0.01, 0.25, 0.15], 4, None
     wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
     table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
     yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
@@ -406,20 +416,24 @@ def _backward_cases():
     yield "hemisphere", _hemisphere_settings(6, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     yield "hemisphere", _hemisphere_settings(5, fetch="nearest", border="clamp", jitter=False), [], [0.01, 0.1], 1
     yield "hemisphere", _hemisphere_settings(6, fetch="edge_aware", border="clamp", jitter=True), [], [0.0, 0.05], 1
-    # (rounding, cosine, straight, read, variant, bent)
-    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 1
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0, 0], [0.4, 0.01, 0.1, 0.0], 1
-    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0, 0, 0], [0.5, 0.0, 0.3, 0.0], 1
+    # (rounding, cosine, straight, read, variant, bent, indirect)
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0], 1
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0, 0, 0], [0.4, 0.01, 0.1, 0.0], 1
+    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0, 0, 0, 0], [0.5, 0.0, 0.3, 0.0], 1
     # (offset, epsilon, tau, scale): the back-face layer, a per-object table's first tap, the linear model
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 0], [0.1, 0.01, 0.25, 0.8], 1
-    yield "soft", walk_settings(**common), [0, False, False, 2, 0, 0], [0.05, 0.01, 0.25, 1.0], 1
-    yield "soft", walk_settings(**common), [0, True, True, 3, 0, 0], [0.1, 0.01, 0.25, 0.05], 1
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0], [0.1, 0.0, 0.25, 0.8], 1  # hdrp
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 0, 0], [0.1, 0.01, 0.25, 0.8], 1
+    yield "soft", walk_settings(**common), [0, False, False, 2, 0, 0, 0], [0.05, 0.01, 0.25, 1.0], 1
+    yield "soft", walk_settings(**common), [0, True, True, 3, 0, 0, 0], [0.1, 0.01, 0.25, 0.05], 1
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0, 0], [0.1, 0.0, 0.25, 0.8], 1  # hdrp
     # bent normals: the visibility's and the bent normal sum's upstream gradients (4 channels); both variants
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 1], [0.1, 0.01, 0.25, 0.8], 4
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1], [0.4, 0.0, 0.25, 0.0], 4
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 1, 0], [0.1, 0.01, 0.25, 0.8], 4
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0], [0.4, 0.0, 0.25, 0.0], 4
+    # indirect light: uniform and cosine (with bent normals: 7 channels), straight-through, the hdrp variant
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 1], [0.4, 0.01, 0.25, 0.0], 4
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, 0, 0, 1, 1], [0.4, 0.01, 0.25, 0.0], 7
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0, 1], [0.1, 0.0, 0.25, 0.8], 4
     # more steps than the short backward keeps (tao_soft_backward's arrays of 64)
-    yield "soft", walk_settings(**dict(common, steps=9)), [0, True, False, 0, 0, 0], [0.3, 0.01, 0.25, 1.0], 1
+    yield "soft", walk_settings(**dict(common, steps=9)), [0, True, False, 0, 0, 0, 0], [0.3, 0.01, 0.25, 1.0], 1
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
     yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
@@ -455,7 +469,8 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         reads = {"exact": 3, "soft": 3, "hard": 4, "hard_glsl": 3}
         layer = backface if accumulator in reads and acc_ints[reads[accumulator]] in (1, 2) else None
         light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
-        light = light if (accumulator == "hard" and acc_ints[2]) or (accumulator == "hard_glsl" and acc_ints[1]) else None
+        light = light if ((accumulator == "hard" and acc_ints[2]) or (accumulator == "hard_glsl" and acc_ints[1])
+                          or (accumulator == "soft" and acc_ints[6])) else None
         inputs, (light, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
                                                                     light=light, backface=layer)
         B, H, W = inputs[3].shape
@@ -492,10 +507,12 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                 grad, *inputs, cells, layer, ints, floats, True, True)
             g_setting = torch.zeros_like(g_depth)
         elif accumulator == "soft":
-            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad, cpu["camera"] = grad_kernels().soft_backward(
-                grad, *inputs, cells, layer, ints, floats, True, True)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad, light_grad, cpu["camera"] = grad_kernels().soft_backward(
+                grad, *inputs, light, cells, layer, ints, floats, True, True)
             if layer.numel():
                 cpu["layer"] = layer_grad
+            if light.numel():
+                cpu["light"] = light_grad
         elif accumulator in ("wedge", "pssao", "hemisphere"):
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
                 accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True, True)

@@ -159,7 +159,8 @@ def test_kernel_covers_names_what_it_does_not_cover():
     ids = GBuffer(depth=gb.depth, camera=gb.camera, object_id=torch.zeros(gb.depth.shape, dtype=torch.int64))
     assert covers(BitmaskAO(mode="soft", thickness=torch.ones(3)), ids) is None  # (the table's gradient: autograd's)
     assert "thickness" in covers(BitmaskAO(mode="soft", thickness=torch.ones(3), thickness_growth=0.5), ids)
-    assert "indirect" in covers(BitmaskAO(mode="soft", indirect=True), gb)
+    assert covers(BitmaskAO(mode="soft", indirect=True, bent_normals=True), gb) is None
+    assert "ssilvb_glsl" in covers(BitmaskAO(mode="soft", variant="ssilvb_glsl"), gb)
     assert "float64" in covers(BitmaskAO(mode="soft"), gb.to(dtype=torch.float64))
     assert covers(BitmaskAO(mode="soft", fetch="edge_aware"), gb) is None
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)

@@ -9,7 +9,7 @@ walk (``walk.h``) for every backend: the CPU (SIMD lanes) and CUDA (NVRTC, one t
   a thickness of the form ``scale * value + offset`` (:class:`~torch_ao.thickness.ThicknessLayer`) and every
   fetch (:func:`exact_hard`); the ``"ssilvb_glsl"`` variant's
   AO and indirect light (:func:`ssilvb_glsl_hard`);
-* soft / straight-through bitmask AO and its bent normals, forward and backward, gradients of radius and the thickness model's offset and scale
+* soft / straight-through bitmask AO, its indirect light and bent normals, forward and backward, gradients of radius and the thickness model's offset and scale
   (:func:`bitmask_soft`, :func:`soft_outputs`);
 * ``GTAO`` (every variant, bent normals too) and ``HBAO`` forward (:func:`gtao_sums`, :func:`hbao_sums`), and
   on CPU their backward: gradients of depth, normals and the parameters (not ``ue4``'s radius, not the

@@ -253,6 +253,22 @@ TAO_FN void bent_axes(const Weight& wv, const G& cos_gamma, const G& sin_gamma, 
   }
 }
 
+// How much of its light a sample at offset delta sends the pixel (SectorAccumulator.step): how much its surface
+// (sender_n, its normal) faces the pixel and, with uniform sectors (not cosine), how much the pixel's normal N faces
+// it; 0 where not valid
+template <class F, class M>
+TAO_FN F light_factor(const F* delta, const F* sender_n, const F* N, const M& valid, bool cosine) {
+  const F distance = clamp_min(norm3(delta), F(1e-30f));
+  F ldir[3], away[3];
+  for (int c = 0; c < 3; ++c) {
+    ldir[c] = delta[c] / distance;
+    away[c] = neg(ldir[c]);
+  }
+  F factor = select(valid, clamp(dot3(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
+  if (!cosine) factor = factor * clamp(dot3(N, ldir), F(0.0f), F(1.0f));
+  return factor;
+}
+
 struct BitmaskAccumulator {
   int64_t slices;
   ThicknessModel thickness;  // world units along the view ray
@@ -321,20 +337,12 @@ struct BitmaskAccumulator {
     return newly;
   }
 
-  // The light a sample at offset delta sends: the share it newly occludes (newly), times its light, times how
-  // much its surface (sender_n, its normal) faces the pixel (and, with uniform sectors, the pixel's normal
-  // faces it); 0 from an invalid sample
+  // The light a sample sends: the share it newly occludes (newly), times its light, times light_factor; 0 from
+  // an invalid sample
   template <class F>
   TAO_FN void light_sent(const Pixels<F>& px, const Sample<F>& smp, const F& newly, const F* sender_n, const F* light,
                          F* sent) const {
-    const F distance = clamp_min(norm3(smp.delta), F(1e-30f));
-    F ldir[3], away[3];
-    for (int c = 0; c < 3; ++c) {
-      ldir[c] = smp.delta[c] / distance;
-      away[c] = neg(ldir[c]);
-    }
-    F factor = select(smp.valid, clamp(dot3(sender_n, away), F(0.0f), F(1.0f)), F(0.0f));
-    if (!cosine) factor = factor * clamp(dot3(px.N, ldir), F(0.0f), F(1.0f));
+    const F factor = light_factor(smp.delta, sender_n, px.N, smp.valid, cosine);
     for (int c = 0; c < 3; ++c) sent[c] = newly * (light[c] * factor);
   }
 

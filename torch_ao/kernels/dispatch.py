@@ -62,8 +62,9 @@ def _constant_ambient(module, gbuffer: GBuffer, vis: torch.Tensor) -> torch.Tens
 
 
 def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
-    vis, _, bent = soft_bitmask.module_forward(module, gbuffer)
-    return {"visibility": vis, "bent_normal": bent, "ambient": _constant_ambient(module, gbuffer, vis)}
+    vis, indirect, bent = soft_bitmask.module_forward(module, gbuffer)
+    return {"visibility": vis, "indirect": indirect, "bent_normal": bent,
+            "ambient": _constant_ambient(module, gbuffer, vis)}
 
 
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,

@@ -125,10 +125,12 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 "placement over one slice, one side");
     run(unpack_hemisphere(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
-    packed(6, 4);
+    packed(7, 4);
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
-    TORCH_CHECK(name == "soft" || !i[kAccInts + 5], "soft_gradients: bent normals' derivatives are soft_backward's");
+    TORCH_CHECK(name == "soft" || (!i[kAccInts + 5] && !i[kAccInts + 6]),
+                "soft_gradients: bent normals' and indirect light's derivatives are soft_backward's");
+    TORCH_CHECK(!i[kAccInts + 6] || fr.light, "light: indirect light needs the light buffer");
     TORCH_CHECK(i[1] <= kSoftMaxSteps / 2, "steps: the soft union holds at most ", kSoftMaxSteps / 2, " per side");
     if (name == "soft") {
       run(unpack_soft<false>(i, f));

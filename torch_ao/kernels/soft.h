@@ -6,7 +6,9 @@
 //     P_{m+1} = P_m - a b g P_m           (P_0 = 1; a step with w < 0 is empty)
 // F the smooth floor sum_{m=1..32} sigmoid((s - m) / tau) (over a window of W <= 8 integers around s
 // where tau is small: sweeps.floor_window_width), and the visibility sum_slices sum_k P_k omega_k / den
-// (omega = 1/32, den = slices; or the cosine weights, den = their sum). With bent, also the bent normal's sum
+// (omega = 1/32, den = slices; or the cosine weights, den = their sum). With indirect, also the light
+// sum_slices sum_m newly_m light_m / den, newly_m = sum_k omega_k a b g P_m (soft_union's; straight-through: the hard
+// sectors' share) and light_m the sample's light times bitmask.h's light_factor; with bent, the bent normal's sum
 // sum_slices sum_k P_k omega_k (cos phi_k V + sin phi_k T) (bitmask.h's bent_axes; its direction is taken in torch).
 //
 // The thickness at a sample is bitmask.h's ThicknessModel (thickness.ThicknessLayer: scale * value + offset).
@@ -22,7 +24,8 @@
 //
 // The backward of the G-buffer (SoftAdjoint, kAdjoint: walk_grad_cpu.cpp's soft_backward) walks again in
 // value lanes keeping each step's fetch, runs the same reverse scan seeded by the outputs' upstream gradients
-// (d loss / d each sector's free share: the visibility's, and the bent normal sum's through phi_k's direction),
+// (d loss / d each sector's free share: the visibility's, and the bent normal sum's through phi_k's direction;
+// with indirect light each step's gain, the light's upstream gradient dotted with its light, soft_union's gn),
 // and chains each step's d loss / d s,
 // d w by hand: through the angles (sample_angles_adjoint) to d / d delta and d / d its thickness (scattered to
 // the fetch's taps by the caller's sink: the position's, and the layer's where the model
@@ -32,6 +35,7 @@
 #pragma once
 
 #include "bitmask.h"
+#include "lanes_dual.h"
 
 namespace tao {
 
@@ -102,7 +106,9 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   int64_t rounding;
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
   bool windowed, cosine, straight_through;
-  bool bent;  // the bent normal's sum too (not with kGradients: its settings' gradients are the backward's)
+  // the indirect light and the bent normal's sum too (not with kGradients: their settings' gradients are the
+  // backward's)
+  bool indirect, bent;
   SectorAngles angles;  // the variant's rule (bitmask.h's sample_angles, in slice_frame's frame)
   static constexpr int kKept = kGradients ? kMostSteps : 1;  // steps kept per slice
   // whether the sweep keeps each step's coverage for the reverse scan (64 logistics a step, else computed again):
@@ -132,18 +138,26 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
     LaneArray<SoftCoverage<F>, kKeepCoverage ? kKept : 1> coverages;  // the sweep's, for the reverse scan
+    F light[3];  // the forward's indirect light: what the slice's steps send
+    // the backward's with indirect light: each step's d L / d the share it newly occludes (SoftAdjoint::step), and
+    // in straight-through mode that (hard) share
+    LaneArray<F, kFetches> gain, hard_newly;
   };
   template <class F> struct Sums {
     F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f);
-    F bent[3] = {F(0.0f), F(0.0f), F(0.0f)};  // the forward's: the visible sectors' direction sum (with bent)
+    // the forward's: the light the steps send (with indirect), the visible sectors' direction sum (with bent)
+    F light[3] = {F(0.0f), F(0.0f), F(0.0f)}, bent[3] = {F(0.0f), F(0.0f), F(0.0f)};
     // the backward's: d L / d fx, fy, cx, cy (values only), and d L / d the pixel's own inputs but through the
     // visibility (tangents only)
     F camera[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};
     F loss = F(0.0f);
+    F lit = F(0.0f);  // the backward's sum of each step's gain times its newly occluded share (values only)
   };
-  // d visibility / d of one step's s and w, of its front and back angles, of the slice's shift
-  template <class B> struct StepAdjoint { B s, w, front, back, shift; };
-  TAO_FN int outputs() const { return bent ? 4 : 1; }  // the visibility, the bent normal's sum
+  // d visibility / d of one step's s and w, of its front and back angles, of the slice's shift; the share it newly
+  // occludes (with gains)
+  template <class B> struct StepAdjoint { B s, w, front, back, shift, newly; };
+  // the visibility, the indirect light, the bent normal's sum
+  TAO_FN int outputs() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
   TAO_FN int channels() const { return kGradients && !kAdjoint ? 4 : outputs(); }
 
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
@@ -185,18 +199,38 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     for (int k = cv.k0; k < cv.k1; ++k) cv.b[k] = soft_sigmoid(end_arg - F(float(k + 1) * inv_tau));
   }
 
-  // P <- P - a b g P over the sectors (P_m kept in before, if given; the coverage in keep, if given)
+  // P <- P - a b g P over the sectors (P_m kept in before, if given; the coverage in keep, if given); with
+  // weights, the share the step newly occludes, sum_k weights_k a b g P_k (soft_union's newly), else 0
   template <class B>
-  TAO_FN void cover(const B& s, const B& w, B* P, B* before, SoftCoverage<B>* keep = nullptr) const {
+  TAO_FN B cover(const B& s, const B& w, B* P, B* before, SoftCoverage<B>* keep = nullptr,
+                 const B* weights = nullptr) const {
     SoftCoverage<B> local;
     SoftCoverage<B>& cv = keep ? *keep : local;
     coverage(s, w, cv);
+    B newly = B(0.0f);
     for (int k = cv.k0; k < cv.k1; ++k) {
       if (before) before[k] = P[k];
       const B c = cv.b[k] * cv.a[k] * cv.gate;
+      if (weights) newly = newly + weights[k] * (c * P[k]);
       P[k] = P[k] - c * P[k];
       P[k] = select(P[k] > B(kSoftTiny), P[k], B(0.0f));
     }
+    return newly;
+  }
+
+  // The light a sample sends per unit of the share it newly occludes: its light times light_factor
+  template <class F> TAO_FN void sample_light(const Pixels<F>& px, const Sample<F>& smp, F* light) const {
+    F sender_n[3];
+    for (int c = 0; c < 3; ++c) sender_n[c] = smp.gather(smp.image->normals, c);
+    const F factor = light_factor(smp.delta, sender_n, px.N, smp.valid, cosine);
+    for (int c = 0; c < 3; ++c) light[c] = smp.gather(smp.image->light, c) * factor;
+  }
+
+  // The share of the hemisphere the sectors `fresh` cover (their weights' sum)
+  template <class F> TAO_FN F newly_share(const State<F>& st, const typename LaneTraits<F>::I& fresh) const {
+    F newly = F(0.0f);
+    for (int k = 0; k < kSectors; ++k) newly = newly + bit(fresh, k) * st.omega[k];
+    return newly;
   }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& walked) const {
@@ -205,6 +239,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     st.occ = typename LaneTraits<F>::I(0);
     st.shift = edge_shift(sl);
     st.n = 0;
+    for (int c = 0; c < 3; ++c) st.light[c] = F(0.0f);
     for (int k = 0; k < kSectors; ++k) st.P[k] = F(1.0f), st.omega[k] = F(1.0f / kSectors);
     if (cosine) cosine_sector_weights(sl, st.omega);
     return st;
@@ -219,9 +254,27 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const F front = fma(front_angle, scale, st.shift), back = fma(back_angle, scale, st.shift);
     sample_interval(turn, front, back, epsilon, s, w);
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
-    if (straight_through) st.occ = st.occ | sector_bits(s, w, rounding);
+    F light[3];  // (the forward's indirect light: what the sample sends per unit of the share it newly occludes)
+    if (indirect && !kGradients) sample_light(px, smp, light);
+    if (straight_through) {
+      const typename LaneTraits<F>::I bits = sector_bits(s, w, rounding);
+      if (indirect && (kAdjoint || !kGradients)) {  // (the hard share: straight-through's values)
+        const F newly = newly_share(st, bits & bnot(st.occ));
+        if (kAdjoint) st.hard_newly[st.n] = newly;
+        const auto sends = w >= F(0.0f);  // (only a non-empty interval gathers light)
+        if (!kGradients)
+          for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, newly * light[c], F(0.0f));
+      }
+      st.occ = st.occ | bits;
+    }
     if (!kGradients) {
-      if (!straight_through && any(w >= F(0.0f))) cover(s, w, &st.P[0], static_cast<F*>(nullptr));
+      if (!straight_through && any(w >= F(0.0f))) {
+        const F newly = cover(s, w, &st.P[0], static_cast<F*>(nullptr), static_cast<SoftCoverage<F>*>(nullptr),
+                              indirect ? &st.omega[0] : static_cast<const F*>(nullptr));
+        const auto sends = w >= F(0.0f);
+        if (indirect)
+          for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, newly * light[c], F(0.0f));
+      }
       return;
     }
     const int m = st.n++;
@@ -298,9 +351,12 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   }
 
   // soft_union's reverse scan over the slice's kept steps (after sweep) from seed(k) (d the loss / d sector k's
-  // free share): fn(m, StepAdjoint) for each step with a live lane, last to first
+  // free share): fn(m, StepAdjoint) for each step with a live lane, last to first. With gains (st.gain: d the
+  // loss / d each step's newly occluded share, soft_union's gn), D_m = S_{m+1} - gn_m omega takes S's place, each
+  // step's share joins its adjoint, and, with E, E_k gains sum_m gn_m c_mk P_mk (d the loss / d omega_k)
   template <class F, class Seed, class Fn>
-  TAO_FN void reverse_scan(const State<F>& st, const F* before, const Seed& seed, const Fn& fn) const {
+  TAO_FN void reverse_scan(const State<F>& st, const F* before, const Seed& seed, const Fn& fn, bool gains = false,
+                           F* E = nullptr) const {
     const float inv_tau = float(1.0 / double(tau));
     F S[kSectors];
     for (int k = 0; k < kSectors; ++k) S[k] = seed(k);
@@ -310,17 +366,25 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       SoftCoverage<F> local;
       if (!kKeepCoverage) coverage(st.s[m], st.w[m], local);
       const SoftCoverage<F>& cv = kKeepCoverage ? st.coverages[m] : local;
-      F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f);
+      F sum_y = F(0.0f), sum_ya = F(0.0f), sum_yb = F(0.0f), newly = F(0.0f);
+      const F gain = gains ? st.gain[m] : F(0.0f);
       for (int k = cv.k0; k < cv.k1; ++k) {
-        const F ab = cv.a[k] * cv.b[k];
-        const F y = ab * before[m * kSectors + k] * S[k];  // Y = a b P_m S_{m+1}
+        const F ab = cv.a[k] * cv.b[k], P = before[m * kSectors + k];
+        const F D = gains ? S[k] - gain * st.omega[k] : S[k];
+        const F y = ab * P * D;  // Y = a b P_m D_m
         sum_y = sum_y + y;
         sum_ya = sum_ya + y * cv.a[k];
         sum_yb = sum_yb + y * cv.b[k];
-        S[k] = S[k] - ab * cv.gate * S[k];
+        if (gains) {
+          const F covered = ab * cv.gate * P;  // c_mk P_mk
+          newly = newly + st.omega[k] * covered;
+          if (E) E[k] = E[k] + gain * covered;
+        }
+        S[k] = S[k] - ab * cv.gate * D;
       }
       const F g = cv.gate, not_b = sum_y - sum_yb;
       StepAdjoint<F> adj;
+      adj.newly = newly;
       // dL/dw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau;
       // dL/ds = -(g / tau) (F' sum Y (1 - b) - sum Y (1 - a))
       adj.w = select(live, ((g * g - F(1.0f)) * sum_y - g * not_b) * F(inv_tau), F(0.0f));
@@ -341,6 +405,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients)
     if (kGradients) sweep(st, &before[0]);
     sums.num = sums.num + visible(st, st.omega, sums);
+    if (indirect && !kGradients)
+      for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + st.light[c];
     if (bent && !kGradients) {
       F part[3];
       slice_bent(st, st.omega, px.V, walked.T, frame_angle(angles, walked), part);
@@ -369,8 +435,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   // a bilinear fetch's unprojection ((su - cx) / fx, -(sv - cy) / fy) depth
   template <class F, class D, class Sink>
   TAO_FN void end_slice_adjoint(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, const Pixels<D>& pd,
-                                const Slice<D>& sd, Sums<D>& sums, const F& weight, const F* bent_weight, Sink& sink,
-                                const Image* camera = nullptr) const {
+                                const Slice<D>& sd, Sums<D>& sums, const F& weight, const F* light_weight,
+                                const F* bent_weight, Sink& sink, const Image& img, const Image* camera = nullptr) const {
     LaneArray<F, kKept * kSectors> before;
     sweep(st, &before[0]);
     const FrameAngle<D> frame = frame_angle(angles, sd);  // (the shift's and the weights' gamma, with tangents)
@@ -398,9 +464,13 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       return st.omega[k] * (weight + g_v * v + g_t * t);
     };
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
+    F g_N[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (indirect light's: the pixel's normal faces the samples)
     F g_shift = F(0.0f);
     PlacementAdjoint<F> placement;
     F g_cam[4] = {F(0.0f), F(0.0f), F(0.0f), F(0.0f)};  // d L / d fx, fy, cx, cy (with camera)
+    LaneArray<F, kSectors> g_omega;  // (indirect light with cosine weights: d L / d omega through the steps' shares)
+    if (light_weight && cosine)
+      for (int k = 0; k < kSectors; ++k) g_omega[k] = F(0.0f);
     reverse_scan(st, &before[0], seed, [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       const auto valid = st.valid[m];
@@ -413,10 +483,22 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
       }
       // the fetch moves with (su, sv): its position, and a layer's read there
-      const F g_su = g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m] +
-                     g_value * st.dv_su[m];
-      const F g_sv = g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
-                     g_value * st.dv_sv[m];
+      F g_su = g_delta[0] * st.d_su[0][m] + g_delta[1] * st.d_su[1][m] + g_delta[2] * st.d_su[2][m] +
+               g_value * st.dv_su[m];
+      F g_sv = g_delta[0] * st.d_sv[0][m] + g_delta[1] * st.d_sv[1][m] + g_delta[2] * st.d_sv[2][m] +
+               g_value * st.dv_sv[m];
+      if (light_weight) {  // the light it sends (sample_light, times the share it newly occludes)
+        const F newly = straight_through ? st.hard_newly[m] : g.newly;
+        sums.lit.v = sums.lit.v + st.gain[m] * newly;
+        const typename LaneTraits<F>::I taps[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
+        const Sample<F> smp(img, walk.bilinear, taps, st.fu[m], st.fv[m], valid);
+        F g_light_delta[3];
+        light_adjoint(px, smp, delta, newly, light_weight, g_light_delta, g_N, g_su, g_sv, sink, st, m,
+                      land(px.live, valid));
+        for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + g_light_delta[c];
+        const F d_su[3] = {st.d_su[0][m], st.d_su[1][m], st.d_su[2][m]}, d_sv[3] = {st.d_sv[0][m], st.d_sv[1][m], st.d_sv[2][m]};
+        g_su = g_su + dot3(g_light_delta, d_su), g_sv = g_sv + dot3(g_light_delta, d_sv);
+      }
       for (int c = 0; c < 3; ++c) {
         g_V[c] = g_V[c] - select(valid, F(0.0f), g_delta[c]);
         g_P[c] = g_P[c] - select(valid, g_delta[c], F(0.0f));
@@ -432,7 +514,12 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       }
       // (g_value: read by the layer's taps, scattered where the model reads a layer)
       sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_value : nullptr);
-    });
+    }, light_weight != nullptr, light_weight && cosine ? &g_omega[0] : nullptr);
+    if (light_weight && cosine) {  // (the weights' tangents through the shares the steps newly occlude)
+      D through = D(0.0f);
+      for (int k = 0; k < kSectors; ++k) through = through + D(g_omega[k]) * omega[k];
+      sums.loss = sums.loss + through;
+    }
     if (camera) {
       placement.camera(walk, *camera, sl, g_cam);
       for (int k = 0; k < 4; ++k) sums.camera[k].v = sums.camera[k].v + select(px.live, g_cam[k], F(0.0f));
@@ -440,7 +527,45 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     D along = D(placement.unit_u) * sd.unit_u + D(placement.unit_v) * sd.unit_v + D(placement.span) * sd.span +
               D(g_shift) * ((D(kHalfPi) - frame.gamma) / D(kPi));
     for (int c = 0; c < 3; ++c) along = along + D(g_V[c]) * pd.V[c] + D(g_T[c]) * sd.T[c] + D(g_P[c]) * pd.P[c];
+    if (light_weight)
+      for (int c = 0; c < 3; ++c) along = along + D(g_N[c]) * pd.N[c];
     sums.loss = sums.loss + (along - D(along.v));  // (its tangents only)
+  }
+
+  // The adjoint of a kept step's light (sample_light times newly: its share), for d L / d the light = light_weight:
+  // d L / d its delta into g_delta; d L / d the pixel's normal added to g_N; d L / d its sender's normal and light
+  // scattered to its taps (sink.scatter_light, on the lanes in on), and their reads' motion with the screen position
+  // added to g_su, g_sv
+  template <class F, class Sink>
+  TAO_FN void light_adjoint(const Pixels<F>& px, const Sample<F>& smp, const F* delta, const F& newly,
+                            const F* light_weight, F* g_delta, F* g_N, F& g_su, F& g_sv, Sink& sink,
+                            const State<F>& st, int m, const typename LaneTraits<F>::M& on) const {
+    using L = Dual<F, 9>;  // tangents: delta, the sender's normal, the pixel's normal
+    L d[3], sender_n[3], N[3];
+    F light[3];
+    for (int c = 0; c < 3; ++c) {
+      d[c] = L(delta[c]), sender_n[c] = L(smp.gather(smp.image->normals, c)), N[c] = L(px.N[c]);
+      d[c].d[c] = F(1.0f), sender_n[c].d[3 + c] = F(1.0f), N[c].d[6 + c] = F(1.0f);
+      light[c] = smp.gather(smp.image->light, c);
+    }
+    const L factor = light_factor(d, sender_n, N, smp.valid, cosine);
+    F g_factor = F(0.0f), g_light[3], g_sender[3];
+    for (int c = 0; c < 3; ++c) {
+      const F per = light_weight[c] * newly;  // d L / d the light it sends, channel c
+      g_factor = g_factor + per * light[c];
+      g_light[c] = per * factor.v;
+    }
+    for (int c = 0; c < 3; ++c) {
+      g_delta[c] = g_factor * factor.d[c];
+      g_sender[c] = g_factor * factor.d[3 + c];
+      g_N[c] = g_N[c] + select(px.live, g_factor * factor.d[6 + c], F(0.0f));
+      F n_su, n_sv, l_su, l_sv;
+      smp.gather_slope(smp.image->normals, c, 3, n_su, n_sv);
+      smp.gather_slope(smp.image->light, c, 3, l_su, l_sv);
+      g_su = g_su + g_sender[c] * n_su + g_light[c] * l_su;
+      g_sv = g_sv + g_sender[c] * n_sv + g_light[c] * l_sv;
+    }
+    sink.scatter_light(g_sender, g_light, st, m, on);
   }
 
   // The visibility's denominator at the pixels of walk_block(row, u0, n): the slices, or the cosine
@@ -464,16 +589,23 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
       out[3] = select(px.live, sums.scale / den, F(0.0f));
-    } else if (bent) {  // (its direction is taken in torch: soft_bitmask.bent_normal)
-      for (int c = 0; c < 3; ++c) out[1 + c] = select(px.live, sums.bent[c], F(0.0f));
+      return;
     }
+    int c0 = 1;
+    if (indirect) {
+      for (int c = 0; c < 3; ++c) out[c0 + c] = select(px.live, sums.light[c] / den, F(0.0f));
+      c0 += 3;
+    }
+    if (bent)  // (its direction is taken in torch: soft_bitmask.bent_normal)
+      for (int c = 0; c < 3; ++c) out[c0 + c] = select(px.live, sums.bent[c], F(0.0f));
   }
 };
 
 // The backward's accumulator (walk_block's interface) over value lanes F: SoftAccumulator<true, true>'s
 // slices ended by end_slice_adjoint into sink, with the pixels pd in dual lanes D (tangents on their own
-// P, N, depth) and each slice's in D; sums in D. The loss is upstream times the visibility plus bent_upstream (null
-// without bent normals) dotted with the bent normal's sum; weight: upstream over the visibility's denominator.
+// P, N, depth) and each slice's in D; sums in D. The loss is upstream times the visibility, plus light_upstream
+// (with indirect light; else null) dotted with the indirect light, plus bent_upstream (with bent normals; else null)
+// dotted with the bent normal's sum; weight and light_weight: upstream and light_upstream over the denominator.
 // finish writes d L / d the pixel's own 7, d L / d the thickness' offset and d its scale, then (with camera; else
 // zeros) d L / d fx, fy, cx, cy.
 template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct SoftAdjoint {
@@ -482,7 +614,7 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   const Image& img;
   const Pixels<D>& pd;
   F upstream, weight;
-  const F* bent_upstream;
+  const F *light_weight, *bent_upstream;
   Sink& sink;
   bool camera;  // d L / d the intrinsics too (4 more channels)
   mutable int64_t slice = 0;
@@ -497,14 +629,22 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   }
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     acc.step(st.base, side, px, sl, smp);
+    if (light_weight) {  // d L / d the share the step newly occludes: its light's (the reverse scan's gain)
+      F light[3];
+      acc.sample_light(px, smp, light);
+      st.base.gain[st.base.n - 1] = select(px.live, dot3(light_weight, light), F(0.0f));
+    }
   }
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
-    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, bent_upstream, sink, camera ? &img : nullptr);
+    acc.end_slice_adjoint(st.base, px, sl, pd, st.sd, sums, weight, light_weight, bent_upstream, sink, img,
+                          camera ? &img : nullptr);
   }
   TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
-    D vis[4];
-    acc.finish(sums, pd, vis);
-    for (int k = 0; k < 7; ++k) out[k] = select(px.live, upstream * vis[0].d[k] + sums.loss.d[k], F(0.0f));
+    const D den = acc.cosine ? clamp_min(sums.den, D(1e-30f)) : D(float(acc.walk.slices));
+    const D inv = D(1.0f) / den;
+    // d L / d (1 / den): the visibility's numerator and the light's sum (lit: over the denominator)
+    const F through_den = upstream * sums.num.v + sums.lit.v * den.v;
+    for (int k = 0; k < 7; ++k) out[k] = select(px.live, through_den * inv.d[k] + sums.loss.d[k], F(0.0f));
     out[7] = sums.thickness.v, out[8] = sums.scale.v;
     for (int k = 0; k < 4; ++k) out[9 + k] = sums.camera[k].v;
   }

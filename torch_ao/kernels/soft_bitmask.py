@@ -1,5 +1,6 @@
 """The soft / straight-through bitmask AO kernel: ``BitmaskAO(variant="default" | "hdrp", mode="soft" |
-"straight_through")``'s visibility and bent normals on the one walk (``walk.h`` with ``soft.h``'s accumulator),
+"straight_through")``'s visibility, indirect light (``SSILVB``) and bent normals on the one walk (``walk.h`` with
+``soft.h``'s accumulator),
 differentiable with respect to the scalar ``radius``,
 the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
 a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals,
@@ -24,9 +25,11 @@ layer's taps (the linear model's value is the sample's depth: it joins d / d del
 gradients are per-pixel sums of the same adjoints. The radius needs no tangent: the walk is scale-invariant
 (positions, depth, a layer, radius and offset scaled together leave it as it is; the scale is unitless), so
 Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse + dL/dlayer layer)
-- T dL/dT``. With bent normals the walk also returns the slices' bent-normal sum (3 channels; its direction is
-taken in torch), and the backward's reverse scan is seeded by both outputs' upstream gradients; their radius and
-thickness gradients take that backward too. The intrinsics reach the walk twice: through the positions (``walk_inputs``' unprojection, by
+- T dL/dT``. With indirect light the walk also returns the light the newly occluded sectors send (3 channels), with
+bent normals the slices' bent-normal sum (3; its direction is taken in torch); the backward's reverse scan is seeded
+by every output's upstream gradient, each step's light replayed for its gradients to the light and the senders'
+normals at its taps; their radius and thickness gradients take that backward too (the light does not scale with the
+scene: Euler's identity holds without it). The intrinsics reach the walk twice: through the positions (``walk_inputs``' unprojection, by
 autograd) and in the kernel (the slice's screen motion ``(fx a, -fy b) / depth``, whose direction places the
 steps and whose length the span; a bilinear fetch's unprojection), whose adjoints the backward chains by hand
 per slice and step and sums per pixel.
@@ -40,7 +43,7 @@ from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from .bitmask import HARD_VARIANTS, KernelOutputs, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
-from .frame import scalar_lanes
+from .frame import light_input, scalar_lanes
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
@@ -56,15 +59,17 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, layer: torch.Tensor | None = None,
                  layer_scale: torch.Tensor | None = None, thickness_read: str | None = None,
-                 weighting: str = "uniform", straight_through: bool = False, bent_normals: bool = False,
+                 weighting: str = "uniform", straight_through: bool = False, indirect: bool = False,
+                 bent_normals: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
                  sector_epsilon: float = 0.01, variant: str = "default", lanes: str = "simd") -> KernelOutputs:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1) and, with
-    ``bent_normals``, the bent normals ``(B,3,H,W)`` (unit view-space; ``normals`` where the visible sectors' sum is
-    about 0 and on background), differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer``
-    and the G-buffer's depth, positions, intrinsics and ``normals``.
+    ``indirect``, the indirect light ``(B,3,H,W)`` (background 0), with ``bent_normals`` the bent normals
+    ``(B,3,H,W)`` (unit view-space; ``normals`` where the visible sectors' sum is about 0 and on background),
+    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
+    positions, intrinsics, ``normals`` and light.
 
     Args:
         gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
@@ -76,8 +81,9 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             ``thickness_scale``); ``thickness_read``: as :func:`~torch_ao.kernels.bitmask_outputs`
             (``"depth"``: ``layer_scale`` per world unit of the sample's depth, no layer).
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
-            straight_through: hard coverage in the forward, the soft gradient in the backward; bent_normals: the
-            visible sectors' mean direction too (its gradients are the backward's walk, as the G-buffer's).
+            straight_through: hard coverage in the forward, the soft gradient in the backward; indirect: the light
+            the newly occluded sectors send too (``gbuffer.light`` needed); bent_normals: the visible sectors' mean
+            direction too (their gradients are the backward's walk, as the G-buffer's).
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
             azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame):
             as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
@@ -93,9 +99,10 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         if t.dim() != 0:
             raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
         scalars.append(t)
-    # the backward's walk: the G-buffer's gradients, and the bent normals' (the settings' too: one reverse scan
-    # seeded by both outputs, where the forward's derivative channels would be 9 more)
-    backward_walk = wants_gradient(gbuffer, normals, layer, *(scalars if bent_normals else ()))
+    light = light_input(gbuffer, True) if indirect else None
+    # the backward's walk: the G-buffer's gradients, and those of indirect light and bent normals (the settings'
+    # too: one reverse scan seeded by every output, where the forward's derivative channels would be 9 more each)
+    backward_walk = wants_gradient(gbuffer, normals, layer, light, *(scalars if indirect or bent_normals else ()))
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         if backward_walk:
@@ -105,15 +112,16 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
                    stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read,
-                   angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals))
+                   angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals), indirect=bool(indirect))
     if backward_walk:
-        out = _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
-    elif bent_normals:  # (no gradient: the plain walk)
-        out = _walk(gbuffer, normals, *scalars, layer, options, False)
+        out = _gbuffer_walk(gbuffer, normals, *scalars, layer, light, options)
+    elif indirect or bent_normals:  # (no gradient: the plain walk)
+        out = _walk(gbuffer, normals, *scalars, layer, options, False, light)
     else:
         out = _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
-    bent = bent_normal(out[:, 1:], normals, gbuffer.valid) if bent_normals else None
-    return KernelOutputs(out[:, :1], None, bent)
+    lit = out[:, 1:4] if indirect else None
+    bent = bent_normal(out[:, 1 + 3 * bool(indirect):], normals, gbuffer.valid) if bent_normals else None
+    return KernelOutputs(out[:, :1], lit, bent)
 
 
 def bent_normal(sums: torch.Tensor, normals: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -128,28 +136,34 @@ def _settings(radius, thickness, scale, o):
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=radius.detach(), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"])
-    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"], o["bent"]],
+    return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"], o["bent"],
+                       o["indirect"]],
             [thickness.detach(), o["epsilon"], o["tau"], scale.detach()])
 
 
-def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients):
+def _outputs(o) -> int:
+    """The walk's outputs: the visibility, the indirect light (3), the bent normals' sum (3)."""
+    return 1 + 3 * o["indirect"] + 3 * o["bent"]
+
+
+def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients, light=None):
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness,
-    d layer_scale, or (with bent normals) their sum."""
+    d layer_scale, or the other outputs (:func:`_outputs`; ``light``: the channel-last light)."""
     settings, acc_ints, acc_floats = _settings(radius, thickness, scale, o)
     accumulator = "soft"
     if gradients:  # (on CUDA, the short slice's arrays where its steps fit: soft_walk_short)
         accumulator = "soft_gradients_short" if gbuffer.depth.is_cuda and soft_walk_short(o["steps"]) else "soft_gradients"
-    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 4 if gradients or o["bent"] else 1,
-                    backface=layer, lanes=o["lanes"])
+    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 4 if gradients else _outputs(o),
+                    light=light, backface=layer, lanes=o["lanes"])
 
 
-def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o):
-    """The visibility (and the bent normals' sum) with gradients to the walk's channel-last inputs (so to the
-    G-buffer), the thickness ``layer`` and the scalars."""
-    inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o),
-                                                                  backface=layer)
-    return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale,
-                              scalar_lanes(o["lanes"]), o["steps"], 4 if o["bent"] else 1)
+def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, light, o):
+    """The outputs (:func:`_outputs`) with gradients to the walk's channel-last inputs (so to the G-buffer), the
+    channel-last ``light``, the thickness ``layer`` and the scalars."""
+    inputs, (light, cells, layer_image), ints, floats = packed_inputs(
+        gbuffer, normals, *_settings(radius, thickness, scale, o), light=light, backface=layer)
+    return _GBufferWalk.apply(*inputs, light, cells, layer_image, ints, floats, radius, thickness, scale,
+                              scalar_lanes(o["lanes"]), o["steps"], _outputs(o))
 
 
 #: soft.h's kSoftShortSteps: the most steps of a slice (both sides) the short CUDA kernels keep
@@ -169,55 +183,58 @@ def soft_backward_kernel(steps: int) -> str:
 
 
 class _GBufferWalk(torch.autograd.Function):
-    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the edge-aware fetch's
-    ``cells`` and the thickness ``layer`` (each empty where unused), its ``channels`` outputs, and ``soft_backward``."""
+    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the channel-last ``light``,
+    the edge-aware fetch's ``cells`` and the thickness ``layer`` (each empty where unused), its ``channels``
+    outputs, and ``soft_backward``."""
 
     @staticmethod
-    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
+    def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius,
                 thickness, scale, scalar, steps, channels):
-        none = torch.empty(0, device=depth.device)
         ctx.scalar, ctx.scale_dtype, ctx.steps = scalar, scale.dtype, steps
-        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats,
+        ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats,
                               radius, thickness)
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
-            launch_cuda("tao_walk_soft", depth.device, [*frame, none, cells, layer, out, ints, floats],
+            launch_cuda("tao_walk_soft", depth.device, [*frame, light, cells, layer, out, ints, floats],
                         tuple(depth.shape))
             return out
-        return cpu_kernels().walk("soft", *frame, none, cells, layer, ints, floats, channels, scalar)
+        return cpu_kernels().walk("soft", *frame, light, cells, layer, ints, floats, channels, scalar)
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius, thickness = \
+        positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius, thickness = \
             ctx.saved_tensors
-        frame = (positions, normals, inverse, depth, valid, intrinsics, cells, layer)
+        frame = (positions, normals, inverse, depth, valid, intrinsics, light, cells, layer)
         grad = grad.to(torch.float32).contiguous()
         camera = ctx.needs_input_grad[5]  # the intrinsics' gradients, per pixel (B, H, W, 4)
-        if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into one image
+        if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into images of their own
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
             g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
+            senders, g_light = torch.zeros_like(normals), torch.zeros_like(normals)
             g_setting = depth.new_zeros((*depth.shape, 2))
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(soft_backward_kernel(ctx.steps), depth.device,
-                        [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, g_camera, ints, floats],
-                        tuple(depth.shape))
+                        [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, senders, g_light,
+                         g_camera, ints, floats], tuple(depth.shape))
             g_pos += taps
+            g_nrm += senders
         else:
-            g_pos, g_nrm, g_inv, g_depth, g_setting, g_layer, g_camera = grad_kernels().soft_backward(
+            g_pos, g_nrm, g_inv, g_depth, g_setting, g_layer, g_light, g_camera = grad_kernels().soft_backward(
                 grad, *frame, ints, floats, camera, ctx.scalar)
         g_intrinsics = g_camera.double().sum((1, 2)).to(intrinsics.dtype) if camera else None
         g_thickness, g_scale = g_setting.double().sum(dim=(0, 1, 2)).unbind()
         g_radius = None
-        if ctx.needs_input_grad[10]:  # Euler's identity (module docstring); invalid texels hold NaN
+        if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN
             along = ((g_pos.double() * positions).sum() + (g_depth.double() * depth).sum()
                      - torch.where(valid, g_inv.double() * inverse, 0.0).sum())
             if layer.numel():  # (a layer is world units: it scales with the scene)
                 along = along + torch.where(torch.isfinite(layer), g_layer.double() * layer, 0.0).sum()
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
-        return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
-                g_radius, g_thickness.to(thickness.dtype) if ctx.needs_input_grad[11] else None,
-                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[12] else None, None, None, None)
+        return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light if light.numel() else None, None,
+                g_layer if layer.numel() else None, None, None, g_radius,
+                g_thickness.to(thickness.dtype) if ctx.needs_input_grad[12] else None,
+                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[13] else None, None, None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
@@ -245,7 +262,8 @@ _WEIGHTINGS = ("uniform", "cosine")
 _VARIANTS = HARD_VARIANTS
 #: beyond what every bitmask kernel covers: the edge-aware fetch, bent normals, and a constant ambient colour (the
 #: visibility times the colour, in torch: dispatch.py)
-_EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "bent_normals": (False, True), "ambient": (None, "a colour")}
+_EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "indirect": (False, True), "bent_normals": (False, True),
+          "ambient": (None, "a colour")}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
@@ -253,9 +271,9 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     of :data:`~torch_ao.kernels.bitmask.HARD_VARIANTS` in soft or straight-through mode, or hard mode, whose masks have
     none), else why not: the hard kernel's
     options (any slices, steps, radius, jitter, rounding, fetch, border... a thickness of the form ``scale *
-    value + offset``, visibility, bent normals and a constant ambient colour, a float32 CPU or CUDA G-buffer) with either weighting; gradients of radius and
-    the thickness' offset and scale, of depth, positions, normals, the intrinsics and the layer the thickness
-    reads."""
+    value + offset``, visibility, indirect light, bent normals and a constant ambient colour, a float32 CPU or CUDA
+    G-buffer) with either weighting; gradients of radius and the thickness' offset and scale, of depth, positions,
+    normals, the light, the intrinsics and the layer the thickness reads."""
     of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, variants=_VARIANTS, extra=_EXTRA,
                                layers=True)
@@ -277,7 +295,8 @@ def module_forward(module, gbuffer: GBuffer) -> KernelOutputs:
     layer = None if form.layer is None else form.layer.detach() if hard else form.layer
     return soft_outputs(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, layer=layer, layer_scale=scale, thickness_read=form.read,
-                        tau=module.tau, weighting=module.weighting, bent_normals=module.want_bent,
+                        tau=module.tau, weighting=module.weighting, indirect=module.want_indirect,
+                        bent_normals=module.want_bent,
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,

@@ -417,6 +417,13 @@ template <class F> struct Sample {
     return land(land(su >= F(0.0f), su <= F(float(image->W - 1))), land(sv >= F(0.0f), sv <= F(float(image->H - 1))));
   }
 
+  // a kept sample's taps alone (index, fu, fv: a backward reading other buffers there; its delta and screen
+  // position are not set)
+  TAO_FN Sample(const Image& img, bool bilinear, const I* taps, const F& fu, const F& fv, const M& valid)
+      : valid(valid), fu(fu), fv(fv), bilinear(bilinear), image(&img) {
+    for (int k = 0; k < 4; ++k) index[k] = taps[k];
+  }
+
   // the same sample in another lane type, each value through to(x) (as Pixels')
   template <class G, class To>
   TAO_FN Sample(const Sample<G>& o, const To& to)

@@ -70,21 +70,23 @@ TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere)
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d the thickness'
 // offset and scale per pixel in g_thickness (B, H, W, 2); the layer's taps' in tap_layer (backface: the model's
-// layer); d L / d the intrinsics per pixel in g_camera (B, H, W, 4) where it is not null
+// layer); with indirect light the senders' normals' and light's taps' in tap_normals and tap_light (light: the
+// light buffer); d L / d the intrinsics per pixel in g_camera (B, H, W, 4) where it is not null
 #define TAO_CUDA_SOFT_BACKWARD(name, most)                                                                   \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,          \
                                   const float* depth, const bool* valid, const float* intrinsics,             \
-                                  const float* cells, const float* backface, const float* grad,               \
-                                  float* g_positions, float* g_normals, float* g_depth, float* g_thickness,   \
-                                  float* tap_positions, float* tap_inverse, float* tap_layer, float* g_camera, \
+                                  const float* light, const float* cells, const float* backface,              \
+                                  const float* grad, float* g_positions, float* g_normals, float* g_depth,    \
+                                  float* g_thickness, float* tap_positions, float* tap_inverse,               \
+                                  float* tap_layer, float* tap_normals, float* tap_light, float* g_camera,    \
                                   const int64_t* ints, const float* floats, int B, int H, int W) {            \
     const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                         \
     if (p >= int64_t(B) * H * W) return;                                                                       \
-    const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, backface, valid, B, H, W}; \
+    const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, cells, backface, valid, B, H, W}; \
     const tao::SoftAccumulator<true, true, most> acc = tao::unpack_soft<true, true, most>(ints, floats);      \
     tao::soft_grad_pixel(tao::unpack_walk(ints, floats), acc, frame, grad, g_positions, g_normals, g_depth,   \
                          g_thickness, tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, \
-                         g_camera, p);                                                                         \
+                         acc.indirect ? tap_normals : nullptr, acc.indirect ? tap_light : nullptr, g_camera, p); \
   }
 
 TAO_CUDA_SOFT_BACKWARD(tao_soft_backward, tao::kSoftMaxSteps)

@@ -429,6 +429,14 @@ template <class B> struct TapSink {
     const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
     scatter_taps(bilinear, n, t, g_delta, pos, st.fu[m], st.fv[m], index, on, g_layer, layer_bilinear);
   }
+  // d L / d a kept step's sender normal and light (3 each) to its taps' (indirect light)
+  template <class State>
+  TAO_FN void scatter_light(const B* g_normal, const B* g_light, const State& st, int m,
+                            const typename LaneTraits<B>::M& on) {
+    const typename LaneTraits<B>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
+    scatter_gather(bilinear, n, t.tap_normals, 3, g_normal, st.fu[m], st.fv[m], index, on);
+    scatter_gather(bilinear, n, t.tap_light, 3, g_light, st.fu[m], st.fv[m], index, on);
+  }
 };
 
 // The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
@@ -439,12 +447,18 @@ template <class B, int kMostSteps>
 TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true, kMostSteps>& acc,
                             int64_t row, int64_t u0, int n, const float* upstream, const Targets& t) {
   using D = Dual<B, kPixel>;
-  B g[8];  // d L / d the visibility, then (with bent normals) d L / d the bent normal's sum
+  // d L / d the visibility, then d L / d the indirect light (with indirect) and the bent normal's sum (with bent)
+  B g[8];
   if (!upstream_lanes(img, row, u0, n, upstream, acc.outputs(), g)) return;  // (the outputs' zeros stand)
   TapSink<B> sink{cfg.bilinear, cfg.bilinear && acc.thickness.read == ThicknessRead::layer, n, t};
   const Pixels<D> pd(cfg, img, row, u0, n);
-  const SoftAdjoint<B, D, TapSink<B>, kMostSteps> adjoint{acc, img, pd, g[0], g[0] / acc.template denominator<B>(img, row, u0, n),
-                                                          acc.bent ? &g[1] : nullptr, sink, t.camera != nullptr};
+  const B den = acc.template denominator<B>(img, row, u0, n);
+  B light_weight[3];
+  for (int c = 0; c < 3; ++c) light_weight[c] = acc.indirect ? g[1 + c] / den : B(0.0f);
+  const SoftAdjoint<B, D, TapSink<B>, kMostSteps> adjoint{acc, img, pd, g[0], g[0] / den,
+                                                          acc.indirect ? light_weight : nullptr,
+                                                          acc.bent ? &g[acc.indirect ? 4 : 1] : nullptr, sink,
+                                                          t.camera != nullptr};
   B own[13];
   walk_block(cfg, img, adjoint, row, u0, n, own);
   // (the settings: d L / d the offset, d L / d the scale; where asked, d L / d the intrinsics)
@@ -925,11 +939,13 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
 template <int kMostSteps>
 TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true, kMostSteps>& acc, const Frame& fr,
                             const float* grad, float* positions, float* normals, float* depth, float* thickness,
-                            float* tap_positions, float* tap_inverse, float* tap_layer, float* camera, int64_t p) {
+                            float* tap_positions, float* tap_inverse, float* tap_layer, float* tap_normals,
+                            float* tap_light, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
   const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 2 * b * plane,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
-                  nullptr, nullptr, camera ? camera + 4 * b * plane : nullptr, 2};
+                  tap_normals ? tap_normals + 3 * b * plane : nullptr, tap_light ? tap_light + 3 * b * plane : nullptr,
+                  camera ? camera + 4 * b * plane : nullptr, 2};
   soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.outputs() * plane, t);
 }
 

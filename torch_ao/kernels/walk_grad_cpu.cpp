@@ -311,22 +311,25 @@ struct BackwardCall {
 };
 
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * outputs) of the soft / straight-through walk
-// ("soft"'s packed settings; its outputs the visibility, and with bent normals their sum) with respect to its
-// positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2), the thickness layer
-// (B, H, W; zeros where the model reads none) and, with camera, each pixel's share of the intrinsics' (B, H, W, 4;
-// else empty); grad (B, 1 or 4, H, W); cells: the edge-aware fetch's cell flags (B, H, W), backface: the thickness
-// layer (B, H, W), each empty where unused
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
+// ("soft"'s packed settings; its outputs the visibility, then with indirect light its light, with bent normals
+// their sum) with respect to its positions, normals (B, H, W, 3; the senders' too), inverse depth and depth
+// (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2), the thickness layer (B, H, W; zeros
+// where the model reads none), the light (B, H, W, 3; zeros without indirect light) and, with camera, each pixel's
+// share of the intrinsics' (B, H, W, 4; else empty); grad (B, outputs, H, W); light: the light buffer, cells: the
+// edge-aware fetch's cell flags (B, H, W), backface: the thickness layer (B, H, W), each empty where unused
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> soft_backward(
     const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
-    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
-    const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera, bool scalar) {
+    const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& light,
+    const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera,
+    bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
-  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, backface, ints,
-                          floats, 6, 4, "soft", kSoftMaxSteps / 2);
+  const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
+                          floats, 7, 4, "soft", kSoftMaxSteps / 2);
   TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
+  TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer(), acc.indirect);
   out.settings = 2;  // d L / d the offset, d L / d the scale
   out.setting = at::zeros({call.fr.B, call.fr.H, call.fr.W, 2}, positions.options());
   if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
@@ -335,7 +338,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                                                                  const Targets& t) {
     soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
   });
-  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.setting, std::get<4>(g),
+  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.setting, std::get<4>(g), out.light(),
           camera ? out.camera : none};
 }
 
@@ -470,8 +473,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool camera, "
-        "bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
+        "Tensor valid, Tensor intrinsics, Tensor light, Tensor cells, Tensor backface, Tensor ints, Tensor floats, "
+        "bool camera, bool scalar) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("soft_backward", c10::DispatchKey::CPU, TORCH_FN(soft_backward));
   m.def("exact_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
         "Tensor valid, Tensor intrinsics, Tensor cells, Tensor backface, Tensor ints, Tensor floats, bool camera, "
