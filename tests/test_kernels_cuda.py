@@ -567,6 +567,8 @@ def _gradient_modules() -> dict:
             "exact": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3, steps=4),
             "hard": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4),
             "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4),
+            "soft_indirect": lambda: torch_ao.SSILVB(mode="soft", weighting="cosine", bent_normals=True, slices=3,
+                                                     steps=4),
             "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
             "ue4ssao": _ue4ssao,
             "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear"),
@@ -574,12 +576,13 @@ def _gradient_modules() -> dict:
 
 
 GRADIENT_METHODS = ("gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard", "indirect",
-                    "gtao_camera", "ue4ssao", "pssao", "ssao")
+                    "soft_indirect", "gtao_camera", "ue4ssao", "pssao", "ssao")
 
 
 def gbuffer_gradients(method: str, device: str, dtype: torch.dtype = torch.float32, backend: str = "auto") -> tuple:
     """``(visibility, d loss / d depth, d loss / d radius or None, d loss / d intrinsics or None)`` of ``method``
-    on the rough frame (a back-face layer and a light), loss the sum of the visibility and the indirect light."""
+    on the rough frame (a back-face layer and a light), loss the sum of the visibility, the indirect light and the
+    bent normals."""
     import torch_ao
 
     camera = method in ("gtao_camera", "ue4ssao", "pssao", "ssao")
@@ -593,7 +596,8 @@ def gbuffer_gradients(method: str, device: str, dtype: torch.dtype = torch.float
         cam = dataclasses.replace(cam, intrinsics=cam.intrinsics.clone().requires_grad_())
     g = torch_ao.GBuffer(depth=depth, camera=cam, backface_depth=(gb.depth * 1.3).to(device), light=light)
     out = m(g)
-    (out.visibility.sum() + (0 if out.indirect is None else out.indirect.sum())).backward()
+    outputs = (out.visibility, out.indirect, out.bent_normal)
+    sum(x.sum() for x in outputs if x is not None).backward()
     radius = getattr(m, "radius", None)
     return (out.visibility.detach().cpu(), depth.grad.cpu(), None if radius is None or radius.grad is None
             else radius.grad.cpu(), cam.intrinsics.grad.cpu() if camera else None)
@@ -604,7 +608,8 @@ def gbuffer_gradients(method: str, device: str, dtype: torch.dtype = torch.float
 def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
     back-face layer; the "hdrp" variant's sector rule and frame) and the exact union with the
-    back-face layer (tao_exact_backward) with depth and parameter gradients, hard cosine bitmask AO with bent normals
+    back-face layer (tao_exact_backward) with depth and parameter gradients, soft SSILVB with bent normals (its light
+    and bent normals' backward), hard cosine bitmask AO with bent normals
     (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
     (tao_backward_wedge, tao_backward_pssao) and SSAO's hemisphere (tao_walk_hemisphere, tao_backward_hemisphere:
     with the radius' gradient) on a CUDA G-buffer against the same call on the CPU; with the intrinsics' gradients
