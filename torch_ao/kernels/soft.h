@@ -327,11 +327,14 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   // weights); omega: st.omega, or the same weights with tangents (G: their lane type)
   template <class F, class Weights, class G>
   TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums) const {
-    G share = G(0.0f);
+    G share = G(0.0f), weight = G(0.0f);
     for (int k = 0; k < kSectors; ++k) {
       share = share + G(free_share(st, k)) * omega[k];
-      if (cosine) sums.den = sums.den + omega[k];
+      if (cosine) weight = weight + omega[k];
     }
+    // (the slice's weights summed as its share is: every free share <= 1, so the share <= the weight and the
+    // visibility <= 1 after rounding, as the tensor path's per-slice sums)
+    if (cosine) sums.den = sums.den + weight;
     return share;
   }
 
@@ -641,10 +644,15 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   }
   TAO_FN void finish(const Sums<F>& sums, const Pixels<F>& px, F* out) const {
     const D den = acc.cosine ? clamp_min(sums.den, D(1e-30f)) : D(float(acc.walk.slices));
-    const D inv = D(1.0f) / den;
+    const F inv = F(1.0f) / den.v;
     // d L / d (1 / den): the visibility's numerator and the light's sum (lit: over the denominator)
     const F through_den = upstream * sums.num.v + sums.lit.v * den.v;
-    for (int k = 0; k < 7; ++k) out[k] = select(px.live, through_den * inv.d[k] + sums.loss.d[k], F(0.0f));
+    for (int k = 0; k < 7; ++k) {
+      // d (1 / den) = -d den / den^2, as two products: den^2 underflows where den is clamped at 1e-30 (its tangent
+      // 0 there: 0 / 0 would be NaN)
+      const F d_inv = neg(den.d[k] * inv) * inv;
+      out[k] = select(px.live, through_den * d_inv + sums.loss.d[k], F(0.0f));
+    }
     out[7] = sums.thickness.v, out[8] = sums.scale.v;
     for (int k = 0; k < 4; ++k) out[9 + k] = sums.camera[k].v;
   }
