@@ -424,9 +424,11 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     });
   }
 
-  // The backward's slice (kAdjoint), for the loss L = weight num + bent_weight . (the bent normal's sum) (weight: d L /
-  // d the visibility over its denominator; bent_weight: d L / d the bent normal's sum, or null): the reverse scan
-  // from d L / d each sector's free share gives d L / d delta of each step, which goes to sink.scatter(g_delta, st,
+  // The backward's slice (kAdjoint), for the loss L = weight num + light_weight . (the light the steps send) +
+  // bent_weight . (the bent normal's sum) (weight, light_weight: d L / d the visibility, d L / d the indirect light,
+  // over the denominator; bent_weight: d L / d the bent normal's sum; null without those outputs): the reverse scan
+  // from d L / d each sector's free share (and each step's gain, SoftAdjoint::step's) gives d L / d delta of each
+  // step (the light's replay, light_adjoint, adds its own), which goes to sink.scatter(g_delta, st,
   // m, lanes), which chains it to the step's taps; the same adjoints chained by hand through the step (delta =
   // pos(su, sv) - P or -V, su = u + side dist unit_u, dist = min_step_px + span frac, the angles by
   // sample_angles_adjoint, the shift) to the slice's quantities, whose tangents on the pixel's own inputs (pd, sd:
