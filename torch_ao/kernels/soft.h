@@ -463,7 +463,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       }
     }
     const F cos_gamma = frame.cos_gamma.v, sin_gamma = frame.sin_gamma.v;
-    const auto seed = [&](int k) {  // (g_v, g_t: 0 without bent normals)
+    const auto seed = [&](int k) {
+      if (!bent_weight) return weight * st.omega[k];
       F v, t;
       sector_centre(k, cos_gamma, sin_gamma, v, t);
       return st.omega[k] * (weight + g_v * v + g_t * t);
