@@ -274,6 +274,12 @@ def _cases() -> dict[str, Case]:
         "ssilvb_glsl_gbuffer_torch": Case(
             "`ssilvb_glsl` hard AO + indirect fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 variant="ssilvb_glsl", mode="hard", backend="torch", **s), "gbuffer", "ssilvb_glsl", 3.0, kernel=False),
+        "ssilvb_glsl_soft_gbuffer": Case("soft `ssilvb_glsl` AO + indirect fwd+bwd, depth + normals",
+                                         lambda s: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", backend="kernel",
+                                                                   **s), "gbuffer", "ssilvb_glsl", 3.0),
+        "ssilvb_glsl_soft_gbuffer_torch": Case(
+            "soft `ssilvb_glsl` AO + indirect fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
+                variant="ssilvb_glsl", mode="soft", backend="torch", **s), "gbuffer", "ssilvb_glsl", 3.0, kernel=False),
         "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
                               exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
         "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",

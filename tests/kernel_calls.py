@@ -18,10 +18,13 @@ def on_threads(fn, counts=(1, 2)) -> list:
     return results
 
 
-def count_kernel_calls(monkeypatch, name: str) -> list:
-    """Wrap the last ``(covers, run)`` entry of ``dispatch.KERNELS[name]`` so that each run appends 1 to
-    the returned list; the entry's ``covers`` is kept, so coverage decides as before."""
-    *others, (covers, run) = dispatch.KERNELS[name]
+def count_kernel_calls(monkeypatch, name: str, covers=None) -> list:
+    """Wrap the ``(covers, run)`` entry of ``dispatch.KERNELS[name]`` (the last, or the one of ``covers``) so that
+    each run appends 1 to the returned list; the entry's ``covers`` is kept, so coverage decides as before."""
+    entries = list(dispatch.KERNELS[name])
+    index = len(entries) - 1 if covers is None else [c for c, _ in entries].index(covers)
+    wrapped, run = entries[index]
     calls = []
-    monkeypatch.setitem(dispatch.KERNELS, name, (*others, (covers, lambda *a: calls.append(1) or run(*a))))
+    entries[index] = (wrapped, lambda *a: calls.append(1) or run(*a))
+    monkeypatch.setitem(dispatch.KERNELS, name, tuple(entries))
     return calls

@@ -76,7 +76,7 @@ typedef void Kernel(const float*, const float*, const float*, const float*, cons
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
 Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
     tao_walk_soft_gradients, tao_walk_soft_gradients_short, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao,
-    tao_walk_hemisphere;
+    tao_walk_hemisphere, tao_walk_soft_glsl;
 }
 int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch of <<<blocks, THREADS>>>
   const std::string name = argv[1], dir = argv[2];
@@ -87,7 +87,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
                  : name == "soft_gradients" ? tao_walk_soft_gradients
                  : name == "soft_gradients_short" ? tao_walk_soft_gradients_short
                  : name == "exact_gradients" ? tao_walk_exact_gradients : name == "wedge" ? tao_walk_wedge
-                 : name == "pssao" ? tao_walk_pssao : name == "hemisphere" ? tao_walk_hemisphere : tao_walk_bitmask;
+                 : name == "pssao" ? tao_walk_pssao : name == "hemisphere" ? tao_walk_hemisphere
+                 : name == "soft_glsl" ? tao_walk_soft_glsl : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Li = load<float>(dir, "light");
   auto Ce = load<float>(dir, "cells"), Bf = load<float>(dir, "backface");
@@ -135,7 +136,7 @@ typedef void ExactBackward(const float*, const float*, const float*, const float
                            float*, const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao;
 Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao, tao_backward_hemisphere;
-SoftBackward tao_soft_backward, tao_soft_backward_short;
+SoftBackward tao_soft_backward, tao_soft_backward_short, tao_soft_backward_glsl, tao_soft_backward_glsl_short;
 ExactBackward tao_exact_backward;
 HardRecord tao_record_hard, tao_record_hard_glsl;
 HardBackward tao_hard_backward, tao_hard_backward_glsl;
@@ -194,8 +195,9 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                    Bf.empty() ? nullptr : Bf.data(), grad.data(), gp.data(), gn.data(),
                                                    gd.data(), taps.data(), ti.data(), tl.data(), gc.data(),
                                                    ints.data(), floats.data(), B, H, W); });
-  } else if (name == "soft" || name == "soft_short") {  // (a slice's steps in soft.h's arrays of 64, or of 16)
-    SoftBackward* soft = name == "soft" ? tao_soft_backward : tao_soft_backward_short;
+  } else if (name.rfind("soft", 0) == 0) {  // (a slice's steps in soft.h's arrays of 64, or of 16; the glsl variant's)
+    SoftBackward* soft = name == "soft" ? tao_soft_backward : name == "soft_short" ? tao_soft_backward_short
+                       : name == "soft_glsl" ? tao_soft_backward_glsl : tao_soft_backward_glsl_short;
     std::vector<float> senders(3 * n), tli(3 * n);
     auto Li = load<float>(dir, "light");
     const float* light = Li.empty() ? nullptr : Li.data();
@@ -301,6 +303,11 @@ def cases(gb):
     yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0, 0.0], 4, light
     yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1, 0.4], 4, light
     yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0, 0.0], 1, None
+    # its soft / straight-through walk (soft_glsl.h): the hard accumulator's ints, then straight-through; its floats
+    # (growth 0), then tau
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0, False], [0.3, 1.0, 0.0, 0.25], 4, light
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 3, False], [0.05, 0.1, 0.0, 0.1], 4, light
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, False, False, 0, True], [0.3, 1.0, 0.0, 0.25], 1, None
     # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1), bent,
     # indirect; floats
     # offset, epsilon, tau, scale
@@ -453,6 +460,11 @@ def _backward_cases():
                 full_circle=True, azimuth="screen")
     yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0], [0.3, 1.0, 0.0], 4
     yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 1], [0.0, 1.2, 0.4], 4
+    # its soft / straight-through walk's (soft_glsl.h; ints and floats as "hard_glsl"'s, then straight-through, tau):
+    # slices of 6 steps (the short backward's) and of 18
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0, False], [0.3, 1.0, 0.0, 0.25], 4
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [1, True, True, 1, True], [0.05, 1.2, 0.0, 0.2], 4
+    yield "soft_glsl", walk_settings(**dict(glsl, steps=18), noise="glsl"), [0, False, False, 3, False], [0.05, 0.1, 0.0, 0.25], 1
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
@@ -466,11 +478,12 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     normals = gb.view_normals()
     backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
     for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
-        reads = {"exact": 3, "soft": 3, "hard": 4, "hard_glsl": 3}
+        reads = {"exact": 3, "soft": 3, "hard": 4, "hard_glsl": 3, "soft_glsl": 3}
         layer = backface if accumulator in reads and acc_ints[reads[accumulator]] in (1, 2) else None
         light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
         light = light if ((accumulator == "hard" and acc_ints[2]) or (accumulator == "hard_glsl" and acc_ints[1])
-                          or (accumulator == "soft" and acc_ints[6])) else None
+                          or (accumulator == "soft" and acc_ints[6])
+                          or (accumulator == "soft_glsl" and acc_ints[1])) else None
         inputs, (light, cells, layer), ints, floats = packed_inputs(gb, normals, settings, acc_ints, acc_floats,
                                                                     light=light, backface=layer)
         B, H, W = inputs[3].shape
@@ -484,7 +497,9 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         floats.numpy().tofile(folder / "floats")
         words = settings[0][0] * 2 * ((settings[0][1] + 63) // 64)
         kernel = {"tao_soft_backward_short": "soft_short"}.get(soft_backward_kernel(settings[0][1]), "soft")
-        subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), kernel if accumulator == "soft" else accumulator,
+        if accumulator == "soft_glsl":  # (the short arrays where a slice's steps fit 16)
+            kernel = "soft_glsl_short" if settings[0][1] <= 16 else "soft_glsl"
+        subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), kernel if accumulator.startswith("soft") else accumulator,
                         str(folder), str(B), str(H), str(W),
                         str(channels), str(words), str(_THREADS)], check=True)
 
@@ -506,9 +521,11 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             g_pos, g_nrm, g_inv, g_depth, cpu["layer"], cpu["camera"] = grad_kernels().exact_backward(
                 grad, *inputs, cells, layer, ints, floats, True, True)
             g_setting = torch.zeros_like(g_depth)
-        elif accumulator == "soft":
-            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad, light_grad, cpu["camera"] = grad_kernels().soft_backward(
-                grad, *inputs, light, cells, layer, ints, floats, True, True)
+        elif accumulator.startswith("soft"):  # (the glsl variant's texels are floored: no intrinsics gradient)
+            g_pos, g_nrm, g_inv, g_depth, g_setting, layer_grad, light_grad, camera = grad_kernels().soft_backward(
+                grad, *inputs, light, cells, layer, ints, floats, accumulator == "soft", True)
+            if accumulator == "soft":
+                cpu["camera"] = camera
             if layer.numel():
                 cpu["layer"] = layer_grad
             if light.numel():

@@ -26,6 +26,7 @@ from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
+           "glsl_walk_settings",
            "kernel_covers", "options_uncovered", "module_thickness",
            "KernelOutputs"]
 
@@ -243,6 +244,15 @@ def bitmask_hard(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
     return bitmask_outputs(gbuffer, normals, **options).visibility
 
 
+def glsl_walk_settings(slices: int, steps: int, radius, jitter: bool, numerics: str):
+    """The packed walk settings of the ``"ssilvb_glsl"`` shader's loops: ``sliceCount + 1`` slices of ``sampleCount +
+    1`` steps, one side each, nearest texels clamped to the image, its one jitter (in float16 with
+    ``"mesa_mediump"`` numerics)."""
+    return walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=torch.as_tensor(radius).detach(),
+                         jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl", full_circle=True,
+                         azimuth="screen", noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
+
+
 def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius,
                      thickness: float, jitter: bool = True, rounding: str = "ceil", numerics: str = "ieee",
                      indirect: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
@@ -262,11 +272,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     backward (``_HardWalk``'s ``"_glsl"`` kernel): to the light, the normals and the positions (so depth and
     intrinsics); the visibility (hard masks) and the radius (the texels are floored) have none.
     """
-    # the shader's loops run sliceCount + 1 slices of sampleCount + 1 steps, one side each
-    settings = walk_settings(slices=int(slices) + 1, steps=int(steps) + 1, radius=torch.as_tensor(radius).detach(),
-                             jitter=jitter, seed=0, fetch="nearest", border="clamp", placement="glsl",
-                             full_circle=True, azimuth="screen",
-                             noise="glsl_mediump" if numerics == "mesa_mediump" else "glsl")
+    settings = glsl_walk_settings(slices, steps, radius, jitter, numerics)
     acc_ints = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee", thickness_read_index(thickness_read, layer)]
     acc_floats, channels = [thickness, layer_scale, thickness_growth], 4 if indirect else 1
     light = light_input(gbuffer, indirect) if indirect else None

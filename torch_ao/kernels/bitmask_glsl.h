@@ -6,6 +6,7 @@
 #pragma once
 
 #include "bitmask.h"
+#include "lanes_dual.h"
 
 namespace tao {
 
@@ -14,6 +15,26 @@ template <class F> TAO_FN F mesa_asin(const F& x) {
   const F ax = abs(x);
   const F poly = F(kHalfPi) + ax * (F(kPi / 4.0f - 1.0f) + ax * (F(0.08132463f) + ax * F(-0.02363318f)));
   return sign(x) * (F(kHalfPi) - sqrt(F(1.0f) - ax) * poly);
+}
+
+// acos as the shader's driver takes it (Mesa's: pi/2 - its asin polynomial), and its slope as the tensor walk's
+// autograd takes it (ops.clamped_gradient: 0 beyond 1 - 1e-6 in magnitude, and Mesa's at 0, where sign(x) is 0)
+template <class F> TAO_FN F glsl_acos(bool mesa, const F& x) { return mesa ? F(kHalfPi) - mesa_asin(x) : acos(x); }
+template <class F> TAO_FN F glsl_acos_slope(bool mesa, const F& x) {
+  const F ax = abs(x);
+  F slope;
+  if (mesa) {  // -(d/dx mesa_asin) = -(poly / (2 root) - root poly'), root = sqrt(1 - |x|)
+    const F root = sqrt(F(1.0f) - ax);
+    const F poly = F(kHalfPi) + ax * (F(kPi / 4.0f - 1.0f) + ax * (F(0.08132463f) + ax * F(-0.02363318f)));
+    const F dpoly = F(kPi / 4.0f - 1.0f) + ax * (F(2.0f * 0.08132463f) + ax * F(3.0f * -0.02363318f));
+    slope = select(ax > F(0.0f), neg(poly / (F(2.0f) * root) - root * dpoly), F(0.0f));
+  } else {
+    slope = neg(rsqrt(F(1.0f) - x * x));
+  }
+  return select(ax <= F(1.0f - 1e-6f), slope, F(0.0f));
+}
+template <class F, int N> TAO_FN Dual<F, N> glsl_acos(bool mesa, const Dual<F, N>& x) {
+  return Dual<F, N>::chain(glsl_acos(mesa, x.v), glsl_acos_slope(mesa, x.v), x);
 }
 
 // The shader's dot / length / normalize as its driver evaluates them (bitmask_glsl.GLSLVectorOps):
@@ -51,35 +72,43 @@ struct GlslAccumulator {
   TAO_FN int channels() const { return indirect ? 4 : 1; }
 
   // _horizon: clamp((acos(c) + n + halfPi) / pi, 0, 1), 0 where acos is NaN (|c| > 1 or NaN); Mesa folds
-  // acos's pi/2 into the + halfPi: (pi - asin(c)) + n
-  template <class F> TAO_FN F horizon(const F& cosine, const F& n) const {
+  // acos's pi/2 into the + halfPi: (pi - asin(c)) + n. raw: the value before the clamp where the cosine is in
+  // [-1, 1], else -1 (the backward's: a derivative inside [0, 1] only)
+  template <class F> TAO_FN F horizon(const F& cosine, const F& n, F* raw = nullptr) const {
     const auto good = abs(cosine) <= F(1.0f);
     const F c = select(good, cosine, F(0.0f));
     const F value = gl.exact ? ((F(kPi) - mesa_asin(c)) + n) / F(kPi) : ((acos(c) + n) + F(kHalfPi)) / F(kPi);
+    if (raw) *raw = select(good, value, F(-1.0f));
     return select(good, clamp(value, F(0.0f), F(1.0f)), F(0.0f));
+  }
+
+  // The slice's camera direction, the pixel's normal (normalised) and its projected normal's signed angle n
+  // (any lane type: the backward takes them in the pixel's tangents)
+  template <class F>
+  TAO_FN void slice_angles(const Pixels<F>& px, const Slice<F>& sl, F* camera, F* normal, F& n) const {
+    if (gl.exact) {
+      const F minus[3] = {neg(px.P[0]), neg(px.P[1]), neg(px.P[2])};
+      gl.normalize(minus, camera);
+    } else {
+      for (int c = 0; c < 3; ++c) camera[c] = px.V[c];
+    }
+    gl.normalize(px.N, normal);
+    const F direction[3] = {sl.dir_u, sl.dir_v, F(0.0f)};
+    const F along = gl.dot(direction, camera);
+    F ortho[3], axis[3], proj[3];
+    for (int c = 0; c < 3; ++c) ortho[c] = direction[c] - along * camera[c];
+    cross(direction, camera, axis);  // not normalised (as written)
+    const F na = gl.dot(normal, axis);
+    for (int c = 0; c < 3; ++c) proj[c] = normal[c] - axis[c] * na;
+    const F cos_n = clamp(gl.dot(proj, camera) / gl.length(proj), F(0.0f), F(1.0f));
+    n = sign(gl.dot(ortho, proj)) * glsl_acos(gl.exact, cos_n);
   }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl, const Sums<F>& sums) const {
     State<F> st;
     st.occ = sums.occ;
     for (int c = 0; c < 3; ++c) st.light[c] = sums.light[c];
-    if (gl.exact) {
-      const F minus[3] = {neg(px.P[0]), neg(px.P[1]), neg(px.P[2])};
-      gl.normalize(minus, st.camera);
-    } else {
-      for (int c = 0; c < 3; ++c) st.camera[c] = px.V[c];
-    }
-    gl.normalize(px.N, st.normal);
-    const F* camera = st.camera;
-    const F direction[3] = {sl.dir_u, sl.dir_v, F(0.0f)};
-    const F along = gl.dot(direction, camera);
-    F ortho[3], axis[3], proj[3];
-    for (int c = 0; c < 3; ++c) ortho[c] = direction[c] - along * camera[c];
-    cross(direction, camera, axis);  // not normalised (as written)
-    const F na = gl.dot(st.normal, axis);
-    for (int c = 0; c < 3; ++c) proj[c] = st.normal[c] - axis[c] * na;
-    const F cos_n = clamp(gl.dot(proj, camera) / gl.length(proj), F(0.0f), F(1.0f));
-    st.n = sign(gl.dot(ortho, proj)) * (gl.exact ? F(kHalfPi) - mesa_asin(cos_n) : acos(cos_n));
+    slice_angles(px, sl, st.camera, st.normal, st.n);
     return st;
   }
 
@@ -94,27 +123,73 @@ struct GlslAccumulator {
     return horizon(gl.dot(dir, st.camera), st.n);
   }
 
-  template <class F>
-  TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
+  // A step's direction h = delta / length(delta), thickness t, front and back horizons x, y in [0, 1] (the shader's
+  // clamps) and, for the backward, the same before the clamps where they have a derivative (a valid sample off the
+  // pixel's own texel, its cosine in [-1, 1]; else -1)
+  template <class F> struct Horizons { F h[3], t, x, y, front, back; };
+  template <class F> TAO_FN Horizons<F> horizons(const State<F>& st, const Pixels<F>& px, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
+    Horizons<F> hz;
     const F* camera = st.camera;
-    const F t = thickness.at(px, smp);
-    F h[3], behind[3], back_dir[3];
-    unit(smp.delta, h);
-    for (int c = 0; c < 3; ++c) behind[c] = smp.delta[c] - camera[c] * t;
+    hz.t = thickness.at(px, smp);
+    F behind[3], back_dir[3];
+    unit(smp.delta, hz.h);
+    for (int c = 0; c < 3; ++c) behind[c] = smp.delta[c] - camera[c] * hz.t;
     gl.normalize(behind, back_dir);
     // background samples occlude nothing; a sample on the pixel's own texel (sampleDistance 0) has the
     // front horizon 0 (NaN clamped) and the back one of -camera
     const auto centre = ieq(smp.index[0], I(int32_t(px.row * smp.image->W)) + to_int(px.u));
-    const F x = select(centre, F(0.0f), select(smp.valid, horizon(gl.dot(h, camera), st.n), F(1.0f)));
-    F y = select(smp.valid, horizon(gl.dot(back_dir, camera), st.n), F(1.0f));
-    if (any(centre)) y = select(centre, centre_back(st, t), y);
-    const I bits = sector_bits(x * F(float(kSectors)), (y - x) * F(float(kSectors)), rounding);
+    const auto live = land(smp.valid, lnot(centre));
+    const F x = horizon(gl.dot(hz.h, camera), st.n, &hz.front), y = horizon(gl.dot(back_dir, camera), st.n, &hz.back);
+    hz.x = select(centre, F(0.0f), select(smp.valid, x, F(1.0f)));
+    hz.y = select(smp.valid, y, F(1.0f));
+    if (any(centre)) hz.y = select(centre, centre_back(st, hz.t), hz.y);
+    hz.front = select(live, hz.front, F(-1.0f)), hz.back = select(live, hz.back, F(-1.0f));
+    return hz;
+  }
+
+  // The adjoint of a step's unclamped horizons (horizons' front and back) for d L / d them g_x, g_y (0 where they
+  // have no derivative): d L / d its delta and its thickness t, and d L / d the camera direction added to g_camera,
+  // through their cosines in Dual<F, 7> (tangents: delta, camera, t) and acos (n's part is (g_x + g_y) / pi)
+  template <class F>
+  TAO_FN void horizons_adjoint(const F* camera, const F* delta, const F& t, const F& g_x, const F& g_y, F* g_delta,
+                               F* g_camera, F& g_t) const {
+    using H = Dual<F, 7>;
+    H d[3], cam[3], h[3], behind[3], back_dir[3], th(t);
+    th.d[6] = F(1.0f);
+    for (int c = 0; c < 3; ++c) d[c] = H(delta[c]), d[c].d[c] = F(1.0f), cam[c] = H(camera[c]), cam[c].d[3 + c] = F(1.0f);
+    unit(d, h);
+    for (int c = 0; c < 3; ++c) behind[c] = d[c] - cam[c] * th;
+    gl.normalize(behind, back_dir);
+    const H front = gl.dot(h, cam), back = gl.dot(back_dir, cam);
+    const F g_f = g_x * glsl_acos_slope(gl.exact, front.v) * F(1.0f / kPi);
+    const F g_b = g_y * glsl_acos_slope(gl.exact, back.v) * F(1.0f / kPi);
+    // (selected: a sample on the pixel's own texel has delta 0, its cosines' tangents NaN)
+    const auto on_f = g_f != F(0.0f), on_b = g_b != F(0.0f);
+    for (int c = 0; c < 3; ++c) {
+      g_delta[c] = select(on_f, g_f * front.d[c], F(0.0f)) + select(on_b, g_b * back.d[c], F(0.0f));
+      g_camera[c] = g_camera[c] + select(on_f, g_f * front.d[3 + c], F(0.0f)) + select(on_b, g_b * back.d[3 + c], F(0.0f));
+    }
+    g_t = select(on_b, g_b * back.d[6], F(0.0f));
+  }
+
+  // The light a step sends per unit weight (light_sent's, before its weight)
+  template <class F> TAO_FN void step_light(const State<F>& st, const Sample<F>& smp, const F* h, F* sent) const {
+    F raw_n[3], light[3];
+    for (int c = 0; c < 3; ++c) raw_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
+    light_sent(st.normal, h, raw_n, light, smp.valid, F(1.0f), sent);
+  }
+
+  template <class F>
+  TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
+    using I = typename LaneTraits<F>::I;
+    const Horizons<F> hz = horizons(st, px, smp);
+    const I bits = sector_bits(hz.x * F(float(kSectors)), (hz.y - hz.x) * F(float(kSectors)), rounding);
     if (indirect) {
-      F raw_n[3], light[3], sent[3];
-      for (int c = 0; c < 3; ++c) raw_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
-      light_sent(st.normal, h, raw_n, light, smp.valid, weight(bits & bnot(st.occ)), sent);
-      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + sent[c];
+      F sent[3];
+      step_light(st, smp, hz.h, sent);
+      const F w = weight(bits & bnot(st.occ));
+      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + w * sent[c];
     }
     st.occ = st.occ | bits;
   }

@@ -8,6 +8,7 @@ import torch
 from ..gbuffer import GBuffer
 from . import soft_bitmask
 from .soft_exact import exact_soft_covers, exact_soft_forward
+from .soft_glsl import glsl_soft_covers, glsl_soft_forward
 from .bitmask import (bitmask_hard, bitmask_outputs, exact_covers, exact_forward, kernel_covers, module_thickness,
                       ssilvb_glsl_hard, thickness_options)
 from .build import KernelUnavailable
@@ -70,10 +71,11 @@ def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,
 #: gbuffer)`` is ``None`` when that kernel computes the call, else why not; ``run(module, gbuffer)`` gives the
 #: outputs ``{AOOutput field: tensor}``. Bitmask AO has the hard kernel, the exact union's (the ``"exact"``
-#: variant), the exact union's with its gradients and the soft / straight-through one (with its backward).
+#: variant), the exact union's with its gradients, the ``"ssilvb_glsl"`` shader's soft / straight-through one and the
+#: other variants' soft / straight-through one (with their backwards).
 KERNELS = {
     "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (exact_soft_covers, exact_soft_forward),
-                (soft_bitmask.kernel_covers, _bitmask_soft)),
+                (glsl_soft_covers, glsl_soft_forward), (soft_bitmask.kernel_covers, _bitmask_soft)),
     "gtao": ((gtao_covers, gtao_forward),),
     "hbao": ((hbao_covers, hbao_forward),),
     "ue4_ssao": ((ue4_ssao_covers, ue4_ssao_forward),),

@@ -47,7 +47,7 @@ void check_thickness(int64_t read, const Frame& fr) {
 }
 
 // torch_ao_kernels::walk: the accumulator named `accumulator` ("gtao", "hbao", "bitmask", "exact", "exact_gradients",
-// "glsl", "wedge", "pssao", "hemisphere", "soft", "soft_gradients") over the frame,
+// "glsl", "wedge", "pssao", "hemisphere", "soft", "soft_gradients", "soft_glsl") over the frame,
 // settings in `ints` (int64) and `floats` (float32) as packed.h reads them; (B, channels, H, W)
 at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const at::Tensor& normals,
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
@@ -140,9 +140,17 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                   "sphere extent or full circle");
       run(unpack_soft<true>(i, f));
     }
+  } else if (name == "soft_glsl") {
+    packed(5, 4);
+    check_thickness(i[kAccInts + 3], fr);
+    TORCH_CHECK(f[kAccFloats + 3] > 0, "tau: expected > 0");
+    TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,
+                "soft_glsl: expected the GLSL step placement over sliceCount + 1 >= 3 slices and sampleCount + 1 >= 2 steps");
+    TORCH_CHECK(!i[kAccInts + 1] || fr.light, "light: indirect light needs the light buffer");
+    run(unpack_soft_glsl_forward(i, f));
   } else {
     TORCH_CHECK(false, "accumulator: expected gtao, hbao, bitmask, exact, exact_gradients, glsl, wedge, pssao, "
-                "hemisphere, soft or soft_gradients, got ", name);
+                "hemisphere, soft, soft_gradients or soft_glsl, got ", name);
   }
   return out;
 }

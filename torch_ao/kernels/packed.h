@@ -9,6 +9,7 @@
 #include "exact_soft.h"
 #include "horizon.h"
 #include "soft.h"
+#include "soft_glsl.h"
 #include "ssao.h"
 
 namespace tao {
@@ -77,6 +78,15 @@ TAO_FN ExactGradAccumulator unpack_exact_gradients(const int64_t* i, const float
   return ExactGradAccumulator{unpack_exact(i, f), unpack_walk(i, f)};
 }
 
+// The soft union's rounding offset (sectors.rule.rounding_offset) and its smooth floor's window of its tau
+// (sweeps.floor_window_width)
+template <class Union> TAO_FN void soft_window(Union& acc) {
+  acc.delta = acc.rounding == 0 ? 0.0f : acc.rounding == 1 ? 0.5f : 1.0f;
+  acc.reach = int(ceil(kSoftClamp * acc.tau)) + 1;
+  acc.window = 2 * acc.reach < kSectors ? 2 * acc.reach : kSectors;
+  acc.windowed = acc.window <= kSoftWindowMax;
+}
+
 // ints: rounding, cosine, straight_through, the thickness' read (ThicknessRead), the variant's angles
 // (SectorAngles), bent, indirect; floats: the thickness' offset, epsilon, tau, the thickness' scale
 template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps>
@@ -87,10 +97,7 @@ TAO_FN SoftAccumulator<kGradients, kAdjoint, kMostSteps> unpack_soft(const int64
   acc.rounding = i[0], acc.cosine = i[1] != 0, acc.straight_through = i[2] != 0, acc.angles = SectorAngles(i[4]);
   acc.bent = i[5] != 0, acc.indirect = i[6] != 0;
   acc.thickness = ThicknessModel{f[0], f[3], ThicknessRead(i[3])}, acc.epsilon = f[1], acc.tau = f[2];
-  acc.delta = acc.rounding == 0 ? 0.0f : acc.rounding == 1 ? 0.5f : 1.0f;
-  acc.reach = int(ceil(kSoftClamp * acc.tau)) + 1;  // sweeps.floor_window_width
-  acc.window = 2 * acc.reach < kSectors ? 2 * acc.reach : kSectors;
-  acc.windowed = acc.window <= kSoftWindowMax;
+  soft_window(acc);
   return acc;
 }
 TAO_FN SoftAccumulator<false> unpack_soft_forward(const int64_t* i, const float* f) { return unpack_soft<false>(i, f); }
@@ -98,6 +105,22 @@ TAO_FN SoftAccumulator<true> unpack_soft_gradients(const int64_t* i, const float
 // (a slice of at most kSoftShortSteps steps: the CUDA forward with gradients of every preset, walk_cuda.cu)
 TAO_FN SoftAccumulator<true, false, kSoftShortSteps> unpack_soft_gradients_short(const int64_t* i, const float* f) {
   return unpack_soft<true, false, kSoftShortSteps>(i, f);
+}
+
+// unpack_glsl's settings and then ints: straight_through; floats: tau (soft_glsl.h's GlslSoftAccumulator; Union:
+// its forward's SoftAccumulator<false>, or its backward's with each step kept)
+template <class Union> TAO_FN GlslSoftAccumulator<Union> unpack_soft_glsl(const int64_t* i, const float* f) {
+  GlslSoftAccumulator<Union> acc;
+  acc.shader = unpack_glsl(i, f);
+  acc.soft.walk = unpack_walk(i, f);
+  acc.soft.rounding = acc.shader.rounding, acc.soft.angles = SectorAngles::plane, acc.soft.epsilon = 0.0f;
+  acc.soft.straight_through = i[kAccInts + 4] != 0, acc.soft.tau = f[kAccFloats + 3];
+  acc.soft.cosine = acc.soft.bent = acc.soft.indirect = false;
+  soft_window(acc.soft);
+  return acc;
+}
+TAO_FN GlslSoftAccumulator<SoftAccumulator<false>> unpack_soft_glsl_forward(const int64_t* i, const float* f) {
+  return unpack_soft_glsl<SoftAccumulator<false>>(i, f);
 }
 
 // floats: fade_distance (clamped to 1e-30), flat_surface_bias, flat_softness; ints: accurate_angle

@@ -356,10 +356,11 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   // soft_union's reverse scan over the slice's kept steps (after sweep) from seed(k) (d the loss / d sector k's
   // free share): fn(m, StepAdjoint) for each step with a live lane, last to first. With gains (st.gain: d the
   // loss / d each step's newly occluded share, soft_union's gn), D_m = S_{m+1} - gn_m omega takes S's place, each
-  // step's share joins its adjoint, and, with E, E_k gains sum_m gn_m c_mk P_mk (d the loss / d omega_k)
+  // step's share joins its adjoint, and, with E, E_k gains sum_m gn_m c_mk P_mk (d the loss / d omega_k); with start,
+  // start_k receives S_0k (d the loss / d the slice's initial share of sector k: soft_union's dL/dp0)
   template <class F, class Seed, class Fn>
   TAO_FN void reverse_scan(const State<F>& st, const F* before, const Seed& seed, const Fn& fn, bool gains = false,
-                           F* E = nullptr) const {
+                           F* E = nullptr, F* start = nullptr) const {
     const float inv_tau = float(1.0 / double(tau));
     F S[kSectors];
     for (int k = 0; k < kSectors; ++k) S[k] = seed(k);
@@ -401,6 +402,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       adj.front = g_f * F(float(turn) / kPi), adj.back = g_b * F(float(turn) / kPi), adj.shift = g_f + g_b;
       fn(m, adj);
     }
+    if (start)
+      for (int k = 0; k < kSectors; ++k) start[k] = S[k];
   }
 
   template <class F>

@@ -36,6 +36,8 @@ per slice and step and sums per pixel.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import torch.nn.functional as F
 
@@ -160,10 +162,30 @@ def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients, light
 def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, light, o):
     """The outputs (:func:`_outputs`) with gradients to the walk's channel-last inputs (so to the G-buffer), the
     channel-last ``light``, the thickness ``layer`` and the scalars."""
-    inputs, (light, cells, layer_image), ints, floats = packed_inputs(
-        gbuffer, normals, *_settings(radius, thickness, scale, o), light=light, backface=layer)
+    kernels = SoftKernels("soft", "tao_walk_soft", soft_backward_kernel(o["steps"]), True)
+    return gbuffer_walk(gbuffer, normals, _settings(radius, thickness, scale, o), light, layer, radius, thickness,
+                        scale, o["lanes"], kernels, _outputs(o))
+
+
+class SoftKernels(NamedTuple):
+    """A soft walk's kernels: the CPU operator's accumulator, the CUDA forward and backward, and whether the backward
+    gives the intrinsics a gradient of its own (the walk moves its steps with them)."""
+
+    cpu: str
+    cuda_forward: str
+    cuda_backward: str
+    camera: bool
+
+
+def gbuffer_walk(gbuffer, normals, packed, light, layer, radius, thickness, scale, lanes: str, kernels: SoftKernels,
+                 channels: int) -> torch.Tensor:
+    """A soft walk's ``channels`` outputs (``packed``: its settings, walk's and accumulator's) with gradients to the
+    walk's channel-last inputs (so to the G-buffer), the channel-last ``light``, the thickness ``layer`` and the
+    scalars ``radius``, ``thickness``, ``scale``, by ``kernels``."""
+    inputs, (light, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *packed, light=light,
+                                                                      backface=layer)
     return _GBufferWalk.apply(*inputs, light, cells, layer_image, ints, floats, radius, thickness, scale,
-                              scalar_lanes(o["lanes"]), o["steps"], _outputs(o))
+                              scalar_lanes(lanes), kernels, channels)
 
 
 #: soft.h's kSoftShortSteps: the most steps of a slice (both sides) the short CUDA kernels keep
@@ -183,23 +205,23 @@ def soft_backward_kernel(steps: int) -> str:
 
 
 class _GBufferWalk(torch.autograd.Function):
-    """``soft`` walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the channel-last ``light``,
-    the edge-aware fetch's ``cells`` and the thickness ``layer`` (each empty where unused), its ``channels``
-    outputs, and ``soft_backward``."""
+    """A soft walk (``kernels``: :class:`SoftKernels`) over ``(positions, normals, inverse, depth, valid,
+    intrinsics)``, the channel-last ``light``, the edge-aware fetch's ``cells`` and the thickness ``layer`` (each empty
+    where unused), its ``channels`` outputs, and ``soft_backward``."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius,
-                thickness, scale, scalar, steps, channels):
-        ctx.scalar, ctx.scale_dtype, ctx.steps = scalar, scale.dtype, steps
+                thickness, scale, scalar, kernels, channels):
+        ctx.scalar, ctx.scale_dtype, ctx.kernels = scalar, scale.dtype, kernels
         ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats,
                               radius, thickness)
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
-            launch_cuda("tao_walk_soft", depth.device, [*frame, light, cells, layer, out, ints, floats],
+            launch_cuda(kernels.cuda_forward, depth.device, [*frame, light, cells, layer, out, ints, floats],
                         tuple(depth.shape))
             return out
-        return cpu_kernels().walk("soft", *frame, light, cells, layer, ints, floats, channels, scalar)
+        return cpu_kernels().walk(kernels.cpu, *frame, light, cells, layer, ints, floats, channels, scalar)
 
     @staticmethod
     def backward(ctx, grad):
@@ -207,14 +229,14 @@ class _GBufferWalk(torch.autograd.Function):
             ctx.saved_tensors
         frame = (positions, normals, inverse, depth, valid, intrinsics, light, cells, layer)
         grad = grad.to(torch.float32).contiguous()
-        camera = ctx.needs_input_grad[5]  # the intrinsics' gradients, per pixel (B, H, W, 4)
+        camera = ctx.needs_input_grad[5] and ctx.kernels.camera  # the intrinsics' gradients, per pixel (B, H, W, 4)
         if depth.is_cuda:  # the pixels' own gradients, and their taps' scattered atomically into images of their own
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
             g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
             senders, g_light = torch.zeros_like(normals), torch.zeros_like(normals)
             g_setting = depth.new_zeros((*depth.shape, 2))
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
-            launch_cuda(soft_backward_kernel(ctx.steps), depth.device,
+            launch_cuda(ctx.kernels.cuda_backward, depth.device,
                         [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, senders, g_light,
                          g_camera, ints, floats], tuple(depth.shape))
             g_pos += taps

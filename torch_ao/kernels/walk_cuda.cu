@@ -32,6 +32,7 @@ TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients, )  // d visibilit
 // the same where a slice's steps fit 16 (every preset's): its thread's steps' arrays a quarter as long (3.6 kB of local
 // memory a thread against 11.3 kB), as tao_soft_backward_short below
 TAO_CUDA_ENTRY(tao_walk_soft_gradients_short, unpack_soft_gradients_short, )
+TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_glsl" variant's (soft_glsl.h)
 
 // The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
 // the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes
@@ -72,7 +73,7 @@ TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere)
 // offset and scale per pixel in g_thickness (B, H, W, 2); the layer's taps' in tap_layer (backface: the model's
 // layer); with indirect light the senders' normals' and light's taps' in tap_normals and tap_light (light: the
 // light buffer); d L / d the intrinsics per pixel in g_camera (B, H, W, 4) where it is not null
-#define TAO_CUDA_SOFT_BACKWARD(name, most)                                                                   \
+#define TAO_CUDA_SOFT_BACKWARD(name, Acc, unpack)                                                            \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,          \
                                   const float* depth, const bool* valid, const float* intrinsics,             \
                                   const float* light, const float* cells, const float* backface,              \
@@ -83,16 +84,25 @@ TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere)
     const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                         \
     if (p >= int64_t(B) * H * W) return;                                                                       \
     const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, cells, backface, valid, B, H, W}; \
-    const tao::SoftAccumulator<true, true, most> acc = tao::unpack_soft<true, true, most>(ints, floats);      \
+    const Acc acc = unpack(ints, floats);                                                                      \
+    const tao::ThicknessModel& thickness = tao::soft_thickness(acc);                                          \
+    const bool indirect = tao::soft_indirect(acc);                                                            \
     tao::soft_grad_pixel(tao::unpack_walk(ints, floats), acc, frame, grad, g_positions, g_normals, g_depth,   \
-                         g_thickness, tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, \
-                         acc.indirect ? tap_normals : nullptr, acc.indirect ? tap_light : nullptr, g_camera, p); \
+                         g_thickness, tap_positions, tap_inverse, thickness.reads_layer() ? tap_layer : nullptr, \
+                         indirect ? tap_normals : nullptr, indirect ? tap_light : nullptr, g_camera, p);  \
   }
 
-TAO_CUDA_SOFT_BACKWARD(tao_soft_backward, tao::kSoftMaxSteps)
+using SoftBackward = tao::SoftAccumulator<true, true>;
+using SoftBackwardShort = tao::SoftAccumulator<true, true, tao::kSoftShortSteps>;
+TAO_CUDA_SOFT_BACKWARD(tao_soft_backward, SoftBackward, (tao::unpack_soft<true, true>))
 // a slice of at most 16 steps (8 a side: every preset's), whose kept steps take a quarter of the local memory:
 // 57x faster at 1920x1080 (3 x 3) on an H200, where the thread's 85 kB of local memory is what it waits on
-TAO_CUDA_SOFT_BACKWARD(tao_soft_backward_short, tao::kSoftShortSteps)
+TAO_CUDA_SOFT_BACKWARD(tao_soft_backward_short, SoftBackwardShort, (tao::unpack_soft<true, true, tao::kSoftShortSteps>))
+// the "ssilvb_glsl" variant's (g_camera null: its texels are floored), up to 64 and 16 steps a slice
+using GlslSoftBackward = tao::GlslSoftAccumulator<SoftBackward>;
+using GlslSoftBackwardShort = tao::GlslSoftAccumulator<SoftBackwardShort>;
+TAO_CUDA_SOFT_BACKWARD(tao_soft_backward_glsl, GlslSoftBackward, tao::unpack_soft_glsl<SoftBackward>)
+TAO_CUDA_SOFT_BACKWARD(tao_soft_backward_glsl_short, GlslSoftBackwardShort, tao::unpack_soft_glsl<SoftBackwardShort>)
 
 // The exact union's backward (walk_grad.h's exact_grad_block): the pixel's own gradients (d L / d the intrinsics in
 // g_camera where it is not null), its intervals' taps' (positions, inverse depth, the thickness layer's where the

@@ -821,6 +821,38 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
 // sender's normal 3 and light 3 at its tap): d L / d the pixel's normal and position (-the offset's) are its own,
 // the tap's position, normal and light scattered (nearest fetch: index[0]). No depth, intrinsics or radius
 // gradient of its own (the positions carry them, through walk_inputs).
+// d L / d (the pixel's normal N, the sample's delta, the sender's normal and light at its tap) of the light a step
+// sends with weight (GlslAccumulator::light_sent in Dual<B, 12>; normal: normalize(N) in N's tangents) for
+// d L / d the light = per_light, into g (0 off the lanes on); its taps' scattered to the sender's normal and light
+template <class B>
+TAO_FN void glsl_light_grads(const GlslAccumulator& acc, const Dual<B, 12>* normal, const Sample<B>& smp, const B* delta,
+                             const B& weight, const B* per_light, const typename LaneTraits<B>::M& on, int n,
+                             const Targets& t, B* g) {
+  using D = Dual<B, 12>;
+  D d[3], raw_n[3], light[3], h[3], sent[3];
+  for (int c = 0; c < 3; ++c) {
+    d[c] = D(delta[c]), d[c].d[3 + c] = B(1.0f);
+    raw_n[c] = D(smp.gather(smp.image->normals, c)), raw_n[c].d[6 + c] = B(1.0f);
+    light[c] = D(smp.gather(smp.image->light, c)), light[c].d[9 + c] = B(1.0f);
+  }
+  acc.unit(d, h);
+  acc.light_sent(normal, h, raw_n, light, smp.valid, D(weight), sent);
+  for (int k = 0; k < 12; ++k) {
+    g[k] = B(0.0f);
+    for (int c = 0; c < 3; ++c) g[k] = g[k] + per_light[c] * sent[c].d[k];
+    g[k] = select(on, g[k], B(0.0f));
+  }
+  scatter_gather(false, n, t.tap_normals, 3, g + 6, smp.fu, smp.fv, smp.index, on);
+  scatter_gather(false, n, t.tap_light, 3, g + 9, smp.fu, smp.fv, smp.index, on);
+}
+
+// normalize(N) of the pixels in Dual<B, 12>, in N's tangents (glsl_light_grads' normal)
+template <class B> TAO_FN void glsl_normal(const GlslAccumulator& acc, const Pixels<B>& px, Dual<B, 12>* normal) {
+  Dual<B, 12> raw[3];
+  for (int c = 0; c < 3; ++c) raw[c] = Dual<B, 12>(px.N[c]), raw[c].d[c] = B(1.0f);
+  acc.gl.normalize(raw, normal);
+}
+
 template <class B> struct GlslLightAdjoint {
   static constexpr bool kBefore = true;
   using State = typename GlslAccumulator::template State<B>;
@@ -836,24 +868,10 @@ template <class B> struct GlslLightAdjoint {
   TAO_FN void operator()(int, int64_t, const Sample<B>& smp, const State& before, const State& after) {
     const auto on = land(smp.valid, px.live);
     if (!any(on)) return;
-    D delta[3], raw_n[3], light[3], h[3], sent[3];
-    for (int c = 0; c < 3; ++c) {
-      delta[c] = D(smp.delta[c]), delta[c].d[3 + c] = B(1.0f);
-      raw_n[c] = D(smp.gather(smp.image->normals, c)), raw_n[c].d[6 + c] = B(1.0f);
-      light[c] = D(smp.gather(smp.image->light, c)), light[c].d[9 + c] = B(1.0f);
-    }
-    acc.unit(delta, h);
-    acc.light_sent(normal, h, raw_n, light, smp.valid, D(acc.weight(after.occ & bnot(before.occ))), sent);
     B g[12];
-    for (int k = 0; k < 12; ++k) {
-      g[k] = B(0.0f);
-      for (int c = 0; c < 3; ++c) g[k] = g[k] + per_light[c] * sent[c].d[k];
-      g[k] = select(on, g[k], B(0.0f));
-    }
+    glsl_light_grads(acc, normal, smp, smp.delta, acc.weight(after.occ & bnot(before.occ)), per_light, on, n, t, g);
     for (int c = 0; c < 3; ++c) own[c] = own[c] - g[3 + c], own[3 + c] = own[3 + c] + g[c];
     scatter_taps(false, n, t, g + 3, smp.delta, smp.fu, smp.fv, smp.index, on);
-    scatter_gather(false, n, t.tap_normals, 3, g + 6, smp.fu, smp.fv, smp.index, on);
-    scatter_gather(false, n, t.tap_light, 3, g + 9, smp.fu, smp.fv, smp.index, on);
   }
 };
 
@@ -869,9 +887,8 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Gls
   if (!any(px.live)) return;
   B per_light[3];
   for (int c = 0; c < 3; ++c) per_light[c] = select(px.live, g[1 + c] / B(float(acc.slice_count)), B(0.0f));
-  D raw[3], normal[3];
-  for (int c = 0; c < 3; ++c) raw[c] = D(px.N[c]), raw[c].d[c] = B(1.0f);
-  acc.gl.normalize(raw, normal);
+  D normal[3];
+  glsl_normal(acc, px, normal);
   B own[kPixel];
   for (int k = 0; k < kPixel; ++k) own[k] = B(0.0f);
   GlslLightAdjoint<B> visit{acc, px, normal, per_light, t, n, own};
@@ -886,6 +903,114 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Gls
     walk_slice(cfg, img, acc, px, sl, st, visit);
   }
   write_own(t, img.W, row, u0, n, own);
+}
+
+// The "ssilvb_glsl" variant's soft / straight-through backward (soft_glsl.h's GlslSoftAccumulator) of the n <= L
+// pixels of a row from u0, for L = sum over its outputs of upstream[c] * output c. Its union carries each sector's
+// visible share across slices, so d L / d a slice's end is its own visibility's (1 / 32 a sector) plus what the later
+// slices owe their start (soft_union's dL/dp0). So the forward runs first, keeping each slice's start (P, or the hard
+// mask as shares), then the slices last to first: each walked again keeping its steps (GlslSoftSteps), swept from its
+// start, scanned back from that seed (soft.h's reverse_scan, with each step's gain), which leaves its own start's debt
+// for the slice before it. Each step's d L / d its unclamped horizons goes through horizons_adjoint to its delta
+// (scattered to its tap; the pixel's own P the opposite), its thickness (the offset's and scale's sums per pixel, the
+// layer's tap, or a depth read's) and the camera direction; the slices' n through (g_x + g_y) / pi. The camera
+// direction's and each slice's n's tangents on the pixel's own P, N, depth come from slice_angles in dual lanes. With
+// indirect light each step's light (weight 1 - newly: the scan's soft share, or the hard one) is replayed as the hard
+// backward's (glsl_light_grads). No intrinsics or radius gradient of its own: the shader's texels are floored.
+template <class B, int kMostSteps>
+TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
+                            const GlslSoftAccumulator<SoftAccumulator<true, true, kMostSteps>>& acc, int64_t row,
+                            int64_t u0, int n, const float* upstream, const Targets& t) {
+  using Union = SoftAccumulator<true, true, kMostSteps>;
+  using Steps = GlslSoftSteps<B, Union>;
+  using D = Dual<B, kPixel>;
+  B g[4];
+  if (!upstream_lanes(img, row, u0, n, upstream, acc.channels(), g)) return;
+  const Pixels<B> px(cfg, img, row, u0, n);
+  if (!any(px.live)) return;
+  const B count = B(float(acc.shader.slice_count));
+  const B per_share = select(px.live, g[0] / count, B(0.0f)) * B(1.0f / kSectors);  // d L / d a share at a slice's end
+  B light_weight[3];
+  for (int c = 0; c < 3; ++c) light_weight[c] = acc.shader.indirect ? select(px.live, g[1 + c] / count, B(0.0f)) : B(0.0f);
+  // 1. the forward, keeping each slice's start (and the hard mask carried into it)
+  LaneArray<B, kGlslMaxSlices * kSectors> starts;
+  LaneArray<typename LaneTraits<B>::I, kGlslMaxSlices> masks;
+  {
+    typename GlslSoftAccumulator<Union>::template Sums<B> sums;
+    NoVisit none;
+    for (int64_t s = 0; s < cfg.slices; ++s) {
+      const Slice<B> sl(cfg, img, px, s);
+      typename GlslSoftAccumulator<Union>::template State<B> st = acc.begin_slice(px, sl, sums);
+      for (int k = 0; k < kSectors; ++k) starts[s * kSectors + k] = st.P[k];
+      masks[s] = st.shader.occ;
+      if (s + 1 == cfg.slices) break;
+      walk_slice(cfg, img, acc, px, sl, st, none);
+      acc.end_slice(st, px, sl, sums);
+    }
+  }
+  // 2. the slices last to first
+  const Steps steps{acc, acc.shader.indirect ? light_weight : nullptr};
+  TapSink<B> sink{false, false, n, t};
+  Dual<B, 12> normal[3];  // (indirect light's)
+  if (acc.shader.indirect) glsl_normal(acc.shader, px, normal);
+  B owed[kSectors], own[kPixel], g_camera[3] = {B(0.0f), B(0.0f), B(0.0f)}, setting[2] = {B(0.0f), B(0.0f)};
+  for (int k = 0; k < kSectors; ++k) owed[k] = B(0.0f);
+  for (int k = 0; k < kPixel; ++k) own[k] = B(0.0f);
+  const Pixels<D> pd(cfg, img, row, u0, n);
+  D along = D(0.0f);  // (its tangents: through the camera direction and the slices' n)
+  for (int64_t s = cfg.slices - 1; s >= 0; --s) {
+    const Slice<B> sl(cfg, img, px, s);
+    typename Steps::template State<B> st;
+    typename GlslAccumulator::template Sums<B> carried;
+    carried.occ = masks[s];
+    st.shader = acc.shader.begin_slice(px, sl, carried);
+    st.kept.n = 0;
+    for (int k = 0; k < kSectors; ++k) st.kept.P[k] = starts[s * kSectors + k], st.kept.omega[k] = B(1.0f / kSectors);
+    NoVisit none;
+    walk_slice(cfg, img, steps, px, sl, st, none);
+    LaneArray<B, kMostSteps * kSectors> before;
+    acc.soft.sweep(st.kept, &before[0]);
+    B g_n = B(0.0f);
+    const auto& kept = st.kept;
+    const auto seed = [&](int k) { return per_share + owed[k]; };
+    acc.soft.reverse_scan(kept, &before[0], seed, [&](int m, const typename Union::template StepAdjoint<B>& adj) {
+      // d L / d the unclamped horizons (the scan's angles are theirs over pi: the interval's turn is +1)
+      const B g_x = adj.front * B(kPi), g_y = adj.back * B(kPi);
+      const B delta[3] = {kept.delta[0][m], kept.delta[1][m], kept.delta[2][m]};
+      const auto on = land(px.live, kept.valid[m]);
+      B g_delta[3], g_t;
+      acc.shader.horizons_adjoint(st.shader.camera, delta, kept.t[m], g_x, g_y, g_delta, g_camera, g_t);
+      g_n = g_n + (g_x + g_y) * B(1.0f / kPi);
+      g_t = select(px.live, g_t, B(0.0f));
+      setting[0] = setting[0] + g_t, setting[1] = setting[1] + g_t * kept.tv[m];
+      B g_value = g_t * B(acc.shader.thickness.scale);  // d L / d the value the scale multiplies
+      if (acc.shader.thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the tap's depth
+        g_delta[2] = g_delta[2] - g_value;
+        own[2] = own[2] - g_value;  // (with own's -g_delta below: none of it on the pixel's own P)
+      }
+      if (acc.shader.indirect && any(on)) {  // the light it sends, weighed by 1 - the share it newly occludes
+        const typename LaneTraits<B>::I taps[4] = {kept.index[0][m], kept.index[1][m], kept.index[2][m], kept.index[3][m]};
+        const Sample<B> smp(img, false, taps, kept.fu[m], kept.fv[m], kept.valid[m]);
+        const B newly = acc.soft.straight_through ? kept.hard_newly[m] : adj.newly;
+        B gl[12];
+        glsl_light_grads(acc.shader, normal, smp, delta, B(1.0f) - newly, light_weight, on, n, t, gl);
+        for (int c = 0; c < 3; ++c) own[3 + c] = own[3 + c] + gl[c], g_delta[c] = g_delta[c] + gl[3 + c];
+      }
+      for (int c = 0; c < 3; ++c) {
+        g_delta[c] = select(on, g_delta[c], B(0.0f));
+        own[c] = own[c] - g_delta[c];
+      }
+      sink.scatter(g_delta, kept, m, on, acc.shader.thickness.reads_layer() ? &g_value : nullptr);
+    }, acc.shader.indirect, static_cast<B*>(nullptr), owed);
+    const Slice<D> sd(cfg, img, pd, s);
+    D camera[3], normal_d[3], angle;
+    acc.shader.slice_angles(pd, sd, camera, normal_d, angle);
+    along = along + D(select(px.live, g_n, B(0.0f))) * angle;
+    if (s == 0)
+      for (int c = 0; c < 3; ++c) along = along + D(select(px.live, g_camera[c], B(0.0f))) * camera[c];
+  }
+  for (int k = 0; k < kPixel; ++k) own[k] = select(px.live, own[k] + along.d[k], B(0.0f));
+  write_own(t, img.W, row, u0, n, own, setting);
 }
 
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
@@ -936,8 +1061,8 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
 // d L / d the thickness' offset and scale: thickness (B, H, W, 2), and where camera d L / d the intrinsics:
 // (B, H, W, 4)) and its steps' taps' (positions, inverse depth, the layer's where the model reads one;
 // atomically) as grad_pixel's
-template <int kMostSteps>
-TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true, true, kMostSteps>& acc, const Frame& fr,
+template <class Acc>
+TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
                             const float* grad, float* positions, float* normals, float* depth, float* thickness,
                             float* tap_positions, float* tap_inverse, float* tap_layer, float* tap_normals,
                             float* tap_light, float* camera, int64_t p) {
@@ -946,7 +1071,7 @@ TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const SoftAccumulator<true,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
                   tap_normals ? tap_normals + 3 * b * plane : nullptr, tap_light ? tap_light + 3 * b * plane : nullptr,
                   camera ? camera + 4 * b * plane : nullptr, 2};
-  soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.outputs() * plane, t);
+  soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane, t);
 }
 
 // Pixel p's exact-union backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals,

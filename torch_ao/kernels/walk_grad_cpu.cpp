@@ -262,6 +262,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {out.positions, out.normals, g_inv, out.depth, out.setting, camera ? out.camera : none};
 }
 
+// Whether packed settings place their steps as the GLSL shader does (the "ssilvb_glsl" variant's accumulators)
+inline bool packs_glsl(const at::Tensor& ints) {
+  return ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() >= kAccInts &&
+         packed_placement(ints.data_ptr<int64_t>()) == Steps::glsl;
+}
+
 // A per-pixel walk's backward call (soft_backward, exact_backward, hard_backward): its frame, and its packed
 // settings checked (n_ints, n_floats of the accumulator's; the power step placement on one half circle, at most
 // max_steps per side) and unpacked
@@ -311,8 +317,8 @@ struct BackwardCall {
 };
 
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * outputs) of the soft / straight-through walk
-// ("soft"'s packed settings; its outputs the visibility, then with indirect light its light, with bent normals
-// their sum) with respect to its positions, normals (B, H, W, 3; the senders' too), inverse depth and depth
+// ("soft"'s packed settings, or with the GLSL step placement "soft_glsl"'s; its outputs the visibility, then with
+// indirect light its light, with bent normals their sum) with respect to its positions, normals (B, H, W, 3; the senders' too), inverse depth and depth
 // (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2), the thickness layer (B, H, W; zeros
 // where the model reads none), the light (B, H, W, 3; zeros without indirect light) and, with camera, each pixel's
 // share of the intrinsics' (B, H, W, 4; else empty); grad (B, outputs, H, W); light: the light buffer, cells: the
@@ -323,23 +329,38 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& cells, const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera,
     bool scalar) {
   const at::Tensor none = at::empty({0}, positions.options());
+  const bool glsl = packs_glsl(ints);
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, 7, 4, "soft", kSoftMaxSteps / 2);
-  TORCH_CHECK(call.f[kAccFloats + 2] > 0, "tau: expected > 0");
+                          floats, glsl ? 5 : 7, 4, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
+                          glsl);
+  TORCH_CHECK(call.f[kAccFloats + (glsl ? 3 : 2)] > 0, "tau: expected > 0");
+  // (the accumulator's thickness model and whether it sends light)
+  auto backward = [&](const auto& acc, const ThicknessModel& thickness, bool indirect) {
+    TORCH_CHECK(!thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
+    TORCH_CHECK(!indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, thickness.reads_layer(), indirect);
+    out.settings = 2;  // d L / d the offset, d L / d the scale
+    out.setting = at::zeros({call.fr.B, call.fr.H, call.fr.W, 2}, positions.options());
+    if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
+    auto g = call.run(grad, acc.channels(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
+                                                                   int64_t u0, int n, const float* upstream,
+                                                                   const Targets& t) {
+      soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
+    });
+    return std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>{
+        std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.setting, std::get<4>(g), out.light(),
+        camera ? out.camera : none};
+  };
+  if (glsl) {  // (the shader's texels are floored: no intrinsics gradient of its own)
+    TORCH_CHECK(!camera, "camera: the glsl soft walk has no intrinsics gradient of its own (its positions carry them)");
+    TORCH_CHECK(call.cfg.slices <= kGlslMaxSlices, "slices: the glsl soft backward holds at most ", kGlslMaxSlices - 1,
+                " (sliceCount)");
+    const GlslSoftAccumulator<SoftAccumulator<true, true>> acc =
+        unpack_soft_glsl<SoftAccumulator<true, true>>(call.i, call.f);
+    return backward(acc, acc.shader.thickness, acc.shader.indirect);
+  }
   const SoftAccumulator<true, true> acc = unpack_soft<true, true>(call.i, call.f);
-  TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  TORCH_CHECK(!acc.indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer(), acc.indirect);
-  out.settings = 2;  // d L / d the offset, d L / d the scale
-  out.setting = at::zeros({call.fr.B, call.fr.H, call.fr.W, 2}, positions.options());
-  if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
-  auto g = call.run(grad, acc.outputs(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
-                                                                 int64_t u0, int n, const float* upstream,
-                                                                 const Targets& t) {
-    soft_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
-  });
-  return {std::get<0>(g), std::get<1>(g), std::get<2>(g), std::get<3>(g), out.setting, std::get<4>(g), out.light(),
-          camera ? out.camera : none};
+  return backward(acc, acc.thickness, acc.indirect);
 }
 
 // torch_ao_kernels::exact_backward: the gradients of sum(grad * visibility) of the exact union's walk ("exact"'s
@@ -380,8 +401,7 @@ auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normal
                            const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
                            const at::Tensor& light, const at::Tensor& cells, const at::Tensor& backface,
                            const at::Tensor& ints, const at::Tensor& floats, const Fn& fn) {
-  const bool glsl = ints.scalar_type() == at::kLong && ints.is_contiguous() && ints.numel() >= kAccInts &&
-                    packed_placement(ints.data_ptr<int64_t>()) == Steps::glsl;
+  const bool glsl = packs_glsl(ints);
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
                           floats, glsl ? 4 : 6, glsl ? 3 : 4, glsl ? "glsl hard" : "hard",
                           std::numeric_limits<int64_t>::max(), glsl);
