@@ -55,6 +55,8 @@ def cases() -> dict:
                                                                            backend="torch"), "gbuffer"),
         "exact + backface, fwd+bwd, gbuffer": (lambda: torch_ao.BitmaskAO(preset="high", **exact), "gbuffer"),
         "gtao high, fwd+bwd, gbuffer": (lambda: torch_ao.GTAO(preset="high", **kernel), "gbuffer"),
+        "ssilvb_glsl soft 4 x 4, fwd+bwd, gbuffer": (lambda: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", slices=4,
+                                                                           steps=4, **kernel), "gbuffer"),
     }
 
 

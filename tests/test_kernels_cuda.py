@@ -586,6 +586,8 @@ def _gradient_modules() -> dict:
             "indirect": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=3, steps=4),
             "soft_indirect": lambda: torch_ao.SSILVB(mode="soft", weighting="cosine", bent_normals=True, slices=3,
                                                      steps=4),
+            "glsl_soft": lambda: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", thickness=BackfaceThickness(0.8, 0.1),
+                                                 slices=3, steps=4),
             "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
             "ue4ssao": _ue4ssao,
             "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear"),
@@ -593,7 +595,7 @@ def _gradient_modules() -> dict:
 
 
 GRADIENT_METHODS = ("gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard", "indirect",
-                    "soft_indirect", "gtao_camera", "ue4ssao", "pssao", "ssao")
+                    "soft_indirect", "glsl_soft", "gtao_camera", "ue4ssao", "pssao", "ssao")
 
 
 def gbuffer_gradients(method: str, device: str, dtype: torch.dtype = torch.float32, backend: str = "auto") -> tuple:
@@ -626,7 +628,7 @@ def test_cuda_gbuffer_gradients_agree_with_the_cpu(built, method):
     """GTAO / HBAO (tao_record_*, tao_backward_*), soft bitmask AO (tao_soft_backward; one scalar thickness and the
     back-face layer; the "hdrp" variant's sector rule and frame) and the exact union with the
     back-face layer (tao_exact_backward) with depth and parameter gradients, soft SSILVB with bent normals (its light
-    and bent normals' backward), hard cosine bitmask AO with bent normals
+    and bent normals' backward), the ssilvb_glsl shader's soft SSILVB (tao_soft_backward_glsl_short), hard cosine bitmask AO with bent normals
     (tao_hard_backward: the normals' gradient, through the normals from depth), UE4 SSAO and PSSAO
     (tao_backward_wedge, tao_backward_pssao) and SSAO's hemisphere (tao_walk_hemisphere, tao_backward_hemisphere:
     with the radius' gradient) on a CUDA G-buffer against the same call on the CPU; with the intrinsics' gradients

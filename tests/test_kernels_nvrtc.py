@@ -45,7 +45,7 @@ def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     indirect light in 16: 4492 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
     (against 87 kB), 1644 bytes, and the long one 364 (its indirect light's replay in 9 tangents and the bent normal's
     terms take it past 255 registers; it keeps 87 kB of local memory a thread whatever it spills); bounded here
-    (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (12 tangents) spills nothing."""
+    (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (closed forms) and its soft backward spill nothing."""
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
     bounds = {"tao_exact_backward": 2048, "tao_hard_backward": 4608, "tao_walk_bitmask": 64,  # bytes spilled, reloaded

@@ -38,6 +38,7 @@ CONFIGS: dict[str, tuple[str, dict, bool]] = {
     "ssilvb-hard-ambient": ("ssilvb", {"mode": "hard", "ambient": (0.2, 0.3, 0.4), "rounding": "floor"}, False),
     # The GLSL seed divides sliceCount + 1 slices by sliceCount: its visibility can exceed 1 (documented).
     "ssilvb-glsl": ("ssilvb", {"variant": "ssilvb_glsl"}, True),
+    "ssilvb-glsl-soft": ("ssilvb", {"variant": "ssilvb_glsl", "mode": "soft"}, True),
 }
 
 FAST_FRAMES = ("scene", "bg_nan", "single_pixel", "1x1", "discontinuity")

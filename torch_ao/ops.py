@@ -7,7 +7,7 @@ from typing import Callable
 import torch
 
 __all__ = ["fast_acos", "safe_fast_acos", "clamped_gradient", "safe_acos", "safe_pow", "arc_integral", "arc_measure",
-           "channel_norm", "normalize_channels", "UE4_EPSILON"]
+           "channel_norm", "normalize_channels", "bent_direction", "UE4_EPSILON"]
 
 #: UE4's GTAO ``rsqrt(|delta|^2 + 1e-4)`` (``SearchForLargestAngleDual``): world units squared
 UE4_EPSILON = 1e-4
@@ -69,6 +69,13 @@ def arc_measure(theta: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
     :func:`arc_integral` as a function of its end, the cosine-weighted measure of a slice from ``V``."""
     F = lambda t: -torch.cos(2 * t - gamma) / 4 + t * torch.sin(gamma) / 2  # noqa: E731
     return torch.sign(theta) * (F(theta) - F(torch.zeros_like(theta)))
+
+
+def bent_direction(sums: torch.Tensor, normals: torch.Tensor, dim: int) -> torch.Tensor:
+    """Bent normals from the visible sectors' direction sums ``sums`` (3 components along ``dim``): the sums'
+    direction, or ``normals`` (same shape) where a sum is at most 1e-12 long (every sector occluded)."""
+    keep = torch.linalg.vector_norm(sums, dim=dim, keepdim=True) > 1e-12
+    return torch.where(keep, torch.nn.functional.normalize(sums, dim=dim, eps=1e-12), normals)
 
 
 def channel_norm(x: torch.Tensor) -> torch.Tensor:

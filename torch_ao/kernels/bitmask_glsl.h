@@ -149,28 +149,32 @@ struct GlslAccumulator {
   }
 
   // The adjoint of a step's unclamped horizons (horizons' front and back) for d L / d them g_x, g_y (0 where they
-  // have no derivative): d L / d its delta and its thickness t, and d L / d the camera direction added to g_camera,
-  // through their cosines in Dual<F, 7> (tangents: delta, camera, t) and acos (n's part is (g_x + g_y) / pi)
+  // have no derivative): d L / d its delta and its thickness t, and d L / d the camera direction c added to g_camera.
+  // Through acos (glsl_acos_slope; n's part is (g_x + g_y) / pi) to the cosines front = h . c, h = delta / |delta|,
+  // and back = b' . c, b' = b / |b|, b = delta - c t, whose gradients are d front / d delta = (c - front h) / |delta|,
+  // d front / d c = h, d back / d b = (c - back b') / |b| (b moves with delta, and with c and t by -t and -c), and
+  // d back / d c = b' directly
   template <class F>
   TAO_FN void horizons_adjoint(const F* camera, const F* delta, const F& t, const F& g_x, const F& g_y, F* g_delta,
                                F* g_camera, F& g_t) const {
-    using H = Dual<F, 7>;
-    H d[3], cam[3], h[3], behind[3], back_dir[3], th(t);
-    th.d[6] = F(1.0f);
-    for (int c = 0; c < 3; ++c) d[c] = H(delta[c]), d[c].d[c] = F(1.0f), cam[c] = H(camera[c]), cam[c].d[3 + c] = F(1.0f);
-    unit(d, h);
-    for (int c = 0; c < 3; ++c) behind[c] = d[c] - cam[c] * th;
+    F h[3], behind[3], back_dir[3];
+    unit(delta, h);
+    for (int c = 0; c < 3; ++c) behind[c] = delta[c] - camera[c] * t;
     gl.normalize(behind, back_dir);
-    const H front = gl.dot(h, cam), back = gl.dot(back_dir, cam);
-    const F g_f = g_x * glsl_acos_slope(gl.exact, front.v) * F(1.0f / kPi);
-    const F g_b = g_y * glsl_acos_slope(gl.exact, back.v) * F(1.0f / kPi);
-    // (selected: a sample on the pixel's own texel has delta 0, its cosines' tangents NaN)
+    const F front = gl.dot(h, camera), back = gl.dot(back_dir, camera);
+    const F g_f = g_x * glsl_acos_slope(gl.exact, front) * F(1.0f / kPi);
+    const F g_b = g_y * glsl_acos_slope(gl.exact, back) * F(1.0f / kPi);
+    // (selected: a sample on the pixel's own texel has delta 0, h and b' NaN)
     const auto on_f = g_f != F(0.0f), on_b = g_b != F(0.0f);
+    const F per_f = g_f / gl.length(delta), per_b = g_b / gl.length(behind);
+    F g_behind[3];
     for (int c = 0; c < 3; ++c) {
-      g_delta[c] = select(on_f, g_f * front.d[c], F(0.0f)) + select(on_b, g_b * back.d[c], F(0.0f));
-      g_camera[c] = g_camera[c] + select(on_f, g_f * front.d[3 + c], F(0.0f)) + select(on_b, g_b * back.d[3 + c], F(0.0f));
+      g_behind[c] = select(on_b, per_b * (camera[c] - back * back_dir[c]), F(0.0f));
+      g_delta[c] = select(on_f, per_f * (camera[c] - front * h[c]), F(0.0f)) + g_behind[c];
+      g_camera[c] = g_camera[c] + select(on_f, g_f * h[c], F(0.0f)) +
+                    select(on_b, g_b * back_dir[c] - g_behind[c] * t, F(0.0f));  // (t is inf off the layer's texels)
     }
-    g_t = select(on_b, g_b * back.d[6], F(0.0f));
+    g_t = neg(dot3(g_behind, camera));
   }
 
   // The light a step sends per unit weight (light_sent's, before its weight)

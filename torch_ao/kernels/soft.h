@@ -388,7 +388,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       }
       const F g = cv.gate, not_b = sum_y - sum_yb;
       StepAdjoint<F> adj;
-      adj.newly = newly;
+      adj.newly = select(live, newly, F(0.0f));  // (a dead lane's interval, empty or NaN, occludes nothing)
       // dL/dw = -(g' sum Y + g / tau sum Y (1 - b)), g' = (1 - g^2) / tau;
       // dL/ds = -(g / tau) (F' sum Y (1 - b) - sum Y (1 - a))
       adj.w = select(live, ((g * g - F(1.0f)) * sum_y - g * not_b) * F(inv_tau), F(0.0f));

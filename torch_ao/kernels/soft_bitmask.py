@@ -39,9 +39,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 
 from ..gbuffer import GBuffer
+from ..ops import bent_direction
 from ..sectors import ROUNDINGS
 from .bitmask import HARD_VARIANTS, KernelOutputs, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
@@ -129,8 +129,7 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
 def bent_normal(sums: torch.Tensor, normals: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """The bent normals ``(B,3,H,W)`` of the walk's bent-normal sums ``(B,3,H,W)``: their direction, or ``normals``
     where a sum is about 0 (every sector occluded) and where not ``valid`` (SectorAccumulator.finish)."""
-    keep = valid & (torch.linalg.vector_norm(sums, dim=1, keepdim=True) > 1e-12)
-    return torch.where(keep, F.normalize(sums, dim=1, eps=1e-12), normals)
+    return torch.where(valid, bent_direction(sums, normals, 1), normals)
 
 
 def _settings(radius, thickness, scale, o):

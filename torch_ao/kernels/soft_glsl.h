@@ -57,9 +57,10 @@ template <class Union> struct GlslSoftAccumulator {
     const typename GlslAccumulator::template Horizons<F> hz = shader.horizons(st.shader, px, smp);
     F s, w, newly = F(0.0f);
     interval(hz, px, s, w);
-    if (any(w >= F(0.0f)))
-      newly = soft.cover(s, w, &st.P[0], static_cast<F*>(nullptr), static_cast<SoftCoverage<F>*>(nullptr),
-                         shader.indirect ? &st.omega[0] : static_cast<const F*>(nullptr));
+    const auto live = w >= F(0.0f);  // (an empty step, or a NaN interval, newly occludes nothing: sector_union's)
+    if (any(live))
+      newly = select(live, soft.cover(s, w, &st.P[0], static_cast<F*>(nullptr), static_cast<SoftCoverage<F>*>(nullptr),
+                                      shader.indirect ? &st.omega[0] : static_cast<const F*>(nullptr)), F(0.0f));
     if (shader.indirect) {
       F sent[3];
       shader.step_light(st.shader, smp, hz.h, sent);

@@ -813,53 +813,62 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   write_own(t, img.W, row, u0, n, own, static_cast<const B*>(nullptr), t.camera ? g_cam : nullptr);
 }
 
-// The "ssilvb_glsl" variant's hard backward (hard_grad_block of bitmask_glsl.h's GlslAccumulator, indirect light) of the n <= L pixels
-// of a row from u0: d L / d its light, for L = sum over its 4 outputs of upstream[c] * output c; record:
-// hard_record_block's (image b's: the carried mask after each slice). The masks, and so each step's weight, have no
-// derivative, and the shader's texels (floored) do not move: each slice is walked again from its recorded start,
-// and each valid step's light_sent replayed in Dual<B, 12> (the pixel's own normal 3, the sample's offset 3, the
-// sender's normal 3 and light 3 at its tap): d L / d the pixel's normal and position (-the offset's) are its own,
-// the tap's position, normal and light scattered (nearest fetch: index[0]). No depth, intrinsics or radius
-// gradient of its own (the positions carry them, through walk_inputs).
 // d L / d (the pixel's normal N, the sample's delta, the sender's normal and light at its tap) of the light a step
-// sends with weight (GlslAccumulator::light_sent in Dual<B, 12>; normal: normalize(N) in N's tangents) for
-// d L / d the light = per_light, into g (0 off the lanes on); its taps' scattered to the sender's normal and light
+// sends with weight (GlslAccumulator::light_sent: weight light c1 c2, c1 = clamp(normal . h, 0, 1), c2 = clamp(s . -h,
+// 0, 1), h = delta / |delta|, s the sender's normal normalised; normal = N / |N|, the pixel's, normal_length = |N|) for
+// d L / d the light = per_light, into g (0 off the lanes on); its taps' scattered to the sender's normal and light.
+// By hand: d u / d v = (I - u u^T) / |v| for each u = v / |v|, the clamps passing inside [0, 1]
 template <class B>
-TAO_FN void glsl_light_grads(const GlslAccumulator& acc, const Dual<B, 12>* normal, const Sample<B>& smp, const B* delta,
-                             const B& weight, const B* per_light, const typename LaneTraits<B>::M& on, int n,
-                             const Targets& t, B* g) {
-  using D = Dual<B, 12>;
-  D d[3], raw_n[3], light[3], h[3], sent[3];
+TAO_FN void glsl_light_grads(const GlslAccumulator& acc, const B* normal, const B& normal_length, const Sample<B>& smp,
+                             const B* delta, const B& weight, const B* per_light, const typename LaneTraits<B>::M& on,
+                             int n, const Targets& t, B* g) {
+  B h[3], away[3], raw[3], sender[3], light[3];
+  acc.unit(delta, h);
   for (int c = 0; c < 3; ++c) {
-    d[c] = D(delta[c]), d[c].d[3 + c] = B(1.0f);
-    raw_n[c] = D(smp.gather(smp.image->normals, c)), raw_n[c].d[6 + c] = B(1.0f);
-    light[c] = D(smp.gather(smp.image->light, c)), light[c].d[9 + c] = B(1.0f);
+    away[c] = neg(h[c]);
+    raw[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
   }
-  acc.unit(d, h);
-  acc.light_sent(normal, h, raw_n, light, smp.valid, D(weight), sent);
-  for (int k = 0; k < 12; ++k) {
-    g[k] = B(0.0f);
-    for (int c = 0; c < 3; ++c) g[k] = g[k] + per_light[c] * sent[c].d[k];
-    g[k] = select(on, g[k], B(0.0f));
+  acc.gl.normalize(raw, sender);
+  const B d1 = acc.gl.dot(normal, h), d2 = acc.gl.dot(sender, away);
+  const B c1 = clamp(d1, B(0.0f), B(1.0f)), c2 = select(smp.valid, clamp(d2, B(0.0f), B(1.0f)), B(0.0f));
+  const B along = per_light[0] * light[0] + per_light[1] * light[1] + per_light[2] * light[2];  // d L / d (c1 c2) / weight
+  const B g1 = select(land(d1 >= B(0.0f), d1 <= B(1.0f)), along * weight * c2, B(0.0f));
+  const B g2 = select(land(smp.valid, land(d2 >= B(0.0f), d2 <= B(1.0f))), along * weight * c1, B(0.0f));
+  B g_normal[3], g_sender[3], g_h[3];
+  for (int c = 0; c < 3; ++c) {
+    g_normal[c] = g1 * h[c], g_sender[c] = neg(g2 * h[c]), g_h[c] = g1 * normal[c] - g2 * sender[c];
+    g[9 + c] = per_light[c] * ((weight * c1) * c2);
   }
+  const B f_normal = dot3(g_normal, normal), f_sender = dot3(g_sender, sender), f_h = dot3(g_h, h);
+  const B inv_normal = B(1.0f) / normal_length, inv_raw = B(1.0f) / acc.gl.length(raw);
+  const B inv_delta = B(1.0f) / acc.gl.length(delta);
+  // (selected: where a factor has no gradient its vector may be degenerate, a zero normal or offset)
+  const auto on_1 = g1 != B(0.0f), on_2 = g2 != B(0.0f), on_h = lor(on_1, on_2);
+  for (int c = 0; c < 3; ++c) {
+    g[c] = select(on_1, (g_normal[c] - f_normal * normal[c]) * inv_normal, B(0.0f));
+    g[3 + c] = select(on_h, (g_h[c] - f_h * h[c]) * inv_delta, B(0.0f));
+    g[6 + c] = select(on_2, (g_sender[c] - f_sender * sender[c]) * inv_raw, B(0.0f));
+  }
+  for (int k = 0; k < 12; ++k) g[k] = select(on, g[k], B(0.0f));
   scatter_gather(false, n, t.tap_normals, 3, g + 6, smp.fu, smp.fv, smp.index, on);
   scatter_gather(false, n, t.tap_light, 3, g + 9, smp.fu, smp.fv, smp.index, on);
 }
 
-// normalize(N) of the pixels in Dual<B, 12>, in N's tangents (glsl_light_grads' normal)
-template <class B> TAO_FN void glsl_normal(const GlslAccumulator& acc, const Pixels<B>& px, Dual<B, 12>* normal) {
-  Dual<B, 12> raw[3];
-  for (int c = 0; c < 3; ++c) raw[c] = Dual<B, 12>(px.N[c]), raw[c].d[c] = B(1.0f);
-  acc.gl.normalize(raw, normal);
-}
-
+// The "ssilvb_glsl" variant's hard backward (hard_grad_block of bitmask_glsl.h's GlslAccumulator, indirect light) of the n <= L pixels
+// of a row from u0: d L / d its light, for L = sum over its 4 outputs of upstream[c] * output c; record:
+// hard_record_block's (image b's: the carried mask after each slice). The masks, and so each step's weight, have no
+// derivative, and the shader's texels (floored) do not move: each slice is walked again from its recorded start,
+// and each valid step's light_sent differentiated (glsl_light_grads: to the pixel's own normal, the sample's offset,
+// the sender's normal and light at its tap): d L / d the pixel's normal and position (-the offset's) are its own,
+// the tap's position, normal and light scattered (nearest fetch: index[0]). No depth, intrinsics or radius
+// gradient of its own (the positions carry them, through walk_inputs).
 template <class B> struct GlslLightAdjoint {
   static constexpr bool kBefore = true;
   using State = typename GlslAccumulator::template State<B>;
-  using D = Dual<B, 12>;
   const GlslAccumulator& acc;
   const Pixels<B>& px;
-  const D* normal;       // normalize(N), in the tangents of N
+  const B* normal;       // normalize(N)
+  B normal_length;       // |N|
   const B* per_light;    // d L / d the light sums
   const Targets& t;
   int n;
@@ -869,7 +878,8 @@ template <class B> struct GlslLightAdjoint {
     const auto on = land(smp.valid, px.live);
     if (!any(on)) return;
     B g[12];
-    glsl_light_grads(acc, normal, smp, smp.delta, acc.weight(after.occ & bnot(before.occ)), per_light, on, n, t, g);
+    glsl_light_grads(acc, normal, normal_length, smp, smp.delta, acc.weight(after.occ & bnot(before.occ)), per_light,
+                     on, n, t, g);
     for (int c = 0; c < 3; ++c) own[c] = own[c] - g[3 + c], own[3 + c] = own[3 + c] + g[c];
     scatter_taps(false, n, t, g + 3, smp.delta, smp.fu, smp.fv, smp.index, on);
   }
@@ -880,18 +890,17 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Gls
                             int64_t u0, int n, const float* upstream, const int32_t* record, const Targets& t) {
   constexpr int L = LaneTraits<B>::L;
   using I = typename LaneTraits<B>::I;
-  using D = typename GlslLightAdjoint<B>::D;
   B g[8];
   if (!acc.indirect || !upstream_lanes(img, row, u0, n, upstream, acc.channels(), g)) return;
   const Pixels<B> px(cfg, img, row, u0, n);
   if (!any(px.live)) return;
   B per_light[3];
   for (int c = 0; c < 3; ++c) per_light[c] = select(px.live, g[1 + c] / B(float(acc.slice_count)), B(0.0f));
-  D normal[3];
-  glsl_normal(acc, px, normal);
+  B normal[3];
+  acc.gl.normalize(px.N, normal);
   B own[kPixel];
   for (int k = 0; k < kPixel; ++k) own[k] = B(0.0f);
-  GlslLightAdjoint<B> visit{acc, px, normal, per_light, t, n, own};
+  GlslLightAdjoint<B> visit{acc, px, normal, acc.gl.length(px.N), per_light, t, n, own};
   typename GlslAccumulator::template Sums<B> sums;
   for (int64_t s = 0; s < cfg.slices; ++s) {
     int32_t words[L] = {};
@@ -932,27 +941,30 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
   const B per_share = select(px.live, g[0] / count, B(0.0f)) * B(1.0f / kSectors);  // d L / d a share at a slice's end
   B light_weight[3];
   for (int c = 0; c < 3; ++c) light_weight[c] = acc.shader.indirect ? select(px.live, g[1 + c] / count, B(0.0f)) : B(0.0f);
-  // 1. the forward, keeping each slice's start (and the hard mask carried into it)
+  // 1. the forward (without its light), keeping each slice's start (and the hard mask carried into it)
   LaneArray<B, kGlslMaxSlices * kSectors> starts;
   LaneArray<typename LaneTraits<B>::I, kGlslMaxSlices> masks;
   {
+    GlslSoftAccumulator<Union> unlit = acc;
+    unlit.shader.indirect = false;
     typename GlslSoftAccumulator<Union>::template Sums<B> sums;
     NoVisit none;
     for (int64_t s = 0; s < cfg.slices; ++s) {
       const Slice<B> sl(cfg, img, px, s);
-      typename GlslSoftAccumulator<Union>::template State<B> st = acc.begin_slice(px, sl, sums);
+      typename GlslSoftAccumulator<Union>::template State<B> st = unlit.begin_slice(px, sl, sums);
       for (int k = 0; k < kSectors; ++k) starts[s * kSectors + k] = st.P[k];
       masks[s] = st.shader.occ;
       if (s + 1 == cfg.slices) break;
-      walk_slice(cfg, img, acc, px, sl, st, none);
-      acc.end_slice(st, px, sl, sums);
+      walk_slice(cfg, img, unlit, px, sl, st, none);
+      unlit.end_slice(st, px, sl, sums);
     }
   }
   // 2. the slices last to first
   const Steps steps{acc, acc.shader.indirect ? light_weight : nullptr};
   TapSink<B> sink{false, false, n, t};
-  Dual<B, 12> normal[3];  // (indirect light's)
-  if (acc.shader.indirect) glsl_normal(acc.shader, px, normal);
+  B normal[3];  // (indirect light's: the pixel's normal normalised)
+  acc.shader.gl.normalize(px.N, normal);
+  const B normal_length = acc.shader.gl.length(px.N);
   B owed[kSectors], own[kPixel], g_camera[3] = {B(0.0f), B(0.0f), B(0.0f)}, setting[2] = {B(0.0f), B(0.0f)};
   for (int k = 0; k < kSectors; ++k) owed[k] = B(0.0f);
   for (int k = 0; k < kPixel; ++k) own[k] = B(0.0f);
@@ -982,7 +994,8 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
       acc.shader.horizons_adjoint(st.shader.camera, delta, kept.t[m], g_x, g_y, g_delta, g_camera, g_t);
       g_n = g_n + (g_x + g_y) * B(1.0f / kPi);
       g_t = select(px.live, g_t, B(0.0f));
-      setting[0] = setting[0] + g_t, setting[1] = setting[1] + g_t * kept.tv[m];
+      setting[0] = setting[0] + g_t;
+      setting[1] = setting[1] + select(g_t != B(0.0f), g_t * kept.tv[m], B(0.0f));  // (a background texel's layer: inf)
       B g_value = g_t * B(acc.shader.thickness.scale);  // d L / d the value the scale multiplies
       if (acc.shader.thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the tap's depth
         g_delta[2] = g_delta[2] - g_value;
@@ -993,7 +1006,7 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
         const Sample<B> smp(img, false, taps, kept.fu[m], kept.fv[m], kept.valid[m]);
         const B newly = acc.soft.straight_through ? kept.hard_newly[m] : adj.newly;
         B gl[12];
-        glsl_light_grads(acc.shader, normal, smp, delta, B(1.0f) - newly, light_weight, on, n, t, gl);
+        glsl_light_grads(acc.shader, normal, normal_length, smp, delta, B(1.0f) - newly, light_weight, on, n, t, gl);
         for (int c = 0; c < 3; ++c) own[3 + c] = own[3 + c] + gl[c], g_delta[c] = g_delta[c] + gl[3 + c];
       }
       for (int c = 0; c < 3; ++c) {
@@ -1005,9 +1018,12 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
     const Slice<D> sd(cfg, img, pd, s);
     D camera[3], normal_d[3], angle;
     acc.shader.slice_angles(pd, sd, camera, normal_d, angle);
-    along = along + D(select(px.live, g_n, B(0.0f))) * angle;
+    // (selected: a pixel whose n is NaN, its projected normal of zero length, has NaN intervals, which are empty
+    // steps, as the tensor path's, and no gradient)
+    along = along + select(land(px.live, g_n != B(0.0f)), D(g_n) * angle, D(0.0f));
     if (s == 0)
-      for (int c = 0; c < 3; ++c) along = along + D(select(px.live, g_camera[c], B(0.0f))) * camera[c];
+      for (int c = 0; c < 3; ++c)
+        along = along + select(land(px.live, g_camera[c] != B(0.0f)), D(g_camera[c]) * camera[c], D(0.0f));
   }
   for (int k = 0; k < kPixel; ++k) own[k] = select(px.live, own[k] + along.d[k], B(0.0f));
   write_own(t, img.W, row, u0, n, own, setting);

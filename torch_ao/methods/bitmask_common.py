@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from ..intervals import union_measure
 from ..ops import arc_measure as arc_integral
+from ..ops import bent_direction
 from ..sectors import SECTORS, sector_union
 from ..thickness import BoundThickness
 from ..walk import Queries, Sample, SliceAccumulator, SliceGeometry
@@ -179,9 +180,7 @@ class SectorAccumulator(SliceAccumulator):
         if self.indirect:
             out["indirect"] = sums["indirect"] / den
         if self.bent_normals:
-            b = sums["bent"]
-            ok = b.norm(dim=-1, keepdim=True) > 1e-12
-            out["bent_normal"] = torch.where(ok, F.normalize(b, dim=-1, eps=1e-12), q.normal)
+            out["bent_normal"] = bent_direction(sums["bent"], q.normal, -1)
         if self.ambient is not None:
             if callable(self.ambient):
                 out["ambient"] = sums["ambient"] / den
