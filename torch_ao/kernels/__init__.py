@@ -10,7 +10,7 @@ walk (``walk.h``) for every backend: the CPU (SIMD lanes) and CUDA (NVRTC, one t
   fetch (:func:`exact_hard`); the ``"ssilvb_glsl"`` variant's
   AO and indirect light (:func:`ssilvb_glsl_hard`);
 * soft / straight-through bitmask AO, its indirect light and bent normals, forward and backward, gradients of radius and the thickness model's offset and scale
-  (:func:`bitmask_soft`, :func:`soft_outputs`);
+  (:func:`bitmask_soft`, :func:`soft_outputs`); the ``"ssilvb_glsl"`` variant's too (:func:`ssilvb_glsl_soft`);
 * ``GTAO`` (every variant, bent normals too) and ``HBAO`` forward (:func:`gtao_sums`, :func:`hbao_sums`), and
   on CPU their backward: gradients of depth, normals and the parameters (not ``ue4``'s radius, not the
   intrinsics), for either fetch and border (each slice recorded in plain lanes, then the steps that changed
@@ -30,10 +30,11 @@ from .bitmask import KernelOutputs, bitmask_hard, bitmask_outputs, exact_covers,
 from .gtao import gtao_covers, gtao_sums, hbao_covers, hbao_sums
 from .ssao import hemisphere_visibility, pssao_covers, pssao_sums, ssao_covers, ue4_ssao_covers, ue4_ssao_sums
 from .soft_bitmask import bitmask_soft, soft_outputs
+from .soft_glsl import ssilvb_glsl_soft
 from .dispatch import BACKENDS, KERNELS, kernel_forward
 
 __all__ = ["KernelUnavailable", "cpu_kernels", "bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers",
-           "ssilvb_glsl_hard", "KernelOutputs",
+           "ssilvb_glsl_hard", "ssilvb_glsl_soft", "KernelOutputs",
            "bitmask_soft", "soft_outputs", "kernel_covers", "gtao_sums", "gtao_covers", "hbao_sums", "hbao_covers", "ue4_ssao_sums",
            "ue4_ssao_covers", "pssao_sums", "pssao_covers", "hemisphere_visibility", "ssao_covers", "BACKENDS",
            "KERNELS", "kernel_forward"]
