@@ -97,17 +97,20 @@ def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode, backe
         assert float((gc - ge).abs().max() / scale) <= 1e-4, (name, float((gc - ge).abs().max() / scale))
 
 
-@pytest.mark.parametrize("method", ["exact", "hard"])
+@pytest.mark.parametrize("method", ["exact", "hard", "glsl_soft"])
 def test_compiled_kernel_gbuffer_gradients_match_eager(method):
-    """The exact union's and the hard cosine kernels with depth gradients (their backwards: exact_backward,
-    hard_record + hard_backward) under torch.compile (aot_eager): eager's values and gradients. (The kernels'
-    dispatch reads the radius as a number, so the graph breaks there, as for every kernel call.)"""
+    """The exact union's, the hard cosine and the ssilvb_glsl shader's soft kernels with depth gradients (their
+    backwards: exact_backward, hard_record + hard_backward, soft_backward) under torch.compile (aot_eager): eager's
+    values and gradients. (The kernels' dispatch reads the radius as a number, so the graph breaks there, as for every
+    kernel call.)"""
     from torch_ao.thickness import BackfaceThickness
 
     torch._dynamo.reset()
     gb = example_gbuffer(12, 16)
-    module = (torch_ao.BitmaskAO(variant="exact", mode="soft", thickness=BackfaceThickness(), slices=2, steps=2)
-              if method == "exact" else torch_ao.BitmaskAO(mode="hard", weighting="cosine", slices=2, steps=2))
+    module = {"exact": lambda: torch_ao.BitmaskAO(variant="exact", mode="soft", thickness=BackfaceThickness(), slices=2,
+                                                  steps=2),
+              "hard": lambda: torch_ao.BitmaskAO(mode="hard", weighting="cosine", slices=2, steps=2),
+              "glsl_soft": lambda: torch_ao.BitmaskAO(variant="ssilvb_glsl", mode="soft", slices=2, steps=2)}[method]()
     compiled = torch.compile(module, backend="aot_eager", dynamic=False)
 
     def run(fn):
