@@ -226,6 +226,17 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     for (int c = 0; c < 3; ++c) light[c] = smp.gather(smp.image->light, c) * factor;
   }
 
+  // The forward's light: newly times what the sample sends (sample_light) added on the lanes in sends (read only where
+  // some lane sends)
+  template <class F>
+  TAO_FN void send_light(State<F>& st, const Pixels<F>& px, const Sample<F>& smp, const typename LaneTraits<F>::M& sends,
+                         const F& newly) const {
+    if (!any(sends)) return;
+    F light[3];
+    sample_light(px, smp, light);
+    for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, newly * light[c], F(0.0f));
+  }
+
   // The share of the hemisphere the sectors `fresh` cover (their weights' sum)
   template <class F> TAO_FN F newly_share(const State<F>& st, const typename LaneTraits<F>::I& fresh) const {
     F newly = F(0.0f);
@@ -254,16 +265,15 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const F front = fma(front_angle, scale, st.shift), back = fma(back_angle, scale, st.shift);
     sample_interval(turn, front, back, epsilon, s, w);
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
-    F light[3];  // (the forward's indirect light: what the sample sends per unit of the share it newly occludes)
-    if (indirect && !kGradients) sample_light(px, smp, light);
     if (straight_through) {
       const typename LaneTraits<F>::I bits = sector_bits(s, w, rounding);
       if (indirect && (kAdjoint || !kGradients)) {  // (the hard share: straight-through's values)
-        const F newly = newly_share(st, bits & bnot(st.occ));
+        const typename LaneTraits<F>::I fresh = bits & bnot(st.occ);
+        const F newly = newly_share(st, fresh);
         if (kAdjoint) st.hard_newly[st.n] = newly;
-        const auto sends = w >= F(0.0f);  // (only a non-empty interval gathers light)
-        if (!kGradients)
-          for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, newly * light[c], F(0.0f));
+        // (only a non-empty interval gathers light; none is read where no lane occludes anything new)
+        const auto sends = land(w >= F(0.0f), lnot(ieq(fresh, typename LaneTraits<F>::I(0))));
+        if (!kGradients) send_light(st, px, smp, sends, newly);
       }
       st.occ = st.occ | bits;
     }
@@ -271,9 +281,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       if (!straight_through && any(w >= F(0.0f))) {
         const F newly = cover(s, w, &st.P[0], static_cast<F*>(nullptr), static_cast<SoftCoverage<F>*>(nullptr),
                               indirect ? &st.omega[0] : static_cast<const F*>(nullptr));
-        const auto sends = w >= F(0.0f);
-        if (indirect)
-          for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, newly * light[c], F(0.0f));
+        if (indirect) send_light(st, px, smp, land(w >= F(0.0f), newly > F(0.0f)), newly);
       }
       return;
     }
@@ -638,10 +646,13 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   }
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     acc.step(st.base, side, px, sl, smp);
-    if (light_weight) {  // d L / d the share the step newly occludes: its light's (the reverse scan's gain)
+    const int m = st.base.n - 1;
+    // d L / d the share the step newly occludes: its light's (the reverse scan's gain; a step with no live lane is
+    // not scanned)
+    if (light_weight && any(st.base.w[m] >= F(0.0f))) {
       F light[3];
       acc.sample_light(px, smp, light);
-      st.base.gain[st.base.n - 1] = select(px.live, dot3(light_weight, light), F(0.0f));
+      st.base.gain[m] = select(px.live, dot3(light_weight, light), F(0.0f));
     }
   }
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {
