@@ -8,8 +8,8 @@ from __future__ import annotations
 import math
 from typing import Iterable, TypeVar
 
-__all__ = ["check_int", "check_float", "check_choice", "check_bool", "install_hint", "scalar_value", "NonFiniteOutput",
-           "check_finite_outputs"]
+__all__ = ["check_int", "check_float", "check_choice", "check_bool", "check_scalar_tensor", "install_hint",
+           "scalar_value", "NonFiniteOutput", "check_finite_outputs"]
 
 T = TypeVar("T")
 
@@ -58,6 +58,16 @@ def check_bool(name: str, value) -> bool:
     if not isinstance(value, bool):
         raise _fail(name, "True or False", value)
     return value
+
+
+def check_scalar_tensor(name: str, value):
+    """``value`` (a number or a tensor, a parameter keeps its graph) as a 0-d tensor; any other shape refused."""
+    import torch
+
+    t = torch.as_tensor(value)
+    if t.dim() != 0:
+        raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
+    return t
 
 
 def scalar_value(value) -> float | None:

@@ -184,11 +184,16 @@ struct GlslAccumulator {
     light_sent(st.normal, h, raw_n, light, smp.valid, F(1.0f), sent);
   }
 
+  // The sectors a step's horizons cover (the shader's 32-bit mask)
+  template <class F> TAO_FN typename LaneTraits<F>::I covered(const Horizons<F>& hz) const {
+    return sector_bits(hz.x * F(float(kSectors)), (hz.y - hz.x) * F(float(kSectors)), rounding);
+  }
+
   template <class F>
   TAO_FN void step(State<F>& st, int, const Pixels<F>& px, const Slice<F>&, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
     const Horizons<F> hz = horizons(st, px, smp);
-    const I bits = sector_bits(hz.x * F(float(kSectors)), (hz.y - hz.x) * F(float(kSectors)), rounding);
+    const I bits = covered(hz);
     if (indirect) {
       F sent[3];
       step_light(st, smp, hz.h, sent);

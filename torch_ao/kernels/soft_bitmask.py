@@ -40,6 +40,7 @@ from typing import NamedTuple
 
 import torch
 
+from ..checks import check_scalar_tensor
 from ..gbuffer import GBuffer
 from ..ops import bent_direction
 from ..sectors import ROUNDINGS
@@ -95,12 +96,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     if variant not in HARD_VARIANTS:
         raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
     read = thickness_read_index(thickness_read, layer)
-    scalars = []
-    for name, t in (("radius", radius), ("thickness", thickness), ("layer_scale", 1.0 if layer_scale is None else layer_scale)):
-        t = torch.as_tensor(t)
-        if t.dim() != 0:
-            raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
-        scalars.append(t)
+    scalars = [check_scalar_tensor(name, t) for name, t in (("radius", radius), ("thickness", thickness),
+                                                              ("layer_scale", 1.0 if layer_scale is None else layer_scale))]
     light = light_input(gbuffer, True) if indirect else None
     # the backward's walk: the G-buffer's gradients, and those of indirect light and bent normals (the settings'
     # too: one reverse scan seeded by every output, where the forward's derivative channels would be 9 more each)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import torch
 
+from ..checks import check_scalar_tensor
 from ..gbuffer import GBuffer
 from .bitmask import EXACT_MAX_STEPS, _EXACT, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
@@ -71,10 +72,7 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
         if t is None:
             scalars.append(None)
             continue
-        t = torch.as_tensor(t)
-        if t.dim() != 0:
-            raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
-        scalars.append(t)
+        scalars.append(check_scalar_tensor(name, t))
     of_gbuffer = wants_gradient(gbuffer, normals, layer)
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded

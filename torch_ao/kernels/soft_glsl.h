@@ -102,8 +102,7 @@ template <class B, class Union> struct GlslSoftSteps {
     for (int i = 0; i < 4; ++i) kept.index[i][m] = smp.index[i];
     kept.fu[m] = smp.fu, kept.fv[m] = smp.fv, kept.valid[m] = smp.valid;
     if (acc.soft.straight_through) {
-      const typename LaneTraits<B>::I bits =
-          sector_bits(hz.x * B(float(kSectors)), (hz.y - hz.x) * B(float(kSectors)), acc.shader.rounding);
+      const typename LaneTraits<B>::I bits = acc.shader.covered(hz);
       kept.hard_newly[m] = B(1.0f) - acc.shader.weight(bits & bnot(st.shader.occ));
       st.shader.occ = st.shader.occ | bits;
     }

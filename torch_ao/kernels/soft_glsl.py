@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import torch
 
+from ..checks import check_scalar_tensor
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from .bitmask import KernelOutputs, glsl_walk_settings, module_thickness, options_uncovered, thickness_read_index
@@ -64,11 +65,8 @@ def ssilvb_glsl_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     if not tau > 0:
         raise ValueError(f"tau: expected > 0, got {tau!r}")
     read = thickness_read_index(thickness_read, layer)
-    thickness = torch.as_tensor(thickness)
-    scale = torch.as_tensor(1.0 if layer_scale is None else layer_scale)
-    for name, t in (("thickness", thickness), ("layer_scale", scale)):
-        if t.dim() != 0:
-            raise ValueError(f"{name}: expected a 0-d tensor, got shape {tuple(t.shape)}")
+    thickness = check_scalar_tensor("thickness", thickness)
+    scale = check_scalar_tensor("layer_scale", 1.0 if layer_scale is None else layer_scale)
     radius = torch.as_tensor(radius).detach()
     light = light_input(gbuffer, True) if indirect else None
     settings = glsl_walk_settings(slices, steps, radius, jitter, numerics)
