@@ -125,6 +125,26 @@ def test_improved_normals_keep_the_crease_sharp_where_kornia_smears_it():
     assert kornia[:, 2:-2, 2:-2].min().item() < 0.99
 
 
+@pytest.mark.parametrize("scale", [1e-12, 1e-6, 1e6, 1e14])
+def test_improved_normals_do_not_depend_on_the_depth_scale(scale):
+    """A plane scaled about the camera keeps its normals: in float32 at depth 1e14 the world-unit cross
+    product's squared length overflows (zero normals), at 1e-12 it falls below the degeneracy threshold
+    (normals toward the camera)."""
+    gb = plane_gbuffer(24, 32, tilt_degrees=40.0)
+    reference = normals_from_depth(gb.depth, gb.camera)
+    scaled = normals_from_depth(gb.depth * scale, gb.camera)
+    assert torch.isfinite(scaled).all()
+    assert (scaled * reference).sum(1).min().item() > 1 - 1e-5
+    assert (reference * gb.normals).sum(1)[gb.valid[:, 0]].min().item() > 1 - 1e-5
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e20])
+def test_given_normals_of_any_length_are_made_unit(scale):
+    gb = plane_gbuffer(8, 8, tilt_degrees=30)
+    n = GBuffer(gb.depth, gb.camera, normals=gb.normals * scale).view_normals()
+    assert (n * gb.normals).sum(1)[gb.valid[:, 0]].min().item() > 1 - 1e-6
+
+
 def test_normals_from_depth_handle_background_and_gradients():
     gb = plane_gbuffer(8, 8, tilt_degrees=30, dtype=torch.float64)
     depth = gb.depth.clone()

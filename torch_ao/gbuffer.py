@@ -259,7 +259,9 @@ def _toward_camera(positions: torch.Tensor) -> torch.Tensor:
 def _unit_facing(normals: torch.Tensor, positions: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``normals`` ``(B,3,H,W)`` made unit length (the direction toward the camera where not ``valid``) and
     turned to face the camera at ``positions`` ``(B,3,H,W)``."""
-    n = normalize_channels(torch.where(valid, normals, -positions))
+    n = torch.where(valid, normals, -positions)
+    # (in units of its largest component: a length whose square overflows, 1e20 in float32, would normalise to 0)
+    n = normalize_channels(n / n.detach().abs().amax(1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny))
     with torch.no_grad():  # (which side faces is a decision: a sign without a gradient)
         sign = torch.where((n * positions).sum(1, keepdim=True) <= 0, 1.0, -1.0).to(n.dtype)
     return n * sign
@@ -327,8 +329,12 @@ def _improved_normals(d: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -
         diff = torch.where(use_minus, diff_minus, diff_plus)
         return torch.where(minus_ok | plus_ok, diff, torch.zeros_like(diff))
 
-    dpdx = one_axis(0, 1)  # toward +u (right)
-    dpdy = -one_axis(1, 0)  # toward -v (up)
+    # Differences in units of the pixel's depth: the cross product's length is then about the squared pixel
+    # angle at any depth, where in world units it overflows float32 (depth ~1e14: |n|^2 ~ 1e56) or falls below
+    # the degeneracy threshold (depth ~1e-10). A positive scale leaves the unit normal and its gradient as they are.
+    unit = d.clamp_min(torch.finfo(d.dtype).tiny)
+    dpdx = one_axis(0, 1) / unit  # toward +u (right)
+    dpdy = -one_axis(1, 0) / unit  # toward -v (up)
     n = torch.cross(dpdx, dpdy, dim=1)
     degenerate = channel_norm(n) < 1e-20
     return torch.where(degenerate, _toward_camera(pos), n)

@@ -306,8 +306,11 @@ class GLSLAccumulator(SliceAccumulator):
         centre = sample.distance_px == 0
         if bool(centre.any()):
             x = torch.where(centre, torch.zeros_like(x), x)
-            if gl.exact:
-                y_centre = self._horizon(gl.dot(gl.normalize(-(camera * t)), camera), n, pi, half_pi)
+            if gl.exact:  # (t = 0: normalize(0) is NaN, clamped to 0; kept out of the graph, whose 0 * inf is NaN)
+                thick = t > 0
+                t_safe = torch.where(thick, t, torch.ones_like(t))
+                y_centre = self._horizon(gl.dot(gl.normalize(-(camera * t_safe)), camera), n, pi, half_pi)
+                y_centre = torch.where(thick.reshape(-1) if t.dim() == 2 else thick, y_centre, torch.zeros_like(y_centre))
             else:
                 y_centre = ((t[:, 0] if t.dim() == 2 else t.expand_as(x)) > 0).to(y.dtype)
             y = torch.where(centre, y_centre, y)
