@@ -260,8 +260,10 @@ def _unit_facing(normals: torch.Tensor, positions: torch.Tensor, valid: torch.Te
     """``normals`` ``(B,3,H,W)`` made unit length (the direction toward the camera where not ``valid``) and
     turned to face the camera at ``positions`` ``(B,3,H,W)``."""
     n = torch.where(valid, normals, -positions)
-    # (in units of its largest component: a length whose square overflows, 1e20 in float32, would normalise to 0)
-    n = normalize_channels(n / n.detach().abs().amax(1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny))
+    # A length whose square overflows (1e20 in float32) would normalise to 0: such normals are taken in units of
+    # their largest component first (others as they are, bit for bit)
+    largest = n.detach().abs().amax(1, keepdim=True)
+    n = normalize_channels(n / torch.where((largest > 1e-15) & (largest < 1e15), 1.0, largest).clamp_min(torch.finfo(n.dtype).tiny))
     with torch.no_grad():  # (which side faces is a decision: a sign without a gradient)
         sign = torch.where((n * positions).sum(1, keepdim=True) <= 0, 1.0, -1.0).to(n.dtype)
     return n * sign

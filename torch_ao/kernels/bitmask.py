@@ -21,7 +21,7 @@ from ..sectors import ROUNDINGS
 from ..thickness import ThicknessLayer, matching
 from .coverage import gbuffer_uncovered, option_uncovered
 from .build import cpu_kernels, grad_kernels
-from .frame import light_input, scalar_lanes
+from .frame import light_input, scalar_lanes, scale_derivative
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
@@ -168,10 +168,7 @@ class _HardWalk(torch.autograd.Function):
         g_intrinsics = g_camera.double().sum((1, 2)).to(frame[5].dtype) if camera else None
         g_radius = None
         if radius is not None and ctx.needs_input_grad[14]:  # Euler's identity (the class docstring)
-            def dot(g, x):
-                return (g.to(torch.float64) * x.to(torch.float64)).sum()
-            along = dot(g_pos, positions) + dot(g_depth, depth) - torch.where(
-                valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum()
+            along = scale_derivative(valid, (g_pos, positions), (g_depth, depth), (g_inv, -inverse))
             g_radius = (-along / radius.to(torch.float64)).to(radius.dtype)
         g_light = g_light if light.numel() else None
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light, None, None, None, None, None, None, None,

@@ -16,7 +16,7 @@ inline const float* optional_image(const at::Tensor& t, int64_t numel, const cha
   return t.data_ptr<float>();
 }
 
-// positions, normals (B, H, W, 3), the inverse depth (NaN where invalid), depth, valid (B, H, W),
+// positions, normals (B, H, W, 3), the inverse depth and the depth (NaN where invalid), valid (B, H, W),
 // intrinsics (B, 4) (fx, fy, cx, cy); light (B, H, W, 3), cells and backface (B, H, W), each possibly empty
 inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, const at::Tensor& inverse_depth,
                       const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,

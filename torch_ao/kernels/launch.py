@@ -75,7 +75,7 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
         raise ValueError(f"table: only the 'wedge', 'pixels' and 'hemisphere' placements read one, not {placement!r}")
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
-            NOISES.index(noise), bool(stagger), 0]
+            NOISES.index(noise), bool(stagger), 0, False]  # (the table's start and unprojected: packed_inputs')
     floats = [radius if isinstance(radius, torch.Tensor) else float(radius), float(step_power), float(min_step_px),
               float(max_radius_px or 0.0)]
     floats += [float(v) for v in table or ()]
@@ -134,6 +134,7 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
     (float32)."""
     device = gbuffer.depth.device
     inputs = walk_inputs(gbuffer, normals)
+    settings = ([*settings[0][:14], gbuffer.position is None], settings[1])  # (unprojected: no position buffer)
     none = torch.empty(0, device=device)
     cells = none
     if settings[0][9]:  # edge_aware (the flags have no gradient: kept with the G-buffer between calls)

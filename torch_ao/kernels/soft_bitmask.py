@@ -46,7 +46,7 @@ from ..ops import bent_direction
 from ..sectors import ROUNDINGS
 from .bitmask import HARD_VARIANTS, KernelOutputs, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
-from .frame import light_input, scalar_lanes
+from .frame import light_input, scalar_lanes, scale_derivative
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
@@ -244,8 +244,7 @@ class _GBufferWalk(torch.autograd.Function):
         g_thickness, g_scale = g_setting.double().sum(dim=(0, 1, 2)).unbind()
         g_radius = None
         if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN
-            along = ((g_pos.double() * positions).sum() + (g_depth.double() * depth).sum()
-                     - torch.where(valid, g_inv.double() * inverse, 0.0).sum())
+            along = scale_derivative(valid, (g_pos, positions), (g_depth, depth), (g_inv, -inverse))
             if layer.numel():  # (a layer is world units: it scales with the scene)
                 along = along + torch.where(torch.isfinite(layer), g_layer.double() * layer, 0.0).sum()
             g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)

@@ -138,6 +138,9 @@ struct WalkSettings {
   Noise noise;
   bool edge_aware;     // bilinear taps, or the nearest one where their cell is not one surface
   bool sphere_extent;  // the steps over the screen extent of the radius' sphere (intervals.sphere_stretch)
+  // the positions are the depth unprojected (a G-buffer without a position buffer): a nearest fetch reads the
+  // depth alone and unprojects it (the same arithmetic as the positions', a third of the bytes)
+  bool unprojected;
   // Steps::wedge: per slice its screen angle and length (a UE4 sample set; null: slices evenly spaced, length
   // 1); Steps::pixels: per slice and step (du, dv), at 2 (s steps + j); Steps::hemisphere: per step its kernel
   // point (x, y, z) in the unit hemisphere z > 0 (z along the normal), at 3 j; else null
@@ -145,7 +148,7 @@ struct WalkSettings {
 };
 
 // One image of the batch, channel-last: intrinsics in pixels, positions and normals (H, W, 3), the
-// inverse depth (NaN where invalid: a texel's validity travels with it), depth and validity (H, W),
+// inverse depth and the depth (both NaN where invalid: a texel's validity travels with it), validity (H, W),
 // the light (H, W, 3) or null; for the edge-aware fetch, per texel whether the 2x2 cell it is the
 // top-left of is one surface (walk.fetch.continuous_cell_image: 1 or 0), and the back-face thickness
 // layer (H, W) of thickness.BackfaceThickness, or null
@@ -177,7 +180,7 @@ template <class F> struct Pixels {
         lane[c][l] = img.positions[3 * p + c];
         lane[3 + c][l] = img.normals[3 * p + c];
       }
-      lane[6][l] = img.depth[p];
+      lane[6][l] = img.valid[p] ? img.depth[p] : 1.0f;  // (GBuffer.safe_depth)
       lane[7][l] = float(u0 + l);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
       const int64_t col = u0 + l;
@@ -495,9 +498,17 @@ template <class F> struct Sample {
       const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);
       index[0] = iv * Wi + iu;
       index[1] = index[2] = index[3] = index[0];
-      valid = gather_flag(img.valid, index[0]);  // (as the inverse depth's NaN: 4x fewer bytes to fetch)
+      if (cfg.unprojected) {  // GBuffer.positions' unprojection of the texel's depth, bit for bit
+        const F depth = tao::gather(img.depth, index[0]);
+        valid = depth == depth;  // (invalid texels hold NaN)
+        pos[0] = ((to_float(iu) - F(img.cx)) / F(img.fx)) * depth;
+        pos[1] = (neg(to_float(iv) - F(img.cy)) / F(img.fy)) * depth;
+        pos[2] = neg(depth);
+      } else {
+        valid = gather_flag(img.valid, index[0]);  // (as the inverse depth's NaN: 4x fewer bytes to fetch)
+        for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
+      }
       if (cfg.drop) valid = land(valid, land(land(fu0 >= F(0.0f), fu0 < Wf), land(fv0 >= F(0.0f), fv0 < Hf)));
-      for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
     }
     for (int c = 0; c < 3; ++c) delta[c] = pos[c] - px.P[c];
     // a sample on the centre texel, or within float rounding of the pixel's own position (Sample's MIN_OFFSET),

@@ -30,7 +30,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import grad_kernels
-from .frame import scalar_lanes
+from .frame import scalar_lanes, scale_derivative
 from .launch import launch_cuda, packed_inputs, run_packed
 
 __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "MAX_CUDA_STEPS"]
@@ -85,10 +85,7 @@ class _Walk(torch.autograd.Function):
         g_radius = None
         if ctx.needs_input_grad[12]:  # Euler's identity (module docstring); invalid texels hold NaN
             # (in float64: the terms cancel to the gradient, which may be 0 where the radius is clamped in pixels)
-            def dot(g, x):
-                return (g.to(torch.float64) * x.to(torch.float64)).sum()
-            along = (dot(g_pos, positions) + dot(g_depth, depth)
-                     - torch.where(valid, g_inv.to(torch.float64) * inverse.to(torch.float64), 0.0).sum())
+            along = scale_derivative(valid, (g_pos, positions), (g_depth, depth), (g_inv, -inverse))
             dimension = torch.tensor(ctx.setting_dimension, dtype=torch.float64, device=setting.device)
             along = along + (dimension * setting.to(torch.float64) * along_setting).sum()
             g_radius = (-along / radius).to(radius.dtype)
