@@ -30,22 +30,24 @@ void over_rows(int64_t rows, const Fn& fn) {
   });
 }
 
-// fn(b, row) for every row of a batch of B images H rows high, as over_rows hands them out
-template <class Fn>
-void for_each_row(int64_t B, int64_t H, const Fn& fn) {
-  over_rows(B * H, [&](int64_t r) { fn(r / H, r % H); });
-}
-
 // fn(b, row, u0, n, lanes) for every block of a row: n = 1 pixel at a time with lanes = std::false_type
-// (scalar), else blocks of up to L pixels with lanes = std::true_type (SIMD lanes of width L)
+// (scalar), else blocks of up to L pixels with lanes = std::true_type (SIMD lanes of width L). The image is walked
+// in strips kStrip pixels wide, each top to bottom: a pixel's samples reach rows around it, and down a strip the
+// next rows' samples fall on texels the last rows brought into the cache (row after row over the whole width,
+// they had left it: hard ssilvb_glsl at 1280x720, 4 x 8, 13 % faster)
+constexpr int64_t kStrip = 128;  // a multiple of every lane width
 template <int L, class Fn>
 void for_each_block(int64_t B, int64_t H, int64_t W, bool scalar, const Fn& fn) {
-  for_each_row(B, H, [&](int64_t b, int64_t row) {
+  static_assert(kStrip % L == 0, "a strip holds whole blocks");
+  const int64_t strips = (W + kStrip - 1) / kStrip;
+  over_rows(B * strips * H, [&](int64_t r) {  // (b, strip, row)
+    const int64_t b = r / (strips * H), row = r % H, u_begin = (r / H) % strips * kStrip;
+    const int64_t u_end = std::min(W, u_begin + kStrip);
     if (scalar) {
-      for (int64_t u = 0; u < W; ++u) fn(b, row, u, 1, std::false_type{});
+      for (int64_t u = u_begin; u < u_end; ++u) fn(b, row, u, 1, std::false_type{});
       return;
     }
-    for (int64_t u0 = 0; u0 < W; u0 += L) fn(b, row, u0, int(std::min<int64_t>(L, W - u0)), std::true_type{});
+    for (int64_t u0 = u_begin; u0 < u_end; u0 += L) fn(b, row, u0, int(std::min<int64_t>(L, u_end - u0)), std::true_type{});
   });
 }
 
