@@ -513,7 +513,7 @@ struct ExactAccumulator {
         for (int j = k % p; j + k < n; j += 2 * k)
           for (int i = 0; i < k && i + j + k < n; ++i) {
             const int a = i + j, b = i + j + k;
-            if (a / (2 * p) != b / (2 * p)) continue;
+            if ((a ^ b) >= 2 * p) continue;  // (a / 2p != b / 2p: 2p is a power of two)
             const auto swap = lo[b] < lo[a];
             const G l = select(swap, lo[b], lo[a]), h = select(swap, hi[b], hi[a]);
             lo[b] = select(swap, lo[a], lo[b]), hi[b] = select(swap, hi[a], hi[b]);
