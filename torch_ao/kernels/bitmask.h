@@ -318,15 +318,17 @@ struct BitmaskAccumulator {
     sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
     sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
     const I bits = sector_bits(start, width, rounding);
-    const I fresh = bits & bnot(st.occ);
-    // SectorAccumulator.step: the light the sample sends, times the share it newly occludes (only a non-empty
-    // interval gathers light; a step that occludes nothing new on any lane sends none, and reads no light)
-    const auto sends = land(width >= F(0.0f), lnot(ieq(fresh, I(0))));
-    if (indirect && any(sends)) {
-      F sender_n[3], light[3], sent[3];
-      for (int c = 0; c < 3; ++c) sender_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
-      light_sent(px, smp, newly_occluded(st, fresh), sender_n, light, sent);
-      for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, sent[c], F(0.0f));
+    if (indirect) {
+      // SectorAccumulator.step: the light the sample sends, times the share it newly occludes (only a non-empty
+      // interval gathers light; a step that occludes nothing new on any lane sends none, and reads no light)
+      const I fresh = bits & bnot(st.occ);
+      const auto sends = land(width >= F(0.0f), lnot(ieq(fresh, I(0))));
+      if (any(sends)) {
+        F sender_n[3], light[3], sent[3];
+        for (int c = 0; c < 3; ++c) sender_n[c] = smp.gather(smp.image->normals, c), light[c] = smp.gather(smp.image->light, c);
+        light_sent(px, smp, newly_occluded(st, fresh), sender_n, light, sent);
+        for (int c = 0; c < 3; ++c) st.light[c] = st.light[c] + select(sends, sent[c], F(0.0f));
+      }
     }
     st.occ = st.occ | bits;
   }
