@@ -28,15 +28,18 @@ namespace tao {
 #endif
 
 template <class F> struct Tape {
-  F* partial;        // [capacity][2]: d node / d parent
-  int32_t* parent;   // [capacity][2]
-  F* adjoint;        // [capacity]: d L / d node, after sweep
+  F* partial;        // [capacity + 1][2]: d node / d parent
+  int32_t* parent;   // [capacity + 1][2]
+  F* adjoint;        // [capacity + 1]: d L / d node, after sweep
   int32_t capacity, n = 0;
   int32_t own[7] = {-1, -1, -1, -1, -1, -1, -1};  // the pixel's P (3), N (3), depth (seed_pixel)
   bool overflow = false;
 
+  // (the arrays' last slot is the sweep's sink: a node's missing parent passes its adjoint there)
   TAO_FN Tape(F* partials, int32_t* parents, F* adjoints, int32_t cap)
-      : partial(partials), parent(parents), adjoint(adjoints), capacity(cap) {}
+      : partial(partials), parent(parents), adjoint(adjoints), capacity(cap - 1) {
+    adjoint[capacity] = F(0.0f);
+  }
 
   // a node of value-derivatives pa, pb with respect to a, b (ids, -1: none); -1 when the tape is full
   TAO_FN_ALWAYS int32_t push(int32_t a, const F& pa, int32_t b, const F& pb) {
@@ -57,9 +60,16 @@ template <class F> struct Tape {
   TAO_FN void sweep(int32_t stop) {
     for (int32_t i = n - 1; i >= stop; --i) {
       const F a = adjoint[i];
+#ifdef __CUDACC_RTC__  // (a warp's threads take the same branches)
       const int32_t p0 = parent[2 * i], p1 = parent[2 * i + 1];
       if (p0 >= 0) adjoint[p0] = adjoint[p0] + a * partial[2 * i];
       if (p1 >= 0) adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
+#else  // (unary and binary nodes alternate with the code: the sink in place of a branch the CPU would mispredict)
+      const int32_t p0 = parent[2 * i] >= 0 ? parent[2 * i] : capacity;
+      const int32_t p1 = parent[2 * i + 1] >= 0 ? parent[2 * i + 1] : capacity;
+      adjoint[p0] = adjoint[p0] + a * partial[2 * i];
+      adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
+#endif
     }
   }
   // the leaf of parameter k (kSetting + 0..2: seed_setting's; kCamera + 0..3: seed_camera's fx, fy, cx, cy), made
