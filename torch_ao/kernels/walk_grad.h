@@ -120,10 +120,12 @@ template <class B, class Acc> struct Takes {
   using State = typename Acc::template State<B>;
   static constexpr int L = LaneTraits<B>::L;
   static constexpr int S = state_size<Acc, B>();
+  using I = typename LaneTraits<B>::I;
   const Acc& acc;
   const typename LaneTraits<B>::M& live;
   int64_t words;
   uint64_t* bits;  // [side][lane][word]
+  I last[2] = {I(-1), I(-1)};  // (where a take replaces the state: per side the last take's step, -1: none)
 
   TAO_FN Takes(const Acc& a, const typename LaneTraits<B>::M& l, int64_t w, uint64_t* scratch)
       : acc(a), live(l), words(w), bits(scratch) {
@@ -136,11 +138,21 @@ template <class B, class Acc> struct Takes {
     const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
     for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
     const int k = side > 0 ? 0 : 1;
-    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) {
-      uint64_t* b = of(k, lowest_bit(lanes));
-      if (acc.replaces())
-        for (int64_t w = 0; w < words; ++w) b[w] = 0;
-      b[j / 64] |= uint64_t(1) << (j % 64);
+    if (acc.replaces()) {  // (the last change alone counts: kept in lanes, its bit set by end_slice)
+      last[k] = select(land(changed, live), I(int32_t(j)), last[k]);
+      return;
+    }
+    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1)
+      of(k, lowest_bit(lanes))[j / 64] |= uint64_t(1) << (j % 64);
+  }
+  // the slice walked: where a take replaces the state, each side's last take's bit
+  TAO_FN void end_slice() {
+    if (!acc.replaces()) return;
+    for (int k = 0; k < 2; ++k) {
+      int32_t step[L];
+      store_lanes(last[k], step);
+      for (int l = 0; l < L; ++l)
+        if (step[l] >= 0) of(k, l)[step[l] / 64] |= uint64_t(1) << (step[l] % 64);
     }
   }
 };
@@ -160,6 +172,7 @@ TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& a
       const Slice<B> sl(cfg, img, px, s);
       typename Acc::template State<B> state = acc.begin_slice(px, sl);
       walk_slice(cfg, img, acc, px, sl, state, takes);
+      takes.end_slice();
       acc.end_slice(state, px, sl, sums);
     }
     for (int l = 0; l < n; ++l)
