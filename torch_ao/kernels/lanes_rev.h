@@ -64,7 +64,7 @@ template <class F> struct Tape {
       const int32_t p0 = parent[2 * i], p1 = parent[2 * i + 1];
       if (p0 >= 0) adjoint[p0] = adjoint[p0] + a * partial[2 * i];
       if (p1 >= 0) adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
-#else  // (unary and binary nodes alternate with the code: the sink in place of a branch the CPU would mispredict)
+#else  // (unary and binary nodes alternate with the code: the sink in place of a skip the CPU would mispredict)
       const int32_t p0 = parent[2 * i] >= 0 ? parent[2 * i] : capacity;
       const int32_t p1 = parent[2 * i + 1] >= 0 ? parent[2 * i + 1] : capacity;
       adjoint[p0] = adjoint[p0] + a * partial[2 * i];
