@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -30,16 +29,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 import bench_vs_shader as shader_bench  # noqa: E402
 
 CASES = ("soft_gbuffer", "cosine_edge_gbuffer", "ssilvb_soft_gbuffer", "gtao_gbuffer", "hbao_gbuffer")
-
-
-def best_cpu_ms(fn, repeat: int) -> float:
-    fn()  # warm-up
-    best = float("inf")
-    for _ in range(repeat):
-        start = time.process_time()
-        fn()
-        best = min(best, time.process_time() - start)
-    return 1e3 * best
 
 
 def kernel_ms(fn, repeat: int) -> dict[str, float]:
@@ -84,9 +73,9 @@ def main(argv=None) -> None:
                 s = dict(slices=slices, steps=steps, radius=1.0, thickness=0.5)
                 for name in args.cases:
                     case = cases[name]
-                    hard = best_cpu_ms(shader_bench.case_call(cases[case.against], gbuffer, s), args.repeat)
+                    hard = shader_bench.best_ms(shader_bench.case_call(cases[case.against], gbuffer, s), args.repeat)[1]
                     call = shader_bench.case_call(case, gbuffer, s)
-                    total = best_cpu_ms(call, args.repeat)
+                    total = shader_bench.best_ms(call, args.repeat)[1]
                     ops = kernel_ms(call, args.repeat)
                     backward = sum(ms for op, ms in ops.items() if "backward" in op)
                     forward = sum(ops.values()) - backward

@@ -132,6 +132,7 @@ template <class B, class Acc> struct Takes {
     for (int64_t i = 0; i < 2 * L * words; ++i) bits[i] = 0;
   }
   TAO_FN uint64_t* of(int k, int l) { return bits + (k * L + l) * words; }
+  TAO_FN void mark(int k, int l, int64_t j) { of(k, l)[j / 64] |= uint64_t(1) << (j % 64); }  // (step j taken)
 
   TAO_FN void operator()(int side, int64_t j, const Sample<B>& sample, const State& before, const State& after) {
     auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
@@ -142,8 +143,7 @@ template <class B, class Acc> struct Takes {
       last[k] = select(land(changed, live), I(int32_t(j)), last[k]);
       return;
     }
-    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1)
-      of(k, lowest_bit(lanes))[j / 64] |= uint64_t(1) << (j % 64);
+    for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) mark(k, lowest_bit(lanes), j);
   }
   // the slice walked: where a take replaces the state, each side's last take's bit
   TAO_FN void end_slice() {
@@ -152,7 +152,7 @@ template <class B, class Acc> struct Takes {
       int32_t step[L];
       store_lanes(last[k], step);
       for (int l = 0; l < L; ++l)
-        if (step[l] >= 0) of(k, l)[step[l] / 64] |= uint64_t(1) << (step[l] % 64);
+        if (step[l] >= 0) mark(k, l, step[l]);
     }
   }
 };
