@@ -1,6 +1,6 @@
 // Reverse-mode lanes over any lane type of lanes_scalar.h / lanes_simd.h: Rev<F> is a value and the index of
 // the node that made it on the thread's tape (Tape<F>: per node its value's partial derivatives with respect
-// to at most two parent nodes), so the one walk (walk.h) run with F = Rev<Vec> (or Rev<float>) records itself,
+// to the node made just before it and to at most two other parent nodes), so the one walk (walk.h) run with F = Rev<Vec> (or Rev<float>) records itself,
 // and one sweep back over the tape (Tape::sweep) gives d L / d every node for any L seeded on its outputs. A
 // walk's gradient then costs a few times its own arithmetic, whatever the number of inputs; forward mode
 // (lanes_dual.h) costs one walk per tangent.
@@ -28,27 +28,51 @@ namespace tao {
 #endif
 
 template <class F> struct Tape {
-  F* partial;        // [capacity + 1][2]: d node / d parent
-  int32_t* parent;   // [capacity + 1][2]
-  F* adjoint;        // [capacity + 1]: d L / d node, after sweep
+  // Per node: its partial derivative with respect to the node made just before it (the sweep carries that
+  // adjoint in a register: most nodes take the last one made, and passing it through memory would put a store
+  // and its reload on the sweep's chain at every node), then those with respect to its other parents
+  static constexpr int kPartials = 3;
+  F* partial;        // [capacity][kPartials]: d node / d (node - 1), d node / d parent[0], parent[1]
+  int32_t* parent;   // [capacity][2]: a parent other than the node before (none: -1 on CUDA, else the dump)
+  F* adjoint;        // [2 capacity]: d L / d node, after sweep; on the CPU, capacity + node is the node's dump
   int32_t capacity, n = 0;
   int32_t own[7] = {-1, -1, -1, -1, -1, -1, -1};  // the pixel's P (3), N (3), depth (seed_pixel)
   bool overflow = false;
 
-  // (the arrays' last slot is the sweep's sink: a node's missing parent passes its adjoint there)
+  // the arrays' lengths for cap nodes (F elements of partials and adjoints, int32 of parents)
+  static TAO_FN constexpr int32_t partials_size(int32_t cap) { return kPartials * cap; }
+  static TAO_FN constexpr int32_t parents_size(int32_t cap) { return 2 * cap; }
+#ifdef __CUDACC_RTC__
+  static TAO_FN constexpr int32_t adjoints_size(int32_t cap) { return cap; }
+#else
+  static TAO_FN constexpr int32_t adjoints_size(int32_t cap) { return 2 * cap; }
+#endif
+
   TAO_FN Tape(F* partials, int32_t* parents, F* adjoints, int32_t cap)
-      : partial(partials), parent(parents), adjoint(adjoints), capacity(cap - 1) {
-    adjoint[capacity] = F(0.0f);
-  }
+      : partial(partials), parent(parents), adjoint(adjoints), capacity(cap) {}
 
   // a node of value-derivatives pa, pb with respect to a, b (ids, -1: none); -1 when the tape is full
   TAO_FN_ALWAYS int32_t push(int32_t a, const F& pa, int32_t b, const F& pb) {
+    const int32_t before = n - 1;
+    const bool a_before = a == before && a >= 0, b_before = b == before && b >= 0;
+    const F p_before = a_before ? (b_before ? pa + pb : pa) : (b_before ? pb : F(0.0f));
+    return node(p_before, a_before ? -1 : a, pa, b_before ? -1 : b, pb);
+  }
+  // a node of value-derivative p_before with respect to the node made just before it, and pa, pb with respect to
+  // a, b (ids, -1: none; neither the node before); -1 when the tape is full
+  TAO_FN_ALWAYS int32_t node(const F& p_before, int32_t a, const F& pa, int32_t b, const F& pb) {
     if (n == capacity) {
       overflow = true;
       return -1;
     }
-    partial[2 * n] = pa, partial[2 * n + 1] = pb;
-    parent[2 * n] = a, parent[2 * n + 1] = b;
+#ifdef __CUDACC_RTC__  // (a warp's threads take the same branches: the sweep skips a missing parent)
+    const int32_t none = -1;
+#else  // (unary and binary nodes alternate with the code, so a skip would be mispredicted: the node's own dump
+       // slot takes a missing parent's update instead, one a node so that no chain of updates runs through it)
+    const int32_t none = capacity + n;
+#endif
+    partial[kPartials * n] = p_before, partial[kPartials * n + 1] = pa, partial[kPartials * n + 2] = pb;
+    parent[2 * n] = a >= 0 ? a : none, parent[2 * n + 1] = b >= 0 ? b : none;
     adjoint[n] = F(0.0f);
     return n++;
   }
@@ -58,19 +82,21 @@ template <class F> struct Tape {
   }
   // the adjoints of nodes [stop, n) passed back to their parents, last node first
   TAO_FN void sweep(int32_t stop) {
+    F carry(0.0f);  // d L / d node i - 1 by node i
     for (int32_t i = n - 1; i >= stop; --i) {
-      const F a = adjoint[i];
-#ifdef __CUDACC_RTC__  // (a warp's threads take the same branches)
+      const F a = adjoint[i] + carry;
+      adjoint[i] = a;  // (a leaf's is read after the sweep)
+      carry = a * partial[kPartials * i];
       const int32_t p0 = parent[2 * i], p1 = parent[2 * i + 1];
-      if (p0 >= 0) adjoint[p0] = adjoint[p0] + a * partial[2 * i];
-      if (p1 >= 0) adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
-#else  // (unary and binary nodes alternate with the code: the sink in place of a skip the CPU would mispredict)
-      const int32_t p0 = parent[2 * i] >= 0 ? parent[2 * i] : capacity;
-      const int32_t p1 = parent[2 * i + 1] >= 0 ? parent[2 * i + 1] : capacity;
-      adjoint[p0] = adjoint[p0] + a * partial[2 * i];
-      adjoint[p1] = adjoint[p1] + a * partial[2 * i + 1];
+#ifdef __CUDACC_RTC__
+      if (p0 >= 0) adjoint[p0] = adjoint[p0] + a * partial[kPartials * i + 1];
+      if (p1 >= 0) adjoint[p1] = adjoint[p1] + a * partial[kPartials * i + 2];
+#else
+      adjoint[p0] = adjoint[p0] + a * partial[kPartials * i + 1];
+      adjoint[p1] = adjoint[p1] + a * partial[kPartials * i + 2];
 #endif
     }
+    if (stop > 0) adjoint[stop - 1] = adjoint[stop - 1] + carry;
   }
   // the leaf of parameter k (kSetting + 0..2: seed_setting's; kCamera + 0..3: seed_camera's fx, fy, cx, cy), made
   // on first use, again after a cut below it
@@ -126,6 +152,14 @@ template <class F> struct Rev {
     if (x.id < 0) return link(value, y, b);
     if (y.id < 0) return link(value, x, a);
     return Rev(value, x.tape->push(x.id, a, y.id, b), x.tape);
+  }
+
+  // a value with derivatives a, b, c with respect to x, y, z, in one node: x is a constant or the last node made,
+  // y and z were made before it
+  static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
+                                const F& c) {
+    if (x.id < 0) return link(value, y, b, z, c);
+    return Rev(value, x.tape->node(a, y.id, b, z.id, c), x.tape);
   }
 
   friend TAO_FN_ALWAYS Rev operator+(const Rev& a, const Rev& b) { return link(a.v + b.v, a, F(1.0f), b, F(1.0f)); }
@@ -225,6 +259,23 @@ template <class F> TAO_FN_ALWAYS Rev<F> clamp(const Rev<F>& x, const Rev<F>& lo,
   return clamp_max(clamp_min(x, lo), hi);
 }
 template <class F> TAO_FN typename LaneTraits<F>::I to_int(const Rev<F>& x) { return to_int(x.v); }
+
+// walk.h's dot3 and cross in fewer nodes: each product joins the running sum in a node of three parents (the sum
+// the node before it)
+template <class F> TAO_FN_ALWAYS Rev<F> dot3(const Rev<F>* a, const Rev<F>* b) {
+  using R = Rev<F>;
+  const R p = R::link(a[0].v * b[0].v, a[0], b[0].v, b[0], a[0].v);
+  const R q = R::link(p.v + a[1].v * b[1].v, p, F(1.0f), a[1], b[1].v, b[1], a[1].v);
+  return R::link(q.v + a[2].v * b[2].v, q, F(1.0f), a[2], b[2].v, b[2], a[2].v);
+}
+template <class F> TAO_FN_ALWAYS void cross(const Rev<F>* a, const Rev<F>* b, Rev<F>* out) {
+  using R = Rev<F>;
+  for (int c = 0; c < 3; ++c) {
+    const int i = (c + 1) % 3, j = (c + 2) % 3;  // out_c = a_i b_j - a_j b_i
+    const R p = R::link(a[i].v * b[j].v, a[i], b[j].v, b[j], a[i].v);
+    out[c] = R::link(p.v - a[j].v * b[i].v, p, F(1.0f), a[j], neg(b[i].v), b[i], neg(a[j].v));
+  }
+}
 
 // The walk's seed (walk.h's Pixels): the pixel's position, normal and depth as leaves, their ids in Tape::own
 template <class F> TAO_FN void seed_pixel(Rev<F>* P, Rev<F>* Nrm, Rev<F>& depth) {

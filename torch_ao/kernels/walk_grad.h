@@ -1075,8 +1075,8 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   float take_steps[2 * kGradMaxSteps];
   TapedTake<float> taken[2 * kGradMaxSteps];
   constexpr int32_t capacity = kTapePixel + kTapeSlice + 2 * kGradMaxSteps * kTapeTake;
-  float partials[2 * capacity], adjoints[capacity];
-  int32_t parents[2 * capacity];
+  float partials[Tape<float>::partials_size(capacity)], adjoints[Tape<float>::adjoints_size(capacity)];
+  int32_t parents[Tape<float>::parents_size(capacity)];
   Tape<float> tape(partials, parents, adjoints, capacity);
   const int64_t per_image = RecordsTakes<Acc>::value ? plane * cfg.slices * 2 * take_words(cfg) : 0;
   grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * per_image, t, take_steps, taken, tape);

@@ -152,7 +152,9 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
     thread_local std::vector<int32_t> parents;
     take_steps.resize(size_t(2 * cfg.steps * LaneTraits<Lane>::L));
     taken.resize(size_t(2 * cfg.steps));
-    partials.resize(size_t(2 * capacity)), adjoints.resize(size_t(capacity)), parents.resize(size_t(2 * capacity));
+    partials.resize(size_t(Tape<Lane>::partials_size(capacity)));
+    adjoints.resize(size_t(Tape<Lane>::adjoints_size(capacity)));
+    parents.resize(size_t(Tape<Lane>::parents_size(capacity)));
     Tape<Lane> tape(partials.data(), parents.data(), adjoints.data(), capacity);
     const float* upstream[8];
     for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
