@@ -9,6 +9,7 @@
 #include <ATen/ops/empty.h>
 #include <ATen/ops/select.h>
 #include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
 #include <torch/library.h>
 
 #include <algorithm>
@@ -36,26 +37,31 @@ void check_input(const at::Tensor& x, const char* name) {
 // and the taps' (per thread)
 struct Gradients {
   at::Tensor positions, normals, depth, setting, tap_positions, tap_inverse, tap_layer, tap_normals, tap_light;
-  at::Tensor camera;  // (B, H, W, 4) where the intrinsics' gradients are asked for (walk_backward), else undefined
-  int settings = 1;   // setting's values per pixel: (B, H, W, settings) where more than one (walk_backward)
+  at::Tensor camera;  // (B, H, W, 4) where the intrinsics' gradients are asked for, else undefined
+  int settings;       // setting's values per pixel: (B, H, W, settings)
 
-  // layer: the thickness layer's taps too; light: the senders' normals and light at the taps too
-  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool layer = false, bool light = false) {
+  // bilinear: the fetch scatters to its taps' inverse depths (else to their positions); settings: the setting's
+  // values per pixel; layer: the thickness layer's taps too; light: the senders' normals and light at the taps too
+  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool bilinear, int n_settings = 1,
+            bool layer = false, bool light = false)
+      : settings(n_settings), bilinear(bilinear) {
     const int64_t threads = at::get_num_threads();
     positions = at::zeros({B, H, W, 3}, like.options()), normals = at::zeros({B, H, W, 3}, like.options());
-    depth = at::zeros({B, H, W}, like.options()), setting = at::zeros({B, H, W}, like.options());
-    tap_positions = at::zeros({threads, B, H, W, 3}, like.options());
-    tap_inverse = at::zeros({threads, B, H, W}, like.options());
+    depth = at::zeros({B, H, W}, like.options()), setting = at::zeros({B, H, W, settings}, like.options());
+    tap_positions = at::zeros({bilinear ? 0 : threads, B, H, W, 3}, like.options());
+    tap_inverse = at::zeros({bilinear ? threads : 1, B, H, W}, like.options());
     tap_layer = at::zeros({layer ? threads : 1, B, H, W}, like.options());
-    tap_normals = at::zeros({light ? threads : 1, B, H, W, 3}, like.options());
-    tap_light = at::zeros({light ? threads : 1, B, H, W, 3}, like.options());
+    if (light) {
+      tap_normals = at::zeros({threads, B, H, W, 3}, like.options());
+      tap_light = at::zeros({threads, B, H, W, 3}, like.options());
+    }
     has_layer = layer, has_light = light;
   }
   Targets targets(int64_t b, int64_t B, int64_t plane, int64_t thread) {
     return Targets{positions.data_ptr<float>() + 3 * b * plane, normals.data_ptr<float>() + 3 * b * plane,
                    depth.data_ptr<float>() + b * plane, setting.data_ptr<float>() + settings * b * plane,
-                   tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
-                   tap_inverse.data_ptr<float>() + (thread * B + b) * plane,
+                   bilinear ? nullptr : tap_positions.data_ptr<float>() + (thread * B + b) * 3 * plane,
+                   bilinear ? tap_inverse.data_ptr<float>() + (thread * B + b) * plane : nullptr,
                    has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr,
                    has_light ? tap_normals.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
                    has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
@@ -68,7 +74,8 @@ struct Gradients {
     const int64_t threads = tap_positions.size(0), n_pos = positions.numel();
     for (int64_t k = 1; k < threads; ++k)
       for (int64_t q = 0; q < n_pos; ++q) tp[q] += tp[k * n_pos + q];
-    for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
+    if (threads > 0)
+      for (int64_t q = 0; q < n_pos; ++q) pos[q] += tp[q];
     if (has_layer) sum_threads(tap_layer);
     if (has_light) {  // the senders' normals into the pixels' own; the light's image
       const at::Tensor senders = sum_threads(tap_normals);
@@ -80,10 +87,11 @@ struct Gradients {
     return sum_threads(tap_inverse);
   }
   at::Tensor layer() const { return tap_layer[0]; }
-  at::Tensor light() const { return tap_light[0]; }
+  // d L / d the light (B, H, W, 3): zeros where no light was read
+  at::Tensor light() const { return has_light ? tap_light[0] : at::zeros_like(positions); }
 
  private:
-  bool has_layer = false, has_light = false;
+  bool bilinear, has_layer = false, has_light = false;
   // a per-thread image (threads, B, H, W) summed into its first
   static at::Tensor sum_threads(const at::Tensor& images) {
     float* x = images.data_ptr<float>();
@@ -242,8 +250,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const std::string name(accumulator);
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
-  Gradients out(positions, fr.B, fr.H, fr.W);
-  if (camera) out.camera = at::zeros({fr.B, fr.H, fr.W, 4}, positions.options());
+  std::vector<at::Tensor> result;
   with_replayed(name, ints, floats, [&](const auto& acc) {
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
     check_cells(cfg, fr);
@@ -255,13 +262,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
     }
     check_grad(grad, positions, acc.channels());
-    out.settings = acc.settings();
-    out.setting = at::zeros({fr.B, fr.H, fr.W, out.settings}, positions.options());
+    Gradients out(positions, fr.B, fr.H, fr.W, cfg.bilinear, acc.settings());
+    if (camera) out.camera = at::zeros({fr.B, fr.H, fr.W, 4}, positions.options());
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
+    const at::Tensor g_inv = out.reduce();
+    result = {out.positions, out.normals, g_inv, out.depth, out.setting, camera ? out.camera : none};
   });
-  at::Tensor g_inv = out.reduce();
-  return {out.positions, out.normals, g_inv, out.depth, out.setting, camera ? out.camera : none};
+  return {result[0], result[1], result[2], result[3], result[4], result[5]};
 }
 
 // Whether packed settings place their steps as the GLSL shader does (the "ssilvb_glsl" variant's accumulators)
@@ -340,9 +348,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   auto backward = [&](const auto& acc, const ThicknessModel& thickness, bool indirect) {
     TORCH_CHECK(!thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
     TORCH_CHECK(!indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, thickness.reads_layer(), indirect);
-    out.settings = 2;  // d L / d the offset, d L / d the scale
-    out.setting = at::zeros({call.fr.B, call.fr.H, call.fr.W, 2}, positions.options());
+    // (d L / d the thickness' offset and scale)
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 2, thickness.reads_layer(), indirect);
     if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
     auto g = call.run(grad, acc.channels(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
                                                                    int64_t u0, int n, const float* upstream,
@@ -379,7 +386,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                           kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, acc.thickness.reads_layer());
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, acc.thickness.reads_layer());
   const at::Tensor none = at::empty({0}, positions.options());
   if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
   auto g = call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
@@ -469,7 +476,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                 "record: expected hard_record's (B, H, W, slices) of the same call");
     const int32_t* rec = record.data_ptr<int32_t>();
     const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, false, acc.indirect);
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, false, acc.indirect);
     if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
     const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
                                                                         int64_t row, int64_t u0, int n,
