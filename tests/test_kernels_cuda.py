@@ -134,7 +134,7 @@ typedef void HardBackward(const float*, const float*, const float*, const float*
 typedef void ExactBackward(const float*, const float*, const float*, const float*, const bool*, const float*,
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            float*, const long long*, const float*, int, int, int);
-Record tao_record_gtao, tao_record_hbao;
+Record tao_record_gtao, tao_record_hbao, tao_record_pssao;
 Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao, tao_backward_hemisphere;
 SoftBackward tao_soft_backward, tao_soft_backward_short, tao_soft_backward_glsl, tao_soft_backward_glsl_short;
 ExactBackward tao_exact_backward;
@@ -152,13 +152,13 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
-                                   // (NAME soft, exact, hard, wedge, pssao, hemisphere: that walk's backward alone)
+                                   // (NAME soft, exact, hard, wedge, hemisphere: that walk's backward alone)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
   const unsigned threads = unsigned(std::atoi(argv[8]));
-  Record* record = name == "gtao" ? tao_record_gtao : tao_record_hbao;
-  Backward* backward = name == "gtao" ? tao_backward_gtao : tao_backward_hbao;
+  Record* record = name == "gtao" ? tao_record_gtao : name == "pssao" ? tao_record_pssao : tao_record_hbao;
+  Backward* backward = name == "gtao" ? tao_backward_gtao : name == "pssao" ? tao_backward_pssao : tao_backward_hbao;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Ce = load<float>(dir, "cells");
   auto Bf = load<float>(dir, "backface");
@@ -207,9 +207,8 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                   senders.data(), tli.data(), gc.data(), ints.data(), floats.data(),
                                                   B, H, W); });
     save(dir, "tap_normals", senders), save(dir, "tap_light", tli);
-  } else if (name == "wedge" || name == "pssao" || name == "hemisphere") {  // (every step replayed: no record)
-    Backward* every = name == "wedge" ? tao_backward_wedge : name == "pssao" ? tao_backward_pssao
-                    : tao_backward_hemisphere;
+  } else if (name == "wedge" || name == "hemisphere") {  // (every step replayed: no record)
+    Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_hemisphere;
     grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
                                       gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(), gc.data(),
                                       ints.data(), floats.data(), B, H, W); });
@@ -530,7 +529,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                 cpu["layer"] = layer_grad
             if light.numel():
                 cpu["light"] = light_grad
-        elif accumulator in ("wedge", "pssao", "hemisphere"):
+        elif accumulator in ("wedge", "hemisphere"):
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
                 accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True, True)
         else:

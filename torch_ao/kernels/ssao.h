@@ -77,6 +77,12 @@ struct PSSAOAccumulator {
   template <class F> struct Sums { F sum = F(0.0f), count = F(0.0f), dirs = F(0.0f); };
   TAO_FN int channels() const { return 3; }
   TAO_FN int settings() const { return 1; }  // distance_bias (seed_setting)
+  // a step that raises the maximum replaces it (walk_grad.h's takes): only the slice's highest sample carries a
+  // gradient; the count of samples inside the image changes at every step but has none, so the takes follow
+  // best alone (kTakeComponents: the state's first)
+  TAO_FN bool replaces() const { return true; }
+  TAO_FN bool blends_every_sample() const { return false; }
+  static constexpr int kTakeComponents = 1;
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {
     return State<F>{F(-100000.0f), F(0.0f)};

@@ -379,6 +379,27 @@ TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<
   sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
 }
 
+// step_screen with each lane its own step j (a backward's replayed takes; not the GLSL placement, whose
+// accumulators record none)
+template <class F>
+TAO_FN void step_screen(const WalkSettings& cfg, const Image&, const Pixels<F>& px, const Slice<F>& sl, float side,
+                        const F& xi, const F& j, F& su, F& sv) {
+  if (cfg.placement == Steps::pixels) {  // PSSAOPattern.pixel_offset, from the table
+    constexpr int L = LaneTraits<F>::L;
+    int32_t step[L];
+    float off_u[L], off_v[L];
+    store_lanes(to_int(value(j)), step);
+    for (int l = 0; l < L; ++l) {
+      const float* o = cfg.table + 2 * (sl.index * cfg.steps + step[l]);
+      off_u[l] = o[0], off_v[l] = o[1];
+    }
+    su = px.u + from_lanes(off_u, F(0.0f)), sv = px.v + from_lanes(off_v, F(0.0f));
+    return;
+  }
+  const F dist = step_distance(cfg, sl, xi, j);
+  su = along_u(px, sl, side, dist), sv = along_v(px, sl, side, dist);
+}
+
 // One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
 // perspective-correct bilinear footprint of four taps (walk.fetch.bilinear_taps: inverse depth
 // interpolated, then unprojected) — delta = position - P where valid, else -V (away from the camera: it

@@ -63,6 +63,7 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
 
 TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
 TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
+TAO_CUDA_RECORD(tao_record_pssao, unpack_pssao)
 TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao)
 TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao)
 TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge)  // (every step replayed: no record)

@@ -49,6 +49,14 @@ template <class Acc, class F> TAO_FN constexpr int state_size() {
   return int(sizeof(typename Acc::template State<F>) / sizeof(F));
 }
 template <class State, class F> TAO_FN F* components(State& s) { return reinterpret_cast<F*>(&s); }
+// How many of the state's first components decide whether a step took (changed it): Acc::kTakeComponents where
+// the rest carry no derivative (PSSAO's count), else all
+template <class Acc, class F, class = void> struct TakeComponents {
+  static constexpr int value = state_size<Acc, F>();
+};
+template <class Acc, class F> struct TakeComponents<Acc, F, decltype(void(Acc::kTakeComponents))> {
+  static constexpr int value = Acc::kTakeComponents;
+};
 
 // Where the gradients go: the pixel's own (written once per pixel) and the taps' (scatter_add)
 struct Targets {
@@ -119,7 +127,7 @@ template <class B, class Acc> struct Takes {
   static constexpr bool kBefore = true;
   using State = typename Acc::template State<B>;
   static constexpr int L = LaneTraits<B>::L;
-  static constexpr int S = state_size<Acc, B>();
+  static constexpr int S = TakeComponents<Acc, B>::value;
   using I = typename LaneTraits<B>::I;
   const Acc& acc;
   const typename LaneTraits<B>::M& live;
@@ -391,8 +399,10 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
           float has_lane[L];
           for (int l = 0; l < L; ++l) has_lane[l] = q < takes.count[k][l] ? 1.0f : 0.0f;
           const auto has = from_lanes(has_lane, B(0.0f)) > B(0.5f);
-          const R dist = step_distance(cfg, sl, xi, R(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f))));
-          Sample<R> smp = fetch_sample(cfg, img, px, along_u(px, sl, float(side), dist), along_v(px, sl, float(side), dist));
+          R su, sv;
+          step_screen(cfg, img, px, sl, float(side), xi, R(select(has, from_lanes(takes.at(k, q), B(0.0f)), B(0.0f))),
+                      su, sv);
+          Sample<R> smp = fetch_sample(cfg, img, px, su, sv);
           smp.valid = land(smp.valid, has);  // (a lane without this take: an invalid sample, the identity)
           taken[fetches.n - 1].has = land(taken[fetches.n - 1].has, has);
           acc.step(state, side, px, sl, smp);

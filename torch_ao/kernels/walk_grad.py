@@ -115,7 +115,8 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU or CUDA G-buffer with autograd history: gradients
     reach ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs (on CUDA at most
     :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``: ``"gtao"`` or ``"hbao"`` (their forward records
-    the steps that carry gradients), ``"wedge"`` or ``"pssao"`` (every step replayed); any fetch, either
+    the steps that carry gradients), ``"pssao"`` (likewise: each slice's highest sample) or ``"wedge"`` (every step
+    replayed); any fetch, either
     border. ``radius``: the 0-d tensor the walk's extent is proportional to, which receives its gradient, or
     a number. ``setting``: the accumulator's differentiable settings (its ``settings()``, in its order), 0-d
     tensors or numbers whose values ``acc_floats`` holds (GTAO's falloff in world units or thickness; HBAO's
@@ -128,7 +129,7 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     slices, steps = settings[0][0], settings[0][1]
     if gbuffer.depth.is_cuda and steps > MAX_CUDA_STEPS:
         raise ValueError(f"steps: the CUDA backward replays at most {MAX_CUDA_STEPS} steps per side, got {steps}")
-    takes = accumulator in ("gtao", "hbao")
+    takes = accumulator in ("gtao", "hbao", "pssao")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
                        tuple(int(x) for x in setting_dimension),
                        (int(slices), 2, (int(steps) + 63) // 64) if takes else None)

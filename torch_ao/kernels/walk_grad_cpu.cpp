@@ -173,7 +173,7 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
   return !overflow;
 }
 
-// The accumulator `name` of walk_backward ("gtao", "hbao": their takes recorded by walk_record; "wedge", "pssao":
+// The accumulator `name` of walk_backward ("gtao", "hbao", "pssao": their takes recorded by walk_record; "wedge":
 // every step replayed) of the packed settings (checked), to fn
 template <class Fn> void with_replayed(const std::string& name, const at::Tensor& ints, const at::Tensor& floats,
                                        const Fn& fn) {
@@ -210,8 +210,8 @@ void check_cells(const WalkSettings& cfg, const Frame& fr) {
   TORCH_CHECK(!cfg.edge_aware || fr.cells, "cells: the edge-aware fetch needs the cell flags (B, H, W)");
 }
 
-// torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of a horizon
-// accumulator ("gtao", "hbao"), and the record of its takes (B, H, W, slices, 2, words) int64, for
+// torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of an
+// accumulator whose takes replace its state ("gtao", "hbao", "pssao"), and the record of its takes (B, H, W, slices, 2, words) int64, for
 // walk_backward
 std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, const at::Tensor& positions,
                                                const at::Tensor& normals, const at::Tensor& inverse_depth,
@@ -220,7 +220,8 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
                                                const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
                                                bool scalar) {
   const std::string name(accumulator);
-  TORCH_CHECK(name == "gtao" || name == "hbao", "accumulator: walk_record records gtao's and hbao's takes, got ", name);
+  TORCH_CHECK(name == "gtao" || name == "hbao" || name == "pssao",
+              "accumulator: walk_record records gtao's, hbao's and pssao's takes, got ", name);
   at::Tensor out, record;
   with_replayed(name, ints, floats, [&](const auto& acc) {
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
@@ -240,7 +241,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
 // accumulator's settings (B, H, W, its settings(): 3 for "wedge", else 1), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
 // empty); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with walk()'s packed settings; cells:
-// the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao), else
+// the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao, pssao), else
 // empty (every step is replayed)
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
