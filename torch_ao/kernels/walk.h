@@ -352,39 +352,13 @@ template <class F> TAO_FN F along_v(const Pixels<F>& px, const Slice<F>& sl, flo
   return px.v + dist * (sl.unit_v * F(side));
 }
 
-// Where step j of a slice's side samples, in screen pixels (su, sv), for the side's step offset xi
-// (step_noise): step_distance along the slice's screen direction, or GLSLPattern's texel:
-// uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale (cos, sin) (aspect H / W on x),
-// sampleScale = -radius P[0][0] / position.z, P[0][0] = 2 fx / W, the nearest texel floor(uv * size)
-// clamped to the image (GL rows from the bottom; sampleCount = steps - 1)
-template <class F>
-TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
-                        const F& xi, int64_t j, F& su, F& sv) {
-  if (cfg.placement == Steps::pixels) {  // PSSAOPattern.pixel_offset, from the table
-    const float* o = cfg.table + 2 * (sl.index * cfg.steps + j);
-    su = px.u + F(o[0]), sv = px.v + F(o[1]);
-    return;
-  }
-  if (cfg.placement != Steps::glsl) {
-    const F dist = step_distance(cfg, sl, xi, j);
-    su = along_u(px, sl, side, dist), sv = along_v(px, sl, side, dist);
-    return;
-  }
-  const float Wf = float(img.W), Hf = float(img.H);
-  const F scale = F(-cfg.radius * (2.0f * img.fx / Wf)) / px.P[2];
-  const F frag_u = (px.u + F(0.5f)) / F(Wf), frag_v = ((F(Hf - 1.0f) - px.v) + F(0.5f)) / F(Hf);
-  const F f = ((F(float(j)) + xi) / F(float(cfg.steps - 1)) + F(0.01f)) * scale;
-  const F uv_u = frag_u - (f * sl.dir_u) * F(Hf / Wf), uv_v = frag_v - f * sl.dir_v;
-  su = clamp(floor(uv_u * F(Wf)), F(0.0f), F(Wf - 1.0f));
-  sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
-}
-
-// step_screen with each lane its own step j (a backward's replayed takes; not the GLSL placement, whose
-// accumulators record none)
+// Where the steps j (each lane its own: a backward's replayed takes) of a slice's side sample, in screen pixels
+// (su, sv), for the side's step offset xi (step_noise): step_distance along the slice's screen direction, or
+// PSSAOPattern.pixel_offset from the table (not the GLSL placement, whose accumulators record no takes)
 template <class F>
 TAO_FN void step_screen(const WalkSettings& cfg, const Image&, const Pixels<F>& px, const Slice<F>& sl, float side,
                         const F& xi, const F& j, F& su, F& sv) {
-  if (cfg.placement == Steps::pixels) {  // PSSAOPattern.pixel_offset, from the table
+  if (cfg.placement == Steps::pixels) {
     constexpr int L = LaneTraits<F>::L;
     int32_t step[L];
     float off_u[L], off_v[L];
@@ -398,6 +372,28 @@ TAO_FN void step_screen(const WalkSettings& cfg, const Image&, const Pixels<F>& 
   }
   const F dist = step_distance(cfg, sl, xi, j);
   su = along_u(px, sl, side, dist), sv = along_v(px, sl, side, dist);
+}
+
+// Where step j of a slice's side samples (one step for every lane: the walk's), as above, or GLSLPattern's texel:
+// uv = fragUV - ((j + jitter) / sampleCount + 0.01) sampleScale (cos, sin) (aspect H / W on x),
+// sampleScale = -radius P[0][0] / position.z, P[0][0] = 2 fx / W, the nearest texel floor(uv * size)
+// clamped to the image (GL rows from the bottom; sampleCount = steps - 1)
+template <class F>
+TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const Slice<F>& sl, float side,
+                        const F& xi, int64_t j, F& su, F& sv) {
+  if (cfg.placement == Steps::pixels) {  // (the table's one entry for every lane)
+    const float* o = cfg.table + 2 * (sl.index * cfg.steps + j);
+    su = px.u + F(o[0]), sv = px.v + F(o[1]);
+    return;
+  }
+  if (cfg.placement != Steps::glsl) return step_screen(cfg, img, px, sl, side, xi, F(float(j)), su, sv);
+  const float Wf = float(img.W), Hf = float(img.H);
+  const F scale = F(-cfg.radius * (2.0f * img.fx / Wf)) / px.P[2];
+  const F frag_u = (px.u + F(0.5f)) / F(Wf), frag_v = ((F(Hf - 1.0f) - px.v) + F(0.5f)) / F(Hf);
+  const F f = ((F(float(j)) + xi) / F(float(cfg.steps - 1)) + F(0.01f)) * scale;
+  const F uv_u = frag_u - (f * sl.dir_u) * F(Hf / Wf), uv_v = frag_v - f * sl.dir_v;
+  su = clamp(floor(uv_u * F(Wf)), F(0.0f), F(Wf - 1.0f));
+  sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
 }
 
 // One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
