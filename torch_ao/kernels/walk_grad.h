@@ -4,14 +4,14 @@
 // SoftAdjoint over the walk: value lanes with the pixel and its slices in dual lanes (tangents 0..6), each
 // step's d / d delta scattered to its taps by scatter_taps (TapSink). The exact union's (exact_grad_block) and the
 // hard sector walk's (hard_record_block, hard_grad_block) are described where they are defined. The horizon
-// accumulators' (horizon.h: GTAO's three variants, HBAO; any fetch, either border), per slice:
+// accumulators' (horizon.h: GTAO's three variants, HBAO; ssao.h's PSSAO; any fetch, either border), per slice:
 //  1. the forward (record_block: walk.h's walk_slice in plain lanes with the Takes visitor) records, per pixel
 //     and side, the steps that changed the accumulator's state (its "takes", a bit per step; every valid step
 //     where acc.blends_every_sample(): UE4's thickness blend): a step that leaves the state as it was is the
 //     identity, so only the takes carry gradients. Where a take replaces the state (acc.replaces(): GTAO's
-//     exact minimum, HBAO's highest rise), only each side's last take is kept.
+//     exact minimum, HBAO's highest rise, PSSAO's maximum), only each side's last take is kept.
 //  2. the backward (grad_block) replays the slice in reverse lanes (lanes_rev.h: the walk records its
-//     arithmetic on a tape) through those takes alone (each lane its own step, step_distance in lanes):
+//     arithmetic on a tape) through those takes alone (each lane its own step, step_screen in lanes):
 //     begin_slice, the takes' samples (fetch_sample: each fetched position a leaf) and steps, end_slice and
 //     finish. The pixel's own position, normal and depth are leaves (seed_pixel), recorded once per block
 //     before its slices; the accumulator's settings (seed_setting: GTAO's falloff or thickness, HBAO's angle
