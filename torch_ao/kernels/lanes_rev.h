@@ -1,9 +1,9 @@
 // Reverse-mode lanes over any lane type of lanes_scalar.h / lanes_simd.h: Rev<F> is a value and the index of
 // the node that made it on the thread's tape (Tape<F>: per node its value's partial derivatives with respect
-// to the node made just before it and to at most two other parent nodes), so the one walk (walk.h) run with F = Rev<Vec> (or Rev<float>) records itself,
-// and one sweep back over the tape (Tape::sweep) gives d L / d every node for any L seeded on its outputs. A
-// walk's gradient then costs a few times its own arithmetic, whatever the number of inputs; forward mode
-// (lanes_dual.h) costs one walk per tangent.
+// to the node made just before it and to at most two other parent nodes), so the one walk (walk.h) run with
+// F = Rev<Vec> (or Rev<float>) records itself, and one sweep back over the tape (Tape::sweep) gives d L / d every
+// node for any L seeded on its outputs. A walk's gradient then costs a few times its own arithmetic, whatever the
+// number of inputs; forward mode (lanes_dual.h) costs one walk per tangent.
 //
 // Constants (id < 0) make no node, so what does not depend on a leaf costs nothing. The leaves: the pixel's
 // own position, normal and depth (seed_pixel: ids kept in Tape::own), the accumulator's settings (seed_setting)

@@ -211,8 +211,8 @@ void check_cells(const WalkSettings& cfg, const Frame& fr) {
 }
 
 // torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of an
-// accumulator whose takes replace its state ("gtao", "hbao", "pssao"), and the record of its takes (B, H, W, slices, 2, words) int64, for
-// walk_backward
+// accumulator that records its takes ("gtao", "hbao", "pssao": walk_grad.h's RecordsTakes), and the record of its
+// takes (B, H, W, slices, 2, words) int64, for walk_backward
 std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, const at::Tensor& positions,
                                                const at::Tensor& normals, const at::Tensor& inverse_depth,
                                                const at::Tensor& depth, const at::Tensor& valid,
@@ -220,10 +220,10 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
                                                const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
                                                bool scalar) {
   const std::string name(accumulator);
-  TORCH_CHECK(name == "gtao" || name == "hbao" || name == "pssao",
-              "accumulator: walk_record records gtao's, hbao's and pssao's takes, got ", name);
   at::Tensor out, record;
   with_replayed(name, ints, floats, [&](const auto& acc) {
+    constexpr bool records = RecordsTakes<std::decay_t<decltype(acc)>>::value;
+    TORCH_CHECK(records, "accumulator: ", name, " replays every step of its walk and records no takes");
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
     const at::Tensor none = at::empty({0}, positions.options());
     const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
@@ -231,8 +231,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
     out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
     record = at::empty({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}, ints.options());
-    if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value)
-      record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
+    if constexpr (records) record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
   });
   return {out, record};
 }
@@ -241,8 +240,8 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
 // accumulator's settings (B, H, W, its settings(): 3 for "wedge", else 1), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
 // empty); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with walk()'s packed settings; cells:
-// the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao, pssao), else
-// empty (every step is replayed)
+// the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao,
+// pssao), else empty (every step is replayed)
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
@@ -251,7 +250,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const std::string name(accumulator);
   const at::Tensor none = at::empty({0}, positions.options());
   const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
-  std::vector<at::Tensor> result;
+  std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> result;
   with_replayed(name, ints, floats, [&](const auto& acc) {
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
     check_cells(cfg, fr);
@@ -270,7 +269,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor g_inv = out.reduce();
     result = {out.positions, out.normals, g_inv, out.depth, out.setting, camera ? out.camera : none};
   });
-  return {result[0], result[1], result[2], result[3], result[4], result[5]};
+  return result;
 }
 
 // Whether packed settings place their steps as the GLSL shader does (the "ssilvb_glsl" variant's accumulators)
