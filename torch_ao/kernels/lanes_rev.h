@@ -136,22 +136,26 @@ template <class F> TAO_FN Tape<F>*& current_tape() { return TapeSlot<F>::tape; }
 template <class F> struct Rev {
   using M = typename LaneTraits<F>::M;
   F v;
+  F scale;        // d v / d the value of node id (k for k x + c: such a value of node x makes no node of its own)
   int32_t id;     // < 0: a constant
   Tape<F>* tape;  // the node's (null for a constant): found without the thread's slot
 
-  TAO_FN_ALWAYS Rev() : v(0.0f), id(-1), tape(nullptr) {}
-  TAO_FN_ALWAYS Rev(const F& x) : v(x), id(-1), tape(nullptr) {}  // a constant (float converts through F)
-  TAO_FN_ALWAYS Rev(const F& x, int32_t i, Tape<F>* t) : v(x), id(i), tape(i >= 0 ? t : nullptr) {}
+  TAO_FN_ALWAYS Rev() : v(0.0f), scale(1.0f), id(-1), tape(nullptr) {}
+  TAO_FN_ALWAYS Rev(const F& x) : v(x), scale(1.0f), id(-1), tape(nullptr) {}  // a constant (float converts through F)
+  TAO_FN_ALWAYS Rev(const F& x, int32_t i, Tape<F>* t, const F& s = F(1.0f))
+      : v(x), scale(s), id(i), tape(i >= 0 ? t : nullptr) {}
+  // value = k x + c for constant lanes k, c: x's node, its scale times k
+  static TAO_FN_ALWAYS Rev affine(const F& value, const Rev& x, const F& k) { return Rev(value, x.id, x.tape, x.scale * k); }
 
   // value with derivatives a and b with respect to x and y (a constant where neither is a node)
   static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a) {
     if (x.id < 0) return Rev(value);
-    return Rev(value, x.tape->push(x.id, a, -1, F(0.0f)), x.tape);
+    return Rev(value, x.tape->push(x.id, a * x.scale, -1, F(0.0f)), x.tape);
   }
   static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b) {
     if (x.id < 0) return link(value, y, b);
     if (y.id < 0) return link(value, x, a);
-    return Rev(value, x.tape->push(x.id, a, y.id, b), x.tape);
+    return Rev(value, x.tape->push(x.id, a * x.scale, y.id, b * y.scale), x.tape);
   }
 
   // a value with derivatives a, b, c with respect to x, y, z, in one node: x is a constant or the last node made,
@@ -159,14 +163,27 @@ template <class F> struct Rev {
   static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
                                 const F& c) {
     if (x.id < 0) return link(value, y, b, z, c);
-    return Rev(value, x.tape->node(a, y.id, b, z.id, c), x.tape);
+    return Rev(value, x.tape->node(a * x.scale, y.id, b * y.scale, z.id, c * z.scale), x.tape);
   }
 
-  friend TAO_FN_ALWAYS Rev operator+(const Rev& a, const Rev& b) { return link(a.v + b.v, a, F(1.0f), b, F(1.0f)); }
-  friend TAO_FN_ALWAYS Rev operator-(const Rev& a, const Rev& b) { return link(a.v - b.v, a, F(1.0f), b, F(-1.0f)); }
-  friend TAO_FN_ALWAYS Rev operator*(const Rev& a, const Rev& b) { return link(a.v * b.v, a, b.v, b, a.v); }
+  friend TAO_FN_ALWAYS Rev operator+(const Rev& a, const Rev& b) {
+    if (b.id < 0) return affine(a.v + b.v, a, F(1.0f));
+    if (a.id < 0) return affine(a.v + b.v, b, F(1.0f));
+    return link(a.v + b.v, a, F(1.0f), b, F(1.0f));
+  }
+  friend TAO_FN_ALWAYS Rev operator-(const Rev& a, const Rev& b) {
+    if (b.id < 0) return affine(a.v - b.v, a, F(1.0f));
+    if (a.id < 0) return affine(a.v - b.v, b, F(-1.0f));
+    return link(a.v - b.v, a, F(1.0f), b, F(-1.0f));
+  }
+  friend TAO_FN_ALWAYS Rev operator*(const Rev& a, const Rev& b) {
+    if (b.id < 0) return affine(a.v * b.v, a, b.v);
+    if (a.id < 0) return affine(a.v * b.v, b, a.v);
+    return link(a.v * b.v, a, b.v, b, a.v);
+  }
   friend TAO_FN_ALWAYS Rev operator/(const Rev& a, const Rev& b) {
     const F inv = F(1.0f) / b.v, q = a.v * inv;
+    if (b.id < 0) return affine(q, a, inv);
     return link(q, a, inv, b, neg(q * inv));
   }
   friend TAO_FN_ALWAYS M operator<(const Rev& a, const Rev& b) { return a.v < b.v; }
@@ -190,18 +207,19 @@ template <class F> TAO_FN const F& value(const Rev<F>& x) { return x.v; }
 template <class F> TAO_FN_ALWAYS Rev<F> from_lanes(const float* x, const Rev<F>&) { return Rev<F>(from_lanes(x, F(0.0f))); }
 template <class F> TAO_FN_ALWAYS Rev<F> select(const typename LaneTraits<F>::M& m, const Rev<F>& yes, const Rev<F>& no) {
   const F v = select(m, yes.v, no.v);
-  if (yes.id == no.id) return Rev<F>(v, yes.id, yes.tape);
+  if (yes.id == no.id) return Rev<F>(v, yes.id, yes.tape, select(m, yes.scale, no.scale));
   return Rev<F>::link(v, yes, select(m, F(1.0f), F(0.0f)), no, select(m, F(0.0f), F(1.0f)));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> neg(const Rev<F>& x) { return Rev<F>::link(neg(x.v), x, F(-1.0f)); }
+template <class F> TAO_FN_ALWAYS Rev<F> neg(const Rev<F>& x) { return Rev<F>::affine(neg(x.v), x, F(-1.0f)); }
 template <class F> TAO_FN_ALWAYS Rev<F> fma(const Rev<F>& a, const Rev<F>& b, const Rev<F>& c) { return a * b + c; }
 // a b + c for a constant b and c, its value fused as the value lanes' fma
 template <class F> TAO_FN_ALWAYS Rev<F> fma(const Rev<F>& a, const F& b, const F& c) {
-  return Rev<F>::link(fma(a.v, b, c), a, b);
+  return Rev<F>::affine(fma(a.v, b, c), a, b);
 }
 // a / b with the value lanes' quotient as its value
 template <class F> TAO_FN_ALWAYS Rev<F> quotient(const Rev<F>& a, const Rev<F>& b) {
   const F inv = F(1.0f) / b.v, q = a.v / b.v;
+  if (b.id < 0) return Rev<F>::affine(q, a, inv);
   return Rev<F>::link(q, a, inv, b, neg(q * inv));
 }
 template <class F> TAO_FN_ALWAYS Rev<F> abs(const Rev<F>& x) { return select(x.v < F(0.0f), neg(x), x); }

@@ -421,7 +421,7 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     R outs[8];
     acc.finish(part, px, outs);  // linear in the sums: the slice's share of the outputs
     if (tape.overflow) return;
-    for (int c = 0; c < C; ++c) tape.seed(outs[c].id, g[c]);
+    for (int c = 0; c < C; ++c) tape.seed(outs[c].id, g[c] * outs[c].scale);
     tape.sweep(pixel_nodes);
     for (int k = 0; k < acc.settings(); ++k)
       setting[k] = setting[k] + tape.parameter_adjoint(Tape<B>::kSetting + k, pixel_nodes);
