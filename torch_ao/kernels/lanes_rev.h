@@ -207,7 +207,10 @@ template <class F> TAO_FN const F& value(const Rev<F>& x) { return x.v; }
 template <class F> TAO_FN_ALWAYS Rev<F> from_lanes(const float* x, const Rev<F>&) { return Rev<F>(from_lanes(x, F(0.0f))); }
 template <class F> TAO_FN_ALWAYS Rev<F> select(const typename LaneTraits<F>::M& m, const Rev<F>& yes, const Rev<F>& no) {
   const F v = select(m, yes.v, no.v);
+  // (one node, or one and a constant: that node, its scale where it is chosen, 0 where the constant is)
   if (yes.id == no.id) return Rev<F>(v, yes.id, yes.tape, select(m, yes.scale, no.scale));
+  if (no.id < 0) return Rev<F>(v, yes.id, yes.tape, select(m, yes.scale, F(0.0f)));
+  if (yes.id < 0) return Rev<F>(v, no.id, no.tape, select(m, F(0.0f), no.scale));
   return Rev<F>::link(v, yes, select(m, F(1.0f), F(0.0f)), no, select(m, F(0.0f), F(1.0f)));
 }
 template <class F> TAO_FN_ALWAYS Rev<F> neg(const Rev<F>& x) { return Rev<F>::affine(neg(x.v), x, F(-1.0f)); }
