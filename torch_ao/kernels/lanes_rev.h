@@ -5,7 +5,9 @@
 // node for any L seeded on its outputs. A walk's gradient then costs a few times its own arithmetic, whatever the
 // number of inputs; forward mode (lanes_dual.h) costs one walk per tangent.
 //
-// Constants (id < 0) make no node, so what does not depend on a leaf costs nothing. The leaves: the pixel's
+// Constants (id < 0) make no node, so what does not depend on a leaf costs nothing; nor does k x + c of a node x
+// for constant lanes k, c, or a select between x and a constant: such a value carries x's id and its scale k
+// (Rev::scale, by which its adjoint reaches x's; 0 in the lanes where the constant was chosen). The leaves: the pixel's
 // own position, normal and depth (seed_pixel: ids kept in Tape::own), the accumulator's settings (seed_setting)
 // and the camera's intrinsics (seed_camera; both Tape::parameter), and whatever the caller makes with
 // Tape::leaf. Derivatives at non-differentiable points are lanes_dual.h's (torch's autograd of the tensor path).

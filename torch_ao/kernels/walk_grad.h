@@ -318,7 +318,7 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
     take.ids[c] = tape->leaf();
     R moved(take.pos[c], take.ids[c], tape);
     if (cfg.bilinear) {
-      moved = R::link(take.pos[c], R::link(take.pos[c], moved, B(1.0f), su, d_su[c]), B(1.0f), sv, d_sv[c]);
+      moved = R::link(take.pos[c], moved, B(1.0f), su, d_su[c], sv, d_sv[c]);  // (one node: the leaf was made last)
       if (c < 2 && tape->camera) {  // the unprojection's intrinsics
         B d_focal, d_centre;
         unprojection_partials(img, take.pos, c, d_focal, d_centre);
