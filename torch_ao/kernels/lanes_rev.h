@@ -147,7 +147,9 @@ template <class F> struct Rev {
   TAO_FN_ALWAYS Rev(const F& x, int32_t i, Tape<F>* t, const F& s = F(1.0f))
       : v(x), scale(s), id(i), tape(i >= 0 ? t : nullptr) {}
   // value = k x + c for constant lanes k, c: x's node, its scale times k
-  static TAO_FN_ALWAYS Rev affine(const F& value, const Rev& x, const F& k) { return Rev(value, x.id, x.tape, x.scale * k); }
+  static TAO_FN_ALWAYS Rev affine(const F& value, const Rev& x, const F& k) {
+    return Rev(value, x.id, x.tape, x.scale * k);
+  }
 
   // value with derivatives a and b with respect to x and y (a constant where neither is a node)
   static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a) {
