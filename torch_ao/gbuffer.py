@@ -210,6 +210,18 @@ class GBuffer:
             cache[key] = compute()
         return cache[key]
 
+    def in_call(self, *keys) -> bool:
+        """Whether a :meth:`one_call` is open and none of ``keys`` has been derived in it yet."""
+        return self._call is not None and not any(k in self._call for k in keys)
+
+    def keep(self, key, value: torch.Tensor) -> None:
+        """Make ``value`` what :meth:`derived` gives for ``key`` until the open :meth:`one_call` ends: the same
+        buffer computed another way (the kernels' one-pass view geometry,
+        :func:`torch_ao.kernels.frame.view_geometry`)."""
+        if self._call is None:
+            raise RuntimeError("GBuffer.keep: no one_call is open")
+        self._call[key] = value
+
     @contextlib.contextmanager
     def one_call(self):
         """Within it, the buffers :meth:`derived` computes (positions, normals, ...) are computed once even where

@@ -14,7 +14,7 @@ __all__ = ["KernelUnavailable", "cpu_kernels", "grad_kernels", "load_cpu_library
 
 #: the C++ sources of the one extension (registering its ops in ``torch_ao_kernels``): ops_cpu.cpp
 #: compiles the one walk (walk.h and its accumulators)
-_SOURCES = tuple(Path(__file__).with_name(name) for name in ("ops_cpu.cpp",))
+_SOURCES = tuple(Path(__file__).with_name(name) for name in ("ops_cpu.cpp", "geometry_cpu.cpp"))
 
 #: compiler flags per ``torch.backends.cpu.get_cpu_capability()``: the kernel's ``Vectorized<float>``
 #: must be the width torch's own CPU kernels dispatch to, so that both call the same SLEEF functions

@@ -12,6 +12,7 @@ from .soft_glsl import glsl_soft_covers, glsl_soft_forward
 from .bitmask import (bitmask_hard, bitmask_outputs, exact_covers, exact_forward, kernel_covers, module_thickness,
                       ssilvb_glsl_hard, thickness_options)
 from .build import KernelUnavailable
+from .frame import view_geometry
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
 from .ssao import pssao_covers, pssao_forward, ssao_covers, ssao_forward, ue4_ssao_covers, ue4_ssao_forward
 
@@ -107,6 +108,7 @@ def kernel_forward(module, gbuffer: GBuffer, backend: str) -> dict | None:
             raise ValueError(f"backend: 'kernel' does not cover this call ({reason}); use backend='auto' or 'torch'")
         return None
     try:
+        view_geometry(gbuffer, module.normals_method)  # (where the call records gradients: one pass, not torch ops)
         return run(module, gbuffer)
     except KernelUnavailable as exc:
         _warn_once(f"torch_ao: {exc}; using the tensor-op walk instead (backend='torch' silences this)")

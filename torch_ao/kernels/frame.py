@@ -5,7 +5,7 @@ import torch
 
 from ..gbuffer import GBuffer
 
-__all__ = ["LANES", "channels_last", "walk_inputs", "light_input", "scale_derivative"]
+__all__ = ["LANES", "channels_last", "walk_inputs", "view_geometry", "light_input", "scale_derivative"]
 
 #: the kernels' lane types: ``"simd"`` (the CPU's vector lanes, the default) or ``"scalar"`` (one pixel at a
 #: time in float lanes: the arithmetic of the CUDA kernel, which compiles the same walk)
@@ -28,6 +28,51 @@ def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, 
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
     return channels_last(gbuffer.positions()), channels_last(normals), inverse, depth, valid, intrinsics
+
+
+def view_geometry(gbuffer: GBuffer, method: str) -> None:
+    """Compute ``gbuffer``'s positions and view normals (``gbuffer.view_normals(method)``) in one C++ pass and keep
+    them for the rest of the call, where a kernel's call records gradients through the G-buffer: a CPU float32
+    G-buffer in :meth:`~torch_ao.GBuffer.one_call`, with normals, no position buffer and intrinsics that need no
+    gradient. Else (and for a second call within one :meth:`~torch_ao.GBuffer.one_call`) nothing is done.
+
+    The pass gives the tensor ops' values (``GBuffer.positions``, ``_unit_facing``) channel-last, which is
+    what :func:`walk_inputs` hands the kernels, and its backward is their closed form in one pass: at 640x360, one
+    thread, about 2 ms for both against 19 ms (``benchmarks/gbuffer_breakdown.py``'s torch ops). Not twice
+    differentiable (the kernels' backwards are not either)."""
+    depth, normals, cam = gbuffer.depth, gbuffer.normals, gbuffer.camera
+    if (torch.compiler.is_compiling() or not torch.is_grad_enabled() or normals is None or gbuffer.position is not None
+            or not (depth.requires_grad or normals.requires_grad) or cam.intrinsics.requires_grad
+            or depth.device.type != "cpu" or depth.dtype != torch.float32 or normals.dtype != torch.float32):
+        return
+    if not gbuffer.in_call("positions", ("view_normals", method)):
+        return
+    from .build import cpu_kernels
+
+    cpu_kernels()  # (KernelUnavailable when it cannot be built: the caller's kernel could not run either)
+    valid = gbuffer.valid.contiguous()
+    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).expand(depth.shape[0], 4)
+    positions, unit = _ViewGeometry.apply(depth.contiguous(), normals.contiguous(), valid, intrinsics.contiguous())
+    gbuffer.keep("positions", positions.permute(0, 3, 1, 2))
+    gbuffer.keep(("view_normals", method), unit.permute(0, 3, 1, 2))
+
+
+class _ViewGeometry(torch.autograd.Function):
+    """``torch_ao_kernels::view_geometry`` and its backward (geometry_cpu.cpp)."""
+
+    @staticmethod
+    def forward(ctx, depth, normals, valid, intrinsics):
+        ctx.save_for_backward(depth, normals, valid, intrinsics)
+        return torch.ops.torch_ao_kernels.view_geometry(depth, normals, valid, intrinsics)
+
+    @staticmethod
+    def backward(ctx, g_positions, g_normals):
+        depth, normals, valid, intrinsics = ctx.saved_tensors
+        none = depth.new_empty(0)
+        g_depth, g_in = torch.ops.torch_ao_kernels.view_geometry_backward(
+            none if g_positions is None else g_positions.contiguous(),
+            none if g_normals is None else g_normals.contiguous(), depth, normals, valid, intrinsics)
+        return (g_depth if ctx.needs_input_grad[0] else None, g_in if ctx.needs_input_grad[1] else None, None, None)
 
 
 def light_input(gbuffer: GBuffer, wanted: bool) -> torch.Tensor:

@@ -160,6 +160,14 @@ struct Image {
   const float *cells, *backface;
 };
 
+// The view-space position of screen point (u, v) at depth d (camera.unproject: kornia's unprojection in OpenCV's
+// axes, then y and z flipped): ((u - cx) / fx d, -(v - cy) / fy d, -d)
+template <class F> TAO_FN void unproject(const Image& img, const F& u, const F& v, const F& d, F* pos) {
+  pos[0] = ((u - F(img.cx)) / F(img.fx)) * d;
+  pos[1] = (neg(v - F(img.cy)) / F(img.fy)) * d;
+  pos[2] = neg(d);
+}
+
 // L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
 // noise xi (with the GLSL noise the shader's jitter, its slice angles' too), the basis
 // e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise (SlicePattern._noise:
@@ -505,9 +513,7 @@ template <class F> struct Sample {
         valid = land(valid, land(land(fu0 >= F(0.0f), fu0 + F(1.0f) < Wf), land(fv0 >= F(0.0f), fv0 + F(1.0f) < Hf)));
       const F depth = reciprocal(lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv));
       const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
-      pos[0] = ((su_c - F(img.cx)) / F(img.fx)) * depth;
-      pos[1] = (neg(sv_c - F(img.cy)) / F(img.fy)) * depth;
-      pos[2] = neg(depth);
+      unproject(img, su_c, sv_c, depth, pos);
     } else {
       const F fu0 = floor(su + F(0.5f)), fv0 = floor(sv + F(0.5f));
       fu = F(0.0f), fv = F(0.0f);
@@ -518,9 +524,7 @@ template <class F> struct Sample {
       if (cfg.unprojected) {  // GBuffer.positions' unprojection of the texel's depth, bit for bit
         const F depth = tao::gather(img.depth, index[0]);
         valid = depth == depth;  // (invalid texels hold NaN)
-        pos[0] = ((to_float(iu) - F(img.cx)) / F(img.fx)) * depth;
-        pos[1] = (neg(to_float(iv) - F(img.cy)) / F(img.fy)) * depth;
-        pos[2] = neg(depth);
+        unproject(img, to_float(iu), to_float(iv), depth, pos);
       } else {
         valid = gather_flag(img.valid, index[0]);  // (as the inverse depth's NaN: 4x fewer bytes to fetch)
         for (int c = 0; c < 3; ++c) pos[c] = tao::gather(img.positions + c, index[0] * I(3));
