@@ -80,15 +80,21 @@ void for_each_block(const at::Tensor& depth, const at::Tensor& normals, const at
     Image img{};
     img.H = H, img.W = W, img.fx = K[4 * b], img.fy = K[4 * b + 1], img.cx = K[4 * b + 2], img.cy = K[4 * b + 3];
     const int64_t q = v * W + u0, p = b * plane + q;
-    alignas(64) float lane[6][L];
+    alignas(64) float lane[6][L];  // u, valid, then (a block past the row's end) depth and the normal
     for (int l = 0; l < L; ++l) {
       const int64_t k = l < n ? l : n - 1;
-      lane[0][l] = float(u0 + k), lane[1][l] = d[p + k], lane[2][l] = ok[p + k] ? 1.0f : 0.0f;
-      for (int c = 0; c < 3; ++c) lane[3 + c][l] = nrm[(3 * b + c) * plane + q + k];
+      lane[0][l] = float(u0 + k), lane[1][l] = ok[p + k] ? 1.0f : 0.0f;
+      if (n < L) {
+        lane[2][l] = d[p + k];
+        for (int c = 0; c < 3; ++c) lane[3 + c][l] = nrm[(3 * b + c) * plane + q + k];
+      }
     }
-    const Vec normal[3] = {Vec::loadu(lane[3]), Vec::loadu(lane[4]), Vec::loadu(lane[5])};
-    fn(PixelGeometry<Vec>(img, Vec::loadu(lane[0]), Vec(float(v)), Vec::loadu(lane[1]), normal,
-                          Vec::loadu(lane[2]) > Vec(0.5f)), p, n, b, q);
+    // (a whole block's depth and normals are consecutive floats: NCHW)
+    auto at = [&](const float* x, int i) { return n == L ? Vec::loadu(x) : Vec::loadu(lane[i]); };
+    const Vec normal[3] = {at(nrm + 3 * b * plane + q, 3), at(nrm + (3 * b + 1) * plane + q, 4),
+                           at(nrm + (3 * b + 2) * plane + q, 5)};
+    fn(PixelGeometry<Vec>(img, Vec::loadu(lane[0]), Vec(float(v)), at(d + p, 2), normal,
+                          Vec::loadu(lane[1]) > Vec(0.5f)), p, n, b, q);
   });
 }
 
