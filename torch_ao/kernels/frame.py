@@ -21,18 +21,21 @@ def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, 
     """Channel-last positions and normals ``(B,H,W,3)``, the inverse depth and the depth (both NaN where
     invalid: the kernels read a texel's validity from the one they fetch), validity ``(B,H,W)``, and the
     intrinsics ``(B,4)`` ``(fx, fy, cx, cy)`` in pixels."""
-    safe = gbuffer.safe_depth[:, 0].to(torch.float32)
     valid = gbuffer.valid[:, 0].contiguous()
-    depth = torch.where(valid, safe, torch.nan)
-    inverse = torch.where(valid, safe.reciprocal(), torch.nan)
+    inverse, depth = gbuffer.derived("walk_depths", lambda: _walk_depths(gbuffer, valid))
     cam = gbuffer.camera
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
     return channels_last(gbuffer.positions()), channels_last(normals), inverse, depth, valid, intrinsics
 
 
+def _walk_depths(gbuffer: GBuffer, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    safe = gbuffer.safe_depth[:, 0].to(torch.float32)
+    return torch.where(valid, safe.reciprocal(), torch.nan), torch.where(valid, safe, torch.nan)
+
+
 def view_geometry(gbuffer: GBuffer, method: str) -> None:
-    """Compute ``gbuffer``'s positions and view normals (``gbuffer.view_normals(method)``) in one C++ pass and keep
-    them for the rest of the call, where a kernel's call records gradients through the G-buffer: a CPU float32
+    """Compute ``gbuffer``'s positions and view normals (``gbuffer.view_normals(method)``), and :func:`walk_inputs`'
+    inverse depth and depth, in one C++ pass and keep them for the rest of the call, where a kernel's call records gradients through the G-buffer: a CPU float32
     G-buffer in :meth:`~torch_ao.GBuffer.one_call`, with normals, no position buffer and intrinsics that need no
     gradient. Else (and for a second call within one :meth:`~torch_ao.GBuffer.one_call`) nothing is done.
 
@@ -45,16 +48,18 @@ def view_geometry(gbuffer: GBuffer, method: str) -> None:
             or not (depth.requires_grad or normals.requires_grad) or cam.intrinsics.requires_grad
             or depth.device.type != "cpu" or depth.dtype != torch.float32 or normals.dtype != torch.float32):
         return
-    if not gbuffer.in_call("positions", ("view_normals", method)):
+    if not gbuffer.in_call("positions", ("view_normals", method), "walk_depths"):
         return
     from .build import cpu_kernels
 
     cpu_kernels()  # (KernelUnavailable when it cannot be built: the caller's kernel could not run either)
     valid = gbuffer.valid.contiguous()
     intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).expand(depth.shape[0], 4)
-    positions, unit = _ViewGeometry.apply(depth.contiguous(), normals.contiguous(), valid, intrinsics.contiguous())
+    positions, unit, inverse, depth_nan = _ViewGeometry.apply(depth.contiguous(), normals.contiguous(), valid,
+                                                              intrinsics.contiguous())
     gbuffer.keep("positions", positions.permute(0, 3, 1, 2))
     gbuffer.keep(("view_normals", method), unit.permute(0, 3, 1, 2))
+    gbuffer.keep("walk_depths", (inverse, depth_nan))
 
 
 class _ViewGeometry(torch.autograd.Function):
@@ -66,12 +71,11 @@ class _ViewGeometry(torch.autograd.Function):
         return torch.ops.torch_ao_kernels.view_geometry(depth, normals, valid, intrinsics)
 
     @staticmethod
-    def backward(ctx, g_positions, g_normals):
+    def backward(ctx, *grads):
         depth, normals, valid, intrinsics = ctx.saved_tensors
         none = depth.new_empty(0)
         g_depth, g_in = torch.ops.torch_ao_kernels.view_geometry_backward(
-            none if g_positions is None else g_positions.contiguous(),
-            none if g_normals is None else g_normals.contiguous(), depth, normals, valid, intrinsics)
+            *(none if g is None else g.contiguous() for g in grads), depth, normals, valid, intrinsics)
         return (g_depth if ctx.needs_input_grad[0] else None, g_in if ctx.needs_input_grad[1] else None, None, None)
 
 

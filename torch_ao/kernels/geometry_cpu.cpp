@@ -1,7 +1,8 @@
 // The frame's view-space geometry in one pass, for the kernels' calls that record gradients (kernels/frame.py's
 // view_geometry): GBuffer.positions (the depth unprojected, background at depth 1) and GBuffer.view_normals of a
 // G-buffer with normals (_unit_facing: unit length, the direction toward the camera on background, turned to
-// face the camera), channel-last, and their backward to the depth and the normals. The tensor ops stay the
+// face the camera), channel-last, the inverse depth and the depth that walk_inputs hands the kernels, and their
+// backward to the depth and the normals. The tensor ops stay the
 // definition (and run everywhere else: float64, CUDA, the tensor-op walk); these are their arithmetic per pixel.
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -105,28 +106,38 @@ void store_channel(const Vec& x, float* out, int n, int64_t stride) {
   for (int l = 0; l < n; ++l) out[stride * l] = lane[l];
 }
 
-// torch_ao_kernels::view_geometry: positions and unit normals facing the camera, both (B, H, W, 3)
-std::tuple<at::Tensor, at::Tensor> view_geometry(const at::Tensor& depth, const at::Tensor& normals,
-                                                 const at::Tensor& valid, const at::Tensor& intrinsics) {
+// torch_ao_kernels::view_geometry: positions and unit normals facing the camera, both (B, H, W, 3), and the
+// inverse depth and the depth, both (B, H, W) and NaN where invalid (walk_inputs')
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> view_geometry(const at::Tensor& depth,
+                                                                         const at::Tensor& normals,
+                                                                         const at::Tensor& valid,
+                                                                         const at::Tensor& intrinsics) {
   check_inputs(depth, normals, valid, intrinsics);
   const int64_t B = depth.size(0), H = depth.size(2), W = depth.size(3);
   at::Tensor positions = at::empty({B, H, W, 3}, depth.options()), unit = at::empty({B, H, W, 3}, depth.options());
+  at::Tensor inverse = at::empty({B, H, W}, depth.options()), depth_nan = at::empty({B, H, W}, depth.options());
   float *pos = positions.data_ptr<float>(), *out = unit.data_ptr<float>();
+  float *inv = inverse.data_ptr<float>(), *dn = depth_nan.data_ptr<float>();
+  const Vec nan(std::numeric_limits<float>::quiet_NaN());
   auto write = [&](const PixelGeometry<Vec>& g, int64_t p, int n, int64_t, int64_t) {
     for (int c = 0; c < 3; ++c) {
       store_channel(g.pos[c], pos + 3 * p + c, n, 3);
       store_channel(g.unit[c] * g.sign, out + 3 * p + c, n, 3);
     }
+    const Vec d = neg(g.pos[2]);
+    store_channel(select(g.valid, Vec(1.0f) / d, nan), inv + p, n, 1);
+    store_channel(select(g.valid, d, nan), dn + p, n, 1);
   };
   for_each_block(depth, normals, valid, intrinsics, write);
-  return {positions, unit};
+  return {positions, unit, inverse, depth_nan};
 }
 
 // torch_ao_kernels::view_geometry_backward: d L / d depth (B, 1, H, W) and d L / d normals (B, 3, H, W) from those of
-// the positions and the unit normals (B, H, W, 3; either empty: none). The normal's is normalize_channels' closed
+// the positions and the unit normals (B, H, W, 3), the inverse depth and the depth (B, H, W) (each empty: none). The normal's is normalize_channels' closed
 // form ((g - n (g . n)) / |n|, g / eps where the norm is clamped) through the sign and the scale; on background it
 // reaches the position, whose depth there is the constant 1.
 std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_positions, const at::Tensor& g_normals,
+                                                          const at::Tensor& g_inverse, const at::Tensor& g_depth_nan,
                                                           const at::Tensor& depth, const at::Tensor& normals,
                                                           const at::Tensor& valid, const at::Tensor& intrinsics) {
   constexpr int L = LaneTraits<Vec>::L;
@@ -136,15 +147,21 @@ std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_po
     TORCH_CHECK(g->numel() == 0 || (g->numel() == B * plane * 3 && g->scalar_type() == at::kFloat &&
                                     g->is_contiguous() && g->device().is_cpu()),
                 "g_positions, g_normals: expected empty or contiguous float32 (B, H, W, 3)");
+  for (const at::Tensor* g : {&g_inverse, &g_depth_nan})
+    TORCH_CHECK(g->numel() == 0 || (g->numel() == B * plane && g->scalar_type() == at::kFloat && g->is_contiguous() &&
+                                    g->device().is_cpu()),
+                "g_inverse, g_depth_nan: expected empty or contiguous float32 (B, H, W)");
   const float* gp = g_positions.numel() ? g_positions.data_ptr<float>() : nullptr;
   const float* gn = g_normals.numel() ? g_normals.data_ptr<float>() : nullptr;
+  const float* g_inv = g_inverse.numel() ? g_inverse.data_ptr<float>() : nullptr;
+  const float* g_dn = g_depth_nan.numel() ? g_depth_nan.data_ptr<float>() : nullptr;
   at::Tensor g_depth = at::empty({B, 1, H, W}, depth.options()), g_in = at::empty({B, 3, H, W}, depth.options());
   float *gd = g_depth.data_ptr<float>(), *gi = g_in.data_ptr<float>();
   // the n lanes of channel c of an interleaved (B, H, W, 3) gradient from pixel p, or 0 where none was given
-  auto channel = [](const float* g, int64_t p, int n, int c) {
+  auto channel = [](const float* g, int64_t p, int n, int c, int channels = 3) {
     alignas(64) float lane[L] = {};
     if (g)
-      for (int l = 0; l < n; ++l) lane[l] = g[3 * (p + l) + c];
+      for (int l = 0; l < n; ++l) lane[l] = g[channels * (p + l) + c];
     return Vec::loadu(lane);
   };
   for_each_block(depth, normals, valid, intrinsics, [&](const PixelGeometry<Vec>& g, int64_t p, int n, int64_t b,
@@ -165,6 +182,8 @@ std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_po
       slope = slope + to_pos[c] * g.ray[c];
       store_channel(select(g.valid, to_n[c], Vec(0.0f)), gi + (3 * b + c) * plane + q, n, 1);
     }
+    const Vec inverse = Vec(1.0f) / neg(g.pos[2]);  // (d (1 / d) / d d = -(1 / d)^2)
+    slope = slope + channel(g_dn, p, n, 0, 1) - channel(g_inv, p, n, 0, 1) * (inverse * inverse);
     store_channel(select(g.valid, slope, Vec(0.0f)), gd + p, n, 1);
   });
   return {g_depth, g_in};
@@ -173,9 +192,10 @@ std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_po
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
-  m.def("view_geometry(Tensor depth, Tensor normals, Tensor valid, Tensor intrinsics) -> (Tensor, Tensor)");
-  m.def("view_geometry_backward(Tensor g_positions, Tensor g_normals, Tensor depth, Tensor normals, Tensor valid, "
-        "Tensor intrinsics) -> (Tensor, Tensor)");
+  m.def("view_geometry(Tensor depth, Tensor normals, Tensor valid, Tensor intrinsics) -> (Tensor, Tensor, Tensor, "
+        "Tensor)");
+  m.def("view_geometry_backward(Tensor g_positions, Tensor g_normals, Tensor g_inverse, Tensor g_depth_nan, "
+        "Tensor depth, Tensor normals, Tensor valid, Tensor intrinsics) -> (Tensor, Tensor)");
   m.impl("view_geometry", c10::DispatchKey::CPU, TORCH_FN(view_geometry));
   m.impl("view_geometry_backward", c10::DispatchKey::CPU, TORCH_FN(view_geometry_backward));
 }
