@@ -41,7 +41,7 @@ def view_geometry(gbuffer: GBuffer, method: str) -> None:
 
     The pass gives the tensor ops' values (``GBuffer.positions``, ``_unit_facing``) channel-last, which is
     what :func:`walk_inputs` hands the kernels, and its backward is their closed form in one pass: at 640x360, one
-    thread, about 6 ms for both against 17 ms of torch ops (docs/performance.md). Not twice differentiable (the
+    thread, about 6 ms for both against 19 ms of torch ops (docs/performance.md). Not twice differentiable (the
     kernels' backwards are not either)."""
     depth, normals, cam = gbuffer.depth, gbuffer.normals, gbuffer.camera
     if (torch.compiler.is_compiling() or not torch.is_grad_enabled() or normals is None or gbuffer.position is not None
