@@ -23,9 +23,8 @@ def walk_inputs(gbuffer: GBuffer, normals: torch.Tensor) -> tuple[torch.Tensor, 
     intrinsics ``(B,4)`` ``(fx, fy, cx, cy)`` in pixels."""
     valid = gbuffer.valid[:, 0].contiguous()
     inverse, depth = gbuffer.derived("walk_depths", lambda: _walk_depths(gbuffer, valid))
-    cam = gbuffer.camera
-    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).contiguous()
-    return channels_last(gbuffer.positions()), channels_last(normals), inverse, depth, valid, intrinsics
+    return (channels_last(gbuffer.positions()), channels_last(normals), inverse, depth, valid,
+            _intrinsics(gbuffer).contiguous())
 
 
 def _walk_depths(gbuffer: GBuffer, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -33,11 +32,18 @@ def _walk_depths(gbuffer: GBuffer, valid: torch.Tensor) -> tuple[torch.Tensor, t
     return torch.where(valid, safe.reciprocal(), torch.nan), torch.where(valid, safe, torch.nan)
 
 
+def _intrinsics(gbuffer: GBuffer) -> torch.Tensor:
+    """``(B,4)`` float32 ``(fx, fy, cx, cy)`` in pixels (a view: not contiguous)."""
+    cam = gbuffer.camera
+    return torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).expand(gbuffer.depth.shape[0], 4)
+
+
 def view_geometry(gbuffer: GBuffer, method: str) -> None:
     """Compute ``gbuffer``'s positions and view normals (``gbuffer.view_normals(method)``), and :func:`walk_inputs`'
-    inverse depth and depth, in one C++ pass and keep them for the rest of the call, where a kernel's call records gradients through the G-buffer: a CPU float32
-    G-buffer in :meth:`~torch_ao.GBuffer.one_call`, with normals, no position buffer and intrinsics that need no
-    gradient. Else (and for a second call within one :meth:`~torch_ao.GBuffer.one_call`) nothing is done.
+    inverse depth and depth, in one C++ pass and keep them for the rest of the call, where a kernel's call records
+    gradients through the G-buffer: a CPU float32 G-buffer in :meth:`~torch_ao.GBuffer.one_call`, with normals, no
+    position buffer and intrinsics that need no gradient. Else (and for a second call within one
+    :meth:`~torch_ao.GBuffer.one_call`) nothing is done.
 
     The pass gives the tensor ops' values (``GBuffer.positions``, ``_unit_facing``) channel-last, which is
     what :func:`walk_inputs` hands the kernels, and its backward is their closed form in one pass: at 640x360, one
@@ -53,10 +59,8 @@ def view_geometry(gbuffer: GBuffer, method: str) -> None:
     from .build import cpu_kernels
 
     cpu_kernels()  # (KernelUnavailable when it cannot be built: the caller's kernel could not run either)
-    valid = gbuffer.valid.contiguous()
-    intrinsics = torch.stack((cam.fx, cam.fy, cam.cx, cam.cy), -1).to(torch.float32).expand(depth.shape[0], 4)
-    positions, unit, inverse, depth_nan = _ViewGeometry.apply(depth.contiguous(), normals.contiguous(), valid,
-                                                              intrinsics.contiguous())
+    inputs = (depth.contiguous(), normals.contiguous(), gbuffer.valid.contiguous(), _intrinsics(gbuffer).contiguous())
+    positions, unit, inverse, depth_nan = _ViewGeometry.apply(*inputs)
     gbuffer.keep("positions", positions.permute(0, 3, 1, 2))
     gbuffer.keep(("view_normals", method), unit.permute(0, 3, 1, 2))
     gbuffer.keep("walk_depths", (inverse, depth_nan))
