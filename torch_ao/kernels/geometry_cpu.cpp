@@ -2,8 +2,8 @@
 // view_geometry): GBuffer.positions (the depth unprojected, background at depth 1) and GBuffer.view_normals of a
 // G-buffer with normals (_unit_facing: unit length, the direction toward the camera on background, turned to
 // face the camera), channel-last, the inverse depth and the depth that walk_inputs hands the kernels, and their
-// backward to the depth and the normals. The tensor ops stay the
-// definition (and run everywhere else: float64, CUDA, the tensor-op walk); these are their arithmetic per pixel.
+// backward to the depth and the normals. The tensor ops stay the definition (and run everywhere else: float64,
+// CUDA, the tensor-op walk); these are their arithmetic per pixel.
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
@@ -33,8 +33,9 @@ template <class F> struct PixelGeometry {
   M valid;
 
   PixelGeometry(const Image& img, const F& u, const F& v, const F& depth, const F* normal, const M& ok) : valid(ok) {
-    unproject(img, u, v, select(ok, depth, F(1.0f)), pos);  // (GBuffer.safe_depth)
     unproject(img, u, v, F(1.0f), ray);
+    const F safe = select(ok, depth, F(1.0f));  // (GBuffer.safe_depth)
+    for (int c = 0; c < 3; ++c) pos[c] = ray[c] * safe;  // (unproject's at depth safe, bit for bit)
     F largest(0.0f);
     for (int c = 0; c < 3; ++c) {
       n[c] = select(ok, normal[c], neg(pos[c]));
@@ -132,10 +133,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> view_geometry(const a
   return {positions, unit, inverse, depth_nan};
 }
 
-// torch_ao_kernels::view_geometry_backward: d L / d depth (B, 1, H, W) and d L / d normals (B, 3, H, W) from those of
-// the positions and the unit normals (B, H, W, 3), the inverse depth and the depth (B, H, W) (each empty: none). The normal's is normalize_channels' closed
-// form ((g - n (g . n)) / |n|, g / eps where the norm is clamped) through the sign and the scale; on background it
-// reaches the position, whose depth there is the constant 1.
+// torch_ao_kernels::view_geometry_backward: d L / d depth (B, 1, H, W) and d L / d normals (B, 3, H, W) from those
+// of the positions and the unit normals (B, H, W, 3), the inverse depth and the depth (B, H, W) (each empty: none).
+// The normal's is normalize_channels' closed form ((g - n (g . n)) / |n|, g / eps where the norm is clamped)
+// through the sign and the scale; on background it reaches the position, whose depth there is the constant 1.
 std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_positions, const at::Tensor& g_normals,
                                                           const at::Tensor& g_inverse, const at::Tensor& g_depth_nan,
                                                           const at::Tensor& depth, const at::Tensor& normals,
