@@ -73,7 +73,21 @@ CASES = {
 KERNEL_SUMS = {GTAO: ("gtao", "gtao_sums"), HBAO: ("gtao", "hbao_sums"), UE4SSAO: ("ssao", "ue4_ssao_sums"),
                PSSAO: ("ssao", "pssao_sums")}
 COVERS = {GTAO: gtao_covers, HBAO: hbao_covers, UE4SSAO: ue4_ssao_covers, PSSAO: pssao_covers}
-FRAMES = {"example": lambda: example_gbuffer(24, 40), "rough": lambda: rough_gbuffer(20, 28)}
+
+
+def patch_gbuffer() -> GBuffer:
+    """A plane facing the camera with the rough frame's bumps in one window: HBAO's plane samples never rise
+    above its tangent (lifted by the angle bias), so the pixels of a row far from the bumps take no step in any
+    direction, and those beside them take steps only in the directions toward the bumps: walk_grad.h's backward
+    skips the directions (and the rows' blocks of pixels) that took nothing."""
+    gb = rough_gbuffer(20, 64)
+    bumps = torch.zeros_like(gb.depth, dtype=torch.bool)
+    bumps[..., 6:16, 26:38] = True  # (in front of the plane: 0.7 to 1.95)
+    return GBuffer(depth=torch.where(bumps, gb.depth - 0.7, torch.where(gb.depth.isinf(), gb.depth, 2.0)),
+                   camera=gb.camera)
+
+
+FRAMES = {"example": lambda: example_gbuffer(24, 40), "rough": lambda: rough_gbuffer(20, 28), "patch": patch_gbuffer}
 
 
 def _reference_dtype(frame: str, options: dict) -> torch.dtype:
@@ -92,7 +106,8 @@ def _reference_dtype(frame: str, options: dict) -> torch.dtype:
 PAIRS = [(case, "rough") for case in sorted(CASES)] + [
     (case, "example") for case in sorted(CASES)
     if CASES[case][1].get("fetch", "bilinear") == "bilinear" and CASES[case][1].get("border", "drop") == "drop"
-    and CASES[case][0] is not PSSAO]  # (PSSAO's max(n . d, 0) of a plane's own samples sits at its kink, n . d = 0)
+    and CASES[case][0] is not PSSAO] + [  # (PSSAO's max(n . d, 0) of a plane's own samples sits at its kink, n . d = 0)
+    (case, "patch") for case in sorted(CASES) if CASES[case][0] is HBAO]
 
 def _module(case: str, backend: str):
     """The case's module on ``backend``, its frozen parameters not requiring gradients."""

@@ -37,6 +37,9 @@ struct GTAOAccumulator {
   // whether every valid sample's step carries a derivative, even one that leaves the state's value as it
   // was (ue4's thickness blend: at thickness 1 its value stays, its derivative in the thickness does not)
   TAO_FN bool blends_every_sample() const { return variant == GTAOVariant::ue4; }
+  // whether a slice whose steps took nothing adds a constant to the outputs (its backward replays nothing): not
+  // here, where each side's horizon starts at the slice's own hemisphere edge
+  TAO_FN bool untaken_slice_constant() const { return false; }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>& sl) const {
     if (variant == GTAOVariant::exact)  // the smallest angle from V per side, from the hemisphere boundary
@@ -145,6 +148,8 @@ struct HBAOAccumulator {
   // incremental sum of every rise
   TAO_FN bool replaces() const { return !incremental; }
   TAO_FN bool blends_every_sample() const { return false; }
+  // a slice without a rise adds 0, whatever the pixel (its sum and weight stay 0): its backward replays nothing
+  TAO_FN bool untaken_slice_constant() const { return true; }
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
     F t;

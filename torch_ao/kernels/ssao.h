@@ -82,6 +82,8 @@ struct PSSAOAccumulator {
   // best alone (kTakeComponents: the state's first)
   TAO_FN bool replaces() const { return true; }
   TAO_FN bool blends_every_sample() const { return false; }
+  // a slice without a take had no sample in the image (the first one always raises the maximum): it adds 0
+  TAO_FN bool untaken_slice_constant() const { return true; }
   static constexpr int kTakeComponents = 1;
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {

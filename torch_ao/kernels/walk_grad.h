@@ -15,7 +15,9 @@
 //     begin_slice, the takes' samples (fetch_sample: each fetched position a leaf) and steps, end_slice and
 //     finish. The pixel's own position, normal and depth are leaves (seed_pixel), recorded once per block
 //     before its slices; the accumulator's settings (seed_setting: GTAO's falloff or thickness, HBAO's angle
-//     bias) and, where asked, the intrinsics (seed_camera) a leaf each per slice.
+//     bias) and, where asked, the intrinsics (seed_camera) a leaf each per slice. Where a slice without takes
+//     adds a constant to the outputs (acc.untaken_slice_constant(): HBAO, PSSAO), a slice no lane of the block
+//     took a step in is not replayed, and a block with no take at all not even its pixel.
 //  3. the upstream gradients seeded on the slice's outputs and swept back over the slice's nodes give d loss /
 //     d each take's fetched position, chained to its taps: for a bilinear fetch pos = q / (sum_k w_k t_k), so
 //     d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's position itself. The edge-aware fetch is
@@ -222,6 +224,13 @@ template <int L> struct Replay {
     for (int l = 1; l < L; ++l) m = count[k][l] > m ? count[k][l] : m;
     return m;
   }
+  // whether any of the n pixels from p took a step in any of the slices (words per side and pixel)
+  static TAO_FN bool any_taken(const int64_t* record, int64_t p, int n, int64_t slices, int64_t words) {
+    const int64_t* b = record + p * slices * 2 * words;
+    for (int64_t i = 0; i < int64_t(n) * slices * 2 * words; ++i)
+      if (b[i] != 0) return true;
+    return false;
+  }
   // the record of slice s of the n pixels from p (words per side and pixel)
   TAO_FN void read(const int64_t* record, int64_t p, int n, int64_t slices, int64_t s, int64_t words) {
     for (int k = 0; k < 2; ++k) {
@@ -373,6 +382,11 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
     }
     if (none) return;  // (no gradient flows: the outputs' zeros stand)
   }
+  // (a block whose slices took nothing, where that leaves the outputs constant: none flows either)
+  if constexpr (RecordsTakes<Acc>::value)
+    if (acc.untaken_slice_constant() &&
+        !Replay<L>::any_taken(record, row * img.W + u0, n, cfg.slices, take_words(cfg)))
+      return;
   current_tape<B>() = &tape;
   tape.cut(0);
   tape.camera = t.camera != nullptr;
@@ -387,11 +401,14 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   for (int k = 0; k < 4; ++k) camera[k] = B(0.0f);
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = 0; s < cfg.slices; ++s) {
+    if constexpr (RecordsTakes<Acc>::value) {
+      takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
+      if (acc.untaken_slice_constant() && takes.most(0) == 0 && takes.most(1) == 0) continue;
+    }
     const Slice<R> sl = walked_slice<Acc>(cfg, img, px, s);
     typename Acc::template State<R> state = acc.begin_slice(px, sl);
     fetches.n = 0;
     if constexpr (RecordsTakes<Acc>::value) {  // the recorded takes alone
-      takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
       for (int side = 1; side >= (cfg.full_circle ? 1 : -1); side -= 2) {
         const int k = side > 0 ? 0 : 1;
         const R xi = step_noise(cfg, px, sl, side);
