@@ -15,6 +15,7 @@ namespace tao {
 // WedgeAccumulator: per direction the running (x, y) of acc = lerp(acc, (max(acc.x, x), 1), Weight)
 struct WedgeAccumulator {
   static constexpr bool kPairedSides = true;  // step_pair: both sides of step j together (walk_pairs)
+  static constexpr bool kScreenOnly = true;   // (walked_slice: the slice's projected normal is not read)
   float fade_distance;      // D of the halo weight, clamped to 1e-30 (world units)
   float flat_surface_bias;  // world units
   float flat_softness;      // > 0: the logistic blend of the flat-surface test
@@ -85,6 +86,7 @@ struct PSSAOAccumulator {
   // a slice without a take had no sample in the image (the first one always raises the maximum): it adds 0
   TAO_FN bool untaken_slice_constant() const { return true; }
   static constexpr int kTakeComponents = 1;
+  static constexpr bool kScreenOnly = true;  // (walked_slice: the slice's projected normal is not read)
 
   template <class F> TAO_FN State<F> begin_slice(const Pixels<F>&, const Slice<F>&) const {
     return State<F>{F(-100000.0f), F(0.0f)};

@@ -238,7 +238,8 @@ template <class F> struct Pixels {
 // slice_geometry: the slice tangent T, its plane's axis, the projected normal's length, its angle gamma
 // from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
 // (with the GLSL placement only the screen direction and T: the shader places its steps from the
-// direction and measures its own angles)
+// direction and measures its own angles; without normal, the walk's alone: axis, length, gamma and its sine 0,
+// its cosine 1)
 template <class F> struct Slice {
   F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
   F screen_length;  // pixels per world unit along T (|du, dv|: unit_u, unit_v are du, dv over it)
@@ -246,7 +247,8 @@ template <class F> struct Slice {
   int64_t index;
 
   TAO_FN explicit Slice(int64_t s) : index(s) {}  // no geometry (walked_slice: the hemisphere's kernel points)
-  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) : index(s) {
+  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s, bool normal = true)
+      : index(s) {
     F angle;
     if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
       angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
@@ -278,16 +280,21 @@ template <class F> struct Slice {
       for (int c = 0; c < 3; ++c) T[c] = cs * px.e1[c] + sn * px.e2[c];
     }
     if (cfg.placement == Steps::glsl) return;
-    cross(T, px.V, axis);
-    const F nd = dot3(px.N, axis);
-    F np[3];
-    for (int c = 0; c < 3; ++c) np[c] = px.N[c] - axis[c] * nd;
-    length = norm3(np);
-    const F y = dot3(np, T), x = dot3(np, px.V);
-    gamma = atan2(y, x);
-    const auto flat = length > F(1e-30f);  // atan2(0, 0) = 0: cos 1, sin 0
-    cos_gamma = select(flat, x / clamp_min(length, F(1e-30f)), F(1.0f));
-    sin_gamma = select(flat, y / clamp_min(length, F(1e-30f)), F(0.0f));
+    if (normal) {
+      cross(T, px.V, axis);
+      const F nd = dot3(px.N, axis);
+      F np[3];
+      for (int c = 0; c < 3; ++c) np[c] = px.N[c] - axis[c] * nd;
+      length = norm3(np);
+      const F y = dot3(np, T), x = dot3(np, px.V);
+      gamma = atan2(y, x);
+      const auto flat = length > F(1e-30f);  // atan2(0, 0) = 0: cos 1, sin 0
+      cos_gamma = select(flat, x / clamp_min(length, F(1e-30f)), F(1.0f));
+      sin_gamma = select(flat, y / clamp_min(length, F(1e-30f)), F(0.0f));
+    } else {
+      for (int c = 0; c < 3; ++c) axis[c] = F(0.0f);
+      length = gamma = sin_gamma = F(0.0f), cos_gamma = F(1.0f);
+    }
     // screen motion (pixels per world unit along +T) of the projection (fx x/d + cx, -fy y/d + cy)
     const F du = (seed_camera(F(img.fx), 0) * (T[0] + (px.P[0] * T[2]) / px.depth)) / px.depth;
     const F dv = (neg(seed_camera(F(img.fy), 1)) * (T[1] + (px.P[1] * T[2]) / px.depth)) / px.depth;
@@ -701,13 +708,24 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
   static constexpr bool value = Acc::kKernelPoints;
 };
 
-// Slice s of the walk as Acc takes it: its geometry, or none for an accumulator of kernel points (walk_points)
+// Whether an accumulator reads the slice's projected normal (its length, its angle gamma): all but those whose
+// kScreenOnly says they read the slice's screen direction and extent alone (UE4 SSAO's wedges, PSSAO), whose
+// walk leaves the normal's arithmetic out (and their backward's tape its nodes)
+template <class Acc, class = void> struct ReadsSliceNormal {
+  static constexpr bool value = true;
+};
+template <class Acc> struct ReadsSliceNormal<Acc, decltype(void(Acc::kScreenOnly))> {
+  static constexpr bool value = !Acc::kScreenOnly;
+};
+
+// Slice s of the walk as Acc takes it: its geometry (without the projected normal where Acc reads none), or none
+// for an accumulator of kernel points (walk_points)
 template <class Acc, class F>
 TAO_FN Slice<F> walked_slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
   if constexpr (KernelPoints<Acc>::value) {
     return Slice<F>(s);
   } else {
-    return Slice<F>(cfg, img, px, s);
+    return Slice<F>(cfg, img, px, s, ReadsSliceNormal<Acc>::value);
   }
 }
 

@@ -179,7 +179,7 @@ TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& a
   for (int64_t s = 0; s < cfg.slices; ++s) {
     Takes<B, Acc> takes(acc, px.live, words, bits);
     if (any(px.live)) {
-      const Slice<B> sl(cfg, img, px, s);
+      const Slice<B> sl = walked_slice<Acc>(cfg, img, px, s);
       typename Acc::template State<B> state = acc.begin_slice(px, sl);
       walk_slice(cfg, img, acc, px, sl, state, takes);
       takes.end_slice();
