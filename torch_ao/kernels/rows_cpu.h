@@ -36,13 +36,19 @@ void over_rows(int64_t rows, const Fn& fn) {
 // next rows' samples fall on texels the last rows brought into the cache (row after row over the whole width,
 // they had left it: hard ssilvb_glsl at 1280x720, 4 x 8, 13 % faster)
 constexpr int64_t kStrip = 128;  // a multiple of every lane width
-template <int L, class Fn>
-void for_each_block(int64_t B, int64_t H, int64_t W, bool scalar, const Fn& fn) {
-  static_assert(kStrip % L == 0, "a strip holds whole blocks");
+// fn(b, row, u_begin, u_end) for every row of every strip (for_each_block's units)
+template <class Fn>
+void for_each_strip_row(int64_t B, int64_t H, int64_t W, const Fn& fn) {
   const int64_t strips = (W + kStrip - 1) / kStrip;
   over_rows(B * strips * H, [&](int64_t r) {  // (b, strip, row)
     const int64_t b = r / (strips * H), row = r % H, u_begin = (r / H) % strips * kStrip;
-    const int64_t u_end = std::min(W, u_begin + kStrip);
+    fn(b, row, u_begin, std::min(W, u_begin + kStrip));
+  });
+}
+template <int L, class Fn>
+void for_each_block(int64_t B, int64_t H, int64_t W, bool scalar, const Fn& fn) {
+  static_assert(kStrip % L == 0, "a strip holds whole blocks");
+  for_each_strip_row(B, H, W, [&](int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
     if (scalar) {
       for (int64_t u = u_begin; u < u_end; ++u) fn(b, row, u, 1, std::false_type{});
       return;

@@ -168,10 +168,21 @@ template <class F> TAO_FN void unproject(const Image& img, const F& u, const F& 
   pos[2] = neg(d);
 }
 
+// The pixels of a row a block's lanes hold: the n <= L columns from u0 on, or the n columns of cols (a gathered
+// block); column(l) of a lane from n on: u0 + l, or the last column (its pixel's data is the last lane's)
+struct RowLanes {
+  int64_t row, u0;
+  int n;
+  const int64_t* cols = nullptr;
+  TAO_FN int64_t column(int l) const { return cols ? cols[l < n ? l : n - 1] : u0 + l; }
+  TAO_FN int64_t pixel(int64_t W, int l) const { return row * W + column(l < n ? l : n - 1); }
+};
+
 // L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
 // noise xi (with the GLSL noise the shader's jitter, its slice angles' too), the basis
 // e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise (SlicePattern._noise:
-// 0 without jitter). Lanes past the row's end repeat its last pixel and are not live.
+// 0 without jitter), of the pixels of a row RowLanes says. Lanes past the row's end (past n) repeat its last pixel
+// and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
@@ -180,18 +191,21 @@ template <class F> struct Pixels {
   M live;
   int64_t row, u0;
 
-  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, int64_t row_, int64_t u0_, int n) : row(row_), u0(u0_) {
+  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, int64_t row_, int64_t u0_, int n)
+      : Pixels(cfg, img, RowLanes{row_, u0_, n}) {}
+  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, const RowLanes& lanes) : row(lanes.row), u0(lanes.column(0)) {
+    const int n = lanes.n;
     float lane[10][L];
     for (int l = 0; l < L; ++l) {
-      const int64_t p = row * img.W + u0 + (l < n ? l : n - 1);
+      const int64_t p = lanes.pixel(img.W, l);
       for (int c = 0; c < 3; ++c) {
         lane[c][l] = img.positions[3 * p + c];
         lane[3 + c][l] = img.normals[3 * p + c];
       }
       lane[6][l] = img.valid[p] ? img.depth[p] : 1.0f;  // (GBuffer.safe_depth)
-      lane[7][l] = float(u0 + l);
+      const int64_t col = lanes.column(l);
+      lane[7][l] = float(col);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
-      const int64_t col = u0 + l;
       if (cfg.noise == Noise::glsl || cfg.noise == Noise::glsl_mediump) {  // one jitter, no rotation of its own
         lane[9][l] = cfg.jitter ? glsl_jitter(float(col), float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
         rotation[l] = 0.0f;

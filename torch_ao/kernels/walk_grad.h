@@ -99,11 +99,12 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
 // The words of a record per (pixel, slice, side)
 TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
 
-// The pixels' own gradients of the n <= L lanes of a row from u0 (own: d L / d P (3), N (3), depth) into t, and
-// with setting its per-pixel d L / d the accumulator's t.settings settings, with camera d L / d the intrinsics
+// The pixels' own gradients of the lanes' n pixels (own: d L / d P (3), N (3), depth) added into t (zeros, or a
+// gathered block's earlier slices'), and with setting its per-pixel d L / d the accumulator's t.settings settings,
+// with camera d L / d the intrinsics
 template <class B>
-TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int n, const B* own,
-                      const B* setting = nullptr, const B* camera = nullptr) {
+TAO_FN void write_own(const Targets& t, int64_t W, const RowLanes& lanes, const B* own, const B* setting = nullptr,
+                      const B* camera = nullptr) {
   constexpr int L = LaneTraits<B>::L;
   constexpr int kMost = Tape<B>::kSettings;
   float ol[kPixel + kMost + 4][L];
@@ -112,15 +113,21 @@ TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int 
     for (int k = 0; k < t.settings; ++k) to_lanes(setting[k], ol[kPixel + k]);
   if (camera)
     for (int k = 0; k < 4; ++k) to_lanes(camera[k], ol[kPixel + kMost + k]);
-  for (int l = 0; l < n; ++l) {
-    const int64_t p = row * W + u0 + l;
-    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] = ol[c][l], t.normals[3 * p + c] = ol[3 + c][l];
-    t.depth[p] = ol[6][l];
+  for (int l = 0; l < lanes.n; ++l) {
+    const int64_t p = lanes.pixel(W, l);
+    for (int c = 0; c < 3; ++c) t.positions[3 * p + c] += ol[c][l], t.normals[3 * p + c] += ol[3 + c][l];
+    t.depth[p] += ol[6][l];
     if (setting)
-      for (int k = 0; k < t.settings; ++k) t.setting[t.settings * p + k] = ol[kPixel + k][l];
+      for (int k = 0; k < t.settings; ++k) t.setting[t.settings * p + k] += ol[kPixel + k][l];
     if (camera)
-      for (int k = 0; k < 4; ++k) t.camera[4 * p + k] = ol[kPixel + kMost + k][l];
+      for (int k = 0; k < 4; ++k) t.camera[4 * p + k] += ol[kPixel + kMost + k][l];
   }
+}
+// (the n <= L pixels of a row from u0)
+template <class B>
+TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int n, const B* own,
+                      const B* setting = nullptr, const B* camera = nullptr) {
+  write_own(t, W, RowLanes{row, u0, n}, own, setting, camera);
 }
 
 // The record of a slice (the forward's visitor): per side and lane the steps that changed the state (the
@@ -224,20 +231,21 @@ template <int L> struct Replay {
     for (int l = 1; l < L; ++l) m = count[k][l] > m ? count[k][l] : m;
     return m;
   }
-  // whether any of the n pixels from p took a step in any of the slices (words per side and pixel)
-  static TAO_FN bool any_taken(const int64_t* record, int64_t p, int n, int64_t slices, int64_t words) {
-    const int64_t* b = record + p * slices * 2 * words;
-    for (int64_t i = 0; i < int64_t(n) * slices * 2 * words; ++i)
+  // whether pixel p took a step in slice s (only: -1, any slice; words per side and pixel)
+  static TAO_FN bool taken(const int64_t* record, int64_t p, int64_t slices, int64_t only, int64_t words) {
+    const int64_t* b = record + (p * slices + (only < 0 ? 0 : only)) * 2 * words;
+    for (int64_t i = 0; i < (only < 0 ? slices : 1) * 2 * words; ++i)
       if (b[i] != 0) return true;
     return false;
   }
-  // the record of slice s of the n pixels from p (words per side and pixel)
-  TAO_FN void read(const int64_t* record, int64_t p, int n, int64_t slices, int64_t s, int64_t words) {
+  // the record of slice s of the lanes' pixels in image W wide (words per side and pixel)
+  TAO_FN void read(const int64_t* record, const RowLanes& lanes, int64_t W, int64_t slices, int64_t s, int64_t words) {
     for (int k = 0; k < 2; ++k) {
       for (int l = 0; l < L; ++l) {
         int q = 0;
-        if (l < n) {
-          const auto* b = reinterpret_cast<const uint64_t*>(record) + (((p + l) * slices + s) * 2 + k) * words;
+        if (l < lanes.n) {
+          const auto* b =
+              reinterpret_cast<const uint64_t*>(record) + ((lanes.pixel(W, l) * slices + s) * 2 + k) * words;
           for (int64_t w = 0; w < words; ++w)
             for (uint64_t x = b[w]; x; x &= x - 1) at(k, q++)[l] = float(64 * w + lowest_bit(x));
         }
@@ -359,38 +367,41 @@ template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
 constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60;
 TAO_FN int32_t tape_capacity(int64_t steps) { return kTapePixel + kTapeSlice + int32_t(2 * steps) * kTapeTake; }
 
-// The backward of the n <= L pixels of a row from u0: upstream[c] the gradient of output channel c (H, W),
-// record the forward's (image b's), t where the gradients go; scratch: take_steps 2 steps L floats, taken 2
-// steps takes, tape of tape_capacity(steps) nodes (overflow: the gradients are not written and tape.overflow
-// says so)
+// The backward of the lanes' pixels: upstream[c] the gradient of output channel c (H, W), record the forward's
+// (image b's), t where the gradients go (added to it); of every slice, or of slice `only` alone (>= 0: a gathered
+// block's); scratch: take_steps 2 steps L floats, taken 2 steps takes, tape of tape_capacity(steps) nodes
+// (overflow: the gradients are not written and tape.overflow says so)
 template <class B, class Acc>
-TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
+TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc, const RowLanes& lanes, int64_t only,
                        const float* const* upstream, int C, const int64_t* record, const Targets& t,
                        float* take_steps, TapedTake<B>* taken, Tape<B>& tape) {
   using R = Rev<B>;
   constexpr int L = LaneTraits<B>::L;
+  const int n = lanes.n;
   B g[8];
   {
     float lane[L];
     bool none = true;
     for (int c = 0; c < C; ++c) {
       for (int l = 0; l < L; ++l) {
-        lane[l] = l < n ? upstream[c][row * img.W + u0 + l] : 0.0f;
+        lane[l] = l < n ? upstream[c][lanes.pixel(img.W, l)] : 0.0f;
         none = none && lane[l] == 0.0f;
       }
       g[c] = from_lanes(lane, B(0.0f));
     }
     if (none) return;  // (no gradient flows: the outputs' zeros stand)
   }
-  // (a block whose slices took nothing, where that leaves the outputs constant: none flows either)
-  if constexpr (RecordsTakes<Acc>::value)
-    if (acc.untaken_slice_constant() &&
-        !Replay<L>::any_taken(record, row * img.W + u0, n, cfg.slices, take_words(cfg)))
-      return;
+  // (pixels whose slices took nothing, where that leaves the outputs constant: none flows either)
+  if constexpr (RecordsTakes<Acc>::value) {
+    bool any_taken = !acc.untaken_slice_constant();
+    for (int l = 0; l < n && !any_taken; ++l)
+      any_taken = Replay<L>::taken(record, lanes.pixel(img.W, l), cfg.slices, only, take_words(cfg));
+    if (!any_taken) return;
+  }
   current_tape<B>() = &tape;
   tape.cut(0);
   tape.camera = t.camera != nullptr;
-  const Pixels<R> px(cfg, img, row, u0, n);
+  const Pixels<R> px(cfg, img, lanes);
   if (!any(px.live) || tape.overflow) return;
   const Pixels<B> px_values(px, [](const R& x) { return x.v; });
   TapedFetches<B> fetches{&px_values, taken, 0};
@@ -400,9 +411,9 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   for (int k = 0; k < Tape<B>::kSettings; ++k) setting[k] = B(0.0f);
   for (int k = 0; k < 4; ++k) camera[k] = B(0.0f);
   Replay<L> takes(take_steps, cfg.steps);
-  for (int64_t s = 0; s < cfg.slices; ++s) {
+  for (int64_t s = only < 0 ? 0 : only; s < (only < 0 ? cfg.slices : only + 1); ++s) {
     if constexpr (RecordsTakes<Acc>::value) {
-      takes.read(record, row * img.W + u0, n, cfg.slices, s, take_words(cfg));
+      takes.read(record, lanes, img.W, cfg.slices, s, take_words(cfg));
       if (acc.untaken_slice_constant() && takes.most(0) == 0 && takes.most(1) == 0) continue;
     }
     const Slice<R> sl = walked_slice<Acc>(cfg, img, px, s);
@@ -453,7 +464,14 @@ TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc
   tape.sweep(0);
   B own[kPixel];
   for (int k = 0; k < kPixel; ++k) own[k] = tape.adjoint[tape.own[k]];
-  write_own(t, img.W, row, u0, n, own, setting, t.camera ? camera : nullptr);
+  write_own(t, img.W, lanes, own, setting, t.camera ? camera : nullptr);
+}
+// (the n <= L pixels of a row from u0, every slice)
+template <class B, class Acc>
+TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
+                       const float* const* upstream, int C, const int64_t* record, const Targets& t,
+                       float* take_steps, TapedTake<B>* taken, Tape<B>& tape) {
+  grad_lanes(cfg, img, acc, RowLanes{row, u0, n}, -1, upstream, C, record, t, take_steps, taken, tape);
 }
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps

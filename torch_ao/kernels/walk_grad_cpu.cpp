@@ -142,8 +142,38 @@ void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, floa
   });
 }
 
+// Whether gathering the pixels of a strip's row [u_begin, u_end) (from pixel p0 = row W) that took steps, slice by
+// slice, replays fewer nodes than their blocks of L lanes, every slice of a block that took any: a gathered block
+// replays its pixels once a slice, a block once; a slice's replay (its geometry and its takes) counts about three
+// times a pixel's (HBAO: a pixel 32 nodes, a slice 55 and 28 a take)
+template <int L>
+bool gathered_cost(const WalkSettings& cfg, const int64_t* record, int64_t p0, int64_t u_begin, int64_t u_end) {
+  constexpr int64_t kSliceCost = 3;
+  const int64_t words = take_words(cfg);
+  int64_t blocks = 0, block_slices = 0, groups = 0;
+  for (int64_t u0 = u_begin; u0 < u_end; u0 += L) {
+    bool any = false;
+    for (int64_t s = 0; s < cfg.slices; ++s) {
+      bool in_slice = false;
+      for (int64_t u = u0; u < std::min(u_end, u0 + L) && !in_slice; ++u)
+        in_slice = Replay<L>::taken(record, p0 + u, cfg.slices, s, words);
+      block_slices += in_slice, any = any || in_slice;
+    }
+    blocks += any;
+  }
+  for (int64_t s = 0; s < cfg.slices; ++s) {
+    int64_t n = 0;
+    for (int64_t u = u_begin; u < u_end; ++u) n += Replay<L>::taken(record, p0 + u, cfg.slices, s, words);
+    groups += (n + L - 1) / L;
+  }
+  return groups * (1 + kSliceCost) < blocks + block_slices * kSliceCost;
+}
+
 // The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes, each thread's
-// tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten)
+// tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten). Where a slice
+// without takes adds a constant (untaken_slice_constant: HBAO, PSSAO), few of a strip's pixels may have taken
+// steps in a slice: the SIMD lanes then gather them, slice by slice (gathered_cost), instead of replaying every
+// slice of the blocks that hold them
 template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
                 Gradients& out, bool scalar) {
@@ -152,8 +182,8 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
   const int64_t per_image = RecordsTakes<Acc>::value ? plane * cfg.slices * 2 * take_words(cfg) : 0;
   const int32_t capacity = tape_capacity(cfg.steps);
   std::atomic<bool> overflow{false};
-  torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
-    using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+  const auto replay = [&](auto lane, int64_t b, const RowLanes& lanes, int64_t only) {
+    using Lane = decltype(lane);
     thread_local std::vector<float> take_steps;
     thread_local std::vector<TapedTake<Lane>> taken;
     thread_local std::vector<Lane> partials, adjoints;
@@ -166,9 +196,32 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
     Tape<Lane> tape(partials.data(), parents.data(), adjoints.data(), capacity);
     const float* upstream[8];
     for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
-    grad_block<Lane>(cfg, fr.image(b), acc, row, u0, n, upstream, C, record + b * per_image,
+    grad_lanes<Lane>(cfg, fr.image(b), acc, lanes, only, upstream, C, record + b * per_image,
                      out.targets(b, B, plane, at::get_thread_num()), take_steps.data(), taken.data(), tape);
     if (tape.overflow) overflow = true;
+  };
+  bool gathers = false;
+  if constexpr (RecordsTakes<Acc>::value) gathers = !scalar && acc.untaken_slice_constant();
+  if (!gathers) {
+    torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+      replay(std::conditional_t<decltype(simd)::value, Vec, float>(0.0f), b, RowLanes{row, u0, n}, -1);
+    });
+    return !overflow;
+  }
+  torch_ao_rows::for_each_strip_row(B, fr.H, fr.W, [&](int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
+    const int64_t* rec = record + b * per_image;
+    int64_t cols[torch_ao_rows::kStrip];
+    if (gathered_cost<L>(cfg, rec, row * fr.W, u_begin, u_end)) {
+      for (int64_t s = 0; s < cfg.slices; ++s) {
+        int n = 0;
+        for (int64_t u = u_begin; u < u_end; ++u)
+          if (Replay<L>::taken(rec, row * fr.W + u, cfg.slices, s, take_words(cfg))) cols[n++] = u;
+        for (int g = 0; g < n; g += L) replay(Vec(0.0f), b, RowLanes{row, cols[g], std::min(L, n - g), cols + g}, s);
+      }
+    } else {
+      for (int64_t u0 = u_begin; u0 < u_end; u0 += L)
+        replay(Vec(0.0f), b, RowLanes{row, u0, int(std::min<int64_t>(L, u_end - u0))}, -1);
+    }
   });
   return !overflow;
 }
