@@ -295,7 +295,7 @@ TAO_FN Sample<D> replayed_sample(const WalkSettings& cfg, const Image& img, cons
   return smp;
 }
 
-// A replayed fetch: its position's leaves on the tape, and where its taps are
+// A replayed fetch: its position's nodes on the tape, and where its taps are
 template <class B> struct TapedTake {
   int32_t ids[3];
   typename LaneTraits<B>::I index[4];
@@ -311,12 +311,12 @@ template <class B> struct TapedFetches {
 };
 
 // walk.h's fetch_sample in reverse lanes (R = Rev<B>), the replay's: fetched in plain lanes, the fetched
-// position a leaf per component, moved as the fetch moves with the screen position (soft.h's fetch_motion: a
+// position a node per component, moving as the fetch moves with the screen position (soft.h's fetch_motion: a
 // bilinear fetch's d position / d su, d sv, and its unprojection's d / d the intrinsics where the tape asks; a
-// nearest one's texel does not move, and its position is the buffer's), less the pixel's own position (an
+// nearest one's texel does not move: a leaf, its position the buffer's), less the pixel's own position (an
 // invalid sample's delta is -V, as Sample's); fu, fv carry su, sv's derivatives (a layer read at the taps moves
-// with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape; its
-// leaves and taps appended to the tape's fetches.
+// with them). The same sample as Sample<R>'s, the fetch's arithmetic kept off the tape; the position's nodes (their
+// adjoints: d L / d the position read) and taps appended to the tape's fetches.
 template <class B>
 TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, const Pixels<Rev<B>>& pr,
                                    const Rev<B>& su, const Rev<B>& sv) {
@@ -331,20 +331,25 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
   Sample<R> smp(plain, [](const B& x) { return R(x); });
   if (cfg.bilinear) smp.fu = R::link(plain.fu, su, B(1.0f)), smp.fv = R::link(plain.fv, sv, B(1.0f));
   for (int c = 0; c < 3; ++c) take.pos[c] = plain.delta[c] + fetches.px->P[c];
+  const B one(1.0f), zero(0.0f);
+  const B in = select(plain.valid, one, zero), out = select(plain.valid, zero, neg(one));
   for (int c = 0; c < 3; ++c) {
-    take.ids[c] = tape->leaf();
-    R moved(take.pos[c], take.ids[c], tape);
-    if (cfg.bilinear) {
-      moved = R::link(take.pos[c], moved, B(1.0f), su, d_su[c], sv, d_sv[c]);  // (one node: the leaf was made last)
-      if (c < 2 && tape->camera) {  // the unprojection's intrinsics
-        B d_focal, d_centre;
-        unprojection_partials(img, take.pos, c, d_focal, d_centre);
-        const R f = seed_camera(R(B(c == 0 ? img.fx : img.fy)), c), centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
-        moved = R::link(take.pos[c], moved, B(1.0f), f, d_focal);
-        moved = R::link(take.pos[c], moved, B(1.0f), centre, d_centre);
-      }
+    // the fetched position: a node of the screen position (its first node: the take's, whose adjoint is
+    // d L / d the position read), or where it does not move (a nearest fetch, or a screen position made of
+    // constants) a leaf
+    R moved = cfg.bilinear ? R::link(take.pos[c], su, d_su[c], sv, d_sv[c]) : R(take.pos[c]);
+    if (moved.id < 0) moved = R(take.pos[c], tape->leaf(), tape);
+    take.ids[c] = moved.id;
+    if (cfg.bilinear && c < 2 && tape->camera) {  // the unprojection's intrinsics
+      B d_focal, d_centre;
+      unprojection_partials(img, take.pos, c, d_focal, d_centre);
+      const R f = seed_camera(R(B(c == 0 ? img.fx : img.fy)), c), centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
+      moved = R::link(take.pos[c], moved, one, f, d_focal);
+      moved = R::link(take.pos[c], moved, one, centre, d_centre);
     }
-    smp.delta[c] = select(plain.valid, R::link(plain.delta[c], moved, B(1.0f), pr.P[c], B(-1.0f)), neg(pr.V[c]));
+    // delta: the position less the pixel's where valid, else -V (Sample's), in one node (moved is the last made)
+    smp.delta[c] = R::link(select(plain.valid, plain.delta[c], neg(pr.V[c].v)), moved, in, pr.P[c], neg(in), pr.V[c],
+                           out);
   }
   for (int i = 0; i < 4; ++i) take.index[i] = plain.index[i];
   take.fu = plain.fu, take.fv = plain.fv, take.has = land(plain.valid, pr.live);
