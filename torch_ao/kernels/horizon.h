@@ -140,7 +140,9 @@ struct HBAOAccumulator {
   float radius, angle_bias;
   bool quadratic, incremental, view_elevation;
 
-  template <class F> struct State { F sin_t, sin_h, ao, w; };
+  // a step changes the state exactly where the horizon rises (its sine's change marks the takes, walk_grad.h)
+  template <class F> struct State { F sin_h, sin_t, ao, w; };
+  static constexpr int kTakeComponents = 1;
   template <class F> struct Sums { F ao = F(0.0f); };
   TAO_FN int channels() const { return 1; }
   TAO_FN int settings() const { return 1; }  // angle_bias (seed_setting)

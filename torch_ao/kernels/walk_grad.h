@@ -52,7 +52,8 @@ template <class Acc, class F> TAO_FN constexpr int state_size() {
 }
 template <class State, class F> TAO_FN F* components(State& s) { return reinterpret_cast<F*>(&s); }
 // How many of the state's first components decide whether a step took (changed it): Acc::kTakeComponents where
-// the rest carry no derivative (PSSAO's count), else all
+// the rest change only with them (HBAO's sum and weight, with its horizon) or carry no derivative (PSSAO's
+// count), else all
 template <class Acc, class F, class = void> struct TakeComponents {
   static constexpr int value = state_size<Acc, F>();
 };
