@@ -179,10 +179,10 @@ struct RowLanes {
 };
 
 // L pixels of a row (Frame's queries): P, N, V = normalize(-P), depth (and its inverse), u, v, the step
-// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), the basis
-// e1 = normalize(cross(+Y, V)), e2 = cross(V, e1) around V, and the slice rotation's noise (SlicePattern._noise:
-// 0 without jitter), of the pixels of a row RowLanes says. Lanes past the row's end (past n) repeat its last pixel
-// and are not live.
+// noise xi (with the GLSL noise the shader's jitter, its slice angles' too), the basis e1 = normalize(cross(+Y, V)),
+// e2 = cross(V, e1) around V (0 where the slices' tangents come from their screen angles), and the slice rotation's
+// noise (SlicePattern._noise: 0 without jitter), of the pixels of a row RowLanes says. Lanes past the row's end
+// (past n) repeat its last pixel and are not live.
 template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
@@ -230,12 +230,15 @@ template <class F> struct Pixels {
     v = F(float(row));
     live = from_lanes(lane[8], like) > F(0.5f);
     xi = from_lanes(lane[9], like);
-    const F minus[3] = {neg(P[0]), neg(P[1]), neg(P[2])};
-    normalize3(minus, V);
     distance = norm3(P);
-    const F c1[3] = {V[2], F(0.0f), neg(V[0])};  // cross(+Y, V)
-    normalize3(c1, e1);
-    cross(V, e1, e2);
+    for (int c = 0; c < 3; ++c) V[c] = neg(P[c]) / clamp_min(distance, F(1e-12f));  // (normalize3(-P): |-P| = |P|)
+    if (cfg.screen_azimuth) {  // (a slice's tangent from its screen angle: no basis around V)
+      for (int c = 0; c < 3; ++c) e1[c] = e2[c] = F(0.0f);
+    } else {
+      const F c1[3] = {V[2], F(0.0f), neg(V[0])};  // cross(+Y, V)
+      normalize3(c1, e1);
+      cross(V, e1, e2);
+    }
   }
 
   // the same pixels in another lane type, each value through to(x) (walk_grad_cpu.cpp: into a dual with more tangents)
