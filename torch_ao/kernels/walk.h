@@ -193,7 +193,8 @@ template <class F> struct Pixels {
 
   TAO_FN Pixels(const WalkSettings& cfg, const Image& img, int64_t row_, int64_t u0_, int n)
       : Pixels(cfg, img, RowLanes{row_, u0_, n}) {}
-  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, const RowLanes& lanes) : row(lanes.row), u0(lanes.column(0)) {
+  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, const RowLanes& lanes)
+      : row(lanes.row), u0(lanes.column(0)) {
     const int n = lanes.n;
     float lane[10][L];
     for (int l = 0; l < L; ++l) {

@@ -12,12 +12,13 @@
 //     exact minimum, HBAO's highest rise, PSSAO's maximum), only each side's last take is kept.
 //  2. the backward (grad_block) replays the slice in reverse lanes (lanes_rev.h: the walk records its
 //     arithmetic on a tape) through those takes alone (each lane its own step, step_screen in lanes):
-//     begin_slice, the takes' samples (fetch_sample: each fetched position a leaf) and steps, end_slice and
+//     begin_slice, the takes' samples (fetch_sample: each fetched position a node) and steps, end_slice and
 //     finish. The pixel's own position, normal and depth are leaves (seed_pixel), recorded once per block
 //     before its slices; the accumulator's settings (seed_setting: GTAO's falloff or thickness, HBAO's angle
 //     bias) and, where asked, the intrinsics (seed_camera) a leaf each per slice. Where a slice without takes
 //     adds a constant to the outputs (acc.untaken_slice_constant(): HBAO, PSSAO), a slice no lane of the block
-//     took a step in is not replayed, and a block with no take at all not even its pixel.
+//     took a step in is not replayed, and a block with no take at all not even its pixel; the CPU's SIMD lanes
+//     may gather a row's pixels that took steps in a slice into full blocks (grad_lanes, walk_grad_cpu.cpp).
 //  3. the upstream gradients seeded on the slice's outputs and swept back over the slice's nodes give d loss /
 //     d each take's fetched position, chained to its taps: for a bilinear fetch pos = q / (sum_k w_k t_k), so
 //     d pos / d t_k = pos pos_z w_k; a nearest fetch reads the tap's position itself. The edge-aware fetch is
@@ -344,7 +345,8 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
     if (cfg.bilinear && c < 2 && tape->camera) {  // the unprojection's intrinsics
       B d_focal, d_centre;
       unprojection_partials(img, take.pos, c, d_focal, d_centre);
-      const R f = seed_camera(R(B(c == 0 ? img.fx : img.fy)), c), centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
+      const R f = seed_camera(R(B(c == 0 ? img.fx : img.fy)), c);
+      const R centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
       moved = R::link(take.pos[c], moved, one, f, d_focal);
       moved = R::link(take.pos[c], moved, one, centre, d_centre);
     }
