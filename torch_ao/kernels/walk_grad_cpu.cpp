@@ -147,7 +147,7 @@ void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, floa
 // replays its pixels once a slice, a block once; a slice's replay (its geometry and its takes) counts about three
 // times a pixel's (HBAO: a pixel 32 nodes, a slice 55 and 28 a take)
 template <int L>
-bool gathered_cost(const WalkSettings& cfg, const int64_t* record, int64_t p0, int64_t u_begin, int64_t u_end) {
+bool gathering_pays(const WalkSettings& cfg, const int64_t* record, int64_t p0, int64_t u_begin, int64_t u_end) {
   constexpr int64_t kSliceCost = 3;
   const int64_t words = take_words(cfg);
   int64_t blocks = 0, block_slices = 0, groups = 0;
@@ -172,7 +172,7 @@ bool gathered_cost(const WalkSettings& cfg, const int64_t* record, int64_t p0, i
 // The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes, each thread's
 // tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten). Where a slice
 // without takes adds a constant (untaken_slice_constant: HBAO, PSSAO), few of a strip's pixels may have taken
-// steps in a slice: the SIMD lanes then gather them, slice by slice (gathered_cost), instead of replaying every
+// steps in a slice: the SIMD lanes then gather them, slice by slice (gathering_pays), instead of replaying every
 // slice of the blocks that hold them
 template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
@@ -211,7 +211,7 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
   torch_ao_rows::for_each_strip_row(B, fr.H, fr.W, [&](int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
     const int64_t* rec = record + b * per_image;
     int64_t cols[torch_ao_rows::kStrip];
-    if (gathered_cost<L>(cfg, rec, row * fr.W, u_begin, u_end)) {
+    if (gathering_pays<L>(cfg, rec, row * fr.W, u_begin, u_end)) {
       for (int64_t s = 0; s < cfg.slices; ++s) {
         int n = 0;
         for (int64_t u = u_begin; u < u_end; ++u)
