@@ -189,12 +189,11 @@ template <class F> struct Pixels {
   F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
   float rotation[L];
   M live;
-  int64_t row, u0;
+  int64_t row;
 
   TAO_FN Pixels(const WalkSettings& cfg, const Image& img, int64_t row_, int64_t u0_, int n)
       : Pixels(cfg, img, RowLanes{row_, u0_, n}) {}
-  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, const RowLanes& lanes)
-      : row(lanes.row), u0(lanes.column(0)) {
+  TAO_FN Pixels(const WalkSettings& cfg, const Image& img, const RowLanes& lanes) : row(lanes.row) {
     const int n = lanes.n;
     float lane[10][L];
     for (int l = 0; l < L; ++l) {
@@ -246,20 +245,20 @@ template <class F> struct Pixels {
   template <class G, class To>
   TAO_FN Pixels(const Pixels<G>& o, const To& to)
       : depth(to(o.depth)), inverse_depth(to(o.inverse_depth)), distance(to(o.distance)), u(to(o.u)), v(to(o.v)),
-        xi(to(o.xi)), live(o.live), row(o.row), u0(o.u0) {
+        xi(to(o.xi)), live(o.live), row(o.row) {
     for (int c = 0; c < 3; ++c)
       P[c] = to(o.P[c]), N[c] = to(o.N[c]), V[c] = to(o.V[c]), e1[c] = to(o.e1[c]), e2[c] = to(o.e2[c]);
     for (int l = 0; l < L; ++l) rotation[l] = o.rotation[l];
   }
 };
 
-// slice_geometry: the slice tangent T, its plane's axis, the projected normal's length, its angle gamma
+// slice_geometry: the slice tangent T, the projected normal's length, its angle gamma
 // from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
 // (with the GLSL placement only the screen direction and T: the shader places its steps from the
-// direction and measures its own angles; without normal, the walk's alone: axis, length, gamma and its sine 0,
-// its cosine 1)
+// direction and measures its own angles; without normal, the walk's alone: length, gamma and its sine 0, its
+// cosine 1)
 template <class F> struct Slice {
-  F T[3], axis[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+  F T[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
   F screen_length;  // pixels per world unit along T (|du, dv|: unit_u, unit_v are du, dv over it)
   F dir_u, dir_v;  // the slice's screen angle's cos and sin
   int64_t index;
@@ -299,6 +298,7 @@ template <class F> struct Slice {
     }
     if (cfg.placement == Steps::glsl) return;
     if (normal) {
+      F axis[3];  // (the slice plane's normal)
       cross(T, px.V, axis);
       const F nd = dot3(px.N, axis);
       F np[3];
@@ -310,7 +310,6 @@ template <class F> struct Slice {
       cos_gamma = select(flat, x / clamp_min(length, F(1e-30f)), F(1.0f));
       sin_gamma = select(flat, y / clamp_min(length, F(1e-30f)), F(0.0f));
     } else {
-      for (int c = 0; c < 3; ++c) axis[c] = F(0.0f);
       length = gamma = sin_gamma = F(0.0f), cos_gamma = F(1.0f);
     }
     // screen motion (pixels per world unit along +T) of the projection (fx x/d + cx, -fy y/d + cy)
@@ -347,7 +346,7 @@ template <class F> struct Slice {
         unit_u(to(o.unit_u)), unit_v(to(o.unit_v)), radius_px(to(o.radius_px)), span(to(o.span)),
         screen_length(to(o.screen_length)), dir_u(to(o.dir_u)),
         dir_v(to(o.dir_v)), index(o.index) {
-    for (int c = 0; c < 3; ++c) T[c] = to(o.T[c]), axis[c] = to(o.axis[c]);
+    for (int c = 0; c < 3; ++c) T[c] = to(o.T[c]);
   }
 };
 

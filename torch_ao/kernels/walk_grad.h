@@ -100,6 +100,14 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
 
 // The words of a record per (pixel, slice, side)
 TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
+// Whether pixel p of a record took a step in slice `only` (-1: in any slice)
+TAO_FN bool took_steps(const WalkSettings& cfg, const int64_t* record, int64_t p, int64_t only = -1) {
+  const int64_t words = take_words(cfg);
+  const int64_t* b = record + (p * cfg.slices + (only < 0 ? 0 : only)) * 2 * words;
+  for (int64_t i = 0; i < (only < 0 ? cfg.slices : 1) * 2 * words; ++i)
+    if (b[i] != 0) return true;
+  return false;
+}
 
 // The pixels' own gradients of the lanes' n pixels (own: d L / d P (3), N (3), depth) added into t (zeros, or a
 // gathered block's earlier slices'), and with setting its per-pixel d L / d the accumulator's t.settings settings,
@@ -232,13 +240,6 @@ template <int L> struct Replay {
     int m = count[k][0];
     for (int l = 1; l < L; ++l) m = count[k][l] > m ? count[k][l] : m;
     return m;
-  }
-  // whether pixel p took a step in slice s (only: -1, any slice; words per side and pixel)
-  static TAO_FN bool taken(const int64_t* record, int64_t p, int64_t slices, int64_t only, int64_t words) {
-    const int64_t* b = record + (p * slices + (only < 0 ? 0 : only)) * 2 * words;
-    for (int64_t i = 0; i < (only < 0 ? slices : 1) * 2 * words; ++i)
-      if (b[i] != 0) return true;
-    return false;
   }
   // the record of slice s of the lanes' pixels in image W wide (words per side and pixel)
   TAO_FN void read(const int64_t* record, const RowLanes& lanes, int64_t W, int64_t slices, int64_t s, int64_t words) {
@@ -403,7 +404,7 @@ TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc
   if constexpr (RecordsTakes<Acc>::value) {
     bool any_taken = !acc.untaken_slice_constant();
     for (int l = 0; l < n && !any_taken; ++l)
-      any_taken = Replay<L>::taken(record, lanes.pixel(img.W, l), cfg.slices, only, take_words(cfg));
+      any_taken = took_steps(cfg, record, lanes.pixel(img.W, l), only);
     if (!any_taken) return;
   }
   current_tape<B>() = &tape;

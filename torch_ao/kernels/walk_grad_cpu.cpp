@@ -142,31 +142,22 @@ void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, floa
   });
 }
 
-// Whether gathering the pixels of a strip's row [u_begin, u_end) (from pixel p0 = row W) that took steps, slice by
-// slice, replays fewer nodes than their blocks of L lanes, every slice of a block that took any: a gathered block
-// replays its pixels once a slice, a block once; a slice's replay (its geometry and its takes) counts about three
-// times a pixel's (HBAO: a pixel 32 nodes, a slice 55 and 28 a take)
+// Whether gathering a strip row's pixels that took steps, slice by slice (took[s]: the columns that took a
+// step in slice s, in order), replays fewer nodes than their blocks of L lanes from u_begin, every slice of a block
+// that took any: a gathered block replays its pixels once a slice, a block once; a slice's replay (its geometry
+// and its takes) counts about three times a pixel's (HBAO: a pixel 32 nodes, a slice 55 and 28 a take)
 template <int L>
-bool gathering_pays(const WalkSettings& cfg, const int64_t* record, int64_t p0, int64_t u_begin, int64_t u_end) {
+bool gathering_pays(const std::vector<std::vector<int64_t>>& took, int64_t u_begin) {
   constexpr int64_t kSliceCost = 3;
-  const int64_t words = take_words(cfg);
-  int64_t blocks = 0, block_slices = 0, groups = 0;
-  for (int64_t u0 = u_begin; u0 < u_end; u0 += L) {
-    bool any = false;
-    for (int64_t s = 0; s < cfg.slices; ++s) {
-      bool in_slice = false;
-      for (int64_t u = u0; u < std::min(u_end, u0 + L) && !in_slice; ++u)
-        in_slice = Replay<L>::taken(record, p0 + u, cfg.slices, s, words);
-      block_slices += in_slice, any = any || in_slice;
-    }
-    blocks += any;
+  uint64_t blocks = 0;  // (a strip's kStrip / L <= 64 blocks, as bits)
+  int64_t block_slices = 0, groups = 0;
+  for (const std::vector<int64_t>& cols : took) {
+    uint64_t in_slice = 0;
+    for (int64_t u : cols) in_slice |= uint64_t(1) << ((u - u_begin) / L);
+    block_slices += __builtin_popcountll(in_slice), blocks |= in_slice;
+    groups += (int64_t(cols.size()) + L - 1) / L;
   }
-  for (int64_t s = 0; s < cfg.slices; ++s) {
-    int64_t n = 0;
-    for (int64_t u = u_begin; u < u_end; ++u) n += Replay<L>::taken(record, p0 + u, cfg.slices, s, words);
-    groups += (n + L - 1) / L;
-  }
-  return groups * (1 + kSliceCost) < blocks + block_slices * kSliceCost;
+  return groups * (1 + kSliceCost) < __builtin_popcountll(blocks) + block_slices * kSliceCost;
 }
 
 // The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes, each thread's
@@ -208,15 +199,20 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
     });
     return !overflow;
   }
+  static_assert(torch_ao_rows::kStrip / L <= 64, "gathering_pays: a strip's blocks as the bits of one word");
   torch_ao_rows::for_each_strip_row(B, fr.H, fr.W, [&](int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
-    const int64_t* rec = record + b * per_image;
-    int64_t cols[torch_ao_rows::kStrip];
-    if (gathering_pays<L>(cfg, rec, row * fr.W, u_begin, u_end)) {
+    thread_local std::vector<std::vector<int64_t>> took;
+    took.resize(size_t(cfg.slices));
+    for (int64_t s = 0; s < cfg.slices; ++s) {
+      took[s].clear();
+      for (int64_t u = u_begin; u < u_end; ++u)
+        if (took_steps(cfg, record + b * per_image, row * fr.W + u, s)) took[s].push_back(u);
+    }
+    if (gathering_pays<L>(took, u_begin)) {
       for (int64_t s = 0; s < cfg.slices; ++s) {
-        int n = 0;
-        for (int64_t u = u_begin; u < u_end; ++u)
-          if (Replay<L>::taken(rec, row * fr.W + u, cfg.slices, s, take_words(cfg))) cols[n++] = u;
-        for (int g = 0; g < n; g += L) replay(Vec(0.0f), b, RowLanes{row, cols[g], std::min(L, n - g), cols + g}, s);
+        const int n = int(took[s].size());
+        for (int g = 0; g < n; g += L)
+          replay(Vec(0.0f), b, RowLanes{row, took[s][g], std::min(L, n - g), &took[s][g]}, s);
       }
     } else {
       for (int64_t u0 = u_begin; u0 < u_end; u0 += L)
