@@ -494,7 +494,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
             t.numpy().tofile(folder / name)
         ints.numpy().tofile(folder / "ints")
         floats.numpy().tofile(folder / "floats")
-        words = settings[0][0] * 2 * ((settings[0][1] + 63) // 64)
+        words = (settings[0][0] * 2 * settings[0][1] + 63) // 64
         kernel = {"tao_soft_backward_short": "soft_short"}.get(soft_backward_kernel(settings[0][1]), "soft")
         if accumulator == "soft_glsl":  # (the short arrays where a slice's steps fit 16)
             kernel = "soft_glsl_short" if settings[0][1] <= 16 else "soft_glsl"

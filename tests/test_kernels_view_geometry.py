@@ -116,3 +116,27 @@ def test_bad_inputs_name_the_argument(built, name):
     args[name] = args[name][..., :-1] if name != "intrinsics" else torch.ones(B, 3)
     with pytest.raises(RuntimeError, match=name):
         torch.ops.torch_ao_kernels.view_geometry(**args)
+
+
+def test_scale_derivative_equals_its_tensor_ops(built):
+    """torch_ao_kernels::scale_derivative (float32 CPU pairs, one pass) against frame.scale_derivative's tensor
+    ops (the definition, run here on float64 copies): NaN inputs on invalid pixels are left out, three channels and
+    one per pixel, any number of threads."""
+    from torch_ao.kernels.frame import scale_derivative
+
+    g = torch.Generator().manual_seed(5)
+    valid = torch.rand(2, 37, 301, generator=g) > 0.2  # (more pixels than one of the op's pieces)
+    positions = torch.where(valid[..., None], torch.randn(2, 37, 301, 3, generator=g), torch.nan)
+    depth = torch.where(valid, torch.rand(2, 37, 301, generator=g) + 0.5, torch.nan)
+    g_pos, g_depth = torch.randn(2, 37, 301, 3, generator=g), torch.randn(2, 37, 301, generator=g)
+    pairs = ((g_pos, positions), (g_depth, depth), (g_depth, -1.0 / depth))
+    fused = scale_derivative(valid, *pairs)
+    reference = scale_derivative(valid, *((a.double(), b.double()) for a, b in pairs))
+    assert fused.dtype == torch.float64 and torch.isfinite(fused)
+    torch.testing.assert_close(fused, reference, rtol=1e-12, atol=1e-12)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert scale_derivative(valid, *pairs).item() == fused.item()
+    finally:
+        torch.set_num_threads(threads)

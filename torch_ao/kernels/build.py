@@ -224,3 +224,7 @@ def _register_fake() -> None:
     def _(accumulator, positions, *args):
         B, H, W, _ = positions.shape
         return positions.new_empty(B, args[-2], H, W)  # args[-2]: channels
+
+    @torch.library.register_fake("torch_ao_kernels::scale_derivative")
+    def _(valid, gradients, inputs):
+        return valid.new_empty((), dtype=torch.float64)

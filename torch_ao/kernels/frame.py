@@ -100,23 +100,20 @@ def scalar_lanes(lanes: str) -> bool:
     return lanes == "scalar"
 
 
-def scale_derivative(valid: torch.Tensor, *pairs: tuple[torch.Tensor, torch.Tensor | None]) -> torch.Tensor:
+def scale_derivative(valid: torch.Tensor, *pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     """``sum(dL/dx * x)`` over ``pairs`` of a gradient and its world-unit input ``x`` (positions, depth: ``+x``;
     the inverse depth: pass ``-x``), on the ``valid`` ``(B,H,W)`` texels (elsewhere the inputs hold NaN), in
     float64: d L / d s of the scene scaled by ``s`` at ``s = 1``, which the walks' scale invariance turns into
-    the radius' gradient (Euler's identity). On the CPU in pieces of ``_SCALE_CHUNK`` elements, whose float64
-    copies stay in the cache (at 640x360, one thread: 3.4 ms against 8.0 ms for whole-image copies); on a GPU
-    whole (a piece is a launch)."""
+    the radius' gradient (Euler's identity). These tensor ops are the definition; float32 CPU pairs are summed by
+    ``torch_ao_kernels::scale_derivative`` (geometry_cpu.cpp) in one pass, without the float64 copies (at
+    640x360, one thread: about 0.5 ms against 3 ms; docs/performance.md)."""
+    if valid.device.type == "cpu" and all(g.dtype == x.dtype == torch.float32 for g, x in pairs):
+        from .build import cpu_kernels
+
+        return cpu_kernels().scale_derivative(valid.contiguous(), [g.contiguous() for g, _ in pairs],
+                                              [x.contiguous() for _, x in pairs])
     total = torch.zeros((), dtype=torch.float64, device=valid.device)
     for g, x in pairs:
         mask = valid if g.dim() == valid.dim() else valid[..., None].expand_as(g)
-        g, x, mask = g.reshape(-1), x.reshape(-1), mask.reshape(-1)
-        chunk = _SCALE_CHUNK if g.device.type == "cpu" else max(g.numel(), 1)
-        for start in range(0, g.numel(), chunk):
-            part = slice(start, start + chunk)
-            total = total + torch.where(mask[part], g[part].double() * x[part].double(), 0.0).sum()
+        total = total + torch.where(mask, g.double() * x.double(), 0.0).sum()
     return total
-
-
-#: elements of :func:`scale_derivative`'s pieces (256 KB of float64 each)
-_SCALE_CHUNK = 1 << 15

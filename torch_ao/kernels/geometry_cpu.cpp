@@ -5,12 +5,15 @@
 // backward to the depth and the normals. The tensor ops stay the definition (and run everywhere else: float64,
 // CUDA, the tensor-op walk); these are their arithmetic per pixel.
 #include <ATen/core/Tensor.h>
+#include <ATen/Parallel.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/scalar_tensor.h>
 #include <torch/library.h>
 
 #include <cmath>
 #include <limits>
 #include <tuple>
+#include <vector>
 
 #include "lanes_simd.h"
 #include "rows_cpu.h"
@@ -102,9 +105,24 @@ void for_each_block(const at::Tensor& depth, const at::Tensor& normals, const at
 
 // the n lanes of x into out[stride * l] (an interleaved channel)
 void store_channel(const Vec& x, float* out, int n, int64_t stride) {
+  if (stride == 1 && n == LaneTraits<Vec>::L) return x.store(out);  // (unaligned)
   alignas(64) float lane[LaneTraits<Vec>::L];
   x.store(lane);
   for (int l = 0; l < n; ++l) out[stride * l] = lane[l];
+}
+
+// the n lanes from in[channels * l] (channels interleaved, each into out[c]; zeros where in is null, and past n)
+template <int channels> void load_channels(const float* in, int n, Vec* out) {
+  constexpr int L = LaneTraits<Vec>::L;
+  if (in && channels == 1 && n == L) {
+    out[0] = Vec::loadu(in);
+    return;
+  }
+  alignas(64) float lane[channels][L] = {};
+  if (in)
+    for (int l = 0; l < n; ++l)
+      for (int c = 0; c < channels; ++c) lane[c][l] = in[channels * l + c];
+  for (int c = 0; c < channels; ++c) out[c] = Vec::loadu(lane[c]);
 }
 
 // torch_ao_kernels::view_geometry: positions and unit normals facing the camera, both (B, H, W, 3), and the
@@ -141,7 +159,6 @@ std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_po
                                                           const at::Tensor& g_inverse, const at::Tensor& g_depth_nan,
                                                           const at::Tensor& depth, const at::Tensor& normals,
                                                           const at::Tensor& valid, const at::Tensor& intrinsics) {
-  constexpr int L = LaneTraits<Vec>::L;
   check_inputs(depth, normals, valid, intrinsics);
   const int64_t B = depth.size(0), H = depth.size(2), W = depth.size(3), plane = H * W;
   for (const at::Tensor* g : {&g_positions, &g_normals})
@@ -158,20 +175,16 @@ std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_po
   const float* g_dn = g_depth_nan.numel() ? g_depth_nan.data_ptr<float>() : nullptr;
   at::Tensor g_depth = at::empty({B, 1, H, W}, depth.options()), g_in = at::empty({B, 3, H, W}, depth.options());
   float *gd = g_depth.data_ptr<float>(), *gi = g_in.data_ptr<float>();
-  // the n lanes of channel c of an interleaved (B, H, W, 3) gradient from pixel p, or 0 where none was given
-  auto channel = [](const float* g, int64_t p, int n, int c, int channels = 3) {
-    alignas(64) float lane[L] = {};
-    if (g)
-      for (int l = 0; l < n; ++l) lane[l] = g[channels * (p + l) + c];
-    return Vec::loadu(lane);
-  };
   for_each_block(depth, normals, valid, intrinsics, [&](const PixelGeometry<Vec>& g, int64_t p, int n, int64_t b,
                                                         int64_t q) {
-    Vec to_n[3] = {Vec(0.0f), Vec(0.0f), Vec(0.0f)}, to_pos[3];
-    for (int c = 0; c < 3; ++c) to_pos[c] = channel(gp, p, n, c);
+    Vec to_n[3] = {Vec(0.0f), Vec(0.0f), Vec(0.0f)}, to_pos[3], g_unit[3], along_inverse, along_depth;
+    load_channels<3>(gp ? gp + 3 * p : nullptr, n, to_pos);
+    load_channels<1>(g_inv ? g_inv + p : nullptr, n, &along_inverse);
+    load_channels<1>(g_dn ? g_dn + p : nullptr, n, &along_depth);
     if (gn) {
-      Vec g_unit[3], along(0.0f), length(0.0f);
-      for (int c = 0; c < 3; ++c) g_unit[c] = channel(gn, p, n, c) * g.sign, length = length + g.n[c] * g.unit[c];
+      Vec along(0.0f), length(0.0f);
+      load_channels<3>(gn + 3 * p, n, g_unit);
+      for (int c = 0; c < 3; ++c) g_unit[c] = g_unit[c] * g.sign, length = length + g.n[c] * g.unit[c];
       const Vec norm = max(length, Vec(kEps));  // |n| from the input and the output, as the tensor op's
       for (int c = 0; c < 3; ++c) along = along + g_unit[c] * g.unit[c];
       along = select(norm > Vec(kEps), along, Vec(0.0f));
@@ -184,10 +197,46 @@ std::tuple<at::Tensor, at::Tensor> view_geometry_backward(const at::Tensor& g_po
       store_channel(select(g.valid, to_n[c], Vec(0.0f)), gi + (3 * b + c) * plane + q, n, 1);
     }
     const Vec inverse = Vec(1.0f) / neg(g.pos[2]);  // (d (1 / d) / d d = -(1 / d)^2)
-    slope = slope + channel(g_dn, p, n, 0, 1) - channel(g_inv, p, n, 0, 1) * (inverse * inverse);
+    slope = slope + along_depth - along_inverse * (inverse * inverse);
     store_channel(select(g.valid, slope, Vec(0.0f)), gd + p, n, 1);
   });
   return {g_depth, g_in};
+}
+
+// torch_ao_kernels::scale_derivative: kernels/frame.py's scale_derivative, sum(g x) in float64 over the pairs of
+// gradients[i] and inputs[i] (float32, numel a multiple of valid's: channels per pixel) on the valid (B, H, W)
+// pixels, in one pass. Summed in pieces of a fixed size, each piece's sum in order on one thread and the pieces'
+// in order: the same total on any number of threads.
+at::Tensor scale_derivative(const at::Tensor& valid, at::TensorList gradients, at::TensorList inputs) {
+  TORCH_CHECK(valid.scalar_type() == at::kBool && valid.is_contiguous() && valid.device().is_cpu(),
+              "valid: expected a contiguous bool (B, H, W) CPU tensor");
+  TORCH_CHECK(gradients.size() == inputs.size(), "gradients, inputs: expected as many of each, got ",
+              gradients.size(), " and ", inputs.size());
+  constexpr int64_t kPiece = 1 << 13;  // pixels
+  const int64_t pixels = valid.numel(), pieces = (pixels + kPiece - 1) / kPiece;
+  const bool* ok = valid.data_ptr<bool>();
+  std::vector<double> partial(size_t(pieces), 0.0);
+  for (size_t i = 0; i < gradients.size(); ++i) {
+    const at::Tensor &g = gradients[i], &x = inputs[i];
+    for (const at::Tensor* t : {&g, &x})
+      TORCH_CHECK(t->scalar_type() == at::kFloat && t->is_contiguous() && t->device().is_cpu() &&
+                      pixels > 0 && t->numel() == g.numel() && t->numel() % pixels == 0,
+                  "gradients, inputs: expected contiguous float32 CPU pairs of equal size, channels per valid pixel");
+    const int64_t C = g.numel() / pixels;
+    const float *gp = g.data_ptr<float>(), *xp = x.data_ptr<float>();
+    at::parallel_for(0, pieces, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t k = begin; k < end; ++k) {
+        double sum = 0.0;
+        for (int64_t p = k * kPiece; p < std::min(pixels, (k + 1) * kPiece); ++p)
+          if (ok[p])  // (elsewhere the inputs hold NaN)
+            for (int64_t c = 0; c < C; ++c) sum += double(gp[C * p + c]) * double(xp[C * p + c]);
+        partial[size_t(k)] += sum;
+      }
+    });
+  }
+  double total = 0.0;
+  for (double v : partial) total += v;
+  return at::scalar_tensor(total, at::TensorOptions().dtype(at::kDouble));
 }
 
 }  // namespace
@@ -197,6 +246,8 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
         "Tensor)");
   m.def("view_geometry_backward(Tensor g_positions, Tensor g_normals, Tensor g_inverse, Tensor g_depth_nan, "
         "Tensor depth, Tensor normals, Tensor valid, Tensor intrinsics) -> (Tensor, Tensor)");
+  m.def("scale_derivative(Tensor valid, Tensor[] gradients, Tensor[] inputs) -> Tensor");
   m.impl("view_geometry", c10::DispatchKey::CPU, TORCH_FN(view_geometry));
+  m.impl("scale_derivative", c10::DispatchKey::CPU, TORCH_FN(scale_derivative));
   m.impl("view_geometry_backward", c10::DispatchKey::CPU, TORCH_FN(view_geometry_backward));
 }

@@ -98,15 +98,26 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
   }
 }
 
-// The words of a record per (pixel, slice, side)
-TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.steps + 63) / 64; }
+// A pixel's record of its takes: bit (2 s + k) steps + j set where step j of slice s, side k (0: +1, 1: -1) took,
+// in take_words(cfg) words
+TAO_FN int64_t take_words(const WalkSettings& cfg) { return (cfg.slices * 2 * cfg.steps + 63) / 64; }
+// The bits [lo, hi) of words, each word's share masked, to fn(word index, bits) (an empty share skipped)
+template <class Fn> TAO_FN void for_each_word(const uint64_t* words, int64_t lo, int64_t hi, const Fn& fn) {
+  for (int64_t w = lo / 64; 64 * w < hi; ++w) {
+    uint64_t x = words[w];
+    if (64 * w < lo) x &= ~uint64_t(0) << (lo - 64 * w);
+    if (hi < 64 * w + 64) x &= (uint64_t(1) << (hi - 64 * w)) - 1;
+    if (x) fn(w, x);
+  }
+}
 // Whether pixel p of a record took a step in slice `only` (-1: in any slice)
 TAO_FN bool took_steps(const WalkSettings& cfg, const int64_t* record, int64_t p, int64_t only = -1) {
-  const int64_t words = take_words(cfg);
-  const int64_t* b = record + (p * cfg.slices + (only < 0 ? 0 : only)) * 2 * words;
-  for (int64_t i = 0; i < (only < 0 ? cfg.slices : 1) * 2 * words; ++i)
-    if (b[i] != 0) return true;
-  return false;
+  const int64_t per_slice = 2 * cfg.steps;
+  const int64_t lo = only < 0 ? 0 : only * per_slice, hi = only < 0 ? cfg.slices * per_slice : lo + per_slice;
+  bool any = false;
+  for_each_word(reinterpret_cast<const uint64_t*>(record) + p * take_words(cfg), lo, hi,
+                [&](int64_t, uint64_t) { any = true; });
+  return any;
 }
 
 // The pixels' own gradients of the lanes' n pixels (own: d L / d P (3), N (3), depth) added into t (zeros, or a
@@ -141,25 +152,24 @@ TAO_FN void write_own(const Targets& t, int64_t W, int64_t row, int64_t u0, int 
 }
 
 // The record of a slice (the forward's visitor): per side and lane the steps that changed the state (the
-// last one alone where a take replaces the state), as bits: step j is bit j % 64 of word j / 64
+// last one alone where a take replaces the state), as the bits of the lane's pixel's record (take_words)
 template <class B, class Acc> struct Takes {
   static constexpr bool kBefore = true;
   using State = typename Acc::template State<B>;
-  static constexpr int L = LaneTraits<B>::L;
   static constexpr int S = TakeComponents<Acc, B>::value;
   using I = typename LaneTraits<B>::I;
   const Acc& acc;
   const typename LaneTraits<B>::M& live;
-  int64_t words;
-  uint64_t* bits;  // [side][lane][word]
+  int64_t words, steps, slice;
+  uint64_t* record;  // the lanes' pixels' words, zeroed before the first slice (past n: not live, never marked)
   I last[2] = {I(-1), I(-1)};  // (where a take replaces the state: per side the last take's step, -1: none)
 
-  TAO_FN Takes(const Acc& a, const typename LaneTraits<B>::M& l, int64_t w, uint64_t* scratch)
-      : acc(a), live(l), words(w), bits(scratch) {
-    for (int64_t i = 0; i < 2 * L * words; ++i) bits[i] = 0;
+  TAO_FN Takes(const Acc& a, const typename LaneTraits<B>::M& l, const WalkSettings& cfg, int64_t s, uint64_t* r)
+      : acc(a), live(l), words(take_words(cfg)), steps(cfg.steps), slice(s), record(r) {}
+  TAO_FN void mark(int k, int l, int64_t j) {  // (step j of side k taken by lane l)
+    const int64_t bit = (2 * slice + k) * steps + j;
+    record[l * words + bit / 64] |= uint64_t(1) << (bit % 64);
   }
-  TAO_FN uint64_t* of(int k, int l) { return bits + (k * L + l) * words; }
-  TAO_FN void mark(int k, int l, int64_t j) { of(k, l)[j / 64] |= uint64_t(1) << (j % 64); }  // (step j taken)
 
   TAO_FN void operator()(int side, int64_t j, const Sample<B>& sample, const State& before, const State& after) {
     auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
@@ -176,35 +186,31 @@ template <class B, class Acc> struct Takes {
   TAO_FN void end_slice() {
     if (!acc.replaces()) return;
     for (int k = 0; k < 2; ++k) {
-      int32_t step[L];
+      int32_t step[LaneTraits<B>::L];
       store_lanes(last[k], step);
-      for (int l = 0; l < L; ++l)
+      for (int l = 0; l < LaneTraits<B>::L; ++l)
         if (step[l] >= 0) mark(k, l, step[l]);
     }
   }
 };
 
 // The forward of the n <= L pixels of a row from u0 with the Takes visitor: the outputs' lanes in values, and
-// per lane, slice and side the takes' words at record + ((l * slices + s) * 2 + side) * words; bits: scratch of
-// 2 L take_words(cfg) words
+// the pixels' records (take_words each) at record
 template <class B, class Acc>
 TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
-                         uint64_t* bits, uint64_t* record, B* values) {
-  const int64_t words = take_words(cfg);
+                         uint64_t* record, B* values) {
   const Pixels<B> px(cfg, img, row, u0, n);
+  for (int64_t i = 0; i < n * take_words(cfg); ++i) record[i] = 0;
   typename Acc::template Sums<B> sums;
-  for (int64_t s = 0; s < cfg.slices; ++s) {
-    Takes<B, Acc> takes(acc, px.live, words, bits);
-    if (any(px.live)) {
+  if (any(px.live)) {
+    for (int64_t s = 0; s < cfg.slices; ++s) {
+      Takes<B, Acc> takes(acc, px.live, cfg, s, record);
       const Slice<B> sl = walked_slice<Acc>(cfg, img, px, s);
       typename Acc::template State<B> state = acc.begin_slice(px, sl);
       walk_slice(cfg, img, acc, px, sl, state, takes);
       takes.end_slice();
       acc.end_slice(state, px, sl, sums);
     }
-    for (int l = 0; l < n; ++l)
-      for (int k = 0; k < 2; ++k)
-        for (int64_t w = 0; w < words; ++w) record[((l * cfg.slices + s) * 2 + k) * words + w] = takes.of(k, l)[w];
   }
   acc.finish(sums, px, values);
 }
@@ -241,16 +247,17 @@ template <int L> struct Replay {
     for (int l = 1; l < L; ++l) m = count[k][l] > m ? count[k][l] : m;
     return m;
   }
-  // the record of slice s of the lanes' pixels in image W wide (words per side and pixel)
-  TAO_FN void read(const int64_t* record, const RowLanes& lanes, int64_t W, int64_t slices, int64_t s, int64_t words) {
+  // the record of slice s of the lanes' pixels in image W wide (words per pixel)
+  TAO_FN void read(const int64_t* record, const RowLanes& lanes, int64_t W, int64_t s, int64_t words) {
     for (int k = 0; k < 2; ++k) {
       for (int l = 0; l < L; ++l) {
         int q = 0;
         if (l < lanes.n) {
-          const auto* b =
-              reinterpret_cast<const uint64_t*>(record) + ((lanes.pixel(W, l) * slices + s) * 2 + k) * words;
-          for (int64_t w = 0; w < words; ++w)
-            for (uint64_t x = b[w]; x; x &= x - 1) at(k, q++)[l] = float(64 * w + lowest_bit(x));
+          const int64_t lo = (2 * s + k) * steps;
+          for_each_word(reinterpret_cast<const uint64_t*>(record) + lanes.pixel(W, l) * words, lo, lo + steps,
+                        [&](int64_t w, uint64_t x) {
+                          for (; x; x &= x - 1) at(k, q++)[l] = float(64 * w + lowest_bit(x) - lo);
+                        });
         }
         count[k][l] = q;
       }
@@ -422,7 +429,7 @@ TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc
   Replay<L> takes(take_steps, cfg.steps);
   for (int64_t s = only < 0 ? 0 : only; s < (only < 0 ? cfg.slices : only + 1); ++s) {
     if constexpr (RecordsTakes<Acc>::value) {
-      takes.read(record, lanes, img.W, cfg.slices, s, take_words(cfg));
+      takes.read(record, lanes, img.W, s, take_words(cfg));
       if (acc.untaken_slice_constant() && takes.most(0) == 0 && takes.most(1) == 0) continue;
     }
     const Slice<R> sl = walked_slice<Acc>(cfg, img, px, s);
@@ -1097,15 +1104,13 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
 }
 
 // Pixel p (of B H W) of a CUDA thread: its forward into out (B, C, H, W) and its takes into record
-// (B, H, W, slices, 2, take_words), at most kGradMaxSteps steps per side
+// (B, H, W, take_words), at most kGradMaxSteps steps per side
 template <class Acc>
 TAO_FN void record_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* out, int64_t* record,
                          int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  uint64_t bits[2];  // 2 L take_words: one word a side (steps <= 64)
   float values[8];
-  record_block(cfg, fr.image(b), acc, row, u, 1, bits,
-               reinterpret_cast<uint64_t*>(record) + p * cfg.slices * 2 * take_words(cfg), values);
+  record_block(cfg, fr.image(b), acc, row, u, 1, reinterpret_cast<uint64_t*>(record) + p * take_words(cfg), values);
   const int C = acc.channels();
   for (int c = 0; c < C; ++c) out[((b * C + c) * fr.H + row) * fr.W + u] = values[c];
 }
@@ -1132,7 +1137,7 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   float partials[Tape<float>::partials_size(capacity)], adjoints[Tape<float>::adjoints_size(capacity)];
   int32_t parents[Tape<float>::parents_size(capacity)];
   Tape<float> tape(partials, parents, adjoints, capacity);
-  const int64_t per_image = RecordsTakes<Acc>::value ? plane * cfg.slices * 2 * take_words(cfg) : 0;
+  const int64_t per_image = RecordsTakes<Acc>::value ? plane * take_words(cfg) : 0;
   grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * per_image, t, take_steps, taken, tape);
   if (tape.overflow) {  // (cannot happen below kGradMaxSteps steps: NaN rather than a silently partial gradient)
     const float nan = bits_float(0x7fc00000u);

@@ -132,4 +132,4 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     takes = accumulator in ("gtao", "hbao", "pssao")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
                        tuple(int(x) for x in setting_dimension),
-                       (int(slices), 2, (int(steps) + 63) // 64) if takes else None)
+                       ((int(slices) * 2 * int(steps) + 63) // 64,) if takes else None)

@@ -41,13 +41,19 @@ struct Gradients {
   int settings;       // setting's values per pixel: (B, H, W, settings)
 
   // bilinear: the fetch scatters to its taps' inverse depths (else to their positions); settings: the setting's
-  // values per pixel; layer: the thickness layer's taps too; light: the senders' normals and light at the taps too
+  // values per pixel; layer: the thickness layer's taps too; light: the senders' normals and light at the taps too;
+  // camera: the intrinsics' per pixel too; own_by_rows: the own gradients left unset, each block zeroing its
+  // pixels' (zero_own) before it adds into them, while they are in the cache
   Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool bilinear, int n_settings = 1,
-            bool layer = false, bool light = false)
+            bool layer = false, bool light = false, bool with_camera = false, bool own_by_rows = false)
       : settings(n_settings), bilinear(bilinear) {
     const int64_t threads = at::get_num_threads();
-    positions = at::zeros({B, H, W, 3}, like.options()), normals = at::zeros({B, H, W, 3}, like.options());
-    depth = at::zeros({B, H, W}, like.options()), setting = at::zeros({B, H, W, settings}, like.options());
+    const auto own = [&](at::IntArrayRef size) {
+      return own_by_rows ? at::empty(size, like.options()) : at::zeros(size, like.options());
+    };
+    positions = own({B, H, W, 3}), normals = own({B, H, W, 3});
+    depth = own({B, H, W}), setting = own({B, H, W, settings});
+    if (with_camera) camera = own({B, H, W, 4});
     tap_positions = at::zeros({bilinear ? 0 : threads, B, H, W, 3}, like.options());
     tap_inverse = at::zeros({bilinear ? threads : 1, B, H, W}, like.options());
     tap_layer = at::zeros({layer ? threads : 1, B, H, W}, like.options());
@@ -66,6 +72,15 @@ struct Gradients {
                    has_light ? tap_normals.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
                    has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
                    camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr, settings};
+  }
+  // zeros into the own gradients of the pixels [u_begin, u_end) of a row of image b (own_by_rows)
+  void zero_own(int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
+    const int64_t first = (b * positions.size(1) + row) * positions.size(2) + u_begin, n = u_end - u_begin;
+    std::fill_n(positions.data_ptr<float>() + 3 * first, 3 * n, 0.0f);
+    std::fill_n(normals.data_ptr<float>() + 3 * first, 3 * n, 0.0f);
+    std::fill_n(depth.data_ptr<float>() + first, n, 0.0f);
+    std::fill_n(setting.data_ptr<float>() + settings * first, settings * n, 0.0f);
+    if (camera.defined()) std::fill_n(camera.data_ptr<float>() + 4 * first, 4 * n, 0.0f);
   }
   // the threads' tap images summed: the taps' positions into the pixels' own; the inverse depth's image (and
   // the layer's: layer())
@@ -120,7 +135,7 @@ void check_grad(const at::Tensor& grad, const at::Tensor& positions, int C) {
 }
 
 // The walk of every row's blocks (SIMD or scalar lanes) with the Takes visitor: the outputs (B, C, H, W), as
-// the walk's, and the record (B, H, W, slices, 2, take_words) of every pixel's takes
+// the walk's, and the record (B, H, W, take_words) of every pixel's takes
 template <class Acc>
 void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, float* dst, int64_t* record, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
@@ -129,11 +144,9 @@ void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, floa
   torch_ao_rows::for_each_block<L>(fr.B, H, W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
     using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
     constexpr int LL = LaneTraits<Lane>::L;
-    thread_local std::vector<uint64_t> bits;
-    bits.resize(size_t(2 * LL * words));
     Lane values[8];
-    record_block(cfg, fr.image(b), acc, row, u0, n, bits.data(),
-                 reinterpret_cast<uint64_t*>(record) + ((b * H + row) * W + u0) * cfg.slices * 2 * words, values);
+    uint64_t* pixels = reinterpret_cast<uint64_t*>(record) + ((b * H + row) * W + u0) * words;
+    record_block(cfg, fr.image(b), acc, row, u0, n, pixels, values);
     alignas(64) float lanes[LL];
     for (int c = 0; c < C; ++c) {
       to_lanes(values[c], lanes);
@@ -164,13 +177,14 @@ bool gathering_pays(const std::vector<std::vector<int64_t>>& took, int64_t u_beg
 // tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten). Where a slice
 // without takes adds a constant (untaken_slice_constant: HBAO, PSSAO), few of a strip's pixels may have taken
 // steps in a slice: the SIMD lanes then gather them, slice by slice (gathering_pays), instead of replaying every
-// slice of the blocks that hold them
+// slice of the blocks that hold them. Each block, or strip row, zeroes its pixels' own gradients first (out:
+// own_by_rows)
 template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
                 Gradients& out, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
   const int64_t B = fr.B, plane = fr.H * fr.W;
-  const int64_t per_image = RecordsTakes<Acc>::value ? plane * cfg.slices * 2 * take_words(cfg) : 0;
+  const int64_t per_image = RecordsTakes<Acc>::value ? plane * take_words(cfg) : 0;
   const int32_t capacity = tape_capacity(cfg.steps);
   std::atomic<bool> overflow{false};
   const auto replay = [&](auto lane, int64_t b, const RowLanes& lanes, int64_t only) {
@@ -195,12 +209,14 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
   if constexpr (RecordsTakes<Acc>::value) gathers = !scalar && acc.untaken_slice_constant();
   if (!gathers) {
     torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
+      out.zero_own(b, row, u0, u0 + n);
       replay(std::conditional_t<decltype(simd)::value, Vec, float>(0.0f), b, RowLanes{row, u0, n}, -1);
     });
     return !overflow;
   }
   static_assert(torch_ao_rows::kStrip / L <= 64, "gathering_pays: a strip's blocks as the bits of one word");
   torch_ao_rows::for_each_strip_row(B, fr.H, fr.W, [&](int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
+    out.zero_own(b, row, u_begin, u_end);
     thread_local std::vector<std::vector<int64_t>> took;
     took.resize(size_t(cfg.slices));
     for (int64_t s = 0; s < cfg.slices; ++s) {
@@ -261,7 +277,7 @@ void check_cells(const WalkSettings& cfg, const Frame& fr) {
 
 // torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of an
 // accumulator that records its takes ("gtao", "hbao", "pssao": walk_grad.h's RecordsTakes), and the record of its
-// takes (B, H, W, slices, 2, words) int64, for walk_backward
+// takes (B, H, W, words) int64 (walk_grad.h's take_words), for walk_backward
 std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, const at::Tensor& positions,
                                                const at::Tensor& normals, const at::Tensor& inverse_depth,
                                                const at::Tensor& depth, const at::Tensor& valid,
@@ -279,7 +295,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
     check_cells(cfg, fr);
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
     out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
-    record = at::empty({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}, ints.options());
+    record = at::empty({fr.B, fr.H, fr.W, take_words(cfg)}, ints.options());
     if constexpr (records) record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
   });
   return {out, record};
@@ -305,14 +321,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     check_cells(cfg, fr);
     if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value) {
       TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
-                      record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, cfg.slices, 2, take_words(cfg)}),
-                  "record: expected walk_record's (B, H, W, slices, 2, words) of the same call");
+                      record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, take_words(cfg)}),
+                  "record: expected walk_record's (B, H, W, words) of the same call");
     } else {
       TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
     }
     check_grad(grad, positions, acc.channels());
-    Gradients out(positions, fr.B, fr.H, fr.W, cfg.bilinear, acc.settings());
-    if (camera) out.camera = at::zeros({fr.B, fr.H, fr.W, 4}, positions.options());
+    Gradients out(positions, fr.B, fr.H, fr.W, cfg.bilinear, acc.settings(), false, false, camera, true);
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
     const at::Tensor g_inv = out.reduce();
