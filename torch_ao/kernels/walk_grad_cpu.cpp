@@ -42,18 +42,15 @@ struct Gradients {
 
   // bilinear: the fetch scatters to its taps' inverse depths (else to their positions); settings: the setting's
   // values per pixel; layer: the thickness layer's taps too; light: the senders' normals and light at the taps too;
-  // camera: the intrinsics' per pixel too; own_by_rows: the own gradients left unset, each block zeroing its
-  // pixels' (zero_own) before it adds into them, while they are in the cache
+  // camera: the intrinsics' per pixel too. The own gradients are left unset: each block zeroes its pixels'
+  // (zero_own) before it adds into them, while they are in the cache.
   Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool bilinear, int n_settings = 1,
-            bool layer = false, bool light = false, bool with_camera = false, bool own_by_rows = false)
+            bool layer = false, bool light = false, bool with_camera = false)
       : settings(n_settings), bilinear(bilinear) {
     const int64_t threads = at::get_num_threads();
-    const auto own = [&](at::IntArrayRef size) {
-      return own_by_rows ? at::empty(size, like.options()) : at::zeros(size, like.options());
-    };
-    positions = own({B, H, W, 3}), normals = own({B, H, W, 3});
-    depth = own({B, H, W}), setting = own({B, H, W, settings});
-    if (with_camera) camera = own({B, H, W, 4});
+    positions = at::empty({B, H, W, 3}, like.options()), normals = at::empty({B, H, W, 3}, like.options());
+    depth = at::empty({B, H, W}, like.options()), setting = at::empty({B, H, W, settings}, like.options());
+    if (with_camera) camera = at::empty({B, H, W, 4}, like.options());
     tap_positions = at::zeros({bilinear ? 0 : threads, B, H, W, 3}, like.options());
     tap_inverse = at::zeros({bilinear ? threads : 1, B, H, W}, like.options());
     tap_layer = at::zeros({layer ? threads : 1, B, H, W}, like.options());
@@ -73,7 +70,7 @@ struct Gradients {
                    has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
                    camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr, settings};
   }
-  // zeros into the own gradients of the pixels [u_begin, u_end) of a row of image b (own_by_rows)
+  // zeros into the own gradients of the pixels [u_begin, u_end) of a row of image b
   void zero_own(int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
     const int64_t first = (b * positions.size(1) + row) * positions.size(2) + u_begin, n = u_end - u_begin;
     std::fill_n(positions.data_ptr<float>() + 3 * first, 3 * n, 0.0f);
@@ -177,8 +174,7 @@ bool gathering_pays(const std::vector<std::vector<int64_t>>& took, int64_t u_beg
 // tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten). Where a slice
 // without takes adds a constant (untaken_slice_constant: HBAO, PSSAO), few of a strip's pixels may have taken
 // steps in a slice: the SIMD lanes then gather them, slice by slice (gathering_pays), instead of replaying every
-// slice of the blocks that hold them. Each block, or strip row, zeroes its pixels' own gradients first (out:
-// own_by_rows)
+// slice of the blocks that hold them. Each block, or strip row, zeroes its pixels' own gradients first
 template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
                 Gradients& out, bool scalar) {
@@ -327,7 +323,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
     }
     check_grad(grad, positions, acc.channels());
-    Gradients out(positions, fr.B, fr.H, fr.W, cfg.bilinear, acc.settings(), false, false, camera, true);
+    Gradients out(positions, fr.B, fr.H, fr.W, cfg.bilinear, acc.settings(), false, false, camera);
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
     const at::Tensor g_inv = out.reduce();
@@ -383,6 +379,7 @@ struct BackwardCall {
     torch_ao_rows::for_each_block<LaneTraits<Vec>::L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0,
                                                                                   int n, auto simd) {
       using Lane = std::conditional_t<decltype(simd)::value, Vec, float>;
+      out.zero_own(b, row, u0, u0 + n);
       block(Lane(0.0f), b, fr.image(b), row, u0, n, gp + b * C * plane, out.targets(b, B, plane, at::get_thread_num()));
     });
     at::Tensor g_inv = out.reduce();
@@ -413,8 +410,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     TORCH_CHECK(!thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
     TORCH_CHECK(!indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
     // (d L / d the thickness' offset and scale)
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 2, thickness.reads_layer(), indirect);
-    if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 2, thickness.reads_layer(), indirect,
+                  camera);
     auto g = call.run(grad, acc.channels(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
                                                                    int64_t u0, int n, const float* upstream,
                                                                    const Targets& t) {
@@ -450,9 +447,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                           kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, acc.thickness.reads_layer());
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, acc.thickness.reads_layer(), false,
+                camera);
   const at::Tensor none = at::empty({0}, positions.options());
-  if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
   auto g = call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
                                                     int n, const float* upstream, const Targets& t) {
     exact_grad_block<decltype(lane)>(call.cfg, img, acc, row, u0, n, upstream, t);
@@ -540,8 +537,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                 "record: expected hard_record's (B, H, W, slices) of the same call");
     const int32_t* rec = record.data_ptr<int32_t>();
     const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, false, acc.indirect);
-    if (camera) out.camera = at::zeros({call.fr.B, call.fr.H, call.fr.W, 4}, positions.options());
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, false, acc.indirect, camera);
     const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
                                                                         int64_t row, int64_t u0, int n,
                                                                         const float* upstream, const Targets& t) {
