@@ -112,11 +112,15 @@ template <class Fn> TAO_FN void for_each_word(const uint64_t* words, int64_t lo,
 }
 // Whether pixel p of a record took a step in slice `only` (-1: in any slice)
 TAO_FN bool took_steps(const WalkSettings& cfg, const int64_t* record, int64_t p, int64_t only = -1) {
-  const int64_t per_slice = 2 * cfg.steps;
+  const int64_t per_slice = 2 * cfg.steps, words = take_words(cfg);
+  const uint64_t* x = reinterpret_cast<const uint64_t*>(record) + p * words;
+  if (words == 1) {  // (slices 2 steps <= 64: every slice's bits in one word)
+    if (only < 0 || per_slice == 64) return x[0] != 0;
+    return (x[0] >> (only * per_slice)) & ((uint64_t(1) << per_slice) - 1);
+  }
   const int64_t lo = only < 0 ? 0 : only * per_slice, hi = only < 0 ? cfg.slices * per_slice : lo + per_slice;
   bool any = false;
-  for_each_word(reinterpret_cast<const uint64_t*>(record) + p * take_words(cfg), lo, hi,
-                [&](int64_t, uint64_t) { any = true; });
+  for_each_word(x, lo, hi, [&](int64_t, uint64_t) { any = true; });
   return any;
 }
 

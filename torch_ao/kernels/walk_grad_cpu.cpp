@@ -53,7 +53,7 @@ struct Gradients {
     if (with_camera) camera = at::empty({B, H, W, 4}, like.options());
     tap_positions = at::zeros({bilinear ? 0 : threads, B, H, W, 3}, like.options());
     tap_inverse = at::zeros({bilinear ? threads : 1, B, H, W}, like.options());
-    tap_layer = at::zeros({layer ? threads : 1, B, H, W}, like.options());
+    if (layer) tap_layer = at::zeros({threads, B, H, W}, like.options());
     if (light) {
       tap_normals = at::zeros({threads, B, H, W, 3}, like.options());
       tap_light = at::zeros({threads, B, H, W, 3}, like.options());
@@ -98,7 +98,8 @@ struct Gradients {
     }
     return sum_threads(tap_inverse);
   }
-  at::Tensor layer() const { return tap_layer[0]; }
+  // d L / d the thickness layer (B, H, W): zeros where none was read
+  at::Tensor layer() const { return has_layer ? tap_layer[0] : at::zeros_like(depth); }
   // d L / d the light (B, H, W, 3): zeros where no light was read
   at::Tensor light() const { return has_light ? tap_light[0] : at::zeros_like(positions); }
 
@@ -152,29 +153,73 @@ void record_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, floa
   });
 }
 
-// Whether gathering a strip row's pixels that took steps, slice by slice (took[s]: the columns that took a
-// step in slice s, in order), replays fewer nodes than their blocks of L lanes from u_begin, every slice of a block
-// that took any: a gathered block replays its pixels once a slice, a block once; a slice's replay (its geometry
-// and its takes) counts about three times a pixel's (HBAO: a pixel 32 nodes, a slice 55 and 28 a take)
-template <int L>
-bool gathering_pays(const std::vector<std::vector<int64_t>>& took, int64_t u_begin) {
-  constexpr int64_t kSliceCost = 3;
-  uint64_t blocks = 0;  // (a strip's kStrip / L <= 64 blocks, as bits)
-  int64_t block_slices = 0, groups = 0;
-  for (const std::vector<int64_t>& cols : took) {
-    uint64_t in_slice = 0;
-    for (int64_t u : cols) in_slice |= uint64_t(1) << ((u - u_begin) / L);
-    block_slices += __builtin_popcountll(in_slice), blocks |= in_slice;
-    groups += (int64_t(cols.size()) + L - 1) / L;
+// The columns of a strip's row (kStrip pixels from u_begin) that took a step, per slice s: cols[s kStrip + i] for
+// i < count[s], in order
+struct StripTakes {
+  std::vector<int64_t> cols;
+  std::vector<int> count;
+  int64_t u_begin = 0;
+
+  // those of a record's row of image W wide, [u_begin, u_end)
+  void read(const WalkSettings& cfg, const int64_t* record, int64_t W, int64_t row, int64_t begin, int64_t end) {
+    cols.resize(size_t(cfg.slices * torch_ao_rows::kStrip));
+    count.assign(size_t(cfg.slices), 0);
+    u_begin = begin;
+    for (int64_t u = begin; u < end; ++u) {
+      const int64_t p = row * W + u;
+      if (!took_steps(cfg, record, p)) continue;
+      for (int64_t s = 0; s < cfg.slices; ++s) {  // (written in any case, counted where it took: no branch)
+        cols[size_t(s * torch_ao_rows::kStrip + count[s])] = u;
+        count[s] += took_steps(cfg, record, p, s) ? 1 : 0;
+      }
+    }
   }
-  return groups * (1 + kSliceCost) < __builtin_popcountll(blocks) + block_slices * kSliceCost;
-}
+  const int64_t* of(int64_t s) const { return cols.data() + s * torch_ao_rows::kStrip; }
+
+  // Whether gathering them, slice by slice, replays fewer nodes than their blocks of L lanes, every slice of a
+  // block that took any: a gathered block replays its pixels once a slice, a block once; a slice's replay (its
+  // geometry and its takes) counts about three times a pixel's (HBAO: a pixel 32 nodes, a slice 55 and 28 a take)
+  template <int L> bool gathering_pays() const {
+    static_assert(torch_ao_rows::kStrip / L <= 64, "a strip's blocks as the bits of one word");
+    constexpr int64_t kSliceCost = 3;
+    uint64_t blocks = 0;
+    int64_t block_slices = 0, groups = 0;
+    for (size_t s = 0; s < count.size(); ++s) {
+      uint64_t in_slice = 0;
+      for (int i = 0; i < count[s]; ++i) in_slice |= uint64_t(1) << ((of(int64_t(s))[i] - u_begin) / L);
+      block_slices += __builtin_popcountll(in_slice), blocks |= in_slice;
+      groups += (count[s] + L - 1) / L;
+    }
+    return groups * (1 + kSliceCost) < __builtin_popcountll(blocks) + block_slices * kSliceCost;
+  }
+};
+
+// A thread's scratch for the replays in lanes Lane: the recorded takes' steps, the replayed fetches, the tape
+template <class Lane> struct ReplayScratch {
+  std::vector<float> take_steps;
+  std::vector<TapedTake<Lane>> taken;
+  std::vector<Lane> partials, adjoints;
+  std::vector<int32_t> parents;
+  Tape<Lane> tape{nullptr, nullptr, nullptr, 0};
+
+  // this thread's, for steps per side and a tape of capacity nodes (its tape emptied)
+  static ReplayScratch& of_thread(int64_t steps, int32_t capacity) {
+    thread_local ReplayScratch s;
+    s.take_steps.resize(size_t(2 * steps * LaneTraits<Lane>::L));
+    s.taken.resize(size_t(2 * steps));
+    s.partials.resize(size_t(Tape<Lane>::partials_size(capacity)));
+    s.adjoints.resize(size_t(Tape<Lane>::adjoints_size(capacity)));
+    s.parents.resize(size_t(Tape<Lane>::parents_size(capacity)));
+    s.tape = Tape<Lane>(s.partials.data(), s.parents.data(), s.adjoints.data(), capacity);
+    return s;
+  }
+};
 
 // The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes, each thread's
 // tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten). Where a slice
 // without takes adds a constant (untaken_slice_constant: HBAO, PSSAO), few of a strip's pixels may have taken
 // steps in a slice: the SIMD lanes then gather them, slice by slice (gathering_pays), instead of replaying every
-// slice of the blocks that hold them. Each block, or strip row, zeroes its pixels' own gradients first
+// slice of the blocks that hold them. Each strip row zeroes its pixels' own gradients first.
 template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
                 Gradients& out, bool scalar) {
@@ -182,54 +227,46 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
   const int64_t B = fr.B, plane = fr.H * fr.W;
   const int64_t per_image = RecordsTakes<Acc>::value ? plane * take_words(cfg) : 0;
   const int32_t capacity = tape_capacity(cfg.steps);
-  std::atomic<bool> overflow{false};
-  const auto replay = [&](auto lane, int64_t b, const RowLanes& lanes, int64_t only) {
-    using Lane = decltype(lane);
-    thread_local std::vector<float> take_steps;
-    thread_local std::vector<TapedTake<Lane>> taken;
-    thread_local std::vector<Lane> partials, adjoints;
-    thread_local std::vector<int32_t> parents;
-    take_steps.resize(size_t(2 * cfg.steps * LaneTraits<Lane>::L));
-    taken.resize(size_t(2 * cfg.steps));
-    partials.resize(size_t(Tape<Lane>::partials_size(capacity)));
-    adjoints.resize(size_t(Tape<Lane>::adjoints_size(capacity)));
-    parents.resize(size_t(Tape<Lane>::parents_size(capacity)));
-    Tape<Lane> tape(partials.data(), parents.data(), adjoints.data(), capacity);
-    const float* upstream[8];
-    for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
-    grad_lanes<Lane>(cfg, fr.image(b), acc, lanes, only, upstream, C, record + b * per_image,
-                     out.targets(b, B, plane, at::get_thread_num()), take_steps.data(), taken.data(), tape);
-    if (tape.overflow) overflow = true;
-  };
   bool gathers = false;
   if constexpr (RecordsTakes<Acc>::value) gathers = !scalar && acc.untaken_slice_constant();
-  if (!gathers) {
-    torch_ao_rows::for_each_block<L>(B, fr.H, fr.W, scalar, [&](int64_t b, int64_t row, int64_t u0, int n, auto simd) {
-      out.zero_own(b, row, u0, u0 + n);
-      replay(std::conditional_t<decltype(simd)::value, Vec, float>(0.0f), b, RowLanes{row, u0, n}, -1);
-    });
-    return !overflow;
-  }
-  static_assert(torch_ao_rows::kStrip / L <= 64, "gathering_pays: a strip's blocks as the bits of one word");
+  std::atomic<bool> overflow{false};
   torch_ao_rows::for_each_strip_row(B, fr.H, fr.W, [&](int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
     out.zero_own(b, row, u_begin, u_end);
-    thread_local std::vector<std::vector<int64_t>> took;
-    took.resize(size_t(cfg.slices));
-    for (int64_t s = 0; s < cfg.slices; ++s) {
-      took[s].clear();
-      for (int64_t u = u_begin; u < u_end; ++u)
-        if (took_steps(cfg, record + b * per_image, row * fr.W + u, s)) took[s].push_back(u);
+    const Image img = fr.image(b);
+    const Targets t = out.targets(b, B, plane, at::get_thread_num());
+    const int64_t* rec = record + b * per_image;
+    const float* upstream[8];
+    for (int c = 0; c < C; ++c) upstream[c] = gp + (b * C + c) * plane;
+    // (the row's replays in lanes of lane's type, each of the lanes' pixels or a gathered block's slice `only`)
+    const auto replays = [&](auto lane, const auto& each) {
+      using Lane = decltype(lane);
+      ReplayScratch<Lane>& s = ReplayScratch<Lane>::of_thread(cfg.steps, capacity);
+      each([&](const RowLanes& lanes, int64_t only) {
+        grad_lanes<Lane>(cfg, img, acc, lanes, only, upstream, C, rec, t, s.take_steps.data(), s.taken.data(),
+                         s.tape);
+      });
+      if (s.tape.overflow) overflow = true;
+    };
+    if (scalar) {
+      replays(0.0f, [&](const auto& replay) {
+        for (int64_t u = u_begin; u < u_end; ++u) replay(RowLanes{row, u, 1}, -1);
+      });
+      return;
     }
-    if (gathering_pays<L>(took, u_begin)) {
-      for (int64_t s = 0; s < cfg.slices; ++s) {
-        const int n = int(took[s].size());
-        for (int g = 0; g < n; g += L)
-          replay(Vec(0.0f), b, RowLanes{row, took[s][g], std::min(L, n - g), &took[s][g]}, s);
+    thread_local StripTakes took;
+    if (gathers) took.read(cfg, rec, fr.W, row, u_begin, u_end);
+    replays(Vec(0.0f), [&](const auto& replay) {
+      if (gathers && took.gathering_pays<L>()) {
+        for (int64_t s = 0; s < cfg.slices; ++s) {
+          const int64_t* cols = took.of(s);
+          for (int g = 0; g < took.count[s]; g += L)
+            replay(RowLanes{row, cols[g], std::min(L, took.count[s] - g), cols + g}, s);
+        }
+      } else {
+        for (int64_t u0 = u_begin; u0 < u_end; u0 += L)
+          replay(RowLanes{row, u0, int(std::min<int64_t>(L, u_end - u0))}, -1);
       }
-    } else {
-      for (int64_t u0 = u_begin; u0 < u_end; u0 += L)
-        replay(Vec(0.0f), b, RowLanes{row, u0, int(std::min<int64_t>(L, u_end - u0))}, -1);
-    }
+    });
   });
   return !overflow;
 }
