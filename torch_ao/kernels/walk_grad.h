@@ -180,8 +180,8 @@ template <class B, class Acc> struct Takes {
     const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
     for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
     const int k = side > 0 ? 0 : 1;
-    if (acc.replaces()) {  // (the last change alone counts: kept in lanes, its bit set by end_slice)
-      last[k] = select(land(changed, live), I(int32_t(j)), last[k]);
+    if (acc.replaces()) {  // (the last change alone counts: kept in lanes, its bit set by end_slice on live lanes)
+      last[k] = select(changed, I(int32_t(j)), last[k]);
       return;
     }
     for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) mark(k, lowest_bit(lanes), j);
@@ -193,7 +193,7 @@ template <class B, class Acc> struct Takes {
       int32_t step[LaneTraits<B>::L];
       store_lanes(last[k], step);
       for (int l = 0; l < LaneTraits<B>::L; ++l)
-        if (step[l] >= 0) mark(k, l, step[l]);
+        if (step[l] >= 0 && lane_on(live, l)) mark(k, l, step[l]);
     }
   }
 };
