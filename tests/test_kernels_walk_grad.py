@@ -23,8 +23,9 @@ from kernel_agreement import assert_depth_gradient_matches_central_differences, 
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401
 
 #: (module, options, frozen parameters): every accumulator of horizon.h and ssao.h, every fetch and border, both noises
-#: and staggered steps; the "-most" cases take as many steps as a CUDA thread's backward does (MAX_CUDA_STEPS),
-#: where its tape (walk_grad.h's tape_capacity) holds the most takes: scalar lanes run that thread's code
+#: and staggered steps, records whose sides cross a word; the "-most" cases take as many steps as a CUDA thread's
+#: backward does (MAX_CUDA_STEPS), where its tape (walk_grad.h's tape_capacity) holds the most takes: scalar lanes
+#: run that thread's code
 CASES = {
     "exact": (GTAO, dict(slices=4, steps=4), ()),
     "exact-falloff-bent": (GTAO, dict(slices=3, steps=5, radius=0.6, falloff_range=0.5, bent_normals=True), ()),
@@ -68,6 +69,9 @@ CASES = {
     "pssao-clamp": (PSSAO, dict(slices=5, steps=4, border="clamp", distance_bias=0.5), ()),
     "pssao-edge-aware": (PSSAO, dict(slices=12, steps=6, fetch="edge_aware", normalize="directions"), ()),
     "pssao-most": (PSSAO, dict(slices=2, steps=MAX_CUDA_STEPS, fetch="bilinear"), ()),
+    # (GTAO's record in two words, slice 2's side -1 in bits 60-71; named to sort last, which keeps every other
+    # case's alternation of given and reconstructed normals)
+    "wide-record": (GTAO, dict(slices=3, steps=12, radius=1.2), ()),
 }
 #: the kernel sums function of each module (patched for the lanes) and its covers
 KERNEL_SUMS = {GTAO: ("gtao", "gtao_sums"), HBAO: ("gtao", "hbao_sums"), UE4SSAO: ("ssao", "ue4_ssao_sums"),

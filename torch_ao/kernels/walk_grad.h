@@ -253,15 +253,20 @@ template <int L> struct Replay {
   }
   // the record of slice s of the lanes' pixels in image W wide (words per pixel)
   TAO_FN void read(const int64_t* record, const RowLanes& lanes, int64_t W, int64_t s, int64_t words) {
-    for (int k = 0; k < 2; ++k) {
-      for (int l = 0; l < L; ++l) {
+    const uint64_t mask = steps < 64 ? (uint64_t(1) << steps) - 1 : ~uint64_t(0);
+    for (int l = 0; l < L; ++l) {
+      count[0][l] = count[1][l] = 0;
+      if (l >= lanes.n) continue;
+      const uint64_t* x = reinterpret_cast<const uint64_t*>(record) + lanes.pixel(W, l) * words;
+      for (int k = 0; k < 2; ++k) {
+        const int64_t lo = (2 * s + k) * steps;
         int q = 0;
-        if (l < lanes.n) {
-          const int64_t lo = (2 * s + k) * steps;
-          for_each_word(reinterpret_cast<const uint64_t*>(record) + lanes.pixel(W, l) * words, lo, lo + steps,
-                        [&](int64_t w, uint64_t x) {
-                          for (; x; x &= x - 1) at(k, q++)[l] = float(64 * w + lowest_bit(x) - lo);
-                        });
+        if (words == 1) {  // (every slice's bits in one word: lo < 64)
+          for (uint64_t b = (x[0] >> lo) & mask; b; b &= b - 1) at(k, q++)[l] = float(lowest_bit(b));
+        } else {
+          for_each_word(x, lo, lo + steps, [&](int64_t w, uint64_t b) {
+            for (; b; b &= b - 1) at(k, q++)[l] = float(64 * w + lowest_bit(b) - lo);
+          });
         }
         count[k][l] = q;
       }
