@@ -140,3 +140,7 @@ def test_scale_derivative_equals_its_tensor_ops(built):
         assert scale_derivative(valid, *pairs).item() == fused.item()
     finally:
         torch.set_num_threads(threads)
+    empty = torch.zeros(1, 0, 4)
+    assert scale_derivative(valid[:1, :0], (empty, empty[..., 0:0])).item() == 0.0
+    with pytest.raises(RuntimeError, match="channels per valid pixel"):  # (a pair of another size)
+        scale_derivative(valid, (g_pos, depth))

@@ -214,13 +214,14 @@ at::Tensor scale_derivative(const at::Tensor& valid, at::TensorList gradients, a
               gradients.size(), " and ", inputs.size());
   constexpr int64_t kPiece = 1 << 13;  // pixels
   const int64_t pixels = valid.numel(), pieces = (pixels + kPiece - 1) / kPiece;
+  if (pixels == 0) return at::scalar_tensor(0.0, at::TensorOptions().dtype(at::kDouble));
   const bool* ok = valid.data_ptr<bool>();
   std::vector<double> partial(size_t(pieces), 0.0);
   for (size_t i = 0; i < gradients.size(); ++i) {
     const at::Tensor &g = gradients[i], &x = inputs[i];
     for (const at::Tensor* t : {&g, &x})
       TORCH_CHECK(t->scalar_type() == at::kFloat && t->is_contiguous() && t->device().is_cpu() &&
-                      pixels > 0 && t->numel() == g.numel() && t->numel() % pixels == 0,
+                      t->numel() == g.numel() && t->numel() % pixels == 0,
                   "gradients, inputs: expected contiguous float32 CPU pairs of equal size, channels per valid pixel");
     const int64_t C = g.numel() / pixels;
     const float *gp = g.data_ptr<float>(), *xp = x.data_ptr<float>();
