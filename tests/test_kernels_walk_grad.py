@@ -69,9 +69,10 @@ CASES = {
     "pssao-clamp": (PSSAO, dict(slices=5, steps=4, border="clamp", distance_bias=0.5), ()),
     "pssao-edge-aware": (PSSAO, dict(slices=12, steps=6, fetch="edge_aware", normalize="directions"), ()),
     "pssao-most": (PSSAO, dict(slices=2, steps=MAX_CUDA_STEPS, fetch="bilinear"), ()),
-    # (GTAO's record in two words, slice 2's side -1 in bits 60-71; named to sort last, which keeps every other
-    # case's alternation of given and reconstructed normals)
+    # (GTAO's record in two words, slice 2's side -1 in bits 60-71; HBAO's slices of 80 bits; named to sort last,
+    # which keeps every other case's alternation of given and reconstructed normals)
     "wide-record": (GTAO, dict(slices=3, steps=12, radius=1.2), ()),
+    "wide-steps": (HBAO, dict(slices=2, steps=40), ()),  # (a slice's bits beyond one word: set in the record directly)
 }
 #: the kernel sums function of each module (patched for the lanes) and its covers
 KERNEL_SUMS = {GTAO: ("gtao", "gtao_sums"), HBAO: ("gtao", "hbao_sums"), UE4SSAO: ("ssao", "ue4_ssao_sums"),

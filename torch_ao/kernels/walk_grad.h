@@ -167,10 +167,17 @@ template <class B, class Acc> struct Takes {
   int64_t words, steps, slice;
   uint64_t* record;  // the lanes' pixels' words, zeroed before the first slice (past n: not live, never marked)
   I last[2] = {I(-1), I(-1)};  // (where a take replaces the state: per side the last take's step, -1: none)
+  // (where a slice's bits fit one word, 2 steps <= 64: per lane bit k steps + j, kept here until end_slice, so
+  // that a CUDA thread sets them in a register, not in memory at every take)
+  uint64_t pending[LaneTraits<B>::L] = {};
 
   TAO_FN Takes(const Acc& a, const typename LaneTraits<B>::M& l, const WalkSettings& cfg, int64_t s, uint64_t* r)
       : acc(a), live(l), words(take_words(cfg)), steps(cfg.steps), slice(s), record(r) {}
   TAO_FN void mark(int k, int l, int64_t j) {  // (step j of side k taken by lane l)
+    if (2 * steps <= 64) {
+      pending[l] |= uint64_t(1) << (k * steps + j);
+      return;
+    }
     const int64_t bit = (2 * slice + k) * steps + j;
     record[l * words + bit / 64] |= uint64_t(1) << (bit % 64);
   }
@@ -186,14 +193,23 @@ template <class B, class Acc> struct Takes {
     }
     for (uint32_t lanes = lane_bits(land(changed, live)); lanes; lanes &= lanes - 1) mark(k, lowest_bit(lanes), j);
   }
-  // the slice walked: where a take replaces the state, each side's last take's bit
+  // the slice walked: where a take replaces the state, each side's last take's bit; the slice's bits kept in
+  // pending into the record (bit 2 slice steps on, across two words where it crosses one)
   TAO_FN void end_slice() {
-    if (!acc.replaces()) return;
-    for (int k = 0; k < 2; ++k) {
-      int32_t step[LaneTraits<B>::L];
-      store_lanes(last[k], step);
-      for (int l = 0; l < LaneTraits<B>::L; ++l)
-        if (step[l] >= 0 && lane_on(live, l)) mark(k, l, step[l]);
+    if (acc.replaces()) {
+      for (int k = 0; k < 2; ++k) {
+        int32_t step[LaneTraits<B>::L];
+        store_lanes(last[k], step);
+        for (int l = 0; l < LaneTraits<B>::L; ++l)
+          if (step[l] >= 0 && lane_on(live, l)) mark(k, l, step[l]);
+      }
+    }
+    if (2 * steps > 64) return;
+    const int64_t first = 2 * slice * steps, w = first / 64, shift = first % 64;
+    for (int l = 0; l < LaneTraits<B>::L; ++l) {
+      if (pending[l] == 0) continue;
+      record[l * words + w] |= pending[l] << shift;
+      if (shift + 2 * steps > 64) record[l * words + w + 1] |= pending[l] >> (64 - shift);
     }
   }
 };
