@@ -106,7 +106,7 @@ def scale_derivative(valid: torch.Tensor, *pairs: tuple[torch.Tensor, torch.Tens
     float64: d L / d s of the scene scaled by ``s`` at ``s = 1``, which the walks' scale invariance turns into
     the radius' gradient (Euler's identity). These tensor ops are the definition; float32 CPU pairs are summed by
     ``torch_ao_kernels::scale_derivative`` (geometry_cpu.cpp) in one pass, without the float64 copies (at
-    640x360, one thread: about 0.5 ms against 3 ms; docs/performance.md)."""
+    640x360, one thread: about 1 ms against 3 ms; docs/performance.md)."""
     if valid.device.type == "cpu" and all(g.dtype == x.dtype == torch.float32 for g, x in pairs):
         from .build import cpu_kernels
 
