@@ -197,6 +197,8 @@ def _cases() -> dict[str, Case]:
         # torch-ao fit's default pipeline (cosine, the back-face layer near its fitted scale and offset, edge-aware)
         "backface_gbuffer": Case("soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals",
                                  backface("kernel"), "gbuffer", "bitmask", 3.0),
+        "backface_parameters": Case("soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, radius + thickness",
+                                    backface("kernel"), "parameters", "bitmask", 3.0),
         "backface_gbuffer_torch": Case(
             "soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
             backface("torch"), "gbuffer", "bitmask", 3.0, kernel=False),

@@ -70,7 +70,11 @@ struct ThicknessModel {
   // what scale multiplies at the sample (0 for a constant)
   template <class F> TAO_FN F value(const Pixels<F>& px, const Sample<F>& smp) const {
     switch (read) {
-      case ThicknessRead::layer: return smp.gather(smp.image->backface, 0, 1);
+      case ThicknessRead::layer:
+        if constexpr (!ValueOf<F>::dual) {  // (dual lanes read the taps again: their weights move)
+          if (smp.has_layer) return smp.layer;
+        }
+        return smp.gather(smp.image->backface, 0, 1);
       case ThicknessRead::first_tap: return gather(smp.image->backface, smp.index[0]);
       case ThicknessRead::depth: return neg(smp.delta[2] + px.P[2]);
       default: return F(0.0f);

@@ -2,6 +2,7 @@
 // the CPU operators' (ops_cpu.cpp, walk_grad_cpu.cpp) one definition.
 #pragma once
 
+#include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 
 #include "packed.h"
@@ -31,6 +32,24 @@ inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, co
                depth.data_ptr<float>(), intrinsics.data_ptr<float>(), optional_image(light, 3 * pixels, "light"),
                optional_image(cells, pixels, "cells"), optional_image(backface, pixels, "backface"),
                valid.data_ptr<bool>(), positions.size(0), positions.size(1), positions.size(2)};
+}
+
+// For a bilinear fetch with a back-face layer: the inverse depth and the layer interleaved into texels (B, H, W, 2,
+// kept alive by the caller), both of a tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair), and
+// an edge-aware fetch's cell flags in the inverse depth's sign (negative: not one surface, a gather fewer a sample);
+// fr then reads them there (Image::inverse_backface). The separate images stay: other reads use them.
+inline void interleave_backface(Frame& fr, at::Tensor& texels, bool edge_aware) {
+  if (!fr.backface) return;
+  const int64_t pixels = fr.B * fr.H * fr.W;
+  texels = at::empty({pixels * 2}, at::TensorOptions().dtype(at::kFloat));
+  float* out = texels.data_ptr<float>();
+  const float *inverse = fr.inverse, *layer = fr.backface, *cells = edge_aware ? fr.cells : nullptr;
+  at::parallel_for(0, pixels, 16384, [&](int64_t lo, int64_t hi) {
+    for (int64_t p = lo; p < hi; ++p)
+      out[2 * p] = cells && !(cells[p] > 0.5f) ? -inverse[p] : inverse[p], out[2 * p + 1] = layer[p];
+  });
+  fr.inverse_backface = out;
+  fr.cells_in_sign = cells != nullptr;
 }
 
 }  // namespace tao

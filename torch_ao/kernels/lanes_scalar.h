@@ -101,6 +101,10 @@ TAO_FN int lowest_bit(uint32_t x) { return __builtin_ctz(x); }
 TAO_FN int lowest_bit(uint64_t x) { return __builtin_ctzll(x); }
 #endif
 TAO_FN float gather(const float* base, uint32_t index) { return base[index]; }
+// both floats of texel index of a two-channel image (lanes_simd.h's)
+TAO_FN void gather_pair(const float* base, uint32_t index, float& first, float& second) {
+  first = base[2 * index], second = base[2 * index + 1];
+}
 // *to += x, by one thread at a time (on the CPU each thread adds into its own image; CUDA threads share one)
 #ifdef __CUDACC_RTC__
 TAO_FN void scatter_add(float* to, float x) { atomicAdd(to, x); }
@@ -124,5 +128,6 @@ TAO_FN float bits_float(uint32_t b) {
   return x;
 }
 #endif
+TAO_FN bool sign_clear(float x) { return (float_bits(x) >> 31) == 0u; }  // (+0 and +NaN included)
 
 }  // namespace tao

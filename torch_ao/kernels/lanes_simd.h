@@ -46,6 +46,8 @@ inline float reduce_max(const Vec& x) { return -reduce_min(x.neg()); }
 inline Vec neg(const Vec& x) { return x.neg(); }
 inline Vec fma(const Vec& a, const Vec& b, const Vec& c) { return at::vec::fmadd(a, b, c); }
 inline Vec abs(const Vec& x) { return x.abs(); }
+// the lanes whose sign bit is clear (+0 and +NaN included)
+inline Vec sign_clear(const Vec& x) { return at::vec::cast<float>(at::vec::cast<int32_t>(x) >= IVec(0)); }
 inline Vec sqrt(const Vec& x) { return x.sqrt(); }
 inline Vec floor(const Vec& x) { return x.floor(); }
 inline Vec ceil(const Vec& x) { return x.ceil(); }
@@ -141,6 +143,22 @@ inline IVec popcount(const IVec& v) {
   return (x * IVec(0x01010101)) >> IVec(24);
 }
 inline Vec gather(const float* base, const IVec& index) { return at::vec::gather<4>(base, index); }
+// base[2 index] and base[2 index + 1]: both floats of each lane's texel of a two-channel image. With AVX-512 as 64-bit
+// elements: two 8-lane gathers where two 16-lane ones would read single floats, and a gather's time grows with its
+// lanes (docs/performance.md, "A tap's inverse depth and layer in one read")
+inline void gather_pair(const float* base, const IVec& index, Vec& first, Vec& second) {
+#if defined(CPU_CAPABILITY_AVX512)
+  const __m512i at = index;
+  const __m512 p0 = _mm512_castpd_ps(_mm512_i32gather_pd(_mm512_castsi512_si256(at), base, 8));
+  const __m512 p1 = _mm512_castpd_ps(_mm512_i32gather_pd(_mm512_extracti64x4_epi64(at, 1), base, 8));
+  const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+  first = Vec(_mm512_permutex2var_ps(p0, even, p1));
+  second = Vec(_mm512_permutex2var_ps(p0, _mm512_add_epi32(even, _mm512_set1_epi32(1)), p1));
+#else
+  const IVec at = index + index;
+  first = gather(base, at), second = gather(base + 1, at);
+#endif
+}
 inline Vec gather_flag(const bool* base, const IVec& index) {
   constexpr int L = Vec::size();
   alignas(64) int32_t at[L];

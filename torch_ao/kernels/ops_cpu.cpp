@@ -53,7 +53,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid,
                 const at::Tensor& intrinsics, const at::Tensor& light, const at::Tensor& cells, const at::Tensor& backface,
                 const at::Tensor& ints, const at::Tensor& floats, int64_t channels, bool scalar) {
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface);
+  Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface);
   TORCH_CHECK(ints.scalar_type() == at::kLong && ints.is_contiguous() && floats.scalar_type() == at::kFloat &&
                   floats.is_contiguous() && ints.device().is_cpu() && floats.device().is_cpu(),
               "ints, floats: expected the packed int64 and float32 settings on the CPU");
@@ -73,6 +73,8 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
+  at::Tensor texels;
+  if (cfg.bilinear) interleave_backface(fr, texels, cfg.edge_aware);
   at::Tensor out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
   auto run = [&](const auto& acc) {
     TORCH_CHECK(acc.channels() == channels && channels <= 8, "channels: expected ", acc.channels());

@@ -152,13 +152,16 @@ struct Frame {
   const float *positions, *normals, *inverse, *depth, *intrinsics, *light, *cells, *backface;
   const bool* valid;
   int64_t B, H, W;
+  const float* inverse_backface = nullptr;  // (B, H, W, 2), or null, and
+  bool cells_in_sign = false;               // its sign's meaning: Image's (frame_cpu.h's interleave_backface)
 
   TAO_FN Image image(int64_t b) const {
     const int64_t plane = H * W;
     const float* K = intrinsics + 4 * b;
     return Image{H, W, K[0], K[1], K[2], K[3], positions + 3 * b * plane, normals + 3 * b * plane, inverse + b * plane,
                  depth + b * plane, light ? light + 3 * b * plane : nullptr, valid + b * plane,
-                 cells ? cells + b * plane : nullptr, backface ? backface + b * plane : nullptr};
+                 cells ? cells + b * plane : nullptr, backface ? backface + b * plane : nullptr,
+                 inverse_backface ? inverse_backface + 2 * b * plane : nullptr, cells_in_sign};
   }
 };
 

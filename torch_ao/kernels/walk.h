@@ -158,6 +158,11 @@ struct Image {
   const float *positions, *normals, *inverse, *depth, *light;
   const bool* valid;
   const float *cells, *backface;
+  // For a bilinear fetch that reads the back-face layer: inverse and backface interleaved (H, W, 2), both of a
+  // tap's floats in one 64-bit gather lane (frame_cpu.h's interleave_backface), else null; with cells_in_sign its
+  // inverse depth is negative where cells is 0 (cells is then not read: one gather a sample fewer)
+  const float* inverse_backface = nullptr;
+  bool cells_in_sign = false;
 };
 
 // The view-space position of screen point (u, v) at depth d (camera.unproject: kornia's unprojection in OpenCV's
@@ -440,6 +445,9 @@ template <class F> struct Sample {
   I index[4];  // the taps' texels (index[0] only for a nearest fetch), to read other buffers
   F fu, fv;
   F su, sv;  // where it samples, in screen pixels
+  // the back-face layer at the taps where this sample's fetch read it with the inverse depth (Image::inverse_backface)
+  F layer;
+  bool has_layer = false;
   bool bilinear;
   const Image* image;
 
@@ -505,14 +513,26 @@ template <class F> struct Sample {
       const I c0 = imin(imax(iu, zero), Wlast), c1 = imin(imax(iu + one, zero), Wlast);
       const I r0 = imin(imax(iv, zero), Hlast) * Wi, r1 = imin(imax(iv + one, zero), Hlast) * Wi;
       index[0] = r0 + c0, index[1] = r0 + c1, index[2] = r1 + c0, index[3] = r1 + c1;
-      F t0 = tao::gather(img.inverse, index[0]), t1 = tao::gather(img.inverse, index[1]);
-      F t2 = tao::gather(img.inverse, index[2]), t3 = tao::gather(img.inverse, index[3]);
+      using P = typename ValueOf<F>::type;
+      F t0, t1, t2, t3;
+      P b0, b1, b2, b3;  // (the layer's taps, where read with the inverse depth)
+      if (!img.inverse_backface) {
+        t0 = tao::gather(img.inverse, index[0]), t1 = tao::gather(img.inverse, index[1]);
+        t2 = tao::gather(img.inverse, index[2]), t3 = tao::gather(img.inverse, index[3]);
+      } else {
+        P i0, i1, i2, i3;
+        gather_pair(img.inverse_backface, index[0], i0, b0), gather_pair(img.inverse_backface, index[1], i1, b1);
+        gather_pair(img.inverse_backface, index[2], i2, b2), gather_pair(img.inverse_backface, index[3], i3, b3);
+        t0 = i0, t1 = i1, t2 = i2, t3 = i3;
+        has_layer = true;
+      }
       if (cfg.edge_aware) {
         // edge_aware_taps: the four taps where their cell is one surface (a footprint clamped at the
         // border, whose taps repeat, by the ratio rule alone), else four copies of the nearest tap
         const auto proper = land(lnot(ieq(index[1], index[0])), lnot(ieq(index[2], index[0])));
         const bool all_proper = !any(lnot(proper));
-        auto smooth = tao::gather(img.cells, index[0]) > F(0.5f);
+        auto smooth = img.cells_in_sign ? sign_clear(value(t0)) : tao::gather(img.cells, index[0]) > F(0.5f);
+        if (img.cells_in_sign) t0 = abs(t0), t1 = abs(t1), t2 = abs(t2), t3 = abs(t3);
         if (!all_proper) {
           const F lo = min(min(t0, t1), min(t2, t3)), hi = max(max(t0, t1), max(t2, t3));
           smooth = select(proper, smooth, land(lo > F(0.0f), hi <= F(kEdgeMinRatio) * lo));  // (NaN taps: never)
@@ -525,6 +545,11 @@ template <class F> struct Sample {
           for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
           t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
           t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
+          if (img.inverse_backface) {
+            const P b_near = select(down, select(right, b3, b2), select(right, b1, b0));
+            b0 = select(smooth, b0, b_near), b1 = select(smooth, b1, b_near);
+            b2 = select(smooth, b2, b_near), b3 = select(smooth, b3, b_near);
+          }
           // four copies of the pixel's own texel (its nearest, or a footprint clamped onto it at the border):
           // no occluder, as the nearest fetch's centre texel (Footprint.on_own_texel)
           const I own_index = I(int32_t(px.row * img.W)) + to_int(px.u);
@@ -532,6 +557,7 @@ template <class F> struct Sample {
                      land(ieq(index[2], own_index), ieq(index[3], own_index)));
         }
       }
+      if (has_layer) layer = lerp(lerp(F(b0), F(b1), fu), lerp(F(b2), F(b3), fu), fv);
       valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
       if (cfg.drop)
         valid = land(valid, land(land(fu0 >= F(0.0f), fu0 + F(1.0f) < Wf), land(fv0 >= F(0.0f), fv0 + F(1.0f) < Hf)));

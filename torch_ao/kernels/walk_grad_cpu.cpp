@@ -380,6 +380,7 @@ inline bool packs_glsl(const at::Tensor& ints) {
 // max_steps per side) and unpacked
 struct BackwardCall {
   Frame fr;
+  at::Tensor texels;  // (fr's inverse depth and layer interleaved for a bilinear fetch: interleave_backface)
   const int64_t* i;
   const float* f;
   WalkSettings cfg;
@@ -393,6 +394,7 @@ struct BackwardCall {
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
     check_cells(cfg, fr);
+    if (cfg.bilinear) interleave_backface(fr, texels, cfg.edge_aware);
     TORCH_CHECK(cfg.steps <= max_steps, "steps: the ", name, " backward holds at most ", max_steps, " per side");
     if (glsl) {  // (the shader's texels: no derivative of their own)
       TORCH_CHECK(cfg.placement == Steps::glsl && cfg.full_circle && !cfg.bilinear, name,
