@@ -34,22 +34,24 @@ inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, co
                valid.data_ptr<bool>(), positions.size(0), positions.size(1), positions.size(2)};
 }
 
-// For a bilinear fetch with a back-face layer: the inverse depth and the layer interleaved into texels (B, H, W, 2,
-// kept alive by the caller), both of a tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair), and
-// an edge-aware fetch's cell flags in the inverse depth's sign (negative: not one surface, a gather fewer a sample);
-// fr then reads them there (Image::inverse_backface). The separate images stay: other reads use them.
-inline void interleave_backface(Frame& fr, at::Tensor& texels, bool edge_aware) {
-  if (!fr.backface) return;
-  const int64_t pixels = fr.B * fr.H * fr.W;
-  texels = at::empty({pixels * 2}, at::TensorOptions().dtype(at::kFloat));
-  float* out = texels.data_ptr<float>();
+// What a bilinear fetch reads at its taps, prepared once per call into texels (kept alive by the caller; fr then
+// reads it: Image::texels): an edge-aware fetch's cell flags in the inverse depth's sign (negative: not one surface),
+// so that a sample reads no cell flag, and a back-face layer interleaved with the inverse depth (B, H, W, 2), both of a
+// tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair). Without either, nothing: the inverse depth
+// is read where it is. The separate images stay, for the reads of other buffers.
+inline void fetch_texels(Frame& fr, at::Tensor& texels, bool edge_aware) {
   const float *inverse = fr.inverse, *layer = fr.backface, *cells = edge_aware ? fr.cells : nullptr;
+  if (!layer && !cells) return;
+  const int64_t pixels = fr.B * fr.H * fr.W, channels = layer ? 2 : 1;
+  texels = at::empty({pixels * channels}, at::TensorOptions().dtype(at::kFloat));
+  float* out = texels.data_ptr<float>();
   at::parallel_for(0, pixels, 16384, [&](int64_t lo, int64_t hi) {
-    for (int64_t p = lo; p < hi; ++p)
-      out[2 * p] = cells && !(cells[p] > 0.5f) ? -inverse[p] : inverse[p], out[2 * p + 1] = layer[p];
+    for (int64_t p = lo; p < hi; ++p) {
+      out[channels * p] = cells && !(cells[p] > 0.5f) ? -inverse[p] : inverse[p];
+      if (layer) out[channels * p + 1] = layer[p];
+    }
   });
-  fr.inverse_backface = out;
-  fr.cells_in_sign = cells != nullptr;
+  fr.texels = out, fr.texels_layer = layer != nullptr, fr.cells_in_sign = cells != nullptr;
 }
 
 }  // namespace tao

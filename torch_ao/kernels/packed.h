@@ -152,8 +152,8 @@ struct Frame {
   const float *positions, *normals, *inverse, *depth, *intrinsics, *light, *cells, *backface;
   const bool* valid;
   int64_t B, H, W;
-  const float* inverse_backface = nullptr;  // (B, H, W, 2), or null, and
-  bool cells_in_sign = false;               // its sign's meaning: Image's (frame_cpu.h's interleave_backface)
+  const float* texels = nullptr;  // (B, H, W, 1 or 2), or null: Image's (frame_cpu.h's fetch_texels)
+  bool texels_layer = false, cells_in_sign = false;
 
   TAO_FN Image image(int64_t b) const {
     const int64_t plane = H * W;
@@ -161,7 +161,7 @@ struct Frame {
     return Image{H, W, K[0], K[1], K[2], K[3], positions + 3 * b * plane, normals + 3 * b * plane, inverse + b * plane,
                  depth + b * plane, light ? light + 3 * b * plane : nullptr, valid + b * plane,
                  cells ? cells + b * plane : nullptr, backface ? backface + b * plane : nullptr,
-                 inverse_backface ? inverse_backface + 2 * b * plane : nullptr, cells_in_sign};
+                 texels ? texels + (texels_layer ? 2 : 1) * b * plane : nullptr, texels_layer, cells_in_sign};
   }
 };
 

@@ -158,11 +158,12 @@ struct Image {
   const float *positions, *normals, *inverse, *depth, *light;
   const bool* valid;
   const float *cells, *backface;
-  // For a bilinear fetch that reads the back-face layer: inverse and backface interleaved (H, W, 2), both of a
-  // tap's floats in one 64-bit gather lane (frame_cpu.h's interleave_backface), else null; with cells_in_sign its
-  // inverse depth is negative where cells is 0 (cells is then not read: one gather a sample fewer)
-  const float* inverse_backface = nullptr;
-  bool cells_in_sign = false;
+  // What a bilinear fetch reads at its taps, where the CPU operators prepared it (frame_cpu.h's fetch_texels; else
+  // null, and inverse and cells are read): the inverse depth, negative where cells is 0 if cells_in_sign (cells is
+  // then not read: a gather fewer a sample), interleaved with backface (H, W, 2) if texels_layer (both of a tap's
+  // floats in one 64-bit gather lane)
+  const float* texels = nullptr;
+  bool texels_layer = false, cells_in_sign = false;
 };
 
 // The view-space position of screen point (u, v) at depth d (camera.unproject: kornia's unprojection in OpenCV's
@@ -445,7 +446,7 @@ template <class F> struct Sample {
   I index[4];  // the taps' texels (index[0] only for a nearest fetch), to read other buffers
   F fu, fv;
   F su, sv;  // where it samples, in screen pixels
-  // the back-face layer at the taps where this sample's fetch read it with the inverse depth (Image::inverse_backface)
+  // the back-face layer at the taps where this sample's fetch read it with the inverse depth (Image::texels_layer)
   F layer;
   bool has_layer = false;
   bool bilinear;
@@ -516,13 +517,14 @@ template <class F> struct Sample {
       using P = typename ValueOf<F>::type;
       F t0, t1, t2, t3;
       P b0, b1, b2, b3;  // (the layer's taps, where read with the inverse depth)
-      if (!img.inverse_backface) {
-        t0 = tao::gather(img.inverse, index[0]), t1 = tao::gather(img.inverse, index[1]);
-        t2 = tao::gather(img.inverse, index[2]), t3 = tao::gather(img.inverse, index[3]);
+      if (!img.texels_layer) {
+        const float* inverse = img.texels ? img.texels : img.inverse;
+        t0 = tao::gather(inverse, index[0]), t1 = tao::gather(inverse, index[1]);
+        t2 = tao::gather(inverse, index[2]), t3 = tao::gather(inverse, index[3]);
       } else {
         P i0, i1, i2, i3;
-        gather_pair(img.inverse_backface, index[0], i0, b0), gather_pair(img.inverse_backface, index[1], i1, b1);
-        gather_pair(img.inverse_backface, index[2], i2, b2), gather_pair(img.inverse_backface, index[3], i3, b3);
+        gather_pair(img.texels, index[0], i0, b0), gather_pair(img.texels, index[1], i1, b1);
+        gather_pair(img.texels, index[2], i2, b2), gather_pair(img.texels, index[3], i3, b3);
         t0 = i0, t1 = i1, t2 = i2, t3 = i3;
         has_layer = true;
       }
@@ -545,7 +547,7 @@ template <class F> struct Sample {
           for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
           t0 = select(smooth, t0, t_near), t1 = select(smooth, t1, t_near);
           t2 = select(smooth, t2, t_near), t3 = select(smooth, t3, t_near);
-          if (img.inverse_backface) {
+          if (has_layer) {
             const P b_near = select(down, select(right, b3, b2), select(right, b1, b0));
             b0 = select(smooth, b0, b_near), b1 = select(smooth, b1, b_near);
             b2 = select(smooth, b2, b_near), b3 = select(smooth, b3, b_near);

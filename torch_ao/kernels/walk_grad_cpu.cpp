@@ -324,8 +324,10 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
     TORCH_CHECK(records, "accumulator: ", name, " replays every step of its walk and records no takes");
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
     const at::Tensor none = at::empty({0}, positions.options());
-    const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
+    Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
     check_cells(cfg, fr);
+    at::Tensor texels;
+    if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
     out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
     record = at::empty({fr.B, fr.H, fr.W, take_words(cfg)}, ints.options());
@@ -347,11 +349,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     bool scalar) {
   const std::string name(accumulator);
   const at::Tensor none = at::empty({0}, positions.options());
-  const Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
   std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> result;
   with_replayed(name, ints, floats, [&](const auto& acc) {
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
+    Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
     check_cells(cfg, fr);
+    at::Tensor texels;
+    if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
     if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value) {
       TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
                       record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, take_words(cfg)}),
@@ -380,7 +384,7 @@ inline bool packs_glsl(const at::Tensor& ints) {
 // max_steps per side) and unpacked
 struct BackwardCall {
   Frame fr;
-  at::Tensor texels;  // (fr's inverse depth and layer interleaved for a bilinear fetch: interleave_backface)
+  at::Tensor texels;  // (what fr's bilinear fetch reads at its taps: fetch_texels)
   const int64_t* i;
   const float* f;
   WalkSettings cfg;
@@ -394,7 +398,7 @@ struct BackwardCall {
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
     check_cells(cfg, fr);
-    if (cfg.bilinear) interleave_backface(fr, texels, cfg.edge_aware);
+    if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
     TORCH_CHECK(cfg.steps <= max_steps, "steps: the ", name, " backward holds at most ", max_steps, " per side");
     if (glsl) {  // (the shader's texels: no derivative of their own)
       TORCH_CHECK(cfg.placement == Steps::glsl && cfg.full_circle && !cfg.bilinear, name,
