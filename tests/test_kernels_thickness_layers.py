@@ -376,3 +376,26 @@ def test_soft_kernel_gbuffer_gradients_with_a_layer_match_finite_differences(bui
     along = float((torch.where(finite, g, 0.0).double() * direction).sum())
     assert abs(along) > 1e-2
     assert along == pytest.approx(float(difference), rel=2e-2)
+
+
+@pytest.mark.parametrize("variant, mode", [("default", "hard"), ("exact", "hard"), ("default", "soft")])
+def test_a_batch_with_a_layer_and_edge_aware_fetch_is_its_images_walked_one_by_one(built, variant, mode):
+    """The CPU operators prepare one image of every batch element's inverse depth, layer and cell flags
+    (frame_cpu.h's fetch_texels); the second element's walk reads its own part of it."""
+    from torch_ao.examples import example_gbuffer
+
+    gb = example_gbuffer(40, 64)
+    other = gb.depth * 1.07 + 0.05 * torch.sin(torch.arange(64.0)).view(1, 1, 1, 64)
+    one = [GBuffer(depth=d, camera=gb.camera, normals=gb.normals, backface_depth=d + t)
+           for d, t in ((gb.depth, 0.3), (other, 0.2))]
+    both = GBuffer(depth=torch.cat([gb.depth, other]), camera=gb.camera, normals=torch.cat([gb.normals] * 2),
+                   backface_depth=torch.cat([gb.depth + 0.3, other + 0.2]))
+    module = BitmaskAO(variant=variant, mode=mode, thickness=BackfaceThickness(), fetch="edge_aware",
+                       backend="kernel", slices=3, steps=4)
+    with torch.no_grad():
+        separate = torch.cat([module(g).visibility for g in one])
+        batched = module(both).visibility
+    assert batched.shape == (2, 1, 40, 64)
+    # the two images differ, so a batch element reading another's texels would be far off
+    assert (separate[0] - separate[1]).abs().max() > 0.05
+    assert (batched - separate).abs().max() <= 1e-6
