@@ -34,14 +34,14 @@ inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, co
                valid.data_ptr<bool>(), positions.size(0), positions.size(1), positions.size(2)};
 }
 
-// What a bilinear fetch reads at its taps, prepared once per call into texels (kept alive by the caller; fr then
-// reads it: Image::texels): an edge-aware fetch's cell flags in the inverse depth's sign (negative: not one surface),
-// so that a sample reads no cell flag, and a back-face layer interleaved with the inverse depth (B, H, W, 2), both of a
-// tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair). Without either, nothing: the inverse depth
-// is read where it is. The separate images stay, for the reads of other buffers.
-inline void fetch_texels(Frame& fr, at::Tensor& texels, bool edge_aware) {
-  const float *inverse = fr.inverse, *layer = fr.backface, *cells = edge_aware ? fr.cells : nullptr;
-  if (!layer && !cells) return;
+// What the walk cfg's bilinear fetch reads at its taps, prepared once per call into texels (kept alive by the
+// caller; fr then reads it: Image::texels): an edge-aware fetch's cell flags in the inverse depth's sign (negative:
+// not one surface), so that a sample reads no cell flag, and a back-face layer interleaved with the inverse depth
+// (B, H, W, 2), both of a tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair). A nearest fetch,
+// or one with neither, reads the inverse depth where it is. The separate images stay, for the reads of other buffers.
+inline void fetch_texels(const WalkSettings& cfg, Frame& fr, at::Tensor& texels) {
+  const float *inverse = fr.inverse, *layer = fr.backface, *cells = cfg.edge_aware ? fr.cells : nullptr;
+  if (!cfg.bilinear || (!layer && !cells)) return;
   const int64_t pixels = fr.B * fr.H * fr.W, channels = layer ? 2 : 1;
   texels = at::empty({pixels * channels}, at::TensorOptions().dtype(at::kFloat));
   float* out = texels.data_ptr<float>();

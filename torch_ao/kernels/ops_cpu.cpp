@@ -74,7 +74,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
   at::Tensor texels;
-  if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
+  fetch_texels(cfg, fr, texels);
   at::Tensor out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
   auto run = [&](const auto& acc) {
     TORCH_CHECK(acc.channels() == channels && channels <= 8, "channels: expected ", acc.channels());

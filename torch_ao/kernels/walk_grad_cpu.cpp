@@ -327,7 +327,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
     Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
     check_cells(cfg, fr);
     at::Tensor texels;
-    if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
+    fetch_texels(cfg, fr, texels);
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
     out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
     record = at::empty({fr.B, fr.H, fr.W, take_words(cfg)}, ints.options());
@@ -355,7 +355,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
     check_cells(cfg, fr);
     at::Tensor texels;
-    if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
+    fetch_texels(cfg, fr, texels);
     if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value) {
       TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
                       record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, take_words(cfg)}),
@@ -398,7 +398,7 @@ struct BackwardCall {
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
     check_cells(cfg, fr);
-    if (cfg.bilinear) fetch_texels(fr, texels, cfg.edge_aware);
+    fetch_texels(cfg, fr, texels);
     TORCH_CHECK(cfg.steps <= max_steps, "steps: the ", name, " backward holds at most ", max_steps, " per side");
     if (glsl) {  // (the shader's texels: no derivative of their own)
       TORCH_CHECK(cfg.placement == Steps::glsl && cfg.full_circle && !cfg.bilinear, name,
