@@ -128,13 +128,14 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     F shift;
     LaneArray<F, kSectors> omega, P;
     int n;
-    // with gradients: each step's interval, its front and back positions (before their clamps), its thickness t
-    // and the value its scale multiplies; without kAdjoint, its angles' derivatives along the radius and d back
-    // angle / d t
-    LaneArray<F, kKept> s, w, front, back, t, tv, dfront, dback, back_t;
-    // the backward: each step's delta, taps, bilinear weights, fetched position, validity, distance in
+    // with gradients: each step's interval, its front and back positions (before their clamps), its thickness t,
+    // the value its scale multiplies and its delta; without kAdjoint, d delta / d radius and d t / d radius (the
+    // sample's motion as the radius moves the step)
+    LaneArray<F, kKept> s, w, front, back, t, tv, delta[3];
+    LaneArray<F, kAdjoint ? 1 : kKept> radial[3], radial_t;
+    // the backward: each step's taps, bilinear weights, fetched position, validity, distance in
     // pixels, d position / d su, d sv and d / d su, d sv of a layer's read (ThicknessModel::layer_slope)
-    LaneArray<F, kFetches> delta[3], fu, fv, pos[3], dist, d_su[3], d_sv[3], dv_su, dv_sv;
+    LaneArray<F, kFetches> fu, fv, pos[3], dist, d_su[3], d_sv[3], dv_su, dv_sv;
     LaneArray<I, kFetches> index[4];
     LaneArray<M, kFetches> valid;
     LaneArray<SoftCoverage<F>, kKeepCoverage ? kKept : 1> coverages;  // the sweep's, for the reverse scan
@@ -287,6 +288,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     }
     const int m = st.n++;
     st.s[m] = s, st.w[m] = w, st.front[m] = front, st.back[m] = back, st.t[m] = t, st.tv[m] = thickness.value(px, smp);
+    for (int c = 0; c < 3; ++c) st.delta[c][m] = smp.delta[c];
     F d_su[3] = {F(0.0f), F(0.0f), F(0.0f)}, d_sv[3] = {F(0.0f), F(0.0f), F(0.0f)};
     const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), m % walk.steps);
     const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
@@ -296,7 +298,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     }
     if (kAdjoint) {  // the backward: the fetch, for the pixel's and the taps' gradients (end_slice_adjoint)
       for (int c = 0; c < 3; ++c) {
-        st.delta[c][m] = smp.delta[c], st.pos[c][m] = smp.delta[c] + px.P[c];
+        st.pos[c][m] = smp.delta[c] + px.P[c];
         st.d_su[c][m] = d_su[c], st.d_sv[c][m] = d_sv[c];
       }
       for (int i = 0; i < 4; ++i) st.index[i][m] = smp.index[i];
@@ -313,15 +315,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
       dt = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
     }
-    // the angles' derivatives along the radius: sample_angles_adjoint of each angle alone
-    F front_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, back_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    F unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
-    sample_angles_adjoint(angles, side, smp.delta, px.V, sl.T, t, F(1.0f), F(0.0f), front_delta, unused_V, unused_T);
-    const F back_t = sample_angles_adjoint(angles, side, smp.delta, px.V, sl.T, t, F(0.0f), F(1.0f), back_delta,
-                                           unused_V, unused_T);
-    st.dfront[m] = dot3(front_delta, d_pos);
-    st.dback[m] = fma(back_t, dt, dot3(back_delta, d_pos));
-    st.back_t[m] = back_t;
+    for (int c = 0; c < 3; ++c) st.radial[c][m] = d_pos[c];
+    st.radial_t[m] = dt;
   }
 
   // With gradients: the slice's union over its kept steps, P_m before each step kept in before[m * 32 + k]
@@ -427,11 +422,18 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + part[c];
     }
     if (!kGradients) return;
+    // d visibility / d delta and t of each step (sample_angles_adjoint), then along the radius' motion of both
     reverse_scan(st, &before[0], [&](int k) { return st.omega[k]; }, [&](int m, const StepAdjoint<F>& g) {
-      const F g_t = select(px.live, g.back * st.back_t[m], F(0.0f));
+      const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
+      F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)};
+      F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
+      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, walked.T, st.t[m],
+                                                  g.front, g.back, g_delta, unused_V, unused_T);
+      const F g_t = select(px.live, g_thickness, F(0.0f));
       sums.thickness = sums.thickness + g_t;
       sums.scale = sums.scale + g_t * st.tv[m];
-      sums.radius = sums.radius + select(px.live, g.front * st.dfront[m] + g.back * st.dback[m], F(0.0f));
+      const F radial[3] = {st.radial[0][m], st.radial[1][m], st.radial[2][m]};
+      sums.radius = sums.radius + select(px.live, fma(g_thickness, st.radial_t[m], dot3(g_delta, radial)), F(0.0f));
     });
   }
 
