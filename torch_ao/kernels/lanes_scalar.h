@@ -73,6 +73,8 @@ TAO_FN void cos_sin_rounded(float x, float& c, float& s) {
 TAO_FN float pow(float x, float y) { return powf(x, y); }
 TAO_FN float exp(float x) { return expf(x); }
 TAO_FN float logistic(float x) { return 1.0f / (1.0f + expf(-x)); }  // 1 / (1 + e^-x)
+TAO_FN float exp_inline(float x) { return expf(x); }            // e^x (lanes_simd.h's is inline)
+TAO_FN float inverse_one_plus(float e) { return 1.0f / (1.0f + e); }  // 1 / (1 + e)
 TAO_FN float expm1(float x) { return expm1f(x); }
 // NaN-propagating like ATen's maximum/minimum, which the SIMD lanes use
 TAO_FN float max(float a, float b) { return (a != a || b != b) ? a + b : (a > b ? a : b); }

@@ -95,28 +95,34 @@ inline void cos_sin_rounded(const Vec& x, Vec& c, Vec& s) {
   c = Vec::loadu(out_c), s = Vec::loadu(out_s);
 }
 inline Vec pow(const Vec& x, const Vec& y) { return x.pow(y); }
-// The logistic 1 / (1 + e^-x), inline: e^-x = 2^n e^r (n = round(-x log2 e), r by Cody and Waite's two-part
-// ln 2, |r| <= ln 2 / 2, e^r by its degree-6 Taylor polynomial: 1.2e-7 relative), then the hardware's
-// reciprocal estimate refined by one Newton step (measured: within 3.2e-7 relative). SLEEF's exp is an
-// out-of-line call, and a division's latency stalls the soft union's 64 logistics per step. x is clamped to
-// [-87, 87] (2^n stays normal).
-__attribute__((always_inline)) inline Vec logistic(const Vec& x) {
-  const Vec z = at::vec::clamp(x.neg(), Vec(-87.0f), Vec(87.0f));
+// e^z inline for z in [-87, 87] (2^n stays normal): e^z = 2^n e^r (n = round(z log2 e), r by Cody and Waite's
+// two-part ln 2, |r| <= ln 2 / 2, e^r by its degree-6 Taylor polynomial: 1.2e-7 relative). SLEEF's exp is an
+// out-of-line call, too slow for the soft union's 64 logistics per step.
+__attribute__((always_inline)) inline Vec exp_inline(const Vec& z) {
   const Vec n = (z * Vec(1.44269504088896341f)).round();
   const Vec r = at::vec::fmadd(n, Vec(2.12194440e-4f), at::vec::fmadd(n, Vec(-0.693359375f), z));
   constexpr float c[7] = {1.0f, 1.0f, 1.0f / 2, 1.0f / 6, 1.0f / 24, 1.0f / 120, 1.0f / 720};
   Vec p(c[6]);
   for (int k = 5; k >= 0; --k) p = at::vec::fmadd(p, r, Vec(c[k]));
   const IVec exponent = (at::vec::convert_to_int_of_same_size<float>(n) + IVec(127)) << IVec(23);
-  const Vec d = Vec(1.0f) + p * at::vec::cast<float>(exponent);  // in [1, 2^126]
+  return p * at::vec::cast<float>(exponent);
+}
+// 1 / (1 + e) for e in [0, 2^126]: the hardware's reciprocal estimate refined by one Newton step (with exp_inline
+// in logistic, measured within 3.2e-7 relative), where a division's latency would stall the soft union
+__attribute__((always_inline)) inline Vec inverse_one_plus(const Vec& e) {
+  const Vec d = Vec(1.0f) + e;
 #if defined(CPU_CAPABILITY_AVX512)
-  const Vec e(_mm512_rcp14_ps(d));  // 14 bits
+  const Vec y(_mm512_rcp14_ps(d));  // 14 bits
 #elif defined(CPU_CAPABILITY_AVX2)
-  const Vec e(_mm256_rcp_ps(d));  // 12 bits
+  const Vec y(_mm256_rcp_ps(d));  // 12 bits
 #else
   return d.reciprocal();
 #endif
-  return e * at::vec::fmadd(d.neg(), e, Vec(2.0f));
+  return y * at::vec::fmadd(d.neg(), y, Vec(2.0f));
+}
+// The logistic 1 / (1 + e^-x), x clamped to [-87, 87]
+__attribute__((always_inline)) inline Vec logistic(const Vec& x) {
+  return inverse_one_plus(exp_inline(at::vec::clamp(x.neg(), Vec(-87.0f), Vec(87.0f))));
 }
 inline Vec exp(const Vec& x) { return x.exp(); }
 inline Vec expm1(const Vec& x) { return x.expm1(); }

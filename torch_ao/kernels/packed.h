@@ -86,6 +86,13 @@ template <class Union> TAO_FN void soft_window(Union& acc) {
   acc.reach = int(ceil(kSoftClamp * acc.tau)) + 1;
   acc.window = 2 * acc.reach < kSectors ? 2 * acc.reach : kSectors;
   acc.windowed = acc.window <= kSoftWindowMax;
+  // sigmoid_run's runs: the first term's clamp at kSoftClamp + (run - 1) / tau, its products down to e^-(that +
+  // (run - 1) / tau), at least e^-86 (normal floats: e^-87.3)
+  const double inv_tau = 1.0 / double(acc.tau);
+  acc.run = 1 + int(floor(28.0 / inv_tau));
+  if (acc.run > kSoftRunMax) acc.run = kSoftRunMax;
+  acc.run_bound = float(double(kSoftClamp) + double(acc.run - 1) * inv_tau);
+  acc.run_ratio = expf(float(-inv_tau));
 }
 
 // ints: rounding, cosine, straight_through, the thickness' read (ThicknessRead), the variant's angles

@@ -47,10 +47,8 @@ constexpr int kSoftShortSteps = 16;  // ... of a short slice (a CUDA backward's:
 // a step's sectors whose a b is below logistic(-kSoftSkip) = 2e-9 for every lane are left out of its sweep
 // and reverse scan (below the interval a ~ 0, above it b ~ 0): at tau = 0.25, 5 sectors either side of it
 constexpr float kSoftSkip = 20.0f;
-
-template <class F> TAO_FN F soft_sigmoid(const F& x) {
-  return logistic(clamp(x, F(-kSoftClamp), F(kSoftClamp)));
-}
+constexpr int kSoftRunMax = 8;  // sigmoid_run: an exp at least every 8 terms
+constexpr float kSoftExpLow = 9.35762297e-14f, kSoftExpHigh = 1.06864746e13f;  // e^-30, e^30 (kSoftClamp)
 
 // One step's soft coverage: a[k], b[k] for the sectors k0 <= k < k1 where they overlap (kSoftSkip), the gate
 // tanh(w / tau) (0 where empty), F'(s)
@@ -105,6 +103,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   float epsilon, tau, delta;  // delta: sectors.rule.rounding_offset
   int64_t rounding;
   int reach, window;  // the smooth floor's window (windowed: tau <= 0.1), sweeps.floor_window_width
+  // sigmoid_run's: an exp every run terms at x clamped to +-run_bound, then products by run_ratio = e^(-1 / tau)
+  // (soft_window)
+  int run;
+  float run_bound, run_ratio;
   bool windowed, cosine, straight_through;
   // the indirect light and the bent normal's sum too (not with kGradients: their settings' gradients are the
   // backward's)
@@ -161,6 +163,21 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   TAO_FN int outputs() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
   TAO_FN int channels() const { return kGradients && !kAdjoint ? 4 : outputs(); }
 
+  // out(j, logistic(x_j)), x_j = x0 + j / tau clamped to +-kSoftClamp (sectors.sweeps), for j = 0 .. n - 1:
+  // a step's sector logistics are such a run. e^-x_j is a running product, e^-x_(j-1) e^(-1 / tau), from the exp
+  // of the run's first term a at x_a clamped to +-run_bound (= kSoftClamp + (run - 1) / tau: where that clamp
+  // acts, the whole run is at the clamp of +-kSoftClamp; the products stay normal floats: soft_window); each
+  // e^-x_j is then clamped as x_j is. One exp a run and a multiply a term, where each term took an exp (within
+  // 1e-6 relative of e^-x_j: at most 7 products)
+  template <class F, class Out> TAO_FN void sigmoid_run(const F& x0, int n, const Out& out) const {
+    const float inv_tau = float(1.0 / double(tau));
+    F e = F(0.0f);
+    for (int j = 0, r = 0; j < n; ++j, r = r + 1 < run ? r + 1 : 0) {
+      e = r == 0 ? exp_inline(clamp(neg(x0) - F(float(j) * inv_tau), F(-run_bound), F(run_bound))) : e * F(run_ratio);
+      out(j, inverse_one_plus(clamp(e, F(kSoftExpLow), F(kSoftExpHigh))));
+    }
+  }
+
   template <class F> TAO_FN void coverage(const F& s, const F& w, SoftCoverage<F>& cv) const {
     const float inv_tau = float(1.0 / double(tau));
     const F wc = clamp_min(w, F(0.0f));  // an empty step: zero width, zero gate
@@ -175,17 +192,15 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const float last = reduce_max(select(live, s + wc, F(0.0f))) + 2.0f + margin;
     cv.k0 = first > 0.0f ? (first < float(kSectors) ? int(first) : kSectors) : 0;  // (NaN: every sector)
     cv.k1 = last < float(kSectors) ? (last > float(cv.k0) ? int(last) + 1 : cv.k0) : kSectors;
-    const F start_arg = s * F(-inv_tau);
-    for (int k = cv.k0; k < cv.k1; ++k) cv.a[k] = soft_sigmoid(F(float(k + 1) * inv_tau) + start_arg);
+    // a_k = logistic((k + 1 - s) / tau)
+    sigmoid_run((F(float(cv.k0 + 1)) - s) * F(inv_tau), cv.k1 - cv.k0, [&](int j, const F& a) { cv.a[cv.k0 + j] = a; });
     F floor_s = F(0.0f), slope = F(0.0f);
-    if (windowed) {
+    if (windowed) {  // sum_i x_i, x_i = logistic((s - lo - i) / tau), from the last i
       const F lo = clamp(floor(s) - F(float(reach - 1)), F(1.0f), F(float(kSectors - window + 1)));
-      const F z = (s - lo) * F(inv_tau);
-      for (int i = 0; i < window; ++i) {
-        const F x = soft_sigmoid(z - F(float(i) * inv_tau));
+      sigmoid_run((s - lo - F(float(window - 1))) * F(inv_tau), window, [&](int, const F& x) {
         floor_s = floor_s + x;
         slope = slope + (F(1.0f) - x) * x;
-      }
+      });
       floor_s = floor_s + (lo - F(1.0f));
     } else {  // (each sector below k0 adds 1 - a = 1, each from k1 on 0)
       floor_s = F(float(cv.k0));
@@ -196,8 +211,9 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       }
     }
     cv.slope = slope * F(inv_tau);
-    const F end_arg = (wc + F(1.0f - delta) + floor_s) * F(inv_tau);
-    for (int k = cv.k0; k < cv.k1; ++k) cv.b[k] = soft_sigmoid(end_arg - F(float(k + 1) * inv_tau));
+    // b_k = logistic((w + 1 - delta + F(s) - (k + 1)) / tau), from the last k
+    sigmoid_run((wc + F(1.0f - delta) + floor_s - F(float(cv.k1))) * F(inv_tau), cv.k1 - cv.k0,
+                [&](int j, const F& b) { cv.b[cv.k1 - 1 - j] = b; });
   }
 
   // P <- P - a b g P over the sectors (P_m kept in before, if given; the coverage in keep, if given); with
