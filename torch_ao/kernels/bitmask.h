@@ -107,18 +107,21 @@ struct ThicknessModel {
 // (the sector rule's shift: a sample's angle from the view vector, times side / pi, plus this)
 template <class F> TAO_FN F edge_shift(const Slice<F>& sl) { return (F(kHalfPi) - sl.gamma) / F(kPi); }
 
-// Sample.cos_view: c = dot(normalize(d), V), d = delta - offset V, the shaders' horizon cosine (3D, not projected),
-// with root = sqrt(1 - |c|) for fast_acos_of_root taken as |d x V| / sqrt(|d| (|d| + |d . V|)) (V a unit vector): as
-// |c| -> 1, 1 - |c| would cancel in float32 (and acos' slope there is unbounded), where the cross product keeps its
-// relative precision
-template <class F> TAO_FN void cos_view(const F* delta, const F* V, const F& offset, F& c, F& root) {
-  F d[3], normal[3];
-  for (int k = 0; k < 3; ++k) d[k] = delta[k] - offset * V[k];
-  const F length = clamp_min(norm3(d), F(1e-30f)), along = dot3(d, V);
-  c = along / length;
-  cross(d, V, normal);
-  root = norm3(normal) / sqrt(length * (length + abs(along)));
-}
+// Sample.cos_view: the shaders' horizon cosine (3D, not projected) of a sample at delta, c = dot(normalize(d), V),
+// d = delta - offset V, with root = sqrt(1 - |c|) for fast_acos_of_root taken as |d x V| / sqrt(|d| (|d| + |d . V|))
+// (V a unit vector): as |c| -> 1, 1 - |c| would cancel in float32 (and acos' slope there is unbounded), where the
+// cross product keeps its relative precision. d, |d| and d x V are kept for sample_angles_adjoint.
+template <class F> struct ViewCosine {
+  F d[3], length, normal[3], c, root;
+  TAO_FN ViewCosine(const F* delta, const F* V, const F& offset) {
+    for (int k = 0; k < 3; ++k) d[k] = delta[k] - offset * V[k];
+    length = clamp_min(norm3(d), F(1e-30f));
+    const F along = dot3(d, V);
+    c = along / length;
+    cross(d, V, normal);
+    root = norm3(normal) / sqrt(length * (length + abs(along)));
+  }
+};
 
 // HDRP's slice angle -sign(s) fast_acos(c) of a slice whose projected normal makes cosine c and sine s with V
 // (HDRPAccumulator.slice_frame), in any lane type. fast_acos' sqrt(1 - |c|) is taken as |s| / sqrt(1 + |c|): where
@@ -165,11 +168,9 @@ template <class F>
 TAO_FN void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
                           F& back) {
   if (angles == SectorAngles::hdrp) {
-    F c, root;
-    cos_view(delta, V, F(0.0f), c, root);
-    front = fast_acos_of_root(c, root);
-    cos_view(delta, V, t, c, root);
-    back = fast_acos_of_root(c, root);
+    const ViewCosine<F> to_front(delta, V, F(0.0f)), to_back(delta, V, t);
+    front = fast_acos_of_root(to_front.c, to_front.root);
+    back = fast_acos_of_root(to_back.c, to_back.root);
   } else {
     const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T);
     front = atan2(along_tangent, along_view);
@@ -206,16 +207,14 @@ TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, co
     // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d| = ((d x V) x d) / |d|^3 (without
     // cancellation as |c| -> 1), dc/dV = d / |d| - o q, dc/do = -q . V
     const auto add = [&](const F& o, const F& g) {
-      F d[3], normal[3], q[3], c, root;
-      for (int k = 0; k < 3; ++k) d[k] = delta[k] - o * V[k];
-      cos_view(delta, V, o, c, root);
-      const F inv = F(1.0f) / clamp_min(norm3(d), F(1e-30f)), g_c = g * fast_acos_slope(c, root);
-      cross(d, V, normal);
-      cross(normal, d, q);
+      const ViewCosine<F> view(delta, V, o);
+      F q[3];
+      const F inv = F(1.0f) / view.length, g_c = g * fast_acos_slope(view.c, view.root);
+      cross(view.normal, view.d, q);
       for (int k = 0; k < 3; ++k) {
         q[k] = q[k] * inv * inv * inv * g_c;  // (left to right: 0 where d is)
         g_delta[k] = g_delta[k] + q[k];
-        g_V[k] = g_V[k] + g_c * d[k] * inv - o * q[k];
+        g_V[k] = g_V[k] + g_c * view.d[k] * inv - o * q[k];
       }
       return neg(dot3(q, V));
     };

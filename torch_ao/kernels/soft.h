@@ -17,7 +17,7 @@
 // runs soft_union's reverse scan per sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
 // whose three sums per step give d/ds, d/dw (soft_union.py derives them), so d / d its front and back angles;
-// sample_angles_adjoint (atan2's derivatives, or HDRP's fast_acos(cos_view)'s) gives the thickness's gradient,
+// sample_angles_adjoint (atan2's derivatives, or HDRP's fast_acos(ViewCosine)'s) gives the thickness's gradient,
 // and the fetch's derivative along the step (su, sv move with
 // the radius through the step placement, and so does a layer's read) the radius's. Straight-through: the hard coverage's visibility
 // with these (the soft union's) gradients.
