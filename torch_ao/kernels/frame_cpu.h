@@ -34,16 +34,16 @@ inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, co
                valid.data_ptr<bool>(), positions.size(0), positions.size(1), positions.size(2)};
 }
 
-// What the walk cfg's bilinear fetch reads at its taps, prepared once per call into texels (kept alive by the
-// caller; fr then reads it: Image::texels): an edge-aware fetch's cell flags in the inverse depth's sign (negative:
+// What the walk cfg's bilinear fetch reads at its taps, prepared once per call and returned (the caller keeps it
+// alive; fr then reads it: Image::texels; an undefined tensor where nothing is prepared): an edge-aware fetch's cell flags in the inverse depth's sign (negative:
 // not one surface), so that a sample reads no cell flag, and a back-face layer interleaved with the inverse depth
 // (B, H, W, 2), both of a tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair). A nearest fetch,
 // or one with neither, reads the inverse depth where it is. The separate images stay, for the reads of other buffers.
-inline void fetch_texels(const WalkSettings& cfg, Frame& fr, at::Tensor& texels) {
+inline at::Tensor fetch_texels(const WalkSettings& cfg, Frame& fr) {
   const float *inverse = fr.inverse, *layer = fr.backface, *cells = cfg.edge_aware ? fr.cells : nullptr;
-  if (!cfg.bilinear || (!layer && !cells)) return;
+  if (!cfg.bilinear || (!layer && !cells)) return at::Tensor();
   const int64_t pixels = fr.B * fr.H * fr.W, channels = layer ? 2 : 1;
-  texels = at::empty({pixels * channels}, at::TensorOptions().dtype(at::kFloat));
+  at::Tensor texels = at::empty({pixels * channels}, at::TensorOptions().dtype(at::kFloat));
   float* out = texels.data_ptr<float>();
   at::parallel_for(0, pixels, 16384, [&](int64_t lo, int64_t hi) {
     for (int64_t p = lo; p < hi; ++p) {
@@ -52,6 +52,7 @@ inline void fetch_texels(const WalkSettings& cfg, Frame& fr, at::Tensor& texels)
     }
   });
   fr.texels = out, fr.texels_layer = layer != nullptr, fr.cells_in_sign = cells != nullptr;
+  return texels;
 }
 
 }  // namespace tao

@@ -125,9 +125,9 @@ __attribute__((always_inline)) inline Vec logistic(const Vec& x) {
   return inverse_one_plus(exp_inline(at::vec::clamp(x.neg(), Vec(-87.0f), Vec(87.0f))));
 }
 inline Vec exp(const Vec& x) { return x.exp(); }
-// e^x - 1 inline: exp_inline(x) - 1 where |x| >= 1/4 (|e^x - 1| >= 0.22 there: within 6e-7 relative), below that
-// its degree-7 Taylor polynomial (within 2e-7). SLEEF's is an out-of-line call, one per step of the soft union (its
-// gate, sweeps.expm1_tanh)
+// e^x - 1 inline: exp_inline(x) - 1 where |x| >= 1/4 (x clamped to [-87, 87]; |e^x - 1| >= 0.22 there: within 6e-7
+// relative), below that its degree-7 Taylor polynomial (within 2e-7). SLEEF's is an out-of-line call, one per step
+// of the soft union (its gate, sweeps.expm1_tanh)
 inline Vec expm1(const Vec& x) {
   constexpr float c[7] = {1.0f, 1.0f / 2, 1.0f / 6, 1.0f / 24, 1.0f / 120, 1.0f / 720, 1.0f / 5040};
   Vec p(c[6]);

@@ -73,8 +73,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
   const int64_t* i = ints.data_ptr<int64_t>();
   const float* f = floats.data_ptr<float>();
   const WalkSettings cfg = unpack_walk(i, f);
-  at::Tensor texels;
-  fetch_texels(cfg, fr, texels);
+  const at::Tensor texels = fetch_texels(cfg, fr);
   at::Tensor out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
   auto run = [&](const auto& acc) {
     TORCH_CHECK(acc.channels() == channels && channels <= 8, "channels: expected ", acc.channels());

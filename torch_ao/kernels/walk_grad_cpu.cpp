@@ -326,8 +326,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
     const at::Tensor none = at::empty({0}, positions.options());
     Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
     check_cells(cfg, fr);
-    at::Tensor texels;
-    fetch_texels(cfg, fr, texels);
+    const at::Tensor texels = fetch_texels(cfg, fr);
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
     out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
     record = at::empty({fr.B, fr.H, fr.W, take_words(cfg)}, ints.options());
@@ -354,8 +353,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const WalkSettings cfg = unpack_walk(ints.data_ptr<int64_t>(), floats.data_ptr<float>());
     Frame fr = frame_of(positions, normals, inverse_depth, depth, valid, intrinsics, none, cells, none);
     check_cells(cfg, fr);
-    at::Tensor texels;
-    fetch_texels(cfg, fr, texels);
+    const at::Tensor texels = fetch_texels(cfg, fr);
     if constexpr (RecordsTakes<std::decay_t<decltype(acc)>>::value) {
       TORCH_CHECK(record.scalar_type() == at::kLong && record.is_contiguous() &&
                       record.sizes() == at::IntArrayRef({fr.B, fr.H, fr.W, take_words(cfg)}),
@@ -398,7 +396,7 @@ struct BackwardCall {
     i = ints.data_ptr<int64_t>(), f = floats.data_ptr<float>();
     cfg = unpack_walk(i, f);
     check_cells(cfg, fr);
-    fetch_texels(cfg, fr, texels);
+    texels = fetch_texels(cfg, fr);
     TORCH_CHECK(cfg.steps <= max_steps, "steps: the ", name, " backward holds at most ", max_steps, " per side");
     if (glsl) {  // (the shader's texels: no derivative of their own)
       TORCH_CHECK(cfg.placement == Steps::glsl && cfg.full_circle && !cfg.bilinear, name,
