@@ -56,7 +56,7 @@ struct ExactGradAccumulator {
       const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);
       const F su = along_u(px, sl, float(side), dist), sv = along_v(px, sl, float(side), dist);
       F d_su[3], d_sv[3], dsu, dsv;
-      fetch_motion(smp, su, sv, d_su, d_sv);
+      fetch_motion(smp, px.P, su, sv, d_su, d_sv);
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       F d_pos[3];
       for (int c = 0; c < 3; ++c) delta[c].d[0] = d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;

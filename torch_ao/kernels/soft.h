@@ -59,21 +59,24 @@ template <class F> struct SoftCoverage {
 };
 
 // d position / d su and d sv of a sample's bilinear fetch at (su, sv) (perspective-correct depth, the
-// clamped unprojection; 0 where the sample is not valid)
-template <class F> TAO_FN void fetch_motion(const Sample<F>& smp, const F& su, const F& sv, F* d_su, F* d_sv) {
+// clamped unprojection; 0 where the sample is not valid), P the pixel's position. The position is
+// (xh, yh, -1) z with z = 1 / i, i the interpolated inverse depth: d position / d su = -z (d i / d su) position
+// + z (d xh / d su, 0, 0), and likewise for sv.
+template <class F>
+TAO_FN void fetch_motion(const Sample<F>& smp, const F* P, const F& su, const F& sv, F* d_su, F* d_sv) {
   const Image& img = *smp.image;
-  const F t0 = gather(img.inverse, smp.index[0]), t1 = gather(img.inverse, smp.index[1]);
-  const F t2 = gather(img.inverse, smp.index[2]), t3 = gather(img.inverse, smp.index[3]);
-  const F depth = reciprocal(lerp(lerp(t0, t1, smp.fu), lerp(t2, t3, smp.fu), smp.fv));
-  const F square = neg(depth * depth);
-  const F dz_u = square * lerp(t1 - t0, t3 - t2, smp.fv), dz_v = square * (lerp(t2, t3, smp.fu) - lerp(t0, t1, smp.fu));
-  const F Wl = F(float(img.W - 1)), Hl = F(float(img.H - 1));
-  const F su_c = clamp(su, F(0.0f), Wl), sv_c = clamp(sv, F(0.0f), Hl);
-  const F xh = (su_c - F(img.cx)) / F(img.fx), yh = neg(sv_c - F(img.cy)) / F(img.fy);
-  const F dxh = select(su_c == su, F(1.0f / img.fx), F(0.0f)), dyh = select(sv_c == sv, F(-1.0f / img.fy), F(0.0f));
-  d_su[0] = select(smp.valid, dz_u * xh + depth * dxh, F(0.0f)), d_sv[0] = select(smp.valid, dz_v * xh, F(0.0f));
-  d_su[1] = select(smp.valid, dz_u * yh, F(0.0f)), d_sv[1] = select(smp.valid, dz_v * yh + depth * dyh, F(0.0f));
-  d_su[2] = select(smp.valid, neg(dz_u), F(0.0f)), d_sv[2] = select(smp.valid, neg(dz_v), F(0.0f));
+  F pos[3];
+  for (int c = 0; c < 3; ++c) pos[c] = smp.delta[c] + P[c];
+  const F depth = neg(pos[2]);
+  const F k_u = neg(depth * smp.inverse_su), k_v = neg(depth * smp.inverse_sv);
+  const auto u_inside = clamp(su, F(0.0f), F(float(img.W - 1))) == su;
+  const auto v_inside = clamp(sv, F(0.0f), F(float(img.H - 1))) == sv;
+  const F dxh = select(u_inside, depth * F(1.0f / img.fx), F(0.0f));
+  const F dyh = select(v_inside, depth * F(-1.0f / img.fy), F(0.0f));
+  for (int c = 0; c < 3; ++c) {
+    d_su[c] = select(smp.valid, k_u * pos[c] + (c == 0 ? dxh : F(0.0f)), F(0.0f));
+    d_sv[c] = select(smp.valid, k_v * pos[c] + (c == 1 ? dyh : F(0.0f)), F(0.0f));
+  }
 }
 
 // d su / d radius and d sv / d radius of the step dist pixels out on a slice's side (SlicePattern.step_offsets,
@@ -310,7 +313,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const bool moves = smp.bilinear && any(w >= F(0.0f));  // (an empty step has no gradient; the nearest texel does not move)
     if (moves) {
       const F su = along_u(px, sl, float(side), dist), sv = along_v(px, sl, float(side), dist);
-      fetch_motion(smp, su, sv, d_su, d_sv);
+      fetch_motion(smp, px.P, su, sv, d_su, d_sv);
     }
     if (kAdjoint) {  // the backward: the fetch, for the pixel's and the taps' gradients (end_slice_adjoint)
       for (int c = 0; c < 3; ++c) {

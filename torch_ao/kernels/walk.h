@@ -446,6 +446,8 @@ template <class F> struct Sample {
   I index[4];  // the taps' texels (index[0] only for a nearest fetch), to read other buffers
   F fu, fv;
   F su, sv;  // where it samples, in screen pixels
+  // a bilinear fetch's d (the interpolated inverse depth) / d su and d sv, for fetch_motion (0 for a nearest fetch)
+  F inverse_su, inverse_sv;
   // the back-face layer at the taps where this sample's fetch read it with the inverse depth (Image::texels_layer)
   F layer;
   bool has_layer = false;
@@ -488,7 +490,8 @@ template <class F> struct Sample {
   // the same sample in another lane type, each value through to(x) (as Pixels')
   template <class G, class To>
   TAO_FN Sample(const Sample<G>& o, const To& to)
-      : valid(o.valid), fu(to(o.fu)), fv(to(o.fv)), su(to(o.su)), sv(to(o.sv)), bilinear(o.bilinear), image(o.image) {
+      : valid(o.valid), fu(to(o.fu)), fv(to(o.fv)), su(to(o.su)), sv(to(o.sv)), inverse_su(to(o.inverse_su)),
+        inverse_sv(to(o.inverse_sv)), bilinear(o.bilinear), image(o.image) {
     for (int c = 0; c < 3; ++c) delta[c] = to(o.delta[c]);
     for (int k = 0; k < 4; ++k) index[k] = o.index[k];
   }
@@ -563,12 +566,14 @@ template <class F> struct Sample {
       valid = land(land(t0 == t0, t1 == t1), land(t2 == t2, t3 == t3));  // invalid texels hold NaN
       if (cfg.drop)
         valid = land(valid, land(land(fu0 >= F(0.0f), fu0 + F(1.0f) < Wf), land(fv0 >= F(0.0f), fv0 + F(1.0f) < Hf)));
-      const F depth = reciprocal(lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv));
+      const F top = lerp(t0, t1, fu), bottom = lerp(t2, t3, fu);
+      inverse_su = lerp(t1 - t0, t3 - t2, fv), inverse_sv = bottom - top;
+      const F depth = reciprocal(lerp(top, bottom, fv));
       const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
       unproject(img, su_c, sv_c, depth, pos);
     } else {
       const F fu0 = floor(su + F(0.5f)), fv0 = floor(sv + F(0.5f));
-      fu = F(0.0f), fv = F(0.0f);
+      fu = fv = inverse_su = inverse_sv = F(0.0f);
       const I iu = imin(imax(to_int(clamp(fu0, F(-1.0f), Wf)), zero), Wlast);
       const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);
       index[0] = iv * Wi + iu;

@@ -300,7 +300,7 @@ template <class B> struct MovingFetch {
   TAO_FN MovingFetch(const WalkSettings& cfg, const Image& img, const Pixels<B>& px, const B& su, const B& sv)
       : plain(cfg, img, px, su, sv) {
     for (int c = 0; c < 3; ++c) d_su[c] = B(0.0f), d_sv[c] = B(0.0f);
-    if (cfg.bilinear) fetch_motion(plain, su, sv, d_su, d_sv);
+    if (cfg.bilinear) fetch_motion(plain, px.P, su, sv, d_su, d_sv);
   }
 };
 
