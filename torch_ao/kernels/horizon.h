@@ -15,6 +15,20 @@ template <class F> TAO_FN F arc_integral(const F& h1, const F& h2, const F& n, c
   return F(0.25f) * ((neg(cos(two * h1 - n)) + cos_n + two * h1 * sin_n) + (neg(cos(two * h2 - n)) + cos_n + two * h2 * sin_n));
 }
 
+template <class F> struct Rev;  // (lanes_rev.h, where a backward includes it)
+// arc_integral in reverse lanes: its value in the value lanes, its derivatives with respect to h1, h2, n, cos_n
+// and sin_n in two nodes of the tape, where its arithmetic makes fourteen: d / d h_k = (sin(2 h_k - n) + sin n) / 2,
+// d / d n = -(sin(2 h1 - n) + sin(2 h2 - n)) / 4, d / d cos n = 1 / 2, d / d sin n = (h1 + h2) / 2
+template <class B>
+TAO_FN Rev<B> arc_integral(const Rev<B>& h1, const Rev<B>& h2, const Rev<B>& n, const Rev<B>& cos_n,
+                           const Rev<B>& sin_n) {
+  const B two(2.0f), half(0.5f), s1 = sin(two * h1.v - n.v), s2 = sin(two * h2.v - n.v);
+  const B value = arc_integral(h1.v, h2.v, n.v, cos_n.v, sin_n.v);
+  const Rev<B> along_h = Rev<B>::join(value, h1, half * (s1 + sin_n.v), h2, half * (s2 + sin_n.v), n,
+                                      B(-0.25f) * (s1 + s2));
+  return Rev<B>::join(value, along_h, B(1.0f), cos_n, half, sin_n, half * (h1.v + h2.v));
+}
+
 enum class GTAOVariant : int64_t { exact = 0, hdrp = 1, ue4 = 2 };
 constexpr float kUE4Epsilon = 1e-4f;  // ue4's rsqrt(|d|^2 + 1e-4), world units squared
 

@@ -170,6 +170,18 @@ template <class F> struct Rev {
     return Rev(value, x.tape->node(a * x.scale, y.id, b * y.scale, z.id, c * z.scale), x.tape);
   }
 
+  // the same of any three values, in one node where one of them is the last node made (or a constant), else two
+  static TAO_FN_ALWAYS Rev join(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
+                                const F& c) {
+    Tape<F>* tape = x.id >= 0 ? x.tape : y.id >= 0 ? y.tape : z.tape;
+    if (!tape) return Rev(value);
+    const int32_t last = tape->n - 1;
+    if (x.id < 0 || x.id == last) return link(value, x, a, y, b, z, c);
+    if (y.id == last) return link(value, y, b, x, a, z, c);
+    if (z.id == last) return link(value, z, c, x, a, y, b);
+    return link(value, link(value, x, a, y, b), F(1.0f), z, c);
+  }
+
   friend TAO_FN_ALWAYS Rev operator+(const Rev& a, const Rev& b) {
     if (b.id < 0) return affine(a.v + b.v, a, F(1.0f));
     if (a.id < 0) return affine(a.v + b.v, b, F(1.0f));
