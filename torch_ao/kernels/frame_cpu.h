@@ -35,10 +35,11 @@ inline Frame frame_of(const at::Tensor& positions, const at::Tensor& normals, co
 }
 
 // What the walk cfg's bilinear fetch reads at its taps, prepared once per call and returned (the caller keeps it
-// alive; fr then reads it: Image::texels; an undefined tensor where nothing is prepared): an edge-aware fetch's cell flags in the inverse depth's sign (negative:
-// not one surface), so that a sample reads no cell flag, and a back-face layer interleaved with the inverse depth
-// (B, H, W, 2), both of a tap's floats in one gather of 64-bit lanes (lanes_simd.h's gather_pair). A nearest fetch,
-// or one with neither, reads the inverse depth where it is. The separate images stay, for the reads of other buffers.
+// alive; fr then reads it: Image::texels; an undefined tensor where nothing is prepared): an edge-aware fetch's cell
+// flags in the inverse depth's sign (negative: not one surface), so that a sample reads no cell flag, and a back-face
+// layer interleaved with the inverse depth (B, H, W, 2), both of a tap's floats in one gather of 64-bit lanes
+// (lanes_simd.h's gather_pair). A nearest fetch, or one with neither, reads the inverse depth where it is. The
+// separate images stay, for the reads of other buffers.
 inline at::Tensor fetch_texels(const WalkSettings& cfg, Frame& fr) {
   const float *inverse = fr.inverse, *layer = fr.backface, *cells = cfg.edge_aware ? fr.cells : nullptr;
   if (!cfg.bilinear || (!layer && !cells)) return at::Tensor();

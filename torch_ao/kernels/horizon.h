@@ -24,9 +24,9 @@ TAO_FN Rev<B> arc_integral(const Rev<B>& h1, const Rev<B>& h2, const Rev<B>& n, 
                            const Rev<B>& sin_n) {
   const B two(2.0f), half(0.5f), s1 = sin(two * h1.v - n.v), s2 = sin(two * h2.v - n.v);
   const B value = arc_integral(h1.v, h2.v, n.v, cos_n.v, sin_n.v);
-  const Rev<B> along_h = Rev<B>::join(value, h1, half * (s1 + sin_n.v), h2, half * (s2 + sin_n.v), n,
+  const Rev<B> along_h = Rev<B>::link(value, h1, half * (s1 + sin_n.v), h2, half * (s2 + sin_n.v), n,
                                       B(-0.25f) * (s1 + s2));
-  return Rev<B>::join(value, along_h, B(1.0f), cos_n, half, sin_n, half * (h1.v + h2.v));
+  return Rev<B>::link(value, along_h, B(1.0f), cos_n, half, sin_n, half * (h1.v + h2.v));
 }
 
 enum class GTAOVariant : int64_t { exact = 0, hdrp = 1, ue4 = 2 };

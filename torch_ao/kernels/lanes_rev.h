@@ -162,23 +162,16 @@ template <class F> struct Rev {
     return Rev(value, x.tape->push(x.id, a * x.scale, y.id, b * y.scale), x.tape);
   }
 
-  // a value with derivatives a, b, c with respect to x, y, z, in one node: x is a constant or the last node made,
-  // y and z were made before it
+  // a value with derivatives a, b, c with respect to x, y, z: one node where one of them is the last node made
+  // (or x is a constant), else two
   static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
                                 const F& c) {
     if (x.id < 0) return link(value, y, b, z, c);
-    return Rev(value, x.tape->node(a * x.scale, y.id, b * y.scale, z.id, c * z.scale), x.tape);
-  }
-
-  // the same of any three values, in one node where one of them is the last node made (or a constant), else two
-  static TAO_FN_ALWAYS Rev join(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
-                                const F& c) {
-    Tape<F>* tape = x.id >= 0 ? x.tape : y.id >= 0 ? y.tape : z.tape;
-    if (!tape) return Rev(value);
+    Tape<F>* tape = x.tape;
     const int32_t last = tape->n - 1;
-    if (x.id < 0 || x.id == last) return link(value, x, a, y, b, z, c);
-    if (y.id == last) return link(value, y, b, x, a, z, c);
-    if (z.id == last) return link(value, z, c, x, a, y, b);
+    if (x.id == last) return Rev(value, tape->node(a * x.scale, y.id, b * y.scale, z.id, c * z.scale), tape);
+    if (y.id == last) return Rev(value, tape->node(b * y.scale, x.id, a * x.scale, z.id, c * z.scale), tape);
+    if (z.id == last) return Rev(value, tape->node(c * z.scale, x.id, a * x.scale, y.id, b * y.scale), tape);
     return link(value, link(value, x, a, y, b), F(1.0f), z, c);
   }
 
