@@ -158,8 +158,8 @@ def test_kernel_backend_refuses_a_call_it_does_not_cover():
 
     gb = example_gbuffer(8, 8)
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
-    with pytest.raises(ValueError, match="backend.*thickness_growth"):  # (the soft kernel grows no thickness)
-        BitmaskAO(mode="soft", thickness_growth=0.5, backend="kernel")(graph)
+    with pytest.raises(ValueError, match="backend.*slice_sampling='projected_normal'"):  # (the tensor walk's alone)
+        BitmaskAO(mode="soft", slice_sampling="projected_normal", backend="kernel")(graph)
     with pytest.raises(ValueError, match="backend.*float64"):
         SSAO(backend="kernel")(gb.to(dtype=torch.float64))
     with pytest.raises(ValueError, match="backend: expected one of"):

@@ -82,7 +82,7 @@ struct ThicknessModel {
   }
   template <class F> TAO_FN F at(const Pixels<F>& px, const Sample<F>& smp) const {
     const F t = read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
-    return growth > 0.0f ? t * (F(1.0f) + F(growth) * norm3(smp.delta)) : t;
+    return growth != 0.0f ? t * (F(1.0f) + F(growth) * norm3(smp.delta)) : t;
   }
   // d value as the sample's fetch moves by (dsu, dsv) pixels and its position by d_pos: the layer's bilinear
   // read at the moving taps (Sample.gather), the sample's depth; a first tap's read is piecewise constant

@@ -12,8 +12,8 @@
 // sum_slices sum_k P_k omega_k (cos phi_k V + sin phi_k T) (bitmask.h's bent_axes; its direction is taken in torch).
 //
 // The thickness at a sample is bitmask.h's ThicknessModel (thickness.ThicknessLayer: scale * value + offset).
-// With gradients, three more channels: d visibility / d radius, d thickness (the model's offset) and d its
-// scale of the pixel (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
+// With gradients, four more channels: d visibility / d radius, d thickness (the model's offset), d its
+// scale and d its growth (t times 1 + growth |delta|) of the pixel (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
 // runs soft_union's reverse scan per sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
 // whose three sums per step give d/ds, d/dw (soft_union.py derives them), so d / d its front and back angles;
@@ -111,6 +111,9 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   int run;
   float run_bound, run_ratio;
   bool windowed, cosine, straight_through;
+  // whether the thickness model has a growth (ThicknessModel::growth, then a parameter: its gradient is wanted at
+  // growth 0 too)
+  bool grows = false;
   // the indirect light and the bent normal's sum too (not with kGradients: their settings' gradients are the
   // backward's)
   bool indirect, bent;
@@ -150,7 +153,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     LaneArray<F, kFetches> gain, hard_newly;
   };
   template <class F> struct Sums {
-    F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f);
+    F num = F(0.0f), den = F(0.0f), radius = F(0.0f), thickness = F(0.0f), scale = F(0.0f), growth = F(0.0f);
     // the forward's: the light the steps send (with indirect), the visible sectors' direction sum (with bent)
     F light[3] = {F(0.0f), F(0.0f), F(0.0f)}, bent[3] = {F(0.0f), F(0.0f), F(0.0f)};
     // the backward's: d L / d fx, fy, cx, cy (values only), and d L / d the pixel's own inputs but through the
@@ -164,7 +167,36 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   template <class B> struct StepAdjoint { B s, w, front, back, shift, newly; };
   // the visibility, the indirect light, the bent normal's sum
   TAO_FN int outputs() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
-  TAO_FN int channels() const { return kGradients && !kAdjoint ? 4 : outputs(); }
+  TAO_FN int channels() const { return kGradients && !kAdjoint ? 5 : outputs(); }
+
+  // A kept step's thickness t = base (1 + growth |delta|) (ThicknessModel::at) taken apart: the factor, base and
+  // |delta| (1, t and 0 without a growth)
+  template <class F> struct Grown { F factor, base, length; };
+  template <class F> TAO_FN Grown<F> grown(const F* delta, const F& t) const {
+    if (!grows) return {F(1.0f), t, F(0.0f)};
+    const F length = norm3(delta), factor = F(1.0f) + F(thickness.growth) * length;
+    return {factor, t / factor, length};
+  }
+  // d L / d t of a kept step (g_thickness) onto its model's parameters: the offset's (d t / d offset = the factor),
+  // the scale's (times the value) and the growth's (times base |delta|) into sums; d L / d the base returned
+  template <class F, class G>
+  TAO_FN F thickness_parameters(const F& g_thickness, const Grown<F>& gr, const F& value, const Pixels<F>& px,
+                                Sums<G>& sums) const {
+    const F g_base = g_thickness * gr.factor;
+    const F g_t = select(px.live, g_base, F(0.0f));
+    sums.thickness = sums.thickness + G(g_t);
+    sums.scale = sums.scale + G(g_t * value);
+    if (grows)  // (a background texel's layer is inf where its gradient is 0)
+      sums.growth = sums.growth + G(select(g_t != F(0.0f), g_thickness * gr.base * gr.length, F(0.0f)));
+    return g_base;
+  }
+  // d L / d delta of t's growth (d |delta| / d delta = delta / |delta|) added to g_delta
+  template <class F>
+  TAO_FN void growth_delta(const F& g_thickness, const Grown<F>& gr, const F* delta, F* g_delta) const {
+    if (!grows) return;
+    const F per = g_thickness * gr.base * F(thickness.growth) / clamp_min(gr.length, F(1e-30f));
+    for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + per * delta[c];
+  }
 
   // out(j, logistic(x_j)), x_j = x0 + j / tau clamped to +-kSoftClamp (sectors.sweeps), for j = 0 .. n - 1:
   // a step's sector logistics are such a run. e^-x_j is a running product, e^-x_(j-1) e^(-1 / tau), from the exp
@@ -333,6 +365,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
       dt = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
+      if (grows) {  // t = base (1 + growth |delta|): the base's motion times the factor, and the factor's
+        const Grown<F> gr = grown(smp.delta, t);
+        dt = dt * gr.factor + gr.base * F(thickness.growth) * dot3(smp.delta, d_pos) / clamp_min(gr.length, F(1e-30f));
+      }
     }
     for (int c = 0; c < 3; ++c) st.radial[c][m] = d_pos[c];
     st.radial_t[m] = dt;
@@ -448,9 +484,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
       const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, walked.T, st.t[m],
                                                   g.front, g.back, g_delta, unused_V, unused_T);
-      const F g_t = select(px.live, g_thickness, F(0.0f));
-      sums.thickness = sums.thickness + g_t;
-      sums.scale = sums.scale + g_t * st.tv[m];
+      thickness_parameters(g_thickness, grown(delta, st.t[m]), st.tv[m], px, sums);
       const F radial[3] = {st.radial[0][m], st.radial[1][m], st.radial[2][m]};
       sums.radius = sums.radius + select(px.live, fma(g_thickness, st.radial_t[m], dot3(g_delta, radial)), F(0.0f));
     });
@@ -515,7 +549,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
       const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m], g.front,
                                                   g.back, g_delta, g_V, g_T);
-      const F g_value = g_thickness * F(thickness.scale);  // d L / d the value the scale multiplies
+      const Grown<F> gr = grown(delta, st.t[m]);
+      growth_delta(g_thickness, gr, delta, g_delta);
+      // d L / d the value the scale multiplies (the offset's, the scale's and the growth's into sums)
+      const F g_value = thickness_parameters(g_thickness, gr, st.tv[m], px, sums) * F(thickness.scale);
       if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
         g_delta[2] = g_delta[2] - g_value;
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
@@ -543,9 +580,6 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       }
       placement.add(walk, sl, m < walk.steps ? 1.0f : -1.0f, st.dist[m], g_su, g_sv);
       g_shift = g_shift + g.shift;
-      const F g_t = select(px.live, g_thickness, F(0.0f));
-      sums.thickness = sums.thickness + D(g_t);
-      sums.scale = sums.scale + D(g_t * st.tv[m]);
       if (camera && walk.bilinear) {
         const F pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
         unprojection_camera(*camera, pos, g_delta, land(px.live, valid), g_cam);
@@ -627,6 +661,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
       out[3] = select(px.live, sums.scale / den, F(0.0f));
+      out[4] = select(px.live, sums.growth / den, F(0.0f));
       return;
     }
     int c0 = 1;
@@ -644,8 +679,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
 // P, N, depth) and each slice's in D; sums in D. The loss is upstream times the visibility, plus light_upstream
 // (with indirect light; else null) dotted with the indirect light, plus bent_upstream (with bent normals; else null)
 // dotted with the bent normal's sum; weight and light_weight: upstream and light_upstream over the denominator.
-// finish writes d L / d the pixel's own 7, d L / d the thickness' offset and d its scale, then (with camera; else
-// zeros) d L / d fx, fy, cx, cy.
+// finish writes d L / d the pixel's own 7, d L / d the thickness' offset, d its scale and d its growth, then (with
+// camera; else zeros) d L / d fx, fy, cx, cy.
 template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct SoftAdjoint {
   using Acc = SoftAccumulator<true, true, kMostSteps>;
   const Acc& acc;
@@ -661,7 +696,7 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
     Slice<D> sd;
   };
   template <class G> using Sums = typename Acc::template Sums<D>;
-  TAO_FN int channels() const { return 13; }
+  TAO_FN int channels() const { return 14; }
   TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
     return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
   }
@@ -691,8 +726,8 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
       const F d_inv = neg(den.d[k] * inv) * inv;
       out[k] = select(px.live, through_den * d_inv + sums.loss.d[k], F(0.0f));
     }
-    out[7] = sums.thickness.v, out[8] = sums.scale.v;
-    for (int k = 0; k < 4; ++k) out[9 + k] = sums.camera[k].v;
+    out[7] = sums.thickness.v, out[8] = sums.scale.v, out[9] = sums.growth.v;
+    for (int k = 0; k < 4; ++k) out[10 + k] = sums.camera[k].v;
   }
 };
 

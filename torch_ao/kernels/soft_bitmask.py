@@ -2,8 +2,9 @@
 "straight_through")``'s visibility, indirect light (``SSILVB``) and bent normals on the one walk (``walk.h`` with
 ``soft.h``'s accumulator),
 differentiable with respect to the scalar ``radius``,
-the thickness model's offset ``thickness`` and scale (``scale * value + offset``: one scalar, the back-face layer,
-a map, a per-object table, the net's map, the linear model in depth), the G-buffer (depth or positions, normals,
+the thickness model's offset ``thickness``, scale (``scale * value + offset``: one scalar, the back-face layer,
+a map, a per-object table, the net's map, the linear model in depth) and growth (times ``1 + growth * |sample -
+pixel|``), the G-buffer (depth or positions, normals,
 the intrinsics) and the thickness layer the model reads (and through it the back-face depth, a map, a table, the net's weights),
 on the CPU and CUDA.
 
@@ -11,7 +12,7 @@ The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sec
 hard coverage in straight-through mode). When only radius and the thickness' scalars want a gradient, the same
 walk also returns each pixel's derivatives of its visibility with respect to them (the soft union's reverse scan
 per slice, in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per
-sample, three channels per pixel.
+sample, four channels per pixel.
 
 When the G-buffer or the layer wants one, the forward is the plain walk over the channel-last inputs of
 :func:`~torch_ao.kernels.frame.walk_inputs` and the layer (so that autograd chains their gradients to depth,
@@ -23,9 +24,9 @@ interval, and scatters its d visibility / d delta to the step's fetch taps (bili
 nearest: the tap's position; on CUDA atomically) and d visibility / d its thickness, times the scale, to the
 layer's taps (the linear model's value is the sample's depth: it joins d / d delta). The offset's and the scale's
 gradients are per-pixel sums of the same adjoints. The radius needs no tangent: the walk is scale-invariant
-(positions, depth, a layer, radius and offset scaled together leave it as it is; the scale is unitless), so
-Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth - dL/dinverse inverse + dL/dlayer layer)
-- T dL/dT``. With indirect light the walk also returns the light the newly occluded sectors send (3 channels), with
+(positions, depth, a layer, radius and offset scaled together, and the growth, per world unit, inversely, leave it
+as it is; the scale is unitless), so Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth -
+dL/dinverse inverse + dL/dlayer layer) - T dL/dT + g dL/dg``. With indirect light the walk also returns the light the newly occluded sectors send (3 channels), with
 bent normals the slices' bent-normal sum (3; its direction is taken in torch); the backward's reverse scan is seeded
 by every output's upstream gradient, each step's light replayed for its gradients to the light and the senders'
 normals at its taps; their radius and thickness gradients take that backward too (the light does not scale with the
@@ -62,7 +63,7 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, layer: torch.Tensor | None = None,
                  layer_scale: torch.Tensor | None = None, thickness_read: str | None = None,
-                 weighting: str = "uniform", straight_through: bool = False, indirect: bool = False,
+                 thickness_growth: torch.Tensor | None = None, weighting: str = "uniform", straight_through: bool = False, indirect: bool = False,
                  bent_normals: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
@@ -71,8 +72,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1) and, with
     ``indirect``, the indirect light ``(B,3,H,W)`` (background 0), with ``bent_normals`` the bent normals
     ``(B,3,H,W)`` (unit view-space; ``normals`` where the visible sectors' sum is about 0 and on background),
-    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``layer`` and the G-buffer's depth,
-    positions, intrinsics, ``normals`` and light.
+    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``thickness_growth``, ``layer`` and
+    the G-buffer's depth, positions, intrinsics, ``normals`` and light.
 
     Args:
         gbuffer: a float32 G-buffer on the CPU or CUDA; normals: its ``(B,3,H,W)``
@@ -82,7 +83,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             ``(B,1,H,W)`` (read at each sample as depth is) the thickness there is ``layer_scale * layer +
             thickness``, ``layer_scale`` a 0-d tensor (default 1, e.g. the back-face model's
             ``thickness_scale``); ``thickness_read``: as :func:`~torch_ao.kernels.bitmask_outputs`
-            (``"depth"``: ``layer_scale`` per world unit of the sample's depth, no layer).
+            (``"depth"``: ``layer_scale`` per world unit of the sample's depth, no layer); ``thickness_growth``: a
+            0-d tensor ``g`` (per world unit; ``None``: none), the thickness times ``1 + g * |sample - pixel|``.
         tau: temperature of the soft masks (sectors, > 0); weighting: ``"uniform"`` or ``"cosine"``;
             straight_through: hard coverage in the forward, the soft gradient in the backward; indirect: the light
             the newly occluded sectors send too (``gbuffer.light`` needed); bent_normals: the visible sectors' mean
@@ -96,8 +98,9 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     if variant not in HARD_VARIANTS:
         raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
     read = thickness_read_index(thickness_read, layer)
-    scalars = [check_scalar_tensor(name, t) for name, t in (("radius", radius), ("thickness", thickness),
-                                                              ("layer_scale", 1.0 if layer_scale is None else layer_scale))]
+    named = (("radius", radius), ("thickness", thickness), ("layer_scale", 1.0 if layer_scale is None else layer_scale),
+             ("thickness_growth", 0.0 if thickness_growth is None else thickness_growth))
+    scalars = [check_scalar_tensor(name, t) for name, t in named]
     light = light_input(gbuffer, True) if indirect else None
     # the backward's walk: the G-buffer's gradients, and those of indirect light and bent normals (the settings'
     # too: one reverse scan seeded by every output, where the forward's derivative channels would be 9 more each)
@@ -111,7 +114,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
                    stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read,
-                   angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals), indirect=bool(indirect))
+                   angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals), indirect=bool(indirect),
+                   grows=thickness_growth is not None)
     if backward_walk:
         out = _gbuffer_walk(gbuffer, normals, *scalars, layer, light, options)
     elif indirect or bent_normals:  # (no gradient: the plain walk)
@@ -129,14 +133,14 @@ def bent_normal(sums: torch.Tensor, normals: torch.Tensor, valid: torch.Tensor) 
     return torch.where(valid, bent_direction(sums, normals, 1), normals)
 
 
-def _settings(radius, thickness, scale, o):
+def _settings(radius, thickness, scale, growth, o):
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of ``soft.h``'s walk."""
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=radius.detach(), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"])
     return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"], o["bent"],
-                       o["indirect"]],
-            [thickness.detach(), o["epsilon"], o["tau"], scale.detach()])
+                       o["indirect"], o["grows"]],
+            [thickness.detach(), o["epsilon"], o["tau"], scale.detach(), growth.detach()])
 
 
 def _outputs(o) -> int:
@@ -144,23 +148,23 @@ def _outputs(o) -> int:
     return 1 + 3 * o["indirect"] + 3 * o["bent"]
 
 
-def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients, light=None):
+def _walk(gbuffer, normals, radius, thickness, scale, growth, layer, o, gradients, light=None):
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d thickness,
-    d layer_scale, or the other outputs (:func:`_outputs`; ``light``: the channel-last light)."""
-    settings, acc_ints, acc_floats = _settings(radius, thickness, scale, o)
+    d layer_scale, d thickness_growth, or the other outputs (:func:`_outputs`; ``light``: the channel-last light)."""
+    settings, acc_ints, acc_floats = _settings(radius, thickness, scale, growth, o)
     accumulator = "soft"
     if gradients:  # (on CUDA, the short slice's arrays where its steps fit: soft_walk_short)
         accumulator = "soft_gradients_short" if gbuffer.depth.is_cuda and soft_walk_short(o["steps"]) else "soft_gradients"
-    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 4 if gradients else _outputs(o),
+    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 5 if gradients else _outputs(o),
                     light=light, backface=layer, lanes=o["lanes"])
 
 
-def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, light, o):
+def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, growth, layer, light, o):
     """The outputs (:func:`_outputs`) with gradients to the walk's channel-last inputs (so to the G-buffer), the
     channel-last ``light``, the thickness ``layer`` and the scalars."""
     kernels = SoftKernels("soft", "tao_walk_soft", soft_backward_kernel(o["steps"]), True)
-    return gbuffer_walk(gbuffer, normals, _settings(radius, thickness, scale, o), light, layer, radius, thickness,
-                        scale, o["lanes"], kernels, _outputs(o))
+    return gbuffer_walk(gbuffer, normals, _settings(radius, thickness, scale, growth, o), light, layer, radius,
+                        thickness, scale, o["lanes"], kernels, _outputs(o), growth if o["grows"] else None)
 
 
 class SoftKernels(NamedTuple):
@@ -174,13 +178,14 @@ class SoftKernels(NamedTuple):
 
 
 def gbuffer_walk(gbuffer, normals, packed, light, layer, radius, thickness, scale, lanes: str, kernels: SoftKernels,
-                 channels: int) -> torch.Tensor:
+                 channels: int, growth: torch.Tensor | None = None) -> torch.Tensor:
     """A soft walk's ``channels`` outputs (``packed``: its settings, walk's and accumulator's) with gradients to the
     walk's channel-last inputs (so to the G-buffer), the channel-last ``light``, the thickness ``layer`` and the
-    scalars ``radius``, ``thickness``, ``scale``, by ``kernels``."""
+    scalars ``radius``, ``thickness``, ``scale`` and ``growth`` (the thickness growth's, ``None`` where it has none),
+    by ``kernels``."""
     inputs, (light, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *packed, light=light,
                                                                       backface=layer)
-    return _GBufferWalk.apply(*inputs, light, cells, layer_image, ints, floats, radius, thickness, scale,
+    return _GBufferWalk.apply(*inputs, light, cells, layer_image, ints, floats, radius, thickness, scale, growth,
                               scalar_lanes(lanes), kernels, channels)
 
 
@@ -203,14 +208,15 @@ def soft_backward_kernel(steps: int) -> str:
 class _GBufferWalk(torch.autograd.Function):
     """A soft walk (``kernels``: :class:`SoftKernels`) over ``(positions, normals, inverse, depth, valid,
     intrinsics)``, the channel-last ``light``, the edge-aware fetch's ``cells`` and the thickness ``layer`` (each empty
-    where unused), its ``channels`` outputs, and ``soft_backward``."""
+    where unused), its ``channels`` outputs, and ``soft_backward``; ``growth``: the thickness growth, or ``None``."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius,
-                thickness, scale, scalar, kernels, channels):
+                thickness, scale, growth, scalar, kernels, channels):
         ctx.scalar, ctx.scale_dtype, ctx.kernels = scalar, scale.dtype, kernels
+        growth = radius.new_zeros(()) if growth is None else growth
         ctx.save_for_backward(positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats,
-                              radius, thickness)
+                              radius, thickness, growth)
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
@@ -221,8 +227,8 @@ class _GBufferWalk(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius, thickness = \
-            ctx.saved_tensors
+        positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius, thickness, \
+            growth = ctx.saved_tensors
         frame = (positions, normals, inverse, depth, valid, intrinsics, light, cells, layer)
         grad = grad.to(torch.float32).contiguous()
         camera = ctx.needs_input_grad[5] and ctx.kernels.camera  # the intrinsics' gradients, per pixel (B, H, W, 4)
@@ -230,7 +236,7 @@ class _GBufferWalk(torch.autograd.Function):
             g_pos, g_nrm, taps = torch.zeros_like(positions), torch.zeros_like(normals), torch.zeros_like(positions)
             g_depth, g_inv, g_layer = torch.zeros_like(depth), torch.zeros_like(depth), torch.zeros_like(depth)
             senders, g_light = torch.zeros_like(normals), torch.zeros_like(normals)
-            g_setting = depth.new_zeros((*depth.shape, 2))
+            g_setting = depth.new_zeros((*depth.shape, 3))
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(ctx.kernels.cuda_backward, depth.device,
                         [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, senders, g_light,
@@ -241,34 +247,37 @@ class _GBufferWalk(torch.autograd.Function):
             g_pos, g_nrm, g_inv, g_depth, g_setting, g_layer, g_light, g_camera = grad_kernels().soft_backward(
                 grad, *frame, ints, floats, camera, ctx.scalar)
         g_intrinsics = g_camera.double().sum((1, 2)).to(intrinsics.dtype) if camera else None
-        g_thickness, g_scale = g_setting.double().sum(dim=(0, 1, 2)).unbind()
+        g_thickness, g_scale, g_growth = g_setting.double().sum(dim=(0, 1, 2)).unbind()
         g_radius = None
         if ctx.needs_input_grad[11]:  # Euler's identity (module docstring); invalid texels hold NaN
             along = scale_derivative(valid, (g_pos, positions), (g_depth, depth), (g_inv, -inverse))
             if layer.numel():  # (a layer is world units: it scales with the scene)
                 along = along + torch.where(torch.isfinite(layer), g_layer.double() * layer, 0.0).sum()
-            g_radius = (-(along + thickness.double() * g_thickness) / radius.double()).to(radius.dtype)
+            g_radius = (-(along + thickness.double() * g_thickness - growth.double() * g_growth)
+                        / radius.double()).to(radius.dtype)
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light if light.numel() else None, None,
                 g_layer if layer.numel() else None, None, None, g_radius,
                 g_thickness.to(thickness.dtype) if ctx.needs_input_grad[12] else None,
-                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[13] else None, None, None, None)
+                g_scale.to(ctx.scale_dtype) if ctx.needs_input_grad[13] else None,
+                g_growth.to(growth.dtype) if ctx.needs_input_grad[14] else None, None, None, None)
 
 
 class _SoftWalk(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, gbuffer, normals, radius, thickness, scale, layer, options):
-        wanted = any(ctx.needs_input_grad[2:5])
-        out = _walk(gbuffer, normals, radius, thickness, scale, layer, options, wanted)
+    def forward(ctx, gbuffer, normals, radius, thickness, scale, growth, layer, options):
+        wanted = any(ctx.needs_input_grad[2:6])
+        out = _walk(gbuffer, normals, radius, thickness, scale, growth, layer, options, wanted)
         if wanted:
             ctx.save_for_backward(out[:, 1:].contiguous())
-        ctx.dtypes = (radius.dtype, thickness.dtype, scale.dtype)
+        ctx.dtypes = (radius.dtype, thickness.dtype, scale.dtype, growth.dtype)
         return out[:, :1].contiguous()
 
     @staticmethod
     def backward(ctx, grad):
-        (jacobian,) = ctx.saved_tensors  # (B, 3, H, W): d visibility / d radius, d thickness, d scale per pixel
+        # (B, 4, H, W): d visibility / d radius, d thickness, d scale, d growth per pixel
+        (jacobian,) = ctx.saved_tensors
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
-        return None, None, *(sums[k].to(ctx.dtypes[k]) for k in range(3)), None, None
+        return None, None, *(sums[k].to(ctx.dtypes[k]) for k in range(4)), None, None
 
 
 #: options of a module the soft kernel reproduces (beyond the hard kernel's): the modes and weightings (hard
@@ -293,7 +302,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     normals, the light, the intrinsics and the layer the thickness reads."""
     of_gbuffer = wants_gradient(gbuffer, gbuffer.normals)
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=_WEIGHTINGS, variants=_VARIANTS, extra=_EXTRA,
-                               layers=True)
+                               layers=True, growth=True)
     if reason is not None:
         return reason
     if module.mode == "hard" and of_gbuffer:
@@ -306,13 +315,14 @@ def module_forward(module, gbuffer: GBuffer) -> KernelOutputs:
     accepts)."""
     hard = module.mode == "hard"  # hard masks have no gradient: no graph
     form = module_thickness(module, gbuffer)
-    radius, thickness, scale = module.radius, form.offset, form.scale
+    radius, thickness, scale, growth = module.radius, form.offset, form.scale, form.growth
     if hard:
         radius, thickness, scale = radius.detach(), thickness.detach(), scale.detach()
+        growth = None if growth is None else growth.detach()
     layer = None if form.layer is None else form.layer.detach() if hard else form.layer
     return soft_outputs(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, layer=layer, layer_scale=scale, thickness_read=form.read,
-                        tau=module.tau, weighting=module.weighting, indirect=module.want_indirect,
+                        thickness_growth=growth, tau=module.tau, weighting=module.weighting, indirect=module.want_indirect,
                         bent_normals=module.want_bent,
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,

@@ -71,7 +71,7 @@ TAO_CUDA_BACKWARD(tao_backward_pssao, unpack_pssao)
 TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere)
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d the thickness'
-// offset and scale per pixel in g_thickness (B, H, W, 2); the layer's taps' in tap_layer (backface: the model's
+// offset, scale and growth per pixel in g_thickness (B, H, W, 3); the layer's taps' in tap_layer (backface: the model's
 // layer); with indirect light the senders' normals' and light's taps' in tap_normals and tap_light (light: the
 // light buffer); d L / d the intrinsics per pixel in g_camera (B, H, W, 4) where it is not null
 #define TAO_CUDA_SOFT_BACKWARD(name, Acc, unpack)                                                            \

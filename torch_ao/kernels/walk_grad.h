@@ -540,7 +540,7 @@ template <class B> struct TapSink {
 
 // The soft backward of the n <= L pixels of a row from u0: the walk with SoftAdjoint's slices (the pixels and
 // slices also in dual lanes: tangents on the pixel's own P, N, depth); the pixel's own gradients and
-// d L / d the thickness' offset and scale written per pixel (t.settings == 2) and, where t.camera, d L / d the
+// d L / d the thickness' offset, scale and growth written per pixel (t.settings == 3) and, where t.camera, d L / d the
 // intrinsics; the layer's to its taps
 template <class B, int kMostSteps>
 TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const SoftAccumulator<true, true, kMostSteps>& acc,
@@ -558,10 +558,10 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img, const Sof
                                                           acc.indirect ? light_weight : nullptr,
                                                           acc.bent ? &g[acc.indirect ? 4 : 1] : nullptr, sink,
                                                           t.camera != nullptr};
-  B own[13];
+  B own[14];
   walk_block(cfg, img, adjoint, row, u0, n, own);
-  // (the settings: d L / d the offset, d L / d the scale; where asked, d L / d the intrinsics)
-  write_own(t, img.W, row, u0, n, own, &own[kPixel], t.camera ? &own[kPixel + 2] : nullptr);
+  // (the settings: d L / d the offset, the scale, the growth; where asked, d L / d the intrinsics)
+  write_own(t, img.W, row, u0, n, own, &own[kPixel], t.camera ? &own[kPixel + 3] : nullptr);
 }
 
 // The exact union's backward (bitmask.h's ExactAccumulator: variant="exact" in every mode) of the n <= L pixels
@@ -1064,7 +1064,7 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
   B normal[3];  // (indirect light's: the pixel's normal normalised)
   acc.shader.gl.normalize(px.N, normal);
   const B normal_length = acc.shader.gl.length(px.N);
-  B owed[kSectors], own[kPixel], g_camera[3] = {B(0.0f), B(0.0f), B(0.0f)}, setting[2] = {B(0.0f), B(0.0f)};
+  B owed[kSectors], own[kPixel], g_camera[3] = {B(0.0f), B(0.0f), B(0.0f)}, setting[3] = {B(0.0f), B(0.0f), B(0.0f)};
   for (int k = 0; k < kSectors; ++k) owed[k] = B(0.0f);
   for (int k = 0; k < kPixel; ++k) own[k] = B(0.0f);
   const Pixels<D> pd(cfg, img, row, u0, n);
@@ -1171,7 +1171,7 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
 }
 
 // Pixel p's soft backward (a CUDA thread): grad (B, 1, H, W); its own gradients (positions, normals, depth,
-// d L / d the thickness' offset and scale: thickness (B, H, W, 2), and where camera d L / d the intrinsics:
+// d L / d the thickness' offset, scale and growth: thickness (B, H, W, 3), and where camera d L / d the intrinsics:
 // (B, H, W, 4)) and its steps' taps' (positions, inverse depth, the layer's where the model reads one;
 // atomically) as grad_pixel's
 template <class Acc>
@@ -1180,10 +1180,10 @@ TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame
                             float* tap_positions, float* tap_inverse, float* tap_layer, float* tap_normals,
                             float* tap_light, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 2 * b * plane,
+  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 3 * b * plane,
                   tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
                   tap_normals ? tap_normals + 3 * b * plane : nullptr, tap_light ? tap_light + 3 * b * plane : nullptr,
-                  camera ? camera + 4 * b * plane : nullptr, 2};
+                  camera ? camera + 4 * b * plane : nullptr, 3};
   soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane, t);
 }
 

@@ -431,7 +431,7 @@ struct BackwardCall {
 // torch_ao_kernels::soft_backward: the gradients of sum(grad * outputs) of the soft / straight-through walk
 // ("soft"'s packed settings, or with the GLSL step placement "soft_glsl"'s; its outputs the visibility, then with
 // indirect light its light, with bent normals their sum) with respect to its positions, normals (B, H, W, 3; the senders' too), inverse depth and depth
-// (B, H, W), each pixel's share of the thickness' offset and scale (B, H, W, 2), the thickness layer (B, H, W; zeros
+// (B, H, W), each pixel's share of the thickness' offset, scale and growth (B, H, W, 3), the thickness layer (B, H, W; zeros
 // where the model reads none), the light (B, H, W, 3; zeros without indirect light) and, with camera, each pixel's
 // share of the intrinsics' (B, H, W, 4; else empty); grad (B, outputs, H, W); light: the light buffer, cells: the
 // edge-aware fetch's cell flags (B, H, W), backface: the thickness layer (B, H, W), each empty where unused
@@ -443,15 +443,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const at::Tensor none = at::empty({0}, positions.options());
   const bool glsl = packs_glsl(ints);
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, glsl ? 5 : 7, 4, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
+                          floats, glsl ? 5 : 8, glsl ? 4 : 5, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
                           glsl);
   TORCH_CHECK(call.f[kAccFloats + (glsl ? 3 : 2)] > 0, "tau: expected > 0");
   // (the accumulator's thickness model and whether it sends light)
   auto backward = [&](const auto& acc, const ThicknessModel& thickness, bool indirect) {
     TORCH_CHECK(!thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
     TORCH_CHECK(!indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
-    // (d L / d the thickness' offset and scale)
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 2, thickness.reads_layer(), indirect,
+    // (d L / d the thickness' offset, scale and growth)
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 3, thickness.reads_layer(), indirect,
                   camera);
     auto g = call.run(grad, acc.channels(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
                                                                    int64_t u0, int n, const float* upstream,
