@@ -238,12 +238,19 @@ def _cases() -> dict[str, Case]:
             "soft `BitmaskAO`, variant `hdrp` fwd+bwd, depth + normals, tensor ops",
             bitmask("torch", mode="soft", variant="hdrp"), "gbuffer",
             "bitmask_hdrp", 3.0, kernel=False),
-        # a thickness growth (the hard kernels'), the shader with the back-face layer, a soft ambient colour
+        # a thickness growth, the shader with the back-face layer, a soft ambient colour
         "bitmask_growth": Case("`BitmaskAO` hard, thickness growth 0.5", bitmask(mode="hard", thickness_growth=0.5),
                                None, "shader", 1.0),
         "bitmask_growth_torch": Case("`BitmaskAO` hard, thickness growth 0.5, tensor ops",
                                      bitmask("torch", mode="hard", thickness_growth=0.5), None, "shader", 1.0,
                                      kernel=False),
+        "soft_growth_parameters": Case("soft `BitmaskAO`, thickness growth 0.5 fwd+bwd, radius + thickness + growth",
+                                       bitmask(mode="soft", thickness_growth=0.5), "parameters", "bitmask", 3.0),
+        "soft_growth_parameters_torch": Case(
+            "soft `BitmaskAO`, thickness growth 0.5 fwd+bwd, radius + thickness + growth, tensor ops",
+            bitmask("torch", mode="soft", thickness_growth=0.5), "parameters", "bitmask", 3.0, kernel=False),
+        "soft_growth_gbuffer": Case("soft `BitmaskAO`, thickness growth 0.5 fwd+bwd, depth + normals",
+                                    bitmask(mode="soft", thickness_growth=0.5), "gbuffer", "bitmask", 3.0),
         "ssilvb_glsl_backface": Case("`ssilvb_glsl` hard AO + indirect, `BackfaceThickness`", lambda s: torch_ao.SSILVB(
             variant="ssilvb_glsl", mode="hard", backend="kernel", thickness=BackfaceThickness(0.8, 0.15),
             **_without_thickness(s)), None, "shader", 1.0),

@@ -2,7 +2,7 @@
 
 Every combination of variant (``default``, ``exact``, ``hdrp``, ``ssilvb_glsl``), mode (hard, soft,
 straight-through), weighting, thickness model (a scalar, the back-face layer, a map, the linear model, the net),
-fetch (nearest, bilinear, edge-aware), output (visibility, indirect light, bent normals, a constant ambient colour)
+with or without a thickness growth, fetch (nearest, bilinear, edge-aware), output (visibility, indirect light, bent normals, a constant ambient colour)
 and gradient (none, the parameters', the G-buffer's) that the modules accept is asked of the dispatch
 (``torch_ao.kernels.dispatch.KERNELS``: each kernel's ``covers``) on a small frame; nothing is run. Prints the count
 of covered calls and the reasons for the others, most frequent first:
@@ -32,6 +32,7 @@ WEIGHTINGS = ("uniform", "cosine")
 FETCHES = ("nearest", "bilinear", "edge_aware")
 OUTPUTS = ("visibility", "indirect", "bent normals", "ambient colour")
 GRADIENTS = ("none", "parameters", "gbuffer")
+GROWTHS = (None, 0.5)  # thickness_growth
 
 
 def thickness_model(name: str, shape: tuple[int, ...]):
@@ -41,10 +42,10 @@ def thickness_model(name: str, shape: tuple[int, ...]):
             "net": lambda: NetThickness(scale=1.0, init=0.3)}[name]()
 
 
-def module_for(variant, mode, weighting, thickness, fetch, output, gradient, shape):
+def module_for(variant, mode, weighting, thickness, growth, fetch, output, gradient, shape):
     """The module of one combination, or ``None`` where the module refuses it (its own rule, not a kernel's)."""
     options = dict(variant=variant, mode=mode, weighting=weighting, fetch=fetch, slices=2, steps=2,
-                   thickness=thickness_model(thickness, shape), trainable=gradient != "none")
+                   thickness=thickness_model(thickness, shape), thickness_growth=growth, trainable=gradient != "none")
     if output == "bent normals":
         options["bent_normals"] = True
     if output == "ambient colour":
@@ -75,7 +76,7 @@ def main() -> int:
                              backface_depth=plain.backface_depth)
     total, refused, reasons = 0, 0, collections.Counter()
     for combination in itertools.product(VARIANTS, MODES, WEIGHTINGS, ("scalar", "backface", "map", "linear", "net"),
-                                         FETCHES, OUTPUTS, GRADIENTS):
+                                         GROWTHS, FETCHES, OUTPUTS, GRADIENTS):
         module = module_for(*combination, shape=tuple(plain.depth.shape))
         if module is None:
             refused += 1

@@ -289,12 +289,12 @@ def cases(gb):
     yield "bitmask", walk_settings(**common, azimuth="screen"), [0, False, False, False, 0, 1], [0.5, 0.0, 1.0, 0.0], 1, None
     yield "bitmask", walk_settings(**dict(common, fetch="nearest"), azimuth="screen"), [1, True, True, True, 0, 1], [0.5, 0.0, 1.0, 0.0], 7, light
     exact = dict(common, fetch="edge_aware")
-    yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False], [0.4, 1.0, 1.0, 0.0], 1, None
-    yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False], [0.4, 1.0, 1.0, 0.0], 1, None
-    yield ("exact_gradients", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False],
-           [0.4, 1.0, 1.0, 0.0], 4, None)
-    yield ("exact_gradients", walk_settings(**dict(exact, fetch="bilinear", border="clamp")), [False, False, False, False],
-           [0.4, 1.0, 1.0, 0.01], 4, None)
+    yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 1, None
+    yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False, False], [0.4, 1.0, 1.0, 0.0, 0.0], 1, None
+    yield ("exact_gradients", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False, True],
+           [0.4, 1.0, 1.0, 0.0, 0.6], 5, None)
+    yield ("exact_gradients", walk_settings(**dict(exact, fetch="bilinear", border="clamp")), [False, False, False, False, False],
+           [0.4, 1.0, 1.0, 0.01, 0.0], 5, None)
     glsl = dict(slices=4 + 1, steps=5 + 1, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp",
                 placement="glsl", full_circle=True, azimuth="screen")  # (the shader's sliceCount 4, sampleCount 5)
     # (rounding, indirect, exact numerics, the thickness' read: 3 the sample's depth); the thickness' offset, scale,
@@ -302,11 +302,11 @@ def cases(gb):
     yield "glsl", walk_settings(**glsl, noise="glsl"), [0, True, True, 0], [0.3, 1.0, 0.0], 4, light
     yield "glsl", walk_settings(**glsl, noise="glsl_mediump"), [0, True, True, 3], [0.05, 0.1, 0.4], 4, light
     yield "glsl", walk_settings(**dict(glsl, jitter=False), noise="glsl"), [1, False, False, 0], [0.0, 1.0, 0.0], 1, None
-    # its soft / straight-through walk (soft_glsl.h): the hard accumulator's ints, then straight-through; its floats
-    # (growth 0), then tau
-    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0, False], [0.3, 1.0, 0.0, 0.25], 4, light
-    yield "soft_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 3, False], [0.05, 0.1, 0.0, 0.1], 4, light
-    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, False, False, 0, True], [0.3, 1.0, 0.0, 0.25], 1, None
+    # its soft / straight-through walk (soft_glsl.h): the hard accumulator's ints, then straight-through and whether
+    # the thickness has a growth; its floats (growth among them), then tau
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0, False, False], [0.3, 1.0, 0.0, 0.25], 4, light
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 3, False, True], [0.05, 0.1, 0.4, 0.1], 4, light
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, False, False, 0, True, False], [0.3, 1.0, 0.0, 0.25], 1, None
     # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1), bent,
     # indirect, a growth; floats offset, epsilon, tau, scale, growth
     yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 1, None
@@ -441,9 +441,9 @@ def _backward_cases():
     yield "soft", walk_settings(**dict(common, steps=9)), [0, True, False, 0, 0, 0, 0, 1], [0.3, 0.01, 0.25, 1.0, 0.6], 1
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
-    yield "exact", walk_settings(**exact), [True, True, True, 1], [0.05, 0.8, 1.0, 0.0], 1
-    yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0], [0.4, 1.0, 1.0, 0.01], 1
-    yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2], [0.1, 1.0, 1.0, 0.0], 1
+    yield "exact", walk_settings(**exact), [True, True, True, 1, True], [0.05, 0.8, 1.0, 0.0, 0.6], 1
+    yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0, False], [0.4, 1.0, 1.0, 0.01, 0.0], 1
+    yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2, True], [0.1, 1.0, 1.0, 0.0, 0.6], 1
     # (rounding, cosine, indirect, bent, the layer's read, the variant); thickness, epsilon, the layer's scale, growth
     yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1, 0], [0.1, 0.01, 1.0, 0.0], 4
     yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0, 0.0], 1
@@ -458,11 +458,12 @@ def _backward_cases():
                 full_circle=True, azimuth="screen")
     yield "hard_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0], [0.3, 1.0, 0.0], 4
     yield "hard_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 1], [0.0, 1.2, 0.4], 4
-    # its soft / straight-through walk's (soft_glsl.h; ints and floats as "hard_glsl"'s, then straight-through, tau):
+    # its soft / straight-through walk's (soft_glsl.h; ints and floats as "hard_glsl"'s, then straight-through, a
+    # growth, tau):
     # slices of 6 steps (the short backward's) and of 18
-    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0, False], [0.3, 1.0, 0.0, 0.25], 4
-    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [1, True, True, 1, True], [0.05, 1.2, 0.0, 0.2], 4
-    yield "soft_glsl", walk_settings(**dict(glsl, steps=18), noise="glsl"), [0, False, False, 3, False], [0.05, 0.1, 0.0, 0.25], 1
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, True, False, 0, False, False], [0.3, 1.0, 0.0, 0.25], 4
+    yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [1, True, True, 1, True, True], [0.05, 1.2, 0.5, 0.2], 4
+    yield "soft_glsl", walk_settings(**dict(glsl, steps=18), noise="glsl"), [0, False, False, 3, False, False], [0.05, 0.1, 0.0, 0.25], 1
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])

@@ -28,7 +28,8 @@ def _weights(vis: torch.Tensor) -> torch.Tensor:
 
 
 def _scalar_names(module: BitmaskAO) -> list[str]:
-    return ["radius", "thickness"] + (["thickness_scale"] if hasattr(module, "thickness_scale") else [])
+    return ["radius", "thickness"] + [n for n in ("thickness_scale", "thickness_growth")
+                                      if isinstance(getattr(module, n, None), torch.Tensor)]
 
 
 def values_and_grads(gb0: GBuffer, dtype: torch.dtype, backend: str, setting: dict):

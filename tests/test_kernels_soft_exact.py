@@ -26,12 +26,15 @@ SETTINGS = [
     dict(slices=3, steps=4, thickness=BackfaceThickness(), noise="hilbert_r2", stagger=True, seed=3, step_power=2.0,
          min_step_px=1.0, sector_epsilon=0.01, mode="straight_through"),
     dict(slices=3, steps=4, azimuth="screen", thickness=BackfaceThickness(scale=0.9, thickness=0.05)),
+    dict(slices=3, steps=4, thickness_growth=0.7),  # a growth: t (1 + g |delta|), |delta| moving with the fetch
+    dict(slices=2, steps=5, thickness=BackfaceThickness(scale=0.8, thickness=0.05, growth=0.5)),
 ]
 
 
 def _parameters(module: BitmaskAO) -> list[str]:
     back = isinstance(module.thickness_model, BackfaceThickness)
-    return ["radius", "thickness"] + (["thickness_scale"] if back else [])
+    grows = module.thickness_model.growth is not None
+    return ["radius", "thickness"] + (["thickness_scale"] if back else []) + (["thickness_growth"] if grows else [])
 
 
 def visibility_and_grads(gb: GBuffer, lanes: str, setting: dict, dtype=torch.float32):
@@ -55,7 +58,8 @@ def visibility_and_grads(gb: GBuffer, lanes: str, setting: dict, dtype=torch.flo
 def _kernel(module, gb, lanes, **overrides):
     form = module_thickness(module, gb)
     args = dict(slices=module.slices, steps=module.steps, radius=module.radius, thickness=form.offset, layer=form.layer,
-                layer_scale=None if form.layer is None else form.scale, step_power=module.step_power,
+                layer_scale=None if form.layer is None else form.scale, thickness_growth=form.growth,
+                step_power=module.step_power,
                 min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                 stagger=module.stagger, fetch=module.fetch, border=module.border, weighting=module.weighting,
                 thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
@@ -121,7 +125,7 @@ def test_gradients_match_finite_differences(built, setting):
             assert g.item() == pytest.approx(fd, rel=3e-2), (name, g.item(), fd)
 
 
-@pytest.mark.parametrize("setting", [0, 1, 4])
+@pytest.mark.parametrize("setting", [0, 1, 4, 7])
 def test_straight_through_and_soft_forwards_are_the_hard_exact_kernels(built, setting):
     gb = with_backface(FRAMES["rough"]())
     for mode in ("soft", "straight_through"):
@@ -170,7 +174,6 @@ def test_covers_names_what_it_does_not_cover():
     assert exact_soft_covers(BitmaskAO(variant="exact", mode="soft"), moving) is None  # (the intrinsics' too)
     cases = {"union": (BitmaskAO(mode="soft"), gb),
              "steps=40": (BitmaskAO(variant="exact", mode="soft", steps=40), gb),
-             "growth": (BitmaskAO(variant="exact", mode="soft", thickness_growth=0.5), gb),
              "slice_sampling": (BitmaskAO(variant="exact", mode="soft", slice_sampling="projected_normal"), gb),
              "float64": (BitmaskAO(variant="exact", mode="soft"), gb.to(dtype=torch.float64))}
     for word, (module, frame) in cases.items():

@@ -34,6 +34,9 @@ SETTINGS = [
     dict(mode="soft", slices=3, steps=4, thickness=lambda: BackfaceThickness(0.8, 0.05)),
     dict(mode="straight_through", slices=4, steps=3, rounding="round", thickness=lambda: LinearThickness(0.05, 0.1),
          glsl_numerics="mesa"),
+    # a thickness growth (t times 1 + g |sample - pixel|): with a scalar, with the back-face layer
+    dict(mode="soft", slices=3, steps=4, thickness_growth=0.6),
+    dict(mode="straight_through", slices=3, steps=4, thickness=lambda: BackfaceThickness(0.8, 0.05, growth=0.5)),
 ]
 
 
@@ -119,7 +122,7 @@ def test_values_and_gradients_agree_with_the_tensor_walk(built, setting, lanes, 
                                                                               relative_error(g32, g0))
 
 
-@pytest.mark.parametrize("setting", [0, 1, 3])
+@pytest.mark.parametrize("setting", [0, 1, 3, 5, 6])
 def test_thickness_gradients_alone_agree_with_the_tensor_walk(built, setting):
     """With no G-buffer gradient asked for, the thickness model's parameters get theirs through the backward's walk."""
     _, _, grads0 = _run(torch.float64, "torch", SETTINGS[setting], gbuffer=False)

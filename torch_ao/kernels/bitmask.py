@@ -182,13 +182,13 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "edge_aware", border: str = "drop",
                weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
                sample_extent: str = "sphere", sector_epsilon: float = 0.0, azimuth: str = "view",
-               lanes: str = "simd") -> torch.Tensor:
+               thickness_growth: float = 0.0, lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` (background 1) of the exact union of a slice's occluder intervals
     (``union="exact"``, the ``"exact"`` variant's rule; its defaults here), in one fused pass.
 
     Args:
         gbuffer: a float32 G-buffer (CPU or CUDA); normals: its ``(B,3,H,W)`` unit view-space normals.
-        slices, steps (<= 32 per side); radius, thickness, layer, layer_scale, thickness_read: as
+        slices, steps (<= 32 per side); radius, thickness, layer, layer_scale, thickness_read, thickness_growth: as
             :func:`bitmask_outputs`;
             step_power, min_step_px
             (pixels), jitter, seed, noise, stagger, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
@@ -201,8 +201,8 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                              sphere_extent=sample_extent == "sphere", azimuth=azimuth)
     return run_walk("exact", gbuffer, normals, settings,
                     [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius),
-                     thickness_read_index(thickness_read, layer)],
-                    [thickness, layer_scale, radius, sector_epsilon], 1, backface=layer, lanes=lanes)
+                     thickness_read_index(thickness_read, layer), False],
+                    [thickness, layer_scale, radius, sector_epsilon, thickness_growth], 1, backface=layer, lanes=lanes)
 
 
 def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
@@ -348,7 +348,7 @@ def exact_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the hard kernels')"
     reason = options_uncovered(module, gbuffer, modes=("hard",), weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), extra=_EXACT, layers=True)
+                               variants=("default", "exact"), extra=_EXACT, layers=True, growth=True)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:

@@ -1,14 +1,15 @@
 // The "exact" variant's accumulator with its derivatives (BitmaskAO(variant="exact") in soft,
 // straight-through or hard mode, whose exact union is differentiable as it is: the modes are one walk) for
-// walk.h: bitmask.h's ExactAccumulator walked in dual lanes Dual<F, 3> whose tangents are the derivatives
-// with respect to the radius, the thickness model's offset and its scale (the back-face model's
-// thickness_scale, LinearThickness' slope). Channels: the visibility (ExactAccumulator's, value for value), then d visibility /
-// d radius, d thickness, d thickness_scale of the pixel (the caller multiplies by the upstream gradient and
-// sums).
+// walk.h: bitmask.h's ExactAccumulator walked in dual lanes Dual<F, 4> whose tangents are the derivatives
+// with respect to the radius, the thickness model's offset, its scale (the back-face model's
+// thickness_scale, LinearThickness' slope) and its growth. Channels: the visibility (ExactAccumulator's, value for
+// value), then d visibility / d radius, d thickness, d thickness_scale, d thickness_growth of the pixel (the caller
+// multiplies by the upstream gradient and sums).
 //
 // A sample's tangents: along the radius its fetched position moves with the step (dist = min_step_px +
 // span frac, span from radius_px: soft.h's step_motion and fetch_motion), and so do a layer read at its
-// taps and its depth (a first tap's read is piecewise constant); the thickness t = scale * value + offset. ExactAccumulator::interval then carries them
+// taps and its depth (a first tap's read is piecewise constant); the thickness t = (scale * value + offset) (1 +
+// growth |delta|), |delta| moving with the fetch too. ExactAccumulator::interval then carries them
 // through the back point, the clip to the sphere (whose radius has tangent 1 along the radius), the atan2s
 // and clamps, and union_measure through the sort and the running reach (at a tie max passes the first
 // operand's: torch's maximum splits it, which only a measure-zero set of frames sees).
@@ -22,7 +23,8 @@ namespace tao {
 struct ExactGradAccumulator {
   ExactAccumulator exact;
   WalkSettings walk;  // the step placement (the radius moves the steps)
-  static constexpr int kTangents = 3;  // radius, the thickness' offset, its scale
+  bool grows;  // whether the thickness has a growth (a parameter: its tangent is wanted at growth 0 too)
+  static constexpr int kTangents = 4;  // radius, the thickness' offset, its scale, its growth
 
   template <class F> using D = Dual<F, kTangents>;
   template <class F> struct State {
@@ -49,8 +51,14 @@ struct ExactGradAccumulator {
     D<F> delta[3];
     for (int c = 0; c < 3; ++c) delta[c] = D<F>(smp.delta[c]);
     D<F> t(model.at(px, smp));
-    t.d[1] = F(1.0f);
-    if (model.read != ThicknessRead::constant) t.d[2] = model.value(px, smp);
+    // t = base factor: base = scale value + offset, factor = 1 + growth |delta|
+    const F value = model.read != ThicknessRead::constant ? model.value(px, smp) : F(0.0f);
+    F factor = F(1.0f), length = F(0.0f);
+    if (grows) {
+      length = norm3(smp.delta), factor = F(1.0f) + F(model.growth) * length;
+      t.d[3] = (F(model.scale) * value + F(model.offset)) * length;
+    }
+    t.d[1] = factor, t.d[2] = value * factor;
     if (smp.bilinear && any(smp.valid)) {  // (the nearest texel does not move with the radius)
       const int64_t j = st.n % walk.steps;
       const F dist = step_distance(walk, sl, step_noise(walk, px, sl, side), j);
@@ -60,7 +68,9 @@ struct ExactGradAccumulator {
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       F d_pos[3];
       for (int c = 0; c < 3; ++c) delta[c].d[0] = d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
-      t.d[0] = F(model.scale) * model.motion(smp, d_pos, dsu, dsv);
+      t.d[0] = F(model.scale) * model.motion(smp, d_pos, dsu, dsv) * factor;
+      if (grows)  // (the factor's motion: d |delta| = delta . d delta / |delta|)
+        t.d[0] = t.d[0] + t.d[3] * F(model.growth) * dot3(smp.delta, d_pos) / clamp_min(length * length, F(1e-30f));
     }
     D<F> radius(F(exact.radius));
     radius.d[0] = F(1.0f);

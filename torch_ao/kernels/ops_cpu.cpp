@@ -94,12 +94,12 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     TORCH_CHECK(i[kAccInts + 5] == 0 || i[kAccInts + 5] == 1, "variant: expected 0 (default) or 1 (hdrp)");
     run(unpack_bitmask(i, f));
   } else if (name == "exact") {
-    packed(4, 4);
+    packed(5, 5);
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     check_thickness(i[kAccInts + 3], fr);
     run(unpack_exact(i, f));
   } else if (name == "exact_gradients") {
-    packed(4, 4);
+    packed(5, 5);
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(i[3] == int64_t(Steps::power) && !i[7], "exact_gradients: the radius' derivative is the power step "
@@ -142,7 +142,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
       run(unpack_soft<true>(i, f));
     }
   } else if (name == "soft_glsl") {
-    packed(5, 4);
+    packed(6, 4);
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(f[kAccFloats + 3] > 0, "tau: expected > 0");
     TORCH_CHECK(i[3] == int64_t(Steps::glsl) && i[0] >= 3 && i[1] >= 2,

@@ -65,18 +65,18 @@ TAO_FN GlslAccumulator unpack_glsl(const int64_t* i, const float* f) {
                          GlslVectorOps{i[2] != 0}};
 }
 
-// ints: cosine, along_ray, clip, the thickness' read (ThicknessRead); floats: the thickness' offset, its
-// scale, radius, epsilon
+// ints: cosine, along_ray, clip, the thickness' read (ThicknessRead), whether it has a growth; floats: the
+// thickness' offset, its scale, radius, epsilon, its growth
 TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
   const int64_t slices = i[0], steps = i[1];
   i += kAccInts, f += kAccFloats;
-  return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], ThicknessRead(i[3])}, f[2], f[3], i[0] != 0, i[1] != 0,
-                          i[2] != 0};
+  return ExactAccumulator{slices, steps, ThicknessModel{f[0], f[1], ThicknessRead(i[3]), f[4]}, f[2], f[3], i[0] != 0,
+                          i[1] != 0, i[2] != 0};
 }
 
-// unpack_exact's settings: the exact union with d visibility / d radius, thickness, thickness_scale
+// unpack_exact's settings: the exact union with d visibility / d radius, thickness, thickness_scale, its growth
 TAO_FN ExactGradAccumulator unpack_exact_gradients(const int64_t* i, const float* f) {
-  return ExactGradAccumulator{unpack_exact(i, f), unpack_walk(i, f)};
+  return ExactGradAccumulator{unpack_exact(i, f), unpack_walk(i, f), i[kAccInts + 4] != 0};
 }
 
 // The soft union's rounding offset (sectors.rule.rounding_offset) and its smooth floor's window of its tau
@@ -116,14 +116,16 @@ TAO_FN SoftAccumulator<true, false, kSoftShortSteps> unpack_soft_gradients_short
   return unpack_soft<true, false, kSoftShortSteps>(i, f);
 }
 
-// unpack_glsl's settings and then ints: straight_through; floats: tau (soft_glsl.h's GlslSoftAccumulator; Union:
-// its forward's SoftAccumulator<false>, or its backward's with each step kept)
+// unpack_glsl's settings and then ints: straight_through, whether the thickness has a growth; floats: tau
+// (soft_glsl.h's GlslSoftAccumulator; Union: its forward's SoftAccumulator<false>, or its backward's with each step
+// kept, whose thickness is the shader's)
 template <class Union> TAO_FN GlslSoftAccumulator<Union> unpack_soft_glsl(const int64_t* i, const float* f) {
   GlslSoftAccumulator<Union> acc;
   acc.shader = unpack_glsl(i, f);
   acc.soft.walk = unpack_walk(i, f);
   acc.soft.rounding = acc.shader.rounding, acc.soft.angles = SectorAngles::plane, acc.soft.epsilon = 0.0f;
   acc.soft.straight_through = i[kAccInts + 4] != 0, acc.soft.tau = f[kAccFloats + 3];
+  acc.soft.thickness = acc.shader.thickness, acc.soft.grows = i[kAccInts + 5] != 0;
   acc.soft.cosine = acc.soft.bent = acc.soft.indirect = false;
   soft_window(acc.soft);
   return acc;

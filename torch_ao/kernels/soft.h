@@ -190,11 +190,13 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       sums.growth = sums.growth + G(select(g_t != F(0.0f), g_thickness * gr.base * gr.length, F(0.0f)));
     return g_base;
   }
-  // d L / d delta of t's growth (d |delta| / d delta = delta / |delta|) added to g_delta
+  // d L / d delta of t's growth (d |delta| / d delta = delta / |delta|) added to g_delta (none where g_thickness is
+  // 0: an inf layer's base)
   template <class F>
   TAO_FN void growth_delta(const F& g_thickness, const Grown<F>& gr, const F* delta, F* g_delta) const {
     if (!grows) return;
-    const F per = g_thickness * gr.base * F(thickness.growth) / clamp_min(gr.length, F(1e-30f));
+    const F per = select(g_thickness != F(0.0f),
+                         g_thickness * gr.base * F(thickness.growth) / clamp_min(gr.length, F(1e-30f)), F(0.0f));
     for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + per * delta[c];
   }
 

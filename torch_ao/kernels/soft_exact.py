@@ -39,7 +39,7 @@ __all__ = ["exact_soft", "exact_soft_covers", "exact_soft_forward"]
 
 def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                thickness: torch.Tensor, layer: torch.Tensor | None = None, layer_scale: torch.Tensor | None = None,
-               thickness_read: str | None = None, step_power: float = 1.0,
+               thickness_read: str | None = None, thickness_growth: torch.Tensor | None = None, step_power: float = 1.0,
                min_step_px: float = 0.25, jitter: bool = True, seed: int = 0, noise: str = "ign",
                stagger: bool = False, fetch: str = "edge_aware", border: str = "drop", weighting: str = "cosine",
                thickness_direction: str = "depth", clip_to_radius: bool = True, sample_extent: str = "sphere",
@@ -68,7 +68,8 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     read = thickness_read_index(thickness_read, layer)
     if read != 0 and layer_scale is None:
         layer_scale = torch.ones(())
-    for name, t in (("radius", radius), ("thickness", thickness), ("layer_scale", layer_scale)):
+    for name, t in (("radius", radius), ("thickness", thickness), ("layer_scale", layer_scale),
+                    ("thickness_growth", thickness_growth)):
         if t is None:
             scalars.append(None)
             continue
@@ -84,34 +85,38 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                    sphere=sample_extent == "sphere", epsilon=float(sector_epsilon), read=read, lanes=lanes)
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
-    return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2], None if layer is None else layer.detach())
+    return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2], None if layer is None else layer.detach(),
+                            scalars[3])
 
 
-def _settings(radius, thickness, scale, o) -> tuple:
+def _settings(radius, thickness, scale, growth, o) -> tuple:
     """The packed settings ``(walk settings, accumulator ints, accumulator floats)`` of the exact union's walk."""
     r = radius.detach()  # (0-d tensors: packed on the device, nothing read back)
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=r, step_power=o["step_power"],
                              min_step_px=o["min_step_px"], jitter=o["jitter"], seed=o["seed"], noise=o["noise"],
                              stagger=o["stagger"], fetch=o["fetch"], border=o["border"], sphere_extent=o["sphere"],
                              azimuth=o["azimuth"])
-    return (settings, [o["cosine"], o["along_ray"], o["clip"], o["read"]],
-            [thickness.detach(), 1.0 if scale is None else scale.detach(), r, o["epsilon"]])
+    return (settings, [o["cosine"], o["along_ray"], o["clip"], o["read"], growth is not None],
+            [thickness.detach(), 1.0 if scale is None else scale.detach(), r, o["epsilon"],
+             0.0 if growth is None else growth.detach()])
 
 
-def _walk(gbuffer, normals, radius, thickness, scale, layer, o, gradients: bool) -> torch.Tensor:
+def _walk(gbuffer, normals, radius, thickness, scale, growth, layer, o, gradients: bool) -> torch.Tensor:
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d the
-    thickness' offset, d its scale."""
-    return run_walk("exact_gradients" if gradients else "exact", gbuffer, normals, *_settings(radius, thickness, scale, o),
-                    4 if gradients else 1, backface=layer, lanes=o["lanes"])
+    thickness' offset, d its scale, d its growth."""
+    return run_walk("exact_gradients" if gradients else "exact", gbuffer, normals,
+                    *_settings(radius, thickness, scale, growth, o), 5 if gradients else 1, backface=layer,
+                    lanes=o["lanes"])
 
 
-def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, layer, o) -> torch.Tensor:
+def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, growth, layer, o) -> torch.Tensor:
     """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), the layer and the
     scalars."""
-    inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *_settings(radius, thickness, scale, o),
-                                                                  backface=layer)
+    inputs, (_, cells, layer_image), ints, floats = packed_inputs(
+        gbuffer, normals, *_settings(radius, thickness, scale, growth, o), backface=layer)
     scale = torch.ones(()) if scale is None else scale
-    return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale,
+    growth = torch.zeros(()) if growth is None else growth
+    return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale, growth,
                               scalar_lanes(o["lanes"]))
 
 
@@ -121,9 +126,9 @@ class _GBufferWalk(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
-                thickness, scale, scalar):
-        wanted = any(ctx.needs_input_grad[10:13])  # the scalars': the walk's per-pixel derivatives
-        channels, name = (4, "exact_gradients") if wanted else (1, "exact")
+                thickness, scale, growth, scalar):
+        wanted = any(ctx.needs_input_grad[10:14])  # the scalars': the walk's per-pixel derivatives
+        channels, name = (5, "exact_gradients") if wanted else (1, "exact")
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         none = torch.empty(0, device=depth.device)
         if depth.is_cuda:
@@ -132,7 +137,7 @@ class _GBufferWalk(torch.autograd.Function):
                         tuple(depth.shape))
         else:
             out = cpu_kernels().walk(name, *frame, none, cells, layer, ints, floats, channels, scalar)
-        ctx.scalar, ctx.dtypes = scalar, (radius.dtype, thickness.dtype, scale.dtype)
+        ctx.scalar, ctx.dtypes = scalar, (radius.dtype, thickness.dtype, scale.dtype, growth.dtype)
         ctx.save_for_backward(*frame, cells, layer, ints, floats, out[:, 1:] if wanted else none)
         return out[:, :1].contiguous()
 
@@ -154,31 +159,32 @@ class _GBufferWalk(torch.autograd.Function):
             g_pos, g_nrm, g_inv, g_depth, g_layer, g_camera = grad_kernels().exact_backward(
                 grad, *frame, cells, layer, ints, floats, camera, ctx.scalar)
         g_intrinsics = g_camera.double().sum((1, 2)).to(intrinsics.dtype) if camera else None
-        scalars = [None, None, None]
-        if jacobian.numel():  # (B, 3, H, W): d visibility / d radius, offset, scale
+        scalars = [None] * 4
+        if jacobian.numel():  # (B, 4, H, W): d visibility / d radius, offset, scale, growth
             sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
-            scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None for k in range(3)]
+            scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None for k in range(4)]
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
                 *scalars, None)
 
 
 class _ExactWalk(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, gbuffer, normals, radius, thickness, options, scale, layer):
+    def forward(ctx, gbuffer, normals, radius, thickness, options, scale, layer, growth):
         wanted = bool(ctx.needs_input_grad[2] or ctx.needs_input_grad[3]
-                      or (scale is not None and ctx.needs_input_grad[5]))
-        out = _walk(gbuffer, normals, radius, thickness, scale, layer, options, wanted)
+                      or (scale is not None and ctx.needs_input_grad[5])
+                      or (growth is not None and ctx.needs_input_grad[7]))
+        out = _walk(gbuffer, normals, radius, thickness, scale, growth, layer, options, wanted)
         if wanted:
             ctx.save_for_backward(out[:, 1:].contiguous())
-        ctx.dtypes = (radius.dtype, thickness.dtype, None if scale is None else scale.dtype)
+        ctx.dtypes = (radius.dtype, thickness.dtype, *(None if t is None else t.dtype for t in (scale, growth)))
         return out[:, :1].contiguous()
 
     @staticmethod
     def backward(ctx, grad):
-        (jacobian,) = ctx.saved_tensors  # (B, 3, H, W): d visibility / d radius, offset, scale
+        (jacobian,) = ctx.saved_tensors  # (B, 4, H, W): d visibility / d radius, offset, scale, growth
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
-        g_scale = None if ctx.dtypes[2] is None else sums[2].to(ctx.dtypes[2])
-        return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None, g_scale, None
+        g_scale, g_growth = (None if ctx.dtypes[k] is None else sums[k].to(ctx.dtypes[k]) for k in (2, 3))
+        return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None, g_scale, None, g_growth
 
 
 #: what this kernel covers beyond the exact union's hard kernel: every mode (one forward, one gradient)
@@ -195,7 +201,7 @@ def exact_soft_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "union", None) != "exact":
         return "union other than 'exact' (the sector kernels')"
     reason = options_uncovered(module, gbuffer, modes=_MODES, weightings=("uniform", "cosine"),
-                               variants=("default", "exact"), extra=_EXACT, layers=True)
+                               variants=("default", "exact"), extra=_EXACT, layers=True, growth=True)
     if reason is not None:
         return reason
     if module.steps > EXACT_MAX_STEPS:
@@ -209,7 +215,7 @@ def exact_soft_forward(module, gbuffer: GBuffer) -> dict:
     vis = exact_soft(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                      radius=module.radius, thickness=form.offset, layer=form.layer,
                      layer_scale=None if form.read == "constant" else form.scale, thickness_read=form.read,
-                     step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
+                     thickness_growth=form.growth, step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                      seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
                      clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,

@@ -1,7 +1,7 @@
 """The soft / straight-through kernel of the ``"ssilvb_glsl"`` variant: ``BitmaskAO(variant="ssilvb_glsl",
 mode="soft" | "straight_through")`` and ``SSILVB(...)`` of it, the shader's visibility and light on the one walk
-(``walk.h`` with ``soft_glsl.h``'s accumulator), differentiable with respect to the thickness model's offset and
-scale, the G-buffer (depth or positions, normals, the light; the intrinsics through the positions) and the layer the
+(``walk.h`` with ``soft_glsl.h``'s accumulator), differentiable with respect to the thickness model's offset,
+scale and growth, the G-buffer (depth or positions, normals, the light; the intrinsics through the positions) and the layer the
 thickness reads.
 
 The forward is the tensor path's (:class:`~torch_ao.methods.bitmask_glsl.GLSLAccumulator`): the shader's walk and
@@ -41,7 +41,7 @@ def ssilvb_glsl_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
                      tau: float, straight_through: bool = False, jitter: bool = True, rounding: str = "ceil",
                      numerics: str = "ieee", indirect: bool = False, layer: torch.Tensor | None = None,
                      layer_scale: torch.Tensor | None = None, thickness_read: str | None = None,
-                     lanes: str = "simd") -> KernelOutputs:
+                     thickness_growth: torch.Tensor | None = None, lanes: str = "simd") -> KernelOutputs:
     """The ``"ssilvb_glsl"`` variant in soft (or straight-through) mode: visibility ``(B,1,H,W)`` (background 1; up
     to ``(slices + 1) / slices``, as the shader's) and, with ``indirect``, its light ``(B,3,H,W)`` (background 0).
 
@@ -51,7 +51,8 @@ def ssilvb_glsl_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
             (no gradient: the shader's texels are floored).
         thickness: a 0-d tensor, world units (an ``nn.Parameter`` gets its gradient); with ``layer`` ``(B,1,H,W)``,
             ``layer_scale`` (0-d) and ``thickness_read`` the model ``layer_scale * value + thickness`` read at each
-            sample's texel, as :func:`~torch_ao.kernels.bitmask_outputs`'.
+            sample's texel, as :func:`~torch_ao.kernels.bitmask_outputs`'; ``thickness_growth``: a 0-d tensor ``g``
+            (per world unit; ``None``: none), the thickness times ``1 + g * |sample - pixel|``.
         tau: temperature of the soft masks (sectors, > 0); straight_through: the hard masks' values, the soft
             gradients; jitter, rounding, numerics (``glsl_numerics``): as :class:`~torch_ao.BitmaskAO`; indirect:
             the light too (``gbuffer.light`` needed).
@@ -67,21 +68,23 @@ def ssilvb_glsl_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     read = thickness_read_index(thickness_read, layer)
     thickness = check_scalar_tensor("thickness", thickness)
     scale = check_scalar_tensor("layer_scale", 1.0 if layer_scale is None else layer_scale)
+    growth = None if thickness_growth is None else check_scalar_tensor("thickness_growth", thickness_growth)
     radius = torch.as_tensor(radius).detach()
     light = light_input(gbuffer, True) if indirect else None
     settings = glsl_walk_settings(slices, steps, radius, jitter, numerics)
-    acc_ints = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee", read, bool(straight_through)]
-    acc_floats = [thickness.detach(), scale.detach(), 0.0, float(tau)]
+    acc_ints = [ROUNDINGS.index(rounding), bool(indirect), numerics != "ieee", read, bool(straight_through),
+                growth is not None]
+    acc_floats = [thickness.detach(), scale.detach(), 0.0 if growth is None else growth.detach(), float(tau)]
     channels = 4 if indirect else 1
     if gbuffer.depth.device.type == "cpu":
         cpu_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
-    if wants_gradient(gbuffer, normals, layer, light, thickness, scale):
+    if wants_gradient(gbuffer, normals, layer, light, thickness, scale, growth):
         if gbuffer.depth.device.type == "cpu":
             grad_kernels()
         backward = "tao_soft_backward_glsl_short" if int(steps) + 1 <= _SHORT_STEPS else "tao_soft_backward_glsl"
         kernels = SoftKernels("soft_glsl", "tao_walk_soft_glsl", backward, False)
         out = gbuffer_walk(gbuffer, normals, (settings, acc_ints, acc_floats), light, layer, radius, thickness, scale,
-                           lanes, kernels, channels)
+                           lanes, kernels, channels, growth)
     else:
         out = run_walk("soft_glsl", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
                        backface=None if layer is None else layer.detach(), lanes=lanes)
@@ -95,7 +98,7 @@ def glsl_soft_covers(module, gbuffer: GBuffer) -> str | None:
     if getattr(module, "variant", None) != "ssilvb_glsl":
         return "a variant other than 'ssilvb_glsl' (its soft kernel's)"
     reason = options_uncovered(module, gbuffer, modes=("soft", "straight_through"), weightings=("uniform",),
-                               variants=("ssilvb_glsl",), outputs=True, layers=True)
+                               variants=("ssilvb_glsl",), outputs=True, layers=True, growth=True)
     if reason is not None:
         return reason
     if module.slices > GLSL_MAX_SLICES or module.steps > GLSL_MAX_STEPS:
@@ -110,6 +113,6 @@ def glsl_soft_forward(module, gbuffer: GBuffer) -> dict:
     vis, indirect, _ = ssilvb_glsl_soft(
         gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
         radius=module.radius, thickness=form.offset, layer=form.layer, layer_scale=form.scale,
-        thickness_read=form.read, tau=module.tau, straight_through=module.mode == "straight_through",
+        thickness_read=form.read, thickness_growth=form.growth, tau=module.tau, straight_through=module.mode == "straight_through",
         jitter=module.jitter, rounding=module.rounding, numerics=module.glsl_numerics, indirect=module.want_indirect)
     return {"visibility": vis, "indirect": indirect}

@@ -673,8 +673,14 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         B d_su[3], d_sv[3];
         Sample<D> smp = replayed_sample<D>(cfg, img, px, px_own, sl_own, float(side), dist, d_su, d_sv);
         for (int c = 0; c < 3; ++c) smp.delta[c].d[kExactDelta + c] = B(1.0f);
-        D thickness = acc.thickness.at(pxd, smp);
-        if (layer_read) thickness.d[kExactLayer] = B(acc.thickness.scale);
+        D thickness = acc.thickness.at(pxd, smp);  // (its growth's tangents through delta's)
+        if (layer_read) {  // d t / d the layer's value: the scale, times the growth's factor
+          thickness.d[kExactLayer] = B(acc.thickness.scale);
+          if (acc.thickness.growth != 0.0f) {
+            const B delta[3] = {smp.delta[0].v, smp.delta[1].v, smp.delta[2].v};
+            thickness.d[kExactLayer] = thickness.d[kExactLayer] * (B(1.0f) + B(acc.thickness.growth) * norm3(delta));
+          }
+        }
         D seg[4];
         acc.segment(side, pxd, sld, smp.delta, thickness, seg);
         // the interval from its segment and the shift in tangents of their own (5, where the 11 would carry the
@@ -1093,9 +1099,15 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
       acc.shader.horizons_adjoint(st.shader.camera, delta, kept.t[m], g_x, g_y, g_delta, g_camera, g_t);
       g_n = g_n + (g_x + g_y) * B(1.0f / kPi);
       g_t = select(px.live, g_t, B(0.0f));
-      setting[0] = setting[0] + g_t;
-      setting[1] = setting[1] + select(g_t != B(0.0f), g_t * kept.tv[m], B(0.0f));  // (a background texel's layer: inf)
-      B g_value = g_t * B(acc.shader.thickness.scale);  // d L / d the value the scale multiplies
+      // t = base (1 + growth |delta|) (soft.h's Grown): the growth's share of d L / d delta, d L / d the base
+      const auto grown = acc.soft.grown(delta, kept.t[m]);
+      acc.soft.growth_delta(g_t, grown, delta, g_delta);
+      const B g_base = g_t * grown.factor;
+      setting[0] = setting[0] + g_base;
+      // (a background texel's layer: inf)
+      setting[1] = setting[1] + select(g_base != B(0.0f), g_base * kept.tv[m], B(0.0f));
+      if (acc.soft.grows) setting[2] = setting[2] + select(g_t != B(0.0f), g_t * grown.base * grown.length, B(0.0f));
+      B g_value = g_base * B(acc.shader.thickness.scale);  // d L / d the value the scale multiplies
       if (acc.shader.thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the tap's depth
         g_delta[2] = g_delta[2] - g_value;
         own[2] = own[2] - g_value;  // (with own's -g_delta below: none of it on the pixel's own P)

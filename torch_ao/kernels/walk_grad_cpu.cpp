@@ -443,7 +443,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const at::Tensor none = at::empty({0}, positions.options());
   const bool glsl = packs_glsl(ints);
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, glsl ? 5 : 8, glsl ? 4 : 5, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
+                          floats, glsl ? 6 : 8, glsl ? 4 : 5, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
                           glsl);
   TORCH_CHECK(call.f[kAccFloats + (glsl ? 3 : 2)] > 0, "tau: expected > 0");
   // (the accumulator's thickness model and whether it sends light)
@@ -484,7 +484,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics, const at::Tensor& cells,
     const at::Tensor& backface, const at::Tensor& ints, const at::Tensor& floats, bool camera, bool scalar) {
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics,
-                          at::empty({0}, positions.options()), cells, backface, ints, floats, 4, 4, "exact",
+                          at::empty({0}, positions.options()), cells, backface, ints, floats, 5, 5, "exact",
                           kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
