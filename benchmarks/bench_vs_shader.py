@@ -289,6 +289,8 @@ def _cases() -> dict[str, Case]:
         "ssilvb_glsl_soft_gbuffer_torch": Case(
             "soft `ssilvb_glsl` AO + indirect fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 variant="ssilvb_glsl", mode="soft", backend="torch", **s), "gbuffer", "ssilvb_glsl", 3.0, kernel=False),
+        "exact_parameters": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, radius + thickness + scale",
+                                 exact("kernel", trainable=True), "parameters", "exact", 3.0),
         "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
                               exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
         "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",

@@ -75,7 +75,8 @@ extern "C" {
 typedef void Kernel(const float*, const float*, const float*, const float*, const bool*, const float*, const float*,
                     const float*, const float*, float*, const long long*, const float*, int, int, int);
 Kernel tao_walk_gtao, tao_walk_hbao, tao_walk_bitmask, tao_walk_exact, tao_walk_glsl, tao_walk_soft,
-    tao_walk_soft_gradients, tao_walk_soft_gradients_short, tao_walk_exact_gradients, tao_walk_wedge, tao_walk_pssao,
+    tao_walk_soft_gradients, tao_walk_soft_gradients_short, tao_walk_exact_gradients, tao_walk_exact_gradients_growth,
+    tao_walk_wedge, tao_walk_pssao,
     tao_walk_hemisphere, tao_walk_soft_glsl;
 }
 int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch of <<<blocks, THREADS>>>
@@ -86,7 +87,8 @@ int main(int argc, char** argv) {  // driver NAME DIR B H W C THREADS: a launch 
                  : name == "exact" ? tao_walk_exact : name == "glsl" ? tao_walk_glsl : name == "soft" ? tao_walk_soft
                  : name == "soft_gradients" ? tao_walk_soft_gradients
                  : name == "soft_gradients_short" ? tao_walk_soft_gradients_short
-                 : name == "exact_gradients" ? tao_walk_exact_gradients : name == "wedge" ? tao_walk_wedge
+                 : name == "exact_gradients" ? tao_walk_exact_gradients
+                 : name == "exact_gradients_growth" ? tao_walk_exact_gradients_growth : name == "wedge" ? tao_walk_wedge
                  : name == "pssao" ? tao_walk_pssao : name == "hemisphere" ? tao_walk_hemisphere
                  : name == "soft_glsl" ? tao_walk_soft_glsl : tao_walk_bitmask;
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
@@ -291,10 +293,10 @@ def cases(gb):
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False, False], [0.4, 1.0, 1.0, 0.0, 0.0], 1, None
-    yield ("exact_gradients", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False, True],
-           [0.4, 1.0, 1.0, 0.0, 0.6], 5, None)
+    yield ("exact_gradients_growth", walk_settings(**exact, min_step_px=0.25, sphere_extent=True),
+           [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 5, None)
     yield ("exact_gradients", walk_settings(**dict(exact, fetch="bilinear", border="clamp")), [False, False, False, False, False],
-           [0.4, 1.0, 1.0, 0.01, 0.0], 5, None)
+           [0.4, 1.0, 1.0, 0.01, 0.0], 4, None)
     glsl = dict(slices=4 + 1, steps=5 + 1, radius=1.0, jitter=True, seed=0, fetch="nearest", border="clamp",
                 placement="glsl", full_circle=True, azimuth="screen")  # (the shader's sliceCount 4, sampleCount 5)
     # (rounding, indirect, exact numerics, the thickness' read: 3 the sample's depth); the thickness' offset, scale,
@@ -316,12 +318,12 @@ def cases(gb):
     yield "soft", walk_settings(**common), [0, True, False, 0, 0, 1, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7, light
     yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, False, True, 0, 0, 0, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, light
     yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
-    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0, 0, 0], [0.4, 0.01, 0.05, 0.0, 0.0], 5, None
-    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 5, None  # linear
+    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0, 0, 0], [0.4, 0.01, 0.05, 0.0, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None  # linear
     yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1, 0, 0, 1], [0.4, 0.0, 0.25, 0.0, 0.6], 5, None
     # the same walk with a short slice's arrays (CUDA only: the CPU operator runs "soft_gradients" for it, CPU_TWIN)
-    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 5, None
-    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 5, None
+    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
+    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None
     wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
     table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
     yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
@@ -341,7 +343,8 @@ def cases(gb):
 
 #: the CPU operator's accumulator computing what a CUDA-only one does (the same walk in arrays of another size)
 CPU_TWIN = {"soft_gradients_short": "soft_gradients"}
-DERIVATIVES = ("soft_gradients", "soft_gradients_short", "exact_gradients")  # (their channels after the first)
+DERIVATIVES = ("soft_gradients", "soft_gradients_short", "exact_gradients", "exact_gradients_growth")  # (their
+# channels after the first)
 
 
 @pytest.mark.parametrize("frame", ["rough", "tiny"])

@@ -1,10 +1,11 @@
 // The "exact" variant's accumulator with its derivatives (BitmaskAO(variant="exact") in soft,
 // straight-through or hard mode, whose exact union is differentiable as it is: the modes are one walk) for
-// walk.h: bitmask.h's ExactAccumulator walked in dual lanes Dual<F, 4> whose tangents are the derivatives
-// with respect to the radius, the thickness model's offset, its scale (the back-face model's
-// thickness_scale, LinearThickness' slope) and its growth. Channels: the visibility (ExactAccumulator's, value for
-// value), then d visibility / d radius, d thickness, d thickness_scale, d thickness_growth of the pixel (the caller
-// multiplies by the upstream gradient and sums).
+// walk.h: bitmask.h's ExactAccumulator walked in dual lanes Dual<F, 3> whose tangents are the derivatives
+// with respect to the radius, the thickness model's offset and its scale (the back-face model's
+// thickness_scale, LinearThickness' slope), and with kGrowth a fourth, its growth's (a model with a growth; the
+// others do not carry its tangent). Channels: the visibility (ExactAccumulator's, value for value), then d visibility
+// / d radius, d thickness, d thickness_scale (, d thickness_growth) of the pixel (the caller multiplies by the
+// upstream gradient and sums).
 //
 // A sample's tangents: along the radius its fetched position moves with the step (dist = min_step_px +
 // span frac, span from radius_px: soft.h's step_motion and fetch_motion), and so do a layer read at its
@@ -20,11 +21,10 @@
 
 namespace tao {
 
-struct ExactGradAccumulator {
+template <bool kGrowth> struct ExactGradAccumulator {
   ExactAccumulator exact;
   WalkSettings walk;  // the step placement (the radius moves the steps)
-  bool grows;  // whether the thickness has a growth (a parameter: its tangent is wanted at growth 0 too)
-  static constexpr int kTangents = 4;  // radius, the thickness' offset, its scale, its growth
+  static constexpr int kTangents = kGrowth ? 4 : 3;  // radius, the thickness' offset, its scale (, its growth)
 
   template <class F> using D = Dual<F, kTangents>;
   template <class F> struct State {
@@ -54,7 +54,7 @@ struct ExactGradAccumulator {
     // t = base factor: base = scale value + offset, factor = 1 + growth |delta|
     const F value = model.read != ThicknessRead::constant ? model.value(px, smp) : F(0.0f);
     F factor = F(1.0f), length = F(0.0f);
-    if (grows) {
+    if constexpr (kGrowth) {  // (a parameter: its tangent is wanted at growth 0 too)
       length = norm3(smp.delta), factor = F(1.0f) + F(model.growth) * length;
       t.d[3] = (F(model.scale) * value + F(model.offset)) * length;
     }
@@ -69,7 +69,7 @@ struct ExactGradAccumulator {
       F d_pos[3];
       for (int c = 0; c < 3; ++c) delta[c].d[0] = d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
       t.d[0] = F(model.scale) * model.motion(smp, d_pos, dsu, dsv) * factor;
-      if (grows)  // (the factor's motion: d |delta| = delta . d delta / |delta|)
+      if constexpr (kGrowth)  // (the factor's motion: d |delta| = delta . d delta / |delta|)
         t.d[0] = t.d[0] + t.d[3] * F(model.growth) * dot3(smp.delta, d_pos) / clamp_min(length * length, F(1e-30f));
     }
     D<F> radius(F(exact.radius));

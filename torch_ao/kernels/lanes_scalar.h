@@ -3,8 +3,11 @@
 // written against the names defined here and in lanes_simd.h, nothing else.
 #pragma once
 
+// TAO_COLD: a branch that rarely runs (out of line on the CPU, where its code inside a hot loop costs the loop's
+// registers; inline on CUDA, where a call would put its arguments in local memory)
 #ifdef __CUDACC_RTC__
 #define TAO_FN __device__ __forceinline__
+#define TAO_COLD TAO_FN
 #define TAO_CONST static __device__ const
 typedef int int32_t;
 typedef unsigned int uint32_t;
@@ -12,6 +15,7 @@ typedef long long int64_t;
 typedef unsigned long long uint64_t;
 #else
 #define TAO_FN inline
+#define TAO_COLD __attribute__((noinline, cold))
 #define TAO_CONST static constexpr
 #include <cmath>
 #include <cstdint>

@@ -98,13 +98,17 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     check_thickness(i[kAccInts + 3], fr);
     run(unpack_exact(i, f));
-  } else if (name == "exact_gradients") {
+  } else if (name == "exact_gradients" || name == "exact_gradients_growth") {
     packed(5, 5);
     TORCH_CHECK(i[1] <= kMaxIntervals / 2, "steps: the exact union holds at most ", kMaxIntervals / 2, " per side");
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(i[3] == int64_t(Steps::power) && !i[7], "exact_gradients: the radius' derivative is the power step "
                 "placement's, without full circle");
-    run(unpack_exact_gradients(i, f));
+    if (name == "exact_gradients") {
+      run(unpack_exact_gradients<false>(i, f));
+    } else {
+      run(unpack_exact_gradients<true>(i, f));
+    }
   } else if (name == "glsl") {
     packed(4, 3);
     check_thickness(i[kAccInts + 3], fr);

@@ -74,9 +74,15 @@ TAO_FN ExactAccumulator unpack_exact(const int64_t* i, const float* f) {
                           i[1] != 0, i[2] != 0};
 }
 
-// unpack_exact's settings: the exact union with d visibility / d radius, thickness, thickness_scale, its growth
-TAO_FN ExactGradAccumulator unpack_exact_gradients(const int64_t* i, const float* f) {
-  return ExactGradAccumulator{unpack_exact(i, f), unpack_walk(i, f), i[kAccInts + 4] != 0};
+// unpack_exact's settings: the exact union with d visibility / d radius, thickness, thickness_scale (, its growth)
+template <bool kGrowth> TAO_FN ExactGradAccumulator<kGrowth> unpack_exact_gradients(const int64_t* i, const float* f) {
+  return ExactGradAccumulator<kGrowth>{unpack_exact(i, f), unpack_walk(i, f)};
+}
+TAO_FN ExactGradAccumulator<false> unpack_exact_gradients_plain(const int64_t* i, const float* f) {
+  return unpack_exact_gradients<false>(i, f);
+}
+TAO_FN ExactGradAccumulator<true> unpack_exact_gradients_growth(const int64_t* i, const float* f) {
+  return unpack_exact_gradients<true>(i, f);
 }
 
 // The soft union's rounding offset (sectors.rule.rounding_offset) and its smooth floor's window of its tau

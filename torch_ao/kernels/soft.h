@@ -12,8 +12,8 @@
 // sum_slices sum_k P_k omega_k (cos phi_k V + sin phi_k T) (bitmask.h's bent_axes; its direction is taken in torch).
 //
 // The thickness at a sample is bitmask.h's ThicknessModel (thickness.ThicknessLayer: scale * value + offset).
-// With gradients, four more channels: d visibility / d radius, d thickness (the model's offset), d its
-// scale and d its growth (t times 1 + growth |delta|) of the pixel (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
+// With gradients, three more channels: d visibility / d radius, d thickness (the model's offset) and d its
+// scale of the pixel, and with a growth (t times 1 + growth |delta|) a fourth, d growth (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
 // runs soft_union's reverse scan per sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
 // whose three sums per step give d/ds, d/dw (soft_union.py derives them), so d / d its front and back angles;
@@ -167,37 +167,39 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   template <class B> struct StepAdjoint { B s, w, front, back, shift, newly; };
   // the visibility, the indirect light, the bent normal's sum
   TAO_FN int outputs() const { return 1 + (indirect ? 3 : 0) + (bent ? 3 : 0); }
-  TAO_FN int channels() const { return kGradients && !kAdjoint ? 5 : outputs(); }
+  TAO_FN int channels() const { return kGradients && !kAdjoint ? 4 + grows : outputs(); }
 
-  // A kept step's thickness t = base (1 + growth |delta|) (ThicknessModel::at) taken apart: the factor, base and
-  // |delta| (1, t and 0 without a growth)
-  template <class F> struct Grown { F factor, base, length; };
-  template <class F> TAO_FN Grown<F> grown(const F* delta, const F& t) const {
-    if (!grows) return {F(1.0f), t, F(0.0f)};
-    const F length = norm3(delta), factor = F(1.0f) + F(thickness.growth) * length;
-    return {factor, t / factor, length};
-  }
-  // d L / d t of a kept step (g_thickness) onto its model's parameters: the offset's (d t / d offset = the factor),
-  // the scale's (times the value) and the growth's (times base |delta|) into sums; d L / d the base returned
+  // d L / d t of a kept step at delta (g_thickness; t = base (1 + growth |delta|), ThicknessModel::at) onto its
+  // model's parameters in sums: the offset's (d t / d offset = the factor), the scale's (times the value) and the
+  // growth's (base |delta|); with g_delta, the growth's share of d L / d delta added (d |delta| / d delta = delta /
+  // |delta|). d L / d the base returned. (None where g_thickness is 0: a background texel's layer is inf.)
   template <class F, class G>
-  TAO_FN F thickness_parameters(const F& g_thickness, const Grown<F>& gr, const F& value, const Pixels<F>& px,
-                                Sums<G>& sums) const {
-    const F g_base = g_thickness * gr.factor;
+  TAO_FN F thickness_adjoint(const F& g_thickness, const F* delta, const F& t, const F& value, const Pixels<F>& px,
+                             Sums<G>& sums, F* g_delta = nullptr) const {
+    const F g_base = grows ? growth_adjoint(g_thickness, delta, t, px, sums, g_delta) : g_thickness;
     const F g_t = select(px.live, g_base, F(0.0f));
     sums.thickness = sums.thickness + G(g_t);
-    sums.scale = sums.scale + G(g_t * value);
-    if (grows)  // (a background texel's layer is inf where its gradient is 0)
-      sums.growth = sums.growth + G(select(g_t != F(0.0f), g_thickness * gr.base * gr.length, F(0.0f)));
+    sums.scale = sums.scale + G(select(g_t != F(0.0f), g_t * value, F(0.0f)));
     return g_base;
   }
-  // d L / d delta of t's growth (d |delta| / d delta = delta / |delta|) added to g_delta (none where g_thickness is
-  // 0: an inf layer's base)
-  template <class F>
-  TAO_FN void growth_delta(const F& g_thickness, const Grown<F>& gr, const F* delta, F* g_delta) const {
-    if (!grows) return;
-    const F per = select(g_thickness != F(0.0f),
-                         g_thickness * gr.base * F(thickness.growth) / clamp_min(gr.length, F(1e-30f)), F(0.0f));
-    for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + per * delta[c];
+  // thickness_adjoint's growth: its gradient into sums, its share of d L / d delta into g_delta (if given); d L / d
+  // the base returned
+  template <class F, class G>
+  TAO_COLD F growth_adjoint(const F& g_thickness, const F* delta, const F& t, const Pixels<F>& px, Sums<G>& sums,
+                            F* g_delta) const {
+    const F length = norm3(delta), factor = F(1.0f) + F(thickness.growth) * length, base = t / factor;
+    const auto on = g_thickness != F(0.0f);
+    sums.growth = sums.growth + G(select(land(on, px.live), g_thickness * base * length, F(0.0f)));
+    if (g_delta) {
+      const F per = select(on, g_thickness * base * F(thickness.growth) / clamp_min(length, F(1e-30f)), F(0.0f));
+      for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + per * delta[c];
+    }
+    return g_thickness * factor;
+  }
+  // d t / d radius of a step at delta moving by d_pos whose base moves by d_base: t = base (1 + growth |delta|)
+  template <class F> TAO_COLD F grown_motion(const F& d_base, const F* delta, const F* d_pos, const F& t) const {
+    const F length = norm3(delta), factor = F(1.0f) + F(thickness.growth) * length;
+    return d_base * factor + (t / factor) * F(thickness.growth) * dot3(delta, d_pos) / clamp_min(length, F(1e-30f));
   }
 
   // out(j, logistic(x_j)), x_j = x0 + j / tau clamped to +-kSoftClamp (sectors.sweeps), for j = 0 .. n - 1:
@@ -367,10 +369,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
       dt = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
-      if (grows) {  // t = base (1 + growth |delta|): the base's motion times the factor, and the factor's
-        const Grown<F> gr = grown(smp.delta, t);
-        dt = dt * gr.factor + gr.base * F(thickness.growth) * dot3(smp.delta, d_pos) / clamp_min(gr.length, F(1e-30f));
-      }
+      if (grows) dt = grown_motion(dt, smp.delta, d_pos, t);
     }
     for (int c = 0; c < 3; ++c) st.radial[c][m] = d_pos[c];
     st.radial_t[m] = dt;
@@ -486,7 +485,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
       const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, walked.T, st.t[m],
                                                   g.front, g.back, g_delta, unused_V, unused_T);
-      thickness_parameters(g_thickness, grown(delta, st.t[m]), st.tv[m], px, sums);
+      thickness_adjoint(g_thickness, delta, st.t[m], st.tv[m], px, sums);
       const F radial[3] = {st.radial[0][m], st.radial[1][m], st.radial[2][m]};
       sums.radius = sums.radius + select(px.live, fma(g_thickness, st.radial_t[m], dot3(g_delta, radial)), F(0.0f));
     });
@@ -551,10 +550,9 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
       const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m], g.front,
                                                   g.back, g_delta, g_V, g_T);
-      const Grown<F> gr = grown(delta, st.t[m]);
-      growth_delta(g_thickness, gr, delta, g_delta);
       // d L / d the value the scale multiplies (the offset's, the scale's and the growth's into sums)
-      const F g_value = thickness_parameters(g_thickness, gr, st.tv[m], px, sums) * F(thickness.scale);
+      const F g_value = thickness_adjoint(g_thickness, delta, st.t[m], st.tv[m], px, sums, g_delta) *
+                        F(thickness.scale);
       if (thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the fetched position's depth
         g_delta[2] = g_delta[2] - g_value;
         g_P[2] = g_P[2] - g_value;  // (with g_P's -g_delta below: none of it on the pixel's own P)
@@ -663,7 +661,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       out[1] = select(px.live, sums.radius / den, F(0.0f));
       out[2] = select(px.live, sums.thickness / den, F(0.0f));
       out[3] = select(px.live, sums.scale / den, F(0.0f));
-      out[4] = select(px.live, sums.growth / den, F(0.0f));
+      if (grows) out[4] = select(px.live, sums.growth / den, F(0.0f));
       return;
     }
     int c0 = 1;

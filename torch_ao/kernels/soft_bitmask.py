@@ -12,7 +12,7 @@ The forward is the tensor path's visibility (soft coverage of :mod:`torch_ao.sec
 hard coverage in straight-through mode). When only radius and the thickness' scalars want a gradient, the same
 walk also returns each pixel's derivatives of its visibility with respect to them (the soft union's reverse scan
 per slice, in registers), and the backward is their sum weighted by the upstream gradient: nothing is kept per
-sample, four channels per pixel.
+sample, three channels per pixel (four with a thickness growth).
 
 When the G-buffer or the layer wants one, the forward is the plain walk over the channel-last inputs of
 :func:`~torch_ao.kernels.frame.walk_inputs` and the layer (so that autograd chains their gradients to depth,
@@ -155,7 +155,8 @@ def _walk(gbuffer, normals, radius, thickness, scale, growth, layer, o, gradient
     accumulator = "soft"
     if gradients:  # (on CUDA, the short slice's arrays where its steps fit: soft_walk_short)
         accumulator = "soft_gradients_short" if gbuffer.depth.is_cuda and soft_walk_short(o["steps"]) else "soft_gradients"
-    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, 5 if gradients else _outputs(o),
+    channels = 4 + o["grows"] if gradients else _outputs(o)
+    return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels,
                     light=light, backface=layer, lanes=o["lanes"])
 
 
@@ -274,10 +275,11 @@ class _SoftWalk(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        # (B, 4, H, W): d visibility / d radius, d thickness, d scale, d growth per pixel
+        # (B, 3 or 4, H, W): d visibility / d radius, d thickness, d scale (, d growth) per pixel
         (jacobian,) = ctx.saved_tensors
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
-        return None, None, *(sums[k].to(ctx.dtypes[k]) for k in range(4)), None, None
+        grads = [sums[k].to(ctx.dtypes[k]) for k in range(jacobian.shape[1])]
+        return None, None, *grads, *[None] * (4 - len(grads)), None, None
 
 
 #: options of a module the soft kernel reproduces (beyond the hard kernel's): the modes and weightings (hard

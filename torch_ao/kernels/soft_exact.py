@@ -101,11 +101,17 @@ def _settings(radius, thickness, scale, growth, o) -> tuple:
              0.0 if growth is None else growth.detach()])
 
 
+def _gradients_walk(growth) -> tuple[int, str]:
+    """The channels and accumulator of the walk with derivatives: d radius, d offset, d scale, and with a
+    ``growth`` (not ``None``) d growth (the one with a fourth tangent)."""
+    return (4, "exact_gradients") if growth is None else (5, "exact_gradients_growth")
+
+
 def _walk(gbuffer, normals, radius, thickness, scale, growth, layer, o, gradients: bool) -> torch.Tensor:
     """The walk's channels: the visibility, then (with ``gradients``) d visibility / d radius, d the
-    thickness' offset, d its scale, d its growth."""
-    return run_walk("exact_gradients" if gradients else "exact", gbuffer, normals,
-                    *_settings(radius, thickness, scale, growth, o), 5 if gradients else 1, backface=layer,
+    thickness' offset, d its scale (, d its growth)."""
+    channels, name = _gradients_walk(growth) if gradients else (1, "exact")
+    return run_walk(name, gbuffer, normals, *_settings(radius, thickness, scale, growth, o), channels, backface=layer,
                     lanes=o["lanes"])
 
 
@@ -115,7 +121,6 @@ def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, growth, layer, o) 
     inputs, (_, cells, layer_image), ints, floats = packed_inputs(
         gbuffer, normals, *_settings(radius, thickness, scale, growth, o), backface=layer)
     scale = torch.ones(()) if scale is None else scale
-    growth = torch.zeros(()) if growth is None else growth
     return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale, growth,
                               scalar_lanes(o["lanes"]))
 
@@ -128,7 +133,7 @@ class _GBufferWalk(torch.autograd.Function):
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
                 thickness, scale, growth, scalar):
         wanted = any(ctx.needs_input_grad[10:14])  # the scalars': the walk's per-pixel derivatives
-        channels, name = (5, "exact_gradients") if wanted else (1, "exact")
+        channels, name = _gradients_walk(growth) if wanted else (1, "exact")
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         none = torch.empty(0, device=depth.device)
         if depth.is_cuda:
@@ -137,7 +142,8 @@ class _GBufferWalk(torch.autograd.Function):
                         tuple(depth.shape))
         else:
             out = cpu_kernels().walk(name, *frame, none, cells, layer, ints, floats, channels, scalar)
-        ctx.scalar, ctx.dtypes = scalar, (radius.dtype, thickness.dtype, scale.dtype, growth.dtype)
+        ctx.scalar, ctx.dtypes = scalar, (radius.dtype, thickness.dtype, scale.dtype, None if growth is None else
+                                          growth.dtype)
         ctx.save_for_backward(*frame, cells, layer, ints, floats, out[:, 1:] if wanted else none)
         return out[:, :1].contiguous()
 
@@ -160,9 +166,10 @@ class _GBufferWalk(torch.autograd.Function):
                 grad, *frame, cells, layer, ints, floats, camera, ctx.scalar)
         g_intrinsics = g_camera.double().sum((1, 2)).to(intrinsics.dtype) if camera else None
         scalars = [None] * 4
-        if jacobian.numel():  # (B, 4, H, W): d visibility / d radius, offset, scale, growth
+        if jacobian.numel():  # (B, 3 or 4, H, W): d visibility / d radius, offset, scale (, growth)
             sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
-            scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None for k in range(4)]
+            scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None
+                       for k in range(jacobian.shape[1])] + [None] * (4 - jacobian.shape[1])
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
                 *scalars, None)
 
@@ -181,7 +188,7 @@ class _ExactWalk(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        (jacobian,) = ctx.saved_tensors  # (B, 4, H, W): d visibility / d radius, offset, scale, growth
+        (jacobian,) = ctx.saved_tensors  # (B, 3 or 4, H, W): d visibility / d radius, offset, scale (, growth)
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))
         g_scale, g_growth = (None if ctx.dtypes[k] is None else sums[k].to(ctx.dtypes[k]) for k in (2, 3))
         return None, None, sums[0].to(ctx.dtypes[0]), sums[1].to(ctx.dtypes[1]), None, g_scale, None, g_growth

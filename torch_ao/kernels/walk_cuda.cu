@@ -22,7 +22,8 @@ TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao, )
 // sample distance would take the compiler to 186, and 2 blocks)
 TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask, __launch_bounds__(128, 3))
 TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact, )
-TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients, )  // d visibility / d radius, thickness, scale, growth too
+TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients_plain, )  // d visibility / d radius, thickness, scale too
+TAO_CUDA_ENTRY(tao_walk_exact_gradients_growth, unpack_exact_gradients_growth, )  // ... and d growth
 TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl, )
 TAO_CUDA_ENTRY(tao_walk_wedge, unpack_wedge, )
 TAO_CUDA_ENTRY(tao_walk_pssao, unpack_pssao, )

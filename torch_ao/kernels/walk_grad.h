@@ -1099,14 +1099,11 @@ TAO_FN void soft_grad_block(const WalkSettings& cfg, const Image& img,
       acc.shader.horizons_adjoint(st.shader.camera, delta, kept.t[m], g_x, g_y, g_delta, g_camera, g_t);
       g_n = g_n + (g_x + g_y) * B(1.0f / kPi);
       g_t = select(px.live, g_t, B(0.0f));
-      // t = base (1 + growth |delta|) (soft.h's Grown): the growth's share of d L / d delta, d L / d the base
-      const auto grown = acc.soft.grown(delta, kept.t[m]);
-      acc.soft.growth_delta(g_t, grown, delta, g_delta);
-      const B g_base = g_t * grown.factor;
-      setting[0] = setting[0] + g_base;
-      // (a background texel's layer: inf)
-      setting[1] = setting[1] + select(g_base != B(0.0f), g_base * kept.tv[m], B(0.0f));
-      if (acc.soft.grows) setting[2] = setting[2] + select(g_t != B(0.0f), g_t * grown.base * grown.length, B(0.0f));
+      // (the offset's, the scale's and the growth's; the growth's share of d L / d delta)
+      typename Union::template Sums<B> part;
+      const B g_base = acc.soft.thickness_adjoint(g_t, delta, kept.t[m], kept.tv[m], px, part, g_delta);
+      setting[0] = setting[0] + part.thickness, setting[1] = setting[1] + part.scale;
+      setting[2] = setting[2] + part.growth;
       B g_value = g_base * B(acc.shader.thickness.scale);  // d L / d the value the scale multiplies
       if (acc.shader.thickness.read == ThicknessRead::depth) {  // value = -(delta_z + P_z): the tap's depth
         g_delta[2] = g_delta[2] - g_value;
