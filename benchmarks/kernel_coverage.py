@@ -2,8 +2,9 @@
 
 Every combination of variant (``default``, ``exact``, ``hdrp``, ``ssilvb_glsl``), mode (hard, soft,
 straight-through), weighting, thickness model (a scalar, the back-face layer, a map, the linear model, the net),
-with or without a thickness growth, fetch (nearest, bilinear, edge-aware), output (visibility, indirect light, bent normals, a constant ambient colour)
-and gradient (none, the parameters', the G-buffer's) that the modules accept is asked of the dispatch
+with or without a thickness growth, fetch (nearest, bilinear, edge-aware), output (visibility, indirect light, bent
+normals, a constant ambient colour) and gradient (none, the parameters', the G-buffer's) that the modules accept is
+asked of the dispatch
 (``torch_ao.kernels.dispatch.KERNELS``: each kernel's ``covers``) on a small frame; nothing is run. Prints the count
 of covered calls and the reasons for the others, most frequent first:
 

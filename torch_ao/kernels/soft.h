@@ -13,8 +13,9 @@
 //
 // The thickness at a sample is bitmask.h's ThicknessModel (thickness.ThicknessLayer: scale * value + offset).
 // With gradients, three more channels: d visibility / d radius, d thickness (the model's offset) and d its
-// scale of the pixel, and with a growth (t times 1 + growth |delta|) a fourth, d growth (the caller multiplies by the upstream gradient and sums). Each slice keeps its steps' intervals and
-// runs soft_union's reverse scan per sector,
+// scale of the pixel, and with a growth (t times 1 + growth |delta|) a fourth, d growth (the caller multiplies by
+// the upstream gradient and sums). Each slice keeps its steps' intervals and runs soft_union's reverse scan per
+// sector,
 //     S_M = omega,  Y_m = a b P_m S_{m+1},  S_m = S_{m+1} - a b g S_{m+1},
 // whose three sums per step give d/ds, d/dw (soft_union.py derives them), so d / d its front and back angles;
 // sample_angles_adjoint (atan2's derivatives, or HDRP's fast_acos(ViewCosine)'s) gives the thickness's gradient,

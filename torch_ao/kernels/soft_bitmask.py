@@ -26,8 +26,9 @@ layer's taps (the linear model's value is the sample's depth: it joins d / d del
 gradients are per-pixel sums of the same adjoints. The radius needs no tangent: the walk is scale-invariant
 (positions, depth, a layer, radius and offset scaled together, and the growth, per world unit, inversely, leave it
 as it is; the scale is unitless), so Euler's identity gives ``R dL/dR = -sum(dL/dP . P + dL/ddepth depth -
-dL/dinverse inverse + dL/dlayer layer) - T dL/dT + g dL/dg``. With indirect light the walk also returns the light the newly occluded sectors send (3 channels), with
-bent normals the slices' bent-normal sum (3; its direction is taken in torch); the backward's reverse scan is seeded
+dL/dinverse inverse + dL/dlayer layer) - T dL/dT + g dL/dg``. With indirect light the walk also returns the light
+the newly occluded sectors send (3 channels), with bent normals the slices' bent-normal sum (3; its direction is
+taken in torch); the backward's reverse scan is seeded
 by every output's upstream gradient, each step's light replayed for its gradients to the light and the senders'
 normals at its taps; their radius and thickness gradients take that backward too (the light does not scale with the
 scene: Euler's identity holds without it). The intrinsics reach the walk twice: through the positions (``walk_inputs``' unprojection, by
@@ -63,8 +64,8 @@ def bitmask_soft(gbuffer: GBuffer, normals: torch.Tensor, **options) -> torch.Te
 def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: torch.Tensor,
                  thickness: torch.Tensor, tau: float, layer: torch.Tensor | None = None,
                  layer_scale: torch.Tensor | None = None, thickness_read: str | None = None,
-                 thickness_growth: torch.Tensor | None = None, weighting: str = "uniform", straight_through: bool = False, indirect: bool = False,
-                 bent_normals: bool = False,
+                 thickness_growth: torch.Tensor | None = None, weighting: str = "uniform",
+                 straight_through: bool = False, indirect: bool = False, bent_normals: bool = False,
                  step_power: float = 1.0, min_step_px: float = 1.0, jitter: bool = True, seed: int = 0,
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
@@ -324,8 +325,8 @@ def module_forward(module, gbuffer: GBuffer) -> KernelOutputs:
     layer = None if form.layer is None else form.layer.detach() if hard else form.layer
     return soft_outputs(gbuffer, gbuffer.view_normals(module.normals_method), slices=module.slices, steps=module.steps,
                         radius=radius, thickness=thickness, layer=layer, layer_scale=scale, thickness_read=form.read,
-                        thickness_growth=growth, tau=module.tau, weighting=module.weighting, indirect=module.want_indirect,
-                        bent_normals=module.want_bent,
+                        thickness_growth=growth, tau=module.tau, weighting=module.weighting,
+                        indirect=module.want_indirect, bent_normals=module.want_bent,
                         straight_through=module.mode != "soft", step_power=module.step_power,
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
