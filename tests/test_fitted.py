@@ -18,6 +18,7 @@ from torch_ao.datasets import reference_view
 from torch_ao.fit import FitConfig, FitView, evaluate, fit, fittable_parameters
 from torch_ao.fitted import FittedPipeline, load_fitted
 from torch_ao.io import read_npz, save_npz
+from torch_ao.kernels import kernel_forward
 from torch_ao.metrics import error_metrics
 from torch_ao.methods.base import AOOutput
 from torch_ao.examples import plane_gbuffer
@@ -173,6 +174,33 @@ def test_fit_takes_R_from_the_files_and_refuses_disagreeing_ones(views, tmp_path
     assert data["denoiser"] is not None and data["history"][0]["radius"] == [pytest.approx(0.8)]
     fitted = load_fitted(out2 / "params.json")
     assert evaluate(fitted, FitView_list(files[1]))["mae"] == pytest.approx(data["after"]["mae"], rel=1e-6)
+
+
+def test_fit_grows_a_thickness_growth_where_params_names_it(views, tmp_path, monkeypatch):
+    """``--params ...,thickness_growth`` fits a growth from 0 (kept >= 0, the model's range, so that the params.json
+    it writes loads again), every call of a walk in a kernel (the soft one with the growth's gradient)."""
+    import torch_ao.methods.base as base
+
+    _, files = views
+    out = tmp_path / "out"
+    on_the_tensor_path, calls = [], []
+
+    def dispatched(module, gbuffer, backend):
+        fused = kernel_forward(module, gbuffer, backend)
+        calls.append(type(module).__name__)
+        if fused is None:
+            on_the_tensor_path.append(type(module).__name__)
+        return fused
+
+    monkeypatch.setattr(base, "kernel_forward", dispatched)
+    assert main(["fit", "--reference", *map(str, files), "--params", "thickness,radius,thickness_growth", "--preset",
+                 "low", "--steps", "3", "--no-progress", "--out", str(out)]) == 0
+    data = json.loads((out / "params.json").read_text())
+    assert data["fitted"] == ["thickness", "radius", "thickness_growth"]
+    growth = data["parameters"]["thickness_growth"]
+    assert growth >= 0 and data["history"][0]["thickness_growth"] == [0.0]
+    assert float(load_fitted(out / "params.json").method.thickness_growth.detach()) == pytest.approx(growth)
+    assert "BitmaskAO" in calls and not on_the_tensor_path
 
 
 def FitView_list(path):

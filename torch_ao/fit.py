@@ -58,7 +58,7 @@ __all__ = ["FitView", "FitConfig", "FitResult", "fit", "evaluate", "load_views",
 #: Bounds applied after every optimizer step (parameters outside them are meaningless). A falloff
 #: range of exactly 0 is GTAO's hard cut, where neither radius nor falloff has a gradient.
 PARAMETER_MINIMUM = {"thickness": 0.0, "thickness_scale": 0.0, "thickness_slope": 0.0, "radius": 1e-3, "falloff_range": 1e-2, "final_power": 0.05, "albedo": 0.0,
-                     "angle_bias": 0.0, "thickness_heuristic": 0.0}
+                     "angle_bias": 0.0, "thickness_heuristic": 0.0, "thickness_growth": 0.0}
 PARAMETER_MAXIMUM = {"falloff_range": 1.0, "thickness_heuristic": 1.0, "albedo": 1.0, "angle_bias": math.pi / 2 - 1e-3}
 
 

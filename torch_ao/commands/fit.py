@@ -83,7 +83,8 @@ OPTIONS = (
            "--reference", str),
     replace(options_by_name(AO_OPTIONS)["method"], default="bitmask", help="method to fit"),
     Option("variant", None, "the method's variant; when not given, the method's default", str),
-    Option("params", None, "comma-separated parameters to fit jointly, e.g. thickness,radius; when not given, every "
+    Option("params", None, "comma-separated parameters to fit jointly, e.g. thickness,radius (thickness_growth, for "
+           "a bitmask method: the thickness grows as 1 + g |sample - pixel|, from g = 0); when not given, every "
            "float parameter the method and variant use", str),
     Option("thickness", None, "thickness model of a bitmask method (torch_ao.thickness): one scalar; one per "
            "object id (a table over the views' ids); linear in depth (thickness + thickness_slope * depth); the "
@@ -488,6 +489,10 @@ def _pipelines(args, radius: float, model: dict, init: dict, denoise: bool):
     # a default without a gradient is a buffer: fittable once moved to its start value
     moved = {k: v for k, v in NO_GRADIENT_START.items() if k in default.method.options()
              and float(getattr(default.method, k).detach()) == 0.0}
+    # a thickness growth is fitted where --params or --init names it: the model grows one, from 0
+    asked = set(init) | {p.strip() for p in (args.params or "").split(",")}
+    if "thickness_growth" in asked and "thickness_growth" in default.method.options():
+        moved["thickness_growth"] = 0.0
     fitted_method = FittedPipeline(args.method, pipeline_options(args, radius, **model, **moved), denoiser=denoise).method
     fittable = fittable_parameters(fitted_method)
     params = (tuple(p.strip() for p in args.params.split(",") if p.strip()) if args.params else fittable)
@@ -613,7 +618,11 @@ def _describe(pipeline: FittedPipeline, params) -> str:
     values = pipeline.parameter_values()
     parts = []
     for name in params:
-        v = values[name] if name in values else getattr(pipeline.method, name).detach()  # a default frozen at 0
+        v = values[name] if name in values else getattr(pipeline.method, name)  # a default frozen at 0
+        if v is None:  # (a thickness growth the default has not)
+            parts.append(f"{name}=none")
+            continue
+        v = v.detach()
         parts.append(f"{name}={v.item():.3g}" if v.numel() == 1 else f"{name}=<{v.numel()} values>")
     if "weighting" in pipeline.options:
         parts.append(f"{pipeline.options['weighting']} sectors")
