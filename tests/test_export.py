@@ -43,6 +43,10 @@ PIPELINES = {
                                             "thickness_scale": 0.8, "thickness": 0.1, "azimuth": "screen"}),
     "gtao_edge_multibounce": ("gtao", {"preset": "medium", "fetch": "edge_aware", "radius": 0.7, "falloff_range": 0.3,
                                        "final_power": 1.2, "multibounce": True, "normalize": "none", "step_power": 2.0}),
+    # torch-ao fit's default pipeline (staggered steps along screen slices), with a growth as --params can fit one
+    "shipped_growth": ("bitmask", {"preset": "very_high_steps", "weighting": "cosine", "fetch": "edge_aware",
+                                   "stagger": True, "azimuth": "screen", "thickness_model": "backface",
+                                   "thickness_scale": 0.94, "thickness": 0.08, "radius": 0.6, "thickness_growth": 0.3}),
 }
 FAST = ("default", "exact_backface_edge")
 SCENES = ("fence", "stairs", "poles", "sphere_on_plane")
@@ -187,8 +191,8 @@ def test_export_command_writes_the_shader(tmp_path, capsys):
     ("ssilvb", {"preset": "high"}, "method: 'ssilvb' is not exported (bitmask and gtao are)"),
     ("bitmask", {"preset": "high", "noise": "hilbert_r2"},
      "noise: the exported pass jitters by interleaved gradient noise (got 'hilbert_r2')"),
-    ("gtao", {"preset": "high", "stagger": True}, "stagger/slice_sampling: the exported pass walks evenly spaced "
-     "slices with one step offset (got stagger=True, slice_sampling='uniform')"),
+    ("gtao", {"preset": "high", "slice_sampling": "projected_normal"}, "slice_sampling: the exported pass walks "
+     "evenly spaced slices (got slice_sampling='projected_normal')"),
 ])
 def test_export_refuses_what_it_cannot_express(method, options, message, tmp_path, capsys):
     params = tmp_path / "params.json"

@@ -81,9 +81,9 @@ def _walk_defines(m) -> dict[str, str]:
         raise ExportError(f"resolution: the exported pass walks the full-resolution frame (got {m.resolution!r})")
     if m.jitter and m.noise != "ign":
         raise ExportError(f"noise: the exported pass jitters by interleaved gradient noise (got {m.noise!r})")
-    if m.stagger or m.slice_sampling != "uniform":
-        raise ExportError("stagger/slice_sampling: the exported pass walks evenly spaced slices with one step offset "
-                          f"(got stagger={m.stagger!r}, slice_sampling={m.slice_sampling!r})")
+    if m.slice_sampling != "uniform":
+        raise ExportError("slice_sampling: the exported pass walks evenly spaced slices "
+                          f"(got slice_sampling={m.slice_sampling!r})")
     seed = int(m.seed)
     ah, al = _split(_NOISE_A)
     bh, bl = _split(_NOISE_B)
@@ -92,6 +92,7 @@ def _walk_defines(m) -> dict[str, str]:
         "AO_SLICES": str(int(m.slices)), "AO_STEPS": str(int(m.steps)),
         "AO_STEP_POWER": _literal(m.step_power), "AO_STEP_POWER_ONE": str(int(m.step_power == 1.0)),
         "AO_MIN_STEP_PX": _literal(m.min_step_px), "AO_JITTER": str(int(bool(m.jitter))),
+        "AO_STAGGER": str(int(bool(m.stagger))),
         "AO_NOISE_AH": _literal(ah), "AO_NOISE_AL": _literal(al), "AO_NOISE_BH": _literal(bh), "AO_NOISE_BL": _literal(bl),
         # SlicePattern._noise: seed for the slice angle, (u + 37, v + 59) and seed + 1 for the step offset
         "AO_NOISE_PHASE_SLICE": _literal(_phase(shift * seed, shift * seed)),

@@ -285,9 +285,14 @@ float aoVisibility(int px, int py)
 #endif
         for (int sideIndex = 0; sideIndex < 2; sideIndex++) {
             float side = sideIndex == 0 ? 1.0 : -1.0;
+            float xi = noiseStep;
+#if AO_STAGGER
+            // walk/patterns.py staggered_offset: each half-slice's steps shifted by 1 / (2 slices) of a step
+            xi = frac(xi + (float(s) + 0.5 * float(sideIndex)) / float(AO_SLICES));
+#endif
             for (int j = 0; j < AO_STEPS; j++) {
                 // SlicePattern.step_offsets
-                float fraction = (float(j) + noiseStep) / float(AO_STEPS);
+                float fraction = (float(j) + xi) / float(AO_STEPS);
 #if AO_STEP_POWER_ONE == 0
                 fraction = pow(fraction, AO_STEP_POWER);
 #endif
