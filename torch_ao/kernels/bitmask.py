@@ -58,7 +58,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             net's map). ``thickness_read`` (default ``"layer"`` with a layer, else ``"constant"``) reads another
             value in place of the layer's: ``"first_tap"`` the layer at the first tap, ``"depth"`` the sample's
             depth (:class:`~torch_ao.thickness.ThicknessLayer`; :func:`thickness_options` gives all four from it);
-            ``thickness_growth`` (per world unit, ``>= 0``) multiplies it by ``1 + growth * |sample - pixel|``;
+            ``thickness_growth`` (per world unit) multiplies it by ``1 + growth * |sample - pixel|``;
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`), azimuth
@@ -213,7 +213,7 @@ def module_thickness(module, gbuffer: GBuffer) -> ThicknessLayer:
 
 def thickness_options(form: ThicknessLayer) -> dict:
     """The kernels' ``thickness``, ``layer``, ``layer_scale``, ``thickness_read`` arguments of ``form`` (and its
-    ``thickness_growth`` where it has one: the hard kernels')."""
+    ``thickness_growth`` where it has one)."""
     growth = {} if form.growth is None else {"thickness_growth": form.growth.detach()}
     return dict(thickness=form.offset.detach(), layer=None if form.layer is None else form.layer.detach(),
                 layer_scale=form.scale.detach(), thickness_read=form.read, **growth)

@@ -1,6 +1,7 @@
 """The exact union's kernel with gradients: ``BitmaskAO(variant="exact")`` (``union="exact"``) in soft,
 straight-through or hard mode, differentiable with respect to ``radius``, the thickness model's scalars
-(``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``), the G-buffer
+(``thickness``, the back-face model's ``thickness_scale``, the linear model's ``thickness_slope``, a growth's
+``thickness_growth``), the G-buffer
 (depth, positions, normals) and the thickness layer the model reads (the back-face layer, and through it the
 back-face depth; a map; the net's map; a per-object table), on the one walk, CPU and CUDA.
 
@@ -9,7 +10,7 @@ modes have one forward (the hard kernel's, :func:`~torch_ao.kernels.exact_hard`,
 gradient. For the scalars the walk runs in dual lanes (``exact_soft.h``) carrying the derivatives of each
 sample's interval with respect to them through the union, and returns each pixel's derivatives of its
 visibility; the backward is their sum weighted by the upstream gradient (nothing is kept per sample: three
-channels per pixel).
+channels per pixel, four with a growth, whose tangent the walk carries only then: ``exact_gradients_growth``).
 
 When the G-buffer or the layer wants a gradient, the walk reads the channel-last inputs of
 :func:`~torch_ao.kernels.frame.walk_inputs` and the layer (so that autograd chains their gradients to depth,
@@ -45,8 +46,8 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                thickness_direction: str = "depth", clip_to_radius: bool = True, sample_extent: str = "sphere",
                sector_epsilon: float = 0.0, azimuth: str = "view", lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` of the exact union (background 1; :func:`~torch_ao.kernels.exact_hard`'s),
-    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, the G-buffer's depth, positions
-    and ``normals``, and ``layer``.
+    differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``thickness_growth``, the G-buffer's
+    depth, positions and ``normals``, and ``layer``.
 
     Args:
         gbuffer: a float32 G-buffer (CPU or CUDA); normals: its ``(B,3,H,W)`` unit view-space normals.
@@ -55,7 +56,8 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             is) the thickness there is ``layer_scale * layer + thickness``, with ``layer_scale`` a 0-d tensor
             (default 1, e.g. the back-face model's ``thickness_scale``);
             ``thickness_read``: as :func:`~torch_ao.kernels.bitmask_outputs` (``"depth"``: ``layer_scale``
-            times the sample's depth, LinearThickness' slope).
+            times the sample's depth, LinearThickness' slope); ``thickness_growth``: a 0-d tensor ``g`` (per
+            world unit; ``None``: none), the thickness times ``1 + g * |sample - pixel|``.
         slices, steps (<= 32 per side), step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch,
             border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth: as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
