@@ -82,7 +82,20 @@ struct ThicknessModel {
   }
   template <class F> TAO_FN F at(const Pixels<F>& px, const Sample<F>& smp) const {
     const F t = read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
-    return growth != 0.0f ? t * (F(1.0f) + F(growth) * norm3(smp.delta)) : t;
+    F length;
+    return growth != 0.0f ? t * growth_factor(smp.delta, length) : t;
+  }
+  // the growth's factor 1 + growth |delta| at a sample's delta, |delta| into length
+  template <class F> TAO_FN F growth_factor(const F* delta, F& length) const {
+    length = norm3(delta);
+    return F(1.0f) + F(growth) * length;
+  }
+  // d t along a motion that moves delta by d_delta and the base (scale value + offset) by d_base, t = base factor
+  // (out of line: the kernels call it only with a growth)
+  template <class F> TAO_COLD F grown_motion(const F& d_base, const F* delta, const F* d_delta, const F& t) const {
+    F length;
+    const F factor = growth_factor(delta, length);
+    return d_base * factor + (t / factor) * F(growth) * dot3(delta, d_delta) / clamp_min(length, F(1e-30f));
   }
   // d value as the sample's fetch moves by (dsu, dsv) pixels and its position by d_pos: the layer's bilinear
   // read at the moving taps (Sample.gather), the sample's depth; a first tap's read is piecewise constant

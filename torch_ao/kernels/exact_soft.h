@@ -55,7 +55,7 @@ template <bool kGrowth> struct ExactGradAccumulator {
     const F value = model.read != ThicknessRead::constant ? model.value(px, smp) : F(0.0f);
     F factor = F(1.0f), length = F(0.0f);
     if constexpr (kGrowth) {  // (a parameter: its tangent is wanted at growth 0 too)
-      length = norm3(smp.delta), factor = F(1.0f) + F(model.growth) * length;
+      factor = model.growth_factor(smp.delta, length);
       t.d[3] = (F(model.scale) * value + F(model.offset)) * length;
     }
     t.d[1] = factor, t.d[2] = value * factor;
@@ -68,9 +68,8 @@ template <bool kGrowth> struct ExactGradAccumulator {
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       F d_pos[3];
       for (int c = 0; c < 3; ++c) delta[c].d[0] = d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
-      t.d[0] = F(model.scale) * model.motion(smp, d_pos, dsu, dsv) * factor;
-      if constexpr (kGrowth)  // (the factor's motion: d |delta| = delta . d delta / |delta|)
-        t.d[0] = t.d[0] + t.d[3] * F(model.growth) * dot3(smp.delta, d_pos) / clamp_min(length * length, F(1e-30f));
+      t.d[0] = F(model.scale) * model.motion(smp, d_pos, dsu, dsv);
+      if constexpr (kGrowth) t.d[0] = model.grown_motion(t.d[0], smp.delta, d_pos, t.v);
     }
     D<F> radius(F(exact.radius));
     radius.d[0] = F(1.0f);

@@ -188,7 +188,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   template <class F, class G>
   TAO_COLD F growth_adjoint(const F& g_thickness, const F* delta, const F& t, const Pixels<F>& px, Sums<G>& sums,
                             F* g_delta) const {
-    const F length = norm3(delta), factor = F(1.0f) + F(thickness.growth) * length, base = t / factor;
+    F length;
+    const F factor = thickness.growth_factor(delta, length), base = t / factor;
     const auto on = g_thickness != F(0.0f);
     sums.growth = sums.growth + G(select(land(on, px.live), g_thickness * base * length, F(0.0f)));
     if (g_delta) {
@@ -196,11 +197,6 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + per * delta[c];
     }
     return g_thickness * factor;
-  }
-  // d t / d radius of a step at delta moving by d_pos whose base moves by d_base: t = base (1 + growth |delta|)
-  template <class F> TAO_COLD F grown_motion(const F& d_base, const F* delta, const F* d_pos, const F& t) const {
-    const F length = norm3(delta), factor = F(1.0f) + F(thickness.growth) * length;
-    return d_base * factor + (t / factor) * F(thickness.growth) * dot3(delta, d_pos) / clamp_min(length, F(1e-30f));
   }
 
   // out(j, logistic(x_j)), x_j = x0 + j / tau clamped to +-kSoftClamp (sectors.sweeps), for j = 0 .. n - 1:
@@ -370,7 +366,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       step_motion(walk, px, sl, float(side), dist, dsu, dsv);
       for (int c = 0; c < 3; ++c) d_pos[c] = d_su[c] * dsu + d_sv[c] * dsv;
       dt = F(thickness.scale) * thickness.motion(smp, d_pos, dsu, dsv);
-      if (grows) dt = grown_motion(dt, smp.delta, d_pos, t);
+      if (grows) dt = thickness.grown_motion(dt, smp.delta, d_pos, t);
     }
     for (int c = 0; c < 3; ++c) st.radial[c][m] = d_pos[c];
     st.radial_t[m] = dt;

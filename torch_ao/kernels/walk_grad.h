@@ -678,7 +678,8 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
           thickness.d[kExactLayer] = B(acc.thickness.scale);
           if (acc.thickness.growth != 0.0f) {
             const B delta[3] = {smp.delta[0].v, smp.delta[1].v, smp.delta[2].v};
-            thickness.d[kExactLayer] = thickness.d[kExactLayer] * (B(1.0f) + B(acc.thickness.growth) * norm3(delta));
+            B length;
+            thickness.d[kExactLayer] = thickness.d[kExactLayer] * acc.thickness.growth_factor(delta, length);
           }
         }
         D seg[4];
