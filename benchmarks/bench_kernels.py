@@ -12,6 +12,11 @@ wall). Candidates:
   masked (no list of valid pixels); ``pointwise-compiled`` is it under ``torch.compile`` (Inductor's
   vectorised C++), whose compile time is reported separately.
 * ``numba``: a per-pixel loop in registers, ``@njit(parallel=True)`` (``pip install numba``).
+* ``warp``: the same loop as an NVIDIA Warp kernel (``pip install warp-lang``; one source for CPU and CUDA).
+* ``drjit``: the pointwise walk's operations on Dr.Jit's LLVM arrays, traced into one vectorised kernel
+  (``pip install drjit``; it needs LLVM 16 or later: on Debian 12, ``apt install libllvm19`` and
+  ``DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so``; with the system's LLVM 15 its ``atan2`` and
+  ``clip`` fail to compile, ``fmaximum`` / ``fminimum`` not selectable).
 
 Each candidate runs in its own subprocess (honest peak memory: peak RSS minus RSS before the first
 call). Reported: best and median wall time of ``--repeat`` calls after a warm-up, CPU time per call,
@@ -38,7 +43,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CANDIDATES = ("torch", "kernel", "pointwise", "pointwise-compiled", "numba")
+CANDIDATES = ("torch", "kernel", "pointwise", "pointwise-compiled", "numba", "warp", "drjit")
 
 
 # ------------------------------------------------------------------------------- pointwise torch
@@ -213,6 +218,184 @@ def numba_walk():
     return run
 
 
+# ------------------------------------------------------------------------------------- warp
+def warp_walk():
+    """The walk as a NVIDIA Warp kernel (``pip install warp-lang``): numba's per-pixel loop, one Warp thread a
+    pixel. Warp compiles it to C++ for the CPU (one thread, no SIMD across pixels) and to PTX for CUDA."""
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+
+    @wp.func
+    def low_bits(k: int):
+        if k >= 32:
+            return wp.uint32(0xFFFFFFFF)
+        return (wp.uint32(1) << wp.uint32(k)) - wp.uint32(1)
+
+    @wp.kernel
+    def walk(P: wp.array3d(dtype=wp.vec3), Nrm: wp.array3d(dtype=wp.vec3), inv: wp.array3d(dtype=float),
+             depth: wp.array3d(dtype=float), valid: wp.array3d(dtype=wp.int32), K: wp.array2d(dtype=float),
+             slices: int, steps: int, radius: float, thickness: float, epsilon: float,
+             noise: wp.array4d(dtype=float), out: wp.array3d(dtype=float)):
+        b, v, u = wp.tid()
+        H, W = inv.shape[1], inv.shape[2]
+        if valid[b, v, u] == 0:
+            out[b, v, u] = 1.0
+            return
+        pi = 3.14159265358979
+        fx, fy, cx, cy = K[b, 0], K[b, 1], K[b, 2], K[b, 3]
+        p, nrm, d = P[b, v, u], Nrm[b, v, u], depth[b, v, u]
+        n = wp.max(wp.length(p), 1e-12)
+        vx, vy, vz = -p[0] / n, -p[1] / n, -p[2] / n
+        n1 = wp.max(wp.sqrt(vz * vz + vx * vx), 1e-12)
+        e1x, e1z = vz / n1, -vx / n1
+        e2x, e2y, e2z = vy * e1z, vz * e1x - vx * e1z, -vy * e1x
+        a, xi = noise[0, b, v, u], noise[1, b, v, u]
+        visible = int(0)
+        for s in range(slices):
+            psi = (a + float(s)) * (pi / float(slices))
+            c, sn = wp.cos(psi), wp.sin(psi)
+            tx, ty, tz = c * e1x + sn * e2x, sn * e2y, c * e1z + sn * e2z
+            ax, ay, az = ty * vz - tz * vy, tz * vx - tx * vz, tx * vy - ty * vx
+            nd = nrm[0] * ax + nrm[1] * ay + nrm[2] * az
+            qx, qy, qz = nrm[0] - ax * nd, nrm[1] - ay * nd, nrm[2] - az * nd
+            du = fx * (tx + p[0] * tz / d) / d
+            dv = -fy * (ty + p[1] * tz / d) / d
+            shift = (pi / 2.0 - wp.atan2(qx * tx + qy * ty + qz * tz, qx * vx + qy * vy + qz * vz)) / pi
+            length = wp.sqrt(du * du + dv * dv)
+            uu, uv = du / wp.max(length, 1e-12), dv / wp.max(length, 1e-12)
+            span = wp.max(radius * length - 1.0, 0.0)
+            occ = wp.uint32(0)
+            for side in range(2):
+                sg = 1.0 - 2.0 * float(side)
+                for j in range(steps):
+                    dist = 1.0 + span * ((float(j) + xi) / float(steps))
+                    su, sv = float(u) + dist * sg * uu, float(v) + dist * sg * uv
+                    u0, v0 = wp.floor(su), wp.floor(sv)
+                    if u0 < 0.0 or u0 + 1.0 >= float(W) or v0 < 0.0 or v0 + 1.0 >= float(H):
+                        continue
+                    iu, iv = int(u0), int(v0)
+                    t0, t1 = float(inv[b, iv, iu]), float(inv[b, iv, iu + 1])
+                    t2, t3 = float(inv[b, iv + 1, iu]), float(inv[b, iv + 1, iu + 1])
+                    if wp.isnan(t0) or wp.isnan(t1) or wp.isnan(t2) or wp.isnan(t3):
+                        continue
+                    fu, fv = su - u0, sv - v0
+                    top, bottom = t0 + fu * (t1 - t0), t2 + fu * (t3 - t2)
+                    ds = 1.0 / (top + fv * (bottom - top))
+                    dx = (su - cx) / fx * ds - p[0]
+                    dy = -(sv - cy) / fy * ds - p[1]
+                    dz = -ds - p[2]
+                    if not (dx * dx + dy * dy + dz * dz > 1e-20 * d * d):
+                        continue
+                    av = dx * vx + dy * vy + dz * vz
+                    at = sg * (dx * tx + dy * ty + dz * tz)
+                    xf = wp.clamp(shift + wp.atan2(at, av) * (sg / pi), 0.0, 1.0)
+                    xb = wp.clamp(shift + wp.atan2(at, av - thickness) * (sg / pi), 0.0, 1.0)
+                    lo, hi = xf, xb
+                    if side == 1:
+                        lo, hi = xb, xf
+                    k0 = wp.clamp(int(wp.floor(lo * 32.0)), 0, 32)
+                    k1 = wp.min(k0 + wp.clamp(int(wp.ceil((hi - lo) * 32.0 - epsilon)), 0, 32), 32)
+                    occ = occ | (low_bits(k1) & ~low_bits(k0))
+            count = int(0)
+            for k in range(32):
+                count += int((occ >> wp.uint32(k)) & wp.uint32(1))
+            visible += 32 - count
+        out[b, v, u] = float(visible) / 32.0 / float(slices)
+
+    def run(P, N, inv, depth, valid, K, slices, steps, radius, thickness, epsilon):
+        B, H, W, _ = P.shape
+        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+        noise = torch.stack((_ign(u, v, 0), _ign(u + 37.0, v + 59.0, 1))).unsqueeze(1).expand(2, B, H, W).contiguous()
+        out = torch.empty(B, H, W)
+        wp.launch(walk, dim=(B, H, W), device="cpu",
+                  inputs=[wp.from_torch(P, dtype=wp.vec3), wp.from_torch(N, dtype=wp.vec3), wp.from_torch(inv),
+                          wp.from_torch(depth), wp.from_torch(valid.to(torch.int32)), wp.from_torch(K), slices, steps,
+                          float(radius), float(thickness), float(epsilon), wp.from_torch(noise), wp.from_torch(out)])
+        return out.unsqueeze(1)
+
+    return run
+
+
+# ------------------------------------------------------------------------------------ Dr.Jit
+def drjit_walk():
+    """The walk in Dr.Jit's LLVM backend (``pip install drjit``; LLVM 16 or later, ``DRJIT_LIBLLVM_PATH``):
+    the pointwise walk's operations on Dr.Jit arrays of every pixel, traced in Python and compiled into one
+    vectorised loop over the pixels on Dr.Jit's own threads. ``@dr.freeze`` records the first call's kernel and
+    replays it: unfrozen, the traced kernel's hash changed from call to call and most calls compiled it again
+    (0.3-0.4 s each)."""
+    import drjit as dr
+    from drjit.llvm import Float, Int, UInt32
+
+    dr.set_thread_count(torch.get_num_threads())
+
+    @dr.freeze
+    def walk(Px, Py, Pz, Nx, Ny, Nz, d, inv_flat, live, a, xi, H, W, fx, fy, cx, cy, slices, steps, radius, thickness,
+             epsilon):
+        live = live > 0.5
+        idx = dr.arange(UInt32, H * W)
+        u, v = Float(idx % W), Float(idx // W)
+        n = dr.maximum(dr.sqrt(Px * Px + Py * Py + Pz * Pz), 1e-12)
+        Vx, Vy, Vz = -Px / n, -Py / n, -Pz / n
+        n1 = dr.maximum(dr.sqrt(Vz * Vz + Vx * Vx), 1e-12)
+        e1x, e1z = Vz / n1, -Vx / n1
+        e2x, e2y, e2z = Vy * e1z, Vz * e1x - Vx * e1z, -Vy * e1x
+        visible = Int(0)
+        for s in range(slices):
+            psi = (a + s) * (math.pi / slices)
+            Tx, Ty, Tz, along_t, along_v, du, dv = slice_frame(dr.cos(psi), dr.sin(psi), e1x, e1z, e2x, e2y, e2z, Vx,
+                                                               Vy, Vz, Nx, Ny, Nz, Px, Py, d, fx, fy)
+            shift = (math.pi / 2 - dr.atan2(along_t, along_v)) / math.pi
+            length = dr.sqrt(du * du + dv * dv)
+            uu, uv = du / dr.maximum(length, 1e-12), dv / dr.maximum(length, 1e-12)
+            span = dr.maximum(radius * length - 1.0, 0.0)
+            occ = UInt32(0)
+            for side in (1, -1):
+                for j in range(steps):
+                    dist = 1.0 + span * ((j + xi) / steps)
+                    su, sv = u + dist * (side * uu), v + dist * (side * uv)
+                    u0, v0 = dr.floor(su), dr.floor(sv)
+                    ok = live & (u0 >= 0) & (u0 + 1 < W) & (v0 >= 0) & (v0 + 1 < H)
+                    base = UInt32(Int(v0)) * W + UInt32(Int(u0))
+                    t0, t1 = dr.gather(Float, inv_flat, base, ok), dr.gather(Float, inv_flat, base + 1, ok)
+                    t2, t3 = dr.gather(Float, inv_flat, base + W, ok), dr.gather(Float, inv_flat, base + W + 1, ok)
+                    ok &= ~(dr.isnan(t0) | dr.isnan(t1) | dr.isnan(t2) | dr.isnan(t3))
+                    fu, fv = su - u0, sv - v0
+                    top, bottom = t0 + fu * (t1 - t0), t2 + fu * (t3 - t2)
+                    ds = 1.0 / (top + fv * (bottom - top))
+                    dx = (su - cx) / fx * ds - Px
+                    dy = -(sv - cy) / fy * ds - Py
+                    dz = -ds - Pz
+                    ok &= dx * dx + dy * dy + dz * dz > 1e-20 * d * d
+                    av = dx * Vx + dy * Vy + dz * Vz
+                    at = side * (dx * Tx + dy * Ty + dz * Tz)
+                    xf = dr.clip(shift + dr.atan2(at, av) * (side / math.pi), 0.0, 1.0)
+                    xb = dr.clip(shift + dr.atan2(at, av - thickness) * (side / math.pi), 0.0, 1.0)
+                    lo, hi = (xf, xb) if side > 0 else (xb, xf)
+                    k0 = dr.clip(Int(dr.floor(lo * 32)), 0, 32)
+                    k1 = dr.minimum(k0 + dr.clip(Int(dr.ceil((hi - lo) * 32 - epsilon)), 0, 32), 32)
+                    low = lambda k: dr.select(k >= 32, UInt32(0xFFFFFFFF),  # noqa: E731
+                                              (UInt32(1) << UInt32(dr.minimum(k, 31))) - 1)
+                    occ = dr.select(ok, occ | (low(k1) & ~low(k0)), occ)
+            visible += 32 - Int(dr.popcnt(occ))
+        return dr.select(live, Float(visible) / 32 / slices, 1.0)
+
+    def run(P, N, inv, depth, valid, K, slices, steps, radius, thickness, epsilon):
+        B, H, W, _ = P.shape
+        if B != 1:
+            raise ValueError(f"drjit: expected one image, got a batch of {B}")
+        flat = lambda x: Float(x.reshape(-1).numpy())  # noqa: E731
+        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+        vis = walk(*(flat(P[..., c]) for c in range(3)), *(flat(N[..., c]) for c in range(3)), flat(depth), flat(inv),
+                   flat(valid.float()), flat(_ign(u, v, 0)), flat(_ign(u + 37.0, v + 59.0, 1)), H, W,
+                   *(float(K[0, i]) for i in range(4)), slices, steps, float(radius), float(thickness), float(epsilon))
+        dr.eval(vis)
+        return torch.from_numpy(vis.numpy()).view(1, 1, H, W)
+
+    return run
+
+
 # ------------------------------------------------------------------------------------ harness
 def _inputs(gb):
     depth = gb.safe_depth[:, 0].contiguous()
@@ -231,7 +414,7 @@ def child(spec: dict) -> dict:
     W, H = spec["size"]
     gb = example_gbuffer(H, W)
     slices, steps = spec["setting"]
-    module = torch_ao.BitmaskAO(mode="hard", slices=slices, steps=steps, radius=1.0, thickness=0.5)
+    module = torch_ao.BitmaskAO(mode="hard", slices=slices, steps=steps, radius=1.0, thickness=0.5, backend="torch")
     settings = (slices, steps, 1.0, 0.5, module.sector_epsilon)
     name = spec["candidate"]
     if name == "torch":
@@ -243,9 +426,13 @@ def child(spec: dict) -> dict:
         fn = lambda: bitmask_hard(gb, normals, slices=slices, steps=steps, radius=1.0, thickness=0.5)  # noqa: E731
     else:
         inputs = _inputs(gb)
-        walk = {"pointwise": pointwise_walk, "numba": None}.get(name)
+        walk = {"pointwise": pointwise_walk}.get(name)
         if name == "numba":
-            walk = numba_walk()
+            import numba
+
+            numba.set_num_threads(spec["threads"])
+        if name in ("numba", "warp", "drjit"):
+            walk = {"numba": numba_walk, "warp": warp_walk, "drjit": drjit_walk}[name]()
         elif name == "pointwise-compiled":
             walk = torch.compile(pointwise_walk, dynamic=False)
         fn = lambda: walk(*inputs, *settings)  # noqa: E731

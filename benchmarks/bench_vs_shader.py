@@ -32,6 +32,14 @@ ratios. One table per frame, Markdown, on stdout (progress on stderr):
 
 llvmpipe uses ``LP_NUM_THREADS`` threads (default: the number of cores); torch uses ``--threads``. Without
 ``--kernels-only`` the tensor-op walk's hard forwards are added (seconds per call).
+
+Before and after: ``--library DIR`` times another checkout's torch_ao with these rows (an earlier commit's
+worktree; its kernels build into the ``TORCH_EXTENSIONS_DIR`` you give it), and ``--backend auto`` runs each row
+as that library's default would (its kernel where it had one, else its tensor-op walk)::
+
+    git worktree add /tmp/before f6d182b   # the library before the one walk
+    TORCH_EXTENSIONS_DIR=/tmp/before_ext LP_NUM_THREADS=1 OMP_NUM_THREADS=1 python benchmarks/bench_vs_shader.py \
+        --library /tmp/before --backend auto --threads 1 --kernels-only --repeat 3 --cases ...
 """
 from __future__ import annotations
 
@@ -51,7 +59,23 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "glsl"))
-sys.path.insert(0, str(ROOT))  # this checkout's torch_ao, not an installed copy
+
+
+def _library(argv: list[str]) -> Path:
+    """The torch_ao checkout to time: ``--library DIR`` (read before anything imports torch_ao), else this one."""
+    for i, arg in enumerate(argv):
+        if arg == "--library" and i + 1 < len(argv):
+            return Path(argv[i + 1]).resolve()
+        if arg.startswith("--library="):
+            return Path(arg.split("=", 1)[1]).resolve()
+    return ROOT
+
+
+LIBRARY = _library(sys.argv[1:])
+sys.path.insert(0, str(LIBRARY))  # that checkout's torch_ao, not an installed copy
+#: the backend of the kernel rows: "kernel" (an uncovered call raises), or "auto" with --backend auto (an
+#: earlier library's rows: a kernel where it had one, else its tensor path)
+KERNEL_BACKEND = "kernel"
 
 FRAMES = {"floor_wall": "a floor meeting a wall (`torch_ao.examples.example_gbuffer`, back faces 0.3 behind)",
           "room_corner": "the `room_corner` scene (floor, two walls, boxes; ray-traced G-buffer with its back-face layer)"}
@@ -132,17 +156,17 @@ def _cases() -> dict[str, Case]:
     from torch_ao.thickness import BackfaceThickness
     from torch_ao.thickness_net import NetThickness
 
-    def bitmask(backend="kernel", **options):
+    def bitmask(backend=KERNEL_BACKEND, **options):
         return lambda s: torch_ao.BitmaskAO(backend=backend, **s, **options)
 
-    def horizon(cls, backend="kernel", **options):
+    def horizon(cls, backend=KERNEL_BACKEND, **options):
         return lambda s: cls(backend=backend, **_without_thickness(s), **options)
 
     def ue4_ssao(s):  # (its directions evenly spaced, as many as the shader's slices)
-        return torch_ao.UE4SSAO(sample_set="uniform", backend="kernel", **_without_thickness(s))
+        return torch_ao.UE4SSAO(sample_set="uniform", backend=KERNEL_BACKEND, **_without_thickness(s))
 
     def pssao(s):  # (the gist's pixel offsets: no radius)
-        return torch_ao.PSSAO(slices=s["slices"], steps=s["steps"], backend="kernel")
+        return torch_ao.PSSAO(slices=s["slices"], steps=s["steps"], backend=KERNEL_BACKEND)
 
     def backface(backend):
         return lambda s: torch_ao.BitmaskAO(mode="soft", weighting="cosine", fetch="edge_aware", backend=backend,
@@ -161,14 +185,14 @@ def _cases() -> dict[str, Case]:
 
     return {
         "ssilvb_glsl": Case("`ssilvb_glsl` hard AO + indirect", lambda s: torch_ao.SSILVB(
-            variant="ssilvb_glsl", mode="hard", backend="kernel", **s), None, "shader", 1.0),
+            variant="ssilvb_glsl", mode="hard", backend=KERNEL_BACKEND, **s), None, "shader", 1.0),
         "bitmask": Case("`BitmaskAO` hard", bitmask(mode="hard"), None, "shader", 1.0),
         "cosine": Case("`BitmaskAO` hard, cosine", bitmask(mode="hard", weighting="cosine"), None, "shader", 1.0),
         "bitmask_hdrp": Case("`BitmaskAO` hard, variant `hdrp`", bitmask(mode="hard", variant="hdrp"), None, "shader",
                              1.0),
         "cosine_bent": Case("`BitmaskAO` hard, cosine + bent normals",
                             bitmask(mode="hard", weighting="cosine", bent_normals=True), None, "shader", 1.0),
-        "exact": Case("`BitmaskAO` exact + `BackfaceThickness` + edge-aware fetch", exact("kernel"), None, "shader", 1.0),
+        "exact": Case("`BitmaskAO` exact + `BackfaceThickness` + edge-aware fetch", exact(KERNEL_BACKEND), None, "shader", 1.0),
         "gtao": Case("`GTAO`", horizon(torch_ao.GTAO), None, "shader", 1.0),
         "hbao": Case("`HBAO`", horizon(torch_ao.HBAO), None, "shader", 1.0),
         "gtao_edge": Case("`GTAO` edge-aware fetch", horizon(torch_ao.GTAO, fetch="edge_aware"), None, "shader", 1.0),
@@ -196,15 +220,15 @@ def _cases() -> dict[str, Case]:
             "gbuffer", "bitmask", 3.0, kernel=False),
         # torch-ao fit's default pipeline (cosine, the back-face layer near its fitted scale and offset, edge-aware)
         "backface_gbuffer": Case("soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals",
-                                 backface("kernel"), "gbuffer", "bitmask", 3.0),
+                                 backface(KERNEL_BACKEND), "gbuffer", "bitmask", 3.0),
         "backface_parameters": Case("soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, radius + thickness",
-                                    backface("kernel"), "parameters", "bitmask", 3.0),
+                                    backface(KERNEL_BACKEND), "parameters", "bitmask", 3.0),
         "backface_gbuffer_torch": Case(
             "soft `BitmaskAO` cosine + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
             backface("torch"), "gbuffer", "bitmask", 3.0, kernel=False),
         # the learned thickness trained end to end (training_examples/train_thickness_net.py --finetune-epochs)
         "net_parameters": Case("soft `BitmaskAO` cosine + `NetThickness` + edge-aware fwd+bwd, the net's weights",
-                               net("kernel"), "parameters", "bitmask", 3.0),
+                               net(KERNEL_BACKEND), "parameters", "bitmask", 3.0),
         "net_parameters_torch": Case(
             "soft `BitmaskAO` cosine + `NetThickness` + edge-aware fwd+bwd, the net's weights, tensor ops",
             net("torch"), "parameters", "bitmask", 3.0, kernel=False),
@@ -252,7 +276,7 @@ def _cases() -> dict[str, Case]:
         "soft_growth_gbuffer": Case("soft `BitmaskAO`, thickness growth 0.5 fwd+bwd, depth + normals",
                                     bitmask(mode="soft", thickness_growth=0.5), "gbuffer", "bitmask", 3.0),
         "ssilvb_glsl_backface": Case("`ssilvb_glsl` hard AO + indirect, `BackfaceThickness`", lambda s: torch_ao.SSILVB(
-            variant="ssilvb_glsl", mode="hard", backend="kernel", thickness=BackfaceThickness(0.8, 0.15),
+            variant="ssilvb_glsl", mode="hard", backend=KERNEL_BACKEND, thickness=BackfaceThickness(0.8, 0.15),
             **_without_thickness(s)), None, "shader", 1.0),
         "ssilvb_glsl_backface_torch": Case(
             "`ssilvb_glsl` hard AO + indirect, `BackfaceThickness`, tensor ops", lambda s: torch_ao.SSILVB(
@@ -266,33 +290,33 @@ def _cases() -> dict[str, Case]:
                                         bitmask("torch", mode="soft", bent_normals=True), "gbuffer", "bitmask", 3.0,
                                         kernel=False),
         "ssilvb_soft_gbuffer": Case("soft `SSILVB` (AO + indirect) fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(
-            mode="soft", backend="kernel", **s), "gbuffer", "bitmask", 3.0),
+            mode="soft", backend=KERNEL_BACKEND, **s), "gbuffer", "bitmask", 3.0),
         "ssilvb_soft_gbuffer_torch": Case(
             "soft `SSILVB` (AO + indirect) fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 mode="soft", backend="torch", **s), "gbuffer", "bitmask", 3.0, kernel=False),
         "ssilvb_cosine": Case("`SSILVB` hard, cosine (AO + indirect light)", lambda s: torch_ao.SSILVB(
-            mode="hard", weighting="cosine", backend="kernel", **s), None, "shader", 1.0),
+            mode="hard", weighting="cosine", backend=KERNEL_BACKEND, **s), None, "shader", 1.0),
         "ssilvb_cosine_gbuffer": Case("`SSILVB` hard, cosine fwd+bwd, depth + normals", lambda s: torch_ao.SSILVB(
-            mode="hard", weighting="cosine", backend="kernel", **s), "gbuffer", "ssilvb_cosine", 3.0),
+            mode="hard", weighting="cosine", backend=KERNEL_BACKEND, **s), "gbuffer", "ssilvb_cosine", 3.0),
         "ssilvb_cosine_gbuffer_torch": Case(
             "`SSILVB` hard, cosine fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 mode="hard", weighting="cosine", backend="torch", **s), "gbuffer", "ssilvb_cosine", 3.0, kernel=False),
         "ssilvb_glsl_gbuffer": Case("`ssilvb_glsl` hard AO + indirect fwd+bwd, depth + normals",
-                                    lambda s: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend="kernel", **s),
+                                    lambda s: torch_ao.SSILVB(variant="ssilvb_glsl", mode="hard", backend=KERNEL_BACKEND, **s),
                                     "gbuffer", "ssilvb_glsl", 3.0),
         "ssilvb_glsl_gbuffer_torch": Case(
             "`ssilvb_glsl` hard AO + indirect fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 variant="ssilvb_glsl", mode="hard", backend="torch", **s), "gbuffer", "ssilvb_glsl", 3.0, kernel=False),
         "ssilvb_glsl_soft_gbuffer": Case("soft `ssilvb_glsl` AO + indirect fwd+bwd, depth + normals",
-                                         lambda s: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", backend="kernel",
+                                         lambda s: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", backend=KERNEL_BACKEND,
                                                                    **s), "gbuffer", "ssilvb_glsl", 3.0),
         "ssilvb_glsl_soft_gbuffer_torch": Case(
             "soft `ssilvb_glsl` AO + indirect fwd+bwd, depth + normals, tensor ops", lambda s: torch_ao.SSILVB(
                 variant="ssilvb_glsl", mode="soft", backend="torch", **s), "gbuffer", "ssilvb_glsl", 3.0, kernel=False),
         "exact_parameters": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, radius + thickness + scale",
-                                 exact("kernel", trainable=True), "parameters", "exact", 3.0),
+                                 exact(KERNEL_BACKEND, trainable=True), "parameters", "exact", 3.0),
         "exact_gbuffer": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals",
-                              exact("kernel", trainable=True), "gbuffer", "exact", 3.0),
+                              exact(KERNEL_BACKEND, trainable=True), "gbuffer", "exact", 3.0),
         "exact_gbuffer_torch": Case("`BitmaskAO` exact + back-face + edge-aware fwd+bwd, depth + normals, tensor ops",
                                     exact("torch", trainable=True), "gbuffer", "exact", 3.0, kernel=False),
         "gtao_gbuffer": Case("`GTAO` fwd+bwd, depth + normals", horizon(torch_ao.GTAO), "gbuffer", "gtao", 3.0),
@@ -382,6 +406,8 @@ def best_ms(fn, repeat: int) -> tuple[float, float]:
 def memory_child(spec: dict) -> dict:
     from peak_memory import PeakMemory
 
+    global KERNEL_BACKEND
+    KERNEL_BACKEND = spec["backend"]
     torch.set_num_threads(spec["threads"])
     gbuffer = frame_gbuffer(spec["frame"], spec["height"], spec["width"], Path(spec["cache"]))
     call = case_call(_cases()[spec["case"]], gbuffer, spec["settings"])
@@ -391,7 +417,7 @@ def memory_child(spec: dict) -> dict:
 
 
 def peak_mb(**spec) -> float:
-    cmd = [sys.executable, __file__, "--memory-child", json.dumps(spec)]
+    cmd = [sys.executable, __file__, "--library", str(LIBRARY), "--memory-child", json.dumps(spec)]
     out = subprocess.run(cmd, capture_output=True, text=True)
     if out.returncode:
         raise RuntimeError(f"memory of {spec['case']} failed:\n{out.stderr[-3000:]}")
@@ -459,7 +485,15 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-sizes", nargs="*", default=None,
                     help="WxH sizes (of --sizes) whose forward+backward peak memory is measured (default: the "
                          "largest; the flag alone: no memory column)")
+    ap.add_argument("--library", default=str(ROOT), metavar="DIR",
+                    help="the torch_ao checkout to time (default: this one; an earlier commit's worktree gives the "
+                         "'before' of a before/after table)")
+    ap.add_argument("--backend", choices=["kernel", "auto"], default="kernel",
+                    help="the kernel rows' backend: kernel (an uncovered call raises) or auto (a kernel where the "
+                         "library has one, else its tensor path: an earlier library's rows)")
     args = ap.parse_args(argv)
+    global KERNEL_BACKEND
+    KERNEL_BACKEND = args.backend
     if args.memory_child:
         print(json.dumps(memory_child(json.loads(args.memory_child))))
         return 0
@@ -473,7 +507,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     ctx = create_context()
     print(f"shader: {ctx.info['GL_RENDERER']} (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'default')}); "
-          f"torch {torch.__version__}, {args.threads} threads; best of {args.repeat}, {args.clock} time", flush=True)
+          f"torch {torch.__version__}, {args.threads} threads; best of {args.repeat}, {args.clock} time; "
+          f"torch_ao from {LIBRARY}, backend {args.backend}", flush=True)
     cases = {k: c for k, c in _cases().items() if c.kernel or not args.kernels_only}
     if args.cases:
         unknown = sorted(set(args.cases) - set(_cases()))
@@ -503,7 +538,7 @@ def main(argv=None) -> int:
                     line = f"{frame} {_size_label(*column)}: {case.label} {times[key, column]:.0f} ms"
                     if case.gradients and column in memory_columns:
                         memory[key, column] = peak_mb(case=key, frame=frame, height=H, width=W, settings=common,
-                                                      threads=args.threads, cache=str(cache))
+                                                      threads=args.threads, cache=str(cache), backend=args.backend)
                         line += f", peak {memory[key, column]:.0f} MB"
                     print(line, file=sys.stderr, flush=True)
         print()
