@@ -39,7 +39,9 @@ as that library's default would (its kernel where it had one, else its tensor-op
 
     git worktree add /tmp/before f6d182b   # the library before the one walk
     TORCH_EXTENSIONS_DIR=/tmp/before_ext LP_NUM_THREADS=1 OMP_NUM_THREADS=1 python benchmarks/bench_vs_shader.py \
-        --library /tmp/before --backend auto --threads 1 --kernels-only --repeat 3 --cases ...
+        --library /tmp/before --backend auto --threads 1 --kernels-only --repeat 3 --cases ... > before.md
+
+and ``benchmarks/before_after.py before.md after.md`` merges it with this library's run, cell by cell.
 """
 from __future__ import annotations
 
