@@ -178,7 +178,7 @@ TAO_FN int sector_turn(SectorAngles angles, int side) { return angles == SectorA
 // The sector rule's angles of a sample at delta with thickness t on the walk's side: its front (delta) and back
 // (delta - t V) seen from the pixel, from V toward the frame's tangent on sector_turn's side (T: the walked slice's)
 template <class F>
-TAO_FN void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
+TAO_HOT void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
                           F& back) {
   if (angles == SectorAngles::hdrp) {
     const ViewCosine<F> to_front(delta, V, F(0.0f)), to_back(delta, V, t);
@@ -324,7 +324,7 @@ struct BitmaskAccumulator {
   }
 
   template <class F>
-  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+  TAO_HOT void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
     // the sector rule: the sample's front (delta) and back (delta - thickness V) seen from the pixel,
     // as fractions of the hemisphere from its edge on the frame's side -1
@@ -462,7 +462,7 @@ struct ExactAccumulator {
   // live) that a sample at offset delta from the pixel occludes on side, with thickness t and the sphere's
   // radius (shift: the slice's edge_shift): segment, then segment_interval
   template <class F, class G>
-  TAO_FN void interval(int side, const Pixels<F>& px, const Slice<F>& sl, const F& shift, const G* delta, const G& t,
+  TAO_HOT void interval(int side, const Pixels<F>& px, const Slice<F>& sl, const F& shift, const G* delta, const G& t,
                        const G& radius, typename LaneTraits<F>::M live, G& lo_out, G& hi_out) const {
     G seg[4];
     segment(side, px, sl, delta, t, seg);
@@ -473,7 +473,7 @@ struct ExactAccumulator {
   // along the sample's own camera ray) in the slice's half plane: seg = (front . V, side front . T, back . V,
   // side back . T)
   template <class F, class G>
-  TAO_FN void segment(int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta, const G& t, G* seg) const {
+  TAO_HOT void segment(int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta, const G& t, G* seg) const {
     const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
     const G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T);
     seg[0] = fv, seg[1] = ft;
@@ -487,7 +487,7 @@ struct ExactAccumulator {
 
   // segment's interval: the part of the segment inside the radius' sphere (clip), seen from the pixel
   template <class F, class G>
-  TAO_FN void segment_interval(int side, const G* seg, const F& shift, const G& radius,
+  TAO_HOT void segment_interval(int side, const G* seg, const F& shift, const G& radius,
                                typename LaneTraits<F>::M live, G& lo_out, G& hi_out) const {
     G fv = seg[0], ft = seg[1], bv = seg[2], bt = seg[3];
     if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
@@ -517,7 +517,7 @@ struct ExactAccumulator {
   }
 
   template <class F>
-  TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
+  TAO_HOT void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     interval(side, px, sl, st.shift, smp.delta, thickness.at(px, smp), F(radius), smp.valid, st.lo[st.n], st.hi[st.n]);
     ++st.n;
   }

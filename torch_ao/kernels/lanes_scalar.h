@@ -4,10 +4,13 @@
 #pragma once
 
 // TAO_COLD: a branch that rarely runs (out of line on the CPU, where its code inside a hot loop costs the loop's
-// registers; inline on CUDA, where a call would put its arguments in local memory)
+// registers; inline on CUDA, where a call would put its arguments in local memory). TAO_HOT: a step's own work (its
+// fetch, its sector angles, an accumulator's step), always inlined into the walk's loop on the CPU, where a call per
+// step returned its values through memory and loaded its constants again (docs/kernel-notes.md)
 #ifdef __CUDACC_RTC__
 #define TAO_FN __device__ __forceinline__
 #define TAO_COLD TAO_FN
+#define TAO_HOT TAO_FN
 #define TAO_CONST static __device__ const
 typedef int int32_t;
 typedef unsigned int uint32_t;
@@ -16,6 +19,7 @@ typedef unsigned long long uint64_t;
 #else
 #define TAO_FN inline
 #define TAO_COLD __attribute__((noinline, cold))
+#define TAO_HOT inline __attribute__((always_inline))
 #define TAO_CONST static constexpr
 #include <cmath>
 #include <cstdint>

@@ -502,7 +502,7 @@ template <class F> struct Sample {
       : Sample(cfg, img, px, along_u(px, sl, side, dist), along_v(px, sl, side, dist)) {}
 
   // the sample at screen (su, sv)
-  TAO_FN Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv)
+  TAO_HOT Sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv)
       : su(su), sv(sv) {
     const F Wf = F(float(img.W)), Hf = F(float(img.H));
     const I zero = I(0), Wi = I(int32_t(img.W)), Wlast = I(int32_t(img.W - 1)), Hlast = I(int32_t(img.H - 1)), one = I(1);
@@ -654,7 +654,7 @@ TAO_FN void unprojection_camera(const Image& img, const F* pos, const F* g_pos, 
 // A walk's sample at screen (su, sv): Sample's fetch (walk_grad.h's reverse lanes overload it: the fetched
 // position a leaf of their tape, its taps kept for the backward's scatter)
 template <class F>
-TAO_FN Sample<F> fetch_sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv) {
+TAO_HOT Sample<F> fetch_sample(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, const F& su, const F& sv) {
   return Sample<F>(cfg, img, px, su, sv);
 }
 
