@@ -53,6 +53,12 @@ def _ign(u: torch.Tensor, v: torch.Tensor, seed: int) -> torch.Tensor:
     return interleaved_gradient_noise(u, v, seed).to(torch.float32)
 
 
+def _pixel_noise(H: int, W: int) -> torch.Tensor:
+    """``(2, H, W)``: each pixel's slice rotation and step offset (SlicePattern's interleaved gradient noise)."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    return torch.stack((_ign(u, v, 0), _ign(u + 37.0, v + 59.0, 1)))
+
+
 def slice_frame(c, sn, e1x, e1z, e2x, e2y, e2z, Vx, Vy, Vz, Nx, Ny, Nz, Px, Py, depth, fx, fy):
     """One slice's tangent ``T`` (from its angle's ``cos``, ``sin`` and the basis ``e1``, ``e2`` around V),
     the projected normal's components along ``T`` and ``V``, and the screen motion ``(du, dv)`` per world
@@ -74,7 +80,7 @@ def pointwise_walk(P, N, inv, depth, valid, K, slices: int, steps: int, radius: 
     fx, fy, cx, cy = (K[:, i].view(B, 1, 1) for i in range(4))
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     u, v = u.expand(B, H, W), v.expand(B, H, W)
-    a, xi = _ign(u, v, 0), _ign(u + 37.0, v + 59.0, 1)
+    a, xi = _pixel_noise(H, W).unbind(0)
     Px, Py, Pz = P.unbind(-1)
     Nx, Ny, Nz = N.unbind(-1)
     n = torch.sqrt(Px * Px + Py * Py + Pz * Pz).clamp_min(1e-12)
@@ -208,8 +214,7 @@ def numba_walk():
 
     def run(P, N, inv, depth, valid, K, slices, steps, radius, thickness, epsilon):
         B, H, W, _ = P.shape
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
-        noise = torch.stack((_ign(u, v, 0), _ign(u + 37.0, v + 59.0, 1))).unsqueeze(1).expand(2, B, H, W)
+        noise = _pixel_noise(H, W).unsqueeze(1).expand(2, B, H, W)
         out = np.empty((B, 1, H, W), dtype=np.float32)
         walk(P.numpy(), N.numpy(), inv.numpy(), depth.numpy(), valid.numpy(), K.numpy(), slices, steps, f32(radius),
              f32(thickness), f32(epsilon), noise.contiguous().numpy(), out)
@@ -306,8 +311,7 @@ def warp_walk():
 
     def run(P, N, inv, depth, valid, K, slices, steps, radius, thickness, epsilon):
         B, H, W, _ = P.shape
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
-        noise = torch.stack((_ign(u, v, 0), _ign(u + 37.0, v + 59.0, 1))).unsqueeze(1).expand(2, B, H, W).contiguous()
+        noise = _pixel_noise(H, W).unsqueeze(1).expand(2, B, H, W).contiguous()
         out = torch.empty(B, H, W)
         wp.launch(walk, dim=(B, H, W), device="cpu",
                   inputs=[wp.from_torch(P, dtype=wp.vec3), wp.from_torch(N, dtype=wp.vec3), wp.from_torch(inv),
@@ -386,9 +390,8 @@ def drjit_walk():
         if B != 1:
             raise ValueError(f"drjit: expected one image, got a batch of {B}")
         flat = lambda x: Float(x.reshape(-1).numpy())  # noqa: E731
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
         vis = walk(*(flat(P[..., c]) for c in range(3)), *(flat(N[..., c]) for c in range(3)), flat(depth), flat(inv),
-                   flat(valid.float()), flat(_ign(u, v, 0)), flat(_ign(u + 37.0, v + 59.0, 1)), H, W,
+                   flat(valid.float()), *(flat(x) for x in _pixel_noise(H, W)), H, W,
                    *(float(K[0, i]) for i in range(4)), slices, steps, float(radius), float(thickness), float(epsilon))
         dr.eval(vis)
         return torch.from_numpy(vis.numpy()).view(1, 1, H, W)
