@@ -417,7 +417,7 @@ struct BitmaskAccumulator {
 
 // H(theta) = int_0^theta cos(t - gamma) |sin t| dt (ops.arc_measure) of the slice's hemisphere from its
 // edge at x = 0 to position x (sector units): theta(x) = gamma - pi/2 + pi x / 32 (G: F, or duals over F)
-template <class G, class F> TAO_FN G arc_measure_at(const G& x, const Slice<F>& sl) {
+template <class G, class F> TAO_HOT G arc_measure_at(const G& x, const Slice<F>& sl) {
   const G theta = G(sl.gamma) - G(kHalfPi) + x * G(kPi / float(kSectors));
   const G H = neg(cos(G(2.0f) * theta - G(sl.gamma))) / G(4.0f) + theta * G(sl.sin_gamma) / G(2.0f);
   const G H0 = G(neg(sl.cos_gamma) / F(4.0f));

@@ -22,13 +22,6 @@
 
 namespace tao {
 
-// (always inlined on the CPU: a node is a few stores, which a call would outweigh)
-#ifdef __CUDACC_RTC__
-#define TAO_FN_ALWAYS TAO_FN
-#else
-#define TAO_FN_ALWAYS inline __attribute__((always_inline))
-#endif
-
 template <class F> struct Tape {
   // Per node: its partial derivative with respect to the node made just before it (the sweep carries that
   // adjoint in a register: most nodes take the last one made, and passing it through memory would put a store
@@ -54,7 +47,7 @@ template <class F> struct Tape {
       : partial(partials), parent(parents), adjoint(adjoints), capacity(cap) {}
 
   // a node of value-derivatives pa, pb with respect to a, b (ids, -1: none); -1 when the tape is full
-  TAO_FN_ALWAYS int32_t push(int32_t a, const F& pa, int32_t b, const F& pb) {
+  TAO_HOT int32_t push(int32_t a, const F& pa, int32_t b, const F& pb) {
     const int32_t before = n - 1;
     const bool a_before = a == before && a >= 0, b_before = b == before && b >= 0;
     const F p_before = a_before ? (b_before ? pa + pb : pa) : (b_before ? pb : F(0.0f));
@@ -62,7 +55,7 @@ template <class F> struct Tape {
   }
   // a node of value-derivative p_before with respect to the node made just before it, and pa, pb with respect to
   // a, b (ids, -1: none; neither the node before); -1 when the tape is full
-  TAO_FN_ALWAYS int32_t node(const F& p_before, int32_t a, const F& pa, int32_t b, const F& pb) {
+  TAO_HOT int32_t node(const F& p_before, int32_t a, const F& pa, int32_t b, const F& pb) {
     if (n == capacity) {
       overflow = true;
       return -1;
@@ -142,21 +135,21 @@ template <class F> struct Rev {
   int32_t id;     // < 0: a constant
   Tape<F>* tape;  // the node's (null for a constant): found without the thread's slot
 
-  TAO_FN_ALWAYS Rev() : v(0.0f), scale(1.0f), id(-1), tape(nullptr) {}
-  TAO_FN_ALWAYS Rev(const F& x) : v(x), scale(1.0f), id(-1), tape(nullptr) {}  // a constant (float converts through F)
-  TAO_FN_ALWAYS Rev(const F& x, int32_t i, Tape<F>* t, const F& s = F(1.0f))
+  TAO_HOT Rev() : v(0.0f), scale(1.0f), id(-1), tape(nullptr) {}
+  TAO_HOT Rev(const F& x) : v(x), scale(1.0f), id(-1), tape(nullptr) {}  // a constant (float converts through F)
+  TAO_HOT Rev(const F& x, int32_t i, Tape<F>* t, const F& s = F(1.0f))
       : v(x), scale(s), id(i), tape(i >= 0 ? t : nullptr) {}
   // value = k x + c for constant lanes k, c: x's node, its scale times k
-  static TAO_FN_ALWAYS Rev affine(const F& value, const Rev& x, const F& k) {
+  static TAO_HOT Rev affine(const F& value, const Rev& x, const F& k) {
     return Rev(value, x.id, x.tape, x.scale * k);
   }
 
   // value with derivatives a and b with respect to x and y (a constant where neither is a node)
-  static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a) {
+  static TAO_HOT Rev link(const F& value, const Rev& x, const F& a) {
     if (x.id < 0) return Rev(value);
     return Rev(value, x.tape->push(x.id, a * x.scale, -1, F(0.0f)), x.tape);
   }
-  static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b) {
+  static TAO_HOT Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b) {
     if (x.id < 0) return link(value, y, b);
     if (y.id < 0) return link(value, x, a);
     return Rev(value, x.tape->push(x.id, a * x.scale, y.id, b * y.scale), x.tape);
@@ -164,7 +157,7 @@ template <class F> struct Rev {
 
   // a value with derivatives a, b, c with respect to x, y, z: one node where one of them is the last node made
   // (or x is a constant), else two
-  static TAO_FN_ALWAYS Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
+  static TAO_HOT Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
                                 const F& c) {
     if (x.id < 0) return link(value, y, b, z, c);
     Tape<F>* tape = x.tape;
@@ -175,31 +168,31 @@ template <class F> struct Rev {
     return link(value, link(value, x, a, y, b), F(1.0f), z, c);
   }
 
-  friend TAO_FN_ALWAYS Rev operator+(const Rev& a, const Rev& b) {
+  friend TAO_HOT Rev operator+(const Rev& a, const Rev& b) {
     if (b.id < 0) return affine(a.v + b.v, a, F(1.0f));
     if (a.id < 0) return affine(a.v + b.v, b, F(1.0f));
     return link(a.v + b.v, a, F(1.0f), b, F(1.0f));
   }
-  friend TAO_FN_ALWAYS Rev operator-(const Rev& a, const Rev& b) {
+  friend TAO_HOT Rev operator-(const Rev& a, const Rev& b) {
     if (b.id < 0) return affine(a.v - b.v, a, F(1.0f));
     if (a.id < 0) return affine(a.v - b.v, b, F(-1.0f));
     return link(a.v - b.v, a, F(1.0f), b, F(-1.0f));
   }
-  friend TAO_FN_ALWAYS Rev operator*(const Rev& a, const Rev& b) {
+  friend TAO_HOT Rev operator*(const Rev& a, const Rev& b) {
     if (b.id < 0) return affine(a.v * b.v, a, b.v);
     if (a.id < 0) return affine(a.v * b.v, b, a.v);
     return link(a.v * b.v, a, b.v, b, a.v);
   }
-  friend TAO_FN_ALWAYS Rev operator/(const Rev& a, const Rev& b) {
+  friend TAO_HOT Rev operator/(const Rev& a, const Rev& b) {
     const F inv = F(1.0f) / b.v, q = a.v * inv;
     if (b.id < 0) return affine(q, a, inv);
     return link(q, a, inv, b, neg(q * inv));
   }
-  friend TAO_FN_ALWAYS M operator<(const Rev& a, const Rev& b) { return a.v < b.v; }
-  friend TAO_FN_ALWAYS M operator>(const Rev& a, const Rev& b) { return a.v > b.v; }
-  friend TAO_FN_ALWAYS M operator<=(const Rev& a, const Rev& b) { return a.v <= b.v; }
-  friend TAO_FN_ALWAYS M operator>=(const Rev& a, const Rev& b) { return a.v >= b.v; }
-  friend TAO_FN_ALWAYS M operator==(const Rev& a, const Rev& b) { return a.v == b.v; }
+  friend TAO_HOT M operator<(const Rev& a, const Rev& b) { return a.v < b.v; }
+  friend TAO_HOT M operator>(const Rev& a, const Rev& b) { return a.v > b.v; }
+  friend TAO_HOT M operator<=(const Rev& a, const Rev& b) { return a.v <= b.v; }
+  friend TAO_HOT M operator>=(const Rev& a, const Rev& b) { return a.v >= b.v; }
+  friend TAO_HOT M operator==(const Rev& a, const Rev& b) { return a.v == b.v; }
 };
 
 template <class F> struct LaneTraits<Rev<F>> {
@@ -213,8 +206,8 @@ template <class F> struct ValueOf<Rev<F>> {
 };
 template <class F> TAO_FN const F& value(const Rev<F>& x) { return x.v; }
 
-template <class F> TAO_FN_ALWAYS Rev<F> from_lanes(const float* x, const Rev<F>&) { return Rev<F>(from_lanes(x, F(0.0f))); }
-template <class F> TAO_FN_ALWAYS Rev<F> select(const typename LaneTraits<F>::M& m, const Rev<F>& yes, const Rev<F>& no) {
+template <class F> TAO_HOT Rev<F> from_lanes(const float* x, const Rev<F>&) { return Rev<F>(from_lanes(x, F(0.0f))); }
+template <class F> TAO_HOT Rev<F> select(const typename LaneTraits<F>::M& m, const Rev<F>& yes, const Rev<F>& no) {
   const F v = select(m, yes.v, no.v);
   // (one node, or one and a constant: that node, its scale where it is chosen, 0 where the constant is)
   if (yes.id == no.id) return Rev<F>(v, yes.id, yes.tape, select(m, yes.scale, no.scale));
@@ -222,83 +215,83 @@ template <class F> TAO_FN_ALWAYS Rev<F> select(const typename LaneTraits<F>::M& 
   if (yes.id < 0) return Rev<F>(v, no.id, no.tape, select(m, F(0.0f), no.scale));
   return Rev<F>::link(v, yes, select(m, F(1.0f), F(0.0f)), no, select(m, F(0.0f), F(1.0f)));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> neg(const Rev<F>& x) { return Rev<F>::affine(neg(x.v), x, F(-1.0f)); }
-template <class F> TAO_FN_ALWAYS Rev<F> fma(const Rev<F>& a, const Rev<F>& b, const Rev<F>& c) { return a * b + c; }
+template <class F> TAO_HOT Rev<F> neg(const Rev<F>& x) { return Rev<F>::affine(neg(x.v), x, F(-1.0f)); }
+template <class F> TAO_HOT Rev<F> fma(const Rev<F>& a, const Rev<F>& b, const Rev<F>& c) { return a * b + c; }
 // a b + c for a constant b and c, its value fused as the value lanes' fma
-template <class F> TAO_FN_ALWAYS Rev<F> fma(const Rev<F>& a, const F& b, const F& c) {
+template <class F> TAO_HOT Rev<F> fma(const Rev<F>& a, const F& b, const F& c) {
   return Rev<F>::affine(fma(a.v, b, c), a, b);
 }
 // a / b with the value lanes' quotient as its value
-template <class F> TAO_FN_ALWAYS Rev<F> quotient(const Rev<F>& a, const Rev<F>& b) {
+template <class F> TAO_HOT Rev<F> quotient(const Rev<F>& a, const Rev<F>& b) {
   const F inv = F(1.0f) / b.v, q = a.v / b.v;
   if (b.id < 0) return Rev<F>::affine(q, a, inv);
   return Rev<F>::link(q, a, inv, b, neg(q * inv));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> abs(const Rev<F>& x) { return select(x.v < F(0.0f), neg(x), x); }
-template <class F> TAO_FN_ALWAYS Rev<F> sqrt(const Rev<F>& x) {  // (0 at 0, as lanes_dual.h's)
+template <class F> TAO_HOT Rev<F> abs(const Rev<F>& x) { return select(x.v < F(0.0f), neg(x), x); }
+template <class F> TAO_HOT Rev<F> sqrt(const Rev<F>& x) {  // (0 at 0, as lanes_dual.h's)
   const F r = sqrt(x.v);
   return Rev<F>::link(r, x, select(r > F(0.0f), F(0.5f) / r, F(0.0f)));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> rsqrt(const Rev<F>& x) {
+template <class F> TAO_HOT Rev<F> rsqrt(const Rev<F>& x) {
   const F r = rsqrt(x.v);
   return Rev<F>::link(r, x, F(-0.5f) * r * r * r);
 }
-template <class F> TAO_FN_ALWAYS Rev<F> reciprocal(const Rev<F>& x) {
+template <class F> TAO_HOT Rev<F> reciprocal(const Rev<F>& x) {
   const F r = reciprocal(x.v);
   return Rev<F>::link(r, x, neg(r * r));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> floor(const Rev<F>& x) { return Rev<F>(floor(x.v)); }
-template <class F> TAO_FN_ALWAYS Rev<F> ceil(const Rev<F>& x) { return Rev<F>(ceil(x.v)); }
-template <class F> TAO_FN_ALWAYS Rev<F> rint(const Rev<F>& x) { return Rev<F>(rint(x.v)); }
-template <class F> TAO_FN_ALWAYS Rev<F> atan2(const Rev<F>& y, const Rev<F>& x) {  // (none at the origin)
+template <class F> TAO_HOT Rev<F> floor(const Rev<F>& x) { return Rev<F>(floor(x.v)); }
+template <class F> TAO_HOT Rev<F> ceil(const Rev<F>& x) { return Rev<F>(ceil(x.v)); }
+template <class F> TAO_HOT Rev<F> rint(const Rev<F>& x) { return Rev<F>(rint(x.v)); }
+template <class F> TAO_HOT Rev<F> atan2(const Rev<F>& y, const Rev<F>& x) {  // (none at the origin)
   const F r2 = x.v * x.v + y.v * y.v;
   const F inv = select(r2 > F(0.0f), reciprocal(r2), F(0.0f));
   return Rev<F>::link(atan2(y.v, x.v), y, x.v * inv, x, neg(y.v) * inv);
 }
-template <class F> TAO_FN_ALWAYS Rev<F> cos(const Rev<F>& x) { return Rev<F>::link(cos(x.v), x, neg(sin(x.v))); }
-template <class F> TAO_FN_ALWAYS Rev<F> sin(const Rev<F>& x) { return Rev<F>::link(sin(x.v), x, cos(x.v)); }
+template <class F> TAO_HOT Rev<F> cos(const Rev<F>& x) { return Rev<F>::link(cos(x.v), x, neg(sin(x.v))); }
+template <class F> TAO_HOT Rev<F> sin(const Rev<F>& x) { return Rev<F>::link(sin(x.v), x, cos(x.v)); }
 template <class F> TAO_FN void cos_sin_rounded(const Rev<F>& x, Rev<F>& c, Rev<F>& s) {
   F cv, sv;
   cos_sin_rounded(x.v, cv, sv);
   c = Rev<F>::link(cv, x, neg(sv)), s = Rev<F>::link(sv, x, cv);
 }
-template <class F> TAO_FN_ALWAYS Rev<F> logistic(const Rev<F>& x) {  // (its slope s (1 - s): finite everywhere)
+template <class F> TAO_HOT Rev<F> logistic(const Rev<F>& x) {  // (its slope s (1 - s): finite everywhere)
   const F s = logistic(x.v);
   return Rev<F>::link(s, x, s * (F(1.0f) - s));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> asin(const Rev<F>& x) { return Rev<F>::link(asin(x.v), x, rsqrt(F(1.0f) - x.v * x.v)); }
-template <class F> TAO_FN_ALWAYS Rev<F> acos(const Rev<F>& x) {
+template <class F> TAO_HOT Rev<F> asin(const Rev<F>& x) { return Rev<F>::link(asin(x.v), x, rsqrt(F(1.0f) - x.v * x.v)); }
+template <class F> TAO_HOT Rev<F> acos(const Rev<F>& x) {
   return Rev<F>::link(acos(x.v), x, neg(rsqrt(F(1.0f) - x.v * x.v)));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> pow(const Rev<F>& x, const Rev<F>& y) {  // (the base's derivative alone)
+template <class F> TAO_HOT Rev<F> pow(const Rev<F>& x, const Rev<F>& y) {  // (the base's derivative alone)
   return Rev<F>::link(pow(x.v, y.v), x, y.v * pow(x.v, y.v - F(1.0f)));
 }
-template <class F> TAO_FN_ALWAYS Rev<F> max(const Rev<F>& a, const Rev<F>& b) {
+template <class F> TAO_HOT Rev<F> max(const Rev<F>& a, const Rev<F>& b) {
   Rev<F> r = select(b.v > a.v, b, a);
   r.v = max(a.v, b.v);  // NaN-propagating
   return r;
 }
-template <class F> TAO_FN_ALWAYS Rev<F> min(const Rev<F>& a, const Rev<F>& b) {
+template <class F> TAO_HOT Rev<F> min(const Rev<F>& a, const Rev<F>& b) {
   Rev<F> r = select(b.v < a.v, b, a);
   r.v = min(a.v, b.v);
   return r;
 }
-template <class F> TAO_FN_ALWAYS Rev<F> clamp_min(const Rev<F>& x, const Rev<F>& lo) { return select(x.v < lo.v, lo, x); }
-template <class F> TAO_FN_ALWAYS Rev<F> clamp_max(const Rev<F>& x, const Rev<F>& hi) { return select(x.v > hi.v, hi, x); }
-template <class F> TAO_FN_ALWAYS Rev<F> clamp(const Rev<F>& x, const Rev<F>& lo, const Rev<F>& hi) {
+template <class F> TAO_HOT Rev<F> clamp_min(const Rev<F>& x, const Rev<F>& lo) { return select(x.v < lo.v, lo, x); }
+template <class F> TAO_HOT Rev<F> clamp_max(const Rev<F>& x, const Rev<F>& hi) { return select(x.v > hi.v, hi, x); }
+template <class F> TAO_HOT Rev<F> clamp(const Rev<F>& x, const Rev<F>& lo, const Rev<F>& hi) {
   return clamp_max(clamp_min(x, lo), hi);
 }
 template <class F> TAO_FN typename LaneTraits<F>::I to_int(const Rev<F>& x) { return to_int(x.v); }
 
 // walk.h's dot3 and cross in fewer nodes: each product joins the running sum in a node of three parents (the sum
 // the node before it)
-template <class F> TAO_FN_ALWAYS Rev<F> dot3(const Rev<F>* a, const Rev<F>* b) {
+template <class F> TAO_HOT Rev<F> dot3(const Rev<F>* a, const Rev<F>* b) {
   using R = Rev<F>;
   const R p = R::link(a[0].v * b[0].v, a[0], b[0].v, b[0], a[0].v);
   const R q = R::link(p.v + a[1].v * b[1].v, p, F(1.0f), a[1], b[1].v, b[1], a[1].v);
   return R::link(q.v + a[2].v * b[2].v, q, F(1.0f), a[2], b[2].v, b[2], a[2].v);
 }
-template <class F> TAO_FN_ALWAYS void cross(const Rev<F>* a, const Rev<F>* b, Rev<F>* out) {
+template <class F> TAO_HOT void cross(const Rev<F>* a, const Rev<F>* b, Rev<F>* out) {
   using R = Rev<F>;
   for (int c = 0; c < 3; ++c) {
     const int i = (c + 1) % 3, j = (c + 2) % 3;  // out_c = a_i b_j - a_j b_i
@@ -318,12 +311,12 @@ template <class F> TAO_FN void seed_pixel(Rev<F>* P, Rev<F>* Nrm, Rev<F>& depth)
 }
 
 // an accumulator's differentiable setting k (< Tape::kSettings): its leaf (Tape::parameter(kSetting + k))
-template <class F> TAO_FN_ALWAYS Rev<F> seed_setting(const Rev<F>& x, int k = 0) {
+template <class F> TAO_HOT Rev<F> seed_setting(const Rev<F>& x, int k = 0) {
   Tape<F>* tape = current_tape<F>();
   return Rev<F>(x.v, tape->parameter(Tape<F>::kSetting + k), tape);
 }
 // intrinsic k of the camera (fx, fy, cx, cy): its leaf where the tape asks for the intrinsics' gradients
-template <class F> TAO_FN_ALWAYS Rev<F> seed_camera(const Rev<F>& x, int k) {
+template <class F> TAO_HOT Rev<F> seed_camera(const Rev<F>& x, int k) {
   Tape<F>* tape = current_tape<F>();
   return tape->camera ? Rev<F>(x.v, tape->parameter(Tape<F>::kCamera + k), tape) : x;
 }

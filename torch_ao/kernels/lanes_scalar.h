@@ -5,8 +5,9 @@
 
 // TAO_COLD: a branch that rarely runs (out of line on the CPU, where its code inside a hot loop costs the loop's
 // registers; inline on CUDA, where a call would put its arguments in local memory). TAO_HOT: a step's own work (its
-// fetch, its sector angles, an accumulator's step), always inlined into the walk's loop on the CPU, where a call per
-// step returned its values through memory and loaded its constants again (docs/kernel-notes.md)
+// fetch, its sector angles, an accumulator's step) and the dual and reverse lanes' arithmetic (a dual's operation
+// is a few vector operations, a reverse node a few stores), always inlined on the CPU, where a call per use returned
+// its values through memory and loaded its constants again (docs/kernel-notes.md)
 #ifdef __CUDACC_RTC__
 #define TAO_FN __device__ __forceinline__
 #define TAO_COLD TAO_FN

@@ -24,15 +24,15 @@ constexpr float kEdgeMinRatio = 1.02f;  // walk.fetch.EDGE_MIN_RATIO
 constexpr float kHalfPi = 1.57079632679489661923f;
 constexpr float kMinOffset = 1e-5f;  // walk.sample.MIN_OFFSET
 
-template <class F> TAO_FN F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-template <class F> TAO_FN F norm3(const F* a) { return sqrt(dot3(a, a)); }
-template <class F> TAO_FN void cross(const F* a, const F* b, F* out) {
+template <class F> TAO_HOT F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+template <class F> TAO_HOT F norm3(const F* a) { return sqrt(dot3(a, a)); }
+template <class F> TAO_HOT void cross(const F* a, const F* b, F* out) {
   out[0] = a[1] * b[2] - a[2] * b[1];
   out[1] = a[2] * b[0] - a[0] * b[2];
   out[2] = a[0] * b[1] - a[1] * b[0];
 }
 // F.normalize(x, eps=1e-12)
-template <class F> TAO_FN void normalize3(const F* x, F* out) {
+template <class F> TAO_HOT void normalize3(const F* x, F* out) {
   const F len = clamp_min(norm3(x), F(1e-12f));
   for (int c = 0; c < 3; ++c) out[c] = x[c] / len;
 }
@@ -52,7 +52,7 @@ template <class F> TAO_FN F seed_setting(const F& x, int = 0) { return x; }
 template <class F> TAO_FN F seed_camera(const F& x, int) { return x; }
 template <class F> TAO_FN F lerp(const F& a, const F& b, const F& w) { return a + w * (b - a); }
 // torch.sign (0 for 0 and NaN)
-template <class F> TAO_FN F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
+template <class F> TAO_HOT F sign(const F& x) { return select(x > F(0.0f), F(1.0f), select(x < F(0.0f), F(-1.0f), F(0.0f))); }
 // HDRP's GTAOFastAcos / UE4's acosFast (torch_ao.ops.fast_acos) of x, given root = sqrt(1 - |x|)
 template <class F> TAO_FN F fast_acos_of_root(const F& x, const F& root) {
   const F res = (F(-0.156583f) * abs(x) + F(kHalfPi)) * root;
