@@ -250,7 +250,7 @@ TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, co
 
 // Sector k's centre phi_k = gamma - pi/2 + c_k (c_k = pi (k + 1/2) / 32) in a slice's (V, T) frame, of its
 // gamma's cos and sin: cos phi_k = sin(gamma + c_k), sin phi_k = -cos(gamma + c_k)
-template <class G> TAO_FN void sector_centre(int k, const G& cos_gamma, const G& sin_gamma, G& along_v, G& along_t) {
+template <class G> TAO_HOT void sector_centre(int k, const G& cos_gamma, const G& sin_gamma, G& along_v, G& along_t) {
   along_v = sin_gamma * G(kCentreCos[k]) + cos_gamma * G(kCentreSin[k]);
   along_t = sin_gamma * G(kCentreSin[k]) - cos_gamma * G(kCentreCos[k]);
 }
