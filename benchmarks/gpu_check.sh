@@ -26,8 +26,7 @@ nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,utilization.gpu 
 stage "build: the C++ forward and backward libraries and the CUDA kernels, side by side"
 python3 -c "from torch_ao.kernels.build import cpu_kernels; cpu_kernels()" > "$out/build_forward.txt" 2>&1 &
 forward=$!
-python3 -c "from pathlib import Path; from torch_ao.kernels import build
-build.load_cpu_library('torch_ao_walk_grad', (Path(build.__file__).with_name('walk_grad_cpu.cpp'),))" \
+python3 -c "from torch_ao.kernels import build; build.load_walk_grad_library()" \
   > "$out/build_backward.txt" 2>&1 &
 backward=$!
 mkdir -p "$TORCH_AO_CUDA_CACHE"
