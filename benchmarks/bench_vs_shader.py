@@ -198,6 +198,8 @@ def _cases() -> dict[str, Case]:
         "gtao": Case("`GTAO`", horizon(torch_ao.GTAO), None, "shader", 1.0),
         "hbao": Case("`HBAO`", horizon(torch_ao.HBAO), None, "shader", 1.0),
         "gtao_edge": Case("`GTAO` edge-aware fetch", horizon(torch_ao.GTAO, fetch="edge_aware"), None, "shader", 1.0),
+        "gtao_projected": Case("`GTAO`, slices drawn by the projected normal's density",
+                               horizon(torch_ao.GTAO, slice_sampling="projected_normal"), None, "shader", 1.0),
         "ssilvb_glsl_torch": Case("`ssilvb_glsl`, tensor ops", lambda s: torch_ao.SSILVB(
             variant="ssilvb_glsl", mode="hard", backend="torch", **s), None, "shader", 1.0, kernel=False),
         "bitmask_torch": Case("`BitmaskAO` hard, tensor ops", bitmask("torch", mode="hard"), None, "shader", 1.0,
@@ -205,6 +207,9 @@ def _cases() -> dict[str, Case]:
         "exact_torch": Case("`BitmaskAO` exact + back-face + edge-aware, tensor ops", exact("torch"), None, "shader",
                             1.0, kernel=False),
         "gtao_torch": Case("`GTAO`, tensor ops", horizon(torch_ao.GTAO, "torch"), None, "shader", 1.0, kernel=False),
+        "gtao_projected_torch": Case("`GTAO`, slices drawn by the projected normal's density, tensor ops",
+                                     horizon(torch_ao.GTAO, "torch", slice_sampling="projected_normal"), None, "shader",
+                                     1.0, kernel=False),
         "soft_parameters": Case("soft `BitmaskAO` fwd+bwd, radius + thickness", bitmask(mode="soft"),
                                 "parameters", "bitmask", 3.0),
         "soft_gbuffer": Case("soft `BitmaskAO` fwd+bwd, depth + normals", bitmask(mode="soft"),
@@ -325,6 +330,9 @@ def _cases() -> dict[str, Case]:
         "gtao_edge_gbuffer": Case("`GTAO` edge-aware fetch fwd+bwd, depth + normals",
                                   horizon(torch_ao.GTAO, fetch="edge_aware"), "gbuffer", "gtao_edge", 3.0),
         "hbao_gbuffer": Case("`HBAO` fwd+bwd, depth + normals", horizon(torch_ao.HBAO), "gbuffer", "hbao", 3.0),
+        "gtao_projected_gbuffer": Case("`GTAO`, slices drawn by the projected normal's density, fwd+bwd, depth + "
+                                       "normals", horizon(torch_ao.GTAO, slice_sampling="projected_normal"), "gbuffer",
+                                       "gtao_projected", 3.0),
         "ue4_ssao": Case("`UE4SSAO` (uniform directions)", ue4_ssao, None, "shader", 1.0),
         "ue4_ssao_gbuffer": Case("`UE4SSAO` fwd+bwd, depth + normals", ue4_ssao, "gbuffer", "ue4_ssao", 3.0),
         "pssao": Case("`PSSAO`", pssao, None, "shader", 1.0),

@@ -33,6 +33,11 @@ GTAO_SETTINGS = [
     dict(slices=4, steps=5, fetch="edge_aware", bent_normals=True),
     dict(variant="hdrp", slices=3, steps=4, fetch="edge_aware", border="clamp"),
     dict(variant="ue4", slices=2, steps=4, fetch="edge_aware"),
+    # slices drawn by the projected normal's density, each weighted by its azimuth's estimator weight
+    dict(slices=4, steps=4, slice_sampling="projected_normal", bent_normals=True),
+    dict(variant="hdrp", azimuth="view", slices=3, steps=4, slice_sampling="projected_normal", fetch="nearest",
+         border="clamp"),
+    dict(variant="ue4", azimuth="view", slices=3, steps=4, slice_sampling="projected_normal", noise="hilbert_r2"),
 ]
 HBAO_SETTINGS = [
     dict(slices=4, steps=4),
@@ -128,6 +133,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
         for variant in ("exact", "hdrp", "ue4"):
             assert gtao_covers(GTAO(variant=variant, bent_normals=True, multibounce=True), gb) is None
         assert hbao_covers(HBAO(falloff="quadratic", elevation="view"), gb) is None
+        assert gtao_covers(GTAO(slice_sampling="projected_normal"), gb) is None
         assert "float64" in gtao_covers(GTAO(), gb.to(dtype=torch.float64))
         assert "float64" in hbao_covers(HBAO(), gb.to(dtype=torch.float64))
         module = GTAO()
@@ -186,8 +192,9 @@ def test_torch_backend_never_calls_the_kernels(monkeypatch):
 
 def test_kernel_backend_refuses_a_call_it_does_not_cover():
     gb = example_gbuffer(8, 8)
-    with pytest.raises(ValueError, match="backend.*slice_sampling='projected_normal'"):
-        GTAO(slice_sampling="projected_normal", backend="kernel")(gb)
+    positions = GBuffer(depth=gb.depth, camera=gb.camera, position=gb.positions())
+    with pytest.raises(ValueError, match="backend.*position buffer"):  # (a bilinear fetch interpolates depth)
+        GTAO(backend="kernel")(positions)
     with torch.no_grad(), pytest.raises(ValueError, match="backend.*float64"):
         HBAO(backend="kernel")(gb.to(dtype=torch.float64))
 

@@ -73,6 +73,16 @@ CASES = {
     # which keeps every other case's alternation of given and reconstructed normals)
     "wide-record": (GTAO, dict(slices=3, steps=12, radius=1.2), ()),
     "wide-steps": (HBAO, dict(slices=2, steps=40), ()),  # (a slice's bits beyond one word: set in the record directly)
+    # slices drawn by the projected normal's density: the azimuth and the slice's weight differentiated too (named
+    # to sort last as well)
+    "with-projected-normal-exact": (GTAO, dict(slices=4, steps=4, slice_sampling="projected_normal",
+                                               falloff_range=0.4, bent_normals=True), ()),
+    "with-projected-normal-hdrp": (GTAO, dict(variant="hdrp", azimuth="view", slices=3, steps=5, fetch="edge_aware",
+                                              slice_sampling="projected_normal"), ()),
+    "with-projected-normal-ue4": (GTAO, dict(variant="ue4", azimuth="view", slices=3, steps=4, stagger=True,
+                                             slice_sampling="projected_normal"), ()),
+    "with-projected-normal-most": (GTAO, dict(variant="hdrp", azimuth="view", slices=2, steps=MAX_CUDA_STEPS,
+                                              bent_normals=True, slice_sampling="projected_normal"), ()),
 }
 #: the kernel sums function of each module (patched for the lanes) and its covers
 KERNEL_SUMS = {GTAO: ("gtao", "gtao_sums"), HBAO: ("gtao", "hbao_sums"), UE4SSAO: ("ssao", "ue4_ssao_sums"),
@@ -218,7 +228,7 @@ def _requiring(gb: GBuffer) -> GBuffer:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["exact-falloff-bent", "exact-nearest-clamp", "exact-hilbert-stagger", "exact-edge-aware",
-                                  "hdrp", "ue4", "hbao-edge-aware-clamp",
+                                  "with-projected-normal-exact", "hdrp", "ue4", "hbao-edge-aware-clamp",
                                   "hbao", "hbao-max-quadratic", "hbao-hilbert-stagger", "ue4ssao-bilinear-soft",
                                   "pssao-bilinear"])
 def test_kernel_gradient_matches_finite_differences(built, case):

@@ -40,7 +40,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
               thickness: float | torch.Tensor = 1.0, step_power: float = 1.0, min_step_px: float = 1.0,
               max_radius_px: float | None = None, jitter: bool = True, seed: int = 0, noise: str = "ign",
               stagger: bool = False, fetch: str = "bilinear", border: str = "drop", azimuth: str = "view",
-              projected_normal_weight: bool = True,
+              slice_sampling: str = "uniform", projected_normal_weight: bool = True,
               bent_normals: bool = False, lanes: str = "simd") -> torch.Tensor:
     """Per-pixel sums over slices of GTAO's walk ``(B,C,H,W)`` (0 on background).
 
@@ -52,7 +52,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
             radius: world units within which samples count.
         falloff: exact: ``falloff_range * radius`` clamped to 1e-12 (world units), 0 for a hard cut;
             thickness: ue4's thickness heuristic. step_power, min_step_px (pixels), max_radius_px
-            (pixels, ``None``: none), jitter, seed, noise, stagger, fetch, border, azimuth, projected_normal_weight: as
+            (pixels, ``None``: none), jitter, seed, noise, stagger, fetch, border, azimuth, slice_sampling (each slice's
+            sums weighted by its azimuth's estimator weight), projected_normal_weight: as
             :class:`~torch_ao.GTAO`. lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
             body); a CUDA G-buffer runs the CUDA kernel. With autograd recording through the G-buffer or
             the tensors ``radius``, ``falloff`` (exact) or ``thickness`` (ue4), the sums carry their
@@ -65,7 +66,7 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
     settings = walk_settings(slices=slices, steps=steps, radius=walk_radius, step_power=step_power,
                              min_step_px=min_step_px, max_radius_px=max_radius_px, jitter=jitter, seed=seed,
                              noise=noise, stagger=stagger, fetch=fetch, border=border, azimuth=azimuth,
-                             placement="power" if variant == "exact" else variant)
+                             slice_sampling=slice_sampling, placement="power" if variant == "exact" else variant)
     # the backward's settings (horizon.h's seed_setting) and their world-unit dimensions (Euler's identity)
     setting, dimension = {"exact": ((falloff,), (1,)), "ue4": ((thickness, UE4_EPSILON), (0, 2))}.get(variant, ((0.0,), (0,)))
     walk, options = run_walk, {}
@@ -135,7 +136,7 @@ def gtao_forward(module, gbuffer: GBuffer) -> dict[str, torch.Tensor]:
         radius=m.radius, falloff=falloff, thickness=m.thickness_heuristic,
         step_power=m.step_power, min_step_px=m.min_step_px, max_radius_px=m.max_radius_px, jitter=m.jitter,
         seed=m.seed, noise=m.noise, stagger=m.stagger, fetch=m.fetch, border=m.border, azimuth=m.azimuth,
-        projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
+        slice_sampling=m.slice_sampling, projected_normal_weight=m.projected_normal_weight, bent_normals=m.bent_normals)
     sums = sums.permute(0, 2, 3, 1).reshape(-1, sums.shape[1])
     flat = {"vis": sums[:, 0:1], "free": sums[:, 1:2]}
     if m.bent_normals:
@@ -159,7 +160,7 @@ _WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_powe
                                "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
                                "backend", "resolution")) | {"fetch": ("bilinear", "nearest", "edge_aware"),
                                                            "slice_sampling": ("uniform",)}
-_GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS} | dict.fromkeys((
+_GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS, "slice_sampling": ("uniform", "projected_normal")} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))
 _HBAO_OPTIONS = _WALK_OPTIONS | dict.fromkeys(("angle_bias", "falloff", "accumulate", "elevation"))

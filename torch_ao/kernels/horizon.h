@@ -38,6 +38,8 @@ struct GTAOAccumulator {
   float falloff;    // exact: falloff_range * radius clamped to 1e-12; <= 0: a hard cut
   float thickness;  // ue4: the thickness heuristic
   bool projected_normal_weight, bent;
+  // its sums weighed by Slice::weight: its walk may draw the slices by the projected normal's density (walked_slice)
+  static constexpr bool kWeighsSlices = true;
 
   template <class F> struct State { F best[2]; };  // [0]: side +1, [1]: side -1
   template <class F> struct Sums { F vis = F(0.0f), free = F(0.0f), bent[3] = {F(0.0f), F(0.0f), F(0.0f)}; };
@@ -123,8 +125,9 @@ struct GTAOAccumulator {
       integral = select(degenerate, one, integral);
       free_integral = select(degenerate, one, free_integral);
     }
-    sums.vis = sums.vis + integral;
-    sums.free = sums.free + free_integral;
+    // (a slice drawn by a density counts by its estimator weight, as the tensor walk's march weighs every output)
+    sums.vis = sums.vis + sl.weight * integral;
+    sums.free = sums.free + sl.weight * free_integral;
     if (bent) {  // bent_vector(h1, h2, n), times |n_p|, in the slice's (V, T) frame
       const F h[2] = {h2, h1}, cn = cos(n), sn = sin(n), three = F(3.0f);
       F fc[2], fs[2];
@@ -136,7 +139,8 @@ struct GTAOAccumulator {
       }
       const F along_v = (fc[0] + fc[1]) + (F(2.0f) * cn) / three;
       const F along_t = (fs[0] + fs[1]) + (F(4.0f) * sn) / three;
-      for (int k = 0; k < 3; ++k) sums.bent[k] = sums.bent[k] + length * (along_v * px.V[k] + along_t * sl.T[k]);
+      const F scale = sl.weight * length;
+      for (int k = 0; k < 3; ++k) sums.bent[k] = sums.bent[k] + scale * (along_v * px.V[k] + along_t * sl.T[k]);
     }
   }
 

@@ -50,14 +50,16 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
                   step_power: float = 1.0, min_step_px: float = 1.0, max_radius_px: float | None = None,
                   placement: str = "power", full_circle: bool = False, azimuth: str = "view",
                   sphere_extent: bool = False, noise: str = "ign", stagger: bool = False,
-                  table: list[float] | None = None) -> tuple[list[int], list[float]]:
+                  slice_sampling: str = "uniform", table: list[float] | None = None) -> tuple[list[int], list[float]]:
     """The walk's part of the packed settings ``(ints, floats)`` (packed.h's ``unpack_walk``).
 
     slices, steps: counts walked; radius: world units the walk covers; fetch ``"bilinear"``/``"nearest"``/
     ``"edge_aware"``, border ``"drop"``/``"clamp"``, step_power, min_step_px and max_radius_px (pixels;
     ``None``: none), placement (:data:`PLACEMENTS`), full_circle (HBAO's directions; one side per slice),
     azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
-    noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice), table: the
+    noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice), slice_sampling
+    (``"uniform"``, or ``"projected_normal"``: the slices drawn by the projected normal's density, around the view
+    vector over the half circle; only GTAO's accumulator takes them: walk.h's walked_slice), table: the
     ``"wedge"`` placement's per slice (screen angle in radians, length) of a sample set (``None``: slices evenly
     over the half circle, length 1), the ``"pixels"`` placement's per slice and step ``(du, dv)`` in pixels, the
     ``"hemisphere"`` placement's per step its kernel point ``(x, y, z)`` (unit hemisphere, ``z`` along the normal;
@@ -71,11 +73,18 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
     if placement == "hemisphere" and (table is None or len(table) != 3 * steps or slices != 1 or not full_circle):
         raise ValueError(f"table: the 'hemisphere' placement needs (x, y, z) per step ({3 * steps} floats) over one "
                          "slice on the full circle")
+    if slice_sampling not in ("uniform", "projected_normal"):
+        raise ValueError(f"slice_sampling: expected 'uniform' or 'projected_normal', got {slice_sampling!r}")
+    if slice_sampling == "projected_normal" and (azimuth != "view" or full_circle or
+                                                 placement not in ("power", "hdrp", "ue4")):
+        raise ValueError("slice_sampling: 'projected_normal' draws slice azimuths around the view vector over a half "
+                         f"circle (got azimuth={azimuth!r}, full_circle={full_circle}, placement={placement!r})")
     if table is not None and placement not in ("wedge", "pixels", "hemisphere"):
         raise ValueError(f"table: only the 'wedge', 'pixels' and 'hemisphere' placements read one, not {placement!r}")
     ints = [int(slices), int(steps), int(seed), PLACEMENTS.index(placement), bool(jitter), fetch != "nearest",
             border == "drop", bool(full_circle), azimuth == "screen", fetch == "edge_aware", bool(sphere_extent),
-            NOISES.index(noise), bool(stagger), 0, False]  # (the table's start and unprojected: packed_inputs')
+            NOISES.index(noise), bool(stagger), 0, False,  # (the table's start and unprojected: packed_inputs')
+            slice_sampling == "projected_normal"]
     floats = [radius if isinstance(radius, torch.Tensor) else float(radius), float(step_power), float(min_step_px),
               float(max_radius_px or 0.0)]
     floats += [float(v) for v in table or ()]
@@ -134,7 +143,7 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
     (float32)."""
     device = gbuffer.depth.device
     inputs = walk_inputs(gbuffer, normals)
-    settings = ([*settings[0][:14], gbuffer.position is None], settings[1])  # (unprojected: no position buffer)
+    settings = ([*settings[0][:14], gbuffer.position is None, *settings[0][15:]], settings[1])  # (unprojected: no position buffer)
     none = torch.empty(0, device=device)
     cells = none
     if settings[0][9]:  # edge_aware (the flags have no gradient: kept with the G-buffer between calls)

@@ -18,7 +18,7 @@ namespace tao {
 // sphere_extent, noise, stagger, the walk's table's start in the floats (0: none), unprojected, then the
 // accumulator's from kAccInts; floats: radius, step_power, min_step_px, max_radius_px, then from kAccFloats the accumulator's, then
 // the walk's table (WalkSettings::table)
-constexpr int kAccInts = 15, kAccFloats = 4;
+constexpr int kAccInts = 16, kAccFloats = 4;
 
 // The step placement of the walk's packed ints (a call can tell its accumulator by it before unpacking the rest)
 TAO_FN Steps packed_placement(const int64_t* i) { return Steps(i[3]); }
@@ -31,6 +31,7 @@ TAO_FN WalkSettings unpack_walk(const int64_t* i, const float* f) {
   c.stagger = i[12] != 0;
   c.table = i[13] > 0 ? f + i[13] : nullptr;
   c.unprojected = i[14] != 0;
+  c.projected_normal = i[15] != 0;
   c.radius = f[0], c.step_power = f[1], c.min_step_px = f[2], c.max_radius_px = f[3];
   return c;
 }

@@ -133,6 +133,9 @@ struct WalkSettings {
   float max_radius_px;  // <= 0: none
   bool jitter, bilinear, drop, full_circle, screen_azimuth;
   bool stagger;  // the step offset shifted per half-slice (SlicePattern.step_noise)
+  // the slices drawn by the projected normal's density (SlicePattern's slice_sampling="projected_normal": around V,
+  // over the half circle), each weighted by Slice::weight
+  bool projected_normal;
   int64_t seed;
   Steps placement;
   Noise noise;
@@ -258,6 +261,50 @@ template <class F> struct Pixels {
   }
 };
 
+// patterns.projected_normal_azimuths: the view azimuth psi in [0, pi) at the quantile u of the density p proportional
+// to GTAO's unoccluded slice integral |n_p| (cos g + g sin g) = n.V + atan2(n.T, n.V) n.T (tabulated in
+// kDensityBins equal bins, each at least 1e-4), and psi's estimator weight 1 / (pi p(psi)) into weight
+constexpr int kDensityBins = 32;  // patterns.PROJECTED_NORMAL_BINS
+// the bins' centres' cos and sin, (k + 1/2) pi / kDensityBins
+TAO_CONST float kDensityCos[kDensityBins] = {0.998795456f, 0.98917651f, 0.970031253f, 0.941544065f, 0.903989293f, 0.85772861f, 0.803207531f, 0.740951125f, 0.671558955f, 0.595699304f, 0.514102744f, 0.427555093f, 0.336889853f, 0.24298018f, 0.146730474f, 0.0490676743f, -0.0490676743f, -0.146730474f, -0.24298018f, -0.336889853f, -0.427555093f, -0.514102744f, -0.595699304f, -0.671558955f, -0.740951125f, -0.803207531f, -0.85772861f, -0.903989293f, -0.941544065f, -0.970031253f, -0.98917651f, -0.998795456f};
+TAO_CONST float kDensitySin[kDensityBins] = {0.0490676743f, 0.146730474f, 0.24298018f, 0.336889853f, 0.427555093f, 0.514102744f, 0.595699304f, 0.671558955f, 0.740951125f, 0.803207531f, 0.85772861f, 0.903989293f, 0.941544065f, 0.970031253f, 0.98917651f, 0.998795456f, 0.998795456f, 0.98917651f, 0.970031253f, 0.941544065f, 0.903989293f, 0.85772861f, 0.803207531f, 0.740951125f, 0.671558955f, 0.595699304f, 0.514102744f, 0.427555093f, 0.336889853f, 0.24298018f, 0.146730474f, 0.0490676743f};
+template <class F> TAO_FN F density_bin(const F& nv, const F& n1, const F& n2, int k) {
+  const F along = n1 * F(kDensityCos[k]) + n2 * F(kDensitySin[k]);  // n.T at the bin's centre
+  return clamp_min(nv + atan2(along, nv) * along, F(1e-4f));
+}
+// The azimuth and weight of the normal's components n.V, n.e1, n.e2 (projected_normal_azimuth's; walk_grad.h's
+// reverse lanes record it as two nodes of three parents). Two passes over the bins (the quantile needs their sum
+// first): the CPU's keeps them from the first; a CUDA thread computes them again (32 kept spill its registers)
+#ifdef __CUDACC_RTC__
+constexpr bool kKeepDensityBins = false;
+#else
+constexpr bool kKeepDensityBins = true;
+#endif
+template <class F> TAO_FN F density_azimuth(const F& nv, const F& n1, const F& n2, const F& u, F& weight) {
+  F kept[kKeepDensityBins ? kDensityBins : 1], total(0.0f);
+  for (int k = 0; k < kDensityBins; ++k) {
+    const F w = density_bin(nv, n1, n2, k);
+    if (kKeepDensityBins) kept[k] = w;
+    total = total + w;
+  }
+  // the first bin whose running sum exceeds the target (searchsorted, right), else the last
+  const F target = u * total;
+  F sum(0.0f), index(0.0f), chosen(1.0f), before(0.0f);
+  typename LaneTraits<F>::M found = F(0.0f) > F(1.0f);
+  for (int k = 0; k < kDensityBins; ++k) {
+    const F w = kKeepDensityBins ? kept[k] : density_bin(nv, n1, n2, k), below = sum;
+    sum = sum + w;
+    const auto take = k + 1 < kDensityBins ? land(sum > target, lnot(found)) : lnot(found);
+    index = select(take, F(float(k)), index), chosen = select(take, w, chosen), before = select(take, below, before);
+    found = lor(found, take);
+  }
+  weight = total / (F(float(kDensityBins)) * chosen);
+  return (index + clamp((target - before) / chosen, F(0.0f), F(1.0f))) * F(kPi / float(kDensityBins));
+}
+template <class F> TAO_FN F projected_normal_azimuth(const Pixels<F>& px, const F& u, F& weight) {
+  return density_azimuth(dot3(px.N, px.V), dot3(px.N, px.e1), dot3(px.N, px.e2), u, weight);
+}
+
 // slice_geometry: the slice tangent T, the projected normal's length, its angle gamma
 // from V (with cos and sin), and the walk's screen direction and extent (SlicePattern.radius_px, span)
 // (with the GLSL placement only the screen direction and T: the shader places its steps from the
@@ -265,13 +312,16 @@ template <class F> struct Pixels {
 // cosine 1)
 template <class F> struct Slice {
   F T[3], length, gamma, cos_gamma, sin_gamma, unit_u, unit_v, radius_px, span;
+  F weight;  // the slice's estimator weight: 1, or with projected_normal 1 / (pi p) of its azimuth's density
   F screen_length;  // pixels per world unit along T (|du, dv|: unit_u, unit_v are du, dv over it)
   F dir_u, dir_v;  // the slice's screen angle's cos and sin
   int64_t index;
 
-  TAO_FN explicit Slice(int64_t s) : index(s) {}  // no geometry (walked_slice: the hemisphere's kernel points)
-  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s, bool normal = true)
-      : index(s) {
+  TAO_FN explicit Slice(int64_t s) : weight(1.0f), index(s) {}  // no geometry (walked_slice: the hemisphere's kernel points)
+  // (azimuth: the view azimuth where the slice's is drawn, walked_slice's; its weight is set by the caller)
+  TAO_FN Slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s, bool normal = true,
+               const F* azimuth = nullptr)
+      : weight(1.0f), index(s) {
     F angle;
     if (cfg.placement == Steps::glsl) {  // GLSLPattern: 2 pi / (sliceCount - 1) (s + jitter) + pi, sliceCount = slices - 1
       angle = F(2.0f * kPi / float(cfg.slices - 2)) * (F(float(s)) + px.xi) + F(kPi);
@@ -280,6 +330,8 @@ template <class F> struct Slice {
       const float base = cfg.table ? cfg.table[2 * s] : float(double(s) * 3.14159265358979323846 / double(cfg.slices));
       for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = 2.0f * kPi * px.rotation[l] + base;
       angle = from_lanes(lane, F(0.0f));
+    } else if (azimuth) {
+      angle = *azimuth;
     } else {  // SlicePattern.slice_tangent: angle (s + a) * span / slices, a the pixel's rotation noise
       float lane[LaneTraits<F>::L];
       const float step = (cfg.full_circle ? 2.0f : 1.0f) * kPi / float(cfg.slices);
@@ -349,7 +401,7 @@ template <class F> struct Slice {
   template <class G, class To>
   TAO_FN Slice(const Slice<G>& o, const To& to)
       : length(to(o.length)), gamma(to(o.gamma)), cos_gamma(to(o.cos_gamma)), sin_gamma(to(o.sin_gamma)),
-        unit_u(to(o.unit_u)), unit_v(to(o.unit_v)), radius_px(to(o.radius_px)), span(to(o.span)),
+        unit_u(to(o.unit_u)), unit_v(to(o.unit_v)), radius_px(to(o.radius_px)), span(to(o.span)), weight(to(o.weight)),
         screen_length(to(o.screen_length)), dir_u(to(o.dir_u)),
         dir_v(to(o.dir_v)), index(o.index) {
     for (int c = 0; c < 3; ++c) T[c] = to(o.T[c]);
@@ -761,6 +813,15 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
 // Whether an accumulator reads the slice's projected normal (its length, its angle gamma): all but those whose
 // kScreenOnly says they read the slice's screen direction and extent alone (UE4 SSAO's wedges, PSSAO), whose
 // walk leaves the normal's arithmetic out (and their backward's tape its nodes)
+// kWeighsSlices says an accumulator weighs each slice's sums by Slice::weight (horizon.h's GTAO), so that its walk may
+// draw the slices' azimuths by the projected normal's density (WalkSettings::projected_normal)
+template <class Acc, class = void> struct WeighsSlices {
+  static constexpr bool value = false;
+};
+template <class Acc> struct WeighsSlices<Acc, decltype(void(Acc::kWeighsSlices))> {
+  static constexpr bool value = Acc::kWeighsSlices;
+};
+
 template <class Acc, class = void> struct ReadsSliceNormal {
   static constexpr bool value = true;
 };
@@ -769,12 +830,25 @@ template <class Acc> struct ReadsSliceNormal<Acc, decltype(void(Acc::kScreenOnly
 };
 
 // Slice s of the walk as Acc takes it: its geometry (without the projected normal where Acc reads none), or none
-// for an accumulator of kernel points (walk_points)
+// for an accumulator of kernel points (walk_points); where Acc weighs its slices and the walk draws them by the
+// projected normal's density, at the azimuth of quantile (s + a) / slices (SlicePattern.slice_direction) with its
+// weight
 template <class Acc, class F>
 TAO_FN Slice<F> walked_slice(const WalkSettings& cfg, const Image& img, const Pixels<F>& px, int64_t s) {
   if constexpr (KernelPoints<Acc>::value) {
     return Slice<F>(s);
   } else {
+    if constexpr (WeighsSlices<Acc>::value) {
+      if (cfg.projected_normal) {
+        float lane[LaneTraits<F>::L];
+        for (int l = 0; l < LaneTraits<F>::L; ++l) lane[l] = (px.rotation[l] + float(s)) / float(cfg.slices);
+        F weight;
+        const F azimuth = projected_normal_azimuth(px, from_lanes(lane, F(0.0f)), weight);
+        Slice<F> sl(cfg, img, px, s, ReadsSliceNormal<Acc>::value, &azimuth);
+        sl.weight = weight;
+        return sl;
+      }
+    }
     return Slice<F>(cfg, img, px, s, ReadsSliceNormal<Acc>::value);
   }
 }

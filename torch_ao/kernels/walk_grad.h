@@ -37,6 +37,19 @@
 
 namespace tao {
 
+// walk.h's density_azimuth in reverse lanes: evaluated in dual lanes of its three inputs (the normal's components;
+// u is a constant) and recorded as the azimuth's and the weight's nodes alone, instead of its 64 bins' few hundred
+template <class F>
+TAO_FN Rev<F> density_azimuth(const Rev<F>& nv, const Rev<F>& n1, const Rev<F>& n2, const Rev<F>& u, Rev<F>& weight) {
+  using D = Dual<F, 3>;
+  D in[3] = {D(nv.v), D(n1.v), D(n2.v)};
+  for (int k = 0; k < 3; ++k) in[k].d[k] = F(1.0f);
+  D w;
+  const D psi = density_azimuth(in[0], in[1], in[2], D(u.v), w);
+  weight = Rev<F>::link(w.v, nv, w.d[0], n1, w.d[1], n2, w.d[2]);
+  return Rev<F>::link(psi.v, nv, psi.d[0], n1, psi.d[1], n2, psi.d[2]);
+}
+
 // tangents of the pixel's own P (3), N (3), depth (1) (seed_pixel) and of the accumulator's setting
 // (seed_setting: the horizon accumulators')
 constexpr int kPixel = 7;
@@ -403,10 +416,14 @@ template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
 
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
 // geometry, begin and end, at most 2 steps takes). Measured at 3 x 1..16 (every variant, fetch and azimuth; the
-// count follows the code, not the values): the pixel 46, a slice 136-211 besides its takes, a take 34-46; with
-// room to spare (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)
-constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60;
-TAO_FN int32_t tape_capacity(int64_t steps) { return kTapePixel + kTapeSlice + int32_t(2 * steps) * kTapeTake; }
+// count follows the code, not the values): the pixel 46, a slice 136-211 besides its takes, a take 34-46; a slice
+// whose azimuth the projected normal's density draws about 25 more (counted: the normal's three components, the
+// azimuth's and weight's nodes of density_azimuth, the slice's tangent and its weight's products); with room to spare
+// (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)
+constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60, kTapeDensity = 40;
+TAO_FN int32_t tape_capacity(int64_t steps) {
+  return kTapePixel + kTapeSlice + kTapeDensity + int32_t(2 * steps) * kTapeTake;
+}
 
 // The backward of the lanes' pixels: upstream[c] the gradient of output channel c (H, W), record the forward's
 // (image b's), t where the gradients go (added to it); of every slice, or of slice `only` alone (>= 0: a gathered
@@ -1168,7 +1185,7 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   t.settings = acc.settings();
   float take_steps[2 * kGradMaxSteps];
   TapedTake<float> taken[2 * kGradMaxSteps];
-  constexpr int32_t capacity = kTapePixel + kTapeSlice + 2 * kGradMaxSteps * kTapeTake;
+  constexpr int32_t capacity = kTapePixel + kTapeSlice + kTapeDensity + 2 * kGradMaxSteps * kTapeTake;
   float partials[Tape<float>::partials_size(capacity)], adjoints[Tape<float>::adjoints_size(capacity)];
   int32_t parents[Tape<float>::parents_size(capacity)];
   Tape<float> tape(partials, parents, adjoints, capacity);
