@@ -810,9 +810,6 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
   static constexpr bool value = Acc::kKernelPoints;
 };
 
-// Whether an accumulator reads the slice's projected normal (its length, its angle gamma): all but those whose
-// kScreenOnly says they read the slice's screen direction and extent alone (UE4 SSAO's wedges, PSSAO), whose
-// walk leaves the normal's arithmetic out (and their backward's tape its nodes)
 // kWeighsSlices says an accumulator weighs each slice's sums by Slice::weight (horizon.h's GTAO), so that its walk may
 // draw the slices' azimuths by the projected normal's density (WalkSettings::projected_normal)
 template <class Acc, class = void> struct WeighsSlices {
@@ -822,6 +819,9 @@ template <class Acc> struct WeighsSlices<Acc, decltype(void(Acc::kWeighsSlices))
   static constexpr bool value = Acc::kWeighsSlices;
 };
 
+// Whether an accumulator reads the slice's projected normal (its length, its angle gamma): all but those whose
+// kScreenOnly says they read the slice's screen direction and extent alone (UE4 SSAO's wedges, PSSAO), whose
+// walk leaves the normal's arithmetic out (and their backward's tape its nodes)
 template <class Acc, class = void> struct ReadsSliceNormal {
   static constexpr bool value = true;
 };
