@@ -281,6 +281,9 @@ def cases(gb):
     yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2, None
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
     yield "gtao", walk_settings(**common, noise="hilbert_r2", stagger=True), [0, True, True], [1.0, 0.3, 1.0], 5, None
+    # (slices drawn by the projected normal's density: a CUDA thread computes the bins again rather than keep them)
+    yield ("gtao", walk_settings(**common, slice_sampling="projected_normal", placement="hdrp"), [1, True, True],
+           [1.0, 0.0, 1.0], 5, None)
     yield ("hbao", walk_settings(**common, full_circle=True, noise="hilbert_r2", stagger=True), [False, True, False],
            [1.0, 0.1], 1, None)
     # (rounding, cosine, indirect, bent, the thickness' read, the variant: 0 default, 1 hdrp); the thickness' offset,
@@ -408,6 +411,7 @@ def _backward_cases():
     yield "gtao", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, False], [1.0, 0.3, 1.0], 2
     yield "gtao", walk_settings(**common, placement="hdrp"), [1, True, False], [1.0, 0.0, 1.0], 2
     yield "gtao", walk_settings(**dict(common, fetch="nearest"), placement="ue4"), [2, True, False], [1.0, 0.0, 0.6], 2
+    yield "gtao", walk_settings(**common, slice_sampling="projected_normal"), [0, True, True], [1.0, 0.3, 1.0], 5
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
     yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
            [True, True, False], [1.0, 0.1], 1)
