@@ -106,7 +106,7 @@ def cpu_build_options() -> tuple[str, list[str], list[str]]:
 def load_walk_grad_library() -> Path:
     """Build (once) and load the backwards' library (walk_grad_cpu.cpp) without registering its fake kernels."""
     # (its dual lanes' zero tangents: GCC turns their zeroing loops into memset calls, which dead-store elimination
-    # does not remove where the tangents are then written; as stores of lanes it does: 3-6 % of its backwards)
+    # does not remove where the tangents are then written; as stores of lanes it does: 3-8 % of its backwards)
     return load_cpu_library("torch_ao_walk_grad", (Path(__file__).with_name("walk_grad_cpu.cpp"),),
                             ["-fno-tree-loop-distribute-patterns"])
 

@@ -19,6 +19,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from ..ops import UE4_EPSILON
+from ..walk import SLICE_SAMPLINGS
 from .coverage import call_uncovered
 from .launch import run_walk, walk_settings
 from .walk_grad import MAX_CUDA_STEPS, differentiable_walk, gbuffer_requires_grad, wants_gradient
@@ -160,7 +161,7 @@ _WALK_OPTIONS = dict.fromkeys(("preset", "slices", "steps", "radius", "step_powe
                                "border", "azimuth", "normals", "chunk_size", "recompute", "trainable",
                                "backend", "resolution")) | {"fetch": ("bilinear", "nearest", "edge_aware"),
                                                            "slice_sampling": ("uniform",)}
-_GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS, "slice_sampling": ("uniform", "projected_normal")} | dict.fromkeys((
+_GTAO_OPTIONS = _WALK_OPTIONS | {"variant": VARIANTS, "slice_sampling": SLICE_SAMPLINGS} | dict.fromkeys((
     "falloff_range", "thickness_heuristic", "final_power", "multibounce", "albedo", "bent_normals", "normalize",
     "projected_normal_weight", "max_radius_px", "search_scale"))
 _HBAO_OPTIONS = _WALK_OPTIONS | dict.fromkeys(("angle_bias", "falloff", "accumulate", "elevation"))

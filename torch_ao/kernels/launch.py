@@ -18,7 +18,8 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import KernelUnavailable, cpu_kernels
-from ..walk import NOISES as SLICE_NOISES
+from ..checks import check_choice
+from ..walk import NOISES as SLICE_NOISES, SLICE_SAMPLINGS
 from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
@@ -73,8 +74,7 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
     if placement == "hemisphere" and (table is None or len(table) != 3 * steps or slices != 1 or not full_circle):
         raise ValueError(f"table: the 'hemisphere' placement needs (x, y, z) per step ({3 * steps} floats) over one "
                          "slice on the full circle")
-    if slice_sampling not in ("uniform", "projected_normal"):
-        raise ValueError(f"slice_sampling: expected 'uniform' or 'projected_normal', got {slice_sampling!r}")
+    check_choice("slice_sampling", slice_sampling, SLICE_SAMPLINGS)
     if slice_sampling == "projected_normal" and (azimuth != "view" or full_circle or
                                                  placement not in ("power", "hdrp", "ue4")):
         raise ValueError("slice_sampling: 'projected_normal' draws slice azimuths around the view vector over a half "
@@ -143,7 +143,9 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
     (float32)."""
     device = gbuffer.depth.device
     inputs = walk_inputs(gbuffer, normals)
-    settings = ([*settings[0][:14], gbuffer.position is None, *settings[0][15:]], settings[1])  # (unprojected: no position buffer)
+    ints = list(settings[0])
+    ints[14] = gbuffer.position is None  # (unprojected: no position buffer)
+    settings = (ints, settings[1])
     none = torch.empty(0, device=device)
     cells = none
     if settings[0][9]:  # edge_aware (the flags have no gradient: kept with the G-buffer between calls)
