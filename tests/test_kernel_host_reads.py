@@ -95,3 +95,48 @@ def test_kernel_calls_replay_in_a_cuda_graph(name):
     graph.replay()
     torch.cuda.synchronize()
     assert torch.equal(captured, eager)
+
+
+def test_a_gbuffer_reads_its_checks_back_once():
+    """Every value check of a G-buffer with each optional buffer (a 0/1 float mask converted, object ids, a back-face
+    layer, a position buffer) is read back in one read, and its camera's conversion and expansion read nothing."""
+    g = frame_gbuffer("floor_wall", 24, 32)
+    B = 2
+    depth = g.depth.expand(B, -1, -1, -1)
+    buffers = dict(normals=g.normals.expand(B, -1, -1, -1), light=g.light.expand(B, -1, -1, -1),
+                   mask=torch.ones_like(depth), object_id=torch.zeros_like(depth, dtype=torch.int32),
+                   backface_depth=depth + 0.3, position=g.positions().expand(B, -1, -1, -1))
+    camera = g.camera.to(dtype=torch.float64)  # (batch 1: the G-buffer converts and expands it)
+    with HostReads() as mode:
+        built = torch_ao.GBuffer(depth=depth.double(), camera=camera, **buffers)
+    assert len(mode.reads) == 1
+    assert built.camera.batch_size == B and built.camera.intrinsics.dtype == torch.float64
+    assert built.mask.dtype == torch.bool and torch.equal(built.valid, g.valid.expand(B, -1, -1, -1))
+    with HostReads() as mode:
+        g.camera.to(dtype=torch.float64).expand(B).to(dtype=torch.float32)
+    assert mode.reads == []
+
+
+@pytest.mark.parametrize("fault, message", [
+    (dict(normals=torch.nan), "normals: non-finite values on valid"),
+    (dict(light=torch.inf), "light: non-finite values on valid"),
+    (dict(normals=0.0), "normals: zero-length normals"),
+    (dict(mask=0.5), "mask: expected bool or 0/1 values"),
+    (dict(object_id=-1), "object_id: ids must be >= 0"),
+    (dict(backface_depth=-1.0), r"backface_depth: expected values >= depth on valid pixels, 1 are not"),
+    (dict(depth=-1.0), "depth: negative values found"),
+])
+def test_a_gbuffer_refuses_the_checks_it_reads_at_once(fault, message):
+    """Each check read back at the end still raises its own error, naming its buffer (one texel wrong)."""
+    g = frame_gbuffer("floor_wall", 24, 32)
+    buffers = dict(depth=g.depth.clone(), normals=g.normals.clone(), light=g.light.clone(),
+                   mask=torch.ones_like(g.depth), object_id=torch.zeros_like(g.depth, dtype=torch.int64),
+                   backface_depth=g.depth + 0.3)
+    (name, value), = fault.items()
+    texel = (0, slice(None), 20, 16)  # (a floor pixel: valid)
+    if name == "backface_depth":
+        buffers[name][texel] = buffers["depth"][texel] + value
+    else:
+        buffers[name][texel] = value
+    with pytest.raises(ValueError, match=message):
+        torch_ao.GBuffer(camera=g.camera, **buffers)

@@ -35,7 +35,9 @@ MAX_PRINCIPAL_OFFSET = 4.0
 _CV_TO_GL = (1.0, -1.0, -1.0)
 
 
-def _check_intrinsics(K: torch.Tensor) -> torch.Tensor:
+def _check_intrinsics(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """``K`` as ``(B,3,3)``, or an error naming the first entry out of range. The values are checked on K's device
+    and read back once (on a GPU, one wait); only a refused camera's message reads more."""
     if not isinstance(K, torch.Tensor):
         raise TypeError(f"intrinsics: expected a torch.Tensor of shape (B,3,3), got {type(K).__name__}")
     if K.dim() == 2:
@@ -44,29 +46,38 @@ def _check_intrinsics(K: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"intrinsics: expected shape (B,3,3) or (3,3), got {tuple(K.shape)}")
     if not K.is_floating_point():
         raise TypeError(f"intrinsics: expected a floating-point tensor, got {K.dtype}")
+    with torch.no_grad():
+        ok = torch.isfinite(K).all()
+        for _, bad, _ in _out_of_range(K, height, width):
+            ok = ok & ~bad.any()
+    if not bool(ok):
+        _refuse(K, height, width)
+    return K
+
+
+def _out_of_range(K: torch.Tensor, height: int, width: int):
+    """Per intrinsic, its error's message, ``(B,)`` bool where it lies outside what a real camera of this image size
+    has (see :data:`MIN_FOCAL_RATIO`, :data:`MAX_FOCAL_RATIO`, :data:`MAX_PRINCIPAL_OFFSET`), and its ``(B,)`` values."""
+    size = max(height, width)
+    lo, hi = MIN_FOCAL_RATIO * size, MAX_FOCAL_RATIO * size
+    for name, value in (("fx", K[:, 0, 0]), ("fy", K[:, 1, 1])):
+        yield (f"intrinsics: {name} must be in [{lo:g}, {hi:g}] pixels for a {width}x{height} image (a field of view "
+               f"across the larger side between 6e-8 and 179.88 degrees), got", ~((value >= lo) & (value <= hi)), value)
+    for name, value, extent in (("cx", K[:, 0, 2], width), ("cy", K[:, 1, 2], height)):
+        centre, reach = (extent - 1) / 2, MAX_PRINCIPAL_OFFSET * size
+        yield (f"intrinsics: {name} must be within {reach:g} pixels of the image centre {centre:g}, got",
+               ~((value - centre).abs() <= reach), value)
+
+
+def _refuse(K: torch.Tensor, height: int, width: int) -> None:
+    """Raise the error of the first check that ``K`` fails."""
     if not bool(torch.isfinite(K).all()):
         raise ValueError("intrinsics: every entry must be finite")
     if bool((K[:, 0, 0] <= 0).any()) or bool((K[:, 1, 1] <= 0).any()):
         raise ValueError("intrinsics: focal lengths K[:,0,0] and K[:,1,1] must be > 0")
-    return K
-
-
-def _check_ranges(K: torch.Tensor, height: int, width: int) -> None:
-    """Refuse focal lengths and principal points no real camera of this image size has (see
-    :data:`MIN_FOCAL_RATIO`, :data:`MAX_FOCAL_RATIO`, :data:`MAX_PRINCIPAL_OFFSET`)."""
-    size = max(height, width)
-    lo, hi = MIN_FOCAL_RATIO * size, MAX_FOCAL_RATIO * size
-    for name, value in (("fx", K[:, 0, 0]), ("fy", K[:, 1, 1])):
-        bad = (value < lo) | (value > hi)
+    for message, bad, value in _out_of_range(K, height, width):
         if bool(bad.any()):
-            raise ValueError(f"intrinsics: {name} must be in [{lo:g}, {hi:g}] pixels for a {width}x{height} image "
-                             f"(a field of view across the larger side between 6e-8 and 179.88 degrees), got {float(value[bad][0]):g}")
-    for name, value, extent in (("cx", K[:, 0, 2], width), ("cy", K[:, 1, 2], height)):
-        centre, reach = (extent - 1) / 2, MAX_PRINCIPAL_OFFSET * size
-        bad = (value - centre).abs() > reach
-        if bool(bad.any()):
-            raise ValueError(f"intrinsics: {name} must be within {reach:g} pixels of the image centre {centre:g}, "
-                             f"got {float(value[bad][0]):g}")
+            raise ValueError(f"{message} {float(value[bad][0]):g}")
 
 
 def _check_size(name: str, value) -> None:
@@ -98,8 +109,16 @@ class PinholeCamera:
     def __post_init__(self) -> None:
         for name in ("height", "width"):
             _check_size(name, getattr(self, name))
-        object.__setattr__(self, "intrinsics", _check_intrinsics(self.intrinsics))
-        _check_ranges(self.intrinsics, self.height, self.width)
+        object.__setattr__(self, "intrinsics", _check_intrinsics(self.intrinsics, self.height, self.width))
+
+    @classmethod
+    def _of_checked(cls, intrinsics: torch.Tensor, height: int, width: int) -> "PinholeCamera":
+        """A camera of intrinsics already checked for this image size (a checked camera's, moved, converted between
+        float32 and float64, or expanded), without checking them again."""
+        camera = object.__new__(cls)
+        for name, value in (("intrinsics", intrinsics), ("height", height), ("width", width)):
+            object.__setattr__(camera, name, value)
+        return camera
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -120,7 +139,7 @@ class PinholeCamera:
         _check_size("height", height)
         _check_size("width", width)
         fov = torch.as_tensor(fov_y_degrees, dtype=dtype, device=device).reshape(-1)
-        if not bool(torch.isfinite(fov).all()) or bool(((fov <= 0) | (fov >= 180)).any()):
+        if not bool((torch.isfinite(fov) & (fov > 0) & (fov < 180)).all()):
             raise ValueError(f"fov_y_degrees: expected values in (0, 180), got {fov.tolist()}")
         if fov.numel() == 1:
             fov = fov.expand(batch_size)
@@ -176,7 +195,10 @@ class PinholeCamera:
         return torch.rad2deg(2 * torch.atan(0.5 * self.height / self.fy))
 
     def to(self, device=None, dtype=None) -> "PinholeCamera":
-        return PinholeCamera(self.intrinsics.to(device=device, dtype=dtype), self.height, self.width)
+        K = self.intrinsics.to(device=device, dtype=dtype)
+        if K.dtype in (torch.float32, torch.float64):  # (every range holds in both: fx <= 1e9 x 16384 pixels)
+            return PinholeCamera._of_checked(K, self.height, self.width)
+        return PinholeCamera(K, self.height, self.width)
 
     def expand(self, batch_size: int) -> "PinholeCamera":
         """The same camera repeated to ``batch_size`` views (a no-op when sizes match)."""
@@ -184,7 +206,7 @@ class PinholeCamera:
             return self
         if self.batch_size != 1:
             raise ValueError(f"camera: batch of {self.batch_size} cannot serve a batch of {batch_size}")
-        return PinholeCamera(self.intrinsics.expand(batch_size, 3, 3), self.height, self.width)
+        return PinholeCamera._of_checked(self.intrinsics.expand(batch_size, 3, 3), self.height, self.width)
 
     # ------------------------------------------------------------------ projection matrices
     def opengl_projection(self, near: float = 0.01, far: float = 1000.0) -> torch.Tensor:

@@ -11,6 +11,7 @@ mask them out with :attr:`GBuffer.valid`.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -53,6 +54,22 @@ def _check_tensor(name: str, x, channels: int | None, like: torch.Tensor | None)
             raise ValueError(f"{name}: expected device {like.device} (that of depth), got {x.device}")
 
 
+class _ValueChecks:
+    """A G-buffer's checks of its values, gathered on its device and read back once (a CUDA G-buffer waits for its
+    GPU once, not once a check): each a bool tensor, true where the check fails, and the error it raises."""
+
+    def __init__(self) -> None:
+        self.failed: list[tuple[torch.Tensor, Callable[[], Exception]]] = []
+
+    def add(self, bad: torch.Tensor, error: Callable[[], Exception]) -> None:
+        self.failed.append((bad.any(), error))
+
+    def raise_first(self) -> None:
+        """Raise the error of the first check that failed, if any."""
+        if self.failed and bool(torch.stack([bad for bad, _ in self.failed]).any()):
+            raise next(error for bad, error in self.failed if bool(bad))()
+
+
 @dataclass
 class GBuffer:
     """Validated screen-space inputs of one batch of views.
@@ -93,11 +110,11 @@ class GBuffer:
     _call: dict | None = field(init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self) -> None:
+        checks = _ValueChecks()  # (read back once, at the end: on a GPU, one wait)
         if self.depth is None and self.position is not None:
             _check_tensor("position", self.position, 3, None)
             self.depth = -self.position[:, 2:3]
-            if bool((torch.isfinite(self.depth) & (self.depth < 0)).any()):
-                raise ValueError(_POSITION_IN_FRONT)
+            checks.add(torch.isfinite(self.depth) & (self.depth < 0), lambda: ValueError(_POSITION_IN_FRONT))
         _check_tensor("depth", self.depth, 1, None)
         if self.depth.dtype not in _FLOAT_TYPES:
             raise TypeError(f"depth: expected a floating-point tensor, got {self.depth.dtype}")
@@ -116,20 +133,15 @@ class GBuffer:
         if self.camera.intrinsics.device != self.depth.device:
             raise ValueError(f"camera: expected device {self.depth.device} (that of depth), got {self.camera.intrinsics.device}")
         self.camera = self.camera.to(dtype=dtype).expand(B)
-        with torch.no_grad():
-            finite_negative = torch.isfinite(self.depth) & (self.depth < 0)
-            if bool(finite_negative.any()):
-                raise ValueError(
-                    "depth: negative values found; depth is the positive distance along the view axis "
-                    "(use inf, 0 or nan for background)"
-                )
-            valid = geometry_depth(self.depth)
+        checks.add((self.depth < 0) & (self.depth > -torch.inf), lambda: ValueError(  # (finite and negative)
+            "depth: negative values found; depth is the positive distance along the view axis "
+            "(use inf, 0 or nan for background)"))
+        valid = geometry_depth(self.depth)
         if self.mask is not None:
             _check_tensor("mask", self.mask, 1, self.depth)
             if self.mask.dtype != torch.bool:
                 if self.mask.is_floating_point() or self.mask.dtype in (torch.uint8, torch.int32, torch.int64):
-                    if bool(((self.mask != 0) & (self.mask != 1)).any()):
-                        raise ValueError("mask: expected bool or 0/1 values")
+                    checks.add((self.mask != 0) & (self.mask != 1), lambda: ValueError("mask: expected bool or 0/1 values"))
                     self.mask = self.mask != 0
                 else:
                     raise TypeError(f"mask: expected a bool tensor, got {self.mask.dtype}")
@@ -143,32 +155,30 @@ class GBuffer:
             if x.dtype not in _FLOAT_TYPES:
                 raise TypeError(f"{name}: expected a floating-point tensor, got {x.dtype}")
             x = x.to(dtype)
-            with torch.no_grad():
-                if bool((~torch.isfinite(x) & valid).any()):
-                    raise ValueError(f"{name}: non-finite values on valid (non-background) pixels")
+            checks.add(~torch.isfinite(x) & valid,
+                       lambda name=name: ValueError(f"{name}: non-finite values on valid (non-background) pixels"))
             setattr(self, name, x)
         if self.normals is not None:
             with torch.no_grad():
-                if bool(((channel_norm(self.normals) < 1e-6) & valid).any()):
-                    raise ValueError("normals: zero-length normals on valid pixels")
-        if self.position is not None and bool((~(self.position[:, 2:3] < 0) & valid).any()):
-            raise ValueError(_POSITION_IN_FRONT)
+                short = (channel_norm(self.normals) < 1e-6) & valid
+            checks.add(short, lambda: ValueError("normals: zero-length normals on valid pixels"))
+        if self.position is not None:
+            checks.add(~(self.position[:, 2:3] < 0) & valid, lambda: ValueError(_POSITION_IN_FRONT))
         if self.object_id is not None:
             _check_tensor("object_id", self.object_id, 1, self.depth)
             if self.object_id.is_floating_point() or self.object_id.dtype == torch.bool:
                 raise TypeError(f"object_id: expected an integer tensor, got {self.object_id.dtype}")
-            if bool((self.object_id < 0).any()):
-                raise ValueError("object_id: ids must be >= 0")
+            checks.add(self.object_id < 0, lambda: ValueError("object_id: ids must be >= 0"))
             self.object_id = self.object_id.long()
         if self.backface_depth is not None:
             _check_tensor("backface_depth", self.backface_depth, 1, self.depth)
             if self.backface_depth.dtype not in _FLOAT_TYPES:
                 raise TypeError(f"backface_depth: expected a floating-point tensor, got {self.backface_depth.dtype}")
             self.backface_depth = self.backface_depth.to(dtype)
-            with torch.no_grad():
-                bad = valid & ~(self.backface_depth >= self.depth)  # NaN fails too
-            if bool(bad.any()):
-                raise ValueError(f"backface_depth: expected values >= depth on valid pixels, {int(bad.sum())} are not")
+            bad = valid & ~(self.backface_depth >= self.depth)  # NaN fails too
+            checks.add(bad, lambda: ValueError(
+                f"backface_depth: expected values >= depth on valid pixels, {int(bad.sum())} are not"))
+        checks.raise_first()
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> "GBuffer":
         """A copy on ``device`` (and with float buffers in ``dtype``)."""
