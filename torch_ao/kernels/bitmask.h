@@ -424,8 +424,6 @@ template <class G, class F> TAO_HOT G arc_measure_at(const G& x, const Slice<F>&
   return sign(theta) * (H - H0);
 }
 
-// a / b (lanes_dual.h's overload keeps the quotient's value that of the plain lanes)
-template <class F> TAO_FN F quotient(const F& a, const F& b) { return a / b; }
 
 // The "exact" variant's accumulator (methods/bitmask.py DefaultAccumulator with union="exact",
 // bitmask_common's end_slice): each sample's occluder segment from its front point to its back point
@@ -478,7 +476,7 @@ struct ExactAccumulator {
     const G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T);
     seg[0] = fv, seg[1] = ft;
     if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
-      const G k = quotient(t, clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f)));
+      const G k = t / clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f));
       seg[2] = fv + k * (fv - G(px.distance)), seg[3] = ft * (G(1.0f) + k);
     } else {
       seg[2] = fv - t, seg[3] = ft;
@@ -497,8 +495,8 @@ struct ExactAccumulator {
       const auto degenerate = a <= G(1e-30f) * clamp_min(fv * fv + ft * ft, G(1e-30f));  // a point occluder
       const auto hit = land(disc > G(0.0f), lnot(degenerate));
       const G safe_a = select(hit, a, G(1.0f)), root = sqrt(select(hit, disc, G(1.0f)));
-      const G u0 = select(hit, clamp(quotient(neg(b) - root, safe_a), G(0.0f), G(1.0f)), G(0.0f));
-      const G u1 = select(hit, clamp(quotient(neg(b) + root, safe_a), G(0.0f), G(1.0f)), G(1.0f));
+      const G u0 = select(hit, clamp((neg(b) - root) / safe_a, G(0.0f), G(1.0f)), G(0.0f));
+      const G u1 = select(hit, clamp((neg(b) + root) / safe_a, G(0.0f), G(1.0f)), G(1.0f));
       live = land(live, select(degenerate, c <= G(0.0f), land(hit, u1 > u0)));
       const G fv0 = fv, ft0 = ft;
       fv = fv0 + u0 * ev, ft = ft0 + u0 * et, bv = fv0 + u1 * ev, bt = ft0 + u1 * et;

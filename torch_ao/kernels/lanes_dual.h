@@ -3,6 +3,9 @@
 // F = Dual<Vec, N> (or Dual<float, N>) gives its outputs' derivatives with respect to whatever the caller
 // seeds (seed_pixel: the pixel's own position, normal and depth; seed_setting: an accumulator's setting).
 //
+// Every operation's value is the value lanes' own (a quotient divides, an fma is fused), so that a walk replayed
+// in duals samples the texels, and drops the samples, that its forward did.
+//
 // Derivatives at non-differentiable points follow torch's autograd of the tensor path: floor, rint and
 // comparisons have none; clamp passes the gradient where lo <= x <= hi; min / max pass the chosen
 // operand's (ties: the first). pow differentiates its base only (the walk's exponents are settings).
@@ -47,8 +50,8 @@ template <class F, int N> struct Dual {
     return r;
   }
   friend TAO_HOT Dual operator*(const Dual& a, const Dual& b) { return chain(a.v * b.v, b.v, a, a.v, b); }
-  friend TAO_HOT Dual operator/(const Dual& a, const Dual& b) {
-    const F inv = F(1.0f) / b.v, q = a.v * inv;
+  friend TAO_HOT Dual operator/(const Dual& a, const Dual& b) {  // (its value the value lanes' quotient)
+    const F inv = F(1.0f) / b.v, q = a.v / b.v;
     return chain(q, inv, a, neg(q * inv), b);
   }
   friend TAO_HOT M operator<(const Dual& a, const Dual& b) { return a.v < b.v; }
@@ -93,18 +96,15 @@ template <class F, int N> TAO_HOT Dual<F, N> neg(const Dual<F, N>& x) {
   return r;
 }
 template <class F, int N> TAO_HOT Dual<F, N> fma(const Dual<F, N>& a, const Dual<F, N>& b, const Dual<F, N>& c) {
-  return a * b + c;
+  Dual<F, N> r = Dual<F, N>::chain(fma(a.v, b.v, c.v), b.v, a, a.v, b);
+  for (int k = 0; k < N; ++k) r.d[k] = r.d[k] + c.d[k];
+  return r;
 }
 // a b + c for a constant b and c, its value fused as the value lanes' fma (a walk in duals keeps their values)
 template <class F, int N> TAO_HOT Dual<F, N> fma(const Dual<F, N>& a, const F& b, const F& c) {
   Dual<F, N> r(fma(a.v, b, c));
   for (int k = 0; k < N; ++k) r.d[k] = a.d[k] * b;
   return r;
-}
-// a / b with the value lanes' quotient as its value (operator/ multiplies by the reciprocal)
-template <class F, int N> TAO_HOT Dual<F, N> quotient(const Dual<F, N>& a, const Dual<F, N>& b) {
-  const F inv = F(1.0f) / b.v, q = a.v / b.v;
-  return Dual<F, N>::chain(q, inv, a, neg(q * inv), b);
 }
 template <class F, int N> TAO_HOT Dual<F, N> abs(const Dual<F, N>& x) { return select(x.v < F(0.0f), neg(x), x); }
 template <class F, int N> TAO_HOT Dual<F, N> sqrt(const Dual<F, N>& x) {

@@ -5,6 +5,9 @@
 // node for any L seeded on its outputs. A walk's gradient then costs a few times its own arithmetic, whatever the
 // number of inputs; forward mode (lanes_dual.h) costs one walk per tangent.
 //
+// Every operation's value is the value lanes' own (a quotient divides, an fma is fused), so that a replay on the
+// tape samples the texels, and drops the samples, that its forward did.
+//
 // Constants (id < 0) make no node, so what does not depend on a leaf costs nothing; nor does k x + c of a node x
 // for constant lanes k, c, or a select between x and a constant: such a value carries x's id and its scale k
 // (Rev::scale, by which its adjoint reaches x's; 0 in the lanes where the constant was chosen). The leaves: the pixel's
@@ -183,8 +186,8 @@ template <class F> struct Rev {
     if (a.id < 0) return affine(a.v * b.v, b, a.v);
     return link(a.v * b.v, a, b.v, b, a.v);
   }
-  friend TAO_HOT Rev operator/(const Rev& a, const Rev& b) {
-    const F inv = F(1.0f) / b.v, q = a.v * inv;
+  friend TAO_HOT Rev operator/(const Rev& a, const Rev& b) {  // (its value the value lanes' quotient)
+    const F inv = F(1.0f) / b.v, q = a.v / b.v;
     if (b.id < 0) return affine(q, a, inv);
     return link(q, a, inv, b, neg(q * inv));
   }
@@ -216,16 +219,12 @@ template <class F> TAO_HOT Rev<F> select(const typename LaneTraits<F>::M& m, con
   return Rev<F>::link(v, yes, select(m, F(1.0f), F(0.0f)), no, select(m, F(0.0f), F(1.0f)));
 }
 template <class F> TAO_HOT Rev<F> neg(const Rev<F>& x) { return Rev<F>::affine(neg(x.v), x, F(-1.0f)); }
-template <class F> TAO_HOT Rev<F> fma(const Rev<F>& a, const Rev<F>& b, const Rev<F>& c) { return a * b + c; }
+template <class F> TAO_HOT Rev<F> fma(const Rev<F>& a, const Rev<F>& b, const Rev<F>& c) {
+  return Rev<F>::link(fma(a.v, b.v, c.v), a, b.v, b, a.v, c, F(1.0f));
+}
 // a b + c for a constant b and c, its value fused as the value lanes' fma
 template <class F> TAO_HOT Rev<F> fma(const Rev<F>& a, const F& b, const F& c) {
   return Rev<F>::affine(fma(a.v, b, c), a, b);
-}
-// a / b with the value lanes' quotient as its value
-template <class F> TAO_HOT Rev<F> quotient(const Rev<F>& a, const Rev<F>& b) {
-  const F inv = F(1.0f) / b.v, q = a.v / b.v;
-  if (b.id < 0) return Rev<F>::affine(q, a, inv);
-  return Rev<F>::link(q, a, inv, b, neg(q * inv));
 }
 template <class F> TAO_HOT Rev<F> abs(const Rev<F>& x) { return select(x.v < F(0.0f), neg(x), x); }
 template <class F> TAO_HOT Rev<F> sqrt(const Rev<F>& x) {  // (0 at 0, as lanes_dual.h's)
