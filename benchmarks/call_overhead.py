@@ -36,14 +36,15 @@ MODULES = {
 
 
 class HostReads(TorchDispatchMode):
-    """Counts the operators that turn a tensor's value into a Python number."""
+    """Lists the operators that turn a tensor's value into a Python number (``reads``), while it is entered."""
 
     def __init__(self):
         super().__init__()
-        self.count = 0
+        self.reads = []
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.count += func in _READS
+        if func in _READS:
+            self.reads.append(func)
         return func(*args, **(kwargs or {}))
 
 
@@ -64,7 +65,7 @@ class Stage:
         self.seconds = time.perf_counter() - self.start
         if self.mode is not None:
             self.mode.__exit__(*exc)
-            self.reads = self.mode.count
+            self.reads = len(self.mode.reads)
 
 
 def step(module, frame: torch_ao.GBuffer, count_reads: bool = False) -> tuple[Stage, Stage, Stage]:

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
 
 import torch_ao
 from test_kernels import built  # noqa: F401  (the fixture: the C++ kernels built)
@@ -17,8 +16,7 @@ from torch_ao.thickness import BackfaceThickness
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_vs_shader import frame_gbuffer  # noqa: E402
-
-_READS = (torch.ops.aten._local_scalar_dense.default, torch.ops.aten.item.default, torch.ops.aten.is_nonzero.default)
+from call_overhead import HostReads  # noqa: E402  (on the CPU: ATen's _local_scalar_dense, item, is_nonzero)
 
 #: one module per kernel family, as their CUDA calls are made (backend="kernel": an uncovered call raises)
 MODULES = {
@@ -34,19 +32,6 @@ MODULES = {
     "pssao": lambda: torch_ao.PSSAO(backend="kernel"),
     "ssao": lambda: torch_ao.SSAO(backend="kernel"),
 }
-
-
-class HostReads(TorchDispatchMode):
-    """Counts the operators that turn a tensor's value into a Python number."""
-
-    def __init__(self):
-        super().__init__()
-        self.reads = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        if func in _READS:
-            self.reads.append(func)
-        return func(*args, **(kwargs or {}))
 
 
 def _gbuffer(device="cpu", gradients=False):
