@@ -424,7 +424,6 @@ template <class G, class F> TAO_HOT G arc_measure_at(const G& x, const Slice<F>&
   return sign(theta) * (H - H0);
 }
 
-
 // The "exact" variant's accumulator (methods/bitmask.py DefaultAccumulator with union="exact",
 // bitmask_common's end_slice): each sample's occluder segment from its front point to its back point
 // (thickness along the view vector, or along its own camera ray: intervals.back_point), clipped to the
