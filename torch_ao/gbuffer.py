@@ -54,6 +54,11 @@ def _check_tensor(name: str, x, channels: int | None, like: torch.Tensor | None)
             raise ValueError(f"{name}: expected device {like.device} (that of depth), got {x.device}")
 
 
+def _finite_negative(depth: torch.Tensor) -> torch.Tensor:
+    """Where ``depth`` is finite and negative (``-inf`` and NaN are background)."""
+    return (depth < 0) & (depth > -torch.inf)
+
+
 class _ValueChecks:
     """A G-buffer's checks of its values, gathered on its device and read back once (a CUDA G-buffer waits for its
     GPU once, not once a check): each a bool tensor, true where the check fails, and the error it raises."""
@@ -114,7 +119,7 @@ class GBuffer:
         if self.depth is None and self.position is not None:
             _check_tensor("position", self.position, 3, None)
             self.depth = -self.position[:, 2:3]
-            checks.add(torch.isfinite(self.depth) & (self.depth < 0), lambda: ValueError(_POSITION_IN_FRONT))
+            checks.add(_finite_negative(self.depth), lambda: ValueError(_POSITION_IN_FRONT))
         _check_tensor("depth", self.depth, 1, None)
         if self.depth.dtype not in _FLOAT_TYPES:
             raise TypeError(f"depth: expected a floating-point tensor, got {self.depth.dtype}")
@@ -133,7 +138,7 @@ class GBuffer:
         if self.camera.intrinsics.device != self.depth.device:
             raise ValueError(f"camera: expected device {self.depth.device} (that of depth), got {self.camera.intrinsics.device}")
         self.camera = self.camera.to(dtype=dtype).expand(B)
-        checks.add((self.depth < 0) & (self.depth > -torch.inf), lambda: ValueError(  # (finite and negative)
+        checks.add(_finite_negative(self.depth), lambda: ValueError(
             "depth: negative values found; depth is the positive distance along the view axis "
             "(use inf, 0 or nan for background)"))
         valid = geometry_depth(self.depth)

@@ -50,7 +50,7 @@ template <class F, int N> struct Dual {
     return r;
   }
   friend TAO_HOT Dual operator*(const Dual& a, const Dual& b) { return chain(a.v * b.v, b.v, a, a.v, b); }
-  friend TAO_HOT Dual operator/(const Dual& a, const Dual& b) {  // (its value the value lanes' quotient)
+  friend TAO_HOT Dual operator/(const Dual& a, const Dual& b) {
     const F inv = F(1.0f) / b.v, q = a.v / b.v;
     return chain(q, inv, a, neg(q * inv), b);
   }

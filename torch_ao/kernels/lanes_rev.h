@@ -162,7 +162,9 @@ template <class F> struct Rev {
   // (or x is a constant), else two
   static TAO_HOT Rev link(const F& value, const Rev& x, const F& a, const Rev& y, const F& b, const Rev& z,
                                 const F& c) {
-    if (x.id < 0) return link(value, y, b, z, c);
+    if (x.id < 0) return link(value, y, b, z, c);  // (a constant parent: one node of the other two)
+    if (y.id < 0) return link(value, x, a, z, c);
+    if (z.id < 0) return link(value, x, a, y, b);
     Tape<F>* tape = x.tape;
     const int32_t last = tape->n - 1;
     if (x.id == last) return Rev(value, tape->node(a * x.scale, y.id, b * y.scale, z.id, c * z.scale), tape);
@@ -186,7 +188,7 @@ template <class F> struct Rev {
     if (a.id < 0) return affine(a.v * b.v, b, a.v);
     return link(a.v * b.v, a, b.v, b, a.v);
   }
-  friend TAO_HOT Rev operator/(const Rev& a, const Rev& b) {  // (its value the value lanes' quotient)
+  friend TAO_HOT Rev operator/(const Rev& a, const Rev& b) {
     const F inv = F(1.0f) / b.v, q = a.v / b.v;
     if (b.id < 0) return affine(q, a, inv);
     return link(q, a, inv, b, neg(q * inv));
