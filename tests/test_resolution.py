@@ -257,12 +257,31 @@ def test_preset_names_and_bad_input():
     assert torch_ao.GTAO().resolution == "full" and torch_ao.GTAO(preset="low@full").resolution == "full"
 
 
-def test_a_per_pixel_thickness_map_is_given_at_the_walks_size():
+@pytest.mark.parametrize("backend", ["torch", "kernel"])
+@pytest.mark.parametrize("resolution,f", [("half", 2), ("quarter", 4)])
+def test_a_per_pixel_thickness_map_at_full_resolution_is_picked_as_the_gbuffer(backend, resolution, f):
     gb = example_gbuffer(23, 41)
-    full_map = torch.full((1, 1, 23, 41), 0.3)
+    full_map = 0.05 + 0.5 * torch.rand((1, 1, 23, 41), generator=torch.Generator().manual_seed(3))
+    full_map.requires_grad_(True)
+    options = dict(variant="exact", mode="hard", resolution=resolution, backend=backend)
+    full = torch_ao.BitmaskAO(thickness=full_map, **options)(gb).visibility
     with torch.no_grad():
-        with pytest.raises(ValueError, match="thickness"):
-            torch_ao.BitmaskAO(preset="high@half", thickness=full_map)(gb)
-        mapped = torch_ao.BitmaskAO(preset="high@half", thickness=full_map[..., ::2, ::2])(gb).visibility
-        scalar = torch_ao.BitmaskAO(preset="high@half", thickness=0.3)(gb).visibility
-    assert torch.allclose(mapped, scalar, atol=1e-6)
+        walked = torch_ao.BitmaskAO(thickness=full_map.detach()[..., ::f, ::f], **options)(gb).visibility
+        by_hand = reduced_forward(torch_ao.BitmaskAO(thickness=full_map.detach()[..., ::f, ::f], variant="exact",
+                                                     mode="hard", backend=backend), gb, f)
+        other = torch_ao.BitmaskAO(thickness=full_map.detach() + 0.3, **options)(gb).visibility
+    assert torch.equal(full.detach(), walked) and torch.equal(walked, by_hand.visibility)
+    assert not torch.equal(walked, other)  # (the map is read)
+    with pytest.raises(ValueError, match=r"thickness: map of shape .* \(nor its full-resolution frame"):
+        torch_ao.BitmaskAO(thickness=torch.rand(1, 1, 22, 41), **options)(gb)
+
+
+def test_a_full_resolution_thickness_map_is_fitted_at_the_texels_the_walk_reads():
+    gb = example_gbuffer(23, 41)
+    module = torch_ao.BitmaskAO(variant="exact", mode="soft", resolution="half", jitter=False,
+                                thickness=torch.full((1, 1, 23, 41), 0.2))
+    module(gb).visibility.sum().backward()
+    grad = module.thickness.grad[0, 0]
+    picked = torch.zeros_like(grad, dtype=torch.bool)
+    picked[::2, ::2] = True
+    assert grad[picked].abs().sum() > 0 and bool((grad[~picked] == 0).all())

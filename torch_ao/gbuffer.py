@@ -113,6 +113,7 @@ class GBuffer:
     _valid: torch.Tensor = field(init=False, repr=False)
     _derived: dict = field(init=False, repr=False, compare=False, default_factory=dict)
     _call: dict | None = field(init=False, repr=False, compare=False, default=None)
+    _decimation: tuple[int, int, int] = field(init=False, repr=False, compare=False, default=(1, 0, 0))
 
     def __post_init__(self) -> None:
         checks = _ValueChecks()  # (read back once, at the end: on a GPU, one wait)
@@ -192,14 +193,23 @@ class GBuffer:
                 return None
             return x.to(device=device, dtype=dtype if floating and x.is_floating_point() else None)
 
-        return GBuffer(move(self.depth), self.camera.to(device=device, dtype=dtype), normals=move(self.normals),
-                       light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False),
-                       backface_depth=move(self.backface_depth), position=move(self.position))
+        out = GBuffer(move(self.depth), self.camera.to(device=device, dtype=dtype), normals=move(self.normals),
+                      light=move(self.light), mask=move(self.mask, False), object_id=move(self.object_id, False),
+                      backface_depth=move(self.backface_depth), position=move(self.position))
+        out._decimation = self._decimation
+        return out
 
     # ------------------------------------------------------------------ derived buffers
     @property
     def shape(self) -> tuple[int, int, int, int]:
         return tuple(self.depth.shape)
+
+    @property
+    def decimation(self) -> tuple[int, int, int]:
+        """``(1, H, W)``, or ``(f, H_full, W_full)`` for a G-buffer of every ``f``-th texel of a full-resolution one
+        (:func:`~torch_ao.resolution.downsample_gbuffer`, a module's ``resolution="half"``): per-pixel maps
+        given at full resolution (:class:`~torch_ao.thickness.MapThickness`) are picked alike."""
+        return self._decimation if self._decimation[0] > 1 else (1, *self.depth.shape[-2:])
 
     @property
     def valid(self) -> torch.Tensor:

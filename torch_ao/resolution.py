@@ -11,7 +11,7 @@ Godot, three.js). Here a method with ``resolution="half"`` (or a preset ``"high@
    plane into a zigzag that occludes itself. With a fixed pick and the matching camera the smaller frame
    is the same scene seen with pixels ``f`` times larger, so planes stay planes and closed forms carry
    over. Normals (reconstructed at full resolution when the G-buffer has none, then picked), light, mask,
-   ids, back-face depth and positions come from the same texel. The cost: an occluder thinner than ``f``
+   ids, back-face depth, positions and a full-resolution thickness map come from the same texel. The cost: an occluder thinner than ``f``
    pixels is seen only where it crosses a picked row or column.
 2. The method walks the smaller G-buffer unchanged (a world radius covers ``1/f`` as many pixels; options
    in pixels, e.g. ``min_step_px``, are in the walk's pixels).
@@ -72,10 +72,13 @@ def downsample_gbuffer(gbuffer: GBuffer, factor: int, *, normals: torch.Tensor |
     K[:, :2, :] = K[:, :2, :] / f  # fx, fy, cx, cy; the skew stays 0
     B, _, H, W = gbuffer.depth.shape
     camera = PinholeCamera(K, -(-H // f), -(-W // f))
-    return GBuffer(depth=_pick(gbuffer.depth, f), camera=camera,
-                   normals=_pick(gbuffer.normals if normals is None else normals, f),
-                   light=_pick(gbuffer.light, f), mask=_pick(gbuffer.valid, f), object_id=_pick(gbuffer.object_id, f),
-                   backface_depth=_pick(gbuffer.backface_depth, f), position=_pick(gbuffer.position, f))
+    low = GBuffer(depth=_pick(gbuffer.depth, f), camera=camera,
+                  normals=_pick(gbuffer.normals if normals is None else normals, f),
+                  light=_pick(gbuffer.light, f), mask=_pick(gbuffer.valid, f), object_id=_pick(gbuffer.object_id, f),
+                  backface_depth=_pick(gbuffer.backface_depth, f), position=_pick(gbuffer.position, f))
+    outer, full_h, full_w = gbuffer.decimation
+    low._decimation = (outer * f, full_h, full_w)
+    return low
 
 
 def upsample(values: torch.Tensor, low_valid: torch.Tensor, gbuffer: GBuffer, factor: int, *,

@@ -108,15 +108,22 @@ class ObjectThickness(_TensorThickness):
 
 
 class MapThickness(_TensorThickness):
-    """A per-pixel thickness map ``(B,1,H,W)`` (or batch 1), read at the sample: the *occluder's* thickness."""
+    """A per-pixel thickness map ``(B,1,H,W)`` (or batch 1), read at the sample: the *occluder's* thickness.
+    At ``resolution="half"`` or ``"quarter"`` the map stays at the G-buffer's full resolution, and the walk reads
+    the texels the decimated G-buffer kept (:attr:`~torch_ao.gbuffer.GBuffer.decimation`)."""
 
     dims, expected = 4, "a (B,1,H,W) map"
 
     def buffers(self, gbuffer, params):
         B, _, H, W = gbuffer.depth.shape
         t = params["thickness"]
+        f, full_h, full_w = gbuffer.decimation
+        if f > 1 and t.dim() == 4 and t.shape[-2:] == (full_h, full_w):
+            t = t[..., ::f, ::f]  # a full-resolution map, picked as the G-buffer was (resolution.downsample_gbuffer)
         if t.shape[-2:] != (H, W) or t.shape[0] not in (1, B):
-            raise ValueError(f"thickness: map of shape {tuple(t.shape)} does not match the G-buffer (B={B}, H={H}, W={W})")
+            full = f" (nor its full-resolution frame, {full_h}x{full_w})" if f > 1 else ""
+            raise ValueError(f"thickness: map of shape {tuple(t.shape)} does not match the G-buffer (B={B}, H={H}, W={W})"
+                             + full)
         return {"thickness": t.to(gbuffer.depth.dtype).expand(B, 1, H, W)}
 
     kernel_read = "layer"
@@ -228,6 +235,11 @@ class BoundThickness:
 
     def __call__(self, sample) -> torch.Tensor:
         return self.model.value(sample, self.params)
+
+    def ungrown(self, sample) -> torch.Tensor:
+        """The thickness ``(rows,)`` (or 0-d) before growth: a sample's on the pixel's own texel, where
+        ``|sample - pixel|`` is 0 (its ``delta`` is a stand-in there)."""
+        return self.model.at(sample, self.params)
 
     def buffers(self, gbuffer) -> dict[str, torch.Tensor]:
         return self.model.buffers(gbuffer, self.params)

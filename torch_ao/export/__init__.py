@@ -31,7 +31,7 @@ import math
 import os
 from pathlib import Path
 
-from ..walk.fetch import EDGE_MIN_RATIO, EDGE_SLOPE_TOLERANCE
+from ..walk.fetch import EDGE_MIN_RATIO, EDGE_SLOPE_TOLERANCE, NEAREST_TIE
 from ..walk.sample import MIN_OFFSET
 from .body import BODY
 
@@ -98,6 +98,7 @@ def _walk_defines(m) -> dict[str, str]:
         "AO_NOISE_PHASE_SLICE": _literal(_phase(shift * seed, shift * seed)),
         "AO_NOISE_PHASE_STEP": _literal(_phase(37.0 + shift * (seed + 1), 59.0 + shift * (seed + 1))),
         "AO_FETCH": str({"nearest": 0, "bilinear": 1, "edge_aware": 2}[m.fetch]),
+        "AO_NEAREST_TIE": _literal(NEAREST_TIE),
         "AO_EDGE_MIN_RATIO": _literal(EDGE_MIN_RATIO), "AO_EDGE_SLOPE_TOLERANCE": _literal(EDGE_SLOPE_TOLERANCE),
         "AO_BORDER_DROP": str(int(m.border == "drop")), "AO_AZIMUTH_VIEW": str(int(m.azimuth == "view")),
         "AO_MIN_OFFSET": _literal(MIN_OFFSET),

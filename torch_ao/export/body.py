@@ -112,8 +112,8 @@ AOSample aoFetch(float su, float sv, int ownX, int ownY, float4 intr)
     int W = aoWidth();
     int H = aoHeight();
 #if AO_FETCH == 0
-    int iu = int(floor(su + 0.5));
-    int iv = int(floor(sv + 0.5));
+    int iu = int(floor(su + (0.5 - AO_NEAREST_TIE)));
+    int iv = int(floor(sv + (0.5 - AO_NEAREST_TIE)));
     bool inside = iu >= 0 && iu < W && iv >= 0 && iv < H;
     int cu = clamp(iu, 0, W - 1);
     int cv = clamp(iv, 0, H - 1);
@@ -149,8 +149,8 @@ AOSample aoFetch(float su, float sv, int ownX, int ownY, float4 intr)
         smoothCell = lo > 0.0 && hi <= AO_EDGE_MIN_RATIO * lo;
     }
     if (!smoothCell) {
-        int nu = fu >= 0.5 ? c1 : c0;
-        int nv = fv >= 0.5 ? r1 : r0;
+        int nu = fu >= 0.5 + AO_NEAREST_TIE ? c1 : c0;
+        int nv = fv >= 0.5 + AO_NEAREST_TIE ? r1 : r0;
         c0 = nu; c1 = nu; r0 = nv; r1 = nv;
         oneTap = true;
     }

@@ -80,8 +80,12 @@ struct ThicknessModel {
       default: return F(0.0f);
     }
   }
+  // the thickness before growth: a sample's on the pixel's own texel (|delta| = 0 there; delta is a stand-in)
+  template <class F> TAO_FN F ungrown(const Pixels<F>& px, const Sample<F>& smp) const {
+    return read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
+  }
   template <class F> TAO_FN F at(const Pixels<F>& px, const Sample<F>& smp) const {
-    const F t = read == ThicknessRead::constant ? F(offset) : F(scale) * value(px, smp) + F(offset);
+    const F t = ungrown(px, smp);
     F length;
     return growth != 0.0f ? t * growth_factor(smp.delta, length) : t;
   }

@@ -71,12 +71,13 @@ struct GlslAccumulator {
   };
   TAO_FN int channels() const { return indirect ? 4 : 1; }
 
-  // _horizon: clamp((acos(c) + n + halfPi) / pi, 0, 1), 0 where acos is NaN (|c| > 1 or NaN); Mesa folds
-  // acos's pi/2 into the + halfPi: (pi - asin(c)) + n. raw: the value before the clamp where the cosine is in
-  // [-1, 1], else -1 (the backward's: a derivative inside [0, 1] only)
+  // _horizon: clamp((acos(c) + n + halfPi) / pi, 0, 1), 0 where acos is NaN (NaN, or with Mesa's numerics
+  // |c| > 1; "ieee" takes c clamped to [-1, 1]); Mesa folds acos's pi/2 into the + halfPi: (pi - asin(c)) + n.
+  // raw: the value before the clamp where the cosine is not NaN, else -1 (the backward's: a derivative inside
+  // [0, 1] only)
   template <class F> TAO_FN F horizon(const F& cosine, const F& n, F* raw = nullptr) const {
-    const auto good = abs(cosine) <= F(1.0f);
-    const F c = select(good, cosine, F(0.0f));
+    const auto good = gl.exact ? abs(cosine) <= F(1.0f) : cosine == cosine;
+    const F c = select(good, gl.exact ? cosine : clamp(cosine, F(-1.0f), F(1.0f)), F(0.0f));
     const F value = gl.exact ? ((F(kPi) - mesa_asin(c)) + n) / F(kPi) : ((acos(c) + n) + F(kHalfPi)) / F(kPi);
     if (raw) *raw = select(good, value, F(-1.0f));
     return select(good, clamp(value, F(0.0f), F(1.0f)), F(0.0f));
@@ -143,7 +144,7 @@ struct GlslAccumulator {
     const F x = horizon(gl.dot(hz.h, camera), st.n, &hz.front), y = horizon(gl.dot(back_dir, camera), st.n, &hz.back);
     hz.x = select(centre, F(0.0f), select(smp.valid, x, F(1.0f)));
     hz.y = select(smp.valid, y, F(1.0f));
-    if (any(centre)) hz.y = select(centre, centre_back(st, hz.t), hz.y);
+    if (any(centre)) hz.y = select(centre, centre_back(st, thickness.ungrown(px, smp)), hz.y);
     hz.front = select(live, hz.front, F(-1.0f)), hz.back = select(live, hz.back, F(-1.0f));
     return hz;
   }

@@ -23,6 +23,7 @@ constexpr float kPi = 3.14159265358979323846f;
 constexpr float kEdgeMinRatio = 1.02f;  // walk.fetch.EDGE_MIN_RATIO
 constexpr float kHalfPi = 1.57079632679489661923f;
 constexpr float kMinOffset = 1e-5f;  // walk.sample.MIN_OFFSET
+constexpr float kNearestTie = 1.0f / 512.0f;  // walk.fetch.NEAREST_TIE: the nearest texel is floor(x + 0.5 - it)
 
 template <class F> TAO_HOT F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 template <class F> TAO_HOT F norm3(const F* a) { return sqrt(dot3(a, a)); }
@@ -596,7 +597,7 @@ template <class F> struct Sample {
         }
         // (where every lane's footprint is four distinct taps of one surface, nothing changes: most steps)
         if (!all_proper || any(lnot(smooth))) {
-          const auto right = fu >= F(0.5f), down = fv >= F(0.5f);
+          const auto right = fu >= F(0.5f + kNearestTie), down = fv >= F(0.5f + kNearestTie);
           const I nearest = select(down, select(right, index[3], index[2]), select(right, index[1], index[0]));
           const F t_near = select(down, select(right, t3, t2), select(right, t1, t0));
           for (int k = 0; k < 4; ++k) index[k] = select(smooth, index[k], nearest);
@@ -624,7 +625,7 @@ template <class F> struct Sample {
       const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
       unproject(img, su_c, sv_c, depth, pos);
     } else {
-      const F fu0 = floor(su + F(0.5f)), fv0 = floor(sv + F(0.5f));
+      const F fu0 = floor(su + F(0.5f - kNearestTie)), fv0 = floor(sv + F(0.5f - kNearestTie));
       fu = fv = inverse_su = inverse_sv = F(0.0f);
       const I iu = imin(imax(to_int(clamp(fu0, F(-1.0f), Wf)), zero), Wlast);
       const I iv = imin(imax(to_int(clamp(fv0, F(-1.0f), Hf)), zero), Hlast);

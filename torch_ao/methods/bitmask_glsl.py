@@ -30,6 +30,10 @@ Quirks of the shader, all kept on purpose (a user porting it gets the same numbe
   is ``-1`` (the whole half circle occluded) or, by the driver's rounding, just below ``-1`` (NaN: nothing
   occluded). With ``glsl_numerics="mesa"`` that rounding is llvmpipe's, bit for bit (see
   :class:`GLSLVectorOps`); with ``"ieee"`` the half circle is occluded whenever ``t > 0``. It adds no light.
+  Its thickness is the one at zero distance (``thickness_growth`` does not grow it).
+* **Cosines rounded beyond +-1** (an occluder's back point straight behind it, e.g. a back-face layer with no
+  exit): ``acos`` is NaN there and the horizon 0 with ``"mesa"``, as on llvmpipe; ``"ieee"`` takes the cosine at
+  +-1, the exact value, so the result does not hang on the last bit of a dot product.
 * **Background** samples (``inf``/``0``/``nan`` depth or ``mask`` False) occlude nothing and add no
   light: what the shader does when its position texture holds NaN there (NaN horizons clamp to 0).
 * **Texel fetch**: nearest texel ``floor(uv * size)`` with clamp-to-edge, computed from the float UVs
@@ -61,7 +65,7 @@ from ..thickness import BoundThickness
 
 __all__ = ["GLSLPattern", "GLSLAccumulator", "GLSLVectorOps", "glsl_jitter", "glsl_constants", "mesa_acos", "mesa_asin", "GLSL_NUMERICS"]
 
-#: ``"ieee"``: every operation in the input precision with exact ``acos``; ``"mesa"``: Mesa's GLSL
+#: ``"ieee"``: every operation in the input precision with exact ``acos`` (of cosines clamped to [-1, 1]); ``"mesa"``: Mesa's GLSL
 #: ``acos`` polynomial (softpipe, and desktop-like full precision elsewhere); ``"mesa_mediump"``: also
 #: llvmpipe's float16 evaluation of the ``mediump`` ``randf`` (llvmpipe's 16-bit ``mediump`` uints are
 #: *not* reproduced: masks are always 32-bit).
@@ -266,10 +270,12 @@ class GLSLAccumulator(SliceAccumulator):
         return safe_acos(x)
 
     def _horizon(self, cosine: torch.Tensor, n, pi, half_pi) -> torch.Tensor:
-        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of NaN or of a cosine rounded
-        beyond +-1 is NaN in the shader, and ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0."""
+        """``clamp((acos(cosine) + n + halfPi) / pi, 0, 1)``; ``acos`` of NaN is NaN in the shader, and
+        ``clamp(NaN, 0, 1)`` is 0 on llvmpipe: reproduced as 0. A cosine rounded beyond +-1 is NaN too
+        with the driver's numerics (``"mesa"``); with ``"ieee"`` it is taken at +-1, the exact value,
+        so that a horizon does not hang on the last bit of a dot product."""
         c = cosine.detach()
-        bad = ~(c.abs() <= 1)
+        bad = ~(c.abs() <= 1) if self.gl.exact else torch.isnan(c)
         cosine = torch.where(bad, torch.zeros_like(cosine), cosine)
         if self.gl.exact:  # Mesa folds acos's pi/2 into the + halfPi: (pi - asin(c)) + n, bit for bit
             value = ((pi - mesa_asin(cosine)) + n) / pi
@@ -306,6 +312,8 @@ class GLSLAccumulator(SliceAccumulator):
         centre = sample.distance_px == 0
         if bool(centre.any()):
             x = torch.where(centre, torch.zeros_like(x), x)
+            t = self.thickness.ungrown(sample)  # (|sample - pixel| = 0: no growth)
+            t = t[:, None] if t.dim() == 1 else t
             if gl.exact:  # (t = 0: normalize(0) is NaN, clamped to 0; kept out of the graph, whose 0 * inf is NaN)
                 thick = t > 0
                 t_safe = torch.where(thick, t, torch.ones_like(t))

@@ -20,8 +20,13 @@ from ..camera import pixels_to_view
 from .frame import Frame, repeat_rows, take
 
 __all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps",
-           "EDGE_MIN_RATIO", "EDGE_SLOPE_TOLERANCE", "continuous_cells", "continuous_cell_image", "cell_flags", "edge_aware_taps"]
+           "EDGE_MIN_RATIO", "EDGE_SLOPE_TOLERANCE", "NEAREST_TIE", "continuous_cells", "continuous_cell_image", "cell_flags", "edge_aware_taps"]
 
+#: The nearest texel of a screen coordinate ``x`` is ``floor(x + 0.5 - NEAREST_TIE)``: a coordinate within 1/512
+#: texel above a tie between two texels (half of a GPU's 1/256 sub-texel step) reads the lower one. Slices at
+#: round angles with whole-pixel steps (no jitter) put samples on exact ties, where an ulp of rounding in the
+#: step's direction would pick the texel; shifted off the tie, every backend picks the same one.
+NEAREST_TIE = 1.0 / 512.0
 #: The ``"edge_aware"`` fetch: two neighbouring texels whose depths are within this ratio are one surface
 #: whatever their neighbours (the smallest steps, e.g. a plank's edge on the floor behind it, are edges).
 EDGE_MIN_RATIO = 1.02
@@ -124,7 +129,8 @@ def edge_aware_taps(frame: Frame, index: torch.Tensor, fu: torch.Tensor, fv: tor
     if torch.compiler.is_compiling() or not bool(proper.all()):  # (compiled: no data-dependent branch)
         inverse = torch.where(take(frame.valid, index), take(frame.inverse_depth, index), 0.0).detach()
         smooth = torch.where(proper, smooth, continuous_cells(inverse, EDGE_MIN_RATIO))
-    corner = (fu.detach() >= 0.5).to(index.dtype) + 2 * (fv.detach() >= 0.5).to(index.dtype)
+    right, down = fu.detach() >= 0.5 + NEAREST_TIE, fv.detach() >= 0.5 + NEAREST_TIE  # (the nearest fetch's ties)
+    corner = right.to(index.dtype) + 2 * down.to(index.dtype)
     nearest = index.gather(1, corner[:, None].long())
     return torch.where(smooth[:, None], index, nearest)
 
@@ -188,7 +194,7 @@ class Footprint:
         B, H, W = frame.shape
         base = batch * (H * W)
         if fetch == "nearest":
-            iu, iv = torch.floor(su + 0.5).long(), torch.floor(sv + 0.5).long()
+            iu, iv = torch.floor(su + (0.5 - NEAREST_TIE)).long(), torch.floor(sv + (0.5 - NEAREST_TIE)).long()
             inside = (iu >= 0) & (iu < W) & (iv >= 0) & (iv < H)
             index = iv.clamp(0, H - 1) * W + iu.clamp(0, W - 1)
             return Footprint(batch, su, sv, index if B == 1 else index + base), inside
