@@ -6,7 +6,10 @@ with or without a thickness growth, fetch (nearest, bilinear, edge-aware), outpu
 normals, a constant ambient colour) and gradient (none, the parameters', the G-buffer's) that the modules accept is
 asked of the dispatch
 (``torch_ao.kernels.dispatch.KERNELS``: each kernel's ``covers``) on a small frame; nothing is run. Prints the count
-of covered calls and the reasons for the others, most frequent first:
+of covered calls and the reasons for the others, most frequent first. Then the options beyond that table, one at a
+time on the ``default`` and ``exact`` variants in each mode and with each gradient (the union, the ``exact``
+variant's segment geometry, the projected normal's slices, a position buffer read bilinearly or edge-aware): how
+many of those calls a kernel takes, and why not the others:
 
     python benchmarks/kernel_coverage.py
 """
@@ -90,7 +93,45 @@ def main() -> int:
           f"covered by a kernel, {sum(reasons.values())} on the tensor path")
     for reason, count in reasons.most_common():
         print(f"{count:6d}  {reason}")
+    beyond(plain, graph)
     return 0
+
+
+#: options beyond main()'s table, each alone: (label, module options, whether the G-buffer has a position buffer)
+BEYOND = (("union='sectors'", dict(union="sectors"), False), ("union='exact'", dict(union="exact"), False),
+          ("clip_to_radius=True", dict(clip_to_radius=True, union="sectors"), False),
+          ("thickness_direction='depth'", dict(thickness_direction="depth", union="sectors"), False),
+          ("sample_extent='sphere'", dict(sample_extent="sphere", union="sectors"), False),
+          ("slice_sampling='projected_normal'", dict(slice_sampling="projected_normal"), False),
+          ("position buffer, fetch='bilinear'", dict(fetch="bilinear"), True),
+          ("position buffer, fetch='edge_aware'", dict(fetch="edge_aware"), True))
+
+
+def beyond(plain, graph) -> None:
+    """The options of :data:`BEYOND` on the default and exact variants, every mode and gradient."""
+    print("\noptions beyond the table (default and exact variants, every mode and gradient):")
+    print("| option | calls | covered | why not (the last kernel tried, most frequent) |")
+    print("|---|---:|---:|---|")
+    for label, extra, position in BEYOND:
+        count, covered, reasons = 0, 0, collections.Counter()
+        for variant, mode, gradient in itertools.product(("default", "exact"), MODES, GRADIENTS):
+            try:
+                module = torch_ao.BitmaskAO(variant=variant, mode=mode, slices=2, steps=2, trainable=gradient != "none",
+                                            **extra)
+            except ValueError:
+                continue
+            gb = graph if gradient == "gbuffer" else plain
+            if position:
+                gb = torch_ao.GBuffer(depth=None, camera=gb.camera, normals=gb.normals, light=gb.light,
+                                      position=gb.positions().detach().clone().requires_grad_(gradient == "gbuffer"))
+            count += 1
+            reason = uncovered(module, gb)
+            if reason is None:
+                covered += 1
+            else:
+                reasons[reason.split(" / ")[-1]] += 1  # (the last kernel tried: the soft one)
+        why = reasons.most_common(1)[0][0] if reasons else ""
+        print(f"| {label} | {count} | {covered} | {why} |")
 
 
 if __name__ == "__main__":

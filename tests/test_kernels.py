@@ -13,7 +13,7 @@ from torch_ao.kernels import KernelUnavailable, bitmask_hard, cpu_kernels, kerne
 from torch_ao.methods.bitmask import BitmaskAO
 from torch_ao.thickness import LinearThickness
 
-from kernel_agreement import assert_masks_agree, degenerate
+from kernel_agreement import assert_masks_agree, degenerate, use_scalar_lanes
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="the kernels need a C++ compiler")
@@ -83,6 +83,37 @@ def test_kernel_agrees_with_the_tensor_walk(built, frame, setting, lanes):
         assert_masks_agree(out, reference, gb.valid, module.slices)
 
 
+#: the "exact" variant's segment geometry (back point, clip, the sphere's extent) with the sector union
+SEGMENT_SETTINGS = [
+    dict(slices=3, steps=4, clip_to_radius=True, radius=0.6, thickness=1.5),
+    dict(slices=2, steps=5, thickness_direction="depth", sample_extent="sphere", border="clamp", seed=1),
+    dict(slices=3, steps=4, variant="exact", union="sectors", azimuth="screen", weighting="uniform"),
+]
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+@pytest.mark.parametrize("setting", range(len(SEGMENT_SETTINGS)))
+def test_the_exact_variants_segment_geometry_with_the_sector_union(built, frame, setting, lanes, monkeypatch):
+    if lanes == "scalar":
+        import torch_ao.kernels.bitmask as bitmask
+        import torch_ao.kernels.launch as launch
+
+        use_scalar_lanes(monkeypatch, bitmask), use_scalar_lanes(monkeypatch, launch)
+    gb = FRAMES[frame]()
+    options = SEGMENT_SETTINGS[setting]
+    module = BitmaskAO(mode="hard", backend="torch", **options)
+    with torch.no_grad():
+        reference = module(gb).visibility
+        out = BitmaskAO(mode="hard", backend="kernel", **options)(gb).visibility
+        plain = BitmaskAO(mode="hard", backend="torch", **{k: v for k, v in options.items() if k in SETTINGS[0]})(gb)
+    assert reference.min() < 1 and not torch.equal(reference, plain.visibility)  # (the geometry changes the masks)
+    if frame != "rough" and degenerate({"sector_epsilon": module.sector_epsilon}):  # (the exact variant's 0)
+        assert_masks_agree(out, reference, gb.valid, module.slices, share=0.0, sectors=2 * module.slices)
+    else:
+        assert_masks_agree(out, reference, gb.valid, module.slices)
+
+
 def test_background_is_unoccluded_and_batch_images_are_independent(built):
     gb = rough_gbuffer()
     module = BitmaskAO(mode="hard", slices=3, steps=4)
@@ -108,15 +139,18 @@ def test_kernel_covers_names_what_it_does_not_cover():
     gb = example_gbuffer(8, 8)
     assert kernel_covers(BitmaskAO(mode="hard"), gb) is None
     # (cosine weights and indirect light are covered since the kernel has them: see test_kernels_glsl.py)
-    cases = {"variant": BitmaskAO(variant="exact", union="sectors"), "mode": BitmaskAO(mode="soft"),
+    cases = {"mode": BitmaskAO(mode="soft"),
              "straight-through gradient": BitmaskAO(weighting="cosine", indirect=True, mode="straight_through"),
              "ambient": BitmaskAO(ambient=lambda d: d),
              "slice_sampling": BitmaskAO(slice_sampling="projected_normal"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
-             "union": BitmaskAO(union="exact"), "clip_to_radius": BitmaskAO(clip_to_radius=True),
-             "thickness_direction": BitmaskAO(thickness_direction="depth"),
-             "sample_extent": BitmaskAO(sample_extent="sphere")}
+             "union": BitmaskAO(union="exact")}
     for word, module in cases.items():
         assert word in kernel_covers(module, gb), word
+    # the "exact" variant's segment geometry runs in this kernel with the sector union (its union: the exact kernels)
+    for module in (BitmaskAO(mode="hard", variant="exact", union="sectors"), BitmaskAO(mode="hard", clip_to_radius=True),
+                   BitmaskAO(mode="hard", thickness_direction="depth"), BitmaskAO(mode="hard", sample_extent="sphere")):
+        assert kernel_covers(module, gb) is None
+    assert "union" in kernel_covers(BitmaskAO(mode="hard", variant="exact"), gb)
     assert "float64" in kernel_covers(BitmaskAO(mode="hard"), gb.to(dtype=torch.float64))
     # hard masks have no gradient: covered with autograd on; straight-through only without a gradient
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
@@ -125,6 +159,21 @@ def test_kernel_covers_names_what_it_does_not_cover():
     with torch.no_grad():  # (its values are hard mode's, whatever the outputs)
         assert kernel_covers(BitmaskAO(mode="straight_through"), graph) is None
         assert kernel_covers(BitmaskAO(weighting="cosine", indirect=True, mode="straight_through"), graph) is None
+
+
+@pytest.mark.parametrize("options", [dict(variant="exact", mode="soft"), dict(variant="exact", mode="straight_through"),
+                                     dict(variant="exact", mode="hard"), dict(variant="exact", union="sectors", mode="hard"),
+                                     dict(mode="soft"), dict(mode="hard")])
+@pytest.mark.parametrize("fetch", ["bilinear", "edge_aware"])
+def test_no_kernel_reads_a_position_buffer_between_texels(options, fetch):
+    """The kernels interpolate depth; the tensor path interpolates a position buffer (and differentiates it): every
+    variant's kernels leave a position buffer read between texels to it (the exact union's took it, and sent its
+    gradient to the depth)."""
+    gb = example_gbuffer(8, 8)
+    with_position = GBuffer(depth=None, camera=gb.camera, normals=gb.normals, position=gb.positions())
+    with pytest.raises(ValueError, match=f"{fetch} reads of a position buffer"):
+        with torch.no_grad():
+            BitmaskAO(fetch=fetch, backend="kernel", **options)(with_position)
 
 
 # ------------------------------------------------------------------------------- dispatch

@@ -286,13 +286,15 @@ def cases(gb):
            [1.0, 0.0, 1.0], 5, None)
     yield ("hbao", walk_settings(**common, full_circle=True, noise="hilbert_r2", stagger=True), [False, True, False],
            [1.0, 0.1], 1, None)
-    # (rounding, cosine, indirect, bent, the thickness' read, the variant: 0 default, 1 hdrp); the thickness' offset,
-    # epsilon, its scale, its growth
-    yield "bitmask", walk_settings(**common), [0, True, True, True, False, 0], [0.5, 0.01, 1.0, 0.5], 7, light
-    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False, 0], [0.3, 0.01, 1.0, 0.0], 1, None
-    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False, 0], [0.3, 0.01, 1.0, 0.0], 4, light
-    yield "bitmask", walk_settings(**common, azimuth="screen"), [0, False, False, False, 0, 1], [0.5, 0.0, 1.0, 0.0], 1, None
-    yield "bitmask", walk_settings(**dict(common, fetch="nearest"), azimuth="screen"), [1, True, True, True, 0, 1], [0.5, 0.0, 1.0, 0.0], 7, light
+    # (rounding, cosine, indirect, bent, the thickness' read, the variant: 0 default, 1 hdrp, along_ray, clip); the
+    # thickness' offset, epsilon, its scale, its growth, the clip's radius
+    yield "bitmask", walk_settings(**common), [0, True, True, True, False, 0, 0, 0], [0.5, 0.01, 1.0, 0.5, 0.0], 7, light
+    yield "bitmask", walk_settings(**dict(common, border="clamp", jitter=False)), [0, False, False, False, False, 0, 0, 0], [0.3, 0.01, 1.0, 0.0, 0.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, False, False, 0, 0, 0], [0.3, 0.01, 1.0, 0.0, 0.0], 4, light
+    yield "bitmask", walk_settings(**common, azimuth="screen"), [0, False, False, False, 0, 1, 0, 0], [0.5, 0.0, 1.0, 0.0, 0.0], 1, None
+    yield "bitmask", walk_settings(**dict(common, fetch="nearest"), azimuth="screen"), [1, True, True, True, 0, 1, 0, 0], [0.5, 0.0, 1.0, 0.0, 0.0], 7, light
+    # the exact variant's segment geometry with the sector union: along the camera ray, clipped to the sphere
+    yield "bitmask", walk_settings(**common, sphere_extent=True), [0, True, True, True, 0, 0, 1, 1], [0.5, 0.01, 1.0, 0.0, 1.0], 7, light
     exact = dict(common, fetch="edge_aware")
     yield "exact", walk_settings(**exact, min_step_px=0.25, sphere_extent=True), [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 1, None
     yield "exact", walk_settings(**dict(exact, fetch="nearest")), [False, False, False, False, False], [0.4, 1.0, 1.0, 0.0, 0.0], 1, None
@@ -452,12 +454,13 @@ def _backward_cases():
     yield "exact", walk_settings(**dict(common, border="clamp")), [False, False, False, 0, False], [0.4, 1.0, 1.0, 0.01, 0.0], 1
     yield "exact", walk_settings(**dict(common, fetch="nearest")), [True, True, True, 2, True], [0.1, 1.0, 1.0, 0.0, 0.6], 1
     # (rounding, cosine, indirect, bent, the layer's read, the variant); thickness, epsilon, the layer's scale, growth
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1, 0], [0.1, 0.01, 1.0, 0.0], 4
-    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0], [0.4, 0.01, 1.0, 0.0], 1
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0], [0.4, 0.01, 1.0, 0.5], 7
-    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0], [0.4, 0.01, 1.0, 0.0], 4
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, True, 1, 0, 0, 0], [0.1, 0.01, 1.0, 0.0, 0.0], 4
+    yield "hard", walk_settings(**dict(common, border="clamp")), [1, True, False, False, 0, 0, 0, 0], [0.4, 0.01, 1.0, 0.0, 0.0], 1
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, True, 0, 0, 0, 0], [0.4, 0.01, 1.0, 0.5, 0.0], 7
+    yield "hard", walk_settings(**dict(common, fetch="nearest")), [0, False, True, False, 0, 0, 0, 0], [0.4, 0.01, 1.0, 0.0, 0.0], 4
     # the hdrp variant's (its slice angle in the backward's tangents), screen directions as its module's default
-    yield "hard", walk_settings(**dict(common, fetch="edge_aware"), azimuth="screen"), [0, True, True, True, 1, 1], [0.1, 0.0, 1.0, 0.0], 7
+    yield "hard", walk_settings(**dict(common, fetch="edge_aware"), azimuth="screen"), [0, True, True, True, 1, 1, 0, 0], [0.1, 0.0, 1.0, 0.0, 0.0], 7
+    yield "hard", walk_settings(**common, sphere_extent=True), [0, True, True, True, 0, 0, 1, 1], [0.4, 0.01, 1.0, 0.0, 1.0], 7
     # the "ssilvb_glsl" variant's (rounding, indirect, exact numerics, the layer's read); thickness, the layer's scale,
     # growth:
     # its indirect light's backward

@@ -32,6 +32,9 @@ SETTINGS = [
     # (seed 2: with seeds 0 and 1 one sample of this frame lies within float32 rounding of a sector edge and its mask
     # flips, along view directions as well; a flipped sector moves the pixel's values by up to 0.03)
     dict(weighting="cosine", bent_normals=True, azimuth="screen", fetch="edge_aware", seed=2),
+    # the "exact" variant's segment geometry with the sector union
+    dict(weighting="cosine", bent_normals=True, clip_to_radius=True, thickness_direction="depth", sample_extent="sphere"),
+    dict(variant="exact", union="sectors", bent_normals=True),
 ]
 
 
@@ -104,6 +107,7 @@ INDIRECT = [
     dict(weighting="uniform", fetch="edge_aware", rounding="round"),
     dict(weighting="cosine", sector_epsilon=0.05),
     dict(weighting="cosine", azimuth="screen", seed=2),  # (seed 2: as SETTINGS' screen directions)
+    dict(variant="exact", union="sectors", fetch="bilinear"),
 ]
 
 

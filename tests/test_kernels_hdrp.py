@@ -136,4 +136,4 @@ def test_coverage_reasons():
     for graded in (dict(), dict(weighting="cosine"), dict(bent_normals=True), dict(indirect=True)):
         assert kernel_covers(BitmaskAO(variant="hdrp", **graded), graph) is None  # (gradients: its backward)
     with pytest.raises(ValueError, match="variant: expected one of"):
-        bitmask_outputs(gb, gb.view_normals(), slices=2, steps=3, radius=1.0, thickness=0.5, variant="exact")
+        bitmask_outputs(gb, gb.view_normals(), slices=2, steps=3, radius=1.0, thickness=0.5, variant="ssilvb_glsl")

@@ -206,6 +206,52 @@ TAO_FN void sample_interval(int turn, const F& front, const F& back, float epsil
   if (epsilon > 0) width = width - F(epsilon);
 }
 
+// The occluder's segment from its front point to its back point (thickness t along the view vector, or along the
+// sample's own camera ray: intervals.back_point) in the slice's half plane: seg = (front . V, side front . T,
+// back . V, side back . T)
+template <class F, class G>
+TAO_HOT void occluder_segment(bool along_ray, int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta,
+                              const G& t, G* seg) {
+  const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
+  const G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T);
+  seg[0] = fv, seg[1] = ft;
+  if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
+    const G k = t / clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f));
+    seg[2] = fv + k * (fv - G(px.distance)), seg[3] = ft * (G(1.0f) + k);
+  } else {
+    seg[2] = fv - t, seg[3] = ft;
+  }
+}
+
+// A segment as an interval of the hemisphere (shift: the slice's edge_shift), its part inside the radius' sphere
+// where clip (intervals.clip_to_sphere; live loses the segments that miss it): start (sector units, the lower end
+// clamped to the hemisphere) and width (sector units, epsilon narrower; <= 0: empty), DefaultAccumulator.interval's
+template <class F, class G>
+TAO_HOT void segment_span(bool clip, float epsilon, int side, const G* seg, const F& shift, const G& radius,
+                          typename LaneTraits<F>::M& live, G& start, G& width) {
+  G fv = seg[0], ft = seg[1], bv = seg[2], bt = seg[3];
+  if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
+    const G ev = bv - fv, et = bt - ft;
+    const G a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - radius * radius;
+    const G disc = b * b - a * c;
+    const auto degenerate = a <= G(1e-30f) * clamp_min(fv * fv + ft * ft, G(1e-30f));  // a point occluder
+    const auto hit = land(disc > G(0.0f), lnot(degenerate));
+    const G safe_a = select(hit, a, G(1.0f)), root = sqrt(select(hit, disc, G(1.0f)));
+    const G u0 = select(hit, clamp((neg(b) - root) / safe_a, G(0.0f), G(1.0f)), G(0.0f));
+    const G u1 = select(hit, clamp((neg(b) + root) / safe_a, G(0.0f), G(1.0f)), G(1.0f));
+    live = land(live, select(degenerate, c <= G(0.0f), land(hit, u1 > u0)));
+    const G fv0 = fv, ft0 = ft;
+    fv = fv0 + u0 * ev, ft = ft0 + u0 * et, bv = fv0 + u1 * ev, bt = ft0 + u1 * et;
+  }
+  const F scale = F(float(side) / kPi);
+  const G front = clamp(fma(atan2(ft, fv), scale, shift), G(0.0f), G(1.0f));
+  const G back = clamp(fma(atan2(bt, bv), scale, shift), G(0.0f), G(1.0f));
+  const G lo = side > 0 ? front : back, hi = side > 0 ? back : front;
+  width = (hi - lo) * G(float(kSectors));
+  if (epsilon > 0) width = width - G(epsilon);
+  start = lo * G(float(kSectors));
+}
+
 // d fast_acos(x) / d x (given root = sqrt(1 - |x|)) as the tensor walk takes it (safe_fast_acos in float64): none
 // where 1 - |x| < 1e-6
 template <class F> TAO_FN F fast_acos_slope(const F& x, const F& root) {
@@ -296,6 +342,10 @@ struct BitmaskAccumulator {
   int64_t rounding;
   bool cosine, indirect, bent;
   SectorAngles angles;
+  // the "exact" variant's segment geometry (plane angles only, as DefaultAccumulator: HDRP's rule has none): the
+  // back point along the sample's camera ray, the segment clipped to the sphere of this radius (world units)
+  bool along_ray = false, clip = false;
+  float radius = 0.0f;
 
   template <class F> struct State {
     typename LaneTraits<F>::I occ;
@@ -334,9 +384,18 @@ struct BitmaskAccumulator {
     // as fractions of the hemisphere from its edge on the frame's side -1
     const int turn = sector_turn(angles, side);
     const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
-    F front_angle, back_angle, start, width;
-    sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
-    sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
+    F start, width;
+    if (angles == SectorAngles::plane) {  // (DefaultAccumulator.interval: an invalid sample's is empty)
+      F seg[4];
+      auto live = smp.valid;
+      occluder_segment(along_ray, side, px, sl, smp.delta, t, seg);
+      segment_span(clip, epsilon, side, seg, st.shift, F(radius), live, start, width);
+      width = select(live, width, F(-1.0f));
+    } else {
+      F front_angle, back_angle;
+      sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
+      sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
+    }
     const I bits = sector_bits(start, width, rounding);
     if (indirect) {
       // SectorAccumulator.step: the light the sample sends, times the share it newly occludes (only a non-empty
@@ -470,48 +529,18 @@ struct ExactAccumulator {
     segment_interval(side, seg, shift, radius, live, lo_out, hi_out);
   }
 
-  // The occluder's segment from its front point to its back point (thickness t along the view vector, or
-  // along the sample's own camera ray) in the slice's half plane: seg = (front . V, side front . T, back . V,
-  // side back . T)
+  // occluder_segment, with this accumulator's direction
   template <class F, class G>
   TAO_HOT void segment(int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta, const G& t, G* seg) const {
-    const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
-    const G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T);
-    seg[0] = fv, seg[1] = ft;
-    if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
-      const G k = t / clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f));
-      seg[2] = fv + k * (fv - G(px.distance)), seg[3] = ft * (G(1.0f) + k);
-    } else {
-      seg[2] = fv - t, seg[3] = ft;
-    }
+    occluder_segment(along_ray, side, px, sl, delta, t, seg);
   }
 
-  // segment's interval: the part of the segment inside the radius' sphere (clip), seen from the pixel
+  // segment's interval (segment_span) as union_measure clips its ends: an empty (or dead) interval is [0, 0]
   template <class F, class G>
   TAO_HOT void segment_interval(int side, const G* seg, const F& shift, const G& radius,
                                typename LaneTraits<F>::M live, G& lo_out, G& hi_out) const {
-    G fv = seg[0], ft = seg[1], bv = seg[2], bt = seg[3];
-    if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
-      const G ev = bv - fv, et = bt - ft;
-      const G a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - radius * radius;
-      const G disc = b * b - a * c;
-      const auto degenerate = a <= G(1e-30f) * clamp_min(fv * fv + ft * ft, G(1e-30f));  // a point occluder
-      const auto hit = land(disc > G(0.0f), lnot(degenerate));
-      const G safe_a = select(hit, a, G(1.0f)), root = sqrt(select(hit, disc, G(1.0f)));
-      const G u0 = select(hit, clamp((neg(b) - root) / safe_a, G(0.0f), G(1.0f)), G(0.0f));
-      const G u1 = select(hit, clamp((neg(b) + root) / safe_a, G(0.0f), G(1.0f)), G(1.0f));
-      live = land(live, select(degenerate, c <= G(0.0f), land(hit, u1 > u0)));
-      const G fv0 = fv, ft0 = ft;
-      fv = fv0 + u0 * ev, ft = ft0 + u0 * et, bv = fv0 + u1 * ev, bt = ft0 + u1 * et;
-    }
-    const F scale = F(float(side) / kPi);
-    const G front = clamp(fma(atan2(ft, fv), scale, shift), G(0.0f), G(1.0f));
-    const G back = clamp(fma(atan2(bt, bv), scale, shift), G(0.0f), G(1.0f));
-    const G lo = side > 0 ? front : back, hi = side > 0 ? back : front;
-    G width = (hi - lo) * G(float(kSectors));
-    if (epsilon > 0) width = width - G(epsilon);
-    const G start = lo * G(float(kSectors));
-    // union_measure's clipped ends; an empty (or dead) interval is [0, 0]
+    G start, width;
+    segment_span(clip, epsilon, side, seg, shift, radius, live, start, width);
     const auto open = land(live, width > G(0.0f));
     lo_out = select(open, clamp(start, G(0.0f), G(float(kSectors))), G(0.0f));
     hi_out = select(open, clamp(start + width, G(0.0f), G(float(kSectors))), G(0.0f));

@@ -44,7 +44,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     sector_epsilon: float = 0.01, weighting: str = "uniform", indirect: bool = False,
                     bent_normals: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
                     thickness_read: str | None = None, thickness_growth: float = 0.0, variant: str = "default",
-                    azimuth: str = "view", lanes: str = "simd") -> KernelOutputs:
+                    azimuth: str = "view", thickness_direction: str = "view", clip_to_radius: bool = False,
+                    sample_extent: str = "radius", lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` (or ``"hdrp"``) variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded;
     background pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
@@ -61,23 +62,26 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             ``thickness_growth`` (per world unit) multiplies it by ``1 + growth * |sample - pixel|``;
             step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch (``"bilinear"``, ``"nearest"``,
             ``"edge_aware"``), border (``"drop"``/``"clamp"``), rounding, sector_epsilon (sectors),
-            weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`), azimuth
-            (``"view"``/``"screen"``): as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`, the
-            outputs have a backward (``_HardWalk``).
+            weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`, or
+            ``"exact"``: its angles are ``"default"``'s), azimuth (``"view"``/``"screen"``), thickness_direction,
+            clip_to_radius, sample_extent (the ``"exact"`` variant's segment geometry, with the sector union; the
+            ``"hdrp"`` variant's rule has none): as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`,
+            the outputs have a backward (``_HardWalk``).
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
-    if variant not in HARD_VARIANTS:
-        raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
+    if variant not in HARD_VARIANTS + ("exact",):
+        raise ValueError(f"variant: expected one of {HARD_VARIANTS + ('exact',)}, got {variant!r}")
     radius = torch.as_tensor(radius)
     settings = walk_settings(slices=slices, steps=steps, radius=radius.detach(), step_power=step_power,
                              min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
-                             fetch=fetch, border=border, azimuth=azimuth)
+                             fetch=fetch, border=border, sphere_extent=sample_extent == "sphere", azimuth=azimuth)
     acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
-                thickness_read_index(thickness_read, layer), HARD_VARIANTS.index(variant)]
-    acc_floats = [thickness, sector_epsilon, layer_scale, thickness_growth]
+                thickness_read_index(thickness_read, layer), int(variant == "hdrp"), thickness_direction == "depth",
+                bool(clip_to_radius)]
+    acc_floats = [thickness, sector_epsilon, layer_scale, thickness_growth, radius.detach()]
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     if needs_hard_backward(gbuffer, normals, weighting=weighting, indirect=indirect, bent_normals=bent_normals,
@@ -319,7 +323,7 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     mode (hard values, soft gradients) without a gradient, every output and variant: its values are hard mode's.
     """
     reason = options_uncovered(module, gbuffer, modes=("hard", "straight_through"), weightings=("uniform", "cosine"),
-                               variants=("default", "hdrp", "ssilvb_glsl"), outputs=True,
+                               variants=("default", "hdrp", "exact", "ssilvb_glsl"), outputs=True,
                                extra=_HARD.get(module.variant), layers=True, growth=True)
     if reason is not None:
         return reason
@@ -331,7 +335,9 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
 
 #: what the hard kernel of the ``"default"`` and ``"hdrp"`` variants covers beyond the options every bitmask kernel
 #: does
-_HARD = {variant: {"fetch": ("nearest", "bilinear", "edge_aware")} for variant in HARD_VARIANTS}
+_HARD = {variant: {"fetch": ("nearest", "bilinear", "edge_aware"), "clip_to_radius": (False, True),
+                   "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere")}
+         for variant in HARD_VARIANTS + ("exact",)}
 #: what the exact union's kernel covers beyond the hard kernels' options
 _EXACT = {"variant": ("default", "exact"), "union": ("exact",), "clip_to_radius": (False, True),
           "thickness_direction": ("view", "depth"), "sample_extent": ("radius", "sphere"),
@@ -406,7 +412,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = gbuffer_uncovered(gbuffer)
     if reason is not None:
         return reason
-    if gbuffer.position is not None and module.variant in HARD_VARIANTS and module.fetch in ("bilinear", "edge_aware"):
+    if gbuffer.position is not None and module.variant != "ssilvb_glsl" and module.fetch in ("bilinear", "edge_aware"):
         return f"{module.fetch} reads of a position buffer"  # (the kernel interpolates depth)
     return None
 

@@ -46,7 +46,9 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
                    **thickness, step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                    seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                    border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
-                   weighting=module.weighting, variant=module.variant, azimuth=module.azimuth)
+                   weighting=module.weighting, variant=module.variant, azimuth=module.azimuth,
+                   thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
+                   sample_extent=module.sample_extent)
     if not (module.want_indirect or module.want_bent):
         vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
     else:

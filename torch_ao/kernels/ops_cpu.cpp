@@ -88,7 +88,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     packed(3, 2);
     run(unpack_hbao(i, f));
   } else if (name == "bitmask") {
-    packed(6, 4);
+    packed(8, 5);
     TORCH_CHECK(!i[kAccInts + 2] || fr.light, "light: indirect light needs the light buffer");
     check_thickness(i[kAccInts + 4], fr);
     TORCH_CHECK(i[kAccInts + 5] == 0 || i[kAccInts + 5] == 1, "variant: expected 0 (default) or 1 (hdrp)");

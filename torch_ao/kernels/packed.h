@@ -48,13 +48,13 @@ TAO_FN HBAOAccumulator unpack_hbao(const int64_t* i, const float* f) {
   return HBAOAccumulator{f[0], f[1], i[0] != 0, i[1] != 0, i[2] != 0};
 }
 
-// ints: rounding, cosine, indirect, bent, the thickness' read (ThicknessRead), the variant's angles (SectorAngles);
-// floats: the thickness' offset, epsilon, its scale, its growth
+// ints: rounding, cosine, indirect, bent, the thickness' read (ThicknessRead), the variant's angles (SectorAngles),
+// along_ray, clip; floats: the thickness' offset, epsilon, its scale, its growth, the clip's radius
 TAO_FN BitmaskAccumulator unpack_bitmask(const int64_t* i, const float* f) {
   const int64_t slices = i[0];
   i += kAccInts, f += kAccFloats;
   return BitmaskAccumulator{slices, ThicknessModel{f[0], f[2], ThicknessRead(i[4]), f[3]}, f[1], i[0], i[1] != 0, i[2] != 0,
-                            i[3] != 0, SectorAngles(i[5])};
+                            i[3] != 0, SectorAngles(i[5]), i[6] != 0, i[7] != 0, f[4]};
 }
 
 // ints: rounding, indirect, exact (glsl_numerics "mesa"/"mesa_mediump"), the thickness' read (ThicknessRead); floats:

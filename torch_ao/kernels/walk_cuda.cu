@@ -129,32 +129,33 @@ extern "C" __global__ void tao_exact_backward(const float* positions, const floa
 // light, its steps' taps' (atomically); of the "bitmask" accumulator (tao_record_hard, tao_hard_backward) and of
 // the "ssilvb_glsl" variant's (bitmask_glsl.h's GlslAccumulator: its record the mask it carries after each slice,
 // its backward indirect light's: the pixel's own normal and position, the taps' positions, normals and light)
-#define TAO_CUDA_HARD(record_name, backward_name, unpack)                                                         \
-  extern "C" __global__ void record_name(const float* positions, const float* normals, const float* inverse,      \
-                                         const float* depth, const bool* valid, const float* intrinsics,         \
-                                         const float* light, const float* cells, const float* backface,          \
-                                         float* out, int32_t* record, const int64_t* ints, const float* floats,  \
-                                         int B, int H, int W) {                                                   \
-    const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                            \
-    if (p >= int64_t(B) * H * W) return;                                                                          \
+#define TAO_CUDA_HARD(record_name, backward_name, unpack, bounds)                                                   \
+  extern "C" __global__ void bounds record_name(const float* positions, const float* normals, const float* inverse, \
+                                         const float* depth, const bool* valid, const float* intrinsics,            \
+                                         const float* light, const float* cells, const float* backface,             \
+                                         float* out, int32_t* record, const int64_t* ints, const float* floats,     \
+                                         int B, int H, int W) {                                                     \
+    const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                               \
+    if (p >= int64_t(B) * H * W) return;                                                                            \
     const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, cells, backface, valid, B, H, W}; \
-    tao::hard_record_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, record, p);     \
-  }                                                                                                               \
-  extern "C" __global__ void backward_name(const float* positions, const float* normals, const float* inverse,    \
-                                           const float* depth, const bool* valid, const float* intrinsics,       \
-                                           const float* light, const float* cells, const float* backface,        \
-                                           const float* grad, const int32_t* record, float* g_positions,         \
-                                           float* g_normals, float* g_depth, float* tap_positions,               \
-                                           float* tap_inverse, float* tap_normals, float* tap_light,             \
-                                           float* g_camera, const int64_t* ints, const float* floats, int B,     \
-                                           int H, int W) {                                                        \
-    const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                            \
-    if (p >= int64_t(B) * H * W) return;                                                                          \
+    tao::hard_record_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, record, p);       \
+  }                                                                                                                 \
+  extern "C" __global__ void backward_name(const float* positions, const float* normals, const float* inverse,      \
+                                           const float* depth, const bool* valid, const float* intrinsics,          \
+                                           const float* light, const float* cells, const float* backface,           \
+                                           const float* grad, const int32_t* record, float* g_positions,            \
+                                           float* g_normals, float* g_depth, float* tap_positions,                  \
+                                           float* tap_inverse, float* tap_normals, float* tap_light,                \
+                                           float* g_camera, const int64_t* ints, const float* floats, int B,        \
+                                           int H, int W) {                                                          \
+    const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                               \
+    if (p >= int64_t(B) * H * W) return;                                                                            \
     const tao::Frame frame{positions, normals, inverse, depth, intrinsics, light, cells, backface, valid, B, H, W}; \
-    tao::hard_grad_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, grad, record,          \
-                         g_positions, g_normals, g_depth, tap_positions, tap_inverse, tap_normals, tap_light,     \
-                         g_camera, p);                                                                            \
+    tao::hard_grad_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, grad, record,            \
+                         g_positions, g_normals, g_depth, tap_positions, tap_inverse, tap_normals, tap_light,       \
+                         g_camera, p);                                                                              \
   }
 
-TAO_CUDA_HARD(tao_record_hard, tao_hard_backward, unpack_bitmask)
-TAO_CUDA_HARD(tao_record_hard_glsl, tao_hard_backward_glsl, unpack_glsl)
+// (the record's bounds: tao_walk_bitmask's, the same walk)
+TAO_CUDA_HARD(tao_record_hard, tao_hard_backward, unpack_bitmask, __launch_bounds__(128, 3))
+TAO_CUDA_HARD(tao_record_hard_glsl, tao_hard_backward_glsl, unpack_glsl, )

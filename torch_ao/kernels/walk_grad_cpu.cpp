@@ -514,7 +514,7 @@ auto with_hard_accumulator(const at::Tensor& positions, const at::Tensor& normal
                            const at::Tensor& ints, const at::Tensor& floats, const Fn& fn) {
   const bool glsl = packs_glsl(ints);
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, glsl ? 4 : 6, glsl ? 3 : 4, glsl ? "glsl hard" : "hard",
+                          floats, glsl ? 4 : 8, glsl ? 3 : 5, glsl ? "glsl hard" : "hard",
                           std::numeric_limits<int64_t>::max(), glsl);
   if (glsl) {
     const GlslAccumulator acc = unpack_glsl(call.i, call.f);
