@@ -163,17 +163,17 @@ def test_kernel_covers_names_what_it_does_not_cover():
 
 @pytest.mark.parametrize("options", [dict(variant="exact", mode="soft"), dict(variant="exact", mode="straight_through"),
                                      dict(variant="exact", mode="hard"), dict(variant="exact", union="sectors", mode="hard"),
-                                     dict(mode="soft"), dict(mode="hard")])
+                                     dict(mode="soft"), dict(mode="hard", weighting="cosine")])
 @pytest.mark.parametrize("fetch", ["bilinear", "edge_aware"])
-def test_no_kernel_reads_a_position_buffer_between_texels(options, fetch):
-    """The kernels interpolate depth; the tensor path interpolates a position buffer (and differentiates it): every
-    variant's kernels leave a position buffer read between texels to it (the exact union's took it, and sent its
-    gradient to the depth)."""
+def test_no_kernel_differentiates_a_position_buffer_read_between_texels(options, fetch):
+    """The kernels' backwards differentiate the depth fetch; the tensor path differentiates the interpolated position
+    buffer: a call that records a gradient through such a read is left to it (the exact union's kernels took it,
+    and sent the gradient to the depth). Its values run in the kernels (tests/test_kernels_position_reads.py)."""
     gb = example_gbuffer(8, 8)
-    with_position = GBuffer(depth=None, camera=gb.camera, normals=gb.normals, position=gb.positions())
-    with pytest.raises(ValueError, match=f"{fetch} reads of a position buffer"):
-        with torch.no_grad():
-            BitmaskAO(fetch=fetch, backend="kernel", **options)(with_position)
+    with_position = GBuffer(depth=None, camera=gb.camera, normals=gb.normals,
+                            position=gb.positions().clone().requires_grad_())
+    with pytest.raises(ValueError, match=f"a gradient through {fetch} reads of a position buffer"):
+        BitmaskAO(fetch=fetch, backend="kernel", **options)(with_position)
 
 
 # ------------------------------------------------------------------------------- dispatch

@@ -19,7 +19,7 @@ import torch
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from ..thickness import ThicknessLayer, matching
-from .coverage import gbuffer_uncovered, option_uncovered
+from .coverage import gbuffer_uncovered, option_uncovered, position_read_uncovered
 from .build import cpu_kernels, grad_kernels
 from .frame import light_input, scalar_lanes, scale_derivative
 from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
@@ -389,8 +389,9 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
-    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA, bilinear reads of a
-    position buffer), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
+    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA, a position
+    buffer read between texels with a gradient or on CUDA: :func:`~torch_ao.kernels.coverage.position_read_uncovered`),
+    or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
     whether it grows the thickness with the sample's distance (values only: none of the kernels with gradients)."""
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
@@ -412,8 +413,8 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = gbuffer_uncovered(gbuffer)
     if reason is not None:
         return reason
-    if gbuffer.position is not None and module.variant != "ssilvb_glsl" and module.fetch in ("bilinear", "edge_aware"):
-        return f"{module.fetch} reads of a position buffer"  # (the kernel interpolates depth)
+    if module.variant != "ssilvb_glsl":  # (the shader reads its nearest texels, whatever fetch says)
+        return position_read_uncovered(module, gbuffer, _parameter_tensors(module))
     return None
 
 
@@ -445,7 +446,12 @@ def _needs_grad(module, gbuffer: GBuffer, parameters: bool = True) -> bool:
         return False
     tensors = [gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position]
     if parameters:
-        model = getattr(module, "thickness_model", None)
-        names = ["thickness"] if model is None else list(model.parameters())
-        tensors += [module.radius] + [getattr(module, name) for name in names]
+        tensors += _parameter_tensors(module)
     return any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors)
+
+
+def _parameter_tensors(module) -> list:
+    """A bitmask module's radius and its thickness model's parameters."""
+    model = getattr(module, "thickness_model", None)
+    names = ["thickness"] if model is None else list(model.parameters())
+    return [module.radius] + [getattr(module, name) for name in names]

@@ -180,7 +180,7 @@ def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]
     the module later sends the call to the tensor path); the ``parameters`` must be scalars, the
     G-buffer float32 on CPU, and, where autograd records, a gradient the backward covers (:func:`gradient_uncovered`).
     """
-    reason = call_uncovered(module, gbuffer, options, parameters, position_fetches=("nearest",))
+    reason = call_uncovered(module, gbuffer, options, parameters)
     if reason is not None:
         return reason
     if torch.is_grad_enabled():

@@ -516,6 +516,33 @@ template <class F> struct Sample {
     return lerp(lerp(t0, t1, fu), lerp(t2, t3, fu), fv);
   }
 
+  // A position buffer read between texels (Footprint.position): its four taps' positions interpolated
+  // perspective-correctly (p / depth and 1 / depth bilinearly, then divided; each tap's depth its own -z); four
+  // equal taps (a corner of the border, the edge-aware fetch's nearest copies) give the tap's depth unprojected
+  // at the clamped (su, sv), as the depth fetch does. Values only: the kernels' backwards differentiate the depth
+  // fetch, and the dispatch sends a gradient of such a read to the tensor path. The CPU's only: inline in every
+  // CUDA walk it took 6-23 more registers a thread (a quarter less occupancy in six of them), out of line it moved
+  // them both ways, for a read that engines' position buffers alone need
+  TAO_FN void position_taps(const Image& img, const F& su_c, const F& sv_c, F* pos) const {
+    const I three = I(3);
+    F inverse[4];
+    for (int k = 0; k < 4; ++k) inverse[k] = F(-1.0f) / F(tao::gather(img.positions + 2, index[k] * three));
+    const F denominator = lerp(lerp(inverse[0], inverse[1], fu), lerp(inverse[2], inverse[3], fu), fv);
+    for (int c = 0; c < 3; ++c) {  // (a component's taps at a time)
+      const F top = lerp(F(tao::gather(img.positions + c, index[0] * three)) * inverse[0],
+                         F(tao::gather(img.positions + c, index[1] * three)) * inverse[1], fu);
+      const F bottom = lerp(F(tao::gather(img.positions + c, index[2] * three)) * inverse[2],
+                            F(tao::gather(img.positions + c, index[3] * three)) * inverse[3], fu);
+      pos[c] = lerp(top, bottom, fv) / denominator;
+    }
+    const auto single = land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
+    if (any(single)) {
+      F tile[3];
+      unproject(img, su_c, sv_c, neg(F(tao::gather(img.positions + 2, index[0] * three))), tile);
+      for (int c = 0; c < 3; ++c) pos[c] = select(single, tile[c], pos[c]);
+    }
+  }
+
   // d gather(image, c, channels) / d su and d sv: the taps' weights moving (0 for a nearest fetch)
   TAO_FN void gather_slope(const float* image, int c, int channels, F& d_su, F& d_sv) const {
     if (!bilinear) {
@@ -623,7 +650,14 @@ template <class F> struct Sample {
       inverse_su = lerp(t1 - t0, t3 - t2, fv), inverse_sv = bottom - top;
       const F depth = reciprocal(lerp(top, bottom, fv));
       const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
-      unproject(img, su_c, sv_c, depth, pos);
+#ifndef __CUDACC_RTC__
+      if (!cfg.unprojected) {
+        position_taps(img, su_c, sv_c, pos);
+      } else
+#endif
+      {
+        unproject(img, su_c, sv_c, depth, pos);
+      }
     } else {
       const F fu0 = floor(su + F(0.5f - kNearestTie)), fv0 = floor(sv + F(0.5f - kNearestTie));
       fu = fv = inverse_su = inverse_sv = F(0.0f);
