@@ -11,8 +11,8 @@ Godot, three.js). Here a method with ``resolution="half"`` (or a preset ``"high@
    plane into a zigzag that occludes itself. With a fixed pick and the matching camera the smaller frame
    is the same scene seen with pixels ``f`` times larger, so planes stay planes and closed forms carry
    over. Normals (reconstructed at full resolution when the G-buffer has none, then picked), light, mask,
-   ids, back-face depth, positions and a full-resolution thickness map come from the same texel. The cost: an occluder thinner than ``f``
-   pixels is seen only where it crosses a picked row or column.
+   ids, back-face depth, positions and a full-resolution thickness map come from the same texel. The cost: an
+   occluder thinner than ``f`` pixels is seen only where it crosses a picked row or column.
 2. The method walks the smaller G-buffer unchanged (a world radius covers ``1/f`` as many pixels; options
    in pixels, e.g. ``min_step_px``, are in the walk's pixels).
 3. :func:`upsample`: a joint bilateral upsample: every full-resolution pixel takes the mean of the walked

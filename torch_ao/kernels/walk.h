@@ -520,10 +520,11 @@ template <class F> struct Sample {
   // perspective-correctly (p / depth and 1 / depth bilinearly, then divided; each tap's depth its own -z); four
   // equal taps (a corner of the border, the edge-aware fetch's nearest copies) give the tap's depth unprojected
   // at the clamped (su, sv), as the depth fetch does. Values only: the kernels' backwards differentiate the depth
-  // fetch, and the dispatch sends a gradient of such a read to the tensor path. The CPU's only: inline in every
-  // CUDA walk it took 6-23 more registers a thread (a quarter less occupancy in six of them), out of line it moved
-  // them both ways, for a read that engines' position buffers alone need
-  TAO_FN void position_taps(const Image& img, const F& su_c, const F& sv_c, F* pos) const {
+  // fetch, and the dispatch sends a gradient of such a read to the tensor path. The CPU's only, out of line (inline,
+  // GTAO's forward took 4 % longer): inline in every CUDA walk it took 6-23 more registers a thread (a quarter less
+  // occupancy in six of them), out of line it moved them both ways, for a read that engines' position buffers
+  // alone need
+  TAO_COLD void position_taps(const Image& img, const F& su_c, const F& sv_c, F* pos) const {
     const I three = I(3);
     F inverse[4];
     for (int k = 0; k < 4; ++k) inverse[k] = F(-1.0f) / F(tao::gather(img.positions + 2, index[k] * three));
