@@ -313,15 +313,19 @@ def _fetch(surfaces, grid: torch.Tensor, size: tuple[int, int]):
     def sample(img, g, mode):
         return F.grid_sample(img, g, mode=mode, padding_mode="border", align_corners=True)[0].view(-1, *shape)
 
-    # the nearest texel, a tie between two read as the walk does: the lower one (walk.fetch.NEAREST_TIE)
-    nearest = flat - flat.new_tensor((2 * NEAREST_TIE / max(W - 1, 1), 2 * NEAREST_TIE / max(H - 1, 1)))
+    def nearest(img):  # a tie between two texels read as the walk does: the lower one (walk.fetch.NEAREST_TIE)
+        tie = flat.new_tensor((2 * NEAREST_TIE / max(W - 1, 1), 2 * NEAREST_TIE / max(H - 1, 1)))
+        return sample(img, flat - tie, "nearest")
+
+    if fetch == "nearest":
+        return nearest(image), True
     if fetch != "edge_aware":
-        return sample(image, nearest if fetch == "nearest" else flat, fetch), (True if fetch == "nearest" else None)
+        return sample(image, flat, fetch), None
     # The cell holding screen point u is floor(u): the nearest cell centre to u - 1/2.
     to_cells = flat.new_tensor(((W - 1) / max(W - 2, 1), (H - 1) / max(H - 2, 1)))
     shift = flat.new_tensor((1 / max(W - 2, 1), 1 / max(H - 2, 1)))
     smooth = sample(cells, (flat + 1) * to_cells - 1 - shift, "nearest")[0] > 0.5
-    return torch.where(smooth, sample(image, flat, "bilinear"), sample(image, nearest, "nearest")), ~smooth
+    return torch.where(smooth, sample(image, flat, "bilinear"), nearest(image)), ~smooth
 
 
 def _unblocked(surfaces, P, n, w, jitter, nsteps, s_max, radius, proj, disc=None) -> torch.Tensor:

@@ -380,10 +380,9 @@ struct BitmaskAccumulator {
   template <class F>
   TAO_HOT void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     using I = typename LaneTraits<F>::I;
-    // the sector rule: the sample's front (delta) and back (delta - thickness V) seen from the pixel,
-    // as fractions of the hemisphere from its edge on the frame's side -1
-    const int turn = sector_turn(angles, side);
-    const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
+    // the sector rule: the sample's front (delta) and back point seen from the pixel, as fractions of the
+    // hemisphere from its edge on the frame's side -1
+    const F t = thickness.at(px, smp);
     F start, width;
     if (angles == SectorAngles::plane) {  // (DefaultAccumulator.interval: an invalid sample's is empty)
       F seg[4];
@@ -391,7 +390,9 @@ struct BitmaskAccumulator {
       occluder_segment(along_ray, side, px, sl, smp.delta, t, seg);
       segment_span(clip, epsilon, side, seg, st.shift, F(radius), live, start, width);
       width = select(live, width, F(-1.0f));
-    } else {
+    } else {  // HDRP's 3D cosines, its back point t along V
+      const int turn = sector_turn(angles, side);
+      const F scale = F(float(turn) / kPi);
       F front_angle, back_angle;
       sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
       sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
