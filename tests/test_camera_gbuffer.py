@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torch_ao.camera import PinholeCamera
-from torch_ao.examples import crease_gbuffer, plane_gbuffer
+from torch_ao.examples import crease_gbuffer, example_gbuffer, plane_gbuffer
 from torch_ao.gbuffer import GBuffer, normals_from_depth
 from torch_ao.io import load_gbuffer, save_npz
 
@@ -205,3 +205,13 @@ def test_npz_bad_files(tmp_path):
     np.savez(tmp_path / "nanref.npz", depth=np.ones((3, 3), np.float32), fov_y_degrees=60.0, ao=ao)
     with pytest.raises(ValueError, match="ao: 1 non-finite"):
         load_gbuffer(tmp_path / "nanref.npz")
+
+
+def test_to_takes_a_dtype_as_tensor_to_does():
+    gb = example_gbuffer(6, 8)
+    wide = gb.to(torch.float64)
+    assert wide.depth.dtype == torch.float64 and wide.camera.intrinsics.dtype == torch.float64
+    assert wide.depth.device == gb.depth.device
+    assert torch.equal(wide.depth.float(), gb.depth)
+    with pytest.raises(TypeError, match="two dtypes"):
+        gb.to(torch.float64, torch.float32)

@@ -8,6 +8,10 @@ rounding does not reach, or both compute its inputs alike.
 - The ``"ssilvb_glsl"`` back horizon straight behind an occluder (a back-face layer with no exit, capped at 1e6):
   its cosine rounds to -1 or just below. With ``glsl_numerics="ieee"`` a cosine beyond +-1 is taken at +-1, so
   the kernel's dot product and torch's need not round alike (they differed by half a slice's visibility).
+- A sample off the slice, in the plane of the view vector and the slice's normal (the border's clamp puts off-screen
+  steps into the pixel's own column, which that plane holds when the slice's tangent is V x the camera's y): its
+  tangent coordinate is 0 but for rounding, whose sign made its back angle +pi or -pi and so decided which half of
+  the hemisphere it occludes (visibility 0.094 against 0.94). Within ``MIN_OFFSET`` of the depth it is taken as +0.
 - The ``"ssilvb_glsl"`` sample on the pixel's own texel with ``thickness_growth``: its thickness is the ungrown
   one (``|sample - pixel|`` is 0), not one grown with the stand-in direction's length, whose rounding decided
   Mesa's back cosine (visibility 1.5 apart).
@@ -23,8 +27,9 @@ from torch_ao.examples import floor_wall_gbuffer
 from torch_ao.gbuffer import GBuffer
 from torch_ao.thickness import BackfaceThickness
 from torch_ao.walk.fetch import NEAREST_TIE, Footprint
+from torch_ao.walk.sample import MIN_OFFSET, slice_coordinates
 from kernel_agreement import use_scalar_lanes
-from test_kernels import built  # noqa: F401  (the fixture: the C++ kernels built)
+from test_kernels import built, rough_gbuffer  # noqa: F401  (the fixture: the C++ kernels built)
 
 
 def rough(height: int, width: int, batch: int, seed: int) -> GBuffer:
@@ -105,3 +110,34 @@ def test_glsl_ieee_back_horizon_is_continuous_in_the_thickness():
                                              thickness=thickness)(gb).visibility)
     assert torch.equal(values[0], values[1]) and torch.equal(values[1], values[2])
     assert values[0][gb.valid].min() < 1.0
+
+
+def test_a_tangent_coordinate_within_the_offset_is_positive_zero_without_gradient():
+    depth = torch.full((4,), 2.0, dtype=torch.float64)
+    view = torch.tensor([[0.0, 0.0, 1.0]] * 4, dtype=torch.float64)
+    tangent = torch.tensor([[1.0, 0.0, 0.0]] * 4, dtype=torch.float64)
+    across = torch.tensor([-1e-9, 1e-9, -3 * MIN_OFFSET, 3 * MIN_OFFSET], dtype=torch.float64)
+    delta = torch.stack((across, torch.zeros(4, dtype=torch.float64), torch.full((4,), -0.5, dtype=torch.float64)), -1)
+    delta.requires_grad_(True)
+    along_view, snapped = slice_coordinates(delta, view, tangent, 1, depth)
+    assert along_view.tolist() == [-0.5] * 4
+    assert snapped.tolist() == [0.0, 0.0, -3 * MIN_OFFSET, 3 * MIN_OFFSET]
+    assert not torch.signbit(snapped[:2]).any()  # +0: atan2(+0, -x) = +pi, on the sample's own side
+    snapped.sum().backward()
+    assert delta.grad[:, 0].tolist() == [0.0, 0.0, 1.0, 1.0]
+
+
+OFF_SLICE = dict(slices=1, steps=2, radius=0.529, jitter=False, fetch="nearest", border="clamp", thickness=0.38)
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+def test_a_sample_clamped_into_the_pixels_column_occludes_its_own_side(built, lanes, monkeypatch):
+    gb = rough_gbuffer(35, 52, batch=2, seed=87)
+    reference = assert_backends_agree(
+        lambda backend: torch_ao.BitmaskAO(mode="hard", backend=backend, **OFF_SLICE), gb, lanes, monkeypatch)
+    # the pixel where the sign of the rounding decided (a fraction of the half hemisphere on one side, all of it on
+    # the other): float64 takes the same side as float32
+    with torch.no_grad():
+        wide = torch_ao.BitmaskAO(mode="hard", backend="torch", **OFF_SLICE).double()(gb.to(torch.float64)).visibility
+    assert torch.equal(wide.float(), reference)
+    assert float(reference[0, 0, 11, 51]) == pytest.approx(0.09375)  # (the +0 side: 3 sectors of 32 visible)

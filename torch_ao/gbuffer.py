@@ -187,7 +187,13 @@ class GBuffer:
         checks.raise_first()
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> "GBuffer":
-        """A copy on ``device`` (and with float buffers in ``dtype``)."""
+        """A copy on ``device`` (and with float buffers in ``dtype``); as ``Tensor.to``, ``gbuffer.to(torch.float64)``
+        changes the dtype alone."""
+        if isinstance(device, torch.dtype):
+            if dtype is not None:
+                raise TypeError(f"to: got two dtypes, {device} and {dtype}")
+            device, dtype = None, device
+
         def move(x, floating=True):
             if x is None:
                 return None

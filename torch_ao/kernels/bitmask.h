@@ -180,16 +180,18 @@ template <class F> TAO_FN Slice<F> slice_frame(SectorAngles angles, const Slice<
 TAO_FN int sector_turn(SectorAngles angles, int side) { return angles == SectorAngles::hdrp ? -side : side; }
 
 // The sector rule's angles of a sample at delta with thickness t on the walk's side: its front (delta) and back
-// (delta - t V) seen from the pixel, from V toward the frame's tangent on sector_turn's side (T: the walked slice's)
+// (delta - t V) seen from the pixel, from V toward the frame's tangent on sector_turn's side (T: the walked slice's;
+// pixel_z: the pixel's view-space z, slice_coordinates')
 template <class F>
-TAO_HOT void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t, F& front,
-                          F& back) {
+TAO_HOT void sample_angles(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& pixel_z,
+                          const F& t, F& front, F& back) {
   if (angles == SectorAngles::hdrp) {
     const ViewCosine<F> to_front(delta, V, F(0.0f)), to_back(delta, V, t);
     front = fast_acos_of_root(to_front.c, to_front.root);
     back = fast_acos_of_root(to_back.c, to_back.root);
   } else {
-    const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T);
+    F along_view, along_tangent;
+    slice_coordinates(side, delta, V, T, pixel_z, along_view, along_tangent);
     front = atan2(along_tangent, along_view);
     back = atan2(along_tangent, along_view - t);
   }
@@ -213,7 +215,8 @@ template <class F, class G>
 TAO_HOT void occluder_segment(bool along_ray, int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta,
                               const G& t, G* seg) {
   const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
-  const G fv = dot3(delta, V), ft = G(float(side)) * dot3(delta, T);
+  G fv, ft;
+  slice_coordinates(side, delta, V, T, px.P[2], fv, ft);
   seg[0] = fv, seg[1] = ft;
   if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
     const G k = t / clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f));
@@ -264,8 +267,8 @@ template <class F> TAO_FN F fast_acos_slope(const F& x, const F& root) {
 // and T added to g_delta, g_V and g_T, d L / d t returned (HDRP's angles: safe_fast_acos' slope, none where
 // 1 - |c| < 1e-6)
 template <class F>
-TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& t,
-                               const F& g_front, const F& g_back, F* g_delta, F* g_V, F* g_T) {
+TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, const F* V, const F* T, const F& pixel_z,
+                               const F& t, const F& g_front, const F& g_back, F* g_delta, F* g_V, F* g_T) {
   if (angles == SectorAngles::hdrp) {
     // c = d . V / |d|, d = delta - o V: dc/d delta = q = (V - c d / |d|) / |d| = ((d x V) x d) / |d|^3 (without
     // cancellation as |c| -> 1), dc/dV = d / |d| - o q, dc/do = -q . V
@@ -285,11 +288,15 @@ TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, co
     return add(t, g_back);
   }
   // atan2(y, x): d = (x dy - y dx) / (x^2 + y^2), x = delta . V (- t), y = side delta . T
-  const F along_view = dot3(delta, V), along_tangent = F(float(side)) * dot3(delta, T), back_view = along_view - t;
+  // (a tangent coordinate taken as +0, slice_coordinates', has no gradient)
+  F along_view, along_tangent;
+  slice_coordinates(side, delta, V, T, pixel_z, along_view, along_tangent);
+  const F back_view = along_view - t;
   const F inv_f = g_front / fma(along_view, along_view, along_tangent * along_tangent);
   const F inv_b = g_back / fma(back_view, back_view, along_tangent * along_tangent);
   const F g_view = neg((inv_f + inv_b) * along_tangent);
-  const F g_tangent = (along_view * inv_f + back_view * inv_b) * F(float(side));
+  const F g_tangent =
+      select(along_tangent == F(0.0f), F(0.0f), (along_view * inv_f + back_view * inv_b) * F(float(side)));
   for (int k = 0; k < 3; ++k) {
     g_delta[k] = g_delta[k] + g_view * V[k] + g_tangent * T[k];
     g_V[k] = g_V[k] + g_view * delta[k];
@@ -394,7 +401,7 @@ struct BitmaskAccumulator {
       const int turn = sector_turn(angles, side);
       const F scale = F(float(turn) / kPi);
       F front_angle, back_angle;
-      sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
+      sample_angles(angles, side, smp.delta, px.V, sl.T, px.P[2], t, front_angle, back_angle);
       sample_interval(turn, fma(front_angle, scale, st.shift), fma(back_angle, scale, st.shift), epsilon, start, width);
     }
     const I bits = sector_bits(start, width, rounding);

@@ -314,7 +314,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const int turn = sector_turn(angles, side);
     const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
     F front_angle, back_angle, s, w;
-    sample_angles(angles, side, smp.delta, px.V, sl.T, t, front_angle, back_angle);
+    sample_angles(angles, side, smp.delta, px.V, sl.T, px.P[2], t, front_angle, back_angle);
     const F front = fma(front_angle, scale, st.shift), back = fma(back_angle, scale, st.shift);
     sample_interval(turn, front, back, epsilon, s, w);
     w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
@@ -480,8 +480,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)};
       F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
-      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, walked.T, st.t[m],
-                                                  g.front, g.back, g_delta, unused_V, unused_T);
+      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, walked.T, px.P[2],
+                                                  st.t[m], g.front, g.back, g_delta, unused_V, unused_T);
       thickness_adjoint(g_thickness, delta, st.t[m], st.tv[m], px, sums);
       const F radial[3] = {st.radial[0][m], st.radial[1][m], st.radial[2][m]};
       sums.radius = sums.radius + select(px.live, fma(g_thickness, st.radial_t[m], dot3(g_delta, radial)), F(0.0f));
@@ -545,8 +545,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       const auto valid = st.valid[m];
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
-      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, st.t[m], g.front,
-                                                  g.back, g_delta, g_V, g_T);
+      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, px.P[2],
+                                                  st.t[m], g.front, g.back, g_delta, g_V, g_T);
       // d L / d the value the scale multiplies (the offset's, the scale's and the growth's into sums)
       const F g_value = thickness_adjoint(g_thickness, delta, st.t[m], st.tv[m], px, sums, g_delta) *
                         F(thickness.scale);

@@ -32,6 +32,21 @@ template <class F> TAO_HOT void cross(const F* a, const F* b, F* out) {
   out[1] = a[2] * b[0] - a[0] * b[2];
   out[2] = a[0] * b[1] - a[1] * b[0];
 }
+
+// Sample.along_view and along_tangent of a sample at delta from a pixel at view-space z pixel_z: delta . V, and
+// side delta . T taken as +0 (no gradient) within kMinOffset of the pixel's depth -pixel_z (walk.sample's
+// slice_coordinates: a sample off the slice, in the plane of V and the slice's normal, would otherwise occlude the
+// half of the hemisphere its rounding picks). The test reads values alone (reverse lanes record no node for it).
+template <class G, class D>
+TAO_HOT void slice_coordinates(int side, const G* delta, const G* V, const G* T, const D& pixel_z, G& along_view,
+                               G& along_tangent) {
+  using Plain = typename ValueOf<G>::type;
+  along_view = dot3(delta, V);
+  const G tangent = G(float(side)) * dot3(delta, T);
+  const auto off_slice = abs(value(tangent)) <= neg(Plain(value(pixel_z))) * Plain(kMinOffset);
+  along_tangent = select(off_slice, G(0.0f), tangent);
+}
+
 // F.normalize(x, eps=1e-12)
 template <class F> TAO_HOT void normalize3(const F* x, F* out) {
   const F len = clamp_min(norm3(x), F(1e-12f));

@@ -36,13 +36,13 @@ A new method: subclass :class:`SliceAccumulator` (``begin_slice``, ``step``, ``e
 optionally ``begin_walk``, ``batch_steps``, ``paired_sides`` + ``step_pair``), then a module in
 :mod:`torch_ao.methods` that returns it from ``accumulator(frame)`` (see ``docs/architecture.md``).
 """
-from .fetch import Footprint, GradientRows, PerspectiveBilinearDepth, SampleAlong
+from .fetch import Footprint, GradientRows, PerspectiveBilinearDepth
 from .frame import Frame, Queries
 from .patterns import (AZIMUTHS, BORDER_MODES, FETCH_MODES, NOISES, SLICE_SAMPLINGS, SlicePattern, hilbert_index,
                        hilbert_r2_noise, interleaved_gradient_noise, projected_normal_azimuths, staggered_offset,
                        unoccluded_slice_integral, view_basis, radius_px, step_direction, tangent_from_screen_angle, tangent_from_view_azimuth)
 from .protocol import SamplingPattern, SliceAccumulator
-from .sample import Sample, fetch_sample
+from .sample import Sample, SampleAlong, fetch_sample
 from .walk import SliceGeometry, march, march_chunks, slice_geometry
 
 __all__ = [

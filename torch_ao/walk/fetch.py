@@ -6,9 +6,9 @@ where the 2x2 cell holding the sample is one surface (:func:`continuous_cell_ima
 texel's depth elsewhere: bilinear interpolation across a depth edge invents a surface (a "skirt") joining
 the near and the far side, which a thick occluder model turns into occlusion that is not there (the
 screen-space truth's ``edge_aware`` uses the same rule). The walk fetches ``slices x sides x steps``
-samples per pixel, so the two autograd functions here keep a few floats per sample and rebuild the
-rest in backward: :class:`PerspectiveBilinearDepth` (the depth alone) and :class:`SampleAlong` (the
-two in-slice coordinates of ``delta``, fused with the fetch).
+samples per pixel, so the autograd functions keep a few floats per sample and rebuild the rest in
+backward: :class:`PerspectiveBilinearDepth` here (the depth alone) and ``sample.SampleAlong`` (the two
+in-slice coordinates of ``delta``, fused with the fetch).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import torch
 from ..camera import pixels_to_view
 from .frame import Frame, repeat_rows, take
 
-__all__ = ["Footprint", "PerspectiveBilinearDepth", "SampleAlong", "GradientRows", "bilerp", "bilinear_taps",
+__all__ = ["Footprint", "PerspectiveBilinearDepth", "GradientRows", "bilerp", "bilinear_taps",
            "EDGE_MIN_RATIO", "EDGE_SLOPE_TOLERANCE", "NEAREST_TIE", "continuous_cells", "continuous_cell_image", "cell_flags", "edge_aware_taps"]
 
 #: The nearest texel of a screen coordinate ``x`` is ``floor(x + 0.5 - NEAREST_TIE)``: a coordinate within 1/512
@@ -145,7 +145,7 @@ class PerspectiveBilinearDepth(torch.autograd.Function):
     """Perspective-correct bilinear depth ``1 / sum_k w_k(fu, fv) / z_k`` ``(N,)`` at four taps.
 
     Interpolating ``1/depth`` (affine in screen space across a plane) reproduces planes exactly. The plain
-    autograd path of the walk; the fused one (:class:`SampleAlong`) differentiates it by hand too.
+    autograd path of the walk; the fused one (``sample.SampleAlong``) differentiates it by hand too.
     Inputs: ``safe_depth`` ``(P,)`` positive depths of the frame, ``index`` ``(N,4)`` taps into it,
     ``fu, fv`` ``(N,)`` fractional offsets in ``[0,1)``. A custom function because the walk fetches
     ``slices x sides x steps`` samples per pixel: plain autograd would keep the 64-bit tap indices, the
@@ -230,7 +230,7 @@ class Footprint:
         return (frame.inverse_depth, self.su, self.sv)
 
     def fusable(self, frame: Frame) -> bool:
-        """Whether :class:`SampleAlong` can differentiate the position (camera intrinsics without gradient;
+        """Whether ``sample.SampleAlong`` can differentiate the position (camera intrinsics without gradient;
         its bilinear backward is the depth fetch's, so not for bilinear reads of a position buffer)."""
         if self.fu is not None and frame.has_position:
             return False
@@ -284,88 +284,6 @@ def _unproject(frame: Frame, batch: torch.Tensor, su: torch.Tensor, sv: torch.Te
     """``(N,3)`` view-space points at screen ``(su, sv)`` (clamped to the frame) and ``depth``."""
     B, H, W = frame.shape
     return pixels_to_view(su.clamp(0, W - 1), sv.clamp(0, H - 1), depth, *frame.intrinsics(batch))
-
-
-class SampleAlong(torch.autograd.Function):
-    """Gradients of ``(delta . V, side * delta . T)`` of ``steps`` block-major steps, fused.
-
-    Inputs: the frame, the samples' :class:`Footprint` (``steps * N`` rows), ``valid`` (rows), ``side``,
-    ``steps``, ``batch`` ``(N,)``, the two outputs' values (computed without a graph); then the
-    footprint's differentiable inputs (``frame.positions`` ``(P,3)`` for nearest fetch or
-    ``frame.inverse_depth`` ``(P,)`` for bilinear, ``su``, ``sv``) and the queries' ``P``, ``V``, ``T``
-    ``(N,3)`` (not repeated per step). Plain autograd would keep the position, ``delta``, the repeated
-    ``V`` and ``T`` and the fetch's intermediates for every sample (about 90 bytes); this keeps ``su``,
-    ``sv`` and ``valid`` per sample and rebuilds the footprint, position and ``delta`` in backward.
-    """
-
-    @staticmethod
-    def forward(ctx, frame, footprint, valid, side, steps, batch, along, source, su, sv, P, V, T):
-        ctx.frame, ctx.side, ctx.steps, ctx.nearest = frame, side, steps, footprint.fu is None
-        ctx.edge_aware = footprint.edge_aware
-        ctx.save_for_backward(source, su, sv, valid, batch, P, V, T, footprint.index if ctx.nearest else None)
-        return along
-
-    @staticmethod
-    def backward(ctx, g_view, g_tangent):
-        source, su, sv, valid, batch, P, V, T, index = ctx.saved_tensors
-        frame, side, J = ctx.frame, ctx.side, ctx.steps
-        N = P.shape[0]
-        g_view = torch.zeros(J * N, dtype=P.dtype, device=P.device) if g_view is None else g_view
-        g_tangent = torch.zeros_like(g_view) if g_tangent is None else g_tangent
-        with torch.no_grad():
-            # delta_j = position_j - P where valid (m = 1), else -V; along_view = delta . V, along_tangent = side delta . T.
-            # Rows are block-major (J, N); only rows with a gradient are worked on (see GradientRows).
-            rows = GradientRows(J, N, g_view, g_tangent)
-            g_view, g_tangent, su, sv, valid = map(rows.take, (g_view, g_tangent, su, sv, valid))
-            m = valid.to(P.dtype)
-            gv = g_view * m  # gradients reaching valid samples
-            gt = g_tangent * (m if side > 0 else -m)
-            a, b = rows.per_query(gv)[:, None], rows.per_query(gt)[:, None]  # (N,1)
-            c = rows.per_query(g_view)[:, None] - a  # ... and invalid ones
-            e = side * rows.per_query(g_tangent)[:, None] - b
-            Vr, Tr = rows.per_row(V), rows.per_row(T)
-            # forward inputs after ctx: frame, footprint, valid, side, steps, batch, along (no gradient),
-            # then source, su, sv, P, V, T
-            needs = dict(zip(("source", "su", "sv", "P", "V", "T"), ctx.needs_input_grad[7:]))
-            g_source = g_su = g_sv = g_P = g_V = g_T = None
-            if ctx.nearest:
-                index = rows.take(index)
-                px, py, pz = take(source, index).unbind(-1)
-                if needs["source"]:
-                    g_pos = gv[:, None] * Vr + gt[:, None] * Tr
-                    g_source = torch.zeros_like(source).index_add_(0, index, g_pos)
-            else:
-                B, H, W = frame.shape
-                batch_rows = rows.per_row(batch) if B > 1 else batch  # (a single image needs no per-row batch)
-                taps, fu, fv = bilinear_taps(frame, batch_rows, su, sv)
-                if ctx.edge_aware:
-                    taps = edge_aware_taps(frame, taps, fu, fv)
-                inverse = take(source, taps)  # (rows,4) inverse depths
-                depth = bilerp(inverse.unbind(-1), fu, fv).reciprocal()
-                fx, fy, cx, cy = frame.intrinsics(batch_rows)
-                # position = depth * (xh, yh, -1) with xh = (clamp(su) - cx) / fx, yh = -(clamp(sv) - cy) / fy
-                su_c, sv_c = su.clamp(0, W - 1), sv.clamp(0, H - 1)
-                xh, yh = (su_c - cx) / fx, (sv_c - cy) / -fy
-                g_x = torch.addcmul(gv * Vr[:, 0], gt, Tr[:, 0])
-                g_y = torch.addcmul(gv * Vr[:, 1], gt, Tr[:, 1])
-                g_z = torch.addcmul(gv * Vr[:, 2], gt, Tr[:, 2])
-                g_inverse, g_fu, g_fv = _bilerp_depth_backward(inverse, fu, fv, depth, g_x * xh + g_y * yh - g_z)
-                if needs["source"]:
-                    g_source = torch.zeros_like(source).index_add_(0, taps.view(-1), g_inverse.view(-1))
-                # fu = su - floor(su); clamp passes the gradient inside [0, W - 1]
-                g_su = rows.put(torch.where(su_c == su, g_x * (depth / fx), 0.0).add_(g_fu))
-                g_sv = rows.put(torch.where(sv_c == sv, g_y * (depth / -fy), 0.0).add_(g_fv))
-                px, py, pz = xh * depth, yh * depth, -depth
-            # sums over the steps of the gradients times the position
-            Sv = torch.stack([rows.per_query(gv * p) for p in (px, py, pz)], -1)  # (N,3)
-            St = torch.stack([rows.per_query(gt * p) for p in (px, py, pz)], -1)
-            if needs["P"]:
-                g_P = -(a * V + b * T)
-            if needs["V"]:
-                g_V = Sv - a * P - 2 * c * V - e * T
-            if needs["T"]:
-                g_T = St - b * P - e * V
-        return (None,) * 7 + (g_source, g_su, g_sv, g_P, g_V, g_T)
 
 
 class GradientRows:

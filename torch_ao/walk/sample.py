@@ -6,13 +6,13 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .fetch import Footprint, SampleAlong, bilerp
+from .fetch import Footprint, GradientRows, _bilerp_depth_backward, bilerp, bilinear_taps, edge_aware_taps
 from .frame import Frame, Queries, take
 
 if TYPE_CHECKING:
     from .walk import SliceGeometry
 
-__all__ = ["MIN_OFFSET", "Sample", "fetch_sample"]
+__all__ = ["MIN_OFFSET", "Sample", "SampleAlong", "fetch_sample", "slice_coordinates"]
 
 #: the shortest offset of a sample from its pixel, as a fraction of the pixel's depth, that can occlude: float32
 #: rounding of the pixel's own position is ~1e-7 of the depth, and a step 0.005 pixels long at a focal length of
@@ -54,7 +54,8 @@ class Sample:
         position: ``(N,3)`` sample's view-space position; ``delta = position - P``.
         valid: ``(N,)`` bool; invalid samples (background, dropped at the border, or on the centre
             texel) have a safe ``delta`` pointing away from the camera, so they never occlude.
-        along_view, along_tangent: ``delta . V`` and ``delta . (side T)``, ``(N,)``.
+        along_view, along_tangent: ``delta . V`` and ``delta . (side T)``, ``(N,)``; a tangent coordinate
+            within ``MIN_OFFSET`` of the pixel's depth is ``+0`` (:func:`slice_coordinates`).
         distance: ``|delta|`` ``(N,)``; distance_px: the screen distance in pixels ``(N,)``.
 
     ``geom`` may be ``None`` for a sample taken outside a slice walk (SSAO's kernel): then only the
@@ -99,14 +100,15 @@ class Sample:
     @cached_property
     def _along(self) -> tuple[torch.Tensor, torch.Tensor]:
         q, geom = self._queries, self._geom
+        depth = -q.position[:, 2]
         if not self._graph:
-            return _along(self._delta_values, q.view, geom.tangent, self.side)
+            return slice_coordinates(self._delta_values, q.view, geom.tangent, self.side, depth)
         if self._footprint.fusable(self._frame):
             with torch.no_grad():
-                values = _along(self._delta_values, q.view, geom.tangent, self.side)
+                values = slice_coordinates(self._delta_values, q.view, geom.tangent, self.side, depth)
             return SampleAlong.apply(self._frame, self._footprint, self.valid, self.side, self.steps,
                                      self._base[0].batch, values, *self._inputs)
-        return _along(self.delta, q.view, geom.tangent, self.side)
+        return slice_coordinates(self.delta, q.view, geom.tangent, self.side, depth)
 
     def rows(self, index: torch.Tensor) -> "Sample":
         """The sample restricted to rows ``index`` ``(M,)`` (one flat step: ``steps = 1``)."""
@@ -161,9 +163,106 @@ class Sample:
         return bilerp(take(buf, f.index).unbind(1), fu, fv)  # (N,C)
 
 
-def _along(delta: torch.Tensor, view: torch.Tensor, tangent: torch.Tensor, side: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(delta . V, side * delta . T)`` ``(N,)``."""
-    return (delta * view).sum(-1), side * (delta * tangent).sum(-1)
+def slice_coordinates(delta: torch.Tensor, view: torch.Tensor, tangent: torch.Tensor, side: int,
+                      depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(delta . V, side delta . T)`` ``(N,)`` of offsets ``delta`` ``(N,3)`` from pixels at ``depth`` ``(N,)``
+    (``-P_z``), the tangent coordinate ``+0`` (without gradient) within ``MIN_OFFSET`` of the depth.
+
+    A sample in the plane of the view vector and the slice's normal (off the slice: one the border clamps into
+    the pixel's own column, or an invalid one's ``-V``) has a tangent coordinate of 0 but for rounding, whose
+    sign would decide whether its back angle is +pi or -pi, and with it which half of the hemisphere it
+    occludes. Taken as ``+0``, it lies on its own side in every backend and precision."""
+    along_view = (delta * view).sum(-1)
+    along_tangent = side * (delta * tangent).sum(-1)
+    off_slice = along_tangent.detach().abs() <= MIN_OFFSET * depth.detach()
+    return along_view, torch.where(off_slice, 0.0, along_tangent)
+
+
+class SampleAlong(torch.autograd.Function):
+    """Gradients of ``(delta . V, side * delta . T)`` of ``steps`` block-major steps, fused.
+
+    Inputs: the frame, the samples' :class:`Footprint` (``steps * N`` rows), ``valid`` (rows), ``side``,
+    ``steps``, ``batch`` ``(N,)``, the two outputs' values (computed without a graph); then the
+    footprint's differentiable inputs (``frame.positions`` ``(P,3)`` for nearest fetch or
+    ``frame.inverse_depth`` ``(P,)`` for bilinear, ``su``, ``sv``) and the queries' ``P``, ``V``, ``T``
+    ``(N,3)`` (not repeated per step). Plain autograd would keep the position, ``delta``, the repeated
+    ``V`` and ``T`` and the fetch's intermediates for every sample (about 90 bytes); this keeps ``su``,
+    ``sv`` and ``valid`` per sample and rebuilds the footprint, position and ``delta`` in backward.
+    """
+
+    @staticmethod
+    def forward(ctx, frame, footprint, valid, side, steps, batch, along, source, su, sv, P, V, T):
+        ctx.frame, ctx.side, ctx.steps, ctx.nearest = frame, side, steps, footprint.fu is None
+        ctx.edge_aware = footprint.edge_aware
+        ctx.save_for_backward(source, su, sv, valid, batch, P, V, T, footprint.index if ctx.nearest else None)
+        return along
+
+    @staticmethod
+    def backward(ctx, g_view, g_tangent):
+        source, su, sv, valid, batch, P, V, T, index = ctx.saved_tensors
+        frame, side, J = ctx.frame, ctx.side, ctx.steps
+        N = P.shape[0]
+        g_view = torch.zeros(J * N, dtype=P.dtype, device=P.device) if g_view is None else g_view
+        g_tangent = torch.zeros_like(g_view) if g_tangent is None else g_tangent
+        with torch.no_grad():
+            # delta_j = position_j - P where valid (m = 1), else -V; along_view = delta . V, along_tangent = side delta . T
+            # (+0 without gradient off the slice: slice_coordinates). Rows are block-major (J, N); only rows with a
+            # gradient are worked on (see GradientRows).
+            rows = GradientRows(J, N, g_view, g_tangent)
+            g_view, g_tangent, su, sv, valid = map(rows.take, (g_view, g_tangent, su, sv, valid))
+            Vr, Tr, Pr = rows.per_row(V), rows.per_row(T), rows.per_row(P)
+            # forward inputs after ctx: frame, footprint, valid, side, steps, batch, along (no gradient),
+            # then source, su, sv, P, V, T
+            needs = dict(zip(("source", "su", "sv", "P", "V", "T"), ctx.needs_input_grad[7:]))
+            if ctx.nearest:
+                index = rows.take(index)
+                position = take(source, index)
+            else:
+                B, H, W = frame.shape
+                batch_rows = rows.per_row(batch) if B > 1 else batch  # (a single image needs no per-row batch)
+                taps, fu, fv = bilinear_taps(frame, batch_rows, su, sv)
+                if ctx.edge_aware:
+                    taps = edge_aware_taps(frame, taps, fu, fv)
+                inverse = take(source, taps)  # (rows,4) inverse depths
+                depth = bilerp(inverse.unbind(-1), fu, fv).reciprocal()
+                fx, fy, cx, cy = frame.intrinsics(batch_rows)
+                # position = depth * (xh, yh, -1) with xh = (clamp(su) - cx) / fx, yh = -(clamp(sv) - cy) / fy
+                su_c, sv_c = su.clamp(0, W - 1), sv.clamp(0, H - 1)
+                xh, yh = (su_c - cx) / fx, (sv_c - cy) / -fy
+                position = torch.stack((xh * depth, yh * depth, -depth), -1)
+            delta = torch.where(valid[:, None], position - Pr, -Vr)
+            g_tangent = torch.where(slice_coordinates(delta, Vr, Tr, side, -Pr[:, 2])[1] == 0, 0.0, g_tangent)
+            m = valid.to(P.dtype)
+            gv = g_view * m  # gradients reaching valid samples
+            gt = g_tangent * (m if side > 0 else -m)
+            a, b = rows.per_query(gv)[:, None], rows.per_query(gt)[:, None]  # (N,1)
+            c = rows.per_query(g_view)[:, None] - a  # ... and invalid ones
+            e = side * rows.per_query(g_tangent)[:, None] - b
+            g_source = g_su = g_sv = g_P = g_V = g_T = None
+            if ctx.nearest:
+                if needs["source"]:
+                    g_pos = gv[:, None] * Vr + gt[:, None] * Tr
+                    g_source = torch.zeros_like(source).index_add_(0, index, g_pos)
+            else:
+                g_x = torch.addcmul(gv * Vr[:, 0], gt, Tr[:, 0])
+                g_y = torch.addcmul(gv * Vr[:, 1], gt, Tr[:, 1])
+                g_z = torch.addcmul(gv * Vr[:, 2], gt, Tr[:, 2])
+                g_inverse, g_fu, g_fv = _bilerp_depth_backward(inverse, fu, fv, depth, g_x * xh + g_y * yh - g_z)
+                if needs["source"]:
+                    g_source = torch.zeros_like(source).index_add_(0, taps.view(-1), g_inverse.view(-1))
+                # fu = su - floor(su); clamp passes the gradient inside [0, W - 1]
+                g_su = rows.put(torch.where(su_c == su, g_x * (depth / fx), 0.0).add_(g_fu))
+                g_sv = rows.put(torch.where(sv_c == sv, g_y * (depth / -fy), 0.0).add_(g_fv))
+            # sums over the steps of the gradients times the position
+            Sv = torch.stack([rows.per_query(gv * p) for p in position.unbind(-1)], -1)  # (N,3)
+            St = torch.stack([rows.per_query(gt * p) for p in position.unbind(-1)], -1)
+            if needs["P"]:
+                g_P = -(a * V + b * T)
+            if needs["V"]:
+                g_V = Sv - a * P - 2 * c * V - e * T
+            if needs["T"]:
+                g_T = St - b * P - e * V
+        return (None,) * 7 + (g_source, g_su, g_sv, g_P, g_V, g_T)
 
 
 def fetch_sample(frame: Frame, q: Queries, geom: "SliceGeometry | None", side: int, step: int | None,
