@@ -161,21 +161,6 @@ def test_kernel_covers_names_what_it_does_not_cover():
         assert kernel_covers(BitmaskAO(weighting="cosine", indirect=True, mode="straight_through"), graph) is None
 
 
-@pytest.mark.parametrize("options", [dict(variant="exact", mode="soft"), dict(variant="exact", mode="straight_through"),
-                                     dict(variant="exact", mode="hard"), dict(variant="exact", union="sectors", mode="hard"),
-                                     dict(mode="soft"), dict(mode="hard", weighting="cosine")])
-@pytest.mark.parametrize("fetch", ["bilinear", "edge_aware"])
-def test_no_kernel_differentiates_a_position_buffer_read_between_texels(options, fetch):
-    """The kernels' backwards differentiate the depth fetch; the tensor path differentiates the interpolated position
-    buffer: a call that records a gradient through such a read is left to it (the exact union's kernels took it,
-    and sent the gradient to the depth). Its values run in the kernels (tests/test_kernels_position_reads.py)."""
-    gb = example_gbuffer(8, 8)
-    with_position = GBuffer(depth=None, camera=gb.camera, normals=gb.normals,
-                            position=gb.positions().clone().requires_grad_())
-    with pytest.raises(ValueError, match=f"a gradient through {fetch} reads of a position buffer"):
-        BitmaskAO(fetch=fetch, backend="kernel", **options)(with_position)
-
-
 # ------------------------------------------------------------------------------- dispatch
 def test_auto_backend_runs_the_kernel_with_the_tensor_paths_numbers(built, monkeypatch):
     import torch_ao.kernels.dispatch as dispatch

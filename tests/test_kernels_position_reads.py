@@ -2,8 +2,8 @@
 positions interpolated perspective-correctly, as the tensor path's ``Footprint.position`` (``walk.h``'s
 ``position_taps``, the CPU kernels'), for every method's forward. The buffer here is not the unprojected depth (each point moved
 along its camera ray by up to 5 %, smoothly across the image), so a kernel that interpolated the depth instead
-would be off by up to 0.4-0.7 in visibility. A call that records a gradient through such a read, or one on CUDA,
-runs on the tensor path (tests/test_kernels.py)."""
+would be off by up to 0.4-0.7 in visibility. Gradients through such a read: tests/test_kernels_position_grads.py; a
+call on CUDA runs on the tensor path (the CUDA walks leave the interpolation out)."""
 import pytest
 import torch
 
@@ -54,14 +54,3 @@ def test_a_position_buffer_read_between_texels_is_the_tensor_paths(built, name, 
     for field in ("indirect", "bent_normal"):
         if getattr(reference, field) is not None:
             assert_values_agree(getattr(kernel, field), getattr(reference, field), gb.valid, atol=1e-4, bound=0.05)
-
-
-@pytest.mark.parametrize("name", MODULES)
-def test_a_gradient_through_such_a_read_runs_on_the_tensor_path(name):
-    gb, _ = moved_positions()
-    graded = torch_ao.GBuffer(depth=None, camera=gb.camera, position=gb.position.clone().requires_grad_(),
-                              light=gb.light)
-    with pytest.raises(ValueError, match="a gradient through bilinear reads of a position buffer"):
-        MODULES[name]("kernel", "bilinear")(graded)
-    with torch.no_grad():  # (and on CUDA, where the walks leave the interpolation out: coverage.position_read_uncovered)
-        assert MODULES[name]("kernel", "bilinear")(graded).visibility.shape == gb.depth.shape

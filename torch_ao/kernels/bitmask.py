@@ -390,7 +390,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
     does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA, a position
-    buffer read between texels with a gradient or on CUDA: :func:`~torch_ao.kernels.coverage.position_read_uncovered`),
+    buffer read between texels on CUDA: :func:`~torch_ao.kernels.coverage.position_read_uncovered`),
     or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
     whether it grows the thickness with the sample's distance (values only: none of the kernels with gradients)."""
     values = dict(getattr(module, "values", {}))
@@ -414,7 +414,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     if reason is not None:
         return reason
     if module.variant != "ssilvb_glsl":  # (the shader reads its nearest texels, whatever fetch says)
-        return position_read_uncovered(module, gbuffer, _parameter_tensors(module))
+        return position_read_uncovered(module, gbuffer)
     return None
 
 

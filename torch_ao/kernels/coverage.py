@@ -29,35 +29,29 @@ def gbuffer_uncovered(gbuffer: GBuffer) -> str | None:
     return None
 
 
-def position_read_uncovered(module, gbuffer: GBuffer, parameters=()) -> str | None:
+def position_read_uncovered(module, gbuffer: GBuffer) -> str | None:
     """Why no kernel reads ``gbuffer``'s position buffer as ``module.fetch`` does, or ``None``. Between texels
-    (``"bilinear"``, ``"edge_aware"``) the CPU kernels interpolate it for values (``walk.h``'s ``position_taps``;
-    not the CUDA ones) but their backwards differentiate the depth fetch, so a call that records a gradient (of
-    the G-buffer, or of one of the ``parameters`` tensors), or one on CUDA, runs on the tensor path."""
+    (``"bilinear"``, ``"edge_aware"``) the CPU kernels interpolate it (``walk.h``'s ``position_taps``, with its motion
+    and its backward to the four taps' positions); the CUDA ones do not, so such a call on CUDA runs on the tensor
+    path."""
     if gbuffer.position is None or module.fetch == "nearest":
         return None
     if gbuffer.position.is_cuda:
         return f"{module.fetch} reads of a position buffer on CUDA (the CPU kernels' alone interpolate its taps)"
-    if not torch.is_grad_enabled():
-        return None
-    tensors = (gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position, gbuffer.camera.intrinsics, *parameters)
-    if any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors):
-        return (f"a gradient through {module.fetch} reads of a position buffer (the kernels' backwards differentiate "
-                "the depth fetch)")
     return None
 
 
 def call_uncovered(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]) -> str | None:
     """What a forward kernel checks of every call, said as the reason, or ``None``: the module's options
     (:func:`option_uncovered` against ``options``), its ``parameters`` (names) scalar tensors, a position buffer
-    read between texels with a gradient (:func:`position_read_uncovered`), a float32 G-buffer on CPU or CUDA."""
+    read between texels on CUDA (:func:`position_read_uncovered`), a float32 G-buffer on CPU or CUDA."""
     reason = option_uncovered(getattr(module, "values", {}), options)
     if reason is not None:
         return reason
     values = [getattr(module, name) for name in parameters]
     if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in values):
         return "a parameter other than a scalar"
-    reason = position_read_uncovered(module, gbuffer, values)
+    reason = position_read_uncovered(module, gbuffer)
     if reason is not None:
         return reason
     return gbuffer_uncovered(gbuffer)

@@ -66,6 +66,13 @@ template <class F> struct SoftCoverage {
 template <class F>
 TAO_FN void fetch_motion(const Sample<F>& smp, const F* P, const F& su, const F& sv, F* d_su, F* d_sv) {
   const Image& img = *smp.image;
+#ifndef __CUDACC_RTC__
+  if (smp.reads_positions) {  // (a position buffer's taps: Sample::position_motion)
+    smp.position_motion(d_su, d_sv);
+    for (int c = 0; c < 3; ++c) d_su[c] = select(smp.valid, d_su[c], F(0.0f)), d_sv[c] = select(smp.valid, d_sv[c], F(0.0f));
+    return;
+  }
+#endif
   F pos[3];
   for (int c = 0; c < 3; ++c) pos[c] = smp.delta[c] + P[c];
   const F depth = neg(pos[2]);
@@ -579,7 +586,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       g_shift = g_shift + g.shift;
       if (camera && walk.bilinear) {
         const F pos[3] = {st.pos[0][m], st.pos[1][m], st.pos[2][m]};
-        unprojection_camera(*camera, pos, g_delta, land(px.live, valid), g_cam);
+        const typename LaneTraits<F>::I index[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
+        unprojection_camera(walk, *camera, index, pos, g_delta, land(px.live, valid), g_cam);
       }
       // (g_value: read by the layer's taps, scattered where the model reads a layer)
       sink.scatter(g_delta, st, m, land(px.live, valid), thickness.reads_layer() ? &g_value : nullptr);

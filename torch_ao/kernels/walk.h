@@ -520,6 +520,8 @@ template <class F> struct Sample {
   F layer;
   bool has_layer = false;
   bool bilinear;
+  // a bilinear read of a position buffer (position_taps; the CPU's only), and whether its fetch is edge-aware
+  bool reads_positions = false, edge_aware = false;
   const Image* image;
 
   // channel c of a (H, W, channels) image at the sample's taps (Sample.gather)
@@ -532,13 +534,12 @@ template <class F> struct Sample {
   }
 
   // A position buffer read between texels (Footprint.position): its four taps' positions interpolated
-  // perspective-correctly (p / depth and 1 / depth bilinearly, then divided; each tap's depth its own -z); four
-  // equal taps (a corner of the border, the edge-aware fetch's nearest copies) give the tap's depth unprojected
-  // at the clamped (su, sv), as the depth fetch does. Values only: the kernels' backwards differentiate the depth
-  // fetch, and the dispatch sends a gradient of such a read to the tensor path. The CPU's only, out of line (inline,
-  // GTAO's forward took 4 % longer): inline in every CUDA walk it took 6-23 more registers a thread (a quarter less
-  // occupancy in six of them), out of line it moved them both ways, for a read that engines' position buffers
-  // alone need
+  // perspective-correctly (p / depth and 1 / depth bilinearly, then divided; each tap's depth its own -z); the
+  // edge-aware fetch's four equal taps (its nearest copies) give the tap's depth unprojected at the clamped (su, sv),
+  // as the depth fetch does. The CPU's only, out of line (inline, GTAO's forward took 4 % longer): inline in every
+  // CUDA walk it took 6-23 more registers a thread (a quarter less occupancy in six of them), out of line it moved
+  // them both ways, for a read that engines' position buffers alone need. Its motion: position_motion; its
+  // backward: walk_grad.h's scatter_position_taps.
   TAO_COLD void position_taps(const Image& img, const F& su_c, const F& sv_c, F* pos) const {
     const I three = I(3);
     F inverse[4];
@@ -551,11 +552,47 @@ template <class F> struct Sample {
                             F(tao::gather(img.positions + c, index[3] * three)) * inverse[3], fu);
       pos[c] = lerp(top, bottom, fv) / denominator;
     }
-    const auto single = land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
+    const auto single = one_texel();
     if (any(single)) {
       F tile[3];
       unproject(img, su_c, sv_c, neg(F(tao::gather(img.positions + 2, index[0] * three))), tile);
       for (int c = 0; c < 3; ++c) pos[c] = select(single, tile[c], pos[c]);
+    }
+  }
+  // the lanes whose position_taps read is the edge-aware fetch's one texel, unprojected at (su, sv)
+  TAO_FN M one_texel() const {
+    const M equal = land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
+    return edge_aware ? equal : land(equal, F(0.0f) > F(1.0f));
+  }
+  // d position_taps / d su and d sv (fu and fv move with them; the one texel's unprojection moves inside the
+  // image), for fetch_motion
+  TAO_COLD void position_motion(F* d_su, F* d_sv) const {
+    const Image& img = *image;
+    const I three = I(3);
+    F inverse[4];
+    for (int k = 0; k < 4; ++k) inverse[k] = F(-1.0f) / F(tao::gather(img.positions + 2, index[k] * three));
+    const F top = lerp(inverse[0], inverse[1], fu), bottom = lerp(inverse[2], inverse[3], fu);
+    const F denominator = lerp(top, bottom, fv);
+    const F den_u = lerp(inverse[1] - inverse[0], inverse[3] - inverse[2], fv), den_v = bottom - top;
+    for (int c = 0; c < 3; ++c) {
+      F a[4];
+      for (int k = 0; k < 4; ++k) a[k] = F(tao::gather(img.positions + c, index[k] * three)) * inverse[k];
+      const F upper = lerp(a[0], a[1], fu), lower = lerp(a[2], a[3], fu);
+      const F pos = lerp(upper, lower, fv) / denominator;
+      d_su[c] = (lerp(a[1] - a[0], a[3] - a[2], fv) - pos * den_u) / denominator;
+      d_sv[c] = (lower - upper - pos * den_v) / denominator;
+    }
+    const auto single = one_texel();
+    if (any(single)) {
+      const F depth = F(1.0f) / inverse[0];  // (-z)
+      const auto u_inside = clamp(su, F(0.0f), F(float(img.W - 1))) == su;
+      const auto v_inside = clamp(sv, F(0.0f), F(float(img.H - 1))) == sv;
+      const F dxh = select(u_inside, depth * F(1.0f / img.fx), F(0.0f));
+      const F dyh = select(v_inside, depth * F(-1.0f / img.fy), F(0.0f));
+      for (int c = 0; c < 3; ++c) {
+        d_su[c] = select(single, c == 0 ? dxh : F(0.0f), d_su[c]);
+        d_sv[c] = select(single, c == 1 ? dyh : F(0.0f), d_sv[c]);
+      }
     }
   }
 
@@ -587,7 +624,8 @@ template <class F> struct Sample {
   template <class G, class To>
   TAO_FN Sample(const Sample<G>& o, const To& to)
       : valid(o.valid), fu(to(o.fu)), fv(to(o.fv)), su(to(o.su)), sv(to(o.sv)), inverse_su(to(o.inverse_su)),
-        inverse_sv(to(o.inverse_sv)), bilinear(o.bilinear), image(o.image) {
+        inverse_sv(to(o.inverse_sv)), bilinear(o.bilinear), reads_positions(o.reads_positions),
+        edge_aware(o.edge_aware), image(o.image) {
     for (int c = 0; c < 3; ++c) delta[c] = to(o.delta[c]);
     for (int k = 0; k < 4; ++k) index[k] = o.index[k];
   }
@@ -668,6 +706,7 @@ template <class F> struct Sample {
       const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
 #ifndef __CUDACC_RTC__
       if (!cfg.unprojected) {
+        reads_positions = true, edge_aware = cfg.edge_aware;
         position_taps(img, su_c, sv_c, pos);
       } else
 #endif
@@ -741,16 +780,28 @@ TAO_FN void unprojection_partials(const Image& img, const F* pos, int c, F& d_fo
   d_centre = F(c == 0 ? 1.0f : -1.0f) * pos[2] / focal;  // (depth = -pos[2])
 }
 
-// d L / d fx, fy, cx, cy of a bilinear fetch's position from d L / d the position g_pos, on the lanes `on`, added
-// to g_cam
+// The lanes of a bilinear fetch (taps index) whose position is an unprojection at (su, sv), so moves with the
+// intrinsics: every lane of a depth read; of a position buffer's (Sample::position_taps), the edge-aware fetch's one
+// texel
 template <class F>
-TAO_FN void unprojection_camera(const Image& img, const F* pos, const F* g_pos, const typename LaneTraits<F>::M& on,
-                                F* g_cam) {
+TAO_FN typename LaneTraits<F>::M unprojected_lanes(const WalkSettings& cfg, const typename LaneTraits<F>::I* index) {
+  const auto none = F(0.0f) > F(1.0f);
+  if (cfg.unprojected) return lnot(none);
+  if (!cfg.edge_aware) return none;
+  return land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
+}
+
+// d L / d fx, fy, cx, cy of a bilinear fetch's position (taps index) from d L / d the position g_pos, on the lanes
+// `on` where it is an unprojection (unprojected_lanes), added to g_cam
+template <class F>
+TAO_FN void unprojection_camera(const WalkSettings& cfg, const Image& img, const typename LaneTraits<F>::I* index,
+                                const F* pos, const F* g_pos, const typename LaneTraits<F>::M& on, F* g_cam) {
+  const auto moving = land(on, unprojected_lanes<F>(cfg, index));
   for (int c = 0; c < 2; ++c) {
     F d_focal, d_centre;
     unprojection_partials(img, pos, c, d_focal, d_centre);
-    g_cam[c] = g_cam[c] + select(on, g_pos[c] * d_focal, F(0.0f));
-    g_cam[2 + c] = g_cam[2 + c] + select(on, g_pos[c] * d_centre, F(0.0f));
+    g_cam[c] = g_cam[c] + select(moving, g_pos[c] * d_focal, F(0.0f));
+    g_cam[2 + c] = g_cam[2 + c] + select(moving, g_pos[c] * d_centre, F(0.0f));
   }
 }
 

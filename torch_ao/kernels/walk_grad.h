@@ -83,6 +83,10 @@ struct Targets {
   float *tap_normals = nullptr, *tap_light = nullptr;  // scattered: (H, W, 3) of image b (a sender's normal, light)
   float* camera = nullptr;  // own: (H, W, 4) of image b, d L / d fx, fy, cx, cy (where asked for)
   int settings = 1;         // the setting's values per pixel: (H, W, settings) where more than one
+  // a position buffer (H, W, 3) of image b the bilinear fetch read between taps (Sample::position_taps; the CPU's),
+  // whose taps' positions its gradient goes to (tap_positions), and whether the fetch is edge-aware; else null
+  const float* read_positions = nullptr;
+  bool read_edge_aware = false;
 };
 
 // The adjoint of Sample.gather: g (channels lanes: d L / d the value gathered) into image (H, W, channels) at
@@ -248,16 +252,59 @@ TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& a
   acc.finish(sums, px, values);
 }
 
+#ifndef __CUDACC_RTC__
+// Sample::position_taps' adjoint: d L / d the position read (g) into its four taps' positions (t.tap_positions), on
+// the lanes `on` of the first n. With W_k = w_k / depth_k (w_k the weights of fu, fv; 1 / depth_k = -1 / z_k) and
+// pos = sum W_k p_k / sum W_k: d pos / d p_k = W_k / sum W_k, and through the tap's depth d pos / d z_k adds
+// w_k (p_k - pos) / (z_k^2 sum W_k). The edge-aware fetch's one texel is its depth unprojected: d pos / d z = pos / z.
+template <class B>
+TAO_FN void scatter_position_taps(int n, const Targets& t, const B* g, const B* pos, const B& fu, const B& fv,
+                                  const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on) {
+  if (!any(on)) return;
+  constexpr int L = LaneTraits<B>::L;
+  float gl[3][L], pl[3][L], ful[L], fvl[L];
+  int32_t il[4][L];
+  for (int c = 0; c < 3; ++c) to_lanes(g[c], gl[c]), to_lanes(pos[c], pl[c]);
+  to_lanes(fu, ful), to_lanes(fv, fvl);
+  for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
+  for (int l = 0; l < n; ++l) {
+    if (!lane_on(on, l)) continue;
+    const float* tap[4];
+    for (int k = 0; k < 4; ++k) tap[k] = t.read_positions + 3 * il[k][l];
+    const float gp[3] = {gl[0][l], gl[1][l], gl[2][l]}, p[3] = {pl[0][l], pl[1][l], pl[2][l]};
+    if (t.read_edge_aware && il[1][l] == il[0][l] && il[2][l] == il[0][l] && il[3][l] == il[0][l]) {
+      scatter_add(t.tap_positions + 3 * il[0][l] + 2, (gp[0] * p[0] + gp[1] * p[1] + gp[2] * p[2]) / tap[0][2]);
+      continue;
+    }
+    const float u = ful[l], v = fvl[l];
+    const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
+    float inverse[4], total = 0.0f;
+    for (int k = 0; k < 4; ++k) inverse[k] = -1.0f / tap[k][2], total += weight[k] * inverse[k];
+    for (int k = 0; k < 4; ++k) {
+      const float share = weight[k] * inverse[k] / total;
+      const float along = gp[0] * (tap[k][0] - p[0]) + gp[1] * (tap[k][1] - p[1]) + gp[2] * (tap[k][2] - p[2]);
+      for (int c = 0; c < 2; ++c) scatter_add(t.tap_positions + 3 * il[k][l] + c, share * gp[c]);
+      scatter_add(t.tap_positions + 3 * il[k][l] + 2, share * gp[2] + share * inverse[k] * along);
+    }
+  }
+}
+#endif
+
 // d L / d delta of a sample (g_delta) scattered to its fetch's taps, on the lanes in `on` of the first n: a
 // bilinear fetch's four inverse depths (d pos / d t_k = pos pos_z w_k, pos the fetched position, w_k the
-// weights of fu, fv), a nearest fetch's position (index[0]); with g_layer, d L / d the thickness layer's value
+// weights of fu, fv), or where it read a position buffer (t.read_positions) its four taps' positions
+// (scatter_position_taps), a nearest fetch's position (index[0]); with g_layer, d L / d the thickness layer's value
 // at the sample to the layer's taps (layer_bilinear: its four, weighted w_k, as Sample.gather reads it; else
 // index[0]: a nearest fetch's or a first tap's read)
 template <class B>
 TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delta, const B* pos, const B& fu,
                          const B& fv, const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on,
                          const B* g_layer = nullptr, bool layer_bilinear = false) {
-  if (bilinear) {  // the interpolated inverse depth's d L / d t = (d L / d pos . pos) pos_z
+  if (bilinear && t.read_positions) {
+#ifndef __CUDACC_RTC__
+    scatter_position_taps(n, t, g_delta, pos, fu, fv, index, on);
+#endif
+  } else if (bilinear) {  // the interpolated inverse depth's d L / d t = (d L / d pos . pos) pos_z
     const B along = dot3(g_delta, pos) * pos[2];
     scatter_gather(true, n, t.tap_inverse, 1, &along, fu, fv, index, on);
   } else {
@@ -388,9 +435,11 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
     R moved = cfg.bilinear ? R::link(take.pos[c], su, d_su[c], sv, d_sv[c]) : R(take.pos[c]);
     if (moved.id < 0) moved = R(take.pos[c], tape->leaf(), tape);
     take.ids[c] = moved.id;
-    if (cfg.bilinear && c < 2 && tape->camera) {  // the unprojection's intrinsics
+    if (cfg.bilinear && c < 2 && tape->camera) {  // the unprojection's intrinsics (where it is one)
       B d_focal, d_centre;
       unprojection_partials(img, take.pos, c, d_focal, d_centre);
+      const auto unprojected = unprojected_lanes<B>(cfg, plain.index);
+      d_focal = select(unprojected, d_focal, zero), d_centre = select(unprojected, d_centre, zero);
       const R f = seed_camera(R(B(c == 0 ? img.fx : img.fy)), c);
       const R centre = seed_camera(R(B(c == 0 ? img.cx : img.cy)), 2 + c);
       moved = R::link(take.pos[c], moved, one, f, d_focal);
@@ -720,7 +769,7 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         const B g_layer = per_covered * along[kExactLayer];
         const auto on = land(smp.valid, px.live);
         if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (the slice's placement)
-          if (cfg.bilinear) unprojection_camera(img, pos, gd, on, g_cam);
+          if (cfg.bilinear) unprojection_camera(cfg, img, smp.index, pos, gd, on, g_cam);
           B layer_su, layer_sv;
           acc.thickness.layer_slope(Sample<B>(smp, [](const D& x) { return x.v; }), layer_su, layer_sv);
           const B g_su = gd[0] * d_su[0] + gd[1] * d_su[1] + gd[2] * d_su[2] + g_layer * layer_su;
@@ -907,7 +956,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
         const auto on = land(smp.valid, px.live);
         if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (its position, the
           // sender's normal and light all move with it)
-          if (cfg.bilinear) unprojection_camera(img, pos, gd, on, g_cam);
+          if (cfg.bilinear) unprojection_camera(cfg, img, smp.index, pos, gd, on, g_cam);
           const Sample<B> plain(smp, [](const D& x) { return x.v; });
           B g_su = gd[0] * d_su[0] + gd[1] * d_su[1] + gd[2] * d_su[2], g_sv = gd[0] * d_sv[0] + gd[1] * d_sv[1] + gd[2] * d_sv[2];
           for (int c = 0; c < 3; ++c) {

@@ -40,13 +40,17 @@ struct Gradients {
   at::Tensor camera;  // (B, H, W, 4) where the intrinsics' gradients are asked for, else undefined
   int settings;       // setting's values per pixel: (B, H, W, settings)
 
-  // bilinear: the fetch scatters to its taps' inverse depths (else to their positions); settings: the setting's
+  // input: the walk's positions (B, H, W, 3); cfg: a bilinear fetch of the depth scatters to its taps' inverse depths,
+  // one of a position buffer (Sample::position_taps) and a nearest one to their positions; settings: the setting's
   // values per pixel; layer: the thickness layer's taps too; light: the senders' normals and light at the taps too;
   // camera: the intrinsics' per pixel too. The own gradients are left unset: each block zeroes its pixels'
   // (zero_own) before it adds into them, while they are in the cache.
-  Gradients(const at::Tensor& like, int64_t B, int64_t H, int64_t W, bool bilinear, int n_settings = 1,
+  Gradients(const at::Tensor& input, int64_t B, int64_t H, int64_t W, const WalkSettings& cfg, int n_settings = 1,
             bool layer = false, bool light = false, bool with_camera = false)
-      : settings(n_settings), bilinear(bilinear) {
+      : settings(n_settings), bilinear(cfg.bilinear && cfg.unprojected),
+        read_positions(cfg.bilinear && !cfg.unprojected ? input.data_ptr<float>() : nullptr),
+        read_edge_aware(cfg.edge_aware) {
+    const at::Tensor& like = input;
     const int64_t threads = at::get_num_threads();
     positions = at::empty({B, H, W, 3}, like.options()), normals = at::empty({B, H, W, 3}, like.options());
     depth = at::empty({B, H, W}, like.options()), setting = at::empty({B, H, W, settings}, like.options());
@@ -68,7 +72,8 @@ struct Gradients {
                    has_layer ? tap_layer.data_ptr<float>() + (thread * B + b) * plane : nullptr,
                    has_light ? tap_normals.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
                    has_light ? tap_light.data_ptr<float>() + (thread * B + b) * 3 * plane : nullptr,
-                   camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr, settings};
+                   camera.defined() ? camera.data_ptr<float>() + 4 * b * plane : nullptr, settings,
+                   read_positions ? read_positions + 3 * b * plane : nullptr, read_edge_aware};
   }
   // zeros into the own gradients of the pixels [u_begin, u_end) of a row of image b
   void zero_own(int64_t b, int64_t row, int64_t u_begin, int64_t u_end) {
@@ -105,6 +110,8 @@ struct Gradients {
 
  private:
   bool bilinear, has_layer = false, has_light = false;
+  const float* read_positions;  // the position buffer a bilinear fetch read (Targets::read_positions), else null
+  bool read_edge_aware;
   // a per-thread image (threads, B, H, W) summed into its first
   static at::Tensor sum_threads(const at::Tensor& images) {
     float* x = images.data_ptr<float>();
@@ -362,7 +369,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
     }
     check_grad(grad, positions, acc.channels());
-    Gradients out(positions, fr.B, fr.H, fr.W, cfg.bilinear, acc.settings(), false, false, camera);
+    Gradients out(positions, fr.B, fr.H, fr.W, cfg, acc.settings(), false, false, camera);
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
     const at::Tensor g_inv = out.reduce();
@@ -451,7 +458,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     TORCH_CHECK(!thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
     TORCH_CHECK(!indirect || call.fr.light, "light: indirect light needs the light buffer (B, H, W, 3)");
     // (d L / d the thickness' offset, scale and growth)
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 3, thickness.reads_layer(), indirect,
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg, 3, thickness.reads_layer(), indirect,
                   camera);
     auto g = call.run(grad, acc.channels(), scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row,
                                                                    int64_t u0, int n, const float* upstream,
@@ -488,7 +495,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                           kMaxIntervals / 2);
   const ExactAccumulator acc = unpack_exact(call.i, call.f);
   TORCH_CHECK(!acc.thickness.reads_layer() || call.fr.backface, "backface: the thickness model reads a layer (B, H, W)");
-  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, acc.thickness.reads_layer(), false,
+  Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg, 1, acc.thickness.reads_layer(), false,
                 camera);
   const at::Tensor none = at::empty({0}, positions.options());
   auto g = call.run(grad, 1, scalar, out, true, [&](auto lane, int64_t, const Image& img, int64_t row, int64_t u0,
@@ -578,7 +585,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                 "record: expected hard_record's (B, H, W, slices) of the same call");
     const int32_t* rec = record.data_ptr<int32_t>();
     const int64_t per_image = call.fr.H * call.fr.W * call.cfg.slices;
-    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg.bilinear, 1, false, acc.indirect, camera);
+    Gradients out(positions, call.fr.B, call.fr.H, call.fr.W, call.cfg, 1, false, acc.indirect, camera);
     const auto g = call.run(grad, acc.channels(), scalar, out, false, [&](auto lane, int64_t b, const Image& img,
                                                                         int64_t row, int64_t u0, int n,
                                                                         const float* upstream, const Targets& t) {
