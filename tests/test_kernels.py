@@ -142,7 +142,7 @@ def test_kernel_covers_names_what_it_does_not_cover():
     cases = {"mode": BitmaskAO(mode="soft"),
              "straight-through gradient": BitmaskAO(weighting="cosine", indirect=True, mode="straight_through"),
              "ambient": BitmaskAO(ambient=lambda d: d),
-             "slice_sampling": BitmaskAO(slice_sampling="projected_normal"), "thickness model": BitmaskAO(thickness=_UnreadThickness()),
+             "thickness model": BitmaskAO(thickness=_UnreadThickness()),
              "union": BitmaskAO(union="exact")}
     for word, module in cases.items():
         assert word in kernel_covers(module, gb), word
@@ -151,6 +151,10 @@ def test_kernel_covers_names_what_it_does_not_cover():
                    BitmaskAO(mode="hard", thickness_direction="depth"), BitmaskAO(mode="hard", sample_extent="sphere")):
         assert kernel_covers(module, gb) is None
     assert "union" in kernel_covers(BitmaskAO(mode="hard", variant="exact"), gb)
+    # slices drawn by the projected normal's density: their values in the kernels, a gradient on the tensor path
+    assert kernel_covers(BitmaskAO(slice_sampling="projected_normal", weighting="cosine"), gb) is None
+    graded = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
+    assert "slice_sampling" in kernel_covers(BitmaskAO(slice_sampling="projected_normal"), graded)
     assert "float64" in kernel_covers(BitmaskAO(mode="hard"), gb.to(dtype=torch.float64))
     # hard masks have no gradient: covered with autograd on; straight-through only without a gradient
     graph = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)

@@ -8,6 +8,7 @@ import torch
 
 from torch_ao import GTAO, HBAO, BitmaskAO
 from torch_ao.examples import floor_wall_gbuffer
+from torch_ao.gbuffer import GBuffer
 from torch_ao.reference import get_scene, render_reference
 from torch_ao.screen_truth import screen_space_truth
 from torch_ao.walk import (Queries, SlicePattern, hilbert_index, hilbert_r2_noise, interleaved_gradient_noise,
@@ -165,11 +166,13 @@ def test_projected_normal_slices_converge_to_the_screen_space_truth(fence):
     assert abs(mae["projected_normal", 32] - mae["uniform", 32]) < 0.003
 
 
-def test_the_kernels_cover_noise_and_stagger_and_gtaos_projected_normal_slices():
+def test_the_kernels_cover_noise_stagger_and_projected_normal_slices():
     from torch_ao.kernels import gtao_covers, kernel_covers
 
     gb = floor_wall_gbuffer(16, 16)[0]
     assert kernel_covers(BitmaskAO(noise="hilbert_r2", stagger=True), gb) is None
     assert gtao_covers(GTAO(noise="hilbert_r2", stagger=True), gb) is None
-    assert "slice_sampling" in kernel_covers(BitmaskAO(slice_sampling="projected_normal"), gb)
-    assert gtao_covers(GTAO(slice_sampling="projected_normal"), gb) is None  # (the bitmask family's: the tensor walk)
+    assert kernel_covers(BitmaskAO(slice_sampling="projected_normal"), gb) is None  # (values; a gradient: the tensor walk)
+    graded = GBuffer(depth=gb.depth.clone().requires_grad_(), camera=gb.camera)
+    assert "slice_sampling" in kernel_covers(BitmaskAO(slice_sampling="projected_normal"), graded)
+    assert gtao_covers(GTAO(slice_sampling="projected_normal"), gb) is None

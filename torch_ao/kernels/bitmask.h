@@ -353,6 +353,9 @@ struct BitmaskAccumulator {
   // back point along the sample's camera ray, the segment clipped to the sphere of this radius (world units)
   bool along_ray = false, clip = false;
   float radius = 0.0f;
+  // its sums weighed by Slice::weight: its walk may draw the slices by the projected normal's density (walked_slice;
+  // the CPU's: kSectorsWeighSlices)
+  static constexpr bool kWeighsSlices = kSectorsWeighSlices;
 
   template <class F> struct State {
     typename LaneTraits<F>::I occ;
@@ -440,24 +443,27 @@ struct BitmaskAccumulator {
 
   template <class F>
   TAO_FN void end_slice(const State<F>& st, const Pixels<F>& px, const Slice<F>& walked, Sums<F>& sums) const {
-    if (!cosine) sums.visible = sums.visible + to_float(typename LaneTraits<F>::I(kSectors) - popcount(st.occ));
+    // every sum weighs by the slice's weight (1 but for slices drawn by a density; none where kWeighsSlices is not)
+    const auto weigh = [&](const F& x) { return weighed(walked, x); };
+    if (!cosine) sums.visible = sums.visible + weigh(to_float(typename LaneTraits<F>::I(kSectors) - popcount(st.occ)));
     if (weighted()) {
       F wv[kSectors];
       for (int k = 0; k < kSectors; ++k) wv[k] = (F(1.0f) - bit(st.occ, k)) * st.omega[k];
       if (cosine)
         for (int k = 0; k < kSectors; ++k) {
-          sums.num = sums.num + wv[k];
-          sums.den = sums.den + st.omega[k];
+          sums.num = sums.num + weigh(wv[k]);
+          sums.den = sums.den + weigh(st.omega[k]);
         }
       if (bent) {
         const Slice<F> sl = frame(walked);
         F along_v, along_t;
         bent_axes([&](int k) { return wv[k]; }, sl.cos_gamma, sl.sin_gamma, along_v, along_t);
+        along_v = weigh(along_v), along_t = weigh(along_t);
         for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + along_v * px.V[c] + along_t * sl.T[c];
       }
     }
     if (indirect)
-      for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + st.light[c];
+      for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + weigh(st.light[c]);
   }
 
   // finish's d indirect light / d a slice's light sum, the same for every slice (den: the sums' den)
@@ -510,6 +516,7 @@ struct ExactAccumulator {
   float radius;   // world units: the sphere the segments are clipped to
   float epsilon;  // sector_epsilon
   bool cosine, along_ray, clip;
+  static constexpr bool kWeighsSlices = kSectorsWeighSlices;  // (add_slice weighs a slice drawn by a density)
 
   template <class F> struct State {
     F shift;
@@ -605,14 +612,15 @@ struct ExactAccumulator {
     return covered;
   }
 
-  // A slice's visible share into num (with cosine weights its whole measure into den) from the covered one
+  // A slice's visible share into num (with cosine weights its whole measure into den) from the covered one, weighed
+  // by the slice's Slice::weight
   template <class F, class G> TAO_FN void add_slice(const G& covered, const Slice<F>& sl, G& num, F& den) const {
     if (cosine) {
       const F total = (arc_measure_at(F(float(kSectors)), sl) - arc_measure_at(F(0.0f), sl)) * sl.length;
-      num = num + (G(total) - covered);
-      den = den + total;
+      num = num + weighed(sl, G(total) - covered);
+      den = den + weighed(sl, total);
     } else {
-      num = num + (G(1.0f) - covered / G(float(kSectors)));
+      num = num + weighed(sl, G(1.0f) - covered / G(float(kSectors)));
     }
   }
 

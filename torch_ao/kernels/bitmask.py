@@ -45,7 +45,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
                     bent_normals: bool = False, layer: torch.Tensor | None = None, layer_scale: float = 1.0,
                     thickness_read: str | None = None, thickness_growth: float = 0.0, variant: str = "default",
                     azimuth: str = "view", thickness_direction: str = "view", clip_to_radius: bool = False,
-                    sample_extent: str = "radius", lanes: str = "simd") -> KernelOutputs:
+                    sample_extent: str = "radius", slice_sampling: str = "uniform",
+                    lanes: str = "simd") -> KernelOutputs:
     """The ``"default"`` (or ``"hdrp"``) variant's hard visibility ``(B,1,H,W)`` in ``[0, 1]`` (1 = unoccluded;
     background pixels 1) and, when asked, its indirect light and bent normals ``(B,3,H,W)`` (background: 0 and
     ``normals``).
@@ -65,8 +66,9 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`, or
             ``"exact"``: its angles are ``"default"``'s), azimuth (``"view"``/``"screen"``), thickness_direction,
             clip_to_radius, sample_extent (the ``"exact"`` variant's segment geometry, with the sector union; the
-            ``"hdrp"`` variant's rule has none): as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`,
-            the outputs have a backward (``_HardWalk``).
+            ``"hdrp"`` variant's rule has none), slice_sampling (``"projected_normal"``: values only, its backward
+            walks uniform slices): as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`, the outputs
+            have a backward (``_HardWalk``).
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
 
@@ -77,7 +79,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     radius = torch.as_tensor(radius)
     settings = walk_settings(slices=slices, steps=steps, radius=radius.detach(), step_power=step_power,
                              min_step_px=min_step_px, jitter=jitter, seed=seed, noise=noise, stagger=stagger,
-                             fetch=fetch, border=border, sphere_extent=sample_extent == "sphere", azimuth=azimuth)
+                             fetch=fetch, border=border, sphere_extent=sample_extent == "sphere", azimuth=azimuth,
+                             slice_sampling=slice_sampling)
     acc_ints = [ROUNDINGS.index(rounding), weighting == "cosine", bool(indirect), bool(bent_normals),
                 thickness_read_index(thickness_read, layer), int(variant == "hdrp"), thickness_direction == "depth",
                 bool(clip_to_radius)]
@@ -186,7 +189,7 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                jitter: bool = True, seed: int = 0, noise: str = "ign", stagger: bool = False, fetch: str = "edge_aware", border: str = "drop",
                weighting: str = "cosine", thickness_direction: str = "depth", clip_to_radius: bool = True,
                sample_extent: str = "sphere", sector_epsilon: float = 0.0, azimuth: str = "view",
-               thickness_growth: float = 0.0, lanes: str = "simd") -> torch.Tensor:
+               thickness_growth: float = 0.0, slice_sampling: str = "uniform", lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` (background 1) of the exact union of a slice's occluder intervals
     (``union="exact"``, the ``"exact"`` variant's rule; its defaults here), in one fused pass.
 
@@ -196,13 +199,13 @@ def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             :func:`bitmask_outputs`;
             step_power, min_step_px
             (pixels), jitter, seed, noise, stagger, fetch (``"nearest"``, ``"bilinear"``, ``"edge_aware"``), border, weighting,
-            thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth (``"view"``/``"screen"``):
-            as :class:`~torch_ao.BitmaskAO`.
+            thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth (``"view"``/``"screen"``),
+            slice_sampling: as :class:`~torch_ao.BitmaskAO`.
         lanes: on CPU, ``"simd"`` or ``"scalar"``.
     """
     settings = walk_settings(slices=slices, steps=steps, radius=radius, step_power=step_power, min_step_px=min_step_px,
                              jitter=jitter, seed=seed, noise=noise, stagger=stagger, fetch=fetch, border=border,
-                             sphere_extent=sample_extent == "sphere", azimuth=azimuth)
+                             sphere_extent=sample_extent == "sphere", azimuth=azimuth, slice_sampling=slice_sampling)
     return run_walk("exact", gbuffer, normals, settings,
                     [weighting == "cosine", thickness_direction == "depth", bool(clip_to_radius),
                      thickness_read_index(thickness_read, layer), False],
@@ -295,7 +298,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
 _COVERED = {
     # the walk's and every module's options
     "preset": None, "slices": None, "steps": None, "radius": None, "step_power": None, "min_step_px": None,
-    "jitter": None, "seed": None, "noise": None, "stagger": None, "slice_sampling": ("uniform",), "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view", "screen"), "normals": None,
+    "jitter": None, "seed": None, "noise": None, "stagger": None, "slice_sampling": ("uniform", "projected_normal"), "fetch": ("nearest", "bilinear"), "border": None, "azimuth": ("view", "screen"), "normals": None,
     "chunk_size": None, "recompute": None, "trainable": None, "backend": None,
     "resolution": None,  # the kernel walks the (smaller) G-buffer it is given
     # the bitmask family's
@@ -306,8 +309,8 @@ _COVERED = {
     "ambient_directions": None, "sector_epsilon": None, "glsl_numerics": None,
 }
 #: what the ``"ssilvb_glsl"`` variant's walk ignores (its shader places its own samples and reads their nearest texel,
-#: clamped to the image)
-_GLSL = {"azimuth": None, "fetch": None, "border": None}
+#: clamped to the image), and its slices: the shader's
+_GLSL = {"azimuth": None, "fetch": None, "border": None, "slice_sampling": ("uniform",)}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
@@ -374,7 +377,8 @@ def exact_forward(module, gbuffer: GBuffer) -> dict:
                      stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
                      clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,
-                     sector_epsilon=module.sector_epsilon, azimuth=module.azimuth)
+                     sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
+                     slice_sampling=module.slice_sampling)
     return {"visibility": vis}
 
 
@@ -413,9 +417,25 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = gbuffer_uncovered(gbuffer)
     if reason is not None:
         return reason
+    if values.get("slice_sampling") == "projected_normal":
+        if gbuffer.depth.is_cuda:
+            return "slice_sampling='projected_normal' on CUDA (the CPU's sector kernels alone draw such slices)"
+        if _slice_weights_graded(module, gbuffer):
+            return ("a gradient with slice_sampling='projected_normal' (the kernels' backwards walk uniform slices: "
+                    "the azimuths' and weights' dependence on the normal is the tensor path's)")
     if module.variant != "ssilvb_glsl":  # (the shader reads its nearest texels, whatever fetch says)
         return position_read_uncovered(module, gbuffer)
     return None
+
+
+def _slice_weights_graded(module, gbuffer: GBuffer) -> bool:
+    """Whether autograd would record a gradient through slices drawn by the projected normal's density: through
+    the G-buffer (the azimuths and weights follow the normals and the view vector: the intrinsics too) and, but
+    for hard masks without indirect light (whose parameters have none), the module's parameters."""
+    if not torch.is_grad_enabled():
+        return False
+    masks_alone = module.mode == "hard" and module.union == "sectors" and not module.want_indirect
+    return _needs_grad(module, gbuffer, parameters=not masks_alone) or gbuffer.camera.intrinsics.requires_grad
 
 
 def thickness_uncovered(module, layers: bool, growth: bool = False) -> str | None:

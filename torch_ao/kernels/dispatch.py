@@ -48,7 +48,7 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
                    border=module.border, rounding=module.rounding, sector_epsilon=module.sector_epsilon,
                    weighting=module.weighting, variant=module.variant, azimuth=module.azimuth,
                    thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius,
-                   sample_extent=module.sample_extent)
+                   sample_extent=module.sample_extent, slice_sampling=module.slice_sampling)
     if not (module.want_indirect or module.want_bent):
         vis, indirect, bent = bitmask_hard(gbuffer, normals, **options), None, None
     else:

@@ -25,6 +25,7 @@ template <bool kGrowth> struct ExactGradAccumulator {
   ExactAccumulator exact;
   WalkSettings walk;  // the step placement (the radius moves the steps)
   static constexpr int kTangents = kGrowth ? 4 : 3;  // radius, the thickness' offset, its scale (, its growth)
+  static constexpr bool kWeighsSlices = kSectorsWeighSlices;  // (ExactAccumulator::add_slice weighs each slice)
 
   template <class F> using D = Dual<F, kTangents>;
   template <class F> struct State {

@@ -60,7 +60,8 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
     azimuth ``"view"``/``"screen"``, sphere_extent (the steps over the radius' sphere's screen extent),
     noise (:data:`NOISES`: the jitter's kind), stagger (the step offsets shifted per half-slice), slice_sampling
     (``"uniform"``, or ``"projected_normal"``: the slices drawn by the projected normal's density, around the view
-    vector over the half circle; only GTAO's accumulator takes them: walk.h's walked_slice), table: the
+    vector over the half circle; the accumulators that weigh their slices take them, GTAO's and the bitmask
+    family's: walk.h's walked_slice), table: the
     ``"wedge"`` placement's per slice (screen angle in radians, length) of a sample set (``None``: slices evenly
     over the half circle, length 1), the ``"pixels"`` placement's per slice and step ``(du, dv)`` in pixels, the
     ``"hemisphere"`` placement's per step its kernel point ``(x, y, z)`` (unit hemisphere, ``z`` along the normal;

@@ -119,6 +119,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   int run;
   float run_bound, run_ratio;
   bool windowed, cosine, straight_through;
+  static constexpr bool kWeighsSlices = kSectorsWeighSlices;  // (end_slice weighs a slice drawn by a density)
   // whether the thickness model has a growth (ThicknessModel::growth, then a parameter: its gradient is wanted at
   // growth 0 too)
   bool grows = false;
@@ -389,15 +390,15 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   // The slice's visible share sum_k free_k omega_k (the weights' sum added to sums.den with cosine
   // weights); omega: st.omega, or the same weights with tangents (G: their lane type)
   template <class F, class Weights, class G>
-  TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums) const {
+  TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums, const Slice<F>* walked = nullptr) const {
     G share = G(0.0f), weight = G(0.0f);
     for (int k = 0; k < kSectors; ++k) {
       share = share + G(free_share(st, k)) * omega[k];
       if (cosine) weight = weight + omega[k];
     }
     // (the slice's weights summed as its share is: every free share <= 1, so the share <= the weight and the
-    // visibility <= 1 after rounding, as the tensor path's per-slice sums)
-    if (cosine) sums.den = sums.den + weight;
+    // visibility <= 1 after rounding, as the tensor path's per-slice sums; walked: the slice whose weight it takes)
+    if (cosine) sums.den = sums.den + (walked ? weighed(*walked, weight) : weight);
     return share;
   }
 
@@ -473,13 +474,15 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& walked, Sums<F>& sums) const {
     LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients)
     if (kGradients) sweep(st, &before[0]);
-    sums.num = sums.num + visible(st, st.omega, sums);
+    // (every sum weighs by the slice's Slice::weight: 1 but for slices drawn by a density, which the dispatch
+    // takes without gradients alone)
+    sums.num = sums.num + weighed(walked, visible(st, st.omega, sums, &walked));
     if (indirect && !kGradients)
-      for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + st.light[c];
+      for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + weighed(walked, st.light[c]);
     if (bent && !kGradients) {
       F part[3];
       slice_bent(st, st.omega, px.V, walked.T, frame_angle(angles, walked), part);
-      for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + part[c];
+      for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + weighed(walked, part[c]);
     }
     if (!kGradients) return;
     // d visibility / d delta and t of each step (sample_angles_adjoint), then along the radius' motion of both

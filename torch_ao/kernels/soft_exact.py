@@ -44,7 +44,8 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                min_step_px: float = 0.25, jitter: bool = True, seed: int = 0, noise: str = "ign",
                stagger: bool = False, fetch: str = "edge_aware", border: str = "drop", weighting: str = "cosine",
                thickness_direction: str = "depth", clip_to_radius: bool = True, sample_extent: str = "sphere",
-               sector_epsilon: float = 0.0, azimuth: str = "view", lanes: str = "simd") -> torch.Tensor:
+               sector_epsilon: float = 0.0, azimuth: str = "view", slice_sampling: str = "uniform",
+               lanes: str = "simd") -> torch.Tensor:
     """Visibility ``(B,1,H,W)`` of the exact union (background 1; :func:`~torch_ao.kernels.exact_hard`'s),
     differentiable with respect to ``radius``, ``thickness``, ``layer_scale``, ``thickness_growth``, the G-buffer's
     depth, positions and ``normals``, and ``layer``.
@@ -59,7 +60,8 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             times the sample's depth, LinearThickness' slope); ``thickness_growth``: a 0-d tensor ``g`` (per
             world unit; ``None``: none), the thickness times ``1 + g * |sample - pixel|``.
         slices, steps (<= 32 per side), step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch,
-            border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth: as
+            border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth,
+            slice_sampling (``"projected_normal"``: values only, the backward walks uniform slices): as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
     Raises ``ValueError`` naming the argument for a parameter that is not 0-d, or ``steps`` beyond 32.
@@ -84,7 +86,8 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     options = dict(slices=int(slices), steps=int(steps), step_power=float(step_power), min_step_px=float(min_step_px),
                    jitter=bool(jitter), seed=int(seed), noise=noise, stagger=bool(stagger), fetch=fetch, border=border,
                    azimuth=azimuth, cosine=weighting == "cosine", along_ray=thickness_direction == "depth", clip=bool(clip_to_radius),
-                   sphere=sample_extent == "sphere", epsilon=float(sector_epsilon), read=read, lanes=lanes)
+                   sphere=sample_extent == "sphere", epsilon=float(sector_epsilon), read=read, lanes=lanes,
+                   slice_sampling=slice_sampling)
     if of_gbuffer:
         return _gbuffer_walk(gbuffer, normals, *scalars, layer, options)
     return _ExactWalk.apply(gbuffer, normals, *scalars[:2], options, scalars[2], None if layer is None else layer.detach(),
@@ -97,7 +100,7 @@ def _settings(radius, thickness, scale, growth, o) -> tuple:
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=r, step_power=o["step_power"],
                              min_step_px=o["min_step_px"], jitter=o["jitter"], seed=o["seed"], noise=o["noise"],
                              stagger=o["stagger"], fetch=o["fetch"], border=o["border"], sphere_extent=o["sphere"],
-                             azimuth=o["azimuth"])
+                             azimuth=o["azimuth"], slice_sampling=o["slice_sampling"])
     return (settings, [o["cosine"], o["along_ray"], o["clip"], o["read"], growth is not None],
             [thickness.detach(), 1.0 if scale is None else scale.detach(), r, o["epsilon"],
              0.0 if growth is None else growth.detach()])
@@ -228,5 +231,6 @@ def exact_soft_forward(module, gbuffer: GBuffer) -> dict:
                      seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
                      border=module.border, weighting=module.weighting, thickness_direction=module.thickness_direction,
                      clip_to_radius=module.clip_to_radius, sample_extent=module.sample_extent,
-                     sector_epsilon=module.sector_epsilon, azimuth=module.azimuth)
+                     sector_epsilon=module.sector_epsilon, azimuth=module.azimuth,
+                     slice_sampling=module.slice_sampling)
     return {"visibility": vis}

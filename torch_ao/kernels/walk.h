@@ -912,8 +912,24 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
   static constexpr bool value = Acc::kKernelPoints;
 };
 
-// kWeighsSlices says an accumulator weighs each slice's sums by Slice::weight (horizon.h's GTAO), so that its walk may
+// kWeighsSlices says an accumulator weighs each slice's sums by Slice::weight (horizon.h's GTAO, bitmask.h's and
+// soft.h's sector accumulators), so that its walk may
 // draw the slices' azimuths by the projected normal's density (WalkSettings::projected_normal)
+// Whether the bitmask family's sector accumulators weigh their slices (and so take slices drawn by the projected
+// normal's density): on the CPU. Compiled into the CUDA walks, the draw cost registers in every call, drawn or not
+// (ptxas, sm_90: tao_walk_exact_gradients 167 -> 172 registers and 19 % -> 12 % occupancy, tao_walk_bitmask's spill
+// 60 -> 152 bytes, tao_walk_soft's 0 -> 32), so the CUDA build leaves it out and the dispatch sends such a call on
+// CUDA to the tensor path. (GTAO's walks had it before and keep it.)
+#ifdef __CUDACC_RTC__
+constexpr bool kSectorsWeighSlices = false;
+#else
+constexpr bool kSectorsWeighSlices = true;
+#endif
+// x weighed by slice sl's estimator weight where kSectorsWeighSlices (else x: no arithmetic on the CUDA build)
+template <class F, class G> TAO_FN G weighed(const Slice<F>& sl, const G& x) {
+  if constexpr (kSectorsWeighSlices) return G(sl.weight) * x;
+  else return x;
+}
 template <class Acc, class = void> struct WeighsSlices {
   static constexpr bool value = false;
 };
