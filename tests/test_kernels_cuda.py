@@ -318,6 +318,7 @@ def cases(gb):
     # indirect, a growth; floats offset, epsilon, tau, scale, growth
     yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 1, None
     yield "soft", walk_settings(**common), [0, True, False, 3, 0, 1, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.0], 4, None  # bent normals
+    yield "soft", walk_settings(**common, sphere_extent=True), [0, True, False, 0, 0, 1, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, None
     yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0, 1], [0.4, 0.0, 0.25, 0.0, 0.6], 4, None
     # indirect light (and bent normals): soft, straight-through
     yield "soft", walk_settings(**common), [0, True, False, 0, 0, 1, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7, light
@@ -325,6 +326,7 @@ def cases(gb):
     yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
     yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0, 0, 0], [0.4, 0.01, 0.05, 0.0, 0.0], 4, None
     yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None  # linear
+    yield "soft_gradients", walk_settings(**common, sphere_extent=True), [0, False, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
     yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1, 0, 0, 1], [0.4, 0.0, 0.25, 0.0, 0.6], 5, None
     # the same walk with a short slice's arrays (CUDA only: the CPU operator runs "soft_gradients" for it, CPU_TWIN)
     yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None

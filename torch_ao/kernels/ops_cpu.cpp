@@ -140,9 +140,9 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
     if (name == "soft") {
       run(unpack_soft<false>(i, f));
     } else {
-      TORCH_CHECK(i[3] == 0 && f[3] <= 0 && !i[10] && !i[7],
-                  "soft_gradients: the radius' derivative is the power step placement's, without max_radius_px, "
-                  "sphere extent or full circle");
+      TORCH_CHECK(i[3] == 0 && f[3] <= 0 && !i[7],
+                  "soft_gradients: the radius' derivative is the power step placement's (step_motion: with the "
+                  "sphere's extent too), without max_radius_px or full circle");
       run(unpack_soft<true>(i, f));
     }
   } else if (name == "soft_glsl") {

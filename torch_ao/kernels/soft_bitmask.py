@@ -70,7 +70,7 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
                  sector_epsilon: float = 0.01, variant: str = "default", slice_sampling: str = "uniform",
-                 lanes: str = "simd") -> KernelOutputs:
+                 sample_extent: str = "radius", lanes: str = "simd") -> KernelOutputs:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1) and, with
     ``indirect``, the indirect light ``(B,3,H,W)`` (background 0), with ``bent_normals`` the bent normals
     ``(B,3,H,W)`` (unit view-space; ``normals`` where the visible sectors' sum is about 0 and on background),
@@ -93,8 +93,9 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             direction too (their gradients are the backward's walk, as the G-buffer's).
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
             azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame),
-            slice_sampling (``"projected_normal"``: values only, the backward walks uniform slices): as
-            :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
+            slice_sampling (``"projected_normal"``: values only, the backward walks uniform slices), sample_extent
+            (``"sphere"``: the steps over the radius' sphere's screen extent): as :class:`~torch_ao.BitmaskAO`;
+            lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
@@ -118,7 +119,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read,
                    angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals), indirect=bool(indirect),
-                   grows=thickness_growth is not None, slice_sampling=slice_sampling)
+                   grows=thickness_growth is not None, slice_sampling=slice_sampling,
+                   sphere=sample_extent == "sphere")
     if backward_walk:
         out = _gbuffer_walk(gbuffer, normals, *scalars, layer, light, options)
     elif indirect or bent_normals:  # (no gradient: the plain walk)
@@ -141,7 +143,7 @@ def _settings(radius, thickness, scale, growth, o):
     settings = walk_settings(slices=o["slices"], steps=o["steps"], radius=radius.detach(), jitter=o["jitter"],
                              seed=o["seed"], noise=o["noise"], stagger=o["stagger"], fetch=o["fetch"], border=o["border"],
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"],
-                             slice_sampling=o["slice_sampling"])
+                             slice_sampling=o["slice_sampling"], sphere_extent=o["sphere"])
     return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"], o["bent"],
                        o["indirect"], o["grows"]],
             [thickness.detach(), o["epsilon"], o["tau"], scale.detach(), growth.detach()])
@@ -295,7 +297,7 @@ _VARIANTS = HARD_VARIANTS
 #: beyond what every bitmask kernel covers: the edge-aware fetch, bent normals, and a constant ambient colour (the
 #: visibility times the colour, in torch: dispatch.py)
 _EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "indirect": (False, True), "bent_normals": (False, True),
-          "ambient": (None, "a colour")}
+          "ambient": (None, "a colour"), "sample_extent": ("radius", "sphere")}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
@@ -334,4 +336,4 @@ def module_forward(module, gbuffer: GBuffer) -> KernelOutputs:
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
                         sector_epsilon=module.sector_epsilon, azimuth=module.azimuth, variant=module.variant,
-                        slice_sampling=module.slice_sampling)
+                        slice_sampling=module.slice_sampling, sample_extent=module.sample_extent)
