@@ -315,22 +315,22 @@ def cases(gb):
     yield "soft_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 3, False, True], [0.05, 0.1, 0.4, 0.1], 4, light
     yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, False, False, 0, True, False], [0.3, 1.0, 0.0, 0.25], 1, None
     # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1), bent,
-    # indirect, a growth; floats offset, epsilon, tau, scale, growth
-    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 1, None
-    yield "soft", walk_settings(**common), [0, True, False, 3, 0, 1, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.0], 4, None  # bent normals
-    yield "soft", walk_settings(**common, sphere_extent=True), [0, True, False, 0, 0, 1, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, None
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0, 1], [0.4, 0.0, 0.25, 0.0, 0.6], 4, None
+    # indirect, a growth, the segment geometry (the CPU's alone: 0 here); floats offset, epsilon, tau, scale, growth
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 1, None
+    yield "soft", walk_settings(**common), [0, True, False, 3, 0, 1, 0, 0, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.0], 4, None  # bent normals
+    yield "soft", walk_settings(**common, sphere_extent=True), [0, True, False, 0, 0, 1, 0, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, None
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0, 1, 0, 0], [0.4, 0.0, 0.25, 0.0, 0.6], 4, None
     # indirect light (and bent normals): soft, straight-through
-    yield "soft", walk_settings(**common), [0, True, False, 0, 0, 1, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7, light
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, False, True, 0, 0, 0, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, light
-    yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
-    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0, 0, 0], [0.4, 0.01, 0.05, 0.0, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None  # linear
-    yield "soft_gradients", walk_settings(**common, sphere_extent=True), [0, False, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
-    yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1, 0, 0, 1], [0.4, 0.0, 0.25, 0.0, 0.6], 5, None
+    yield "soft", walk_settings(**common), [0, True, False, 0, 0, 1, 1, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7, light
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, False, True, 0, 0, 0, 1, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, light
+    yield "soft_gradients", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
+    yield "soft_gradients", walk_settings(**dict(common, border="clamp")), [1, True, True, 0, 0, 0, 0, 0, 0, 0], [0.4, 0.01, 0.05, 0.0, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**common), [0, True, False, 3, 0, 0, 0, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None  # linear
+    yield "soft_gradients", walk_settings(**common, sphere_extent=True), [0, False, False, 0, 0, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
+    yield "soft_gradients", walk_settings(**dict(common, azimuth="screen")), [0, True, True, 0, 1, 0, 0, 1, 0, 0], [0.4, 0.0, 0.25, 0.0, 0.6], 5, None
     # the same walk with a short slice's arrays (CUDA only: the CPU operator runs "soft_gradients" for it, CPU_TWIN)
-    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
-    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None
+    yield "soft_gradients_short", walk_settings(**common), [0, True, False, 0, 0, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
+    yield "soft_gradients_short", walk_settings(**dict(common, steps=8)), [1, False, True, 3, 1, 0, 0, 0, 0, 0], [0.05, 0.01, 0.25, 0.15, 0.0], 4, None
     wedge = dict(common, steps=3, placement="wedge", azimuth="screen")
     table = [v for x, y in SAMPLE_SETS["ue4_6"] for v in (math.atan2(y, x), math.hypot(x, y))]
     yield ("wedge", walk_settings(**dict(wedge, slices=6, fetch="nearest", border="clamp"), table=table), [False],
@@ -432,24 +432,24 @@ def _backward_cases():
     yield "hemisphere", _hemisphere_settings(6, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     yield "hemisphere", _hemisphere_settings(5, fetch="nearest", border="clamp", jitter=False), [], [0.01, 0.1], 1
     yield "hemisphere", _hemisphere_settings(6, fetch="edge_aware", border="clamp", jitter=True), [], [0.0, 0.05], 1
-    # (rounding, cosine, straight, read, variant, bent, indirect, a growth)
-    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1], [0.5, 0.01, 0.25, 0.0, 0.6], 1
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0, 0, 0, 0], [0.4, 0.01, 0.1, 0.0, 0.0], 1
-    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0, 0, 0, 0, 0], [0.5, 0.0, 0.3, 0.0, 0.0], 1
+    # (rounding, cosine, straight, read, variant, bent, indirect, a growth, the segment geometry: along the ray, clip)
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 1
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0, 0, 0, 0, 0, 0], [0.4, 0.01, 0.1, 0.0, 0.0], 1
+    yield "soft", walk_settings(**dict(common, fetch="nearest")), [1, True, False, 0, 0, 0, 0, 0, 0, 0], [0.5, 0.0, 0.3, 0.0, 0.0], 1
     # (offset, epsilon, tau, scale, growth): the back-face layer, a per-object table's first tap, the linear model
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 0, 0, 1], [0.1, 0.01, 0.25, 0.8, 0.6], 1
-    yield "soft", walk_settings(**common), [0, False, False, 2, 0, 0, 0, 0], [0.05, 0.01, 0.25, 1.0, 0.0], 1
-    yield "soft", walk_settings(**common), [0, True, True, 3, 0, 0, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.0], 1
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0, 0, 1], [0.1, 0.0, 0.25, 0.8, 0.6], 1  # hdrp
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 0, 0, 1, 0, 0], [0.1, 0.01, 0.25, 0.8, 0.6], 1
+    yield "soft", walk_settings(**common), [0, False, False, 2, 0, 0, 0, 0, 0, 0], [0.05, 0.01, 0.25, 1.0, 0.0], 1
+    yield "soft", walk_settings(**common), [0, True, True, 3, 0, 0, 0, 0, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.0], 1
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0, 0, 1, 0, 0], [0.1, 0.0, 0.25, 0.8, 0.6], 1  # hdrp
     # bent normals: the visibility's and the bent normal sum's upstream gradients (4 channels); both variants
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 1, 0, 0], [0.1, 0.01, 0.25, 0.8, 0.0], 4
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0, 0], [0.4, 0.0, 0.25, 0.0, 0.0], 4
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, False, 1, 0, 1, 0, 0, 0, 0], [0.1, 0.01, 0.25, 0.8, 0.0], 4
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, False, True, 0, 1, 1, 0, 0, 0, 0], [0.4, 0.0, 0.25, 0.0, 0.0], 4
     # indirect light: uniform and cosine (with bent normals: 7 channels), straight-through, the hdrp variant
-    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 1, 1], [0.4, 0.01, 0.25, 0.0, 0.6], 4
-    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, 0, 0, 1, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7
-    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0, 1, 0], [0.1, 0.0, 0.25, 0.8, 0.0], 4
+    yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 1, 1, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.6], 4
+    yield "soft", walk_settings(**dict(common, fetch="edge_aware")), [0, True, True, 0, 0, 1, 1, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7
+    yield "soft", walk_settings(**dict(common, azimuth="screen")), [0, True, False, 1, 1, 0, 1, 0, 0, 0], [0.1, 0.0, 0.25, 0.8, 0.0], 4
     # more steps than the short backward keeps (tao_soft_backward's arrays of 64)
-    yield "soft", walk_settings(**dict(common, steps=9)), [0, True, False, 0, 0, 0, 0, 1], [0.3, 0.01, 0.25, 1.0, 0.6], 1
+    yield "soft", walk_settings(**dict(common, steps=9)), [0, True, False, 0, 0, 0, 0, 1, 0, 0], [0.3, 0.01, 0.25, 1.0, 0.6], 1
     # (cosine, along the ray, clipped, the layer's read: constant 0, layer 1, first tap 2); offset, scale, radius, epsilon
     exact = dict(common, fetch="edge_aware", min_step_px=0.25, sphere_extent=True)
     yield "exact", walk_settings(**exact), [True, True, True, 1, True], [0.05, 0.8, 1.0, 0.0, 0.6], 1

@@ -210,49 +210,74 @@ TAO_FN void sample_interval(int turn, const F& front, const F& back, float epsil
 
 // The occluder's segment from its front point to its back point (thickness t along the view vector, or along the
 // sample's own camera ray: intervals.back_point) in the slice's half plane: seg = (front . V, side front . T,
-// back . V, side back . T)
-template <class F, class G>
-TAO_HOT void occluder_segment(bool along_ray, int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta,
-                              const G& t, G* seg) {
-  const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
+// back . V, side back . T), of a sample at delta from a pixel |P| = pixel_distance from the camera at view-space z
+// pixel_z (G: any lane type; its tangents follow every input)
+template <class G>
+TAO_HOT void segment_of(bool along_ray, int side, const G* delta, const G* V, const G* T, const G& pixel_distance,
+                        const G& pixel_z, const G& t, G* seg) {
   G fv, ft;
-  slice_coordinates(side, delta, V, T, px.P[2], fv, ft);
+  slice_coordinates(side, delta, V, T, pixel_z, fv, ft);
   seg[0] = fv, seg[1] = ft;
   if (along_ray) {  // B = F (1 + k), k = t / depth_F: B_view = fv + k (fv - |P|), B_tangent = ft (1 + k)
-    const G k = t / clamp_min(neg(delta[2] + G(px.P[2])), G(1e-30f));
-    seg[2] = fv + k * (fv - G(px.distance)), seg[3] = ft * (G(1.0f) + k);
+    const G k = t / clamp_min(neg(delta[2] + pixel_z), G(1e-30f));
+    seg[2] = fv + k * (fv - pixel_distance), seg[3] = ft * (G(1.0f) + k);
   } else {
     seg[2] = fv - t, seg[3] = ft;
   }
 }
+// segment_of the walk's pixel and slice (their frame without tangents: G's follow delta and t)
+template <class F, class G>
+TAO_HOT void occluder_segment(bool along_ray, int side, const Pixels<F>& px, const Slice<F>& sl, const G* delta,
+                              const G& t, G* seg) {
+  const G V[3] = {G(px.V[0]), G(px.V[1]), G(px.V[2])}, T[3] = {G(sl.T[0]), G(sl.T[1]), G(sl.T[2])};
+  segment_of(along_ray, side, delta, V, T, G(px.distance), G(px.P[2]), t, seg);
+}
+
+// The part of segment seg inside the sphere of the radius around the pixel, in place (intervals.clip_to_sphere;
+// live loses the segments that miss it)
+template <class F, class G> TAO_HOT void clip_segment(G* seg, const G& radius, typename LaneTraits<F>::M& live) {
+  const G fv = seg[0], ft = seg[1], bv = seg[2], bt = seg[3];
+  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
+  const G ev = bv - fv, et = bt - ft;
+  const G a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - radius * radius;
+  const G disc = b * b - a * c;
+  const auto degenerate = a <= G(1e-30f) * clamp_min(fv * fv + ft * ft, G(1e-30f));  // a point occluder
+  const auto hit = land(disc > G(0.0f), lnot(degenerate));
+  const G safe_a = select(hit, a, G(1.0f)), root = sqrt(select(hit, disc, G(1.0f)));
+  const G u0 = select(hit, clamp((neg(b) - root) / safe_a, G(0.0f), G(1.0f)), G(0.0f));
+  const G u1 = select(hit, clamp((neg(b) + root) / safe_a, G(0.0f), G(1.0f)), G(1.0f));
+  live = land(live, select(degenerate, c <= G(0.0f), land(hit, u1 > u0)));
+  seg[0] = fv + u0 * ev, seg[1] = ft + u0 * et, seg[2] = fv + u1 * ev, seg[3] = ft + u1 * et;
+}
 
 // A segment as an interval of the hemisphere (shift: the slice's edge_shift), its part inside the radius' sphere
-// where clip (intervals.clip_to_sphere; live loses the segments that miss it): start (sector units, the lower end
-// clamped to the hemisphere) and width (sector units, epsilon narrower; <= 0: empty), DefaultAccumulator.interval's
+// where clip (clip_segment): start (sector units, the lower end clamped to the hemisphere) and width (sector units,
+// epsilon narrower; <= 0: empty), DefaultAccumulator.interval's
 template <class F, class G>
 TAO_HOT void segment_span(bool clip, float epsilon, int side, const G* seg, const F& shift, const G& radius,
                           typename LaneTraits<F>::M& live, G& start, G& width) {
-  G fv = seg[0], ft = seg[1], bv = seg[2], bt = seg[3];
-  if (clip) {  // the part of F -> B inside |x| <= R: a u^2 + 2 b u + c <= 0, u in [0, 1]
-    const G ev = bv - fv, et = bt - ft;
-    const G a = ev * ev + et * et, b = fv * ev + ft * et, c = fv * fv + ft * ft - radius * radius;
-    const G disc = b * b - a * c;
-    const auto degenerate = a <= G(1e-30f) * clamp_min(fv * fv + ft * ft, G(1e-30f));  // a point occluder
-    const auto hit = land(disc > G(0.0f), lnot(degenerate));
-    const G safe_a = select(hit, a, G(1.0f)), root = sqrt(select(hit, disc, G(1.0f)));
-    const G u0 = select(hit, clamp((neg(b) - root) / safe_a, G(0.0f), G(1.0f)), G(0.0f));
-    const G u1 = select(hit, clamp((neg(b) + root) / safe_a, G(0.0f), G(1.0f)), G(1.0f));
-    live = land(live, select(degenerate, c <= G(0.0f), land(hit, u1 > u0)));
-    const G fv0 = fv, ft0 = ft;
-    fv = fv0 + u0 * ev, ft = ft0 + u0 * et, bv = fv0 + u1 * ev, bt = ft0 + u1 * et;
-  }
+  G part[4] = {seg[0], seg[1], seg[2], seg[3]};
+  if (clip) clip_segment<F>(part, radius, live);
   const F scale = F(float(side) / kPi);
-  const G front = clamp(fma(atan2(ft, fv), scale, shift), G(0.0f), G(1.0f));
-  const G back = clamp(fma(atan2(bt, bv), scale, shift), G(0.0f), G(1.0f));
+  const G front = clamp(fma(atan2(part[1], part[0]), scale, shift), G(0.0f), G(1.0f));
+  const G back = clamp(fma(atan2(part[3], part[2]), scale, shift), G(0.0f), G(1.0f));
   const G lo = side > 0 ? front : back, hi = side > 0 ? back : front;
   width = (hi - lo) * G(float(kSectors));
   if (epsilon > 0) width = width - G(epsilon);
   start = lo * G(float(kSectors));
+}
+
+// The soft union's angles of a sample with the exact variant's segment geometry (a back point along its camera ray
+// where along_ray, the segment clipped to the radius' sphere where clip: live loses the segments that miss it): its
+// front and back ends seen from the pixel, as sample_angles' plane angles
+template <class F>
+TAO_HOT void segment_angles(bool along_ray, bool clip, int side, const Pixels<F>& px, const Slice<F>& sl,
+                            const F* delta, const F& t, const F& radius, typename LaneTraits<F>::M& live, F& front,
+                            F& back) {
+  F seg[4];
+  occluder_segment(along_ray, side, px, sl, delta, t, seg);
+  if (clip) clip_segment<F>(seg, radius, live);
+  front = atan2(seg[1], seg[0]), back = atan2(seg[3], seg[2]);
 }
 
 // d fast_acos(x) / d x (given root = sqrt(1 - |x|)) as the tensor walk takes it (safe_fast_acos in float64): none

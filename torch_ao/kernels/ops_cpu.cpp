@@ -130,7 +130,7 @@ at::Tensor walk(c10::string_view accumulator, const at::Tensor& positions, const
                 "placement over one slice, one side");
     run(unpack_hemisphere(i, f));
   } else if (name == "soft" || name == "soft_gradients") {
-    packed(8, 5);
+    packed(10, 5);
     check_thickness(i[kAccInts + 3], fr);
     TORCH_CHECK(f[kAccFloats + 2] > 0, "tau: expected > 0");
     TORCH_CHECK(name == "soft" || (!i[kAccInts + 5] && !i[kAccInts + 6]),

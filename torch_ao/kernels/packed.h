@@ -103,7 +103,8 @@ template <class Union> TAO_FN void soft_window(Union& acc) {
 }
 
 // ints: rounding, cosine, straight_through, the thickness' read (ThicknessRead), the variant's angles
-// (SectorAngles), bent, indirect, whether the thickness has a growth; floats: the thickness' offset, epsilon, tau, the
+// (SectorAngles), bent, indirect, whether the thickness has a growth, the exact variant's segment geometry (the back
+// point along the sample's ray, the clip to the radius' sphere); floats: the thickness' offset, epsilon, tau, the
 // thickness' scale, its growth
 template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps>
 TAO_FN SoftAccumulator<kGradients, kAdjoint, kMostSteps> unpack_soft(const int64_t* i, const float* f) {
@@ -111,7 +112,7 @@ TAO_FN SoftAccumulator<kGradients, kAdjoint, kMostSteps> unpack_soft(const int64
   acc.walk = unpack_walk(i, f);
   i += kAccInts, f += kAccFloats;
   acc.rounding = i[0], acc.cosine = i[1] != 0, acc.straight_through = i[2] != 0, acc.angles = SectorAngles(i[4]);
-  acc.bent = i[5] != 0, acc.indirect = i[6] != 0, acc.grows = i[7] != 0;
+  acc.bent = i[5] != 0, acc.indirect = i[6] != 0, acc.grows = i[7] != 0, acc.along_ray = i[8] != 0, acc.clip = i[9] != 0;
   acc.thickness = ThicknessModel{f[0], f[3], ThicknessRead(i[3]), f[4]}, acc.epsilon = f[1], acc.tau = f[2];
   soft_window(acc);
   return acc;

@@ -106,6 +106,35 @@ TAO_FN void step_motion(const WalkSettings& walk, const Pixels<F>& px, const Sli
   dsu = dd * sl.unit_u * F(side), dsv = dd * sl.unit_v * F(side);
 }
 
+// bitmask.h's segment_angles' adjoint, in dual lanes (14 tangents: delta, V, T, the pixel's P, t, the radius): of L
+// with d L / d front = g_front and d L / d back = g_back, d L / d delta, V, T and the pixel's P (through its depth
+// and |P| alone: delta's share is the caller's) added to g_delta, g_V, g_T and g_P, d L / d the radius (the clip's)
+// to g_radius, and d L / d t returned
+template <class F>
+TAO_FN F segment_angles_adjoint(bool along_ray, bool clip, int side, const F* P, const F* delta, const F* V,
+                                const F* T, const F& t, const F& radius, const F& g_front, const F& g_back, F* g_delta,
+                                F* g_V, F* g_T, F* g_P, F& g_radius) {
+  using D = Dual<F, 14>;
+  D d[3], v[3], w[3], p[3], thickness(t), r(radius);
+  for (int c = 0; c < 3; ++c) {
+    d[c] = D(delta[c]), v[c] = D(V[c]), w[c] = D(T[c]), p[c] = D(P[c]);
+    d[c].d[c] = F(1.0f), v[c].d[3 + c] = F(1.0f), w[c].d[6 + c] = F(1.0f), p[c].d[9 + c] = F(1.0f);
+  }
+  thickness.d[12] = F(1.0f), r.d[13] = F(1.0f);
+  D seg[4];
+  segment_of(along_ray, side, d, v, w, norm3(p), p[2], thickness, seg);
+  auto live = F(0.0f) <= F(1.0f);
+  if (clip) clip_segment<F>(seg, r, live);
+  const D front = atan2(seg[1], seg[0]), back = atan2(seg[3], seg[2]);
+  const auto along = [&](int k) { return g_front * front.d[k] + g_back * back.d[k]; };
+  for (int c = 0; c < 3; ++c) {
+    g_delta[c] = g_delta[c] + along(c), g_V[c] = g_V[c] + along(3 + c), g_T[c] = g_T[c] + along(6 + c);
+    g_P[c] = g_P[c] + along(9 + c);
+  }
+  g_radius = g_radius + along(13);
+  return along(12);
+}
+
 // kGradients: the two derivative channels too (a separate instantiation: the forward keeps no step arrays);
 // kAdjoint (with kGradients): the backward's, which keeps each step's fetch for end_slice_adjoint
 template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps> struct SoftAccumulator {
@@ -127,6 +156,39 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   // backward's)
   bool indirect, bent;
   SectorAngles angles;  // the variant's rule (bitmask.h's sample_angles, in slice_frame's frame)
+  // the exact variant's segment geometry with plane angles (bitmask.h's segment_angles): the back point along the
+  // sample's camera ray, the segment clipped to the walk's radius' sphere. The CPU's alone (kSegments): compiled into
+  // the CUDA soft walks, already at 245-249 registers, it would spill them.
+  bool along_ray = false, clip = false;
+#ifdef __CUDACC_RTC__
+  static constexpr bool kSegments = false;
+#else
+  static constexpr bool kSegments = true;
+#endif
+  TAO_FN bool segments() const { return kSegments && (along_ray || clip) && angles == SectorAngles::plane; }
+
+  // A step's front and back angles (sample_angles, or segment_angles: live loses a segment that misses the sphere)
+  template <class F>
+  TAO_FN void step_angles(int side, const Pixels<F>& px, const Slice<F>& sl, const F* delta, const F& t,
+                          typename LaneTraits<F>::M& live, F& front, F& back) const {
+    if constexpr (kSegments) {
+      if (segments()) return segment_angles(along_ray, clip, side, px, sl, delta, t, F(walk.radius), live, front, back);
+    }
+    sample_angles(angles, side, delta, px.V, sl.T, px.P[2], t, front, back);
+  }
+  // step_angles' adjoint (T: the frame's tangent): d L / d delta, V, T added to g_delta, g_V, g_T, and with the
+  // segment geometry d L / d the pixel's P (through its depth and |P|: delta's share is the caller's) to g_P and the
+  // clip's d L / d radius to g_radius; d L / d t returned
+  template <class F>
+  TAO_FN F step_angles_adjoint(int side, const Pixels<F>& px, const F* T, const F* delta, const F& t, const F& g_front,
+                               const F& g_back, F* g_delta, F* g_V, F* g_T, F* g_P, F& g_radius) const {
+    if constexpr (kSegments) {
+      if (segments())
+        return segment_angles_adjoint(along_ray, clip, side, px.P, delta, px.V, T, t, F(walk.radius), g_front, g_back,
+                                      g_delta, g_V, g_T, g_P, g_radius);
+    }
+    return sample_angles_adjoint(angles, side, delta, px.V, T, px.P[2], t, g_front, g_back, g_delta, g_V, g_T);
+  }
   static constexpr int kKept = kGradients ? kMostSteps : 1;  // steps kept per slice
   // whether the sweep keeps each step's coverage for the reverse scan (64 logistics a step, else computed again):
   // the CPU's do (a slice's are L2-resident), a CUDA thread's forward recomputes them (its local memory is
@@ -322,10 +384,13 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const int turn = sector_turn(angles, side);
     const F scale = F(float(turn) / kPi), t = thickness.at(px, smp);
     F front_angle, back_angle, s, w;
-    sample_angles(angles, side, smp.delta, px.V, sl.T, px.P[2], t, front_angle, back_angle);
+    // (lanes past the row or on the background, and with the segment geometry invalid samples and segments that miss
+    // the sphere, as DefaultAccumulator.interval: empty)
+    auto live = segments() ? land(px.live, smp.valid) : px.live;
+    step_angles(side, px, sl, smp.delta, t, live, front_angle, back_angle);
     const F front = fma(front_angle, scale, st.shift), back = fma(back_angle, scale, st.shift);
     sample_interval(turn, front, back, epsilon, s, w);
-    w = select(px.live, w, F(-1.0f));  // lanes past the row or on the background: empty
+    w = select(live, w, F(-1.0f));
     if (straight_through) {
       const typename LaneTraits<F>::I bits = sector_bits(s, w, rounding);
       if (indirect && (kAdjoint || !kGradients)) {  // (the hard share: straight-through's values)
@@ -489,12 +554,14 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     reverse_scan(st, &before[0], [&](int k) { return st.omega[k]; }, [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)};
-      F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)};
-      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, walked.T, px.P[2],
-                                                  st.t[m], g.front, g.back, g_delta, unused_V, unused_T);
+      F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_P[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_clip = F(0.0f);
+      const F g_thickness = step_angles_adjoint(m < walk.steps ? 1 : -1, px, walked.T, delta, st.t[m], g.front,
+                                                g.back, g_delta, unused_V, unused_T, unused_P, g_clip);
       thickness_adjoint(g_thickness, delta, st.t[m], st.tv[m], px, sums);
       const F radial[3] = {st.radial[0][m], st.radial[1][m], st.radial[2][m]};
-      sums.radius = sums.radius + select(px.live, fma(g_thickness, st.radial_t[m], dot3(g_delta, radial)), F(0.0f));
+      // (the steps' motion along the radius, and the clip's sphere's own)
+      sums.radius = sums.radius +
+                    select(px.live, fma(g_thickness, st.radial_t[m], dot3(g_delta, radial)) + g_clip, F(0.0f));
     });
   }
 
@@ -554,9 +621,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     reverse_scan(st, &before[0], seed, [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       const auto valid = st.valid[m];
-      F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T join them here)
-      const F g_thickness = sample_angles_adjoint(angles, m < walk.steps ? 1 : -1, delta, px.V, sl.T, px.P[2],
-                                                  st.t[m], g.front, g.back, g_delta, g_V, g_T);
+      F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (the angles' parts of g_V, g_T, g_P join them here)
+      F unused_radius = F(0.0f);  // (the radius': Euler's identity, soft_bitmask.py)
+      const F g_thickness = step_angles_adjoint(m < walk.steps ? 1 : -1, px, sl.T, delta, st.t[m], g.front, g.back,
+                                                g_delta, g_V, g_T, g_P, unused_radius);
       // d L / d the value the scale multiplies (the offset's, the scale's and the growth's into sums)
       const F g_value = thickness_adjoint(g_thickness, delta, st.t[m], st.tv[m], px, sums, g_delta) *
                         F(thickness.scale);

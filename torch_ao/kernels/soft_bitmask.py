@@ -70,7 +70,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                  noise: str = "ign", stagger: bool = False,
                  fetch: str = "bilinear", border: str = "drop", rounding: str = "ceil", azimuth: str = "view",
                  sector_epsilon: float = 0.01, variant: str = "default", slice_sampling: str = "uniform",
-                 sample_extent: str = "radius", lanes: str = "simd") -> KernelOutputs:
+                 sample_extent: str = "radius", thickness_direction: str = "view", clip_to_radius: bool = False,
+                 lanes: str = "simd") -> KernelOutputs:
     """Soft (or straight-through) bitmask visibility ``(B,1,H,W)`` in ``[0, 1]`` (background pixels 1) and, with
     ``indirect``, the indirect light ``(B,3,H,W)`` (background 0), with ``bent_normals`` the bent normals
     ``(B,3,H,W)`` (unit view-space; ``normals`` where the visible sectors' sum is about 0 and on background),
@@ -94,13 +95,20 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
             azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame),
             slice_sampling (``"projected_normal"``: values only, the backward walks uniform slices), sample_extent
-            (``"sphere"``: the steps over the radius' sphere's screen extent): as :class:`~torch_ao.BitmaskAO`;
-            lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's walk).
+            (``"sphere"``: the steps over the radius' sphere's screen extent), thickness_direction and
+            clip_to_radius (the ``"exact"`` variant's segment geometry, with ``"default"``'s plane angles; the CPU's
+            alone): as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
+            walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
-    if variant not in HARD_VARIANTS:
-        raise ValueError(f"variant: expected one of {HARD_VARIANTS}, got {variant!r}")
+    if variant not in HARD_VARIANTS + ("exact",):
+        raise ValueError(f"variant: expected one of {HARD_VARIANTS + ('exact',)}, got {variant!r}")
+    segments = thickness_direction == "depth" or bool(clip_to_radius)
+    if segments and (variant == "hdrp" or gbuffer.depth.is_cuda):
+        raise ValueError("thickness_direction, clip_to_radius: the segment geometry is the CPU kernel's, with the "
+                         f"plane angles of the 'default' and 'exact' variants (got variant={variant!r} on "
+                         f"{gbuffer.depth.device.type})")
     read = thickness_read_index(thickness_read, layer)
     named = (("radius", radius), ("thickness", thickness), ("layer_scale", 1.0 if layer_scale is None else layer_scale),
              ("thickness_growth", 0.0 if thickness_growth is None else thickness_growth))
@@ -118,7 +126,8 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
                    min_step_px=float(min_step_px), jitter=bool(jitter), seed=int(seed), noise=noise,
                    stagger=bool(stagger), fetch=fetch, border=border, azimuth=azimuth,
                    rounding=ROUNDINGS.index(rounding), epsilon=float(sector_epsilon), lanes=lanes, read=read,
-                   angles=HARD_VARIANTS.index(variant), bent=bool(bent_normals), indirect=bool(indirect),
+                   angles=int(variant == "hdrp"), bent=bool(bent_normals), indirect=bool(indirect),
+                   along_ray=thickness_direction == "depth", clip=bool(clip_to_radius),
                    grows=thickness_growth is not None, slice_sampling=slice_sampling,
                    sphere=sample_extent == "sphere")
     if backward_walk:
@@ -145,7 +154,7 @@ def _settings(radius, thickness, scale, growth, o):
                              step_power=o["step_power"], min_step_px=o["min_step_px"], azimuth=o["azimuth"],
                              slice_sampling=o["slice_sampling"], sphere_extent=o["sphere"])
     return (settings, [o["rounding"], o["cosine"], o["straight_through"], o["read"], o["angles"], o["bent"],
-                       o["indirect"], o["grows"]],
+                       o["indirect"], o["grows"], o["along_ray"], o["clip"]],
             [thickness.detach(), o["epsilon"], o["tau"], scale.detach(), growth.detach()])
 
 
@@ -293,11 +302,12 @@ class _SoftWalk(torch.autograd.Function):
 _MODES = ("hard", "soft", "straight_through")
 _WEIGHTINGS = ("uniform", "cosine")
 #: the variants (bitmask.h's sector rules and slice frames)
-_VARIANTS = HARD_VARIANTS
+_VARIANTS = HARD_VARIANTS + ("exact",)  # (the exact variant: its segment geometry with the sector union)
 #: beyond what every bitmask kernel covers: the edge-aware fetch, bent normals, and a constant ambient colour (the
 #: visibility times the colour, in torch: dispatch.py)
 _EXTRA = {"fetch": ("nearest", "bilinear", "edge_aware"), "indirect": (False, True), "bent_normals": (False, True),
-          "ambient": (None, "a colour"), "sample_extent": ("radius", "sphere")}
+          "ambient": (None, "a colour"), "sample_extent": ("radius", "sphere"), "thickness_direction": ("view", "depth"),
+          "clip_to_radius": (False, True)}
 
 
 def kernel_covers(module, gbuffer: GBuffer) -> str | None:
@@ -315,6 +325,11 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
         return reason
     if module.mode == "hard" and of_gbuffer:
         return "a gradient of the G-buffer in hard mode (the kernel's backward is the soft union's)"
+    if module.thickness_direction == "depth" or module.clip_to_radius:
+        if module.variant == "hdrp":
+            return "the segment geometry with variant='hdrp' (its rule has none)"
+        if gbuffer.depth.is_cuda:
+            return "the exact variant's segment geometry on CUDA (the soft kernel's is the CPU's)"
     return None
 
 
@@ -336,4 +351,5 @@ def module_forward(module, gbuffer: GBuffer) -> KernelOutputs:
                         min_step_px=module.min_step_px, jitter=module.jitter, seed=module.seed, noise=module.noise,
                         stagger=module.stagger, fetch=module.fetch, border=module.border, rounding=module.rounding,
                         sector_epsilon=module.sector_epsilon, azimuth=module.azimuth, variant=module.variant,
-                        slice_sampling=module.slice_sampling, sample_extent=module.sample_extent)
+                        slice_sampling=module.slice_sampling, sample_extent=module.sample_extent,
+                        thickness_direction=module.thickness_direction, clip_to_radius=module.clip_to_radius)

@@ -450,7 +450,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const at::Tensor none = at::empty({0}, positions.options());
   const bool glsl = packs_glsl(ints);
   const BackwardCall call(positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints,
-                          floats, glsl ? 6 : 8, glsl ? 4 : 5, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
+                          floats, glsl ? 6 : 10, glsl ? 4 : 5, glsl ? "glsl soft" : "soft", glsl ? kSoftMaxSteps : kSoftMaxSteps / 2,
                           glsl);
   TORCH_CHECK(call.f[kAccFloats + (glsl ? 3 : 2)] > 0, "tau: expected > 0");
   // (the accumulator's thickness model and whether it sends light)
