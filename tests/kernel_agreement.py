@@ -79,6 +79,15 @@ def use_scalar_lanes(monkeypatch, module) -> None:
     monkeypatch.setattr(module, "scalar_lanes", lambda lanes: True)
 
 
+def use_scalar_lanes_in_every_kernel(monkeypatch) -> None:
+    """:func:`use_scalar_lanes` for every kernel module a module's call may reach (the forwards' and the
+    backwards')."""
+    from torch_ao.kernels import bitmask, launch, soft_bitmask, soft_exact, walk_grad
+
+    for module in (bitmask, launch, soft_bitmask, soft_exact, walk_grad):
+        use_scalar_lanes(monkeypatch, module)
+
+
 def central_differences(loss, base: torch.Tensor, indices, eps: float = 1e-6) -> torch.Tensor:
     """``d loss / d base`` (float64, flat) by central differences at the flat ``indices`` (0 elsewhere);
     ``loss(x)`` takes ``x`` shaped as ``base``."""

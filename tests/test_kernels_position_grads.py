@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import torch_ao
-from kernel_agreement import relative_error, upstream_weights, use_scalar_lanes
+from kernel_agreement import relative_error, upstream_weights, use_scalar_lanes_in_every_kernel
 from test_kernels import built  # noqa: F401  (the fixture)
 from test_kernels_position_reads import moved_positions
 
@@ -86,10 +86,7 @@ def test_a_position_buffers_gradient_equals_the_float64_tensor_walk(built, name,
 @pytest.mark.parametrize("name", ["BitmaskAO soft", "GTAO"])
 def test_scalar_lanes_give_the_simd_lanes_gradient(built, name, monkeypatch):
     simd, _ = _gradients(name, "edge_aware", torch.float32, "kernel")
-    from torch_ao.kernels import bitmask, launch, soft_bitmask, soft_exact, walk_grad
-
-    for module in (bitmask, launch, soft_bitmask, soft_exact, walk_grad):
-        use_scalar_lanes(monkeypatch, module)
+    use_scalar_lanes_in_every_kernel(monkeypatch)
     scalar, _ = _gradients(name, "edge_aware", torch.float32, "kernel")
     assert relative_error(scalar, simd) <= 1e-5
 

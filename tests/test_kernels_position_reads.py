@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torch_ao
-from kernel_agreement import assert_masks_agree, assert_values_agree, use_scalar_lanes
+from kernel_agreement import assert_masks_agree, assert_values_agree, use_scalar_lanes_in_every_kernel
 from test_kernels import built, rough_gbuffer  # noqa: F401  (built: the fixture)
 
 MODULES = {
@@ -37,10 +37,7 @@ def moved_positions() -> tuple[torch_ao.GBuffer, torch_ao.GBuffer]:
 @pytest.mark.parametrize("name", MODULES)
 def test_a_position_buffer_read_between_texels_is_the_tensor_paths(built, name, fetch, lanes, monkeypatch):
     if lanes == "scalar":
-        from torch_ao.kernels import bitmask, launch, soft_bitmask, soft_exact
-
-        for module in (bitmask, launch, soft_bitmask, soft_exact):
-            use_scalar_lanes(monkeypatch, module)
+        use_scalar_lanes_in_every_kernel(monkeypatch)
     gb, depth_only = moved_positions()
     with torch.no_grad():
         reference = MODULES[name]("torch", fetch)(gb)

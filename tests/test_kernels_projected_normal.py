@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torch_ao
-from kernel_agreement import assert_values_agree, use_scalar_lanes
+from kernel_agreement import assert_values_agree, use_scalar_lanes_in_every_kernel
 from test_kernels import built, rough_gbuffer  # noqa: F401  (built: the fixture)
 
 CASES = {
@@ -36,10 +36,7 @@ RUNS = [(name, False) for name in CASES] + [(name, True) for name in CASES if no
 @pytest.mark.parametrize("name, indirect", RUNS)
 def test_slices_drawn_by_the_projected_normal_are_the_tensor_walks(built, name, indirect, lanes, monkeypatch):
     if lanes == "scalar":
-        from torch_ao.kernels import bitmask, launch, soft_bitmask, soft_exact
-
-        for module in (bitmask, launch, soft_bitmask, soft_exact):
-            use_scalar_lanes(monkeypatch, module)
+        use_scalar_lanes_in_every_kernel(monkeypatch)
     gb = _frame()
     make = torch_ao.SSILVB if indirect else torch_ao.BitmaskAO
     with torch.no_grad():
