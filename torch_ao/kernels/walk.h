@@ -502,6 +502,11 @@ TAO_FN void step_screen(const WalkSettings& cfg, const Image& img, const Pixels<
   sv = F(Hf - 1.0f) - clamp(floor(uv_v * F(Hf)), F(0.0f), F(Hf - 1.0f));
 }
 
+// The lanes whose four taps are one texel
+template <class F> TAO_FN typename LaneTraits<F>::M equal_taps(const typename LaneTraits<F>::I* index) {
+  return land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
+}
+
 // One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
 // perspective-correct bilinear footprint of four taps (walk.fetch.bilinear_taps: inverse depth
 // interpolated, then unprojected) — delta = position - P where valid, else -V (away from the camera: it
@@ -560,10 +565,7 @@ template <class F> struct Sample {
     }
   }
   // the lanes whose position_taps read is the edge-aware fetch's one texel, unprojected at (su, sv)
-  TAO_FN M one_texel() const {
-    const M equal = land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
-    return edge_aware ? equal : land(equal, F(0.0f) > F(1.0f));
-  }
+  TAO_FN M one_texel() const { return edge_aware ? equal_taps<F>(index) : F(0.0f) > F(1.0f); }
   // d position_taps / d su and d sv (fu and fv move with them; the one texel's unprojection moves inside the
   // image), for fetch_motion
   TAO_COLD void position_motion(F* d_su, F* d_sv) const {
@@ -787,8 +789,7 @@ template <class F>
 TAO_FN typename LaneTraits<F>::M unprojected_lanes(const WalkSettings& cfg, const typename LaneTraits<F>::I* index) {
   const auto none = F(0.0f) > F(1.0f);
   if (cfg.unprojected) return lnot(none);
-  if (!cfg.edge_aware) return none;
-  return land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
+  return cfg.edge_aware ? equal_taps<F>(index) : none;
 }
 
 // d L / d fx, fy, cx, cy of a bilinear fetch's position (taps index) from d L / d the position g_pos, on the lanes
