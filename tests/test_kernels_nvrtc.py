@@ -38,12 +38,13 @@ def test_a_compile_error_is_reported_with_the_log(monkeypatch):
 @pytest.mark.skipif(cuda_offline.ptxas_path() is None, reason="needs ptxas (pip install nvidia-cuda-nvcc-cu12)")
 def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     """A walk keeps its pixel's state in registers: none spills but the hard sector walk, held to 170 registers (3 blocks
-    of 128 threads a multiprocessor, walk_cuda.cu's launch bounds: 72 bytes), nor does the horizon backward, whose replay
+    of 128 threads a multiprocessor, walk_cuda.cu's launch bounds: 60 bytes; the exact union's walk is held to 128, 4
+    blocks, and spills nothing), nor does the horizon backward, whose replay
     keeps its tape in the thread's local memory (lanes_rev.h; stack 88 KB at 32 steps a side). The exact
-    union's backward replays an interval's segment in 11 tangents: 1720 bytes spilled and reloaded; the hard
+    union's backward replays an interval's segment in 11 tangents: 1744 bytes spilled and reloaded; the hard
     sector walk's ends each slice with its 32 sectors' weights in 2 tangents and replays the steps that send
-    indirect light in 16: 4852 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
-    (against 87 kB), 1792 bytes, and the long one 584 (its indirect light's replay in 9 tangents and the bent normal's
+    indirect light in 16: 4792 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
+    (against 87 kB), 1792 bytes, and the long one 524 (its indirect light's replay in 9 tangents and the bent normal's
     terms take it past 255 registers; it keeps 87 kB of local memory a thread whatever it spills); bounded here
     (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (closed forms) and its soft backward spill nothing."""
     report = cuda_offline.kernel_resources(ptx90, 90)

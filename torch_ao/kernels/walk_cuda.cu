@@ -21,7 +21,7 @@ TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao, )
 // (3 blocks of launch.py's 128 threads a multiprocessor, at most 170 registers a thread: the thickness growth's
 // sample distance would take the compiler to 186, and 2 blocks)
 TAO_CUDA_ENTRY(tao_walk_bitmask, unpack_bitmask, __launch_bounds__(128, 3))
-TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact, )
+TAO_CUDA_ENTRY(tao_walk_exact, unpack_exact, __launch_bounds__(128, 4))
 TAO_CUDA_ENTRY(tao_walk_exact_gradients, unpack_exact_gradients_plain, )  // d visibility / d radius, thickness, scale too
 TAO_CUDA_ENTRY(tao_walk_exact_gradients_growth, unpack_exact_gradients_growth, )  // ... and d growth
 TAO_CUDA_ENTRY(tao_walk_glsl, unpack_glsl, )
