@@ -250,17 +250,26 @@ template <class F, class G> TAO_HOT void clip_segment(G* seg, const G& radius, t
   seg[0] = fv + u0 * ev, seg[1] = ft + u0 * et, seg[2] = fv + u1 * ev, seg[3] = ft + u1 * et;
 }
 
+// The angles from V of a segment's ends seen from the pixel, of its part inside the radius' sphere where clip
+// (clip_segment, in place)
+template <class F, class G>
+TAO_HOT void segment_end_angles(bool clip, G* seg, const G& radius, typename LaneTraits<F>::M& live, G& front,
+                                G& back) {
+  if (clip) clip_segment<F>(seg, radius, live);
+  front = atan2(seg[1], seg[0]), back = atan2(seg[3], seg[2]);
+}
+
 // A segment as an interval of the hemisphere (shift: the slice's edge_shift), its part inside the radius' sphere
 // where clip (clip_segment): start (sector units, the lower end clamped to the hemisphere) and width (sector units,
 // epsilon narrower; <= 0: empty), DefaultAccumulator.interval's
 template <class F, class G>
 TAO_HOT void segment_span(bool clip, float epsilon, int side, const G* seg, const F& shift, const G& radius,
                           typename LaneTraits<F>::M& live, G& start, G& width) {
-  G part[4] = {seg[0], seg[1], seg[2], seg[3]};
-  if (clip) clip_segment<F>(part, radius, live);
+  G part[4] = {seg[0], seg[1], seg[2], seg[3]}, front_angle, back_angle;
+  segment_end_angles<F>(clip, part, radius, live, front_angle, back_angle);
   const F scale = F(float(side) / kPi);
-  const G front = clamp(fma(atan2(part[1], part[0]), scale, shift), G(0.0f), G(1.0f));
-  const G back = clamp(fma(atan2(part[3], part[2]), scale, shift), G(0.0f), G(1.0f));
+  const G front = clamp(fma(front_angle, scale, shift), G(0.0f), G(1.0f));
+  const G back = clamp(fma(back_angle, scale, shift), G(0.0f), G(1.0f));
   const G lo = side > 0 ? front : back, hi = side > 0 ? back : front;
   width = (hi - lo) * G(float(kSectors));
   if (epsilon > 0) width = width - G(epsilon);
@@ -276,8 +285,7 @@ TAO_HOT void segment_angles(bool along_ray, bool clip, int side, const Pixels<F>
                             F& back) {
   F seg[4];
   occluder_segment(along_ray, side, px, sl, delta, t, seg);
-  if (clip) clip_segment<F>(seg, radius, live);
-  front = atan2(seg[1], seg[0]), back = atan2(seg[3], seg[2]);
+  segment_end_angles<F>(clip, seg, radius, live, front, back);
 }
 
 // d fast_acos(x) / d x (given root = sqrt(1 - |x|)) as the tensor walk takes it (safe_fast_acos in float64): none

@@ -69,7 +69,8 @@ TAO_FN void fetch_motion(const Sample<F>& smp, const F* P, const F& su, const F&
 #ifndef __CUDACC_RTC__
   if (smp.reads_positions) {  // (a position buffer's taps: Sample::position_motion)
     smp.position_motion(d_su, d_sv);
-    for (int c = 0; c < 3; ++c) d_su[c] = select(smp.valid, d_su[c], F(0.0f)), d_sv[c] = select(smp.valid, d_sv[c], F(0.0f));
+    for (int c = 0; c < 3; ++c)
+      d_su[c] = select(smp.valid, d_su[c], F(0.0f)), d_sv[c] = select(smp.valid, d_sv[c], F(0.0f));
     return;
   }
 #endif
@@ -121,11 +122,10 @@ TAO_FN F segment_angles_adjoint(bool along_ray, bool clip, int side, const F* P,
     d[c].d[c] = F(1.0f), v[c].d[3 + c] = F(1.0f), w[c].d[6 + c] = F(1.0f), p[c].d[9 + c] = F(1.0f);
   }
   thickness.d[12] = F(1.0f), r.d[13] = F(1.0f);
-  D seg[4];
+  D seg[4], front, back;
   segment_of(along_ray, side, d, v, w, norm3(p), p[2], thickness, seg);
   auto live = F(0.0f) <= F(1.0f);
-  if (clip) clip_segment<F>(seg, r, live);
-  const D front = atan2(seg[1], seg[0]), back = atan2(seg[3], seg[2]);
+  segment_end_angles<F>(clip, seg, r, live, front, back);
   const auto along = [&](int k) { return g_front * front.d[k] + g_back * back.d[k]; };
   for (int c = 0; c < 3; ++c) {
     g_delta[c] = g_delta[c] + along(c), g_V[c] = g_V[c] + along(3 + c), g_T[c] = g_T[c] + along(6 + c);

@@ -89,6 +89,11 @@ struct Targets {
   bool read_edge_aware = false;
 };
 
+// The bilinear weights of fu = u, fv = v at the four taps (u0 v0, u1 v0, u0 v1, u1 v1)
+TAO_FN void bilinear_weights(float u, float v, float* weight) {
+  weight[0] = (1.0f - u) * (1.0f - v), weight[1] = u * (1.0f - v), weight[2] = (1.0f - u) * v, weight[3] = u * v;
+}
+
 // The adjoint of Sample.gather: g (channels lanes: d L / d the value gathered) into image (H, W, channels) at
 // the sample's taps (bilinear: weighted as fu, fv weight them; else index[0]), on the lanes in `on` of the first n
 template <class B>
@@ -103,8 +108,8 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
   for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
   for (int l = 0; l < n; ++l) {
     if (!lane_on(on, l)) continue;
-    const float u = ful[l], v = fvl[l];
-    const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
+    float weight[4];
+    bilinear_weights(ful[l], fvl[l], weight);
     for (int c = 0; c < channels; ++c) {
       if (bilinear) {
         for (int i = 0; i < 4; ++i) scatter_add(image + channels * il[i][l] + c, gl[c][l] * weight[i]);
@@ -276,9 +281,8 @@ TAO_FN void scatter_position_taps(int n, const Targets& t, const B* g, const B* 
       scatter_add(t.tap_positions + 3 * il[0][l] + 2, (gp[0] * p[0] + gp[1] * p[1] + gp[2] * p[2]) / tap[0][2]);
       continue;
     }
-    const float u = ful[l], v = fvl[l];
-    const float weight[4] = {(1.0f - u) * (1.0f - v), u * (1.0f - v), (1.0f - u) * v, u * v};
-    float inverse[4], total = 0.0f;
+    float weight[4], inverse[4], total = 0.0f;
+    bilinear_weights(ful[l], fvl[l], weight);
     for (int k = 0; k < 4; ++k) inverse[k] = -1.0f / tap[k][2], total += weight[k] * inverse[k];
     for (int k = 0; k < 4; ++k) {
       const float share = weight[k] * inverse[k] / total;
