@@ -333,6 +333,16 @@ def _cases() -> dict[str, Case]:
         "gtao_projected_gbuffer": Case("`GTAO`, slices drawn by the projected normal's density, fwd+bwd, depth + "
                                        "normals", horizon(torch_ao.GTAO, slice_sampling="projected_normal"), "gbuffer",
                                        "gtao_projected", 3.0),
+        "soft_projected_gbuffer": Case("soft `BitmaskAO`, slices drawn by the projected normal's density, fwd+bwd, "
+                                       "depth + normals", bitmask(mode="soft", slice_sampling="projected_normal"),
+                                       "gbuffer", "bitmask", 3.0),
+        "soft_projected_gbuffer_torch": Case(
+            "soft `BitmaskAO`, slices drawn by the projected normal's density, fwd+bwd, depth + normals, tensor ops",
+            bitmask("torch", mode="soft", slice_sampling="projected_normal"), "gbuffer", "bitmask", 3.0, kernel=False),
+        "cosine_projected_gbuffer": Case("`BitmaskAO` hard, cosine, slices drawn by the projected normal's density, "
+                                         "fwd+bwd, depth + normals",
+                                         bitmask(mode="hard", weighting="cosine", slice_sampling="projected_normal"),
+                                         "gbuffer", "cosine", 3.0),
         "ue4_ssao": Case("`UE4SSAO` (uniform directions)", ue4_ssao, None, "shader", 1.0),
         "ue4_ssao_gbuffer": Case("`UE4SSAO` fwd+bwd, depth + normals", ue4_ssao, "gbuffer", "ue4_ssao", 3.0),
         "pssao": Case("`PSSAO`", pssao, None, "shader", 1.0),

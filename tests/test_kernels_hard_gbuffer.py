@@ -241,3 +241,26 @@ def test_the_auto_backend_takes_the_kernel(built, monkeypatch):
     (g_fx,) = torch.autograd.grad(module(moving).visibility.sum(), [intrinsics])  # (the kernel: through the positions)
     assert calls == ["hard", "hard"] and g_fx.abs().sum() > 0
     assert kernel_covers(SSILVB(mode="hard", slices=2, steps=3), moving) is None
+
+
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+def test_bent_normals_of_the_background_pass_their_gradient_on(built, lanes, monkeypatch):
+    """A background pixel's bent normal is its own normal (the view-facing default there, which follows the
+    intrinsics): its gradient reaches the intrinsics through it, also where every pixel of a kernel's block is
+    background (one pixel a block in scalar lanes, the CUDA thread's)."""
+    if lanes == "scalar":
+        import torch_ao.kernels.bitmask as bitmask
+        use_scalar_lanes(monkeypatch, bitmask)
+
+    def grads(dtype, backend):
+        gb0 = FRAMES["rough"]().to(dtype=dtype)
+        K = gb0.camera.intrinsics.detach().clone().requires_grad_()
+        gb = GBuffer(depth=gb0.depth, camera=PinholeCamera(K, gb0.camera.height, gb0.camera.width))
+        out = BitmaskAO(mode="hard", slices=3, steps=4, bent_normals=True, backend=backend).to(dtype)(gb)
+        loss = (out.bent_normal * torch.linspace(-0.5, 1.5, out.bent_normal.numel(), dtype=dtype).view_as(
+            out.bent_normal)).sum()
+        return torch.autograd.grad(loss, [K])[0].double()
+
+    assert (~FRAMES["rough"]().valid).sum() > 0
+    reference = grads(torch.float64, "torch")
+    assert relative_error(grads(torch.float32, "kernel"), reference) <= 1e-4

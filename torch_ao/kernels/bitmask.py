@@ -66,8 +66,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`, or
             ``"exact"``: its angles are ``"default"``'s), azimuth (``"view"``/``"screen"``), thickness_direction,
             clip_to_radius, sample_extent (the ``"exact"`` variant's segment geometry, with the sector union; the
-            ``"hdrp"`` variant's rule has none), slice_sampling (``"projected_normal"``: values only, its backward
-            walks uniform slices): as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`, the outputs
+            ``"hdrp"`` variant's rule has none), slice_sampling: as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`, the outputs
             have a backward (``_HardWalk``).
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
@@ -88,7 +87,7 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     channels = 1 + 3 * bool(indirect) + 3 * bool(bent_normals)
     light = light_input(gbuffer, indirect) if indirect else None
     if needs_hard_backward(gbuffer, normals, weighting=weighting, indirect=indirect, bent_normals=bent_normals,
-                           light=light, radius=radius):
+                           light=light, radius=radius, slice_sampling=slice_sampling):
         if gbuffer.depth.device.type == "cpu":
             cpu_kernels(), grad_kernels()  # built (or KernelUnavailable raised) before any graph is recorded
         inputs, (light, cells, layer_image), ints, floats = packed_inputs(
@@ -108,12 +107,14 @@ HARD_VARIANTS = ("default", "hdrp")
 
 
 def needs_hard_backward(gbuffer: GBuffer, normals: torch.Tensor | None, *, weighting: str, indirect: bool,
-                        bent_normals: bool, light: torch.Tensor | None = None, radius=None) -> bool:
+                        bent_normals: bool, light: torch.Tensor | None = None, radius=None,
+                        slice_sampling: str = "uniform") -> bool:
     """Whether a hard walk's outputs have gradients that autograd records, so that :func:`bitmask_outputs` and
     :func:`ssilvb_glsl_hard` run their backward (``_HardWalk``). Hard masks have none, but what they weight does:
-    the cosine weights and the bent normals follow the slice (through the G-buffer and the ``normals``), indirect
-    light also its ``light`` and, through the samples' extent, the ``radius``."""
-    graded = weighting == "cosine" or bool(bent_normals) or bool(indirect)
+    the cosine weights and the bent normals follow the slice (through the G-buffer and the ``normals``), and so
+    does the weight of a slice drawn by the projected normal's density; indirect light also its ``light`` and,
+    through the samples' extent, the ``radius``."""
+    graded = weighting == "cosine" or bool(bent_normals) or bool(indirect) or slice_sampling == "projected_normal"
     return graded and wants_gradient(gbuffer, normals, *((light, radius) if indirect else ()))
 
 
@@ -417,25 +418,11 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = gbuffer_uncovered(gbuffer)
     if reason is not None:
         return reason
-    if values.get("slice_sampling") == "projected_normal":
-        if gbuffer.depth.is_cuda:
-            return "slice_sampling='projected_normal' on CUDA (the CPU's sector kernels alone draw such slices)"
-        if _slice_weights_graded(module, gbuffer):
-            return ("a gradient with slice_sampling='projected_normal' (the kernels' backwards walk uniform slices: "
-                    "the azimuths' and weights' dependence on the normal is the tensor path's)")
+    if values.get("slice_sampling") == "projected_normal" and gbuffer.depth.is_cuda:
+        return "slice_sampling='projected_normal' on CUDA (the CPU's sector kernels alone draw such slices)"
     if module.variant != "ssilvb_glsl":  # (the shader reads its nearest texels, whatever fetch says)
         return position_read_uncovered(module, gbuffer)
     return None
-
-
-def _slice_weights_graded(module, gbuffer: GBuffer) -> bool:
-    """Whether autograd would record a gradient through slices drawn by the projected normal's density: through
-    the G-buffer (the azimuths and weights follow the normals and the view vector: the intrinsics too) and, but
-    for hard masks without indirect light (whose parameters have none), the module's parameters."""
-    if not torch.is_grad_enabled():
-        return False
-    masks_alone = module.mode == "hard" and module.union == "sectors" and not module.want_indirect
-    return _needs_grad(module, gbuffer, parameters=not masks_alone) or gbuffer.camera.intrinsics.requires_grad
 
 
 def thickness_uncovered(module, layers: bool, growth: bool = False) -> str | None:
@@ -459,14 +446,12 @@ def thickness_uncovered(module, layers: bool, growth: bool = False) -> str | Non
     return None
 
 
-def _needs_grad(module, gbuffer: GBuffer, parameters: bool = True) -> bool:
-    """Whether autograd would record a gradient of the G-buffer's tensors (and, with ``parameters``, of
-    the module's radius and its thickness model's parameters)."""
+def _needs_grad(module, gbuffer: GBuffer) -> bool:
+    """Whether autograd would record a gradient of the G-buffer's tensors or of the module's radius and its
+    thickness model's parameters."""
     if not torch.is_grad_enabled():
         return False
-    tensors = [gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position]
-    if parameters:
-        tensors += _parameter_tensors(module)
+    tensors = [gbuffer.depth, gbuffer.normals, gbuffer.light, gbuffer.position] + _parameter_tensors(module)
     return any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors)
 
 

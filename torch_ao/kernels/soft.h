@@ -454,8 +454,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
 
   // The slice's visible share sum_k free_k omega_k (the weights' sum added to sums.den with cosine
   // weights); omega: st.omega, or the same weights with tangents (G: their lane type)
-  template <class F, class Weights, class G>
-  TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums, const Slice<F>* walked = nullptr) const {
+  template <class F, class Weights, class G, class W = F>
+  TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums, const Slice<W>* walked = nullptr) const {
     G share = G(0.0f), weight = G(0.0f);
     for (int k = 0; k < kSectors; ++k) {
       share = share + G(free_share(st, k)) * omega[k];
@@ -539,8 +539,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& walked, Sums<F>& sums) const {
     LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients)
     if (kGradients) sweep(st, &before[0]);
-    // (every sum weighs by the slice's Slice::weight: 1 but for slices drawn by a density, which the dispatch
-    // takes without gradients alone)
+    // (every sum weighs by the slice's Slice::weight: 1 but for slices drawn by a density; the parameters' derivatives
+    // too, through the reverse scan's seed)
     sums.num = sums.num + weighed(walked, visible(st, st.omega, sums, &walked));
     if (indirect && !kGradients)
       for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + weighed(walked, st.light[c]);
@@ -551,7 +551,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     }
     if (!kGradients) return;
     // d visibility / d delta and t of each step (sample_angles_adjoint), then along the radius' motion of both
-    reverse_scan(st, &before[0], [&](int k) { return st.omega[k]; }, [&](int m, const StepAdjoint<F>& g) {
+    reverse_scan(st, &before[0], [&](int k) { return weighed(walked, st.omega[k]); }, [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)};
       F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_P[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_clip = F(0.0f);
@@ -585,13 +585,26 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
                                 const F* bent_weight, Sink& sink, const Image& img, const Image* camera = nullptr) const {
     LaneArray<F, kKept * kSectors> before;
     sweep(st, &before[0]);
+    // A slice drawn by the projected normal's density counts by its weight (sd.weight, 1 for the others): the
+    // slice's part of L is w U, so every adjoint below is w times U's, and w's tangents add U dw (unweighted: U)
+    const F w = weighed(sl, F(1.0f)), weight_w = weight * w;
+    const F *light_w = light_weight, *bent_w = bent_weight;
+    F light_scaled[3], bent_scaled[3];
+    if (kSectorsWeighSlices && walk.projected_normal) {
+      for (int c = 0; c < 3; ++c) {
+        if (light_weight) light_scaled[c] = light_weight[c] * w;
+        if (bent_weight) bent_scaled[c] = bent_weight[c] * w;
+      }
+      light_w = light_weight ? light_scaled : nullptr, bent_w = bent_weight ? bent_scaled : nullptr;
+    }
     const FrameAngle<D> frame = frame_angle(angles, sd);  // (the shift's and the weights' gamma, with tangents)
     LaneArray<D, kSectors> omega;  // the weights with their tangents
     for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
     if (cosine) cosine_sector_weights(frame, sd.length, omega);
-    const D share = visible(st, omega, sums);  // (its tangents, times weight, are the loss's through num)
-    sums.num = sums.num + D(share.v);
-    sums.loss = sums.loss + D(weight) * share;
+    const D share = visible(st, omega, sums, &sd);  // (its tangents, times weight, are the loss's through num)
+    sums.num = sums.num + D(w * share.v);
+    sums.loss = sums.loss + D(weight_w) * share;
+    F unweighted = weight * share.v;
     // d L / d each sector's free share: the visibility's weight omega_k, and with bent normals omega_k times the
     // upstream gradient's components along the sector centre's direction
     F g_v = F(0.0f), g_t = F(0.0f);
@@ -599,17 +612,19 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       D part[3];
       slice_bent(st, omega, pd.V, sd.T, frame, part);
       for (int c = 0; c < 3; ++c) {
-        sums.loss = sums.loss + D(bent_weight[c]) * part[c];
-        g_v = g_v + bent_weight[c] * px.V[c], g_t = g_t + bent_weight[c] * frame_tangent(angles, sl.T[c]);
+        sums.loss = sums.loss + D(bent_w[c]) * part[c];
+        unweighted = unweighted + bent_weight[c] * part[c].v;
+        g_v = g_v + bent_w[c] * px.V[c], g_t = g_t + bent_w[c] * frame_tangent(angles, sl.T[c]);
       }
     }
     const F cos_gamma = frame.cos_gamma.v, sin_gamma = frame.sin_gamma.v;
     const auto seed = [&](int k) {
-      if (!bent_weight) return weight * st.omega[k];
+      if (!bent_weight) return weight_w * st.omega[k];
       F v, t;
       sector_centre(k, cos_gamma, sin_gamma, v, t);
-      return st.omega[k] * (weight + g_v * v + g_t * t);
+      return st.omega[k] * (weight_w + g_v * v + g_t * t);
     };
+    const F lit_before = sums.lit.v;  // (the slice's light part of L, its gains w times U's, is what it adds)
     F g_V[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_P[3] = {F(0.0f), F(0.0f), F(0.0f)};
     F g_N[3] = {F(0.0f), F(0.0f), F(0.0f)};  // (indirect light's: the pixel's normal faces the samples)
     F g_shift = F(0.0f);
@@ -643,7 +658,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
         const typename LaneTraits<F>::I taps[4] = {st.index[0][m], st.index[1][m], st.index[2][m], st.index[3][m]};
         const Sample<F> smp(img, walk.bilinear, taps, st.fu[m], st.fv[m], valid);
         F g_light_delta[3];
-        light_adjoint(px, smp, delta, newly, light_weight, g_light_delta, g_N, g_su, g_sv, sink, st, m,
+        light_adjoint(px, smp, delta, newly, light_w, g_light_delta, g_N, g_su, g_sv, sink, st, m,
                       land(px.live, valid));
         for (int c = 0; c < 3; ++c) g_delta[c] = g_delta[c] + g_light_delta[c];
         const F d_su[3] = {st.d_su[0][m], st.d_su[1][m], st.d_su[2][m]}, d_sv[3] = {st.d_sv[0][m], st.d_sv[1][m], st.d_sv[2][m]};
@@ -667,6 +682,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       D through = D(0.0f);
       for (int k = 0; k < kSectors; ++k) through = through + D(g_omega[k]) * omega[k];
       sums.loss = sums.loss + through;
+    }
+    if (kSectorsWeighSlices && walk.projected_normal) {  // U dw (w > 0: the density's bins are at least 1e-4)
+      if (light_weight) unweighted = unweighted + (sums.lit.v - lit_before) / w;
+      sums.loss = sums.loss + D(unweighted) * (sd.weight - D(sd.weight.v));
     }
     if (camera) {
       placement.camera(walk, *camera, sl, g_cam);
@@ -723,9 +742,12 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const Pixels<F> px(walk, img, row, u0, n);
     F den = F(0.0f);
     for (int64_t s = 0; s < walk.slices; ++s) {
+      const Slice<F> sl = walked_slice<SoftAccumulator>(walk, img, px, s);
       LaneArray<F, kSectors> omega;
-      cosine_sector_weights(slice_frame(angles, Slice<F>(walk, img, px, s)), omega);
-      for (int k = 0; k < kSectors; ++k) den = den + omega[k];
+      cosine_sector_weights(slice_frame(angles, sl), omega);
+      F sum = F(0.0f);
+      for (int k = 0; k < kSectors; ++k) sum = sum + omega[k];
+      den = den + weighed(sl, sum);  // (as visible sums a slice's weights)
     }
     return clamp_min(den, F(1e-30f));
   }
@@ -767,6 +789,7 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   Sink& sink;
   bool camera;  // d L / d the intrinsics too (4 more channels)
   mutable int64_t slice = 0;
+  static constexpr bool kWeighsSlices = kSectorsWeighSlices;  // (end_slice_adjoint weighs a slice drawn by a density)
   template <class G> struct State {
     typename Acc::template State<G> base;
     Slice<D> sd;
@@ -774,7 +797,10 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   template <class G> using Sums = typename Acc::template Sums<D>;
   TAO_FN int channels() const { return 14; }
   TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
-    return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
+    // (the CUDA build, which draws no slice by a density, builds it in place: through walked_slice's return
+    // ptxas spilled twice the bytes in tao_soft_backward)
+    if constexpr (!kSectorsWeighSlices) return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
+    return State<F>{acc.begin_slice(px, sl), walked_slice<Acc>(acc.walk, img, pd, slice++)};
   }
   TAO_FN void step(State<F>& st, int side, const Pixels<F>& px, const Slice<F>& sl, const Sample<F>& smp) const {
     acc.step(st.base, side, px, sl, smp);
@@ -784,7 +810,7 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
     if (light_weight && any(st.base.w[m] >= F(0.0f))) {
       F light[3];
       acc.sample_light(px, smp, light);
-      st.base.gain[m] = select(px.live, dot3(light_weight, light), F(0.0f));
+      st.base.gain[m] = select(px.live, weighed(sl, dot3(light_weight, light)), F(0.0f));
     }
   }
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& sl, Sums<F>& sums) const {

@@ -94,7 +94,7 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             direction too (their gradients are the backward's walk, as the G-buffer's).
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
             azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame),
-            slice_sampling (``"projected_normal"``: values only, the backward walks uniform slices), sample_extent
+            slice_sampling (``"projected_normal"``: on the CPU alone), sample_extent
             (``"sphere"``: the steps over the radius' sphere's screen extent), thickness_direction and
             clip_to_radius (the ``"exact"`` variant's segment geometry, with ``"default"``'s plane angles; the CPU's
             alone): as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's

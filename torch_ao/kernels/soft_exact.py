@@ -61,7 +61,7 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             world unit; ``None``: none), the thickness times ``1 + g * |sample - pixel|``.
         slices, steps (<= 32 per side), step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch,
             border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth,
-            slice_sampling (``"projected_normal"``: values only, the backward walks uniform slices): as
+            slice_sampling (``"projected_normal"``: on the CPU alone): as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
     Raises ``ValueError`` naming the argument for a parameter that is not 0-d, or ``steps`` beyond 32.

@@ -37,17 +37,37 @@
 
 namespace tao {
 
-// walk.h's density_azimuth in reverse lanes: evaluated in dual lanes of its three inputs (the normal's components;
-// u is a constant) and recorded as the azimuth's and the weight's nodes alone, instead of its 64 bins' few hundred
+// walk.h's density_azimuth in dual lanes of its three inputs (the normal's components n . V, n . e1, n . e2; u is a
+// constant), for the backwards to chain to theirs: its 32 bins' atan2s carried in 3 tangents
+template <class F>
+TAO_FN Dual<F, 3> density_azimuth_in_three(const F& nv, const F& n1, const F& n2, const F& u, Dual<F, 3>& weight) {
+  using D = Dual<F, 3>;
+  D in[3] = {D(nv), D(n1), D(n2)};
+  for (int k = 0; k < 3; ++k) in[k].d[k] = F(1.0f);
+  return density_azimuth<D>(in[0], in[1], in[2], D(u), weight);
+}
+// in reverse lanes: recorded as the azimuth's and the weight's nodes of three parents alone, instead of its 64 bins'
+// few hundred
 template <class F>
 TAO_FN Rev<F> density_azimuth(const Rev<F>& nv, const Rev<F>& n1, const Rev<F>& n2, const Rev<F>& u, Rev<F>& weight) {
-  using D = Dual<F, 3>;
-  D in[3] = {D(nv.v), D(n1.v), D(n2.v)};
-  for (int k = 0; k < 3; ++k) in[k].d[k] = F(1.0f);
-  D w;
-  const D psi = density_azimuth(in[0], in[1], in[2], D(u.v), w);
+  Dual<F, 3> w;
+  const Dual<F, 3> psi = density_azimuth_in_three(nv.v, n1.v, n2.v, u.v, w);
   weight = Rev<F>::link(w.v, nv, w.d[0], n1, w.d[1], n2, w.d[2]);
   return Rev<F>::link(psi.v, nv, psi.d[0], n1, psi.d[1], n2, psi.d[2]);
+}
+// in dual lanes of N tangents: chained from the 3 to their N
+template <class F, int N>
+TAO_FN Dual<F, N> density_azimuth(const Dual<F, N>& nv, const Dual<F, N>& n1, const Dual<F, N>& n2, const Dual<F, N>& u,
+                                  Dual<F, N>& weight) {
+  Dual<F, 3> w;
+  const Dual<F, 3> psi = density_azimuth_in_three(nv.v, n1.v, n2.v, u.v, w);
+  const auto chained = [&](const Dual<F, 3>& x) {
+    Dual<F, N> r(x.v);
+    for (int k = 0; k < N; ++k) r.d[k] = x.d[0] * nv.d[k] + x.d[1] * n1.d[k] + x.d[2] * n2.d[k];
+    return r;
+  };
+  weight = chained(w);
+  return chained(psi);
 }
 
 // tangents of the pixel's own P (3), N (3), depth (1) (seed_pixel) and of the accumulator's setting
@@ -678,7 +698,8 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   B den(0.0f);  // the slices' whole measure (cosine weights), for finish's d visibility / d covered
   if (acc.cosine) {
     B num(0.0f);
-    for (int64_t s = 0; s < cfg.slices; ++s) acc.add_slice(B(0.0f), Slice<B>(cfg, img, px, s), num, den);
+    for (int64_t s = 0; s < cfg.slices; ++s)
+      acc.add_slice(B(0.0f), walked_slice<ExactAccumulator>(cfg, img, px, s), num, den);
   }
   const B per_covered = g * acc.per_covered(den);  // d L / d a slice's covered measure
   const bool layer_read = acc.thickness.reads_layer();
@@ -688,8 +709,10 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   float g_lo[kMaxIntervals][L], g_hi[kMaxIntervals][L];
   B g_cam[4] = {B(0.0f), B(0.0f), B(0.0f), B(0.0f)};  // d L / d fx, fy, cx, cy (where t.camera)
   for (int64_t s = 0; s < cfg.slices; ++s) {
-    // 1. the forward's intervals
-    const Slice<B> sl(cfg, img, px, s);
+    // 1. the forward's intervals (a slice drawn by the projected normal's density weighs its covered measure: its
+    // taps' adjoints by the weight's value, the pixel's own tangents through add_slice's product with sl_own's)
+    const Slice<B> sl = walked_slice<ExactAccumulator>(cfg, img, px, s);
+    const B per_slice = weighed(sl, per_covered);
     typename ExactAccumulator::template State<B> st = acc.begin_slice(px, sl);
     NoVisit visit;
     walk_slice(cfg, img, acc, px, sl, st, visit);
@@ -702,7 +725,7 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
     });
     B r(0.0f);
     for (int j = 0; j < m; ++j) reach[j] = r, r = max(st.hi[j], r);
-    const Slice<Own> sl_own(cfg, img, px_own, s);
+    const Slice<Own> sl_own = walked_slice<ExactAccumulator>(cfg, img, px_own, s);
     const Slice<Ends> sl_ends(sl_own, with_ends);
     Own covered;
     B g_reach(0.0f);  // d covered / d reach_j+1
@@ -769,8 +792,8 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
         }
         for (int k = 0; k < kPixel; ++k) covered.d[k] = covered.d[k] + along[k];
         B gd[3], pos[3];
-        for (int c = 0; c < 3; ++c) gd[c] = per_covered * along[kExactDelta + c], pos[c] = smp.delta[c].v + pxd.P[c].v;
-        const B g_layer = per_covered * along[kExactLayer];
+        for (int c = 0; c < 3; ++c) gd[c] = per_slice * along[kExactDelta + c], pos[c] = smp.delta[c].v + pxd.P[c].v;
+        const B g_layer = per_slice * along[kExactLayer];
         const auto on = land(smp.valid, px.live);
         if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (the slice's placement)
           if (cfg.bilinear) unprojection_camera(cfg, img, smp.index, pos, gd, on, g_cam);
@@ -822,7 +845,7 @@ TAO_FN void hard_record_block(const WalkSettings& cfg, const Image& img, const A
   for (int64_t s = 0; s < cfg.slices; ++s) {
     int32_t occ[L] = {};
     if (live) {
-      const Slice<B> sl(cfg, img, px, s);
+      const Slice<B> sl = walked_slice<Acc>(cfg, img, px, s);
       typename Acc::template State<B> st = begin_slice_of(acc, px, sl, sums, 0);
       NoVisit visit;
       walk_slice(cfg, img, acc, px, sl, st, visit);
@@ -870,7 +893,14 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   B g[8];
   if (!upstream_lanes(img, row, u0, n, upstream, C, g)) return;  // (no gradient flows: the outputs' zeros stand)
   const Pixels<B> px(cfg, img, row, u0, n);
-  if (!any(px.live)) return;
+  if (!any(px.live)) {  // background alone: its bent normal is its own normal (finish's), which takes the upstream's
+    if (acc.bent) {
+      B own[kPixel];
+      for (int k = 0; k < kPixel; ++k) own[k] = k >= 3 && k < 6 ? g[C - 6 + k] : B(0.0f);
+      write_own(t, img.W, row, u0, n, own);
+    }
+    return;
+  }
   const Pixels<Own> px_own(cfg, img, row, u0, n);
   // indirect light: each newly occluding step replayed in Dual<B, 16> (the pixel's own 7, the sample's offset 3,
   // the sender's normal 3 and light 3, both gathered at its taps)
@@ -880,7 +910,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
   if (acc.indirect) {
     typename BitmaskAccumulator::template Sums<B> whole;  // (den: the slices' whole weight)
     for (int64_t s = 0; s < cfg.slices; ++s) {
-      const Slice<B> sl(cfg, img, px, s);
+      const Slice<B> sl = walked_slice<BitmaskAccumulator>(cfg, img, px, s);
       acc.end_slice(acc.begin_slice(px, sl), px, sl, whole);
     }
     for (int c = 0; c < 3; ++c) per_light[c] = select(px.live, g[1 + c] * acc.per_light(whole.den), B(0.0f));
@@ -896,12 +926,14 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     int32_t words[L] = {};
     for (int l = 0; l < n; ++l) words[l] = record[(row * img.W + u0 + l) * cfg.slices + s];
     const I occ = from_lanes(words, I(0));
-    const Slice<B> sl(cfg, img, px, s);
-    const Slice<Own> sl_own(cfg, img, px_own, s);
-    // the slice's weights follow its gamma and length alone: its end in their 2 tangents, chained to the 7
+    const Slice<B> sl = walked_slice<BitmaskAccumulator>(cfg, img, px, s);
+    const Slice<Own> sl_own = walked_slice<BitmaskAccumulator>(cfg, img, px_own, s);
+    // the slice's weights follow its gamma and length alone: its end in their 2 tangents, chained to the 7; a slice
+    // drawn by the projected normal's density ended unweighed, its sums then times its weight in the 7 (weighted)
     Slice<Two> sl_two(sl, constant);
     sl_two.gamma.d[0] = B(1.0f), sl_two.cos_gamma.d[0] = neg(sl.sin_gamma), sl_two.sin_gamma.d[0] = sl.cos_gamma;
     sl_two.length.d[1] = B(1.0f);
+    sl_two.weight = Two(B(1.0f));
     // end_slice's bent normal is along_v V + along_t T: with V and T the first two axes it gives along_v and
     // along_t, which are then chained and multiplied by V and T in the own tangents
     for (int c = 0; c < 3; ++c) sl_two.T[c] = Two(B(c == 1 ? 1.0f : 0.0f));
@@ -914,10 +946,13 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
       for (int k = 0; k < kPixel; ++k) r.d[k] = x.d[0] * sl_own.gamma.d[k] + x.d[1] * sl_own.length.d[k];
       return r;
     };
-    sums.visible = sums.visible + chained(part.visible);
-    sums.num = sums.num + chained(part.num), sums.den = sums.den + chained(part.den);
+    const auto weighted = [&](const Two& x) {
+      return kSectorsWeighSlices && cfg.projected_normal ? chained(x) * sl_own.weight : chained(x);
+    };
+    sums.visible = sums.visible + weighted(part.visible);
+    sums.num = sums.num + weighted(part.num), sums.den = sums.den + weighted(part.den);
     if (acc.bent) {
-      const Own along_v = chained(part.bent[0]), along_t = chained(part.bent[1]);
+      const Own along_v = weighted(part.bent[0]), along_t = weighted(part.bent[1]);
       for (int c = 0; c < 3; ++c) sums.bent[c] = sums.bent[c] + along_v * px_own.V[c] + along_t * sl_own.T[c];
     }
     if (!acc.indirect) continue;
@@ -946,16 +981,17 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
         for (int q = 0; q < 3; ++q) {
           gd[q] = gn[q] = gl[q] = B(0.0f);
           for (int c = 0; c < 3; ++c) {
-            gd[q] = gd[q] + per_light[c] * sent[c].d[kDelta + q];
-            gn[q] = gn[q] + per_light[c] * sent[c].d[kSender + q];
-            gl[q] = gl[q] + per_light[c] * sent[c].d[kLight + q];
+            const B per = weighed(sl, per_light[c]);  // (the slice's light sum weighed)
+            gd[q] = gd[q] + per * sent[c].d[kDelta + q];
+            gn[q] = gn[q] + per * sent[c].d[kSender + q];
+            gl[q] = gl[q] + per * sent[c].d[kLight + q];
           }
           pos[q] = smp.delta[q].v + px.P[q];
         }
         for (int c = 0; c < 3; ++c) {  // its own tangents: through the light sums, finish's division
           Own own(sent[c].v);
           for (int k = 0; k < kPixel; ++k) own.d[k] = sent[c].d[k];
-          sums.light[c] = sums.light[c] + own;
+          sums.light[c] = sums.light[c] + (kSectorsWeighSlices && cfg.projected_normal ? own * sl_own.weight : own);
         }
         const auto on = land(smp.valid, px.live);
         if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (its position, the
