@@ -539,8 +539,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   TAO_FN void end_slice(State<F>& st, const Pixels<F>& px, const Slice<F>& walked, Sums<F>& sums) const {
     LaneArray<F, kKept * kSectors> before;  // P_m of each step (with gradients)
     if (kGradients) sweep(st, &before[0]);
-    // (every sum weighs by the slice's Slice::weight: 1 but for slices drawn by a density; the parameters' derivatives
-    // too, through the reverse scan's seed)
+    // (every sum weighs by the slice's Slice::weight: 1 but for slices drawn by a density; the parameters'
+    // derivatives too, through the reverse scan's seed)
     sums.num = sums.num + weighed(walked, visible(st, st.omega, sums, &walked));
     if (indirect && !kGradients)
       for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + weighed(walked, st.light[c]);
@@ -551,7 +551,8 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     }
     if (!kGradients) return;
     // d visibility / d delta and t of each step (sample_angles_adjoint), then along the radius' motion of both
-    reverse_scan(st, &before[0], [&](int k) { return weighed(walked, st.omega[k]); }, [&](int m, const StepAdjoint<F>& g) {
+    const auto seed = [&](int k) { return weighed(walked, st.omega[k]); };
+    reverse_scan(st, &before[0], seed, [&](int m, const StepAdjoint<F>& g) {
       const F delta[3] = {st.delta[0][m], st.delta[1][m], st.delta[2][m]};
       F g_delta[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_V[3] = {F(0.0f), F(0.0f), F(0.0f)};
       F unused_T[3] = {F(0.0f), F(0.0f), F(0.0f)}, unused_P[3] = {F(0.0f), F(0.0f), F(0.0f)}, g_clip = F(0.0f);
