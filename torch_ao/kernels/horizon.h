@@ -42,6 +42,7 @@ struct GTAOAccumulator {
   static constexpr bool kWeighsSlices = true;
 
   template <class F> struct State { F best[2]; };  // [0]: side +1, [1]: side -1
+  static constexpr bool kStatePerSide = true;  // (a step changes its side's alone: Takes compares that one)
   template <class F> struct Sums { F vis = F(0.0f), free = F(0.0f), bent[3] = {F(0.0f), F(0.0f), F(0.0f)}; };
   TAO_FN int channels() const { return bent ? 5 : 2; }
   // falloff (exact), or thickness and the length epsilon (ue4) (seed_setting): ue4's epsilon is an area, which

@@ -94,6 +94,14 @@ template <class Acc, class F, class = void> struct TakeComponents {
 template <class Acc, class F> struct TakeComponents<Acc, F, decltype(void(Acc::kTakeComponents))> {
   static constexpr int value = Acc::kTakeComponents;
 };
+// Whether the state is one component per side, which a step of that side alone changes (Acc::kStatePerSide: GTAO's
+// horizons), so that a take compares that one
+template <class Acc, class = void> struct StatePerSide {
+  static constexpr bool value = false;
+};
+template <class Acc> struct StatePerSide<Acc, decltype(void(Acc::kStatePerSide))> {
+  static constexpr bool value = Acc::kStatePerSide;
+};
 
 // Where the gradients go: the pixel's own (written once per pixel) and the taps' (scatter_add)
 struct Targets {
@@ -227,8 +235,12 @@ template <class B, class Acc> struct Takes {
   TAO_FN void operator()(int side, int64_t j, const Sample<B>& sample, const State& before, const State& after) {
     auto changed = acc.blends_every_sample() ? sample.valid : B(0.0f) > B(1.0f);
     const B *x = components<const State, const B>(before), *y = components<const State, const B>(after);
-    for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));  // (NaN: changed)
     const int k = side > 0 ? 0 : 1;
+    if constexpr (StatePerSide<Acc>::value) {
+      changed = lor(changed, lnot(x[k] == y[k]));  // (NaN: changed)
+    } else {
+      for (int m = 0; m < S; ++m) changed = lor(changed, lnot(x[m] == y[m]));
+    }
     if (acc.replaces()) {  // (the last change alone counts: kept in lanes, its bit set by end_slice on live lanes)
       last[k] = select(changed, I(int32_t(j)), last[k]);
       return;
