@@ -361,6 +361,40 @@ def test_a_cached_file_of_another_request_is_rendered_again(tmp_path):
     assert got.stat().st_mtime_ns == before  # a matching file is used as it is
 
 
+def test_a_concurrent_runs_cached_file_with_more_layers_stands(tmp_path, monkeypatch):
+    """Two runs render the same missing reference; the first publishes it and adds its back-face layer while
+    the second still renders: the second keeps the first's file (it used to overwrite it without the layer,
+    and the first then read a reference without back faces: tests/test_faults_run.py's concurrent fits)."""
+    import torch_ao.reference as reference
+    from torch_ao.io import read_npz
+    from torch_ao.views import add_backface_layer, cached_reference
+
+    render = reference.render_reference
+    path = reference_path(tmp_path, "sphere_on_plane", 12, 16, 16, 1.0)
+
+    def rendered_while_another_run_publishes(*args, **kwargs):
+        result = render(*args, **kwargs)
+        monkeypatch.setattr(reference, "render_reference", render)  # (the other run renders as it should)
+        cached_reference("sphere_on_plane", height=12, width=16, spp=16, max_distance=1.0, cache_dir=tmp_path)
+        assert add_backface_layer(path, "sphere_on_plane", None)
+        return result
+
+    monkeypatch.setattr(reference, "render_reference", rendered_while_another_run_publishes)
+    got = cached_reference("sphere_on_plane", height=12, width=16, spp=16, max_distance=1.0, cache_dir=tmp_path)
+    assert got == path and "backface_depth" in read_npz(path)
+
+
+def test_a_write_that_keeps_an_existing_file(tmp_path):
+    from torch_ao.io import npz as io
+
+    path = tmp_path / "x.txt"
+    io.write_atomic(path, lambda tmp: open(tmp, "w").write("first"), keep_existing=True)
+    io.write_atomic(path, lambda tmp: open(tmp, "w").write("second"), keep_existing=True)
+    assert path.read_text() == "first" and [p.name for p in tmp_path.iterdir()] == ["x.txt"]
+    io.write_atomic(path, lambda tmp: open(tmp, "w").write("third"))
+    assert path.read_text() == "third"
+
+
 def test_only_dead_or_old_writers_temporaries_are_removed(tmp_path):
     import os
     import time

@@ -143,17 +143,25 @@ def cached_reference(scene: str, *, height: int, width: int, spp: int, max_dista
     from .io import remove_stale_temporaries
 
     path = reference_path(cache_dir, scene, height, width, spp, max_distance, seed, layout=layout)
-    if not (path.exists() and _cached_file_matches(path, height, width, spp, max_distance, seed)):
+
+    def matches() -> bool:  # (the file there holds this request)
+        return path.exists() and _cached_file_matches(path, height, width, spp, max_distance, seed)
+
+    if not matches():
         from .reference import get_scene, render_reference
 
         if path.parent.is_dir():
             remove_stale_temporaries(path.parent)
+        other = path.exists()  # (a file of another request: replaced)
         if log is not None:
-            redo = " (the cached file holds another render)" if path.exists() else ""
+            redo = " (the cached file holds another render)" if other else ""
             log(f"rendering reference {scene} ({width}x{height}, {spp} spp, R={max_distance:g}){redo} -> {path}")
         ref = render_reference(get_scene(scene, layout), height=height, width=width, spp=spp,
                                max_distance=max_distance, seed=seed, uniform=False, progress=progress)
-        ref.save(path)
+        # A concurrent run that rendered the same request meanwhile may have given its file more layers
+        # (add_backface_layer): its file stands
+        if not matches():
+            ref.save(path, keep_existing=not other)
     return path
 
 

@@ -246,8 +246,10 @@ def _is_unprojected_depth(gb: GBuffer) -> bool:
     return bool((error <= 1e-6 * unprojected.norm(dim=1, keepdim=True))[gb.valid].all())
 
 
-def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) -> Path:
-    """Write a G-buffer and/or images to ``path`` atomically (a temporary file, then a rename).
+def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, *, keep_existing: bool = False,
+             **arrays) -> Path:
+    """Write a G-buffer and/or images to ``path`` atomically (a temporary file, then a rename; with
+    ``keep_existing``, a file another writer put there meanwhile stands: :func:`write_atomic`).
 
     ``arrays`` values may be ``(B,C,H,W)`` tensors (stored top-down as ``(B,H,W[,C])``),
     numpy arrays or scalars.
@@ -270,7 +272,7 @@ def save_npz(path: str | os.PathLike, gbuffer: GBuffer | None = None, **arrays) 
             out[key] = image_to_numpy(value) if value.dim() == 4 else value.detach().cpu().numpy()
         else:
             out[key] = np.asarray(value)
-    return write_atomic(path, lambda tmp: np.savez_compressed(tmp, **out), suffix=".npz")
+    return write_atomic(path, lambda tmp: np.savez_compressed(tmp, **out), suffix=".npz", keep_existing=keep_existing)
 
 
 #: Age after which a temporary file of :func:`write_atomic` is stale even when the process that named
@@ -296,9 +298,13 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def write_atomic(path: str | os.PathLike, write: Callable[[str], None], *, suffix: str = "") -> Path:
+def write_atomic(path: str | os.PathLike, write: Callable[[str], None], *, suffix: str = "",
+                 keep_existing: bool = False) -> Path:
     """Create or replace ``path`` atomically: ``write(tmp)`` fills a temporary file in the same folder,
     which is then renamed onto ``path``, so readers (and a run killed mid-write) never see a partial file.
+    With ``keep_existing``, a file that another writer put at ``path`` meanwhile stands and the new one is
+    dropped (linked into place, which fails where a file exists; where the file system has no links, the
+    file is replaced only when absent).
 
     The temporary file is ``<name>.<host>-<pid>.<random>.tmp<suffix>`` (``suffix``: an extension the
     writer needs, e.g. ``.npz``), so :func:`remove_stale_temporaries` can tell a dead writer's leftover
@@ -315,11 +321,25 @@ def write_atomic(path: str | os.PathLike, write: Callable[[str], None], *, suffi
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600
-        os.replace(tmp, path)
+        if keep_existing:
+            _link_unless_present(tmp, path)
+        else:
+            os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def _link_unless_present(tmp: str, path: Path) -> None:
+    """``tmp`` published at ``path`` unless a file is there (write_atomic's ``keep_existing``)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        pass
+    except OSError:  # (no hard links here)
+        if not path.exists():
+            os.replace(tmp, path)
 
 
 def remove_stale_temporaries(folder: str | os.PathLike, name: str = "*") -> list[Path]:

@@ -87,11 +87,12 @@ class Reference:
             out["backface_depth"] = self.backface_depth
         return out
 
-    def save(self, path: str | os.PathLike):
-        """Write the library's ``.npz`` file atomically; returns its path."""
+    def save(self, path: str | os.PathLike, *, keep_existing: bool = False):
+        """Write the library's ``.npz`` file atomically; returns its path. ``keep_existing``: a file another
+        writer put there meanwhile stands (:func:`~torch_ao.io.save_npz`)."""
         from ..io import save_npz
 
-        return save_npz(path, self.gbuffer, **self.arrays())
+        return save_npz(path, self.gbuffer, keep_existing=keep_existing, **self.arrays())
 
 
 #: Version of what the tracer renders: raised whenever a change alters a rendered file's values (the
