@@ -66,8 +66,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
             weighting (``"uniform"``/``"cosine"``), indirect, bent_normals, variant (:data:`HARD_VARIANTS`, or
             ``"exact"``: its angles are ``"default"``'s), azimuth (``"view"``/``"screen"``), thickness_direction,
             clip_to_radius, sample_extent (the ``"exact"`` variant's segment geometry, with the sector union; the
-            ``"hdrp"`` variant's rule has none), slice_sampling: as :class:`~torch_ao.BitmaskAO`. Where :func:`needs_hard_backward`, the outputs
-            have a backward (``_HardWalk``).
+            ``"hdrp"`` variant's rule has none), slice_sampling: as :class:`~torch_ao.BitmaskAO`. Where
+            :func:`needs_hard_backward`, the outputs have a backward (``_HardWalk``).
         lanes: ``"simd"`` (the CPU's vector lanes) or ``"scalar"`` (one pixel at a time: the CUDA
             kernel's arithmetic).
 

@@ -973,6 +973,8 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     typename BitmaskAccumulator::template State<B> st = acc.begin_slice(px, sl);
     FreshSectors<B> visit{&fresh[0], cfg.steps};
     walk_slice(cfg, img, acc, px, sl, st, visit);
+    B slice_light[3];  // d L / d this slice's light sum (weighed as the slice is)
+    for (int c = 0; c < 3; ++c) slice_light[c] = weighed(sl, per_light[c]);
     PlacementAdjoint<B> placement;  // (where t.camera)
     for (int side = 1; side >= -1; side -= 2) {
       const Own xi = step_noise(cfg, px_own, sl_own, side);
@@ -993,10 +995,9 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
         for (int q = 0; q < 3; ++q) {
           gd[q] = gn[q] = gl[q] = B(0.0f);
           for (int c = 0; c < 3; ++c) {
-            const B per = weighed(sl, per_light[c]);  // (the slice's light sum weighed)
-            gd[q] = gd[q] + per * sent[c].d[kDelta + q];
-            gn[q] = gn[q] + per * sent[c].d[kSender + q];
-            gl[q] = gl[q] + per * sent[c].d[kLight + q];
+            gd[q] = gd[q] + slice_light[c] * sent[c].d[kDelta + q];
+            gn[q] = gn[q] + slice_light[c] * sent[c].d[kSender + q];
+            gl[q] = gl[q] + slice_light[c] * sent[c].d[kLight + q];
           }
           pos[q] = smp.delta[q].v + px.P[q];
         }
