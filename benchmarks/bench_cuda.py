@@ -57,6 +57,12 @@ def cases() -> dict:
         "gtao high, fwd+bwd, gbuffer": (lambda: torch_ao.GTAO(preset="high", **kernel), "gbuffer"),
         "ssilvb_glsl soft 4 x 4, fwd+bwd, gbuffer": (lambda: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", slices=4,
                                                                            steps=4, **kernel), "gbuffer"),
+        # the full build's (launch.full_walk): slices drawn by the projected normal's density, beside the lean
+        # build's rows above
+        "bitmask high, hard, projected-normal slices": (lambda: torch_ao.BitmaskAO(
+            preset="high", slice_sampling="projected_normal", **kernel), None),
+        "soft high, fwd+bwd, gbuffer, projected-normal slices": (lambda: torch_ao.BitmaskAO(
+            preset="high", mode="soft", slice_sampling="projected_normal", **kernel), "gbuffer"),
     }
 
 

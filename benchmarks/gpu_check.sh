@@ -7,7 +7,8 @@
 # Packages the machine lacks (kornia on the device tool's image, which has no network) travel as wheels in
 # .whl/ (docs/performance.md, "GPU"): they are installed into /tmp/site. A CUDA binary compiled elsewhere for the
 # machine's torch and GPU (walk_sm90_<key>.bin, as launch._cuda_binary names it) can travel in .cuda_cache/: it
-# is loaded instead of compiling, and compiled afresh if the driver refuses it.
+# is loaded instead of compiling, and compiled afresh if the driver refuses it. Both builds, the lean one and the
+# full one (walk.h's TAO_FULL_WALK), are compiled or loaded before the tests.
 set -uo pipefail
 out=${OUT:-gpu-check}
 mkdir -p "$out"
@@ -33,12 +34,14 @@ mkdir -p "$TORCH_AO_CUDA_CACHE"
 compgen -G ".cuda_cache/*.bin" >/dev/null && cp .cuda_cache/*.bin "$TORCH_AO_CUDA_CACHE"/
 timeout 240 python3 -c "import time, torch; t = time.time(); from torch_ao.kernels import launch
 print('torch', torch.__version__, 'CUDA', torch.version.cuda, 'cached binaries:', sorted(p.name for p in launch.cuda_cache_dir().glob('*.bin')))
-k = launch._cuda_kernels(0)
-if isinstance(k, Exception) and any(launch.cuda_cache_dir().glob('*.bin')):
-    print('a cached binary was refused:', str(k)[:500]); [p.unlink() for p in launch.cuda_cache_dir().glob('*.bin')]
-    launch._cuda_kernels.cache_clear(); t = time.time(); k = launch._cuda_kernels(0)
-if isinstance(k, Exception): raise k
-print(len(k), 'CUDA kernels compiled or loaded in', round(time.time() - t, 1), 's')" || echo "gpu_check: the CUDA kernels did not compile"
+for full in (False, True):  # the lean build, then the full one (launch.full_walk)
+    t = time.time(); k = launch._cuda_kernels(0, full)
+    if isinstance(k, Exception) and any(launch.cuda_cache_dir().glob('*.bin')):
+        print('a cached binary was refused:', str(k)[:500]); [p.unlink() for p in launch.cuda_cache_dir().glob('*.bin')]
+        launch._cuda_kernels.cache_clear(); t = time.time(); k = launch._cuda_kernels(0, full)
+    if isinstance(k, Exception): raise k
+    print(len(k), 'CUDA kernels of the', 'full' if full else 'lean', 'build compiled or loaded in', round(time.time() - t, 1), 's')" \
+  || echo "gpu_check: the CUDA kernels did not compile"
 wait $forward || { echo "gpu_check: C++ forward build failed"; tail -20 "$out/build_forward.txt"; }
 wait $backward || { echo "gpu_check: C++ backward build failed"; tail -20 "$out/build_backward.txt"; }
 stage "CUDA tests: those that need a GPU (CI runs the CUDA source's logic on the CPU)"

@@ -16,6 +16,7 @@ import torch
 
 from kernel_agreement import assert_masks_agree, assert_values_agree, relative_error
 from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
+from test_kernels_position_reads import moved_positions
 from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
 from torch_ao.kernels.soft_bitmask import soft_backward_kernel
 from torch_ao.methods.pssao import PSSAOPattern
@@ -229,19 +230,31 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
 """
 
 
-@pytest.fixture(scope="module")
-def cuda_on_cpu(tmp_path_factory):
-    """The CUDA source compiled for the host and linked with the driver: the program's path."""
-    folder = tmp_path_factory.mktemp("cuda_on_cpu")
+def _compile_on_cpu(folder, *defines: str):
+    """The CUDA source (with ``defines``) compiled for the host in ``folder``, linked with the drivers: the forward
+    driver's path (the backward's, ``grad_driver``, beside it)."""
     (folder / "kernels.cpp").write_text(SHIM + cuda_source())
     (folder / "driver.cpp").write_text(DRIVER)
     flags = ["-std=c++17", "-O2", "-ffp-contract=off", "-fno-math-errno"]
-    subprocess.run([COMPILER, *flags, "-D__CUDACC_RTC__", "-c", "kernels.cpp", "-o", "kernels.o"], cwd=folder, check=True)
+    subprocess.run([COMPILER, *flags, "-D__CUDACC_RTC__", *defines, "-c", "kernels.cpp", "-o", "kernels.o"],
+                   cwd=folder, check=True)
     subprocess.run([COMPILER, *flags, "driver.cpp", "kernels.o", "-lm", "-o", "driver"], cwd=folder, check=True)
     (folder / "grad_driver.cpp").write_text(GRAD_DRIVER)
     subprocess.run([COMPILER, *flags, "grad_driver.cpp", "kernels.o", "-lm", "-o", "grad_driver"], cwd=folder,
                    check=True)
     return folder / "driver"
+
+
+@pytest.fixture(scope="module")
+def cuda_on_cpu(tmp_path_factory):
+    """The lean CUDA build, compiled for the host: its forward driver's path."""
+    return _compile_on_cpu(tmp_path_factory.mktemp("cuda_on_cpu"))
+
+
+@pytest.fixture(scope="module")
+def cuda_on_cpu_full(tmp_path_factory):
+    """The full CUDA build (walk.h's TAO_FULL_WALK), compiled for the host: its forward driver's path."""
+    return _compile_on_cpu(tmp_path_factory.mktemp("cuda_on_cpu_full"), "-DTAO_FULL_WALK")
 
 
 def launch_on_cpu(program, accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light=None):
@@ -315,7 +328,7 @@ def cases(gb):
     yield "soft_glsl", walk_settings(**glsl, noise="glsl_mediump"), [1, True, True, 3, False, True], [0.05, 0.1, 0.4, 0.1], 4, light
     yield "soft_glsl", walk_settings(**glsl, noise="glsl"), [0, False, False, 0, True, False], [0.3, 1.0, 0.0, 0.25], 1, None
     # soft: ints rounding, cosine, straight-through, the thickness' read, the variant's angles (hdrp: 1), bent,
-    # indirect, a growth, the segment geometry (the CPU's alone: 0 here); floats offset, epsilon, tau, scale, growth
+    # indirect, a growth, the segment geometry (the full build's: 0 here); floats offset, epsilon, tau, scale, growth
     yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 1, None
     yield "soft", walk_settings(**common), [0, True, False, 3, 0, 1, 0, 0, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.0], 4, None  # bent normals
     yield "soft", walk_settings(**common, sphere_extent=True), [0, True, False, 0, 0, 1, 0, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 4, None
@@ -354,12 +367,51 @@ DERIVATIVES = ("soft_gradients", "soft_gradients_short", "exact_gradients", "exa
 # channels after the first)
 
 
-@pytest.mark.parametrize("frame", ["rough", "tiny"])
-def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_cpu, frame):
-    gb = FRAMES[frame]()
+def full_cases(gb):
+    """What the full build alone walks (:func:`cases`' layout): slices drawn by the projected normal's density in the
+    bitmask family's accumulators (hard with every output, the exact union with its derivatives, soft, straight-through
+    and their derivatives' walks) and the soft accumulators' segment geometry (along the camera ray, clipped to the
+    radius' sphere), each in soft and straight-through mode, with and without derivatives."""
+    light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
+    common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
+    drawn = walk_settings(**common, slice_sampling="projected_normal")
+    yield "bitmask", drawn, [0, True, True, True, False, 0, 0, 0], [0.5, 0.01, 1.0, 0.5, 0.0], 7, light
+    yield "bitmask", drawn, [1, False, False, False, False, 0, 1, 1], [0.3, 0.01, 1.0, 0.0, 1.0], 1, None
+    yield "exact", drawn, [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 1, None
+    yield "exact_gradients_growth", drawn, [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 5, None
+    yield "soft", drawn, [0, True, False, 0, 0, 1, 1, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7, light
+    yield "soft", drawn, [0, False, True, 3, 0, 0, 0, 1, 0, 0], [0.1, 0.01, 0.25, 0.05, 0.6], 1, None
+    yield "soft_gradients", drawn, [0, True, False, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
+    yield "soft_gradients_short", drawn, [0, False, True, 0, 0, 0, 0, 0, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.0], 4, None
+    # the segment geometry (ints 8, 9: along the ray, clipped), with the sphere's extent and without
+    extent = walk_settings(**common, sphere_extent=True)
+    yield "soft", extent, [0, True, False, 0, 0, 1, 1, 0, 1, 1], [0.5, 0.01, 0.25, 0.0, 0.0], 7, light
+    yield "soft", walk_settings(**common), [0, False, True, 0, 0, 0, 0, 0, 1, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 1, None
+    yield "soft_gradients", extent, [0, True, False, 0, 0, 0, 0, 1, 0, 1], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
+    yield "soft_gradients_short", extent, [0, False, True, 0, 0, 0, 0, 0, 1, 1], [0.4, 0.01, 0.1, 0.0, 0.0], 4, None
+
+
+def position_cases(gb):
+    """A position buffer read between texels (bilinear, edge-aware), :func:`cases`' layout: GTAO, HBAO, hard bitmask AO
+    with every output, the exact union, soft and straight-through bitmask AO and their derivatives' walk."""
+    light = torch.rand(*gb.depth.shape[:1], *gb.depth.shape[-2:], 3, generator=torch.Generator().manual_seed(0))
+    for fetch in ("bilinear", "edge_aware"):
+        common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch=fetch, border="drop")
+        walk = walk_settings(**common)
+        yield "gtao", walk, [0, True, True], [1.0, 0.3, 1.0], 5, None
+        yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1, None
+        yield "bitmask", walk, [0, True, True, True, False, 0, 0, 0], [0.5, 0.01, 1.0, 0.5, 0.0], 7, light
+        yield "exact", walk, [True, True, True, False, True], [0.4, 1.0, 1.0, 0.0, 0.6], 1, None
+        yield "soft", walk, [0, True, True, 0, 0, 1, 1, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7, light
+        yield "soft_gradients", walk, [0, True, False, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 5, None
+
+
+def assert_the_scalar_lanes_walk(program, gb, all_cases):
+    """Each of ``all_cases`` (:func:`cases`' layout) launched by ``program`` on ``gb``: every pixel written, the CPU
+    operator's scalar lanes' values (derivatives relative to their scale), the SIMD lanes' by tolerance."""
     normals = gb.view_normals()
-    for accumulator, settings, ints, floats, channels, light in cases(gb):
-        cuda = launch_on_cpu(cuda_on_cpu, accumulator, gb, normals, settings, ints, floats, channels, light)
+    for accumulator, settings, ints, floats, channels, light in all_cases:
+        cuda = launch_on_cpu(program, accumulator, gb, normals, settings, ints, floats, channels, light)
         twin = CPU_TWIN.get(accumulator, accumulator)
         scalar = run_walk(twin, gb, normals, settings, ints, floats, channels, light=light, lanes="scalar")
         assert (cuda != -7.0).all()  # every pixel written, by exactly its thread
@@ -370,18 +422,60 @@ def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_
             assert ((cuda[:, 1:] - scalar[:, 1:]) / scale).abs().max() <= 1e-5, accumulator
         else:
             assert (cuda - scalar).abs().max() <= 1e-6, (accumulator, (cuda - scalar).abs().max())
-        assert_lanes_agree(cuda, simd, accumulator, settings[0][0], gb.valid)
+        assert_lanes_agree(cuda, simd, accumulator, settings[0][0], gb.valid, weighted=bool(settings[0][15]))
 
 
-def assert_lanes_agree(out: torch.Tensor, ref: torch.Tensor, accumulator: str, slices: int, valid: torch.Tensor):
+def test_a_call_needing_an_option_the_lean_build_leaves_out_runs_the_full_one():
+    """launch.full_walk: slices drawn by the projected normal's density in a sector accumulator (horizon.h's weigh
+    theirs in the lean build too), a position buffer read between texels, the soft segment geometry."""
+    from torch_ao.kernels.launch import full_walk
+
+    gb, moved = FRAMES["rough"](), moved_positions()[0]
+    common = dict(slices=3, steps=4, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
+    plain, drawn = walk_settings(**common), walk_settings(**common, slice_sampling="projected_normal")
+    nearest = walk_settings(**dict(common, fetch="nearest"))
+    assert not any(full_walk(name, gb, plain) for name in ("bitmask", "exact", "soft", "soft_gradients", "gtao"))
+    assert all(full_walk(name, gb, drawn) for name in ("bitmask", "exact", "exact_gradients", "soft", "soft_gradients"))
+    assert not full_walk("gtao", gb, drawn) and not full_walk("hbao", gb, drawn)
+    assert full_walk("gtao", moved, plain) and full_walk("bitmask", moved, walk_settings(**dict(common, fetch="edge_aware")))
+    assert not full_walk("gtao", moved, nearest)
+    assert full_walk("soft", gb, plain, segments=True)
+
+
+@pytest.mark.parametrize("frame", ["rough", "tiny"])
+def test_the_cuda_source_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_cpu, frame):
+    gb = FRAMES[frame]()
+    assert_the_scalar_lanes_walk(cuda_on_cpu, gb, cases(gb))
+
+
+def test_the_full_cuda_build_run_on_the_cpu_is_the_scalar_lanes_walk(built, cuda_on_cpu_full):
+    """The full build: what the lean one walks, the same; slices drawn by the projected normal's density and the soft
+    segment geometry (:func:`full_cases`); a position buffer read between texels (:func:`position_cases`, whose
+    outputs differ from the same walk's of the buffer's depth)."""
+    gb = FRAMES["rough"]()
+    assert_the_scalar_lanes_walk(cuda_on_cpu_full, gb, cases(gb))
+    assert_the_scalar_lanes_walk(cuda_on_cpu_full, gb, full_cases(gb))
+    moved, depth_only = moved_positions()
+    assert_the_scalar_lanes_walk(cuda_on_cpu_full, moved, position_cases(moved))
+    for accumulator, settings, ints, floats, channels, light in position_cases(moved):
+        read = launch_on_cpu(cuda_on_cpu_full, accumulator, moved, moved.view_normals(), settings, ints, floats,
+                             channels, light)
+        of_depth = launch_on_cpu(cuda_on_cpu_full, accumulator, depth_only, moved.view_normals(), settings, ints,
+                                 floats, channels, light)
+        assert (read[:, :1] - of_depth[:, :1]).abs().max() > 0.02, accumulator
+
+
+def assert_lanes_agree(out: torch.Tensor, ref: torch.Tensor, accumulator: str, slices: int, valid: torch.Tensor,
+                       weighted: bool = False):
     """A walk's outputs in other lanes than ``ref``'s (SIMD against scalar, a GPU's against the CPU's): each
-    rounds differently, which a decision can amplify. Uniform hard visibility as :func:`assert_masks_agree`, the
-    derivative channels of ``*_gradients`` within 1e-3 of their scale, values as :func:`assert_values_agree`."""
+    rounds differently, which a decision can amplify. Uniform hard visibility of even slices as
+    :func:`assert_masks_agree` (``weighted``: slices drawn by a density, weighed each, as values), the derivative
+    channels of ``*_gradients`` within 1e-3 of their scale, values as :func:`assert_values_agree`."""
     if accumulator in DERIVATIVES:
         scale = ref[:, 1:].abs().amax(dim=(0, 2, 3)).clamp_min(1e-6)[None, :, None, None]
         assert ((out[:, 1:] - ref[:, 1:]) / scale).abs().max() <= 1e-3, accumulator
         out, ref = out[:, :1], ref[:, :1]
-    if accumulator == "bitmask" and out.shape[1] == 1:
+    if accumulator == "bitmask" and out.shape[1] == 1 and not weighted:
         assert_masks_agree(out, ref, valid, slices)
     else:
         assert_values_agree(out, ref, valid, atol=1e-4, bound=0.5)
@@ -389,19 +483,23 @@ def assert_lanes_agree(out: torch.Tensor, ref: torch.Tensor, accumulator: str, s
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_kernels_agree_with_the_cpu_operator(built):
-    gb = FRAMES["rough"]()
-    normals = gb.view_normals()
-    device = gb.to(device="cuda")
+    """Every case of both builds (the full one's: :func:`full_cases`, :func:`position_cases`) on the GPU."""
+    rough, moved = FRAMES["rough"](), moved_positions()[0]
     failed = []
-    for index, (accumulator, settings, ints, floats, channels, light) in enumerate(cases(gb)):
-        cpu = run_walk(CPU_TWIN.get(accumulator, accumulator), gb, normals, settings, ints, floats, channels,
-                       light=light, lanes="scalar")
-        gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
-                       light=None if light is None else light.cuda())
-        try:
-            assert_lanes_agree(gpu.cpu(), cpu, accumulator, settings[0][0], gb.valid)
-        except AssertionError as error:  # every case's verdict, not the first failure's alone
-            failed.append((index, accumulator, str(error).splitlines()[0]))
+    for gb, walks in ((rough, cases(rough)), (rough, full_cases(rough)), (moved, position_cases(moved))):
+        normals = gb.view_normals()
+        device = gb.to(device="cuda")
+        for index, (accumulator, settings, ints, floats, channels, light) in enumerate(walks):
+            cpu = run_walk(CPU_TWIN.get(accumulator, accumulator), gb, normals, settings, ints, floats, channels,
+                           light=light, lanes="scalar")
+            segments = accumulator.startswith("soft") and accumulator != "soft_glsl" and bool(ints[8] or ints[9])
+            gpu = run_walk(accumulator, device, normals.cuda(), settings, ints, floats, channels,
+                           light=None if light is None else light.cuda(), segments=segments)
+            try:
+                assert_lanes_agree(gpu.cpu(), cpu, accumulator, settings[0][0], gb.valid,
+                                   weighted=bool(settings[0][15]))
+            except AssertionError as error:  # every case's verdict, not the first failure's alone
+                failed.append((index, accumulator, str(error).splitlines()[0]))
     assert not failed, failed
 
 
@@ -478,17 +576,60 @@ def _backward_cases():
     yield "soft_glsl", walk_settings(**dict(glsl, steps=18), noise="glsl"), [0, False, False, 3, False, False], [0.05, 0.1, 0.0, 0.25], 1
 
 
+def _full_backward_cases():
+    """What the full build alone differentiates (:func:`_backward_cases`' layout): slices drawn by the projected
+    normal's density in the hard walk (every output), the soft and straight-through walks and the exact union's, and
+    the soft walk's segment geometry (along the ray, clipped; soft and straight-through, with indirect light)."""
+    common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop")
+    drawn = walk_settings(**common, slice_sampling="projected_normal")
+    yield "hard", drawn, [0, True, True, True, 0, 0, 0, 0], [0.4, 0.01, 1.0, 0.5, 0.0], 7
+    yield "soft", drawn, [0, True, False, 1, 0, 1, 1, 1, 0, 0], [0.1, 0.01, 0.25, 0.8, 0.6], 7
+    yield "soft", drawn, [0, False, True, 0, 0, 0, 0, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 1
+    yield "exact", drawn, [True, True, True, 1, True], [0.05, 0.8, 1.0, 0.0, 0.6], 1
+    extent = walk_settings(**common, sphere_extent=True)
+    yield "soft", extent, [0, True, False, 0, 0, 0, 1, 0, 1, 1], [0.4, 0.01, 0.25, 0.0, 0.0], 4
+    yield "soft", walk_settings(**common), [0, False, True, 1, 0, 1, 0, 1, 1, 0], [0.1, 0.01, 0.25, 0.8, 0.6], 4
+
+
+def _position_backward_cases():
+    """A position buffer read between texels (:func:`_backward_cases`' layout): GTAO, HBAO, the hard walk with every
+    output, the soft walk with indirect light and bent normals, straight-through, the exact union; bilinear and
+    edge-aware."""
+    for fetch in ("bilinear", "edge_aware"):
+        common = dict(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch=fetch, border="drop")
+        walk = walk_settings(**common)
+        yield "gtao", walk, [0, True, True], [1.0, 0.3, 1.0], 5
+        yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
+        yield "hard", walk, [0, True, True, True, 0, 0, 0, 0], [0.4, 0.01, 1.0, 0.5, 0.0], 7
+        yield "soft", walk, [0, True, False, 0, 0, 1, 1, 0, 0, 0], [0.4, 0.01, 0.25, 0.0, 0.0], 7
+        yield "soft", walk, [0, False, True, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 1
+        yield "exact", walk, [True, True, True, 0, True], [0.4, 1.0, 1.0, 0.0, 0.6], 1
+
+
 @pytest.mark.parametrize("frame", ["rough", "tiny"])
 def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cuda_on_cpu, frame):
     """The CUDA record and backward kernels (walk_grad.h's record_block and grad_block, soft_grad_block; one thread
     a pixel, the taps scattered with atomicAdd) launched thread by thread on the CPU: the CPU operators' scalar
     lanes, which run the same functions, to float rounding (the scatters' order differs)."""
+    assert_the_scalar_lanes_backward(cuda_on_cpu, FRAMES[frame](), _backward_cases())
+
+
+def test_the_full_cuda_builds_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cuda_on_cpu_full):
+    """The full build's record and backward kernels: slices drawn by the projected normal's density and the soft
+    segment geometry (:func:`_full_backward_cases`), a position buffer read between texels, whose taps' positions
+    take the gradient (:func:`_position_backward_cases`)."""
+    assert_the_scalar_lanes_backward(cuda_on_cpu_full, FRAMES["rough"](), _full_backward_cases())
+    assert_the_scalar_lanes_backward(cuda_on_cpu_full, moved_positions()[0], _position_backward_cases())
+
+
+def assert_the_scalar_lanes_backward(program, gb, all_cases):
+    """Each of ``all_cases`` (:func:`_backward_cases`' layout) launched by ``program``'s backward driver on ``gb``: the
+    CPU operators' scalar lanes' gradients, relative to their largest."""
     from torch_ao.kernels.build import grad_kernels
 
-    gb = FRAMES[frame]()
     normals = gb.view_normals()
     backface = 0.3 * gb.depth.detach() + 0.1 * torch.rand(gb.depth.shape, generator=torch.Generator().manual_seed(2))
-    for accumulator, settings, acc_ints, acc_floats, channels in _backward_cases():
+    for accumulator, settings, acc_ints, acc_floats, channels in all_cases:
         reads = {"exact": 3, "soft": 3, "hard": 4, "hard_glsl": 3, "soft_glsl": 3}
         layer = backface if accumulator in reads and acc_ints[reads[accumulator]] in (1, 2) else None
         light = torch.rand(*normals.shape[:1], *normals.shape[2:], 3, generator=torch.Generator().manual_seed(3))
@@ -499,7 +640,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
                                                                     light=light, backface=layer)
         B, H, W = inputs[3].shape
         grad = torch.linspace(0.5, 1.5, B * channels * H * W).view(B, channels, H, W)
-        folder = cuda_on_cpu.parent / f"grad_{accumulator}"
+        folder = program.parent / f"grad_{accumulator}"
         folder.mkdir(exist_ok=True)
         for name, t in zip(("positions", "normals", "inverse", "depth", "valid", "intrinsics", "light", "cells",
                             "backface", "grad"), (*inputs, light, cells, layer, grad)):
@@ -510,7 +651,7 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
         kernel = {"tao_soft_backward_short": "soft_short"}.get(soft_backward_kernel(settings[0][1]), "soft")
         if accumulator == "soft_glsl":  # (the short arrays where a slice's steps fit 16)
             kernel = "soft_glsl_short" if settings[0][1] <= 16 else "soft_glsl"
-        subprocess.run([str(cuda_on_cpu.parent / "grad_driver"), kernel if accumulator.startswith("soft") else accumulator,
+        subprocess.run([str(program.parent / "grad_driver"), kernel if accumulator.startswith("soft") else accumulator,
                         str(folder), str(B), str(H), str(W),
                         str(channels), str(words), str(_THREADS)], check=True)
 
@@ -600,13 +741,23 @@ def _gradient_modules() -> dict:
             "glsl_soft": lambda: torch_ao.SSILVB(variant="ssilvb_glsl", mode="soft", thickness=BackfaceThickness(0.8, 0.1),
                                                  slices=3, steps=4),
             "gtao_camera": lambda: torch_ao.GTAO(slices=3, steps=4),
+            # (the full build's: slices drawn by the projected normal's density, the soft segment geometry)
+            "soft_projected": lambda: torch_ao.SSILVB(mode="soft", weighting="cosine", bent_normals=True, slices=3,
+                                                      steps=4, slice_sampling="projected_normal"),
+            "hard_projected": lambda: torch_ao.BitmaskAO(weighting="cosine", bent_normals=True, slices=3, steps=4,
+                                                         slice_sampling="projected_normal"),
+            "exact_projected": lambda: torch_ao.BitmaskAO(variant="exact", thickness=BackfaceThickness(), slices=3,
+                                                          steps=4, slice_sampling="projected_normal"),
+            "soft_segments": lambda: torch_ao.BitmaskAO(variant="exact", union="sectors", mode="soft", slices=3,
+                                                        steps=4),
             "ue4ssao": _ue4ssao,
             "pssao": lambda: torch_ao.PSSAO(slices=4, steps=3, fetch="bilinear"),
             "ssao": lambda: torch_ao.SSAO(softness=0.05)}
 
 
 GRADIENT_METHODS = ("gtao", "hdrp", "hbao", "soft", "soft_backface", "soft_hdrp", "exact", "hard", "indirect",
-                    "soft_indirect", "glsl_soft", "gtao_camera", "ue4ssao", "pssao", "ssao")
+                    "soft_indirect", "glsl_soft", "gtao_camera", "ue4ssao", "pssao", "ssao", "soft_projected",
+                    "hard_projected", "exact_projected", "soft_segments")
 
 
 def gbuffer_gradients(method: str, device: str, dtype: torch.dtype = torch.float32, backend: str = "auto") -> tuple:

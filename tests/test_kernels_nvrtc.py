@@ -82,12 +82,14 @@ def test_the_compiled_kernels_are_kept_on_disk_once(tmp_path, monkeypatch):
         calls.append(1)
         return blob
 
-    assert launch._cuda_binary("source a", "90", compile_source) == b"\x7fELF cubin"
-    assert launch._cuda_binary("source a", "90", lambda: pytest.fail("compiled twice")) == b"\x7fELF cubin"
-    assert launch._cuda_binary("source b", "90", lambda: compile_source(b"other")) == b"other"
-    assert launch._cuda_binary("source a", "80", lambda: compile_source(b"sm80")) == b"sm80"
-    assert len(calls) == 3
-    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".bin"] * 3  # (no temporary left behind)
+    lean, full = launch.cuda_options(), launch.cuda_options(full=True)
+    assert launch._cuda_binary("source a", lean, "90", compile_source) == b"\x7fELF cubin"
+    assert launch._cuda_binary("source a", lean, "90", lambda: pytest.fail("compiled twice")) == b"\x7fELF cubin"
+    assert launch._cuda_binary("source b", lean, "90", lambda: compile_source(b"other")) == b"other"
+    assert launch._cuda_binary("source a", lean, "80", lambda: compile_source(b"sm80")) == b"sm80"
+    assert launch._cuda_binary("source a", full, "90", lambda: compile_source(b"full")) == b"full"  # (a build of its own)
+    assert len(calls) == 4
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".bin"] * 4  # (no temporary left behind)
 
 
 def test_the_cuda_entry_names_follow_the_macros():
@@ -96,3 +98,20 @@ def test_the_cuda_entry_names_follow_the_macros():
     source = ('TAO_CUDA_ENTRY(tao_walk_x, X)\nTAO_CUDA_HARD(tao_record_y, tao_backward_y, Y)\n'
               'extern "C" __global__ void tao_plain(int n) {}\n  TAO_CUDA_ENTRY(indented_is_a_use, Z)\n')
     assert cuda_entry_names(source) == ("tao_walk_x", "tao_plain", "tao_record_y", "tao_backward_y")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_offline.ptxas_path() is None, reason="needs ptxas (pip install nvidia-cuda-nvcc-cu12)")
+def test_the_full_build_compiles_and_spills_little():
+    """The full build (walk.h's TAO_FULL_WALK: slices drawn by the projected normal's density in the sector
+    accumulators, a position buffer read between texels, the soft segment geometry), which only the calls that need
+    one of them run: every entry point, within 255 registers; what the options add spills a little in the walks (the
+    hard sector walk 152 bytes, the exact union's 140, the soft one's 56) and more in the backwards (the hard one 6460,
+    the exact union's 3588, the soft ones' 3024-3268); bounded here (NVRTC 12.9, sm_90)."""
+    report = cuda_offline.kernel_resources(cuda_offline.compile_ptx(90, full=True), 90)
+    assert set(report) == set(cuda_offline.KERNEL_NAMES)
+    bounds = {"tao_exact_backward": 4096, "tao_hard_backward": 7168, "tao_walk_bitmask": 192, "tao_walk_exact": 192,
+              "tao_walk_soft": 96, "tao_soft_backward_short": 4096, "tao_soft_backward": 4096}
+    for name, used in report.items():
+        assert 32 <= used.registers <= 255, (name, used)
+        assert used.spill_stores + used.spill_loads <= bounds.get(name, 0), (name, used)

@@ -2,8 +2,8 @@
 positions interpolated perspective-correctly, as the tensor path's ``Footprint.position`` (``walk.h``'s
 ``position_taps``, the CPU kernels'), for every method's forward. The buffer here is not the unprojected depth (each point moved
 along its camera ray by up to 5 %, smoothly across the image), so a kernel that interpolated the depth instead
-would be off by up to 0.4-0.7 in visibility. Gradients through such a read: tests/test_kernels_position_grads.py; a
-call on CUDA runs on the tensor path (the CUDA walks leave the interpolation out)."""
+would be off by up to 0.4-0.7 in visibility. Gradients through such a read: tests/test_kernels_position_grads.py; the
+CUDA kernels' (their full build's): tests/test_kernels_cuda.py."""
 import pytest
 import torch
 

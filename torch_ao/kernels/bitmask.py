@@ -19,10 +19,10 @@ import torch
 from ..gbuffer import GBuffer
 from ..sectors import ROUNDINGS
 from ..thickness import ThicknessLayer, matching
-from .coverage import gbuffer_uncovered, option_uncovered, position_read_uncovered
+from .coverage import gbuffer_uncovered, option_uncovered
 from .build import cpu_kernels, grad_kernels
 from .frame import light_input, scalar_lanes, scale_derivative
-from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
+from .launch import full_walk, launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
 __all__ = ["bitmask_hard", "bitmask_outputs", "exact_hard", "exact_covers", "exact_forward", "ssilvb_glsl_hard",
@@ -93,7 +93,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
         inputs, (light, cells, layer_image), ints, floats = packed_inputs(
             gbuffer, normals, settings, acc_ints, acc_floats, light, None if layer is None else layer.detach())
         out = _HardWalk.apply(*inputs, light, cells, layer_image, ints, floats, channels, int(slices),
-                              scalar_lanes(lanes), radius if indirect else None, "")
+                              scalar_lanes(lanes), radius if indirect else None, "",
+                              full_walk("bitmask", gbuffer, settings))
     else:
         out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
                        backface=layer, lanes=lanes)
@@ -135,21 +136,22 @@ class _HardWalk(torch.autograd.Function):
     light, whose record is its carried mask after each slice and whose backward is its light's (walk_grad.h's
     ``hard_grad_block`` of ``GlslAccumulator``): to the light, the senders' normals and positions at the taps and
     the pixel's own normal and position. Its texels are floored (they do not move): no radius (``None``) or
-    intrinsics gradient of its own (the positions carry the intrinsics')."""
+    intrinsics gradient of its own (the positions carry the intrinsics'). ``full``: on CUDA, the full build's
+    kernels (:func:`~torch_ao.kernels.launch.full_walk`)."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, channels,
-                slices, scalar, radius, kernel):
+                slices, scalar, radius, kernel, full):
         frame = (positions, normals, inverse, depth, valid, intrinsics)
         if depth.is_cuda:
             B, H, W = depth.shape
             out = torch.empty(B, channels, H, W, device=depth.device)
             record = torch.empty(B, H, W, slices, dtype=torch.int32, device=depth.device)
             launch_cuda(f"tao_record_hard{kernel}", depth.device,
-                        [*frame, light, cells, layer, out, record, ints, floats], (B, H, W))
+                        [*frame, light, cells, layer, out, record, ints, floats], (B, H, W), full=full)
         else:
             out, record = grad_kernels().hard_record(*frame, light, cells, layer, ints, floats, channels, slices, scalar)
-        ctx.scalar, ctx.kernel = scalar, kernel
+        ctx.scalar, ctx.kernel, ctx.full = scalar, kernel, full
         ctx.save_for_backward(*frame, light, cells, layer, ints, floats, record, radius)
         return out
 
@@ -167,7 +169,7 @@ class _HardWalk(torch.autograd.Function):
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(f"tao_hard_backward{ctx.kernel}", depth.device, [*frame, light, cells, layer, grad, record, g_pos, g_nrm,
                                                             g_depth, taps, g_inv, senders, g_light, g_camera, ints,
-                                                            floats], tuple(depth.shape))
+                                                            floats], tuple(depth.shape), full=ctx.full)
             g_pos += taps
             g_nrm += senders
         else:
@@ -180,7 +182,7 @@ class _HardWalk(torch.autograd.Function):
             g_radius = (-along / radius.to(torch.float64)).to(radius.dtype)
         g_light = g_light if light.numel() else None
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, g_light, None, None, None, None, None, None, None,
-                g_radius, None)
+                g_radius, None, None)
 
 
 def exact_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: int, radius: float, thickness: float,
@@ -288,7 +290,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
         inputs, (light, cells, layer), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats,
                                                                     light, layer)
         out = _HardWalk.apply(*inputs, light, cells, layer, ints, floats, channels, int(slices) + 1,
-                              scalar_lanes(lanes), None, "_glsl")
+                              scalar_lanes(lanes), None, "_glsl", False)
     else:
         out = run_walk("glsl", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light, backface=layer,
                        lanes=lanes)
@@ -394,9 +396,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
-    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA, a position
-    buffer read between texels on CUDA: :func:`~torch_ao.kernels.coverage.position_read_uncovered`),
-    or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
+    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
     whether it grows the thickness with the sample's distance (values only: none of the kernels with gradients)."""
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",
@@ -415,14 +415,7 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     reason = thickness_uncovered(module, layers, growth)
     if reason is not None:
         return reason
-    reason = gbuffer_uncovered(gbuffer)
-    if reason is not None:
-        return reason
-    if values.get("slice_sampling") == "projected_normal" and gbuffer.depth.is_cuda:
-        return "slice_sampling='projected_normal' on CUDA (the CPU's sector kernels alone draw such slices)"
-    if module.variant != "ssilvb_glsl":  # (the shader reads its nearest texels, whatever fetch says)
-        return position_read_uncovered(module, gbuffer)
-    return None
+    return gbuffer_uncovered(gbuffer)
 
 
 def thickness_uncovered(module, layers: bool, growth: bool = False) -> str | None:

@@ -5,7 +5,7 @@ import torch
 
 from ..gbuffer import GBuffer
 
-__all__ = ["option_uncovered", "gbuffer_uncovered", "call_uncovered", "position_read_uncovered"]
+__all__ = ["option_uncovered", "gbuffer_uncovered", "call_uncovered"]
 
 
 def option_uncovered(values: dict, covered: dict) -> str | None:
@@ -29,29 +29,14 @@ def gbuffer_uncovered(gbuffer: GBuffer) -> str | None:
     return None
 
 
-def position_read_uncovered(module, gbuffer: GBuffer) -> str | None:
-    """Why no kernel reads ``gbuffer``'s position buffer as ``module.fetch`` does, or ``None``. Between texels
-    (``"bilinear"``, ``"edge_aware"``) the CPU kernels interpolate it (``walk.h``'s ``position_taps``, with its motion
-    and its backward to the four taps' positions); the CUDA ones do not, so such a call on CUDA runs on the tensor
-    path."""
-    if gbuffer.position is None or module.fetch == "nearest":
-        return None
-    if gbuffer.position.is_cuda:
-        return f"{module.fetch} reads of a position buffer on CUDA (the CPU kernels' alone interpolate its taps)"
-    return None
-
-
 def call_uncovered(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...]) -> str | None:
     """What a forward kernel checks of every call, said as the reason, or ``None``: the module's options
-    (:func:`option_uncovered` against ``options``), its ``parameters`` (names) scalar tensors, a position buffer
-    read between texels on CUDA (:func:`position_read_uncovered`), a float32 G-buffer on CPU or CUDA."""
+    (:func:`option_uncovered` against ``options``), its ``parameters`` (names) scalar tensors, a float32 G-buffer
+    on CPU or CUDA."""
     reason = option_uncovered(getattr(module, "values", {}), options)
     if reason is not None:
         return reason
     values = [getattr(module, name) for name in parameters]
     if any(not isinstance(t, torch.Tensor) or t.dim() != 0 for t in values):
         return "a parameter other than a scalar"
-    reason = position_read_uncovered(module, gbuffer)
-    if reason is not None:
-        return reason
     return gbuffer_uncovered(gbuffer)

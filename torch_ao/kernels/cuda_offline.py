@@ -20,7 +20,7 @@ import subprocess
 import tempfile
 from dataclasses import dataclass
 
-from .launch import _NVRTC_OPTIONS, cuda_entry_names, cuda_source
+from .launch import cuda_entry_names, cuda_options, cuda_source
 
 __all__ = ["nvrtc_library", "ptxas_path", "compile_ptx", "KernelResources", "kernel_resources", "KERNEL_NAMES"]
 
@@ -61,9 +61,10 @@ def ptxas_path() -> str | None:
     return found[0] if found else shutil.which("ptxas")
 
 
-def compile_ptx(arch: int = 90, options: tuple[str, ...] = _NVRTC_OPTIONS) -> str:
+def compile_ptx(arch: int = 90, options: tuple[str, ...] | list[str] | None = None, *, full: bool = False) -> str:
     """The PTX of every CUDA kernel for compute capability ``arch`` (90: H100/H200), compiled by NVRTC with
-    ``options`` (those :func:`~torch_ao.kernels.launch.run_walk` passes). Raises ``RuntimeError`` with the
+    ``options`` (default those :func:`~torch_ao.kernels.launch.run_walk` passes for the lean build, or with
+    ``full`` the full one's: :func:`~torch_ao.kernels.launch.cuda_options`). Raises ``RuntimeError`` with the
     compiler's log when the source does not compile, and when NVRTC is not found."""
     nvrtc = nvrtc_library()
     if nvrtc is None:
@@ -72,6 +73,7 @@ def compile_ptx(arch: int = 90, options: tuple[str, ...] = _NVRTC_OPTIONS) -> st
     _check(nvrtc, nvrtc.nvrtcCreateProgram(ctypes.byref(program), cuda_source().encode(), b"walk_cuda.cu", 0,
                                            None, None))
     try:
+        options = cuda_options(full) if options is None else options
         flags = [f"--gpu-architecture=compute_{int(arch)}".encode()] + [o.encode() for o in options]
         status = nvrtc.nvrtcCompileProgram(program, len(flags), (ctypes.c_char_p * len(flags))(*flags))
         log = _read(nvrtc, program, "ProgramLog")

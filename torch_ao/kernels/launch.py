@@ -4,7 +4,8 @@ The walk's and an accumulator's settings travel as two small arrays (int64, floa
 reads, the same on every backend. On CPU the ``torch_ao_kernels::walk`` operator runs them (SIMD lanes, or
 ``lanes="scalar"``: each pixel through ``walk_pixel``, the CUDA thread's body). On CUDA the headers are
 compiled at run time with NVRTC (``torch.cuda._compile_kernel``, which CUDA builds of torch ship: no CUDA
-toolkit needed), one thread per pixel.
+toolkit needed), one thread per pixel, in two builds: the lean one, and the full one (``TAO_FULL_WALK``, compiled
+on first use) for the calls that need an option the lean one leaves out (:func:`full_walk`).
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "run_packed", "packed_inputs", "packed_settings",
-           "cuda_source", "cuda_entry_names"]
+           "full_walk", "cuda_source", "cuda_entry_names", "cuda_options"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
 #: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets, SSAO's hemisphere kernel points)
@@ -45,6 +46,11 @@ _THREADS = 128  # per block: a walk holds a few hundred registers' worth of stat
 # other side of a boundary: on an H200, 2 of 4,348 pixels of a hard mask 28 sectors apart and 119 of the shader's,
 # against none without; 9 % (hard bitmask AO) to 29 % (GTAO) of the walk's time at 1920x1080.
 _NVRTC_OPTIONS = ("-std=c++17", "--fmad=false")
+#: the full build's define (walk.h): the options whose registers the lean build saves every walk
+_FULL_DEFINE = "-DTAO_FULL_WALK"
+#: the accumulators that weigh their slices in the lean CUDA build too (horizon.h's): they take slices drawn by the
+#: projected normal's density there
+_WEIGH_SLICES_LEAN = ("gtao", "hbao")
 
 
 def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed: int, fetch: str, border: str,
@@ -92,31 +98,40 @@ def walk_settings(*, slices: int, steps: int, radius: float, jitter: bool, seed:
     return [int(v) for v in ints], floats
 
 
+def full_walk(accumulator: str, gbuffer: GBuffer, settings: tuple[list[int], list[float]], *,
+              segments: bool = False) -> bool:
+    """Whether a CUDA walk with ``accumulator`` over ``gbuffer`` with the walk ``settings`` (:func:`walk_settings`')
+    needs the full build (walk.h's ``TAO_FULL_WALK``): a position buffer read between texels, slices drawn by the
+    projected normal's density in an accumulator other than the horizon ones (:data:`_WEIGH_SLICES_LEAN`), or
+    ``segments``: the soft accumulators' segment geometry (the ``"exact"`` variant's). The CPU's has everything."""
+    walk = settings[0]
+    reads_positions = bool(walk[5]) and gbuffer.position is not None  # (bilinear: fetch != "nearest")
+    return reads_positions or (bool(walk[15]) and accumulator not in _WEIGH_SLICES_LEAN) or bool(segments)
+
+
 def run_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[int], list[float]],
              acc_ints: list, acc_floats: list, channels: int, *, light: torch.Tensor | None = None,
-             backface: torch.Tensor | None = None, lanes: str = "simd") -> torch.Tensor:
+             backface: torch.Tensor | None = None, lanes: str = "simd", segments: bool = False) -> torch.Tensor:
     """The walk with ``accumulator`` (``"gtao"``, ``"hbao"``, ``"bitmask"``, ``"exact"``, ``"glsl"``, ``"wedge"``,
     ``"pssao"``, ``"hemisphere"``, ``"soft"``) over ``gbuffer`` (float32, CPU or CUDA): its ``channels`` per pixel, ``(B, channels, H, W)``.
 
     ``settings`` is :func:`walk_settings`'s; ``acc_ints``/``acc_floats`` the accumulator's (packed.h);
     ``light``: the channel-last ``(B,H,W,3)`` light or ``None``; ``backface``: the back-face thickness
-    layer ``(B,1,H,W)`` or ``None``; ``lanes``: on CPU, ``"simd"`` or ``"scalar"``.
+    layer ``(B,1,H,W)`` or ``None``; ``lanes``: on CPU, ``"simd"`` or ``"scalar"``; ``segments``: the soft
+    accumulators' segment geometry is on (:func:`full_walk`).
     Raises :class:`KernelUnavailable` when the backend's kernel cannot be built here.
     """
+    full = full_walk(accumulator, gbuffer, settings, segments=segments)
     with torch.no_grad():  # no kernel of the walk has a backward: the dispatch sends gradients to the tensor path
-        return _run(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light, backface, lanes)
-
-
-def _run(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels, light, backface, lanes):
-    inputs, extra, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light, backface)
-    return run_packed(accumulator, inputs, extra, ints, floats, channels, scalar_lanes(lanes))
+        inputs, extra, ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats, light, backface)
+        return run_packed(accumulator, inputs, extra, ints, floats, channels, scalar_lanes(lanes), full=full)
 
 
 def run_packed(accumulator: str, inputs, extra, ints: torch.Tensor, floats: torch.Tensor, channels: int,
-               scalar: bool) -> torch.Tensor:
+               scalar: bool, *, full: bool = False) -> torch.Tensor:
     """The walk with ``accumulator`` over :func:`packed_inputs`' ``inputs`` (six tensors), ``extra`` (light,
     cells, back-face layer) and packed settings: the CPU operator (``scalar``: its scalar lanes) or the CUDA
-    kernel, ``(B, channels, H, W)``."""
+    kernel (``full``: of the full build, :func:`full_walk`), ``(B, channels, H, W)``."""
     device = inputs[3].device
     if device.type == "cpu":
         return cpu_kernels().walk(accumulator, *inputs, *extra, ints, floats, int(channels), scalar)
@@ -124,14 +139,16 @@ def run_packed(accumulator: str, inputs, extra, ints: torch.Tensor, floats: torc
         raise KernelUnavailable(f"no kernel for a G-buffer on {device.type}")
     B, H, W = inputs[3].shape
     out = torch.empty(B, channels, H, W, device=device)
-    launch_cuda(f"tao_walk_{accumulator}", device, [*inputs, *extra, out, ints, floats], (B, H, W))
+    launch_cuda(f"tao_walk_{accumulator}", device, [*inputs, *extra, out, ints, floats], (B, H, W), full=full)
     return out
 
 
-def launch_cuda(name: str, device: torch.device, args: list, shape: tuple[int, int, int]) -> None:
-    """The CUDA kernel ``name`` of walk_cuda.cu (compiled on first use) over the ``(B, H, W)`` pixels of
-    ``shape``, one thread each, with ``args`` (tensors as pointers, then the shape's three ints)."""
-    kernel = _cuda_kernel(name, device.index if device.index is not None else torch.cuda.current_device())
+def launch_cuda(name: str, device: torch.device, args: list, shape: tuple[int, int, int], *,
+                full: bool = False) -> None:
+    """The CUDA kernel ``name`` of walk_cuda.cu (compiled on first use; ``full``: the full build's,
+    :func:`full_walk`) over the ``(B, H, W)`` pixels of ``shape``, one thread each, with ``args`` (tensors as
+    pointers, then the shape's three ints)."""
+    kernel = _cuda_kernel(name, device.index if device.index is not None else torch.cuda.current_device(), full)
     B, H, W = shape
     kernel(grid=(-(-B * H * W // _THREADS), 1, 1), block=(_THREADS, 1, 1), args=[*args, B, H, W])
 
@@ -205,9 +222,14 @@ def cuda_entry_names(source: str | None = None) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _cuda_kernel(name: str, device_index: int):
-    """The compiled CUDA kernel ``name`` of walk_cuda.cu for the device."""
-    kernels = _cuda_kernels(device_index)
+def cuda_options(full: bool = False) -> list[str]:
+    """NVRTC's options for the lean build, or the ``full`` one (walk.h's ``TAO_FULL_WALK``)."""
+    return [*_NVRTC_OPTIONS, *((_FULL_DEFINE,) if full else ())]
+
+
+def _cuda_kernel(name: str, device_index: int, full: bool = False):
+    """The compiled CUDA kernel ``name`` of walk_cuda.cu for the device, of the lean or the ``full`` build."""
+    kernels = _cuda_kernels(device_index, bool(full))
     if isinstance(kernels, KernelUnavailable):
         raise kernels
     if name not in kernels:
@@ -216,10 +238,10 @@ def _cuda_kernel(name: str, device_index: int):
 
 
 @functools.lru_cache(maxsize=None)
-def _cuda_kernels(device_index: int) -> dict | KernelUnavailable:
-    """Every kernel of walk_cuda.cu for the device, ``{name: kernel}``: one NVRTC compile of the whole source
-    (about half a minute; every kernel is in the one binary), kept on disk by :func:`_cuda_binary`, so that a
-    later process loads it in milliseconds. A failure is returned (and so kept) rather than raised: the
+def _cuda_kernels(device_index: int, full: bool) -> dict | KernelUnavailable:
+    """Every kernel of walk_cuda.cu for the device, ``{name: kernel}``, of the lean or the ``full`` build: one NVRTC
+    compile of the whole source (about half a minute; every kernel is in the one binary), kept on disk by
+    :func:`_cuda_binary`, so that a later process loads it in milliseconds. A failure is returned (and so kept) rather than raised: the
     process does not compile again at every call."""
     try:
         from torch.cuda._utils import _cuda_load_module, _nvrtc_compile
@@ -230,10 +252,11 @@ def _cuda_kernels(device_index: int) -> dict | KernelUnavailable:
 
             def compile_source() -> bytes:  # (torch < 2.9 returns the binary alone, later ones with a name)
                 out = _nvrtc_compile(source, names[0], compute_capability=f"{major}{minor}",
-                                     nvcc_options=list(_NVRTC_OPTIONS))
+                                     nvcc_options=cuda_options(full))
                 return out[0] if isinstance(out, tuple) else out
 
-            return _cuda_load_module(_cuda_binary(source, f"{major}{minor}", compile_source), list(names))
+            binary = _cuda_binary(source, cuda_options(full), f"{major}{minor}", compile_source)
+            return _cuda_load_module(binary, list(names))
     except Exception as exc:  # no NVRTC in this build, a compile error...
         error = KernelUnavailable(f"the CUDA kernels could not be compiled ({type(exc).__name__}: "
                                   f"{str(exc).strip()[-2000:] if str(exc).strip() else exc})")
@@ -251,12 +274,12 @@ def cuda_cache_dir() -> Path:
     return Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / "torch_ao_cuda"
 
 
-def _cuda_binary(source: str, arch: str, compile_source) -> bytes:
-    """The binary ``compile_source()`` makes of ``source`` for compute capability ``arch``, from the disk cache
-    when it holds one for the same source, options, architecture and CUDA/torch versions. Written to a
+def _cuda_binary(source: str, options: list[str], arch: str, compile_source) -> bytes:
+    """The binary ``compile_source()`` makes of ``source`` with NVRTC's ``options`` for compute capability ``arch``,
+    from the disk cache when it holds one for the same source, options, architecture and CUDA/torch versions. Written to a
     temporary name and renamed into place, so that a process killed while writing leaves nothing that a later
     one would read."""
-    key = hashlib.sha256("\0".join((source, *_NVRTC_OPTIONS, arch, str(torch.version.cuda), torch.__version__))
+    key = hashlib.sha256("\0".join((source, *options, arch, str(torch.version.cuda), torch.__version__))
                          .encode()).hexdigest()[:24]
     path = cuda_cache_dir() / f"walk_sm{arch}_{key}.bin"
     if path.is_file():

@@ -66,7 +66,7 @@ template <class F> struct SoftCoverage {
 template <class F>
 TAO_FN void fetch_motion(const Sample<F>& smp, const F* P, const F& su, const F& sv, F* d_su, F* d_sv) {
   const Image& img = *smp.image;
-#ifndef __CUDACC_RTC__
+#if !TAO_LEAN_WALK
   if (smp.reads_positions) {  // (a position buffer's taps: Sample::position_motion)
     smp.position_motion(d_su, d_sv);
     for (int c = 0; c < 3; ++c)
@@ -157,14 +157,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
   bool indirect, bent;
   SectorAngles angles;  // the variant's rule (bitmask.h's sample_angles, in slice_frame's frame)
   // the exact variant's segment geometry with plane angles (bitmask.h's segment_angles): the back point along the
-  // sample's camera ray, the segment clipped to the walk's radius' sphere. The CPU's alone (kSegments): compiled into
-  // the CUDA soft walks, already at 245-249 registers, it would spill them.
+  // sample's camera ray, the segment clipped to the walk's radius' sphere. Not in the lean CUDA build (kSegments):
+  // its soft walks, already at 245-249 registers, would spill them.
   bool along_ray = false, clip = false;
-#ifdef __CUDACC_RTC__
-  static constexpr bool kSegments = false;
-#else
-  static constexpr bool kSegments = true;
-#endif
+  static constexpr bool kSegments = !kLeanWalk;
   TAO_FN bool segments() const { return kSegments && (along_ray || clip) && angles == SectorAngles::plane; }
 
   // A step's front and back angles (sample_angles, or segment_angles: live loses a segment that misses the sphere)

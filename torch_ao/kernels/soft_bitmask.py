@@ -49,7 +49,7 @@ from ..sectors import ROUNDINGS
 from .bitmask import HARD_VARIANTS, KernelOutputs, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
 from .frame import light_input, scalar_lanes, scale_derivative
-from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
+from .launch import full_walk, launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
 __all__ = ["bitmask_soft", "soft_outputs", "kernel_covers", "module_forward"]
@@ -94,21 +94,19 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
             direction too (their gradients are the backward's walk, as the G-buffer's).
         step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch, border, rounding, sector_epsilon (sectors),
             azimuth (``"view"``/``"screen"``), variant (``"default"``/``"hdrp"``: the sector rule and slice frame),
-            slice_sampling (``"projected_normal"``: on the CPU alone), sample_extent
+            slice_sampling, sample_extent
             (``"sphere"``: the steps over the radius' sphere's screen extent), thickness_direction and
-            clip_to_radius (the ``"exact"`` variant's segment geometry, with ``"default"``'s plane angles; the CPU's
-            alone): as :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
+            clip_to_radius (the ``"exact"`` variant's segment geometry, with ``"default"``'s plane angles): as
+            :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"`` (the CUDA thread's
             walk).
 
     Raises :class:`~torch_ao.kernels.KernelUnavailable` when the kernel cannot be built here.
     """
     if variant not in HARD_VARIANTS + ("exact",):
         raise ValueError(f"variant: expected one of {HARD_VARIANTS + ('exact',)}, got {variant!r}")
-    segments = thickness_direction == "depth" or bool(clip_to_radius)
-    if segments and (variant == "hdrp" or gbuffer.depth.is_cuda):
-        raise ValueError("thickness_direction, clip_to_radius: the segment geometry is the CPU kernel's, with the "
-                         f"plane angles of the 'default' and 'exact' variants (got variant={variant!r} on "
-                         f"{gbuffer.depth.device.type})")
+    if (thickness_direction == "depth" or clip_to_radius) and variant == "hdrp":
+        raise ValueError("thickness_direction, clip_to_radius: the segment geometry takes the plane angles of the "
+                         "'default' and 'exact' variants (got variant='hdrp')")
     read = thickness_read_index(thickness_read, layer)
     named = (("radius", radius), ("thickness", thickness), ("layer_scale", 1.0 if layer_scale is None else layer_scale),
              ("thickness_growth", 0.0 if thickness_growth is None else thickness_growth))
@@ -172,25 +170,29 @@ def _walk(gbuffer, normals, radius, thickness, scale, growth, layer, o, gradient
         accumulator = "soft_gradients_short" if gbuffer.depth.is_cuda and soft_walk_short(o["steps"]) else "soft_gradients"
     channels = 4 + o["grows"] if gradients else _outputs(o)
     return run_walk(accumulator, gbuffer, normals, settings, acc_ints, acc_floats, channels,
-                    light=light, backface=layer, lanes=o["lanes"])
+                    light=light, backface=layer, lanes=o["lanes"], segments=o["along_ray"] or o["clip"])
 
 
 def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, growth, layer, light, o):
     """The outputs (:func:`_outputs`) with gradients to the walk's channel-last inputs (so to the G-buffer), the
     channel-last ``light``, the thickness ``layer`` and the scalars."""
-    kernels = SoftKernels("soft", "tao_walk_soft", soft_backward_kernel(o["steps"]), True)
-    return gbuffer_walk(gbuffer, normals, _settings(radius, thickness, scale, growth, o), light, layer, radius,
-                        thickness, scale, o["lanes"], kernels, _outputs(o), growth if o["grows"] else None)
+    packed = _settings(radius, thickness, scale, growth, o)
+    full = full_walk("soft", gbuffer, packed[0], segments=o["along_ray"] or o["clip"])
+    kernels = SoftKernels("soft", "tao_walk_soft", soft_backward_kernel(o["steps"]), True, full)
+    return gbuffer_walk(gbuffer, normals, packed, light, layer, radius, thickness, scale, o["lanes"], kernels,
+                        _outputs(o), growth if o["grows"] else None)
 
 
 class SoftKernels(NamedTuple):
-    """A soft walk's kernels: the CPU operator's accumulator, the CUDA forward and backward, and whether the backward
-    gives the intrinsics a gradient of its own (the walk moves its steps with them)."""
+    """A soft walk's kernels: the CPU operator's accumulator, the CUDA forward and backward, whether the backward
+    gives the intrinsics a gradient of its own (the walk moves its steps with them), and whether the CUDA ones are
+    the full build's (:func:`~torch_ao.kernels.launch.full_walk`)."""
 
     cpu: str
     cuda_forward: str
     cuda_backward: str
     camera: bool
+    full: bool = False
 
 
 def gbuffer_walk(gbuffer, normals, packed, light, layer, radius, thickness, scale, lanes: str, kernels: SoftKernels,
@@ -237,7 +239,7 @@ class _GBufferWalk(torch.autograd.Function):
         if depth.is_cuda:
             out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
             launch_cuda(kernels.cuda_forward, depth.device, [*frame, light, cells, layer, out, ints, floats],
-                        tuple(depth.shape))
+                        tuple(depth.shape), full=kernels.full)
             return out
         return cpu_kernels().walk(kernels.cpu, *frame, light, cells, layer, ints, floats, channels, scalar)
 
@@ -256,7 +258,7 @@ class _GBufferWalk(torch.autograd.Function):
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(ctx.kernels.cuda_backward, depth.device,
                         [*frame, grad, g_pos, g_nrm, g_depth, g_setting, taps, g_inv, g_layer, senders, g_light,
-                         g_camera, ints, floats], tuple(depth.shape))
+                         g_camera, ints, floats], tuple(depth.shape), full=ctx.kernels.full)
             g_pos += taps
             g_nrm += senders
         else:
@@ -328,8 +330,6 @@ def kernel_covers(module, gbuffer: GBuffer) -> str | None:
     if module.thickness_direction == "depth" or module.clip_to_radius:
         if module.variant == "hdrp":
             return "the segment geometry with variant='hdrp' (its rule has none)"
-        if gbuffer.depth.is_cuda:
-            return "the exact variant's segment geometry on CUDA (the soft kernel's is the CPU's)"
     return None
 
 

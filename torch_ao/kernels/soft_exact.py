@@ -32,7 +32,7 @@ from ..gbuffer import GBuffer
 from .bitmask import EXACT_MAX_STEPS, _EXACT, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
 from .frame import scalar_lanes
-from .launch import launch_cuda, packed_inputs, run_walk, walk_settings
+from .launch import full_walk, launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
 __all__ = ["exact_soft", "exact_soft_covers", "exact_soft_forward"]
@@ -61,7 +61,7 @@ def exact_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
             world unit; ``None``: none), the thickness times ``1 + g * |sample - pixel|``.
         slices, steps (<= 32 per side), step_power, min_step_px (pixels), jitter, seed, noise, stagger, fetch,
             border, weighting, thickness_direction, clip_to_radius, sample_extent, sector_epsilon, azimuth,
-            slice_sampling (``"projected_normal"``: on the CPU alone): as
+            slice_sampling: as
             :class:`~torch_ao.BitmaskAO`; lanes: on CPU, ``"simd"`` or ``"scalar"``.
 
     Raises ``ValueError`` naming the argument for a parameter that is not 0-d, or ``steps`` beyond 32.
@@ -123,20 +123,21 @@ def _walk(gbuffer, normals, radius, thickness, scale, growth, layer, o, gradient
 def _gbuffer_walk(gbuffer, normals, radius, thickness, scale, growth, layer, o) -> torch.Tensor:
     """The visibility with gradients to the walk's channel-last inputs (so to the G-buffer), the layer and the
     scalars."""
-    inputs, (_, cells, layer_image), ints, floats = packed_inputs(
-        gbuffer, normals, *_settings(radius, thickness, scale, growth, o), backface=layer)
+    packed = _settings(radius, thickness, scale, growth, o)
+    inputs, (_, cells, layer_image), ints, floats = packed_inputs(gbuffer, normals, *packed, backface=layer)
     scale = torch.ones(()) if scale is None else scale
     return _GBufferWalk.apply(*inputs, cells, layer_image, ints, floats, radius, thickness, scale, growth,
-                              scalar_lanes(o["lanes"]))
+                              scalar_lanes(o["lanes"]), full_walk("exact", gbuffer, packed[0]))
 
 
 class _GBufferWalk(torch.autograd.Function):
     """The exact union's walk over ``(positions, normals, inverse, depth, valid, intrinsics)``, the edge-aware
-    fetch's ``cells`` and the thickness ``layer`` (each empty where unused), and ``exact_backward``."""
+    fetch's ``cells`` and the thickness ``layer`` (each empty where unused), and ``exact_backward`` (``full``: on
+    CUDA, the full build's kernels)."""
 
     @staticmethod
     def forward(ctx, positions, normals, inverse, depth, valid, intrinsics, cells, layer, ints, floats, radius,
-                thickness, scale, growth, scalar):
+                thickness, scale, growth, scalar, full):
         wanted = any(ctx.needs_input_grad[10:14])  # the scalars': the walk's per-pixel derivatives
         channels, name = _gradients_walk(growth) if wanted else (1, "exact")
         frame = (positions, normals, inverse, depth, valid, intrinsics)
@@ -144,10 +145,10 @@ class _GBufferWalk(torch.autograd.Function):
         if depth.is_cuda:
             out = torch.empty(depth.shape[0], channels, *depth.shape[1:], device=depth.device)
             launch_cuda(f"tao_walk_{name}", depth.device, [*frame, none, cells, layer, out, ints, floats],
-                        tuple(depth.shape))
+                        tuple(depth.shape), full=full)
         else:
             out = cpu_kernels().walk(name, *frame, none, cells, layer, ints, floats, channels, scalar)
-        ctx.scalar, ctx.dtypes = scalar, (radius.dtype, thickness.dtype, scale.dtype, None if growth is None else
+        ctx.scalar, ctx.full, ctx.dtypes = scalar, full, (radius.dtype, thickness.dtype, scale.dtype, None if growth is None else
                                           growth.dtype)
         ctx.save_for_backward(*frame, cells, layer, ints, floats, out[:, 1:] if wanted else none)
         return out[:, :1].contiguous()
@@ -164,7 +165,7 @@ class _GBufferWalk(torch.autograd.Function):
             g_camera = depth.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda("tao_exact_backward", depth.device,
                         [*frame, cells, layer, grad, g_pos, g_nrm, g_depth, taps, g_inv, g_layer, g_camera, ints,
-                         floats], tuple(depth.shape))
+                         floats], tuple(depth.shape), full=ctx.full)
             g_pos += taps
         else:
             g_pos, g_nrm, g_inv, g_depth, g_layer, g_camera = grad_kernels().exact_backward(
@@ -176,7 +177,7 @@ class _GBufferWalk(torch.autograd.Function):
             scalars = [sums[k].to(ctx.dtypes[k]) if ctx.needs_input_grad[10 + k] else None
                        for k in range(jacobian.shape[1])] + [None] * (4 - jacobian.shape[1])
         return (g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, g_layer if layer.numel() else None, None, None,
-                *scalars, None)
+                *scalars, None, None)
 
 
 class _ExactWalk(torch.autograd.Function):

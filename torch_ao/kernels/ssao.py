@@ -182,8 +182,7 @@ _SSAO_OPTIONS = _MODULE_OPTIONS | dict.fromkeys(("samples", "radius", "bias", "s
 def _covers(module, gbuffer: GBuffer, options: dict, parameters: tuple[str, ...], given: tuple[str, ...],
             steps: int | None = None) -> str | None:
     """Why the kernel cannot compute ``module(gbuffer)`` (``None``: it can): an option it does not know or
-    cover, a ``parameter`` other than a scalar, a G-buffer other than float32 on CPU or CUDA, a position buffer
-    read between texels on CUDA (:func:`~torch_ao.kernels.coverage.position_read_uncovered`), or,
+    cover, a ``parameter`` other than a scalar, a G-buffer other than float32 on CPU or CUDA, or,
     where autograd records, a gradient the walk's backward does not give (it gives the
     G-buffer's and the ``given`` parameters': its setting's, and those the module's finish applies with torch
     ops), or one on CUDA with more than :data:`~torch_ao.kernels.walk_grad.MAX_CUDA_STEPS` ``steps`` (default the

@@ -17,7 +17,20 @@
 
 #include "lanes_scalar.h"
 
+// The CUDA build comes in two forms (launch.py compiles each on first use). The lean one, which a call runs unless
+// it needs one of the options below, leaves them out: each costs registers in every CUDA walk, used or not. The full
+// one (TAO_FULL_WALK) has them: slices drawn by the projected normal's density in the bitmask family's accumulators
+// (kSectorsWeighSlices), a position buffer read between texels (Sample::position_taps) and the soft accumulators'
+// segment geometry (SoftAccumulator::kSegments). The CPU build has everything.
+#if defined(__CUDACC_RTC__) && !defined(TAO_FULL_WALK)
+#define TAO_LEAN_WALK 1
+#else
+#define TAO_LEAN_WALK 0
+#endif
+
 namespace tao {
+
+constexpr bool kLeanWalk = TAO_LEAN_WALK;
 
 constexpr float kPi = 3.14159265358979323846f;
 constexpr float kEdgeMinRatio = 1.02f;  // walk.fetch.EDGE_MIN_RATIO
@@ -706,7 +719,7 @@ template <class F> struct Sample {
       inverse_su = lerp(t1 - t0, t3 - t2, fv), inverse_sv = bottom - top;
       const F depth = reciprocal(lerp(top, bottom, fv));
       const F su_c = clamp(su, F(0.0f), Wf - F(1.0f)), sv_c = clamp(sv, F(0.0f), Hf - F(1.0f));
-#ifndef __CUDACC_RTC__
+#if !TAO_LEAN_WALK
       if (!cfg.unprojected) {
         reads_positions = true, edge_aware = cfg.edge_aware;
         position_taps(img, su_c, sv_c, pos);
@@ -917,16 +930,11 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
 // soft.h's sector accumulators), so that its walk may
 // draw the slices' azimuths by the projected normal's density (WalkSettings::projected_normal)
 // Whether the bitmask family's sector accumulators weigh their slices (and so take slices drawn by the projected
-// normal's density): on the CPU. Compiled into the CUDA walks, the draw cost registers in every call, drawn or not
-// (ptxas, sm_90: tao_walk_exact_gradients 167 -> 172 registers and 19 % -> 12 % occupancy, tao_walk_bitmask's spill
-// 60 -> 152 bytes, tao_walk_soft's 0 -> 32), so the CUDA build leaves it out and the dispatch sends such a call on
-// CUDA to the tensor path. (GTAO's walks had it before and keep it.)
-#ifdef __CUDACC_RTC__
-constexpr bool kSectorsWeighSlices = false;
-#else
-constexpr bool kSectorsWeighSlices = true;
-#endif
-// x weighed by slice sl's estimator weight where kSectorsWeighSlices (else x: no arithmetic on the CUDA build)
+// normal's density): not in the lean CUDA build. There the draw cost registers in every call, drawn or not (ptxas,
+// sm_90: tao_walk_exact_gradients 167 -> 172 registers and 19 % -> 12 % occupancy, tao_walk_bitmask's spill
+// 60 -> 152 bytes, tao_walk_soft's 0 -> 32). (GTAO's walks have it in both.)
+constexpr bool kSectorsWeighSlices = !kLeanWalk;
+// x weighed by slice sl's estimator weight where kSectorsWeighSlices (else x: no arithmetic in the lean CUDA build)
 template <class F, class G> TAO_FN G weighed(const Slice<F>& sl, const G& x) {
   if constexpr (kSectorsWeighSlices) return G(sl.weight) * x;
   else return x;

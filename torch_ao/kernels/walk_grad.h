@@ -289,7 +289,7 @@ TAO_FN void record_block(const WalkSettings& cfg, const Image& img, const Acc& a
   acc.finish(sums, px, values);
 }
 
-#ifndef __CUDACC_RTC__
+#if !TAO_LEAN_WALK
 // Sample::position_taps' adjoint: d L / d the position read (g) into its four taps' positions (t.tap_positions), on
 // the lanes `on` of the first n. With W_k = w_k / depth_k (w_k the weights of fu, fv; 1 / depth_k = -1 / z_k) and
 // pos = sum W_k p_k / sum W_k: d pos / d p_k = W_k / sum W_k, and through the tap's depth d pos / d z_k adds
@@ -337,7 +337,7 @@ TAO_FN void scatter_taps(bool bilinear, int n, const Targets& t, const B* g_delt
                          const B& fv, const typename LaneTraits<B>::I* index, const typename LaneTraits<B>::M& on,
                          const B* g_layer = nullptr, bool layer_bilinear = false) {
   if (bilinear && t.read_positions) {
-#ifndef __CUDACC_RTC__
+#if !TAO_LEAN_WALK
     scatter_position_taps(n, t, g_delta, pos, fu, fv, index, on);
 #endif
   } else if (bilinear) {  // the interpolated inverse depth's d L / d t = (d L / d pos . pos) pos_z
@@ -1269,6 +1269,16 @@ TAO_FN void record_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& f
   for (int c = 0; c < C; ++c) out[((b * C + c) * fr.H + row) * fr.W + u] = values[c];
 }
 
+// Into t, image b's position buffer where a bilinear fetch reads one between texels (Targets::read_positions: its
+// taps' positions take the gradient, in tap_positions), for a CUDA thread's backward (none in the lean build, whose
+// walk reads the depth there)
+TAO_FN void read_position_buffer(Targets& t, const WalkSettings& cfg, const Frame& fr, int64_t b) {
+  if constexpr (!kLeanWalk) {
+    if (cfg.bilinear && !cfg.unprojected)
+      t.read_positions = fr.positions + 3 * b * fr.H * fr.W, t.read_edge_aware = cfg.edge_aware;
+  }
+}
+
 // Pixel p's backward (a CUDA thread): grad (B, C, H, W); the gradients of image b at its own pixel (positions,
 // normals (B, H, W, 3), depth (B, H, W), settings (B, H, W, acc.settings()), and where camera is not null
 // d L / d fx, fy, cx, cy (B, H, W, 4)) and scattered to its taps (tap_positions (B, H, W, 3), tap_inverse
@@ -1283,6 +1293,7 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   for (int c = 0; c < C; ++c) upstream[c] = grad + (b * C + c) * plane;
   Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane,
             setting + acc.settings() * b * plane, tap_positions + 3 * b * plane, tap_inverse + b * plane};
+  read_position_buffer(t, cfg, fr, b);
   t.camera = camera ? camera + 4 * b * plane : nullptr;
   t.settings = acc.settings();
   float take_steps[2 * kGradMaxSteps];
@@ -1309,10 +1320,11 @@ TAO_FN void soft_grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame
                             float* tap_positions, float* tap_inverse, float* tap_layer, float* tap_normals,
                             float* tap_light, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 3 * b * plane,
-                  tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
-                  tap_normals ? tap_normals + 3 * b * plane : nullptr, tap_light ? tap_light + 3 * b * plane : nullptr,
-                  camera ? camera + 4 * b * plane : nullptr, 3};
+  Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, thickness + 3 * b * plane,
+            tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
+            tap_normals ? tap_normals + 3 * b * plane : nullptr, tap_light ? tap_light + 3 * b * plane : nullptr,
+            camera ? camera + 4 * b * plane : nullptr, 3};
+  read_position_buffer(t, cfg, fr, b);
   soft_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane, t);
 }
 
@@ -1323,9 +1335,10 @@ TAO_FN void exact_grad_pixel(const WalkSettings& cfg, const ExactAccumulator& ac
                              float* positions, float* normals, float* depth, float* tap_positions, float* tap_inverse,
                              float* tap_layer, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
-                  tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
-                  nullptr, nullptr, camera ? camera + 4 * b * plane : nullptr};
+  Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
+            tap_positions + 3 * b * plane, tap_inverse + b * plane, tap_layer ? tap_layer + b * plane : nullptr,
+            nullptr, nullptr, camera ? camera + 4 * b * plane : nullptr};
+  read_position_buffer(t, cfg, fr, b);
   exact_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * plane, t);
 }
 
@@ -1349,10 +1362,11 @@ TAO_FN void hard_grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame
                             const int32_t* record, float* positions, float* normals, float* depth, float* tap_positions,
                             float* tap_inverse, float* tap_normals, float* tap_light, float* camera, int64_t p) {
   const int64_t plane = fr.H * fr.W, b = p / plane, row = (p % plane) / fr.W, u = p % fr.W;
-  const Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
-                  tap_positions + 3 * b * plane, tap_inverse + b * plane, nullptr,
-                  acc.indirect ? tap_normals + 3 * b * plane : nullptr, acc.indirect ? tap_light + 3 * b * plane : nullptr,
-                  camera ? camera + 4 * b * plane : nullptr};
+  Targets t{positions + 3 * b * plane, normals + 3 * b * plane, depth + b * plane, nullptr,
+            tap_positions + 3 * b * plane, tap_inverse + b * plane, nullptr,
+            acc.indirect ? tap_normals + 3 * b * plane : nullptr, acc.indirect ? tap_light + 3 * b * plane : nullptr,
+            camera ? camera + 4 * b * plane : nullptr};
+  read_position_buffer(t, cfg, fr, b);
   hard_grad_block<float>(cfg, fr.image(b), acc, row, u, 1, grad + b * acc.channels() * plane,
                          record + b * plane * cfg.slices, t);
 }

@@ -31,7 +31,7 @@ import torch
 from ..gbuffer import GBuffer
 from .build import grad_kernels
 from .frame import scalar_lanes, scale_derivative
-from .launch import launch_cuda, packed_inputs, run_packed
+from .launch import full_walk, launch_cuda, packed_inputs, run_packed
 
 __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "MAX_CUDA_STEPS"]
 
@@ -40,22 +40,24 @@ MAX_CUDA_STEPS = 32
 
 
 class _Walk(torch.autograd.Function):
-    """``walk(accumulator, positions, normals, inverse, depth, ...)`` ``(B,C,H,W)`` and its backward."""
+    """``walk(accumulator, positions, normals, inverse, depth, ...)`` ``(B,C,H,W)`` and its backward (``full``: on
+    CUDA, the full build's kernels)."""
 
     @staticmethod
     def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats,
-                channels, scalar, radius, setting, setting_dimension, record_shape):
-        ctx.accumulator, ctx.scalar, ctx.setting_dimension = accumulator, scalar, setting_dimension
+                channels, scalar, radius, setting, setting_dimension, record_shape, full):
+        ctx.accumulator, ctx.scalar, ctx.setting_dimension, ctx.full = accumulator, scalar, setting_dimension, full
         frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
         if record_shape is None:  # every step replayed: the plain walk, no record
             none = positions.new_empty(0)
             record = torch.empty(0, dtype=torch.int64, device=depth.device)
-            out = run_packed(accumulator, frame[:6], (none, cells, none), ints, floats, channels, scalar)
+            out = run_packed(accumulator, frame[:6], (none, cells, none), ints, floats, channels, scalar, full=full)
         elif positions.is_cuda:
             B, H, W = depth.shape
             out = torch.empty(B, channels, H, W, device=depth.device)
             record = torch.empty(B, H, W, *record_shape, dtype=torch.int64, device=depth.device)
-            launch_cuda(f"tao_record_{accumulator}", depth.device, [*frame, out, record, ints, floats], (B, H, W))
+            launch_cuda(f"tao_record_{accumulator}", depth.device, [*frame, out, record, ints, floats], (B, H, W),
+                        full=full)
         else:
             out, record = grad_kernels().walk_record(accumulator, *frame, ints, floats, channels, scalar)
         ctx.save_for_backward(*frame, ints, floats, radius, setting, record)
@@ -75,7 +77,7 @@ class _Walk(torch.autograd.Function):
             g_camera = positions.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
             launch_cuda(f"tao_backward_{ctx.accumulator}", depth.device,
                         [*frame, grad, record, g_pos, g_nrm, g_depth, g_setting, taps, g_inv,
-                         g_camera, ints, floats], tuple(depth.shape))
+                         g_camera, ints, floats], tuple(depth.shape), full=ctx.full)
             g_pos += taps
         else:
             g_pos, g_nrm, g_inv, g_depth, g_setting, g_camera = grad_kernels().walk_backward(
@@ -91,7 +93,7 @@ class _Walk(torch.autograd.Function):
             g_radius = (-along / radius).to(radius.dtype)
         g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
         return (None, g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, None, None, None, None, g_radius, g_out,
-                None, None)
+                None, None, None)
 
 
 def gbuffer_requires_grad(gbuffer: GBuffer) -> bool:
@@ -132,4 +134,5 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     takes = accumulator in ("gtao", "hbao", "pssao")
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
                        tuple(int(x) for x in setting_dimension),
-                       ((int(slices) * 2 * int(steps) + 63) // 64,) if takes else None)
+                       ((int(slices) * 2 * int(steps) + 63) // 64,) if takes else None,
+                       full_walk(accumulator, gbuffer, settings))
