@@ -69,10 +69,13 @@ CASES = {
     "pssao-clamp": (PSSAO, dict(slices=5, steps=4, border="clamp", distance_bias=0.5), ()),
     "pssao-edge-aware": (PSSAO, dict(slices=12, steps=6, fetch="edge_aware", normalize="directions"), ()),
     "pssao-most": (PSSAO, dict(slices=2, steps=MAX_CUDA_STEPS, fetch="bilinear"), ()),
-    # (GTAO's record in two words, slice 2's side -1 in bits 60-71; HBAO's slices of 80 bits; named to sort last,
-    # which keeps every other case's alternation of given and reconstructed normals)
+    # (GTAO's record in two words, slice 2's side -1 in bits 60-71; HBAO's slices of 40 bits, across words; HBAO's and
+    # GTAO's of 80 bits; named to sort last, which keeps every other case's alternation of given and reconstructed
+    # normals)
     "wide-record": (GTAO, dict(slices=3, steps=12, radius=1.2), ()),
+    "wide-halves": (HBAO, dict(slices=2, steps=20), ()),
     "wide-steps": (HBAO, dict(slices=2, steps=40), ()),  # (a slice's bits beyond one word: set in the record directly)
+    "wide-steps-replaced": (GTAO, dict(slices=2, steps=40), ()),  # (... each side's last take's, as the slice ends)
     # slices drawn by the projected normal's density: the azimuth and the slice's weight differentiated too (named
     # to sort last as well)
     "with-projected-normal-exact": (GTAO, dict(slices=4, steps=4, slice_sampling="projected_normal",
