@@ -40,7 +40,8 @@ for full in (False, True):  # the lean build, then the full one (launch.full_wal
         print('a cached binary was refused:', str(k)[:500]); [p.unlink() for p in launch.cuda_cache_dir().glob('*.bin')]
         launch._cuda_kernels.cache_clear(); t = time.time(); k = launch._cuda_kernels(0, full)
     if isinstance(k, Exception): raise k
-    print(len(k), 'CUDA kernels of the', 'full' if full else 'lean', 'build compiled or loaded in', round(time.time() - t, 1), 's')" \
+    build = 'full' if full else 'lean'
+    print(len(k), 'CUDA kernels of the', build, 'build compiled or loaded in', round(time.time() - t, 1), 's')" \
   || echo "gpu_check: the CUDA kernels did not compile"
 wait $forward || { echo "gpu_check: C++ forward build failed"; tail -20 "$out/build_forward.txt"; }
 wait $backward || { echo "gpu_check: C++ backward build failed"; tail -20 "$out/build_backward.txt"; }

@@ -87,7 +87,8 @@ def test_the_compiled_kernels_are_kept_on_disk_once(tmp_path, monkeypatch):
     assert launch._cuda_binary("source a", lean, "90", lambda: pytest.fail("compiled twice")) == b"\x7fELF cubin"
     assert launch._cuda_binary("source b", lean, "90", lambda: compile_source(b"other")) == b"other"
     assert launch._cuda_binary("source a", lean, "80", lambda: compile_source(b"sm80")) == b"sm80"
-    assert launch._cuda_binary("source a", full, "90", lambda: compile_source(b"full")) == b"full"  # (a build of its own)
+    # (the full build: a binary of its own)
+    assert launch._cuda_binary("source a", full, "90", lambda: compile_source(b"full")) == b"full"
     assert len(calls) == 4
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".bin"] * 4  # (no temporary left behind)
 

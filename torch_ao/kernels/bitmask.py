@@ -396,7 +396,8 @@ def options_uncovered(module, gbuffer: GBuffer, *, modes: tuple[str, ...], weigh
     """Why a bitmask kernel walking one of ``variants`` in one of ``modes`` with one of ``weightings`` (and,
     with ``outputs``, indirect light, bent normals and a constant ambient; else visibility only) does not
     reproduce ``module(gbuffer)`` (an option it does not know or covers at another value, a thickness it
-    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA), or ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
+    does not read: see :func:`thickness_uncovered`, a G-buffer other than float32 on the CPU or CUDA), or
+    ``None``. ``layers``: whether the kernel reads a thickness layer per sample; ``growth``:
     whether it grows the thickness with the sample's distance (values only: none of the kernels with gradients)."""
     values = dict(getattr(module, "values", {}))
     for name in ("variant", "mode", "weighting", "union", "clip_to_radius", "thickness_direction", "sample_extent",

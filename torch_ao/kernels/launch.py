@@ -241,8 +241,8 @@ def _cuda_kernel(name: str, device_index: int, full: bool = False):
 def _cuda_kernels(device_index: int, full: bool) -> dict | KernelUnavailable:
     """Every kernel of walk_cuda.cu for the device, ``{name: kernel}``, of the lean or the ``full`` build: one NVRTC
     compile of the whole source (about half a minute; every kernel is in the one binary), kept on disk by
-    :func:`_cuda_binary`, so that a later process loads it in milliseconds. A failure is returned (and so kept) rather than raised: the
-    process does not compile again at every call."""
+    :func:`_cuda_binary`, so that a later process loads it in milliseconds. A failure is returned (and so kept)
+    rather than raised: the process does not compile again at every call."""
     try:
         from torch.cuda._utils import _cuda_load_module, _nvrtc_compile
 
@@ -276,9 +276,9 @@ def cuda_cache_dir() -> Path:
 
 def _cuda_binary(source: str, options: list[str], arch: str, compile_source) -> bytes:
     """The binary ``compile_source()`` makes of ``source`` with NVRTC's ``options`` for compute capability ``arch``,
-    from the disk cache when it holds one for the same source, options, architecture and CUDA/torch versions. Written to a
-    temporary name and renamed into place, so that a process killed while writing leaves nothing that a later
-    one would read."""
+    from the disk cache when it holds one for the same source, options, architecture and CUDA/torch versions.
+    Written to a temporary name and renamed into place, so that a process killed while writing leaves nothing that
+    a later one would read."""
     key = hashlib.sha256("\0".join((source, *options, arch, str(torch.version.cuda), torch.__version__))
                          .encode()).hexdigest()[:24]
     path = cuda_cache_dir() / f"walk_sm{arch}_{key}.bin"

@@ -148,8 +148,8 @@ class _GBufferWalk(torch.autograd.Function):
                         tuple(depth.shape), full=full)
         else:
             out = cpu_kernels().walk(name, *frame, none, cells, layer, ints, floats, channels, scalar)
-        ctx.scalar, ctx.full, ctx.dtypes = scalar, full, (radius.dtype, thickness.dtype, scale.dtype, None if growth is None else
-                                          growth.dtype)
+        ctx.scalar, ctx.full = scalar, full
+        ctx.dtypes = (radius.dtype, thickness.dtype, scale.dtype, None if growth is None else growth.dtype)
         ctx.save_for_backward(*frame, cells, layer, ints, floats, out[:, 1:] if wanted else none)
         return out[:, :1].contiguous()
 
