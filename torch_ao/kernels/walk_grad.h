@@ -723,7 +723,8 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
   for (int64_t s = 0; s < cfg.slices; ++s) {
     // 1. the forward's intervals (a slice drawn by the projected normal's density weighs its covered measure: its
     // taps' adjoints by the weight's value, the pixel's own tangents through add_slice's product with sl_own's)
-    const Slice<B> sl = walked_slice<ExactAccumulator>(cfg, img, px, s);
+    const Slice<Own> sl_own = walked_slice<ExactAccumulator>(cfg, img, px_own, s);
+    const Slice<B> sl(sl_own, [](const Own& x) { return x.v; });  // (the same values: a dual's are its lanes')
     const B per_slice = weighed(sl, per_covered);
     typename ExactAccumulator::template State<B> st = acc.begin_slice(px, sl);
     NoVisit visit;
@@ -737,7 +738,6 @@ TAO_FN void exact_grad_block(const WalkSettings& cfg, const Image& img, const Ex
     });
     B r(0.0f);
     for (int j = 0; j < m; ++j) reach[j] = r, r = max(st.hi[j], r);
-    const Slice<Own> sl_own = walked_slice<ExactAccumulator>(cfg, img, px_own, s);
     const Slice<Ends> sl_ends(sl_own, with_ends);
     Own covered;
     B g_reach(0.0f);  // d covered / d reach_j+1
@@ -938,8 +938,8 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
     int32_t words[L] = {};
     for (int l = 0; l < n; ++l) words[l] = record[(row * img.W + u0 + l) * cfg.slices + s];
     const I occ = from_lanes(words, I(0));
-    const Slice<B> sl = walked_slice<BitmaskAccumulator>(cfg, img, px, s);
     const Slice<Own> sl_own = walked_slice<BitmaskAccumulator>(cfg, img, px_own, s);
+    const Slice<B> sl(sl_own, [](const Own& x) { return x.v; });  // (the same values: a dual's are its lanes')
     // the slice's weights follow its gamma and length alone: its end in their 2 tangents, chained to the 7; a slice
     // drawn by the projected normal's density ended unweighed, its sums then times its weight in the 7 (weighted)
     Slice<Two> sl_two(sl, constant);
