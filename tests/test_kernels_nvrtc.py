@@ -41,9 +41,9 @@ def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     of 128 threads a multiprocessor, walk_cuda.cu's launch bounds: 60 bytes; the exact union's walk is held to 128, 4
     blocks, and spills nothing), nor does the horizon backward, whose replay
     keeps its tape in the thread's local memory (lanes_rev.h; stack 88 KB at 32 steps a side). The exact
-    union's backward replays an interval's segment in 11 tangents: 1744 bytes spilled and reloaded; the hard
+    union's backward replays an interval's segment in 11 tangents: 1464 bytes spilled and reloaded; the hard
     sector walk's ends each slice with its 32 sectors' weights in 2 tangents and replays the steps that send
-    indirect light in 16: 4792 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
+    indirect light in 16: 4352 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
     (against 87 kB), 1792 bytes, and the long one 524 (its indirect light's replay in 9 tangents and the bent normal's
     terms take it past 255 registers; it keeps 87 kB of local memory a thread whatever it spills); bounded here
     (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (closed forms) and its soft backward spill nothing."""
@@ -107,8 +107,8 @@ def test_the_full_build_compiles_and_spills_little():
     """The full build (walk.h's TAO_FULL_WALK: slices drawn by the projected normal's density in the sector
     accumulators, a position buffer read between texels, the soft segment geometry), which only the calls that need
     one of them run: every entry point, within 255 registers; what the options add spills a little in the walks (the
-    hard sector walk 152 bytes, the exact union's 140, the soft one's 56) and more in the backwards (the hard one 6460,
-    the exact union's 3588, the soft ones' 3024-3268); bounded here (NVRTC 12.9, sm_90)."""
+    hard sector walk 152 bytes, the exact union's 140, the soft one's 56) and more in the backwards (the hard one 5952,
+    the exact union's 3052, the soft ones' 3024-3268); bounded here (NVRTC 12.9, sm_90)."""
     report = cuda_offline.kernel_resources(cuda_offline.compile_ptx(90, full=True), 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
     bounds = {"tao_exact_backward": 4096, "tao_hard_backward": 7168, "tao_walk_bitmask": 192, "tao_walk_exact": 192,
