@@ -587,7 +587,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     const F w = weighed(sl, F(1.0f)), weight_w = weight * w;
     const F *light_w = light_weight, *bent_w = bent_weight;
     F light_scaled[3], bent_scaled[3];
-    if (kSectorsWeighSlices && walk.projected_normal) {
+    if (sectors_drawn(walk)) {
       for (int c = 0; c < 3; ++c) {
         if (light_weight) light_scaled[c] = light_weight[c] * w;
         if (bent_weight) bent_scaled[c] = bent_weight[c] * w;
@@ -680,7 +680,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       for (int k = 0; k < kSectors; ++k) through = through + D(g_omega[k]) * omega[k];
       sums.loss = sums.loss + through;
     }
-    if (kSectorsWeighSlices && walk.projected_normal) {  // U dw (w > 0: the density's bins are at least 1e-4)
+    if (sectors_drawn(walk)) {  // U dw (w > 0: the density's bins are at least 1e-4)
       if (light_weight) unweighted = unweighted + (sums.lit.v - lit_before) / w;
       sums.loss = sums.loss + D(unweighted) * (sd.weight - D(sd.weight.v));
     }
@@ -794,7 +794,7 @@ template <class F, class D, class Sink, int kMostSteps = kSoftMaxSteps> struct S
   template <class G> using Sums = typename Acc::template Sums<D>;
   TAO_FN int channels() const { return 14; }
   TAO_FN State<F> begin_slice(const Pixels<F>& px, const Slice<F>& sl) const {
-    // (the CUDA build, which draws no slice by a density, builds it in place: through walked_slice's return
+    // (the lean CUDA build, which draws no slice by a density, builds it in place: through walked_slice's return
     // ptxas spilled twice the bytes in tao_soft_backward)
     if constexpr (!kSectorsWeighSlices) return State<F>{acc.begin_slice(px, sl), Slice<D>(acc.walk, img, pd, slice++)};
     return State<F>{acc.begin_slice(px, sl), walked_slice<Acc>(acc.walk, img, pd, slice++)};

@@ -926,9 +926,6 @@ template <class Acc> struct KernelPoints<Acc, decltype(void(Acc::kKernelPoints))
   static constexpr bool value = Acc::kKernelPoints;
 };
 
-// kWeighsSlices says an accumulator weighs each slice's sums by Slice::weight (horizon.h's GTAO, bitmask.h's and
-// soft.h's sector accumulators), so that its walk may
-// draw the slices' azimuths by the projected normal's density (WalkSettings::projected_normal)
 // Whether the bitmask family's sector accumulators weigh their slices (and so take slices drawn by the projected
 // normal's density): not in the lean CUDA build. There the draw cost registers in every call, drawn or not (ptxas,
 // sm_90: tao_walk_exact_gradients 167 -> 172 registers and 19 % -> 12 % occupancy, tao_walk_bitmask's spill
@@ -939,6 +936,12 @@ template <class F, class G> TAO_FN G weighed(const Slice<F>& sl, const G& x) {
   if constexpr (kSectorsWeighSlices) return G(sl.weight) * x;
   else return x;
 }
+// Whether this walk's sector accumulators take slices drawn by the projected normal's density (whose weights the
+// backwards then differentiate)
+TAO_FN bool sectors_drawn(const WalkSettings& cfg) { return kSectorsWeighSlices && cfg.projected_normal; }
+// kWeighsSlices says an accumulator weighs each slice's sums by Slice::weight (horizon.h's GTAO, bitmask.h's and
+// soft.h's sector accumulators), so that its walk may draw the slices' azimuths by the projected normal's density
+// (WalkSettings::projected_normal)
 template <class Acc, class = void> struct WeighsSlices {
   static constexpr bool value = false;
 };

@@ -959,7 +959,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
       return r;
     };
     const auto weighted = [&](const Two& x) {
-      return kSectorsWeighSlices && cfg.projected_normal ? chained(x) * sl_own.weight : chained(x);
+      return sectors_drawn(cfg) ? chained(x) * sl_own.weight : chained(x);
     };
     sums.visible = sums.visible + weighted(part.visible);
     sums.num = sums.num + weighted(part.num), sums.den = sums.den + weighted(part.den);
@@ -1004,7 +1004,7 @@ TAO_FN void hard_grad_block(const WalkSettings& cfg, const Image& img, const Bit
         for (int c = 0; c < 3; ++c) {  // its own tangents: through the light sums, finish's division
           Own own(sent[c].v);
           for (int k = 0; k < kPixel; ++k) own.d[k] = sent[c].d[k];
-          sums.light[c] = sums.light[c] + (kSectorsWeighSlices && cfg.projected_normal ? own * sl_own.weight : own);
+          sums.light[c] = sums.light[c] + (sectors_drawn(cfg) ? own * sl_own.weight : own);
         }
         const auto on = land(smp.valid, px.live);
         if (t.camera) {  // the intrinsics: the fetch's unprojection, and where it samples (its position, the
