@@ -251,11 +251,18 @@ template <class B, class Acc> struct Takes {
   // pending into the record (bit 2 slice steps on, across two words where it crosses one)
   TAO_FN void end_slice() {
     if (acc.replaces()) {
+      const uint32_t on = lane_bits(live);
       for (int k = 0; k < 2; ++k) {
         int32_t step[LaneTraits<B>::L];
         store_lanes(last[k], step);
-        for (int l = 0; l < LaneTraits<B>::L; ++l)
-          if (step[l] >= 0 && lane_on(live, l)) mark(k, l, step[l]);
+        for (int l = 0; l < LaneTraits<B>::L; ++l) {
+          const uint32_t took = uint32_t(step[l] >= 0) & (on >> l);  // (bit 0)
+          if (2 * steps > 64) {
+            if (took & 1u) mark(k, l, step[l]);
+          } else {  // (without a branch on the lane's take, which its data would mispredict: a bit of 0 where none)
+            pending[l] |= uint64_t(took & 1u) << ((k * steps + step[l]) & 63);
+          }
+        }
       }
     }
     if (2 * steps > 64) return;
