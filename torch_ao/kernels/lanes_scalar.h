@@ -104,10 +104,12 @@ TAO_FN float bit(uint32_t mask, int k) { return float((mask >> k) & 1u); }
 // set bits, and the lowest set bit's index (of x != 0)
 #ifdef __CUDACC_RTC__
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__popc(x)); }
+TAO_FN int popcount(uint64_t x) { return __popcll((unsigned long long)x); }
 TAO_FN int lowest_bit(uint32_t x) { return __ffs(int(x)) - 1; }
 TAO_FN int lowest_bit(uint64_t x) { return __ffsll((long long)x) - 1; }
 #else
 TAO_FN uint32_t popcount(uint32_t x) { return uint32_t(__builtin_popcount(x)); }
+TAO_FN int popcount(uint64_t x) { return __builtin_popcountll(x); }
 TAO_FN int lowest_bit(uint32_t x) { return __builtin_ctz(x); }
 TAO_FN int lowest_bit(uint64_t x) { return __builtin_ctzll(x); }
 #endif

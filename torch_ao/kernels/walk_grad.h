@@ -381,7 +381,13 @@ template <int L> struct Replay {
         const int64_t lo = (2 * s + k) * steps;
         int q = 0;
         if (words == 1) {  // (every slice's bits in one word: lo < 64)
-          for (uint64_t b = (x[0] >> lo) & mask; b; b &= b - 1) at(k, q++)[l] = float(lowest_bit(b));
+          // the first take without a branch on whether there is one (a take that replaces the state leaves at most
+          // one a side, and a loop over the bits mispredicted its end); a lane without takes writes an unread 63
+          uint64_t b = (x[0] >> lo) & mask;
+          q = popcount(b);
+          at(k, 0)[l] = float(lowest_bit(b | (uint64_t(1) << 63)));
+          int i = 1;
+          for (b &= b - 1; b; b &= b - 1) at(k, i++)[l] = float(lowest_bit(b));
         } else {
           for_each_word(x, lo, lo + steps, [&](int64_t w, uint64_t b) {
             for (; b; b &= b - 1) at(k, q++)[l] = float(64 * w + lowest_bit(b) - lo);
