@@ -43,6 +43,7 @@ struct tao_dim3 { unsigned x, y, z; };
 tao_dim3 blockIdx, blockDim, threadIdx;
 }
 static inline int __popc(unsigned x) { return __builtin_popcount(x); }
+static inline int __popcll(unsigned long long x) { return __builtin_popcountll(x); }
 static inline int __ffs(int x) { return __builtin_ffs(x); }
 static inline int __ffsll(long long x) { return __builtin_ffsll(x); }
 static inline unsigned __float_as_uint(float x) { unsigned b; __builtin_memcpy(&b, &x, sizeof b); return b; }
