@@ -134,8 +134,8 @@ TAO_FN void scatter_gather(bool bilinear, int n, float* image, int channels, con
   for (int c = 0; c < channels; ++c) to_lanes(g[c], gl[c]);
   to_lanes(fu, ful), to_lanes(fv, fvl);
   for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
-  for (int l = 0; l < n; ++l) {
-    if (!lane_on(on, l)) continue;
+  for (uint32_t lanes = lane_bits(on) & low_bits(uint32_t(n)); lanes; lanes &= lanes - 1) {
+    const int l = lowest_bit(lanes);  // (the lanes on, in order: no branch a lane, which their data mispredicted)
     float weight[4];
     bilinear_weights(ful[l], fvl[l], weight);
     for (int c = 0; c < channels; ++c) {
@@ -311,8 +311,8 @@ TAO_FN void scatter_position_taps(int n, const Targets& t, const B* g, const B* 
   for (int c = 0; c < 3; ++c) to_lanes(g[c], gl[c]), to_lanes(pos[c], pl[c]);
   to_lanes(fu, ful), to_lanes(fv, fvl);
   for (int i = 0; i < 4; ++i) store_lanes(index[i], il[i]);
-  for (int l = 0; l < n; ++l) {
-    if (!lane_on(on, l)) continue;
+  for (uint32_t lanes = lane_bits(on) & low_bits(uint32_t(n)); lanes; lanes &= lanes - 1) {
+    const int l = lowest_bit(lanes);  // (the lanes on, in order)
     const float* tap[4];
     for (int k = 0; k < 4; ++k) tap[k] = t.read_positions + 3 * il[k][l];
     const float gp[3] = {gl[0][l], gl[1][l], gl[2][l]}, p[3] = {pl[0][l], pl[1][l], pl[2][l]};
