@@ -244,16 +244,24 @@ template <class F> struct Pixels {
       const int64_t col = lanes.column(l);
       lane[7][l] = float(col);
       lane[8][l] = l < n && img.valid[p] ? 1.0f : 0.0f;
-      if (cfg.noise == Noise::glsl || cfg.noise == Noise::glsl_mediump) {  // one jitter, no rotation of its own
-        lane[9][l] = cfg.jitter ? glsl_jitter(float(col), float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
+    }
+    // the noise, a loop of its own (the interleaved gradient noise's then vectorises, its double arithmetic included)
+    if (cfg.noise == Noise::glsl || cfg.noise == Noise::glsl_mediump) {  // one jitter, no rotation of its own
+      for (int l = 0; l < L; ++l) {
+        lane[9][l] = cfg.jitter ? glsl_jitter(lane[7][l], float(img.H - 1 - row), cfg.noise == Noise::glsl_mediump) : 0.0f;
         rotation[l] = 0.0f;
-      } else if (!cfg.jitter) {
-        lane[9][l] = 0.5f, rotation[l] = 0.0f;
-      } else if (cfg.noise == Noise::hilbert_r2) {
+      }
+    } else if (!cfg.jitter) {
+      for (int l = 0; l < L; ++l) lane[9][l] = 0.5f, rotation[l] = 0.0f;
+    } else if (cfg.noise == Noise::hilbert_r2) {
+      for (int l = 0; l < L; ++l) {
+        const int64_t col = lanes.column(l);
         lane[9][l] = hilbert_r2(col, row, cfg.seed, 1), rotation[l] = hilbert_r2(col, row, cfg.seed, 0);
-      } else {
-        lane[9][l] = ign(float(col) + 37.0f, float(row) + 59.0f, cfg.seed + 1);
-        rotation[l] = ign(float(col), float(row), cfg.seed);
+      }
+    } else {
+      for (int l = 0; l < L; ++l) {
+        lane[9][l] = ign(lane[7][l] + 37.0f, float(row) + 59.0f, cfg.seed + 1);
+        rotation[l] = ign(lane[7][l], float(row), cfg.seed);
       }
     }
     const F like(0.0f);
