@@ -256,11 +256,11 @@ template <class B, class Acc> struct Takes {
         int32_t step[LaneTraits<B>::L];
         store_lanes(last[k], step);
         for (int l = 0; l < LaneTraits<B>::L; ++l) {
-          const uint32_t took = uint32_t(step[l] >= 0) & (on >> l);  // (bit 0)
-          if (2 * steps > 64) {
-            if (took & 1u) mark(k, l, step[l]);
-          } else {  // (without a branch on the lane's take, which its data would mispredict: a bit of 0 where none)
-            pending[l] |= uint64_t(took & 1u) << ((k * steps + step[l]) & 63);
+          const uint32_t took = uint32_t(step[l] >= 0) & (on >> l) & 1u;
+          if (2 * steps <= 64) {  // (a 0 bit where the lane took none: no branch on its data, which mispredicted)
+            pending[l] |= uint64_t(took) << ((k * steps + step[l]) & 63);
+          } else if (took) {
+            mark(k, l, step[l]);
           }
         }
       }
