@@ -16,6 +16,7 @@ class Recorder(SliceAccumulator):
 
     def __init__(self):
         self.samples = []
+        self.views = []  # (each sample's queries' V)
         self.geoms = []
 
     def begin_slice(self, q, geom):
@@ -24,6 +25,7 @@ class Recorder(SliceAccumulator):
 
     def step(self, state, q, geom, sample):
         self.samples.append((geom, sample))
+        self.views.append(q.view)
         return state
 
     def end_slice(self, state, q, geom):
@@ -61,10 +63,11 @@ def test_samples_lie_in_the_slice_plane_within_the_radius(azimuth):
     pattern = SlicePattern(3, 4, 0.5, fetch="bilinear", border="drop", azimuth=azimuth, step_power=2.0)
     march(Frame(gb), pattern, rec)
     assert len(rec.samples) == 3 * 2 * 4
-    for geom, s in rec.samples:
+    for (geom, s), view in zip(rec.samples, rec.views):
         ok = s.valid
         assert ok.float().mean() > 0.5
-        off_plane = (s.delta * geom.axis).sum(-1).abs() / s.distance
+        axis = torch.cross(geom.tangent, view, dim=-1)  # the slice plane's normal
+        off_plane = (s.delta * axis).sum(-1).abs() / s.distance
         assert off_plane[ok].max().item() < 1e-9
         assert s.distance_px[ok].min().item() >= 1.0 - 1e-9
         radius_px = pattern.radius_px(geom)

@@ -113,6 +113,19 @@ template <class F, int N> TAO_HOT Dual<F, N> sqrt(const Dual<F, N>& x) {
   const F r = sqrt(x.v);
   return Dual<F, N>::chain(r, select(r > F(0.0f), F(0.5f) / r, F(0.0f)), x);
 }
+// walk.h's norm2 and norm3 as one operation (0 derivative at 0, as sqrt's)
+template <class F, int N> TAO_HOT Dual<F, N> norm2(const Dual<F, N>& x, const Dual<F, N>& y) {
+  const F r = sqrt(x.v * x.v + y.v * y.v), inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  return Dual<F, N>::chain(r, x.v * inv, x, y.v * inv, y);
+}
+template <class F, int N> TAO_HOT Dual<F, N> norm3(const Dual<F, N>* a) {
+  const F r = sqrt(a[0].v * a[0].v + a[1].v * a[1].v + a[2].v * a[2].v);
+  const F inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  Dual<F, N> out = Dual<F, N>::chain(r, a[0].v * inv, a[0], a[1].v * inv, a[1]);
+  const F c = a[2].v * inv;
+  for (int k = 0; k < N; ++k) out.d[k] = out.d[k] + c * a[2].d[k];
+  return out;
+}
 template <class F, int N> TAO_HOT Dual<F, N> rsqrt(const Dual<F, N>& x) {
   const F r = rsqrt(x.v);
   return Dual<F, N>::chain(r, F(-0.5f) * r * r * r, x);

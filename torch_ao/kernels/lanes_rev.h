@@ -301,6 +301,17 @@ template <class F> TAO_HOT void cross(const Rev<F>* a, const Rev<F>* b, Rev<F>* 
   }
 }
 
+// walk.h's norm2 and norm3 in one node (0 derivative at 0, as sqrt's)
+template <class F> TAO_HOT Rev<F> norm2(const Rev<F>& x, const Rev<F>& y) {
+  const F r = sqrt(x.v * x.v + y.v * y.v), inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  return Rev<F>::link(r, x, x.v * inv, y, y.v * inv);
+}
+template <class F> TAO_HOT Rev<F> norm3(const Rev<F>* a) {
+  const F r = sqrt(a[0].v * a[0].v + a[1].v * a[1].v + a[2].v * a[2].v);
+  const F inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  return Rev<F>::link(r, a[0], a[0].v * inv, a[1], a[1].v * inv, a[2], a[2].v * inv);
+}
+
 // The walk's seed (walk.h's Pixels): the pixel's position, normal and depth as leaves, their ids in Tape::own
 template <class F> TAO_FN void seed_pixel(Rev<F>* P, Rev<F>* Nrm, Rev<F>& depth) {
   Tape<F>* tape = current_tape<F>();

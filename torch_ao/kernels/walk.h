@@ -40,6 +40,7 @@ constexpr float kNearestTie = 1.0f / 512.0f;  // walk.fetch.NEAREST_TIE: the nea
 
 template <class F> TAO_HOT F dot3(const F* a, const F* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 template <class F> TAO_HOT F norm3(const F* a) { return sqrt(dot3(a, a)); }
+template <class F> TAO_HOT F norm2(const F& x, const F& y) { return sqrt(x * x + y * y); }
 template <class F> TAO_HOT void cross(const F* a, const F* b, F* out) {
   out[0] = a[1] * b[2] - a[2] * b[1];
   out[1] = a[2] * b[0] - a[0] * b[2];
@@ -225,6 +226,7 @@ template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
   F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
+  F normal_v;  // N . V: the projected normal's component along V, in every slice
   float rotation[L];
   M live;
   int64_t row;
@@ -278,6 +280,7 @@ template <class F> struct Pixels {
     xi = from_lanes(lane[9], like);
     distance = norm3(P);
     for (int c = 0; c < 3; ++c) V[c] = neg(P[c]) / clamp_min(distance, F(1e-12f));  // (normalize3(-P): |-P| = |P|)
+    normal_v = dot3(N, V);
     if (cfg.screen_azimuth) {  // (a slice's tangent from its screen angle: no basis around V)
       for (int c = 0; c < 3; ++c) e1[c] = e2[c] = F(0.0f);
     } else {
@@ -291,7 +294,7 @@ template <class F> struct Pixels {
   template <class G, class To>
   TAO_FN Pixels(const Pixels<G>& o, const To& to)
       : depth(to(o.depth)), inverse_depth(to(o.inverse_depth)), distance(to(o.distance)), u(to(o.u)), v(to(o.v)),
-        xi(to(o.xi)), live(o.live), row(o.row) {
+        xi(to(o.xi)), normal_v(to(o.normal_v)), live(o.live), row(o.row) {
     for (int c = 0; c < 3; ++c)
       P[c] = to(o.P[c]), N[c] = to(o.N[c]), V[c] = to(o.V[c]), e1[c] = to(o.e1[c]), e2[c] = to(o.e2[c]);
     for (int l = 0; l < L; ++l) rotation[l] = o.rotation[l];
@@ -339,7 +342,7 @@ template <class F> TAO_FN F density_azimuth(const F& nv, const F& n1, const F& n
   return (index + clamp((target - before) / chosen, F(0.0f), F(1.0f))) * F(kPi / float(kDensityBins));
 }
 template <class F> TAO_FN F projected_normal_azimuth(const Pixels<F>& px, const F& u, F& weight) {
-  return density_azimuth(dot3(px.N, px.V), dot3(px.N, px.e1), dot3(px.N, px.e2), u, weight);
+  return density_azimuth(px.normal_v, dot3(px.N, px.e1), dot3(px.N, px.e2), u, weight);
 }
 
 // slice_geometry: the slice tangent T, the projected normal's length, its angle gamma
@@ -384,7 +387,7 @@ template <class F> struct Slice {
     dir_u = cs, dir_v = sn;
     if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V
       const F d[3] = {cs, sn, F(0.0f)};
-      const F along = dot3(d, px.V);
+      const F along = cs * px.V[0] + sn * px.V[1];  // d . V
       F t[3];
       for (int c = 0; c < 3; ++c) t[c] = d[c] - along * px.V[c];
       normalize3(t, T);
@@ -393,13 +396,9 @@ template <class F> struct Slice {
     }
     if (cfg.placement == Steps::glsl) return;
     if (normal) {
-      F axis[3];  // (the slice plane's normal)
-      cross(T, px.V, axis);
-      const F nd = dot3(px.N, axis);
-      F np[3];
-      for (int c = 0; c < 3; ++c) np[c] = px.N[c] - axis[c] * nd;
-      length = norm3(np);
-      const F y = dot3(np, T), x = dot3(np, px.V);
+      // the normal projected into the slice plane (N less its part along the plane's normal T x V): x V + y T
+      const F x = px.normal_v, y = dot3(px.N, T);
+      length = norm2(x, y);
       gamma = atan2(y, x);
       const auto flat = length > F(1e-30f);  // atan2(0, 0) = 0: cos 1, sin 0
       cos_gamma = select(flat, x / clamp_min(length, F(1e-30f)), F(1.0f));
@@ -410,7 +409,7 @@ template <class F> struct Slice {
     // screen motion (pixels per world unit along +T) of the projection (fx x/d + cx, -fy y/d + cy)
     const F du = (seed_camera(F(img.fx), 0) * (T[0] + (px.P[0] * T[2]) / px.depth)) / px.depth;
     const F dv = (neg(seed_camera(F(img.fy), 1)) * (T[1] + (px.P[1] * T[2]) / px.depth)) / px.depth;
-    const F len = sqrt(du * du + dv * dv);
+    const F len = norm2(du, dv);
     screen_length = len;
     unit_u = du / clamp_min(len, F(1e-12f));
     unit_v = dv / clamp_min(len, F(1e-12f));

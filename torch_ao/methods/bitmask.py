@@ -278,10 +278,9 @@ class HDRPAccumulator(SectorAccumulator):
     ``yx`` swap on the positive side."""
 
     def slice_frame(self, q, geom):
-        n_p = q.normal - geom.axis * (q.normal * geom.axis).sum(-1, keepdim=True)
-        length = n_p.norm(dim=-1)
-        cos_n = (n_p * q.view).sum(-1) / length.clamp_min(1e-30)
-        gamma = -torch.sign((n_p * geom.tangent).sum(-1)) * _safe_fast_acos(cos_n)
+        length = geom.normal_length  # (the projected normal's components: walk.slice_geometry's)
+        cos_n = (q.normal * q.view).sum(-1) / length.clamp_min(1e-30)
+        gamma = -torch.sign((q.normal * geom.tangent).sum(-1)) * _safe_fast_acos(cos_n)
         return gamma, length, -geom.tangent  # HDRP's signed angles grow toward -T
 
     def interval(self, state, q, sample, t):

@@ -25,8 +25,9 @@ Geometry of one slice (all view space, unit vectors, shapes ``(N, 3)``):
   (The plane through the camera spanned by ``V`` and ``T`` projects to one screen line through the
   pixel, so samples along that line lie in the slice plane.)
 * ``axis = T x V``: normal of the slice plane.
-* The projected normal ``n_p = N - axis (N . axis)`` has length ``normal_length`` and signed angle
-  ``normal_angle = atan2(n_p . T, n_p . V)`` from ``V`` (positive toward ``+T``).
+* The projected normal ``n_p = N - axis (N . axis)``: as ``(V, T, axis)`` is an orthonormal frame,
+  ``n_p = (N . V) V + (N . T) T``. It has length ``normal_length = |(N . V, N . T)|`` and signed angle
+  ``normal_angle = atan2(N . T, N . V)`` from ``V`` (positive toward ``+T``).
 
 A sample on side ``s`` has angle ``theta = atan2(delta . (s T), delta . V)`` from ``V``, measured toward
 its own side: 0 looks at the camera, ``pi`` looks away. In signed slice coordinates it sits at

@@ -38,7 +38,6 @@ class SliceGeometry:
 
     index: int
     tangent: torch.Tensor  # (N,3) T, unit, orthogonal to V
-    axis: torch.Tensor  # (N,3) normal of the slice plane
     normal_angle: torch.Tensor  # (N,) signed angle of the projected normal from V (toward +T)
     normal_length: torch.Tensor  # (N,) length of the projected normal
     pixels_per_unit: torch.Tensor  # (N,2) screen motion (du, dv) in pixels per world unit along +T
@@ -46,7 +45,7 @@ class SliceGeometry:
 
     def map_rows(self, fn) -> "SliceGeometry":
         """The geometry with ``fn`` applied to every per-row tensor."""
-        return SliceGeometry(self.index, fn(self.tangent), fn(self.axis), fn(self.normal_angle), fn(self.normal_length),
+        return SliceGeometry(self.index, fn(self.tangent), fn(self.normal_angle), fn(self.normal_length),
                              fn(self.pixels_per_unit), None if self.weight is None else fn(self.weight))
 
     def repeat(self, times: int) -> "SliceGeometry":
@@ -59,18 +58,17 @@ def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -
     """The frame of slice ``s`` at every query pixel: GTAO's Algorithm 1 from the slice direction to the
     projected normal's angle ``n``."""
     T, weight = pattern.slice_direction(frame, q, s)  # the slice direction, made orthogonal to V
-    V = q.view
-    axis = torch.cross(T, V, dim=-1)  # the slice plane's normal; below, the normal projected into the plane
-    n_proj = q.normal - axis * (q.normal * axis).sum(-1, keepdim=True)
-    normal_length = n_proj.norm(dim=-1)
-    normal_angle = torch.atan2((n_proj * T).sum(-1), (n_proj * V).sum(-1))
+    # the normal projected into the slice plane, N less its part along the plane's normal T x V: (N . V) V + (N . T) T
+    along_view, along_tangent = (q.normal * q.view).sum(-1), (q.normal * T).sum(-1)
+    normal_length = torch.stack((along_view, along_tangent), -1).norm(dim=-1)  # (norm: no gradient at 0, as hypot's NaN)
+    normal_angle = torch.atan2(along_tangent, along_view)
     # Derivative of the projection (u, v) = (fx x/d + cx, -fy y/d + cy), d = -z, along T.
     b = q.batch
     d = q.depth
     x, y = q.position[:, 0], q.position[:, 1]
     du = frame.fx[b] * (T[:, 0] + x * T[:, 2] / d) / d
     dv = -frame.fy[b] * (T[:, 1] + y * T[:, 2] / d) / d
-    return SliceGeometry(s, T, axis, normal_angle, normal_length, torch.stack((du, dv), -1), weight)
+    return SliceGeometry(s, T, normal_angle, normal_length, torch.stack((du, dv), -1), weight)
 
 def _walk(frame: Frame, q: Queries, pattern: SamplingPattern, method: SliceAccumulator) -> dict[str, torch.Tensor]:
     """The outputs ``{name: (N, C)}`` of ``method`` walked over the queries ``q`` (one chunk)."""
