@@ -226,7 +226,6 @@ template <class F> struct Pixels {
   using M = typename LaneTraits<F>::M;
   static constexpr int L = LaneTraits<F>::L;
   F P[3], N[3], V[3], e1[3], e2[3], depth, inverse_depth, distance, u, v, xi;  // distance: |P|
-  F normal_v;  // N . V: the projected normal's component along V, in every slice
   float rotation[L];
   M live;
   int64_t row;
@@ -280,7 +279,6 @@ template <class F> struct Pixels {
     xi = from_lanes(lane[9], like);
     distance = norm3(P);
     for (int c = 0; c < 3; ++c) V[c] = neg(P[c]) / clamp_min(distance, F(1e-12f));  // (normalize3(-P): |-P| = |P|)
-    normal_v = dot3(N, V);
     if (cfg.screen_azimuth) {  // (a slice's tangent from its screen angle: no basis around V)
       for (int c = 0; c < 3; ++c) e1[c] = e2[c] = F(0.0f);
     } else {
@@ -294,7 +292,7 @@ template <class F> struct Pixels {
   template <class G, class To>
   TAO_FN Pixels(const Pixels<G>& o, const To& to)
       : depth(to(o.depth)), inverse_depth(to(o.inverse_depth)), distance(to(o.distance)), u(to(o.u)), v(to(o.v)),
-        xi(to(o.xi)), normal_v(to(o.normal_v)), live(o.live), row(o.row) {
+        xi(to(o.xi)), live(o.live), row(o.row) {
     for (int c = 0; c < 3; ++c)
       P[c] = to(o.P[c]), N[c] = to(o.N[c]), V[c] = to(o.V[c]), e1[c] = to(o.e1[c]), e2[c] = to(o.e2[c]);
     for (int l = 0; l < L; ++l) rotation[l] = o.rotation[l];
@@ -342,7 +340,7 @@ template <class F> TAO_FN F density_azimuth(const F& nv, const F& n1, const F& n
   return (index + clamp((target - before) / chosen, F(0.0f), F(1.0f))) * F(kPi / float(kDensityBins));
 }
 template <class F> TAO_FN F projected_normal_azimuth(const Pixels<F>& px, const F& u, F& weight) {
-  return density_azimuth(px.normal_v, dot3(px.N, px.e1), dot3(px.N, px.e2), u, weight);
+  return density_azimuth(dot3(px.N, px.V), dot3(px.N, px.e1), dot3(px.N, px.e2), u, weight);
 }
 
 // slice_geometry: the slice tangent T, the projected normal's length, its angle gamma
@@ -397,7 +395,7 @@ template <class F> struct Slice {
     if (cfg.placement == Steps::glsl) return;
     if (normal) {
       // the normal projected into the slice plane (N less its part along the plane's normal T x V): x V + y T
-      const F x = px.normal_v, y = dot3(px.N, T);
+      const F x = dot3(px.N, px.V), y = dot3(px.N, T);
       length = norm2(x, y);
       gamma = atan2(y, x);
       const auto flat = length > F(1e-30f);  // atan2(0, 0) = 0: cos 1, sin 0
