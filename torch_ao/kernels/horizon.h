@@ -69,9 +69,7 @@ struct GTAOAccumulator {
     F& best = st.best[side > 0 ? 0 : 1];
     const F R = F(radius);
     if (variant == GTAOVariant::exact) {
-      F along_view, along_tangent;
-      slice_coordinates(side, smp.delta, px.V, sl.T, px.P[2], along_view, along_tangent);
-      const F theta = clamp(atan2(along_tangent, along_view), F(0.0f), F(kPi));
+      const F theta = clamp(slice_angle(side, smp.delta, px.V, sl.T, px.P[2]), F(0.0f), F(kPi));
       const F distance = norm3(smp.delta);
       F w = falloff > 0 ? clamp((R - distance) / seed_setting(F(falloff)), F(0.0f), F(1.0f))
                         : select(distance < R, F(1.0f), F(0.0f));

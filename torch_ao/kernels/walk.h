@@ -60,6 +60,13 @@ TAO_HOT void slice_coordinates(int side, const G* delta, const G* V, const G* T,
   const auto off_slice = abs(value(tangent)) <= neg(Plain(value(pixel_z))) * Plain(kMinOffset);
   along_tangent = select(off_slice, G(0.0f), tangent);
 }
+// Sample.angle: atan2(along_tangent, along_view) of slice_coordinates, the sample's angle from V toward its side
+template <class G, class D>
+TAO_HOT G slice_angle(int side, const G* delta, const G* V, const G* T, const D& pixel_z) {
+  G along_view, along_tangent;
+  slice_coordinates(side, delta, V, T, pixel_z, along_view, along_tangent);
+  return atan2(along_tangent, along_view);
+}
 
 // F.normalize(x, eps=1e-12)
 template <class F> TAO_HOT void normalize3(const F* x, F* out) {

@@ -503,6 +503,30 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
   return smp;
 }
 
+// walk.h's slice_angle in reverse lanes: its value the value lanes', its partial derivatives with respect to delta,
+// T and V (nine) in a chain of five nodes, where the two dot products and atan2 make seven. Off the slice the
+// tangent coordinate is a constant 0 (slice_coordinates'): where along_tangent is 0, its share is 0
+template <class B, class D>
+TAO_FN Rev<B> slice_angle(int side, const Rev<B>* delta, const Rev<B>* V, const Rev<B>* T, const D& pixel_z) {
+  using R = Rev<B>;
+  B d[3], v[3], t[3], along_view, along_tangent;
+  for (int c = 0; c < 3; ++c) d[c] = delta[c].v, v[c] = V[c].v, t[c] = T[c].v;
+  slice_coordinates(side, d, v, t, value(pixel_z), along_view, along_tangent);
+  const B theta = atan2(along_tangent, along_view), zero(0.0f), one(1.0f);
+  // d theta / d (delta . V) and d theta / d (delta . T): -along_tangent / r^2 and side along_view / r^2
+  const B r2 = along_view * along_view + along_tangent * along_tangent;
+  const B inv = select(r2 > zero, reciprocal(r2), zero);
+  const B by_view = neg(along_tangent) * inv;
+  const B by_tangent = select(along_tangent == zero, zero, B(float(side)) * along_view * inv);
+  B by_delta[3];
+  for (int c = 0; c < 3; ++c) by_delta[c] = by_tangent * t[c] + by_view * v[c];
+  R chain = R::link(theta, delta[0], by_delta[0], delta[1], by_delta[1]);
+  chain = R::link(theta, chain, one, delta[2], by_delta[2], T[0], by_tangent * d[0]);
+  chain = R::link(theta, chain, one, T[1], by_tangent * d[1], T[2], by_tangent * d[2]);
+  chain = R::link(theta, chain, one, V[0], by_view * d[0], V[1], by_view * d[1]);
+  return R::link(theta, chain, one, V[2], by_view * d[2]);
+}
+
 // Whether an accumulator's forward records its takes (record_block; the horizon accumulators': replaces()),
 // so that its backward replays those alone; else the backward replays every step of the walk
 template <class Acc, class = void> struct RecordsTakes {
