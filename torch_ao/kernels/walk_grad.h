@@ -537,12 +537,11 @@ template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
 };
 
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
-// geometry, begin and end, at most 2 steps takes). Bounds: at 3 x 1..16 (every variant, fetch and azimuth; the
-// count follows the code, not the values) at most the pixel 46, a slice 136-211 besides its takes, a take 34-46,
-// counted when the slice's geometry and a norm made more nodes than they do now; a slice
-// whose azimuth the projected normal's density draws about 25 more (counted: the normal's three components, the
-// azimuth's and weight's nodes of density_azimuth, the slice's tangent and its weight's products); with room to spare
-// (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)
+// geometry, begin and end, at most 2 steps takes). At 3 x 1..16 (every variant, fetch and azimuth; the count
+// follows the code, not the values) the pixel makes at most 46, a slice at most 211 besides its takes, a take at
+// most 46; a slice whose azimuth the projected normal's density draws about 25 more (counted: the normal's three
+// components, the azimuth's and weight's nodes of density_azimuth, the slice's tangent and its weight's products);
+// with room to spare (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)
 constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60, kTapeDensity = 40;
 TAO_FN int32_t tape_capacity(int64_t steps) {
   return kTapePixel + kTapeSlice + kTapeDensity + int32_t(2 * steps) * kTapeTake;

@@ -60,7 +60,7 @@ def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -
     T, weight = pattern.slice_direction(frame, q, s)  # the slice direction, made orthogonal to V
     # the normal projected into the slice plane, N less its part along the plane's normal T x V: (N . V) V + (N . T) T
     along_view, along_tangent = (q.normal * q.view).sum(-1), (q.normal * T).sum(-1)
-    normal_length = torch.stack((along_view, along_tangent), -1).norm(dim=-1)  # (norm: no gradient at 0, as hypot's NaN)
+    normal_length = torch.stack((along_view, along_tangent), -1).norm(dim=-1)  # (at 0 a norm's gradient is 0, hypot's NaN)
     normal_angle = torch.atan2(along_tangent, along_view)
     # Derivative of the projection (u, v) = (fx x/d + cx, -fy y/d + cy), d = -z, along T.
     b = q.batch
