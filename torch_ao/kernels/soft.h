@@ -448,10 +448,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
         cover(st.s[m], st.w[m], &st.P[0], &before[m * kSectors], kKeepCoverage ? &st.coverages[m] : nullptr);
   }
 
-  // The slice's visible share sum_k free_k omega_k (the weights' sum added to sums.den with cosine
-  // weights); omega: st.omega, or the same weights with tangents (G: their lane type)
+  // The slice's visible share sum_k free_k omega_k (the weights' sum added to *den with cosine weights); omega:
+  // st.omega, or the same weights with tangents (G: their lane type)
   template <class F, class Weights, class G, class W = F>
-  TAO_FN G visible(const State<F>& st, const Weights& omega, Sums<G>& sums, const Slice<W>* walked = nullptr) const {
+  TAO_FN G visible(const State<F>& st, const Weights& omega, G* den, const Slice<W>* walked = nullptr) const {
     G share = G(0.0f), weight = G(0.0f);
     for (int k = 0; k < kSectors; ++k) {
       share = share + G(free_share(st, k)) * omega[k];
@@ -459,7 +459,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     }
     // (the slice's weights summed as its share is: every free share <= 1, so the share <= the weight and the
     // visibility <= 1 after rounding, as the tensor path's per-slice sums; walked: the slice whose weight it takes)
-    if (cosine) sums.den = sums.den + (walked ? weighed(*walked, weight) : weight);
+    if (cosine) *den = *den + (walked ? weighed(*walked, weight) : weight);
     return share;
   }
 
@@ -537,7 +537,7 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     if (kGradients) sweep(st, &before[0]);
     // (every sum weighs by the slice's Slice::weight: 1 but for slices drawn by a density; the parameters'
     // derivatives too, through the reverse scan's seed)
-    sums.num = sums.num + weighed(walked, visible(st, st.omega, sums, &walked));
+    sums.num = sums.num + weighed(walked, visible(st, st.omega, &sums.den, &walked));
     if (indirect && !kGradients)
       for (int c = 0; c < 3; ++c) sums.light[c] = sums.light[c] + weighed(walked, st.light[c]);
     if (bent && !kGradients) {
@@ -595,10 +595,13 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       light_w = light_weight ? light_scaled : nullptr, bent_w = bent_weight ? bent_scaled : nullptr;
     }
     const FrameAngle<D> frame = frame_angle(angles, sd);  // (the shift's and the weights' gamma, with tangents)
-    LaneArray<D, kSectors> omega;  // the weights with their tangents
-    for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
-    if (cosine) cosine_sector_weights(frame, sd.length, omega);
-    const D share = visible(st, omega, sums, &sd);  // (its tangents, times weight, are the loss's through num)
+    LaneArray<D, kSectors> omega;  // cosine weights with their tangents (uniform ones have none: st.omega)
+    if (cosine) {
+      for (int k = 0; k < kSectors; ++k) omega[k] = D(1.0f / kSectors);
+      cosine_sector_weights(frame, sd.length, omega);
+    }
+    // (its tangents, times weight, are the loss's through num)
+    const D share = cosine ? visible(st, omega, &sums.den, &sd) : D(visible(st, st.omega, static_cast<F*>(nullptr)));
     sums.num = sums.num + D(w * share.v);
     sums.loss = sums.loss + D(weight_w) * share;
     F unweighted = weight * share.v;
@@ -607,7 +610,10 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     F g_v = F(0.0f), g_t = F(0.0f);
     if (bent_weight) {  // (the sum's own tangents, through its weights and frame, times the upstream gradient)
       D part[3];
-      slice_bent(st, omega, pd.V, sd.T, frame, part);
+      if (cosine)
+        slice_bent(st, omega, pd.V, sd.T, frame, part);
+      else
+        slice_bent(st, st.omega, pd.V, sd.T, frame, part);
       for (int c = 0; c < 3; ++c) {
         sums.loss = sums.loss + D(bent_w[c]) * part[c];
         unweighted = unweighted + bent_weight[c] * part[c].v;
