@@ -386,8 +386,11 @@ template <class F> struct Slice {
     F cs, sn;
     if (cfg.placement == Steps::glsl) {  // (the shader's directions pick texels: as torch's and llvmpipe's, 1 ulp matters)
       cos_sin_rounded(angle, cs, sn);
-    } else {
+    } else if (azimuth) {
       cs = cos(angle), sn = sin(angle);
+    } else {  // (a constant: in value lanes, where dual or reverse lanes would take each one's sin and cos)
+      const auto plain = value(angle);
+      cs = F(cos(plain)), sn = F(sin(plain));
     }
     dir_u = cs, dir_v = sn;
     if (cfg.screen_azimuth) {  // tangent_from_screen_angle: (cos, sin, 0) made orthogonal to V
