@@ -320,22 +320,19 @@ TAO_FN F sample_angles_adjoint(SectorAngles angles, int side, const F* delta, co
     add(F(0.0f), g_front);
     return add(t, g_back);
   }
-  // atan2(y, x): d = (x dy - y dx) / (x^2 + y^2), x = delta . V (- t), y = side delta . T
-  // (a tangent coordinate taken as +0, slice_coordinates', has no gradient)
-  F along_view, along_tangent;
+  // the front's atan2 of (delta . V, side delta . T), the back's of (delta . V - t, side delta . T)
+  F along_view, along_tangent, front_view, front_tangent, back_view, back_tangent;
   slice_coordinates(side, delta, V, T, pixel_z, along_view, along_tangent);
-  const F back_view = along_view - t;
-  const F inv_f = g_front / fma(along_view, along_view, along_tangent * along_tangent);
-  const F inv_b = g_back / fma(back_view, back_view, along_tangent * along_tangent);
-  const F g_view = neg((inv_f + inv_b) * along_tangent);
-  const F g_tangent =
-      select(along_tangent == F(0.0f), F(0.0f), (along_view * inv_f + back_view * inv_b) * F(float(side)));
+  slice_angle_slopes(side, along_view, along_tangent, front_view, front_tangent);
+  slice_angle_slopes(side, along_view - t, along_tangent, back_view, back_tangent);
+  const F g_view = g_front * front_view + g_back * back_view;
+  const F g_tangent = g_front * front_tangent + g_back * back_tangent;
   for (int k = 0; k < 3; ++k) {
     g_delta[k] = g_delta[k] + g_view * V[k] + g_tangent * T[k];
     g_V[k] = g_V[k] + g_view * delta[k];
     g_T[k] = g_T[k] + g_tangent * delta[k];
   }
-  return along_tangent * inv_b;
+  return neg(g_back * back_view);  // (d back / d t = -d back / d its along_view)
 }
 
 // Sector k's centre phi_k = gamma - pi/2 + c_k (c_k = pi (k + 1/2) / 32) in a slice's (V, T) frame, of its

@@ -504,20 +504,15 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
 }
 
 // walk.h's slice_angle in reverse lanes: its value the value lanes', its partial derivatives with respect to delta,
-// T and V (nine) in a chain of five nodes, where the two dot products and atan2 make seven. Off the slice the
-// tangent coordinate is a constant 0 (slice_coordinates'): where along_tangent is 0, its share is 0
+// T and V (nine, of slice_angle_slopes) in a chain of five nodes, where the two dot products and atan2 make seven
 template <class B, class D>
 TAO_FN Rev<B> slice_angle(int side, const Rev<B>* delta, const Rev<B>* V, const Rev<B>* T, const D& pixel_z) {
   using R = Rev<B>;
-  B d[3], v[3], t[3], along_view, along_tangent;
+  B d[3], v[3], t[3], along_view, along_tangent, by_view, by_tangent;
   for (int c = 0; c < 3; ++c) d[c] = delta[c].v, v[c] = V[c].v, t[c] = T[c].v;
   slice_coordinates(side, d, v, t, value(pixel_z), along_view, along_tangent);
-  const B theta = atan2(along_tangent, along_view), zero(0.0f), one(1.0f);
-  // d theta / d (delta . V) and d theta / d (delta . T): -along_tangent / r^2 and side along_view / r^2
-  const B r2 = along_view * along_view + along_tangent * along_tangent;
-  const B inv = select(r2 > zero, reciprocal(r2), zero);
-  const B by_view = neg(along_tangent) * inv;
-  const B by_tangent = select(along_tangent == zero, zero, B(float(side)) * along_view * inv);
+  const B theta = atan2(along_tangent, along_view), one(1.0f);
+  slice_angle_slopes(side, along_view, along_tangent, by_view, by_tangent);
   B by_delta[3];
   for (int c = 0; c < 3; ++c) by_delta[c] = by_tangent * t[c] + by_view * v[c];
   R chain = R::link(theta, delta[0], by_delta[0], delta[1], by_delta[1]);
