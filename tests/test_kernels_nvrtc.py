@@ -44,7 +44,7 @@ def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     union's backward replays an interval's segment in 11 tangents: 1464 bytes spilled and reloaded; the hard
     sector walk's ends each slice with its 32 sectors' weights in 2 tangents and replays the steps that send
     indirect light in 16: 4352 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
-    (against 87 kB), 1792 bytes, and the long one 524 (its indirect light's replay in 9 tangents and the bent normal's
+    (against 87 kB), 1932 bytes, and the long one 472 (its indirect light's replay in 9 tangents and the bent normal's
     terms take it past 255 registers; it keeps 87 kB of local memory a thread whatever it spills); bounded here
     (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (closed forms) and its soft backward spill nothing."""
     report = cuda_offline.kernel_resources(ptx90, 90)
