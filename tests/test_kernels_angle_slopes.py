@@ -5,16 +5,12 @@ HDRP's fast_acos of the cosines between V and delta, delta - t V). At the degene
 NaN: a sample at the pixel itself (atan2(0, 0), no derivative) and a sample off the slice (its tangent coordinate a
 constant 0). A small program compiled with the kernels' flags, in scalar and SIMD lanes."""
 import math
-import shutil
-import subprocess
-from pathlib import Path
 
 import pytest
 
-from torch_ao.kernels import build
+from kernel_programs import needs_compiler, run_program
 
-COMPILER = shutil.which("g++") or shutil.which("c++")
-pytestmark = pytest.mark.skipif(COMPILER is None, reason="needs a C++ compiler")
+pytestmark = needs_compiler
 
 PROGRAM = r"""
 #include "lanes_simd.h"
@@ -149,19 +145,8 @@ int main() {
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory) -> dict:
-    from torch.utils import cpp_extension
-
-    folder = tmp_path_factory.mktemp("angle_slopes")
-    (folder / "slopes.cpp").write_text(PROGRAM)
-    _, flags, _ = build.cpu_build_options()
-    includes = [f"-I{p}" for p in cpp_extension.include_paths()] + [f"-I{Path(build.__file__).parent}"]
-    libraries = cpp_extension.library_paths()
-    command = [COMPILER, "-std=c++17", *flags, *includes, str(folder / "slopes.cpp"), "-o", str(folder / "slopes"),
-               *[f"-L{p}" for p in libraries], *[f"-Wl,-rpath,{p}" for p in libraries], "-lc10", "-ltorch_cpu"]
-    compiled = subprocess.run(command, capture_output=True, text=True)
-    assert compiled.returncode == 0, compiled.stderr[-3000:]
-    run = subprocess.run([str(folder / "slopes")], capture_output=True, text=True, check=True)
-    return {name: [float(v) for v in values] for name, *values in (line.split() for line in run.stdout.splitlines())}
+    stdout = run_program(PROGRAM, tmp_path_factory.mktemp("angle_slopes"), "slopes")
+    return {name: [float(v) for v in values] for name, *values in (line.split() for line in stdout.splitlines())}
 
 
 @pytest.mark.parametrize("rule, bound", [("", 2e-6), ("hdrp_", 1e-5)])

@@ -1,17 +1,13 @@
 """The CPU lanes' own functions (lanes_simd.h: atan2, logistic, reduce_min/reduce_max) against libm in double:
 a small program compiled with the kernels' flags, which evaluates them over random and special arguments."""
 import math
-import shutil
-import subprocess
-from pathlib import Path
 
 import pytest
 import torch
 
-from torch_ao.kernels import build
+from kernel_programs import needs_compiler, run_program
 
-COMPILER = shutil.which("g++") or shutil.which("c++")
-pytestmark = pytest.mark.skipif(COMPILER is None, reason="needs a C++ compiler")
+pytestmark = needs_compiler
 
 PROGRAM = r"""
 #include "lanes_simd.h"
@@ -53,20 +49,9 @@ int main() {
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory) -> dict:
-    from torch.utils import cpp_extension
-
-    folder = tmp_path_factory.mktemp("lanes")
-    (folder / "lanes.cpp").write_text(PROGRAM)
-    _, flags, _ = build.cpu_build_options()
-    includes = [f"-I{p}" for p in cpp_extension.include_paths()] + [f"-I{Path(build.__file__).parent}"]
-    libraries = cpp_extension.library_paths()
-    command = [COMPILER, "-std=c++17", *flags, *includes, str(folder / "lanes.cpp"), "-o", str(folder / "lanes"),
-               *[f"-L{p}" for p in libraries], *[f"-Wl,-rpath,{p}" for p in libraries], "-lc10", "-ltorch_cpu"]
-    compiled = subprocess.run(command, capture_output=True, text=True)
-    assert compiled.returncode == 0, compiled.stderr[-3000:]
-    run = subprocess.run([str(folder / "lanes")], capture_output=True, text=True, check=True)
+    stdout = run_program(PROGRAM, tmp_path_factory.mktemp("lanes"), "lanes")
     out = {"atan2": []}
-    for line in run.stdout.splitlines():
+    for line in stdout.splitlines():
         name, *values = line.split()
         if name == "atan2":  # y, x, atan2(y, x) in hexadecimal (signed zeros and NaN kept)
             out["atan2"].append(tuple(float.fromhex(v) for v in values))
