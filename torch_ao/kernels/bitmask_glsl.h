@@ -29,7 +29,7 @@ template <class F> TAO_FN F glsl_acos_slope(bool mesa, const F& x) {
     const F dpoly = F(kPi / 4.0f - 1.0f) + ax * (F(2.0f * 0.08132463f) + ax * F(3.0f * -0.02363318f));
     slope = select(ax > F(0.0f), neg(poly / (F(2.0f) * root) - root * dpoly), F(0.0f));
   } else {
-    slope = neg(rsqrt(F(1.0f) - x * x));
+    slope = neg(asin_slope(x));
   }
   return select(ax <= F(1.0f - 1e-6f), slope, F(0.0f));
 }

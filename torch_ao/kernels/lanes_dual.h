@@ -12,6 +12,7 @@
 #pragma once
 
 #include "lanes_scalar.h"
+#include "slopes.h"
 
 namespace tao {
 
@@ -108,19 +109,16 @@ template <class F, int N> TAO_HOT Dual<F, N> fma(const Dual<F, N>& a, const F& b
 }
 template <class F, int N> TAO_HOT Dual<F, N> abs(const Dual<F, N>& x) { return select(x.v < F(0.0f), neg(x), x); }
 template <class F, int N> TAO_HOT Dual<F, N> sqrt(const Dual<F, N>& x) {
-  // at 0, the derivative torch's norm takes there (0), not sqrt's infinite one: a zero-length vector
-  // (a normal with no component in the slice, a zero normal) has no gradient rather than NaN
   const F r = sqrt(x.v);
-  return Dual<F, N>::chain(r, select(r > F(0.0f), F(0.5f) / r, F(0.0f)), x);
+  return Dual<F, N>::chain(r, sqrt_slope(r), x);
 }
 // walk.h's norm2 and norm3 as one operation (0 derivative at 0, as sqrt's)
 template <class F, int N> TAO_HOT Dual<F, N> norm2(const Dual<F, N>& x, const Dual<F, N>& y) {
-  const F r = sqrt(x.v * x.v + y.v * y.v), inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  const F r = sqrt(x.v * x.v + y.v * y.v), inv = norm_inverse(r);
   return Dual<F, N>::chain(r, x.v * inv, x, y.v * inv, y);
 }
 template <class F, int N> TAO_HOT Dual<F, N> norm3(const Dual<F, N>* a) {
-  const F r = sqrt(a[0].v * a[0].v + a[1].v * a[1].v + a[2].v * a[2].v);
-  const F inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  const F r = sqrt(a[0].v * a[0].v + a[1].v * a[1].v + a[2].v * a[2].v), inv = norm_inverse(r);
   Dual<F, N> out = Dual<F, N>::chain(r, a[0].v * inv, a[0], a[1].v * inv, a[1]);
   const F c = a[2].v * inv;
   for (int k = 0; k < N; ++k) out.d[k] = out.d[k] + c * a[2].d[k];
@@ -128,21 +126,19 @@ template <class F, int N> TAO_HOT Dual<F, N> norm3(const Dual<F, N>* a) {
 }
 template <class F, int N> TAO_HOT Dual<F, N> rsqrt(const Dual<F, N>& x) {
   const F r = rsqrt(x.v);
-  return Dual<F, N>::chain(r, F(-0.5f) * r * r * r, x);
+  return Dual<F, N>::chain(r, rsqrt_slope(r), x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> reciprocal(const Dual<F, N>& x) {
   const F r = reciprocal(x.v);
-  return Dual<F, N>::chain(r, neg(r * r), x);
+  return Dual<F, N>::chain(r, reciprocal_slope(r), x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> floor(const Dual<F, N>& x) { return Dual<F, N>(floor(x.v)); }
 template <class F, int N> TAO_HOT Dual<F, N> ceil(const Dual<F, N>& x) { return Dual<F, N>(ceil(x.v)); }
 template <class F, int N> TAO_HOT Dual<F, N> rint(const Dual<F, N>& x) { return Dual<F, N>(rint(x.v)); }
 template <class F, int N> TAO_HOT Dual<F, N> atan2(const Dual<F, N>& y, const Dual<F, N>& x) {
-  // at the origin (a zero projected normal), no derivative: atan2(0, 0) = 0 is a convention, not a limit
-  const F r2 = x.v * x.v + y.v * y.v;
-  const auto defined = r2 > F(0.0f);
-  const F inv = select(defined, reciprocal(r2), F(0.0f));
-  return Dual<F, N>::chain(atan2(y.v, x.v), x.v * inv, y, neg(y.v) * inv, x);
+  F by_y, by_x;
+  atan2_slopes(y.v, x.v, by_y, by_x);
+  return Dual<F, N>::chain(atan2(y.v, x.v), by_y, y, by_x, x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> cos(const Dual<F, N>& x) { return Dual<F, N>::chain(cos(x.v), neg(sin(x.v)), x); }
 template <class F, int N> TAO_HOT Dual<F, N> sin(const Dual<F, N>& x) { return Dual<F, N>::chain(sin(x.v), cos(x.v), x); }
@@ -152,14 +148,13 @@ template <class F, int N> TAO_HOT void cos_sin_rounded(const Dual<F, N>& x, Dual
   c = Dual<F, N>::chain(cv, neg(sv), x), s = Dual<F, N>::chain(sv, cv, x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> asin(const Dual<F, N>& x) {
-  return Dual<F, N>::chain(asin(x.v), rsqrt(F(1.0f) - x.v * x.v), x);
+  return Dual<F, N>::chain(asin(x.v), asin_slope(x.v), x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> acos(const Dual<F, N>& x) {
-  return Dual<F, N>::chain(acos(x.v), neg(rsqrt(F(1.0f) - x.v * x.v)), x);
+  return Dual<F, N>::chain(acos(x.v), neg(asin_slope(x.v)), x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> pow(const Dual<F, N>& x, const Dual<F, N>& y) {
-  const F r = pow(x.v, y.v);
-  return Dual<F, N>::chain(r, y.v * pow(x.v, y.v - F(1.0f)), x);
+  return Dual<F, N>::chain(pow(x.v, y.v), pow_slope(x.v, y.v), x);
 }
 template <class F, int N> TAO_HOT Dual<F, N> max(const Dual<F, N>& a, const Dual<F, N>& b) {
   Dual<F, N> r = select(b.v > a.v, b, a);

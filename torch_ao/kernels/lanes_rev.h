@@ -22,6 +22,7 @@
 #pragma once
 
 #include "lanes_scalar.h"
+#include "slopes.h"
 
 namespace tao {
 
@@ -229,25 +230,25 @@ template <class F> TAO_HOT Rev<F> fma(const Rev<F>& a, const F& b, const F& c) {
   return Rev<F>::affine(fma(a.v, b, c), a, b);
 }
 template <class F> TAO_HOT Rev<F> abs(const Rev<F>& x) { return select(x.v < F(0.0f), neg(x), x); }
-template <class F> TAO_HOT Rev<F> sqrt(const Rev<F>& x) {  // (0 at 0, as lanes_dual.h's)
+template <class F> TAO_HOT Rev<F> sqrt(const Rev<F>& x) {
   const F r = sqrt(x.v);
-  return Rev<F>::link(r, x, select(r > F(0.0f), F(0.5f) / r, F(0.0f)));
+  return Rev<F>::link(r, x, sqrt_slope(r));
 }
 template <class F> TAO_HOT Rev<F> rsqrt(const Rev<F>& x) {
   const F r = rsqrt(x.v);
-  return Rev<F>::link(r, x, F(-0.5f) * r * r * r);
+  return Rev<F>::link(r, x, rsqrt_slope(r));
 }
 template <class F> TAO_HOT Rev<F> reciprocal(const Rev<F>& x) {
   const F r = reciprocal(x.v);
-  return Rev<F>::link(r, x, neg(r * r));
+  return Rev<F>::link(r, x, reciprocal_slope(r));
 }
 template <class F> TAO_HOT Rev<F> floor(const Rev<F>& x) { return Rev<F>(floor(x.v)); }
 template <class F> TAO_HOT Rev<F> ceil(const Rev<F>& x) { return Rev<F>(ceil(x.v)); }
 template <class F> TAO_HOT Rev<F> rint(const Rev<F>& x) { return Rev<F>(rint(x.v)); }
-template <class F> TAO_HOT Rev<F> atan2(const Rev<F>& y, const Rev<F>& x) {  // (none at the origin)
-  const F r2 = x.v * x.v + y.v * y.v;
-  const F inv = select(r2 > F(0.0f), reciprocal(r2), F(0.0f));
-  return Rev<F>::link(atan2(y.v, x.v), y, x.v * inv, x, neg(y.v) * inv);
+template <class F> TAO_HOT Rev<F> atan2(const Rev<F>& y, const Rev<F>& x) {
+  F by_y, by_x;
+  atan2_slopes(y.v, x.v, by_y, by_x);
+  return Rev<F>::link(atan2(y.v, x.v), y, by_y, x, by_x);
 }
 template <class F> TAO_HOT Rev<F> cos(const Rev<F>& x) { return Rev<F>::link(cos(x.v), x, neg(sin(x.v))); }
 template <class F> TAO_HOT Rev<F> sin(const Rev<F>& x) { return Rev<F>::link(sin(x.v), x, cos(x.v)); }
@@ -260,12 +261,12 @@ template <class F> TAO_HOT Rev<F> logistic(const Rev<F>& x) {  // (its slope s (
   const F s = logistic(x.v);
   return Rev<F>::link(s, x, s * (F(1.0f) - s));
 }
-template <class F> TAO_HOT Rev<F> asin(const Rev<F>& x) { return Rev<F>::link(asin(x.v), x, rsqrt(F(1.0f) - x.v * x.v)); }
+template <class F> TAO_HOT Rev<F> asin(const Rev<F>& x) { return Rev<F>::link(asin(x.v), x, asin_slope(x.v)); }
 template <class F> TAO_HOT Rev<F> acos(const Rev<F>& x) {
-  return Rev<F>::link(acos(x.v), x, neg(rsqrt(F(1.0f) - x.v * x.v)));
+  return Rev<F>::link(acos(x.v), x, neg(asin_slope(x.v)));
 }
-template <class F> TAO_HOT Rev<F> pow(const Rev<F>& x, const Rev<F>& y) {  // (the base's derivative alone)
-  return Rev<F>::link(pow(x.v, y.v), x, y.v * pow(x.v, y.v - F(1.0f)));
+template <class F> TAO_HOT Rev<F> pow(const Rev<F>& x, const Rev<F>& y) {
+  return Rev<F>::link(pow(x.v, y.v), x, pow_slope(x.v, y.v));
 }
 template <class F> TAO_HOT Rev<F> max(const Rev<F>& a, const Rev<F>& b) {
   Rev<F> r = select(b.v > a.v, b, a);
@@ -303,12 +304,11 @@ template <class F> TAO_HOT void cross(const Rev<F>* a, const Rev<F>* b, Rev<F>* 
 
 // walk.h's norm2 and norm3 in one node (0 derivative at 0, as sqrt's)
 template <class F> TAO_HOT Rev<F> norm2(const Rev<F>& x, const Rev<F>& y) {
-  const F r = sqrt(x.v * x.v + y.v * y.v), inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  const F r = sqrt(x.v * x.v + y.v * y.v), inv = norm_inverse(r);
   return Rev<F>::link(r, x, x.v * inv, y, y.v * inv);
 }
 template <class F> TAO_HOT Rev<F> norm3(const Rev<F>* a) {
-  const F r = sqrt(a[0].v * a[0].v + a[1].v * a[1].v + a[2].v * a[2].v);
-  const F inv = select(r > F(0.0f), reciprocal(r), F(0.0f));
+  const F r = sqrt(a[0].v * a[0].v + a[1].v * a[1].v + a[2].v * a[2].v), inv = norm_inverse(r);
   return Rev<F>::link(r, a[0], a[0].v * inv, a[1], a[1].v * inv, a[2], a[2].v * inv);
 }
 

@@ -37,7 +37,7 @@ NOISES = (*SLICE_NOISES, "glsl", "glsl_mediump")
 
 _HERE = Path(__file__).parent
 #: the CUDA source in dependency order: each header once, then the entry points
-_CUDA_FILES = ("lanes_scalar.h", "lanes_dual.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "soft_glsl.h", "ssao.h",
+_CUDA_FILES = ("lanes_scalar.h", "slopes.h", "lanes_dual.h", "walk.h", "horizon.h", "bitmask.h", "bitmask_glsl.h", "soft.h", "soft_glsl.h", "ssao.h",
                "lanes_rev.h", "exact_soft.h", "packed.h", "walk_grad.h", "walk_cuda.cu")
 _WALK_FLOATS = 4  # packed.h's kAccFloats: the walk's own floats
 _THREADS = 128  # per block: a walk holds a few hundred registers' worth of state per pixel

@@ -16,6 +16,7 @@
 #pragma once
 
 #include "lanes_scalar.h"
+#include "slopes.h"
 
 // The CUDA build comes in two forms (launch.py compiles each on first use). The lean one, which a call runs unless
 // it needs one of the options below, leaves them out: each costs registers in every CUDA walk, used or not. The full
@@ -68,15 +69,13 @@ TAO_HOT G slice_angle(int side, const G* delta, const G* V, const G* T, const D&
   return atan2(along_tangent, along_view);
 }
 // The slopes of atan2(along_tangent, along_view) (slice_angle's, sample_angles' front and back) with respect to
-// along_view and to delta . T: -along_tangent / r^2 and side along_view / r^2 (r^2 = along_view^2 + along_tangent^2).
-// None at the origin (atan2(0, 0) = 0 is a convention, not a limit), nor to delta . T off the slice, where
-// slice_coordinates takes along_tangent as a constant 0.
+// along_view and to delta . T: atan2_slopes', the tangent coordinate's times the side (along_tangent = side delta . T).
+// None to delta . T off the slice, where slice_coordinates takes along_tangent as a constant 0.
 template <class F>
 TAO_HOT void slice_angle_slopes(int side, const F& along_view, const F& along_tangent, F& by_view, F& by_tangent) {
-  const F r2 = fma(along_view, along_view, along_tangent * along_tangent);
-  const F inv = select(r2 > F(0.0f), reciprocal(r2), F(0.0f));
-  by_view = neg(along_tangent) * inv;
-  by_tangent = select(along_tangent == F(0.0f), F(0.0f), F(float(side)) * along_view * inv);
+  F by_along_tangent;
+  atan2_slopes(along_tangent, along_view, by_along_tangent, by_view);
+  by_tangent = select(along_tangent == F(0.0f), F(0.0f), F(float(side)) * by_along_tangent);
 }
 
 // F.normalize(x, eps=1e-12)
