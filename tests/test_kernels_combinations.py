@@ -1,0 +1,142 @@
+"""Random combinations of a module's options, each run by its kernel (``backend="kernel"``, float32) and by the
+tensor-op walk (``backend="torch"``) in float64: the outputs and the gradients of depth, normals, light and every
+trainable parameter agree. The other kernel tests pick their settings by hand; these draw them (a fixed seed), so
+that options are met together that no hand-picked setting combines.
+
+The tolerance is the kernel tests' (values within 1e-5, each gradient entry within 1e-4 of the gradient's largest),
+or three times the most that the tensor walk itself moves between float32 and float64 on the same call, where that
+is more: a nearest fetch's texel, a sector edge, the border's test or which of two nearly equal samples is the
+highest (PSSAO's maximum, on this rough frame) can fall the other way in float32 (the kernels round as float32 does),
+and the gradient moves to other entries with it. A value can also lie within float32's rounding
+of a kink of the walk (a segment's end on the radius' sphere), where the kernel's float32 takes one one-sided
+derivative and the tensor walk the other, in float32 as in float64: one pixel of the drawn calls does
+(``BitmaskAO(variant="exact")``, d visibility / d its own depth -0.398 against -0.414; the float64 walk's one-sided
+differences there are -0.396 and -0.414). So 0.2 % of a gradient's entries may miss, the gradient as a whole stays
+within 1 %, and a parameter's gradient, a sum over the frame, within 1e-3. Jitter stays on: without it, steps land on texel edges, where float32
+and float64 floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk)."""
+import random
+import warnings
+
+import pytest
+import torch
+
+from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
+from torch_ao import GTAO, HBAO, PSSAO, UE4SSAO, BitmaskAO
+from torch_ao.gbuffer import GBuffer
+
+CALLS = 60  # (about 10 s)
+VALUE_TOL = 1e-5  # outputs: absolute
+GRAD_TOL = 1e-4  # a gradient's entries: relative to its largest
+OFF_SHARE = 0.002  # the share of a gradient's entries that may miss GRAD_TOL (a value within rounding of a kink)
+SCALAR_TOL = 1e-3  # a parameter's gradient: relative (it sums every entry's, those beside a kink too)
+
+
+def _bitmask(rng: random.Random, common: dict) -> dict:
+    variant = rng.choice(["default", "hdrp", "exact"])
+    o = dict(common, mode=rng.choice(["soft", "straight_through"]), variant=variant,
+             weighting=rng.choice(["uniform", "cosine"]), fetch=rng.choice(["nearest", "bilinear", "edge_aware"]),
+             border=rng.choice(["drop", "clamp"]), tau=rng.choice([0.2, 0.3, 0.5]),
+             thickness=rng.choice([0.1, 0.4, 1.0]), noise=rng.choice(["ign", "hilbert_r2"]),
+             stagger=rng.random() < 0.3)
+    if variant != "hdrp":  # (HDRP's rule takes its own azimuth and no sphere extent)
+        o["azimuth"] = rng.choice(["view", "screen"])
+        o["sample_extent"] = rng.choice(["radius", "sphere"])
+    if variant != "exact":  # (the exact union gives the visibility alone and grows no thickness)
+        o.update(bent_normals=rng.random() < 0.3, indirect=rng.random() < 0.3)
+        if rng.random() < 0.25:
+            o["thickness_growth"] = 0.2
+    return o
+
+
+def draw(rng: random.Random) -> tuple[type, dict]:
+    """A module class and its options."""
+    kind = rng.choice(["bitmask", "bitmask", "bitmask", "gtao", "gtao", "hbao", "ue4ssao", "pssao"])
+    common = dict(slices=rng.choice([2, 3, 4]), steps=rng.choice([2, 3, 4, 6]))
+    if kind == "pssao":
+        return PSSAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
+                           distance_bias=rng.choice([0.5, 1.0]))
+    common.update(seed=rng.randrange(5), radius=rng.choice([0.5, 0.8, 1.3]))
+    if kind == "bitmask":
+        return BitmaskAO, _bitmask(rng, common)
+    if kind == "gtao":
+        return GTAO, dict(common, variant=rng.choice(["exact", "hdrp", "ue4"]),
+                          fetch=rng.choice(["nearest", "bilinear", "edge_aware"]), border=rng.choice(["drop", "clamp"]),
+                          falloff_range=rng.choice([0.0, 0.3]), bent_normals=rng.random() < 0.3,
+                          multibounce=rng.random() < 0.3, stagger=rng.random() < 0.3)
+    if kind == "hbao":
+        return HBAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
+                          falloff=rng.choice(["linear", "quadratic"]), accumulate=rng.choice(["incremental", "max"]),
+                          azimuth=rng.choice(["view", "screen"]), stagger=rng.random() < 0.3)
+    return UE4SSAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
+                         flat_softness=rng.choice([0.0, 0.05]))
+
+
+def outputs_and_gradients(cls, options: dict, gb0: GBuffer, light0: torch.Tensor, dtype, backend: str):
+    """The module's differentiable outputs (float64) and the gradients of a fixed random weighting of them with
+    respect to depth, normals, light and the trainable parameters (None where unused; names in order)."""
+    gb0 = gb0.to(dtype=dtype)
+    depth = gb0.depth.detach().clone().requires_grad_()
+    normals = gb0.view_normals().detach().clone().requires_grad_()
+    light = light0.to(dtype).clone().requires_grad_()
+    module = cls(backend=backend, **options).to(dtype)
+    out = module(GBuffer(depth=depth, normals=normals, light=light, camera=gb0.camera))
+    weights = torch.Generator().manual_seed(1)
+    values, loss = {}, 0.0
+    for name in ("visibility", "bent_normal", "indirect"):
+        value = getattr(out, name, None)
+        if isinstance(value, torch.Tensor) and value.requires_grad:
+            loss = loss + (value * torch.rand(value.shape, generator=weights, dtype=torch.float64).to(dtype)).sum()
+            values[name] = value.detach().double()
+    names, params = zip(*[(n, p) for n, p in module.named_parameters() if p.requires_grad])
+    grads = torch.autograd.grad(loss, [depth, normals, light, *params], allow_unused=True)
+    grads = {n: None if g is None else g.double() for n, g in zip(("depth", "normals", "light", *names), grads)}
+    return values, grads
+
+
+def _distance(a: torch.Tensor | None, b: torch.Tensor | None) -> float:
+    a, b = (torch.zeros(()) if x is None else x for x in (a, b))
+    return float((a - b).norm())
+
+
+def _call(index: int):
+    rng = random.Random(1000 + index)
+    cls, options = draw(rng)
+    return cls, options, index % 3
+
+
+@pytest.mark.parametrize("index", range(CALLS))
+def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
+    cls, options, seed = _call(index)
+    gb = rough_gbuffer(24, 40, batch=2, seed=seed)
+    light = torch.rand(2, 3, 24, 40, generator=torch.Generator().manual_seed(seed))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # (a kernel that cannot be built must not fall back here)
+        got, got_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "kernel")
+    ref, ref_grads = outputs_and_gradients(cls, options, gb, light, torch.float64, "torch")
+    ref32, ref32_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "torch")
+    assert got.keys() == ref.keys() and ref
+    for name in ref:
+        moved = float((ref32[name] - ref[name]).abs().max())
+        err = float((got[name] - ref[name]).abs().max())
+        assert err <= max(VALUE_TOL, 3 * moved), (cls.__name__, options, name, err, moved)
+    assert ref_grads["depth"].abs().sum() > 0
+    # the scalar parameters' gradients are sums over the frame: their rounding is absolute, at the largest one's scale
+    scale = max(float(g.abs()) for g in ref_grads.values() if g is not None and g.dim() == 0)
+    for name, ref_grad in ref_grads.items():
+        got_grad, ref32_grad = got_grads[name], ref32_grads[name]
+        if ref_grad is None:  # (an input or setting the walk does not read: the kernel's gradient is 0, or rounding)
+            floor = 1e-4 * scale if got_grad is not None and got_grad.dim() == 0 else 0.0
+            assert got_grad is None or float(got_grad.abs().max()) <= floor, (cls.__name__, options, name)
+            continue
+        if ref_grad.dim() == 0:
+            err, moved = _distance(got_grad, ref_grad), _distance(ref32_grad, ref_grad)
+            size = _distance(ref_grad, None)
+            assert err <= max(SCALAR_TOL * size, 3 * moved, 1e-6 * scale), (cls.__name__, options, name, err, moved, size)
+            continue
+        assert got_grad is not None, (cls.__name__, options, name)
+        moved = (ref32_grad - ref_grad).abs()
+        allowed = GRAD_TOL * float(ref_grad.abs().max()) + 3 * float(moved.max()) + 1e-12
+        off = ((got_grad - ref_grad).abs() > allowed).double().mean()
+        assert off <= OFF_SHARE, (cls.__name__, options, name, float(off))
+        assert _distance(got_grad, ref_grad) <= max(1e-2 * _distance(ref_grad, None), 3 * float(moved.norm())), \
+            (cls.__name__, options, name)
