@@ -21,10 +21,10 @@ import pytest
 import torch
 
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
-from torch_ao import GTAO, HBAO, PSSAO, UE4SSAO, BitmaskAO
+from torch_ao import GTAO, HBAO, PSSAO, SSILVB, UE4SSAO, BitmaskAO
 from torch_ao.gbuffer import GBuffer
 
-CALLS = 60  # (about 10 s)
+CALLS = 72  # (about 10 s)
 VALUE_TOL = 1e-5  # outputs: absolute
 GRAD_TOL = 1e-4  # a gradient's entries: relative to its largest
 OFF_SHARE = 0.002  # the share of a gradient's entries that may miss GRAD_TOL (a value within rounding of a kink)
@@ -33,7 +33,7 @@ SCALAR_TOL = 1e-3  # a parameter's gradient: relative (it sums every entry's, th
 
 def _bitmask(rng: random.Random, common: dict) -> dict:
     variant = rng.choice(["default", "hdrp", "exact"])
-    o = dict(common, mode=rng.choice(["soft", "straight_through"]), variant=variant,
+    o = dict(common, mode=rng.choice(["soft", "straight_through", "hard"]), variant=variant,
              weighting=rng.choice(["uniform", "cosine"]), fetch=rng.choice(["nearest", "bilinear", "edge_aware"]),
              border=rng.choice(["drop", "clamp"]), tau=rng.choice([0.2, 0.3, 0.5]),
              thickness=rng.choice([0.1, 0.4, 1.0]), noise=rng.choice(["ign", "hilbert_r2"]),
@@ -45,12 +45,14 @@ def _bitmask(rng: random.Random, common: dict) -> dict:
         o.update(bent_normals=rng.random() < 0.3, indirect=rng.random() < 0.3)
         if rng.random() < 0.25:
             o["thickness_growth"] = 0.2
+        if o["mode"] == "hard" and o["weighting"] == "uniform":  # (uniform hard masks carry no gradient: the light)
+            o["indirect"] = True
     return o
 
 
 def draw(rng: random.Random) -> tuple[type, dict]:
     """A module class and its options."""
-    kind = rng.choice(["bitmask", "bitmask", "bitmask", "gtao", "gtao", "hbao", "ue4ssao", "pssao"])
+    kind = rng.choice(["bitmask", "bitmask", "bitmask", "glsl", "gtao", "gtao", "hbao", "ue4ssao", "pssao"])
     common = dict(slices=rng.choice([2, 3, 4]), steps=rng.choice([2, 3, 4, 6]))
     if kind == "pssao":
         return PSSAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
@@ -58,6 +60,9 @@ def draw(rng: random.Random) -> tuple[type, dict]:
     common.update(seed=rng.randrange(5), radius=rng.choice([0.5, 0.8, 1.3]))
     if kind == "bitmask":
         return BitmaskAO, _bitmask(rng, common)
+    if kind == "glsl":  # (the article's shader: its own step placement, noise and thickness rule)
+        return SSILVB, dict(common, variant="ssilvb_glsl", mode=rng.choice(["soft", "straight_through", "hard"]),
+                            slices=rng.choice([3, 4, 5]), tau=rng.choice([0.2, 0.5]), thickness=rng.choice([0.1, 0.5]))
     if kind == "gtao":
         return GTAO, dict(common, variant=rng.choice(["exact", "hdrp", "ue4"]),
                           fetch=rng.choice(["nearest", "bilinear", "edge_aware"]), border=rng.choice(["drop", "clamp"]),
@@ -72,8 +77,8 @@ def draw(rng: random.Random) -> tuple[type, dict]:
 
 
 def outputs_and_gradients(cls, options: dict, gb0: GBuffer, light0: torch.Tensor, dtype, backend: str):
-    """The module's differentiable outputs (float64) and the gradients of a fixed random weighting of them with
-    respect to depth, normals, light and the trainable parameters (None where unused; names in order)."""
+    """The module's outputs that carry a gradient (float64) and the gradients of a fixed random weighting of them
+    with respect to depth, normals, light and the trainable parameters (None where unused; names in order)."""
     gb0 = gb0.to(dtype=dtype)
     depth = gb0.depth.detach().clone().requires_grad_()
     normals = gb0.view_normals().detach().clone().requires_grad_()
@@ -111,17 +116,17 @@ def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
     light = torch.rand(2, 3, 24, 40, generator=torch.Generator().manual_seed(seed))
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)  # (a kernel that cannot be built must not fall back here)
-        got, got_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "kernel")
     ref, ref_grads = outputs_and_gradients(cls, options, gb, light, torch.float64, "torch")
+    got, got_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "kernel")
     ref32, ref32_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "torch")
-    assert got.keys() == ref.keys() and ref
+    assert got.keys() == ref.keys() and ref  # (the same outputs on the graph: hard masks are off it)
     for name in ref:
         moved = float((ref32[name] - ref[name]).abs().max())
         err = float((got[name] - ref[name]).abs().max())
         assert err <= max(VALUE_TOL, 3 * moved), (cls.__name__, options, name, err, moved)
     assert ref_grads["depth"].abs().sum() > 0
     # the scalar parameters' gradients are sums over the frame: their rounding is absolute, at the largest one's scale
-    scale = max(float(g.abs()) for g in ref_grads.values() if g is not None and g.dim() == 0)
+    scale = max((float(g.abs()) for g in ref_grads.values() if g is not None and g.dim() == 0), default=0.0)
     for name, ref_grad in ref_grads.items():
         got_grad, ref32_grad = got_grads[name], ref32_grads[name]
         if ref_grad is None:  # (an input or setting the walk does not read: the kernel's gradient is 0, or rounding)

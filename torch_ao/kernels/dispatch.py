@@ -41,7 +41,7 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
                                             radius=module.radius, **thickness, jitter=module.jitter,
                                             rounding=module.rounding, numerics=module.glsl_numerics,
                                             indirect=module.want_indirect)
-        return {"visibility": vis, "indirect": indirect}
+        return {"visibility": vis.detach(), "indirect": indirect}  # (hard masks: no gradient, as on the tensor path)
     options = dict(slices=module.slices, steps=module.steps, radius=radius,
                    **thickness, step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                    seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
@@ -54,6 +54,8 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     else:
         vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
                                               bent_normals=module.want_bent, **options)
+        if module.weighting != "cosine":  # (uniform hard masks have no gradient, as on the tensor path)
+            vis = vis.detach()
     return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": _constant_ambient(module, gbuffer, vis)}
 
 
