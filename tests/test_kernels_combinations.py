@@ -129,9 +129,11 @@ def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
     scale = max((float(g.abs()) for g in ref_grads.values() if g is not None and g.dim() == 0), default=0.0)
     for name, ref_grad in ref_grads.items():
         got_grad, ref32_grad = got_grads[name], ref32_grads[name]
-        if ref_grad is None:  # (an input or setting the walk does not read: the kernel's gradient is 0, or rounding)
-            floor = 1e-4 * scale if got_grad is not None and got_grad.dim() == 0 else 0.0
-            assert got_grad is None or float(got_grad.abs().max()) <= floor, (cls.__name__, options, name)
+        if ref_grad is None:  # (an input or setting the walk does not read: none, or a parameter's rounding)
+            if name in ("depth", "normals", "light"):
+                assert got_grad is None, (cls.__name__, options, name)
+            else:  # (a nearest fetch's radius: Euler's identity sums to the rounding of 0)
+                assert got_grad is None or float(got_grad.abs()) <= 1e-4 * scale, (cls.__name__, options, name)
             continue
         if ref_grad.dim() == 0:
             err, moved = _distance(got_grad, ref_grad), _distance(ref32_grad, ref_grad)

@@ -72,6 +72,7 @@ class _ViewGeometry(torch.autograd.Function):
     @staticmethod
     def forward(ctx, depth, normals, valid, intrinsics):
         ctx.save_for_backward(depth, normals, valid, intrinsics)
+        ctx.set_materialize_grads(False)  # (an output nothing read has no gradient: None, not zeros)
         return torch.ops.torch_ao_kernels.view_geometry(depth, normals, valid, intrinsics)
 
     @staticmethod
@@ -80,7 +81,12 @@ class _ViewGeometry(torch.autograd.Function):
         none = depth.new_empty(0)
         g_depth, g_in = torch.ops.torch_ao_kernels.view_geometry_backward(
             *(none if g is None else g.contiguous() for g in grads), depth, normals, valid, intrinsics)
-        return (g_depth if ctx.needs_input_grad[0] else None, g_in if ctx.needs_input_grad[1] else None, None, None)
+        # (the unit normals alone carry the normals' gradient, the other outputs the depth's: where nothing read them,
+        # the input has none, as through the tensor ops: UE4 SSAO's walk reads no normal)
+        g_positions, g_unit, g_inverse, g_depth_nan = grads
+        depth_read = any(g is not None for g in (g_positions, g_inverse, g_depth_nan))
+        return (g_depth if ctx.needs_input_grad[0] and depth_read else None,
+                g_in if ctx.needs_input_grad[1] and g_unit is not None else None, None, None)
 
 
 def light_input(gbuffer: GBuffer, wanted: bool) -> torch.Tensor:

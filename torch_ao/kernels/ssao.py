@@ -59,6 +59,7 @@ def ue4_ssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps
             ``flat_surface_bias`` tensor, the sums carry their gradients (the radius' by Euler's identity: the
             walk is scale-invariant with its three lengths, :mod:`~torch_ao.kernels.walk_grad`).
     """
+    normals = normals.detach()  # (the walk's basis alone, its directions screen angles: no gradient, as in torch)
     table = None
     if offsets is not None:  # WedgePattern._direction: the offset's angle and length
         slices = len(offsets)
