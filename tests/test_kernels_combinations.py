@@ -14,6 +14,7 @@ derivative and the tensor walk the other, in float32 as in float64: one pixel of
 differences there are -0.396 and -0.414). So 0.2 % of a gradient's entries may miss, the gradient as a whole stays
 within 1 %, and a parameter's gradient, a sum over the frame, within 1e-3. Jitter stays on: without it, steps land on texel edges, where float32
 and float64 floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk)."""
+import itertools
 import random
 import warnings
 
@@ -147,3 +148,33 @@ def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
         assert off <= OFF_SHARE, (cls.__name__, options, name, float(off))
         assert _distance(got_grad, ref_grad) <= max(1e-2 * _distance(ref_grad, None), 3 * float(moved.norm())), \
             (cls.__name__, options, name)
+
+
+GRAPH_CASES = [
+    (BitmaskAO, dict(indirect=True, bent_normals=True, weighting="cosine", fetch="edge_aware", ambient=(0.1, 0.2, 0.3))),
+    (BitmaskAO, dict(indirect=True, bent_normals=True, fetch="nearest")),
+    (BitmaskAO, dict(indirect=True, variant="hdrp")),
+    (BitmaskAO, dict(variant="exact")),
+    (SSILVB, dict(variant="ssilvb_glsl")),
+]
+
+
+@pytest.mark.parametrize("mode", ["hard", "soft", "straight_through"])
+@pytest.mark.parametrize("case", range(len(GRAPH_CASES)))
+def test_kernel_outputs_are_on_the_graph_where_the_tensor_walks_are(built, case, mode):
+    """Which outputs require a gradient, with the depth, the light and the parameters each requiring one or not: one
+    kernel call gives every output, but each is on the graph only where its tensor-path twin is (a hard mask has no
+    gradient; a visibility reads no light; a nearest fetch's light does not move with the radius)."""
+    cls, options = GRAPH_CASES[case]
+    gb = rough_gbuffer(24, 40, batch=2, seed=0)
+    fields = ("visibility", "indirect", "bent_normal", "ambient")
+    for depth_grad, light_grad, trainable in itertools.product((False, True), repeat=3):
+        on_graph = {}
+        for backend in ("torch", "kernel"):
+            depth = gb.depth.clone().requires_grad_(depth_grad)
+            light = torch.rand(2, 3, 24, 40, generator=torch.Generator().manual_seed(0)).requires_grad_(light_grad)
+            module = cls(backend=backend, mode=mode, slices=4, steps=3, trainable=trainable, **options)
+            out = module(GBuffer(depth=depth, light=light, camera=gb.camera))
+            on_graph[backend] = {name: getattr(out, name).requires_grad for name in fields
+                                 if getattr(out, name, None) is not None}
+        assert on_graph["kernel"] == on_graph["torch"], (depth_grad, light_grad, trainable)

@@ -14,6 +14,7 @@ from .bitmask import (bitmask_hard, bitmask_outputs, exact_covers, exact_forward
 from .build import KernelUnavailable
 from .frame import view_geometry
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
+from .walk_grad import gbuffer_requires_grad
 from .ssao import pssao_covers, pssao_forward, ssao_covers, ssao_forward, ue4_ssao_covers, ue4_ssao_forward
 
 __all__ = ["BACKENDS", "kernel_forward"]
@@ -41,7 +42,8 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
                                             radius=module.radius, **thickness, jitter=module.jitter,
                                             rounding=module.rounding, numerics=module.glsl_numerics,
                                             indirect=module.want_indirect)
-        return {"visibility": vis.detach(), "indirect": indirect}  # (hard masks: no gradient, as on the tensor path)
+        vis, indirect, _ = _hard_graph(module, gbuffer, vis, indirect, None)
+        return {"visibility": vis, "indirect": indirect}
     options = dict(slices=module.slices, steps=module.steps, radius=radius,
                    **thickness, step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
                    seed=module.seed, noise=module.noise, stagger=module.stagger, fetch=module.fetch,
@@ -54,9 +56,25 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     else:
         vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
                                               bent_normals=module.want_bent, **options)
-        if module.weighting != "cosine":  # (uniform hard masks have no gradient, as on the tensor path)
-            vis = vis.detach()
+        vis, indirect, bent = _hard_graph(module, gbuffer, vis, indirect, bent)
     return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": _constant_ambient(module, gbuffer, vis)}
+
+
+def _hard_graph(module, gbuffer: GBuffer, vis, indirect, bent) -> tuple:
+    """A hard kernel's outputs, each on the autograd graph where its tensor-path twin is (one kernel call gives
+    them all, so each would carry the graph of every input). Hard masks have no gradient: the visibility follows the
+    G-buffer through cosine weights alone, the bent normal through the slices' frames; the indirect light follows
+    the G-buffer, the light, and the radius where a bilinear read moves with the samples."""
+    on_gbuffer = gbuffer_requires_grad(gbuffer)
+    if not (on_gbuffer and module.weighting == "cosine"):
+        vis = vis.detach()
+    if bent is not None and not on_gbuffer:
+        bent = bent.detach()
+    light = gbuffer.light is not None and gbuffer.light.requires_grad
+    moving = module.radius.requires_grad and module.fetch != "nearest"
+    if indirect is not None and not (on_gbuffer or light or moving):
+        indirect = indirect.detach()
+    return vis, indirect, bent
 
 
 def _constant_ambient(module, gbuffer: GBuffer, vis: torch.Tensor) -> torch.Tensor | None:
@@ -67,10 +85,22 @@ def _constant_ambient(module, gbuffer: GBuffer, vis: torch.Tensor) -> torch.Tens
     return torch.where(gbuffer.valid, vis * module.ambient_constant.to(vis.dtype).view(1, 3, 1, 1), 0.0)
 
 
+def _off_the_light(module, gbuffer: GBuffer, out: dict) -> dict:
+    """A soft walk's outputs other than its indirect light read no light: where only the light requires a gradient,
+    they leave the autograd graph, as on the tensor path (one kernel call gives them all)."""
+    if gbuffer_requires_grad(gbuffer) or any(p.requires_grad for p in module.parameters()):
+        return out
+    return {name: value if name == "indirect" or value is None else value.detach() for name, value in out.items()}
+
+
 def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
     vis, indirect, bent = soft_bitmask.module_forward(module, gbuffer)
-    return {"visibility": vis, "indirect": indirect, "bent_normal": bent,
-            "ambient": _constant_ambient(module, gbuffer, vis)}
+    out = _off_the_light(module, gbuffer, {"visibility": vis, "indirect": indirect, "bent_normal": bent})
+    return out | {"ambient": _constant_ambient(module, gbuffer, out["visibility"])}
+
+
+def _glsl_soft(module, gbuffer: GBuffer) -> dict:
+    return _off_the_light(module, gbuffer, glsl_soft_forward(module, gbuffer))
 
 
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,
@@ -80,7 +110,7 @@ def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
 #: other variants' soft / straight-through one (with their backwards).
 KERNELS = {
     "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (exact_soft_covers, exact_soft_forward),
-                (glsl_soft_covers, glsl_soft_forward), (soft_bitmask.kernel_covers, _bitmask_soft)),
+                (glsl_soft_covers, _glsl_soft), (soft_bitmask.kernel_covers, _bitmask_soft)),
     "gtao": ((gtao_covers, gtao_forward),),
     "hbao": ((hbao_covers, hbao_forward),),
     "ue4_ssao": ((ue4_ssao_covers, ue4_ssao_forward),),
