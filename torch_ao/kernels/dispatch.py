@@ -85,22 +85,10 @@ def _constant_ambient(module, gbuffer: GBuffer, vis: torch.Tensor) -> torch.Tens
     return torch.where(gbuffer.valid, vis * module.ambient_constant.to(vis.dtype).view(1, 3, 1, 1), 0.0)
 
 
-def _off_the_light(module, gbuffer: GBuffer, out: dict) -> dict:
-    """A soft walk's outputs other than its indirect light read no light: where only the light requires a gradient,
-    they leave the autograd graph, as on the tensor path (one kernel call gives them all)."""
-    if gbuffer_requires_grad(gbuffer) or any(p.requires_grad for p in module.parameters()):
-        return out
-    return {name: value if name == "indirect" or value is None else value.detach() for name, value in out.items()}
-
-
 def _bitmask_soft(module, gbuffer: GBuffer) -> dict:
     vis, indirect, bent = soft_bitmask.module_forward(module, gbuffer)
-    out = _off_the_light(module, gbuffer, {"visibility": vis, "indirect": indirect, "bent_normal": bent})
-    return out | {"ambient": _constant_ambient(module, gbuffer, out["visibility"])}
-
-
-def _glsl_soft(module, gbuffer: GBuffer) -> dict:
-    return _off_the_light(module, gbuffer, glsl_soft_forward(module, gbuffer))
+    return {"visibility": vis, "indirect": indirect, "bent_normal": bent,
+            "ambient": _constant_ambient(module, gbuffer, vis)}
 
 
 #: a method's ``has_kernel`` -> its kernels, tried in order: ``(covers, run)`` pairs, ``covers(module,
@@ -110,7 +98,7 @@ def _glsl_soft(module, gbuffer: GBuffer) -> dict:
 #: other variants' soft / straight-through one (with their backwards).
 KERNELS = {
     "bitmask": ((kernel_covers, _bitmask_hard), (exact_covers, exact_forward), (exact_soft_covers, exact_soft_forward),
-                (glsl_soft_covers, _glsl_soft), (soft_bitmask.kernel_covers, _bitmask_soft)),
+                (glsl_soft_covers, glsl_soft_forward), (soft_bitmask.kernel_covers, _bitmask_soft)),
     "gtao": ((gtao_covers, gtao_forward),),
     "hbao": ((hbao_covers, hbao_forward),),
     "ue4_ssao": ((ue4_ssao_covers, ue4_ssao_forward),),

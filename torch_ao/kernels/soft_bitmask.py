@@ -135,8 +135,11 @@ def soft_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps:
     else:
         out = _SoftWalk.apply(gbuffer, normals, *scalars, None if layer is None else layer.detach(), options)
     lit = out[:, 1:4] if indirect else None
-    bent = bent_normal(out[:, 1 + 3 * bool(indirect):], normals, gbuffer.valid) if bent_normals else None
-    return KernelOutputs(out[:, :1], lit, bent)
+    # (where the light alone requires a gradient, the visibility and the bent normal, which read none, are off the
+    # graph, as on the tensor path)
+    unlit = out.detach() if backward_walk and not wants_gradient(gbuffer, normals, layer, *scalars) else out
+    bent = bent_normal(unlit[:, 1 + 3 * bool(indirect):], normals, gbuffer.valid) if bent_normals else None
+    return KernelOutputs(unlit[:, :1], lit, bent)
 
 
 def bent_normal(sums: torch.Tensor, normals: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
