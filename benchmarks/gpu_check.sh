@@ -49,6 +49,7 @@ stage "CUDA tests: those that need a GPU (CI runs the CUDA source's logic on the
 timeout 200 python3 -m pytest -q -p no:cacheprovider -rfEs --durations=8 \
   tests/test_kernels_cuda.py::test_cuda_kernels_agree_with_the_cpu_operator \
   tests/test_kernels_cuda.py::test_cuda_gbuffer_gradients_agree_with_the_cpu tests/test_stability.py::test_cuda_matches_cpu \
+  tests/test_kernels_combinations.py::test_cuda_kernel_agrees_with_the_tensor_walk_on_drawn_options \
   tests/test_kernel_host_reads.py::test_kernel_calls_replay_in_a_cuda_graph \
   || echo "gpu_check: CUDA tests failed or timed out"
 stage "timings at 1920x1080: each case's call, its kernels' time on the GPU, launches, host waits, peak memory"

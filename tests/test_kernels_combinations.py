@@ -79,25 +79,28 @@ def draw(rng: random.Random) -> tuple[type, dict]:
                          flat_softness=rng.choice([0.0, 0.05]))
 
 
-def outputs_and_gradients(cls, options: dict, gb0: GBuffer, light0: torch.Tensor, dtype, backend: str):
-    """The module's outputs that carry a gradient (float64) and the gradients of a fixed random weighting of them
-    with respect to depth, normals, light and the trainable parameters (None where unused; names in order)."""
-    gb0 = gb0.to(dtype=dtype)
+def outputs_and_gradients(cls, options: dict, gb0: GBuffer, light0: torch.Tensor, dtype, backend: str,
+                          device: str = "cpu"):
+    """The module's outputs that carry a gradient (float64, on the CPU) and the gradients of a fixed random weighting
+    of them with respect to depth, normals, light and the trainable parameters (None where unused; names in order),
+    computed on ``device``."""
+    gb0 = gb0.to(device=device, dtype=dtype)
     depth = gb0.depth.detach().clone().requires_grad_()
     normals = gb0.view_normals().detach().clone().requires_grad_()
-    light = light0.to(dtype).clone().requires_grad_()
-    module = cls(backend=backend, **options).to(dtype)
+    light = light0.to(device=device, dtype=dtype).clone().requires_grad_()
+    module = cls(backend=backend, **options).to(device=device, dtype=dtype)
     out = module(GBuffer(depth=depth, normals=normals, light=light, camera=gb0.camera))
     weights = torch.Generator().manual_seed(1)
     values, loss = {}, 0.0
     for name in ("visibility", "bent_normal", "indirect"):
         value = getattr(out, name, None)
         if isinstance(value, torch.Tensor) and value.requires_grad:
-            loss = loss + (value * torch.rand(value.shape, generator=weights, dtype=torch.float64).to(dtype)).sum()
-            values[name] = value.detach().double()
+            w = torch.rand(value.shape, generator=weights, dtype=torch.float64).to(device=device, dtype=dtype)
+            loss = loss + (value * w).sum()
+            values[name] = value.detach().double().cpu()
     names, params = zip(*[(n, p) for n, p in module.named_parameters() if p.requires_grad])
     grads = torch.autograd.grad(loss, [depth, normals, light, *params], allow_unused=True)
-    grads = {n: None if g is None else g.double() for n, g in zip(("depth", "normals", "light", *names), grads)}
+    grads = {n: None if g is None else g.double().cpu() for n, g in zip(("depth", "normals", "light", *names), grads)}
     return values, grads
 
 
@@ -114,13 +117,27 @@ def _call(index: int):
 
 @pytest.mark.parametrize("index", range(CALLS))
 def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
+    assert_agrees_on_drawn_options(index, "cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("index", range(CALLS))
+def test_cuda_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
+    """The same calls on a CUDA G-buffer (the walk's CUDA kernels and their backwards), against the float64 tensor
+    walk on the CPU, by the same tolerances (the GPU's float32 rounds as differently from float64 as the CPU's)."""
+    assert_agrees_on_drawn_options(index, "cuda")
+
+
+def assert_agrees_on_drawn_options(index: int, device: str) -> None:
+    """Call ``index``'s kernel on ``device`` against the tensor walk on the CPU (the tolerances of the module
+    docstring)."""
     cls, options, seed = _call(index)
     gb = rough_gbuffer(24, 40, batch=2, seed=seed)
     light = torch.rand(2, 3, 24, 40, generator=torch.Generator().manual_seed(seed))
+    ref, ref_grads = outputs_and_gradients(cls, options, gb, light, torch.float64, "torch")
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)  # (a kernel that cannot be built must not fall back here)
-    ref, ref_grads = outputs_and_gradients(cls, options, gb, light, torch.float64, "torch")
-    got, got_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "kernel")
+        got, got_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "kernel", device)
     ref32, ref32_grads = outputs_and_gradients(cls, options, gb, light, torch.float32, "torch")
     assert got.keys() == ref.keys() and ref  # (the same outputs on the graph: hard masks are off it)
     for name in ref:
