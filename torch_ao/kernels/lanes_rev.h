@@ -257,9 +257,9 @@ template <class F> TAO_FN void cos_sin_rounded(const Rev<F>& x, Rev<F>& c, Rev<F
   cos_sin_rounded(x.v, cv, sv);
   c = Rev<F>::link(cv, x, neg(sv)), s = Rev<F>::link(sv, x, cv);
 }
-template <class F> TAO_HOT Rev<F> logistic(const Rev<F>& x) {  // (its slope s (1 - s): finite everywhere)
+template <class F> TAO_HOT Rev<F> logistic(const Rev<F>& x) {
   const F s = logistic(x.v);
-  return Rev<F>::link(s, x, s * (F(1.0f) - s));
+  return Rev<F>::link(s, x, logistic_slope(s));
 }
 template <class F> TAO_HOT Rev<F> asin(const Rev<F>& x) { return Rev<F>::link(asin(x.v), x, asin_slope(x.v)); }
 template <class F> TAO_HOT Rev<F> acos(const Rev<F>& x) {

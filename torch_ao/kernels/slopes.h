@@ -16,6 +16,8 @@ template <class F> TAO_HOT F rsqrt_slope(const F& r) { return F(-0.5f) * r * r *
 template <class F> TAO_HOT F reciprocal_slope(const F& r) { return neg(r * r); }
 // d asin(x) / d x (acos's is its negative)
 template <class F> TAO_HOT F asin_slope(const F& x) { return rsqrt(F(1.0f) - x * x); }
+// d logistic(x) / d x from s = logistic(x): finite everywhere
+template <class F> TAO_HOT F logistic_slope(const F& s) { return s * (F(1.0f) - s); }
 // d pow(x, y) / d x, the base's (the exponents the walk raises to are settings without a gradient)
 template <class F> TAO_HOT F pow_slope(const F& x, const F& y) { return y * pow(x, y - F(1.0f)); }
 // atan2(y, x)'s slopes: x / r^2 by y, -y / r^2 by x (r^2 = x^2 + y^2). None at the origin: atan2(0, 0) = 0 is a

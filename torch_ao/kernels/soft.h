@@ -301,15 +301,14 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
       const F lo = clamp(floor(s) - F(float(reach - 1)), F(1.0f), F(float(kSectors - window + 1)));
       sigmoid_run((s - lo - F(float(window - 1))) * F(inv_tau), window, [&](int, const F& x) {
         floor_s = floor_s + x;
-        slope = slope + (F(1.0f) - x) * x;
+        slope = slope + logistic_slope(x);
       });
       floor_s = floor_s + (lo - F(1.0f));
     } else {  // (each sector below k0 adds 1 - a = 1, each from k1 on 0)
       floor_s = F(float(cv.k0));
       for (int k = cv.k0; k < cv.k1; ++k) {
-        const F not_a = F(1.0f) - cv.a[k];
-        floor_s = floor_s + not_a;
-        slope = slope + not_a * cv.a[k];
+        floor_s = floor_s + (F(1.0f) - cv.a[k]);
+        slope = slope + logistic_slope(cv.a[k]);
       }
     }
     cv.slope = slope * F(inv_tau);
