@@ -307,8 +307,11 @@ template <bool kGradients, bool kAdjoint = false, int kMostSteps = kSoftMaxSteps
     } else {  // (each sector below k0 adds 1 - a = 1, each from k1 on 0)
       floor_s = F(float(cv.k0));
       for (int k = cv.k0; k < cv.k1; ++k) {
-        floor_s = floor_s + (F(1.0f) - cv.a[k]);
-        slope = slope + logistic_slope(cv.a[k]);
+        // (logistic_slope(a), written out so that 1 - a serves the floor too: with the call, the soft backward
+        // measured 4 % slower, 97-100 ms against 102-105)
+        const F not_a = F(1.0f) - cv.a[k];
+        floor_s = floor_s + not_a;
+        slope = slope + not_a * cv.a[k];
       }
     }
     cv.slope = slope * F(inv_tau);
