@@ -24,7 +24,7 @@ import pytest
 import torch
 
 from test_kernels import built, pytestmark, rough_gbuffer  # noqa: F401 (the fixture, the skip)
-from torch_ao import GTAO, HBAO, PSSAO, SSILVB, UE4SSAO, BitmaskAO
+from torch_ao import GTAO, HBAO, PSSAO, SSAO, SSILVB, UE4SSAO, BitmaskAO
 from torch_ao.gbuffer import GBuffer
 
 CALLS = 72  # (about 10 s)
@@ -55,7 +55,7 @@ def _bitmask(rng: random.Random, common: dict) -> dict:
 
 def draw(rng: random.Random) -> tuple[type, dict]:
     """A module class and its options."""
-    kind = rng.choice(["bitmask", "bitmask", "bitmask", "glsl", "gtao", "gtao", "hbao", "ue4ssao", "pssao"])
+    kind = rng.choice(["bitmask", "bitmask", "bitmask", "glsl", "gtao", "gtao", "hbao", "ue4ssao", "pssao", "ssao"])
     common = dict(slices=rng.choice([2, 3, 4]), steps=rng.choice([2, 3, 4, 6]))
     if kind == "pssao":
         return PSSAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
@@ -75,6 +75,9 @@ def draw(rng: random.Random) -> tuple[type, dict]:
         return HBAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
                           falloff=rng.choice(["linear", "quadratic"]), accumulate=rng.choice(["incremental", "max"]),
                           azimuth=rng.choice(["view", "screen"]), stagger=rng.random() < 0.3)
+    if kind == "ssao":  # (the hemisphere kernel with its soft occlusion test: the step's gradient is 0)
+        return SSAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
+                          samples=rng.choice([8, 16]), bias=rng.choice([0.025, 0.05]), softness=rng.choice([0.02, 0.05]))
     return UE4SSAO, dict(common, fetch=rng.choice(["nearest", "bilinear"]), border=rng.choice(["drop", "clamp"]),
                          flat_softness=rng.choice([0.0, 0.05]))
 
