@@ -1,21 +1,25 @@
 """Random combinations of a module's options, each run by its kernel (``backend="kernel"``, float32) and by the
 tensor-op walk (``backend="torch"``) in float64: the outputs and the gradients of depth, normals, light and every
 trainable parameter agree. The other kernel tests pick their settings by hand; these draw them (a fixed seed), so
-that options are met together that no hand-picked setting combines.
+that options meet that no hand-picked setting combines.
 
-The tolerance is the kernel tests' (values within 1e-5, each gradient entry within 1e-4 of the gradient's largest),
-or three times the most that the tensor walk itself moves between float32 and float64 on the same call, where that
-is more: a nearest fetch's texel, a sector edge or the border's test can fall the other way in float32 (the kernels
-round as float32 does), and the gradient moves to other entries with it. PSSAO's ``max(n . d, 0)`` is such a kink on
-every pixel whose normal was built from a neighbour's texel (the normals here are given, from depth): there
-``n . d`` is 0 up to rounding, and its sign picks the one-sided derivative (measured: 40 % of the depth gradient's
-entries differ between float32 and float64 by more than 1e-3, and float64's central differences lie between them). A value can also lie within float32's rounding
-of a kink of the walk (a segment's end on the radius' sphere), where the kernel's float32 takes one one-sided
-derivative and the tensor walk the other, in float32 as in float64: one pixel of the drawn calls does
-(``BitmaskAO(variant="exact")``, d visibility / d its own depth -0.398 against -0.414; the float64 walk's one-sided
-differences there are -0.396 and -0.414). So 0.2 % of a gradient's entries may miss, the gradient as a whole stays
-within 1 %, and a parameter's gradient, a sum over the frame, within 1e-3. Jitter stays on: without it, steps land on texel edges, where float32
-and float64 floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk)."""
+The tolerances are the kernel tests': values within 1e-5, each gradient entry within 1e-4 of the gradient's largest.
+Where the tensor walk itself moves more than that between float32 and float64 on the same call, three times that
+movement: a nearest fetch's texel, a sector edge or the border's test can fall the other way in float32 (as the
+kernels round), and the gradient moves to other entries with it.
+
+Kinks make the rest. A value within float32's rounding of a kink takes one one-sided derivative in the kernel and the
+other in the tensor walk, in float32 as in float64:
+
+* one pixel of the drawn calls lies on a segment's end at the radius' sphere (``BitmaskAO(variant="exact")``: d
+  visibility / d its own depth -0.398 against -0.414, the float64 walk's one-sided differences -0.396 and -0.414);
+* PSSAO's ``max(n . d, 0)`` sits on its kink at every pixel whose given normal was built from a neighbour's texel,
+  where ``n . d`` is 0 up to rounding (40 % of the depth gradient's entries differ between float32 and float64 by more
+  than 1e-3; float64's central differences lie between them).
+
+So 0.2 % of a gradient's entries may miss, the gradient as a whole stays within 1 %, and a parameter's gradient (a
+sum over the frame) within 1e-3. Jitter stays on: without it, steps land on texel edges, where float32 and float64
+floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk)."""
 import itertools
 import random
 import warnings
