@@ -180,6 +180,7 @@ GRAPH_CASES = [
     (BitmaskAO, dict(indirect=True, bent_normals=True, weighting="cosine", fetch="edge_aware", ambient=(0.1, 0.2, 0.3))),
     (BitmaskAO, dict(indirect=True, bent_normals=True, fetch="nearest")),
     (BitmaskAO, dict(indirect=True, variant="hdrp")),
+    (BitmaskAO, dict(indirect=True, bent_normals=True, slice_sampling="projected_normal")),
     (BitmaskAO, dict(variant="exact")),
     (SSILVB, dict(variant="ssilvb_glsl")),
 ]

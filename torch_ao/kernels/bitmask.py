@@ -98,9 +98,8 @@ def bitmask_outputs(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, ste
     else:
         out = run_walk("bitmask", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
                        backface=layer, lanes=lanes)
-    light = out[:, 1:4] if indirect else None
-    bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
-    return KernelOutputs(out[:, :1], light, bent)
+    return hard_outputs(out, gbuffer, normals, weighting=weighting, slice_sampling=slice_sampling, indirect=indirect,
+                        bent_normals=bent_normals, light=light, radius=radius if fetch != "nearest" else None)
 
 
 #: the variants :func:`bitmask_outputs` walks, in bitmask.h's SectorAngles order
@@ -117,6 +116,28 @@ def needs_hard_backward(gbuffer: GBuffer, normals: torch.Tensor | None, *, weigh
     through the samples' extent, the ``radius``."""
     graded = weighting == "cosine" or bool(bent_normals) or bool(indirect) or slice_sampling == "projected_normal"
     return graded and wants_gradient(gbuffer, normals, *((light, radius) if indirect else ()))
+
+
+def hard_outputs(out: torch.Tensor, gbuffer: GBuffer, normals: torch.Tensor, *, weighting: str, indirect: bool,
+                 bent_normals: bool, light: torch.Tensor | None, radius=None, slice_sampling: str = "uniform"
+                 ) -> KernelOutputs:
+    """A hard walk's channels ``out`` (the visibility, then the light and the bent normals' sum where asked) as
+    outputs, each on the autograd graph where its tensor-path twin is (one kernel call gives them all, so each would
+    carry the graph of every input): the visibility through the weights that follow the slice (cosine, or a slice
+    drawn by the projected normal's density), the bent normals through the slice's frame, both from the G-buffer and
+    the ``normals``; the indirect light through those, its ``light`` and the ``radius`` (where its samples' reads
+    move with it: ``None`` for a nearest fetch's or the shader's floored texels)."""
+    on_frame = wants_gradient(gbuffer, normals)
+    vis = out[:, :1]
+    if not (on_frame and (weighting == "cosine" or slice_sampling == "projected_normal")):
+        vis = vis.detach()
+    lit = out[:, 1:4] if indirect else None
+    if lit is not None and not wants_gradient(gbuffer, normals, light, radius):
+        lit = lit.detach()
+    bent = out[:, 1 + 3 * bool(indirect):] if bent_normals else None
+    if bent is not None and not on_frame:
+        bent = bent.detach()
+    return KernelOutputs(vis, lit, bent)
 
 
 class _HardWalk(torch.autograd.Function):
@@ -294,7 +315,7 @@ def ssilvb_glsl_hard(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
     else:
         out = run_walk("glsl", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light, backface=layer,
                        lanes=lanes)
-    return KernelOutputs(out[:, :1], out[:, 1:] if indirect else None)
+    return hard_outputs(out, gbuffer, normals, weighting="uniform", indirect=indirect, bent_normals=False, light=light)
 
 
 #: options of a module the kernels reproduce: ``None`` for any value, else the values they cover

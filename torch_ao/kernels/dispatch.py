@@ -14,7 +14,6 @@ from .bitmask import (bitmask_hard, bitmask_outputs, exact_covers, exact_forward
 from .build import KernelUnavailable
 from .frame import view_geometry
 from .gtao import gtao_covers, gtao_forward, hbao_covers, hbao_forward
-from .walk_grad import gbuffer_requires_grad
 from .ssao import pssao_covers, pssao_forward, ssao_covers, ssao_forward, ue4_ssao_covers, ue4_ssao_forward
 
 __all__ = ["BACKENDS", "kernel_forward"]
@@ -42,7 +41,6 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
                                             radius=module.radius, **thickness, jitter=module.jitter,
                                             rounding=module.rounding, numerics=module.glsl_numerics,
                                             indirect=module.want_indirect)
-        vis, indirect, _ = _hard_graph(module, gbuffer, vis, indirect, None)
         return {"visibility": vis, "indirect": indirect}
     options = dict(slices=module.slices, steps=module.steps, radius=radius,
                    **thickness, step_power=module.step_power, min_step_px=module.min_step_px, jitter=module.jitter,
@@ -56,25 +54,7 @@ def _bitmask_hard(module, gbuffer: GBuffer) -> dict:
     else:
         vis, indirect, bent = bitmask_outputs(gbuffer, normals, indirect=module.want_indirect,
                                               bent_normals=module.want_bent, **options)
-        vis, indirect, bent = _hard_graph(module, gbuffer, vis, indirect, bent)
     return {"visibility": vis, "indirect": indirect, "bent_normal": bent, "ambient": _constant_ambient(module, gbuffer, vis)}
-
-
-def _hard_graph(module, gbuffer: GBuffer, vis, indirect, bent) -> tuple:
-    """A hard kernel's outputs, each on the autograd graph where its tensor-path twin is (one kernel call gives
-    them all, so each would carry the graph of every input). Hard masks have no gradient: the visibility follows the
-    G-buffer through cosine weights alone, the bent normal through the slices' frames; the indirect light follows
-    the G-buffer, the light, and the radius where a bilinear read moves with the samples."""
-    on_gbuffer = gbuffer_requires_grad(gbuffer)
-    if not (on_gbuffer and module.weighting == "cosine"):
-        vis = vis.detach()
-    if bent is not None and not on_gbuffer:
-        bent = bent.detach()
-    light = gbuffer.light is not None and gbuffer.light.requires_grad
-    moving = module.radius.requires_grad and module.fetch != "nearest"
-    if indirect is not None and not (on_gbuffer or light or moving):
-        indirect = indirect.detach()
-    return vis, indirect, bent
 
 
 def _constant_ambient(module, gbuffer: GBuffer, vis: torch.Tensor) -> torch.Tensor | None:
