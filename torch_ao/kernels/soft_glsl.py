@@ -85,12 +85,13 @@ def ssilvb_glsl_soft(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, st
         kernels = SoftKernels("soft_glsl", "tao_walk_soft_glsl", backward, False)
         out = gbuffer_walk(gbuffer, normals, (settings, acc_ints, acc_floats), light, layer, radius, thickness, scale,
                            lanes, kernels, channels, growth)
-        if not wants_gradient(gbuffer, normals, layer, thickness, scale, growth):  # (the light alone: see soft_outputs)
-            return KernelOutputs(out[:, :1].detach(), out[:, 1:] if indirect else None)
+        # (where the light alone requires a gradient, the visibility, which reads none, is off the graph: see
+        # soft_outputs)
+        unlit = out if wants_gradient(gbuffer, normals, layer, thickness, scale, growth) else out.detach()
     else:
-        out = run_walk("soft_glsl", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
-                       backface=None if layer is None else layer.detach(), lanes=lanes)
-    return KernelOutputs(out[:, :1], out[:, 1:] if indirect else None)
+        out = unlit = run_walk("soft_glsl", gbuffer, normals, settings, acc_ints, acc_floats, channels, light=light,
+                               backface=None if layer is None else layer.detach(), lanes=lanes)
+    return KernelOutputs(unlit[:, :1], out[:, 1:] if indirect else None)
 
 
 def glsl_soft_covers(module, gbuffer: GBuffer) -> str | None:
