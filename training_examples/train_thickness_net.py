@@ -27,7 +27,9 @@ What it does
       CUDA, one GPU per process). Each rank renders and trains on its own shard of every epoch's
       views; gradients are averaged, so every rank holds the same weights. Only rank 0 prints,
       evaluates and writes results; every rank writes ``OUT/rank<r>.json`` (world size, views seen,
-      a checksum of its final weights).
+      a checksum of its final weights). The process group is torch_ao.distributed's; a rank leaves
+      with ``os._exit`` once its files are written, since DDP keeps gloo's threads alive into the
+      interpreter's shutdown, where they can abort a finished rank.
 
 How to run
     nice -n 10 python training_examples/train_thickness_net.py     # a few minutes of CPU time
@@ -54,6 +56,7 @@ import hashlib
 import math
 import os
 import random
+import sys
 import time
 from pathlib import Path
 
@@ -62,6 +65,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from torch_ao import distributed as ranks
 from torch_ao.datasets import TRAIN_SCENES
 from torch_ao.fit import FitView, evaluate, load_views, remove_stale_temporaries, rng_state, save_checkpoint, set_rng_state
 from torch_ao.fitted import DenoisedAO
@@ -172,19 +176,10 @@ def target_thickness(gbuffer, cap: float) -> torch.Tensor:
 # Distributed set-up and checkpoints
 # ---------------------------------------------------------------------------------------------
 def setup_distributed():
-    """(rank, world size, device); initialises the process group under torchrun."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    local = int(os.environ.get("LOCAL_RANK", "0"))
-    if torch.cuda.is_available():
-        device = torch.device("cuda", local)
-        torch.cuda.set_device(device)
-    else:
-        device = torch.device("cpu")
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
-    if world > 1:
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-    return rank, world, device
+    """(rank, world size, device); under torchrun, the process group (torch_ao.distributed)."""
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    ranks.init_from_environment(device)
+    return ranks.rank(), ranks.world_size(), ranks.rank_device(device)
 
 
 def weights_checksum(model: nn.Module) -> str:
@@ -313,10 +308,7 @@ def main(argv=None) -> dict | None:
         loss.backward()  # DDP averages the gradients over ranks here
         optimizer.step()
         seen += [v.name for v in views]
-        mean_loss = loss.detach().clone()
-        if world > 1:
-            dist.all_reduce(mean_loss)
-            mean_loss /= world
+        mean_loss = ranks.sum_over_ranks(loss.detach().double().reshape(1)) / world
         stage = "supervised" if supervised else "end-to-end"
         history.append({"step": step, "epoch": epoch, "stage": stage, "loss": float(mean_loss), "tau": ao.tau})
         if step % max(1, total // 20) == 0 or step == total - 1 or step == supervised_steps:
@@ -325,11 +317,7 @@ def main(argv=None) -> dict | None:
         if rank == 0 and step == supervised_steps and args.finetune_epochs > 0:  # stage a's net, for comparison
             NetThickness(R, cnn=net).save(out / STAGE_A)
         if step % args.checkpoint_every == 0 or step == stop:
-            states = [None] * world
-            if world > 1:
-                dist.all_gather_object(states, rng_state())
-            else:
-                states = [rng_state()]
+            states = ranks.gather_objects(rng_state())
             if rank == 0:
                 save_checkpoint(ckpt, {"config": fingerprint, "model": net.state_dict(), "optimizer": optimizer.state_dict(),
                                        "step": step, "history": history, "rng": states})
@@ -338,9 +326,7 @@ def main(argv=None) -> dict | None:
     checksum = weights_checksum(net)
     save_json(out / f"rank{rank}.json", {"rank": rank, "world_size": world, "steps": step, "views_seen": seen, "checksum": checksum,
                  "backend": dist.get_backend() if world > 1 else None})
-    if world > 1:  # the evaluation below needs no collectives: the other ranks need not wait in a barrier for it
-        dist.barrier()
-        dist.destroy_process_group()
+    ranks.finish()  # (the evaluation below needs no collectives: the other ranks need not wait for it)
     result = None
     if rank == 0 and step == total:
         NetThickness(R, cnn=net).save(out / "thickness_net.pt")
@@ -417,3 +403,11 @@ def evaluate_holdout(args, net: nn.Module, device, stage_a: Path | None = None) 
 
 if __name__ == "__main__":
     main()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        # DDP keeps the gloo group (and its worker threads) alive to the interpreter's exit, past
+        # destroy_process_group: a worker that drops a finished collective's tensors while the interpreter
+        # finalises cannot take the GIL and aborts the process ("terminate called without an active
+        # exception"). Every file is written and closed by now: leave without finalising.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
