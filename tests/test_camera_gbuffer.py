@@ -215,3 +215,8 @@ def test_to_takes_a_dtype_as_tensor_to_does():
     assert torch.equal(wide.depth.float(), gb.depth)
     with pytest.raises(TypeError, match="two dtypes"):
         gb.to(torch.float64, torch.float32)
+    camera = gb.camera.to(torch.float64)  # the camera alone, the same way
+    assert camera.intrinsics.dtype == torch.float64 and camera.intrinsics.device == gb.camera.intrinsics.device
+    assert torch.equal(camera.intrinsics.float(), gb.camera.intrinsics)
+    with pytest.raises(TypeError, match="two dtypes"):
+        gb.camera.to(torch.float64, torch.float32)

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 
+from .checks import to_arguments
+
 __all__ = ["PinholeCamera", "pixels_to_view", "view_to_pixels", "MIN_FOCAL_RATIO", "MAX_FOCAL_RATIO",
            "MAX_PRINCIPAL_OFFSET"]
 
@@ -195,6 +197,9 @@ class PinholeCamera:
         return torch.rad2deg(2 * torch.atan(0.5 * self.height / self.fy))
 
     def to(self, device=None, dtype=None) -> "PinholeCamera":
+        """A copy on ``device`` (and in ``dtype``); as ``Tensor.to``, ``camera.to(torch.float64)`` changes the dtype
+        alone."""
+        device, dtype = to_arguments(device, dtype)
         K = self.intrinsics.to(device=device, dtype=dtype)
         if K.dtype in (torch.float32, torch.float64):  # (every range holds in both: fx <= 1e9 x 16384 pixels)
             return PinholeCamera._of_checked(K, self.height, self.width)

@@ -82,6 +82,18 @@ def scalar_value(value) -> float | None:
     return None
 
 
+def to_arguments(device=None, dtype=None):
+    """``(device, dtype)`` of a ``to`` call read as ``Tensor.to`` reads it: a dtype given first changes the dtype
+    alone (``x.to(torch.float64)``)."""
+    import torch
+
+    if isinstance(device, torch.dtype):
+        if dtype is not None:
+            raise TypeError(f"to: got two dtypes, {device} and {dtype}")
+        return None, device
+    return device, dtype
+
+
 def install_hint(extra: str, package: str) -> str:
     """How to install an optional dependency: the extra from the repository's checkout, or the package.
 

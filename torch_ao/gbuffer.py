@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
 
 from .camera import PinholeCamera
+from .checks import to_arguments
 from .ops import channel_norm, normalize_channels
 
 __all__ = ["GBuffer", "normals_from_depth", "BACKGROUND_DEPTH", "geometry_depth"]
@@ -189,10 +190,7 @@ class GBuffer:
     def to(self, device=None, dtype: torch.dtype | None = None) -> "GBuffer":
         """A copy on ``device`` (and with float buffers in ``dtype``); as ``Tensor.to``, ``gbuffer.to(torch.float64)``
         changes the dtype alone."""
-        if isinstance(device, torch.dtype):
-            if dtype is not None:
-                raise TypeError(f"to: got two dtypes, {device} and {dtype}")
-            device, dtype = None, device
+        device, dtype = to_arguments(device, dtype)
 
         def move(x, floating=True):
             if x is None:
