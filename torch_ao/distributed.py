@@ -63,7 +63,12 @@ def finish(completed: bool = True) -> None:
     ``completed`` first waits for the others (a barrier), ends its group, and then waits until every rank has
     ended its own (a counter in the rendezvous store): a rank must not close its connections while a peer still
     uses them, which gloo answers by aborting that peer's process ("terminate called without an active
-    exception"). A rank that failed does not wait (``torchrun`` stops the others)."""
+    exception"). A rank that failed does not wait (``torchrun`` stops the others).
+
+    A group that ``DistributedDataParallel`` wrapped is not freed here: DDP keeps references to it, so gloo's
+    worker threads live on into the interpreter's shutdown, where one that drops a finished collective's tensors
+    aborts the process the same way. Such a script ends its ranks with ``os._exit`` once its files are written
+    (``training_examples/train_thickness_net.py``)."""
     if not dist.is_initialized():
         return
     if not completed:
