@@ -404,10 +404,8 @@ def evaluate_holdout(args, net: nn.Module, device, stage_a: Path | None = None) 
 if __name__ == "__main__":
     main()
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        # DDP keeps the gloo group (and its worker threads) alive to the interpreter's exit, past
-        # destroy_process_group: a worker that drops a finished collective's tensors while the interpreter
-        # finalises cannot take the GIL and aborts the process ("terminate called without an active
-        # exception"). Every file is written and closed by now: leave without finalising.
+        # every file is written: leave without finalising, under gloo threads that DDP keeps alive
+        # (torch_ao.distributed.finish says why that can abort a rank)
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(0)
