@@ -32,7 +32,7 @@ python3 -c "from torch_ao.kernels import build; build.load_walk_grad_library()" 
 backward=$!
 mkdir -p "$TORCH_AO_CUDA_CACHE"
 compgen -G ".cuda_cache/*.bin" >/dev/null && cp .cuda_cache/*.bin "$TORCH_AO_CUDA_CACHE"/
-timeout 240 python3 -c "import time, torch; t = time.time(); from torch_ao.kernels import launch
+timeout 420 python3 -c "import time, torch; t = time.time(); from torch_ao.kernels import launch
 print('torch', torch.__version__, 'CUDA', torch.version.cuda, 'cached binaries:', sorted(p.name for p in launch.cuda_cache_dir().glob('*.bin')))
 for full in (False, True):  # the lean build, then the full one (launch.full_walk)
     t = time.time(); k = launch._cuda_kernels(0, full)

@@ -1,8 +1,10 @@
 """Where a CUDA call's time goes: for each of bench_cuda.py's cases, the call's time (CUDA events, median), the
 time its kernels run on the GPU (torch.profiler's device times, per call), the walk's own kernels among them,
 how many kernels it launches, and how often the host waits for the GPU (synchronisations and copies to or from
-the host), and the memory it allocates at its peak. A call whose kernels take far less than the call is bound by
-the host's launching.
+the host), the memory it allocates at its peak, and the device memory held outside torch's allocator after it
+(the CUDA context and the driver's local memory for the kernels' stacks, which grows to the largest launched and
+stays: a case that raises it launched a kernel with a larger stack). A call whose kernels take far less than the
+call is bound by the host's launching.
 
     python benchmarks/profile_cuda.py                    # 1920x1080, every case
     python benchmarks/profile_cuda.py --cases "gtao high, fwd" --top 8
@@ -74,7 +76,10 @@ def main(argv=None) -> int:
             base = torch.cuda.memory_allocated()
             ms = median_ms(fn, device, warmup=2, repeat=args.repeat)
             peak = (torch.cuda.max_memory_allocated() - base) / 2**20
-            row = {"case": label, "call_ms": ms, "peak_mb": peak, **profile_case(fn, args.calls)}
+            free, total = torch.cuda.mem_get_info()
+            outside = (total - free - torch.cuda.memory_reserved()) / 2**20
+            row = {"case": label, "call_ms": ms, "peak_mb": peak, "outside_mb": outside,
+                   **profile_case(fn, args.calls)}
         except Exception as exc:  # noqa: BLE001 - reported, the other cases still run
             row = {"case": label, "error": f"{type(exc).__name__}: {str(exc)[:300]}"}
             print(f"{label}: FAILED {row['error']}", flush=True)
@@ -84,7 +89,8 @@ def main(argv=None) -> int:
         top = sorted(row["kernels"].items(), key=lambda kv: -kv[1])[:args.top]
         waits = ", ".join(f"{k} {v:g}" for k, v in row["waits"].items()) or "none"
         print(f"{label}: call {ms:.3f} ms, kernels {row['device_ms']:.3f} ms on the GPU "
-              f"({row['launches']:g} launches), host waits: {waits}, peak {peak:.0f} MB", flush=True)
+              f"({row['launches']:g} launches), host waits: {waits}, peak {peak:.0f} MB, "
+              f"outside torch's allocator {outside:.0f} MB", flush=True)
         for name, t in top:
             print(f"    {t:9.3f} ms  {name[:90]}", flush=True)
         if args.json:

@@ -19,6 +19,7 @@ from test_kernels import FRAMES, built  # noqa: F401,F811  (built: the fixture)
 from test_kernels_position_reads import moved_positions
 from torch_ao.kernels.launch import _THREADS, cuda_source, packed_inputs, run_walk, walk_settings
 from torch_ao.kernels.soft_bitmask import soft_backward_kernel
+from torch_ao.kernels.walk_grad import cuda_backward, replayed_fetches
 from torch_ao.methods.pssao import PSSAOPattern
 from torch_ao.methods.ssao import hemisphere_kernel
 from torch_ao.methods.ue4_ssao import SAMPLE_SETS
@@ -139,7 +140,9 @@ typedef void ExactBackward(const float*, const float*, const float*, const float
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            float*, const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao, tao_record_pssao;
-Backward tao_backward_gtao, tao_backward_hbao, tao_backward_wedge, tao_backward_pssao, tao_backward_hemisphere;
+Backward tao_backward_gtao, tao_backward_gtao_short, tao_backward_gtao_replacing, tao_backward_hbao,
+    tao_backward_hbao_short, tao_backward_hbao_replacing, tao_backward_wedge, tao_backward_wedge_short,
+    tao_backward_pssao_replacing, tao_backward_hemisphere, tao_backward_hemisphere_short;
 SoftBackward tao_soft_backward, tao_soft_backward_short, tao_soft_backward_glsl, tao_soft_backward_glsl_short;
 ExactBackward tao_exact_backward;
 HardRecord tao_record_hard, tao_record_hard_glsl;
@@ -155,14 +158,28 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
   for (unsigned b = 0; (long long)b * threads < pixels; ++b)
     for (unsigned t = 0; t < threads; ++t) blockIdx.x = b, threadIdx.x = t, fn();
 }
+Backward* horizon_backward(const std::string& name) {  // (tao_backward_NAME)
+  const std::pair<const char*, Backward*> entries[] = {
+      {"gtao", tao_backward_gtao}, {"gtao_short", tao_backward_gtao_short},
+      {"gtao_replacing", tao_backward_gtao_replacing}, {"hbao", tao_backward_hbao},
+      {"hbao_short", tao_backward_hbao_short}, {"hbao_replacing", tao_backward_hbao_replacing},
+      {"wedge", tao_backward_wedge}, {"wedge_short", tao_backward_wedge_short},
+      {"pssao_replacing", tao_backward_pssao_replacing}, {"hemisphere", tao_backward_hemisphere},
+      {"hemisphere_short", tao_backward_hemisphere_short}};
+  for (const auto& entry : entries)
+    if (name == entry.first) return entry.second;
+  return nullptr;
+}
 int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS THREADS: record, then backward
-                                   // (NAME soft, exact, hard, wedge, hemisphere: that walk's backward alone)
+                                   // (NAME soft, exact, hard, wedge, hemisphere: that walk's backward alone;
+                                   // gtao, hbao, pssao, wedge, hemisphere with their entry's suffix, as _short)
   const std::string name = argv[1], dir = argv[2];
   const int B = std::atoi(argv[3]), H = std::atoi(argv[4]), W = std::atoi(argv[5]), C = std::atoi(argv[6]);
   const long long words = std::atoll(argv[7]);
   const unsigned threads = unsigned(std::atoi(argv[8]));
-  Record* record = name == "gtao" ? tao_record_gtao : name == "pssao" ? tao_record_pssao : tao_record_hbao;
-  Backward* backward = name == "gtao" ? tao_backward_gtao : name == "pssao" ? tao_backward_pssao : tao_backward_hbao;
+  const auto named = [&](const char* prefix) { return name.rfind(prefix, 0) == 0; };
+  Record* record = named("gtao") ? tao_record_gtao : named("pssao") ? tao_record_pssao : tao_record_hbao;
+  Backward* backward = horizon_backward(name);
   auto P = load<float>(dir, "positions"), N = load<float>(dir, "normals"), I = load<float>(dir, "inverse");
   auto D = load<float>(dir, "depth"), K = load<float>(dir, "intrinsics"), Ce = load<float>(dir, "cells");
   auto Bf = load<float>(dir, "backface");
@@ -211,9 +228,8 @@ int main(int argc, char** argv) {  // grad_driver NAME DIR B H W C RECORD_WORDS 
                                                   senders.data(), tli.data(), gc.data(), ints.data(), floats.data(),
                                                   B, H, W); });
     save(dir, "tap_normals", senders), save(dir, "tap_light", tli);
-  } else if (name == "wedge" || name == "hemisphere") {  // (every step replayed: no record)
-    Backward* every = name == "wedge" ? tao_backward_wedge : tao_backward_hemisphere;
-    grid(pixels, threads, [&] { every(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
+  } else if (named("wedge") || named("hemisphere")) {  // (every step replayed: no record)
+    grid(pixels, threads, [&] { backward(P.data(), N.data(), I.data(), D.data(), V, K.data(), cells, grad.data(), nullptr,
                                       gp.data(), gn.data(), gd.data(), gs.data(), taps.data(), ti.data(), gc.data(),
                                       ints.data(), floats.data(), B, H, W); });
   } else {
@@ -506,6 +522,16 @@ def test_cuda_kernels_agree_with_the_cpu_operator(built):
     assert not failed, failed
 
 
+def _replaces(accumulator: str, acc_ints: list) -> bool:
+    """Whether the packed accumulator's take replaces its state, as its module tells the kernels: GTAO's exact
+    variant (``acc_ints[0] == 0``), HBAO's ``accumulate="max"`` (``acc_ints[1]`` false), PSSAO."""
+    if accumulator == "gtao":
+        return acc_ints[0] == 0
+    if accumulator == "hbao":
+        return not acc_ints[1]
+    return accumulator == "pssao"
+
+
 def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
     max), UE4 SSAO's wedge pairs, PSSAO and SSAO's hemisphere points (every step replayed), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
@@ -520,6 +546,13 @@ def _backward_cases():
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
     yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
            [True, True, False], [1.0, 0.1], 1)
+    # more steps than the _short entries replay (2 x 9 fetches a slice; the _replacing entry's 2 whatever the steps)
+    yield "gtao", walk_settings(**dict(common, steps=9), placement="hdrp"), [1, True, False], [1.0, 0.0, 1.0], 2
+    yield "gtao", walk_settings(**dict(common, steps=9)), [0, True, False], [1.0, 0.3, 1.0], 2
+    yield ("hbao", walk_settings(**dict(common, steps=9), full_circle=True, azimuth="screen"), [False, True, False],
+           [1.0, 0.1], 1)
+    yield ("hbao", walk_settings(**dict(common, steps=9), full_circle=True, azimuth="screen"), [False, False, False],
+           [1.0, 0.1], 1)
     # (accurate_angle); fade_distance, flat_surface_bias, flat_softness / distance_bias; PSSAO's offsets as a table
     yield ("wedge", walk_settings(**dict(common, steps=3), placement="wedge", azimuth="screen"), [True],
            [0.4, 0.05, 0.02], 2)
@@ -533,6 +566,7 @@ def _backward_cases():
     yield "hemisphere", _hemisphere_settings(6, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     yield "hemisphere", _hemisphere_settings(5, fetch="nearest", border="clamp", jitter=False), [], [0.01, 0.1], 1
     yield "hemisphere", _hemisphere_settings(6, fetch="edge_aware", border="clamp", jitter=True), [], [0.0, 0.05], 1
+    yield "hemisphere", _hemisphere_settings(9, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     # (rounding, cosine, straight, read, variant, bent, indirect, a growth, the segment geometry: along the ray, clip)
     yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 1
     yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0, 0, 0, 0, 0, 0], [0.4, 0.01, 0.1, 0.0, 0.0], 1
@@ -617,6 +651,22 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     assert_the_scalar_lanes_backward(cuda_on_cpu, FRAMES[frame](), _backward_cases())
 
 
+def test_a_cuda_backward_too_small_for_its_call_writes_nan(built, cuda_on_cpu):
+    """HBAO's incremental sum (every rise replayed) run by the entry for calls that replay each side's last take
+    alone (tao_backward_hbao_replacing): every live pixel's position gradient is NaN, never a partial gradient."""
+    gb = FRAMES["rough"]()
+    settings = walk_settings(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop",
+                             full_circle=True, azimuth="screen")
+    case = ("hbao", settings, [False, True, False], [1.0, 0.1], 1)
+    assert_the_scalar_lanes_backward(cuda_on_cpu, gb, [case])  # (its own entry, tao_backward_hbao_short: agrees)
+    with pytest.raises(AssertionError, match="hbao"):
+        assert_the_scalar_lanes_backward(cuda_on_cpu, gb, [case], entry="hbao_replacing")
+    B, _, H, W = gb.depth.shape
+    g_pos = np.fromfile(cuda_on_cpu.parent / "grad_hbao" / "g_positions", dtype=np.float32).reshape(B, H, W, 3)
+    live = gb.valid[:, 0].numpy()
+    assert live.any() and np.isnan(g_pos[live]).all()
+
+
 def test_the_full_cuda_builds_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cuda_on_cpu_full):
     """The full build's record and backward kernels: slices drawn by the projected normal's density and the soft
     segment geometry (:func:`_full_backward_cases`), a position buffer read between texels, whose taps' positions
@@ -625,9 +675,10 @@ def test_the_full_cuda_builds_backward_run_on_the_cpu_is_the_scalar_lanes_backwa
     assert_the_scalar_lanes_backward(cuda_on_cpu_full, moved_positions()[0], _position_backward_cases())
 
 
-def assert_the_scalar_lanes_backward(program, gb, all_cases):
+def assert_the_scalar_lanes_backward(program, gb, all_cases, entry=None):
     """Each of ``all_cases`` (:func:`_backward_cases`' layout) launched by ``program``'s backward driver on ``gb``: the
-    CPU operators' scalar lanes' gradients, relative to their largest."""
+    CPU operators' scalar lanes' gradients, relative to their largest. ``entry``: the driver's kernel instead of the
+    one the module's call would run (tao_backward_``entry``)."""
     from torch_ao.kernels.build import grad_kernels
 
     normals = gb.view_normals()
@@ -654,7 +705,13 @@ def assert_the_scalar_lanes_backward(program, gb, all_cases):
         kernel = {"tao_soft_backward_short": "soft_short"}.get(soft_backward_kernel(settings[0][1]), "soft")
         if accumulator == "soft_glsl":  # (the short arrays where a slice's steps fit 16)
             kernel = "soft_glsl_short" if settings[0][1] <= 16 else "soft_glsl"
-        subprocess.run([str(program.parent / "grad_driver"), kernel if accumulator.startswith("soft") else accumulator,
+        fetches = replayed_fetches(settings[0][1], _replaces(accumulator, acc_ints))
+        if accumulator in ("gtao", "hbao", "pssao", "wedge", "hemisphere"):  # (the entry the module's call would run)
+            kernel = cuda_backward(accumulator, fetches).removeprefix("tao_backward_")
+        elif not accumulator.startswith("soft"):
+            kernel = accumulator
+        kernel = entry or kernel
+        subprocess.run([str(program.parent / "grad_driver"), kernel,
                         str(folder), str(B), str(H), str(W),
                         str(channels), str(words), str(_THREADS)], check=True)
 
@@ -687,13 +744,14 @@ def assert_the_scalar_lanes_backward(program, gb, all_cases):
                 cpu["light"] = light_grad
         elif accumulator in ("wedge", "hemisphere"):
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
-                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), True, True)
+                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), fetches, True,
+                True)
         else:
             out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
             assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
             assert (read("out", *out.shape) - out).abs().max() <= 1e-6
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
-                accumulator, grad, *inputs, cells, ints, floats, record, True, True)
+                accumulator, grad, *inputs, cells, ints, floats, record, fetches, True, True)
         cuda = {"positions": read("g_positions", *g_pos.shape) + read("tap_positions", *g_pos.shape),
                 "normals": read("g_normals", *g_nrm.shape), "inverse": read("tap_inverse", *g_inv.shape),
                 "depth": read("g_depth", *g_depth.shape), "setting": read("g_setting", *g_setting.shape)}

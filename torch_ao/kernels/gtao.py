@@ -73,7 +73,8 @@ def gtao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, variant: str = "exact"
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, *setting):
         _check_gradient(gbuffer)
-        walk, options = differentiable_walk, {"radius": radius, "setting": setting, "setting_dimension": dimension}
+        walk, options = differentiable_walk, {"radius": radius, "setting": setting, "setting_dimension": dimension,
+                                              "replaces": variant == "exact"}
     return walk("gtao", gbuffer, normals, settings,
                 [VARIANTS.index(variant), bool(projected_normal_weight), bool(bent_normals)],
                 [packed_value(radius), packed_value(falloff), packed_value(thickness)], 5 if bent_normals else 2,
@@ -107,7 +108,8 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, angle_bias):
         _check_gradient(gbuffer)
-        walk, options = differentiable_walk, {"radius": radius, "setting": (angle_bias,)}
+        walk, options = differentiable_walk, {"radius": radius, "setting": (angle_bias,),
+                                              "replaces": accumulate == "max"}
     return walk("hbao", gbuffer, normals, settings,
                 [falloff == "quadratic", accumulate == "incremental", elevation == "view"],
                 [packed_value(radius), packed_value(angle_bias)], 1, lanes=lanes, **options)

@@ -103,7 +103,7 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
                              placement="pixels", full_circle=True, azimuth="screen", table=table)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, distance_bias):
-        walk, options = differentiable_walk, {"radius": 0.0, "setting": (distance_bias,)}
+        walk, options = differentiable_walk, {"radius": 0.0, "setting": (distance_bias,), "replaces": True}
     return walk("pssao", gbuffer, normals, settings, [], [packed_value(distance_bias)], 3, lanes=lanes, **options)
 
 

@@ -37,7 +37,11 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
 
 // The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
 // the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes
-// run the same record_block and grad_block
+// run the same record_block and grad_block. A backward's thread keeps a tape for `fetches` replayed fetches a
+// slice in local memory, which the driver reserves for every thread the GPU holds at once (an H100's 270,336):
+// 107 kB a thread for 32 steps a side, 29 GB of device memory. So each accumulator has the entries its calls
+// need (walk_grad.py's cuda_backward picks one): _replacing, 2 (where a take replaces the state: each side's last
+// one alone), _short, 16 (8 steps a side: every preset's), and the full 2 kGradMaxSteps
 #define TAO_CUDA_RECORD(name, unpack)                                                                       \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
                                   const float* depth, const bool* valid, const float* intrinsics,        \
@@ -48,7 +52,7 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
     const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, nullptr, valid, B, H, W}; \
     tao::record_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, record, p);  \
   }
-#define TAO_CUDA_BACKWARD(name, unpack)                                                                     \
+#define TAO_CUDA_BACKWARD(name, unpack, fetches)                                                            \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
                                   const float* depth, const bool* valid, const float* intrinsics,        \
                                   const float* cells, const float* grad, const int64_t* record,           \
@@ -58,18 +62,26 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
     const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;                                    \
     if (p >= int64_t(B) * H * W) return;                                                                  \
     const tao::Frame frame{positions, normals, inverse, depth, intrinsics, nullptr, cells, nullptr, valid, B, H, W}; \
-    tao::grad_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, grad, record, g_positions, \
-                    g_normals, g_depth, g_setting, tap_positions, tap_inverse, g_camera, p);              \
+    tao::grad_pixel<decltype(tao::unpack(ints, floats)), fetches>(                                      \
+        tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, grad, record, g_positions, g_normals, \
+        g_depth, g_setting, tap_positions, tap_inverse, g_camera, p);                                    \
   }
 
 TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
 TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
 TAO_CUDA_RECORD(tao_record_pssao, unpack_pssao)
-TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao)
-TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao)
-TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge)  // (every step replayed: no record)
-TAO_CUDA_BACKWARD(tao_backward_pssao, unpack_pssao)
-TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere)
+constexpr int kFetchesAll = 2 * tao::kGradMaxSteps, kFetchesShort = 16, kFetchesReplacing = 2;
+TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao, kFetchesAll)
+TAO_CUDA_BACKWARD(tao_backward_gtao_short, unpack_gtao, kFetchesShort)
+TAO_CUDA_BACKWARD(tao_backward_gtao_replacing, unpack_gtao, kFetchesReplacing)  // (the exact variant's)
+TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao, kFetchesAll)
+TAO_CUDA_BACKWARD(tao_backward_hbao_short, unpack_hbao, kFetchesShort)
+TAO_CUDA_BACKWARD(tao_backward_hbao_replacing, unpack_hbao, kFetchesReplacing)  // (accumulate="max")
+TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge, kFetchesAll)  // (every step replayed: no record)
+TAO_CUDA_BACKWARD(tao_backward_wedge_short, unpack_wedge, kFetchesShort)
+TAO_CUDA_BACKWARD(tao_backward_pssao_replacing, unpack_pssao, kFetchesReplacing)  // (always: its highest sample)
+TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere, kFetchesAll)
+TAO_CUDA_BACKWARD(tao_backward_hemisphere_short, unpack_hemisphere, kFetchesShort)
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d the thickness'
 // offset, scale and growth per pixel in g_thickness (B, H, W, 3); the layer's taps' in tap_layer (backface: the model's

@@ -447,10 +447,12 @@ template <class B> struct TapedTake {
   typename LaneTraits<B>::M has;
 };
 
-// A replay's fetches (Tape::fetches): the pixels' values they read and, in order, what each fetched
+// A replay's fetches (Tape::fetches): the pixels' values they read and, in order, what each fetched (at most
+// capacity: one more overwrites the last and overflows the tape)
 template <class B> struct TapedFetches {
   const Pixels<B>* px;
   TapedTake<B>* taken;
+  int32_t capacity;
   int n;
 };
 
@@ -467,6 +469,7 @@ TAO_FN Sample<Rev<B>> fetch_sample(const WalkSettings& cfg, const Image& img, co
   using R = Rev<B>;
   Tape<B>* tape = current_tape<B>();
   TapedFetches<B>& fetches = *static_cast<TapedFetches<B>*>(tape->fetches);
+  if (fetches.n == fetches.capacity) tape->overflow = true, --fetches.n;  // (the block's gradients unwritten)
   TapedTake<B>& take = fetches.taken[fetches.n++];
   const MovingFetch<B> fetch(cfg, img, *fetches.px, su.v, sv.v);
   const Sample<B>& plain = fetch.plain;
@@ -531,6 +534,16 @@ template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
   static constexpr bool value = true;
 };
 
+// The most fetches one slice of a horizon backward replays, for steps per side: where a take replaces the state
+// (acc.replaces()), each side's last take alone (2), else every step of both sides (2 steps). The caller sizes a
+// replay's scratch by it (walk_grad.py's replayed_fetches chooses the same number on the host)
+template <class Acc> TAO_FN int64_t replayed_fetches(const Acc& acc, int64_t steps) {
+  if constexpr (RecordsTakes<Acc>::value) {
+    if (acc.replaces()) return 2;
+  }
+  return 2 * steps;
+}
+
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
 // geometry, begin and end, at most 2 steps takes). At 3 x 1..16 (every variant, fetch and azimuth; the count
 // follows the code, not the values) the pixel makes at most 46, a slice at most 211 besides its takes, a take at
@@ -538,18 +551,19 @@ template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
 // components, the azimuth's and weight's nodes of density_azimuth, the slice's tangent and its weight's products);
 // with room to spare (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)
 constexpr int32_t kTapePixel = 64, kTapeSlice = 280, kTapeTake = 60, kTapeDensity = 40;
-TAO_FN int32_t tape_capacity(int64_t steps) {
-  return kTapePixel + kTapeSlice + kTapeDensity + int32_t(2 * steps) * kTapeTake;
+TAO_FN constexpr int32_t tape_capacity(int64_t fetches) {  // (fetches: a slice's, replayed_fetches')
+  return kTapePixel + kTapeSlice + kTapeDensity + int32_t(fetches) * kTapeTake;
 }
 
 // The backward of the lanes' pixels: upstream[c] the gradient of output channel c (H, W), record the forward's
 // (image b's), t where the gradients go (added to it); of every slice, or of slice `only` alone (>= 0: a gathered
-// block's); scratch: take_steps 2 steps L floats, taken 2 steps takes, tape of tape_capacity(steps) nodes
-// (overflow: the gradients are not written and tape.overflow says so)
+// block's); scratch: take_steps 2 steps L floats, taken max_fetches takes, tape of tape_capacity(max_fetches) nodes,
+// max_fetches at least replayed_fetches(acc, steps) (overflow: the gradients are not written and tape.overflow
+// says so)
 template <class B, class Acc>
 TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc, const RowLanes& lanes, int64_t only,
                        const float* const* upstream, int C, const int64_t* record, const Targets& t,
-                       float* take_steps, TapedTake<B>* taken, Tape<B>& tape) {
+                       float* take_steps, TapedTake<B>* taken, int32_t max_fetches, Tape<B>& tape) {
   using R = Rev<B>;
   constexpr int L = LaneTraits<B>::L;
   const int n = lanes.n;
@@ -579,7 +593,7 @@ TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc
   const Pixels<R> px(cfg, img, lanes);
   if (!any(px.live) || tape.overflow) return;
   const Pixels<B> px_values(px, [](const R& x) { return x.v; });
-  TapedFetches<B> fetches{&px_values, taken, 0};
+  TapedFetches<B> fetches{&px_values, taken, max_fetches, 0};
   tape.fetches = &fetches;
   const int32_t pixel_nodes = tape.n;
   B setting[Tape<B>::kSettings], camera[4];
@@ -645,8 +659,8 @@ TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc
 template <class B, class Acc>
 TAO_FN void grad_block(const WalkSettings& cfg, const Image& img, const Acc& acc, int64_t row, int64_t u0, int n,
                        const float* const* upstream, int C, const int64_t* record, const Targets& t,
-                       float* take_steps, TapedTake<B>* taken, Tape<B>& tape) {
-  grad_lanes(cfg, img, acc, RowLanes{row, u0, n}, -1, upstream, C, record, t, take_steps, taken, tape);
+                       float* take_steps, TapedTake<B>* taken, int32_t max_fetches, Tape<B>& tape) {
+  grad_lanes(cfg, img, acc, RowLanes{row, u0, n}, -1, upstream, C, record, t, take_steps, taken, max_fetches, tape);
 }
 
 // The soft backward's sink (soft.h's end_slice_adjoint): a step's d L / d delta to its kept fetch's taps
@@ -1314,8 +1328,10 @@ TAO_FN void read_position_buffer(Targets& t, const WalkSettings& cfg, const Fram
 // Pixel p's backward (a CUDA thread): grad (B, C, H, W); the gradients of image b at its own pixel (positions,
 // normals (B, H, W, 3), depth (B, H, W), settings (B, H, W, acc.settings()), and where camera is not null
 // d L / d fx, fy, cx, cy (B, H, W, 4)) and scattered to its taps (tap_positions (B, H, W, 3), tap_inverse
-// (B, H, W), atomically)
-template <class Acc>
+// (B, H, W), atomically). Its replay's scratch is sized for kFetches fetches a slice (replayed_fetches: where the
+// call's need more, the pixel's position gradient is NaN): the driver reserves a thread's local memory for every
+// thread the GPU can hold, so a tape for the most steps would cost gigabytes of device memory on every call
+template <class Acc, int kFetches>
 TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* grad,
                        const int64_t* record, float* positions, float* normals, float* depth, float* setting,
                        float* tap_positions, float* tap_inverse, float* camera, int64_t p) {
@@ -1329,14 +1345,18 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   t.camera = camera ? camera + 4 * b * plane : nullptr;
   t.settings = acc.settings();
   float take_steps[2 * kGradMaxSteps];
-  TapedTake<float> taken[2 * kGradMaxSteps];
-  constexpr int32_t capacity = kTapePixel + kTapeSlice + kTapeDensity + 2 * kGradMaxSteps * kTapeTake;
+  TapedTake<float> taken[kFetches];
+  constexpr int32_t capacity = tape_capacity(kFetches);
   float partials[Tape<float>::partials_size(capacity)], adjoints[Tape<float>::adjoints_size(capacity)];
   int32_t parents[Tape<float>::parents_size(capacity)];
   Tape<float> tape(partials, parents, adjoints, capacity);
   const int64_t per_image = RecordsTakes<Acc>::value ? plane * take_words(cfg) : 0;
-  grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * per_image, t, take_steps, taken, tape);
-  if (tape.overflow) {  // (cannot happen below kGradMaxSteps steps: NaN rather than a silently partial gradient)
+  if (replayed_fetches(acc, cfg.steps) > kFetches)
+    tape.overflow = true;  // (the host chose a kernel too small for the call)
+  else
+    grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * per_image, t, take_steps, taken,
+                      kFetches, tape);
+  if (tape.overflow) {  // (NaN rather than a silently partial gradient)
     const float nan = bits_float(0x7fc00000u);
     for (int c = 0; c < 3; ++c) t.positions[3 * (row * fr.W + u) + c] = nan;
   }

@@ -33,10 +33,31 @@ from .build import grad_kernels
 from .frame import scalar_lanes, scale_derivative
 from .launch import full_walk, launch_cuda, packed_inputs, run_packed
 
-__all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "MAX_CUDA_STEPS"]
+__all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "replayed_fetches", "cuda_backward",
+           "MAX_CUDA_STEPS"]
 
 #: the most steps per side of the CUDA backward (walk_grad.h's kGradMaxSteps: a thread's replay is a fixed array)
 MAX_CUDA_STEPS = 32
+#: the fetches a slice of walk_cuda.cu's ``_short`` backwards replays (8 steps a side: every preset's)
+_SHORT_FETCHES = 16
+
+
+def replayed_fetches(steps: int, replaces: bool) -> int:
+    """The most fetches one slice of the backward replays, for ``steps`` per side: 2 where a take replaces the
+    accumulator's state (``replaces``: GTAO's exact variant, HBAO's ``accumulate="max"``, PSSAO; each side's last
+    take alone), else every step of both sides. walk_grad.h's ``replayed_fetches`` is the rule; the CPU backward
+    checks that this is at least its number, and the CUDA backward (:func:`cuda_backward`) is chosen by it."""
+    return 2 if replaces else 2 * int(steps)
+
+
+def cuda_backward(accumulator: str, fetches: int) -> str:
+    """walk_cuda.cu's backward of ``accumulator`` whose thread's scratch holds ``fetches`` a slice
+    (:func:`replayed_fetches`): ``_replacing`` for 2, ``_short`` for at most 16, else the full one (2
+    :data:`MAX_CUDA_STEPS`). The driver reserves a thread's local memory for every thread the GPU can hold, so the
+    smallest entry that fits is the one to run (on sm_90: 13, 33 and 107 kB a thread, ``benchmarks/cuda_resources.py``)."""
+    if fetches <= 2:
+        return f"tao_backward_{accumulator}_replacing"
+    return f"tao_backward_{accumulator}_short" if fetches <= _SHORT_FETCHES else f"tao_backward_{accumulator}"
 
 
 class _Walk(torch.autograd.Function):
@@ -45,8 +66,9 @@ class _Walk(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, accumulator, positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats,
-                channels, scalar, radius, setting, setting_dimension, record_shape, full):
+                channels, scalar, radius, setting, setting_dimension, record_shape, full, fetches):
         ctx.accumulator, ctx.scalar, ctx.setting_dimension, ctx.full = accumulator, scalar, setting_dimension, full
+        ctx.fetches = fetches
         frame = (positions, normals, inverse, depth, valid, intrinsics, cells)
         if record_shape is None:  # every step replayed: the plain walk, no record
             none = positions.new_empty(0)
@@ -75,13 +97,13 @@ class _Walk(torch.autograd.Function):
             g_depth, g_inv = torch.zeros_like(depth), torch.zeros_like(depth)
             g_setting = positions.new_zeros((*depth.shape, len(setting)))
             g_camera = positions.new_zeros((*depth.shape, 4) if camera else (0,))  # (empty: a null pointer)
-            launch_cuda(f"tao_backward_{ctx.accumulator}", depth.device,
+            launch_cuda(cuda_backward(ctx.accumulator, ctx.fetches), depth.device,
                         [*frame, grad, record, g_pos, g_nrm, g_depth, g_setting, taps, g_inv,
                          g_camera, ints, floats], tuple(depth.shape), full=ctx.full)
             g_pos += taps
         else:
             g_pos, g_nrm, g_inv, g_depth, g_setting, g_camera = grad_kernels().walk_backward(
-                ctx.accumulator, grad, *frame, ints, floats, record, camera, ctx.scalar)
+                ctx.accumulator, grad, *frame, ints, floats, record, ctx.fetches, camera, ctx.scalar)
         g_intrinsics = g_camera.to(torch.float64).sum((1, 2)).to(intrinsics.dtype) if camera else None
         along_setting = g_setting.to(torch.float64).sum((0, 1, 2))  # d L / d each setting
         g_radius = None
@@ -93,7 +115,7 @@ class _Walk(torch.autograd.Function):
             g_radius = (-along / radius).to(radius.dtype)
         g_out = along_setting.to(setting.dtype) if ctx.needs_input_grad[13] else None
         return (None, g_pos, g_nrm, g_inv, g_depth, None, g_intrinsics, None, None, None, None, None, g_radius, g_out,
-                None, None, None)
+                None, None, None, None)
 
 
 def gbuffer_requires_grad(gbuffer: GBuffer) -> bool:
@@ -113,7 +135,8 @@ def wants_gradient(gbuffer: GBuffer, normals: torch.Tensor, *parameters) -> bool
 def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tensor,
                         settings: tuple[list[int], list[float]], acc_ints: list, acc_floats: list, channels: int,
                         *, radius: torch.Tensor | float, setting: tuple = (0.0,),
-                        setting_dimension: tuple = (0,), lanes: str = "simd") -> torch.Tensor:
+                        setting_dimension: tuple = (0,), replaces: bool = False,
+                        lanes: str = "simd") -> torch.Tensor:
     """:func:`~torch_ao.kernels.launch.run_walk` on a CPU or CUDA G-buffer with autograd history: gradients
     reach ``gbuffer``'s depth, normals (and position buffer) through the walk's inputs (on CUDA at most
     :data:`MAX_CUDA_STEPS` steps per side). ``accumulator``: ``"gtao"`` or ``"hbao"`` (their forward records
@@ -124,7 +147,8 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     tensors or numbers whose values ``acc_floats`` holds (GTAO's falloff in world units or thickness; HBAO's
     angle bias; UE4 SSAO's fade distance, flat-surface bias and softness; PSSAO's distance bias), which receive
     their gradients; ``setting_dimension``: per setting, its power of world units (0: none, 1: a length, 2: an
-    area; the radius' gradient, Euler's identity, needs each)."""
+    area; the radius' gradient, Euler's identity, needs each). ``replaces``: whether a step that changes a side's
+    state replaces it (:func:`replayed_fetches`; the accumulator's ``replaces()``, which the backward checks)."""
     inputs, (_, cells, _), ints, floats = packed_inputs(gbuffer, normals, settings, acc_ints, acc_floats)
     radius = torch.as_tensor(radius)
     setting = torch.stack([torch.as_tensor(v, dtype=torch.float32, device=gbuffer.depth.device) for v in setting])
@@ -135,4 +159,4 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
                        tuple(int(x) for x in setting_dimension),
                        ((int(slices) * 2 * int(steps) + 63) // 64,) if takes else None,
-                       full_walk(accumulator, gbuffer, settings))
+                       full_walk(accumulator, gbuffer, settings), replayed_fetches(steps, replaces))

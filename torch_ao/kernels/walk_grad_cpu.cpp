@@ -209,11 +209,11 @@ template <class Lane> struct ReplayScratch {
   std::vector<int32_t> parents;
   Tape<Lane> tape{nullptr, nullptr, nullptr, 0};
 
-  // this thread's, for steps per side and a tape of capacity nodes (its tape emptied)
-  static ReplayScratch& of_thread(int64_t steps, int32_t capacity) {
+  // this thread's, for steps per side, fetches a slice and a tape of capacity nodes (its tape emptied)
+  static ReplayScratch& of_thread(int64_t steps, int32_t fetches, int32_t capacity) {
     thread_local ReplayScratch s;
     s.take_steps.resize(size_t(2 * steps * LaneTraits<Lane>::L));
-    s.taken.resize(size_t(2 * steps));
+    s.taken.resize(size_t(fetches));
     s.partials.resize(size_t(Tape<Lane>::partials_size(capacity)));
     s.adjoints.resize(size_t(Tape<Lane>::adjoints_size(capacity)));
     s.parents.resize(size_t(Tape<Lane>::parents_size(capacity)));
@@ -223,17 +223,18 @@ template <class Lane> struct ReplayScratch {
 };
 
 // The gradients of every row's blocks: SIMD or scalar lanes, the forward's record of the takes, each thread's
-// tape of tape_capacity(steps) nodes (false: a block's tape overflowed, its gradients unwritten). Where a slice
+// scratch for `fetches` fetches a slice and a tape of tape_capacity(fetches) nodes (false: a block's tape
+// overflowed, its gradients unwritten). Where a slice
 // without takes adds a constant (untaken_slice_constant: HBAO, PSSAO), few of a strip's pixels may have taken
 // steps in a slice: the SIMD lanes then gather them, slice by slice (gathering_pays), instead of replaying every
 // slice of the blocks that hold them. Each strip row zeroes its pixels' own gradients first.
 template <class Acc>
 bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const float* gp, int C, const int64_t* record,
-                Gradients& out, bool scalar) {
+                int32_t fetches, Gradients& out, bool scalar) {
   constexpr int L = LaneTraits<Vec>::L;
   const int64_t B = fr.B, plane = fr.H * fr.W;
   const int64_t per_image = RecordsTakes<Acc>::value ? plane * take_words(cfg) : 0;
-  const int32_t capacity = tape_capacity(cfg.steps);
+  const int32_t capacity = tape_capacity(fetches);
   bool gathers = false;
   if constexpr (RecordsTakes<Acc>::value) gathers = !scalar && acc.untaken_slice_constant();
   std::atomic<bool> overflow{false};
@@ -247,10 +248,10 @@ bool grad_frame(const WalkSettings& cfg, const Acc& acc, const Frame& fr, const 
     // (the row's replays in lanes of lane's type, each of the lanes' pixels or a gathered block's slice `only`)
     const auto replays = [&](auto lane, const auto& each) {
       using Lane = decltype(lane);
-      ReplayScratch<Lane>& s = ReplayScratch<Lane>::of_thread(cfg.steps, capacity);
+      ReplayScratch<Lane>& s = ReplayScratch<Lane>::of_thread(cfg.steps, fetches, capacity);
       each([&](const RowLanes& lanes, int64_t only) {
         grad_lanes<Lane>(cfg, img, acc, lanes, only, upstream, C, rec, t, s.take_steps.data(), s.taken.data(),
-                         s.tape);
+                         fetches, s.tape);
       });
       if (s.tape.overflow) overflow = true;
     };
@@ -347,12 +348,13 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 // accumulator's settings (B, H, W, its settings(): 3 for "wedge", else 1), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
 // empty); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with walk()'s packed settings; cells:
 // the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao,
-// pssao), else empty (every step is replayed)
+// pssao), else empty (every step is replayed); fetches: the most a slice replays, at least replayed_fetches' (the
+// host's choice, which also picks the CUDA backward: its scratch is sized by it)
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> walk_backward(
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
-    const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record, bool camera,
-    bool scalar) {
+    const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record,
+    int64_t fetches, bool camera, bool scalar) {
   const std::string name(accumulator);
   const at::Tensor none = at::empty({0}, positions.options());
   std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> result;
@@ -370,8 +372,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     }
     check_grad(grad, positions, acc.channels());
     Gradients out(positions, fr.B, fr.H, fr.W, cfg, acc.settings(), false, false, camera);
-    TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(), out, scalar),
-                "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", cfg.steps, ")");
+    TORCH_CHECK(fetches >= replayed_fetches(acc, cfg.steps), "fetches: ", name, " with these settings replays up to ",
+                replayed_fetches(acc, cfg.steps), " fetches a slice (walk_grad.h's replayed_fetches), got ", fetches);
+    TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(),
+                           int32_t(fetches), out, scalar),
+                "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", fetches, ")");
     const at::Tensor g_inv = out.reduce();
     result = {out.positions, out.normals, g_inv, out.depth, out.setting, camera ? out.camera : none};
   });
@@ -606,7 +611,7 @@ TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.impl("walk_record", c10::DispatchKey::CPU, TORCH_FN(walk_record));
   m.def("walk_backward(str accumulator, Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, "
         "Tensor depth, Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, Tensor record, "
-        "bool camera, bool scalar) "
+        "int fetches, bool camera, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
