@@ -32,16 +32,20 @@ python3 -c "from torch_ao.kernels import build; build.load_walk_grad_library()" 
 backward=$!
 mkdir -p "$TORCH_AO_CUDA_CACHE"
 compgen -G ".cuda_cache/*.bin" >/dev/null && cp .cuda_cache/*.bin "$TORCH_AO_CUDA_CACHE"/
-timeout 420 python3 -c "import time, torch; t = time.time(); from torch_ao.kernels import launch
+timeout 420 python3 -c "import time, torch; from concurrent.futures import ThreadPoolExecutor; from torch_ao.kernels import launch
 print('torch', torch.__version__, 'CUDA', torch.version.cuda, 'cached binaries:', sorted(p.name for p in launch.cuda_cache_dir().glob('*.bin')))
-for full in (False, True):  # the lean build, then the full one (launch.full_walk)
-    t = time.time(); k = launch._cuda_kernels(0, full)
-    if isinstance(k, Exception) and any(launch.cuda_cache_dir().glob('*.bin')):
-        print('a cached binary was refused:', str(k)[:500]); [p.unlink() for p in launch.cuda_cache_dir().glob('*.bin')]
-        launch._cuda_kernels.cache_clear(); t = time.time(); k = launch._cuda_kernels(0, full)
+jobs = [(full, group) for full in (False, True) for group in launch.cuda_groups()]  # the lean build's groups, the full one's
+def load(job):  # (NVRTC runs outside the GIL: the groups compile side by side)
+    t = time.time(); k = launch._cuda_kernels(0, *job); return job, k, time.time() - t
+start = time.time(); done = list(ThreadPoolExecutor(8).map(load, jobs))
+if any(isinstance(k, Exception) for _, k, _ in done) and any(launch.cuda_cache_dir().glob('*.bin')):
+    print('a cached binary was refused:', [str(k)[:300] for _, k, _ in done if isinstance(k, Exception)][0])
+    [p.unlink() for p in launch.cuda_cache_dir().glob('*.bin')]; launch._cuda_kernels.cache_clear()
+    start = time.time(); done = list(ThreadPoolExecutor(8).map(load, jobs))
+for (full, group), k, seconds in done:
     if isinstance(k, Exception): raise k
-    build = 'full' if full else 'lean'
-    print(len(k), 'CUDA kernels of the', build, 'build compiled or loaded in', round(time.time() - t, 1), 's')" \
+    print(len(k), 'CUDA kernels of the', 'full' if full else 'lean', 'build, group', group, 'in', round(seconds, 1), 's')
+print('every group compiled or loaded in', round(time.time() - start, 1), 's')" \
   || echo "gpu_check: the CUDA kernels did not compile"
 wait $forward || { echo "gpu_check: C++ forward build failed"; tail -20 "$out/build_forward.txt"; }
 wait $backward || { echo "gpu_check: C++ backward build failed"; tail -20 "$out/build_backward.txt"; }

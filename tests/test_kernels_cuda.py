@@ -651,6 +651,27 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     assert_the_scalar_lanes_backward(cuda_on_cpu, FRAMES[frame](), _backward_cases())
 
 
+def test_a_cuda_kernel_compiles_its_group_alone(monkeypatch):
+    """A CUDA call compiles (or loads) the group of walk_cuda.cu that holds its kernel (launch.cuda_groups), lean or
+    full, and no other; a name walk_cuda.cu does not have is a KernelUnavailable."""
+    from torch_ao.kernels import launch
+    from torch_ao.kernels.build import KernelUnavailable
+
+    asked = []
+
+    def compiled(device_index, full, group):
+        asked.append((full, group))
+        return {name: f"{group} {name}" for name in launch.cuda_groups()[group]}
+
+    monkeypatch.setattr(launch, "_cuda_kernels", compiled)
+    assert launch._cuda_kernel("tao_backward_gtao_replacing", 0) == "gtao_replacing tao_backward_gtao_replacing"
+    assert launch._cuda_kernel("tao_walk_gtao", 0, full=True) == "walks tao_walk_gtao"
+    assert launch._cuda_kernel("tao_record_gtao", 0) == "records tao_record_gtao"
+    assert asked == [(False, "gtao_replacing"), (True, "walks"), (False, "records")]
+    with pytest.raises(KernelUnavailable, match="no kernel tao_backward_nothing"):
+        launch._cuda_kernel("tao_backward_nothing", 0)
+
+
 def test_a_cuda_backward_too_small_for_its_call_writes_nan(built, cuda_on_cpu):
     """HBAO's incremental sum (every rise replayed) run by the entry for calls that replay each side's last take
     alone (tao_backward_hbao_replacing): every live pixel's position gradient is NaN, never a partial gradient."""

@@ -3,6 +3,8 @@ NVRTC, as the kernels are compiled on a GPU, must accept the source for an H200 
 an A100 (8.0) and give every entry point of walk_cuda.cu; ptxas must assemble it, the walks without spilling
 registers (the exact and hard backwards' dual lanes spill a little).
 tests/test_kernels_cuda.py runs the same source's logic on the CPU; on a GPU, the kernels run for real."""
+import re
+
 import pytest
 
 from torch_ao.kernels import cuda_offline
@@ -98,6 +100,21 @@ def test_the_compiled_kernels_are_kept_on_disk_once(tmp_path, monkeypatch):
     assert launch._cuda_binary("source a", full, "90", lambda: compile_source(b"full")) == b"full"
     assert len(calls) == 4
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".bin"] * 4  # (no temporary left behind)
+
+
+def test_the_groups_hold_every_entry_and_each_compiles_alone():
+    """Every entry point is in one group of walk_cuda.cu (launch.cuda_groups), and a build of one group (TAO_ONE_GROUP:
+    what a call compiles at its group's first use) holds that group's entries and no other."""
+    from torch_ao.kernels.launch import cuda_groups, cuda_options
+
+    groups = cuda_groups()
+    names = [name for group in groups.values() for name in group]
+    assert sorted(names) == sorted(cuda_offline.KERNEL_NAMES) and len(set(names)) == len(names)
+    assert {"walks", "records", "gtao_replacing", "gtao_short", "gtao", "hbao_replacing", "hbao_short", "hbao", "ssao",
+            "soft", "exact", "hard"} == set(groups)
+    for group in ("walks", "hard"):  # (two of the quickest to compile)
+        ptx = cuda_offline.compile_ptx(90, cuda_options(group=group))
+        assert sorted(re.findall(r"\.entry (\w+)\(", ptx)) == sorted(groups[group]), group
 
 
 def test_the_cuda_entry_names_follow_the_macros():

@@ -5,7 +5,8 @@ reads, the same on every backend. On CPU the ``torch_ao_kernels::walk`` operator
 ``lanes="scalar"``: each pixel through ``walk_pixel``, the CUDA thread's body). On CUDA the headers are
 compiled at run time with NVRTC (``torch.cuda._compile_kernel``, which CUDA builds of torch ship: no CUDA
 toolkit needed), one thread per pixel, in two builds: the lean one, and the full one (``TAO_FULL_WALK``, compiled
-on first use) for the calls that need an option the lean one leaves out (:func:`full_walk`).
+on first use) for the calls that need an option the lean one leaves out (:func:`full_walk`). Each build compiles a
+group of entries at a time (:func:`cuda_groups`), the first time a call needs one of them.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "run_packed", "packed_inputs", "packed_settings",
-           "full_walk", "cuda_source", "cuda_entry_names", "cuda_options"]
+           "full_walk", "cuda_source", "cuda_entry_names", "cuda_groups", "cuda_options"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
 #: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets, SSAO's hemisphere kernel points)
@@ -222,40 +223,61 @@ def cuda_entry_names(source: str | None = None) -> tuple[str, ...]:
     return tuple(names)
 
 
-def cuda_options(full: bool = False) -> list[str]:
-    """NVRTC's options for the lean build, or the ``full`` one (walk.h's ``TAO_FULL_WALK``)."""
-    return [*_NVRTC_OPTIONS, *((_FULL_DEFINE,) if full else ())]
+def cuda_groups(source: str | None = None) -> dict[str, tuple[str, ...]]:
+    """walk_cuda.cu's groups of entry points, ``{group: names}`` in the source's order: each group is the entries
+    between ``#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_<GROUP>)`` and the next ``#endif`` of ``source``
+    (default :func:`cuda_source`), which a build given ``TAO_ONE_GROUP`` and that ``TAO_GROUP_<GROUP>`` compiles
+    alone (:func:`cuda_options`)."""
+    source = cuda_source() if source is None else source
+    groups = {}
+    for group, body in re.findall(r"^#if !defined\(TAO_ONE_GROUP\) \|\| defined\(TAO_GROUP_(\w+)\)\n(.*?)^#endif",
+                                  source, flags=re.M | re.S):
+        groups[group.lower()] = cuda_entry_names(body)
+    return groups
+
+
+def cuda_options(full: bool = False, group: str | None = None) -> list[str]:
+    """NVRTC's options for the lean build, or the ``full`` one (walk.h's ``TAO_FULL_WALK``), of every entry point or
+    of one of :func:`cuda_groups`."""
+    one_group = ("-DTAO_ONE_GROUP", f"-DTAO_GROUP_{group.upper()}") if group else ()
+    return [*_NVRTC_OPTIONS, *((_FULL_DEFINE,) if full else ()), *one_group]
+
+
+@functools.lru_cache(maxsize=None)
+def _group_of() -> dict[str, str]:
+    """Each entry point's group (:func:`cuda_groups`)."""
+    return {name: group for group, names in cuda_groups().items() for name in names}
 
 
 def _cuda_kernel(name: str, device_index: int, full: bool = False):
     """The compiled CUDA kernel ``name`` of walk_cuda.cu for the device, of the lean or the ``full`` build."""
-    kernels = _cuda_kernels(device_index, bool(full))
+    if name not in _group_of():
+        raise KernelUnavailable(f"walk_cuda.cu has no kernel {name}")
+    kernels = _cuda_kernels(device_index, bool(full), _group_of()[name])
     if isinstance(kernels, KernelUnavailable):
         raise kernels
-    if name not in kernels:
-        raise KernelUnavailable(f"walk_cuda.cu has no kernel {name}")
     return kernels[name]
 
 
 @functools.lru_cache(maxsize=None)
-def _cuda_kernels(device_index: int, full: bool) -> dict | KernelUnavailable:
-    """Every kernel of walk_cuda.cu for the device, ``{name: kernel}``, of the lean or the ``full`` build: one NVRTC
-    compile of the whole source (about half a minute; every kernel is in the one binary), kept on disk by
-    :func:`_cuda_binary`, so that a later process loads it in milliseconds. A failure is returned (and so kept)
-    rather than raised: the process does not compile again at every call."""
+def _cuda_kernels(device_index: int, full: bool, group: str) -> dict | KernelUnavailable:
+    """The kernels of one of walk_cuda.cu's groups (:func:`cuda_groups`) for the device, ``{name: kernel}``, of the
+    lean or the ``full`` build: one NVRTC compile of the group (the walks take seconds, a horizon accumulator's
+    backwards most of a minute), kept on disk by :func:`_cuda_binary`, so that a later process loads it in
+    milliseconds. A failure is returned (and so kept) rather than raised: the process does not compile again at
+    every call."""
     try:
         from torch.cuda._utils import _cuda_load_module, _nvrtc_compile
 
         with torch.cuda.device(device_index):
             major, minor = torch.cuda.get_device_capability(device_index)
-            source, names = cuda_source(), cuda_entry_names()
+            source, names, options = cuda_source(), cuda_groups()[group], cuda_options(full, group)
 
             def compile_source() -> bytes:  # (torch < 2.9 returns the binary alone, later ones with a name)
-                out = _nvrtc_compile(source, names[0], compute_capability=f"{major}{minor}",
-                                     nvcc_options=cuda_options(full))
+                out = _nvrtc_compile(source, names[0], compute_capability=f"{major}{minor}", nvcc_options=options)
                 return out[0] if isinstance(out, tuple) else out
 
-            binary = _cuda_binary(source, cuda_options(full), f"{major}{minor}", compile_source)
+            binary = _cuda_binary(source, options, f"{major}{minor}", compile_source)
             return _cuda_load_module(binary, list(names))
     except Exception as exc:  # no NVRTC in this build, a compile error...
         error = KernelUnavailable(f"the CUDA kernels could not be compiled ({type(exc).__name__}: "

@@ -4,6 +4,11 @@
 #include "packed.h"
 #include "walk_grad.h"
 
+// The entries come in groups, each between `#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_<NAME>)` and its
+// `#endif`: a CUDA call compiles its entry's group alone at the group's first use (launch.py's cuda_groups; a
+// forward-only user compiles the walks, seconds, not every backward, minutes), and without TAO_ONE_GROUP every
+// group compiles (the tests, cuda_offline.py)
+
 // (bounds: the kernel's __launch_bounds__, or nothing)
 #define TAO_CUDA_ENTRY(name, unpack, bounds)                                                                \
   extern "C" __global__ void bounds name(const float* positions, const float* normals, const float* inverse,     \
@@ -16,6 +21,7 @@
     tao::walk_pixel(tao::unpack_walk(ints, floats), tao::unpack(ints, floats), frame, out, p);            \
   }
 
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_WALKS)
 TAO_CUDA_ENTRY(tao_walk_gtao, unpack_gtao, )
 TAO_CUDA_ENTRY(tao_walk_hbao, unpack_hbao, )
 // (3 blocks of launch.py's 128 threads a multiprocessor, at most 170 registers a thread: the thickness growth's
@@ -34,6 +40,7 @@ TAO_CUDA_ENTRY(tao_walk_soft_gradients, unpack_soft_gradients, )  // d visibilit
 // memory a thread against 11.3 kB), as tao_soft_backward_short below
 TAO_CUDA_ENTRY(tao_walk_soft_gradients_short, unpack_soft_gradients_short, )
 TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_glsl" variant's (soft_glsl.h)
+#endif
 
 // The horizon accumulators' backward (walk_grad.h): the forward with its record of the takes, then the replay,
 // the pixel's own gradients written by its thread and its taps' scattered atomically; the CPU's scalar lanes
@@ -67,21 +74,38 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
         g_depth, g_setting, tap_positions, tap_inverse, g_camera, p);                                    \
   }
 
+constexpr int kFetchesAll = 2 * tao::kGradMaxSteps, kFetchesShort = 16, kFetchesReplacing = 2;
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_RECORDS)
 TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
 TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
 TAO_CUDA_RECORD(tao_record_pssao, unpack_pssao)
-constexpr int kFetchesAll = 2 * tao::kGradMaxSteps, kFetchesShort = 16, kFetchesReplacing = 2;
-TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao, kFetchesAll)
-TAO_CUDA_BACKWARD(tao_backward_gtao_short, unpack_gtao, kFetchesShort)
+#endif
+// (each backward of GTAO and of HBAO a group of its own: a call compiles the one it runs)
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO_REPLACING)
 TAO_CUDA_BACKWARD(tao_backward_gtao_replacing, unpack_gtao, kFetchesReplacing)  // (the exact variant's)
-TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao, kFetchesAll)
-TAO_CUDA_BACKWARD(tao_backward_hbao_short, unpack_hbao, kFetchesShort)
+#endif
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO_SHORT)
+TAO_CUDA_BACKWARD(tao_backward_gtao_short, unpack_gtao, kFetchesShort)
+#endif
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO)
+TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao, kFetchesAll)
+#endif
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HBAO_REPLACING)
 TAO_CUDA_BACKWARD(tao_backward_hbao_replacing, unpack_hbao, kFetchesReplacing)  // (accumulate="max")
+#endif
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HBAO_SHORT)
+TAO_CUDA_BACKWARD(tao_backward_hbao_short, unpack_hbao, kFetchesShort)
+#endif
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HBAO)
+TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao, kFetchesAll)
+#endif
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_SSAO)
 TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge, kFetchesAll)  // (every step replayed: no record)
 TAO_CUDA_BACKWARD(tao_backward_wedge_short, unpack_wedge, kFetchesShort)
 TAO_CUDA_BACKWARD(tao_backward_pssao_replacing, unpack_pssao, kFetchesReplacing)  // (always: its highest sample)
 TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere, kFetchesAll)
 TAO_CUDA_BACKWARD(tao_backward_hemisphere_short, unpack_hemisphere, kFetchesShort)
+#endif
 
 // The soft / straight-through bitmask walk's backward (walk_grad.h's soft_grad_block): d L / d the thickness'
 // offset, scale and growth per pixel in g_thickness (B, H, W, 3); the layer's taps' in tap_layer (backface: the model's
@@ -106,6 +130,7 @@ TAO_CUDA_BACKWARD(tao_backward_hemisphere_short, unpack_hemisphere, kFetchesShor
                          indirect ? tap_normals : nullptr, indirect ? tap_light : nullptr, g_camera, p);  \
   }
 
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_SOFT)
 using SoftBackward = tao::SoftAccumulator<true, true>;
 using SoftBackwardShort = tao::SoftAccumulator<true, true, tao::kSoftShortSteps>;
 TAO_CUDA_SOFT_BACKWARD(tao_soft_backward, SoftBackward, (tao::unpack_soft<true, true>))
@@ -117,10 +142,12 @@ using GlslSoftBackward = tao::GlslSoftAccumulator<SoftBackward>;
 using GlslSoftBackwardShort = tao::GlslSoftAccumulator<SoftBackwardShort>;
 TAO_CUDA_SOFT_BACKWARD(tao_soft_backward_glsl, GlslSoftBackward, tao::unpack_soft_glsl<SoftBackward>)
 TAO_CUDA_SOFT_BACKWARD(tao_soft_backward_glsl_short, GlslSoftBackwardShort, tao::unpack_soft_glsl<SoftBackwardShort>)
+#endif
 
 // The exact union's backward (walk_grad.h's exact_grad_block): the pixel's own gradients (d L / d the intrinsics in
 // g_camera where it is not null), its intervals' taps' (positions, inverse depth, the thickness layer's where the
 // model reads one) atomically
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_EXACT)
 extern "C" __global__ void tao_exact_backward(const float* positions, const float* normals, const float* inverse,
                                               const float* depth, const bool* valid, const float* intrinsics,
                                               const float* cells, const float* backface, const float* grad,
@@ -135,6 +162,7 @@ extern "C" __global__ void tao_exact_backward(const float* positions, const floa
   tao::exact_grad_pixel(tao::unpack_walk(ints, floats), acc, frame, grad, g_positions, g_normals, g_depth,
                         tap_positions, tap_inverse, acc.thickness.reads_layer() ? tap_layer : nullptr, g_camera, p);
 }
+#endif
 
 // The hard sector walk's forward with its record, and its backward (walk_grad.h's hard_record_block,
 // hard_grad_block): the pixel's own gradients (cosine weights, bent normals, indirect light) and, with indirect
@@ -169,5 +197,7 @@ extern "C" __global__ void tao_exact_backward(const float* positions, const floa
   }
 
 // (the record's bounds: tao_walk_bitmask's, the same walk)
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HARD)
 TAO_CUDA_HARD(tao_record_hard, tao_hard_backward, unpack_bitmask, __launch_bounds__(128, 3))
 TAO_CUDA_HARD(tao_record_hard_glsl, tao_hard_backward_glsl, unpack_glsl, )
+#endif
