@@ -546,11 +546,12 @@ def _backward_cases():
     yield "hbao", walk_settings(**common, full_circle=True, azimuth="screen"), [False, True, False], [1.0, 0.1], 1
     yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
            [True, True, False], [1.0, 0.1], 1)
-    # more steps than the _short entries replay (2 x 9 fetches a slice; the _replacing entry's 2 whatever the steps)
+    # more steps than the _short entries replay (GTAO: 2 x 9 fetches a slice; HBAO, one side a slice: 17; the
+    # _replacing entry's 2 whatever the steps)
     yield "gtao", walk_settings(**dict(common, steps=9), placement="hdrp"), [1, True, False], [1.0, 0.0, 1.0], 2
     yield "gtao", walk_settings(**dict(common, steps=9)), [0, True, False], [1.0, 0.3, 1.0], 2
-    yield ("hbao", walk_settings(**dict(common, steps=9), full_circle=True, azimuth="screen"), [False, True, False],
-           [1.0, 0.1], 1)
+    yield ("hbao", walk_settings(**dict(common, steps=17), full_circle=True, azimuth="screen"), [False, True, False],
+           [1.0, 0.1], 1)  # (one side a slice: the full entry from 17 steps)
     yield ("hbao", walk_settings(**dict(common, steps=9), full_circle=True, azimuth="screen"), [False, False, False],
            [1.0, 0.1], 1)
     # (accurate_angle); fade_distance, flat_surface_bias, flat_softness / distance_bias; PSSAO's offsets as a table
@@ -566,7 +567,7 @@ def _backward_cases():
     yield "hemisphere", _hemisphere_settings(6, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     yield "hemisphere", _hemisphere_settings(5, fetch="nearest", border="clamp", jitter=False), [], [0.01, 0.1], 1
     yield "hemisphere", _hemisphere_settings(6, fetch="edge_aware", border="clamp", jitter=True), [], [0.0, 0.05], 1
-    yield "hemisphere", _hemisphere_settings(9, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
+    yield "hemisphere", _hemisphere_settings(17, fetch="bilinear", border="drop", jitter=True), [], [0.025, 0.05], 1
     # (rounding, cosine, straight, read, variant, bent, indirect, a growth, the segment geometry: along the ray, clip)
     yield "soft", walk_settings(**common), [0, False, False, 0, 0, 0, 0, 1, 0, 0], [0.5, 0.01, 0.25, 0.0, 0.6], 1
     yield "soft", walk_settings(**dict(common, fetch="edge_aware", border="clamp")), [0, True, True, 0, 0, 0, 0, 0, 0, 0], [0.4, 0.01, 0.1, 0.0, 0.0], 1
@@ -726,7 +727,7 @@ def assert_the_scalar_lanes_backward(program, gb, all_cases, entry=None):
         kernel = {"tao_soft_backward_short": "soft_short"}.get(soft_backward_kernel(settings[0][1]), "soft")
         if accumulator == "soft_glsl":  # (the short arrays where a slice's steps fit 16)
             kernel = "soft_glsl_short" if settings[0][1] <= 16 else "soft_glsl"
-        fetches = replayed_fetches(settings[0][1], _replaces(accumulator, acc_ints))
+        fetches = replayed_fetches(settings[0][1], _replaces(accumulator, acc_ints), full_circle=settings[0][7])
         if accumulator in ("gtao", "hbao", "pssao", "wedge", "hemisphere"):  # (the entry the module's call would run)
             kernel = cuda_backward(accumulator, fetches).removeprefix("tao_backward_")
         elif not accumulator.startswith("soft"):

@@ -534,14 +534,16 @@ template <class Acc> struct RecordsTakes<Acc, decltype(void(&Acc::replaces))> {
   static constexpr bool value = true;
 };
 
-// The most fetches one slice of a horizon backward replays, for steps per side: where a take replaces the state
-// (acc.replaces()), each side's last take alone (2), else every step of both sides (2 steps). The caller sizes a
-// replay's scratch by it (walk_grad.py's replayed_fetches chooses the same number on the host)
-template <class Acc> TAO_FN int64_t replayed_fetches(const Acc& acc, int64_t steps) {
+// The most fetches one slice of a horizon backward replays: where a take replaces the state (acc.replaces()), each
+// side's last take alone, else every step of each side; a slice has one side with full_circle (HBAO's directions,
+// SSAO's points) but for walk_pairs' (UE4 SSAO), which fetches both at every step. The caller sizes a replay's
+// scratch by it (walk_grad.py's replayed_fetches chooses the same number on the host)
+template <class Acc> TAO_FN int64_t replayed_fetches(const Acc& acc, const WalkSettings& cfg) {
+  const int64_t sides = PairedSides<Acc>::value || !cfg.full_circle ? 2 : 1;
   if constexpr (RecordsTakes<Acc>::value) {
-    if (acc.replaces()) return 2;
+    if (acc.replaces()) return sides;
   }
-  return 2 * steps;
+  return sides * cfg.steps;
 }
 
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
@@ -558,7 +560,7 @@ TAO_FN constexpr int32_t tape_capacity(int64_t fetches) {  // (fetches: a slice'
 // The backward of the lanes' pixels: upstream[c] the gradient of output channel c (H, W), record the forward's
 // (image b's), t where the gradients go (added to it); of every slice, or of slice `only` alone (>= 0: a gathered
 // block's); scratch: take_steps 2 steps L floats, taken max_fetches takes, tape of tape_capacity(max_fetches) nodes,
-// max_fetches at least replayed_fetches(acc, steps) (overflow: the gradients are not written and tape.overflow
+// max_fetches at least replayed_fetches(acc, cfg) (overflow: the gradients are not written and tape.overflow
 // says so)
 template <class B, class Acc>
 TAO_FN void grad_lanes(const WalkSettings& cfg, const Image& img, const Acc& acc, const RowLanes& lanes, int64_t only,
@@ -1351,7 +1353,7 @@ TAO_FN void grad_pixel(const WalkSettings& cfg, const Acc& acc, const Frame& fr,
   int32_t parents[Tape<float>::parents_size(capacity)];
   Tape<float> tape(partials, parents, adjoints, capacity);
   const int64_t per_image = RecordsTakes<Acc>::value ? plane * take_words(cfg) : 0;
-  if (replayed_fetches(acc, cfg.steps) > kFetches)
+  if (replayed_fetches(acc, cfg) > kFetches)
     tape.overflow = true;  // (the host chose a kernel too small for the call)
   else
     grad_block<float>(cfg, fr.image(b), acc, row, u, 1, upstream, C, record + b * per_image, t, take_steps, taken,

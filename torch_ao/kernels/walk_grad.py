@@ -42,17 +42,19 @@ MAX_CUDA_STEPS = 32
 _SHORT_FETCHES = 16
 
 
-def replayed_fetches(steps: int, replaces: bool) -> int:
-    """The most fetches one slice of the backward replays, for ``steps`` per side: 2 where a take replaces the
-    accumulator's state (``replaces``: GTAO's exact variant, HBAO's ``accumulate="max"``, PSSAO; each side's last
-    take alone), else every step of both sides. walk_grad.h's ``replayed_fetches`` is the rule; the CPU backward
-    checks that this is at least its number, and the CUDA backward (:func:`cuda_backward`) is chosen by it."""
-    return 2 if replaces else 2 * int(steps)
+def replayed_fetches(steps: int, replaces: bool, full_circle: bool = False) -> int:
+    """The most fetches one slice of the backward replays, for ``steps`` per side: where a take replaces the
+    accumulator's state (``replaces``: GTAO's exact variant, HBAO's ``accumulate="max"``, PSSAO) each side's last
+    take alone, else every step of each side; one side a slice with ``full_circle`` (the walk's setting: HBAO, PSSAO,
+    SSAO's points), else two. walk_grad.h's ``replayed_fetches`` is the rule; the CPU backward checks that this is
+    at least its number, and the CUDA backward (:func:`cuda_backward`) is chosen by it."""
+    sides = 1 if full_circle else 2
+    return sides if replaces else sides * int(steps)
 
 
 def cuda_backward(accumulator: str, fetches: int) -> str:
     """walk_cuda.cu's backward of ``accumulator`` whose thread's scratch holds ``fetches`` a slice
-    (:func:`replayed_fetches`): ``_replacing`` for 2, ``_short`` for at most 16, else the full one (2
+    (:func:`replayed_fetches`): ``_replacing`` for at most 2, ``_short`` for at most 16, else the full one (2
     :data:`MAX_CUDA_STEPS`). The driver reserves a thread's local memory for every thread the GPU can hold, so the
     smallest entry that fits is the one to run (on sm_90: 13, 33 and 107 kB a thread, ``benchmarks/cuda_resources.py``)."""
     if fetches <= 2:
@@ -159,4 +161,5 @@ def differentiable_walk(accumulator: str, gbuffer: GBuffer, normals: torch.Tenso
     return _Walk.apply(accumulator, *inputs, cells, ints, floats, int(channels), scalar_lanes(lanes), radius, setting,
                        tuple(int(x) for x in setting_dimension),
                        ((int(slices) * 2 * int(steps) + 63) // 64,) if takes else None,
-                       full_walk(accumulator, gbuffer, settings), replayed_fetches(steps, replaces))
+                       full_walk(accumulator, gbuffer, settings),
+                       replayed_fetches(steps, replaces, full_circle=bool(settings[0][7])))  # (walk_settings' ints)

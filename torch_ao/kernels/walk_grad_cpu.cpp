@@ -372,8 +372,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     }
     check_grad(grad, positions, acc.channels());
     Gradients out(positions, fr.B, fr.H, fr.W, cfg, acc.settings(), false, false, camera);
-    TORCH_CHECK(fetches >= replayed_fetches(acc, cfg.steps), "fetches: ", name, " with these settings replays up to ",
-                replayed_fetches(acc, cfg.steps), " fetches a slice (walk_grad.h's replayed_fetches), got ", fetches);
+    TORCH_CHECK(fetches >= replayed_fetches(acc, cfg), "fetches: ", name, " with these settings replays up to ",
+                replayed_fetches(acc, cfg), " fetches a slice (walk_grad.h's replayed_fetches), got ", fetches);
     TORCH_CHECK(grad_frame(cfg, acc, fr, grad.data_ptr<float>(), acc.channels(), record.data_ptr<int64_t>(),
                            int32_t(fetches), out, scalar),
                 "walk_backward: a block's tape outgrew walk_grad.h's tape_capacity(", fetches, ")");
