@@ -652,6 +652,24 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
     assert_the_scalar_lanes_backward(cuda_on_cpu, FRAMES[frame](), _backward_cases())
 
 
+def test_each_call_picks_the_smallest_cuda_backward_that_holds_its_fetches():
+    """cuda_backward: the smallest of the accumulator's entries in walk_cuda.cu whose scratch holds the slice's
+    fetches (replayed_fetches: one side a slice with full_circle; each side's last take where a take replaces)."""
+    picks = {("gtao", replayed_fetches(9, True)): "tao_backward_gtao_replacing",  # (exact: 2 whatever the steps)
+             ("gtao", replayed_fetches(8, False)): "tao_backward_gtao_short",  # (hdrp, ue4: 2 x 8)
+             ("gtao", replayed_fetches(9, False)): "tao_backward_gtao",
+             ("hbao", replayed_fetches(16, False, full_circle=True)): "tao_backward_hbao_short",
+             ("hbao", replayed_fetches(17, False, full_circle=True)): "tao_backward_hbao",
+             ("hbao", replayed_fetches(32, True, full_circle=True)): "tao_backward_hbao_replacing",
+             ("pssao", replayed_fetches(32, True, full_circle=True)): "tao_backward_pssao_replacing",
+             ("wedge", replayed_fetches(1, False)): "tao_backward_wedge_short",  # (no _replacing entry)
+             ("hemisphere", replayed_fetches(2, False, full_circle=True)): "tao_backward_hemisphere_short",
+             ("hemisphere", replayed_fetches(18, False, full_circle=True)): "tao_backward_hemisphere"}
+    assert {key: cuda_backward(*key) for key in picks} == picks
+    with pytest.raises(ValueError, match="no backward of 'pssao' for 4 fetches"):
+        cuda_backward("pssao", 4)
+
+
 def test_a_cuda_kernel_compiles_its_group_alone(monkeypatch):
     """A CUDA call compiles (or loads) the group of walk_cuda.cu that holds its kernel (launch.cuda_groups), lean or
     full, and no other; a name walk_cuda.cu does not have is a KernelUnavailable."""

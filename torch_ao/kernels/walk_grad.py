@@ -31,15 +31,16 @@ import torch
 from ..gbuffer import GBuffer
 from .build import grad_kernels
 from .frame import scalar_lanes, scale_derivative
-from .launch import full_walk, launch_cuda, packed_inputs, run_packed
+from .launch import _group_of, full_walk, launch_cuda, packed_inputs, run_packed
 
 __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "replayed_fetches", "cuda_backward",
            "MAX_CUDA_STEPS"]
 
 #: the most steps per side of the CUDA backward (walk_grad.h's kGradMaxSteps: a thread's replay is a fixed array)
 MAX_CUDA_STEPS = 32
-#: the fetches a slice of walk_cuda.cu's ``_short`` backwards replays (8 steps a side: every preset's)
-_SHORT_FETCHES = 16
+#: walk_cuda.cu's sizes of a horizon backward, smallest first: the name's suffix, the fetches a slice its thread holds
+#: (``_short``: 8 steps a side, or 16 on one, every preset's)
+_BACKWARD_SIZES = (("_replacing", 2), ("_short", 16), ("", 2 * MAX_CUDA_STEPS))
 
 
 def replayed_fetches(steps: int, replaces: bool, full_circle: bool = False) -> int:
@@ -53,13 +54,16 @@ def replayed_fetches(steps: int, replaces: bool, full_circle: bool = False) -> i
 
 
 def cuda_backward(accumulator: str, fetches: int) -> str:
-    """walk_cuda.cu's backward of ``accumulator`` whose thread's scratch holds ``fetches`` a slice
-    (:func:`replayed_fetches`): ``_replacing`` for at most 2, ``_short`` for at most 16, else the full one (2
-    :data:`MAX_CUDA_STEPS`). The driver reserves a thread's local memory for every thread the GPU can hold, so the
-    smallest entry that fits is the one to run (on sm_90: 13, 33 and 107 kB a thread, ``benchmarks/cuda_resources.py``)."""
-    if fetches <= 2:
-        return f"tao_backward_{accumulator}_replacing"
-    return f"tao_backward_{accumulator}_short" if fetches <= _SHORT_FETCHES else f"tao_backward_{accumulator}"
+    """The smallest of walk_cuda.cu's backwards of ``accumulator`` whose thread's scratch holds ``fetches`` a slice
+    (:func:`replayed_fetches`): ``_replacing`` (2), ``_short`` (16) or the full one (2 :data:`MAX_CUDA_STEPS`), of
+    those the source has (UE4 SSAO's and SSAO's have no ``_replacing``, PSSAO's no other). The driver reserves a
+    thread's local memory for every thread the GPU can hold, so the smallest is the one to run (on sm_90: 14-15,
+    35-36 and 106-107 kB a thread, ``benchmarks/cuda_resources.py``)."""
+    for suffix, holds in _BACKWARD_SIZES:
+        name = f"tao_backward_{accumulator}{suffix}"
+        if fetches <= holds and name in _group_of():
+            return name
+    raise ValueError(f"accumulator: walk_cuda.cu has no backward of {accumulator!r} for {fetches} fetches a slice")
 
 
 class _Walk(torch.autograd.Function):
