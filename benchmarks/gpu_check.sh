@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU check, for a machine with an NVIDIA GPU (the `device` tool's H200 or any CUDA box), in about five
 # minutes: the kernels built (the C++ ones for the tests' CPU side, the CUDA ones once by NVRTC), the CUDA tests
-# (they skip without a GPU), then benchmarks/profile_cuda.py's times against the GPU targets (call, kernels, host waits). Run from the repo
+# (they skip without a GPU) and the local memory each horizon backward reserves (benchmarks/cuda_local_memory.py), then
+# benchmarks/profile_cuda.py's times against the GPU targets (call, kernels, host waits). Run from the repo
 # root. Everything it prints also goes to ${OUT:-gpu-check}/log, the timings to profile_cuda.json beside it.
 #
 # Packages the machine lacks (kornia on the device tool's image, which has no network) travel as wheels in
@@ -49,6 +50,8 @@ print('every group compiled or loaded in', round(time.time() - start, 1), 's')" 
   || echo "gpu_check: the CUDA kernels did not compile"
 wait $forward || { echo "gpu_check: C++ forward build failed"; tail -20 "$out/build_forward.txt"; }
 wait $backward || { echo "gpu_check: C++ backward build failed"; tail -20 "$out/build_backward.txt"; }
+stage "local memory: what each size of the horizon backward reserves on this GPU (a fresh process)"
+timeout 90 python3 benchmarks/cuda_local_memory.py || echo "gpu_check: cuda_local_memory failed or timed out"
 stage "CUDA tests: those that need a GPU (CI runs the CUDA source's logic on the CPU)"
 timeout 200 python3 -m pytest -q -p no:cacheprovider -rfEs --durations=8 \
   tests/test_kernels_cuda.py::test_cuda_kernels_agree_with_the_cpu_operator \
