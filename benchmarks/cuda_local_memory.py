@@ -3,7 +3,7 @@
 The driver reserves a thread's local memory (its stack) for every thread the GPU can hold, about
 (stack + 512 bytes) x multiprocessors x threads per multiprocessor, and keeps it once a launch has needed it
 (docs/performance.md, "A backward's local memory"). This script runs one forward + backward of each size of the
-horizon backward on a small G-buffer, smallest first: GTAO's exact variant (``tao_backward_gtao_replacing``), the
+horizon backward on a small G-buffer, smallest first: GTAO's exact variant (``tao_backward_gtao_small``), the
 hdrp variant at 4 steps a side (``_short``) and at 9 (the full one). After each it prints the kernel's local
 memory (``cuFuncGetAttribute``), the context's stack limit (``cuCtxGetLimit``: the per-thread size the driver
 reserved for), the device memory held outside torch's allocator, and the reservation the rule predicts. Needs a
@@ -28,7 +28,7 @@ from torch_ao.kernels import launch  # noqa: E402
 
 _LOCAL_SIZE_BYTES = 3  # CUfunction_attribute CU_FUNC_ATTRIBUTE_LOCAL_SIZE_BYTES
 _STACK_SIZE = 0  # CUlimit CU_LIMIT_STACK_SIZE
-_CASES = (("GTAO exact", "tao_backward_gtao_replacing", dict(variant="exact", steps=4)),
+_CASES = (("GTAO exact", "tao_backward_gtao_small", dict(variant="exact", steps=4)),
           ("GTAO hdrp, 4 steps", "tao_backward_gtao_short", dict(variant="hdrp", steps=4)),
           ("GTAO hdrp, 9 steps", "tao_backward_gtao", dict(variant="hdrp", steps=9)))
 

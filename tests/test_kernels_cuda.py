@@ -140,9 +140,9 @@ typedef void ExactBackward(const float*, const float*, const float*, const float
                            const float*, const float*, const float*, float*, float*, float*, float*, float*, float*,
                            float*, const long long*, const float*, int, int, int);
 Record tao_record_gtao, tao_record_hbao, tao_record_pssao;
-Backward tao_backward_gtao, tao_backward_gtao_short, tao_backward_gtao_replacing, tao_backward_hbao,
-    tao_backward_hbao_short, tao_backward_hbao_replacing, tao_backward_wedge, tao_backward_wedge_short,
-    tao_backward_pssao_replacing, tao_backward_hemisphere, tao_backward_hemisphere_short;
+Backward tao_backward_gtao, tao_backward_gtao_short, tao_backward_gtao_small, tao_backward_hbao,
+    tao_backward_hbao_short, tao_backward_hbao_small, tao_backward_wedge, tao_backward_wedge_short,
+    tao_backward_pssao_small, tao_backward_hemisphere, tao_backward_hemisphere_short;
 SoftBackward tao_soft_backward, tao_soft_backward_short, tao_soft_backward_glsl, tao_soft_backward_glsl_short;
 ExactBackward tao_exact_backward;
 HardRecord tao_record_hard, tao_record_hard_glsl;
@@ -161,10 +161,10 @@ template <class Fn> void grid(long long pixels, unsigned threads, const Fn& fn) 
 Backward* horizon_backward(const std::string& name) {  // (tao_backward_NAME)
   const std::pair<const char*, Backward*> entries[] = {
       {"gtao", tao_backward_gtao}, {"gtao_short", tao_backward_gtao_short},
-      {"gtao_replacing", tao_backward_gtao_replacing}, {"hbao", tao_backward_hbao},
-      {"hbao_short", tao_backward_hbao_short}, {"hbao_replacing", tao_backward_hbao_replacing},
+      {"gtao_small", tao_backward_gtao_small}, {"hbao", tao_backward_hbao},
+      {"hbao_short", tao_backward_hbao_short}, {"hbao_small", tao_backward_hbao_small},
       {"wedge", tao_backward_wedge}, {"wedge_short", tao_backward_wedge_short},
-      {"pssao_replacing", tao_backward_pssao_replacing}, {"hemisphere", tao_backward_hemisphere},
+      {"pssao_small", tao_backward_pssao_small}, {"hemisphere", tao_backward_hemisphere},
       {"hemisphere_short", tao_backward_hemisphere_short}};
   for (const auto& entry : entries)
     if (name == entry.first) return entry.second;
@@ -547,11 +547,13 @@ def _backward_cases():
     yield ("hbao", walk_settings(**dict(common, fetch="edge_aware"), full_circle=True, azimuth="screen"),
            [True, True, False], [1.0, 0.1], 1)
     # more steps than the _short entries replay (GTAO: 2 x 9 fetches a slice; HBAO, one side a slice: 17; the
-    # _replacing entry's 2 whatever the steps)
+    # _small entry's 4, 2 whatever the steps where a take replaces)
     yield "gtao", walk_settings(**dict(common, steps=9), placement="hdrp"), [1, True, False], [1.0, 0.0, 1.0], 2
     yield "gtao", walk_settings(**dict(common, steps=9)), [0, True, False], [1.0, 0.3, 1.0], 2
     yield ("hbao", walk_settings(**dict(common, steps=17), full_circle=True, azimuth="screen"), [False, True, False],
            [1.0, 0.1], 1)  # (one side a slice: the full entry from 17 steps)
+    yield ("hbao", walk_settings(**dict(common, steps=3), full_circle=True, azimuth="screen"), [False, True, False],
+           [1.0, 0.1], 1)  # (the default's 3 steps: every rise replayed by the _small entry)
     yield ("hbao", walk_settings(**dict(common, steps=9), full_circle=True, azimuth="screen"), [False, False, False],
            [1.0, 0.1], 1)
     # (accurate_angle); fade_distance, flat_surface_bias, flat_softness / distance_bias; PSSAO's offsets as a table
@@ -655,19 +657,21 @@ def test_the_cuda_backward_run_on_the_cpu_is_the_scalar_lanes_backward(built, cu
 def test_each_call_picks_the_smallest_cuda_backward_that_holds_its_fetches():
     """cuda_backward: the smallest of the accumulator's entries in walk_cuda.cu whose scratch holds the slice's
     fetches (replayed_fetches: one side a slice with full_circle; each side's last take where a take replaces)."""
-    picks = {("gtao", replayed_fetches(9, True)): "tao_backward_gtao_replacing",  # (exact: 2 whatever the steps)
+    picks = {("gtao", replayed_fetches(9, True)): "tao_backward_gtao_small",  # (exact: 2 whatever the steps)
              ("gtao", replayed_fetches(8, False)): "tao_backward_gtao_short",  # (hdrp, ue4: 2 x 8)
              ("gtao", replayed_fetches(9, False)): "tao_backward_gtao",
              ("hbao", replayed_fetches(16, False, full_circle=True)): "tao_backward_hbao_short",
              ("hbao", replayed_fetches(17, False, full_circle=True)): "tao_backward_hbao",
-             ("hbao", replayed_fetches(32, True, full_circle=True)): "tao_backward_hbao_replacing",
-             ("pssao", replayed_fetches(32, True, full_circle=True)): "tao_backward_pssao_replacing",
-             ("wedge", replayed_fetches(1, False)): "tao_backward_wedge_short",  # (no _replacing entry)
+             ("hbao", replayed_fetches(32, True, full_circle=True)): "tao_backward_hbao_small",
+             ("hbao", replayed_fetches(3, False, full_circle=True)): "tao_backward_hbao_small",  # (the default)
+             ("hbao", replayed_fetches(5, False, full_circle=True)): "tao_backward_hbao_short",
+             ("pssao", replayed_fetches(32, True, full_circle=True)): "tao_backward_pssao_small",
+             ("wedge", replayed_fetches(2, False)): "tao_backward_wedge_short",  # (no _small entry)
              ("hemisphere", replayed_fetches(2, False, full_circle=True)): "tao_backward_hemisphere_short",
              ("hemisphere", replayed_fetches(18, False, full_circle=True)): "tao_backward_hemisphere"}
     assert {key: cuda_backward(*key) for key in picks} == picks
-    with pytest.raises(ValueError, match="no backward of 'pssao' for 4 fetches"):
-        cuda_backward("pssao", 4)
+    with pytest.raises(ValueError, match="no backward of 'pssao' for 5 fetches"):
+        cuda_backward("pssao", 5)
 
 
 def test_a_cuda_kernel_compiles_its_group_alone(monkeypatch):
@@ -683,24 +687,24 @@ def test_a_cuda_kernel_compiles_its_group_alone(monkeypatch):
         return {name: f"{group} {name}" for name in launch.cuda_groups()[group]}
 
     monkeypatch.setattr(launch, "_cuda_kernels", compiled)
-    assert launch._cuda_kernel("tao_backward_gtao_replacing", 0) == "gtao_replacing tao_backward_gtao_replacing"
+    assert launch._cuda_kernel("tao_backward_gtao_small", 0) == "gtao_small tao_backward_gtao_small"
     assert launch._cuda_kernel("tao_walk_gtao", 0, full=True) == "walks tao_walk_gtao"
     assert launch._cuda_kernel("tao_record_gtao", 0) == "records tao_record_gtao"
-    assert asked == [(False, "gtao_replacing"), (True, "walks"), (False, "records")]
+    assert asked == [(False, "gtao_small"), (True, "walks"), (False, "records")]
     with pytest.raises(KernelUnavailable, match="no kernel tao_backward_nothing"):
         launch._cuda_kernel("tao_backward_nothing", 0)
 
 
 def test_a_cuda_backward_too_small_for_its_call_writes_nan(built, cuda_on_cpu):
-    """HBAO's incremental sum (every rise replayed) run by the entry for calls that replay each side's last take
-    alone (tao_backward_hbao_replacing): every live pixel's position gradient is NaN, never a partial gradient."""
+    """HBAO's incremental sum of 5 steps (5 fetches a slice) run by the entry whose thread holds 4
+    (tao_backward_hbao_small): every live pixel's position gradient is NaN, never a partial gradient."""
     gb = FRAMES["rough"]()
     settings = walk_settings(slices=3, steps=5, radius=1.0, jitter=True, seed=1, fetch="bilinear", border="drop",
                              full_circle=True, azimuth="screen")
     case = ("hbao", settings, [False, True, False], [1.0, 0.1], 1)
     assert_the_scalar_lanes_backward(cuda_on_cpu, gb, [case])  # (its own entry, tao_backward_hbao_short: agrees)
     with pytest.raises(AssertionError, match="hbao"):
-        assert_the_scalar_lanes_backward(cuda_on_cpu, gb, [case], entry="hbao_replacing")
+        assert_the_scalar_lanes_backward(cuda_on_cpu, gb, [case], entry="hbao_small")
     B, _, H, W = gb.depth.shape
     g_pos = np.fromfile(cuda_on_cpu.parent / "grad_hbao" / "g_positions", dtype=np.float32).reshape(B, H, W, 3)
     live = gb.valid[:, 0].numpy()

@@ -47,8 +47,8 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
 // run the same record_block and grad_block. A backward's thread keeps a tape for `fetches` replayed fetches a
 // slice in local memory, which the driver reserves for every thread the GPU holds at once (an H100's 270,336):
 // 107 kB a thread for 32 steps a side, 29 GB of device memory. So each accumulator has the entries its calls
-// need (walk_grad.py's cuda_backward picks one): _replacing, 2 (where a take replaces the state: each side's last
-// one alone), _short, 16 (8 steps a side, 16 where a slice has one: every preset's), and the full 2 kGradMaxSteps
+// need (walk_grad.py's cuda_backward picks one): _small, 4 fetches a slice (where a take replaces the state: each
+// side's last one alone; or 4 steps on one side, as HBAO's default 3), _short, 16 (8 steps a side, 16 where a slice has one: every preset's), and the full 2 kGradMaxSteps
 #define TAO_CUDA_RECORD(name, unpack)                                                                       \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
                                   const float* depth, const bool* valid, const float* intrinsics,        \
@@ -74,15 +74,15 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
         g_depth, g_setting, tap_positions, tap_inverse, g_camera, p);                                    \
   }
 
-constexpr int kFetchesAll = 2 * tao::kGradMaxSteps, kFetchesShort = 16, kFetchesReplacing = 2;
+constexpr int kFetchesAll = 2 * tao::kGradMaxSteps, kFetchesShort = 16, kFetchesSmall = 4;
 #if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_RECORDS)
 TAO_CUDA_RECORD(tao_record_gtao, unpack_gtao)
 TAO_CUDA_RECORD(tao_record_hbao, unpack_hbao)
 TAO_CUDA_RECORD(tao_record_pssao, unpack_pssao)
 #endif
 // (each backward of GTAO and of HBAO a group of its own: a call compiles the one it runs)
-#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO_REPLACING)
-TAO_CUDA_BACKWARD(tao_backward_gtao_replacing, unpack_gtao, kFetchesReplacing)  // (the exact variant's)
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO_SMALL)
+TAO_CUDA_BACKWARD(tao_backward_gtao_small, unpack_gtao, kFetchesSmall)  // (the exact variant's)
 #endif
 #if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO_SHORT)
 TAO_CUDA_BACKWARD(tao_backward_gtao_short, unpack_gtao, kFetchesShort)
@@ -90,8 +90,8 @@ TAO_CUDA_BACKWARD(tao_backward_gtao_short, unpack_gtao, kFetchesShort)
 #if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_GTAO)
 TAO_CUDA_BACKWARD(tao_backward_gtao, unpack_gtao, kFetchesAll)
 #endif
-#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HBAO_REPLACING)
-TAO_CUDA_BACKWARD(tao_backward_hbao_replacing, unpack_hbao, kFetchesReplacing)  // (accumulate="max")
+#if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HBAO_SMALL)
+TAO_CUDA_BACKWARD(tao_backward_hbao_small, unpack_hbao, kFetchesSmall)  // (accumulate="max", or 4 steps)
 #endif
 #if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_HBAO_SHORT)
 TAO_CUDA_BACKWARD(tao_backward_hbao_short, unpack_hbao, kFetchesShort)
@@ -102,7 +102,7 @@ TAO_CUDA_BACKWARD(tao_backward_hbao, unpack_hbao, kFetchesAll)
 #if !defined(TAO_ONE_GROUP) || defined(TAO_GROUP_SSAO)
 TAO_CUDA_BACKWARD(tao_backward_wedge, unpack_wedge, kFetchesAll)  // (every step replayed: no record)
 TAO_CUDA_BACKWARD(tao_backward_wedge_short, unpack_wedge, kFetchesShort)
-TAO_CUDA_BACKWARD(tao_backward_pssao_replacing, unpack_pssao, kFetchesReplacing)  // (always: its highest sample)
+TAO_CUDA_BACKWARD(tao_backward_pssao_small, unpack_pssao, kFetchesSmall)  // (always: its highest sample)
 TAO_CUDA_BACKWARD(tao_backward_hemisphere, unpack_hemisphere, kFetchesAll)
 TAO_CUDA_BACKWARD(tao_backward_hemisphere_short, unpack_hemisphere, kFetchesShort)
 #endif

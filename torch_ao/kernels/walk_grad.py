@@ -39,8 +39,9 @@ __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "re
 #: the most steps per side of the CUDA backward (walk_grad.h's kGradMaxSteps: a thread's replay is a fixed array)
 MAX_CUDA_STEPS = 32
 #: walk_cuda.cu's sizes of a horizon backward, smallest first: the name's suffix, the fetches a slice its thread holds
-#: (``_short``: 8 steps a side, or 16 on one, every preset's)
-_BACKWARD_SIZES = (("_replacing", 2), ("_short", 16), ("", 2 * MAX_CUDA_STEPS))
+#: (``_small``: where a take replaces the state, each side's last, or 4 steps on one side, as HBAO's default 3;
+#: ``_short``: 8 steps a side, or 16 on one, every preset's)
+_BACKWARD_SIZES = (("_small", 4), ("_short", 16), ("", 2 * MAX_CUDA_STEPS))
 
 
 def replayed_fetches(steps: int, replaces: bool, full_circle: bool = False) -> int:
@@ -55,9 +56,9 @@ def replayed_fetches(steps: int, replaces: bool, full_circle: bool = False) -> i
 
 def cuda_backward(accumulator: str, fetches: int) -> str:
     """The smallest of walk_cuda.cu's backwards of ``accumulator`` whose thread's scratch holds ``fetches`` a slice
-    (:func:`replayed_fetches`): ``_replacing`` (2), ``_short`` (16) or the full one (2 :data:`MAX_CUDA_STEPS`), of
-    those the source has (UE4 SSAO's and SSAO's have no ``_replacing``, PSSAO's no other). The driver reserves a
-    thread's local memory for every thread the GPU can hold, so the smallest is the one to run (on sm_90: 14-15,
+    (:func:`replayed_fetches`): ``_small`` (4), ``_short`` (16) or the full one (2 :data:`MAX_CUDA_STEPS`), of
+    those the source has (UE4 SSAO's and SSAO's have no ``_small``, PSSAO's no other). The driver reserves a
+    thread's local memory for every thread the GPU can hold, so the smallest is the one to run (on sm_90: 17-18,
     35-36 and 106-107 kB a thread, ``benchmarks/cuda_resources.py``)."""
     for suffix, holds in _BACKWARD_SIZES:
         name = f"tao_backward_{accumulator}{suffix}"
