@@ -46,14 +46,13 @@ def main() -> int:
     libcuda = torch.cuda._utils._get_gpu_runtime_library()
     props = torch.cuda.get_device_properties(0)
     threads = props.multi_processor_count * props.max_threads_per_multi_processor
-    gbuffer = example_gbuffer(90, 160).to("cuda")
+    gb = example_gbuffer(90, 160).to("cuda")
+    gb.depth.requires_grad_(True)
     torch.cuda.synchronize()
     rows = [{"case": "before any backward", "outside_mb": outside_allocator_mb()}]
     print(f"{props.name}: {props.multi_processor_count} SMs x {props.max_threads_per_multi_processor} threads; "
           f"outside torch's allocator before any backward: {rows[0]['outside_mb']:.0f} MB")
     for label, kernel_name, options in _CASES:
-        gb = gbuffer.to("cuda")
-        gb.depth.requires_grad_(True)
         torch_ao.GTAO(**options, backend="kernel").cuda()(gb).visibility.sum().backward()
         torch.cuda.synchronize()
         kernel = launch._cuda_kernel(kernel_name, torch.cuda.current_device())

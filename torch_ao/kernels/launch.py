@@ -26,7 +26,7 @@ from ..walk.fetch import cell_flags
 from .frame import scalar_lanes, walk_inputs
 
 __all__ = ["PLACEMENTS", "NOISES", "walk_settings", "run_walk", "run_packed", "packed_inputs", "packed_settings",
-           "full_walk", "cuda_source", "cuda_entry_names", "cuda_groups", "cuda_options"]
+           "full_walk", "cuda_source", "cuda_entry_names", "cuda_groups", "cuda_group_of", "cuda_options"]
 
 #: step placements in packed.h's numbering (SlicePattern's, HDRP's and UE4's ShaderStepPattern, GLSLPattern's,
 #: UE4 SSAO's WedgePattern, PSSAOPattern's integer pixel offsets, SSAO's hemisphere kernel points)
@@ -244,16 +244,16 @@ def cuda_options(full: bool = False, group: str | None = None) -> list[str]:
 
 
 @functools.lru_cache(maxsize=None)
-def _group_of() -> dict[str, str]:
-    """Each entry point's group (:func:`cuda_groups`)."""
+def cuda_group_of() -> dict[str, str]:
+    """Each entry point of walk_cuda.cu, and its group (:func:`cuda_groups`)."""
     return {name: group for group, names in cuda_groups().items() for name in names}
 
 
 def _cuda_kernel(name: str, device_index: int, full: bool = False):
     """The compiled CUDA kernel ``name`` of walk_cuda.cu for the device, of the lean or the ``full`` build."""
-    if name not in _group_of():
+    if name not in cuda_group_of():
         raise KernelUnavailable(f"walk_cuda.cu has no kernel {name}")
-    kernels = _cuda_kernels(device_index, bool(full), _group_of()[name])
+    kernels = _cuda_kernels(device_index, bool(full), cuda_group_of()[name])
     if isinstance(kernels, KernelUnavailable):
         raise kernels
     return kernels[name]

@@ -48,7 +48,8 @@ TAO_CUDA_ENTRY(tao_walk_soft_glsl, unpack_soft_glsl_forward, )  // the "ssilvb_g
 // slice in local memory, which the driver reserves for every thread the GPU holds at once (an H100's 270,336):
 // 107 kB a thread for 32 steps a side, 29 GB of device memory. So each accumulator has the entries its calls
 // need (walk_grad.py's cuda_backward picks one): _small, 4 fetches a slice (where a take replaces the state: each
-// side's last one alone; or 4 steps on one side, as HBAO's default 3), _short, 16 (8 steps a side, 16 where a slice has one: every preset's), and the full 2 kGradMaxSteps
+// side's last one alone; or 4 steps on one side, as HBAO's default 3), _short, 16 (8 steps a side, 16 where a
+// slice has one: every preset's), and the full 2 kGradMaxSteps
 #define TAO_CUDA_RECORD(name, unpack)                                                                       \
   extern "C" __global__ void name(const float* positions, const float* normals, const float* inverse,     \
                                   const float* depth, const bool* valid, const float* intrinsics,        \

@@ -547,8 +547,8 @@ template <class Acc> TAO_FN int64_t replayed_fetches(const Acc& acc, const WalkS
 }
 
 // The tape's nodes for a horizon backward's block: the pixel (Pixels<Rev>), then one slice at a time (its
-// geometry, begin and end, at most 2 steps takes). At 3 x 1..16 (every variant, fetch and azimuth; the count
-// follows the code, not the values) the pixel makes at most 46, a slice at most 211 besides its takes, a take at
+// geometry, begin and end, its takes: at most replayed_fetches'). At 3 x 1..16 (every variant, fetch and azimuth;
+// the count follows the code, not the values) the pixel makes at most 46, a slice at most 211 besides its takes, a take at
 // most 46; a slice whose azimuth the projected normal's density draws about 25 more (counted: the normal's three
 // components, the azimuth's and weight's nodes of density_azimuth, the slice's tangent and its weight's products);
 // with room to spare (tests/test_kernels_walk_grad.py runs the most steps a CUDA thread takes)

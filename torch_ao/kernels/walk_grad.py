@@ -31,7 +31,7 @@ import torch
 from ..gbuffer import GBuffer
 from .build import grad_kernels
 from .frame import scalar_lanes, scale_derivative
-from .launch import _group_of, full_walk, launch_cuda, packed_inputs, run_packed
+from .launch import cuda_group_of, full_walk, launch_cuda, packed_inputs, run_packed
 
 __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "replayed_fetches", "cuda_backward",
            "MAX_CUDA_STEPS"]
@@ -62,7 +62,7 @@ def cuda_backward(accumulator: str, fetches: int) -> str:
     35-36 and 106-107 kB a thread, ``benchmarks/cuda_resources.py``)."""
     for suffix, holds in _BACKWARD_SIZES:
         name = f"tao_backward_{accumulator}{suffix}"
-        if fetches <= holds and name in _group_of():
+        if fetches <= holds and name in cuda_group_of():
             return name
     raise ValueError(f"accumulator: walk_cuda.cu has no backward of {accumulator!r} for {fetches} fetches a slice")
 
