@@ -5,6 +5,7 @@ import torch
 
 import torch_ao
 from torch_ao.examples import example_gbuffer
+from torch_ao.thickness import BackfaceThickness
 
 pytestmark = pytest.mark.slow
 
@@ -101,10 +102,7 @@ def test_compiled_soft_bitmask_matches_eager_with_gradients(variant, mode, backe
 def test_compiled_kernel_gbuffer_gradients_match_eager(method):
     """The exact union's, the hard cosine and the ssilvb_glsl shader's soft kernels with depth gradients (their
     backwards: exact_backward, hard_record + hard_backward, soft_backward) under torch.compile (aot_eager): eager's
-    values and gradients. (The kernels' dispatch reads the radius as a number, so the graph breaks there, as for every
-    kernel call.)"""
-    from torch_ao.thickness import BackfaceThickness
-
+    values and gradients."""
     torch._dynamo.reset()
     gb = example_gbuffer(12, 16)
     module = {"exact": lambda: torch_ao.BitmaskAO(variant="exact", mode="soft", thickness=BackfaceThickness(), slices=2,
@@ -168,6 +166,87 @@ def test_walk_traces_as_one_graph(name):
     width, instead of its data-dependent live-step layout)."""
     graphs, breaks = _breaks(NO_BREAK_MODULES[name](), _sky_frame())
     assert breaks == [] and graphs == 1, breaks
+
+
+# every fused kernel's call (backend "auto" on the CPU), forward and with gradients: hard, soft, straight-through and
+# the exact union; the horizon family with its recorded takes; the SSAO family; indirect light
+KERNEL_MODULES = {
+    "gtao": lambda: torch_ao.GTAO(slices=2, steps=3),
+    "gtao_ue4": lambda: torch_ao.GTAO(variant="ue4", slices=2, steps=3),
+    "hbao": lambda: torch_ao.HBAO(slices=2, steps=3),
+    "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=3),
+    "pssao": lambda: torch_ao.PSSAO(slices=2, steps=3),
+    "ssao": lambda: torch_ao.SSAO(slices=2, steps=3, softness=0.05),
+    "bitmask_hard_cosine": lambda: torch_ao.BitmaskAO(mode="hard", weighting="cosine", slices=2, steps=3),
+    "bitmask_soft": lambda: torch_ao.BitmaskAO(mode="soft", slices=2, steps=3),
+    "bitmask_straight_through": lambda: torch_ao.BitmaskAO(mode="straight_through", slices=2, steps=3),
+    "bitmask_soft_exact_backface": lambda: torch_ao.BitmaskAO(variant="exact", mode="soft", slices=2, steps=3,
+                                                              thickness=BackfaceThickness()),
+    "ssilvb_hard_cosine": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=2, steps=3),
+    "glsl_soft": lambda: torch_ao.BitmaskAO(variant="ssilvb_glsl", mode="soft", slices=2, steps=3),
+}
+
+
+@pytest.mark.parametrize("name", sorted(KERNEL_MODULES))
+def test_kernel_call_compiles_as_one_graph_with_eager_values_and_gradients(name):
+    """``torch.compile`` of a module whose call runs a fused kernel: one graph and no graph break, forward and
+    backward (the kernels' fake shapes trace them; their libraries load while tracing, not in the graph), and
+    eager's values and gradients to depth, normals, light and every parameter (aot_eager: the traced graphs
+    without Inductor's code generation)."""
+    from torch._dynamo.utils import counters
+
+    gb = example_gbuffer(12, 16)
+    light = torch.linspace(0.2, 1.0, 3 * 12 * 16).reshape(1, 3, 12, 16)
+    results = []
+    for compiled in (False, True):
+        torch._dynamo.reset()
+        counters.clear()
+        torch.manual_seed(0)
+        module = KERNEL_MODULES[name]()
+        run = torch.compile(module, backend="aot_eager", dynamic=False) if compiled else module
+        inputs = [t.detach().clone().requires_grad_(True) for t in (gb.depth, gb.normals, light)]
+        frame = torch_ao.GBuffer(depth=inputs[0], camera=gb.camera, normals=inputs[1], light=inputs[2], mask=gb.mask,
+                                 backface_depth=gb.depth * 1.3)
+        out = run(frame)
+        loss = sum((t * torch.linspace(0.5, 1.5, t.numel()).reshape(t.shape)).sum()
+                   for t in (out.visibility, out.indirect) if t is not None)
+        params = dict(module.named_parameters())
+        wanted = [*inputs, *params.values()]
+        grads = torch.autograd.grad(loss, wanted, allow_unused=True)
+        results.append((out.visibility.detach(), grads))
+        if compiled:
+            assert counters["stats"]["unique_graphs"] == 1 and not counters["graph_break"], (
+                counters["stats"], dict(counters["graph_break"]))
+    (v0, g0), (v1, g1) = results
+    assert torch.allclose(v1, v0, atol=1e-6, rtol=0), (v1 - v0).abs().max()
+    names = ["depth", "normals", "light", *params]
+    # a G-buffer gradient to compare (hard cosine sectors: the normals'; depth moves only their rounding)
+    assert max(float(g[torch.isfinite(g)].abs().max()) for g in g0[:2] if g is not None) > 1e-3
+    for n, a, b in zip(names, g0, g1):
+        assert (a is None) == (b is None), n
+        if a is not None:
+            finite = torch.isfinite(a)
+            assert torch.equal(finite, torch.isfinite(b)), n
+            error = float((b - a)[finite].abs().max())
+            assert error <= 1e-5 * float(a[finite].abs().max()) + 1e-7, (n, error)
+
+
+def test_compiled_call_falls_back_to_the_tensor_walk_where_the_kernels_cannot_be_built(monkeypatch):
+    """Where the C++ kernels cannot be built, a compiled call takes the tensor walk as an eager one does: the
+    KernelUnavailable raised in the traced code is caught by the dispatch, not turned into a compile error."""
+    from torch_ao.kernels import build
+
+    def unavailable():
+        raise build.KernelUnavailable("the C++ kernels could not be built (test)")
+
+    monkeypatch.setattr(build, "_load_forwards", unavailable)
+    monkeypatch.setattr(build, "_load_backwards", unavailable)
+    torch._dynamo.reset()
+    gb = example_gbuffer(12, 16)
+    with torch.no_grad():
+        compiled = torch.compile(torch_ao.GTAO(slices=2, steps=2), backend="aot_eager", dynamic=False)(gb)
+        tensor_walk = torch_ao.GTAO(slices=2, steps=2, backend="torch")(gb)
+    assert torch.equal(compiled.visibility, tensor_walk.visibility)
 
 
 EVERY_PIXEL_MODULES = {

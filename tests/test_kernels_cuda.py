@@ -532,6 +532,12 @@ def _replaces(accumulator: str, acc_ints: list) -> bool:
     return accumulator == "pssao"
 
 
+def _settings(accumulator: str, acc_ints: list) -> int:
+    """The packed accumulator's settings() (horizon.h, ssao.h): UE4 SSAO's 3, SSAO's 2, GTAO's ue4 variant's 2
+    (``acc_ints[0] == 2``), else 1."""
+    return {"wedge": 3, "hemisphere": 2}.get(accumulator, 2 if accumulator == "gtao" and acc_ints[0] == 2 else 1)
+
+
 def _backward_cases():
     """(accumulator, walk settings, ints, floats, channels) of GTAO's three variants, HBAO (incremental and
     max), UE4 SSAO's wedge pairs, PSSAO and SSAO's hemisphere points (every step replayed), the soft walk (uniform, cosine, straight-through), the exact union (cosine and uniform; a layer read
@@ -788,14 +794,16 @@ def assert_the_scalar_lanes_backward(program, gb, all_cases, entry=None):
                 cpu["light"] = light_grad
         elif accumulator in ("wedge", "hemisphere"):
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
-                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), fetches, True,
-                True)
+                accumulator, grad, *inputs, cells, ints, floats, torch.empty(0, dtype=torch.int64), fetches,
+                _settings(accumulator, acc_ints), True, True)
         else:
-            out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, True)
+            out, record = grad_kernels().walk_record(accumulator, *inputs, cells, ints, floats, channels, words,
+                                                     True)
             assert torch.equal(read("record", *record.shape, dtype=np.int64), record)
             assert (read("out", *out.shape) - out).abs().max() <= 1e-6
             g_pos, g_nrm, g_inv, g_depth, g_setting, cpu["camera"] = grad_kernels().walk_backward(
-                accumulator, grad, *inputs, cells, ints, floats, record, fetches, True, True)
+                accumulator, grad, *inputs, cells, ints, floats, record, fetches, _settings(accumulator, acc_ints),
+                True, True)
         cuda = {"positions": read("g_positions", *g_pos.shape) + read("tap_positions", *g_pos.shape),
                 "normals": read("g_normals", *g_nrm.shape), "inverse": read("tap_inverse", *g_inv.shape),
                 "depth": read("g_depth", *g_depth.shape), "setting": read("g_setting", *g_setting.shape)}

@@ -29,7 +29,6 @@ class KernelUnavailable(RuntimeError):
     """A kernel cannot run here (no C++ compiler, a failed build, an unsupported device)."""
 
 
-@functools.lru_cache(maxsize=None)
 def cpu_kernels():
     """The ``torch.ops.torch_ao_kernels`` namespace, building the C++ source on first use.
 
@@ -37,34 +36,74 @@ def cpu_kernels():
     (about a minute, once per source version and CPU capability) is cached in
     ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``).
     """
-    load_cpu_library("torch_ao_kernels", _SOURCES)
-    _register_fake()
+    _require("forwards")
     return torch.ops.torch_ao_kernels
 
 
-@functools.lru_cache(maxsize=None)
 def grad_kernels():
     """The namespace with the walk's backwards (``walk_backward``, ``soft_backward``, ``exact_backward``,
     ``hard_backward``; walk_grad_cpu.cpp), built on first use
     as a library of its own: its dual-number walk takes longer to compile than the forward kernels, and
     only calls that want gradients need it. Raises :class:`KernelUnavailable` as :func:`cpu_kernels`."""
-    cpu_kernels()
+    _require("backwards")
+    return torch.ops.torch_ao_kernels
+
+
+#: why a library could not be built, by library (the last try's message)
+_FAILURES: dict[str, str] = {}
+
+
+def _require(library: str) -> None:
+    if not _loaded(library):
+        raise KernelUnavailable(_FAILURES[library])
+
+
+@torch.compiler.assume_constant_result
+def _loaded(library: str) -> bool:
+    """Build (once a process) and load the ``"forwards"`` or the ``"backwards"`` library: whether it is loaded
+    (if not, :data:`_FAILURES` says why). ``torch.compile`` calls it while tracing and keeps its result as a
+    constant, so a compiled call neither traces the build nor breaks its graph on it, and where the build fails it
+    raises :class:`KernelUnavailable` in the traced code, which the dispatch catches as it does eagerly."""
+    try:
+        (_load_forwards if library == "forwards" else _load_backwards)()
+    except KernelUnavailable as exc:
+        _FAILURES[library] = str(exc)
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=None)
+def _load_forwards() -> None:
+    load_cpu_library("torch_ao_kernels", _SOURCES)
+    _register_fake()
+
+
+@functools.lru_cache(maxsize=None)
+def _load_backwards() -> None:
+    _load_forwards()
     load_walk_grad_library()
+
+    @torch.library.register_fake("torch_ao_kernels::walk_record")
+    def _(accumulator, positions, normals, inverse_depth, depth, valid, intrinsics, cells, ints, floats, channels,
+          words, scalar):
+        B, H, W, _ = positions.shape
+        return positions.new_empty(B, channels, H, W), positions.new_empty((B, H, W, words), dtype=torch.int64)
 
     @torch.library.register_fake("torch_ao_kernels::walk_backward")
     def _(accumulator, grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, ints, floats, record,
-          camera, scalar):
+          fetches, settings, camera, scalar):
         B, H, W, _ = positions.shape
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
-                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape), depth.new_empty(depth.shape),
-                positions.new_empty((B, H, W, 4) if camera else (0,)))
+                inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
+                depth.new_empty((B, H, W, settings)), positions.new_empty((B, H, W, 4) if camera else (0,)))
 
     @torch.library.register_fake("torch_ao_kernels::soft_backward")
-    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, cells, backface, ints, floats, camera,
-          scalar):
+    def _(grad, positions, normals, inverse_depth, depth, valid, intrinsics, light, cells, backface, ints, floats,
+          camera, scalar):
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
-                depth.new_empty((*depth.shape, 2)), depth.new_empty(depth.shape),  # (offset and scale; the layer's)
+                depth.new_empty((*depth.shape, 3)), depth.new_empty(depth.shape),  # (offset, scale, growth; the layer's)
+                positions.new_empty(positions.shape),  # (the light's: zeros without indirect light)
                 depth.new_empty((*depth.shape, 4) if camera else (0,)))
 
     @torch.library.register_fake("torch_ao_kernels::hard_record")
@@ -87,8 +126,6 @@ def grad_kernels():
         return (positions.new_empty(positions.shape), normals.new_empty(normals.shape),
                 inverse_depth.new_empty(inverse_depth.shape), depth.new_empty(depth.shape),
                 depth.new_empty(depth.shape), depth.new_empty((*depth.shape, 4) if camera else (0,)))
-
-    return torch.ops.torch_ao_kernels
 
 
 def cpu_build_options() -> tuple[str, list[str], list[str]]:

@@ -13,7 +13,7 @@ does not give.
 """
 from __future__ import annotations
 
-from types import SimpleNamespace
+from typing import NamedTuple
 
 import torch
 
@@ -115,11 +115,17 @@ def hbao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: in
                 [packed_value(radius), packed_value(angle_bias)], 1, lanes=lanes, **options)
 
 
+class _SumsFrame(NamedTuple):
+    """What an accumulator reads of its frame to finish the kernel's sums: their dtype (a tuple, which
+    ``torch.compile`` traces)."""
+    dtype: torch.dtype
+
+
 def finish_sums(module, gbuffer: GBuffer, sums: dict[str, torch.Tensor], normals: torch.Tensor) -> dict[str, torch.Tensor]:
     """The module's accumulator's ``finish`` of per-pixel ``sums`` ``{name: (B*H*W, C)}`` on every pixel (rows
     are independent), as images, with the background put back (visibility 1, the G-buffer's normal)."""
     B, _, H, W = gbuffer.depth.shape
-    out = module.accumulator(SimpleNamespace(dtype=torch.float32)).finish(sums, None, module.slices)
+    out = module.accumulator(_SumsFrame(torch.float32)).finish(sums, None, module.slices)
     images = {"visibility": 1.0, "bent_normal": normals}
     return {name: torch.where(gbuffer.valid, out[name].view(B, H, W, -1).permute(0, 3, 1, 2), images[name])
             for name in out}

@@ -165,14 +165,17 @@ def packed_inputs(gbuffer: GBuffer, normals: torch.Tensor, settings: tuple[list[
     ints = list(settings[0])
     ints[14] = gbuffer.position is None  # (unprojected: no position buffer)
     settings = (ints, settings[1])
-    none = torch.empty(0, device=device)
-    cells = none
+
+    def none():  # (one tensor each: torch.compile does not trace an autograd Function given one tensor twice)
+        return torch.empty(0, device=device)
+
+    cells = none()
     if settings[0][9]:  # edge_aware (the flags have no gradient: kept with the G-buffer between calls)
         inverse, valid = inputs[2], inputs[4]
         cells = gbuffer.derived("edge_aware_cells", lambda: cell_flags(torch.where(valid, inverse.detach(), 0.0))
                                 .to(torch.float32).contiguous())
-    layer = none if backface is None else backface[:, 0].to(torch.float32).contiguous()
-    return inputs, (none if light is None else light, cells, layer), *packed_settings(settings, acc_ints, acc_floats,
+    layer = none() if backface is None else backface[:, 0].to(torch.float32).contiguous()
+    return inputs, (none() if light is None else light, cells, layer), *packed_settings(settings, acc_ints, acc_floats,
                                                                                       device)
 
 
@@ -195,10 +198,18 @@ def packed_settings(settings: tuple[list[int], list[float]], acc_ints: list, acc
     return ints, floats.index_put((at,), tensors)
 
 
-@functools.lru_cache(maxsize=256)
 def _settings_tensors(ints: tuple, floats: tuple, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    if torch.compiler.is_compiling():  # (constants of the graph: torch.compile does not trace a cache)
+        return _new_settings_tensors(ints, floats, device)
+    return _cached_settings_tensors(ints, floats, device)
+
+
+def _new_settings_tensors(ints: tuple, floats: tuple, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     return (torch.tensor(ints, dtype=torch.int64, device=device),
             torch.tensor(floats, dtype=torch.float32, device=device))
+
+
+_cached_settings_tensors = functools.lru_cache(maxsize=256)(_new_settings_tensors)
 
 
 def cuda_source() -> str:

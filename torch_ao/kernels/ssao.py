@@ -24,6 +24,7 @@ on the tensor path.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -107,7 +108,7 @@ def pssao_sums(gbuffer: GBuffer, normals: torch.Tensor, *, slices: int, steps: i
     return walk("pssao", gbuffer, normals, settings, [], [packed_value(distance_bias)], 3, lanes=lanes, **options)
 
 
-def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: torch.Tensor,
+def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: torch.Tensor | Sequence[float],
                           radius: float | torch.Tensor, bias: float | torch.Tensor, softness: float = 0.0,
                           jitter: bool = True, seed: int = 0, fetch: str = "bilinear", border: str = "drop",
                           lanes: str = "simd") -> torch.Tensor:
@@ -115,14 +116,17 @@ def hemisphere_visibility(gbuffer: GBuffer, normals: torch.Tensor, *, kernel: to
 
     Args:
         gbuffer, normals: as :func:`ue4_ssao_sums` (the kernel is oriented along the normals). kernel: the
-            ``(K,3)`` unit-hemisphere points (:func:`~torch_ao.methods.ssao.hemisphere_kernel`); radius, bias,
+            ``(K,3)`` unit-hemisphere points (:func:`~torch_ao.methods.ssao.hemisphere_kernel`), or their ``3 K``
+            coordinates as floats (:meth:`~torch_ao.SSAO.kernel_table`, constants to ``torch.compile``); radius, bias,
             softness: world units; jitter, seed, fetch, border: as :class:`~torch_ao.SSAO`. lanes: as
             :func:`ue4_ssao_sums`. With autograd recording through the G-buffer or a ``radius`` or ``bias``
             tensor, the visibility carries their gradients (the radius' by Euler's identity, the bias and
             softness being lengths).
     """
-    table = [float(v) for v in kernel.detach().to(torch.float32).flatten().tolist()]
-    settings = walk_settings(slices=1, steps=len(kernel), radius=packed_value(radius), jitter=jitter, seed=seed,
+    if isinstance(kernel, torch.Tensor):
+        kernel = kernel.detach().to(torch.float32).flatten().tolist()
+    table = [float(v) for v in kernel]
+    settings = walk_settings(slices=1, steps=len(table) // 3, radius=packed_value(radius), jitter=jitter, seed=seed,
                              fetch=fetch, border=border, placement="hemisphere", full_circle=True, table=table)
     walk, options = run_walk, {}
     if wants_gradient(gbuffer, normals, radius, bias):
@@ -165,7 +169,7 @@ def ssao_forward(module, gbuffer: GBuffer, lanes: str = "simd") -> dict[str, tor
     covers (:func:`ssao_covers`); lanes: as :func:`ue4_ssao_sums`."""
     m = module
     normals = gbuffer.view_normals(m.normals_method)
-    return {"visibility": hemisphere_visibility(gbuffer, normals, kernel=m.kernel, radius=m.radius, bias=m.bias,
+    return {"visibility": hemisphere_visibility(gbuffer, normals, kernel=m.kernel_table(), radius=m.radius, bias=m.bias,
                                                 softness=m.softness, jitter=m.jitter, seed=m.seed, fetch=m.fetch,
                                                 border=m.border, lanes=lanes)}
 

@@ -88,7 +88,8 @@ class _Walk(torch.autograd.Function):
             launch_cuda(f"tao_record_{accumulator}", depth.device, [*frame, out, record, ints, floats], (B, H, W),
                         full=full)
         else:
-            out, record = grad_kernels().walk_record(accumulator, *frame, ints, floats, channels, scalar)
+            out, record = grad_kernels().walk_record(accumulator, *frame, ints, floats, channels, record_shape[0],
+                                                     scalar)
         ctx.save_for_backward(*frame, ints, floats, radius, setting, record)
         return out
 
@@ -110,7 +111,7 @@ class _Walk(torch.autograd.Function):
             g_pos += taps
         else:
             g_pos, g_nrm, g_inv, g_depth, g_setting, g_camera = grad_kernels().walk_backward(
-                ctx.accumulator, grad, *frame, ints, floats, record, ctx.fetches, camera, ctx.scalar)
+                ctx.accumulator, grad, *frame, ints, floats, record, ctx.fetches, len(setting), camera, ctx.scalar)
         g_intrinsics = g_camera.to(torch.float64).sum((1, 2)).to(intrinsics.dtype) if camera else None
         along_setting = g_setting.to(torch.float64).sum((0, 1, 2))  # d L / d each setting
         g_radius = None

@@ -318,13 +318,14 @@ void check_cells(const WalkSettings& cfg, const Frame& fr) {
 
 // torch_ao_kernels::walk_record: the walk (torch_ao_kernels::walk's outputs (B, channels, H, W)) of an
 // accumulator that records its takes ("gtao", "hbao", "pssao": walk_grad.h's RecordsTakes), and the record of its
-// takes (B, H, W, words) int64 (walk_grad.h's take_words), for walk_backward
+// takes (B, H, W, words) int64 (words: walk_grad.h's take_words, which the caller states, as the shape of its
+// fake kernel), for walk_backward
 std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, const at::Tensor& positions,
                                                const at::Tensor& normals, const at::Tensor& inverse_depth,
                                                const at::Tensor& depth, const at::Tensor& valid,
                                                const at::Tensor& intrinsics, const at::Tensor& cells,
                                                const at::Tensor& ints, const at::Tensor& floats, int64_t channels,
-                                               bool scalar) {
+                                               int64_t words, bool scalar) {
   const std::string name(accumulator);
   at::Tensor out, record;
   with_replayed(name, ints, floats, [&](const auto& acc) {
@@ -336,6 +337,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
     check_cells(cfg, fr);
     const at::Tensor texels = fetch_texels(cfg, fr);
     TORCH_CHECK(acc.channels() == channels, "channels: expected ", acc.channels());
+    TORCH_CHECK(words == take_words(cfg), "words: expected ", take_words(cfg), " (take_words), got ", words);
     out = at::empty({fr.B, channels, fr.H, fr.W}, positions.options());
     record = at::empty({fr.B, fr.H, fr.W, take_words(cfg)}, ints.options());
     if constexpr (records) record_frame(cfg, acc, fr, out.data_ptr<float>(), record.data_ptr<int64_t>(), scalar);
@@ -345,7 +347,7 @@ std::tuple<at::Tensor, at::Tensor> walk_record(c10::string_view accumulator, con
 
 // torch_ao_kernels::walk_backward: the gradients of sum(grad * walk(...)) with respect to the walk's
 // positions, normals (B, H, W, 3), inverse depth and depth (B, H, W), and per pixel with respect to the
-// accumulator's settings (B, H, W, its settings(): 3 for "wedge", else 1), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
+// accumulator's settings (B, H, W, settings: its settings(), which the caller states), and with camera with respect to the intrinsics fx, fy, cx, cy (B, H, W, 4; else
 // empty); grad (B, C, H, W); accumulator "gtao", "hbao", "wedge" or "pssao" with walk()'s packed settings; cells:
 // the edge-aware fetch's cell flags (B, H, W), else empty; record: walk_record's of the same call (gtao, hbao,
 // pssao), else empty (every step is replayed); fetches: the most a slice replays, at least replayed_fetches' (the
@@ -354,7 +356,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     c10::string_view accumulator, const at::Tensor& grad, const at::Tensor& positions, const at::Tensor& normals,
     const at::Tensor& inverse_depth, const at::Tensor& depth, const at::Tensor& valid, const at::Tensor& intrinsics,
     const at::Tensor& cells, const at::Tensor& ints, const at::Tensor& floats, const at::Tensor& record,
-    int64_t fetches, bool camera, bool scalar) {
+    int64_t fetches, int64_t settings, bool camera, bool scalar) {
   const std::string name(accumulator);
   const at::Tensor none = at::empty({0}, positions.options());
   std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> result;
@@ -371,6 +373,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       TORCH_CHECK(record.numel() == 0, "record: ", name, " replays every step: expected an empty record");
     }
     check_grad(grad, positions, acc.channels());
+    TORCH_CHECK(settings == acc.settings(), "settings: ", name, " has ", acc.settings(), ", got ", settings);
     Gradients out(positions, fr.B, fr.H, fr.W, cfg, acc.settings(), false, false, camera);
     TORCH_CHECK(fetches >= replayed_fetches(acc, cfg), "fetches: ", name, " with these settings replays up to ",
                 replayed_fetches(acc, cfg), " fetches a slice (walk_grad.h's replayed_fetches), got ", fetches);
@@ -606,12 +609,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 TORCH_LIBRARY_FRAGMENT(torch_ao_kernels, m) {
   m.def("walk_record(str accumulator, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "
-        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, int channels, bool scalar) "
+        "Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, int channels, int words, "
+        "bool scalar) "
         "-> (Tensor, Tensor)");
   m.impl("walk_record", c10::DispatchKey::CPU, TORCH_FN(walk_record));
   m.def("walk_backward(str accumulator, Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, "
         "Tensor depth, Tensor valid, Tensor intrinsics, Tensor cells, Tensor ints, Tensor floats, Tensor record, "
-        "int fetches, bool camera, bool scalar) "
+        "int fetches, int settings, bool camera, bool scalar) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
   m.impl("walk_backward", c10::DispatchKey::CPU, TORCH_FN(walk_backward));
   m.def("soft_backward(Tensor grad, Tensor positions, Tensor normals, Tensor inverse_depth, Tensor depth, "

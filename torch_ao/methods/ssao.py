@@ -38,7 +38,7 @@ from ..walk import Frame, Queries, fetch_sample, interleaved_gradient_noise, mar
 from .base import ScreenSpaceAO
 from .common import RADIUS, Sampling, declare_signature, functional_twin, register_parameters
 
-__all__ = ["SSAO", "ssao", "hemisphere_kernel", "kernel_points", "kernel_occlusion"]
+__all__ = ["SSAO", "ssao", "hemisphere_kernel", "hemisphere_table", "kernel_points", "kernel_occlusion"]
 
 
 def hemisphere_kernel(samples: int, seed: int = 0) -> torch.Tensor:
@@ -51,6 +51,19 @@ def hemisphere_kernel(samples: int, seed: int = 0) -> torch.Tensor:
     i = torch.arange(samples, dtype=torch.float64) / samples
     scale = 0.1 + 0.9 * i.square()
     return d * (length * scale)[:, None]
+
+
+@torch.compiler.assume_constant_result
+def hemisphere_table(samples: int, seed: int = 0) -> tuple[float, ...]:
+    """:func:`hemisphere_kernel`'s points as the fused walk reads them: ``x, y, z`` of each, float32 values.
+    ``torch.compile`` calls it while tracing and keeps the result as constants (a tensor's ``tolist`` would
+    break the graph)."""
+    return _hemisphere_table(int(samples), int(seed))
+
+
+@functools.lru_cache(maxsize=64)
+def _hemisphere_table(samples: int, seed: int) -> tuple[float, ...]:
+    return tuple(hemisphere_kernel(samples, seed).to(torch.float32).flatten().tolist())
 
 
 def _tangent_frame(q: Queries, jitter: bool, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,6 +147,10 @@ class SSAO(ScreenSpaceAO):
         if float(values["softness"]) == 0:
             return {"bias": "the hard occlusion step (softness 0) has no gradient: give softness > 0 to fit it"}
         return {}
+
+    def kernel_table(self) -> tuple[float, ...]:
+        """``kernel``'s points as the fused walk reads them (:func:`hemisphere_table`): ``3 K`` floats."""
+        return hemisphere_table(self.samples, self.seed)
 
     def walk(self, frame, chunk_size, recompute):
         return march_chunks(frame, functools.partial(kernel_occlusion, module=self), chunk_size=chunk_size,
