@@ -21,7 +21,7 @@ from ..sectors import ROUNDINGS
 from ..thickness import ThicknessLayer, matching
 from .coverage import gbuffer_uncovered, option_uncovered
 from .build import cpu_kernels, grad_kernels
-from .frame import light_input, scalar_lanes, scale_derivative
+from .frame import first_order, light_input, scalar_lanes, scale_derivative
 from .launch import full_walk, launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
@@ -177,6 +177,7 @@ class _HardWalk(torch.autograd.Function):
         return out
 
     @staticmethod
+    @first_order
     def backward(ctx, grad):
         *frame, light, cells, layer, ints, floats, record, radius = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()

@@ -1,6 +1,8 @@
 """What every kernel reads of a G-buffer: channel-last float32 images, the inverse depth, the intrinsics."""
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from ..gbuffer import GBuffer
@@ -66,6 +68,29 @@ def view_geometry(gbuffer: GBuffer, method: str) -> None:
     gbuffer.keep("walk_depths", (inverse, depth_nan))
 
 
+def first_order(backward):
+    """The decorator of a kernel Function's ``backward``: its gradients are first order. Where autograd records the
+    backward (``create_graph=True``, for a second derivative), each gradient carries a node that raises when it is
+    differentiated, where autograd would silently take the kernel's gradients as constants of its inputs (a
+    second derivative of 0). PyTorch's ``once_differentiable`` raises only where the incoming gradients require
+    one, which a gradient penalty's do not."""
+
+    @functools.wraps(backward)
+    def wrapper(ctx, *grad_outputs):
+        with torch.no_grad():
+            grads = backward(ctx, *grad_outputs)
+        if not torch.is_grad_enabled():
+            return grads
+        grads = grads if isinstance(grads, tuple) else (grads,)
+        inputs = [t for t in ctx.saved_tensors if t is not None and t.requires_grad]  # (the node on their paths)
+        raises = torch._C._functions.DelayedError(
+            b"torch_ao: a fused kernel's gradients are first order: a second derivative through the AO layer "
+            b"(create_graph=True) is not supported", len(grads) + len(inputs))
+        return raises(*(None if g is None else g.detach().requires_grad_(True) for g in grads), *inputs)[:len(grads)]
+
+    return wrapper
+
+
 class _ViewGeometry(torch.autograd.Function):
     """``torch_ao_kernels::view_geometry`` and its backward (geometry_cpu.cpp)."""
 
@@ -76,6 +101,7 @@ class _ViewGeometry(torch.autograd.Function):
         return torch.ops.torch_ao_kernels.view_geometry(depth, normals, valid, intrinsics)
 
     @staticmethod
+    @first_order
     def backward(ctx, *grads):
         depth, normals, valid, intrinsics = ctx.saved_tensors
         none = depth.new_empty(0)

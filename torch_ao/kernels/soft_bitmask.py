@@ -48,7 +48,7 @@ from ..ops import bent_direction
 from ..sectors import ROUNDINGS
 from .bitmask import HARD_VARIANTS, KernelOutputs, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
-from .frame import light_input, scalar_lanes, scale_derivative
+from .frame import first_order, light_input, scalar_lanes, scale_derivative
 from .launch import full_walk, launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
@@ -247,6 +247,7 @@ class _GBufferWalk(torch.autograd.Function):
         return cpu_kernels().walk(kernels.cpu, *frame, light, cells, layer, ints, floats, channels, scalar)
 
     @staticmethod
+    @first_order
     def backward(ctx, grad):
         positions, normals, inverse, depth, valid, intrinsics, light, cells, layer, ints, floats, radius, thickness, \
             growth = ctx.saved_tensors
@@ -294,6 +295,7 @@ class _SoftWalk(torch.autograd.Function):
         return out[:, :1].contiguous()
 
     @staticmethod
+    @first_order
     def backward(ctx, grad):
         # (B, 3 or 4, H, W): d visibility / d radius, d thickness, d scale (, d growth) per pixel
         (jacobian,) = ctx.saved_tensors

@@ -31,7 +31,7 @@ from ..checks import check_scalar_tensor
 from ..gbuffer import GBuffer
 from .bitmask import EXACT_MAX_STEPS, _EXACT, module_thickness, options_uncovered, thickness_read_index
 from .build import cpu_kernels, grad_kernels
-from .frame import scalar_lanes
+from .frame import first_order, scalar_lanes
 from .launch import full_walk, launch_cuda, packed_inputs, run_walk, walk_settings
 from .walk_grad import wants_gradient
 
@@ -154,6 +154,7 @@ class _GBufferWalk(torch.autograd.Function):
         return out[:, :1].contiguous()
 
     @staticmethod
+    @first_order
     def backward(ctx, grad):
         *frame, cells, layer, ints, floats, jacobian = ctx.saved_tensors
         grad = grad.to(torch.float32).contiguous()
@@ -193,6 +194,7 @@ class _ExactWalk(torch.autograd.Function):
         return out[:, :1].contiguous()
 
     @staticmethod
+    @first_order
     def backward(ctx, grad):
         (jacobian,) = ctx.saved_tensors  # (B, 3 or 4, H, W): d visibility / d radius, offset, scale (, growth)
         sums = (grad.double() * jacobian.double()).sum(dim=(0, 2, 3))

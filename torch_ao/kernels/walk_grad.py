@@ -30,7 +30,7 @@ import torch
 
 from ..gbuffer import GBuffer
 from .build import grad_kernels
-from .frame import scalar_lanes, scale_derivative
+from .frame import first_order, scalar_lanes, scale_derivative
 from .launch import cuda_group_of, full_walk, launch_cuda, packed_inputs, run_packed
 
 __all__ = ["differentiable_walk", "gbuffer_requires_grad", "wants_gradient", "replayed_fetches", "cuda_backward",
@@ -94,6 +94,7 @@ class _Walk(torch.autograd.Function):
         return out
 
     @staticmethod
+    @first_order
     def backward(ctx, grad):
         (positions, normals, inverse, depth, valid, intrinsics, cells, ints, floats, radius, setting,
          record) = ctx.saved_tensors
