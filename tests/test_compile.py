@@ -7,6 +7,8 @@ import torch_ao
 from torch_ao.examples import example_gbuffer
 from torch_ao.thickness import BackfaceThickness
 
+from kernel_calls import KERNEL_CALLS
+
 pytestmark = pytest.mark.slow
 
 # small walks keep Inductor's compile time (it unrolls the slice and step loops) to tens of seconds
@@ -168,26 +170,7 @@ def test_walk_traces_as_one_graph(name):
     assert breaks == [] and graphs == 1, breaks
 
 
-# every fused kernel's call (backend "auto" on the CPU), forward and with gradients: hard, soft, straight-through and
-# the exact union; the horizon family with its recorded takes; the SSAO family; indirect light
-KERNEL_MODULES = {
-    "gtao": lambda: torch_ao.GTAO(slices=2, steps=3),
-    "gtao_ue4": lambda: torch_ao.GTAO(variant="ue4", slices=2, steps=3),
-    "hbao": lambda: torch_ao.HBAO(slices=2, steps=3),
-    "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=3),
-    "pssao": lambda: torch_ao.PSSAO(slices=2, steps=3),
-    "ssao": lambda: torch_ao.SSAO(slices=2, steps=3, softness=0.05),
-    "bitmask_hard_cosine": lambda: torch_ao.BitmaskAO(mode="hard", weighting="cosine", slices=2, steps=3),
-    "bitmask_soft": lambda: torch_ao.BitmaskAO(mode="soft", slices=2, steps=3),
-    "bitmask_straight_through": lambda: torch_ao.BitmaskAO(mode="straight_through", slices=2, steps=3),
-    "bitmask_soft_exact_backface": lambda: torch_ao.BitmaskAO(variant="exact", mode="soft", slices=2, steps=3,
-                                                              thickness=BackfaceThickness()),
-    "ssilvb_hard_cosine": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=2, steps=3),
-    "glsl_soft": lambda: torch_ao.BitmaskAO(variant="ssilvb_glsl", mode="soft", slices=2, steps=3),
-}
-
-
-@pytest.mark.parametrize("name", sorted(KERNEL_MODULES))
+@pytest.mark.parametrize("name", sorted(KERNEL_CALLS))
 def test_kernel_call_compiles_as_one_graph_with_eager_values_and_gradients(name):
     """``torch.compile`` of a module whose call runs a fused kernel: one graph and no graph break, forward and
     backward (the kernels' fake shapes trace them; their libraries load while tracing, not in the graph), and
@@ -202,7 +185,7 @@ def test_kernel_call_compiles_as_one_graph_with_eager_values_and_gradients(name)
         torch._dynamo.reset()
         counters.clear()
         torch.manual_seed(0)
-        module = KERNEL_MODULES[name]()
+        module = KERNEL_CALLS[name]()
         run = torch.compile(module, backend="aot_eager", dynamic=False) if compiled else module
         inputs = [t.detach().clone().requires_grad_(True) for t in (gb.depth, gb.normals, light)]
         frame = torch_ao.GBuffer(depth=inputs[0], camera=gb.camera, normals=inputs[1], light=inputs[2], mask=gb.mask,
