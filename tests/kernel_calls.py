@@ -1,23 +1,30 @@
-"""One small call of each fused kernel family (backend "auto" on the CPU), with the options that make each take
-its own kernel: the horizon family with its recorded takes, the SSAO family, hard cosine sectors, soft and
-straight-through, the exact union with the back-face layer, indirect light, the ssilvb_glsl shader in soft mode.
-Tests that every kernel call must pass a property (test_compile.py, test_kernels_first_order.py) iterate it."""
-import torch_ao
-from torch_ao.thickness import BackfaceThickness
+"""Counting how often dispatch hands a call to a kernel (``backend="auto"`` tests); a call on given numbers of
+torch's threads."""
+import torch
 
-KERNEL_CALLS = {
-    "gtao": lambda: torch_ao.GTAO(slices=2, steps=3),
-    "gtao_ue4": lambda: torch_ao.GTAO(variant="ue4", slices=2, steps=3),
-    "hbao": lambda: torch_ao.HBAO(slices=2, steps=3),
-    "ue4_ssao": lambda: torch_ao.UE4SSAO(slices=2, steps=3),
-    "pssao": lambda: torch_ao.PSSAO(slices=2, steps=3),
-    "ssao": lambda: torch_ao.SSAO(slices=2, steps=3, softness=0.05),
-    "bitmask_hard_cosine": lambda: torch_ao.BitmaskAO(mode="hard", weighting="cosine", slices=2, steps=3),
-    "bitmask_soft": lambda: torch_ao.BitmaskAO(mode="soft", slices=2, steps=3),
-    "bitmask_straight_through": lambda: torch_ao.BitmaskAO(mode="straight_through", slices=2, steps=3),
-    "bitmask_soft_exact_backface": lambda: torch_ao.BitmaskAO(variant="exact", mode="soft", slices=2, steps=3,
-                                                              thickness=BackfaceThickness()),
-    "ssilvb_hard_cosine": lambda: torch_ao.SSILVB(mode="hard", weighting="cosine", slices=2, steps=3),
-    "ssilvb_soft": lambda: torch_ao.SSILVB(mode="soft", slices=2, steps=3),
-    "glsl_soft": lambda: torch_ao.BitmaskAO(variant="ssilvb_glsl", mode="soft", slices=2, steps=3),
-}
+import torch_ao.kernels.dispatch as dispatch
+
+
+def on_threads(fn, counts=(1, 2)) -> list:
+    """``[fn() with torch on n threads for n in counts]``, torch's thread count restored after."""
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n in counts:
+            torch.set_num_threads(n)
+            results.append(fn())
+    finally:
+        torch.set_num_threads(threads)
+    return results
+
+
+def count_kernel_calls(monkeypatch, name: str, covers=None) -> list:
+    """Wrap the ``(covers, run)`` entry of ``dispatch.KERNELS[name]`` (the last, or the one of ``covers``) so that
+    each run appends 1 to the returned list; the entry's ``covers`` is kept, so coverage decides as before."""
+    entries = list(dispatch.KERNELS[name])
+    index = len(entries) - 1 if covers is None else [c for c, _ in entries].index(covers)
+    wrapped, run = entries[index]
+    calls = []
+    entries[index] = (wrapped, lambda *a: calls.append(1) or run(*a))
+    monkeypatch.setitem(dispatch.KERNELS, name, tuple(entries))
+    return calls

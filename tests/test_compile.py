@@ -7,7 +7,7 @@ import torch_ao
 from torch_ao.examples import example_gbuffer
 from torch_ao.thickness import BackfaceThickness
 
-from kernel_calls import KERNEL_CALLS
+from kernel_cases import KERNEL_CALLS
 
 pytestmark = pytest.mark.slow
 

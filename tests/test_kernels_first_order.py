@@ -7,7 +7,7 @@ import torch
 import torch_ao
 from torch_ao.examples import example_gbuffer
 
-from kernel_calls import KERNEL_CALLS
+from kernel_cases import KERNEL_CALLS
 
 def _gradients(module, gb, light, create_graph):
     depth = gb.depth.detach().clone().requires_grad_(True)
