@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torch_ao.kernels.cuda_offline import compile_ptx, kernel_resources  # noqa: E402
+from torch_ao.kernels.cuda_offline import compile_groups, kernel_resources  # noqa: E402
 from torch_ao.kernels.launch import _THREADS  # noqa: E402
 
 
@@ -27,8 +27,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=_THREADS, help="threads per block")
     ap.add_argument("--full", action="store_true", help="the full build's kernels, the lean build's beside them")
     args = ap.parse_args(argv)
-    report = kernel_resources(compile_ptx(args.arch, full=args.full), args.arch)
-    lean = kernel_resources(compile_ptx(args.arch), args.arch) if args.full else {}
+    report = kernel_resources(compile_groups(args.arch, full=args.full), args.arch)
+    lean = kernel_resources(compile_groups(args.arch), args.arch) if args.full else {}
     print(f"sm_{args.arch}, {args.threads} threads per block, the {'full' if args.full else 'lean'} build\n")
     beside = " lean: registers, spilled |" if args.full else ""
     print(f"| kernel | registers | stack (bytes) | spilled (bytes) | occupancy |{beside}")

@@ -15,7 +15,8 @@ pytestmark = pytest.mark.skipif(cuda_offline.nvrtc_library() is None,
 
 @pytest.fixture(scope="module")
 def ptx90():
-    return cuda_offline.compile_ptx(90)
+    """Each group's PTX for an H200, compiled alone as a GPU compiles it: ``{group: ptx}``."""
+    return cuda_offline.compile_groups(90)
 
 
 def test_entry_points_are_found():
@@ -24,11 +25,21 @@ def test_entry_points_are_found():
 
 
 @pytest.mark.parametrize("arch", [pytest.param(80, marks=pytest.mark.slow), 90])
-def test_nvrtc_compiles_every_kernel(ptx90, arch):
-    ptx = ptx90 if arch == 90 else cuda_offline.compile_ptx(arch)
-    assert f".target sm_{arch}" in ptx
-    for name in cuda_offline.KERNEL_NAMES:
-        assert f".entry {name}(" in ptx, name
+def test_nvrtc_compiles_every_group_with_its_entries_and_no_other(request, arch):
+    """Every entry point is in one group of walk_cuda.cu (launch.cuda_groups), and a build of one group (TAO_ONE_GROUP:
+    what a call compiles at its group's first use) holds that group's entries and no other."""
+    from torch_ao.kernels.launch import cuda_groups
+
+    groups = cuda_groups()
+    names = [name for group in groups.values() for name in group]
+    assert sorted(names) == sorted(cuda_offline.KERNEL_NAMES) and len(set(names)) == len(names)
+    assert {"walks", "records", "gtao_small", "gtao_short", "gtao", "hbao_small", "hbao_short", "hbao", "ssao",
+            "soft", "exact", "hard"} == set(groups)
+    ptx = request.getfixturevalue("ptx90") if arch == 90 else cuda_offline.compile_groups(arch)
+    assert set(ptx) == set(groups)
+    for group, module in ptx.items():
+        assert f".target sm_{arch}" in module, group
+        assert sorted(re.findall(r"\.entry (\w+)\(", module)) == sorted(groups[group]), group
 
 
 def test_a_compile_error_is_reported_with_the_log(monkeypatch):
@@ -102,21 +113,6 @@ def test_the_compiled_kernels_are_kept_on_disk_once(tmp_path, monkeypatch):
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".bin"] * 4  # (no temporary left behind)
 
 
-def test_the_groups_hold_every_entry_and_each_compiles_alone():
-    """Every entry point is in one group of walk_cuda.cu (launch.cuda_groups), and a build of one group (TAO_ONE_GROUP:
-    what a call compiles at its group's first use) holds that group's entries and no other."""
-    from torch_ao.kernels.launch import cuda_groups, cuda_options
-
-    groups = cuda_groups()
-    names = [name for group in groups.values() for name in group]
-    assert sorted(names) == sorted(cuda_offline.KERNEL_NAMES) and len(set(names)) == len(names)
-    assert {"walks", "records", "gtao_small", "gtao_short", "gtao", "hbao_small", "hbao_short", "hbao", "ssao",
-            "soft", "exact", "hard"} == set(groups)
-    for group in ("walks", "hard"):  # (two of the quickest to compile)
-        ptx = cuda_offline.compile_ptx(90, cuda_options(group=group))
-        assert sorted(re.findall(r"\.entry (\w+)\(", ptx)) == sorted(groups[group]), group
-
-
 def test_the_cuda_entry_names_follow_the_macros():
     from torch_ao.kernels.launch import cuda_entry_names
 
@@ -133,7 +129,7 @@ def test_the_full_build_compiles_and_spills_little():
     one of them run: every entry point, within 255 registers; what the options add spills a little in the walks (the
     hard sector walk 164 bytes, its recording forward 32, the exact union's 140, the soft one's 32) and more in the
     backwards (the hard one 5892, the exact union's 2672, the soft ones' 2896-3168); bounded here (NVRTC 12.9, sm_90)."""
-    report = cuda_offline.kernel_resources(cuda_offline.compile_ptx(90, full=True), 90)
+    report = cuda_offline.kernel_resources(cuda_offline.compile_groups(90, full=True), 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
     bounds = {"tao_exact_backward": 4096, "tao_hard_backward": 7168, "tao_walk_bitmask": 192, "tao_record_hard": 64,
               "tao_walk_exact": 192, "tao_walk_soft": 96, "tao_soft_backward_short": 4096, "tao_soft_backward": 4096}
