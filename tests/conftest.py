@@ -6,6 +6,15 @@ import torch
 # and it keeps subprocess tests (DDP, kill-and-resume) from oversubscribing a 2-core machine.
 torch.set_num_threads(1)
 
+#: the test files that run longest, one test at a time (NVRTC compiling the CUDA source, a minute or two a test)
+_FIRST = ("test_kernels_nvrtc.py",)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The longest tests first, so that with pytest-xdist (``-n auto --dist loadgroup``, README) they run beside
+    the rest instead of ending the run on one worker alone."""
+    items.sort(key=lambda item: item.path.name not in _FIRST)  # (stable: the rest keep their order)
+
 
 def mesh_scenes_missing(*names: str) -> pytest.MarkDecorator:
     """Skip where the files of built-in mesh scenes (all, or ``names``) are missing: Debian's

@@ -160,7 +160,7 @@ def test_the_shader_bakes_the_fitted_constants_and_its_interface(tmp_path):
     exact = params_file("exact_backface_edge", tmp_path)
     source = export_shader(exact, "glsl", scale=100.0)
     data = load_fitted(exact)
-    radius = float(data.method.radius) * 100
+    radius = float(data.method.radius.detach()) * 100
     assert source.startswith("#version 330 core\n")
     assert f"#define AO_RADIUS {float(torch.tensor(radius, dtype=torch.float32))!r}" in source
     for line in ("uniform sampler2D uPosition;", "uniform sampler2D uNormal;", "uniform sampler2D uBackfaceDepth;",

@@ -9,8 +9,9 @@ import pytest
 
 from torch_ao.kernels import cuda_offline
 
-pytestmark = pytest.mark.skipif(cuda_offline.nvrtc_library() is None,
-                                reason="needs NVRTC (pip install nvidia-cuda-nvrtc-cu12)")
+pytestmark = [pytest.mark.skipif(cuda_offline.nvrtc_library() is None,
+                                 reason="needs NVRTC (pip install nvidia-cuda-nvrtc-cu12)"),
+              pytest.mark.xdist_group("nvrtc")]  # (one worker: the module's compile of every group is shared)
 
 
 @pytest.fixture(scope="module")
