@@ -72,4 +72,7 @@ nvidia-smi --query-gpu=clocks.sm,clocks.mem,temperature.gpu,power.draw --format=
 stage "torch.compile of CUDA kernel modules against eager (GPU_CHECK_COMPILE=0: not)"
 [ "${GPU_CHECK_COMPILE:-1}" = 0 ] || timeout 150 python3 -m pytest -q -p no:cacheprovider -rfEs tests/test_compile.py::test_compiled_cuda_kernels_match_eager \
   || echo "gpu_check: torch.compile tests failed or timed out"
+stage "torch.compile: the graphs and graph breaks of each kernel family's call on CUDA (benchmarks/compile_breaks.py)"
+[ "${GPU_CHECK_COMPILE:-1}" = 0 ] || timeout 150 python3 benchmarks/compile_breaks.py --device cuda \
+  || echo "gpu_check: compile_breaks failed or timed out"
 stage done

@@ -19,7 +19,23 @@ other in the tensor walk, in float32 as in float64:
 
 So 0.2 % of a gradient's entries may miss, the gradient as a whole stays within 1 %, and a parameter's gradient (a
 sum over the frame) within 1e-3. Jitter stays on: without it, steps land on texel edges, where float32 and float64
-floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk)."""
+floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk).
+
+Branches make the rest of the values. Where a call's value is a branch's within float32's rounding of its
+threshold, the kernel can take one side where the float32 tensor walk takes the other, so "three times the float32
+walk's movement" does not bound it there. Seen over 528 more drawn calls (slow test below), at 1 to 5 entries of a
+call: `GTAO(variant="hdrp")`, whose projected normal's angle is HDRP's sign(sin n) fast_acos(cos n), at a pixel whose
+projected normal lies along the view vector (cos n within rounding of 1: the angle is +-sqrt(2 (1 - cos n)), 3e-4
+rad from float32's last bit, where float64 gives 0; the kernel's value took one of two values 2.3e-5 apart as the
+normals were nudged in their last bit, the float64 walk's moved by 6e-8), and `UE4SSAO`'s flat-surface test with
+no softness (a step). So 0.1 % of an output's entries may miss the value tolerance, each by at most 1e-3, and a
+gradient's entries at those pixels (the other side's derivative: the square root's is unbounded at 0) are among
+the 0.2 % it may miss; the 1 % bound on the whole gradient is taken over its other entries.
+
+A gradient that is zero in theory (a hard mask's visibility through the depth, where only the normals turn the
+cosine weights; a nearest fetch's light and the radius) reads the rounding of its terms: such a gradient, or a
+parameter's whose reference is zero, is held to 1e-6 of the call's largest gradient entry (a parameter's: of the
+largest entry's sum over the frame)."""
 import itertools
 import random
 import warnings
@@ -32,10 +48,14 @@ from torch_ao import GTAO, HBAO, PSSAO, SSAO, SSILVB, UE4SSAO, BitmaskAO
 from torch_ao.gbuffer import GBuffer
 
 CALLS = 72  # (about 10 s)
+MORE_CALLS = 600  # the slow test's: calls CALLS to MORE_CALLS (about a minute)
 VALUE_TOL = 1e-5  # outputs: absolute
+VALUE_OFF_SHARE = 0.001  # the share of an output's entries that may miss VALUE_TOL (a branch within rounding)
+VALUE_OFF_MOST = 1e-3  # ... and by how much at most
 GRAD_TOL = 1e-4  # a gradient's entries: relative to its largest
 OFF_SHARE = 0.002  # the share of a gradient's entries that may miss GRAD_TOL (a value within rounding of a kink)
 SCALAR_TOL = 1e-3  # a parameter's gradient: relative (it sums every entry's, those beside a kink too)
+ZERO_TOL = 1e-6  # a gradient zero in theory: relative to the call's largest gradient entry
 
 
 def _bitmask(rng: random.Random, common: dict) -> dict:
@@ -127,6 +147,15 @@ def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
     assert_agrees_on_drawn_options(index, "cpu")
 
 
+@pytest.mark.slow
+def test_kernel_agrees_with_the_tensor_walk_on_many_more_drawn_options(built):
+    for index in range(CALLS, MORE_CALLS):
+        try:
+            assert_agrees_on_drawn_options(index, "cpu")
+        except AssertionError as error:
+            raise AssertionError(f"drawn call {index}: {error}") from error
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("index", range(CALLS))
 def test_cuda_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
@@ -149,30 +178,41 @@ def assert_agrees_on_drawn_options(index: int, device: str) -> None:
     assert got.keys() == ref.keys() and ref  # (the same outputs on the graph: hard masks are off it)
     for name in ref:
         moved = float((ref32[name] - ref[name]).abs().max())
-        err = float((got[name] - ref[name]).abs().max())
-        assert err <= max(VALUE_TOL, 3 * moved), (cls.__name__, options, name, err, moved)
+        err = (got[name] - ref[name]).abs()
+        off = err > max(VALUE_TOL, 3 * moved)
+        assert float(off.double().mean()) <= VALUE_OFF_SHARE, (cls.__name__, options, name, float(err.max()), moved)
+        assert float(err.max()) <= max(VALUE_OFF_MOST, 3 * moved), (cls.__name__, options, name, float(err.max()))
     assert ref_grads["depth"].abs().sum() > 0
-    # the scalar parameters' gradients are sums over the frame: their rounding is absolute, at the largest one's scale
+    # the scalar parameters' gradients are sums over the frame: their rounding is absolute, at the largest one's scale;
+    # a gradient zero in theory reads its terms' rounding, at the scale of the call's largest gradient entry
     scale = max((float(g.abs()) for g in ref_grads.values() if g is not None and g.dim() == 0), default=0.0)
+    largest = max(float(g.abs().max()) for g in ref_grads.values() if g is not None and g.dim() > 0)
+    zero_floor = ZERO_TOL * largest
+    scalar_floor = ZERO_TOL * max(float(g.abs().sum()) for g in ref_grads.values() if g is not None and g.dim() > 0)
     for name, ref_grad in ref_grads.items():
         got_grad, ref32_grad = got_grads[name], ref32_grads[name]
         if ref_grad is None:  # (an input or setting the walk does not read: none, or a parameter's rounding)
             if name in ("depth", "normals", "light"):
                 assert got_grad is None, (cls.__name__, options, name)
             else:  # (a nearest fetch's radius: Euler's identity sums to the rounding of 0)
-                assert got_grad is None or float(got_grad.abs()) <= 1e-4 * scale, (cls.__name__, options, name)
+                assert got_grad is None or float(got_grad.abs()) <= max(1e-4 * scale, scalar_floor), \
+                    (cls.__name__, options, name, float(got_grad))
             continue
         if ref_grad.dim() == 0:
             err, moved = _distance(got_grad, ref_grad), _distance(ref32_grad, ref_grad)
             size = _distance(ref_grad, None)
-            assert err <= max(SCALAR_TOL * size, 3 * moved, 1e-6 * scale), (cls.__name__, options, name, err, moved, size)
+            assert err <= max(SCALAR_TOL * size, 3 * moved, 1e-6 * scale, scalar_floor), \
+                (cls.__name__, options, name, err, moved, size)
             continue
         assert got_grad is not None, (cls.__name__, options, name)
         moved = (ref32_grad - ref_grad).abs()
-        allowed = GRAD_TOL * float(ref_grad.abs().max()) + 3 * float(moved.max()) + 1e-12
-        off = ((got_grad - ref_grad).abs() > allowed).double().mean()
-        assert off <= OFF_SHARE, (cls.__name__, options, name, float(off))
-        assert _distance(got_grad, ref_grad) <= max(1e-2 * _distance(ref_grad, None), 3 * float(moved.norm())), \
+        allowed = GRAD_TOL * float(ref_grad.abs().max()) + 3 * float(moved.max()) + zero_floor + 1e-12
+        off = (got_grad - ref_grad).abs() > allowed
+        assert float(off.double().mean()) <= OFF_SHARE, (cls.__name__, options, name, float(off.double().mean()))
+        kept = ~off  # (the whole gradient's bound, over the entries that are not beside a kink or a branch)
+        assert _distance(got_grad[kept], ref_grad[kept]) <= max(1e-2 * _distance(ref_grad[kept], None),
+                                                                3 * float(moved[kept].norm()),
+                                                                zero_floor * float(kept.sum()) ** 0.5), \
             (cls.__name__, options, name)
 
 
