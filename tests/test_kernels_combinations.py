@@ -21,16 +21,19 @@ So 0.2 % of a gradient's entries may miss, the gradient as a whole stays within 
 sum over the frame) within 1e-3. Jitter stays on: without it, steps land on texel edges, where float32 and float64
 floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk).
 
-Branches make the rest of the values. Where a call's value is a branch's within float32's rounding of its
-threshold, the kernel can take one side where the float32 tensor walk takes the other, so "three times the float32
-walk's movement" does not bound it there. Seen over 528 more drawn calls (slow test below), at 1 to 5 entries of a
-call: `GTAO(variant="hdrp")`, whose projected normal's angle is HDRP's sign(sin n) fast_acos(cos n), at a pixel whose
-projected normal lies along the view vector (cos n within rounding of 1: the angle is +-sqrt(2 (1 - cos n)), 3e-4
-rad from float32's last bit, where float64 gives 0; the kernel's value took one of two values 2.3e-5 apart as the
-normals were nudged in their last bit, the float64 walk's moved by 6e-8), and `UE4SSAO`'s flat-surface test with
-no softness (a step). So 0.1 % of an output's entries may miss the value tolerance, each by at most 1e-3, and a
-gradient's entries at those pixels (the other side's derivative: the square root's is unbounded at 0) are among
-the 0.2 % it may miss; the 1 % bound on the whole gradient is taken over its other entries.
+Branches and float32's conditioning make the rest of the values. Where a call's value is a branch's within float32's
+rounding of its threshold, or moves by more than its tolerance with its inputs' last bit, the kernel and the float32
+tensor walk round to different values, so "three times the float32 walk's movement" does not bound it there. Seen
+over 528 more drawn calls (slow test below), at 1 to 5 entries of a call: `GTAO(variant="hdrp")` at one pixel, where
+the kernel's value took one of two values 2.3e-5 apart as the normals were nudged in their last bit while the
+float64 walk's moved by 6e-8 (a branch whose threshold that pixel sits within float32's rounding of; which of HDRP's
+branches was not identified: the normal is 66 degrees from the view vector, and the fetch, the border, the falloff
+and the step count do not change it); and `UE4SSAO` with a bilinear fetch, whose value at a few pixels is
+ill-conditioned in float32 (nudging the depth in its last bit moved the float32 walk's error there between -3e-5 and
+8e-5, and the kernel's with it), so that one input's float32 walk can be close where the kernel is not. So 0.1 % of
+an output's entries may miss the value tolerance, each by at most 1e-3, and a gradient's entries at those pixels
+(the other side's derivative) are among the 0.2 % it may miss; the 1 % bound on the whole gradient is taken over its
+other entries.
 
 A gradient that is zero in theory (a hard mask's visibility through the depth, where only the normals turn the
 cosine weights; a nearest fetch's light and the radius) reads the rounding of its terms: such a gradient, or a
