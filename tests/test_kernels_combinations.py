@@ -27,13 +27,13 @@ tensor walk round to different values, so "three times the float32 walk's moveme
 over 528 more drawn calls (slow test below), at 1 to 5 entries of a call: `GTAO(variant="hdrp")` at one pixel, where
 the kernel's value took one of two values 2.3e-5 apart as the normals were nudged in their last bit while the
 float64 walk's moved by 6e-8 (a branch whose threshold that pixel sits within float32's rounding of; which of HDRP's
-branches was not identified: the normal is 66 degrees from the view vector, and the fetch, the border, the falloff
-and the step count do not change it); and `UE4SSAO` with a bilinear fetch, whose value at a few pixels is
-ill-conditioned in float32 (nudging the depth in its last bit moved the float32 walk's error there between -3e-5 and
-8e-5, and the kernel's with it), so that one input's float32 walk can be close where the kernel is not. So 0.1 % of
-an output's entries may miss the value tolerance, each by at most 1e-3, and a gradient's entries at those pixels
-(the other side's derivative) are among the 0.2 % it may miss; the 1 % bound on the whole gradient is taken over its
-other entries.
+branches was not identified: the normal is 66 degrees from the view vector, the fetch, the border, the falloff and
+the step count do not change it; without the projected normal's weight, or with the other noise, it is gone); and
+`UE4SSAO` with a bilinear fetch, whose value at a few pixels is ill-conditioned in float32 (nudging the depth in its
+last bit moved the float32 walk's error there between -3e-5 and 8e-5, and the kernel's with it), so that one input's
+float32 walk can be close where the kernel is not. So 0.1 % of an output's entries may miss the value tolerance,
+each by at most 1e-3, and a gradient's entries at those pixels (the other side's derivative) are among the 0.2 % it
+may miss; the 1 % bound on the whole gradient is taken over its other entries.
 
 A gradient that is zero in theory (a hard mask's visibility through the depth, where only the normals turn the
 cosine weights; a nearest fetch's light and the radius) reads the rounding of its terms: such a gradient, or a
