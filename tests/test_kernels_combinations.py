@@ -41,6 +41,7 @@ parameter's whose reference is zero, is held to 1e-6 of the call's largest gradi
 largest entry's sum over the frame)."""
 import itertools
 import random
+import sys
 import warnings
 
 import pytest
@@ -151,7 +152,19 @@ def test_kernel_agrees_with_the_tensor_walk_on_drawn_options(built, index):
 
 
 @pytest.mark.slow
-def test_kernel_agrees_with_the_tensor_walk_on_many_more_drawn_options(built):
+@pytest.mark.parametrize("lanes", ["simd", "scalar"])
+def test_kernel_agrees_with_the_tensor_walk_on_many_more_drawn_options(built, lanes, monkeypatch):
+    """Calls CALLS to MORE_CALLS, in the CPU's vector lanes or, ``scalar``, every kernel in the scalar lanes: one pixel
+    at a time through walk_pixel, the CUDA thread's body (lanes_scalar.h, the lanes NVRTC compiles)."""
+    if lanes == "scalar":
+        from torch_ao.kernels import frame
+
+        patched = set()
+        for module in list(sys.modules.values()):  # (each kernel module imports the switch by name)
+            if getattr(module, "scalar_lanes", None) is frame.scalar_lanes:
+                monkeypatch.setattr(module, "scalar_lanes", lambda lanes: True)
+                patched.add(module.__name__.rsplit(".", 1)[-1])
+        assert {"launch", "bitmask", "soft_bitmask", "soft_exact", "walk_grad"} <= patched, patched
     for index in range(CALLS, MORE_CALLS):
         try:
             assert_agrees_on_drawn_options(index, "cpu")
