@@ -157,11 +157,11 @@ def test_kernel_agrees_with_the_tensor_walk_on_many_more_drawn_options(built, la
     """Calls CALLS to MORE_CALLS, in the CPU's vector lanes or, ``scalar``, every kernel in the scalar lanes: one pixel
     at a time through walk_pixel, the CUDA thread's body (lanes_scalar.h, the lanes NVRTC compiles)."""
     if lanes == "scalar":
-        from torch_ao.kernels import frame
+        from torch_ao.kernels import bitmask, frame, launch, soft_bitmask, soft_exact, walk_grad  # noqa: F401
 
-        patched = set()
+        patched, switch = set(), frame.scalar_lanes
         for module in list(sys.modules.values()):  # (each kernel module imports the switch by name)
-            if getattr(module, "scalar_lanes", None) is frame.scalar_lanes:
+            if getattr(module, "scalar_lanes", None) is switch:
                 monkeypatch.setattr(module, "scalar_lanes", lambda lanes: True)
                 patched.add(module.__name__.rsplit(".", 1)[-1])
         assert {"launch", "bitmask", "soft_bitmask", "soft_exact", "walk_grad"} <= patched, patched
