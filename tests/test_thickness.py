@@ -100,6 +100,21 @@ def test_legacy_forms_map_onto_the_classes():
     assert torch.allclose(ao(gb).visibility, ref)
 
 
+def test_one_model_serves_modules_with_and_without_growth():
+    """``thickness_growth=`` does not write into the model it is given: a module built after one with growth reads
+    the model without it, and a second module with growth can be built from the same model."""
+    gb = _gbuffer()
+    model = LinearThickness(0.1, slope=0.02)
+    plain = BitmaskAO(thickness=LinearThickness(0.1, slope=0.02), trainable=False, **OPTS)(gb).visibility
+    grown = BitmaskAO(thickness=model, thickness_growth=2.0, trainable=False, **OPTS)(gb).visibility
+    assert model.growth is None
+    again = BitmaskAO(thickness=model, thickness_growth=2.0, trainable=False, **OPTS)(gb).visibility
+    after = BitmaskAO(thickness=model, trainable=False, **OPTS)(gb).visibility
+    assert torch.equal(again, grown) and torch.equal(after, plain)
+    assert not torch.allclose(grown, plain)  # (the growth changes the frame's visibility)
+    assert "thickness_growth" not in dict(BitmaskAO(thickness=model, **OPTS).named_parameters())
+
+
 def test_bad_thickness_inputs_are_named():
     gb = _gbuffer()
     with pytest.raises(ValueError, match="backface_depth"):

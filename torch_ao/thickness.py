@@ -30,6 +30,7 @@ map, ``thickness_growth=``) onto these classes.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 
@@ -199,13 +200,15 @@ _BY_DIM = {0: ScalarThickness, 1: ObjectThickness, 4: MapThickness}
 
 
 def as_thickness(thickness, growth=None) -> Thickness:
-    """A :class:`Thickness` from the AO modules' ``thickness=``: a model (returned, with ``growth`` set if
-    given), a number or 0-d tensor (:class:`ScalarThickness`), a ``(K,)`` table (:class:`ObjectThickness`)
-    or a ``(B,1,H,W)`` map (:class:`MapThickness`)."""
+    """A :class:`Thickness` from the AO modules' ``thickness=``: a model (returned as it is, or with ``growth``
+    given a shallow copy of it that carries the growth: the caller's model is left as it was, so that it can
+    serve modules with and without growth), a number or 0-d tensor (:class:`ScalarThickness`), a ``(K,)`` table
+    (:class:`ObjectThickness`) or a ``(B,1,H,W)`` map (:class:`MapThickness`)."""
     if isinstance(thickness, Thickness):
         if growth is not None:
             if thickness.growth is not None:
                 raise ValueError("thickness_growth: given twice (as an argument and in the thickness model)")
+            thickness = copy.copy(thickness)
             thickness.growth = checked_growth(growth)
         return thickness
     if isinstance(thickness, bool) or not isinstance(thickness, (int, float, torch.Tensor)):
