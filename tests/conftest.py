@@ -6,8 +6,9 @@ import torch
 # and it keeps subprocess tests (DDP, kill-and-resume) from oversubscribing a 2-core machine.
 torch.set_num_threads(1)
 
-#: the test files that run longest, one test at a time (NVRTC compiling the CUDA source, a minute or two a test)
-_FIRST = ("test_kernels_nvrtc.py",)
+#: the test files whose tests run longest (NVRTC compiling the CUDA source, the 528 more drawn calls: a minute or two
+#: a test)
+_FIRST = ("test_kernels_nvrtc.py", "test_kernels_combinations.py")
 
 
 def pytest_collection_modifyitems(config, items):
