@@ -6,15 +6,15 @@ import torch
 # and it keeps subprocess tests (DDP, kill-and-resume) from oversubscribing a 2-core machine.
 torch.set_num_threads(1)
 
-#: the test files whose tests run longest (NVRTC compiling the CUDA source, the 528 more drawn calls: a minute or two
-#: a test)
-_FIRST = ("test_kernels_nvrtc.py", "test_kernels_combinations.py")
+#: the tests that run longest: NVRTC compiling the CUDA source (a file of them), and the 528 more drawn calls
+#: (a test), a minute or two each
+_FIRST = ("test_kernels_nvrtc.py", "test_kernel_agrees_with_the_tensor_walk_on_many_more_drawn_options")
 
 
 def pytest_collection_modifyitems(config, items):
     """The longest tests first, so that with pytest-xdist (``-n auto --dist loadgroup``, README) they run beside
     the rest instead of ending the run on one worker alone."""
-    items.sort(key=lambda item: item.path.name not in _FIRST)  # (stable: the rest keep their order)
+    items.sort(key=lambda item: item.path.name not in _FIRST and getattr(item, "originalname", "") not in _FIRST)
 
 
 def mesh_scenes_missing(*names: str) -> pytest.MarkDecorator:
