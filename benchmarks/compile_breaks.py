@@ -1,8 +1,9 @@
 """How ``torch.compile`` traces each fused kernel family's call: the graphs and graph breaks that
 ``torch._dynamo.explain`` finds in one call of each of tests/kernel_cases.py's modules (backend ``auto``) on a
 small G-buffer (with a light buffer and a back-face layer), without gradients and with depth and normal
-gradients, and the first line of each distinct break reason. On the CPU every call is one graph with no break (tests/test_compile.py asserts it); on CUDA
-this counts what the kernels' launches cost a compiled model. Markdown on stdout:
+gradients, and the first line of each distinct break reason. On the CPU every call is one graph with no break
+(tests/test_compile.py asserts it); on CUDA this counts what the kernels' launches cost a compiled model.
+Markdown on stdout:
 
     python benchmarks/compile_breaks.py                 # CPU
     python benchmarks/compile_breaks.py --device cuda   # a GPU (benchmarks/gpu_check.sh runs it)
