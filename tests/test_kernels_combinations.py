@@ -26,7 +26,9 @@ a step of 1e-6 of it to either side. Such an event moves a gradient at a pixel's
 sample it concerns: a step within float32's rounding of a texel's edge (a nearest or edge-aware fetch reads the other
 texel, and the gradient moves from one tap to another: the sample's old and new taps), or a hard mask's sector that
 flipped. So beyond the 0.2 %, each pixel whose value is off, and one more that the values do not show, may move 9
-entries a channel. Jitter stays on: without it, steps land on texel edges, where float32 and float64
+entries a channel; and where the per-pixel values or gradients show such an event, a sum over the frame (a
+parameter's gradient, the intrinsics') moves by that pixel's share: within 5e-3 there (seen: 2.2e-3, the radius
+with a step at a texel edge; 4.2e-3, the intrinsics with `GTAO(variant="hdrp")`'s branch below). Jitter stays on: without it, steps land on texel edges, where float32 and float64
 floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk).
 
 Branches and float32's conditioning make the rest of the values. Where a call's value is a branch's within float32's
@@ -73,6 +75,7 @@ GRAD_TOL = 1e-4  # a gradient's entries: relative to its largest
 OFF_SHARE = 0.002  # the share of a gradient's entries that may miss GRAD_TOL (a value within rounding of a kink)
 FLIP_ENTRIES = 9  # ... and an event's entries a channel (a pixel's own, and a sample's old and new four taps)
 SCALAR_TOL = 1e-3  # a parameter's gradient: relative (it sums every entry's, those beside a kink too)
+EVENT_SCALAR_TOL = 5e-3  # ... where the per-pixel values or gradients show an event (a pixel's share of the sum)
 ZERO_TOL = 1e-6  # a gradient zero in theory: relative to the call's largest gradient entry
 KINK_STEP = 1e-6  # a parameter's difference quotients: the step, relative to the parameter (float32's rounding)
 HEIGHT, WIDTH, BATCH = 24, 40, 2  # every call's frame (rough_gbuffer)
@@ -278,6 +281,7 @@ def assert_agrees_on_drawn_options(index: int, device: str) -> None:
     images = [g for n, g in ref_grads.items() if g is not None and n in PER_PIXEL]
     zero_floor = ZERO_TOL * max(float(g.abs().max()) for g in images)
     scalar_floor = ZERO_TOL * max(float(g.abs().sum()) for g in images)
+    event_seen = bool(flipped.any())  # (and any per-pixel gradient's entry off: they come first in ref_grads)
     for name, ref_grad in ref_grads.items():
         got_grad, ref32_grad = got_grads[name], ref32_grads[name]
         if ref_grad is None:  # (an input or setting the walk does not read: none, or a parameter's rounding)
@@ -290,7 +294,7 @@ def assert_agrees_on_drawn_options(index: int, device: str) -> None:
         if name not in PER_PIXEL:  # (a parameter's, the intrinsics': sums over the frame)
             err, moved = _distance(got_grad, ref_grad), _distance(ref32_grad, ref_grad)
             size = _distance(ref_grad, None)
-            bound = max(SCALAR_TOL * size, 3 * moved, 1e-6 * scale, scalar_floor)
+            bound = max((EVENT_SCALAR_TOL if event_seen else SCALAR_TOL) * size, 3 * moved, 1e-6 * scale, scalar_floor)
             if err > bound and ref_grad.dim() == 0:  # (a pixel within float32's rounding of a kink: its other side)
                 low, high = _difference_quotients(cls, options, gb, light, name)
                 assert low - bound <= float(got_grad) <= high + bound, \
@@ -304,6 +308,7 @@ def assert_agrees_on_drawn_options(index: int, device: str) -> None:
         off = (got_grad - ref_grad).abs() > allowed
         events = int(flipped.sum()) + 1  # (each pixel whose value is off, and one the values do not show)
         flips = FLIP_ENTRIES * ref_grad.shape[1] * events
+        event_seen |= bool(off.any())
         assert int(off.sum()) <= OFF_SHARE * off.numel() + flips, (cls.__name__, options, name, int(off.sum()), flips)
         kept = ~off  # (the whole gradient's bound, over the entries that are not beside a kink or a branch)
         assert _distance(got_grad[kept], ref_grad[kept]) <= max(1e-2 * _distance(ref_grad[kept], None),
@@ -318,6 +323,8 @@ def _difference_quotients(cls, options: dict, gb: GBuffer, light: torch.Tensor, 
     between them, and any derivative on either side of it within their interval."""
     value = float(getattr(cls(**options), name).detach())
     step = KINK_STEP * max(abs(value), 1.0)
+    if options.get("mode") == "straight_through":  # (its gradients are the soft walk's)
+        options = dict(options, mode="soft")
     loss = [outputs_and_gradients(cls, options, gb, light, torch.float64, "torch", shift=(name, d))[2]
             for d in (-step, 0.0, step)]
     quotients = ((loss[1] - loss[0]) / step, (loss[2] - loss[1]) / step)
