@@ -43,6 +43,30 @@ def test_current_build_is_loaded_without_building(recorder):
     assert first.read_text() == source.read_text()
 
 
+def test_a_build_whose_load_returns_none_is_found_and_stamped(recorder, monkeypatch):
+    """torch 2.4's cpp_extension.load returns None for a library that is not a Python module (later releases return
+    its path): the library is then the one cpp_extension names in the build folder, and a second process loads it."""
+    calls, source = recorder
+    real = cpp_extension.load
+    monkeypatch.setattr(cpp_extension, "load", lambda **kw: real(**kw) and None)
+    first = build.load_cached_library("k_test", [source], ["-O3"], [])
+    assert first.name == f"k_test{cpp_extension.LIB_EXT}" and first.read_text() == source.read_text()
+    assert build.load_cached_library("k_test", [source], ["-O3"], []) == first
+    assert len(calls["build"]) == 1 and calls["load"] == [str(first)]
+
+
+def test_kernel_sources_are_ascii():
+    """NVRTC and the C++ compiler read the sources as bytes, and Python reads them (the CUDA source's assembly, the
+    build's fingerprint) in whatever locale the process has: a library that a CUDA toolkit loads may switch it to
+    C, whose codec is ASCII."""
+    folder = Path(build.__file__).parent
+    sources = [p for ext in ("*.h", "*.cpp", "*.cu") for p in folder.glob(ext)]
+    assert len(sources) > 10
+    for path in sources:
+        text = path.read_bytes()
+        assert text.isascii(), (path.name, text[:next(i for i, b in enumerate(text) if b > 127)][-80:])
+
+
 @pytest.mark.parametrize("change", ["source", "header", "cflags", "ldflags", "library deleted", "stamp corrupt"])
 def test_any_change_rebuilds(recorder, change):
     calls, source = recorder

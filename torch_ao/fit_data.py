@@ -120,7 +120,7 @@ def reference_files(items: Iterable[str | os.PathLike], what: str = "reference")
         elif path.suffix.lower() == ".txt":
             if not path.is_file():
                 raise ValueError(f"{what}: list file {text} does not exist")
-            lines = [line.split("#", 1)[0].strip() for line in path.read_text().splitlines()]
+            lines = [line.split("#", 1)[0].strip() for line in path.read_text(encoding="utf-8").splitlines()]
             listed = [path.parent / line for line in lines if line]
             if not listed:
                 raise ValueError(f"{what}: list file {text} names no file")

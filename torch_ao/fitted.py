@@ -276,7 +276,7 @@ def load_fitted(path: str | os.PathLike, device: torch.device | str | None = Non
     if not path.is_file():
         raise FileNotFoundError(f"fitted: no such file {path}")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as err:
         raise ValueError(f"fitted: {path} is not JSON ({err})") from None
     except RecursionError:

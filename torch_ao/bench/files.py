@@ -271,7 +271,7 @@ def load_report(path: str | os.PathLike) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"--report: no such file: {path}")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ValueError(f"--report: {path} is not a bench report (invalid JSON: {err})") from None
     if not isinstance(data, dict) or "rows" not in data or "recommendations" not in data:

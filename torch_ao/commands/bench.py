@@ -105,7 +105,7 @@ def _params(texts: list[str] | None) -> dict:
     for text in texts or []:
         path = Path(text)
         try:
-            data = json.loads(path.read_text() if path.is_file() else text)
+            data = json.loads(path.read_text(encoding="utf-8") if path.is_file() else text)
         except json.JSONDecodeError as err:
             raise CommandError(f"--params: {text!r} is not a JSON file or string ({err})") from None
         if isinstance(data, dict) and "method" in data and isinstance(data.get("parameters"), dict):
@@ -130,7 +130,7 @@ def _needs_backface(fitted) -> bool:
     """Whether any ``--fitted`` pipeline reads the G-buffer's back-face layer (its thickness model)."""
     def model(path):
         try:
-            return json.loads(Path(path).read_text()).get("options", {}).get("thickness_model")
+            return json.loads(Path(path).read_text(encoding="utf-8")).get("options", {}).get("thickness_model")
         except (OSError, ValueError, AttributeError):
             return None  # unreadable files are refused, with their names, where the rows are built
 

@@ -217,7 +217,7 @@ def load_cached_library(name: str, sources, cflags, ldflags) -> Path:
 def _current_library(folder: Path, fingerprint: str) -> Path | None:
     """The library the stamp in ``folder`` records for ``fingerprint``, if it is there."""
     stamp = folder / _STAMP
-    recorded = stamp.read_text().split() if stamp.exists() else []
+    recorded = stamp.read_text(encoding="utf-8").split() if stamp.exists() else []
     if len(recorded) == 2 and recorded[0] == fingerprint and (folder / recorded[1]).is_file():
         return folder / recorded[1]
     return None
@@ -253,12 +253,13 @@ def _build(cpp_extension, name: str, folder: Path, fingerprint: str, sources, cf
     # cpp_extension builds only when its in-process record of the sources changed: after a failed build, a second
     # try in the same process would load the library left from an older build, which the stamp would then call current
     cpp_extension.JIT_EXTENSION_VERSIONER.entries.pop(name, None)
-    library = Path(cpp_extension.load(name=name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
-                                      extra_ldflags=list(ldflags), is_python_module=False,
-                                      build_directory=str(folder),
-                                      verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE"))))
+    built = cpp_extension.load(name=name, sources=[str(s) for s in sources], extra_cflags=list(cflags),
+                               extra_ldflags=list(ldflags), is_python_module=False, build_directory=str(folder),
+                               verbose=bool(os.environ.get("TORCH_AO_KERNELS_VERBOSE")))
+    # (torch 2.4 loads the library and returns None; later releases return its path, which is this one)
+    library = Path(built) if built is not None else folder / f"{name}{cpp_extension.LIB_EXT}"
     tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}.tmp")
-    tmp.write_text(f"{fingerprint} {library.name}\n")
+    tmp.write_text(f"{fingerprint} {library.name}\n", encoding="utf-8")
     os.replace(tmp, stamp)
     return library
 

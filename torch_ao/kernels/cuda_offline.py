@@ -149,7 +149,7 @@ def kernel_resources(ptx: str | Mapping[str, str], arch: int = 90) -> dict[str, 
         raise RuntimeError("ptxas not found: pip install nvidia-cuda-nvcc-cu12 (or torch_ao[cuda-offline])")
     with tempfile.TemporaryDirectory() as tmp:
         source = os.path.join(tmp, "walk.ptx")
-        with open(source, "w") as f:
+        with open(source, "w", encoding="utf-8") as f:
             f.write(ptx)
         run = subprocess.run([ptxas, f"-arch=sm_{int(arch)}", "-v", source, "-o", os.path.join(tmp, "walk.cubin")],
                              capture_output=True, text=True)

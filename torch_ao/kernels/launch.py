@@ -216,7 +216,7 @@ def cuda_source() -> str:
     """The CUDA kernels' source as NVRTC compiles it: the headers inlined in order, then ``walk_cuda.cu``."""
     parts = []
     for name in _CUDA_FILES:
-        text = (_HERE / name).read_text()
+        text = (_HERE / name).read_text(encoding="utf-8")
         text = re.sub(r'^\s*#\s*(pragma once|include\s+"[^"]+")\s*$', "", text, flags=re.M)
         parts.append(f"// ---- {name}\n{text}")
     return "\n".join(parts)

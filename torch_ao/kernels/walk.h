@@ -545,9 +545,9 @@ template <class F> TAO_FN typename LaneTraits<F>::M equal_taps(const typename La
   return land(land(ieq(index[1], index[0]), ieq(index[2], index[0])), ieq(index[3], index[0]));
 }
 
-// One sample (fetch_sample and Sample): the fetch at screen (su, sv) — the nearest texel, or the
+// One sample (fetch_sample and Sample): the fetch at screen (su, sv): the nearest texel, or the
 // perspective-correct bilinear footprint of four taps (walk.fetch.bilinear_taps: inverse depth
-// interpolated, then unprojected) — delta = position - P where valid, else -V (away from the camera: it
+// interpolated, then unprojected), delta = position - P where valid, else -V (away from the camera: it
 // never occludes). valid drops background taps, the border (drop) and the centre texel.
 template <class F> struct Sample {
   using M = typename LaneTraits<F>::M;
