@@ -4,6 +4,9 @@ builds it again. cpp_extension.load and torch.ops.load_library are replaced by r
 compiler runs here; the real build and load are covered by the kernel tests."""
 from __future__ import annotations
 
+import ctypes
+import locale
+import sys
 from pathlib import Path
 
 import pytest
@@ -200,3 +203,22 @@ def test_a_retry_after_a_failed_build_builds_again(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == ["failed", "failed"]
     assert not (ext / "k_retry" / build._STAMP).exists()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's newlocale and uselocale")
+def test_a_thread_locale_switched_inside_the_nvrtc_guard_is_restored():
+    """NVRTC 12.1 leaves the compiling thread in a "C" locale of its own, where Python's text files are ASCII; the
+    guard around every NVRTC call (launch.thread_locale_kept) puts the thread's locale back."""
+    from torch_ao.kernels.launch import thread_locale_kept
+
+    libc = ctypes.CDLL(None)
+    libc.newlocale.restype, libc.newlocale.argtypes = ctypes.c_void_p, [ctypes.c_int, ctypes.c_char_p, ctypes.c_void_p]
+    libc.uselocale.restype, libc.uselocale.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
+    before = locale.getpreferredencoding(False)
+    c_locale = libc.newlocale(1, b"C", None)  # (LC_CTYPE_MASK)
+    with thread_locale_kept():
+        libc.uselocale(c_locale)  # (as NVRTC 12.1 does)
+        assert locale.getpreferredencoding(False) == "ANSI_X3.4-1968"
+    assert locale.getpreferredencoding(False) == before
+    libc.freelocale.argtypes = [ctypes.c_void_p]
+    libc.freelocale(c_locale)

@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-from .launch import cuda_entry_names, cuda_groups, cuda_options, cuda_source
+from .launch import cuda_entry_names, cuda_groups, cuda_options, cuda_source, thread_locale_kept
 
 __all__ = ["nvrtc_library", "ptxas_path", "compile_ptx", "compile_groups", "KernelResources", "kernel_resources",
            "KERNEL_NAMES"]
@@ -73,18 +73,19 @@ def compile_ptx(arch: int = 90, options: tuple[str, ...] | list[str] | None = No
     if nvrtc is None:
         raise RuntimeError("NVRTC not found: pip install nvidia-cuda-nvrtc-cu12 (or torch_ao[cuda-offline])")
     program = ctypes.c_void_p()
-    _check(nvrtc, nvrtc.nvrtcCreateProgram(ctypes.byref(program), cuda_source().encode(), b"walk_cuda.cu", 0,
-                                           None, None))
-    try:
-        options = cuda_options(full) if options is None else options
-        flags = [f"--gpu-architecture=compute_{int(arch)}".encode()] + [o.encode() for o in options]
-        status = nvrtc.nvrtcCompileProgram(program, len(flags), (ctypes.c_char_p * len(flags))(*flags))
-        log = _read(nvrtc, program, "ProgramLog")
-        if status != 0:
-            raise RuntimeError(f"NVRTC could not compile the CUDA kernels for compute_{arch}:\n{log}")
-        return _read(nvrtc, program, "PTX")
-    finally:
-        nvrtc.nvrtcDestroyProgram(ctypes.byref(program))
+    source = cuda_source().encode()
+    with thread_locale_kept():
+        _check(nvrtc, nvrtc.nvrtcCreateProgram(ctypes.byref(program), source, b"walk_cuda.cu", 0, None, None))
+        try:
+            options = cuda_options(full) if options is None else options
+            flags = [f"--gpu-architecture=compute_{int(arch)}".encode()] + [o.encode() for o in options]
+            status = nvrtc.nvrtcCompileProgram(program, len(flags), (ctypes.c_char_p * len(flags))(*flags))
+            log = _read(nvrtc, program, "ProgramLog")
+            if status != 0:
+                raise RuntimeError(f"NVRTC could not compile the CUDA kernels for compute_{arch}:\n{log}")
+            return _read(nvrtc, program, "PTX")
+        finally:
+            nvrtc.nvrtcDestroyProgram(ctypes.byref(program))
 
 
 def compile_groups(arch: int = 90, *, full: bool = False, workers: int | None = None) -> dict[str, str]:

@@ -10,6 +10,8 @@ group of entries at a time (:func:`cuda_groups`), the first time a call needs on
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import functools
 import hashlib
 import os
@@ -212,6 +214,24 @@ def _new_settings_tensors(ints: tuple, floats: tuple, device: torch.device) -> t
 _cached_settings_tensors = functools.lru_cache(maxsize=256)(_new_settings_tensors)
 
 
+@contextlib.contextmanager
+def thread_locale_kept():
+    """Restore the calling thread's C locale on exit. NVRTC 12.1 (CUDA 12.1 builds of torch) leaves the thread that
+    compiled in a "C" locale of its own (``uselocale``), after which Python opens text files in ASCII in that thread:
+    the user's program too, not only this library. Where the C library has no ``uselocale``, nothing is done."""
+    try:
+        uselocale = ctypes.CDLL(None).uselocale
+    except (AttributeError, OSError):  # pragma: no cover - Windows
+        yield
+        return
+    uselocale.restype, uselocale.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
+    kept = uselocale(None)  # (None asks without changing it)
+    try:
+        yield
+    finally:
+        uselocale(kept)
+
+
 def cuda_source() -> str:
     """The CUDA kernels' source as NVRTC compiles it: the headers inlined in order, then ``walk_cuda.cu``."""
     parts = []
@@ -285,7 +305,9 @@ def _cuda_kernels(device_index: int, full: bool, group: str) -> dict | KernelUna
             source, names, options = cuda_source(), cuda_groups()[group], cuda_options(full, group)
 
             def compile_source() -> bytes:  # (torch < 2.9 returns the binary alone, later ones with a name)
-                out = _nvrtc_compile(source, names[0], compute_capability=f"{major}{minor}", nvcc_options=options)
+                with thread_locale_kept():
+                    out = _nvrtc_compile(source, names[0], compute_capability=f"{major}{minor}",
+                                         nvcc_options=options)
                 return out[0] if isinstance(out, tuple) else out
 
             binary = _cuda_binary(source, options, f"{major}{minor}", compile_source)

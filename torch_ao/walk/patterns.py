@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from ..checks import check_choice, check_float, check_int
+from ..ops import safe_atan2
 from .frame import Queries
 from .protocol import SamplingPattern
 
@@ -111,7 +112,7 @@ def unoccluded_slice_integral(normal_view: torch.Tensor, normal_tangent: torch.T
     :func:`~torch_ao.ops.arc_integral` from ``g - pi/2`` to ``g + pi/2``) from the normal's components
     along V and along the slice tangent: ``n.V + g n.T`` with ``g = atan2(n.T, n.V)``. Its mean over
     azimuths uniform around V is 1 (the cosine-weighted hemisphere's measure over pi)."""
-    return normal_view + torch.atan2(normal_tangent, normal_view) * normal_tangent
+    return normal_view + safe_atan2(normal_tangent, normal_view) * normal_tangent
 
 
 def projected_normal_azimuths(q: Queries, u: torch.Tensor, bins: int = PROJECTED_NORMAL_BINS

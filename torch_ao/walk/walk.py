@@ -25,6 +25,7 @@ from typing import Callable
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from ..ops import safe_atan2
 from .frame import Frame, Queries, repeat_rows
 from .protocol import SamplingPattern, SliceAccumulator
 from .sample import fetch_sample
@@ -61,7 +62,7 @@ def slice_geometry(frame: Frame, q: Queries, pattern: SamplingPattern, s: int) -
     # the normal projected into the slice plane, N less its part along the plane's normal T x V: (N . V) V + (N . T) T
     along_view, along_tangent = (q.normal * q.view).sum(-1), (q.normal * T).sum(-1)
     normal_length = torch.stack((along_view, along_tangent), -1).norm(dim=-1)  # (at 0 a norm's gradient is 0, hypot's NaN)
-    normal_angle = torch.atan2(along_tangent, along_view)
+    normal_angle = safe_atan2(along_tangent, along_view)  # (at 0 too its gradient is 0)
     # Derivative of the projection (u, v) = (fx x/d + cx, -fy y/d + cy), d = -z, along T.
     b = q.batch
     d = q.depth
