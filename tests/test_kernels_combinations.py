@@ -30,17 +30,19 @@ texel, and the gradient moves from one tap to another: the sample's old and new 
 flipped. So beyond the 0.2 %, each pixel whose value is off, and one more that the values do not show, may move 9
 entries a channel; and where the per-pixel values or gradients show such an event, a sum over the frame (a
 parameter's gradient, the intrinsics') moves by that pixel's share: within 5e-3 there (seen: 2.2e-3, the radius
-with a step at a texel edge; 4.2e-3, the intrinsics with `GTAO(variant="hdrp")`'s branch below). Jitter stays on: without it, steps land on texel edges, where float32 and float64
-floor differently (tests/test_kernels_soft_gbuffer.py covers that against the float32 walk).
+with a step at a texel edge; 4.2e-3, the intrinsics with `GTAO(variant="hdrp")`'s projected normal below). Jitter
+stays on: without it, steps land on texel edges, where float32 and float64 floor differently
+(tests/test_kernels_soft_gbuffer.py covers that against the float32 walk).
 
 Branches and float32's conditioning make the rest of the values. Where a call's value is a branch's within float32's
 rounding of its threshold, or moves by more than its tolerance with its inputs' last bit, the kernel and the float32
 tensor walk round to different values, so "three times the float32 walk's movement" does not bound it there. Seen
 over 528 more drawn calls (slow test below), at 1 to 5 entries of a call: `GTAO(variant="hdrp")` at one pixel, where
 the kernel's value took one of two values 2.3e-5 apart as the normals were nudged in their last bit while the
-float64 walk's moved by 6e-8 (a branch whose threshold that pixel sits within float32's rounding of; which of HDRP's
-branches was not identified: the normal is 66 degrees from the view vector, the fetch, the border, the falloff and
-the step count do not change it; without the projected normal's weight, or with the other noise, it is gone); and
+float64 walk's moved by 6e-8. That is HDRP's projected normal angle, ``n = sign(n . T) GTAOFastAcos(cos n)``, at a
+slice whose ``n`` is near 0 (-3.2e-4 rad at the pixel of calls 1562 and 1946): float32 holds no cosine between 1 and
+1 - 6e-8, and the square root in the fast acos turns those two into n = 0 or 3.5e-4 (the tensor walk takes cos n from
+atan2's angle, the kernel from the projected normal's components, so their float32 values can land on either); and
 `UE4SSAO` with a bilinear fetch, whose value at a few pixels is ill-conditioned in float32 (nudging the depth in its
 last bit moved the float32 walk's error there between -3e-5 and 8e-5, and the kernel's with it), so that one input's
 float32 walk can be close where the kernel is not. So 0.1 % of an output's entries may miss the value tolerance,
