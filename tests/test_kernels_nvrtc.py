@@ -62,7 +62,10 @@ def test_ptxas_assembles_every_kernel_and_the_walks_without_spilling(ptx90):
     indirect light in 16: 4352 bytes; the short soft backward, whose slice's steps fit in 11 kB of local memory
     (against 87 kB), 1932 bytes, and the long one 472 (its indirect light's replay in 9 tangents and the bent normal's
     terms take it past 255 registers; it keeps 87 kB of local memory a thread whatever it spills); bounded here
-    (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (closed forms) and its soft backward spill nothing."""
+    (NVRTC 12.9, sm_90). The ssilvb_glsl shader's light backward (closed forms) and its soft backward spill nothing.
+    Older NVRTC releases allocate otherwise (12.1, torch 2.4's: the exact union's walk spills 8 bytes)."""
+    if cuda_offline.nvrtc_version() < (12, 9):
+        pytest.skip(f"the spills are bounded for NVRTC 12.9 and later, not {cuda_offline.nvrtc_version()}")
     report = cuda_offline.kernel_resources(ptx90, 90)
     assert set(report) == set(cuda_offline.KERNEL_NAMES)
     bounds = {"tao_exact_backward": 2048, "tao_hard_backward": 5120, "tao_walk_bitmask": 96,  # bytes spilled, reloaded

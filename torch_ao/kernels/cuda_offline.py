@@ -58,6 +58,16 @@ def nvrtc_library() -> ctypes.CDLL | None:
     return None
 
 
+def nvrtc_version() -> tuple[int, int] | None:
+    """The (major, minor) version of :func:`nvrtc_library`'s NVRTC, ``None`` where there is none."""
+    nvrtc = nvrtc_library()
+    if nvrtc is None:
+        return None
+    major, minor = ctypes.c_int(), ctypes.c_int()
+    _check(nvrtc, nvrtc.nvrtcVersion(ctypes.byref(major), ctypes.byref(minor)))
+    return major.value, minor.value
+
+
 def ptxas_path() -> str | None:
     """``ptxas`` from NVIDIA's pip package, else on ``PATH``, else ``None``."""
     found = _nvidia_paths("cuda_nvcc", "bin", "ptxas")
