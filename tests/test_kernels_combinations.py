@@ -1,6 +1,7 @@
 """Random combinations of a module's options, each run by its kernel (``backend="kernel"``, float32) and by the
 tensor-op walk (``backend="torch"``) in float64: the outputs and the gradients of depth (or a position buffer, every
-fifth call), normals, light, the camera's intrinsics (every fourth call) and every trainable parameter agree. The
+fifth call), normals, light, the camera's intrinsics (every fourth call) and every trainable parameter agree, every
+seventh call at half resolution (the walk on the 2x2-decimated frame, upsampled). The
 other kernel tests pick their settings by hand; these draw them (a fixed seed), so that options meet that no
 hand-picked setting combines. Bitmask AO draws a thickness model in two calls of five (back-face layer, map, per
 object, linear, the net's map), read from a G-buffer that carries object ids and a back-face layer in every call.
@@ -220,6 +221,8 @@ def _call(index: int):
     whose gradients it compares (outputs_and_gradients' ``inputs``)."""
     rng = random.Random(1000 + index)
     cls, options = draw(rng)
+    if index % 7 == 5:  # (the walk on the 2x2-decimated frame, upsampled)
+        options = dict(options, resolution="half")
     inputs = (("position",) if index % 5 == 4 else ()) + (("intrinsics",) if index % 4 == 2 else ())
     return cls, options, index % 3, inputs
 
