@@ -2,8 +2,14 @@
 that is not Python (the kernels' C++ and CUDA sources, the tracer's C++) matches its package's ``package-data``."""
 import fnmatch
 import subprocess
-import tomllib
 from pathlib import Path
+
+import pytest
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # (Python 3.10: its backport, where installed)
+    tomllib = pytest.importorskip("tomli")
 
 ROOT = Path(__file__).resolve().parents[1]
 

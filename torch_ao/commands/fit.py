@@ -38,7 +38,7 @@ from ..options import Option, options_by_name
 from .ao import OPTIONS as AO_OPTIONS
 from .args import parse_device
 from .inputs import add_input_flags, flag_errors, input_options
-from .options_cli import add_option, add_progress
+from .options_cli import SwitchPair, add_option, add_progress
 from .render import OPTIONS as RENDER_OPTIONS
 
 #: Parameters in world units: their learning rate is ``--lr`` times R, so a fit moves them by the
@@ -153,7 +153,7 @@ OPTIONS = (
 _FORMS = {
     "reference": dict(nargs="+", metavar="FILE|DIR|GLOB|LIST.txt"),
     "holdout": dict(nargs="+", metavar="FILE|DIR|GLOB|LIST.txt"),
-    "stagger": dict(action=argparse.BooleanOptionalAction),  # (unset: the pipeline's own choice)
+    "stagger": dict(action=SwitchPair),  # (unset: the pipeline's own choice)
 }
 
 

@@ -17,10 +17,19 @@ from ..cli import CommandError
 from ..options import Option
 
 __all__ = ["flag", "method_options", "add_option", "add_options", "add_progress", "given", "method_kwargs", "construct",
-           "PROGRESS"]
+           "PROGRESS", "SwitchPair"]
 
 #: Option kinds that have a command-line form (others, such as tensors or callables, are Python-only).
 FLAG_KINDS = (float, int, str, bool)
+
+
+class SwitchPair(argparse.BooleanOptionalAction):
+    """``--name`` / ``--no-name`` with its help as given: Python 3.10's ``BooleanOptionalAction`` appends
+    ``(default: ...)`` to it, where every help here says its default itself."""
+
+    def __init__(self, *args, help: str | None = None, **kwargs) -> None:
+        super().__init__(*args, help=help, **kwargs)
+        self.help = help
 
 
 def flag(name: str) -> str:
@@ -100,7 +109,7 @@ def add_option(parser, name: str, entry: Option | Mapping[str, Option], *, given
     default = None if given_only else opts[0].default
     kwargs = {"dest": name, "default": default, "help": _help(by_owner).replace("%", "%%")}
     if kind is bool:
-        kwargs["action"] = "store_true" if switch else argparse.BooleanOptionalAction
+        kwargs["action"] = "store_true" if switch else SwitchPair
     else:
         kwargs.update(type=_value_parser(name, opts, infinite), metavar=name.upper())
         kwargs["type"].options = by_owner  # what the flag is built from: {owner ("" when one): Option}
