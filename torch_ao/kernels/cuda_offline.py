@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 from .launch import cuda_entry_names, cuda_groups, cuda_options, cuda_source, thread_locale_kept
 
-__all__ = ["nvrtc_library", "ptxas_path", "compile_ptx", "compile_groups", "KernelResources", "kernel_resources",
-           "KERNEL_NAMES"]
+__all__ = ["nvrtc_library", "nvrtc_version", "ptxas_path", "compile_ptx", "compile_groups", "KernelResources",
+           "kernel_resources", "KERNEL_NAMES"]
 
 
 
