@@ -54,9 +54,8 @@ def safe_acos(x: torch.Tensor) -> torch.Tensor:
 def safe_atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """``atan2(y, x)`` ``(...)`` whose gradient at the origin is 0 on every torch release (as a norm's is there; the
     kernels' too): torch 2.13's own atan2 gives 0 there, torch 2.4's NaN."""
-    origin = (y == 0) & (x == 0)
-    angle = torch.atan2(y.masked_fill(origin, 0.0), x.masked_fill(origin, 1.0))
-    return torch.where(origin, torch.atan2(y, x).detach(), angle)
+    origin = (y == 0) & (x == 0)  # (there atan2 reads detached inputs: where's backward drops its NaN there)
+    return torch.atan2(torch.where(origin, y.detach(), y), torch.where(origin, x.detach(), x))
 
 
 def safe_pow(x: torch.Tensor, power: torch.Tensor) -> torch.Tensor:
