@@ -295,6 +295,7 @@ def assert_agrees_on_drawn_options(index: int, device: str) -> None:
     images = [g for n, g in ref_grads.items() if g is not None and n in PER_PIXEL]
     zero_floor = ZERO_TOL * max(float(g.abs().max()) for g in images)
     scalar_floor = ZERO_TOL * max(float(g.abs().sum()) for g in images)
+    events = int(flipped.sum()) + 1  # (each pixel whose value is off, and one the values do not show)
     event_seen = bool(flipped.any())  # (and any per-pixel gradient's entry off: they come first in ref_grads)
     for name, ref_grad in ref_grads.items():
         got_grad, ref32_grad = got_grads[name], ref32_grads[name]
@@ -320,7 +321,6 @@ def assert_agrees_on_drawn_options(index: int, device: str) -> None:
         moved = (ref32_grad - ref_grad).abs()
         allowed = GRAD_TOL * float(ref_grad.abs().max()) + 3 * float(moved.max()) + zero_floor + 1e-12
         off = (got_grad - ref_grad).abs() > allowed
-        events = int(flipped.sum()) + 1  # (each pixel whose value is off, and one the values do not show)
         flips = FLIP_ENTRIES * ref_grad.shape[1] * events
         event_seen |= bool(off.any())
         assert int(off.sum()) <= OFF_SHARE * off.numel() + flips, (cls.__name__, options, name, int(off.sum()), flips)
